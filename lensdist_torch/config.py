@@ -1,0 +1,257 @@
+"""Every number the library uses, as frozen dataclasses with the SPEC defaults.
+
+The defaults are ``../shared/SPEC.md``'s; a TOML file in ``configs/`` may override any field.
+Sections of the TOML file map one to one onto the dataclasses below::
+
+    [quality]      thresholds, temperatures, block size  (SPEC 2-5)
+    [image]        analysis size                          (SPEC 1)
+    [distortion]   coefficient ranges                     (SPEC 6)
+    [protocol]     pair protocol and set sizes            (SPEC 7)
+    [classifier]   eigen-space classifier                 (SPEC 8)
+
+Unknown sections or keys are an error (a typo must not silently fall back to a default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "QualityConfig",
+    "ImageConfig",
+    "DistortionConfig",
+    "ProtocolConfig",
+    "ClassifierConfig",
+    "LensdistConfig",
+    "load_config",
+    "config_to_dict",
+    "config_from_dict",
+]
+
+
+@dataclass(frozen=True)
+class QualityConfig:
+    """Settings of the registration-quality metric (SPEC sections 2-5).
+
+    Attributes:
+        block_size: side of the square pooling blocks in pixels.
+        theta_g: gradient-magnitude threshold of the risk map (normalised Sobel on [0, 1]).
+        theta_e: edge-preservation threshold below which a structured pixel is an error.
+        theta_d: intensity-difference threshold of the visual error.
+        min_block_ratio: block error ratios below this are set to 0.
+        gamma, k, sigma: Xydeas-Petrovic constants of the edge-preservation sigmoid.
+        tau_g, tau_e, tau_d, tau_b: temperatures of the smooth path (gradient-magnitude,
+            edge-preservation, intensity-difference and block-floor steps). Smaller is sharper.
+        chunk_size: pairs processed at once inside a big batch, so that the intermediates of a
+            chunk stay in the CPU cache. The result does not depend on it.
+    """
+
+    block_size: int = 8
+    theta_g: float = 0.02
+    theta_e: float = 0.5
+    theta_d: float = 0.1
+    min_block_ratio: float = 0.1
+    gamma: float = 0.9879
+    k: float = -22.0
+    sigma: float = 0.8
+    tau_g: float = 0.004
+    tau_e: float = 0.05
+    tau_d: float = 0.02
+    tau_b: float = 0.02
+    chunk_size: int = 4
+
+    def __post_init__(self) -> None:
+        _check_positive_int("block_size", self.block_size)
+        _check_positive_int("chunk_size", self.chunk_size)
+        for name in ("theta_g", "theta_d", "tau_g", "tau_e", "tau_d", "tau_b", "gamma"):
+            _check_positive_float(name, getattr(self, name))
+        if not 0.0 < self.theta_e < self.gamma:
+            raise ValueError(f"theta_e must lie in ]0, gamma={self.gamma}[, got {self.theta_e}")
+        if not 0.0 <= self.min_block_ratio <= 1.0:
+            raise ValueError(f"min_block_ratio must lie in [0, 1], got {self.min_block_ratio}")
+        if self.k >= 0:
+            raise ValueError(f"k must be negative (E grows with A), got {self.k}")
+
+    def with_temperature_scale(self, factor: float) -> "QualityConfig":
+        """A copy with every temperature multiplied by ``factor`` (for annealing)."""
+        _check_positive_float("factor", factor)
+        return dataclasses.replace(
+            self,
+            tau_g=self.tau_g * factor,
+            tau_e=self.tau_e * factor,
+            tau_d=self.tau_d * factor,
+            tau_b=self.tau_b * factor,
+        )
+
+
+@dataclass(frozen=True)
+class ImageConfig:
+    """Analysis size (SPEC 1): 320 x 424 gives 40 x 53 blocks, feature vectors of 2120."""
+
+    height: int = 320
+    width: int = 424
+
+    def __post_init__(self) -> None:
+        _check_positive_int("height", self.height)
+        _check_positive_int("width", self.width)
+
+
+@dataclass(frozen=True)
+class DistortionConfig:
+    """Ranges of the radial coefficients (SPEC 6): k2 in ]0, k2_max], k4 in ]0, k4_max]."""
+
+    k2_max: float = 2.5e-6
+    k4_max: float = 2.5e-11
+    n_classes: int = 4
+
+    def __post_init__(self) -> None:
+        _check_positive_float("k2_max", self.k2_max)
+        _check_positive_float("k4_max", self.k4_max)
+        _check_positive_int("n_classes", self.n_classes)
+
+
+@dataclass(frozen=True)
+class ProtocolConfig:
+    """The pair protocol (SPEC 7): motion ranges, set sizes, seed."""
+
+    seed: int = 0
+    scenes: tuple[str, ...] = ("gravel", "grass")
+    n_train: int = 12000
+    n_test_distorted: int = 400
+    n_test_undistorted: int = 100
+    ty_range: tuple[float, float] = (0.0, 40.0)
+    tx_range: tuple[float, float] = (-4.0, 4.0)
+    rotation_deg: float = 1.0
+    scale_range: tuple[float, float] = (0.98, 1.02)
+    perspective: float = 2e-5
+    perturbation: float = 0.01
+    shard_size: int = 500
+
+    def __post_init__(self) -> None:
+        for name in ("n_train", "n_test_distorted", "n_test_undistorted"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
+                raise ValueError(f"{name} must be a non-negative int, got {getattr(self, name)!r}")
+        _check_positive_int("shard_size", self.shard_size)
+        if len(self.scenes) == 0:
+            raise ValueError("scenes must name at least one scene")
+        for name in ("ty_range", "tx_range", "scale_range"):
+            lo, hi = getattr(self, name)
+            if not lo <= hi:
+                raise ValueError(f"{name} must be (low, high) with low <= high, got {(lo, hi)}")
+
+
+@dataclass(frozen=True)
+class ClassifierConfig:
+    """The eigen-space classifier (SPEC 8)."""
+
+    n_eigenvectors: int = 10
+    metric: str = "delta_avg"
+    reject_quantile: float = 0.95
+    n_neighbours: int = 4
+
+    def __post_init__(self) -> None:
+        _check_positive_int("n_eigenvectors", self.n_eigenvectors)
+        _check_positive_int("n_neighbours", self.n_neighbours)
+        if self.metric not in ("delta_avg", "delta_max"):
+            raise ValueError(f"metric must be 'delta_avg' or 'delta_max', got {self.metric!r}")
+        if not 0.0 < self.reject_quantile <= 1.0:
+            raise ValueError(f"reject_quantile must lie in ]0, 1], got {self.reject_quantile}")
+
+
+@dataclass(frozen=True)
+class LensdistConfig:
+    """All settings, one section per concern."""
+
+    quality: QualityConfig = field(default_factory=QualityConfig)
+    image: ImageConfig = field(default_factory=ImageConfig)
+    distortion: DistortionConfig = field(default_factory=DistortionConfig)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    classifier: ClassifierConfig = field(default_factory=ClassifierConfig)
+
+    def __post_init__(self) -> None:
+        b = self.quality.block_size
+        if self.image.height % b or self.image.width % b:
+            raise ValueError(
+                f"image size {self.image.height} x {self.image.width} must be a multiple of "
+                f"quality.block_size={b}"
+            )
+
+
+_SECTIONS = {
+    "quality": QualityConfig,
+    "image": ImageConfig,
+    "distortion": DistortionConfig,
+    "protocol": ProtocolConfig,
+    "classifier": ClassifierConfig,
+}
+
+
+def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
+    """Build a :class:`LensdistConfig` from nested dicts; unknown sections or keys raise."""
+    if not isinstance(data, dict):
+        raise TypeError(f"config data must be a dict, got {type(data).__name__}")
+    unknown = set(data) - set(_SECTIONS)
+    if unknown:
+        raise ValueError(f"unknown config section(s) {sorted(unknown)}; expected {sorted(_SECTIONS)}")
+    parts = {}
+    for name, cls in _SECTIONS.items():
+        values = dict(data.get(name, {}))
+        names = {f.name for f in dataclasses.fields(cls)}
+        bad = set(values) - names
+        if bad:
+            raise ValueError(f"unknown key(s) {sorted(bad)} in config section [{name}]")
+        for key, value in values.items():
+            if isinstance(value, list):  # TOML arrays -> the tuples of the dataclasses
+                values[key] = tuple(value)
+        parts[name] = cls(**values)
+    return LensdistConfig(**parts)
+
+
+def config_to_dict(config: LensdistConfig) -> dict[str, Any]:
+    """Nested plain dicts (lists for tuples), suitable for JSON and for checkpoints."""
+
+    def plain(value: Any) -> Any:
+        return list(value) if isinstance(value, tuple) else value
+
+    return {
+        name: {k: plain(v) for k, v in dataclasses.asdict(getattr(config, name)).items()}
+        for name in _SECTIONS
+    }
+
+
+def load_config(path: str | Path | None = None) -> LensdistConfig:
+    """Load a TOML config file; ``None`` gives the SPEC defaults.
+
+    Example:
+        >>> cfg = load_config(None)
+        >>> cfg.quality.theta_e
+        0.5
+    """
+    if path is None:
+        return LensdistConfig()
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file not found: {path}")
+    with path.open("rb") as f:
+        try:
+            data = tomllib.load(f)
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"config file {path} is not valid TOML: {exc}") from exc
+    return config_from_dict(data)
+
+
+def _check_positive_int(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+
+
+def _check_positive_float(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+        math.isfinite(value) and value > 0
+    ):
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")

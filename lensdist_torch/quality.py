@@ -1,0 +1,524 @@
+"""The registration-quality metric (paper section 3, SPEC sections 2-5).
+
+Two registered images give, per pixel, an intensity difference D, an edge-preservation value
+E (agreement of the axial gradient orientations) and a risk map R (both gradients weak,
+dilated 3 x 3). Structured pixels whose orientations disagree are registration errors;
+homogeneous pixels whose intensities disagree are visual errors. Each error image is pooled
+in non-overlapping blocks into a map of error ratios, with ratios below 0.1 set to 0.
+
+Two paths compute the same formulas:
+
+* the hard path (``quality_map``, ``local_criteria``/``error_images``/``block_pool`` with
+  ``smooth=False``) uses the exact formulas, no eps anywhere;
+* the smooth path (``smooth=True``, ``RegistrationQualityLoss``) replaces each step
+  ``[x < theta]`` by ``sigmoid((theta - x) / tau)`` and is differentiable everywhere.
+
+Orientation difference. SPEC defines it through the double-angle vectors
+``u = (s_x^2 - s_y^2, 2 s_x s_y)`` as ``0.5 * atan2(|u1 x u2|, u1 . u2)``. With
+``a = g1 . g2`` and ``b = g1 x g2`` (g the Sobel gradients) one has ``u1 . u2 = a^2 - b^2`` and
+``|u1 x u2| = 2|ab|``, so the same angle is ``atan2(|b|, |a|)``: second order in the gradients
+instead of fourth, which keeps float32 far from underflow. The tests check both forms agree.
+The fast hard map goes one step further: ``E < theta_E`` is, E being monotone in the angle,
+exactly ``dalpha > dalpha*``, i.e. ``|b| > tan(dalpha*) |a|``; no atan, no exp on the hot path.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from kornia.filters import spatial_gradient
+from torch import nn
+
+from .config import QualityConfig
+from .images import check_image_pair, check_valid_mask, to_grey
+
+__all__ = [
+    "LocalCriteria",
+    "ErrorImages",
+    "QualityResult",
+    "local_criteria",
+    "error_images",
+    "erode_valid",
+    "block_counts",
+    "block_pool",
+    "quality_map",
+    "registration_error_counts",
+    "registration_quality",
+    "registration_quality_loss",
+    "RegistrationQuality",
+    "RegistrationQualityLoss",
+]
+
+_HALF_PI = math.pi / 2
+
+
+class LocalCriteria(NamedTuple):
+    """Per-pixel criteria, each (B, 1, H, W).
+
+    d: |I1 - I2| in [0, 1]. a: orientation agreement A in [0, 1]. e: edge preservation E in
+    [0, gamma]. g1, g2: Sobel gradient magnitudes. r: dilated risk map (1 = both weak).
+    """
+
+    d: torch.Tensor
+    a: torch.Tensor
+    e: torch.Tensor
+    g1: torch.Tensor
+    g2: torch.Tensor
+    r: torch.Tensor
+
+
+class ErrorImages(NamedTuple):
+    """Per-pixel error images, each (B, 1, H, W) in [0, 1] (exactly {0, 1} on the hard path)."""
+
+    e_reg: torch.Tensor
+    e_vis: torch.Tensor
+
+
+class QualityResult(NamedTuple):
+    """What :func:`registration_quality` returns.
+
+    registration_map, visual_map: (B, 1, H/b, W/b) block error ratios, 0 or in [0.1, 1].
+    quality_index: (B,) 1 - mean of the registration map; 1 means no registration error.
+    criteria, errors: the per-pixel maps, only when asked for (else None).
+    """
+
+    registration_map: torch.Tensor
+    visual_map: torch.Tensor
+    quality_index: torch.Tensor
+    criteria: LocalCriteria | None = None
+    errors: ErrorImages | None = None
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _prepare(img1, img2, valid, config, data_range, validate=True):
+    cfg = config if config is not None else QualityConfig()
+    if not isinstance(cfg, QualityConfig):
+        raise TypeError(f"config must be a QualityConfig or None, got {type(cfg).__name__}")
+    if not (isinstance(data_range, (int, float)) and data_range > 0):
+        raise ValueError(f"data_range must be a positive number, got {data_range!r}")
+    check_image_pair(img1, img2, cfg.block_size, finite=validate)
+    g1, g2 = to_grey(img1), to_grey(img2)
+    dtype = torch.promote_types(g1.dtype, g2.dtype)
+    g1, g2 = g1.to(dtype), g2.to(dtype)
+    if data_range != 1.0:
+        g1, g2 = g1 / data_range, g2 / data_range
+    if valid is not None:
+        valid = check_valid_mask(valid, g1)
+    return g1, g2, valid, cfg
+
+
+def _gradients(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normalised Sobel (SPEC 2): (B, 1, H, W) -> s_x, s_y, each (B, 1, H, W)."""
+    s = spatial_gradient(grey, mode="sobel", order=1, normalized=True)
+    return s[:, :, 0], s[:, :, 1]
+
+
+def _pair_gradients(g1: torch.Tensor, g2: torch.Tensor):
+    # One Sobel call over both images halves the per-call overhead.
+    b = g1.shape[0]
+    sx, sy = _gradients(torch.cat([g1, g2], dim=0))
+    return sx[:b], sy[:b], sx[b:], sy[b:]
+
+
+def _safe_sqrt(x: torch.Tensor) -> torch.Tensor:
+    # sqrt has an infinite derivative at 0; mask before, not after, so no NaN leaks back.
+    pos = x > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def _orientation_difference(dot: torch.Tensor, cross: torch.Tensor, smooth: bool) -> torch.Tensor:
+    """dalpha = atan2(|cross|, |dot|) in [0, pi/2]; 0 where both gradients vanish."""
+    x, y = dot.abs(), cross.abs()
+    if not smooth:
+        return torch.atan2(y, x)  # atan2(0, 0) = 0: the exact formula, no guard needed
+    # atan2's gradient is 0/0 at the origin; mask zero vectors before it (SPEC 5).
+    zero = (x * x + y * y) == 0
+    return torch.where(zero, torch.zeros_like(x), torch.atan2(y, torch.where(zero, torch.ones_like(x), x)))
+
+
+def _edge_preservation(a: torch.Tensor, cfg: QualityConfig, smooth: bool) -> torch.Tensor:
+    if smooth:  # the same value, written in the overflow-free form
+        return cfg.gamma * torch.sigmoid(-cfg.k * (a - cfg.sigma))
+    return cfg.gamma / (1.0 + torch.exp(cfg.k * (a - cfg.sigma)))
+
+
+def _step_below(x: torch.Tensor, theta: float, tau: float, smooth: bool) -> torch.Tensor:
+    """[x <= theta] on the hard path, sigmoid((theta - x) / tau) on the smooth path."""
+    if smooth:
+        return torch.sigmoid((theta - x) / tau)
+    return (x <= theta).to(x.dtype)
+
+
+def _dilate3(x: torch.Tensor) -> torch.Tensor:
+    return F.max_pool2d(x, kernel_size=3, stride=1, padding=1)
+
+
+def erode_valid(valid: torch.Tensor) -> torch.Tensor:
+    """3 x 3 erosion of a (B, 1, H, W) validity mask; the image border counts as valid.
+
+    max_pool2d pads with -inf, so pixels outside the image never invalidate their neighbours.
+    """
+    return -F.max_pool2d(-valid, kernel_size=3, stride=1, padding=1)
+
+
+# ----------------------------------------------------------------------------- the pieces
+
+
+def local_criteria(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    config: QualityConfig | None = None,
+    smooth: bool = False,
+    data_range: float = 1.0,
+) -> LocalCriteria:
+    """The per-pixel criteria D, A, E, G1, G2 and the dilated risk map R (SPEC 2).
+
+    Args:
+        img1, img2: registered images (B, C, H, W), C in {1, 3}, float in [0, data_range] or uint8.
+        config: thresholds and temperatures; SPEC defaults when None.
+        smooth: sigmoid risk map (differentiable) instead of the hard one.
+        data_range: the value of white in float inputs.
+
+    Returns:
+        LocalCriteria of (B, 1, H, W) tensors.
+
+    Example:
+        >>> x = torch.rand(1, 1, 16, 16)
+        >>> c = local_criteria(x, x)
+        >>> bool((c.a == 1).all()), bool((c.d == 0).all())
+        (True, True)
+    """
+    g1, g2, _, cfg = _prepare(img1, img2, None, config, data_range)
+    return _criteria(g1, g2, cfg, smooth)
+
+
+def _criteria(g1, g2, cfg: QualityConfig, smooth: bool) -> LocalCriteria:
+    sx1, sy1, sx2, sy2 = _pair_gradients(g1, g2)
+    dot = sx1 * sx2 + sy1 * sy2
+    cross = sx1 * sy2 - sy1 * sx2
+    a = 1.0 - _orientation_difference(dot, cross, smooth) / _HALF_PI
+    e = _edge_preservation(a, cfg, smooth)
+    if smooth:
+        m1, m2 = _safe_sqrt(sx1 * sx1 + sy1 * sy1), _safe_sqrt(sx2 * sx2 + sy2 * sy2)
+    else:
+        m1, m2 = torch.sqrt(sx1 * sx1 + sy1 * sy1), torch.sqrt(sx2 * sx2 + sy2 * sy2)
+    r0 = _step_below(m1, cfg.theta_g, cfg.tau_g, smooth) * _step_below(m2, cfg.theta_g, cfg.tau_g, smooth)
+    return LocalCriteria(d=(g1 - g2).abs(), a=a, e=e, g1=m1, g2=m2, r=_dilate3(r0))
+
+
+def error_images(
+    criteria: LocalCriteria,
+    valid: torch.Tensor | None = None,
+    config: QualityConfig | None = None,
+    smooth: bool = False,
+) -> ErrorImages:
+    """Registration and visual error images (SPEC 3).
+
+    e_reg = V (1 - R) [E < theta_E] and e_vis = V R [D > theta_D], V the 3 x 3-eroded validity.
+
+    Args:
+        criteria: from :func:`local_criteria` (with the same ``smooth``).
+        valid: (B, 1, H, W) validity of the registered pair (1 = real content), or None.
+        config: thresholds and temperatures; SPEC defaults when None.
+        smooth: sigmoids instead of thresholds.
+    """
+    cfg = config if config is not None else QualityConfig()
+    r = criteria.r
+    if smooth:
+        mis = torch.sigmoid((cfg.theta_e - criteria.e) / cfg.tau_e)
+        vis = torch.sigmoid((criteria.d - cfg.theta_d) / cfg.tau_d)
+    else:
+        mis = (criteria.e < cfg.theta_e).to(r.dtype)
+        vis = (criteria.d > cfg.theta_d).to(r.dtype)
+    e_reg, e_vis = (1.0 - r) * mis, r * vis
+    if valid is not None:
+        v = erode_valid(check_valid_mask(valid, r))
+        e_reg, e_vis = v * e_reg, v * e_vis
+    return ErrorImages(e_reg=e_reg, e_vis=e_vis)
+
+
+def block_counts(error: torch.Tensor, block_size: int = 8) -> torch.Tensor:
+    """Sum of a (B, 1, H, W) error image over non-overlapping blocks -> (B, 1, H/b, W/b)."""
+    if error.dim() != 4 or error.shape[-2] % block_size or error.shape[-1] % block_size:
+        raise ValueError(
+            f"error must be (B, 1, H, W) with H, W multiples of block_size={block_size}, "
+            f"got {tuple(error.shape)}"
+        )
+    return F.avg_pool2d(error, kernel_size=block_size, stride=block_size, divisor_override=1)
+
+
+def block_pool(
+    error: torch.Tensor,
+    config: QualityConfig | None = None,
+    smooth: bool = False,
+) -> torch.Tensor:
+    """Block error ratios with the floor of SPEC 4: ratios below min_block_ratio become 0.
+
+    Smooth: ratio * sigmoid((ratio - min_block_ratio) / tau_b).
+
+    Args:
+        error: (B, 1, H, W) error image in [0, 1].
+    Returns:
+        (B, 1, H/b, W/b) values 0 or in [min_block_ratio, 1] (hard path).
+    """
+    cfg = config if config is not None else QualityConfig()
+    area = cfg.block_size * cfg.block_size
+    ratio = block_counts(error, cfg.block_size) / area
+    if smooth:
+        return ratio * torch.sigmoid((ratio - cfg.min_block_ratio) / cfg.tau_b)
+    return torch.where(ratio < cfg.min_block_ratio, torch.zeros_like(ratio), ratio)
+
+
+# ----------------------------------------------------------------------------- fast hard map
+
+
+def _tan_threshold(cfg: QualityConfig) -> float | None:
+    """tan(dalpha*) with E < theta_E <=> dalpha > dalpha*; None if every pixel errs."""
+    # E = gamma / (1 + exp(k (A - sigma))) < theta_E  <=>  A < sigma + ln(gamma / theta_E - 1) / k
+    a_star = cfg.sigma + math.log(cfg.gamma / cfg.theta_e - 1.0) / cfg.k
+    if a_star > 1.0:
+        return None
+    dalpha_star = (1.0 - a_star) * _HALF_PI
+    return math.inf if dalpha_star >= _HALF_PI else math.tan(dalpha_star)
+
+
+def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool):
+    sx1, sy1, sx2, sy2 = _pair_gradients(g1, g2)
+    cross = (sx1 * sy2 - sy1 * sx2).abs_()
+    if t is None:
+        mis = torch.ones_like(cross, dtype=torch.bool)
+    else:
+        mis = cross > (sx1 * sx2 + sy1 * sy2).abs_().mul_(t)
+    theta2 = cfg.theta_g * cfg.theta_g  # G <= theta  <=>  G^2 <= theta^2 (G >= 0)
+    weak = (sx1 * sx1 + sy1 * sy1 <= theta2) & (sx2 * sx2 + sy2 * sy2 <= theta2)
+    r = _dilate3(weak.to(g1.dtype)) > 0
+    err = mis & ~r
+    if valid is not None:
+        v = erode_valid(valid) > 0.5
+        err &= v
+    reg = block_counts(err.to(g1.dtype), cfg.block_size)
+    if not visual:
+        return reg, None
+    vis = r & ((g1 - g2).abs() > cfg.theta_d)
+    if valid is not None:
+        vis &= v
+    return reg, block_counts(vis.to(g1.dtype), cfg.block_size)
+
+
+def _hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool):
+    t = _tan_threshold(cfg)
+    n, step = g1.shape[0], cfg.chunk_size
+    if n <= step:
+        return _hard_counts_chunk(g1, g2, valid, cfg, t, visual)
+    # Chunks keep the ~20 intermediates of a chunk in cache; the maps do not depend on it.
+    parts = [
+        _hard_counts_chunk(
+            g1[i : i + step], g2[i : i + step], None if valid is None else valid[i : i + step], cfg, t, visual
+        )
+        for i in range(0, n, step)
+    ]
+    reg = torch.cat([p[0] for p in parts])
+    return reg, (torch.cat([p[1] for p in parts]) if visual else None)
+
+
+def _floor(counts: torch.Tensor, cfg: QualityConfig) -> torch.Tensor:
+    ratio = counts / (cfg.block_size * cfg.block_size)
+    return torch.where(ratio < cfg.min_block_ratio, torch.zeros_like(ratio), ratio)
+
+
+def registration_error_counts(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    config: QualityConfig | None = None,
+    data_range: float = 1.0,
+    validate: bool = True,
+) -> torch.Tensor:
+    """Registration-error pixels per block, before the floor: (B, 1, H/b, W/b) uint8.
+
+    This is the exact, compact form in which generated data sets store quality maps.
+    """
+    g1, g2, valid, cfg = _prepare(img1, img2, valid, config, data_range, validate)
+    if cfg.block_size > 15:
+        raise ValueError(f"uint8 counts need block_size <= 15, got {cfg.block_size}")
+    with torch.no_grad():
+        reg, _ = _hard_counts(g1, g2, valid, cfg, visual=False)
+    return reg.to(torch.uint8)
+
+
+def quality_map(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    config: QualityConfig | None = None,
+    data_range: float = 1.0,
+    validate: bool = True,
+) -> torch.Tensor:
+    """The hard registration-error quality map of SPEC section 4.
+
+    Args:
+        img1, img2: registered images (B, C, H, W), C in {1, 3}, float in [0, data_range] or
+            uint8; H and W multiples of the block size (8).
+        valid: (B, 1, H, W) validity of the registered pair (1 = real content), or None.
+        config: thresholds and block size; SPEC defaults when None.
+        data_range: the value of white in float inputs.
+        validate: check inputs for NaN/Inf (one pass over the data); shapes are always checked.
+
+    Returns:
+        (B, 1, H/8, W/8) tensor of block error ratios, 0 or in [0.1, 1].
+
+    Example:
+        >>> x = torch.rand(2, 1, 32, 48)
+        >>> quality_map(x, x).shape
+        torch.Size([2, 1, 4, 6])
+        >>> float(quality_map(x, x).sum())
+        0.0
+    """
+    g1, g2, valid, cfg = _prepare(img1, img2, valid, config, data_range, validate)
+    with torch.no_grad():
+        reg, _ = _hard_counts(g1, g2, valid, cfg, visual=False)
+    return _floor(reg, cfg)
+
+
+# ----------------------------------------------------------------------------- everything at once
+
+
+def registration_quality(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    config: QualityConfig | None = None,
+    smooth: bool = False,
+    return_pixels: bool = False,
+    data_range: float = 1.0,
+) -> QualityResult:
+    """Registration and visual maps, a global index, and optionally the per-pixel maps.
+
+    Args:
+        img1, img2: registered images (B, C, H, W), float in [0, data_range] or uint8.
+        valid: (B, 1, H, W) validity mask or None.
+        config: thresholds, temperatures and block size; SPEC defaults when None.
+        smooth: the differentiable sigmoid path (SPEC 5) instead of the hard one.
+        return_pixels: also return the per-pixel criteria and error images.
+    """
+    g1, g2, valid, cfg = _prepare(img1, img2, valid, config, data_range)
+    if not smooth and not return_pixels:
+        with torch.no_grad():
+            reg, vis = _hard_counts(g1, g2, valid, cfg, visual=True)
+        reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
+        return QualityResult(reg_map, vis_map, 1.0 - reg_map.mean(dim=(1, 2, 3)))
+    crit = _criteria(g1, g2, cfg, smooth)
+    errs = error_images(crit, valid, cfg, smooth)
+    reg_map = block_pool(errs.e_reg, cfg, smooth)
+    vis_map = block_pool(errs.e_vis, cfg, smooth)
+    q = 1.0 - reg_map.mean(dim=(1, 2, 3))
+    if return_pixels:
+        return QualityResult(reg_map, vis_map, q, crit, errs)
+    return QualityResult(reg_map, vis_map, q)
+
+
+_REDUCTIONS = ("mean", "sum", "none")
+
+
+def registration_quality_loss(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    config: QualityConfig | None = None,
+    reduction: str = "mean",
+    data_range: float = 1.0,
+) -> torch.Tensor:
+    """The smooth registration-error map reduced to a loss (SPEC 5); lower is better.
+
+    Args:
+        img1, img2: (B, C, H, W) float images in [0, data_range]; gradients flow to both.
+        valid: (B, 1, H, W) validity (e.g. the warp's in-bounds mask) or None.
+        config: temperatures and thresholds; SPEC defaults when None.
+        reduction: 'mean' (over blocks and batch), 'sum', or 'none' for the (B, 1, H/b, W/b) map.
+
+    Example:
+        >>> x = torch.rand(1, 1, 32, 32, requires_grad=True)
+        >>> y = torch.roll(x.detach(), 1, dims=-1)
+        >>> registration_quality_loss(x, y).backward()
+        >>> bool(torch.isfinite(x.grad).all())
+        True
+    """
+    if reduction not in _REDUCTIONS:
+        raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
+    g1, g2, valid, cfg = _prepare(img1, img2, valid, config, data_range)
+    crit = _criteria(g1, g2, cfg, smooth=True)
+    reg_map = block_pool(error_images(crit, valid, cfg, smooth=True).e_reg, cfg, smooth=True)
+    if reduction == "mean":
+        return reg_map.mean()
+    if reduction == "sum":
+        return reg_map.sum()
+    return reg_map
+
+
+class RegistrationQuality(nn.Module):
+    """Module form of :func:`registration_quality`; it only stores the settings.
+
+    Args:
+        config: thresholds, temperatures and block size (SPEC defaults when None).
+        smooth: use the differentiable path.
+        return_pixels: also return the per-pixel maps.
+        data_range: the value of white in float inputs.
+
+    Example:
+        >>> metric = RegistrationQuality()
+        >>> x = torch.rand(2, 1, 32, 32)
+        >>> metric(x, x).registration_map.shape
+        torch.Size([2, 1, 4, 4])
+    """
+
+    def __init__(
+        self,
+        config: QualityConfig | None = None,
+        smooth: bool = False,
+        return_pixels: bool = False,
+        data_range: float = 1.0,
+    ) -> None:
+        super().__init__()
+        self.config = config if config is not None else QualityConfig()
+        self.smooth = smooth
+        self.return_pixels = return_pixels
+        self.data_range = data_range
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> QualityResult:
+        return registration_quality(
+            img1, img2, valid, self.config, self.smooth, self.return_pixels, self.data_range
+        )
+
+    def extra_repr(self) -> str:
+        return f"smooth={self.smooth}, block_size={self.config.block_size}"
+
+
+class RegistrationQualityLoss(nn.Module):
+    """Module form of :func:`registration_quality_loss`: an auxiliary loss for registration.
+
+    Example:
+        >>> loss_fn = RegistrationQualityLoss()
+        >>> warped = torch.rand(4, 1, 64, 64, requires_grad=True)
+        >>> target = torch.rand(4, 1, 64, 64)
+        >>> loss = loss_fn(warped, target)
+        >>> loss.backward()
+    """
+
+    def __init__(self, config: QualityConfig | None = None, reduction: str = "mean", data_range: float = 1.0) -> None:
+        super().__init__()
+        if reduction not in _REDUCTIONS:
+            raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
+        self.config = config if config is not None else QualityConfig()
+        self.reduction = reduction
+        self.data_range = data_range
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        return registration_quality_loss(img1, img2, valid, self.config, self.reduction, self.data_range)
+
+    def extra_repr(self) -> str:
+        return f"reduction={self.reduction!r}"
