@@ -63,7 +63,7 @@ class QualityConfig:
     tau_e: float = 0.05
     tau_d: float = 0.02
     tau_b: float = 0.02
-    chunk_size: int = 4
+    chunk_size: int = 2
 
     def __post_init__(self) -> None:
         _check_positive_int("block_size", self.block_size)

@@ -29,7 +29,6 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import spatial_gradient
 from torch import nn
 
 from .config import QualityConfig
@@ -112,17 +111,33 @@ def _prepare(img1, img2, valid, config, data_range, validate=True):
     return g1, g2, valid, cfg
 
 
+def _sobel8(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """8 x the normalised Sobel gradients: the raw [1, 2, 1] x [-1, 0, 1] responses."""
+    p = F.pad(grey, (1, 1, 1, 1), mode="replicate")
+    dx = p[..., :, 2:] - p[..., :, :-2]  # (B, 1, H + 2, W)
+    dy = p[..., 2:, :] - p[..., :-2, :]  # (B, 1, H, W + 2)
+    sx = torch.add(dx[..., :-2, :] + dx[..., 2:, :], dx[..., 1:-1, :], alpha=2)
+    sy = torch.add(dy[..., :, :-2] + dy[..., :, 2:], dy[..., :, 1:-1], alpha=2)
+    return sx, sy
+
+
 def _gradients(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normalised Sobel (SPEC 2): (B, 1, H, W) -> s_x, s_y, each (B, 1, H, W)."""
-    s = spatial_gradient(grey, mode="sobel", order=1, normalized=True)
-    return s[:, :, 0], s[:, :, 1]
+    """Normalised Sobel (SPEC 2): (B, 1, H, W) -> s_x, s_y, each (B, 1, H, W).
+
+    The same numbers as ``kornia.filters.spatial_gradient(x, "sobel", 1, normalized=True)``
+    (replicate border, kernels / 8; the tests check agreement to 1e-6), computed separably
+    with slices: several times faster on the CPU than kornia's 2-channel convolution, which
+    dominated the whole metric's time. The fast hard path uses the raw responses
+    (:func:`_sobel8`) with thresholds scaled by the exact factor 8.
+    """
+    sx, sy = _sobel8(grey)
+    return sx * 0.125, sy * 0.125
 
 
 def _pair_gradients(g1: torch.Tensor, g2: torch.Tensor):
-    # One Sobel call over both images halves the per-call overhead.
-    b = g1.shape[0]
-    sx, sy = _gradients(torch.cat([g1, g2], dim=0))
-    return sx[:b], sy[:b], sx[b:], sy[b:]
+    sx1, sy1 = _gradients(g1)
+    sx2, sy2 = _gradients(g2)
+    return sx1, sy1, sx2, sy2
 
 
 def _safe_sqrt(x: torch.Tensor) -> torch.Tensor:
@@ -287,27 +302,58 @@ def _tan_threshold(cfg: QualityConfig) -> float | None:
     return math.inf if dalpha_star >= _HALF_PI else math.tan(dalpha_star)
 
 
+def _dilate3_float(x: torch.Tensor) -> torch.Tensor:
+    """3 x 3 max-pool dilation (stride 1, outside = 0) of a (B, 1, H, W) {0, 1} float mask.
+
+    Separable maxima of shifted slices: the same values as ``max_pool2d(x, 3, 1, 1)`` on
+    non-negative masks, at a fraction of the cost of the 9-tap pooling kernel.
+    """
+    p = F.pad(x, (1, 1, 1, 1))
+    rows = torch.maximum(torch.maximum(p[..., :, :-2], p[..., :, 1:-1]), p[..., :, 2:])
+    return torch.maximum(torch.maximum(rows[..., :-2, :], rows[..., 1:-1, :]), rows[..., 2:, :])
+
+
+def _positive(x: torch.Tensor) -> torch.Tensor:
+    """[x > 0] as a {0, 1} float tensor, in place.
+
+    IEEE subtraction never rounds a non-zero difference to zero, so ``[a - b > 0]`` is exactly
+    ``[a > b]``; sign + clamp stay in float, where comparisons producing bool tensors (and
+    converting them back) cost several times more on the CPU.
+    """
+    return x.sign_().clamp_(min=0.0)
+
+
+def _block_sum(x: torch.Tensor, block: int) -> torch.Tensor:
+    b, _, h, w = x.shape
+    x = x.contiguous().view(b, h // block, block, w).sum(2)
+    return x.view(b, h // block, w // block, block).sum(-1).view(b, 1, h // block, w // block)
+
+
 def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool):
-    sx1, sy1, sx2, sy2 = _pair_gradients(g1, g2)
-    cross = (sx1 * sy2 - sy1 * sx2).abs_()
+    sx1, sy1 = _sobel8(g1)
+    sx2, sy2 = _sobel8(g2)
     if t is None:
-        mis = torch.ones_like(cross, dtype=torch.bool)
-    else:
-        mis = cross > (sx1 * sx2 + sy1 * sy2).abs_().mul_(t)
-    theta2 = cfg.theta_g * cfg.theta_g  # G <= theta  <=>  G^2 <= theta^2 (G >= 0)
-    weak = (sx1 * sx1 + sy1 * sy1 <= theta2) & (sx2 * sx2 + sy2 * sy2 <= theta2)
-    r = _dilate3(weak.to(g1.dtype)) > 0
-    err = mis & ~r
+        mis = torch.ones_like(sx1)
+    else:  # |b| > t |a|  <=>  E < theta_E  (see the module docstring)
+        cross = torch.addcmul(sx1 * sy2, sy1, sx2, value=-1.0).abs_()
+        dot = torch.addcmul(sx1 * sx2, sy1, sy2).abs_()
+        mis = _positive(cross.sub_(dot.mul_(t)))
+    theta2 = 64.0 * cfg.theta_g * cfg.theta_g  # G <= theta <=> (8G)^2 <= 64 theta^2; 64 is exact
+    strong1 = _positive(torch.addcmul(sx1 * sx1, sy1, sy1).sub_(theta2))
+    strong2 = _positive(torch.addcmul(sx2 * sx2, sy2, sy2).sub_(theta2))
+    r = _dilate3_float((1.0 - strong1).mul_(1.0 - strong2))
+    err = mis.mul_(1.0 - r)
     if valid is not None:
-        v = erode_valid(valid) > 0.5
-        err &= v
-    reg = block_counts(err.to(g1.dtype), cfg.block_size)
+        # erosion of the valid mask = dilation of the invalid one; outside the image is valid
+        v = 1.0 - _dilate3_float(_positive(0.5 - valid))
+        err.mul_(v)
+    reg = _block_sum(err, cfg.block_size)
     if not visual:
         return reg, None
-    vis = r & ((g1 - g2).abs() > cfg.theta_d)
+    vis = _positive((g1 - g2).abs_().sub_(cfg.theta_d)).mul_(r)
     if valid is not None:
-        vis &= v
-    return reg, block_counts(vis.to(g1.dtype), cfg.block_size)
+        vis.mul_(v)
+    return reg, _block_sum(vis, cfg.block_size)
 
 
 def _hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool):
