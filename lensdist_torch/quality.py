@@ -104,8 +104,11 @@ def _prepare(img1, img2, valid, config, data_range, validate=True):
     g1, g2 = to_grey(img1), to_grey(img2)
     dtype = torch.promote_types(g1.dtype, g2.dtype)
     g1, g2 = g1.to(dtype), g2.to(dtype)
-    if data_range != 1.0:
-        g1, g2 = g1 / data_range, g2 / data_range
+    if data_range != 1.0:  # the value of white in float inputs; uint8 is already / 255 (SPEC 1)
+        if img1.is_floating_point():
+            g1 = g1 / data_range
+        if img2.is_floating_point():
+            g2 = g2 / data_range
     if valid is not None:
         valid = check_valid_mask(valid, g1)
     return g1, g2, valid, cfg
@@ -144,6 +147,22 @@ def _safe_sqrt(x: torch.Tensor) -> torch.Tensor:
     # sqrt has an infinite derivative at 0; mask before, not after, so no NaN leaks back.
     pos = x > 0
     return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def _direction(sx: torch.Tensor, sy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(s_x, s_y) / max(|s_x|, |s_y|), the scale detached; (near-)zero vectors become 0.
+
+    Smooth path only. The orientation difference does not depend on the gradients' lengths, so
+    the scaling moves no value and its gradient is exact (the angle's derivative along the
+    vector is 0). Unscaled, dot and cross are products of two gradients and 1 / (dot^2 +
+    cross^2) in atan2's backward overflows for float32 gradients below about 1e-10 (NaN
+    gradients on nearly flat images, SPEC 5). Gradients below sqrt(tiny) (1e-19 in float32)
+    count as zero vectors, which keeps 1 / max finite.
+    """
+    m = torch.maximum(sx.abs(), sy.abs()).detach()
+    ok = m > math.sqrt(torch.finfo(m.dtype).tiny)
+    inv = torch.where(ok, 1.0 / torch.where(ok, m, torch.ones_like(m)), torch.zeros_like(m))
+    return sx * inv, sy * inv
 
 
 def _orientation_difference(dot: torch.Tensor, cross: torch.Tensor, smooth: bool) -> torch.Tensor:
@@ -214,8 +233,13 @@ def local_criteria(
 
 def _criteria(g1, g2, cfg: QualityConfig, smooth: bool) -> LocalCriteria:
     sx1, sy1, sx2, sy2 = _pair_gradients(g1, g2)
-    dot = sx1 * sx2 + sy1 * sy2
-    cross = sx1 * sy2 - sy1 * sx2
+    if smooth:
+        ux1, uy1 = _direction(sx1, sy1)
+        ux2, uy2 = _direction(sx2, sy2)
+    else:
+        ux1, uy1, ux2, uy2 = sx1, sy1, sx2, sy2
+    dot = ux1 * ux2 + uy1 * uy2
+    cross = ux1 * uy2 - uy1 * ux2
     a = 1.0 - _orientation_difference(dot, cross, smooth) / _HALF_PI
     e = _edge_preservation(a, cfg, smooth)
     if smooth:
@@ -252,7 +276,10 @@ def error_images(
         vis = (criteria.d > cfg.theta_d).to(r.dtype)
     e_reg, e_vis = (1.0 - r) * mis, r * vis
     if valid is not None:
-        v = erode_valid(check_valid_mask(valid, r))
+        v = check_valid_mask(valid, r)
+        if not smooth:  # as the fast path: a pixel is valid where valid >= 0.5
+            v = (v >= 0.5).to(r.dtype)
+        v = erode_valid(v)
         e_reg, e_vis = v * e_reg, v * e_vis
     return ErrorImages(e_reg=e_reg, e_vis=e_vis)
 

@@ -1,0 +1,292 @@
+"""The paper's pair protocol (paper 4.1, SPEC section 7): draw, render, register, measure.
+
+Pair i of a set is a pure function of (protocol seed, set name, i): every random number of a
+pair comes from its own ``torch.Generator``, drawn in a fixed order, so a pair is the same
+whatever the batch size, the number of workers or the shard it falls in.
+
+Geometry. A view maps its ideal pixel coordinates q into the scene by the placement
+``P(q) = c + z (q - p0)`` (zoom z, scene point c under the view centre). I1 samples the scene
+at ``P(q)`` and I2 at ``P(M q)``, q being the ideal point of each distorted pixel (eq. 4).
+Distortion, motion and placement are composed into one sampling grid per image. The zoom is
+fixed per scene (the largest <= 1 that keeps the worst-case footprint inside the scene),
+so that texture scale never correlates with the distortion level; the position is random.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+from dataclasses import dataclass
+
+import torch
+
+from .config import LensdistConfig
+from .distortion import (
+    METRICS,
+    REJECT,
+    delta_metric,
+    delta_top,
+    distortion_center,
+    distortion_class,
+    distortion_grid,
+    sample,
+)
+from .quality import registration_error_counts
+from .registration import estimate_homography, perturb_homography, warp_to_reference
+
+__all__ = [
+    "SETS",
+    "PairParams",
+    "PairBatch",
+    "pair_seed",
+    "set_size",
+    "is_distorted",
+    "draw_pairs",
+    "motion_matrix",
+    "footprint",
+    "scene_zoom",
+    "render_pairs",
+    "make_pairs",
+]
+
+SETS = ("train", "test")
+_N_DRAWS = 11  # scene, k2, k4, ty, tx, rotation, scale, h31, h32, position x, position y
+
+
+@dataclass
+class PairParams:
+    """Everything drawn for a batch of pairs (all float64 unless said otherwise).
+
+    index, seed, scene: (B,) int64. k2, k4: (B,). motion: (B, 6) = (t_y, t_x, rotation in
+    degrees, scale, h31, h32). M: (B, 3, 3), I2's ideal coordinates -> I1's. position: (B, 2)
+    uniform draws in [0, 1) placing the view in its scene. perturbed: (B,) bool, class-R pairs
+    whose estimated homography is perturbed. generators: one per pair, for later draws.
+    """
+
+    index: torch.Tensor
+    seed: torch.Tensor
+    scene: torch.Tensor
+    k2: torch.Tensor
+    k4: torch.Tensor
+    motion: torch.Tensor
+    M: torch.Tensor
+    position: torch.Tensor
+    perturbed: torch.Tensor
+    generators: list
+
+
+@dataclass
+class PairBatch:
+    """Generated pairs: their parameters, ground truth, registration and quality counts."""
+
+    params: PairParams
+    delta: dict  # metric name -> (B,) float64
+    classes: dict  # metric name -> (B,) int64 class index (REJECT for undistorted)
+    H: torch.Tensor  # (B, 3, 3) float64, the homography used for the warp (perturbed for R)
+    converged: torch.Tensor  # (B,) bool
+    residual: torch.Tensor  # (B,) float32
+    counts: torch.Tensor  # (B, 1, H/b, W/b) uint8 registration-error pixels per block
+    img1: torch.Tensor | None = None
+    img2: torch.Tensor | None = None
+
+
+def pair_seed(seed: int, set_name: str, index: int) -> int:
+    """The seed of pair ``index`` of ``set_name``: a hash, so sets and seeds never overlap."""
+    if set_name not in SETS:
+        raise ValueError(f"set_name must be one of {SETS}, got {set_name!r}")
+    digest = hashlib.blake2b(f"lensdist:{seed}:{set_name}:{index}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "little") & ((1 << 63) - 1)
+
+
+def set_size(config: LensdistConfig, set_name: str) -> int:
+    p = config.protocol
+    if set_name == "train":
+        return p.n_train
+    if set_name == "test":
+        return p.n_test_distorted + p.n_test_undistorted
+    raise ValueError(f"set_name must be one of {SETS}, got {set_name!r}")
+
+
+def is_distorted(config: LensdistConfig, set_name: str, index: int) -> bool:
+    """Training pairs are all distorted; test pairs after the first n_test_distorted are class R."""
+    return set_name == "train" or index < config.protocol.n_test_distorted
+
+
+def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) -> PairParams:
+    """Draw the parameters of pairs ``indices`` of a set (SPEC 7), one generator per pair."""
+    p, dcfg = config.protocol, config.distortion
+    rows, seeds, gens, distorted = [], [], [], []
+    n = set_size(config, set_name)
+    for i in indices:
+        i = int(i)
+        if not 0 <= i < n:
+            raise ValueError(f"pair index {i} is outside the {set_name} set of {n} pairs")
+        s = pair_seed(p.seed, set_name, i)
+        g = torch.Generator().manual_seed(s)
+        rows.append(torch.rand(_N_DRAWS, generator=g, dtype=torch.float64))
+        seeds.append(s)
+        gens.append(g)
+        distorted.append(is_distorted(config, set_name, i))
+    u = torch.stack(rows)
+    dist = torch.tensor(distorted)
+
+    def between(col, lo, hi):
+        return lo + (hi - lo) * u[:, col]
+
+    scene = torch.clamp((u[:, 0] * n_scenes).long(), max=n_scenes - 1)
+    # ]0, max]: 1 - u lies in ]0, 1]
+    k2 = torch.where(dist, (1.0 - u[:, 1]) * dcfg.k2_max, torch.zeros(()).double())
+    k4 = torch.where(dist, (1.0 - u[:, 2]) * dcfg.k4_max, torch.zeros(()).double())
+    motion = torch.stack(
+        [
+            between(3, *p.ty_range),
+            between(4, *p.tx_range),
+            between(5, -p.rotation_deg, p.rotation_deg),
+            between(6, *p.scale_range),
+            between(7, -p.perspective, p.perspective),
+            between(8, -p.perspective, p.perspective),
+        ],
+        dim=1,
+    )
+    M = motion_matrix(motion, config.image.height, config.image.width)
+    return PairParams(
+        index=torch.tensor([int(i) for i in indices], dtype=torch.int64),
+        seed=torch.tensor(seeds, dtype=torch.int64),
+        scene=scene,
+        k2=k2,
+        k4=k4,
+        motion=motion,
+        M=M,
+        position=u[:, 9:11].clone(),
+        perturbed=~dist,
+        generators=gens,
+    )
+
+
+def _translation(x: float, y: float, batch: int) -> torch.Tensor:
+    t = torch.eye(3, dtype=torch.float64).repeat(batch, 1, 1)
+    t[:, 0, 2], t[:, 1, 2] = x, y
+    return t
+
+
+def motion_matrix(motion: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """M = T(p0) A T(-p0) from (B, 6) motion parameters (t_y, t_x, degrees, s, h31, h32)."""
+    ty, tx, deg, s, h31, h32 = motion.double().unbind(1)
+    t = torch.deg2rad(deg)
+    a = torch.zeros(motion.shape[0], 3, 3, dtype=torch.float64)
+    a[:, 0, 0], a[:, 0, 1], a[:, 0, 2] = s * torch.cos(t), -s * torch.sin(t), tx
+    a[:, 1, 0], a[:, 1, 1], a[:, 1, 2] = s * torch.sin(t), s * torch.cos(t), ty
+    a[:, 2, 0], a[:, 2, 1], a[:, 2, 2] = h31, h32, 1.0
+    x0, y0 = distortion_center(height, width)
+    b = motion.shape[0]
+    return _translation(x0, y0, b) @ a @ _translation(-x0, -y0, b)
+
+
+def _apply(Hm: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) homographies on (B, N, 2) points."""
+    ph = torch.cat([pts, torch.ones_like(pts[..., :1])], dim=-1) @ Hm.transpose(1, 2)
+    return ph[..., :2] / ph[..., 2:]
+
+
+def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
+    """Worst-case box (x_lo, x_hi, y_lo, y_hi), relative to p0, of every sample of both views.
+
+    The ideal box at the largest coefficients, moved by every extreme of the motion ranges
+    (the border of a box maps to a quadrilateral whose extremes lie at its corners), plus a
+    2 px margin for bilinear support and rounding.
+    """
+    h, w = config.image.height, config.image.width
+    x0, y0 = distortion_center(h, w)
+    d = config.distortion
+    ideal = distortion_grid([d.k2_max], [d.k4_max], h, w, torch.float64)[0]
+    lo, hi = ideal.reshape(-1, 2).amin(0), ideal.reshape(-1, 2).amax(0)
+    corners = torch.tensor([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]], dtype=torch.float64)
+    p = config.protocol
+    extremes = list(
+        itertools.product(
+            p.ty_range, p.tx_range, (-p.rotation_deg, p.rotation_deg), p.scale_range,
+            (-p.perspective, p.perspective), (-p.perspective, p.perspective),
+        )
+    )
+    M = motion_matrix(torch.tensor(extremes, dtype=torch.float64), h, w)
+    moved = _apply(M, corners.expand(len(extremes), 4, 2)).reshape(-1, 2)
+    allp = torch.cat([corners, moved])
+    margin = 2.0
+    return (
+        float(allp[:, 0].min()) - x0 - margin,
+        float(allp[:, 0].max()) - x0 + margin,
+        float(allp[:, 1].min()) - y0 - margin,
+        float(allp[:, 1].max()) - y0 + margin,
+    )
+
+
+def scene_zoom(scene_hw: tuple[int, int], box: tuple[float, float, float, float]) -> float:
+    """The largest zoom <= 1 (scene px per view px) that fits the footprint inside the scene."""
+    hs, ws = scene_hw
+    return min(1.0, (ws - 1) / (box[1] - box[0]), (hs - 1) / (box[3] - box[2]))
+
+
+def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: LensdistConfig):
+    """Render (I1, I2), each (B, 1, H, W) float32, with one grid_sample per image."""
+    h, w = config.image.height, config.image.width
+    x0, y0 = distortion_center(h, w)
+    box = footprint(config)
+    b = params.k2.shape[0]
+    ideal = distortion_grid(params.k2, params.k4, h, w, torch.float64).reshape(b, -1, 2)
+    moved = _apply(params.M, ideal)
+    img1 = torch.empty(b, 1, h, w)
+    img2 = torch.empty(b, 1, h, w)
+    for s in params.scene.unique().tolist():
+        sel = (params.scene == s).nonzero().flatten()
+        scene = scenes[s]
+        hs, ws = scene.shape[-2:]
+        z = scene_zoom((hs, ws), box)
+        # c ranges so that c + z * box stays inside [0, size - 1]
+        cx = -z * box[0] + params.position[sel, 0] * ((ws - 1) - z * (box[1] - box[0]))
+        cy = -z * box[2] + params.position[sel, 1] * ((hs - 1) - z * (box[3] - box[2]))
+        c = torch.stack([cx, cy], dim=1)[:, None, :]
+        centre = ideal.new_tensor([x0, y0])
+        pts1 = (c + z * (ideal[sel] - centre)).reshape(-1, h, w, 2)
+        pts2 = (c + z * (moved[sel] - centre)).reshape(-1, h, w, 2)
+        src = scene.expand(len(sel), -1, -1, -1).float()
+        img1[sel] = sample(src, pts1.float())
+        img2[sel] = sample(src, pts2.float())
+    return img1, img2
+
+
+def make_pairs(
+    scenes: list[torch.Tensor],
+    config: LensdistConfig,
+    set_name: str,
+    indices,
+    keep_images: bool = False,
+) -> PairBatch:
+    """Draw, render, register (estimated homography only) and measure a batch of pairs."""
+    params = draw_pairs(config, set_name, indices, len(scenes))
+    img1, img2 = render_pairs(scenes, params, config)
+    H, info = estimate_homography(img1, img2)
+    H = H.double()
+    if bool(params.perturbed.any()):
+        sel = params.perturbed.nonzero().flatten()
+        gens = [params.generators[i] for i in sel.tolist()]
+        size = (config.image.height, config.image.width)
+        H[sel] = perturb_homography(H[sel], gens, config.protocol.perturbation, size).double()
+    warped, valid = warp_to_reference(img2, H.float())
+    counts = registration_error_counts(img1, warped, valid, config.quality, validate=False)
+    h, w = config.image.height, config.image.width
+    delta, classes = {}, {}
+    for metric in METRICS:
+        delta[metric] = delta_metric(metric, params.k2, params.k4, h, w)
+        classes[metric] = distortion_class(delta[metric], delta_top(metric, h, w, config.distortion))
+        classes[metric] = torch.where(params.perturbed, torch.full_like(classes[metric], REJECT), classes[metric])
+    return PairBatch(
+        params=params,
+        delta=delta,
+        classes=classes,
+        H=H,
+        converged=info.converged.bool(),
+        residual=info.residual.float(),
+        counts=counts,
+        img1=img1 if keep_images else None,
+        img2=img2 if keep_images else None,
+    )
