@@ -14,11 +14,13 @@ so that texture scale never correlates with the distortion level; the position i
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from .config import LensdistConfig
 from .distortion import (
@@ -29,7 +31,7 @@ from .distortion import (
     distortion_center,
     distortion_class,
     distortion_grid,
-    sample,
+    pixel_grid,
 )
 from .quality import registration_error_counts
 from .registration import estimate_homography, perturb_homography, warp_to_reference
@@ -188,6 +190,7 @@ def _apply(Hm: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
     return ph[..., :2] / ph[..., 2:]
 
 
+@functools.lru_cache(maxsize=16)
 def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     """Worst-case box (x_lo, x_hi, y_lo, y_hi), relative to p0, of every sample of both views.
 
@@ -227,31 +230,58 @@ def scene_zoom(scene_hw: tuple[int, int], box: tuple[float, float, float, float]
 
 
 def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: LensdistConfig):
-    """Render (I1, I2), each (B, 1, H, W) float32, with one grid_sample per image."""
+    """Render (I1, I2), each (B, 1, H, W) float32, with one grid_sample per image.
+
+    Per pair, placement, motion and grid_sample's normalisation fold into one 3 x 3 matrix
+    per image (float64), applied to the ideal points of the distorted pixel grid (eq. 4,
+    centred), so each image costs one small batched matmul and one grid_sample.
+    """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
     box = footprint(config)
     b = params.k2.shape[0]
-    ideal = distortion_grid(params.k2, params.k4, h, w, torch.float64).reshape(b, -1, 2)
-    moved = _apply(params.M, ideal)
+    d = pixel_grid(h, w, torch.float64).reshape(-1, 2) - torch.tensor([x0, y0], dtype=torch.float64)
+    r2 = (d * d).sum(-1)
+    dx, dy, r2, r4 = d[:, 0].float(), d[:, 1].float(), r2.float(), (r2 * r2).float()
+    centre = _translation(x0, y0, b)
+    a = torch.linalg.inv(centre) @ params.M @ centre  # the motion in centred coordinates
     img1 = torch.empty(b, 1, h, w)
     img2 = torch.empty(b, 1, h, w)
     for s in params.scene.unique().tolist():
         sel = (params.scene == s).nonzero().flatten()
-        scene = scenes[s]
-        hs, ws = scene.shape[-2:]
+        n = len(sel)
+        hs, ws = scenes[s].shape[-2:]
         z = scene_zoom((hs, ws), box)
         # c ranges so that c + z * box stays inside [0, size - 1]
         cx = -z * box[0] + params.position[sel, 0] * ((ws - 1) - z * (box[1] - box[0]))
         cy = -z * box[2] + params.position[sel, 1] * ((hs - 1) - z * (box[3] - box[2]))
-        c = torch.stack([cx, cy], dim=1)[:, None, :]
-        centre = ideal.new_tensor([x0, y0])
-        pts1 = (c + z * (ideal[sel] - centre)).reshape(-1, h, w, 2)
-        pts2 = (c + z * (moved[sel] - centre)).reshape(-1, h, w, 2)
-        src = scene.expand(len(sel), -1, -1, -1).float()
-        img1[sel] = sample(src, pts1.float())
-        img2[sel] = sample(src, pts2.float())
+        # q -> c + z q, then scene pixels -> grid_sample's [-1, 1] (align_corners=True)
+        place = torch.zeros(n, 3, 3, dtype=torch.float64)
+        sx, sy = 2.0 / (ws - 1), 2.0 / (hs - 1)
+        place[:, 0, 0], place[:, 0, 2] = sx * z, sx * cx - 1.0
+        place[:, 1, 1], place[:, 1, 2] = sy * z, sy * cy - 1.0
+        place[:, 2, 2] = 1.0
+        # ideal points relative to p0 (eq. 4): (x f, y f), f = 1 + k2 r^2 + k4 r^4
+        f = torch.addcmul(torch.addcmul(torch.ones(1), params.k2[sel, None].float(), r2), params.k4[sel, None].float(), r4)
+        x, y = dx * f, dy * f  # (n, N)
+        g1 = torch.stack([_affine_row(place[:, 0], x, y), _affine_row(place[:, 1], x, y)], dim=-1)
+        m = place @ a[sel]
+        den = _affine_row(m[:, 2], x, y)
+        g2 = torch.stack([_affine_row(m[:, 0], x, y) / den, _affine_row(m[:, 1], x, y) / den], dim=-1)
+        src = scenes[s].float().expand(n, -1, -1, -1)
+        r1 = F.grid_sample(src, g1.view(n, h, w, 2), mode="bilinear", padding_mode="zeros", align_corners=True)
+        r2_ = F.grid_sample(src, g2.view(n, h, w, 2), mode="bilinear", padding_mode="zeros", align_corners=True)
+        if n == b:
+            img1, img2 = r1, r2_
+        else:
+            img1[sel], img2[sel] = r1, r2_
     return img1, img2
+
+
+def _affine_row(row: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """row[:, 0] x + row[:, 1] y + row[:, 2] for (n, 3) rows and (n, N) points, in float32."""
+    row = row.float()
+    return torch.addcmul(torch.addcmul(row[:, 2:3], row[:, 0:1], x), row[:, 1:2], y)
 
 
 def make_pairs(
@@ -270,7 +300,7 @@ def make_pairs(
         sel = params.perturbed.nonzero().flatten()
         gens = [params.generators[i] for i in sel.tolist()]
         size = (config.image.height, config.image.width)
-        H[sel] = perturb_homography(H[sel], gens, config.protocol.perturbation, size).double()
+        H[sel] = perturb_homography(H[sel], gens, config.protocol.perturbation, size=size).double()
     warped, valid = warp_to_reference(img2, H.float())
     counts = registration_error_counts(img1, warped, valid, config.quality, validate=False)
     h, w = config.image.height, config.image.width
