@@ -27,4 +27,20 @@ from .quality import (
     registration_quality_loss,
 )
 
+from .quality import counts_to_map
+from .distortion import (
+    CLASS_LABELS,
+    delta_avg,
+    delta_max,
+    distort_points,
+    distortion_class,
+    distortion_grid,
+    pixel_offsets,
+    render_distorted,
+    undistort_points,
+)
+from .registration import corner_error, estimate_homography, perturb_homography, warp_to_reference
+from .eigenspace import EigenSpaceClassifier
+from .analysis import analyze_pair
+
 __version__ = "0.1.0"

@@ -91,6 +91,84 @@ def _cmd_generate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .dataset import load_set
+    from .pipeline import fit_classifier
+
+    train = load_set(args.data, "train")
+    cfg = train["config"] if args.config is None else load_config(args.config)
+    model = fit_classifier(train, cfg, args.eigenvectors, args.metric)
+    model.save(args.out)
+    print(json.dumps({
+        "checkpoint": str(args.out),
+        "metric": model.config.classifier.metric,
+        "n_eigenvectors": model.config.classifier.n_eigenvectors,
+        "training_pairs": int(model.train_class.numel()),
+        "left_out_failed_registration": int((~train["converged"]).sum()),
+        "explained_variance": model.explained.tolist(),
+        "reject_threshold": float(model.reject_threshold),
+    }, indent=2))
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .dataset import load_set
+    from .eigenspace import EigenSpaceClassifier
+    from .evaluation import write_report
+    from .pipeline import evaluate_classifier
+
+    test = load_set(args.data, "test")
+    settings = {}
+    for ck in args.checkpoint:
+        model = EigenSpaceClassifier.load(ck, expected=test["config"])
+        c = model.config.classifier
+        settings[f"{c.n_eigenvectors} EV, {c.metric}"] = evaluate_classifier(model, test)
+    report = {"title": f"lensdist evaluate: {args.data}", "settings": settings}
+    md, js = write_report(report, args.out, "evaluate")
+    print(Path(md).read_text())
+    print(f"written: {md}, {js}")
+    return 0
+
+
+def _cmd_reproduce(args: argparse.Namespace) -> int:
+    from .config import load_config
+    from .pipeline import reproduce
+
+    cfg = load_config(args.config)
+    res = reproduce(cfg, args.out, quick=args.quick, workers=args.workers, batch_size=args.batch_size, progress=not args.quiet)
+    print(Path(res["markdown"]).read_text())
+    print(f"written: {res['markdown']}, {res['json']}")
+    return 0
+
+
+def _cmd_analyze(args: argparse.Namespace) -> int:
+    from .analysis import analyze_pair
+
+    res = analyze_pair(args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max)
+    qmap = res.pop("_map")
+    if args.save_map:
+        from .figures import have_matplotlib, save_map_grid
+
+        if not have_matplotlib():
+            raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
+        save_map_grid(qmap, [f"class {res['class']}, Delta_avg {res['delta_avg']:.1f} px"], args.save_map)
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
+    print(f"distortion class: {res['class']}  (1 = small ... 4 = very strong, R = none visible)")
+    print(
+        f"Delta_avg ~ {res['delta_avg']:.1f} px, Delta_max ~ {res['delta_max']:.1f} px at {res['analysis_size'][1]} x "
+        f"{res['analysis_size'][0]} (in your {res['input_size'][1]} x {res['input_size'][0]} pixels: "
+        f"{res['delta_avg_user_px']:.1f} and {res['delta_max_user_px']:.1f} px)"
+    )
+    print("distances to the class spaces: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
+    for w in res["warnings"]:
+        print(f"warning: {w}")
+    return 0
+
+
 def _parse_shard(text: str | None) -> tuple[int, int]:
     if text is None:
         return (0, 1)
@@ -125,6 +203,38 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--limit", type=int, default=None, help="only the first N pairs of each set")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_generate)
+
+    p = sub.add_parser("train", help="fit the eigen-space classifier on generated training pairs")
+    p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
+    p.add_argument("--out", required=True, help="checkpoint path (.pt)")
+    p.add_argument("--metric", choices=["delta_avg", "delta_max"], default=None)
+    p.add_argument("--eigenvectors", type=int, default=None, help="eigenvectors per class (paper: 5 or 10)")
+    p.add_argument("--config", default=None, help="TOML config (default: the data set's own)")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("evaluate", help="evaluate checkpoints on a generated test set (Markdown + JSON)")
+    p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
+    p.add_argument("--checkpoint", required=True, nargs="+", help="one or more checkpoints")
+    p.add_argument("--out", default="results", help="report folder")
+    p.set_defaults(func=_cmd_evaluate)
+
+    p = sub.add_parser("reproduce", help="the paper's Tables 1 and 2 on the embedded scenes, one command")
+    p.add_argument("--config", default=None, help="TOML config (SPEC defaults = configs/paper.toml)")
+    p.add_argument("--out", default="results/reproduce", help="folder for data, checkpoints and the report")
+    p.add_argument("--quick", action="store_true", help="a tenth of the pairs, for a first look")
+    p.add_argument("--workers", type=int, default=2, help="worker processes for generation")
+    p.add_argument("--batch-size", type=int, default=16)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd_reproduce)
+
+    p = sub.add_parser("analyze", help="analyse your own pair of overlapping photographs")
+    p.add_argument("img1")
+    p.add_argument("img2")
+    p.add_argument("--checkpoint", default=None, help="Delta_avg checkpoint (default: shipped)")
+    p.add_argument("--checkpoint-max", default=None, help="Delta_max checkpoint (default: shipped)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--save-map", default=None, help="PNG of the quality map")
+    p.set_defaults(func=_cmd_analyze)
     return parser
 
 

@@ -45,6 +45,7 @@ __all__ = [
     "block_pool",
     "quality_map",
     "registration_error_counts",
+    "counts_to_map",
     "registration_quality",
     "registration_quality_loss",
     "RegistrationQuality",
@@ -397,6 +398,13 @@ def _hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool):
     ]
     reg = torch.cat([p[0] for p in parts])
     return reg, (torch.cat([p[1] for p in parts]) if visual else None)
+
+
+def counts_to_map(counts: torch.Tensor, config: QualityConfig | None = None) -> torch.Tensor:
+    """Stored per-block error counts (uint8, from :func:`registration_error_counts`) -> the
+    quality map (float32, floor applied). ``counts_to_map(c).flatten(1)`` is the feature vector."""
+    cfg = config if config is not None else QualityConfig()
+    return _floor(counts.float(), cfg)
 
 
 def _floor(counts: torch.Tensor, cfg: QualityConfig) -> torch.Tensor:
