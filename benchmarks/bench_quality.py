@@ -1,0 +1,97 @@
+"""Speed and peak memory of the quality metric at 320 x 424 (issue: the metric's benchmark).
+
+    python benchmarks/bench_quality.py [--seconds 2] [--threads 1 2] [--batches 1 64] [--json out.json]
+
+For each thread count and batch size: pairs per second of the hard map, the smooth map and
+smooth forward + backward, with kornia's SSIM on the same batch as the peer measured in the
+same run (absolute times drift on a shared machine; the ratios are what to compare). Each case
+runs in a fresh process, so peak memory is that process's peak RSS above its baseline
+after the inputs were made.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import resource
+import time
+
+
+def _case(args):
+    kind, batch, threads, seconds = args
+    import torch
+
+    torch.set_num_threads(threads)
+    from kornia.metrics import ssim
+
+    from lensdist_torch import quality_map, registration_quality, registration_quality_loss
+    from lensdist_torch.images import load_scene
+
+    scene = load_scene("gravel")
+    a = scene[..., :320, :424].repeat(batch, 1, 1, 1).contiguous()
+    b = scene[..., 2:322, 1:425].repeat(batch, 1, 1, 1).contiguous()
+    if kind == "smooth_fwd_bwd":
+        a.requires_grad_(True)
+
+    def run():
+        if kind == "hard":
+            quality_map(a, b)
+        elif kind == "smooth":
+            with torch.no_grad():
+                registration_quality(a, b, smooth=True)
+        elif kind == "smooth_fwd_bwd":
+            registration_quality_loss(a, b).backward()
+        elif kind == "kornia_ssim":
+            with torch.no_grad():
+                ssim(a, b, 11)
+        else:
+            raise ValueError(kind)
+
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    run()  # warm-up
+    n, t0 = 0, time.perf_counter()
+    while True:
+        run()
+        n += 1
+        dt = time.perf_counter() - t0
+        if dt >= seconds and n >= 3:
+            break
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {"kind": kind, "batch": batch, "threads": threads, "pairs_per_s": n * batch / dt, "peak_mb": max(0, peak - base) / 1024}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--seconds", type=float, default=2.0)
+    p.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 64])
+    p.add_argument("--json", default=None)
+    args = p.parse_args(argv)
+    kinds = ["hard", "smooth", "smooth_fwd_bwd", "kornia_ssim"]
+    ctx = mp.get_context("spawn")
+    rows = []
+    for threads in args.threads:
+        for batch in args.batches:
+            for kind in kinds:
+                with ctx.Pool(1) as pool:
+                    rows.append(pool.apply(_case, ((kind, batch, threads, args.seconds),)))
+    print("| threads | batch | case | pairs/s | x kornia SSIM | peak MB |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        peer = next(x for x in rows if x["kind"] == "kornia_ssim" and x["batch"] == r["batch"] and x["threads"] == r["threads"])
+        r["ratio_to_ssim"] = r["pairs_per_s"] / peer["pairs_per_s"]
+        print(f"| {r['threads']} | {r['batch']} | {r['kind']} | {r['pairs_per_s']:.1f} | {r['ratio_to_ssim']:.2f} | {r['peak_mb']:.0f} |")
+    for threads in args.threads:
+        for batch in args.batches:
+            get = {r["kind"]: r for r in rows if r["batch"] == batch and r["threads"] == threads}
+            ratio = get["smooth"]["pairs_per_s"] / get["smooth_fwd_bwd"]["pairs_per_s"]
+            print(f"threads {threads}, batch {batch}: smooth forward+backward costs {ratio:.2f} x the smooth forward")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
