@@ -61,7 +61,8 @@ class ShardError(ValueError):
 
 
 def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
-    """A hash of everything that changes the pairs (chunk_size and shard size do not)."""
+    """A hash of everything that changes the pairs or the files (chunk_size does not; shard_size
+    does, since it fixes which pairs each shard file holds)."""
     d = config_to_dict(config)
     d["quality"].pop("chunk_size", None)
     d["classifier"] = {}
@@ -213,14 +214,14 @@ def _worker(task):
     return end - start
 
 
-def _shard_ok(path: Path, fingerprint: str) -> bool:
+def _shard_ok(path: Path, fingerprint: str, start: int, end: int) -> bool:
     if not path.exists():
         return False
     try:
-        load_shard(path, fingerprint)
+        rec = load_shard(path, fingerprint)
     except ShardError:
         return False  # a foreign or corrupted file is regenerated, never trusted
-    return True
+    return (rec["start"], rec["end"]) == (start, end)  # e.g. a --limit run's shorter last shard
 
 
 def generate(
@@ -247,6 +248,8 @@ def generate(
         raise ValueError(f"workers must be a positive int, got {workers!r}")
     if not (isinstance(batch_size, int) and batch_size >= 1):
         raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
+    if not (len(shard) == 2 and shard[1] >= 1 and 0 <= shard[0] < shard[1]):
+        raise ValueError(f"shard must be (I, N) with 0 <= I < N, got {shard!r}")
     scenes, scene_ids = load_scenes(config, scenes_dir)
     fp = config_fingerprint(config, scene_ids)
     manifest = {
@@ -262,7 +265,7 @@ def generate(
         ranges = shard_ranges(n, config.protocol.shard_size)
         manifest["sets"][s] = {"n_pairs": n, "shard_size": config.protocol.shard_size, "n_shards": len(ranges)}
         for k, (a, b) in enumerate(ranges):
-            if k % shard[1] == shard[0] and not _shard_ok(shard_path(out, s, k), fp):
+            if k % shard[1] == shard[0] and not _shard_ok(shard_path(out, s, k), fp, a, b):
                 tasks.append((s, k, a, b))
     old = _read_json(out / "manifest.json")
     if old is not None and old.get("fingerprint") != fp:
@@ -274,9 +277,16 @@ def generate(
     total = sum(b - a for _, _, a, b in tasks)
     bar = tqdm(total=total, unit="pair", desc="generate", disable=not progress)
     if workers == 1:
-        for s, k, a, b in tasks:
-            rec = generate_shard(scenes, config, s, a, b, fp, batch_size, on_batch=bar.update)
-            write_shard(shard_path(out, s, k), rec)
+        # One thread, as in the worker processes: float32 reductions of the registration
+        # depend on the thread count, and a shard's bytes must not depend on --workers.
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            for s, k, a, b in tasks:
+                rec = generate_shard(scenes, config, s, a, b, fp, batch_size, on_batch=bar.update)
+                write_shard(shard_path(out, s, k), rec)
+        finally:
+            torch.set_num_threads(threads)
     elif tasks:
         cfg = config_to_dict(config)
         jobs = [(cfg, scenes_dir, s, k, a, b, fp, batch_size, str(out)) for s, k, a, b in tasks]
@@ -320,6 +330,9 @@ def load_set(out: str | Path, set_name: str, limit: int | None = None) -> dict:
     info = m["sets"][set_name]
     recs = [load_shard(shard_path(out, set_name, k), m["fingerprint"]) for k in range(info["n_shards"])]
     merged = {k: torch.cat([r[k] for r in recs]) for k in _TENSOR_KEYS}
+    if not torch.equal(merged["index"], torch.arange(info["n_pairs"])):
+        raise ShardError(f"the {set_name!r} shards in {out} do not hold pairs 0..{info['n_pairs'] - 1} in order "
+                         "(a shard file renamed or copied over another?)")
     if limit is not None:
         merged = {k: v[:limit] for k, v in merged.items()}
     merged["config"] = config_from_dict(m["config"])
