@@ -45,7 +45,8 @@ def check_image(img: object, name: str = "img", finite: bool = True) -> torch.Te
         raise ValueError(f"{name} has an empty image: shape {tuple(img.shape)}")
     # One reduction instead of isfinite().all(): NaN and Inf propagate through a sum. The exact
     # (slower) test runs only to word the error.
-    if finite and img.is_floating_point() and not bool(torch.isfinite(img.sum())):
+    acc = torch.float64 if img.dtype == torch.float64 else torch.float32  # float16 sums overflow
+    if finite and img.is_floating_point() and not bool(torch.isfinite(img.sum(dtype=acc))):
         if not bool(torch.isfinite(img).all()):
             raise ValueError(f"{name} contains NaN or Inf values")
         raise ValueError(f"{name} has values so large that they overflow; expected [0, 1]")

@@ -1,0 +1,24 @@
+"""Shared fixtures: the embedded scene at the default analysis size (SPEC 1)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lensdist_torch.images import load_scene
+
+
+@pytest.fixture(scope="session")
+def scene() -> torch.Tensor:
+    """The embedded 'gravel' scene cropped to 320 x 424, (1, 1, 320, 424) float32 in [0, 1]."""
+    return load_scene("gravel")[..., 40:360, 44:468].contiguous()
+
+
+@pytest.fixture(scope="session")
+def scene_pair(scene) -> tuple[torch.Tensor, torch.Tensor]:
+    """The scene and the same scene shifted by 1 px right and 2 px down (float32, 320 x 424).
+
+    The shift is taken from a larger crop, so both images hold real content everywhere.
+    """
+    full = load_scene("gravel")
+    return scene, full[..., 38:358, 43:467].contiguous()
