@@ -41,6 +41,8 @@ from .distortion import (
 )
 from .registration import corner_error, estimate_homography, perturb_homography, warp_to_reference
 from .eigenspace import EigenSpaceClassifier
+from .selfcal import SelfCalConfig, estimate_distortion
+from .regression import DeltaRegressor
 from .analysis import analyze_pair
 
 __version__ = "0.1.0"
