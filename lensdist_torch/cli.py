@@ -145,7 +145,7 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 def _cmd_analyze(args: argparse.Namespace) -> int:
     from .analysis import analyze_pair
 
-    res = analyze_pair(args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max)
+    res = analyze_pair(args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max, method=args.method)
     qmap = res.pop("_map")
     if args.save_map:
         from .figures import have_matplotlib, save_map_grid
@@ -157,13 +157,16 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         print(json.dumps(res))
         return 0
     print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
+    conf = "" if res["confidence"] is None else f", confidence {res['confidence']:.2f}"
+    print(f"method: {res['method']}{conf}")
     print(f"distortion class: {res['class']}  (1 = small ... 4 = very strong, R = none visible)")
     print(
         f"Delta_avg ~ {res['delta_avg']:.1f} px, Delta_max ~ {res['delta_max']:.1f} px at {res['analysis_size'][1]} x "
         f"{res['analysis_size'][0]} (in your {res['input_size'][1]} x {res['input_size'][0]} pixels: "
         f"{res['delta_avg_user_px']:.1f} and {res['delta_max_user_px']:.1f} px)"
     )
-    print("distances to the class spaces: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
+    if res["distances"]:
+        print("eigen-space distances: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
     for w in res["warnings"]:
         print(f"warning: {w}")
     return 0
@@ -230,7 +233,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("analyze", help="analyse your own pair of overlapping photographs")
     p.add_argument("img1")
     p.add_argument("img2")
-    p.add_argument("--checkpoint", default=None, help="Delta_avg checkpoint (default: shipped)")
+    p.add_argument("--method", choices=["selfcal", "regression", "eigenspace"], default="selfcal",
+                   help="selfcal (default, most accurate), regression, or the paper's eigenspace")
+    p.add_argument("--checkpoint", default=None, help="eigenspace Delta_avg or regression checkpoint (default: shipped)")
     p.add_argument("--checkpoint-max", default=None, help="Delta_max checkpoint (default: shipped)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--save-map", default=None, help="PNG of the quality map")

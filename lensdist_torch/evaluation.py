@@ -144,14 +144,20 @@ def report_markdown(report: dict) -> str:
         if report.get(key):
             lines += [str(report[key]), ""]
     settings = report["settings"]
-    lines += ["## Table 1: classification", "", "| setting | ours: rate | ours: R rejected | paper: rate | paper: R rejected | registration failed |", "|---|---|---|---|---|---|"]
+    lines += [
+        "## Table 1: classification",
+        "",
+        "| setting | ours: rate | ours: R rejected | confident: share, rate | paper: rate | paper: R rejected | registration failed |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, fig in settings.items():
         paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
         p_rate = f"{paper['rate']:.1f} %" if paper else "-"
         p_rej = f"{paper['confusion'][4][4]} of 100" if paper else "-"
+        conf = f"{fig['confident_share']:.0f} %, {fig['confident_rate']:.1f} %" if "confident_share" in fig else "-"
         lines.append(
             f"| {name} | {fig['rate']:.1f} % ({fig['correct']}/{fig['total']}) | {fig['rejected_R']} of {fig['n_R']} | "
-            f"{p_rate} | {p_rej} | {fig.get('registration_failed', '-')} |"
+            f"{conf} | {p_rate} | {p_rej} | {fig.get('registration_failed', '-')} |"
         )
     lines.append("")
     for name, fig in settings.items():
@@ -165,15 +171,16 @@ def report_markdown(report: dict) -> str:
     lines += [
         "## Table 2: RMSE of Delta per ground-truth class",
         "",
-        "| setting | class 1 | class 2 | class 3 | class 4 | range |",
-        "|---|---|---|---|---|---|",
+        "| setting | class 1 | class 2 | class 3 | class 4 | range | bias (mean) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, fig in settings.items():
         cells = [f"{px:.2f} px ({pct:.1f} %)" for px, pct in zip(fig["rmse_px"], fig["rmse_pct"])]
-        lines.append(f"| {name} | " + " | ".join(cells) + f" | ]0, {fig['delta_range_px']:.1f}] px |")
+        bias = sum(b * n for b, n in zip(fig["bias_px"], fig["n_per_class"]) if n) / max(1, sum(fig["n_per_class"]))
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | ]0, {fig['delta_range_px']:.1f}] px | {bias:+.2f} px |")
     for ev, vals in PAPER["table2"].items():
         cells = [f"{v:.2f} px ({100 * v / PAPER['table2_range_px']:.1f} %)" for v in vals]
-        lines.append(f"| paper, {ev} EV, Delta_avg | " + " | ".join(cells) + " | ]0, 30] px |")
+        lines.append(f"| paper, {ev} EV, Delta_avg | " + " | ".join(cells) + " | ]0, 30] px | - |")
     lines.append("")
     return "\n".join(lines)
 

@@ -14,6 +14,7 @@ from .dataset import generate, load_set
 from .distortion import delta_top
 from .eigenspace import EigenSpaceClassifier
 from .evaluation import evaluate_predictions, write_report
+from .methods import motion_groups
 from .quality import counts_to_map
 
 __all__ = ["features_of", "fit_classifier", "evaluate_classifier", "reproduce", "SETTINGS", "quick_config"]
@@ -51,10 +52,8 @@ def evaluate_classifier(model: EigenSpaceClassifier, test: dict) -> dict:
     with torch.no_grad():
         res = model(features_of(test, cfg))
     top = delta_top(metric, cfg.image.height, cfg.image.width, cfg.distortion)
-    ty = test["motion"][:, 0]
-    groups = {"t_y < 10 px": ty < 10, "t_y >= 10 px": ty >= 10}
     out = evaluate_predictions(
-        res.label, res.delta, test[_CLASS_KEY[metric]], test[metric], top, test["converged"], groups
+        res.label, res.delta, test[_CLASS_KEY[metric]], test[metric], top, test["converged"], motion_groups(test)
     )
     out["n_eigenvectors"] = cfg.classifier.n_eigenvectors
     out["metric"] = metric
@@ -86,8 +85,12 @@ def reproduce(
     batch_size: int = 16,
     progress: bool = True,
     figures: bool = True,
+    methods: bool = True,
 ) -> dict:
-    """Generate the paper's sets, fit the four settings, and write the side-by-side report."""
+    """Generate the paper's sets, fit the four settings, and write the side-by-side report.
+
+    With ``methods``, the regression and the self-calibration are evaluated on the same test
+    pairs and reported beside the eigen-space settings."""
     out = Path(out)
     if quick:
         config = quick_config(config)
@@ -102,6 +105,8 @@ def reproduce(
         settings[name] = evaluate_classifier(model, test)
         models[name] = model
         model.save(out / "checkpoints" / f"eigenspace_{metric}_{n_ev}ev.pt")
+    if methods:
+        settings.update(_other_methods(train, test, config, out, progress))
     p = config.protocol
     report = {
         "title": "lensdist reproduce: the paper's Tables 1 and 2" + (" (quick: a tenth of the pairs)" if quick else ""),
@@ -122,6 +127,22 @@ def reproduce(
     if figures:
         _figures(models, test, config, out)
     return {"markdown": str(md), "json": str(js), "settings": settings}
+
+
+def _other_methods(train: dict, test: dict, config: LensdistConfig, out: Path, progress: bool) -> dict:
+    from .dataset import load_scenes
+    from .methods import evaluate_regressor, evaluate_selfcal, fit_regressor
+
+    settings = {}
+    reg = fit_regressor(train, config, features_of(train, config))
+    reg.save(out / "checkpoints" / "regression.pt")
+    feats = features_of(test, config)
+    for metric in ("delta_avg", "delta_max"):
+        settings[f"regression, {metric}"] = evaluate_regressor(reg, test, feats, metric)
+    scenes, _ = load_scenes(config)
+    for metric, fig in evaluate_selfcal(test, config, scenes, progress=progress).items():
+        settings[f"selfcal, {metric}"] = fig
+    return settings
 
 
 def _figures(models: dict, test: dict, config: LensdistConfig, out: Path) -> None:
