@@ -234,7 +234,7 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
 
     Per pair, placement, motion and grid_sample's normalisation fold into one 3 x 3 matrix
     per image (float64), applied to the ideal points of the distorted pixel grid (eq. 4,
-    centred), so each image costs one small batched matmul and one grid_sample.
+    centred), so each image costs a few elementwise passes and one grid_sample.
     """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
@@ -261,16 +261,15 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
         place[:, 0, 0], place[:, 0, 2] = sx * z, sx * cx - 1.0
         place[:, 1, 1], place[:, 1, 2] = sy * z, sy * cy - 1.0
         place[:, 2, 2] = 1.0
-        # ideal points relative to p0 (eq. 4): (x f, y f), f = 1 + k2 r^2 + k4 r^4
-        f = torch.addcmul(torch.addcmul(torch.ones(1), params.k2[sel, None].float(), r2), params.k4[sel, None].float(), r4)
-        x, y = dx * f, dy * f  # (n, N)
-        g1 = torch.stack([_affine_row(place[:, 0], x, y), _affine_row(place[:, 1], x, y)], dim=-1)
         m = place @ a[sel]
-        den = _affine_row(m[:, 2], x, y)
-        g2 = torch.stack([_affine_row(m[:, 0], x, y) / den, _affine_row(m[:, 1], x, y) / den], dim=-1)
+        g1 = torch.empty(n, 2, h, w)
+        g2 = torch.empty(n, 2, h, w)
+        for j in range(n):  # per-pair scalars: plain vectorised kernels, no broadcasting
+            _pair_grid(dx, dy, r2, r4, float(params.k2[sel[j]]), float(params.k4[sel[j]]), place[j], m[j], g1[j], g2[j])
         src = scenes[s].float().expand(n, -1, -1, -1)
-        r1 = F.grid_sample(src, g1.view(n, h, w, 2), mode="bilinear", padding_mode="zeros", align_corners=True)
-        r2_ = F.grid_sample(src, g2.view(n, h, w, 2), mode="bilinear", padding_mode="zeros", align_corners=True)
+        # (n, 2, H, W) viewed as (n, H, W, 2): grid_sample takes the strided grid as it is
+        r1 = F.grid_sample(src, g1.permute(0, 2, 3, 1), mode="bilinear", padding_mode="zeros", align_corners=True)
+        r2_ = F.grid_sample(src, g2.permute(0, 2, 3, 1), mode="bilinear", padding_mode="zeros", align_corners=True)
         if n == b:
             img1, img2 = r1, r2_
         else:
@@ -278,10 +277,20 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     return img1, img2
 
 
-def _affine_row(row: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """row[:, 0] x + row[:, 1] y + row[:, 2] for (n, 3) rows and (n, N) points, in float32."""
-    row = row.float()
-    return torch.addcmul(torch.addcmul(row[:, 2:3], row[:, 0:1], x), row[:, 1:2], y)
+def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: torch.Tensor, out1, out2) -> None:
+    """One pair's two sampling grids, written into out1, out2 (2, H, W) in grid_sample units.
+
+    Ideal points relative to p0 (eq. 4): (x, y) = f (dx, dy), f = 1 + k2 r^2 + k4 r^4; then
+    I1 samples at ``place`` (x, y, 1) and I2 at ``place @ A`` (x, y, 1), A the centred motion.
+    """
+    f = torch.add(r2 * k2, r4, alpha=k4).add_(1.0)
+    x, y = dx * f, dy * f
+    p, q = place.tolist(), m.tolist()
+    torch.add(x * p[0][0], p[0][2], out=out1[0].view(-1))
+    torch.add(y * p[1][1], p[1][2], out=out1[1].view(-1))
+    den = torch.add(x * q[2][0], y, alpha=q[2][1]).add_(q[2][2])
+    torch.div(torch.add(x * q[0][0], y, alpha=q[0][1]).add_(q[0][2]), den, out=out2[0].view(-1))
+    torch.div(torch.add(x * q[1][0], y, alpha=q[1][1]).add_(q[1][2]), den, out=out2[1].view(-1))
 
 
 def make_pairs(
