@@ -1,38 +1,45 @@
 """Batched homography registration (SPEC section 7) and the class-R perturbation.
 
-Convention: ``H`` maps img1's pixel coordinates to img2's, ``img1(p) = img2(H p)``, pixel centres
-at integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``. With SPEC 7's motion ``M``
-(I2 -> I1), the true ``H`` is ``M^-1``.
+Convention: ``H`` maps img1's pixel coordinates to img2's, ``img1(p) = img2(H p)``, pixel centres at
+integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with SPEC 7's motion M (I2 -> I1),
+the true H is M^-1.
 
-Method of :func:`estimate_homography`, batched over pairs, no Python loop over pairs:
+:func:`estimate_homography`, batched over pairs (no Python loop over pairs):
 
-1. Grey images, a pyramid of 2 x 2 means (default 3 levels: 1/4, 1/2, 1/1).
-2. Initial translation by phase correlation (Hann window, sub-pixel parabola) on the coarsest
-   level, unless ``init`` is given.
-3. Inverse-compositional Gauss-Newton (Baker-Matthews) for the 8 homography parameters, coarse
-   to fine, in centred coordinates scaled by the half-diagonal (same at every level). Per level
-   the steepest-descent images and the Hessian of img1 are precomputed once; the Hessian is
-   accumulated through image moments (sum of ``m g_a g_b u^i v^j``, one small matmul), so the
-   (B, 8, N) steepest-descent images are never stored. Each iteration is one ``grid_sample``
-   of img2, a (B, 2, N) x (N, 6) matmul and a float64 8 x 8 solve (damped).
-4. Masks: the Hessian uses the pixels that map at least ``margin`` level pixels inside img2
-   under the estimate at the start of the level; each iteration further drops the pixels whose
-   current warped position lies outside img2.
-5. Per pair, a level ends when the update moves no image corner by more than
-   ``step_tol * 2**level`` px (full-resolution pixels); pairs that are done, diverged or
-   textureless drop out of the batch, so pair i's result does not depend on the others.
+1. Grey images, both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px: it cuts the corner
+   error of rendered pairs about 2.5 x), and a pyramid of 2 x 2 means.
+2. Initial translation by phase correlation (Hann window, sub-pixel parabola) at 1/8, unless
+   ``init`` is given.
+3. Inverse-compositional Gauss-Newton (Baker-Matthews) on the 8 homography parameters at 1/4, then
+   at full resolution (a 1/2 level costs more iterations than it saves), in centred coordinates u
+   in half-diagonals. At full resolution the template (img1) pixels have stride 2 while img2 is
+   sampled at full resolution: a quarter of the work for the same accuracy on smoothed images.
+4. A level uses an axis-aligned rectangle of template pixels inscribed in the overlap, ``margin``
+   level px inside img2. With separable masks the Hessian and the steepest-descent sums are image
+   moments sum(g_a g_b u^i v^j), one small batched matmul each; the (B, 8, N) steepest-descent
+   images are never stored. The damped Hessian is built and inverted (float64) once per level,
+   again if a pair drifts beyond the margin; an iteration is one ``grid_sample`` of img2, three
+   products, a batched matmul and a float64 8 x 8 matrix-vector product.
+5. Per pair, a level ends when an update moves no image corner by more than its tolerance; done,
+   diverged and textureless pairs leave the batch, so a pair's result does not depend on the
+   others (up to float rounding, ~1e-7 relative).
 
-Failure reporting (``converged=False``, never a silent answer): a Gauss-Newton Hessian whose
-smallest eigenvalue (per pixel, pixel units) is below ``min_texture`` at full resolution
-(constant or one-dimensional textures), a non-finite or exploding update, an overlap below
-``min_overlap``, a full-resolution residual that grew, or no small step within the iterations.
+``converged`` is False (never a silent answer) when the smallest eigenvalue of the per-pixel
+Gauss-Newton Hessian at full resolution is below ``min_texture`` (constant or one-dimensional
+texture), an update is non-finite or moves a corner by more than ``max_step`` of the diagonal, the
+overlap is below ``min_overlap``, the full-resolution residual grew or exceeds ``max_residual`` of
+that of two unrelated images of img1's contrast, or the last update was not below ``step_tol``.
 """
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
+import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -43,10 +50,10 @@ from .images import check_image, check_image_pair, to_grey
 __all__ = [
     "RegistrationConfig",
     "RegistrationInfo",
-    "estimate_homography",
-    "warp_to_reference",
-    "perturb_homography",
     "corner_error",
+    "estimate_homography",
+    "perturb_homography",
+    "warp_to_reference",
 ]
 
 
@@ -55,52 +62,67 @@ class RegistrationConfig:
     """Settings of :func:`estimate_homography`.
 
     Attributes:
-        levels: pyramid levels (2 x 2 means); fewer are used when the coarsest would be
-            smaller than 16 px.
-        iterations: maximum IC iterations per level, coarsest first (length ``levels``; the
-            last entry is used for missing ones).
-        step_tol: a pair is done at full resolution when an update moves no image corner by
-            more than this (px); at level l the tolerance is ``step_tol * 2**l``.
+        levels: pyramid levels to run, coarsest first, ending with 0 (level l is 1 / 2**l of the
+            size); levels whose smaller side would be under 16 px are dropped.
+        iterations: maximum IC iterations for each entry of ``levels``.
+        step_tol: full resolution is done when an update moves no corner by more than this (px).
+        coarse_tol: the same for the coarser levels (full-resolution px).
+        phase_level: pyramid level of the phase correlation (lowered for small images).
         damping: Hessian damping, a fraction of its mean diagonal.
-        min_texture: smallest eigenvalue of the per-pixel Gauss-Newton Hessian (pixel units,
-            centred coordinates / half-diagonal) below which a level is textureless.
+        min_texture: smallest admissible eigenvalue of the per-pixel Gauss-Newton Hessian
+            (gradients in level px, coordinates in half-diagonals).
         min_overlap: fraction of img1 that must map inside img2.
-        margin: level pixels by which the Hessian's pixels must map inside img2.
-        max_step: an update moving a corner by more than this fraction of the image
-            diagonal is divergence.
+        max_residual: largest RMS residual, relative to sqrt(2) x img1's standard deviation
+            (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with SPEC 6's strongest
+            distortion).
+        margin: level px by which the pixels used must map inside img2.
+        max_step: an update moving a corner by more than this fraction of the diagonal diverged.
+        fine_stride: template pixel stride at full resolution.
+        presmooth: binomial smoothing (sigma 1 px) of both images first.
+        chunk_size: pairs registered together (cache locality); results do not depend on it.
     """
 
-    levels: int = 3
-    iterations: tuple[int, ...] = (20, 6, 3)
+    levels: tuple[int, ...] = (2, 0)
+    iterations: tuple[int, ...] = (10, 6)
     step_tol: float = 0.01
+    coarse_tol: float = 0.2
+    phase_level: int = 3
     damping: float = 1e-6
     min_texture: float = 1e-8
     min_overlap: float = 0.3
+    max_residual: float = 0.5
     margin: float = 2.0
     max_step: float = 0.25
+    fine_stride: int = 2
+    presmooth: bool = True
+    chunk_size: int = 8
 
     def __post_init__(self) -> None:
-        if isinstance(self.levels, bool) or not isinstance(self.levels, int) or self.levels < 1:
-            raise ValueError(f"levels must be a positive int, got {self.levels!r}")
-        its = tuple(self.iterations)
-        if not its or any(isinstance(i, bool) or not isinstance(i, int) or i < 1 for i in its):
-            raise ValueError(f"iterations must be positive ints, got {self.iterations!r}")
-        for name in ("step_tol", "min_texture", "max_step"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
-        if not (0 <= self.damping and 0 <= self.margin and 0 <= self.min_overlap <= 1):
-            raise ValueError("damping and margin must be >= 0, min_overlap in [0, 1]")
+        lv, its = self.levels, self.iterations
+        if not (isinstance(lv, tuple) and lv and all(type(i) is int for i in lv) and lv[-1] == 0
+                and all(a > b for a, b in itertools.pairwise(lv))):
+            raise ValueError(f"levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
+        if not (isinstance(its, tuple) and len(its) == len(lv) and all(type(i) is int and i > 0 for i in its)):
+            raise ValueError(f"iterations must be a tuple of positive ints, one per level, got {its!r}")
+        for name in ("phase_level", "fine_stride", "chunk_size"):
+            if type(getattr(self, name)) is not int or getattr(self, name) < (0 if name == "phase_level" else 1):
+                raise ValueError(f"{name} must be a {'non-negative' if name == 'phase_level' else 'positive'} int")
+        for name in ("step_tol", "coarse_tol", "min_texture", "max_residual", "max_step"):
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+        if not (self.damping >= 0 and self.margin >= 0 and 0 <= self.min_overlap <= 1):
+            raise ValueError("damping and margin must be >= 0 and min_overlap in [0, 1]")
 
 
 class RegistrationInfo(NamedTuple):
     """Per-pair diagnostics of :func:`estimate_homography`, each (B,).
 
-    converged: the estimate can be trusted (see the module docstring for the checks).
-    residual: RMS of img2(H p) - img1(p) over the overlap at full resolution, at the last
-        evaluated estimate (before the final update of at most ``step_tol`` px).
-    iterations: IC iterations summed over levels.
-    overlap: fraction of img1's pixels whose mapped position lies inside img2.
-    textured: the full-resolution Hessian passed the ``min_texture`` test.
+    converged: bool, the estimate passed every check (module docstring).
+    residual: RMS of img2(H p) - img1(p) (smoothed images) over the full-resolution pixels used,
+        at the last evaluated estimate (before its final update).
+    iterations: IC iterations, all levels together.
+    overlap: fraction of img1 mapped inside img2 by H (counted on the 1/4 level's pixels).
+    textured: bool, the full-resolution Hessian passed ``min_texture``.
     """
 
     converged: torch.Tensor
@@ -110,108 +132,141 @@ class RegistrationInfo(NamedTuple):
     textured: torch.Tensor
 
 
-# ------------------------------------------------------------------ IC Jacobian as moments
 # Parameters p1..p8: H(p) = [[1 + p1, p3, p5], [p2, 1 + p4, p6], [p7, p8, 1]] (Baker-Matthews).
-# dW/dp at p = 0 in the monomials [1, u, v, u^2, uv, v^2]:
+# dW/dp at p = 0, as coefficients P[k, i, j] of u^i v^j:
 #   dWx/dp = [u, 0, v, 0, 1, 0, -u^2, -uv],  dWy/dp = [0, u, 0, v, 0, 1, -uv, -v^2].
-_E2 = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2)]
-_E4 = [(i - j, j) for i in range(5) for j in range(i + 1)]
-_PX = torch.zeros(8, 6, dtype=torch.float64)
-_PY = torch.zeros(8, 6, dtype=torch.float64)
-for _k, _m, _v in [(0, 1, 1), (2, 2, 1), (4, 0, 1), (6, 3, -1), (7, 4, -1)]:
-    _PX[_k, _m] = _v
-for _k, _m, _v in [(1, 1, 1), (3, 2, 1), (5, 0, 1), (6, 4, -1), (7, 5, -1)]:
-    _PY[_k, _m] = _v
-# H_kl = sum g_x^2 Px_k Px_l + g_x g_y (Px_k Py_l + Py_k Px_l) + g_y^2 Py_k Py_l, in degree-4 moments.
-_C = torch.zeros(3, len(_E4), 8, 8, dtype=torch.float64)
-for _a, (_i, _j) in enumerate(_E2):
-    for _b, (_r, _s) in enumerate(_E2):
-        _q = _E4.index((_i + _r, _j + _s))
-        _C[0, _q] += torch.outer(_PX[:, _a], _PX[:, _b])
-        _C[1, _q] += torch.outer(_PX[:, _a], _PY[:, _b]) + torch.outer(_PY[:, _a], _PX[:, _b])
-        _C[2, _q] += torch.outer(_PY[:, _a], _PY[:, _b])
+_PX, _PY = torch.zeros(8, 3, 3, dtype=torch.float64), torch.zeros(8, 3, 3, dtype=torch.float64)
+for _k, _i, _j, _v in [(0, 1, 0, 1), (2, 0, 1, 1), (4, 0, 0, 1), (6, 2, 0, -1), (7, 1, 1, -1)]:
+    _PX[_k, _i, _j] = _v
+for _k, _i, _j, _v in [(1, 1, 0, 1), (3, 0, 1, 1), (5, 0, 0, 1), (6, 1, 1, -1), (7, 0, 2, -1)]:
+    _PY[_k, _i, _j] = _v
+# The Hessian, sum gx^2 Px Px' + gx gy (Px Py' + Py Px') + gy^2 Py Py', is linear in the
+# moments sum g_a g_b u^i v^j (i, j <= 4): _C[channel (xx, xy, yy), i, j, k, l].
+_C = torch.zeros(3, 5, 5, 8, 8, dtype=torch.float64)
+for _i, _j, _r, _s in [(i, j, r, s) for i in range(3) for j in range(3) for r in range(3) for s in range(3)]:
+    _a, _b = (_PX[:, _i, _j], _PY[:, _i, _j]), (_PX[:, _r, _s], _PY[:, _r, _s])
+    _C[0, _i + _r, _j + _s] += torch.outer(_a[0], _b[0])
+    _C[1, _i + _r, _j + _s] += torch.outer(_a[0], _b[1]) + torch.outer(_a[1], _b[0])
+    _C[2, _i + _r, _j + _s] += torch.outer(_a[1], _b[1])
+_D = torch.zeros(8, 9, dtype=torch.float64)  # dp -> the entries of D(dp), H(dp) = I + D(dp)
+_D[range(8), (0, 3, 1, 4, 2, 5, 6, 7)] = 1.0
+_WORK = threading.local()
 
 
-def _monomials(u: torch.Tensor, v: torch.Tensor, exps) -> torch.Tensor:
-    """(N,) u, v -> (N, len(exps)) float32 monomials u^i v^j."""
-    return torch.stack([u**i * v**j for i, j in exps], dim=1).float().contiguous()
+def _buffer(key: str, shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
+    """A float32 work buffer, kept per thread on the CPU: fresh multi-MB tensors page-fault on
+    every call, a large share of the run time at this image size."""
+    if device.type != "cpu":
+        return torch.empty(shape, device=device)
+    cache, n = _WORK.__dict__.setdefault("cache", {}), math.prod(shape)
+    if key not in cache or cache[key].numel() < n:
+        cache[key] = torch.empty(n)
+    return cache[key][:n].view(shape)
+
+
+def _grid(m: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, key: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Projective grid: (B, 3, 3) m, (w,) xs, (h,) ys -> ((B, h, w, 2) m (x, y, 1) dehomogenised,
+    (B, h, w) its third coordinate), float32 in the buffers ``key``, one broadcast pass per plane."""
+    g, dev, shape = m.float(), m.device, (m.shape[0], len(ys), len(xs))
+    out, den = _buffer(key, (*shape, 2), dev), _buffer(key + "_den", shape, dev)
+    for r, dst in ((2, den), (0, out[..., 0]), (1, out[..., 1])):
+        torch.add(g[:, r, 0, None, None] * xs, g[:, r, 1, None, None] * ys[:, None] + g[:, r, 2, None, None], out=dst)
+    return out.div_(den[..., None]), den
 
 
 class _Frame:
-    """Coordinates of one pyramid level: level pixels <-> centred, half-diagonal units."""
+    """One level: level pixels <-> u (centred, in half-diagonals, the same at every level).
 
-    def __init__(self, level: int, h: int, w: int, h0: int, w0: int, device):
-        f, self.level, self.h, self.w = 2.0**level, level, h, w
-        self.scale = 0.5 * math.hypot(w0 - 1, h0 - 1)  # s: full-res px per unit
+    A level-l pixel x_l lies at full-resolution x0 = 2^l x_l + (2^l - 1) / 2 (2 x 2 means);
+    template pixels are every ``stride``-th row and column.
+    """
+
+    def __init__(self, level: int, h: int, w: int, h0: int, w0: int, device, stride: int = 1):
+        f, self.stride, self.scale = 2.0**level, stride, 0.5 * math.hypot(w0 - 1, h0 - 1)
         cx, cy, off = (w0 - 1) / 2, (h0 - 1) / 2, (f - 1) / 2
-        d = dict(dtype=torch.float64, device=device)
-        self.u = (f * torch.arange(w, **d) + off - cx) / self.scale  # (w,)
-        self.v = (f * torch.arange(h, **d) + off - cy) / self.scale  # (h,)
-        # u -> grid_sample coordinates of this level: x0 = s u + c, x_l = (x0 - off) / f.
-        ax, ay = 2 / (f * max(w - 1, 1)), 2 / (f * max(h - 1, 1))
-        self.out = torch.tensor(
-            [[ax * self.scale, 0, ax * (cx - off) - 1], [0, ay * self.scale, ay * (cy - off) - 1], [0, 0, 1]], **d
-        )
-        self.px = self.scale / f  # level pixels per unit
+        self.u = (f * torch.arange(0, w, stride, dtype=torch.float64, device=device) + off - cx) / self.scale
+        self.v = (f * torch.arange(0, h, stride, dtype=torch.float64, device=device) + off - cy) / self.scale
+        self.h, self.w, self.px = len(self.v), len(self.u), self.scale / f  # px: level px per unit
+        self.box = [(f * t + off - c) / self.scale for t, c in ((0, cx), (w - 1, cx), (0, cy), (h - 1, cy))]
+        ax, ay = 2 / (f * max(w - 1, 1)), 2 / (f * max(h - 1, 1))  # u -> grid_sample coordinates
+        out = [[ax * self.scale, 0, ax * (cx - off) - 1], [0, ay * self.scale, ay * (cy - off) - 1], [0, 0, 1]]
+        self.out = torch.tensor(out, dtype=torch.float64, device=device)
+        self.uf, self.vf = self.u.float(), self.v.float()
+        self.pow_u = torch.stack([self.uf**i for i in range(5)], 1)  # (w, 5)
+        self.pow_v = torch.stack([self.vf**i for i in range(5)], 0)  # (5, h)
 
-    def grid(self, hn: torch.Tensor) -> torch.Tensor:
-        """(B, 3, 3) u -> u' homographies -> (B, h, w, 2) float32 grid_sample grid on img2."""
-        g = (self.out @ hn).float()
-        u, v = self.u.float(), self.v.float()
-        row = g[:, None, None, :, 0] * u[None, None, :, None]  # (B, 1, w, 3)
-        col = g[:, None, None, :, 1] * v[None, :, None, None] + g[:, None, None, :, 2]  # (B, h, 1, 3)
-        p = row + col  # (B, h, w, 3)
-        return p[..., :2] / p[..., 2:]
+    def grid(self, hn: torch.Tensor, key: str = "grid") -> torch.Tensor:
+        """(B, 3, 3) u -> u' homographies -> (B, h, w, 2) grid_sample grid on img2's level."""
+        return _grid(self.out @ hn, self.uf, self.vf, key)[0]
+
+    def rectangle(self, hn: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Row (B, h) and column (B, w) masks of a rectangle of template pixels inscribed in the
+        overlap, mapping at least ``margin`` level px inside img2."""
+        m, (u0, u1, v0, v1) = margin / self.px, self.box
+        box = torch.tensor([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=hn.dtype, device=hn.device)
+        q = _apply(torch.linalg.inv_ex(hn)[0], box)  # img2's corners in img1
+        ulo = torch.maximum(q[:, 0, 0], q[:, 3, 0]).clamp_min(u0) + m
+        uhi = torch.minimum(q[:, 1, 0], q[:, 2, 0]).clamp_max(u1) - m
+        vlo = torch.maximum(q[:, 0, 1], q[:, 1, 1]).clamp_min(v0) + m
+        vhi = torch.minimum(q[:, 2, 1], q[:, 3, 1]).clamp_max(v1) - m
+        # a folded or wild quadrilateral must not pass: the rectangle's corners must map inside
+        rect = torch.stack([torch.stack(c, 1) for c in ((ulo, vlo), (uhi, vlo), (uhi, vhi), (ulo, vhi))], 1)
+        p = hn[:, None, :, :2] @ rect[..., None] + hn[:, None, :, 2:]
+        xy, s = p[..., :2, 0] / p[..., 2:, 0], 0.5 * m + 1e-9
+        good = (p[..., 2, 0] > 0).all(1) & (ulo < uhi) & (vlo < vhi) & torch.isfinite(rect).all(dim=(1, 2))
+        good &= ((xy[..., 0] >= u0 - s) & (xy[..., 0] <= u1 + s) & (xy[..., 1] >= v0 - s)
+                 & (xy[..., 1] <= v1 + s)).all(1)
+        cols = (self.u >= ulo[:, None]) & (self.u <= uhi[:, None]) & good[:, None]
+        return (self.v >= vlo[:, None]) & (self.v <= vhi[:, None]) & good[:, None], cols
 
 
-def _pyramid(x: torch.Tensor, levels: int) -> list[torch.Tensor]:
-    pyr = [x]
-    for _ in range(levels - 1):
-        pyr.append(F.avg_pool2d(pyr[-1], 2))
-    return pyr
+_frame = functools.lru_cache(maxsize=16)(_Frame)  # frames depend on sizes only
 
 
-def _gradients(t: torch.Tensor) -> torch.Tensor:
-    """Central differences (level pixels, replicate border): (B, 1, h, w) -> (B, 2, h*w)."""
-    p = F.pad(t, (1, 1, 1, 1), mode="replicate")
-    gx = 0.5 * (p[:, :, 1:-1, 2:] - p[:, :, 1:-1, :-2])
-    gy = 0.5 * (p[:, :, 2:, 1:-1] - p[:, :, :-2, 1:-1])
-    return torch.cat([gx, gy], dim=1).flatten(2)
+def _blur(x: torch.Tensor, out: torch.Tensor) -> None:
+    """Separable [1, 4, 6, 4, 1] / 16, replicate border: (b, h, w) -> out (b, h, w); h, w >= 5."""
+    b, h, w = x.shape
+    p = _buffer("blur", (b, h, w + 4), x.device)
+    v = p[..., 2:-2]
+    torch.add(x[:, :-4], x[:, 4:], out=v[:, 2:-2]).add_(x[:, 1:-3], alpha=4).add_(x[:, 3:-1], alpha=4)
+    v[:, 2:-2].add_(x[:, 2:-2], alpha=6)
+    for r in (0, 1, h - 2, h - 1):  # border rows, replicated
+        t = [x[:, min(max(r + k, 0), h - 1)] for k in (-2, -1, 0, 1, 2)]
+        v[:, r] = t[0] + t[4] + 4 * (t[1] + t[3]) + 6 * t[2]
+    p[..., :2], p[..., -2:] = v[..., :1], v[..., -1:]
+    torch.add(p[..., :-4], p[..., 4:], out=out).add_(p[..., 1:-3], alpha=4).add_(p[..., 3:-1], alpha=4)
+    out.add_(p[..., 2:-2], alpha=6).mul_(1 / 256)
+
+
+def _gradients(t: torch.Tensor, stride: int) -> torch.Tensor:
+    """Central differences (level px, replicate border) at every ``stride``-th row and column:
+    (B, h, w) -> (B, h', 2, w')."""
+    p = F.pad(t[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
+    h, w = len(range(0, t.shape[1], stride)), len(range(0, t.shape[2], stride))
+    out, c = _buffer("grad", (t.shape[0], h, 2, w), t.device), p[:, 1:-1:stride]
+    torch.sub(c[:, :, 2::stride][..., :w], c[:, :, 0:-2:stride][..., :w], out=out[:, :, 0])
+    torch.sub(p[:, 2::stride, 1:-1:stride][:, :h], p[:, 0:-2:stride, 1:-1:stride][:, :h], out=out[:, :, 1])
+    return out.mul_(0.5)
 
 
 def _phase_correlation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Translation t (B, 2) = (tx, ty) with a(p) ~ b(p + t), level pixels, sub-pixel."""
-    bsz, _, h, w = a.shape
-    win = torch.outer(torch.hann_window(h, periodic=False, dtype=a.dtype, device=a.device),
-                      torch.hann_window(w, periodic=False, dtype=a.dtype, device=a.device))
-    a = (a - a.mean(dim=(2, 3), keepdim=True)) * win
-    b = (b - b.mean(dim=(2, 3), keepdim=True)) * win
-    x = torch.fft.rfft2(b[:, 0]) * torch.fft.rfft2(a[:, 0]).conj()
+    """Translation (B, 2) = (tx, ty), level px, sub-pixel, with a(p) ~ b(p + t)."""
+    n, h, w = a.shape
+    win = torch.outer(*(torch.hann_window(k, periodic=False, device=a.device) for k in (h, w)))
+    a, b = ((x - x.mean(dim=(1, 2), keepdim=True)) * win for x in (a, b))
+    x = torch.fft.rfft2(b) * torch.fft.rfft2(a).conj()
     mag = x.abs()
-    x = x / (mag + 1e-6 * mag.amax(dim=(1, 2), keepdim=True) + 1e-30)
-    r = torch.fft.irfft2(x, s=(h, w))  # peak at +t
-    idx = r.flatten(1).argmax(dim=1)
-    iy, ix = idx // w, idx % w
-    ar = torch.arange(bsz, device=a.device)
-
-    def sub(c, n, along_y):  # parabola through the peak and its (cyclic) neighbours
-        lo, hi = (c - 1) % n, (c + 1) % n
-        r0 = r[ar, iy, ix]
-        rl = r[ar, lo, ix] if along_y else r[ar, iy, lo]
-        rh = r[ar, hi, ix] if along_y else r[ar, iy, hi]
-        den = rl - 2 * r0 + rh
-        d = torch.where(den < 0, 0.5 * (rl - rh) / torch.where(den < 0, den, torch.ones_like(den)), 0.0)
-        c = c.to(a.dtype) + d.clamp(-0.5, 0.5)
-        return torch.where(c > n / 2, c - n, c)
-
-    return torch.stack([sub(ix, w, False), sub(iy, h, True)], dim=1)
-
-
-def _dp_matrix(dp: torch.Tensor) -> torch.Tensor:
-    """(B, 8) -> (B, 3, 3) I + D(dp)."""
-    z = torch.zeros_like(dp[:, 0])
-    m = torch.stack([1 + dp[:, 0], dp[:, 2], dp[:, 4], dp[:, 1], 1 + dp[:, 3], dp[:, 5], dp[:, 6], dp[:, 7], 1 + z], 1)
-    return m.view(-1, 3, 3)
+    r = torch.fft.irfft2(x / (mag + 1e-6 * mag.amax(dim=(1, 2), keepdim=True) + 1e-30), s=(h, w))  # peak at +t
+    i = r.flatten(1).argmax(dim=1)
+    iy, ix, ar = i // w, i % w, torch.arange(n, device=a.device)
+    r0, shift = r[ar, iy, ix], []
+    for c, m, lo, hi in ((ix, w, r[ar, iy, (ix - 1) % w], r[ar, iy, (ix + 1) % w]),
+                         (iy, h, r[ar, (iy - 1) % h, ix], r[ar, (iy + 1) % h, ix])):
+        den = lo - 2 * r0 + hi  # parabola through the peak and its cyclic neighbours
+        d = torch.where(den < 0, 0.5 * (lo - hi) / torch.where(den < 0, den, -1.0), 0.0)
+        c = c.to(r.dtype) + d.clamp(-0.5, 0.5)
+        shift.append(torch.where(c > m / 2, c - m, c))
+    return torch.stack(shift, dim=1)
 
 
 def _apply(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
@@ -224,187 +279,224 @@ def _check_h(h: object, name: str, batch: int | None = None) -> torch.Tensor:
     if not isinstance(h, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(h).__name__}")
     if h.dim() != 3 or h.shape[1:] != (3, 3) or (batch is not None and h.shape[0] != batch):
-        want = f"({batch}, 3, 3)" if batch is not None else "(B, 3, 3)"
-        raise ValueError(f"{name} must have shape {want}, got {tuple(h.shape)}")
+        raise ValueError(f"{name} must have shape ({'B' if batch is None else batch}, 3, 3), got {tuple(h.shape)}")
     if not h.is_floating_point() or not bool(torch.isfinite(h).all()):
         raise ValueError(f"{name} must be a finite float tensor")
     return h
 
 
-def _pixel_to_unit(h0: int, w0: int, device) -> torch.Tensor:
-    s = 0.5 * math.hypot(w0 - 1, h0 - 1)
-    return torch.tensor([[1 / s, 0, -(w0 - 1) / 2 / s], [0, 1 / s, -(h0 - 1) / 2 / s], [0, 0, 1]],
-                        dtype=torch.float64, device=device)
-
-
 @torch.no_grad()
 def estimate_homography(
-    img1: torch.Tensor,
-    img2: torch.Tensor,
-    init: torch.Tensor | None = None,
-    config: RegistrationConfig | None = None,
+    img1: torch.Tensor, img2: torch.Tensor, init: torch.Tensor | None = None, config: RegistrationConfig | None = None
 ) -> tuple[torch.Tensor, RegistrationInfo]:
-    """Estimate the homography H with img1(p) = img2(H p), per pair of a batch.
+    """Estimate, per pair, the homography H with img1(p) = img2(H p).
 
     Args:
-        img1, img2: (B, C, H, W) float in [0, 1] or uint8, C in {1, 3} (grey by ITU-R 601).
-        init: optional (B, 3, 3) initial guess (pixel coordinates); replaces the phase
-            correlation.
+        img1, img2: (B, C, H, W) float in [0, 1] or uint8, C in {1, 3}, H and W >= 16.
+        init: optional (B, 3, 3) initial guess (pixel coordinates), instead of phase correlation.
         config: :class:`RegistrationConfig`; defaults when None.
 
     Returns:
-        H: (B, 3, 3) float64, H[:, 2, 2] = 1, pixel coordinates of img1 -> img2.
+        H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's.
         info: :class:`RegistrationInfo` of (B,) tensors.
 
     Example:
         >>> x = torch.rand(1, 1, 64, 96)
-        >>> H, info = estimate_homography(x, x)
-        >>> bool(torch.allclose(H, torch.eye(3, dtype=H.dtype), atol=1e-4)), bool(info.converged)
-        (True, True)
+        >>> H, info = estimate_homography(x, torch.roll(x, 3, dims=-1))  # img2(x + 3) = img1(x)
+        >>> round(float(H[0, 0, 2]), 2), bool(info.converged)
+        (3.0, True)
     """
-    cfg = config if config is not None else RegistrationConfig()
+    cfg = RegistrationConfig() if config is None else config
     if not isinstance(cfg, RegistrationConfig):
         raise TypeError(f"config must be a RegistrationConfig or None, got {type(cfg).__name__}")
     check_image_pair(img1, img2)
     bsz, _, h0, w0 = img1.shape
-    dev = img1.device
-    if init is not None:
-        init = _check_h(init, "init", bsz).to(device=dev, dtype=torch.float64)
-    g1, g2 = to_grey(img1).float(), to_grey(img2).float()
-    levels = max(1, min(cfg.levels, int(math.log2(max(min(h0, w0), 1) / 16)) + 1))
-    its = [cfg.iterations[min(i, len(cfg.iterations) - 1)] for i in range(cfg.levels)][cfg.levels - levels:]
-    pyr1, pyr2 = _pyramid(g1, levels), _pyramid(g2, levels)
-    frames = [_Frame(l, *pyr1[l].shape[-2:], h0, w0, dev) for l in range(levels)]
+    if h0 < 16 or w0 < 16:
+        raise ValueError(f"img1 and img2 must be at least 16 x 16 pixels, got {h0} x {w0}")
+    s = 0.5 * math.hypot(w0 - 1, h0 - 1)  # pixel -> u: centred, in half-diagonals
+    to_u = torch.tensor([[1 / s, 0, -(w0 - 1) / 2 / s], [0, 1 / s, -(h0 - 1) / 2 / s], [0, 0, 1]],
+                        dtype=torch.float64, device=img1.device)
+    hn0 = None if init is None else to_u @ _check_h(init, "init", bsz).to(to_u) @ torch.linalg.inv(to_u)
+    parts = []
+    for i in range(0, bsz, cfg.chunk_size):  # a chunk's planes stay in the CPU cache
+        sl = slice(i, i + cfg.chunk_size)
+        g1, g2 = (to_grey(x[sl])[:, 0].float() for x in (img1, img2))
+        parts.append(_register(g1, g2, None if hn0 is None else hn0[sl], cfg))
+    hn, conv, res, its, ov, tex = (torch.cat(p) for p in zip(*parts))
+    h = torch.linalg.inv(to_u) @ hn @ to_u
+    return h / h[:, 2:, 2:], RegistrationInfo(conv, res, its, ov, tex)
+
+
+class _Level:
+    """One chunk at one level: the template (img1) data, and per pair the pixels used (masks times
+    powers of u, v), the inverse damped Hessian and the estimate they were built at."""
+
+    def __init__(self, fr: _Frame, img1: torch.Tensor, cfg: RegistrationConfig):
+        self.fr, self.cfg, (b, h, w), dev = fr, cfg, (img1.shape[0], fr.h, fr.w), img1.device
+        self.t1 = img1[:, :: fr.stride, :: fr.stride].contiguous()
+        self.grad = _gradients(img1, fr.stride)  # (b, h, 2, w)
+        self.g2sq = _buffer("g2sq", (b, h, 3, w), dev)  # gx^2, gx gy, gy^2
+        for c, (i, j) in enumerate(((0, 0), (0, 1), (1, 1))):
+            torch.mul(self.grad[:, :, i], self.grad[:, :, j], out=self.g2sq[:, :, c])
+        self.cols3, self.rows3 = torch.empty(b, w, 3, device=dev), torch.empty(b, 3, h, device=dev)
+        self.hinv = torch.empty(b, 8, 8, dtype=torch.float64, device=dev)
+        self.npix = torch.zeros(b, dtype=torch.float64, device=dev)
+        self.ok, self.h_ref = torch.zeros(b, dtype=torch.bool, device=dev), None
+
+    def setup(self, idx: torch.Tensor, hn: torch.Tensor) -> None:
+        """Pixels and Hessian of the pairs ``idx`` at the estimates hn (all pairs)."""
+        fr, b, h, w = self.fr, self.t1.shape[0], self.fr.h, self.fr.w
+        self.h_ref = hn.clone() if self.h_ref is None else self.h_ref
+        self.h_ref[idx] = hn[idx]
+        rows, cols = fr.rectangle(hn[idx], self.cfg.margin)
+        cu, rv = cols[:, :, None] * fr.pow_u, rows[:, None, :] * fr.pow_v  # (n, w, 5), (n, 5, h)
+        g2sq = self.g2sq if idx.numel() == b else self.g2sq[idx]
+        a = torch.bmm(rv, g2sq.view(-1, h, 3 * w)).view(-1, 5, 3, w)
+        hess = torch.einsum("bcij,cijkl->bkl", torch.einsum("bjcw,bwi->bcij", a, cu).double(), _C.to(a.device))
+        n = rows.sum(1).double() * cols.sum(1).double()
+        good = torch.linalg.eigvalsh(hess / n.clamp_min(1)[:, None, None])[:, 0] > self.cfg.min_texture
+        damp = self.cfg.damping * hess.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-30)
+        self.cols3[idx], self.rows3[idx], self.npix[idx], self.ok[idx] = cu[..., :3], rv[:, :3], n, good & (n > 0)
+        eye = torch.eye(8, dtype=torch.float64, device=a.device)
+        self.hinv[idx] = torch.linalg.inv_ex(hess + damp[:, None, None] * eye)[0]
+
+
+def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: RegistrationConfig):
+    """One chunk: g1, g2 (b, h, w) float32 grey; hn (b, 3, 3) in u units, or None."""
+    (bsz, h0, w0), dev = g1.shape, g1.device
+    f64 = {"dtype": torch.float64, "device": dev}
+    run = [(l, n) for l, n in zip(cfg.levels, cfg.iterations) if min(h0, w0) >> l >= 16 or l == 0]
+    pc = max(run[0][0], min(cfg.phase_level, int(math.log2(min(h0, w0) / 16))))
+    pyr = [_buffer("both", (2 * bsz, h0, w0), dev)]  # img1s then img2s
+    for k, g in enumerate((g1, g2)):
+        if cfg.presmooth:
+            _blur(g, pyr[0][k * bsz : (k + 1) * bsz])
+        else:
+            pyr[0][k * bsz : (k + 1) * bsz] = g
+    for _ in range(pc):  # 2 x 2 means (an odd last row or column is dropped)
+        p = pyr[-1][:, : pyr[-1].shape[1] // 2 * 2, : pyr[-1].shape[2] // 2 * 2]
+        pyr.append((p[:, ::2, ::2] + p[:, 1::2, ::2]).add_(p[:, ::2, 1::2]).add_(p[:, 1::2, 1::2]).mul_(0.25))
+    frames = {l: _frame(l, *pyr[l].shape[-2:], h0, w0, dev, cfg.fine_stride if l == 0 else 1) for l, _ in run}
     scale = frames[0].scale
-
-    to_u = _pixel_to_unit(h0, w0, dev)
-    if init is not None:
-        hn = to_u @ init @ torch.linalg.inv(to_u)
-    else:
-        top = levels - 1
-        t = _phase_correlation(pyr1[top], pyr2[top]).double() * 2.0**top / scale
-        hn = torch.eye(3, dtype=torch.float64, device=dev).repeat(bsz, 1, 1)
-        hn[:, :2, 2] = t
+    if hn is None:
+        hn = torch.eye(3, **f64).repeat(bsz, 1, 1)
+        hn[:, :2, 2] = _phase_correlation(pyr[pc][:bsz], pyr[pc][bsz:]).double() * 2.0**pc / scale
     hn = hn / hn[:, 2:, 2:]
-
-    corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]], dtype=torch.float64, device=dev)
-    corners = corners * torch.tensor([(w0 - 1) / 2, (h0 - 1) / 2], dtype=torch.float64, device=dev) / scale
-    f64 = dict(dtype=torch.float64, device=dev)
+    corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]], **f64)
+    corners = corners * torch.tensor([(w0 - 1) / 2, (h0 - 1) / 2], **f64) / scale
     iterations = torch.zeros(bsz, dtype=torch.int64, device=dev)
-    residual = torch.full((bsz,), float("nan"), **f64)
-    overlap = torch.zeros(bsz, **f64)
-    first_res = torch.full((bsz,), float("nan"), **f64)
-    last_step = torch.full((bsz,), float("inf"), **f64)
-    diverged = torch.zeros(bsz, dtype=torch.bool, device=dev)
-    textured = torch.zeros(bsz, dtype=torch.bool, device=dev)
-    eye = torch.eye(8, **f64)
-    c4 = _C.to(dev)
-    px_m, py_m = _PX.to(dev), _PY.to(dev)
+    residual, first_res, last_step = (torch.full((bsz,), v, **f64) for v in (math.nan, math.nan, math.inf))
+    diverged = ~torch.isfinite(hn).all(dim=(1, 2))
+    px3, py3, dmat, eye3 = _PX.to(dev), _PY.to(dev), _D.to(dev), torch.eye(3, **f64).flatten()
 
-    for lv in reversed(range(levels)):
-        fr, t1, t2 = frames[lv], pyr1[lv], pyr2[lv]
-        finest = lv == 0
-        uu = fr.u[None, :].expand(fr.h, fr.w).reshape(-1)
-        vv = fr.v[:, None].expand(fr.h, fr.w).reshape(-1)
-        mono2, mono4 = _monomials(uu, vv, _E2), _monomials(uu, vv, _E4)
-        grad = _gradients(t1)  # (B, 2, N)
-        # Hessian pixels: those mapping `margin` level px inside img2 under the current estimate.
-        lim = 1 - 2 * cfg.margin / torch.tensor([max(fr.w - 1, 1), max(fr.h - 1, 1)], device=dev)
-        mask = (fr.grid(hn).abs() <= lim).all(-1).flatten(1).float()  # (B, N)
-        g2p = torch.cat([grad[:, :1] ** 2, grad[:, :1] * grad[:, 1:], grad[:, 1:] ** 2], 1) * mask[:, None]
-        hess = torch.einsum("bcm,cmkl->bkl", (g2p @ mono4).double(), c4)  # pixel units
-        n = mask.sum(1).double().clamp_min(1)
-        eig_min = torch.linalg.eigvalsh(hess / n[:, None, None])[:, 0]
-        ok = eig_min > cfg.min_texture
-        if finest:
-            textured = ok
-        damp = cfg.damping * hess.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-30)
-        hinv = torch.linalg.solve(hess + damp[:, None, None] * eye, eye.expand(bsz, 8, 8))
-        tol = cfg.step_tol * 2.0**lv
-        frozen = diverged | ~ok  # evaluated once at full resolution (residual, overlap), never moved
-        active = torch.arange(bsz, device=dev) if finest else torch.nonzero(~frozen).flatten()
-        t1f, g2f = t1.flatten(1), pyr2[lv]
-        sub = None
-        for it in range(its[lv]):
+    for lv, n_its in run:
+        fr, finest = frames[lv], lv == 0
+        lev, all_idx = _Level(fr, pyr[lv][:bsz], cfg), torch.arange(bsz, device=dev)
+        lev.setup(all_idx, hn)
+        frozen = diverged | ~lev.ok  # at full resolution evaluated once (residual), never moved
+        active, sub = all_idx if finest else all_idx[~frozen], None
+        tol = cfg.step_tol if finest else cfg.coarse_tol
+        for _ in range(n_its):
             if active.numel() == 0:
                 break
-            if sub is None or sub[0].numel() != active.numel():
-                sub = (active, t1f[active], grad[active], g2f[active], mask[active], hinv[active], ~frozen[active])
-            idx, ta, ga, ia, ma, hi, oka = sub
+            nb = active.numel()
+            if sub is None:  # the active pairs' data (no copy while all are active)
+                data = (lev.t1, lev.grad, pyr[lv][bsz:, None], lev.cols3, lev.rows3, lev.hinv, ~frozen)
+                sub = (active, *(data if nb == bsz else (x[active] for x in data)))
+            idx, ta, ga, ia, ca, ra, hi, movable = sub
             ha = hn[idx]
-            grid = fr.grid(ha)
-            warped = F.grid_sample(ia, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-            inside = (grid.abs() <= 1).all(-1).flatten(1)
-            e = (warped.flatten(1) - ta) * inside
-            ew = e * ma
-            mom = (ga * ew[:, None]) @ mono2  # (b, 2, 6)
-            bvec = mom[:, 0].double() @ px_m.T + mom[:, 1].double() @ py_m.T
-            dp = (hi @ bvec[:, :, None])[:, :, 0] / fr.px
-            dp = torch.where(oka[:, None], dp, torch.zeros_like(dp))
-            h_new = ha @ torch.linalg.inv(_dp_matrix(dp))
+            e = F.grid_sample(ia, fr.grid(ha), mode="bilinear", padding_mode="zeros", align_corners=True)
+            e = e[:, 0].sub_(ta)  # img2(H p) - img1(p)
+            buf = _buffer("prod", (nb, fr.h, 3, fr.w), dev)  # e gx, e gy, e^2
+            torch.mul(ga, e[:, :, None], out=buf[:, :, :2])
+            torch.mul(e, e, out=buf[:, :, 2])
+            a = torch.bmm(ra, buf.view(nb, fr.h, 3 * fr.w)).view(nb, 3, 3, fr.w)
+            mom = torch.einsum("bjcw,bwi->bcij", a, ca).double()  # sum m e g_c u^i v^j, sum m e^2
+            bvec = torch.einsum("bij,kij->bk", mom[:, 0], px3) + torch.einsum("bij,kij->bk", mom[:, 1], py3)
+            dp = torch.where(movable[:, None], (hi @ bvec[:, :, None])[:, :, 0] / fr.px, 0.0)
+            h_new = ha @ torch.linalg.inv_ex((dp @ dmat + eye3).view(-1, 3, 3))[0]  # inverse composition
             h_new = h_new / h_new[:, 2:, 2:]
-            step = (_apply(h_new, corners) - _apply(ha, corners)).norm(dim=-1).amax(1) * scale
-            n_in = inside.sum(1).double()
-            ov = n_in / inside.shape[1]
-            bad = ~torch.isfinite(step) | (step > cfg.max_step * 2 * scale) | (ov < cfg.min_overlap)
+            c_new, c_old, c_ref = (_apply(m, corners) for m in (h_new, ha, lev.h_ref[idx]))
+            step = (c_new - c_old).norm(dim=-1).amax(1) * scale
+            bad = ~torch.isfinite(step) | (step > cfg.max_step * 2 * scale)
             hn[idx] = torch.where(bad[:, None, None], ha, h_new)
             iterations[idx] += 1
             if finest:
-                res = ((e.double() ** 2).sum(1) / n_in.clamp_min(1)).sqrt()
-                residual[idx], overlap[idx], last_step[idx] = res, ov, step
+                res = (mom[:, 2, 0, 0] / lev.npix[idx].clamp_min(1)).sqrt()
+                residual[idx], last_step[idx] = res, step
                 first_res[idx] = torch.where(first_res[idx].isnan(), res, first_res[idx])
             diverged[idx] |= bad
-            done = bad | (step < tol) | ~oka
-            if bool(done.any()):
-                active = idx[~done]
-    grew = residual > first_res * 1.01 + 1e-4
-    converged = textured & ~diverged & (last_step < cfg.step_tol) & ~grew & (overlap >= cfg.min_overlap)
+            done = bad | (step < tol) | ~movable
+            redo = ~done & ((c_new - c_ref).norm(dim=-1).amax(1) * scale > 0.75 * cfg.margin * 2.0**lv)
+            if bool(redo.any()):  # moved too far for the rectangle: new pixels, new Hessian
+                lev.setup(idx[redo], hn)
+                frozen[idx[redo]] = ~lev.ok[idx[redo]]
+            if bool(done.any() or redo.any()):
+                active, sub = idx[~done], None
+
+    overlap = (frames[run[0][0]].grid(hn, "grid_top").abs() <= 1 + 1e-6).all(-1).flatten(1).double().mean(1)
+    contrast = math.sqrt(2) * lev.t1.flatten(1).double().std(1)
+    converged = lev.ok & ~diverged & (last_step < cfg.step_tol) & ~(residual > first_res * 1.01 + 1e-4)
+    converged &= (overlap >= cfg.min_overlap) & (residual <= cfg.max_residual * contrast)
     converged &= torch.isfinite(hn).all(dim=(1, 2))
-    h = torch.linalg.inv(to_u) @ hn @ to_u
-    h = h / h[:, 2:, 2:]
-    return h, RegistrationInfo(converged, residual.float(), iterations, overlap.float(), textured)
+    return hn, converged, residual.float(), iterations, overlap.float(), lev.ok.clone()
 
 
 def warp_to_reference(
-    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None
+    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None, backend: str = "grid"
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Warp img2 into img1's frame: warped(p) = img2(H p), and the validity of each pixel.
+    """Warp img2 into img1's frame, warped(p) = img2(H p), with the validity of each pixel.
 
-    The image goes through ``kornia.geometry.warp_perspective`` (bilinear, zero padding,
-    ``align_corners=True``) with ``H^-1`` (kornia takes the src -> dst map). The mask is
-    computed from the mapped coordinates directly, in float64: valid = 1 where H p lies in
-    [0, W-1] x [0, H-1] of img2, with 1e-3 px of slack for rounding (such a sample is within
-    0.1 % of the border pixel). It is not eroded (the quality metric erodes it).
+    Bilinear, zero padding, ``align_corners=True``: the warp of ``kornia.geometry.warp_perspective(
+    img2, H^-1, dsize, align_corners=True)`` (SPEC 7). The default ``backend="grid"`` builds the same
+    sampling grid separably (one pass per plane, centred coordinates) and calls ``grid_sample``:
+    2-3 x faster on the CPU at 320 x 424, and closer to a float64 warp (max 2e-5 against kornia's
+    7e-5 on textured pairs; the two differ by at most ~1e-4). ``backend="kornia"`` calls kornia.
+
+    valid = 1 where H p lies in front (w > 0) and inside [0, W-1] x [0, H-1] of img2, read from the
+    same grid, with 1e-3 px of slack for rounding (such a sample is within 0.1 % of its border
+    pixel). It is not eroded: the quality metric erodes it (SPEC 3).
 
     Args:
         img2: (B, C, H, W) float or uint8 (uint8 is divided by 255).
         H: (B, 3, 3) float homographies, img1 pixel coordinates -> img2's.
         dsize: (height, width) of the output; img2's size when None.
+        backend: "grid" or "kornia".
 
     Returns:
-        warped: (B, C, h, w) in img2's float dtype (float32 for uint8). valid: (B, 1, h, w), 0 or 1.
+        warped: (B, C, h, w), img2's float dtype (float32 for uint8); valid: (B, 1, h, w) of 0 and 1.
     """
     check_image(img2, "img2")
     H = _check_h(H, "H", img2.shape[0])
-    if dsize is None:
-        dsize = (int(img2.shape[-2]), int(img2.shape[-1]))
-    if not (isinstance(dsize, (tuple, list)) and len(dsize) == 2 and all(isinstance(d, int) and d > 0 for d in dsize)):
-        raise ValueError(f"dsize must be (height, width) positive ints or None, got {dsize!r}")
+    dsize = tuple(img2.shape[-2:]) if dsize is None else dsize
+    if not (isinstance(dsize, (tuple, list)) and len(dsize) == 2 and all(type(d) is int and d > 0 for d in dsize)):
+        raise ValueError(f"dsize must be (height, width) of positive ints or None, got {dsize!r}")
+    if backend not in ("grid", "kornia"):
+        raise ValueError(f"backend must be 'grid' or 'kornia', got {backend!r}")
     img = img2.float() / 255.0 if img2.dtype == torch.uint8 else img2
     h64 = H.to(device=img.device, dtype=torch.float64)
-    if not bool((torch.linalg.det(h64).abs() > 1e-12).all()):
+    h_inv, info = torch.linalg.inv_ex(h64)
+    if bool((info != 0).any()) or not bool(torch.isfinite(h_inv).all()):
         raise ValueError("H must be invertible")
-    warped = warp_perspective(img, torch.linalg.inv(h64).to(img.dtype), dsize, mode="bilinear",
-                              padding_mode="zeros", align_corners=True)
-    hh, ww = dsize
-    d = dict(dtype=torch.float64, device=img.device)
-    x, y = torch.arange(ww, **d)[None, None, :], torch.arange(hh, **d)[None, :, None]
-    q = [h64[:, i, 0, None, None] * x + h64[:, i, 1, None, None] * y + h64[:, i, 2, None, None] for i in range(3)]
-    xs, ys = q[0] / q[2], q[1] / q[2]
-    tol = 1e-3
-    w_in, h_in = img2.shape[-1] - 1 + tol, img2.shape[-2] - 1 + tol
-    valid = (q[2] > 0) & (xs >= -tol) & (xs <= w_in) & (ys >= -tol) & (ys <= h_in)
-    return warped, valid[:, None].to(warped.dtype)
+    (hh, ww), (sh, sw) = dsize, img2.shape[-2:]
+    # output pixel (centred) -> img2 grid_sample coordinates; centring keeps float32 exact
+    f64 = {"dtype": torch.float64, "device": img.device}
+    norm = torch.tensor([[2 / max(sw - 1, 1), 0, -1], [0, 2 / max(sh - 1, 1), -1], [0, 0, 1]], **f64)
+    shift = torch.tensor([[1, 0, (ww - 1) / 2], [0, 1, (hh - 1) / 2], [0, 0, 1]], **f64)
+    xs = torch.arange(ww, device=img.device, dtype=torch.float32) - (ww - 1) / 2
+    ys = torch.arange(hh, device=img.device, dtype=torch.float32) - (hh - 1) / 2
+    tx, ty, m = 2e-3 / max(sw - 1, 1), 2e-3 / max(sh - 1, 1), norm @ h64 @ shift
+    b, step = img.shape[0], 8  # 8 pairs at a time: cached grids, cache-sized planes
+    valid = torch.empty(b, 1, hh, ww, dtype=img.dtype, device=img.device)
+    warped = torch.empty(b, img.shape[1], hh, ww, dtype=img.dtype, device=img.device)
+    for i in range(0, b, step):
+        grid, den = _grid(m[i : i + step], xs, ys, "warp")
+        valid[i : i + step, 0] = (den > 0) & (grid[..., 0].abs() <= 1 + tx) & (grid[..., 1].abs() <= 1 + ty)
+        if backend == "grid":
+            warped[i : i + step] = F.grid_sample(img[i : i + step], grid.to(img.dtype), "bilinear", "zeros", True)
+    if backend == "kornia":
+        warped = warp_perspective(img, h_inv.to(img.dtype), (hh, ww), "bilinear", "zeros", align_corners=True)
+    return warped, valid
 
 
 def perturb_homography(
@@ -416,58 +508,50 @@ def perturb_homography(
 ) -> torch.Tensor:
     """SPEC 7's class-R perturbation, in centred coordinates.
 
-    H_c = T(-p0) H T(p0), h33 = 1; each of its 8 free parameters (row-major h11..h32) is
-    multiplied by (1 + e), e ~ U[-amount, amount] drawn as ``torch.rand(8, float64)`` from the
-    pair's generator (in that order); the result is T(p0) H_c T(-p0), h33 = 1. p0 = ((W-1)/2,
-    (H-1)/2).
+    H_c = T(-p0) H T(p0) with h33 = 1; each of its 8 free parameters (row-major h11..h32) is
+    multiplied by (1 + e), e = amount * (2 * torch.rand(8, dtype=float64) - 1) drawn from the
+    pair's generator in one call; the result is T(p0) H_c T(-p0) with h33 = 1, and
+    p0 = ((W - 1) / 2, (H - 1) / 2).
 
     Args:
-        H: (3, 3) with one generator, or (B, 3, 3) with a sequence of B generators (one per
-            pair, SPEC 7; a single generator is accepted for B = 1 only).
-        generator: torch.Generator or sequence of them (CPU or H's device).
-        amount: half-width of the relative perturbation.
-        size: (height, width) of the images H applies to.
+        H: (3, 3), or (B, 3, 3) with one generator per pair (SPEC 7: a pair's draw must not
+            depend on the batch, so a single generator is accepted for B = 1 only).
+        generator: a torch.Generator, or a sequence of B of them.
+        amount: half-width of the relative perturbation, in [0, 1).
+        size: (height, width) of the images H applies to (keyword only).
 
     Returns:
         The perturbed homographies, H's shape and dtype.
     """
-    if not isinstance(H, torch.Tensor) or H.dim() not in (2, 3) or H.shape[-2:] != (3, 3):
-        raise ValueError(f"H must be a (3, 3) or (B, 3, 3) tensor, got {getattr(H, 'shape', type(H).__name__)}")
-    if not H.is_floating_point():
-        raise TypeError(f"H must be a float tensor, got {H.dtype}")
+    if not isinstance(H, torch.Tensor):
+        raise TypeError(f"H must be a torch.Tensor, got {type(H).__name__}")
+    if H.dim() not in (2, 3) or H.shape[-2:] != (3, 3) or not H.is_floating_point():
+        raise ValueError(f"H must be a float tensor of shape (3, 3) or (B, 3, 3), got {tuple(H.shape)} {H.dtype}")
     gens = [generator] if isinstance(generator, torch.Generator) else list(generator)
     hb = H if H.dim() == 3 else H[None]
     if len(gens) != hb.shape[0] or not all(isinstance(g, torch.Generator) for g in gens):
         raise ValueError(f"generator must be one torch.Generator per pair ({hb.shape[0]}), got {generator!r}")
-    if not (isinstance(amount, (int, float)) and 0 <= amount < 1):
+    if isinstance(amount, bool) or not isinstance(amount, (int, float)) or not 0 <= amount < 1:
         raise ValueError(f"amount must be a number in [0, 1), got {amount!r}")
-    if not (isinstance(size, (tuple, list)) and len(size) == 2 and all(s > 0 for s in size)):
-        raise ValueError(f"size must be (height, width), got {size!r}")
+    if not (isinstance(size, (tuple, list)) and len(size) == 2 and all(type(s) is int and s > 0 for s in size)):
+        raise ValueError(f"size must be (height, width) of positive ints, got {size!r}")
     e = torch.stack([torch.rand(8, generator=g, dtype=torch.float64, device=g.device) for g in gens])
     e = (2 * e - 1).to(H.device) * amount
-    p0x, p0y = (size[1] - 1) / 2, (size[0] - 1) / 2
-    t_plus = torch.tensor([[1, 0, p0x], [0, 1, p0y], [0, 0, 1]], dtype=torch.float64, device=H.device)
-    t_minus = torch.tensor([[1, 0, -p0x], [0, 1, -p0y], [0, 0, 1]], dtype=torch.float64, device=H.device)
+    t_plus, t_minus = (torch.tensor([[1, 0, k * (size[1] - 1) / 2], [0, 1, k * (size[0] - 1) / 2], [0, 0, 1]],
+                                    dtype=torch.float64, device=H.device) for k in (1, -1))
     hc = t_minus @ hb.double() @ t_plus
     hc = (hc / hc[:, 2:, 2:]).flatten(1)
-    hc = torch.cat([hc[:, :8] * (1 + e), hc[:, 8:]], 1).view(-1, 3, 3)
-    out = t_plus @ hc @ t_minus
+    out = t_plus @ torch.cat([hc[:, :8] * (1 + e), hc[:, 8:]], 1).view(-1, 3, 3) @ t_minus
     out = (out / out[:, 2:, 2:]).to(H.dtype)
     return out if H.dim() == 3 else out[0]
 
 
 def corner_error(H_est: torch.Tensor, H_true: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Mean distance (px) between the 4 image corners mapped by H_est and by H_true.
-
-    Args:
-        H_est, H_true: (B, 3, 3) or (3, 3). height, width: the image size.
-
-    Returns:
-        (B,) float64 (B = 1 for (3, 3) inputs).
-    """
-    a, b = (x if isinstance(x, torch.Tensor) and x.dim() == 3 else x[None] for x in (H_est, H_true))
-    _check_h(a, "H_est")
-    _check_h(b, "H_true", a.shape[0])
-    pts = torch.tensor([[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]],
-                       dtype=torch.float64, device=a.device)
-    return (_apply(a.double(), pts) - _apply(b.double().to(a.device), pts)).norm(dim=-1).mean(1)
+    """Mean distance (px) between the corners (0, 0), (W-1, 0), (W-1, H-1), (0, H-1) mapped by
+    H_est and by H_true; H_est, H_true (B, 3, 3) or (3, 3) -> (B,) float64 (B = 1 for (3, 3))."""
+    a, b = (x[None] if isinstance(x, torch.Tensor) and x.dim() == 2 else x for x in (H_est, H_true))
+    a = _check_h(a, "H_est")
+    b = _check_h(b, "H_true", a.shape[0]).to(a.device)
+    pts = [[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]]
+    pts = torch.tensor(pts, dtype=torch.float64, device=a.device)
+    return (_apply(a.double(), pts) - _apply(b.double(), pts)).norm(dim=-1).mean(1)
