@@ -7,6 +7,7 @@ from .config import (
     LensdistConfig,
     ProtocolConfig,
     QualityConfig,
+    RegistrationConfig,
     load_config,
 )
 from .images import load_image, load_scene, scene_names, to_grey
@@ -59,6 +60,7 @@ __all__ = [
     "LocalCriteria",
     "ProtocolConfig",
     "QualityConfig",
+    "RegistrationConfig",
     "QualityResult",
     "RegistrationQuality",
     "RegistrationQualityLoss",

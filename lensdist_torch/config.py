@@ -15,6 +15,7 @@ Unknown sections or keys are an error (a typo must not silently fall back to a d
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ __all__ = [
     "DistortionConfig",
     "ProtocolConfig",
     "ClassifierConfig",
+    "RegistrationConfig",
     "LensdistConfig",
     "load_config",
     "config_to_dict",
@@ -161,6 +163,63 @@ class ClassifierConfig:
             raise ValueError(f"metric must be 'delta_avg' or 'delta_max', got {self.metric!r}")
         if not 0.0 < self.reject_quantile <= 1.0:
             raise ValueError(f"reject_quantile must lie in ]0, 1], got {self.reject_quantile}")
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Settings of :func:`estimate_homography`.
+
+    Attributes:
+        levels: pyramid levels to run, coarsest first, ending with 0 (level l is 1 / 2**l of the
+            size); levels whose smaller side would be under 16 px are dropped.
+        iterations: maximum IC iterations for each entry of ``levels``.
+        step_tol: full resolution is done when an update moves no corner by more than this (px).
+        coarse_tol: the same for the coarser levels (full-resolution px).
+        phase_level: pyramid level of the phase correlation (lowered for small images).
+        damping: Hessian damping, a fraction of its mean diagonal.
+        min_texture: smallest admissible eigenvalue of the per-pixel Gauss-Newton Hessian
+            (gradients in level px, coordinates in half-diagonals).
+        min_overlap: fraction of img1 that must map inside img2.
+        max_residual: largest RMS residual, relative to sqrt(2) x img1's standard deviation
+            (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with SPEC 6's strongest
+            distortion).
+        margin: level px by which the pixels used must map inside img2.
+        max_step: an update moving a corner by more than this fraction of the diagonal diverged.
+        fine_stride: template pixel stride at full resolution.
+        presmooth: binomial smoothing (sigma 1 px) of both images first.
+        chunk_size: pairs registered together (cache locality); results do not depend on it.
+    """
+
+    levels: tuple[int, ...] = (2, 0)
+    iterations: tuple[int, ...] = (10, 6)
+    step_tol: float = 0.01
+    coarse_tol: float = 0.2
+    phase_level: int = 3
+    damping: float = 1e-6
+    min_texture: float = 1e-8
+    min_overlap: float = 0.3
+    max_residual: float = 0.5
+    margin: float = 2.0
+    max_step: float = 0.25
+    fine_stride: int = 2
+    presmooth: bool = True
+    chunk_size: int = 8
+
+    def __post_init__(self) -> None:
+        lv, its = self.levels, self.iterations
+        if not (isinstance(lv, tuple) and lv and all(type(i) is int for i in lv) and lv[-1] == 0
+                and all(a > b for a, b in itertools.pairwise(lv))):
+            raise ValueError(f"levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
+        if not (isinstance(its, tuple) and len(its) == len(lv) and all(type(i) is int and i > 0 for i in its)):
+            raise ValueError(f"iterations must be a tuple of positive ints, one per level, got {its!r}")
+        for name in ("phase_level", "fine_stride", "chunk_size"):
+            if type(getattr(self, name)) is not int or getattr(self, name) < (0 if name == "phase_level" else 1):
+                raise ValueError(f"{name} must be a {'non-negative' if name == 'phase_level' else 'positive'} int")
+        for name in ("step_tol", "coarse_tol", "min_texture", "max_residual", "max_step"):
+            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+        if not (self.damping >= 0 and self.margin >= 0 and 0 <= self.min_overlap <= 1):
+            raise ValueError("damping and margin must be >= 0 and min_overlap in [0, 1]")
 
 
 @dataclass(frozen=True)

@@ -34,17 +34,16 @@ that of two unrelated images of img1's contrast, or the last update was not belo
 from __future__ import annotations
 
 import functools
-import itertools
 import math
 import threading
-from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from kornia.geometry import warp_perspective
 
+from .config import RegistrationConfig
+from .homography import check_homography, corner_error, perturb_homography
 from .images import check_image, check_image_pair, to_grey
 
 __all__ = [
@@ -55,63 +54,6 @@ __all__ = [
     "perturb_homography",
     "warp_to_reference",
 ]
-
-
-@dataclass(frozen=True)
-class RegistrationConfig:
-    """Settings of :func:`estimate_homography`.
-
-    Attributes:
-        levels: pyramid levels to run, coarsest first, ending with 0 (level l is 1 / 2**l of the
-            size); levels whose smaller side would be under 16 px are dropped.
-        iterations: maximum IC iterations for each entry of ``levels``.
-        step_tol: full resolution is done when an update moves no corner by more than this (px).
-        coarse_tol: the same for the coarser levels (full-resolution px).
-        phase_level: pyramid level of the phase correlation (lowered for small images).
-        damping: Hessian damping, a fraction of its mean diagonal.
-        min_texture: smallest admissible eigenvalue of the per-pixel Gauss-Newton Hessian
-            (gradients in level px, coordinates in half-diagonals).
-        min_overlap: fraction of img1 that must map inside img2.
-        max_residual: largest RMS residual, relative to sqrt(2) x img1's standard deviation
-            (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with SPEC 6's strongest
-            distortion).
-        margin: level px by which the pixels used must map inside img2.
-        max_step: an update moving a corner by more than this fraction of the diagonal diverged.
-        fine_stride: template pixel stride at full resolution.
-        presmooth: binomial smoothing (sigma 1 px) of both images first.
-        chunk_size: pairs registered together (cache locality); results do not depend on it.
-    """
-
-    levels: tuple[int, ...] = (2, 0)
-    iterations: tuple[int, ...] = (10, 6)
-    step_tol: float = 0.01
-    coarse_tol: float = 0.2
-    phase_level: int = 3
-    damping: float = 1e-6
-    min_texture: float = 1e-8
-    min_overlap: float = 0.3
-    max_residual: float = 0.5
-    margin: float = 2.0
-    max_step: float = 0.25
-    fine_stride: int = 2
-    presmooth: bool = True
-    chunk_size: int = 8
-
-    def __post_init__(self) -> None:
-        lv, its = self.levels, self.iterations
-        if not (isinstance(lv, tuple) and lv and all(type(i) is int for i in lv) and lv[-1] == 0
-                and all(a > b for a, b in itertools.pairwise(lv))):
-            raise ValueError(f"levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
-        if not (isinstance(its, tuple) and len(its) == len(lv) and all(type(i) is int and i > 0 for i in its)):
-            raise ValueError(f"iterations must be a tuple of positive ints, one per level, got {its!r}")
-        for name in ("phase_level", "fine_stride", "chunk_size"):
-            if type(getattr(self, name)) is not int or getattr(self, name) < (0 if name == "phase_level" else 1):
-                raise ValueError(f"{name} must be a {'non-negative' if name == 'phase_level' else 'positive'} int")
-        for name in ("step_tol", "coarse_tol", "min_texture", "max_residual", "max_step"):
-            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
-                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
-        if not (self.damping >= 0 and self.margin >= 0 and 0 <= self.min_overlap <= 1):
-            raise ValueError("damping and margin must be >= 0 and min_overlap in [0, 1]")
 
 
 class RegistrationInfo(NamedTuple):
@@ -275,16 +217,6 @@ def _apply(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
     return q[..., :2, 0] / q[..., 2:, 0]
 
 
-def _check_h(h: object, name: str, batch: int | None = None) -> torch.Tensor:
-    if not isinstance(h, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor, got {type(h).__name__}")
-    if h.dim() != 3 or h.shape[1:] != (3, 3) or (batch is not None and h.shape[0] != batch):
-        raise ValueError(f"{name} must have shape ({'B' if batch is None else batch}, 3, 3), got {tuple(h.shape)}")
-    if not h.is_floating_point() or not bool(torch.isfinite(h).all()):
-        raise ValueError(f"{name} must be a finite float tensor")
-    return h
-
-
 @torch.no_grad()
 def estimate_homography(
     img1: torch.Tensor, img2: torch.Tensor, init: torch.Tensor | None = None, config: RegistrationConfig | None = None
@@ -316,7 +248,7 @@ def estimate_homography(
     s = 0.5 * math.hypot(w0 - 1, h0 - 1)  # pixel -> u: centred, in half-diagonals
     to_u = torch.tensor([[1 / s, 0, -(w0 - 1) / 2 / s], [0, 1 / s, -(h0 - 1) / 2 / s], [0, 0, 1]],
                         dtype=torch.float64, device=img1.device)
-    hn0 = None if init is None else to_u @ _check_h(init, "init", bsz).to(to_u) @ torch.linalg.inv(to_u)
+    hn0 = None if init is None else to_u @ check_homography(init, "init", bsz).to(to_u) @ torch.linalg.inv(to_u)
     parts = []
     for i in range(0, bsz, cfg.chunk_size):  # a chunk's planes stay in the CPU cache
         sl = slice(i, i + cfg.chunk_size)
@@ -443,15 +375,15 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
 
 
 def warp_to_reference(
-    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None, backend: str = "grid"
+    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None, backend: str = "kornia"
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Warp img2 into img1's frame, warped(p) = img2(H p), with the validity of each pixel.
 
     Bilinear, zero padding, ``align_corners=True``: the warp of ``kornia.geometry.warp_perspective(
-    img2, H^-1, dsize, align_corners=True)`` (SPEC 7). The default ``backend="grid"`` builds the same
-    sampling grid separably (one pass per plane, centred coordinates) and calls ``grid_sample``:
-    2-3 x faster on the CPU at 320 x 424, and closer to a float64 warp (max 2e-5 against kornia's
-    7e-5 on textured pairs; the two differ by at most ~1e-4). ``backend="kornia"`` calls kornia.
+    img2, H^-1, dsize, align_corners=True)`` (SPEC 7), which the default ``backend="kornia"`` calls,
+    as SPEC 7 prescribes. ``backend="grid"`` builds the same sampling grid separably (centred
+    coordinates) and calls ``grid_sample``: 2-3 x faster on the CPU at 320 x 424, and closer to a
+    float64 warp (max 2e-5 against kornia's 7e-5 on textured pairs; the two differ by ~1e-4).
 
     valid = 1 where H p lies in front (w > 0) and inside [0, W-1] x [0, H-1] of img2, read from the
     same grid, with 1e-3 px of slack for rounding (such a sample is within 0.1 % of its border
@@ -467,7 +399,7 @@ def warp_to_reference(
         warped: (B, C, h, w), img2's float dtype (float32 for uint8); valid: (B, 1, h, w) of 0 and 1.
     """
     check_image(img2, "img2")
-    H = _check_h(H, "H", img2.shape[0])
+    H = check_homography(H, "H", img2.shape[0])
     dsize = tuple(img2.shape[-2:]) if dsize is None else dsize
     if not (isinstance(dsize, (tuple, list)) and len(dsize) == 2 and all(type(d) is int and d > 0 for d in dsize)):
         raise ValueError(f"dsize must be (height, width) of positive ints or None, got {dsize!r}")
@@ -497,61 +429,3 @@ def warp_to_reference(
     if backend == "kornia":
         warped = warp_perspective(img, h_inv.to(img.dtype), (hh, ww), "bilinear", "zeros", align_corners=True)
     return warped, valid
-
-
-def perturb_homography(
-    H: torch.Tensor,
-    generator: torch.Generator | Sequence[torch.Generator],
-    amount: float = 0.01,
-    *,
-    size: tuple[int, int],
-) -> torch.Tensor:
-    """SPEC 7's class-R perturbation, in centred coordinates.
-
-    H_c = T(-p0) H T(p0) with h33 = 1; each of its 8 free parameters (row-major h11..h32) is
-    multiplied by (1 + e), e = amount * (2 * torch.rand(8, dtype=float64) - 1) drawn from the
-    pair's generator in one call; the result is T(p0) H_c T(-p0) with h33 = 1, and
-    p0 = ((W - 1) / 2, (H - 1) / 2).
-
-    Args:
-        H: (3, 3), or (B, 3, 3) with one generator per pair (SPEC 7: a pair's draw must not
-            depend on the batch, so a single generator is accepted for B = 1 only).
-        generator: a torch.Generator, or a sequence of B of them.
-        amount: half-width of the relative perturbation, in [0, 1).
-        size: (height, width) of the images H applies to (keyword only).
-
-    Returns:
-        The perturbed homographies, H's shape and dtype.
-    """
-    if not isinstance(H, torch.Tensor):
-        raise TypeError(f"H must be a torch.Tensor, got {type(H).__name__}")
-    if H.dim() not in (2, 3) or H.shape[-2:] != (3, 3) or not H.is_floating_point():
-        raise ValueError(f"H must be a float tensor of shape (3, 3) or (B, 3, 3), got {tuple(H.shape)} {H.dtype}")
-    gens = [generator] if isinstance(generator, torch.Generator) else list(generator)
-    hb = H if H.dim() == 3 else H[None]
-    if len(gens) != hb.shape[0] or not all(isinstance(g, torch.Generator) for g in gens):
-        raise ValueError(f"generator must be one torch.Generator per pair ({hb.shape[0]}), got {generator!r}")
-    if isinstance(amount, bool) or not isinstance(amount, (int, float)) or not 0 <= amount < 1:
-        raise ValueError(f"amount must be a number in [0, 1), got {amount!r}")
-    if not (isinstance(size, (tuple, list)) and len(size) == 2 and all(type(s) is int and s > 0 for s in size)):
-        raise ValueError(f"size must be (height, width) of positive ints, got {size!r}")
-    e = torch.stack([torch.rand(8, generator=g, dtype=torch.float64, device=g.device) for g in gens])
-    e = (2 * e - 1).to(H.device) * amount
-    t_plus, t_minus = (torch.tensor([[1, 0, k * (size[1] - 1) / 2], [0, 1, k * (size[0] - 1) / 2], [0, 0, 1]],
-                                    dtype=torch.float64, device=H.device) for k in (1, -1))
-    hc = t_minus @ hb.double() @ t_plus
-    hc = (hc / hc[:, 2:, 2:]).flatten(1)
-    out = t_plus @ torch.cat([hc[:, :8] * (1 + e), hc[:, 8:]], 1).view(-1, 3, 3) @ t_minus
-    out = (out / out[:, 2:, 2:]).to(H.dtype)
-    return out if H.dim() == 3 else out[0]
-
-
-def corner_error(H_est: torch.Tensor, H_true: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Mean distance (px) between the corners (0, 0), (W-1, 0), (W-1, H-1), (0, H-1) mapped by
-    H_est and by H_true; H_est, H_true (B, 3, 3) or (3, 3) -> (B,) float64 (B = 1 for (3, 3))."""
-    a, b = (x[None] if isinstance(x, torch.Tensor) and x.dim() == 2 else x for x in (H_est, H_true))
-    a = _check_h(a, "H_est")
-    b = _check_h(b, "H_true", a.shape[0]).to(a.device)
-    pts = [[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]]
-    pts = torch.tensor(pts, dtype=torch.float64, device=a.device)
-    return (_apply(a.double(), pts) - _apply(b.double(), pts)).norm(dim=-1).mean(1)

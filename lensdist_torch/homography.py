@@ -1,0 +1,83 @@
+"""Homography helpers on (B, 3, 3) tensors: checks, SPEC 7's class-R perturbation, corner error."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+
+__all__ = ["perturb_homography", "corner_error", "check_homography"]
+
+
+def _apply(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) x (K, 2) -> (B, K, 2)."""
+    q = hn[:, None, :, :2] @ pts[None, :, :, None] + hn[:, None, :, 2:]
+    return q[..., :2, 0] / q[..., 2:, 0]
+
+
+def check_homography(h: object, name: str, batch: int | None = None) -> torch.Tensor:
+    if not isinstance(h, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(h).__name__}")
+    if h.dim() != 3 or h.shape[1:] != (3, 3) or (batch is not None and h.shape[0] != batch):
+        raise ValueError(f"{name} must have shape ({'B' if batch is None else batch}, 3, 3), got {tuple(h.shape)}")
+    if not h.is_floating_point() or not bool(torch.isfinite(h).all()):
+        raise ValueError(f"{name} must be a finite float tensor")
+    return h
+
+
+def perturb_homography(
+    H: torch.Tensor,
+    generator: torch.Generator | Sequence[torch.Generator],
+    amount: float = 0.01,
+    *,
+    size: tuple[int, int],
+) -> torch.Tensor:
+    """SPEC 7's class-R perturbation, in centred coordinates.
+
+    H_c = T(-p0) H T(p0) with h33 = 1; each of its 8 free parameters (row-major h11..h32) is
+    multiplied by (1 + e), e = amount * (2 * torch.rand(8, dtype=float64) - 1) drawn from the
+    pair's generator in one call; the result is T(p0) H_c T(-p0) with h33 = 1, and
+    p0 = ((W - 1) / 2, (H - 1) / 2).
+
+    Args:
+        H: (3, 3), or (B, 3, 3) with one generator per pair (SPEC 7: a pair's draw must not
+            depend on the batch, so a single generator is accepted for B = 1 only).
+        generator: a torch.Generator, or a sequence of B of them.
+        amount: half-width of the relative perturbation, in [0, 1).
+        size: (height, width) of the images H applies to (keyword only).
+
+    Returns:
+        The perturbed homographies, H's shape and dtype.
+    """
+    if not isinstance(H, torch.Tensor):
+        raise TypeError(f"H must be a torch.Tensor, got {type(H).__name__}")
+    if H.dim() not in (2, 3) or H.shape[-2:] != (3, 3) or not H.is_floating_point():
+        raise ValueError(f"H must be a float tensor of shape (3, 3) or (B, 3, 3), got {tuple(H.shape)} {H.dtype}")
+    gens = [generator] if isinstance(generator, torch.Generator) else list(generator)
+    hb = H if H.dim() == 3 else H[None]
+    if len(gens) != hb.shape[0] or not all(isinstance(g, torch.Generator) for g in gens):
+        raise ValueError(f"generator must be one torch.Generator per pair ({hb.shape[0]}), got {generator!r}")
+    if isinstance(amount, bool) or not isinstance(amount, (int, float)) or not 0 <= amount < 1:
+        raise ValueError(f"amount must be a number in [0, 1), got {amount!r}")
+    if not (isinstance(size, (tuple, list)) and len(size) == 2 and all(type(s) is int and s > 0 for s in size)):
+        raise ValueError(f"size must be (height, width) of positive ints, got {size!r}")
+    e = torch.stack([torch.rand(8, generator=g, dtype=torch.float64, device=g.device) for g in gens])
+    e = (2 * e - 1).to(H.device) * amount
+    t_plus, t_minus = (torch.tensor([[1, 0, k * (size[1] - 1) / 2], [0, 1, k * (size[0] - 1) / 2], [0, 0, 1]],
+                                    dtype=torch.float64, device=H.device) for k in (1, -1))
+    hc = t_minus @ hb.double() @ t_plus
+    hc = (hc / hc[:, 2:, 2:]).flatten(1)
+    out = t_plus @ torch.cat([hc[:, :8] * (1 + e), hc[:, 8:]], 1).view(-1, 3, 3) @ t_minus
+    out = (out / out[:, 2:, 2:]).to(H.dtype)
+    return out if H.dim() == 3 else out[0]
+
+
+def corner_error(H_est: torch.Tensor, H_true: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Mean distance (px) between the corners (0, 0), (W-1, 0), (W-1, H-1), (0, H-1) mapped by
+    H_est and by H_true; H_est, H_true (B, 3, 3) or (3, 3) -> (B,) float64 (B = 1 for (3, 3))."""
+    a, b = (x[None] if isinstance(x, torch.Tensor) and x.dim() == 2 else x for x in (H_est, H_true))
+    a = check_homography(a, "H_est")
+    b = check_homography(b, "H_true", a.shape[0]).to(a.device)
+    pts = [[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]]
+    pts = torch.tensor(pts, dtype=torch.float64, device=a.device)
+    return (_apply(a.double(), pts) - _apply(b.double(), pts)).norm(dim=-1).mean(1)
