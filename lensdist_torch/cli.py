@@ -83,7 +83,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         shard=shard,
         workers=args.workers,
         batch_size=args.batch_size,
-        scenes_dir=args.scenes,
+        scenes_dir=args.scenes if args.sequence is None else args.sequence,
+        sequence=args.sequence is not None,
         limit=args.limit,
         progress=not args.quiet,
     )
@@ -202,7 +203,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--shard", default=None, help="I/N: this job's share of the shards (array jobs)")
     p.add_argument("--workers", type=int, default=2, help="worker processes (one thread each)")
     p.add_argument("--batch-size", type=int, default=16, help="pairs per batch (the maps do not depend on it; H only to ~1e-6)")
-    p.add_argument("--scenes", default=None, help="folder of real, undistorted scene images")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--scenes", default=None, help="folder of real, undistorted scene images")
+    src.add_argument("--sequence", default=None, help="folder of consecutive frames of a real, undistorted sequence: "
+                     "pairs of consecutive frames instead of synthetic motion")
     p.add_argument("--limit", type=int, default=None, help="only the first N pairs of each set")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_generate)

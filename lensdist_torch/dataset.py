@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 
 from .config import LensdistConfig, config_from_dict, config_to_dict
 from .images import load_image, load_scene
-from .synthesis import SETS, footprint, make_pairs, scene_zoom, set_size
+from .synthesis import SETS, footprint, make_pairs, scene_zoom, sequence_footprint, set_size
 
 __all__ = [
     "FORMAT_VERSION",
@@ -70,8 +70,13 @@ def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def load_scenes(config: LensdistConfig, scenes_dir: str | Path | None = None) -> tuple[list[torch.Tensor], list[str]]:
+def load_scenes(
+    config: LensdistConfig, scenes_dir: str | Path | None = None, sequence: bool = False
+) -> tuple[list[torch.Tensor], list[str]]:
     """The scene images (1, 1, H, W) and their ids (embedded name, or file name + content hash).
+
+    With ``sequence``, the folder holds consecutive frames of one real, undistorted sequence
+    (sorted by file name, all of one size); pair i is made of frames i and i + 1 (cyclically).
 
     Raises:
         ValueError: naming the file, for an unreadable image or one too small for the footprint.
@@ -84,7 +89,7 @@ def load_scenes(config: LensdistConfig, scenes_dir: str | Path | None = None) ->
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
     if not files:
         raise ValueError(f"--scenes folder {folder} holds no image files ({sorted(_IMAGE_SUFFIXES)})")
-    box = footprint(config)
+    box = sequence_footprint(config) if sequence else footprint(config)
     scenes, ids = [], []
     for f in files:
         img = load_image(f, grey=True)  # raises ValueError naming the file if undecodable
@@ -95,8 +100,12 @@ def load_scenes(config: LensdistConfig, scenes_dir: str | Path | None = None) ->
                 f"scene image {f} is too small: {img.shape[-1]} x {img.shape[-2]} px; the views need "
                 f"at least {need_w:.0f} x {need_h:.0f} px (a zoom of {MIN_ZOOM})"
             )
+        if sequence and scenes and img.shape != scenes[0].shape:
+            raise ValueError(f"sequence frame {f} is {tuple(img.shape[-2:])}, the first frame {tuple(scenes[0].shape[-2:])}")
         scenes.append(img)
-        ids.append(f"{f.name}:{hashlib.sha256(f.read_bytes()).hexdigest()[:12]}")
+        ids.append(("frame:" if sequence else "") + f"{f.name}:{hashlib.sha256(f.read_bytes()).hexdigest()[:12]}")
+    if sequence and len(scenes) < 2:
+        raise ValueError(f"--sequence folder {folder} needs at least 2 frames, found {len(scenes)}")
     return scenes, ids
 
 
@@ -193,23 +202,23 @@ def _record(batches, set_name: str, start: int, end: int, fingerprint: str) -> d
     }
 
 
-def generate_shard(scenes, config, set_name, start, end, fingerprint, batch_size=16, on_batch=None) -> dict:
+def generate_shard(scenes, config, set_name, start, end, fingerprint, batch_size=16, on_batch=None, sequence=False) -> dict:
     """Generate pairs [start, end) of a set as one shard record."""
     batches = []
     for s in range(start, end, batch_size):
         idx = list(range(s, min(s + batch_size, end)))
-        batches.append(make_pairs(scenes, config, set_name, idx))
+        batches.append(make_pairs(scenes, config, set_name, idx, sequence=sequence))
         if on_batch is not None:
             on_batch(len(idx))
     return _record(batches, set_name, start, end, fingerprint)
 
 
 def _worker(task):
-    cfg_dict, scenes_dir, set_name, k, start, end, fingerprint, batch_size, out = task
+    cfg_dict, scenes_dir, sequence, set_name, k, start, end, fingerprint, batch_size, out = task
     torch.set_num_threads(1)
     config = config_from_dict(cfg_dict)
-    scenes, _ = load_scenes(config, scenes_dir)
-    rec = generate_shard(scenes, config, set_name, start, end, fingerprint, batch_size)
+    scenes, _ = load_scenes(config, scenes_dir, sequence)
+    rec = generate_shard(scenes, config, set_name, start, end, fingerprint, batch_size, sequence=sequence)
     write_shard(shard_path(out, set_name, k), rec)
     return end - start
 
@@ -234,6 +243,7 @@ def generate(
     scenes_dir: str | Path | None = None,
     limit: int | None = None,
     progress: bool = True,
+    sequence: bool = False,
 ) -> dict:
     """Generate the sets' shards that belong to ``shard`` = (I, N) and are not yet on disk.
 
@@ -250,7 +260,9 @@ def generate(
         raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
     if not (len(shard) == 2 and shard[1] >= 1 and 0 <= shard[0] < shard[1]):
         raise ValueError(f"shard must be (I, N) with 0 <= I < N, got {shard!r}")
-    scenes, scene_ids = load_scenes(config, scenes_dir)
+    if sequence and scenes_dir is None:
+        raise ValueError("sequence=True needs scenes_dir: the folder of the sequence's frames")
+    scenes, scene_ids = load_scenes(config, scenes_dir, sequence)
     fp = config_fingerprint(config, scene_ids)
     manifest = {
         "format_version": FORMAT_VERSION,
@@ -283,13 +295,13 @@ def generate(
         torch.set_num_threads(1)
         try:
             for s, k, a, b in tasks:
-                rec = generate_shard(scenes, config, s, a, b, fp, batch_size, on_batch=bar.update)
+                rec = generate_shard(scenes, config, s, a, b, fp, batch_size, on_batch=bar.update, sequence=sequence)
                 write_shard(shard_path(out, s, k), rec)
         finally:
             torch.set_num_threads(threads)
     elif tasks:
         cfg = config_to_dict(config)
-        jobs = [(cfg, scenes_dir, s, k, a, b, fp, batch_size, str(out)) for s, k, a, b in tasks]
+        jobs = [(cfg, scenes_dir, sequence, s, k, a, b, fp, batch_size, str(out)) for s, k, a, b in tasks]
         with mp.get_context("spawn").Pool(workers) as pool:
             for n in pool.imap_unordered(_worker, jobs):
                 bar.update(n)

@@ -49,6 +49,8 @@ __all__ = [
     "scene_zoom",
     "render_pairs",
     "make_pairs",
+    "render_sequence_pairs",
+    "sequence_footprint",
 ]
 
 SETS = ("train", "test")
@@ -293,16 +295,74 @@ def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: tor
     torch.div(torch.add(x * q[1][0], y, alpha=q[1][1]).add_(q[1][2]), den, out=out2[1].view(-1))
 
 
+def sequence_footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
+    """Box of the ideal points at the largest coefficients, relative to p0, + 2 px (no motion)."""
+    d = config.distortion
+    ideal = distortion_grid([d.k2_max], [d.k4_max], config.image.height, config.image.width, torch.float64)[0]
+    x0, y0 = distortion_center(config.image.height, config.image.width)
+    lo, hi = ideal.reshape(-1, 2).amin(0), ideal.reshape(-1, 2).amax(0)
+    return (float(lo[0]) - x0 - 2, float(hi[0]) - x0 + 2, float(lo[1]) - y0 - 2, float(hi[1]) - y0 + 2)
+
+
+def _sequence_params(params: PairParams, n_frames: int) -> PairParams:
+    """Pair i of a sequence is frames (i mod (n - 1), i mod (n - 1) + 1); its motion is real,
+    unknown, so the motion is stored as NaN and M as the identity."""
+    if n_frames < 2:
+        raise ValueError(f"a sequence needs at least 2 frames, got {n_frames}")
+    b = params.index.shape[0]
+    params.scene = params.index % (n_frames - 1)
+    params.motion = torch.full((b, 6), float("nan"), dtype=torch.float64)
+    params.M = torch.eye(3, dtype=torch.float64).repeat(b, 1, 1)
+    return params
+
+
+def render_sequence_pairs(frames: list[torch.Tensor], params: PairParams, config: LensdistConfig):
+    """Distort consecutive frames (I1 = frame s, I2 = frame s + 1) with the pair's (k2, k4).
+
+    Each frame is viewed about its centre at the zoom that keeps the distorted footprint inside
+    it (never padded); one grid_sample per image.
+    """
+    h, w = config.image.height, config.image.width
+    x0, y0 = distortion_center(h, w)
+    box = sequence_footprint(config)
+    d = pixel_grid(h, w, torch.float64).reshape(-1, 2) - torch.tensor([x0, y0], dtype=torch.float64)
+    r2 = (d * d).sum(-1)
+    dx, dy, r2, r4 = d[:, 0].float(), d[:, 1].float(), r2.float(), (r2 * r2).float()
+    b = params.k2.shape[0]
+    hs, ws = frames[0].shape[-2:]
+    z = scene_zoom((hs, ws), box)
+    place = torch.tensor([[2.0 / (ws - 1) * z, 0.0, 0.0], [0.0, 2.0 / (hs - 1) * z, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    grid = torch.empty(b, 2, h, w)
+    unused = torch.empty(b, 2, h, w)
+    for j in range(b):
+        _pair_grid(dx, dy, r2, r4, float(params.k2[j]), float(params.k4[j]), place, place, grid[j], unused[j])
+    first = torch.cat([frames[int(s)] for s in params.scene]).float()
+    second = torch.cat([frames[int(s) + 1] for s in params.scene]).float()
+    g = grid.permute(0, 2, 3, 1)
+    img1 = F.grid_sample(first, g, mode="bilinear", padding_mode="zeros", align_corners=True)
+    img2 = F.grid_sample(second, g, mode="bilinear", padding_mode="zeros", align_corners=True)
+    return img1, img2
+
+
 def make_pairs(
     scenes: list[torch.Tensor],
     config: LensdistConfig,
     set_name: str,
     indices,
     keep_images: bool = False,
+    sequence: bool = False,
 ) -> PairBatch:
-    """Draw, render, register (estimated homography only) and measure a batch of pairs."""
+    """Draw, render, register (estimated homography only) and measure a batch of pairs.
+
+    With ``sequence``, ``scenes`` are consecutive frames of a real, undistorted sequence and
+    pair i is frames (i mod (n-1), i mod (n-1) + 1), distorted, instead of synthetic motion.
+    """
     params = draw_pairs(config, set_name, indices, len(scenes))
-    img1, img2 = render_pairs(scenes, params, config)
+    if sequence:
+        params = _sequence_params(params, len(scenes))
+        img1, img2 = render_sequence_pairs(scenes, params, config)
+    else:
+        img1, img2 = render_pairs(scenes, params, config)
     H, info = estimate_homography(img1, img2)
     H = H.double()
     if bool(params.perturbed.any()):

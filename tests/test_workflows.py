@@ -157,3 +157,43 @@ class TestTinyProtocol:
         )
         if SHIPPED.is_file():
             assert r.returncode == 2 and "image size" in r.stderr
+
+
+class TestSequence:
+    """`--sequence DIR`: pairs of consecutive real frames instead of synthetic motion."""
+
+    def _frames(self, folder, n=4, step=6, size=(150, 200)):
+        big = torch.nn.functional.interpolate(load_scene("gravel"), scale_factor=1.5, mode="bilinear", align_corners=True)
+        folder.mkdir()
+        for i in range(n):
+            fr = big[0, :, step * i : step * i + size[0], 50 : 50 + size[1]]
+            _write_png(folder / f"f{i:03d}.png", fr[0])
+        return folder
+
+    def test_consecutive_frames(self, tmp_path):
+        from lensdist_torch.dataset import generate, load_set
+
+        cfg = config_from_dict({"image": {"height": 96, "width": 128},
+                                "protocol": {"n_train": 6, "n_test_distorted": 2, "n_test_undistorted": 1, "shard_size": 6}})
+        frames = self._frames(tmp_path / "seq")
+        generate(cfg, tmp_path / "out", scenes_dir=frames, sequence=True, progress=False)
+        d = load_set(tmp_path / "out", "train")
+        assert d["scene"].tolist() == [0, 1, 2, 0, 1, 2]  # pair i = frames (i mod 3, i mod 3 + 1)
+        assert bool(d["converged"].all())
+        assert bool(torch.isnan(d["motion"]).all())  # the real motion is unknown
+        # the frames move 6 px down the scene: the registration sees a vertical translation
+        ty = d["H"][:, 1, 2]
+        assert bool((ty < -2).all()), ty
+
+    def test_bad_sequences(self, tmp_path):
+        from lensdist_torch.dataset import load_scenes
+
+        cfg = config_from_dict({"image": {"height": 96, "width": 128}})
+        one = tmp_path / "one"
+        one.mkdir()
+        _write_png(one / "a.png", load_scene("gravel")[0, 0, :150, :200])
+        with pytest.raises(ValueError, match="at least 2 frames"):
+            load_scenes(cfg, one, sequence=True)
+        _write_png(one / "b.png", load_scene("gravel")[0, 0, :160, :200])
+        with pytest.raises(ValueError, match="b.png"):
+            load_scenes(cfg, one, sequence=True)
