@@ -20,8 +20,6 @@ import hashlib
 import io
 import json
 import multiprocessing as mp
-import os
-import tempfile
 from pathlib import Path
 
 import torch
@@ -29,6 +27,7 @@ from tqdm.auto import tqdm
 
 from .config import LensdistConfig, config_from_dict, config_to_dict
 from .images import load_image, load_scene
+from .storage import atomic_write_bytes
 from .synthesis import SETS, footprint, make_pairs, scene_zoom, sequence_footprint, set_size
 
 __all__ = [
@@ -117,26 +116,11 @@ def shard_path(out: str | Path, set_name: str, k: int) -> Path:
     return Path(out) / set_name / f"shard-{k:05d}.pt"
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.chmod(tmp, 0o644)
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def write_shard(path: str | Path, record: dict) -> None:
     """Save a shard atomically; the bytes depend only on ``record`` (never on the file name)."""
     buf = io.BytesIO()
     torch.save(record, buf)
-    _atomic_write_bytes(Path(path), buf.getvalue())
+    atomic_write_bytes(Path(path), buf.getvalue())
 
 
 def load_shard(path: str | Path, fingerprint: str | None = None) -> dict:
@@ -358,4 +342,4 @@ def _read_json(path: Path):
 
 
 def _write_json(path: Path, data) -> None:
-    _atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())
+    atomic_write_bytes(path, (json.dumps(data, indent=2) + "\n").encode())

@@ -14,9 +14,6 @@ Everything fitted is a buffer, so ``state_dict`` carries it and ``.to("cuda")`` 
 
 from __future__ import annotations
 
-import io
-import os
-import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -25,15 +22,12 @@ from torch import nn
 
 from .config import ClassifierConfig, LensdistConfig, config_from_dict, config_to_dict
 from .distortion import REJECT
+from .storage import CheckpointError, check_compatible, load_versioned, save_versioned
 
 __all__ = ["EigenSpaceClassifier", "ClassifierResult", "CheckpointError", "CHECKPOINT_VERSION"]
 
 CHECKPOINT_VERSION = 1
 _KIND = "lensdist-eigenspace"
-
-
-class CheckpointError(ValueError):
-    """A checkpoint of another kind, format version, image size, block size or metric."""
 
 
 class ClassifierResult(NamedTuple):
@@ -188,27 +182,12 @@ class EigenSpaceClassifier(nn.Module):
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path, extra: dict | None = None) -> None:
         """Write atomically: format version, the config it was fitted with, and the buffers."""
-        payload = {
-            "kind": _KIND,
-            "format_version": CHECKPOINT_VERSION,
+        save_versioned(path, _KIND, CHECKPOINT_VERSION, {
             "n_features": self.n_features,
             "config": config_to_dict(self.config),
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
             "extra": extra or {},
-        }
-        buf = io.BytesIO()
-        torch.save(payload, buf)
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(buf.getvalue())
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        })
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":
@@ -219,22 +198,10 @@ class EigenSpaceClassifier(nn.Module):
         Raises:
             CheckpointError: another kind, format version, image size, block size or thresholds.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"checkpoint not found: {path}")
-        try:
-            payload = torch.load(path, map_location=map_location, weights_only=True)
-        except Exception as exc:
-            raise CheckpointError(f"checkpoint {path} is corrupted or not a torch file: {exc}") from exc
-        if not isinstance(payload, dict) or payload.get("kind") != _KIND:
-            raise CheckpointError(f"{path} is not a lensdist eigen-space checkpoint")
-        if payload.get("format_version") != CHECKPOINT_VERSION:
-            raise CheckpointError(
-                f"checkpoint {path} has format version {payload.get('format_version')}, this library reads {CHECKPOINT_VERSION}"
-            )
+        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location)
         config = config_from_dict(payload["config"])
         if expected is not None:
-            _check_compatible(config, expected, path)
+            check_compatible(config, expected, path)
         sd = payload["state_dict"]
         model = cls(int(payload["n_features"]), config)
         # fitted sizes vary with the training set: resize the buffers before loading
@@ -243,18 +210,3 @@ class EigenSpaceClassifier(nn.Module):
         model.load_state_dict(sd)
         model.extra = payload.get("extra", {})
         return model
-
-
-def _check_compatible(have: LensdistConfig, want: LensdistConfig, path) -> None:
-    checks = [
-        ("image size", (have.image.height, have.image.width), (want.image.height, want.image.width)),
-        ("block size", have.quality.block_size, want.quality.block_size),
-        (
-            "quality thresholds (theta_g, theta_e, theta_d)",
-            (have.quality.theta_g, have.quality.theta_e, have.quality.theta_d),
-            (want.quality.theta_g, want.quality.theta_e, want.quality.theta_d),
-        ),
-    ]
-    for what, a, b in checks:
-        if a != b:
-            raise CheckpointError(f"checkpoint {path} was fitted with {what} {a}, but {b} is expected")

@@ -8,13 +8,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import torch
 
 from .distortion import CLASS_LABELS, REJECT
+from .storage import atomic_write_text
 
 __all__ = [
     "ConfusionMatrix",
@@ -192,10 +191,6 @@ def write_report(report: dict, out: str | Path, stem: str = "report") -> tuple[P
     paths = []
     for suffix, text in ((".md", report_markdown(report)), (".json", json.dumps(report, indent=2) + "\n")):
         path = out / f"{stem}{suffix}"
-        fd, tmp = tempfile.mkstemp(dir=out, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        atomic_write_text(path, text)
         paths.append(path)
     return paths[0], paths[1]

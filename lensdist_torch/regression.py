@@ -19,9 +19,6 @@ Everything fitted is a buffer; checkpoints carry a format version and the config
 
 from __future__ import annotations
 
-import io
-import os
-import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -30,7 +27,7 @@ from torch import nn
 
 from .config import LensdistConfig, config_from_dict, config_to_dict
 from .distortion import METRICS, delta_top, distortion_class
-from .eigenspace import CheckpointError, _check_compatible
+from .storage import check_compatible, load_versioned, save_versioned
 
 __all__ = ["DeltaRegressor", "RegressionResult", "CHECKPOINT_VERSION", "CANNOT_TELL_FRACTION"]
 
@@ -164,49 +161,22 @@ class DeltaRegressor(nn.Module):
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path, extra: dict | None = None) -> None:
         """Write atomically: kind, format version, config, sizes and the buffers."""
-        payload = {
-            "kind": _KIND,
-            "format_version": CHECKPOINT_VERSION,
+        save_versioned(path, _KIND, CHECKPOINT_VERSION, {
             "n_features": self.n_features,
             "n_components": self.n_components,
             "k": self.k,
             "config": config_to_dict(self.config),
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
             "extra": extra or {},
-        }
-        buf = io.BytesIO()
-        torch.save(payload, buf)
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(buf.getvalue())
-            os.chmod(tmp, 0o644)
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
+        })
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "DeltaRegressor":
         """Load a checkpoint (``torch.load(weights_only=True)``); CheckpointError if incompatible."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"checkpoint not found: {path}")
-        try:
-            payload = torch.load(path, map_location=map_location, weights_only=True)
-        except Exception as exc:
-            raise CheckpointError(f"checkpoint {path} is corrupted or not a torch file: {exc}") from exc
-        if not isinstance(payload, dict) or payload.get("kind") != _KIND:
-            raise CheckpointError(f"{path} is not a lensdist Delta-regression checkpoint")
-        if payload.get("format_version") != CHECKPOINT_VERSION:
-            raise CheckpointError(
-                f"checkpoint {path} has format version {payload.get('format_version')}, this library reads {CHECKPOINT_VERSION}"
-            )
+        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "Delta-regression", map_location)
         config = config_from_dict(payload["config"])
         if expected is not None:
-            _check_compatible(config, expected, path)
+            check_compatible(config, expected, path)
         sd = payload["state_dict"]
         model = cls(int(payload["n_features"]), config, int(payload["n_components"]), int(payload["k"]))
         for name in ("train_coeffs", "train_residuals"):

@@ -22,3 +22,13 @@ def scene_pair(scene) -> tuple[torch.Tensor, torch.Tensor]:
     """
     full = load_scene("gravel")
     return scene, full[..., 38:358, 43:467].contiguous()
+
+
+@pytest.fixture(scope="module")
+def one_thread_module():
+    """One intra-op thread for a module: on two shared cores extra threads only add contention
+    at these small sizes (restored afterwards)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -32,13 +32,7 @@ H, W = 320, 424
 K2, K4 = 2.5e-6, 2.5e-11
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Two shared cores: intra-op threads only add contention at these sizes."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
 def eq4(points: torch.Tensor, k2: float, k4: float, center) -> torch.Tensor:

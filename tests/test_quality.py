@@ -39,13 +39,7 @@ CFG = QualityConfig()
 HALF_PI = math.pi / 2
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """The images here are tiny: intra-op threads only add overhead (several x on 2 cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -74,14 +74,7 @@ def make_pairs(n: int, h: int = H0, w: int = W0, seed: int = 0, scene: str = "gr
     return torch.cat(i1), torch.cat(i2), h_true / h_true[:, 2:, 2:]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One intra-op thread: on a shared, loaded machine every parallel region of a 2-thread pool
-    waits for a time slice, which makes these small-tensor tests ~30 x slower."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
 @pytest.fixture(scope="module")

@@ -20,12 +20,7 @@ SHIPPED = ROOT / "checkpoints" / "eigenspace_delta_avg_10ev.pt"
 needs_shipped = pytest.mark.skipif(not SHIPPED.is_file(), reason="shipped checkpoints not present")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
 def _views(shift=(20, 2)):

@@ -1,0 +1,92 @@
+"""Files that are never half-written, and versioned checkpoints read with weights_only=True."""
+
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+from pathlib import Path
+
+import torch
+
+__all__ = [
+    "CheckpointError",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "save_versioned",
+    "load_versioned",
+    "check_compatible",
+]
+
+
+class CheckpointError(ValueError):
+    """A checkpoint of another kind or format version, corrupted, or fitted under another config."""
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write to a temporary file beside ``path``, fsync, then ``os.replace``: all or nothing."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.chmod(tmp, 0o644)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def save_versioned(path: str | Path, kind: str, version: int, payload: dict) -> None:
+    """``torch.save`` of {kind, format_version, **payload}, atomically. The bytes never depend on
+    the file name (torch.save into memory first)."""
+    buf = io.BytesIO()
+    torch.save({"kind": kind, "format_version": version, **payload}, buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_versioned(path: str | Path, kind: str, version: int, what: str, map_location="cpu") -> dict:
+    """Load with ``torch.load(weights_only=True)`` and check the kind and format version.
+
+    Raises:
+        FileNotFoundError: no such file.
+        CheckpointError: corrupted, another kind, or another format version (the message says which).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises several types for truncated or foreign files
+        raise CheckpointError(f"checkpoint {path} is corrupted or not a torch file: {exc}") from exc
+    if not isinstance(payload, dict) or payload.get("kind") != kind:
+        raise CheckpointError(f"{path} is not a lensdist {what} checkpoint")
+    if payload.get("format_version") != version:
+        raise CheckpointError(
+            f"checkpoint {path} has format version {payload.get('format_version')}, this library reads {version}"
+        )
+    return payload
+
+
+def check_compatible(have, want, path) -> None:
+    """Raise CheckpointError naming the first of image size, block size, quality thresholds in
+    which the config a checkpoint was fitted with (``have``) differs from ``want``."""
+    checks = [
+        ("image size", (have.image.height, have.image.width), (want.image.height, want.image.width)),
+        ("block size", have.quality.block_size, want.quality.block_size),
+        (
+            "quality thresholds (theta_g, theta_e, theta_d)",
+            (have.quality.theta_g, have.quality.theta_e, have.quality.theta_d),
+            (want.quality.theta_g, want.quality.theta_e, want.quality.theta_d),
+        ),
+    ]
+    for what, a, b in checks:
+        if a != b:
+            raise CheckpointError(f"checkpoint {path} was fitted with {what} {a}, but {b} is expected")
