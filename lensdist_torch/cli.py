@@ -121,10 +121,29 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     test = load_set(args.data, "test")
     settings = {}
-    for ck in args.checkpoint:
+    for ck in args.checkpoint or []:
         model = EigenSpaceClassifier.load(ck, expected=test["config"])
         c = model.config.classifier
         settings[f"{c.n_eigenvectors} EV, {c.metric}"] = evaluate_classifier(model, test)
+    if args.regression:
+        from .methods import evaluate_regressor
+        from .pipeline import features_of
+        from .regression import DeltaRegressor
+
+        reg = DeltaRegressor.load(args.regression, expected=test["config"])
+        for metric in ("delta_avg", "delta_max"):
+            settings[f"regression, {metric}"] = evaluate_regressor(reg, test, features_of(test, test["config"]), metric)
+    if args.selfcal:
+        from .dataset import load_scenes, read_manifest
+        from .methods import evaluate_selfcal
+
+        if any(":" in s for s in read_manifest(args.data)["scenes"]):
+            raise ValueError("--selfcal re-renders the test pairs and needs a data set of the embedded scenes")
+        scenes, _ = load_scenes(test["config"])
+        for metric, fig in evaluate_selfcal(test, test["config"], scenes).items():
+            settings[f"selfcal, {metric}"] = fig
+    if not settings:
+        raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
     report = {"title": f"lensdist evaluate: {args.data}", "settings": settings}
     md, js = write_report(report, args.out, "evaluate")
     print(Path(md).read_text())
@@ -221,7 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="evaluate checkpoints on a generated test set (Markdown + JSON)")
     p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
-    p.add_argument("--checkpoint", required=True, nargs="+", help="one or more checkpoints")
+    p.add_argument("--checkpoint", nargs="+", default=None, help="one or more eigen-space checkpoints")
+    p.add_argument("--regression", default=None, help="a DeltaRegressor checkpoint (e.g. checkpoints/regression.pt)")
+    p.add_argument("--selfcal", action="store_true", help="also self-calibrate every test pair (re-rendered)")
     p.add_argument("--out", default="results", help="report folder")
     p.set_defaults(func=_cmd_evaluate)
 

@@ -144,6 +144,18 @@ class TestTinyProtocol:
         rep = json.loads((tmp_path / "evaluate.json").read_text())
         assert rep["settings"]["3 EV, delta_max"]["total"] == 12
 
+    def test_evaluate_all_methods_cli(self, tiny_run, tmp_path):
+        out, _ = tiny_run
+        r = subprocess.run(
+            [sys.executable, "-m", "lensdist_torch.cli", "evaluate", "--data", str(out / "data"),
+             "--regression", str(out / "checkpoints" / "regression.pt"), "--selfcal", "--out", str(tmp_path)],
+            check=True, capture_output=True, text=True, timeout=300,
+        )
+        rep = json.loads((tmp_path / "evaluate.json").read_text())
+        assert {"regression, delta_avg", "selfcal, delta_avg", "selfcal, delta_max"} <= set(rep["settings"])
+        assert "confident_share" in rep["settings"]["selfcal, delta_avg"]
+        assert "selfcal, delta_avg" in r.stdout
+
     def test_evaluate_refuses_other_image_size(self, tiny_run, tmp_path):
         out, _ = tiny_run
         r = subprocess.run(
