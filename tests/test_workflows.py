@@ -204,3 +204,20 @@ class TestSequence:
         _write_png(one / "b.png", load_scene("gravel")[0, 0, :160, :200])
         with pytest.raises(ValueError, match="b.png"):
             load_scenes(cfg, one, sequence=True)
+
+
+def test_demo_cli(tmp_path):
+    """`lensdist demo`: a 1 % scale error gives more errors in the outer third than the centre."""
+    r = subprocess.run([sys.executable, "-m", "lensdist_torch.cli", "demo", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=300, check=True)
+    summary = json.loads(r.stdout[: r.stdout.index("}") + 1])
+    assert summary["blocks"] == 40 * 53
+    assert summary["max_offset_px"] == pytest.approx(0.01 * (211.5**2 + 159.5**2) ** 0.5, rel=1e-3)
+    assert summary["mean_error_ratio_outer_third"] > 2 * summary["mean_error_ratio_centre_third"]
+    assert 0.0 <= summary["quality_index"] <= 1.0
+
+
+def test_cli_reports_bad_input_clearly(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "lensdist_torch.cli", "analyze", str(tmp_path / "no.png"), str(tmp_path / "no.png")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "not found" in r.stderr
