@@ -285,15 +285,16 @@ def _tan_threshold(cfg: QualityConfig) -> float | None:
     return math.inf if dalpha_star >= _HALF_PI else math.tan(dalpha_star)
 
 
-def _dilate3_float(x: torch.Tensor) -> torch.Tensor:
-    """3 x 3 max-pool dilation (stride 1, outside = 0) of a (B, 1, H, W) {0, 1} float mask.
+def _erode3(x: torch.Tensor) -> torch.Tensor:
+    """3 x 3 erosion of a (B, 1, H, W) {0, 1} float mask; outside the image counts as 1.
 
-    Separable maxima of shifted slices: the same values as ``max_pool2d(x, 3, 1, 1)`` on
-    non-negative masks, at a fraction of the cost of the 9-tap pooling kernel.
+    For {0, 1} values the minimum over a window is its product: separable products of shifted
+    slices, several times cheaper than max-pooling. ``1 - _erode3(1 - m)`` is the max-pool
+    dilation of m (kernel 3, stride 1, padding 1), which is how the risk map is dilated.
     """
-    p = F.pad(x, (1, 1, 1, 1))
-    rows = torch.maximum(torch.maximum(p[..., :, :-2], p[..., :, 1:-1]), p[..., :, 2:])
-    return torch.maximum(torch.maximum(rows[..., :-2, :], rows[..., 1:-1, :]), rows[..., 2:, :])
+    p = F.pad(x, (1, 1, 1, 1), value=1.0)
+    rows = p[..., :, :-2] * p[..., :, 1:-1] * p[..., :, 2:]
+    return rows[..., :-2, :] * rows[..., 1:-1, :] * rows[..., 2:, :]
 
 
 def _positive(x: torch.Tensor) -> torch.Tensor:
@@ -324,16 +325,17 @@ def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visua
     theta2 = 64.0 * cfg.theta_g * cfg.theta_g  # G <= theta <=> (8G)^2 <= 64 theta^2; 64 is exact
     strong1 = _positive(torch.addcmul(sx1 * sx1, sy1, sy1).sub_(theta2))
     strong2 = _positive(torch.addcmul(sx2 * sx2, sy2, sy2).sub_(theta2))
-    r = _dilate3_float((1.0 - strong1).mul_(1.0 - strong2))
-    err = mis.mul_(1.0 - r)
+    # no weak pixel in the 3 x 3 window  <=>  R = 0 (R the dilated weak-pixel map)
+    not_r = _erode3(torch.maximum(strong1, strong2))
+    err = mis.mul_(not_r)
     if valid is not None:
         # erosion of the valid mask = dilation of the invalid one; outside the image is valid
-        v = 1.0 - _dilate3_float(_positive(0.5 - valid))
+        v = _erode3(1.0 - _positive(0.5 - valid))
         err.mul_(v)
     reg = _block_sum(err, cfg.block_size)
     if not visual:
         return reg, None
-    vis = _positive((g1 - g2).abs_().sub_(cfg.theta_d)).mul_(r)
+    vis = _positive((g1 - g2).abs_().sub_(cfg.theta_d)).mul_(1.0 - not_r)
     if valid is not None:
         vis.mul_(v)
     return reg, _block_sum(vis, cfg.block_size)
