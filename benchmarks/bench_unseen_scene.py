@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     eig = fit_classifier(train, cfg, 10, "delta_avg")
     rows["eigen-space 10 EV, delta_avg"] = evaluate_classifier(eig, test)
     reg = fit_regressor(train, cfg, features_of(train, cfg))
-    rows["regression, delta_avg"] = evaluate_regressor(reg, test, features_of(test, cfg), "delta_avg")
+    rows["regression, delta_avg"] = evaluate_regressor(reg, test, features_of(test, cfg))["delta_avg"]
     scenes, _ = load_scenes(cfg)
     rows["selfcal, delta_avg"] = evaluate_selfcal(test, cfg, scenes, progress=False)["delta_avg"]
     print(f"trained on {args.train_scene} ({int(train['index'].numel())} pairs), tested on the other scene "

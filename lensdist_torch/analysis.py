@@ -44,6 +44,13 @@ def _load_model(path: str) -> EigenSpaceClassifier:
     return EigenSpaceClassifier.load(path).eval()
 
 
+@functools.lru_cache(maxsize=4)
+def _load_regressor(path: str):
+    from .regression import DeltaRegressor
+
+    return DeltaRegressor.load(path).eval()
+
+
 def _as_image(img, name: str) -> torch.Tensor:
     if isinstance(img, (str, Path)):
         return load_image(img, grey=True)
@@ -124,9 +131,7 @@ def analyze_pair(
         if ok and far:
             warnings.append("the quality map is unlike every training map (out of domain): treat the class with caution")
     elif method == "regression":
-        from .regression import DeltaRegressor
-
-        reg = DeltaRegressor.load(str(checkpoint or _regression_checkpoint()))
+        reg = _load_regressor(str(checkpoint or _regression_checkpoint()))
         with torch.no_grad():
             r = reg(qmap.flatten(1))
         d_avg, d_max = float(r.delta_avg[0]), float(r.delta_max[0])

@@ -131,8 +131,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         from .regression import DeltaRegressor
 
         reg = DeltaRegressor.load(args.regression, expected=test["config"])
-        for metric in ("delta_avg", "delta_max"):
-            settings[f"regression, {metric}"] = evaluate_regressor(reg, test, features_of(test, test["config"]), metric)
+        for metric, fig in evaluate_regressor(reg, test, features_of(test, test["config"])).items():
+            settings[f"regression, {metric}"] = fig
     if args.selfcal:
         from .dataset import load_scenes, read_manifest
         from .methods import evaluate_selfcal

@@ -269,6 +269,11 @@ def block_pool(
     ratio = block_counts(error, cfg.block_size) / area
     if smooth:
         return ratio * torch.sigmoid((ratio - cfg.min_block_ratio) / cfg.tau_b)
+    return floor_ratio(ratio, cfg)
+
+
+def floor_ratio(ratio: torch.Tensor, cfg: QualityConfig) -> torch.Tensor:
+    """SPEC 4's block floor: ratios below ``min_block_ratio`` become 0."""
     return torch.where(ratio < cfg.min_block_ratio, torch.zeros_like(ratio), ratio)
 
 

@@ -32,6 +32,7 @@ from .synthesis import SETS, footprint, make_pairs, scene_zoom, sequence_footpri
 
 __all__ = [
     "FORMAT_VERSION",
+    "CLASS_KEYS",
     "ShardError",
     "config_fingerprint",
     "load_scenes",
@@ -53,6 +54,10 @@ _TENSOR_KEYS = (
     "index", "seed", "scene", "k2", "k4", "delta_avg", "delta_max", "class_avg", "class_max",
     "motion", "M", "H", "converged", "residual", "perturbed", "counts",
 )
+
+
+#: The per-pair class key of each Delta metric in a shard record.
+CLASS_KEYS = {"delta_avg": "class_avg", "delta_max": "class_max"}
 
 
 class ShardError(ValueError):

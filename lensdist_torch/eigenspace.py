@@ -137,38 +137,36 @@ class EigenSpaceClassifier(nn.Module):
             raise ValueError(f"features must be (B, {self.n_features}), got {getattr(features, 'shape', type(features))}")
         return features.to(self.means.device, self.means.dtype)
 
-    def coefficients(self, features: torch.Tensor) -> torch.Tensor:
-        """Eigen-space coefficients of every vector in every class space: (B, C, n)."""
+    def _project(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Coefficients y = U_c (x - mu_c), (B, C, n), and distances eps_c(x), (B, C)."""
         x = self._check_features(features)
         xc = x[:, None, :] - self.means[None]  # (B, C, D)
-        return torch.einsum("bcd,cnd->bcn", xc, self.bases)
+        y = torch.einsum("bcd,cnd->bcn", xc, self.bases)
+        return y, (xc - torch.einsum("bcn,cnd->bcd", y, self.bases)).norm(dim=-1)
+
+    def coefficients(self, features: torch.Tensor) -> torch.Tensor:
+        """Eigen-space coefficients of every vector in every class space: (B, C, n)."""
+        return self._project(features)[0]
 
     def distances(self, features: torch.Tensor) -> torch.Tensor:
         """eps_c(x), the distance of each vector from each class space: (B, C)."""
-        x = self._check_features(features)
-        xc = x[:, None, :] - self.means[None]
-        y = torch.einsum("bcd,cnd->bcn", xc, self.bases)
-        resid = xc - torch.einsum("bcn,cnd->bcd", y, self.bases)
-        return resid.norm(dim=-1)
+        return self._project(features)[1]
 
     def forward(self, features: torch.Tensor) -> ClassifierResult:
         """Classify (B, D) feature vectors; see :class:`ClassifierResult`."""
-        x = self._check_features(features)
-        xc = x[:, None, :] - self.means[None]
-        y = torch.einsum("bcd,cnd->bcn", xc, self.bases)
-        dist = (xc - torch.einsum("bcn,cnd->bcd", y, self.bases)).norm(dim=-1)
+        y, dist = self._project(features)
         nearest = dist.argmin(1)
         label = torch.where(dist.min(1).values > self.reject_threshold, torch.full_like(nearest, REJECT), nearest)
         kn = self.settings.n_neighbours
-        b = x.shape[0]
-        neigh = torch.zeros(b, kn, dtype=torch.long, device=x.device)
-        ndist = torch.zeros(b, kn, device=x.device)
-        delta = torch.zeros(b, device=x.device)
+        b, dev = y.shape[0], y.device
+        neigh = torch.zeros(b, kn, dtype=torch.long, device=dev)
+        ndist = torch.zeros(b, kn, device=dev)
+        delta = torch.zeros(b, device=dev)
         for c in range(self.means.shape[0]):
             rows = (nearest == c).nonzero().flatten()
             if rows.numel() == 0:
                 continue
-            members = (self.train_class == c).nonzero().flatten().to(x.device)
+            members = (self.train_class == c).nonzero().flatten().to(dev)
             d = torch.cdist(y[rows, c], self.train_coeffs[members])
             k = min(kn, members.numel())
             dk, ik = d.topk(k, dim=1, largest=False)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
+import io
 from pathlib import Path
 
 import torch
+
+from .storage import atomic_write_bytes
 
 __all__ = ["have_matplotlib", "save_demo_figure", "save_map_grid", "save_confusion", "save_eigenvectors", "save_curves"]
 
@@ -31,17 +32,12 @@ def _plt():
 def _save(fig, path: str | Path) -> Path:
     """Write atomically: a half-written PNG never replaces a good one."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".png.tmp")
-    os.close(fd)
+    buf = io.BytesIO()
     try:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        fig.savefig(buf, dpi=110, bbox_inches="tight", format="png")
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
         _plt().close(fig)
+    atomic_write_bytes(path, buf.getvalue())
     return path
 
 

@@ -6,11 +6,11 @@ from typing import Sequence
 
 import torch
 
-__all__ = ["perturb_homography", "corner_error", "check_homography"]
+__all__ = ["perturb_homography", "corner_error", "check_homography", "apply_homography"]
 
 
-def _apply(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 3) x (K, 2) -> (B, K, 2)."""
+def apply_homography(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) homographies applied to (K, 2) points -> (B, K, 2)."""
     q = hn[:, None, :, :2] @ pts[None, :, :, None] + hn[:, None, :, 2:]
     return q[..., :2, 0] / q[..., 2:, 0]
 
@@ -80,4 +80,4 @@ def corner_error(H_est: torch.Tensor, H_true: torch.Tensor, height: int, width: 
     b = check_homography(b, "H_true", a.shape[0]).to(a.device)
     pts = [[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]]
     pts = torch.tensor(pts, dtype=torch.float64, device=a.device)
-    return (_apply(a.double(), pts) - _apply(b.double(), pts)).norm(dim=-1).mean(1)
+    return (apply_homography(a.double(), pts) - apply_homography(b.double(), pts)).norm(dim=-1).mean(1)

@@ -16,7 +16,8 @@ import torch
 from tqdm.auto import tqdm
 
 from .config import LensdistConfig
-from .distortion import REJECT, delta_max as _delta_max, delta_top, distortion_class
+from .dataset import CLASS_KEYS
+from .distortion import REJECT, delta_avg as _delta_avg, delta_max as _delta_max, delta_top, distortion_class
 from .evaluation import evaluate_predictions
 from .regression import DeltaRegressor
 from .selfcal import estimate_distortion
@@ -28,7 +29,6 @@ __all__ = ["NO_DISTORTION_PX", "TY_BINS", "motion_groups", "fit_regressor", "eva
 #: Class 1 spans ]0, 3.6] px; a true Delta_avg below 0.25 px occurs in well under 1 % of pairs.
 NO_DISTORTION_PX = 0.25
 TY_BINS = (0.0, 5.0, 10.0, 20.0, 40.0001)
-_CLASS_KEY = {"delta_avg": "class_avg", "delta_max": "class_max"}
 
 
 def motion_groups(test: dict) -> dict:
@@ -49,18 +49,20 @@ def fit_regressor(train: dict, config: LensdistConfig, features: torch.Tensor) -
     return model.fit(features[ok], train["delta_avg"][ok].float(), train["delta_max"][ok].float())
 
 
-def evaluate_regressor(model: DeltaRegressor, test: dict, features: torch.Tensor, metric: str = "delta_avg") -> dict:
+def evaluate_regressor(model: DeltaRegressor, test: dict, features: torch.Tensor) -> dict:
+    """{metric: figures} for both Delta metrics, from one prediction per test pair."""
     cfg = model.config
     with torch.no_grad():
         res = model(features)
-    pred_delta = res.delta_avg if metric == "delta_avg" else res.delta_max
-    label = res.class_avg if metric == "delta_avg" else res.class_max
-    label = torch.where(res.delta_avg < NO_DISTORTION_PX, torch.full_like(label, REJECT), label)
-    top = delta_top(metric, cfg.image.height, cfg.image.width, cfg.distortion)
-    truth = test[_CLASS_KEY[metric]]
-    fig = evaluate_predictions(label, pred_delta, truth, test[metric], top, test["converged"], motion_groups(test))
-    fig.update(method="regression", metric=metric)
-    return _with_confidence(fig, label, truth, res.confident)
+    out = {}
+    for metric, pred_delta, label in (("delta_avg", res.delta_avg, res.class_avg), ("delta_max", res.delta_max, res.class_max)):
+        label = torch.where(res.delta_avg < NO_DISTORTION_PX, torch.full_like(label, REJECT), label)
+        top = delta_top(metric, cfg.image.height, cfg.image.width, cfg.distortion)
+        truth = test[CLASS_KEYS[metric]]
+        fig = evaluate_predictions(label, pred_delta, truth, test[metric], top, test["converged"], motion_groups(test))
+        fig.update(method="regression", metric=metric)
+        out[metric] = _with_confidence(fig, label, truth, res.confident)
+    return out
 
 
 def evaluate_selfcal(test: dict, config: LensdistConfig, scenes: list, batch_size: int = 16, progress: bool = True) -> dict:
@@ -68,8 +70,6 @@ def evaluate_selfcal(test: dict, config: LensdistConfig, scenes: list, batch_siz
 
     Returns {metric: figures} for both Delta metrics, from one estimation per pair.
     """
-    from .distortion import delta_avg as _delta_avg
-
     h, w = config.image.height, config.image.width
     n = test["index"].numel()
     k2s, k4s, confident, converged = [], [], [], []
@@ -92,7 +92,7 @@ def evaluate_selfcal(test: dict, config: LensdistConfig, scenes: list, batch_siz
         top = delta_top(metric, h, w, config.distortion)
         label = distortion_class(pred_delta, top)
         label = torch.where((d_avg < NO_DISTORTION_PX) | ~converged, torch.full_like(label, REJECT), label)
-        truth = test[_CLASS_KEY[metric]]
+        truth = test[CLASS_KEYS[metric]]
         fig = evaluate_predictions(label, pred_delta, truth, test[metric], top, converged, motion_groups(test))
         fig.update(method="selfcal", metric=metric, diverged=int((~converged).sum()))
         out[metric] = _with_confidence(fig, label, truth, confident)

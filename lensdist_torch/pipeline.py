@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 from .config import LensdistConfig
-from .dataset import generate, load_set
+from .dataset import CLASS_KEYS, generate, load_set
 from .distortion import delta_top
 from .eigenspace import EigenSpaceClassifier
 from .evaluation import evaluate_predictions, write_report
@@ -19,7 +19,6 @@ from .quality import counts_to_map
 
 __all__ = ["features_of", "fit_classifier", "evaluate_classifier", "reproduce", "SETTINGS", "quick_config"]
 
-_CLASS_KEY = {"delta_avg": "class_avg", "delta_max": "class_max"}
 #: The paper's four settings: (eigenvectors, metric) -> the key of its Table 1 in SPEC 9.
 SETTINGS = [(5, "delta_max"), (10, "delta_max"), (5, "delta_avg"), (10, "delta_avg")]
 
@@ -41,7 +40,7 @@ def fit_classifier(train: dict, config: LensdistConfig, n_eigenvectors: int | No
     ok = train["converged"]
     x = features_of(train, cfg)[ok]
     model = EigenSpaceClassifier(x.shape[1], cfg)
-    model.fit(x, train[_CLASS_KEY[c.metric]][ok], train[c.metric][ok].float())
+    model.fit(x, train[CLASS_KEYS[c.metric]][ok], train[c.metric][ok].float())
     return model
 
 
@@ -53,7 +52,7 @@ def evaluate_classifier(model: EigenSpaceClassifier, test: dict) -> dict:
         res = model(features_of(test, cfg))
     top = delta_top(metric, cfg.image.height, cfg.image.width, cfg.distortion)
     out = evaluate_predictions(
-        res.label, res.delta, test[_CLASS_KEY[metric]], test[metric], top, test["converged"], motion_groups(test)
+        res.label, res.delta, test[CLASS_KEYS[metric]], test[metric], top, test["converged"], motion_groups(test)
     )
     out["n_eigenvectors"] = cfg.classifier.n_eigenvectors
     out["metric"] = metric
@@ -125,7 +124,7 @@ def reproduce(
     }
     md, js = write_report(report, out, "reproduce")
     if figures:
-        _figures(models, test, config, out)
+        _figures(models, settings, test, config, out)
     return {"markdown": str(md), "json": str(js), "settings": settings}
 
 
@@ -136,16 +135,15 @@ def _other_methods(train: dict, test: dict, config: LensdistConfig, out: Path, p
     settings = {}
     reg = fit_regressor(train, config, features_of(train, config))
     reg.save(out / "checkpoints" / "regression.pt")
-    feats = features_of(test, config)
-    for metric in ("delta_avg", "delta_max"):
-        settings[f"regression, {metric}"] = evaluate_regressor(reg, test, feats, metric)
+    for metric, fig in evaluate_regressor(reg, test, features_of(test, config)).items():
+        settings[f"regression, {metric}"] = fig
     scenes, _ = load_scenes(config)
     for metric, fig in evaluate_selfcal(test, config, scenes, progress=progress).items():
         settings[f"selfcal, {metric}"] = fig
     return settings
 
 
-def _figures(models: dict, test: dict, config: LensdistConfig, out: Path) -> None:
+def _figures(models: dict, settings: dict, test: dict, config: LensdistConfig, out: Path) -> None:
     from .figures import have_matplotlib, save_confusion, save_eigenvectors, save_map_grid
 
     if not have_matplotlib():
@@ -153,10 +151,9 @@ def _figures(models: dict, test: dict, config: LensdistConfig, out: Path) -> Non
     from .distortion import CLASS_LABELS
 
     hb, wb = config.image.height // config.quality.block_size, config.image.width // config.quality.block_size
-    for name, model in models.items():
-        res = evaluate_classifier(model, test)
+    for name in models:
         stem = name.replace(", ", "_").replace(" ", "")
-        save_confusion(torch.tensor(res["confusion"]), CLASS_LABELS, out / f"confusion_{stem}.png", name)
+        save_confusion(torch.tensor(settings[name]["confusion"]), CLASS_LABELS, out / f"confusion_{stem}.png", name)
     best = models.get("10 EV, delta_avg")
     if best is not None:
         vecs = {"class 1": best.bases[0, :4], "class 4": best.bases[-1, :4]}

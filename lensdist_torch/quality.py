@@ -39,6 +39,7 @@ from .criteria import (
     block_pool,
     erode_valid,
     error_images,
+    floor_ratio,
     local_criteria,
     prepare_pair,
 )
@@ -85,8 +86,7 @@ def counts_to_map(counts: torch.Tensor, config: QualityConfig | None = None) -> 
 
 
 def _floor(counts: torch.Tensor, cfg: QualityConfig) -> torch.Tensor:
-    ratio = counts / (cfg.block_size * cfg.block_size)
-    return torch.where(ratio < cfg.min_block_ratio, torch.zeros_like(ratio), ratio)
+    return floor_ratio(counts / (cfg.block_size * cfg.block_size), cfg)
 
 
 def registration_error_counts(

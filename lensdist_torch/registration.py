@@ -43,7 +43,7 @@ import torch.nn.functional as F
 from kornia.geometry import warp_perspective
 
 from .config import RegistrationConfig
-from .homography import check_homography, corner_error, perturb_homography
+from .homography import apply_homography, check_homography, corner_error, perturb_homography
 from .images import check_image, check_image_pair, to_grey
 
 __all__ = [
@@ -146,7 +146,7 @@ class _Frame:
         overlap, mapping at least ``margin`` level px inside img2."""
         m, (u0, u1, v0, v1) = margin / self.px, self.box
         box = torch.tensor([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=hn.dtype, device=hn.device)
-        q = _apply(torch.linalg.inv_ex(hn)[0], box)  # img2's corners in img1
+        q = apply_homography(torch.linalg.inv_ex(hn)[0], box)  # img2's corners in img1
         ulo = torch.maximum(q[:, 0, 0], q[:, 3, 0]).clamp_min(u0) + m
         uhi = torch.minimum(q[:, 1, 0], q[:, 2, 0]).clamp_max(u1) - m
         vlo = torch.maximum(q[:, 0, 1], q[:, 1, 1]).clamp_min(v0) + m
@@ -209,12 +209,6 @@ def _phase_correlation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         c = c.to(r.dtype) + d.clamp(-0.5, 0.5)
         shift.append(torch.where(c > m / 2, c - m, c))
     return torch.stack(shift, dim=1)
-
-
-def _apply(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 3) x (K, 2) -> (B, K, 2)."""
-    q = hn[:, None, :, :2] @ pts[None, :, :, None] + hn[:, None, :, 2:]
-    return q[..., :2, 0] / q[..., 2:, 0]
 
 
 @torch.no_grad()
@@ -348,7 +342,7 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
             dp = torch.where(movable[:, None], (hi @ bvec[:, :, None])[:, :, 0] / fr.px, 0.0)
             h_new = ha @ torch.linalg.inv_ex((dp @ dmat + eye3).view(-1, 3, 3))[0]  # inverse composition
             h_new = h_new / h_new[:, 2:, 2:]
-            c_new, c_old, c_ref = (_apply(m, corners) for m in (h_new, ha, lev.h_ref[idx]))
+            c_new, c_old, c_ref = (apply_homography(m, corners) for m in (h_new, ha, lev.h_ref[idx]))
             step = (c_new - c_old).norm(dim=-1).amax(1) * scale
             bad = ~torch.isfinite(step) | (step > cfg.max_step * 2 * scale)
             hn[idx] = torch.where(bad[:, None, None], ha, h_new)

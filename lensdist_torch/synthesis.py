@@ -34,6 +34,7 @@ from .distortion import (
     pixel_grid,
 )
 from .quality import registration_error_counts
+from .homography import apply_homography
 from .registration import estimate_homography, perturb_homography, warp_to_reference
 
 __all__ = [
@@ -186,10 +187,22 @@ def motion_matrix(motion: torch.Tensor, height: int, width: int) -> torch.Tensor
     return _translation(x0, y0, b) @ a @ _translation(-x0, -y0, b)
 
 
-def _apply(Hm: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 3) homographies on (B, N, 2) points."""
-    ph = torch.cat([pts, torch.ones_like(pts[..., :1])], dim=-1) @ Hm.transpose(1, 2)
-    return ph[..., :2] / ph[..., 2:]
+@functools.lru_cache(maxsize=16)
+def _ideal_box(config: LensdistConfig) -> tuple[float, float, float, float]:
+    """Box (x_lo, x_hi, y_lo, y_hi), in pixels, of the ideal points at the largest coefficients."""
+    d = config.distortion
+    ideal = distortion_grid([d.k2_max], [d.k4_max], config.image.height, config.image.width, torch.float64)[0]
+    lo, hi = ideal.reshape(-1, 2).amin(0), ideal.reshape(-1, 2).amax(0)
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+
+@functools.lru_cache(maxsize=4)
+def _centred_radii(h: int, w: int) -> tuple[torch.Tensor, ...]:
+    """Per pixel centre, flattened, float32: dx, dy from p0, r^2 and r^4 (shared by every pair)."""
+    x0, y0 = distortion_center(h, w)
+    d = pixel_grid(h, w, torch.float64).reshape(-1, 2) - torch.tensor([x0, y0], dtype=torch.float64)
+    r2 = (d * d).sum(-1)
+    return d[:, 0].float(), d[:, 1].float(), r2.float(), (r2 * r2).float()
 
 
 @functools.lru_cache(maxsize=16)
@@ -202,10 +215,8 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
-    d = config.distortion
-    ideal = distortion_grid([d.k2_max], [d.k4_max], h, w, torch.float64)[0]
-    lo, hi = ideal.reshape(-1, 2).amin(0), ideal.reshape(-1, 2).amax(0)
-    corners = torch.tensor([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]], dtype=torch.float64)
+    xl, xh, yl, yh = _ideal_box(config)
+    corners = torch.tensor([[xl, yl], [xh, yl], [xh, yh], [xl, yh]], dtype=torch.float64)
     p = config.protocol
     extremes = list(
         itertools.product(
@@ -214,7 +225,7 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
         )
     )
     M = motion_matrix(torch.tensor(extremes, dtype=torch.float64), h, w)
-    moved = _apply(M, corners.expand(len(extremes), 4, 2)).reshape(-1, 2)
+    moved = apply_homography(M, corners).reshape(-1, 2)
     allp = torch.cat([corners, moved])
     margin = 2.0
     return (
@@ -242,9 +253,7 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     x0, y0 = distortion_center(h, w)
     box = footprint(config)
     b = params.k2.shape[0]
-    d = pixel_grid(h, w, torch.float64).reshape(-1, 2) - torch.tensor([x0, y0], dtype=torch.float64)
-    r2 = (d * d).sum(-1)
-    dx, dy, r2, r4 = d[:, 0].float(), d[:, 1].float(), r2.float(), (r2 * r2).float()
+    dx, dy, r2, r4 = _centred_radii(h, w)
     centre = _translation(x0, y0, b)
     a = torch.linalg.inv(centre) @ params.M @ centre  # the motion in centred coordinates
     img1 = torch.empty(b, 1, h, w)
@@ -297,11 +306,9 @@ def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: tor
 
 def sequence_footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     """Box of the ideal points at the largest coefficients, relative to p0, + 2 px (no motion)."""
-    d = config.distortion
-    ideal = distortion_grid([d.k2_max], [d.k4_max], config.image.height, config.image.width, torch.float64)[0]
     x0, y0 = distortion_center(config.image.height, config.image.width)
-    lo, hi = ideal.reshape(-1, 2).amin(0), ideal.reshape(-1, 2).amax(0)
-    return (float(lo[0]) - x0 - 2, float(hi[0]) - x0 + 2, float(lo[1]) - y0 - 2, float(hi[1]) - y0 + 2)
+    xl, xh, yl, yh = _ideal_box(config)
+    return (xl - x0 - 2, xh - x0 + 2, yl - y0 - 2, yh - y0 + 2)
 
 
 def _sequence_params(params: PairParams, n_frames: int) -> PairParams:
@@ -323,11 +330,8 @@ def render_sequence_pairs(frames: list[torch.Tensor], params: PairParams, config
     it (never padded); one grid_sample per image.
     """
     h, w = config.image.height, config.image.width
-    x0, y0 = distortion_center(h, w)
     box = sequence_footprint(config)
-    d = pixel_grid(h, w, torch.float64).reshape(-1, 2) - torch.tensor([x0, y0], dtype=torch.float64)
-    r2 = (d * d).sum(-1)
-    dx, dy, r2, r4 = d[:, 0].float(), d[:, 1].float(), r2.float(), (r2 * r2).float()
+    dx, dy, r2, r4 = _centred_radii(h, w)
     b = params.k2.shape[0]
     hs, ws = frames[0].shape[-2:]
     z = scene_zoom((hs, ws), box)

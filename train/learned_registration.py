@@ -285,6 +285,26 @@ def eval_seeds(cfg: dict) -> list[int]:
 # ----------------------------------------------------------------------------- model
 
 
+def _offset_head(in_features: int, hidden: int) -> nn.Sequential:
+    """Flatten -> hidden -> 8 corner offsets; the last layer starts at zero (identity)."""
+    head = nn.Sequential(nn.Flatten(), nn.Linear(in_features, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 8))
+    nn.init.zeros_(head[-1].weight)
+    nn.init.zeros_(head[-1].bias)
+    return head
+
+
+def _standardise(x: torch.Tensor) -> torch.Tensor:
+    """Each (patch, channel) to zero mean and unit variance (variance floored)."""
+    mu = x.mean(dim=(2, 3), keepdim=True)
+    return (x - mu) / x.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)
+
+
+def _bounded(raw: torch.Tensor, rho: float) -> torch.Tensor:
+    """(B, 8) -> (B, 4, 2) offsets squashed into +-1.5 rho: a runaway prediction cannot push A
+    out of the frame (where the masked losses would be trivially small)."""
+    return 1.5 * rho * torch.tanh(raw.view(-1, 4, 2) / 1.5)
+
+
 class HomographyNet(nn.Module):
     """Two stacked grey patches (B, 2, P, P) -> four corner offsets (B, 4, 2) in px.
 
@@ -305,22 +325,12 @@ class HomographyNet(nn.Module):
             layers += [nn.ReLU(inplace=True)]
             cin = cout
         self.features = nn.Sequential(*layers)
-        side = patch // 32
-        self.head = nn.Sequential(
-            nn.Flatten(), nn.Linear(8 * w * side * side, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 8)
-        )
-        nn.init.zeros_(self.head[-1].weight)
-        nn.init.zeros_(self.head[-1].bias)
+        self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = rho
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([a, b], dim=1)
-        mu = x.mean(dim=(2, 3), keepdim=True)
-        sd = x.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)
-        x = (x - mu) / sd
-        # Bounded to +-1.5 rho: a runaway prediction cannot push A out of the frame (where the
-        # masked losses would be trivially small).
-        return 1.5 * self.rho * torch.tanh(self.head(self.features(x)).view(-1, 4, 2) / 1.5)
+        x = _standardise(torch.cat([a, b], dim=1))
+        return _bounded(self.head(self.features(x)), self.rho)
 
 
 class CorrelationHomographyNet(nn.Module):
@@ -348,25 +358,17 @@ class CorrelationHomographyNet(nn.Module):
         self.radius = math.ceil(1.5 * rho / 8)  # feature pixels are 8 px
         n_disp = (2 * self.radius + 1) ** 2
         self.regressor = nn.Sequential(*block(n_disp, 4 * w, 1), *block(4 * w, 4 * w, 2), *block(4 * w, 8 * w, 2))
-        side = patch // 32
-        self.head = nn.Sequential(
-            nn.Flatten(), nn.Linear(8 * w * side * side, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 8)
-        )
-        nn.init.zeros_(self.head[-1].weight)
-        nn.init.zeros_(self.head[-1].bias)
+        self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = rho
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        x = torch.cat([a, b], dim=0)
-        mu = x.mean(dim=(2, 3), keepdim=True)
-        sd = x.std(dim=(2, 3), keepdim=True).clamp_min(1e-3)
-        f = F.normalize(self.encoder((x - mu) / sd), dim=1)
+        f = F.normalize(self.encoder(_standardise(torch.cat([a, b], dim=0))), dim=1)
         fa, fb = f[: a.shape[0]], f[a.shape[0] :]
         n, c, h, w = fa.shape
         k = 2 * self.radius + 1
         windows = F.unfold(fb, k, padding=self.radius).view(n, c, k * k, h * w)
         cost = (fa.view(n, c, 1, h * w) * windows).sum(1).view(n, k * k, h, w)
-        return 1.5 * self.rho * torch.tanh(self.head(self.regressor(cost)).view(-1, 4, 2) / 1.5)
+        return _bounded(self.head(self.regressor(cost)), self.rho)
 
 
 def warp_a_to_b(a: torch.Tensor, delta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
