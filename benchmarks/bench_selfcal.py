@@ -24,10 +24,10 @@ import time
 import torch
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.dataset import load_scenes
-from lensdist_torch.distortion import delta_avg, delta_top, distortion_class
-from lensdist_torch.selfcal import estimate_distortion
-from lensdist_torch.synthesis import draw_pairs, render_pairs
+from lensdist_torch.data.shards import load_scenes
+from lensdist_torch.geometry.distortion import delta_avg, delta_top, distortion_class
+from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 
 
 def figures(est, true, ty, top, confident=None) -> dict:
@@ -80,11 +80,11 @@ def bench_selfcal(n: int, batch: int, config: LensdistConfig) -> dict:
 
 
 def bench_regression(data: str, config: LensdistConfig) -> dict | None:
-    from lensdist_torch.dataset import load_set, read_manifest
-    from lensdist_torch.pipeline import features_of, fit_classifier
+    from lensdist_torch.data.shards import load_set, read_manifest
+    from lensdist_torch.workflows.reproduce import features_of, fit_classifier
     if not data or not os.path.isdir(data):
         return None
-    from lensdist_torch.regression import DeltaRegressor
+    from lensdist_torch.classify.regression import DeltaRegressor
 
     try:
         read_manifest(data)

@@ -30,9 +30,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    from lensdist_torch.dataset import load_scenes, load_set, read_manifest
-    from lensdist_torch.methods import evaluate_regressor, evaluate_selfcal, fit_regressor
-    from lensdist_torch.pipeline import evaluate_classifier, features_of, fit_classifier
+    from lensdist_torch.data.shards import load_scenes, load_set, read_manifest
+    from lensdist_torch.workflows.evaluate import evaluate_regressor, evaluate_selfcal, fit_regressor
+    from lensdist_torch.workflows.reproduce import evaluate_classifier, features_of, fit_classifier
 
     scenes_ids = read_manifest(args.data)["scenes"]
     if args.train_scene not in scenes_ids or len(scenes_ids) < 2:

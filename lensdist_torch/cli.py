@@ -16,10 +16,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     """Two views of the gravel scene, the second misregistered by a known scale error."""
     from kornia.geometry.transform import warp_perspective
 
-    from .config import load_config
-    from .distortion import distortion_center
-    from .images import load_scene
-    from .quality import registration_quality
+    from lensdist_torch.config import load_config
+    from lensdist_torch.geometry.distortion import distortion_center
+    from lensdist_torch.core.images import load_scene
+    from lensdist_torch.metric.quality import registration_quality
 
     cfg = load_config(args.config)
     h, w = cfg.image.height, cfg.image.width
@@ -58,7 +58,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         f"{summary['mean_error_ratio_outer_third']:.3f} mean ratio in the outer third vs "
         f"{summary['mean_error_ratio_centre_third']:.3f} in the centre."
     )
-    from .figures import have_matplotlib, save_demo_figure
+    from lensdist_torch.workflows.figures import have_matplotlib, save_demo_figure
 
     if have_matplotlib():
         out = Path(args.out)
@@ -70,8 +70,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .dataset import generate
+    from lensdist_torch.config import load_config
+    from lensdist_torch.data.shards import generate
 
     cfg = load_config(args.config)
     shard = _parse_shard(args.shard)
@@ -93,9 +93,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .dataset import load_set
-    from .pipeline import fit_classifier
+    from lensdist_torch.config import load_config
+    from lensdist_torch.data.shards import load_set
+    from lensdist_torch.workflows.evaluate import fit_classifier
 
     train = load_set(args.data, "train")
     cfg = train["config"] if args.config is None else load_config(args.config)
@@ -114,10 +114,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from .dataset import load_set
-    from .eigenspace import EigenSpaceClassifier
-    from .evaluation import write_report
-    from .pipeline import evaluate_classifier
+    from lensdist_torch.data.shards import load_set
+    from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
+    from lensdist_torch.workflows.reports import write_report
+    from lensdist_torch.workflows.evaluate import evaluate_classifier
 
     test = load_set(args.data, "test")
     settings = {}
@@ -126,16 +126,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         c = model.config.classifier
         settings[f"{c.n_eigenvectors} EV, {c.metric}"] = evaluate_classifier(model, test)
     if args.regression:
-        from .methods import evaluate_regressor
-        from .pipeline import features_of
-        from .regression import DeltaRegressor
+        from lensdist_torch.workflows.evaluate import evaluate_regressor
+        from lensdist_torch.workflows.evaluate import features_of
+        from lensdist_torch.classify.regression import DeltaRegressor
 
         reg = DeltaRegressor.load(args.regression, expected=test["config"])
         for metric, fig in evaluate_regressor(reg, test, features_of(test, test["config"])).items():
             settings[f"regression, {metric}"] = fig
     if args.selfcal:
-        from .dataset import load_scenes, read_manifest
-        from .methods import evaluate_selfcal
+        from lensdist_torch.data.shards import load_scenes, read_manifest
+        from lensdist_torch.workflows.evaluate import evaluate_selfcal
 
         if any(":" in s for s in read_manifest(args.data)["scenes"]):
             raise ValueError("--selfcal re-renders the test pairs and needs a data set of the embedded scenes")
@@ -152,8 +152,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    from .config import load_config
-    from .pipeline import reproduce
+    from lensdist_torch.config import load_config
+    from lensdist_torch.workflows.reproduce import reproduce
 
     cfg = load_config(args.config)
     res = reproduce(cfg, args.out, quick=args.quick, workers=args.workers, batch_size=args.batch_size, progress=not args.quiet)
@@ -163,12 +163,13 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
-    from .analysis import analyze_pair
+    from lensdist_torch.workflows.analyze import analyze_pair
 
-    res = analyze_pair(args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max, method=args.method)
-    qmap = res.pop("_map")
+    res, qmap = analyze_pair(
+        args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max, method=args.method, return_map=True
+    )
     if args.save_map:
-        from .figures import have_matplotlib, save_map_grid
+        from lensdist_torch.workflows.figures import have_matplotlib, save_map_grid
 
         if not have_matplotlib():
             raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")

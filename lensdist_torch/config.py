@@ -1,13 +1,19 @@
 """Every number the library uses, as frozen dataclasses with the SPEC defaults.
 
-The defaults are ``../shared/SPEC.md``'s; a TOML file in ``configs/`` may override any field.
-Sections of the TOML file map one to one onto the dataclasses below::
+The defaults are the project's conventions (``docs/method.md``); a TOML file in ``configs/``
+may override any field. Sections of the TOML file map one to one onto the dataclasses below::
 
-    [quality]      thresholds, temperatures, block size  (SPEC 2-5)
-    [image]        analysis size                          (SPEC 1)
-    [distortion]   coefficient ranges                     (SPEC 6)
-    [protocol]     pair protocol and set sizes            (SPEC 7)
-    [classifier]   eigen-space classifier                 (SPEC 8)
+    [quality]       thresholds, temperatures, block size     (method: the metric)
+    [image]         analysis size                             (method: images)
+    [distortion]    coefficient ranges                        (method: eq. 4)
+    [protocol]      pair protocol and set sizes               (method: the protocol)
+    [registration]  homography registration                   (in the data fingerprint)
+    [classifier]    eigen-space classifier                    (method: eigen-spaces)
+    [selfcal]       self-calibration of (k2, k4) and H
+    [regression]    Delta regression without classes
+    [analysis]      the decision of ``analyze``: R threshold, overlap, confidence
+
+Every threshold of a decision lives here, nowhere else.
 
 Unknown sections or keys are an error (a typo must not silently fall back to a default).
 """
@@ -17,10 +23,15 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import tomllib
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10: the same parser, as a package
+    import tomli as tomllib
 
 __all__ = [
     "QualityConfig",
@@ -29,6 +40,9 @@ __all__ = [
     "ProtocolConfig",
     "ClassifierConfig",
     "RegistrationConfig",
+    "SelfCalConfig",
+    "RegressionConfig",
+    "AnalysisConfig",
     "LensdistConfig",
     "load_config",
     "config_to_dict",
@@ -101,6 +115,11 @@ class ImageConfig:
     def __post_init__(self) -> None:
         _check_positive_int("height", self.height)
         _check_positive_int("width", self.width)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(height, width)."""
+        return self.height, self.width
 
 
 @dataclass(frozen=True)
@@ -223,6 +242,104 @@ class RegistrationConfig:
 
 
 @dataclass(frozen=True)
+class SelfCalConfig:
+    """Settings of :func:`~lensdist_torch.geometry.selfcal.estimate_distortion`.
+
+    Attributes:
+        levels: pyramid levels (2 x 2 means), coarsest first in ``iterations``.
+        iterations: Levenberg-Marquardt iterations per level, coarsest first.
+        newton: Newton steps of the inverse of eq. 4.
+        damping: initial LM lambda, relative to diag(J^T J).
+        margin: level pixels kept inside img2.
+        max_coefficient: bound on |a|, |b| (normalised units) beyond which a fit diverged.
+        min_overlap: share of img1's sampled pixels that must map inside img2.
+        sample_block: per level (coarsest first), the residual uses the strongest-gradient
+            pixel of every block x block cell (1: every pixel).
+        chunk_size: pairs fitted together; results do not depend on it.
+        cannot_tell_std_px: posterior std of Delta_avg (px) at which confidence is 0.5.
+        confidence_threshold: pairs below this confidence are "cannot tell from this pair".
+        noise_floor: intensity std floor of the covariance (8-bit quantisation), so that a
+            textureless or identical pair cannot claim certainty.
+        ridge: absolute ridge on J^T J in the covariance.
+    """
+
+    levels: int = 3
+    iterations: tuple[int, ...] = (12, 6, 3)
+    newton: int = 5
+    damping: float = 1e-3
+    margin: float = 2.0
+    max_coefficient: float = 2.0
+    min_overlap: float = 0.3
+    sample_block: tuple[int, ...] = (2, 4, 4)
+    chunk_size: int = 16
+    cannot_tell_std_px: float = 0.5
+    confidence_threshold: float = 0.5
+    noise_floor: float = 0.5 / 255
+    ridge: float = 1e-6
+
+    def __post_init__(self) -> None:
+        for name in ("levels", "newton", "chunk_size"):
+            _check_positive_int(name, getattr(self, name))
+        for name in ("iterations", "sample_block"):
+            v = getattr(self, name)
+            if not (isinstance(v, tuple) and len(v) == self.levels and all(type(i) is int and i > 0 for i in v)):
+                raise ValueError(f"{name} must be a tuple of {self.levels} positive ints (one per level), got {v!r}")
+        for name in ("damping", "max_coefficient", "cannot_tell_std_px", "noise_floor", "ridge"):
+            _check_positive_float(name, getattr(self, name))
+        _check_fraction("min_overlap", self.min_overlap)
+        _check_fraction("confidence_threshold", self.confidence_threshold)
+        if isinstance(self.margin, bool) or not isinstance(self.margin, (int, float)) or not self.margin >= 0:
+            raise ValueError(f"margin must be a number >= 0, got {self.margin!r}")
+
+
+@dataclass(frozen=True)
+class RegressionConfig:
+    """Settings of :class:`~lensdist_torch.classify.regression.DeltaRegressor`.
+
+    Attributes:
+        n_components: PCA components kept (capped by the training set).
+        k: neighbours whose median Delta is the prediction.
+        cannot_tell_fraction: neighbour spread of Delta_avg, as a fraction of the class range,
+            at which confidence is 0.5.
+        confidence_threshold: below this confidence the answer is "cannot tell".
+    """
+
+    n_components: int = 384
+    k: int = 8
+    cannot_tell_fraction: float = 0.125
+    confidence_threshold: float = 0.5
+
+    def __post_init__(self) -> None:
+        _check_positive_int("n_components", self.n_components)
+        _check_positive_int("k", self.k)
+        _check_positive_float("cannot_tell_fraction", self.cannot_tell_fraction)
+        _check_fraction("confidence_threshold", self.confidence_threshold)
+
+
+@dataclass(frozen=True)
+class AnalysisConfig:
+    """The decision of ``analyze`` and of the evaluation of the estimators.
+
+    Attributes:
+        no_distortion_px: an estimated Delta_avg (analysis px) below this is class R, "no
+            visible distortion" (class 1 spans ]0, 3.6] px at 320 x 424; a true Delta_avg below
+            0.25 px occurs in well under 1 % of the protocol's pairs).
+        min_overlap: below this share of valid pixels the map is too small to judge.
+        out_of_domain_factor: an eigen-space map whose smallest class distance exceeds this
+            multiple of the reject threshold is unlike every training map.
+    """
+
+    no_distortion_px: float = 0.25
+    min_overlap: float = 0.5
+    out_of_domain_factor: float = 2.0
+
+    def __post_init__(self) -> None:
+        _check_positive_float("no_distortion_px", self.no_distortion_px)
+        _check_fraction("min_overlap", self.min_overlap)
+        _check_positive_float("out_of_domain_factor", self.out_of_domain_factor)
+
+
+@dataclass(frozen=True)
 class LensdistConfig:
     """All settings, one section per concern."""
 
@@ -230,7 +347,11 @@ class LensdistConfig:
     image: ImageConfig = field(default_factory=ImageConfig)
     distortion: DistortionConfig = field(default_factory=DistortionConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     classifier: ClassifierConfig = field(default_factory=ClassifierConfig)
+    selfcal: SelfCalConfig = field(default_factory=SelfCalConfig)
+    regression: RegressionConfig = field(default_factory=RegressionConfig)
+    analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
 
     def __post_init__(self) -> None:
         b = self.quality.block_size
@@ -241,13 +362,7 @@ class LensdistConfig:
             )
 
 
-_SECTIONS = {
-    "quality": QualityConfig,
-    "image": ImageConfig,
-    "distortion": DistortionConfig,
-    "protocol": ProtocolConfig,
-    "classifier": ClassifierConfig,
-}
+_SECTIONS = {f.name: f.default_factory for f in dataclasses.fields(LensdistConfig)}
 
 
 def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
@@ -307,6 +422,11 @@ def load_config(path: str | Path | None = None) -> LensdistConfig:
 def _check_positive_int(name: str, value: Any) -> None:
     if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
         raise ValueError(f"{name} must be a positive int, got {value!r}")
+
+
+def _check_fraction(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
+        raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
 
 
 def _check_positive_float(name: str, value: Any) -> None:

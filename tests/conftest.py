@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from lensdist_torch.images import load_scene
+from lensdist_torch.core.images import load_scene
 
 
 @pytest.fixture(scope="session")

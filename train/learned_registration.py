@@ -55,7 +55,7 @@ except ImportError:  # pragma: no cover
 from lensdist_torch import QualityConfig, RegistrationQualityLoss, load_scene
 
 try:  # the package's SPEC 6 grid, when this version of the package has it
-    from lensdist_torch.distortion import distortion_grid as _package_distortion_grid
+    from lensdist_torch.geometry.distortion import distortion_grid as _package_distortion_grid
 except ImportError:  # pragma: no cover
     _package_distortion_grid = None
 

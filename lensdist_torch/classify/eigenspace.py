@@ -1,0 +1,210 @@
+"""The per-class eigen-space classifier (paper 4.2, SPEC section 8). It sees feature vectors
+(row-major flattened quality maps), never images.
+
+Per class c: the mean mu_c and the top n eigenvectors U_c (rows) of the centred training
+vectors, from ``torch.linalg.svd`` on the CPU in float64. A vector x is assigned to the class
+whose eigen-space it lies closest to, eps_c(x) = ||(x - mu_c) - U_c^T U_c (x - mu_c)||, and to
+the reject class R where even the smallest distance exceeds tau_R, a quantile of the training
+pairs' own smallest distances. Delta is interpolated from the 4 nearest training pairs of the
+winning class, by distance between eigen-space coefficients y = U_c (x - mu_c), with weights
+1 / (d + 1e-6). A pair classed R still gets the Delta of its nearest class (its best guess).
+
+Everything fitted is a buffer, so ``state_dict`` carries it and ``.to("cuda")`` moves it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from lensdist_torch.config import ClassifierConfig, LensdistConfig, config_from_dict, config_to_dict
+from lensdist_torch.geometry.distortion import REJECT
+from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
+
+__all__ = ["EigenSpaceClassifier", "ClassifierResult", "CheckpointError", "CHECKPOINT_VERSION"]
+
+CHECKPOINT_VERSION = 1
+_KIND = "lensdist-eigenspace"
+
+
+class ClassifierResult(NamedTuple):
+    """label: (B,) class index 0..3, or 4 for R. delta: (B,) interpolated Delta (px).
+    distances: (B, C) distance to every class space. nearest: (B,) argmin class.
+    neighbours: (B, k) training-pair indices used. neighbour_distances: (B, k)."""
+
+    label: torch.Tensor
+    delta: torch.Tensor
+    distances: torch.Tensor
+    nearest: torch.Tensor
+    neighbours: torch.Tensor
+    neighbour_distances: torch.Tensor
+
+
+class EigenSpaceClassifier(nn.Module):
+    """Per-class PCA eigen-spaces with rejection and nearest-neighbour Delta regression.
+
+    Args:
+        n_features: length of the feature vectors ((H/8) * (W/8), 2120 at the default size).
+        config: the full config it is fitted under (image size, block size, metric, n, ...).
+
+    Example:
+        >>> clf = EigenSpaceClassifier(n_features=12, config=LensdistConfig(
+        ...     classifier=ClassifierConfig(n_eigenvectors=2)))
+        >>> x = torch.rand(40, 12); cls = torch.arange(40) % 4; d = torch.rand(40)
+        >>> _ = clf.fit(x, cls, d)
+        >>> clf(x[:3]).label.shape
+        torch.Size([3])
+    """
+
+    def __init__(self, n_features: int, config: LensdistConfig | None = None) -> None:
+        super().__init__()
+        self.config = config if config is not None else LensdistConfig()
+        c = self.config.classifier
+        k = self.config.distortion.n_classes
+        n = c.n_eigenvectors
+        if not (isinstance(n_features, int) and n_features > n):
+            raise ValueError(f"n_features must be an int larger than n_eigenvectors={n}, got {n_features!r}")
+        self.n_features = n_features
+        self.register_buffer("means", torch.zeros(k, n_features))
+        self.register_buffer("bases", torch.zeros(k, n, n_features))
+        self.register_buffer("explained", torch.zeros(k))
+        self.register_buffer("train_coeffs", torch.zeros(0, n))
+        self.register_buffer("train_class", torch.zeros(0, dtype=torch.long))
+        self.register_buffer("train_delta", torch.zeros(0))
+        self.register_buffer("reject_threshold", torch.tensor(float("inf")))
+        self.register_buffer("fitted", torch.tensor(False))
+
+    @property
+    def settings(self) -> ClassifierConfig:
+        return self.config.classifier
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, features: torch.Tensor, classes: torch.Tensor, deltas: torch.Tensor) -> "EigenSpaceClassifier":
+        """Fit on training vectors (N, D), class indices (N,) in 0..C-1 and Delta values (N,)."""
+        features, classes, deltas = self._check_fit(features, classes, deltas)
+        k, n = self.means.shape[0], self.settings.n_eigenvectors
+        x = features.detach().cpu().double()
+        means = torch.zeros(k, self.n_features, dtype=torch.float64)
+        bases = torch.zeros(k, n, self.n_features, dtype=torch.float64)
+        explained = torch.zeros(k, dtype=torch.float64)
+        coeffs = torch.zeros(x.shape[0], n, dtype=torch.float64)
+        for c in range(k):
+            sel = classes == c
+            xc = x[sel]
+            if xc.shape[0] <= n:
+                raise ValueError(
+                    f"class {c + 1} has {xc.shape[0]} training vectors; fitting {n} eigenvectors needs more than {n}"
+                )
+            mu = xc.mean(0)
+            _, s, vh = torch.linalg.svd(xc - mu, full_matrices=False)
+            means[c], bases[c] = mu, vh[:n]
+            explained[c] = (s[:n] ** 2).sum() / (s**2).sum().clamp_min(1e-300)
+            coeffs[sel] = (xc - mu) @ vh[:n].T
+        self.means.copy_(means.float())
+        self.bases.copy_(bases.float())
+        self.explained.copy_(explained.float())
+        self.train_coeffs = coeffs.float()
+        self.train_class = classes.cpu().long()
+        self.train_delta = deltas.detach().cpu().float()
+        self.fitted.fill_(True)
+        own = self.distances(features).min(1).values
+        self.reject_threshold.fill_(float(torch.quantile(own.double(), self.settings.reject_quantile)))
+        return self
+
+    def _check_fit(self, features, classes, deltas):
+        if not isinstance(features, torch.Tensor) or features.dim() != 2 or features.shape[1] != self.n_features:
+            raise ValueError(f"features must be (N, {self.n_features}), got {getattr(features, 'shape', type(features))}")
+        n = features.shape[0]
+        if not isinstance(classes, torch.Tensor) or classes.shape != (n,) or classes.is_floating_point():
+            raise ValueError(f"classes must be an integer tensor of shape ({n},)")
+        k = self.means.shape[0]
+        if bool(((classes < 0) | (classes >= k)).any()):
+            raise ValueError(f"classes must lie in 0..{k - 1} (class R is never fitted)")
+        if not isinstance(deltas, torch.Tensor) or deltas.shape != (n,):
+            raise ValueError(f"deltas must be a tensor of shape ({n},)")
+        if not bool(torch.isfinite(features).all()) or not bool(torch.isfinite(deltas).all()):
+            raise ValueError("features and deltas must be finite")
+        return features, classes, deltas
+
+    # ------------------------------------------------------------------ inference
+    def _check_features(self, features: torch.Tensor) -> torch.Tensor:
+        if not bool(self.fitted):
+            raise RuntimeError("EigenSpaceClassifier is not fitted: call fit() or load a checkpoint")
+        if not isinstance(features, torch.Tensor) or features.dim() != 2 or features.shape[1] != self.n_features:
+            raise ValueError(f"features must be (B, {self.n_features}), got {getattr(features, 'shape', type(features))}")
+        return features.to(self.means.device, self.means.dtype)
+
+    def _project(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Coefficients y = U_c (x - mu_c), (B, C, n), and distances eps_c(x), (B, C)."""
+        x = self._check_features(features)
+        xc = x[:, None, :] - self.means[None]  # (B, C, D)
+        y = torch.einsum("bcd,cnd->bcn", xc, self.bases)
+        return y, (xc - torch.einsum("bcn,cnd->bcd", y, self.bases)).norm(dim=-1)
+
+    def coefficients(self, features: torch.Tensor) -> torch.Tensor:
+        """Eigen-space coefficients of every vector in every class space: (B, C, n)."""
+        return self._project(features)[0]
+
+    def distances(self, features: torch.Tensor) -> torch.Tensor:
+        """eps_c(x), the distance of each vector from each class space: (B, C)."""
+        return self._project(features)[1]
+
+    def forward(self, features: torch.Tensor) -> ClassifierResult:
+        """Classify (B, D) feature vectors; see :class:`ClassifierResult`."""
+        y, dist = self._project(features)
+        nearest = dist.argmin(1)
+        label = torch.where(dist.min(1).values > self.reject_threshold, torch.full_like(nearest, REJECT), nearest)
+        kn = self.settings.n_neighbours
+        b, dev = y.shape[0], y.device
+        neigh = torch.zeros(b, kn, dtype=torch.long, device=dev)
+        ndist = torch.zeros(b, kn, device=dev)
+        delta = torch.zeros(b, device=dev)
+        for c in range(self.means.shape[0]):
+            rows = (nearest == c).nonzero().flatten()
+            if rows.numel() == 0:
+                continue
+            members = (self.train_class == c).nonzero().flatten().to(dev)
+            d = torch.cdist(y[rows, c], self.train_coeffs[members])
+            k = min(kn, members.numel())
+            dk, ik = d.topk(k, dim=1, largest=False)
+            w = 1.0 / (dk + 1e-6)
+            w = w / w.sum(1, keepdim=True)
+            delta[rows] = (w * self.train_delta[members][ik]).sum(1)
+            neigh[rows, :k] = members[ik]
+            ndist[rows, :k] = dk
+        return ClassifierResult(label, delta, dist, nearest, neigh, ndist)
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, path: str | Path, extra: dict | None = None) -> None:
+        """Write atomically: format version, the config it was fitted with, and the buffers."""
+        save_versioned(path, _KIND, CHECKPOINT_VERSION, {
+            "n_features": self.n_features,
+            "config": config_to_dict(self.config),
+            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
+            "extra": extra or {},
+        })
+
+    @classmethod
+    def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":
+        """Load a checkpoint (``torch.load(weights_only=True)``).
+
+        Args:
+            expected: if given, the image size, block size and quality thresholds must match it.
+        Raises:
+            CheckpointError: another kind, format version, image size, block size or thresholds.
+        """
+        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location)
+        config = config_from_dict(payload["config"])
+        if expected is not None:
+            check_compatible(config, expected, path)
+        sd = payload["state_dict"]
+        model = cls(int(payload["n_features"]), config)
+        # fitted sizes vary with the training set: resize the buffers before loading
+        for name in ("train_coeffs", "train_class", "train_delta"):
+            setattr(model, name, torch.empty_like(sd[name]))
+        model.load_state_dict(sd)
+        model.extra = payload.get("extra", {})
+        return model

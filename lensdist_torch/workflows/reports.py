@@ -1,0 +1,143 @@
+"""Reports of an evaluation: one method's figures on a test set, Markdown and JSON, and the
+paper's Tables 1 and 2 beside ours."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import torch
+
+from lensdist_torch.geometry.distortion import CLASS_LABELS, REJECT
+from lensdist_torch.core.storage import atomic_write_text
+from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
+
+__all__ = [
+    "PAPER",
+    "evaluate_predictions",
+    "report_markdown",
+    "write_report",
+]
+
+# SPEC 9: the paper's Table 1 (confusion matrices, rows 1-4, R) and Table 2 (RMSE of Delta_avg).
+PAPER = {
+    "table1": {
+        "5ev_delta_max": {"rate": 62.8, "confusion": [[17, 7, 0, 0, 0], [6, 52, 11, 4, 0], [0, 25, 79, 26, 0], [1, 2, 30, 140, 0], [36, 20, 16, 2, 26]]},
+        "10ev_delta_max": {"rate": 66.4, "confusion": [[18, 5, 0, 1, 0], [6, 49, 13, 5, 0], [0, 33, 70, 27, 0], [0, 4, 22, 147, 0], [29, 1, 20, 2, 48]]},
+        "5ev_delta_avg": {"rate": 61.2, "confusion": [[23, 7, 1, 0, 0], [14, 56, 12, 5, 0], [1, 23, 115, 21, 0], [1, 2, 39, 80, 0], [45, 20, 3, 0, 32]]},
+        "10ev_delta_avg": {"rate": 67.8, "confusion": [[26, 4, 1, 0, 0], [8, 58, 18, 2, 1], [0, 23, 102, 32, 3], [0, 2, 32, 88, 0], [28, 3, 2, 2, 65]]},
+    },
+    "table2_range_px": 30.0,
+    "table2": {"5": [3.48, 4.73, 5.13, 4.85], "10": [3.56, 4.79, 5.19, 4.93]},
+}
+
+
+def evaluate_predictions(
+    pred_label: torch.Tensor,
+    pred_delta: torch.Tensor,
+    true_label: torch.Tensor,
+    true_delta: torch.Tensor,
+    delta_range: float,
+    registration_ok: torch.Tensor | None = None,
+    extra_groups: dict | None = None,
+) -> dict:
+    """One method's figures on a test set: confusion, rate, RMSE per class (px and % of range)."""
+    cm = ConfusionMatrix()
+    cm.update(pred_label, true_label)
+    rm = ClassRMSE()
+    rm.update(pred_delta, true_delta, true_label)
+    r = rm.compute()
+    conf = cm.compute()
+    out = {
+        "confusion": conf.tolist(),
+        "rate": 100.0 * cm.rate(),
+        "correct": int(conf.diag().sum()),
+        "total": int(conf.sum()),
+        "distorted_rate": 100.0 * float(conf[:REJECT, :REJECT].diag().sum()) / max(1, int(conf[:REJECT].sum())),
+        "rejected_R": int(conf[REJECT, REJECT]),
+        "n_R": int(conf[REJECT].sum()),
+        "rmse_px": r["rmse"],
+        "rmse_pct": [100.0 * v / delta_range if not math.isnan(v) else float("nan") for v in r["rmse"]],
+        "bias_px": r["bias"],
+        "n_per_class": r["n"],
+        "delta_range_px": delta_range,
+    }
+    if registration_ok is not None:
+        out["registration_failed"] = int((~registration_ok.bool()).sum())
+    if extra_groups:
+        out["groups"] = {}
+        for name, mask in extra_groups.items():
+            m = mask.bool()
+            out["groups"][name] = {
+                "n": int(m.sum()),
+                "rate": 100.0 * float((pred_label[m] == true_label[m]).double().mean()) if bool(m.any()) else float("nan"),
+            }
+    return out
+
+
+def _md_confusion(conf) -> list[str]:
+    lines = ["| truth \\ pred | " + " | ".join(CLASS_LABELS) + " |", "|---" * (len(CLASS_LABELS) + 1) + "|"]
+    for lab, row in zip(CLASS_LABELS, conf):
+        lines.append(f"| {lab} | " + " | ".join(str(int(v)) for v in row) + " |")
+    return lines
+
+
+def report_markdown(report: dict) -> str:
+    """Markdown for a report {'title', 'settings': {name: figures}, 'paper': bool, ...}."""
+    lines = [f"# {report.get('title', 'lensdist evaluation')}", ""]
+    for key in ("protocol", "notes"):
+        if report.get(key):
+            lines += [str(report[key]), ""]
+    settings = report["settings"]
+    lines += [
+        "## Table 1: classification",
+        "",
+        "| setting | ours: rate | ours: R rejected | confident: share, rate | paper: rate | paper: R rejected | registration failed |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, fig in settings.items():
+        paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
+        p_rate = f"{paper['rate']:.1f} %" if paper else "-"
+        p_rej = f"{paper['confusion'][4][4]} of 100" if paper else "-"
+        conf = f"{fig['confident_share']:.0f} %, {fig['confident_rate']:.1f} %" if "confident_share" in fig else "-"
+        lines.append(
+            f"| {name} | {fig['rate']:.1f} % ({fig['correct']}/{fig['total']}) | {fig['rejected_R']} of {fig['n_R']} | "
+            f"{conf} | {p_rate} | {p_rej} | {fig.get('registration_failed', '-')} |"
+        )
+    lines.append("")
+    for name, fig in settings.items():
+        lines += [f"### {name}", ""] + _md_confusion(fig["confusion"]) + [""]
+        paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
+        if paper:
+            lines += [f"Paper ({fig['paper_key']}):", ""] + _md_confusion(paper["confusion"]) + [""]
+        if fig.get("groups"):
+            lines.append("Rate by group: " + ", ".join(f"{g}: {v['rate']:.1f} % (n={v['n']})" for g, v in fig["groups"].items()))
+            lines.append("")
+    lines += [
+        "## Table 2: RMSE of Delta per ground-truth class",
+        "",
+        "| setting | class 1 | class 2 | class 3 | class 4 | range | bias (mean) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, fig in settings.items():
+        cells = [f"{px:.2f} px ({pct:.1f} %)" for px, pct in zip(fig["rmse_px"], fig["rmse_pct"])]
+        bias = sum(b * n for b, n in zip(fig["bias_px"], fig["n_per_class"]) if n) / max(1, sum(fig["n_per_class"]))
+        lines.append(f"| {name} | " + " | ".join(cells) + f" | ]0, {fig['delta_range_px']:.1f}] px | {bias:+.2f} px |")
+    for ev, vals in PAPER["table2"].items():
+        cells = [f"{v:.2f} px ({100 * v / PAPER['table2_range_px']:.1f} %)" for v in vals]
+        lines.append(f"| paper, {ev} EV, Delta_avg | " + " | ".join(cells) + " | ]0, 30] px | - |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def write_report(report: dict, out: str | Path, stem: str = "report") -> tuple[Path, Path]:
+    """Write ``stem.md`` and ``stem.json`` atomically under ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for suffix, text in ((".md", report_markdown(report)), (".json", json.dumps(report, indent=2) + "\n")):
+        path = out / f"{stem}{suffix}"
+        atomic_write_text(path, text)
+        paths.append(path)
+    return paths[0], paths[1]
