@@ -24,10 +24,25 @@ class CheckpointError(ValueError):
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
-    """Write to a temporary file beside ``path``, fsync, then ``os.replace``: all or nothing."""
+    """Write to a temporary file beside ``path``, fsync, then ``os.replace``: all or nothing.
+
+    Only a regular file (or nothing) at ``path`` is replaced: a directory, a device such as
+    /dev/null, a FIFO or a socket there raises OSError naming it and is left as it was.
+    """
+    if isinstance(path, str) and path.endswith(("/", os.sep)):
+        raise IsADirectoryError(f"{path} names a directory; a file path is needed")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    if path.is_dir():
+        raise IsADirectoryError(f"{path} is a directory; a file path is needed")
+    if path.exists() and not path.is_file():
+        raise OSError(f"{path} exists and is not a regular file (a device, FIFO or socket?): refusing to replace it")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except (FileExistsError, NotADirectoryError):
+        raise NotADirectoryError(f"cannot write {path}: a parent of it is not a directory") from None
+    except PermissionError:
+        raise PermissionError(f"cannot write {path}: permission denied in {path.parent}") from None
     try:
         os.chmod(tmp, 0o644)
         with os.fdopen(fd, "wb") as f:
@@ -41,6 +56,7 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
+    """:func:`atomic_write_bytes` of UTF-8 text."""
     atomic_write_bytes(path, text.encode())
 
 

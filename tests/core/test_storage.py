@@ -1,0 +1,112 @@
+"""The atomic writer replaces a regular file or nothing: never a directory, a device, a FIFO or a
+socket, and every refusal is an OSError naming the path."""
+
+from __future__ import annotations
+
+import os
+import socket
+import stat
+import tempfile
+
+import pytest
+
+from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
+
+
+def test_writes_and_replaces_a_regular_file(tmp_path):
+    p = tmp_path / "sub" / "a.txt"
+    atomic_write_text(p, "one")
+    atomic_write_text(p, "two")
+    assert p.read_text() == "two"
+    assert [q.name for q in p.parent.iterdir()] == ["a.txt"]  # no temporary left behind
+
+
+@pytest.mark.bad_input
+def test_fifo_is_refused_and_left_alone(tmp_path):
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    with pytest.raises(OSError, match="pipe.*not a regular file"):
+        atomic_write_bytes(fifo, b"\x89PNG")
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["pipe"]
+
+
+@pytest.mark.bad_input
+def test_symlink_to_a_fifo_is_refused(tmp_path):
+    """A /dev/null-like target reached through a link (as /dev/stdout is)."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    link = tmp_path / "out.png"
+    link.symlink_to(fifo)
+    with pytest.raises(OSError, match="not a regular file"):
+        atomic_write_bytes(link, b"x")
+    assert link.is_symlink() and stat.S_ISFIFO(os.stat(link).st_mode)
+
+
+@pytest.mark.bad_input
+def test_socket_is_refused(tmp_path):
+    d = tempfile.mkdtemp(dir="/tmp")  # AF_UNIX paths are limited to ~100 characters
+    path = os.path.join(d, "s")
+    srv = socket.socket(socket.AF_UNIX)
+    try:
+        srv.bind(path)
+        with pytest.raises(OSError, match="not a regular file"):
+            atomic_write_bytes(path, b"x")
+        assert stat.S_ISSOCK(os.stat(path).st_mode)
+    finally:
+        srv.close()
+        os.unlink(path)
+        os.rmdir(d)
+
+
+@pytest.mark.bad_input
+def test_device_node_is_refused_before_anything_is_written(tmp_path, monkeypatch):
+    """/dev/null itself: refused from its stat alone; mkstemp must never be reached."""
+    import lensdist_torch.core.storage as storage
+
+    def boom(*a, **k):
+        raise AssertionError("a temporary file was created for a device target")
+
+    monkeypatch.setattr(storage.tempfile, "mkstemp", boom)
+    with pytest.raises(OSError, match="/dev/null.*not a regular file"):
+        atomic_write_bytes("/dev/null", b"x")
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("trailing_slash", [False, True])
+def test_directory_as_a_file_is_refused(tmp_path, trailing_slash):
+    d = tmp_path / "d"
+    d.mkdir()
+    (d / "keep").write_text("k")
+    with pytest.raises(IsADirectoryError, match="directory"):
+        atomic_write_bytes(str(d) + ("/" if trailing_slash else ""), b"x")
+    assert d.is_dir() and (d / "keep").read_text() == "k"
+    # a new name with a trailing slash is a directory too, not a file called "new"
+    with pytest.raises(IsADirectoryError):
+        atomic_write_bytes(str(tmp_path / "new") + "/", b"x")
+    assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.bad_input
+def test_unwritable_path_is_one_clear_error(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(NotADirectoryError, match="file/out.png"):
+        atomic_write_bytes(f / "out.png", b"x")
+    with pytest.raises(NotADirectoryError):
+        atomic_write_bytes(f / "deeper" / "out.png", b"x")
+    assert f.read_text() == "x"
+
+
+@pytest.mark.bad_input
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_folder(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        with pytest.raises(PermissionError, match="ro/out.png"):
+            atomic_write_bytes(ro / "out.png", b"x")
+    finally:
+        ro.chmod(0o755)
