@@ -1,0 +1,120 @@
+"""The package's layering (docs/architecture.md): imports only point down, matplotlib lives in
+the figures module only, ``import lensdist_torch`` loads no application layer, no module grows
+past the size a reader can hold."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[2] / "lensdist_torch"
+
+#: Layer of a module, by its dotted path below lensdist_torch (first match wins).
+LAYERS = [
+    ("config", 0),
+    ("core.", 1),
+    ("metric.", 1),
+    ("geometry.registration", 2),
+    ("geometry.selfcal", 2),
+    ("geometry.calibration", 2),
+    ("geometry.", 1),
+    ("classify.", 2),
+    ("data.", 3),
+    ("workflows.", 4),
+    ("cli", 5),
+]
+MAX_LINES = 450
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in PKG.rglob("*.py"):
+        rel = path.relative_to(PKG).with_suffix("")
+        parts = [p for p in rel.parts if p != "__init__"]
+        out[".".join(parts)] = path
+    return out
+
+
+def _layer(name: str) -> int | None:
+    for prefix, rank in LAYERS:
+        if name == prefix.rstrip(".") or name.startswith(prefix):
+            return rank
+    return None  # the package's __init__ (the public API) and package markers
+
+
+def _imports(name: str, path: Path) -> list[str]:
+    """Modules of lensdist_torch imported by ``path`` (absolute or relative), anywhere in it."""
+    tree = ast.parse(path.read_text())
+    pkg_parts = name.split(".")[:-1] if path.name != "__init__.py" else name.split(".")
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg_parts[: len(pkg_parts) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+                found.append(mod)
+            elif node.module and node.module.startswith("lensdist_torch"):
+                found.append(node.module[len("lensdist_torch") :].lstrip("."))
+        elif isinstance(node, ast.Import):
+            found += [a.name[len("lensdist_torch") :].lstrip(".") for a in node.names if a.name.startswith("lensdist_torch")]
+    return [f for f in found if f]
+
+
+def test_every_module_has_a_layer():
+    missing = [n for n in _modules() if n and _layer(n) is None and not _modules()[n].name == "__init__.py"]
+    assert missing == []
+
+
+def test_imports_only_point_down():
+    bad = []
+    for name, path in _modules().items():
+        rank = _layer(name)
+        if rank is None:
+            continue
+        for target in _imports(name, path):
+            t = _layer(target)
+            if t is not None and t > rank:
+                bad.append(f"{name} (layer {rank}) imports {target} (layer {t})")
+    assert bad == []
+
+
+def _imports_matplotlib(path: Path) -> bool:
+    for node in ast.walk(ast.parse(path.read_text())):
+        names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+        names += [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+        if any(n == "matplotlib" or n.startswith("matplotlib.") for n in names):
+            return True
+    return False
+
+
+def test_matplotlib_only_in_figures():
+    assert [n for n, p in _modules().items() if _imports_matplotlib(p)] == ["workflows.figures"]
+
+
+def test_no_module_too_long():
+    long = {n: len(p.read_text().splitlines()) for n, p in _modules().items() if len(p.read_text().splitlines()) > MAX_LINES}
+    assert long == {}
+
+
+def test_import_loads_no_application_layer():
+    code = (
+        "import sys, lensdist_torch\n"
+        "bad = [m for m in sys.modules if m.startswith(('lensdist_torch.data', 'lensdist_torch.workflows', 'lensdist_torch.cli'))"
+        " or m == 'matplotlib']\n"
+        "print(','.join(bad))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""
+
+
+def test_lazy_names_resolve():
+    import lensdist_torch
+
+    for name in ("analyze_pair", "reproduce", "generate", "load_set"):
+        assert callable(getattr(lensdist_torch, name))
+    with pytest.raises(AttributeError, match="no attribute"):
+        lensdist_torch.not_a_name  # noqa: B018
