@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 import os
 import tempfile
@@ -60,33 +61,46 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def save_versioned(path: str | Path, kind: str, version: int, payload: dict) -> None:
+def save_versioned(path: str | Path, kind: str, version: int, payload: dict) -> str:
     """``torch.save`` of {kind, format_version, **payload}, atomically. The bytes never depend on
-    the file name (torch.save into memory first)."""
+    the file name (torch.save into memory first). Returns the sha256 (hex) of the bytes written."""
     buf = io.BytesIO()
     torch.save({"kind": kind, "format_version": version, **payload}, buf)
-    atomic_write_bytes(path, buf.getvalue())
+    data = buf.getvalue()
+    atomic_write_bytes(path, data)
+    return hashlib.sha256(data).hexdigest()
 
 
-def load_versioned(path: str | Path, kind: str, version: int, what: str, map_location="cpu") -> dict:
+def load_versioned(
+    path: str | Path, kind: str, version: int, what: str, map_location="cpu", *,
+    sha256: str | None = None, error: type[Exception] = CheckpointError, noun: str = "checkpoint",
+) -> dict:
     """Load with ``torch.load(weights_only=True)`` and check the kind and format version.
+
+    With ``sha256``, the file's bytes must have that digest (checked before they are unpickled).
+    ``error`` is the exception raised and ``noun`` names the file in its one-line message.
 
     Raises:
         FileNotFoundError: no such file.
-        CheckpointError: corrupted, another kind, or another format version (the message says which).
+        CheckpointError (or ``error``): corrupted, another kind, or another format version
+            (the message says which).
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"checkpoint not found: {path}")
+        raise FileNotFoundError(f"{noun} not found: {path}")
+    data = path.read_bytes()
+    if sha256 is not None and hashlib.sha256(data).hexdigest() != sha256:
+        raise error(f"{noun} {path} is corrupted: its sha256 is not the one recorded when it was written")
     try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
+        payload = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for truncated or foreign files
-        raise CheckpointError(f"checkpoint {path} is corrupted or not a torch file: {exc}") from exc
+        detail = " ".join(str(exc).split("WeightsUnpickler error:")[-1].split())[:160]
+        raise error(f"{noun} {path} is corrupted or not a torch file: {detail}") from exc
     if not isinstance(payload, dict) or payload.get("kind") != kind:
-        raise CheckpointError(f"{path} is not a lensdist {what} checkpoint")
+        raise error(f"{path} is not a lensdist {what} {noun}")
     if payload.get("format_version") != version:
-        raise CheckpointError(
-            f"checkpoint {path} has format version {payload.get('format_version')}, this library reads {version}"
+        raise error(
+            f"{noun} {path} has format version {payload.get('format_version')}, this library reads {version}"
         )
     return payload
 
