@@ -11,6 +11,7 @@ pixels and in the user's pixels. Every threshold of the decision is in
 from __future__ import annotations
 
 import functools
+from importlib import resources
 from pathlib import Path
 
 import torch
@@ -27,7 +28,7 @@ from lensdist_torch.metric.quality import counts_to_map, registration_error_coun
 __all__ = ["analyze_pair", "default_checkpoint", "METHODS"]
 
 METHODS = ("selfcal", "regression", "eigenspace")
-_CKPT_DIR = Path(__file__).resolve().parents[2] / "checkpoints"
+_CKPT_DIR = Path(str(resources.files("lensdist_torch") / "checkpoints"))  # package data: in the wheel too
 _SHIPPED = {"delta_avg": "eigenspace_delta_avg_10ev.pt", "delta_max": "eigenspace_delta_max_10ev.pt", "regression": "regression.pt"}
 
 
@@ -146,7 +147,7 @@ def analyze_pair(
         img1, img2: file paths, or tensors (H, W), (C, H, W) or (1, C, H, W); colour or grey,
             any size (both the same size).
         checkpoint: for ``eigenspace`` the Delta_avg checkpoint, for ``regression`` the
-            regressor (default: the shipped ones in checkpoints/).
+            regressor (default: the shipped ones, package data in lensdist_torch/checkpoints/).
         checkpoint_max: for ``eigenspace``, the Delta_max checkpoint (default: shipped).
         method: ``selfcal`` (the default and the most accurate: (k2, k4) estimated with the
             homography, with a confidence), ``regression`` (Delta from the quality map), or

@@ -16,7 +16,7 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS
 from lensdist_torch.core.images import load_scene
 
 ROOT = Path(__file__).resolve().parents[2]
-SHIPPED = ROOT / "checkpoints" / "eigenspace_delta_avg_10ev.pt"
+SHIPPED = ROOT / "lensdist_torch" / "checkpoints" / "eigenspace_delta_avg_10ev.pt"
 needs_shipped = pytest.mark.skipif(not SHIPPED.is_file(), reason="shipped checkpoints not present")
 
 
