@@ -1,10 +1,15 @@
-"""Radial lens distortion (paper eq. 4, SPEC section 6): grids, offsets, Delta metrics, classes.
+"""Radial lens distortion (paper eq. 4, docs/method.md, section 6): the model, Delta metrics, classes.
 
     p = p0 + (1 + k2 r^2 + k4 r^4) (p_d - p0),   r = ||p_d - p0||,   p0 = ((W-1)/2, (H-1)/2)
 
 p is the ideal point, p_d the point in the distorted image. A distorted image is rendered by a
 backward warp, I_d(p_d) = I(p(p_d)): one ``grid_sample`` per image. All coordinates are pixels
 with centres at integer positions (``align_corners=True``).
+
+The model's two primitives, used by every module that applies eq. 4 (in pixels or in the
+normalised frame, where a = k2 R^2 and b = k4 R^4 take the place of k2, k4):
+:func:`radial_factor`, the factor 1 + k2 r^2 + k4 r^4, and :func:`radial_inverse`, the
+distorted radius r of an ideal radius rho = r (1 + k2 r^2 + k4 r^4) by Newton.
 """
 
 from __future__ import annotations
@@ -15,12 +20,16 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.geometry.frame import pixel_grid, to_normalized
 
 __all__ = [
     "CLASS_LABELS",
     "REJECT",
     "METRICS",
     "distortion_center",
+    "radial_factor",
+    "radial_derivative",
+    "radial_inverse",
     "pixel_grid",
     "undistort_points",
     "distort_points",
@@ -48,14 +57,6 @@ def distortion_center(height: int, width: int) -> tuple[float, float]:
     return (width - 1) / 2.0, (height - 1) / 2.0
 
 
-def pixel_grid(height: int, width: int, dtype=torch.float32, device=None) -> torch.Tensor:
-    """(H, W, 2) pixel-centre coordinates (x, y)."""
-    ys = torch.arange(height, dtype=dtype, device=device)
-    xs = torch.arange(width, dtype=dtype, device=device)
-    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    return torch.stack([gx, gy], dim=-1)
-
-
 def _coefficients(k2, k4, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     k2 = torch.as_tensor(k2, dtype=like.dtype, device=like.device).reshape(-1)
     k4 = torch.as_tensor(k4, dtype=like.dtype, device=like.device).reshape(-1)
@@ -66,6 +67,34 @@ def _coefficients(k2, k4, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return k2, k4
 
 
+def radial_factor(r2: torch.Tensor, k2, k4) -> torch.Tensor:
+    """Eq. 4's factor 1 + k2 r^2 + k4 r^4 at squared radii ``r2`` (k2, k4 broadcast against it):
+    the ideal offset from p0 is the distorted offset times this factor."""
+    return 1.0 + k2 * r2 + k4 * r2 * r2
+
+
+def radial_derivative(r2: torch.Tensor, k2, k4) -> torch.Tensor:
+    """d/dr of r (1 + k2 r^2 + k4 r^4) = 1 + 3 k2 r^2 + 5 k4 r^4 at squared radii ``r2``; eq. 4
+    is invertible along a ray while it stays positive."""
+    return 1.0 + 3.0 * k2 * r2 + 5.0 * k4 * r2 * r2
+
+
+def radial_inverse(rho2: torch.Tensor, k2, k4, iterations: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 4 inverted on the radius: (r, rho) with rho = r (1 + k2 r^2 + k4 r^4), rho = sqrt(rho2).
+
+    Newton from r = rho, ``iterations`` steps, differentiable. Where rho2 = 0 (the centre, whose
+    offset is 0) rho is taken as 1 so that r / rho, the factor from an ideal offset to its
+    distorted one, stays finite. Where the model is not invertible (strongly negative
+    coefficients) r is the Newton iterate.
+    """
+    rho = torch.sqrt(rho2 + (rho2 == 0).to(rho2.dtype))
+    r = rho
+    for _ in range(iterations):
+        r2 = r * r
+        r = r - (r * radial_factor(r2, k2, k4) - rho) / radial_derivative(r2, k2, k4)
+    return r, rho
+
+
 def undistort_points(points: torch.Tensor, k2, k4, center: tuple[float, float]) -> torch.Tensor:
     """Eq. 4: distorted points p_d (B, ..., 2) -> ideal points p, per-pair (k2, k4) of shape (B,)."""
     k2, k4 = _coefficients(k2, k4, points)
@@ -73,30 +102,21 @@ def undistort_points(points: torch.Tensor, k2, k4, center: tuple[float, float]) 
     c = points.new_tensor(center)
     d = points - c
     r2 = (d * d).sum(-1, keepdim=True)
-    factor = 1.0 + k2.view(shape) * r2 + k4.view(shape) * r2 * r2
-    return c + factor * d
+    return c + radial_factor(r2, k2.view(shape), k4.view(shape)) * d
 
 
 def distort_points(points: torch.Tensor, k2, k4, center: tuple[float, float], iterations: int = 8) -> torch.Tensor:
     """Inverse of eq. 4 by Newton on the radius: ideal points p (B, ..., 2) -> distorted p_d.
 
-    Solves rho = r (1 + k2 r^2 + k4 r^4) for r, started at r = rho; differentiable. Accurate to
-    well below 1e-6 px over the SPEC coefficient ranges (the tests check it); where the model
+    :func:`radial_inverse` on the radius; differentiable. Accurate to well below 1e-6 px over
+    the coefficient ranges of docs/method.md, section 6 (the tests check it); where the model
     is not invertible (strongly negative coefficients) the result is the Newton iterate.
     """
     k2, k4 = _coefficients(k2, k4, points)
     shape = (-1,) + (1,) * (points.dim() - 1)
-    k2, k4 = k2.view(shape), k4.view(shape)
     c = points.new_tensor(center)
     d = points - c
-    rho2 = (d * d).sum(-1, keepdim=True)
-    rho = torch.sqrt(rho2 + (rho2 == 0).to(rho2.dtype))  # guard the centre: the ratio below is 1 there
-    r = rho
-    for _ in range(iterations):
-        r2 = r * r
-        f = r * (1.0 + k2 * r2 + k4 * r2 * r2) - rho
-        df = 1.0 + 3.0 * k2 * r2 + 5.0 * k4 * r2 * r2
-        r = r - f / df
+    r, rho = radial_inverse((d * d).sum(-1, keepdim=True), k2.view(shape), k4.view(shape), iterations)
     return c + d * (r / rho)
 
 
@@ -173,12 +193,6 @@ def estimated_class(
     top = delta_top(metric, config)
     label = distortion_class(torch.where(none, top, delta).clamp_min(1e-12), top, config.distortion.n_classes)
     return torch.where(none, torch.full_like(label, REJECT), label)
-
-
-def to_normalized(points: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Pixel coordinates -> grid_sample's [-1, 1] (align_corners=True)."""
-    scale = points.new_tensor([2.0 / (width - 1), 2.0 / (height - 1)])
-    return points * scale - 1.0
 
 
 def sample(img: torch.Tensor, points: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:

@@ -1,8 +1,8 @@
-"""Batched homography registration (SPEC section 7) and the class-R perturbation.
+"""Batched homography registration (docs/method.md, section 7) and the class-R perturbation.
 
 Convention: ``H`` maps img1's pixel coordinates to img2's, ``img1(p) = img2(H p)``, pixel centres at
-integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with SPEC 7's motion M (I2 -> I1),
-the true H is M^-1.
+integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with the motion M of section 7
+(I2 -> I1), the true H is M^-1.
 
 :func:`estimate_homography`, batched over pairs (no Python loop over pairs):
 
@@ -11,8 +11,8 @@ the true H is M^-1.
 2. Initial translation by phase correlation (Hann window, sub-pixel parabola) at 1/8, unless
    ``init`` is given.
 3. Inverse-compositional Gauss-Newton (Baker-Matthews) on the 8 homography parameters at 1/4, then
-   at full resolution (a 1/2 level costs more iterations than it saves), in centred coordinates u
-   in half-diagonals. At full resolution the template (img1) pixels have stride 2 while img2 is
+   at full resolution (a 1/2 level costs more iterations than it saves), in the normalised frame
+   u of :mod:`~lensdist_torch.geometry.frame` (centred, in half-diagonals). At full resolution the template (img1) pixels have stride 2 while img2 is
    sampled at full resolution: a quarter of the work for the same accuracy on smoothed images.
 4. A level uses an axis-aligned rectangle of template pixels inscribed in the overlap, ``margin``
    level px inside img2. With separable masks the Hessian and the steepest-descent sums are image
@@ -43,8 +43,11 @@ import torch.nn.functional as F
 from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
-from lensdist_torch.geometry.homography import apply_homography, check_homography, corner_error, perturb_homography
 from lensdist_torch.core.images import check_image, check_image_pair, to_grey
+from lensdist_torch.geometry.frame import grid_sample_matrix, half_diagonal, level_coordinates, level_to_grid, normalizer
+from lensdist_torch.geometry.homography import apply_homography, check_homography, corner_error, perturb_homography
+from lensdist_torch.geometry.phase import phase_correlation
+from lensdist_torch.geometry.pyramid import central_differences, mean_pyramid
 
 __all__ = [
     "RegistrationConfig",
@@ -117,22 +120,18 @@ def _grid(m: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, key: str) -> tupl
 
 
 class _Frame:
-    """One level: level pixels <-> u (centred, in half-diagonals, the same at every level).
-
-    A level-l pixel x_l lies at full-resolution x0 = 2^l x_l + (2^l - 1) / 2 (2 x 2 means);
-    template pixels are every ``stride``-th row and column.
-    """
+    """One level in the normalised frame u (:mod:`~lensdist_torch.geometry.frame`): template
+    pixels (every ``stride``-th row and column), their powers of u, v and the map to img2's
+    level grid_sample coordinates."""
 
     def __init__(self, level: int, h: int, w: int, h0: int, w0: int, device, stride: int = 1):
-        f, self.stride, self.scale = 2.0**level, stride, 0.5 * math.hypot(w0 - 1, h0 - 1)
+        f, self.stride, self.scale = 2.0**level, stride, half_diagonal(h0, w0)
         cx, cy, off = (w0 - 1) / 2, (h0 - 1) / 2, (f - 1) / 2
-        self.u = (f * torch.arange(0, w, stride, dtype=torch.float64, device=device) + off - cx) / self.scale
-        self.v = (f * torch.arange(0, h, stride, dtype=torch.float64, device=device) + off - cy) / self.scale
+        self.u, self.v = level_coordinates(level, h, w, h0, w0, stride, device)
         self.h, self.w, self.px = len(self.v), len(self.u), self.scale / f  # px: level px per unit
         self.box = [(f * t + off - c) / self.scale for t, c in ((0, cx), (w - 1, cx), (0, cy), (h - 1, cy))]
-        ax, ay = 2 / (f * max(w - 1, 1)), 2 / (f * max(h - 1, 1))  # u -> grid_sample coordinates
-        out = [[ax * self.scale, 0, ax * (cx - off) - 1], [0, ay * self.scale, ay * (cy - off) - 1], [0, 0, 1]]
-        self.out = torch.tensor(out, dtype=torch.float64, device=device)
+        sx, ox, sy, oy = level_to_grid(level, h, w, h0, w0)  # u -> grid_sample coordinates
+        self.out = torch.tensor([[sx, 0, ox], [0, sy, oy], [0, 0, 1]], dtype=torch.float64, device=device)
         self.uf, self.vf = self.u.float(), self.v.float()
         self.pow_u = torch.stack([self.uf**i for i in range(5)], 1)  # (w, 5)
         self.pow_v = torch.stack([self.vf**i for i in range(5)], 0)  # (5, h)
@@ -180,37 +179,6 @@ def _blur(x: torch.Tensor, out: torch.Tensor) -> None:
     out.add_(p[..., 2:-2], alpha=6).mul_(1 / 256)
 
 
-def _gradients(t: torch.Tensor, stride: int) -> torch.Tensor:
-    """Central differences (level px, replicate border) at every ``stride``-th row and column:
-    (B, h, w) -> (B, h', 2, w')."""
-    p = F.pad(t[:, None], (1, 1, 1, 1), mode="replicate")[:, 0]
-    h, w = len(range(0, t.shape[1], stride)), len(range(0, t.shape[2], stride))
-    out, c = _buffer("grad", (t.shape[0], h, 2, w), t.device), p[:, 1:-1:stride]
-    torch.sub(c[:, :, 2::stride][..., :w], c[:, :, 0:-2:stride][..., :w], out=out[:, :, 0])
-    torch.sub(p[:, 2::stride, 1:-1:stride][:, :h], p[:, 0:-2:stride, 1:-1:stride][:, :h], out=out[:, :, 1])
-    return out.mul_(0.5)
-
-
-def _phase_correlation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Translation (B, 2) = (tx, ty), level px, sub-pixel, with a(p) ~ b(p + t)."""
-    n, h, w = a.shape
-    win = torch.outer(*(torch.hann_window(k, periodic=False, device=a.device) for k in (h, w)))
-    a, b = ((x - x.mean(dim=(1, 2), keepdim=True)) * win for x in (a, b))
-    x = torch.fft.rfft2(b) * torch.fft.rfft2(a).conj()
-    mag = x.abs()
-    r = torch.fft.irfft2(x / (mag + 1e-6 * mag.amax(dim=(1, 2), keepdim=True) + 1e-30), s=(h, w))  # peak at +t
-    i = r.flatten(1).argmax(dim=1)
-    iy, ix, ar = i // w, i % w, torch.arange(n, device=a.device)
-    r0, shift = r[ar, iy, ix], []
-    for c, m, lo, hi in ((ix, w, r[ar, iy, (ix - 1) % w], r[ar, iy, (ix + 1) % w]),
-                         (iy, h, r[ar, (iy - 1) % h, ix], r[ar, (iy + 1) % h, ix])):
-        den = lo - 2 * r0 + hi  # parabola through the peak and its cyclic neighbours
-        d = torch.where(den < 0, 0.5 * (lo - hi) / torch.where(den < 0, den, -1.0), 0.0)
-        c = c.to(r.dtype) + d.clamp(-0.5, 0.5)
-        shift.append(torch.where(c > m / 2, c - m, c))
-    return torch.stack(shift, dim=1)
-
-
 @torch.no_grad()
 def estimate_homography(
     img1: torch.Tensor, img2: torch.Tensor, init: torch.Tensor | None = None, config: RegistrationConfig | None = None
@@ -239,9 +207,7 @@ def estimate_homography(
     bsz, _, h0, w0 = img1.shape
     if h0 < 16 or w0 < 16:
         raise ValueError(f"img1 and img2 must be at least 16 x 16 pixels, got {h0} x {w0}")
-    s = 0.5 * math.hypot(w0 - 1, h0 - 1)  # pixel -> u: centred, in half-diagonals
-    to_u = torch.tensor([[1 / s, 0, -(w0 - 1) / 2 / s], [0, 1 / s, -(h0 - 1) / 2 / s], [0, 0, 1]],
-                        dtype=torch.float64, device=img1.device)
+    to_u = normalizer(h0, w0, device=img1.device)  # pixel -> u: centred, in half-diagonals
     hn0 = None if init is None else to_u @ check_homography(init, "init", bsz).to(to_u) @ torch.linalg.inv(to_u)
     parts = []
     for i in range(0, bsz, cfg.chunk_size):  # a chunk's planes stay in the CPU cache
@@ -260,7 +226,7 @@ class _Level:
     def __init__(self, fr: _Frame, img1: torch.Tensor, cfg: RegistrationConfig):
         self.fr, self.cfg, (b, h, w), dev = fr, cfg, (img1.shape[0], fr.h, fr.w), img1.device
         self.t1 = img1[:, :: fr.stride, :: fr.stride].contiguous()
-        self.grad = _gradients(img1, fr.stride)  # (b, h, 2, w)
+        self.grad = central_differences(img1, fr.stride, _buffer("grad", (b, h, 2, w), dev))  # (b, h, 2, w)
         self.g2sq = _buffer("g2sq", (b, h, 3, w), dev)  # gx^2, gx gy, gy^2
         for c, (i, j) in enumerate(((0, 0), (0, 1), (1, 1))):
             torch.mul(self.grad[:, :, i], self.grad[:, :, j], out=self.g2sq[:, :, c])
@@ -293,20 +259,18 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
     f64 = {"dtype": torch.float64, "device": dev}
     run = [(l, n) for l, n in zip(cfg.levels, cfg.iterations) if min(h0, w0) >> l >= 16 or l == 0]
     pc = max(run[0][0], min(cfg.phase_level, int(math.log2(min(h0, w0) / 16))))
-    pyr = [_buffer("both", (2 * bsz, h0, w0), dev)]  # img1s then img2s
+    both = _buffer("both", (2 * bsz, h0, w0), dev)  # img1s then img2s
     for k, g in enumerate((g1, g2)):
         if cfg.presmooth:
-            _blur(g, pyr[0][k * bsz : (k + 1) * bsz])
+            _blur(g, both[k * bsz : (k + 1) * bsz])
         else:
-            pyr[0][k * bsz : (k + 1) * bsz] = g
-    for _ in range(pc):  # 2 x 2 means (an odd last row or column is dropped)
-        p = pyr[-1][:, : pyr[-1].shape[1] // 2 * 2, : pyr[-1].shape[2] // 2 * 2]
-        pyr.append((p[:, ::2, ::2] + p[:, 1::2, ::2]).add_(p[:, ::2, 1::2]).add_(p[:, 1::2, 1::2]).mul_(0.25))
+            both[k * bsz : (k + 1) * bsz] = g
+    pyr = mean_pyramid(both, pc + 1)
     frames = {l: _frame(l, *pyr[l].shape[-2:], h0, w0, dev, cfg.fine_stride if l == 0 else 1) for l, _ in run}
     scale = frames[0].scale
     if hn is None:
         hn = torch.eye(3, **f64).repeat(bsz, 1, 1)
-        hn[:, :2, 2] = _phase_correlation(pyr[pc][:bsz], pyr[pc][bsz:]).double() * 2.0**pc / scale
+        hn[:, :2, 2] = phase_correlation(pyr[pc][:bsz], pyr[pc][bsz:]).double() * 2.0**pc / scale
     hn = hn / hn[:, 2:, 2:]
     corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]], **f64)
     corners = corners * torch.tensor([(w0 - 1) / 2, (h0 - 1) / 2], **f64) / scale
@@ -326,26 +290,29 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
             if active.numel() == 0:
                 break
             nb = active.numel()
-            if sub is None:  # the active pairs' data (no copy while all are active)
+            # the active pairs' data (no copy while all are active): pair indices, template img1
+            # pixels, their gradients (b, h, 2, w), img2 at this level, the masked powers of u (cols)
+            # and v (rows), the inverse damped Hessians, and whether the pair may move
+            if sub is None:
                 data = (lev.t1, lev.grad, pyr[lv][bsz:, None], lev.cols3, lev.rows3, lev.hinv, ~frozen)
                 sub = (active, *(data if nb == bsz else (x[active] for x in data)))
-            idx, ta, ga, ia, ca, ra, hi, movable = sub
-            ha = hn[idx]
-            e = F.grid_sample(ia, fr.grid(ha), mode="bilinear", padding_mode="zeros", align_corners=True)
-            e = e[:, 0].sub_(ta)  # img2(H p) - img1(p)
+            idx, tmpl, grad, img2_l, cols, rows, hinv, movable = sub
+            h_cur = hn[idx]
+            e = F.grid_sample(img2_l, fr.grid(h_cur), mode="bilinear", padding_mode="zeros", align_corners=True)
+            e = e[:, 0].sub_(tmpl)  # img2(H p) - img1(p)
             buf = _buffer("prod", (nb, fr.h, 3, fr.w), dev)  # e gx, e gy, e^2
-            torch.mul(ga, e[:, :, None], out=buf[:, :, :2])
+            torch.mul(grad, e[:, :, None], out=buf[:, :, :2])
             torch.mul(e, e, out=buf[:, :, 2])
-            a = torch.bmm(ra, buf.view(nb, fr.h, 3 * fr.w)).view(nb, 3, 3, fr.w)
-            mom = torch.einsum("bjcw,bwi->bcij", a, ca).double()  # sum m e g_c u^i v^j, sum m e^2
+            a = torch.bmm(rows, buf.view(nb, fr.h, 3 * fr.w)).view(nb, 3, 3, fr.w)
+            mom = torch.einsum("bjcw,bwi->bcij", a, cols).double()  # sum m e g_c u^i v^j, sum m e^2
             bvec = torch.einsum("bij,kij->bk", mom[:, 0], px3) + torch.einsum("bij,kij->bk", mom[:, 1], py3)
-            dp = torch.where(movable[:, None], (hi @ bvec[:, :, None])[:, :, 0] / fr.px, 0.0)
-            h_new = ha @ torch.linalg.inv_ex((dp @ dmat + eye3).view(-1, 3, 3))[0]  # inverse composition
+            dp = torch.where(movable[:, None], (hinv @ bvec[:, :, None])[:, :, 0] / fr.px, 0.0)
+            h_new = h_cur @ torch.linalg.inv_ex((dp @ dmat + eye3).view(-1, 3, 3))[0]  # inverse composition
             h_new = h_new / h_new[:, 2:, 2:]
-            c_new, c_old, c_ref = (apply_homography(m, corners) for m in (h_new, ha, lev.h_ref[idx]))
+            c_new, c_old, c_ref = (apply_homography(m, corners) for m in (h_new, h_cur, lev.h_ref[idx]))
             step = (c_new - c_old).norm(dim=-1).amax(1) * scale
             bad = ~torch.isfinite(step) | (step > cfg.max_step * 2 * scale)
-            hn[idx] = torch.where(bad[:, None, None], ha, h_new)
+            hn[idx] = torch.where(bad[:, None, None], h_cur, h_new)
             iterations[idx] += 1
             if finest:
                 res = (mom[:, 2, 0, 0] / lev.npix[idx].clamp_min(1)).sqrt()
@@ -374,14 +341,14 @@ def warp_to_reference(
     """Warp img2 into img1's frame, warped(p) = img2(H p), with the validity of each pixel.
 
     Bilinear, zero padding, ``align_corners=True``: the warp of ``kornia.geometry.warp_perspective(
-    img2, H^-1, dsize, align_corners=True)`` (SPEC 7), which the default ``backend="kornia"`` calls,
-    as SPEC 7 prescribes. ``backend="grid"`` builds the same sampling grid separably (centred
+    img2, H^-1, dsize, align_corners=True)``, which the default ``backend="kornia"`` calls, as
+    docs/method.md, section 7 prescribes. ``backend="grid"`` builds the same sampling grid separably (centred
     coordinates) and calls ``grid_sample``: 2-3 x faster on the CPU at 320 x 424, and closer to a
     float64 warp (max 2e-5 against kornia's 7e-5 on textured pairs; the two differ by ~1e-4).
 
     valid = 1 where H p lies in front (w > 0) and inside [0, W-1] x [0, H-1] of img2, read from the
     same grid, with 1e-3 px of slack for rounding (such a sample is within 0.1 % of its border
-    pixel). It is not eroded: the quality metric erodes it (SPEC 3).
+    pixel). It is not eroded: the quality metric erodes it (docs/method.md, section 3).
 
     Args:
         img2: (B, C, H, W) float or uint8 (uint8 is divided by 255).
@@ -407,7 +374,7 @@ def warp_to_reference(
     (hh, ww), (sh, sw) = dsize, img2.shape[-2:]
     # output pixel (centred) -> img2 grid_sample coordinates; centring keeps float32 exact
     f64 = {"dtype": torch.float64, "device": img.device}
-    norm = torch.tensor([[2 / max(sw - 1, 1), 0, -1], [0, 2 / max(sh - 1, 1), -1], [0, 0, 1]], **f64)
+    norm = grid_sample_matrix(sh, sw, **f64)
     shift = torch.tensor([[1, 0, (ww - 1) / 2], [0, 1, (hh - 1) / 2], [0, 0, 1]], **f64)
     xs = torch.arange(ww, device=img.device, dtype=torch.float32) - (ww - 1) / 2
     ys = torch.arange(hh, device=img.device, dtype=torch.float32) - (hh - 1) / 2
