@@ -139,8 +139,8 @@ def read_lambda(pose, kind: str) -> float:
 def run(a, config: LensdistConfig, homlib, cv2) -> dict:
     scenes, _ = load_scenes(config)
     h, w = config.image.height, config.image.width
-    top = delta_top("delta_avg", h, w, config.distortion)
-    top_max = delta_top("delta_max", h, w, config.distortion)
+    top = delta_top("delta_avg", config)
+    top_max = delta_top("delta_max", config)
     conv = DivisionDelta(h, w)
     p0 = np.array([[(w - 1) / 2], [(h - 1) / 2]])
     sift = cv2.SIFT_create()

@@ -61,7 +61,7 @@ def figures(est, true, ty, top, confident=None) -> dict:
 def bench_selfcal(n: int, batch: int, config: LensdistConfig) -> dict:
     scenes, _ = load_scenes(config)
     h, w = config.image.height, config.image.width
-    top = delta_top("delta_avg", h, w, config.distortion)
+    top = delta_top("delta_avg", config)
     ests, trues, tys, confs, t_est = [], [], [], [], 0.0
     for s in range(0, n, batch):
         idx = list(range(s, min(n, s + batch)))
@@ -81,7 +81,7 @@ def bench_selfcal(n: int, batch: int, config: LensdistConfig) -> dict:
 
 def bench_regression(data: str, config: LensdistConfig) -> dict | None:
     from lensdist_torch.data.shards import load_set, read_manifest
-    from lensdist_torch.workflows.reproduce import features_of, fit_classifier
+    from lensdist_torch.workflows.evaluate import features_of, fit_classifier
     if not data or not os.path.isdir(data):
         return None
     from lensdist_torch.classify.regression import DeltaRegressor
@@ -103,7 +103,7 @@ def bench_regression(data: str, config: LensdistConfig) -> dict | None:
     with torch.no_grad():
         r = reg(xt)
     for metric in ("delta_avg", "delta_max"):
-        top = delta_top(metric, h, w, config.distortion)
+        top = delta_top(metric, config)
         est = getattr(r, metric).clamp_min(1e-6)
         out[f"regression_{metric}"] = figures(est[dist], test[metric][dist], ty[dist], top, r.confident[dist])
         clf = fit_classifier(train, config, n_eigenvectors=10, metric=metric)

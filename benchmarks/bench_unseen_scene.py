@@ -31,8 +31,14 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
 
     from lensdist_torch.data.shards import load_scenes, load_set, read_manifest
-    from lensdist_torch.workflows.evaluate import evaluate_regressor, evaluate_selfcal, fit_regressor
-    from lensdist_torch.workflows.reproduce import evaluate_classifier, features_of, fit_classifier
+    from lensdist_torch.workflows.evaluate import (
+        evaluate_classifier,
+        evaluate_regressor,
+        evaluate_selfcal,
+        features_of,
+        fit_classifier,
+        fit_regressor,
+    )
 
     scenes_ids = read_manifest(args.data)["scenes"]
     if args.train_scene not in scenes_ids or len(scenes_ids) < 2:
