@@ -9,10 +9,20 @@ import torch
 
 from lensdist_torch.core.storage import atomic_write_bytes
 
-__all__ = ["have_matplotlib", "save_demo_figure", "save_map_grid", "save_confusion", "save_eigenvectors", "save_curves"]
+__all__ = [
+    "MAP_UNITS",
+    "figure_formats",
+    "have_matplotlib",
+    "save_demo_figure",
+    "save_map_grid",
+    "save_confusion",
+    "save_eigenvectors",
+    "save_curves",
+]
 
 
 def have_matplotlib() -> bool:
+    """Whether matplotlib (the ``plots`` extra) is installed."""
     try:
         import matplotlib  # noqa: F401
     except ImportError:
@@ -29,29 +39,83 @@ def _plt():
     return plt
 
 
-def _save(fig, path: str | Path) -> Path:
-    """Write atomically: a half-written PNG never replaces a good one."""
-    path = Path(path)
-    buf = io.BytesIO()
+MAP_UNITS = "share of error pixels per block"
+_INVALID = "0.55"  # grey: blocks without a valid pixel, distinct from black "no error"
+
+
+def figure_formats() -> list[str]:
+    """The file suffixes a figure can be written as (``.png``, ``.pdf``, ``.svg``, ...)."""
+    fig = _plt().figure()
     try:
-        fig.savefig(buf, dpi=110, bbox_inches="tight", format="png")
+        return sorted("." + ext for ext in fig.canvas.get_supported_filetypes())
+    finally:
+        _plt().close(fig)
+
+
+def _save(fig, path: str | Path) -> Path:
+    """Write atomically, in the format the suffix names (PNG without one).
+
+    A half-written figure never replaces a good one, and a .jpg holds JPEG bytes, not PNG.
+    """
+    path = Path(path)
+    fmt = path.suffix.lower().lstrip(".") or "png"
+    try:
+        if fmt not in fig.canvas.get_supported_filetypes():
+            raise ValueError(f"cannot write a figure as {path.name}: use one of {', '.join(figure_formats())}")
+        buf = io.BytesIO()
+        fig.savefig(buf, dpi=110, bbox_inches="tight", format=fmt)
     finally:
         _plt().close(fig)
     atomic_write_bytes(path, buf.getvalue())
     return path
 
 
-def save_demo_figure(img1: torch.Tensor, img2: torch.Tensor, qmap: torch.Tensor, path, title: str = "") -> Path:
-    """Two (1, 1, H, W) images and their (1, 1, h, w) quality map side by side."""
+def _block_mask(valid: torch.Tensor | None, maps: torch.Tensor) -> torch.Tensor | None:
+    """(N, 1, h, w) True where a block has a valid pixel, from a block or pixel validity mask."""
+    if valid is None:
+        return None
+    v = valid.detach().cpu().float().reshape(maps.shape[0], 1, *valid.shape[-2:])
+    (h, w), (vh, vw) = maps.shape[-2:], v.shape[-2:]
+    if (vh, vw) != (h, w):
+        if vh % h or vw % w or vh // h != vw // w:
+            raise ValueError(f"valid must be block-sized {(h, w)} or a whole multiple of it, got {(vh, vw)}")
+        v = torch.nn.functional.max_pool2d(v, vh // h)
+    return v > 0
+
+
+def _map_image(ax, m: torch.Tensor, ok: torch.Tensor | None):
+    """One quality map on ``ax`` with the magma scale; blocks with no valid pixel in grey."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["magma"].with_extremes(bad=_INVALID)
+    m = m.detach().cpu().float().clone()
+    if ok is not None:
+        m[~ok] = float("nan")
+    return ax.imshow(m, cmap=cmap, vmin=0, vmax=1)
+
+
+def _map_colorbar(fig, im, axes, ok) -> None:
+    label = MAP_UNITS + ("\n(grey: no valid pixel)" if ok is not None and not bool(ok.all()) else "")
+    fig.colorbar(im, ax=axes, fraction=0.035, pad=0.02).set_label(label, fontsize=8)
+
+
+def save_demo_figure(
+    img1: torch.Tensor, img2: torch.Tensor, qmap: torch.Tensor, path, title: str = "", valid: torch.Tensor | None = None
+) -> Path:
+    """Two (1, 1, H, W) images and their (1, 1, h, w) quality map side by side.
+
+    ``valid`` (block or pixel validity) greys out the blocks without a valid pixel.
+    """
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     axes[0].imshow(img1[0, 0].cpu(), cmap="gray", vmin=0, vmax=1)
     axes[0].set_title("I1")
     axes[1].imshow(img2[0, 0].cpu(), cmap="gray", vmin=0, vmax=1)
     axes[1].set_title("I2 registered")
-    im = axes[2].imshow(qmap[0, 0].cpu(), cmap="magma", vmin=0, vmax=1)
+    ok = _block_mask(valid, qmap)
+    im = _map_image(axes[2], qmap[0, 0], None if ok is None else ok[0, 0])
     axes[2].set_title("registration-error map")
-    fig.colorbar(im, ax=axes[2], fraction=0.035)
+    _map_colorbar(fig, im, axes[2], ok)
     for ax in axes:
         ax.set_xticks([])
         ax.set_yticks([])
@@ -60,54 +124,92 @@ def save_demo_figure(img1: torch.Tensor, img2: torch.Tensor, qmap: torch.Tensor,
     return _save(fig, path)
 
 
-def save_map_grid(maps: torch.Tensor, labels: list[str], path, title: str = "") -> Path:
-    """A row of (N, 1, h, w) quality maps with a label each (the paper's Fig. 1)."""
+def save_map_grid(
+    maps: torch.Tensor,
+    labels: list[str],
+    path,
+    title: str = "",
+    valid: torch.Tensor | None = None,
+    classes: list[str] | None = None,
+) -> Path:
+    """A row of (N, 1, h, w) quality maps with a label each (the paper's Fig. 1).
+
+    Args:
+        maps: (N, 1, h, w) quality maps in [0, 1].
+        labels: one title per map.
+        path: the file to write; its suffix names the format.
+        title: the figure's title.
+        valid: optional (N, 1, h, w) block validity, or a pixel validity mask a whole multiple
+            of that size; blocks without a valid pixel are grey, not black ("no error").
+        classes: optional class label per map ("1"-"4" or "R"), put before its label; class R
+            reads "class R (no distortion)".
+    """
     plt = _plt()
     n = maps.shape[0]
-    fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 2.8), squeeze=False)
-    for ax, m, lab in zip(axes[0], maps, labels):
-        ax.imshow(m[0].cpu(), cmap="magma", vmin=0, vmax=1)
+    if len(labels) != n or (classes is not None and len(classes) != n):
+        raise ValueError(f"need one label (and class) per map: {n} maps, {len(labels)} labels")
+    ok = _block_mask(valid, maps)
+    fig, axes = plt.subplots(1, n, figsize=(3.2 * n + 0.8, 2.8), squeeze=False)
+    for i, (ax, m, lab) in enumerate(zip(axes[0], maps, labels)):
+        im = _map_image(ax, m[0], None if ok is None else ok[i, 0])
+        if classes is not None:
+            c = classes[i]
+            lab = f"class {c}" + (" (no distortion)" if c == "R" else "") + (f"\n{lab}" if lab else "")
         ax.set_title(lab, fontsize=9)
         ax.set_xticks([])
         ax.set_yticks([])
+    _map_colorbar(fig, im, list(axes[0]), ok)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
 
 
 def save_confusion(confusion: torch.Tensor, labels, path, title: str = "") -> Path:
-    """A (C, C) confusion matrix, rows ground truth, columns predicted."""
+    """A (C, C) confusion matrix, rows ground truth, columns predicted; white counts on dark cells."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(4.2, 3.8))
-    ax.imshow(confusion.cpu(), cmap="Blues")
-    for i in range(confusion.shape[0]):
-        for j in range(confusion.shape[1]):
-            ax.text(j, i, int(confusion[i, j]), ha="center", va="center", fontsize=9)
+    conf = confusion.detach().cpu()
+    fig, ax = plt.subplots(figsize=(4.6, 3.8))
+    im = ax.imshow(conf, cmap="Blues", vmin=0)
+    top = float(conf.max()) or 1.0
+    for i in range(conf.shape[0]):
+        for j in range(conf.shape[1]):
+            v = int(conf[i, j])
+            ax.text(j, i, v, ha="center", va="center", fontsize=9, color="white" if v > 0.5 * top else "black")
     ax.set_xticks(range(len(labels)), labels)
     ax.set_yticks(range(len(labels)), labels)
     ax.set_xlabel("predicted")
     ax.set_ylabel("ground truth")
+    fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04).set_label("test pairs", fontsize=8)
     if title:
         ax.set_title(title, fontsize=10)
     return _save(fig, path)
 
 
 def save_eigenvectors(vectors: dict[str, torch.Tensor], shape: tuple[int, int], path, title: str = "") -> Path:
-    """Rows of eigenvectors (name -> (k, h*w)) shown as maps (the paper's Fig. 3)."""
+    """Rows of eigenvectors (name -> (k, h*w)) shown as maps (the paper's Fig. 3).
+
+    Each has its own symmetric scale and a colour bar (unit-norm eigenvectors: a weight per block).
+    """
     plt = _plt()
     names = list(vectors)
     k = max(v.shape[0] for v in vectors.values())
-    fig, axes = plt.subplots(len(names), k, figsize=(2.6 * k, 2.2 * len(names)), squeeze=False)
+    fig, axes = plt.subplots(len(names), k, figsize=(3.0 * k, 2.2 * len(names)), squeeze=False)
     for r, name in enumerate(names):
         for c in range(k):
             ax = axes[r][c]
             ax.set_xticks([])
             ax.set_yticks([])
             if c < vectors[name].shape[0]:
-                v = vectors[name][c].reshape(shape).cpu()
+                v = vectors[name][c].detach().reshape(shape).cpu().float()
                 lim = float(v.abs().max()) or 1.0
-                ax.imshow(v, cmap="RdBu_r", vmin=-lim, vmax=lim)
+                im = ax.imshow(v, cmap="RdBu_r", vmin=-lim, vmax=lim)
                 ax.set_title(f"{name} EV{c + 1}", fontsize=8)
+                cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+                cb.ax.tick_params(labelsize=6)
+                if c == vectors[name].shape[0] - 1:
+                    cb.set_label("weight per block", fontsize=7)
+            else:
+                ax.axis("off")
     if title:
         fig.suptitle(title)
     return _save(fig, path)
