@@ -1,5 +1,7 @@
-"""Reports of an evaluation: one method's figures on a test set, Markdown and JSON, and the
-paper's Tables 1 and 2 beside ours."""
+"""Reports of an evaluation: one method's figures on a test set, Markdown and JSON.
+
+The paper's Tables 1 and 2 are shown beside ours; the JSON is strict (a missing figure is null).
+"""
 
 from __future__ import annotations
 
@@ -9,18 +11,20 @@ from pathlib import Path
 
 import torch
 
-from lensdist_torch.geometry.distortion import CLASS_LABELS, REJECT
 from lensdist_torch.core.storage import atomic_write_text
+from lensdist_torch.geometry.distortion import CLASS_LABELS, REJECT
 from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
 
 __all__ = [
     "PAPER",
     "evaluate_predictions",
+    "json_safe",
+    "dumps_strict",
     "report_markdown",
     "write_report",
 ]
 
-# SPEC 9: the paper's Table 1 (confusion matrices, rows 1-4, R) and Table 2 (RMSE of Delta_avg).
+# The paper's Table 1 (confusion matrices, rows 1-4, R) and Table 2 (RMSE of Delta_avg).
 PAPER = {
     "table1": {
         "5ev_delta_max": {"rate": 62.8, "confusion": [[17, 7, 0, 0, 0], [6, 52, 11, 4, 0], [0, 25, 79, 26, 0], [1, 2, 30, 140, 0], [36, 20, 16, 2, 26]]},
@@ -31,6 +35,25 @@ PAPER = {
     "table2_range_px": 30.0,
     "table2": {"5": [3.48, 4.73, 5.13, 4.85], "10": [3.56, 4.79, 5.19, 4.93]},
 }
+
+
+def json_safe(obj):
+    """A copy of ``obj`` (dicts, lists, tuples, numbers, strings) with NaN and infinities as None.
+
+    A missing figure is ``null`` in strict JSON, never ``NaN``.
+    """
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    return obj
+
+
+def dumps_strict(obj, **kwargs) -> str:
+    """``json.dumps`` of :func:`json_safe` (obj) with ``allow_nan=False``: valid for strict parsers."""
+    return json.dumps(json_safe(obj), allow_nan=False, **kwargs)
 
 
 def evaluate_predictions(
@@ -121,7 +144,7 @@ def report_markdown(report: dict) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for name, fig in settings.items():
-        cells = [f"{px:.2f} px ({pct:.1f} %)" for px, pct in zip(fig["rmse_px"], fig["rmse_pct"])]
+        cells = [f"{px:.2f} px ({pct:.1f} %)" if math.isfinite(px) else "-" for px, pct in zip(fig["rmse_px"], fig["rmse_pct"])]
         bias = sum(b * n for b, n in zip(fig["bias_px"], fig["n_per_class"]) if n) / max(1, sum(fig["n_per_class"]))
         lines.append(f"| {name} | " + " | ".join(cells) + f" | ]0, {fig['delta_range_px']:.1f}] px | {bias:+.2f} px |")
     for ev, vals in PAPER["table2"].items():
@@ -132,11 +155,11 @@ def report_markdown(report: dict) -> str:
 
 
 def write_report(report: dict, out: str | Path, stem: str = "report") -> tuple[Path, Path]:
-    """Write ``stem.md`` and ``stem.json`` atomically under ``out``."""
+    """Write ``stem.md`` and ``stem.json`` (strict JSON: a missing figure is null) atomically under ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for suffix, text in ((".md", report_markdown(report)), (".json", json.dumps(report, indent=2) + "\n")):
+    for suffix, text in ((".md", report_markdown(report)), (".json", dumps_strict(report, indent=2) + "\n")):
         path = out / f"{stem}{suffix}"
         atomic_write_text(path, text)
         paths.append(path)
