@@ -1,4 +1,5 @@
-"""Homography helpers on (B, 3, 3) tensors: checks, SPEC 7's class-R perturbation, corner error."""
+"""Homography helpers on (B, 3, 3) tensors: checks, the class-R perturbation of docs/method.md,
+section 7, corner error."""
 
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ def perturb_homography(
     *,
     size: tuple[int, int],
 ) -> torch.Tensor:
-    """SPEC 7's class-R perturbation, in centred coordinates.
+    """The class-R perturbation (docs/method.md, section 7), in centred coordinates.
 
     H_c = T(-p0) H T(p0) with h33 = 1; each of its 8 free parameters (row-major h11..h32) is
     multiplied by (1 + e), e = amount * (2 * torch.rand(8, dtype=float64) - 1) drawn from the
@@ -40,7 +41,7 @@ def perturb_homography(
     p0 = ((W - 1) / 2, (H - 1) / 2).
 
     Args:
-        H: (3, 3), or (B, 3, 3) with one generator per pair (SPEC 7: a pair's draw must not
+        H: (3, 3), or (B, 3, 3) with one generator per pair (section 7: a pair's draw must not
             depend on the batch, so a single generator is accepted for B = 1 only).
         generator: a torch.Generator, or a sequence of B of them.
         amount: half-width of the relative perturbation, in [0, 1).

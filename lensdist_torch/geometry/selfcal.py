@@ -1,8 +1,9 @@
 """Self-calibration: the distortion (k2, k4) and the homography of a pair, estimated together.
 
-Both images carry the same radial distortion (SPEC 6, eq. 4). Per pair we fit 10 parameters,
-8 of a homography H_n and 2 distortion coefficients (a, b), by Levenberg-Marquardt on the
-photometric residual, batched over pairs, coarse to fine (2 x 2 mean pyramid):
+Both images carry the same radial distortion (docs/method.md, section 6, eq. 4). Per pair we
+fit 10 parameters, 8 of a homography H_n and 2 distortion coefficients (a, b), by
+Levenberg-Marquardt on the photometric residual, batched over pairs, coarse to fine (2 x 2 mean
+pyramid), in the normalised frame of :mod:`~lensdist_torch.geometry.frame`:
 
     u_d  = (p_d - p0) / R                 normalised distorted point of img1, R = half diagonal
     u    = u_d (1 + a |u_d|^2 + b |u_d|^4)   eq. 4: the ideal point
@@ -11,11 +12,12 @@ photometric residual, batched over pairs, coarse to fine (2 x 2 mean pyramid):
     r    = img1(p_d) - img2(p0 + R v_d)   over the pixels whose v_d lies inside img2
 
 In normalised radius the coefficients are O(0.1): a = k2 R^2, b = k4 R^4 (R = 264.9 px at
-320 x 424, so the SPEC maxima are a = 0.18, b = 0.12); both signs are allowed (pincushion
-too). The Jacobian is analytic (chain rule through eq. 4, the homography and the implicit
-derivative of the Newton inverse), times the image gradient of img2; one ``grid_sample`` of
-(img2, d/dx, d/dy) per iteration. The initial H comes from phase correlation on the coarsest
-level (or from ``init``, e.g. :func:`estimate_homography`'s H); a = b = 0.
+320 x 424, so the largest coefficients of section 6 are a = 0.18, b = 0.12); both signs are
+allowed (pincushion too). The Jacobian is analytic (chain rule through eq. 4, the homography
+and the implicit derivative of the Newton inverse), times the image gradient of img2; one
+``grid_sample`` of (img2, d/dx, d/dy) per iteration. The initial H comes from the phase
+correlation of the coarsest level (or from ``init``, e.g. :func:`estimate_homography`'s H);
+a = b = 0.
 
 Confidence. The Gauss-Newton covariance of the parameters, s^2 (J^T J)^-1 (s^2 the residual
 variance), is propagated to Delta_avg through its gradient in (a, b): ``delta_avg_std`` (px).
@@ -39,8 +41,12 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import SelfCalConfig
-from lensdist_torch.geometry.distortion import delta_avg as _delta_avg
 from lensdist_torch.core.images import check_image_pair, to_grey
+from lensdist_torch.geometry.distortion import delta_avg as _delta_avg
+from lensdist_torch.geometry.distortion import radial_derivative, radial_factor, radial_inverse
+from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid, normalizer
+from lensdist_torch.geometry.phase import phase_correlation
+from lensdist_torch.geometry.pyramid import central_differences, mean_pyramid
 
 __all__ = [
     "SelfCalConfig",
@@ -50,6 +56,7 @@ __all__ = [
     "distort_normalized",
     "undistort_normalized",
 ]
+
 
 class SelfCalInfo(NamedTuple):
     """Per pair, each (B,): converged (bool; False -> k2, k4, H are NaN), confident (bool),
@@ -70,21 +77,14 @@ class SelfCalInfo(NamedTuple):
 def undistort_normalized(u_d: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Eq. 4 in normalised units: u = u_d (1 + a |u_d|^2 + b |u_d|^4); a, b of shape (B,)."""
     shape = (-1,) + (1,) * (u_d.dim() - 1)
-    rho = (u_d * u_d).sum(-1, keepdim=True)
-    return u_d * (1.0 + a.view(shape) * rho + b.view(shape) * rho * rho)
+    return u_d * radial_factor((u_d * u_d).sum(-1, keepdim=True), a.view(shape), b.view(shape))
 
 
 def distort_normalized(v: torch.Tensor, a: torch.Tensor, b: torch.Tensor, iterations: int = 5) -> torch.Tensor:
     """Inverse of :func:`undistort_normalized` by Newton on the radius (differentiable)."""
     shape = (-1,) + (1,) * (v.dim() - 1)
-    a, b = a.view(shape), b.view(shape)
-    sig2 = (v * v).sum(-1, keepdim=True)
-    sig = torch.sqrt(sig2 + (sig2 == 0).to(v.dtype))
-    s = sig
-    for _ in range(iterations):
-        s2 = s * s
-        s = s - (s * (1.0 + a * s2 + b * s2 * s2) - sig) / (1.0 + 3.0 * a * s2 + 5.0 * b * s2 * s2)
-    return v * (s / sig)
+    r, rho = radial_inverse((v * v).sum(-1, keepdim=True), a.view(shape), b.view(shape), iterations)
+    return v * (r / rho)
 
 
 def _h_matrix(theta: torch.Tensor) -> torch.Tensor:
@@ -102,20 +102,6 @@ def _theta_of(hn: torch.Tensor) -> torch.Tensor:
     return f
 
 
-def _normaliser(h: int, w: int, dtype=torch.float64) -> tuple[torch.Tensor, float]:
-    """N with u = N p (pixels -> normalised), and R."""
-    r = 0.5 * math.hypot(w - 1, h - 1)
-    n = torch.tensor([[1 / r, 0, -(w - 1) / 2 / r], [0, 1 / r, -(h - 1) / 2 / r], [0, 0, 1]], dtype=dtype)
-    return n, r
-
-
-def _level_grid(h: int, w: int, r: float, dtype=torch.float32) -> torch.Tensor:
-    ys = (torch.arange(h, dtype=dtype) - (h - 1) / 2) / r
-    xs = (torch.arange(w, dtype=dtype) - (w - 1) / 2) / r
-    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
-    return torch.stack([gx, gy], -1).reshape(-1, 2)
-
-
 def selfcal_residual(img1, img2, H, k2, k4, newton: int = 5):
     """The differentiable model in pixel units: img1(p_d) - img2(distort(H undistort(p_d))).
 
@@ -123,69 +109,72 @@ def selfcal_residual(img1, img2, H, k2, k4, newton: int = 5):
     k2, k4: (B,). Returns (residual (B, h*w), valid (B, h*w) bool). Autograd flows to H, k2, k4.
     """
     b_, _, h, w = img1.shape
-    nrm, r = _normaliser(h, w, H.dtype)
-    nrm = nrm.to(H.device)
+    r, nrm = half_diagonal(h, w), normalizer(h, w, H.dtype, H.device)
     hn = nrm @ H @ torch.linalg.inv(nrm)
-    ud = _level_grid(h, w, r, H.dtype).to(H.device).expand(b_, -1, -1)
+    ud = normalized_grid(0, h, w, h, w, H.dtype, H.device).view(1, -1, 2).expand(b_, -1, -1)
     u = undistort_normalized(ud, k2 * r**2, k4 * r**4)
     wv = torch.cat([u, torch.ones_like(u[..., :1])], -1) @ hn.transpose(1, 2)
     v = wv[..., :2] / wv[..., 2:]
     vd = distort_normalized(v, k2 * r**2, k4 * r**4, newton)
-    q = vd * r + vd.new_tensor([(w - 1) / 2, (h - 1) / 2])
-    grid = q * q.new_tensor([2 / (w - 1), 2 / (h - 1)]) - 1
-    s = F.grid_sample(img2.to(q.dtype), grid.view(b_, h, w, 2), align_corners=True, padding_mode="zeros")
+    sx, ox, sy, oy = level_to_grid(0, h, w, h, w)
+    grid = vd * vd.new_tensor([sx, sy]) + vd.new_tensor([ox, oy])
+    s = F.grid_sample(img2.to(grid.dtype), grid.view(b_, h, w, 2), align_corners=True, padding_mode="zeros")
     valid = (grid.abs() <= 1).all(-1)
-    return (img1.to(q.dtype).flatten(1) - s.flatten(1)) * valid, valid
+    return (img1.to(grid.dtype).flatten(1) - s.flatten(1)) * valid, valid
 
 
 # ------------------------------------------------------------------ batched LM
-def _grad_stack(g: torch.Tensor) -> torch.Tensor:
-    """(B, 1, h, w) -> (B, 3, h, w): image, d/dx, d/dy (central differences, one-sided at edges)."""
-    gx = torch.zeros_like(g)
-    gy = torch.zeros_like(g)
-    gx[..., 1:-1] = 0.5 * (g[..., 2:] - g[..., :-2])
-    gx[..., 0], gx[..., -1] = g[..., 1] - g[..., 0], g[..., -1] - g[..., -2]
-    gy[..., 1:-1, :] = 0.5 * (g[..., 2:, :] - g[..., :-2, :])
-    gy[..., 0, :], gy[..., -1, :] = g[..., 1, :] - g[..., 0, :], g[..., -1, :] - g[..., -2, :]
-    return torch.cat([g, gx, gy], 1)
+def _with_gradients(g: torch.Tensor) -> torch.Tensor:
+    """(B, 1, h, w) -> (B, 3, h, w): image, d/dx, d/dy (central differences)."""
+    return torch.cat([g, central_differences(g[:, 0]).transpose(1, 2)], 1)
 
 
-def _evaluate(theta, i1, stack2, ux_d, uy_d, rho, r_l, newton, margin, jac=True):
+class _Level(NamedTuple):
+    """The fixed data of one level: img1 at the sampled pixels (B, N), img2 with its gradients
+    (B, 3, h, w), the sampled pixels' u_d (x, y planes, (B, N)) and |u_d|^2, level px per unit,
+    the map u -> grid_sample coordinates (sx, ox, sy, oy), Newton steps and the margin (level px)."""
+
+    i1: torch.Tensor
+    stack2: torch.Tensor
+    ux_d: torch.Tensor
+    uy_d: torch.Tensor
+    rho: torch.Tensor
+    px: float
+    to_grid: tuple[float, float, float, float]
+    newton: int
+    margin: float
+
+
+def _evaluate(theta: torch.Tensor, lv: _Level, jac: bool = True):
     """Residual (B, N), mask (B, N) and (optionally) the Jacobian (B, 10, N) at theta (B, 10).
 
     Coordinates are kept as separate x / y planes (B, N): elementwise ops stay contiguous.
     """
-    bsz, _, h, w = stack2.shape
-    n = ux_d.shape[1]
+    bsz, _, h, w = lv.stack2.shape
+    ux_d, uy_d, rho, r_l, (sx, ox, sy, oy) = lv.ux_d, lv.uy_d, lv.rho, lv.px, lv.to_grid
     th = theta.float()
     col = [th[:, k : k + 1] for k in range(10)]  # (B, 1) each
     h00, h01, h02, h10, h11, h12, h20, h21 = 1 + col[0], col[1], col[2], col[3], 1 + col[4], col[5], col[6], col[7]
     a, b = col[8], col[9]
-    g1 = 1.0 + rho * (a + b * rho)
+    g1 = radial_factor(rho, a, b)
     ux, uy = ux_d * g1, uy_d * g1
     w3 = 1.0 + h20 * ux + h21 * uy
     iw3 = 1.0 / w3
     vx, vy = (h00 * ux + h01 * uy + h02) * iw3, (h10 * ux + h11 * uy + h12) * iw3
-    sig2 = vx * vx + vy * vy
-    sig = torch.sqrt(sig2 + (sig2 == 0).float())
-    s = sig
-    for _ in range(newton):
-        s2 = s * s
-        s = s - (s * (1.0 + s2 * (a + b * s2)) - sig) / (1.0 + s2 * (3.0 * a + 5.0 * b * s2))
+    s, sig = radial_inverse(vx * vx + vy * vy, a, b, lv.newton)
     ratio = s / sig
     vdx, vdy = vx * ratio, vy * ratio
-    cx, cy = (w - 1) / 2, (h - 1) / 2
-    gx_, gy_ = vdx * (r_l / cx), vdy * (r_l / cy)  # grid_sample coordinates
-    grid = torch.stack([gx_, gy_], -1).view(bsz, 1, n, 2)
-    smp = F.grid_sample(stack2, grid, align_corners=True, padding_mode="zeros").flatten(2)
-    mx, my = 1 - margin / cx, 1 - margin / cy
+    gx_, gy_ = vdx * sx + ox, vdy * sy + oy  # grid_sample coordinates
+    grid = torch.stack([gx_, gy_], -1).view(bsz, 1, -1, 2)
+    smp = F.grid_sample(lv.stack2, grid, align_corners=True, padding_mode="zeros").flatten(2)
+    mx, my = 1 - 2 * lv.margin / (w - 1), 1 - 2 * lv.margin / (h - 1)
     valid = (gx_.abs() <= mx) & (gy_.abs() <= my) & (w3 > 0)
     vf = valid.float()
-    res = (i1 - smp[:, 0]) * vf
+    res = (lv.i1 - smp[:, 0]) * vf
     if not jac:
         return res, valid, None
     rd = s * s
-    gd = 1.0 + rd * (a + b * rd)
+    gd = radial_factor(rd, a, b)
     c = 2.0 * (a + 2.0 * b * rd)
     dx, dy = smp[:, 1] * vf, smp[:, 2] * vf
     # e = -R grad^T DF^-1, DF = g I + c vd vd^T (Sherman-Morrison)
@@ -210,8 +199,8 @@ def _select(img: torch.Tensor, block: int, margin: float) -> torch.Tensor:
     bsz, _, h, w = img.shape
     if block <= 1:
         return torch.arange(h * w).expand(bsz, -1)
-    st = _grad_stack(img)
-    mag = st[:, 1] ** 2 + st[:, 2] ** 2
+    d = central_differences(img[:, 0])
+    mag = d[:, :, 0] ** 2 + d[:, :, 1] ** 2
     m = int(math.ceil(margin))
     mag[:, :m], mag[:, h - m :], mag[:, :, :m], mag[:, :, w - m :] = -1, -1, -1, -1
     hb, wb = h // block, w // block
@@ -225,31 +214,7 @@ def _select(img: torch.Tensor, block: int, margin: float) -> torch.Tensor:
 def _invertible(ab: torch.Tensor, s_max: float = 1.05) -> torch.Tensor:
     """d(r (1 + a r^2 + b r^4))/dr > 0 on [0, s_max] (the image plus a margin)."""
     s2 = torch.linspace(0, s_max, 22, dtype=ab.dtype) ** 2
-    return (1 + 3 * ab[:, :1] * s2 + 5 * ab[:, 1:] * s2 * s2 > 0.05).all(-1)
-
-
-def _phase_correlation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(B, h, w) -> (B, 2) translation t (x, y) with a(p) ~ b(p + t)."""
-    h, w = a.shape[-2:]
-    win = torch.hann_window(h, periodic=False)[:, None] * torch.hann_window(w, periodic=False)[None]
-    fa = torch.fft.rfft2((a - a.mean((-2, -1), keepdim=True)) * win)
-    fb = torch.fft.rfft2((b - b.mean((-2, -1), keepdim=True)) * win)
-    cross = fb * fa.conj()
-    corr = torch.fft.irfft2(cross / (cross.abs() + 1e-9), s=(h, w))
-    idx = corr.flatten(1).argmax(1)
-    iy, ix = idx // w, idx % w
-    bi = torch.arange(a.shape[0])
-
-    def sub(c0, cm, cp):
-        den = cm - 2 * c0 + cp
-        return torch.where(den.abs() > 1e-12, 0.5 * (cm - cp) / den, torch.zeros_like(den)).clamp(-0.5, 0.5)
-
-    c0 = corr[bi, iy, ix]
-    dx = sub(c0, corr[bi, iy, (ix - 1) % w], corr[bi, iy, (ix + 1) % w])
-    dy = sub(c0, corr[bi, (iy - 1) % h, ix], corr[bi, (iy + 1) % h, ix])
-    tx = torch.where(ix > w // 2, ix - w, ix).double() + dx.double()
-    ty = torch.where(iy > h // 2, iy - h, iy).double() + dy.double()
-    return torch.stack([tx, ty], -1)
+    return (radial_derivative(s2, ab[:, :1], ab[:, 1:]) > 0.05).all(-1)
 
 
 @torch.no_grad()
@@ -257,7 +222,8 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
     """Estimate (k2, k4) and H together, per pair of a batch (see the module docstring).
 
     Args:
-        img1, img2: (B, C, H, W) float in [0, 1] or uint8, the same distortion in both.
+        img1, img2: (B, C, H, W) float in [0, 1] or uint8, the same distortion in both; H and
+            W at least 16 (and 2^levels).
         init: optional (B, 3, 3) homography img1 -> img2 (pixels), e.g. from
             :func:`estimate_homography`; otherwise phase correlation on the coarsest level.
     Returns:
@@ -269,7 +235,9 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
     if not isinstance(cfg, SelfCalConfig):
         raise TypeError(f"config must be a SelfCalConfig or None, got {type(cfg).__name__}")
     check_image_pair(img1, img2)
-    bsz = img1.shape[0]
+    (bsz, _, h, w), least = img1.shape, max(16, 2**cfg.levels)
+    if h < least or w < least:
+        raise ValueError(f"img1 and img2 must be at least {least} x {least} pixels, got {h} x {w}")
     if init is not None:
         init = torch.as_tensor(init, dtype=torch.float64)
         if init.shape != (bsz, 3, 3):
@@ -285,56 +253,64 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
 
 
 def _fit(g1, g2, init, cfg: SelfCalConfig):
+    """One chunk: g1, g2 (b, 1, h, w) float32 grey on the CPU -> k2, k4, H, info."""
     bsz, _, h0, w0 = g1.shape
-    nrm, r0 = _normaliser(h0, w0)
-    pyr1, pyr2 = [g1], [g2]
-    for _ in range(cfg.levels - 1):
-        pyr1.append(F.avg_pool2d(pyr1[-1], 2))
-        pyr2.append(F.avg_pool2d(pyr2[-1], 2))
+    pyr1, pyr2 = mean_pyramid(g1, cfg.levels), mean_pyramid(g2, cfg.levels)
     theta = torch.zeros(bsz, 10, dtype=torch.float64)
     if init is not None:
+        nrm = normalizer(h0, w0)
         theta[:, :8] = _theta_of(nrm @ init @ torch.linalg.inv(nrm))
-    else:
-        s = 2 ** (cfg.levels - 1)
-        t = _phase_correlation(pyr1[-1][:, 0], pyr2[-1][:, 0]) * s / r0
+    else:  # the translation in level px -> u
+        t = phase_correlation(pyr1[-1][:, 0], pyr2[-1][:, 0]).double() * 2 ** (cfg.levels - 1) / half_diagonal(h0, w0)
         theta[:, 2], theta[:, 5] = t[:, 0], t[:, 1]
     lam = torch.full((bsz,), cfg.damping, dtype=torch.float64)
-    ok = torch.ones(bsz, dtype=torch.bool)
-    first_cost = None
     for lev, iters in zip(range(cfg.levels - 1, -1, -1), cfg.iterations):
-        i1, i2 = pyr1[lev], pyr2[lev]
-        h, w = i1.shape[-2:]
-        r_l = r0 / 2**lev
+        i1, h, w = pyr1[lev], *pyr1[lev].shape[-2:]
         idx = _select(i1, cfg.sample_block[cfg.levels - 1 - lev], cfg.margin)
-        ud = _level_grid(h, w, r_l)
+        ud = normalized_grid(lev, h, w, h0, w0).view(-1, 2)
         ux_d, uy_d = ud[idx, 0], ud[idx, 1]
-        rho = ux_d * ux_d + uy_d * uy_d
-        stack2 = _grad_stack(i2)
-        i1f = torch.gather(i1.flatten(1), 1, idx)
-        args = (i1f, stack2, ux_d, uy_d, rho, r_l, cfg.newton, cfg.margin)
-        res, valid, J = _evaluate(theta, *args)
-        cost = _cost(res, valid)
-        if lev == 0:
-            first_cost = cost.clone()
-        for _ in range(iters):
-            jtj = torch.bmm(J, J.transpose(1, 2)).double()
-            jtr = torch.bmm(J, res[..., None]).double()[..., 0]
-            diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
-            A = jtj + torch.diag_embed(lam[:, None] * diag + 1e-9 * diag.amax(1, keepdim=True))
-            step = -torch.linalg.solve(A, jtr)
-            cand = theta + torch.nan_to_num(step, nan=0.0)
-            res_c, valid_c, J_c = _evaluate(cand, *args)
-            cost_c = _cost(res_c, valid_c)
-            acc = (cost_c < cost) & torch.isfinite(cost_c) & _invertible(cand[:, 8:]) & (valid_c.float().mean(1) > 0.05)
-            theta = torch.where(acc[:, None], cand, theta)
-            m = acc[:, None]
-            res = torch.where(m, res_c, res)
-            valid = torch.where(m, valid_c, valid)
-            J = torch.where(m[..., None], J_c, J)
-            cost = torch.where(acc, cost_c, cost)
-            lam = torch.where(acc, lam / 3, lam * 4).clamp(1e-7, 1e7)
+        lv = _Level(torch.gather(i1.flatten(1), 1, idx), _with_gradients(pyr2[lev]), ux_d, uy_d,
+                    ux_d * ux_d + uy_d * uy_d, half_diagonal(h0, w0) / 2**lev, level_to_grid(lev, h, w, h0, w0),
+                    cfg.newton, cfg.margin)
+        theta, lam, state, start_cost = _levenberg_marquardt(theta, lam, lv, iters)
         lam = lam.clamp_min(cfg.damping)  # a fresh start of the damping at the next level
-    # covariance of the final, full-resolution fit
+    return _result(theta, state, start_cost, h0, w0, cfg)
+
+
+def _cost(res: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    return ((res.double() ** 2).sum(1) / valid.sum(1).clamp_min(1)).double()
+
+
+def _levenberg_marquardt(theta, lam, lv: _Level, iterations: int):
+    """``iterations`` LM steps on one level, per pair accepted where the cost falls, the model
+    stays invertible and some overlap remains. Returns theta, lambda, (res, valid, J, cost) at
+    theta, and the cost at the start."""
+    res, valid, J = _evaluate(theta, lv)
+    cost = _cost(res, valid)
+    start_cost = cost.clone()
+    for _ in range(iterations):
+        jtj = torch.bmm(J, J.transpose(1, 2)).double()
+        jtr = torch.bmm(J, res[..., None]).double()[..., 0]
+        diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
+        A = jtj + torch.diag_embed(lam[:, None] * diag + 1e-9 * diag.amax(1, keepdim=True))
+        step = -torch.linalg.solve(A, jtr)
+        cand = theta + torch.nan_to_num(step, nan=0.0)
+        res_c, valid_c, J_c = _evaluate(cand, lv)
+        cost_c = _cost(res_c, valid_c)
+        acc = (cost_c < cost) & torch.isfinite(cost_c) & _invertible(cand[:, 8:]) & (valid_c.float().mean(1) > 0.05)
+        theta = torch.where(acc[:, None], cand, theta)
+        m = acc[:, None]
+        res = torch.where(m, res_c, res)
+        valid = torch.where(m, valid_c, valid)
+        J = torch.where(m[..., None], J_c, J)
+        cost = torch.where(acc, cost_c, cost)
+        lam = torch.where(acc, lam / 3, lam * 4).clamp(1e-7, 1e7)
+    return theta, lam, (res, valid, J, cost), start_cost
+
+
+def _delta_avg_std(ab, res, valid, J, h0: int, w0: int, cfg: SelfCalConfig) -> torch.Tensor:
+    """Std (px) of Delta_avg from the Gauss-Newton covariance of the final full-resolution fit;
+    inf where it is not finite."""
     n = valid.sum(1).double()
     jtj = torch.bmm(J, J.transpose(1, 2)).double()
     # residual variance, floored at the quantisation noise of 8-bit images, so that a
@@ -342,23 +318,27 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     s2 = ((res.double() ** 2).sum(1) / (n - 10).clamp_min(1)).clamp_min(cfg.noise_floor**2)
     eye = torch.eye(10, dtype=torch.float64)
     cov = s2[:, None, None] * torch.linalg.inv(jtj + cfg.ridge * eye)
-    ab = theta[:, 8:].clone()
-    k2, k4 = ab[:, 0] / r0**2, ab[:, 1] / r0**4
-    # Delta_avg and its gradient in (a, b): r0 * mean |a u^3 + b u^5|
-    u2 = (_level_grid(h0, w0, r0, torch.float64) ** 2).sum(-1)
+    # Delta_avg and its gradient in (a, b): R * mean |a u^3 + b u^5|
+    u2 = (normalized_grid(0, h0, w0, h0, w0, torch.float64).view(1, -1, 2) ** 2).sum(-1)
     m3, m5 = u2**1.5, u2**2.5
     sgn = torch.sign(ab[:, :1] * m3 + ab[:, 1:] * m5)
     sgn = torch.where(sgn == 0, torch.ones_like(sgn), sgn)  # the kink of |.| at 0: one side
-    grad = r0 * torch.stack([(sgn * m3).mean(1), (sgn * m5).mean(1)], -1)
-    var = torch.einsum("bi,bij,bj->b", grad, cov[:, 8:, 8:], grad)
-    std = torch.sqrt(var.clamp_min(0))
-    std = torch.where(torch.isfinite(std), std, torch.full_like(std, float("inf")))
+    grad = half_diagonal(h0, w0) * torch.stack([(sgn * m3).mean(1), (sgn * m5).mean(1)], -1)
+    std = torch.einsum("bi,bij,bj->b", grad, cov[:, 8:, 8:], grad).clamp_min(0).sqrt()
+    return torch.where(torch.isfinite(std), std, torch.full_like(std, float("inf")))
+
+
+def _result(theta, state, start_cost, h0: int, w0: int, cfg: SelfCalConfig):
+    """k2, k4, H and :class:`SelfCalInfo` of a chunk from its final fit; NaN where it diverged."""
+    res, valid, J, cost = state
+    r0, ab = half_diagonal(h0, w0), theta[:, 8:].clone()
+    std = _delta_avg_std(ab, res, valid, J, h0, w0, cfg)
+    k2, k4 = ab[:, 0] / r0**2, ab[:, 1] / r0**4
     overlap = valid.float().mean(1)
-    fin = torch.isfinite(theta).all(1)
-    ok = (fin & (ab.abs() <= cfg.max_coefficient).all(1) & _invertible(torch.nan_to_num(ab)) & (overlap >= cfg.min_overlap)
-          & (cost <= first_cost * (1 + 1e-6)))
-    hn = _h_matrix(theta)
-    H = torch.linalg.inv(nrm) @ hn @ nrm
+    ok = (torch.isfinite(theta).all(1) & (ab.abs() <= cfg.max_coefficient).all(1)
+          & _invertible(torch.nan_to_num(ab)) & (overlap >= cfg.min_overlap) & (cost <= start_cost * (1 + 1e-6)))
+    nrm = normalizer(h0, w0)
+    H = torch.linalg.inv(nrm) @ _h_matrix(theta) @ nrm
     H = H / H[:, 2:, 2:]
     nan = torch.tensor(float("nan"), dtype=torch.float64)
     k2, k4 = torch.where(ok, k2, nan), torch.where(ok, k4, nan)
@@ -371,7 +351,3 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std,
                        torch.sqrt(cost.clamp_min(0)).float(), overlap, ab)
     return k2, k4, H, info
-
-
-def _cost(res: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    return ((res.double() ** 2).sum(1) / valid.sum(1).clamp_min(1)).double()
