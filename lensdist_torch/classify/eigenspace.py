@@ -20,9 +20,10 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from lensdist_torch.config import ClassifierConfig, LensdistConfig, config_from_dict, config_to_dict
-from lensdist_torch.geometry.distortion import REJECT
+from lensdist_torch.classify._checkpoint import check_state, config_of, extra_of, positive_int, require_keys
+from lensdist_torch.config import ClassifierConfig, LensdistConfig, config_to_dict
 from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
+from lensdist_torch.geometry.distortion import REJECT
 
 __all__ = ["EigenSpaceClassifier", "ClassifierResult", "CheckpointError", "CHECKPOINT_VERSION"]
 
@@ -191,20 +192,49 @@ class EigenSpaceClassifier(nn.Module):
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":
         """Load a checkpoint (``torch.load(weights_only=True)``).
 
+        The payload is validated before anything is allocated: the sizes against the stored
+        tensors, every buffer's shape and dtype, finite values, class indices in range.
+
         Args:
+            path: the checkpoint file.
             expected: if given, the image size, block size and quality thresholds must match it.
+            map_location: ``torch.load``'s map_location.
+
         Raises:
-            CheckpointError: another kind, format version, image size, block size or thresholds.
+            FileNotFoundError: no such file.
+            CheckpointError: another kind or format version, image size, block size or
+                thresholds; missing entries, wrong shapes or dtypes, non-finite values.
         """
         payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location)
-        config = config_from_dict(payload["config"])
+        require_keys(payload, ("n_features", "config", "state_dict"), path)
+        config = config_of(payload, path)
         if expected is not None:
             check_compatible(config, expected, path)
+        d = positive_int(payload, "n_features", path)
+        k, n = config.distortion.n_classes, config.classifier.n_eigenvectors
+        if d <= n:
+            raise CheckpointError(f"checkpoint {path}: n_features={d} must exceed n_eigenvectors={n}")
+        f32 = torch.float32
+        spec = {
+            "means": (f32, ("k", "D")),
+            "bases": (f32, ("k", "n", "D")),
+            "explained": (f32, ("k",)),
+            "train_coeffs": (f32, ("N", "n")),
+            "train_class": (torch.int64, ("N",)),
+            "train_delta": (f32, ("N",)),
+            "reject_threshold": (f32, ()),
+            "fitted": (torch.bool, ()),
+        }
         sd = payload["state_dict"]
-        model = cls(int(payload["n_features"]), config)
+        check_state(sd, spec, {"k": k, "n": n, "D": d}, path)
+        counts = torch.bincount(sd["train_class"].clamp(0, k), minlength=k + 1)
+        if bool((sd["train_class"] < 0).any()) or int(counts[k]) or bool((counts[:k] == 0).any()):
+            raise CheckpointError(f"checkpoint {path}: train_class must hold every class 0..{k - 1} and nothing else")
+        extra = extra_of(payload, path)
+        model = cls(d, config)
         # fitted sizes vary with the training set: resize the buffers before loading
         for name in ("train_coeffs", "train_class", "train_delta"):
             setattr(model, name, torch.empty_like(sd[name]))
         model.load_state_dict(sd)
-        model.extra = payload.get("extra", {})
+        model.extra = extra
         return model

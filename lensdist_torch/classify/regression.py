@@ -28,9 +28,10 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
+from lensdist_torch.classify._checkpoint import check_state, config_of, extra_of, positive_int, require_keys
+from lensdist_torch.config import LensdistConfig, config_to_dict
+from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
 from lensdist_torch.geometry.distortion import METRICS, delta_top, estimated_class
-from lensdist_torch.core.storage import check_compatible, load_versioned, save_versioned
 
 __all__ = ["DeltaRegressor", "RegressionResult", "CHECKPOINT_VERSION"]
 
@@ -154,15 +155,45 @@ class DeltaRegressor(nn.Module):
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "DeltaRegressor":
-        """Load a checkpoint (``torch.load(weights_only=True)``); CheckpointError if incompatible."""
+        """Load a checkpoint (``torch.load(weights_only=True)``).
+
+        The payload is validated before anything is allocated: the sizes against the stored
+        tensors, every buffer's shape and dtype, finite values.
+
+        Args:
+            path: the checkpoint file.
+            expected: if given, the image size, block size and quality thresholds must match it.
+            map_location: ``torch.load``'s map_location.
+
+        Raises:
+            FileNotFoundError: no such file.
+            CheckpointError: another kind, format version or (with ``expected``) config;
+                missing entries, wrong shapes or dtypes, non-finite values.
+        """
         payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "Delta-regression", map_location)
-        config = config_from_dict(payload["config"])
+        require_keys(payload, ("n_features", "n_components", "k", "config", "state_dict"), path)
+        config = config_of(payload, path)
         if expected is not None:
             check_compatible(config, expected, path)
+        d, nc, k = (positive_int(payload, key, path) for key in ("n_features", "n_components", "k"))
+        spec = {
+            "mean": (torch.float32, ("D",)),
+            "components": (torch.float16, ("C", "D")),
+            "train_coeffs": (torch.float16, ("N", "C+1")),
+            "train_delta": (torch.float32, ("N", 2)),
+            "fitted": (torch.bool, ()),
+        }
         sd = payload["state_dict"]
-        model = cls(int(payload["n_features"]), config, int(payload["n_components"]), int(payload["k"]))
+        dims = check_state(sd, spec, {"D": d}, path)
+        if not 1 <= dims["C"] <= nc or dims["C+1"] != dims["C"] + 1 or dims["N"] < 1:
+            raise CheckpointError(
+                f"checkpoint {path}: components {tuple(sd['components'].shape)} and train_coeffs "
+                f"{tuple(sd['train_coeffs'].shape)} do not fit n_components={nc}"
+            )
+        extra = extra_of(payload, path)
+        model = cls(d, config, nc, k)
         for name in ("components", "train_coeffs", "train_delta"):
             setattr(model, name, torch.empty_like(sd[name]))
         model.load_state_dict(sd)
-        model.extra = payload.get("extra", {})
+        model.extra = extra
         return model
