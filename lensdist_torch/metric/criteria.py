@@ -1,7 +1,10 @@
-"""The per-pixel criteria, error images and block pooling of the metric (SPEC 2-4).
+"""The per-pixel criteria and error images of the metric (docs/method.md, sections 2-3).
 
-The building blocks of :mod:`lensdist_torch.quality`: both paths (hard and smooth) and the
-fast hard kernels. See :mod:`lensdist_torch.quality` for the formulas and the reasoning.
+The building blocks of :mod:`lensdist_torch.metric.quality`, on both paths (hard and smooth):
+Sobel gradients, the orientation agreement A, the edge preservation E, the gradient magnitudes
+and the dilated risk map R, then the registration and visual error images. Block pooling is in
+:mod:`lensdist_torch.metric.pooling`; the fast hard kernels in ``_hard``. See
+:mod:`lensdist_torch.metric.quality` for the formulas and the reasoning.
 """
 
 from __future__ import annotations
@@ -13,7 +16,14 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.core.images import check_image_pair, check_valid_mask, to_grey
+from lensdist_torch.metric._inputs import (
+    binarise_valid,
+    check_mask_shape,
+    check_values,
+    get_config,
+    prepare_pair,
+    should_validate,
+)
 
 __all__ = [
     "LocalCriteria",
@@ -21,18 +31,27 @@ __all__ = [
     "local_criteria",
     "error_images",
     "erode_valid",
-    "block_counts",
-    "block_pool",
 ]
 
 _HALF_PI = math.pi / 2
 
 
 class LocalCriteria(NamedTuple):
-    """Per-pixel criteria, each (B, 1, H, W).
+    """Per-pixel criteria of a pair of images (docs/method.md, section 2).
 
-    d: |I1 - I2| in [0, 1]. a: orientation agreement A in [0, 1]. e: edge preservation E in
-    [0, gamma]. g1, g2: Sobel gradient magnitudes. r: dilated risk map (1 = both weak).
+    Attributes:
+        d: (B, 1, H, W) intensity difference |I1 - I2| in [0, 1].
+        a: (B, 1, H, W) orientation agreement A in [0, 1] (1 = same axial orientation).
+        e: (B, 1, H, W) edge preservation E in [0, gamma].
+        g1: (B, 1, H, W) normalised Sobel gradient magnitude of img1.
+        g2: (B, 1, H, W) the same for img2.
+        r: (B, 1, H, W) risk map, 3 x 3-dilated (1 = both gradients weak).
+
+    Example:
+        >>> x = torch.rand(1, 1, 16, 16)
+        >>> c = local_criteria(x, x)
+        >>> c.a.shape, bool((c.a == 1).all())
+        (torch.Size([1, 1, 16, 16]), True)
     """
 
     d: torch.Tensor
@@ -44,30 +63,21 @@ class LocalCriteria(NamedTuple):
 
 
 class ErrorImages(NamedTuple):
-    """Per-pixel error images, each (B, 1, H, W) in [0, 1] (exactly {0, 1} on the hard path)."""
+    """Per-pixel error images (docs/method.md, section 3).
+
+    Attributes:
+        e_reg: (B, 1, H, W) registration errors in [0, 1] (exactly {0, 1} on the hard path).
+        e_vis: (B, 1, H, W) visual errors, likewise.
+
+    Example:
+        >>> x = torch.rand(1, 1, 16, 16)
+        >>> errs = error_images(local_criteria(x, x))
+        >>> float(errs.e_reg.sum()), float(errs.e_vis.sum())
+        (0.0, 0.0)
+    """
 
     e_reg: torch.Tensor
     e_vis: torch.Tensor
-
-
-def prepare_pair(img1, img2, valid, config, data_range, validate=True):
-    cfg = config if config is not None else QualityConfig()
-    if not isinstance(cfg, QualityConfig):
-        raise TypeError(f"config must be a QualityConfig or None, got {type(cfg).__name__}")
-    if not (isinstance(data_range, (int, float)) and data_range > 0):
-        raise ValueError(f"data_range must be a positive number, got {data_range!r}")
-    check_image_pair(img1, img2, cfg.block_size, finite=validate)
-    g1, g2 = to_grey(img1), to_grey(img2)
-    dtype = torch.promote_types(g1.dtype, g2.dtype)
-    g1, g2 = g1.to(dtype), g2.to(dtype)
-    if data_range != 1.0:  # the value of white in float inputs; uint8 is already / 255 (SPEC 1)
-        if img1.is_floating_point():
-            g1 = g1 / data_range
-        if img2.is_floating_point():
-            g2 = g2 / data_range
-    if valid is not None:
-        valid = check_valid_mask(valid, g1)
-    return g1, g2, valid, cfg
 
 
 def _sobel8(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -81,7 +91,7 @@ def _sobel8(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _gradients(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normalised Sobel (SPEC 2): (B, 1, H, W) -> s_x, s_y, each (B, 1, H, W).
+    """Normalised Sobel (docs/method.md, section 2): (B, 1, H, W) -> s_x, s_y, each (B, 1, H, W).
 
     The same numbers as ``kornia.filters.spatial_gradient(x, "sobel", 1, normalized=True)``
     (replicate border, kernels / 8; the tests check agreement to 1e-6), computed separably
@@ -112,7 +122,7 @@ def _direction(sx: torch.Tensor, sy: torch.Tensor) -> tuple[torch.Tensor, torch.
     the scaling moves no value and its gradient is exact (the angle's derivative along the
     vector is 0). Unscaled, dot and cross are products of two gradients and 1 / (dot^2 +
     cross^2) in atan2's backward overflows for float32 gradients below about 1e-10 (NaN
-    gradients on nearly flat images, SPEC 5). Gradients below sqrt(tiny) (1e-19 in float32)
+    gradients on nearly flat images, docs/method.md, section 5). Gradients below sqrt(tiny) (1e-19 in float32)
     count as zero vectors, which keeps 1 / max finite.
     """
     m = torch.maximum(sx.abs(), sy.abs()).detach()
@@ -126,7 +136,7 @@ def _orientation_difference(dot: torch.Tensor, cross: torch.Tensor, smooth: bool
     x, y = dot.abs(), cross.abs()
     if not smooth:
         return torch.atan2(y, x)  # atan2(0, 0) = 0: the exact formula, no guard needed
-    # atan2's gradient is 0/0 at the origin; mask zero vectors before it (SPEC 5).
+    # atan2's gradient is 0/0 at the origin; mask zero vectors before it (docs/method.md, section 5).
     zero = (x * x + y * y) == 0
     return torch.where(zero, torch.zeros_like(x), torch.atan2(y, torch.where(zero, torch.ones_like(x), x)))
 
@@ -149,9 +159,21 @@ def _dilate3(x: torch.Tensor) -> torch.Tensor:
 
 
 def erode_valid(valid: torch.Tensor) -> torch.Tensor:
-    """3 x 3 erosion of a (B, 1, H, W) validity mask; the image border counts as valid.
+    """3 x 3 erosion of a validity mask; the image border counts as valid.
 
     max_pool2d pads with -inf, so pixels outside the image never invalidate their neighbours.
+
+    Args:
+        valid: (B, 1, H, W) float mask (1 = valid).
+
+    Returns:
+        (B, 1, H, W): the minimum of ``valid`` over each 3 x 3 window.
+
+    Example:
+        >>> v = torch.ones(1, 1, 5, 5)
+        >>> v[0, 0, 2, 2] = 0
+        >>> int(erode_valid(v).sum())  # the invalid pixel removes its 3 x 3 neighbourhood
+        16
     """
     return -F.max_pool2d(-valid, kernel_size=3, stride=1, padding=1)
 
@@ -165,14 +187,20 @@ def local_criteria(
     config: QualityConfig | None = None,
     smooth: bool = False,
     data_range: float = 1.0,
+    validate: bool = True,
 ) -> LocalCriteria:
-    """The per-pixel criteria D, A, E, G1, G2 and the dilated risk map R (SPEC 2).
+    """The per-pixel criteria D, A, E, G1, G2 and the dilated risk map R.
+
+    See docs/method.md, section 2. Per pixel, so any image size works (no blocks here).
 
     Args:
-        img1, img2: registered images (B, C, H, W), C in {1, 3}, float in [0, data_range] or uint8.
-        config: thresholds and temperatures; SPEC defaults when None.
+        img1: (B, C, H, W) registered image, C in {1, 3}, float in [0, data_range] or uint8.
+        img2: (B, C, H, W) the other image, same shape.
+        config: thresholds and temperatures; the defaults of docs/method.md when None.
         smooth: sigmoid risk map (differentiable) instead of the hard one.
-        data_range: the value of white in float inputs.
+        data_range: the value of white in float inputs (they are divided by it).
+        validate: check for NaN/Inf and the value range (one host sync); skipped while
+            compiling.
 
     Returns:
         LocalCriteria of (B, 1, H, W) tensors.
@@ -183,7 +211,7 @@ def local_criteria(
         >>> bool((c.a == 1).all()), bool((c.d == 0).all())
         (True, True)
     """
-    g1, g2, _, cfg = prepare_pair(img1, img2, None, config, data_range)
+    g1, g2, _, cfg = prepare_pair(img1, img2, None, config, data_range, validate, pad=None)
     return _criteria(g1, g2, cfg, smooth)
 
 
@@ -211,18 +239,42 @@ def error_images(
     valid: torch.Tensor | None = None,
     config: QualityConfig | None = None,
     smooth: bool = False,
+    validate: bool = True,
 ) -> ErrorImages:
-    """Registration and visual error images (SPEC 3).
+    """Registration and visual error images (docs/method.md, section 3).
 
     e_reg = V (1 - R) [E < theta_E] and e_vis = V R [D > theta_D], V the 3 x 3-eroded validity.
 
     Args:
         criteria: from :func:`local_criteria` (with the same ``smooth``).
-        valid: (B, 1, H, W) validity of the registered pair (1 = real content), or None.
-        config: thresholds and temperatures; SPEC defaults when None.
+        valid: (B, 1, H, W) validity of the registered pair (1 = real content), bool or in
+            [0, 1], or None. Binarised at 0.5 and detached on both paths.
+        config: thresholds and temperatures; the defaults of docs/method.md when None.
         smooth: sigmoids instead of thresholds.
+        validate: check the mask for NaN and values outside [0, 1] (one host sync).
+
+    Returns:
+        ErrorImages of (B, 1, H, W) tensors.
+
+    Example:
+        >>> x = torch.rand(1, 1, 16, 16)
+        >>> y = torch.roll(x, 1, dims=-1)
+        >>> valid = torch.zeros(1, 1, 16, 16)
+        >>> float(error_images(local_criteria(x, y), valid).e_reg.sum())
+        0.0
     """
-    cfg = config if config is not None else QualityConfig()
+    cfg = get_config(config)
+    v = None
+    if valid is not None:
+        check_mask_shape(valid, criteria.r)
+        if should_validate(validate):
+            check_values([], valid, 1.0)
+        v = erode_valid(binarise_valid(valid.to(criteria.r.device), criteria.r))
+    return _error_images(criteria, v, cfg, smooth)
+
+
+def _error_images(criteria: LocalCriteria, v: torch.Tensor | None, cfg: QualityConfig, smooth: bool) -> ErrorImages:
+    """error_images with ``v`` the eroded {0, 1} validity (or None)."""
     r = criteria.r
     if smooth:
         mis = torch.sigmoid((cfg.theta_e - criteria.e) / cfg.tau_e)
@@ -231,132 +283,6 @@ def error_images(
         mis = (criteria.e < cfg.theta_e).to(r.dtype)
         vis = (criteria.d > cfg.theta_d).to(r.dtype)
     e_reg, e_vis = (1.0 - r) * mis, r * vis
-    if valid is not None:
-        v = check_valid_mask(valid, r)
-        if not smooth:  # as the fast path: a pixel is valid where valid >= 0.5
-            v = (v >= 0.5).to(r.dtype)
-        v = erode_valid(v)
+    if v is not None:
         e_reg, e_vis = v * e_reg, v * e_vis
     return ErrorImages(e_reg=e_reg, e_vis=e_vis)
-
-
-def block_counts(error: torch.Tensor, block_size: int = 8) -> torch.Tensor:
-    """Sum of a (B, 1, H, W) error image over non-overlapping blocks -> (B, 1, H/b, W/b)."""
-    if error.dim() != 4 or error.shape[-2] % block_size or error.shape[-1] % block_size:
-        raise ValueError(
-            f"error must be (B, 1, H, W) with H, W multiples of block_size={block_size}, "
-            f"got {tuple(error.shape)}"
-        )
-    return F.avg_pool2d(error, kernel_size=block_size, stride=block_size, divisor_override=1)
-
-
-def block_pool(
-    error: torch.Tensor,
-    config: QualityConfig | None = None,
-    smooth: bool = False,
-) -> torch.Tensor:
-    """Block error ratios with the floor of SPEC 4: ratios below min_block_ratio become 0.
-
-    Smooth: ratio * sigmoid((ratio - min_block_ratio) / tau_b).
-
-    Args:
-        error: (B, 1, H, W) error image in [0, 1].
-    Returns:
-        (B, 1, H/b, W/b) values 0 or in [min_block_ratio, 1] (hard path).
-    """
-    cfg = config if config is not None else QualityConfig()
-    area = cfg.block_size * cfg.block_size
-    ratio = block_counts(error, cfg.block_size) / area
-    if smooth:
-        return ratio * torch.sigmoid((ratio - cfg.min_block_ratio) / cfg.tau_b)
-    return floor_ratio(ratio, cfg)
-
-
-def floor_ratio(ratio: torch.Tensor, cfg: QualityConfig) -> torch.Tensor:
-    """SPEC 4's block floor: ratios below ``min_block_ratio`` become 0."""
-    return torch.where(ratio < cfg.min_block_ratio, torch.zeros_like(ratio), ratio)
-
-
-# ----------------------------------------------------------------------------- fast hard map
-
-
-def _tan_threshold(cfg: QualityConfig) -> float | None:
-    """tan(dalpha*) with E < theta_E <=> dalpha > dalpha*; None if every pixel errs."""
-    # E = gamma / (1 + exp(k (A - sigma))) < theta_E  <=>  A < sigma + ln(gamma / theta_E - 1) / k
-    a_star = cfg.sigma + math.log(cfg.gamma / cfg.theta_e - 1.0) / cfg.k
-    if a_star > 1.0:
-        return None
-    dalpha_star = (1.0 - a_star) * _HALF_PI
-    return math.inf if dalpha_star >= _HALF_PI else math.tan(dalpha_star)
-
-
-def _erode3(x: torch.Tensor) -> torch.Tensor:
-    """3 x 3 erosion of a (B, 1, H, W) {0, 1} float mask; outside the image counts as 1.
-
-    For {0, 1} values the minimum over a window is its product: separable products of shifted
-    slices, several times cheaper than max-pooling. ``1 - _erode3(1 - m)`` is the max-pool
-    dilation of m (kernel 3, stride 1, padding 1), which is how the risk map is dilated.
-    """
-    p = F.pad(x, (1, 1, 1, 1), value=1.0)
-    rows = p[..., :, :-2] * p[..., :, 1:-1] * p[..., :, 2:]
-    return rows[..., :-2, :] * rows[..., 1:-1, :] * rows[..., 2:, :]
-
-
-def _positive(x: torch.Tensor) -> torch.Tensor:
-    """[x > 0] as a {0, 1} float tensor, in place.
-
-    IEEE subtraction never rounds a non-zero difference to zero, so ``[a - b > 0]`` is exactly
-    ``[a > b]``; sign + clamp stay in float, where comparisons producing bool tensors (and
-    converting them back) cost several times more on the CPU.
-    """
-    return x.sign_().clamp_(min=0.0)
-
-
-def _block_sum(x: torch.Tensor, block: int) -> torch.Tensor:
-    b, _, h, w = x.shape
-    x = x.contiguous().view(b, h // block, block, w).sum(2)
-    return x.view(b, h // block, w // block, block).sum(-1).view(b, 1, h // block, w // block)
-
-
-def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool):
-    sx1, sy1 = _sobel8(g1)
-    sx2, sy2 = _sobel8(g2)
-    if t is None:
-        mis = torch.ones_like(sx1)
-    else:  # |b| > t |a|  <=>  E < theta_E  (see the module docstring)
-        cross = torch.addcmul(sx1 * sy2, sy1, sx2, value=-1.0).abs_()
-        dot = torch.addcmul(sx1 * sx2, sy1, sy2).abs_()
-        mis = _positive(cross.sub_(dot.mul_(t)))
-    theta2 = 64.0 * cfg.theta_g * cfg.theta_g  # G <= theta <=> (8G)^2 <= 64 theta^2; 64 is exact
-    strong1 = _positive(torch.addcmul(sx1 * sx1, sy1, sy1).sub_(theta2))
-    strong2 = _positive(torch.addcmul(sx2 * sx2, sy2, sy2).sub_(theta2))
-    # no weak pixel in the 3 x 3 window  <=>  R = 0 (R the dilated weak-pixel map)
-    not_r = _erode3(torch.maximum(strong1, strong2))
-    err = mis.mul_(not_r)
-    if valid is not None:
-        # erosion of the valid mask = dilation of the invalid one; outside the image is valid
-        v = _erode3(1.0 - _positive(0.5 - valid))
-        err.mul_(v)
-    reg = _block_sum(err, cfg.block_size)
-    if not visual:
-        return reg, None
-    vis = _positive((g1 - g2).abs_().sub_(cfg.theta_d)).mul_(1.0 - not_r)
-    if valid is not None:
-        vis.mul_(v)
-    return reg, _block_sum(vis, cfg.block_size)
-
-
-def _hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool):
-    t = _tan_threshold(cfg)
-    n, step = g1.shape[0], cfg.chunk_size
-    if n <= step:
-        return _hard_counts_chunk(g1, g2, valid, cfg, t, visual)
-    # Chunks keep the ~20 intermediates of a chunk in cache; the maps do not depend on it.
-    parts = [
-        _hard_counts_chunk(
-            g1[i : i + step], g2[i : i + step], None if valid is None else valid[i : i + step], cfg, t, visual
-        )
-        for i in range(0, n, step)
-    ]
-    reg = torch.cat([p[0] for p in parts])
-    return reg, (torch.cat([p[1] for p in parts]) if visual else None)

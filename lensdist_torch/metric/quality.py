@@ -1,4 +1,4 @@
-"""The registration-quality metric (paper section 3, SPEC sections 2-5).
+"""The registration-quality metric (paper section 3; docs/method.md, sections 2-5).
 
 Two registered images give, per pixel, an intensity difference D, an edge-preservation value
 E (agreement of the axial gradient orientations) and a risk map R (both gradients weak,
@@ -13,13 +13,19 @@ Two paths compute the same formulas:
 * the smooth path (``smooth=True``, ``RegistrationQualityLoss``) replaces each step
   ``[x < theta]`` by ``sigmoid((theta - x) / tau)`` and is differentiable everywhere.
 
-Orientation difference. SPEC defines it through the double-angle vectors
+Orientation difference. docs/method.md defines it through the double-angle vectors
 ``u = (s_x^2 - s_y^2, 2 s_x s_y)`` as ``0.5 * atan2(|u1 x u2|, u1 . u2)``. With
 ``a = g1 . g2`` and ``b = g1 x g2`` (g the Sobel gradients) one has ``u1 . u2 = a^2 - b^2`` and
 ``|u1 x u2| = 2|ab|``, so the same angle is ``atan2(|b|, |a|)``: second order in the gradients
 instead of fourth, which keeps float32 far from underflow. The tests check both forms agree.
 The fast hard map goes one step further: ``E < theta_E`` is, E being monotone in the angle,
 exactly ``dalpha > dalpha*``, i.e. ``|b| > tan(dalpha*) |a|``; no atan, no exp on the hot path.
+
+Inputs (all entry points): images of any size, padded to whole blocks (replicate padding, the
+padding invalid; ``pad=False`` requires multiples of the block size); float images in
+[0, data_range], uint8 in [0, 255]; a validity mask binarised at 0.5 and detached;
+``validate=False`` (or ``torch.compile``) skips the value checks and their host sync.
+The loss lives in :mod:`lensdist_torch.metric.loss` and is re-exported here.
 """
 
 from __future__ import annotations
@@ -30,19 +36,19 @@ import torch
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
+from lensdist_torch.metric._hard import hard_counts
+from lensdist_torch.metric._inputs import get_config, prepare_pair
 from lensdist_torch.metric.criteria import (
     ErrorImages,
     LocalCriteria,
     _criteria,
-    _hard_counts,
-    block_counts,
-    block_pool,
+    _error_images,
     erode_valid,
     error_images,
-    floor_ratio,
     local_criteria,
-    prepare_pair,
 )
+from lensdist_torch.metric.loss import RegistrationQualityLoss, registration_quality_loss
+from lensdist_torch.metric.pooling import block_counts, block_pool, floor_ratio
 
 __all__ = [
     "LocalCriteria",
@@ -53,6 +59,7 @@ __all__ = [
     "erode_valid",
     "block_counts",
     "block_pool",
+    "floor_ratio",
     "quality_map",
     "registration_error_counts",
     "counts_to_map",
@@ -66,9 +73,19 @@ __all__ = [
 class QualityResult(NamedTuple):
     """What :func:`registration_quality` returns.
 
-    registration_map, visual_map: (B, 1, H/b, W/b) block error ratios, 0 or in [0.1, 1].
-    quality_index: (B,) 1 - mean of the registration map; 1 means no registration error.
-    criteria, errors: the per-pixel maps, only when asked for (else None).
+    Attributes:
+        registration_map: (B, 1, ceil(H/b), ceil(W/b)) block error ratios, 0 or in [0.1, 1].
+        visual_map: (B, 1, ceil(H/b), ceil(W/b)) the same for visual errors.
+        quality_index: (B,) 1 - mean of the registration map; 1 means no registration error.
+            Invalid blocks count as error-free.
+        criteria: per-pixel (B, 1, H, W) maps, only with ``return_pixels`` (else None).
+        errors: per-pixel (B, 1, H, W) error images, only with ``return_pixels`` (else None).
+
+    Example:
+        >>> x = torch.rand(2, 1, 32, 32)
+        >>> res = registration_quality(x, x)
+        >>> res.quality_index.tolist(), res.criteria is None
+        ([1.0, 1.0], True)
     """
 
     registration_map: torch.Tensor
@@ -79,9 +96,20 @@ class QualityResult(NamedTuple):
 
 
 def counts_to_map(counts: torch.Tensor, config: QualityConfig | None = None) -> torch.Tensor:
-    """Stored per-block error counts (uint8, from :func:`registration_error_counts`) -> the
-    quality map (float32, floor applied). ``counts_to_map(c).flatten(1)`` is the feature vector."""
-    cfg = config if config is not None else QualityConfig()
+    """Stored per-block error counts -> the quality map (floor applied).
+
+    Args:
+        counts: (B, 1, h, w) uint8 counts from :func:`registration_error_counts`.
+        config: block size and floor; the defaults when None.
+
+    Returns:
+        (B, 1, h, w) float32 map; ``counts_to_map(c).flatten(1)`` is the feature vector.
+
+    Example:
+        >>> counts_to_map(torch.tensor([[[[0, 6, 7, 64]]]], dtype=torch.uint8)).tolist()
+        [[[[0.0, 0.0, 0.109375, 1.0]]]]
+    """
+    cfg = get_config(config)
     return _floor(counts.float(), cfg)
 
 
@@ -96,16 +124,33 @@ def registration_error_counts(
     config: QualityConfig | None = None,
     data_range: float = 1.0,
     validate: bool = True,
+    pad: bool = True,
 ) -> torch.Tensor:
-    """Registration-error pixels per block, before the floor: (B, 1, H/b, W/b) uint8.
+    """Registration-error pixels per block, before the floor: the exact, compact form in which
+    generated data sets store quality maps.
 
-    This is the exact, compact form in which generated data sets store quality maps.
+    Args:
+        img1: (B, C, H, W) registered image, C in {1, 3}, float in [0, data_range] or uint8.
+        img2: (B, C, H, W) the other image.
+        valid: (B, 1, H, W) validity mask (bool or in [0, 1], binarised at 0.5) or None.
+        config: thresholds and block size (at most 15); the defaults when None.
+        data_range: the value of white in float inputs.
+        validate: check values (NaN/Inf, range, mask; one host sync); skipped while compiling.
+        pad: pad to whole blocks (else H, W must be multiples of the block size).
+
+    Returns:
+        (B, 1, ceil(H/b), ceil(W/b)) uint8 counts.
+
+    Example:
+        >>> x = torch.rand(1, 1, 16, 16)
+        >>> registration_error_counts(x, x).dtype
+        torch.uint8
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate)
+    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
     if cfg.block_size > 15:
         raise ValueError(f"uint8 counts need block_size <= 15, got {cfg.block_size}")
     with torch.no_grad():
-        reg, _ = _hard_counts(g1, g2, valid, cfg, visual=False)
+        reg, _ = hard_counts(g1, g2, valid, cfg, visual=False)
     return reg.to(torch.uint8)
 
 
@@ -116,19 +161,24 @@ def quality_map(
     config: QualityConfig | None = None,
     data_range: float = 1.0,
     validate: bool = True,
+    pad: bool = True,
 ) -> torch.Tensor:
-    """The hard registration-error quality map of SPEC section 4.
+    """The hard registration-error quality map (docs/method.md, section 4).
 
     Args:
-        img1, img2: registered images (B, C, H, W), C in {1, 3}, float in [0, data_range] or
-            uint8; H and W multiples of the block size (8).
-        valid: (B, 1, H, W) validity of the registered pair (1 = real content), or None.
-        config: thresholds and block size; SPEC defaults when None.
-        data_range: the value of white in float inputs.
-        validate: check inputs for NaN/Inf (one pass over the data); shapes are always checked.
+        img1: (B, C, H, W) registered image, C in {1, 3}, float in [0, data_range] or uint8.
+        img2: (B, C, H, W) the other image.
+        valid: (B, 1, H, W) validity of the registered pair (1 = real content; bool or in
+            [0, 1], binarised at 0.5), or None.
+        config: thresholds and block size; the defaults when None.
+        data_range: the value of white in float inputs (they are divided by it).
+        validate: check values (NaN/Inf, range, mask; one host sync); skipped while compiling.
+            Types and shapes are always checked.
+        pad: pad H and W to whole blocks (replicate the images, the padding invalid); with
+            False they must be multiples of the block size.
 
     Returns:
-        (B, 1, H/8, W/8) tensor of block error ratios, 0 or in [0.1, 1].
+        (B, 1, ceil(H/8), ceil(W/8)) block error ratios, 0 or in [0.1, 1].
 
     Example:
         >>> x = torch.rand(2, 1, 32, 48)
@@ -136,14 +186,13 @@ def quality_map(
         torch.Size([2, 1, 4, 6])
         >>> float(quality_map(x, x).sum())
         0.0
+        >>> quality_map(torch.rand(1, 1, 37, 61), torch.rand(1, 1, 37, 61)).shape
+        torch.Size([1, 1, 5, 8])
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate)
+    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
     with torch.no_grad():
-        reg, _ = _hard_counts(g1, g2, valid, cfg, visual=False)
+        reg, _ = hard_counts(g1, g2, valid, cfg, visual=False)
     return _floor(reg, cfg)
-
-
-# ----------------------------------------------------------------------------- everything at once
 
 
 def registration_quality(
@@ -154,78 +203,67 @@ def registration_quality(
     smooth: bool = False,
     return_pixels: bool = False,
     data_range: float = 1.0,
+    validate: bool = True,
+    pad: bool = True,
 ) -> QualityResult:
     """Registration and visual maps, a global index, and optionally the per-pixel maps.
 
     Args:
-        img1, img2: registered images (B, C, H, W), float in [0, data_range] or uint8.
-        valid: (B, 1, H, W) validity mask or None.
-        config: thresholds, temperatures and block size; SPEC defaults when None.
-        smooth: the differentiable sigmoid path (SPEC 5) instead of the hard one.
-        return_pixels: also return the per-pixel criteria and error images.
+        img1: (B, C, H, W) registered image, float in [0, data_range] or uint8.
+        img2: (B, C, H, W) the other image.
+        valid: (B, 1, H, W) validity mask (bool or in [0, 1], binarised at 0.5) or None.
+        config: thresholds, temperatures and block size; the defaults when None.
+        smooth: the differentiable sigmoid path (docs/method.md, section 5).
+        return_pixels: also return the per-pixel criteria and error images (B, 1, H, W).
+        data_range: the value of white in float inputs.
+        validate: check values (one host sync); skipped while compiling.
+        pad: pad to whole blocks (else H, W must be multiples of the block size).
+
+    Returns:
+        QualityResult: maps (B, 1, ceil(H/b), ceil(W/b)), the (B,) index, per-pixel maps.
+
+    Example:
+        >>> x = torch.rand(1, 1, 32, 32)
+        >>> res = registration_quality(x, torch.roll(x, 1, dims=-1), return_pixels=True)
+        >>> res.registration_map.shape, res.criteria.e.shape
+        (torch.Size([1, 1, 4, 4]), torch.Size([1, 1, 32, 32]))
+        >>> bool(res.quality_index < 1)
+        True
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range)
+    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
+    h, w = img1.shape[-2:]
     if not smooth and not return_pixels:
         with torch.no_grad():
-            reg, vis = _hard_counts(g1, g2, valid, cfg, visual=True)
+            reg, vis = hard_counts(g1, g2, valid, cfg, visual=True)
         reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
         return QualityResult(reg_map, vis_map, 1.0 - reg_map.mean(dim=(1, 2, 3)))
     crit = _criteria(g1, g2, cfg, smooth)
-    errs = error_images(crit, valid, cfg, smooth)
+    errs = _error_images(crit, None if valid is None else erode_valid(valid), cfg, smooth)
     reg_map = block_pool(errs.e_reg, cfg, smooth)
     vis_map = block_pool(errs.e_vis, cfg, smooth)
     q = 1.0 - reg_map.mean(dim=(1, 2, 3))
-    if return_pixels:
-        return QualityResult(reg_map, vis_map, q, crit, errs)
-    return QualityResult(reg_map, vis_map, q)
-
-
-_REDUCTIONS = ("mean", "sum", "none")
-
-
-def registration_quality_loss(
-    img1: torch.Tensor,
-    img2: torch.Tensor,
-    valid: torch.Tensor | None = None,
-    config: QualityConfig | None = None,
-    reduction: str = "mean",
-    data_range: float = 1.0,
-) -> torch.Tensor:
-    """The smooth registration-error map reduced to a loss (SPEC 5); lower is better.
-
-    Args:
-        img1, img2: (B, C, H, W) float images in [0, data_range]; gradients flow to both.
-        valid: (B, 1, H, W) validity (e.g. the warp's in-bounds mask) or None.
-        config: temperatures and thresholds; SPEC defaults when None.
-        reduction: 'mean' (over blocks and batch), 'sum', or 'none' for the (B, 1, H/b, W/b) map.
-
-    Example:
-        >>> x = torch.rand(1, 1, 32, 32, requires_grad=True)
-        >>> y = torch.roll(x.detach(), 1, dims=-1)
-        >>> registration_quality_loss(x, y).backward()
-        >>> bool(torch.isfinite(x.grad).all())
-        True
-    """
-    if reduction not in _REDUCTIONS:
-        raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range)
-    crit = _criteria(g1, g2, cfg, smooth=True)
-    reg_map = block_pool(error_images(crit, valid, cfg, smooth=True).e_reg, cfg, smooth=True)
-    if reduction == "mean":
-        return reg_map.mean()
-    if reduction == "sum":
-        return reg_map.sum()
-    return reg_map
+    if not return_pixels:
+        return QualityResult(reg_map, vis_map, q)
+    if g1.shape[-2:] != (h, w):  # padded: per-pixel maps at the input size
+        crit = LocalCriteria(*(t[..., :h, :w] for t in crit))
+        errs = ErrorImages(*(t[..., :h, :w] for t in errs))
+    return QualityResult(reg_map, vis_map, q, crit, errs)
 
 
 class RegistrationQuality(nn.Module):
     """Module form of :func:`registration_quality`; it only stores the settings.
 
     Args:
-        config: thresholds, temperatures and block size (SPEC defaults when None).
+        config: thresholds, temperatures and block size (the defaults when None).
         smooth: use the differentiable path.
         return_pixels: also return the per-pixel maps.
         data_range: the value of white in float inputs.
+        validate: check values (one host sync per call); skipped while compiling.
+        pad: pad to whole blocks (else H, W must be multiples of the block size).
+
+    Shape:
+        - img1, img2: (B, C, H, W); valid: (B, 1, H, W) or None.
+        - Output: QualityResult with (B, 1, ceil(H/b), ceil(W/b)) maps and a (B,) index.
 
     Example:
         >>> metric = RegistrationQuality()
@@ -240,43 +278,22 @@ class RegistrationQuality(nn.Module):
         smooth: bool = False,
         return_pixels: bool = False,
         data_range: float = 1.0,
+        validate: bool = True,
+        pad: bool = True,
     ) -> None:
         super().__init__()
-        self.config = config if config is not None else QualityConfig()
+        self.config = get_config(config)
         self.smooth = smooth
         self.return_pixels = return_pixels
         self.data_range = data_range
+        self.validate = validate
+        self.pad = pad
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> QualityResult:
+        """See :func:`registration_quality`."""
         return registration_quality(
-            img1, img2, valid, self.config, self.smooth, self.return_pixels, self.data_range
+            img1, img2, valid, self.config, self.smooth, self.return_pixels, self.data_range, self.validate, self.pad
         )
 
     def extra_repr(self) -> str:
         return f"smooth={self.smooth}, block_size={self.config.block_size}"
-
-
-class RegistrationQualityLoss(nn.Module):
-    """Module form of :func:`registration_quality_loss`: an auxiliary loss for registration.
-
-    Example:
-        >>> loss_fn = RegistrationQualityLoss()
-        >>> warped = torch.rand(4, 1, 64, 64, requires_grad=True)
-        >>> target = torch.rand(4, 1, 64, 64)
-        >>> loss = loss_fn(warped, target)
-        >>> loss.backward()
-    """
-
-    def __init__(self, config: QualityConfig | None = None, reduction: str = "mean", data_range: float = 1.0) -> None:
-        super().__init__()
-        if reduction not in _REDUCTIONS:
-            raise ValueError(f"reduction must be one of {_REDUCTIONS}, got {reduction!r}")
-        self.config = config if config is not None else QualityConfig()
-        self.reduction = reduction
-        self.data_range = data_range
-
-    def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
-        return registration_quality_loss(img1, img2, valid, self.config, self.reduction, self.data_range)
-
-    def extra_repr(self) -> str:
-        return f"reduction={self.reduction!r}"

@@ -1,0 +1,196 @@
+"""Input checks and preparation shared by the metric's entry points (docs/method.md, section 1).
+
+One place decides what the maps and the loss accept:
+
+* images: (B, C, H, W), C in {1, 3}, uint8 (divided by 255) or float in [0, data_range]
+  (divided by ``data_range``); any H and W, padded to whole blocks by replicating the last row
+  and column (``pad=True``), or H and W multiples of the block size (``pad=False``);
+* the validity mask: (B, 1, H, W), bool or numeric in [0, 1]; a pixel is valid where the mask
+  is >= 0.5 (warped masks are fractional at their edges). The mask is binarised and detached:
+  no gradient ever reaches it. Padding pixels are invalid.
+
+The value checks (NaN/Inf, the range of the images, the values of the mask) need the data on
+the host: they cost one reduction per tensor and one synchronisation per call. ``validate=False``
+skips them (kornia's convention); they are skipped automatically while ``torch.compile`` traces,
+so that a compiled loss has no graph break. Type and shape checks always run (they are free).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from lensdist_torch.config import QualityConfig
+from lensdist_torch.core.images import check_image_pair, to_grey
+
+#: Tolerance of the range checks, in units of ``data_range``: interpolation and rounding may put
+#: a value a little outside [0, 1]; 0-255 images or mean/std-normalised ones are far outside.
+RANGE_TOLERANCE = 1e-2
+
+
+def get_config(config: QualityConfig | None) -> QualityConfig:
+    """``config`` or the defaults; a TypeError for anything else."""
+    if config is None:
+        return QualityConfig()
+    if not isinstance(config, QualityConfig):
+        raise TypeError(f"config must be a QualityConfig or None, got {type(config).__name__}")
+    return config
+
+
+def should_validate(validate: bool) -> bool:
+    """Whether to run the value checks: asked for, and not while torch.compile traces."""
+    return bool(validate) and not torch.compiler.is_compiling()
+
+
+def check_data_range(data_range: object) -> None:
+    ok = isinstance(data_range, (int, float)) and not isinstance(data_range, bool)
+    if not (ok and math.isfinite(data_range) and data_range > 0):  # type: ignore[arg-type]
+        raise ValueError(f"data_range must be a positive number, got {data_range!r}")
+
+
+def _number(x: float) -> str:
+    return repr(float(f"{x:.6g}"))
+
+
+def _range_error(name: str, lo: float, hi: float, data_range: float) -> str | None:
+    """The one-line error for a float image with values outside [0, data_range], or None."""
+    eps = RANGE_TOLERANCE * data_range
+    if data_range == 1.0:
+        if hi > 1.0 + eps:
+            if hi <= 255.0 * (1 + RANGE_TOLERANCE) and hi > 2.0:
+                hint = "pass data_range=255"
+            elif 255.0 < hi <= 65535.0 * (1 + RANGE_TOLERANCE):
+                hint = "pass data_range=65535"
+            else:
+                hint = "pass data_range (the value of white) or clamp the images"
+            return f"{name} has values up to {_number(hi)}; expected [0, 1] — {hint}"
+        if lo < -eps:
+            return (
+                f"{name} has values down to {_number(lo)}; expected [0, 1] — "
+                "images must be non-negative (undo a mean/std normalisation, or clamp)"
+            )
+        return None
+    if hi > data_range + eps or lo < -eps:
+        return (
+            f"{name} has values in [{_number(lo)}, {_number(hi)}]; expected [0, data_range] "
+            f"with data_range={_number(data_range)} — pass the value of white as data_range"
+        )
+    return None
+
+
+def check_mask_shape(valid: object, like: torch.Tensor, name: str = "valid") -> None:
+    """Type and shape of a validity mask: a real or bool (B, 1, H, W) tensor matching ``like``.
+
+    Its values are checked by :func:`check_values` (with the images, in one host sync).
+    """
+    if not isinstance(valid, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor or None, got {type(valid).__name__}")
+    if valid.is_complex():
+        raise TypeError(f"{name} must be a bool or real tensor, got dtype {valid.dtype}")
+    b, _, h, w = like.shape
+    if tuple(valid.shape) != (b, 1, h, w):
+        raise ValueError(f"{name} must have shape {(b, 1, h, w)}, got {tuple(valid.shape)}")
+
+
+def check_values(
+    images: list[tuple[str, torch.Tensor]],
+    valid: torch.Tensor | None,
+    data_range: float,
+) -> None:
+    """NaN/Inf and range of float images, NaN and range of the mask: one host sync in all.
+
+    Raises:
+        ValueError: one line naming the tensor (and ``data_range`` where it would help).
+    """
+    parts, names = [], []
+    for name, img in images:
+        if img.is_floating_point():
+            lo, hi = torch.aminmax(img)  # NaN propagates through both
+            parts += [lo.double(), hi.double()]
+            names.append(name)
+    if valid is not None and valid.dtype != torch.bool:
+        lo, hi = torch.aminmax(valid)
+        parts += [lo.double(), hi.double()]
+        names.append("valid")
+    if not parts:
+        return
+    stats = torch.stack(parts).tolist()  # the one synchronisation
+    for i, name in enumerate(names):
+        lo, hi = stats[2 * i], stats[2 * i + 1]
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            if name == "valid":
+                raise ValueError("valid contains NaN or Inf values; expected a mask in [0, 1]")
+            raise ValueError(f"{name} contains NaN or Inf values")
+        if name == "valid":
+            if lo < -RANGE_TOLERANCE or hi > 1.0 + RANGE_TOLERANCE:
+                raise ValueError(
+                    f"valid has values in [{_number(lo)}, {_number(hi)}]; expected a mask in [0, 1] "
+                    "(bool, or float binarised at 0.5)"
+                )
+            continue
+        message = _range_error(name, lo, hi, data_range)
+        if message is not None:
+            raise ValueError(message)
+
+
+def binarise_valid(valid: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """The mask as {0, 1} in ``like``'s dtype: valid where >= 0.5 (bool: where True), detached."""
+    if valid.dtype == torch.bool:
+        return valid.detach().to(like.dtype)
+    return (valid.detach() >= 0.5).to(like.dtype)
+
+
+def pad_to_blocks(g1, g2, valid, block: int):
+    """Replicate-pad two (B, 1, H, W) images to whole blocks; the padding is invalid.
+
+    Returns the padded images and the padded {0, 1} mask (all ones on the image when
+    ``valid`` is None), or the inputs unchanged when H and W are already multiples of ``block``.
+    """
+    h, w = g1.shape[-2:]
+    ph, pw = -h % block, -w % block
+    if not (ph or pw):
+        return g1, g2, valid
+    if valid is None:
+        valid = torch.ones_like(g1)
+    g1 = F.pad(g1, (0, pw, 0, ph), mode="replicate")
+    g2 = F.pad(g2, (0, pw, 0, ph), mode="replicate")
+    return g1, g2, F.pad(valid, (0, pw, 0, ph), value=0.0)
+
+
+def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None):
+    """Check and convert a pair: grey images in [0, 1] of one dtype, the binarised mask, config.
+
+    Args:
+        img1, img2: (B, C, H, W) uint8 or float images.
+        valid: (B, 1, H, W) mask or None.
+        config: QualityConfig or None.
+        data_range: the value of white in float images.
+        validate: run the value checks (skipped while compiling).
+        pad: None: no block structure (per-pixel maps, any size); True: pad to whole blocks;
+            False: H and W must be multiples of the block size.
+
+    Returns:
+        g1, g2 (B, 1, H', W'), valid ({0, 1} (B, 1, H', W') or None), the config.
+    """
+    cfg = get_config(config)
+    check_data_range(data_range)
+    check_image_pair(img1, img2, cfg.block_size if pad is False else None, finite=False)
+    g1, g2 = to_grey(img1), to_grey(img2)
+    dtype = torch.promote_types(g1.dtype, g2.dtype)
+    g1, g2 = g1.to(dtype), g2.to(dtype)
+    if valid is not None:
+        check_mask_shape(valid, g1)
+    if should_validate(validate):
+        check_values([("img1", img1), ("img2", img2)], valid, data_range)
+    if valid is not None:
+        valid = binarise_valid(valid.to(g1.device), g1)
+    if data_range != 1.0:  # uint8 is already / 255 (docs/method.md, section 1)
+        if img1.is_floating_point():
+            g1 = g1 / data_range
+        if img2.is_floating_point():
+            g2 = g2 / data_range
+    if pad:
+        g1, g2, valid = pad_to_blocks(g1, g2, valid, cfg.block_size)
+    return g1, g2, valid, cfg

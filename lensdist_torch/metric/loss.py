@@ -1,0 +1,146 @@
+"""The smooth registration-error map as a loss (docs/method.md, section 5).
+
+The default reduction, ``"masked_mean"``, averages the smooth map over *valid blocks* only: a
+block counts when every one of its pixels is valid after the 3 x 3 erosion of the mask. The
+plain ``"mean"`` counts invalid blocks as error-free, so it rewards a warp that pushes the
+image out of the frame (a quarter of the frame valid: a quarter of the loss); the masked mean
+does not fall when the mask shrinks over equally misregistered content. Partially covered
+blocks are left out because their ratios are biased low (their invalid pixels cannot err);
+image padding (any size is padded to whole blocks) is invalid, so partial edge blocks are left
+out too. The mask is binarised at 0.5 and detached: no gradient reaches it. A batch with no
+valid block gives 0 with a zero gradient.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from lensdist_torch.config import QualityConfig
+from lensdist_torch.metric._inputs import get_config, prepare_pair
+from lensdist_torch.metric.criteria import _criteria, _error_images, erode_valid
+from lensdist_torch.metric.pooling import block_pool
+
+__all__ = ["REDUCTIONS", "registration_quality_loss", "RegistrationQualityLoss"]
+
+#: The reductions of the loss; the first is the default.
+REDUCTIONS = ("masked_mean", "mean", "sum", "none")
+
+
+def _check_reduction(reduction: str) -> None:
+    if reduction not in REDUCTIONS:
+        raise ValueError(f"reduction must be one of {REDUCTIONS}, got {reduction!r}")
+
+
+def _reduce(reg_map: torch.Tensor, v: torch.Tensor | None, block: int, reduction: str) -> torch.Tensor:
+    if reduction == "none":
+        return reg_map
+    if reduction == "sum":
+        return reg_map.sum()
+    if reduction == "mean" or v is None:  # no mask: every block is valid
+        return reg_map.mean()
+    full = -F.max_pool2d(-v, kernel_size=block, stride=block)  # 1 where the whole block is valid
+    # clamp: no valid block gives 0 / 1 = 0 and a zero gradient (no NaN, no host sync)
+    return (reg_map * full).sum() / full.sum().clamp_min(1.0)
+
+
+def registration_quality_loss(
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    valid: torch.Tensor | None = None,
+    config: QualityConfig | None = None,
+    reduction: str = "masked_mean",
+    data_range: float = 1.0,
+    validate: bool = True,
+    pad: bool = True,
+) -> torch.Tensor:
+    """The smooth registration-error map reduced to a loss; lower is better.
+
+    See docs/method.md, section 5, and the module docstring for the masked mean.
+
+    Args:
+        img1: (B, C, H, W) float image in [0, data_range] (e.g. the warped one); gradients
+            flow to it.
+        img2: (B, C, H, W) the other image; gradients flow to it too.
+        valid: (B, 1, H, W) validity (e.g. the warp's in-bounds mask), bool or in [0, 1],
+            binarised at 0.5 and detached; or None (everything valid).
+        config: temperatures and thresholds; the defaults when None.
+        reduction: ``"masked_mean"`` (default: mean over the valid blocks of the batch),
+            ``"mean"`` (over all blocks and the batch, invalid blocks count as 0), ``"sum"``,
+            or ``"none"`` for the (B, 1, ceil(H/b), ceil(W/b)) map.
+        data_range: the value of white in float inputs (they are divided by it).
+        validate: check values (NaN/Inf, range, mask; one host sync); skipped while compiling.
+        pad: pad to whole blocks (else H, W must be multiples of the block size).
+
+    Returns:
+        A scalar tensor, or the map for ``reduction="none"``.
+
+    Example:
+        >>> x = torch.rand(1, 1, 32, 32, requires_grad=True)
+        >>> y = torch.roll(x.detach(), 1, dims=-1)
+        >>> registration_quality_loss(x, y).backward()
+        >>> bool(torch.isfinite(x.grad).all())
+        True
+        >>> valid = torch.zeros(1, 1, 32, 32)
+        >>> valid[..., :16, :16] = 1  # a quarter of the frame: the masked mean does not drop
+        >>> full = registration_quality_loss(x, y)
+        >>> bool(registration_quality_loss(x, y, valid) > 0.5 * full)
+        True
+    """
+    _check_reduction(reduction)
+    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
+    v = None if valid is None else erode_valid(valid)
+    crit = _criteria(g1, g2, cfg, smooth=True)
+    reg_map = block_pool(_error_images(crit, v, cfg, smooth=True).e_reg, cfg, smooth=True)
+    return _reduce(reg_map, v, cfg.block_size, reduction)
+
+
+class RegistrationQualityLoss(nn.Module):
+    """Module form of :func:`registration_quality_loss`: an auxiliary loss for registration.
+
+    Args:
+        config: temperatures and thresholds; the defaults when None.
+        reduction: ``"masked_mean"`` (default), ``"mean"``, ``"sum"`` or ``"none"``.
+        data_range: the value of white in float inputs.
+        validate: check values (one host sync per call); skipped while compiling.
+        pad: pad to whole blocks (else H, W must be multiples of the block size).
+
+    Shape:
+        - img1, img2: (B, C, H, W); valid: (B, 1, H, W) or None.
+        - Output: scalar, or (B, 1, ceil(H/b), ceil(W/b)) for ``reduction="none"``.
+
+    Example:
+        >>> loss_fn = RegistrationQualityLoss()
+        >>> warped = torch.rand(4, 1, 64, 64, requires_grad=True)
+        >>> target = torch.rand(4, 1, 64, 64)
+        >>> loss = loss_fn(warped, target, torch.ones(4, 1, 64, 64))
+        >>> loss.backward()
+        >>> loss.shape
+        torch.Size([])
+    """
+
+    def __init__(
+        self,
+        config: QualityConfig | None = None,
+        reduction: str = "masked_mean",
+        data_range: float = 1.0,
+        validate: bool = True,
+        pad: bool = True,
+    ) -> None:
+        super().__init__()
+        _check_reduction(reduction)
+        self.config = get_config(config)
+        self.reduction = reduction
+        self.data_range = data_range
+        self.validate = validate
+        self.pad = pad
+
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        """See :func:`registration_quality_loss`."""
+        return registration_quality_loss(
+            img1, img2, valid, self.config, self.reduction, self.data_range, self.validate, self.pad
+        )
+
+    def extra_repr(self) -> str:
+        return f"reduction={self.reduction!r}"
