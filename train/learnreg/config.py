@@ -1,0 +1,173 @@
+"""The training configuration: defaults <- a TOML file <- ``--set key=value`` overrides."""
+
+from __future__ import annotations
+
+import copy
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10: the same parser, as a package (as in lensdist_torch/config.py)
+    import tomli as tomllib
+
+__all__ = [
+    "ARM_NAMES",
+    "DEFAULTS",
+    "ARM_DEFAULTS",
+    "load_train_config",
+    "parse_overrides",
+    "parse_value",
+    "comparable",
+]
+
+ARM_NAMES = ("l1", "l1_quality", "l1_quality_distorted")
+
+DEFAULTS: dict[str, dict[str, Any]] = {
+    "data": {
+        "scenes": ["gravel", "grass"],
+        "patch": 128,  # side of the patches (a multiple of the metric's block size, 8)
+        "rho": 8.0,  # corner perturbation: each coordinate uniform in [-rho, rho] px
+        "eval_rows": 160,  # the bottom eval_rows rows of every scene are held out for evaluation
+        "photometric": 1.0,  # strength of the photometric changes (0 = none)
+        "gain": 0.35,  # contrast gain in [1 - gain, 1 + gain]
+        "offset": 0.12,  # brightness offset in [-offset, offset]
+        "gamma": 1.6,  # gamma log-uniform in [1 / gamma, gamma]
+        "ramp": 0.6,  # brightness ramp across the patch (moving light): factor 1 +- ramp / 2
+        "noise": 0.03,  # Gaussian noise sigma in [0, noise]
+        "k2_max": 3.0e-6,  # radial distortion of the distorted arm, in patch pixels (SPEC 6):
+        "k4_max": 3.0e-10,  # k2 in ]0, k2_max], k4 in ]0, k4_max]: up to ~4 px at the corners
+    },
+    "model": {"kind": "correlation", "width": 16, "hidden": 256, "batch_norm": True},
+    "train": {
+        "seed": 0,
+        "steps": 800,
+        "batch_size": 16,
+        "lr": 2e-3,
+        "lr_final": 1e-4,  # cosine decay from lr to lr_final
+        "weight_decay": 0.0,
+        "checkpoint_every": 100,
+        "threads": 2,  # torch.set_num_threads: the float results can depend on it
+        "log_every": 10,
+        "l1_levels": 4,  # pyramid levels of the photometric L1 (1 = full resolution only)
+    },
+    "eval": {"seed": 12345, "n_pairs": 256, "batch_size": 64},
+    "arms": {
+        "l1": {"lambda_quality": 0.0},
+        "l1_quality": {"lambda_quality": 0.2, "quality_start": 0.25, "quality_ramp": 0.1},
+        "l1_quality_distorted": {
+            "lambda_quality": 0.2,
+            "quality_start": 0.25,
+            "quality_ramp": 0.1,
+            "distorted": True,
+        },
+    },
+}
+
+ARM_DEFAULTS: dict[str, Any] = {
+    "lambda_quality": 0.0,  # weight of the quality loss
+    "quality_start": 0.0,  # fraction of the steps trained on L1 alone before the quality loss
+    "quality_ramp": 0.0,  # fraction of the steps over which lambda ramps linearly from 0
+    "tau_scale_start": 1.0,  # temperature scale of the metric when the quality loss starts ...
+    "tau_scale_end": 1.0,  # ... annealed geometrically to this at the last step
+    "l1_weight": 1.0,  # weight of the L1 loss
+    "distorted": False,  # both patches carry the same radial lens distortion
+}
+
+# Keys that do not change the trained parameters: a checkpoint may be resumed with others.
+_NOT_TRAINING = ("log_every", "checkpoint_every")
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def parse_value(text: str) -> Any:
+    """A ``--set`` value as TOML (``8``, ``0.5``, ``true``, ``["gravel"]``); a bare word stays a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``["train.steps=20", ...]`` -> ``{"train.steps": 20, ...}``."""
+    overrides = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
+        overrides[key.strip()] = parse_value(value.strip())
+    return overrides
+
+
+def _read_toml(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file not found: {path}")
+    with path.open("rb") as f:
+        try:
+            return tomllib.load(f)
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"config file {path} is not valid TOML: {exc}") from exc
+
+
+def _check_keys(cfg: dict) -> None:
+    unknown = set(cfg) - set(DEFAULTS)
+    if unknown:
+        raise ValueError(f"unknown config section(s) {sorted(unknown)}")
+    for section in ("data", "model", "train", "eval"):
+        bad = set(cfg[section]) - set(DEFAULTS[section])
+        if bad:
+            raise ValueError(f"unknown key(s) {sorted(bad)} in [{section}]")
+    for name, arm in cfg["arms"].items():
+        bad = set(arm) - set(ARM_DEFAULTS)
+        if bad:
+            raise ValueError(f"unknown key(s) {sorted(bad)} in [arms.{name}]")
+
+
+def load_train_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> dict:
+    """The training configuration: DEFAULTS <- the TOML file <- ``overrides``.
+
+    ``overrides`` maps dotted keys (``"train.steps"``, ``"arms.l1_quality.lambda_quality"``) to
+    values. The file's ``[arms.*]`` replace the default arms. Unknown sections or keys are an
+    error, as in the package's configs.
+    """
+    cfg = copy.deepcopy(DEFAULTS)
+    if path is not None:
+        data = _read_toml(path)
+        if "arms" in data:
+            cfg["arms"] = {}
+        cfg = _merge(cfg, data)
+    for dotted, value in (overrides or {}).items():
+        node = cfg
+        *parents, leaf = dotted.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    _check_keys(cfg)
+    for name, arm in cfg["arms"].items():
+        cfg["arms"][name] = {**ARM_DEFAULTS, **arm}
+    if cfg["data"]["patch"] % 8:
+        raise ValueError("data.patch must be a multiple of 8 (the metric's block size)")
+    return cfg
+
+
+def comparable(cfg: dict) -> dict:
+    """The config without the keys that do not change the training (logging, checkpoint period).
+
+    ``train.threads`` stays: the float results can depend on the thread count, so a run resumed
+    with another one might not reach the parameters of an uninterrupted run.
+    """
+    out = json.loads(json.dumps(cfg))
+    for key in _NOT_TRAINING:
+        out["train"].pop(key, None)
+    return out
