@@ -1,21 +1,26 @@
-"""Every number the library uses, as frozen dataclasses with the SPEC defaults.
+"""Every number the library uses, as frozen dataclasses with the method's defaults.
 
 The defaults are the project's conventions (``docs/method.md``); a TOML file in ``configs/``
 may override any field. Sections of the TOML file map one to one onto the dataclasses below::
 
-    [quality]       thresholds, temperatures, block size     (method: the metric)
-    [image]         analysis size                             (method: images)
-    [distortion]    coefficient ranges                        (method: eq. 4)
-    [protocol]      pair protocol and set sizes               (method: the protocol)
+    [quality]       thresholds, temperatures, block size     (docs/method.md sections 2-5)
+    [image]         analysis size                             (section 1)
+    [distortion]    coefficient ranges                        (section 6, eq. 4)
+    [protocol]      pair protocol and set sizes               (section 7)
     [registration]  homography registration                   (in the data fingerprint)
-    [classifier]    eigen-space classifier                    (method: eigen-spaces)
+    [classifier]    eigen-space classifier                    (section 8)
     [selfcal]       self-calibration of (k2, k4) and H
     [regression]    Delta regression without classes
     [analysis]      the decision of ``analyze``: R threshold, overlap, confidence
 
 Every threshold of a decision lives here, nowhere else.
 
-Unknown sections or keys are an error (a typo must not silently fall back to a default).
+Unknown sections or keys are an error (a typo must not silently fall back to a default), and
+so is every value of the wrong type or outside its range: each dataclass checks all of its
+fields when it is built, and the one-line ``ValueError`` names the section and the field
+(``protocol.ty_range must be (low, high) ...``). Integer fields take ints only (not floats, not
+bools); number fields take ints or floats (stored as floats) but not bools; tuple fields take
+tuples or lists (stored as tuples). ``configs/paper.toml`` writes every default out.
 """
 
 from __future__ import annotations
@@ -23,10 +28,11 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+import numbers
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -52,20 +58,24 @@ __all__ = [
 
 @dataclass(frozen=True)
 class QualityConfig:
-    """Settings of the registration-quality metric (SPEC sections 2-5).
+    """Settings of the registration-quality metric (docs/method.md sections 2-5).
 
     Attributes:
         block_size: side of the square pooling blocks in pixels.
         theta_g: gradient-magnitude threshold of the risk map (normalised Sobel on [0, 1]).
-        theta_e: edge-preservation threshold below which a structured pixel is an error.
+        theta_e: edge-preservation threshold below which a structured pixel is an error; in
+            ]0, gamma[.
         theta_d: intensity-difference threshold of the visual error.
-        min_block_ratio: block error ratios below this are set to 0.
-        gamma, k, sigma: Xydeas-Petrovic constants of the edge-preservation sigmoid.
+        min_block_ratio: block error ratios below this are set to 0; in [0, 1].
+        gamma, k, sigma: Xydeas-Petrovic constants of the edge-preservation sigmoid
+            E = gamma / (1 + exp(k (A - sigma))): gamma in ]0, 1], k < 0, sigma in ]0, 1[.
         tau_g, tau_e, tau_d, tau_b: temperatures of the smooth path (gradient-magnitude,
             edge-preservation, intensity-difference and block-floor steps). Smaller is sharper.
         chunk_size: pairs processed at once inside a big batch, so that the intermediates of a
             chunk stay in the CPU cache. The result does not depend on it.
     """
+
+    _section: ClassVar[str] = "quality"
 
     block_size: int = 8
     theta_g: float = 0.02
@@ -82,16 +92,15 @@ class QualityConfig:
     chunk_size: int = 2
 
     def __post_init__(self) -> None:
-        _check_positive_int("block_size", self.block_size)
-        _check_positive_int("chunk_size", self.chunk_size)
-        for name in ("theta_g", "theta_d", "tau_g", "tau_e", "tau_d", "tau_b", "gamma"):
-            _check_positive_float(name, getattr(self, name))
-        if not 0.0 < self.theta_e < self.gamma:
-            raise ValueError(f"theta_e must lie in ]0, gamma={self.gamma}[, got {self.theta_e}")
-        if not 0.0 <= self.min_block_ratio <= 1.0:
-            raise ValueError(f"min_block_ratio must lie in [0, 1], got {self.min_block_ratio}")
-        if self.k >= 0:
-            raise ValueError(f"k must be negative (E grows with A), got {self.k}")
+        _int(self, "block_size")
+        _int(self, "chunk_size")
+        for name in ("theta_g", "theta_d", "tau_g", "tau_e", "tau_d", "tau_b"):
+            _real(self, name, lo=0, lo_open=True)
+        _real(self, "gamma", lo=0, hi=1, lo_open=True)
+        _real(self, "theta_e", lo=0, hi=self.gamma, lo_open=True, hi_open=True, hi_name=f"gamma={self.gamma}")
+        _real(self, "min_block_ratio", lo=0, hi=1)
+        _real(self, "k", hi=0, hi_open=True, why="E grows with A")
+        _real(self, "sigma", lo=0, hi=1, lo_open=True, hi_open=True)
 
     def with_temperature_scale(self, factor: float) -> "QualityConfig":
         """A copy with every temperature multiplied by ``factor`` (for annealing)."""
@@ -107,14 +116,16 @@ class QualityConfig:
 
 @dataclass(frozen=True)
 class ImageConfig:
-    """Analysis size (SPEC 1): 320 x 424 gives 40 x 53 blocks, feature vectors of 2120."""
+    """Analysis size (docs/method.md section 1): 320 x 424 gives 40 x 53 blocks, feature vectors of 2120."""
+
+    _section: ClassVar[str] = "image"
 
     height: int = 320
     width: int = 424
 
     def __post_init__(self) -> None:
-        _check_positive_int("height", self.height)
-        _check_positive_int("width", self.width)
+        _int(self, "height")
+        _int(self, "width")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -124,21 +135,43 @@ class ImageConfig:
 
 @dataclass(frozen=True)
 class DistortionConfig:
-    """Ranges of the radial coefficients (SPEC 6): k2 in ]0, k2_max], k4 in ]0, k4_max]."""
+    """Ranges of the radial coefficients (docs/method.md section 6): k2 in ]0, k2_max], k4 in
+    ]0, k4_max]. ``n_classes`` is 4: the labels are the classes 1-4 and R."""
+
+    _section: ClassVar[str] = "distortion"
 
     k2_max: float = 2.5e-6
     k4_max: float = 2.5e-11
     n_classes: int = 4
 
     def __post_init__(self) -> None:
-        _check_positive_float("k2_max", self.k2_max)
-        _check_positive_float("k4_max", self.k4_max)
-        _check_positive_int("n_classes", self.n_classes)
+        _real(self, "k2_max", lo=0, lo_open=True)
+        _real(self, "k4_max", lo=0, lo_open=True)
+        _int(self, "n_classes")
+        if self.n_classes != 4:
+            raise ValueError(
+                f"distortion.n_classes must be 4 (the labels are the classes 1-4 and R of "
+                f"docs/method.md section 6), got {self.n_classes}"
+            )
 
 
 @dataclass(frozen=True)
 class ProtocolConfig:
-    """The pair protocol (SPEC 7): motion ranges, set sizes, seed."""
+    """The pair protocol (docs/method.md section 7): motion ranges, set sizes, seed.
+
+    Attributes:
+        seed: the protocol seed (any int); pair i of a set is a function of (seed, set, i).
+        scenes: names of the embedded scenes (a tuple of distinct non-empty strings).
+        n_train, n_test_distorted, n_test_undistorted: set sizes (ints >= 0).
+        ty_range, tx_range: (low, high) of the translations, px; two finite numbers.
+        rotation_deg: rotations are uniform in [-rotation_deg, rotation_deg]; >= 0.
+        scale_range: (low, high) of the scale; two positive numbers.
+        perspective: the perspective terms are uniform in [-perspective, perspective]; >= 0.
+        perturbation: half-width of the relative class-R perturbation, in [0, 1[.
+        shard_size: pairs per shard file (a positive int).
+    """
+
+    _section: ClassVar[str] = "protocol"
 
     seed: int = 0
     scenes: tuple[str, ...] = ("gravel", "grass")
@@ -154,21 +187,24 @@ class ProtocolConfig:
     shard_size: int = 500
 
     def __post_init__(self) -> None:
+        _int(self, "seed", lo=None)
+        _names(self, "scenes")
         for name in ("n_train", "n_test_distorted", "n_test_undistorted"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 0:
-                raise ValueError(f"{name} must be a non-negative int, got {getattr(self, name)!r}")
-        _check_positive_int("shard_size", self.shard_size)
-        if len(self.scenes) == 0:
-            raise ValueError("scenes must name at least one scene")
-        for name in ("ty_range", "tx_range", "scale_range"):
-            lo, hi = getattr(self, name)
-            if not lo <= hi:
-                raise ValueError(f"{name} must be (low, high) with low <= high, got {(lo, hi)}")
+            _int(self, name, lo=0)
+        _pair(self, "ty_range")
+        _pair(self, "tx_range")
+        _pair(self, "scale_range", positive=True)
+        _real(self, "rotation_deg", lo=0)
+        _real(self, "perspective", lo=0)
+        _real(self, "perturbation", lo=0, hi=1, hi_open=True)
+        _int(self, "shard_size")
 
 
 @dataclass(frozen=True)
 class ClassifierConfig:
-    """The eigen-space classifier (SPEC 8)."""
+    """The eigen-space classifier (docs/method.md section 8)."""
+
+    _section: ClassVar[str] = "classifier"
 
     n_eigenvectors: int = 10
     metric: str = "delta_avg"
@@ -176,12 +212,10 @@ class ClassifierConfig:
     n_neighbours: int = 4
 
     def __post_init__(self) -> None:
-        _check_positive_int("n_eigenvectors", self.n_eigenvectors)
-        _check_positive_int("n_neighbours", self.n_neighbours)
-        if self.metric not in ("delta_avg", "delta_max"):
-            raise ValueError(f"metric must be 'delta_avg' or 'delta_max', got {self.metric!r}")
-        if not 0.0 < self.reject_quantile <= 1.0:
-            raise ValueError(f"reject_quantile must lie in ]0, 1], got {self.reject_quantile}")
+        _int(self, "n_eigenvectors")
+        _int(self, "n_neighbours")
+        _choice(self, "metric", ("delta_avg", "delta_max"))
+        _real(self, "reject_quantile", lo=0, hi=1, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -200,14 +234,16 @@ class RegistrationConfig:
             (gradients in level px, coordinates in half-diagonals).
         min_overlap: fraction of img1 that must map inside img2.
         max_residual: largest RMS residual, relative to sqrt(2) x img1's standard deviation
-            (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with SPEC 6's strongest
-            distortion).
+            (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with the strongest
+            distortion of docs/method.md section 6).
         margin: level px by which the pixels used must map inside img2.
         max_step: an update moving a corner by more than this fraction of the diagonal diverged.
         fine_stride: template pixel stride at full resolution.
         presmooth: binomial smoothing (sigma 1 px) of both images first.
         chunk_size: pairs registered together (cache locality); results do not depend on it.
     """
+
+    _section: ClassVar[str] = "registration"
 
     levels: tuple[int, ...] = (2, 0)
     iterations: tuple[int, ...] = (10, 6)
@@ -225,20 +261,20 @@ class RegistrationConfig:
     chunk_size: int = 8
 
     def __post_init__(self) -> None:
-        lv, its = self.levels, self.iterations
-        if not (isinstance(lv, tuple) and lv and all(type(i) is int for i in lv) and lv[-1] == 0
-                and all(a > b for a, b in itertools.pairwise(lv))):
-            raise ValueError(f"levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
-        if not (isinstance(its, tuple) and len(its) == len(lv) and all(type(i) is int and i > 0 for i in its)):
-            raise ValueError(f"iterations must be a tuple of positive ints, one per level, got {its!r}")
-        for name in ("phase_level", "fine_stride", "chunk_size"):
-            if type(getattr(self, name)) is not int or getattr(self, name) < (0 if name == "phase_level" else 1):
-                raise ValueError(f"{name} must be a {'non-negative' if name == 'phase_level' else 'positive'} int")
+        _ints(self, "levels", lo=0)
+        lv = self.levels
+        if lv[-1] != 0 or not all(a > b for a, b in itertools.pairwise(lv)):
+            raise ValueError(f"registration.levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
+        _ints(self, "iterations", n=len(lv), per="level")
         for name in ("step_tol", "coarse_tol", "min_texture", "max_residual", "max_step"):
-            if not (isinstance(getattr(self, name), (int, float)) and getattr(self, name) > 0):
-                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
-        if not (self.damping >= 0 and self.margin >= 0 and 0 <= self.min_overlap <= 1):
-            raise ValueError("damping and margin must be >= 0 and min_overlap in [0, 1]")
+            _real(self, name, lo=0, lo_open=True)
+        _int(self, "phase_level", lo=0)
+        _real(self, "damping", lo=0)
+        _real(self, "margin", lo=0)
+        _real(self, "min_overlap", lo=0, hi=1)
+        _int(self, "fine_stride")
+        _bool(self, "presmooth")
+        _int(self, "chunk_size")
 
 
 @dataclass(frozen=True)
@@ -263,6 +299,8 @@ class SelfCalConfig:
         ridge: absolute ridge on J^T J in the covariance.
     """
 
+    _section: ClassVar[str] = "selfcal"
+
     levels: int = 3
     iterations: tuple[int, ...] = (12, 6, 3)
     newton: int = 5
@@ -279,17 +317,14 @@ class SelfCalConfig:
 
     def __post_init__(self) -> None:
         for name in ("levels", "newton", "chunk_size"):
-            _check_positive_int(name, getattr(self, name))
+            _int(self, name)
         for name in ("iterations", "sample_block"):
-            v = getattr(self, name)
-            if not (isinstance(v, tuple) and len(v) == self.levels and all(type(i) is int and i > 0 for i in v)):
-                raise ValueError(f"{name} must be a tuple of {self.levels} positive ints (one per level), got {v!r}")
+            _ints(self, name, n=self.levels, per="level")
         for name in ("damping", "max_coefficient", "cannot_tell_std_px", "noise_floor", "ridge"):
-            _check_positive_float(name, getattr(self, name))
-        _check_fraction("min_overlap", self.min_overlap)
-        _check_fraction("confidence_threshold", self.confidence_threshold)
-        if isinstance(self.margin, bool) or not isinstance(self.margin, (int, float)) or not self.margin >= 0:
-            raise ValueError(f"margin must be a number >= 0, got {self.margin!r}")
+            _real(self, name, lo=0, lo_open=True)
+        _real(self, "margin", lo=0)
+        _real(self, "min_overlap", lo=0, hi=1)
+        _real(self, "confidence_threshold", lo=0, hi=1)
 
 
 @dataclass(frozen=True)
@@ -304,16 +339,18 @@ class RegressionConfig:
         confidence_threshold: below this confidence the answer is "cannot tell".
     """
 
+    _section: ClassVar[str] = "regression"
+
     n_components: int = 384
     k: int = 8
     cannot_tell_fraction: float = 0.125
     confidence_threshold: float = 0.5
 
     def __post_init__(self) -> None:
-        _check_positive_int("n_components", self.n_components)
-        _check_positive_int("k", self.k)
-        _check_positive_float("cannot_tell_fraction", self.cannot_tell_fraction)
-        _check_fraction("confidence_threshold", self.confidence_threshold)
+        _int(self, "n_components")
+        _int(self, "k")
+        _real(self, "cannot_tell_fraction", lo=0, lo_open=True)
+        _real(self, "confidence_threshold", lo=0, hi=1)
 
 
 @dataclass(frozen=True)
@@ -329,14 +366,16 @@ class AnalysisConfig:
             multiple of the reject threshold is unlike every training map.
     """
 
+    _section: ClassVar[str] = "analysis"
+
     no_distortion_px: float = 0.25
     min_overlap: float = 0.5
     out_of_domain_factor: float = 2.0
 
     def __post_init__(self) -> None:
-        _check_positive_float("no_distortion_px", self.no_distortion_px)
-        _check_fraction("min_overlap", self.min_overlap)
-        _check_positive_float("out_of_domain_factor", self.out_of_domain_factor)
+        _real(self, "no_distortion_px", lo=0, lo_open=True)
+        _real(self, "min_overlap", lo=0, hi=1)
+        _real(self, "out_of_domain_factor", lo=0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -354,6 +393,12 @@ class LensdistConfig:
     analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
 
     def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if not isinstance(value, f.default_factory):  # type: ignore[arg-type]
+                raise ValueError(
+                    f"{f.name} must be a {f.default_factory.__name__}, got {_show(value)}"  # type: ignore[union-attr]
+                )
         b = self.quality.block_size
         if self.image.height % b or self.image.width % b:
             raise ValueError(
@@ -366,22 +411,34 @@ _SECTIONS = {f.name: f.default_factory for f in dataclasses.fields(LensdistConfi
 
 
 def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
-    """Build a :class:`LensdistConfig` from nested dicts; unknown sections or keys raise."""
+    """Build a :class:`LensdistConfig` from nested dicts (a parsed TOML file).
+
+    Raises:
+        TypeError: ``data`` is not a dict.
+        ValueError: an unknown section or key, a section that is not a table, or a bad value;
+            the message names the section and the field.
+    """
     if not isinstance(data, dict):
         raise TypeError(f"config data must be a dict, got {type(data).__name__}")
+    expected = ", ".join(f"[{n}]" for n in _SECTIONS)
+    for name, values in data.items():
+        if name not in _SECTIONS and not isinstance(values, dict):
+            raise ValueError(f"config key {name!r} is outside any section; the sections are {expected}")
     unknown = set(data) - set(_SECTIONS)
     if unknown:
         raise ValueError(f"unknown config section(s) {sorted(unknown)}; expected {sorted(_SECTIONS)}")
     parts = {}
     for name, cls in _SECTIONS.items():
-        values = dict(data.get(name, {}))
+        values = data.get(name, {})
+        if not isinstance(values, dict):
+            raise ValueError(
+                f"config section [{name}] must be a table of key = value pairs, got {_show(values)}"
+            )
+        values = dict(values)
         names = {f.name for f in dataclasses.fields(cls)}
         bad = set(values) - names
         if bad:
             raise ValueError(f"unknown key(s) {sorted(bad)} in config section [{name}]")
-        for key, value in values.items():
-            if isinstance(value, list):  # TOML arrays -> the tuples of the dataclasses
-                values[key] = tuple(value)
         parts[name] = cls(**values)
     return LensdistConfig(**parts)
 
@@ -399,7 +456,12 @@ def config_to_dict(config: LensdistConfig) -> dict[str, Any]:
 
 
 def load_config(path: str | Path | None = None) -> LensdistConfig:
-    """Load a TOML config file; ``None`` gives the SPEC defaults.
+    """Load a TOML config file; ``None`` gives the defaults (the values of ``configs/paper.toml``).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: not a readable UTF-8 TOML file, or an invalid config; the one-line message
+            names the file and the section and field.
 
     Example:
         >>> cfg = load_config(None)
@@ -409,28 +471,135 @@ def load_config(path: str | Path | None = None) -> LensdistConfig:
     if path is None:
         return LensdistConfig()
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(f"config file not found: {path}")
-    with path.open("rb") as f:
-        try:
+    if not path.is_file():
+        raise ValueError(f"config path {path} is not a file")
+    try:
+        with path.open("rb") as f:
             data = tomllib.load(f)
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"config file {path} is not valid TOML: {exc}") from exc
-    return config_from_dict(data)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"config file {path} is not valid TOML: {_one_line(exc)}") from exc
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"config file {path} is not UTF-8 text: {_one_line(exc)}") from exc
+    except OSError as exc:
+        raise ValueError(f"cannot read config file {path}: {exc.strerror or _one_line(exc)}") from exc
+    try:
+        return config_from_dict(data)
+    except ValueError as exc:
+        raise ValueError(f"config file {path}: {exc}") from exc
 
 
-def _check_positive_int(name: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-        raise ValueError(f"{name} must be a positive int, got {value!r}")
+# ----------------------------------------------------------------------------- field checks
+# Each takes the dataclass being built and a field name, checks the value, and stores its
+# canonical form (float for numbers, tuple for sequences) with object.__setattr__.
 
 
-def _check_fraction(name: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value <= 1.0:
-        raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+def _show(value: Any) -> str:
+    """The value for an error message: its repr (shortened), and its type when that is not a number."""
+    text = repr(value)
+    if len(text) > 80:
+        text = text[:77] + "..."
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        text += f" ({type(value).__name__})"
+    return text
+
+
+def _fail(obj: Any, name: str, what: str, value: Any) -> None:
+    raise ValueError(f"{obj._section}.{name} must be {what}, got {_show(value)}")
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _interval(lo, hi, lo_open, hi_open, hi_name=None) -> str:
+    hi_text = hi_name if hi_name is not None else f"{hi:g}" if hi is not None else None
+    if lo is not None and hi is not None:
+        return f"a number in {']' if lo_open else '['}{lo:g}, {hi_text}{'[' if hi_open else ']'}"
+    if lo is not None:
+        return f"a finite number {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f"a finite number {'<' if hi_open else '<='} {hi_text}"
+    return "a finite number"
+
+
+def _real(obj, name, lo=None, hi=None, lo_open=False, hi_open=False, hi_name=None, why=None) -> None:
+    value = getattr(obj, name)
+    what = _interval(lo, hi, lo_open, hi_open, hi_name) + (f" ({why})" if why else "")
+    if not _is_real(value):
+        _fail(obj, name, what, value)
+    x = float(value)
+    if not math.isfinite(x) or (lo is not None and (x <= lo if lo_open else x < lo)) or (
+        hi is not None and (x >= hi if hi_open else x > hi)
+    ):
+        _fail(obj, name, what, value)
+    object.__setattr__(obj, name, x)
+
+
+def _int(obj, name, lo: int | None = 1) -> None:
+    value = getattr(obj, name)
+    what = "an int" if lo is None else "a positive int" if lo == 1 else f"an int >= {lo}"
+    if not _is_int(value) or (lo is not None and value < lo):
+        _fail(obj, name, what, value)
+    object.__setattr__(obj, name, int(value))
+
+
+def _bool(obj, name) -> None:
+    value = getattr(obj, name)
+    if not isinstance(value, bool):
+        _fail(obj, name, "true or false", value)
+
+
+def _choice(obj, name, options: tuple[str, ...]) -> None:
+    value = getattr(obj, name)
+    if not isinstance(value, str) or value not in options:
+        _fail(obj, name, " or ".join(repr(o) for o in options), value)
+
+
+def _sequence(obj, name, what: str) -> tuple:
+    value = getattr(obj, name)
+    if not isinstance(value, (tuple, list)):  # a string is not a list of its characters
+        _fail(obj, name, what, value)
+    return tuple(value)
+
+
+def _pair(obj, name, positive: bool = False) -> None:
+    what = f"(low, high): two {'positive' if positive else 'finite'} numbers with low <= high"
+    value = _sequence(obj, name, what)
+    if len(value) != 2 or not all(_is_real(v) and math.isfinite(v) and (v > 0 or not positive) for v in value):
+        _fail(obj, name, what, getattr(obj, name))
+    lo, hi = float(value[0]), float(value[1])
+    if not lo <= hi:
+        _fail(obj, name, what, getattr(obj, name))
+    object.__setattr__(obj, name, (lo, hi))
+
+
+def _ints(obj, name, lo: int = 1, n: int | None = None, per: str = "") -> None:
+    kind = "positive ints" if lo == 1 else f"ints >= {lo}"
+    what = f"a tuple of {n} {kind} (one per {per})" if n is not None else f"a non-empty tuple of {kind}"
+    value = _sequence(obj, name, what)
+    if (n is not None and len(value) != n) or not value or not all(_is_int(v) and v >= lo for v in value):
+        _fail(obj, name, what, getattr(obj, name))
+    object.__setattr__(obj, name, tuple(int(v) for v in value))
+
+
+def _names(obj, name) -> None:
+    what = "a non-empty list of distinct non-empty strings"
+    value = _sequence(obj, name, what)
+    if not value or not all(isinstance(v, str) and v.strip() for v in value) or len(set(value)) != len(value):
+        _fail(obj, name, what, getattr(obj, name))
+    object.__setattr__(obj, name, value)
 
 
 def _check_positive_float(name: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-        math.isfinite(value) and value > 0
-    ):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    if not _is_real(value) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive finite number, got {_show(value)}")
