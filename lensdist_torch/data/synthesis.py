@@ -33,9 +33,9 @@ from lensdist_torch.geometry.distortion import (
     distortion_grid,
 )
 from lensdist_torch.geometry.frame import pixel_grid
-from lensdist_torch.metric.quality import registration_error_counts
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.registration import estimate_homography, perturb_homography, warp_to_reference
+from lensdist_torch.metric.quality import registration_error_counts
 
 __all__ = [
     "SETS",
@@ -104,6 +104,7 @@ def pair_seed(seed: int, set_name: str, index: int) -> int:
 
 
 def set_size(config: LensdistConfig, set_name: str) -> int:
+    """The number of pairs of ``set_name`` under ``config``."""
     p = config.protocol
     if set_name == "train":
         return p.n_train
@@ -118,8 +119,10 @@ def is_distorted(config: LensdistConfig, set_name: str, index: int) -> bool:
 
 
 def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) -> PairParams:
-    """Draw the parameters of pairs ``indices`` of a set (docs/method.md, section 7), one
-    generator per pair."""
+    """Draw the parameters of pairs ``indices`` of a set, one generator per pair.
+
+    The draws of docs/method.md, section 7, in a fixed order per pair.
+    """
     p, dcfg = config.protocol, config.distortion
     rows, seeds, gens, distorted = [], [], [], []
     n = set_size(config, set_name)
@@ -317,8 +320,10 @@ def sequence_footprint(config: LensdistConfig) -> tuple[float, float, float, flo
 
 
 def _sequence_params(params: PairParams, n_frames: int) -> PairParams:
-    """Pair i of a sequence is frames (i mod (n - 1), i mod (n - 1) + 1); its motion is real,
-    unknown, so the motion is stored as NaN and M as the identity."""
+    """Pair i of a sequence is frames (i mod (n - 1), i mod (n - 1) + 1).
+
+    Its motion is real and unknown, so the motion is stored as NaN and M as the identity.
+    """
     if n_frames < 2:
         raise ValueError(f"a sequence needs at least 2 frames, got {n_frames}")
     b = params.index.shape[0]

@@ -68,14 +68,19 @@ def _coefficients(k2, k4, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 
 
 def radial_factor(r2: torch.Tensor, k2, k4) -> torch.Tensor:
-    """Eq. 4's factor 1 + k2 r^2 + k4 r^4 at squared radii ``r2`` (k2, k4 broadcast against it):
-    the ideal offset from p0 is the distorted offset times this factor."""
+    """Eq. 4's factor 1 + k2 r^2 + k4 r^4 at squared radii ``r2``.
+
+    k2, k4 broadcast against r2. The ideal offset from p0 is the distorted offset times this
+    factor.
+    """
     return 1.0 + k2 * r2 + k4 * r2 * r2
 
 
 def radial_derivative(r2: torch.Tensor, k2, k4) -> torch.Tensor:
-    """d/dr of r (1 + k2 r^2 + k4 r^4) = 1 + 3 k2 r^2 + 5 k4 r^4 at squared radii ``r2``; eq. 4
-    is invertible along a ray while it stays positive."""
+    """d/dr of r (1 + k2 r^2 + k4 r^4) = 1 + 3 k2 r^2 + 5 k4 r^4 at squared radii ``r2``.
+
+    Eq. 4 is invertible along a ray while it stays positive.
+    """
     return 1.0 + 3.0 * k2 * r2 + 5.0 * k4 * r2 * r2
 
 
@@ -158,8 +163,10 @@ def delta_metric(metric: str, k2, k4, height: int, width: int) -> torch.Tensor:
 
 
 def delta_top(metric: str, config: LensdistConfig) -> float:
-    """The metric at the largest coefficients of ``config`` at its analysis size: the top of
-    the class range (79.1 px for Delta_max, 14.4 px for Delta_avg at 320 x 424)."""
+    """The metric at the largest coefficients of ``config`` at its analysis size.
+
+    The top of the class range: 79.1 px for Delta_max, 14.4 px for Delta_avg at 320 x 424.
+    """
     d = config.distortion
     return float(delta_metric(metric, [d.k2_max], [d.k4_max], *config.image.size)[0])
 
@@ -182,10 +189,11 @@ def distortion_class(delta: torch.Tensor, top: float, n_classes: int = 4) -> tor
 def estimated_class(
     delta: torch.Tensor, delta_avg_estimate: torch.Tensor, metric: str, config: LensdistConfig
 ) -> torch.Tensor:
-    """The class of an *estimated* Delta: the bin of ``delta`` (of ``metric``), and ``REJECT``
-    ("no visible distortion") where the estimated Delta_avg is below
-    ``config.analysis.no_distortion_px`` or not finite. The one labelling rule of every
-    estimator (self-calibration, regression) and of ``analyze``.
+    """The class of an *estimated* Delta.
+
+    The bin of ``delta`` (of ``metric``), and ``REJECT`` ("no visible distortion") where the
+    estimated Delta_avg is below ``config.analysis.no_distortion_px`` or not finite. The one
+    labelling rule of every estimator (self-calibration, regression) and of ``analyze``.
     """
     delta = torch.as_tensor(delta, dtype=torch.float64)
     d_avg = torch.as_tensor(delta_avg_estimate, dtype=torch.float64)

@@ -81,13 +81,17 @@ def pixel_grid(height: int, width: int, dtype=torch.float32, device=None) -> tor
 
 
 def to_normalized(points: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Pixel coordinates (..., 2) -> grid_sample's [-1, 1] (``align_corners=True``):
-    ``kornia.geometry.conversions.normalize_pixel_coordinates``, x 2 / (W - 1) - 1."""
+    """Pixel coordinates (..., 2) -> grid_sample's [-1, 1] (``align_corners=True``).
+
+    ``kornia.geometry.conversions.normalize_pixel_coordinates``: x 2 / (W - 1) - 1.
+    """
     return normalize_pixel_coordinates(points, height, width)
 
 
 def grid_sample_matrix(height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
-    """(3, 3) pixel coordinates -> grid_sample's [-1, 1] (``align_corners=True``), as a matrix
-    to compose with homographies; a one-pixel axis maps to -1."""
+    """(3, 3) pixel coordinates -> grid_sample's [-1, 1] (``align_corners=True``).
+
+    A matrix to compose with homographies; a one-pixel axis maps to -1.
+    """
     m = [[2 / max(width - 1, 1), 0, -1], [0, 2 / max(height - 1, 1), -1], [0, 0, 1]]
     return torch.tensor(m, dtype=dtype, device=device)

@@ -1,5 +1,7 @@
-"""Homography helpers on (B, 3, 3) tensors: checks, the class-R perturbation of docs/method.md,
-section 7, corner error."""
+"""Homography helpers on (B, 3, 3) tensors: checks, the class-R perturbation, corner error.
+
+The perturbation is that of docs/method.md, section 7.
+"""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ def apply_homography(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
 
 
 def check_homography(h: object, name: str, batch: int | None = None) -> torch.Tensor:
+    """``h`` itself if it is a finite float (B, 3, 3) tensor (B = ``batch`` when given), else a one-line error."""
     if not isinstance(h, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(h).__name__}")
     if h.dim() != 3 or h.shape[1:] != (3, 3) or (batch is not None and h.shape[0] != batch):
@@ -74,8 +77,11 @@ def perturb_homography(
 
 
 def corner_error(H_est: torch.Tensor, H_true: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Mean distance (px) between the corners (0, 0), (W-1, 0), (W-1, H-1), (0, H-1) mapped by
-    H_est and by H_true; H_est, H_true (B, 3, 3) or (3, 3) -> (B,) float64 (B = 1 for (3, 3))."""
+    """Mean distance (px) between the image corners mapped by H_est and by H_true.
+
+    Corners (0, 0), (W-1, 0), (W-1, H-1), (0, H-1); H_est, H_true (B, 3, 3) or (3, 3) -> (B,)
+    float64 (B = 1 for (3, 3)).
+    """
     a, b = (x[None] if isinstance(x, torch.Tensor) and x.dim() == 2 else x for x in (H_est, H_true))
     a = check_homography(a, "H_est")
     b = check_homography(b, "H_true", a.shape[0]).to(a.device)

@@ -44,10 +44,16 @@ from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.core.images import check_image, check_image_pair, to_grey
-from lensdist_torch.geometry.frame import grid_sample_matrix, half_diagonal, level_coordinates, level_to_grid, normalizer
+from lensdist_torch.geometry.frame import (
+    grid_sample_matrix,
+    half_diagonal,
+    level_coordinates,
+    level_to_grid,
+    normalizer,
+)
 from lensdist_torch.geometry.homography import apply_homography, check_homography, corner_error, perturb_homography
 from lensdist_torch.geometry.phase import phase_correlation
-from lensdist_torch.geometry.pyramid import central_differences, mean_pyramid
+from lensdist_torch.geometry.pyramid import binomial_blur, central_differences, mean_pyramid
 
 __all__ = [
     "RegistrationConfig",
@@ -99,8 +105,10 @@ _WORK = threading.local()
 
 
 def _buffer(key: str, shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
-    """A float32 work buffer, kept per thread on the CPU: fresh multi-MB tensors page-fault on
-    every call, a large share of the run time at this image size."""
+    """A float32 work buffer, kept per thread on the CPU.
+
+    Fresh multi-MB tensors page-fault on every call, a large share of the run time at this size.
+    """
     if device.type != "cpu":
         return torch.empty(shape, device=device)
     cache, n = _WORK.__dict__.setdefault("cache", {}), math.prod(shape)
@@ -110,8 +118,11 @@ def _buffer(key: str, shape: tuple[int, ...], device: torch.device) -> torch.Ten
 
 
 def _grid(m: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, key: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """Projective grid: (B, 3, 3) m, (w,) xs, (h,) ys -> ((B, h, w, 2) m (x, y, 1) dehomogenised,
-    (B, h, w) its third coordinate), float32 in the buffers ``key``, one broadcast pass per plane."""
+    """Projective grid, float32 in the buffers ``key``, one broadcast pass per plane.
+
+    (B, 3, 3) m, (w,) xs, (h,) ys -> ((B, h, w, 2) m (x, y, 1) dehomogenised, (B, h, w) its
+    third coordinate).
+    """
     g, dev, shape = m.float(), m.device, (m.shape[0], len(ys), len(xs))
     out, den = _buffer(key, (*shape, 2), dev), _buffer(key + "_den", shape, dev)
     for r, dst in ((2, den), (0, out[..., 0]), (1, out[..., 1])):
@@ -120,9 +131,11 @@ def _grid(m: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, key: str) -> tupl
 
 
 class _Frame:
-    """One level in the normalised frame u (:mod:`~lensdist_torch.geometry.frame`): template
-    pixels (every ``stride``-th row and column), their powers of u, v and the map to img2's
-    level grid_sample coordinates."""
+    """One level in the normalised frame u (:mod:`~lensdist_torch.geometry.frame`).
+
+    Template pixels (every ``stride``-th row and column), their powers of u, v and the map to
+    img2's level grid_sample coordinates.
+    """
 
     def __init__(self, level: int, h: int, w: int, h0: int, w0: int, device, stride: int = 1):
         f, self.stride, self.scale = 2.0**level, stride, half_diagonal(h0, w0)
@@ -141,8 +154,10 @@ class _Frame:
         return _grid(self.out @ hn, self.uf, self.vf, key)[0]
 
     def rectangle(self, hn: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Row (B, h) and column (B, w) masks of a rectangle of template pixels inscribed in the
-        overlap, mapping at least ``margin`` level px inside img2."""
+        """Row (B, h) and column (B, w) masks of a rectangle of template pixels.
+
+        The rectangle is inscribed in the overlap, mapping at least ``margin`` level px inside img2.
+        """
         m, (u0, u1, v0, v1) = margin / self.px, self.box
         box = torch.tensor([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=hn.dtype, device=hn.device)
         q = apply_homography(torch.linalg.inv_ex(hn)[0], box)  # img2's corners in img1
@@ -164,21 +179,6 @@ class _Frame:
 _frame = functools.lru_cache(maxsize=16)(_Frame)  # frames depend on sizes only
 
 
-def _blur(x: torch.Tensor, out: torch.Tensor) -> None:
-    """Separable [1, 4, 6, 4, 1] / 16, replicate border: (b, h, w) -> out (b, h, w); h, w >= 5."""
-    b, h, w = x.shape
-    p = _buffer("blur", (b, h, w + 4), x.device)
-    v = p[..., 2:-2]
-    torch.add(x[:, :-4], x[:, 4:], out=v[:, 2:-2]).add_(x[:, 1:-3], alpha=4).add_(x[:, 3:-1], alpha=4)
-    v[:, 2:-2].add_(x[:, 2:-2], alpha=6)
-    for r in (0, 1, h - 2, h - 1):  # border rows, replicated
-        t = [x[:, min(max(r + k, 0), h - 1)] for k in (-2, -1, 0, 1, 2)]
-        v[:, r] = t[0] + t[4] + 4 * (t[1] + t[3]) + 6 * t[2]
-    p[..., :2], p[..., -2:] = v[..., :1], v[..., -1:]
-    torch.add(p[..., :-4], p[..., 4:], out=out).add_(p[..., 1:-3], alpha=4).add_(p[..., 3:-1], alpha=4)
-    out.add_(p[..., 2:-2], alpha=6).mul_(1 / 256)
-
-
 @torch.no_grad()
 def estimate_homography(
     img1: torch.Tensor, img2: torch.Tensor, init: torch.Tensor | None = None, config: RegistrationConfig | None = None
@@ -186,7 +186,8 @@ def estimate_homography(
     """Estimate, per pair, the homography H with img1(p) = img2(H p).
 
     Args:
-        img1, img2: (B, C, H, W) float in [0, 1] or uint8, C in {1, 3}, H and W >= 16.
+        img1: (B, C, H, W) float in [0, 1] or uint8, C in {1, 3}, H and W >= 16.
+        img2: the same shape and dtype as img1.
         init: optional (B, 3, 3) initial guess (pixel coordinates), instead of phase correlation.
         config: :class:`RegistrationConfig`; defaults when None.
 
@@ -220,8 +221,11 @@ def estimate_homography(
 
 
 class _Level:
-    """One chunk at one level: the template (img1) data, and per pair the pixels used (masks times
-    powers of u, v), the inverse damped Hessian and the estimate they were built at."""
+    """One chunk at one level.
+
+    The template (img1) data, and per pair the pixels used (masks times powers of u, v), the
+    inverse damped Hessian and the estimate they were built at.
+    """
 
     def __init__(self, fr: _Frame, img1: torch.Tensor, cfg: RegistrationConfig):
         self.fr, self.cfg, (b, h, w), dev = fr, cfg, (img1.shape[0], fr.h, fr.w), img1.device
@@ -257,16 +261,16 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
     """One chunk: g1, g2 (b, h, w) float32 grey; hn (b, 3, 3) in u units, or None."""
     (bsz, h0, w0), dev = g1.shape, g1.device
     f64 = {"dtype": torch.float64, "device": dev}
-    run = [(l, n) for l, n in zip(cfg.levels, cfg.iterations) if min(h0, w0) >> l >= 16 or l == 0]
+    run = [(lv, n) for lv, n in zip(cfg.levels, cfg.iterations) if min(h0, w0) >> lv >= 16 or lv == 0]
     pc = max(run[0][0], min(cfg.phase_level, int(math.log2(min(h0, w0) / 16))))
     both = _buffer("both", (2 * bsz, h0, w0), dev)  # img1s then img2s
     for k, g in enumerate((g1, g2)):
         if cfg.presmooth:
-            _blur(g, both[k * bsz : (k + 1) * bsz])
+            binomial_blur(g, both[k * bsz : (k + 1) * bsz], _buffer("blur", (bsz, h0, w0 + 4), dev))
         else:
             both[k * bsz : (k + 1) * bsz] = g
     pyr = mean_pyramid(both, pc + 1)
-    frames = {l: _frame(l, *pyr[l].shape[-2:], h0, w0, dev, cfg.fine_stride if l == 0 else 1) for l, _ in run}
+    frames = {lv: _frame(lv, *pyr[lv].shape[-2:], h0, w0, dev, cfg.fine_stride if lv == 0 else 1) for lv, _ in run}
     scale = frames[0].scale
     if hn is None:
         hn = torch.eye(3, **f64).repeat(bsz, 1, 1)

@@ -59,9 +59,12 @@ __all__ = [
 
 
 class SelfCalInfo(NamedTuple):
-    """Per pair, each (B,): converged (bool; False -> k2, k4, H are NaN), confident (bool),
-    confidence in (0, 1], delta_avg (px, NaN if not converged), delta_avg_std (px), residual
-    (RMS at full resolution), overlap, and ab (B, 2) the normalised coefficients."""
+    """Per-pair diagnostics of :func:`estimate_distortion`, each (B,).
+
+    converged (bool; False -> k2, k4, H are NaN), confident (bool), confidence in (0, 1],
+    delta_avg (px, NaN if not converged), delta_avg_std (px), residual (RMS at full
+    resolution), overlap, and ab (B, 2) the normalised coefficients.
+    """
 
     converged: torch.Tensor
     confident: torch.Tensor
@@ -130,9 +133,12 @@ def _with_gradients(g: torch.Tensor) -> torch.Tensor:
 
 
 class _Level(NamedTuple):
-    """The fixed data of one level: img1 at the sampled pixels (B, N), img2 with its gradients
-    (B, 3, h, w), the sampled pixels' u_d (x, y planes, (B, N)) and |u_d|^2, level px per unit,
-    the map u -> grid_sample coordinates (sx, ox, sy, oy), Newton steps and the margin (level px)."""
+    """The fixed data of one level.
+
+    img1 at the sampled pixels (B, N), img2 with its gradients (B, 3, h, w), the sampled pixels'
+    u_d (x, y planes, (B, N)) and |u_d|^2, level px per unit, the map u -> grid_sample
+    coordinates (sx, ox, sy, oy), Newton steps and the margin (level px).
+    """
 
     i1: torch.Tensor
     stack2: torch.Tensor
@@ -194,8 +200,10 @@ def _evaluate(theta: torch.Tensor, lv: _Level, jac: bool = True):
 
 
 def _select(img: torch.Tensor, block: int, margin: float) -> torch.Tensor:
-    """Per pair, the pixel of largest gradient magnitude in every block x block cell: (B, n)
-    flat indices (all pixels for block 1). Sparse, spatially even, textured samples."""
+    """Per pair, the pixel of largest gradient magnitude in every block x block cell.
+
+    (B, n) flat indices (all pixels for block 1): sparse, spatially even, textured samples.
+    """
     bsz, _, h, w = img.shape
     if block <= 1:
         return torch.arange(h * w).expand(bsz, -1)
@@ -222,10 +230,12 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
     """Estimate (k2, k4) and H together, per pair of a batch (see the module docstring).
 
     Args:
-        img1, img2: (B, C, H, W) float in [0, 1] or uint8, the same distortion in both; H and
-            W at least 16 (and 2^levels).
+        img1: (B, C, H, W) float in [0, 1] or uint8; H and W at least 16 (and 2^levels).
+        img2: the same shape and dtype, with the same distortion as img1.
         init: optional (B, 3, 3) homography img1 -> img2 (pixels), e.g. from
             :func:`estimate_homography`; otherwise phase correlation on the coarsest level.
+        config: :class:`SelfCalConfig`; defaults when None.
+
     Returns:
         k2, k4: (B,) float64 in pixel units (eq. 4), NaN where the fit diverged.
         H: (B, 3, 3) float64, img1's ideal pixel coordinates -> img2's, NaN where diverged.
@@ -282,9 +292,11 @@ def _cost(res: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 
 
 def _levenberg_marquardt(theta, lam, lv: _Level, iterations: int):
-    """``iterations`` LM steps on one level, per pair accepted where the cost falls, the model
-    stays invertible and some overlap remains. Returns theta, lambda, (res, valid, J, cost) at
-    theta, and the cost at the start."""
+    """``iterations`` Levenberg-Marquardt steps on one level.
+
+    A pair's step is accepted where the cost falls, the model stays invertible and some overlap
+    remains. Returns theta, lambda, (res, valid, J, cost) at theta, and the cost at the start.
+    """
     res, valid, J = _evaluate(theta, lv)
     cost = _cost(res, valid)
     start_cost = cost.clone()
@@ -309,8 +321,10 @@ def _levenberg_marquardt(theta, lam, lv: _Level, iterations: int):
 
 
 def _delta_avg_std(ab, res, valid, J, h0: int, w0: int, cfg: SelfCalConfig) -> torch.Tensor:
-    """Std (px) of Delta_avg from the Gauss-Newton covariance of the final full-resolution fit;
-    inf where it is not finite."""
+    """Std (px) of Delta_avg from the Gauss-Newton covariance of the final full-resolution fit.
+
+    inf where it is not finite.
+    """
     n = valid.sum(1).double()
     jtj = torch.bmm(J, J.transpose(1, 2)).double()
     # residual variance, floored at the quantisation noise of 8-bit images, so that a
