@@ -1,4 +1,4 @@
-"""Tests of the pair protocol (SPEC section 7) in lensdist_torch/synthesis.py.
+"""Tests of the pair protocol (docs/method.md, section 7) in lensdist_torch/data/synthesis.py.
 
 Seeds and draws, the motion matrix against a hand-built one, the composed single-grid rendering
 against a step-by-step float64 rendering, samples inside the scene, and pair identity whatever
@@ -15,15 +15,8 @@ import pytest
 import torch
 
 from lensdist_torch.config import config_from_dict
-from lensdist_torch.data.shards import generate_shard
-from lensdist_torch.geometry.distortion import (
-    REJECT,
-    delta_metric,
-    distortion_center,
-    distortion_grid,
-    sample,
-)
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.data.shards import generate_shard
 from lensdist_torch.data.synthesis import (
     PairParams,
     draw_pairs,
@@ -35,6 +28,13 @@ from lensdist_torch.data.synthesis import (
     render_pairs,
     scene_zoom,
     set_size,
+)
+from lensdist_torch.geometry.distortion import (
+    REJECT,
+    delta_metric,
+    distortion_center,
+    distortion_grid,
+    sample,
 )
 
 HS, WS = 96, 128
@@ -84,7 +84,7 @@ class TestSeeds:
 
 class TestDraws:
     def test_ranges(self):
-        cfg = config_from_dict({})  # the SPEC defaults: 12,000 training pairs
+        cfg = config_from_dict({})  # the method's defaults: 12,000 training pairs
         idx = list(range(0, 12000, 60))  # 200 pairs
         p = draw_pairs(cfg, "train", idx, n_scenes=2)
         assert p.k2.dtype == torch.float64 and p.k2.shape == (200,)
@@ -180,7 +180,7 @@ class TestMotion:
 
 
 def sampling_points(scene_sizes, params: PairParams, config) -> tuple[torch.Tensor, torch.Tensor]:
-    """Literal SPEC 7 geometry in float64: the scene points (B, H, W, 2) sampled by I1 and I2.
+    """Literal section 7 geometry in float64: the scene points (B, H, W, 2) sampled by I1 and I2.
 
     distortion grid (eq. 4) -> M (I2 only) -> placement P(q) = c + z (q - p0), the zoom of the
     scene's size and c from the pair's position (c + z * box stays inside the scene).

@@ -1,6 +1,6 @@
-"""Tests of the radial distortion model (SPEC section 6) in lensdist_torch/distortion.py.
+"""Tests of the radial distortion model (docs/method.md, section 6) in lensdist_torch/geometry/distortion.py.
 
-Values worked out by hand, the SPEC's Delta numbers at the default size, agreement of every
+Values worked out by hand, the method's Delta numbers at the default size, agreement of every
 helper with a literal transcription of eq. 4, the Newton inverse, and the class bins.
 """
 

@@ -17,7 +17,7 @@ from lensdist_torch.geometry.registration import (
     warp_to_reference,
 )
 
-H0, W0 = 320, 424  # SPEC 1's analysis size
+H0, W0 = 320, 424  # the analysis size (docs/method.md, section 1)
 
 
 def _translation(x: float, y: float) -> torch.Tensor:
@@ -30,8 +30,11 @@ def _apply(m: torch.Tensor, x: torch.Tensor, y: torch.Tensor):
 
 
 def _motion(g: torch.Generator, h: int, w: int) -> torch.Tensor:
-    """SPEC 7's M = T(p0) A T(-p0), I2's coordinates -> I1's."""
-    u = lambda lo, hi: lo + (hi - lo) * float(torch.rand((), generator=g, dtype=torch.float64))
+    """Section 7's M = T(p0) A T(-p0), I2's coordinates -> I1's."""
+
+    def u(lo: float, hi: float) -> float:
+        return lo + (hi - lo) * float(torch.rand((), generator=g, dtype=torch.float64))
+
     ty, tx, th, s = u(0, 40), u(-4, 4), math.radians(u(-1, 1)), u(0.98, 1.02)
     a = torch.tensor([[s * math.cos(th), -s * math.sin(th), tx], [s * math.sin(th), s * math.cos(th), ty],
                       [u(-2e-5, 2e-5), u(-2e-5, 2e-5), 1.0]], dtype=torch.float64)
@@ -39,7 +42,7 @@ def _motion(g: torch.Generator, h: int, w: int) -> torch.Tensor:
 
 
 def _distortion(h: int, w: int, k2: float, k4: float):
-    """SPEC 6: the ideal point p of every pixel p_d, as flat x, y (float64)."""
+    """Section 6: the ideal point p of every pixel p_d, as flat x, y (float64)."""
     y, x = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     dx, dy = x.flatten() - (w - 1) / 2, y.flatten() - (h - 1) / 2
     f = 1 + k2 * (dx * dx + dy * dy) + k4 * (dx * dx + dy * dy) ** 2
@@ -47,8 +50,8 @@ def _distortion(h: int, w: int, k2: float, k4: float):
 
 
 def make_pairs(n: int, h: int = H0, w: int = W0, seed: int = 0, scene: str = "gravel", distort: float = 0.0):
-    """n pairs I1(p) = S(P p), I2(p) = S(P M p) (SPEC 7), one generator per pair; returns img1,
-    img2 (n, 1, h, w) and the true H = M^-1 (n, 3, 3). ``distort`` scales SPEC 6's coefficients
+    """n pairs I1(p) = S(P p), I2(p) = S(P M p) (section 7), one generator per pair; returns img1,
+    img2 (n, 1, h, w) and the true H = M^-1 (n, 3, 3). ``distort`` scales section 6's coefficients
     (0: undistorted)."""
     s = load_scene(scene)
     side = s.shape[-1] - 1
@@ -135,7 +138,7 @@ def test_batch_size_invariance(pairs):
 
 
 def test_distorted_pairs_converge():
-    img1, img2, _ = make_pairs(6, seed=5, distort=1.0)  # up to SPEC 6's strongest distortion
+    img1, img2, _ = make_pairs(6, seed=5, distort=1.0)  # up to section 6's strongest distortion
     _, info = estimate_homography(img1, img2)
     assert bool(info.converged.all()), info
 
@@ -252,7 +255,7 @@ def test_perturbation_of_identity_stays_close():
 
 
 def test_perturbation_size_matches_spec():
-    """SPEC 7: a 1 % perturbation moves pixels by about 0.8 px on average (the mean over all
+    """Section 7: a 1 % perturbation moves pixels by about 0.8 px on average (the mean over all
     pixels; the image corners, farthest from p0, move about 1.4 px on average)."""
     n = 2000
     base = _translation(2.0, 20.0).repeat(n, 1, 1)

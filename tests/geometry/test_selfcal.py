@@ -1,4 +1,5 @@
-"""Self-calibration (lensdist_torch.selfcal): eq. 4 inverse, recovery, confidence, flags, gradients."""
+"""Self-calibration (lensdist_torch.geometry.selfcal): eq. 4 inverse, recovery, confidence, flags,
+gradients, input checks."""
 
 from __future__ import annotations
 
@@ -7,8 +8,8 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.geometry.distortion import delta_avg, distort_points, distortion_grid, sample, undistort_points
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.geometry.distortion import delta_avg, distort_points, distortion_grid, sample, undistort_points
 from lensdist_torch.geometry.selfcal import (
     SelfCalConfig,
     distort_normalized,
@@ -18,7 +19,8 @@ from lensdist_torch.geometry.selfcal import (
 )
 
 # Stated tolerances of the recovery on noiseless pairs with enough motion (normalised units,
-# a = k2 R^2, b = k4 R^4, R the half diagonal; the SPEC maxima are a = 0.18, b = 0.12).
+# a = k2 R^2, b = k4 R^4, R the half diagonal; the largest coefficients of docs/method.md,
+# section 6 are a = 0.18, b = 0.12).
 TOL_A, TOL_B, TOL_DELTA_AVG_PX = 0.03, 0.05, 0.3
 
 
@@ -120,6 +122,24 @@ def test_gradients_through_the_model_are_finite():
     for g in (H.grad, k2.grad, k4.grad):
         assert g is not None and torch.isfinite(g).all()
     assert float(k2.grad.abs()) > 0
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("h,w,levels", [(1, 1, 3), (4, 4, 3), (7, 40, 3), (15, 40, 3), (40, 15, 3), (31, 40, 5)])
+def test_too_small_images_raise_one_line(h, w, levels):
+    """Below 16 x 16 (and 2^levels) a one-line ValueError naming img1/img2 and the minimum."""
+    cfg = SelfCalConfig(levels=levels, iterations=(2,) * levels, sample_block=(1,) * levels)
+    least = max(16, 2**levels)
+    x = torch.rand(1, 1, h, w)
+    with pytest.raises(ValueError, match=rf"^img1 and img2 must be at least {least} x {least} pixels, got {h} x {w}$"):
+        estimate_distortion(x, x.clone(), config=cfg)
+
+
+def test_smallest_accepted_size_runs():
+    i1, i2 = _pair(16, 16, 0.0, 0.0, (1.0, 0.0))
+    cfg = SelfCalConfig(levels=2, iterations=(2, 2), sample_block=(1, 1))
+    k2, _, _, info = estimate_distortion(i1, i2, config=cfg)
+    assert k2.shape == (1,) and info.converged.shape == (1,)
 
 
 def test_public_exports():
