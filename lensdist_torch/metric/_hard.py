@@ -91,7 +91,8 @@ def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool):
     """Error pixels per block of the hard path.
 
     Args:
-        g1, g2: (B, 1, H, W) grey images in [0, 1], H and W multiples of the block size.
+        g1: (B, 1, H, W) grey image in [0, 1], H and W multiples of the block size.
+        g2: (B, 1, H, W) the other grey image.
         valid: (B, 1, H, W) {0, 1} mask (already binarised) or None.
         cfg: the metric's settings.
         visual: also count the visual errors.

@@ -163,7 +163,8 @@ def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None)
     """Check and convert a pair: grey images in [0, 1] of one dtype, the binarised mask, config.
 
     Args:
-        img1, img2: (B, C, H, W) uint8 or float images.
+        img1: (B, C, H, W) uint8 or float image.
+        img2: (B, C, H, W) the other image.
         valid: (B, 1, H, W) mask or None.
         config: QualityConfig or None.
         data_range: the value of white in float images.

@@ -132,7 +132,7 @@ def _direction(sx: torch.Tensor, sy: torch.Tensor) -> tuple[torch.Tensor, torch.
 
 
 def _orientation_difference(dot: torch.Tensor, cross: torch.Tensor, smooth: bool) -> torch.Tensor:
-    """dalpha = atan2(|cross|, |dot|) in [0, pi/2]; 0 where both gradients vanish."""
+    """The orientation difference atan2(|cross|, |dot|) in [0, pi/2]; 0 where both gradients vanish."""
     x, y = dot.abs(), cross.abs()
     if not smooth:
         return torch.atan2(y, x)  # atan2(0, 0) = 0: the exact formula, no guard needed

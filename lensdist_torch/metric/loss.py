@@ -143,4 +143,5 @@ class RegistrationQualityLoss(nn.Module):
         )
 
     def extra_repr(self) -> str:
+        """The reduction, shown in the module's repr."""
         return f"reduction={self.reduction!r}"

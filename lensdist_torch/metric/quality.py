@@ -126,8 +126,9 @@ def registration_error_counts(
     validate: bool = True,
     pad: bool = True,
 ) -> torch.Tensor:
-    """Registration-error pixels per block, before the floor: the exact, compact form in which
-    generated data sets store quality maps.
+    """Registration-error pixels per block, before the floor.
+
+    The exact, compact form in which generated data sets store quality maps.
 
     Args:
         img1: (B, C, H, W) registered image, C in {1, 3}, float in [0, data_range] or uint8.
@@ -296,4 +297,5 @@ class RegistrationQuality(nn.Module):
         )
 
     def extra_repr(self) -> str:
+        """The path and block size, shown in the module's repr."""
         return f"smooth={self.smooth}, block_size={self.config.block_size}"
