@@ -1,4 +1,5 @@
-"""Tests of lensdist_torch/config.py (SPEC defaults, TOML loading) and images.py (SPEC 1)."""
+"""Tests of lensdist_torch/config.py (the defaults of docs/method.md, TOML loading) and images.py
+(docs/method.md section 1). Bad inputs: test_bad_config.py and test_bad_images.py."""
 
 from __future__ import annotations
 
@@ -37,19 +38,19 @@ from lensdist_torch.core.images import (
 
 
 class TestDefaults:
-    def test_quality_defaults_are_spec(self):
+    def test_quality_defaults_are_the_method(self):
         q = QualityConfig()
-        # SPEC 2-4
+        # docs/method.md sections 2-4
         assert (q.theta_g, q.theta_e, q.theta_d) == (0.02, 0.5, 0.1)
         assert (q.gamma, q.k, q.sigma) == (0.9879, -22.0, 0.8)
         assert q.block_size == 8
         assert q.min_block_ratio == 0.1
         assert all(t > 0 for t in (q.tau_g, q.tau_e, q.tau_d, q.tau_b))
 
-    def test_other_sections_are_spec(self):
+    def test_other_sections_are_the_method(self):
         img = ImageConfig()
         assert (img.height, img.width) == (320, 424)
-        assert (img.height // 8) * (img.width // 8) == 2120  # SPEC 1: feature length
+        assert (img.height // 8) * (img.width // 8) == 2120  # section 1: feature length
         d = DistortionConfig()
         assert (d.k2_max, d.k4_max, d.n_classes) == (2.5e-6, 2.5e-11, 4)
         p = ProtocolConfig()

@@ -1,0 +1,277 @@
+"""Bad configs end in a one-line ValueError naming the section and the field, never in a wrong
+result (lensdist_torch/config.py); and the shipped config is the defaults, exactly."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import pytest
+
+from lensdist_torch.config import (
+    AnalysisConfig,
+    ClassifierConfig,
+    DistortionConfig,
+    ImageConfig,
+    LensdistConfig,
+    ProtocolConfig,
+    QualityConfig,
+    RegistrationConfig,
+    RegressionConfig,
+    SelfCalConfig,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+)
+
+PAPER = Path(__file__).resolve().parents[2] / "configs" / "paper.toml"
+
+
+def _one_line_error(exc_info, *words: str) -> str:
+    msg = str(exc_info.value)
+    assert "\n" not in msg, msg
+    for w in words:
+        assert w in msg, (w, msg)
+    return msg
+
+
+# ----------------------------------------------------------------------------- the good ones
+
+
+class TestShippedConfig:
+    def test_defaults_construct_and_every_section_too(self):
+        cfg = LensdistConfig()
+        for f in dataclasses.fields(cfg):
+            section = getattr(cfg, f.name)
+            assert type(section)() == section  # each section's defaults pass its own checks
+
+    def test_paper_toml_is_the_defaults_exactly(self):
+        assert load_config(PAPER) == LensdistConfig()
+        assert load_config(str(PAPER)) == load_config(None)
+
+    def test_paper_toml_writes_every_field(self):
+        import tomllib
+
+        with PAPER.open("rb") as f:
+            data = tomllib.load(f)
+        assert data == config_to_dict(LensdistConfig())  # every section, every key, same values
+
+    def test_default_toml_is_gone(self):
+        assert not (PAPER.parent / "default.toml").exists()
+
+    def test_numbers_and_sequences_are_stored_canonically(self, tmp_path):
+        path = tmp_path / "ints.toml"
+        path.write_text("[protocol]\nrotation_deg = 1\nty_range = [0, 40]\nscale_range = [1, 1]\n")
+        p = load_config(path).protocol
+        assert p.rotation_deg == 1.0 and type(p.rotation_deg) is float
+        assert p.ty_range == (0.0, 40.0) and all(type(v) is float for v in p.ty_range)
+        assert p.scale_range == (1.0, 1.0)
+        # lists become tuples in direct construction as well (hashable, equal to the TOML form)
+        q = ProtocolConfig(scenes=["grass"], ty_range=[0, 10])  # type: ignore[arg-type]
+        assert q.scenes == ("grass",) and q.ty_range == (0.0, 10.0)
+        hash(q)
+        r = RegistrationConfig(levels=[3, 1, 0], iterations=[5, 5, 5])  # type: ignore[arg-type]
+        assert r.levels == (3, 1, 0) and r.iterations == (5, 5, 5)
+
+    def test_round_trip_after_normalisation(self):
+        cfg = LensdistConfig(protocol=ProtocolConfig(rotation_deg=2, tx_range=[-1, 1]))  # type: ignore[arg-type]
+        assert config_from_dict(config_to_dict(cfg)) == cfg
+
+
+# ----------------------------------------------------------------------------- bad values in a TOML file
+
+# (section, key, TOML value): each a distinct defect of one field
+BAD_VALUES = [
+    ("quality", "sigma", "0"),
+    ("quality", "sigma", "-1"),
+    ("quality", "sigma", "1.0"),
+    ("quality", "k", "nan"),
+    ("quality", "k", "0.0"),
+    ("quality", "gamma", "1.5"),
+    ("quality", "gamma", '"0.9879"'),
+    ("quality", "block_size", "8.0"),
+    ("quality", "block_size", "true"),
+    ("quality", "theta_g", "inf"),
+    ("quality", "theta_d", "-0.1"),
+    ("quality", "min_block_ratio", "-0.1"),
+    ("quality", "tau_d", "0.0"),
+    ("quality", "chunk_size", "0"),
+    ("image", "height", '"320"'),
+    ("image", "width", "-424"),
+    ("distortion", "k2_max", "0.0"),
+    ("distortion", "k4_max", "nan"),
+    ("distortion", "n_classes", "5"),
+    ("protocol", "seed", "1.5"),
+    ("protocol", "seed", "1979-05-27"),
+    ("protocol", "scenes", '"gravel"'),
+    ("protocol", "scenes", "[]"),
+    ("protocol", "scenes", '["gravel", 3]'),
+    ("protocol", "scenes", '["gravel", "gravel"]'),
+    ("protocol", "scenes", '["gravel", ""]'),
+    ("protocol", "n_train", "-1"),
+    ("protocol", "n_test_distorted", "1.5"),
+    ("protocol", "ty_range", "[0.0]"),
+    ("protocol", "ty_range", "[0.0, 40.0, 80.0]"),
+    ("protocol", "ty_range", "40.0"),
+    ("protocol", "tx_range", "[4.0, -4.0]"),
+    ("protocol", "tx_range", "[0.0, nan]"),
+    ("protocol", "tx_range", '["-4", "4"]'),
+    ("protocol", "scale_range", "[0.0, 1.02]"),
+    ("protocol", "scale_range", "[-1.0, 1.0]"),
+    ("protocol", "rotation_deg", "-1.0"),
+    ("protocol", "rotation_deg", "inf"),
+    ("protocol", "perspective", "-2e-5"),
+    ("protocol", "perspective", "nan"),
+    ("protocol", "perturbation", "1.0"),
+    ("protocol", "perturbation", "-0.01"),
+    ("protocol", "shard_size", "0"),
+    ("registration", "levels", "[0, 2]"),
+    ("registration", "levels", "[2, 1]"),
+    ("registration", "levels", "[]"),
+    ("registration", "iterations", "[10]"),
+    ("registration", "iterations", "[10, 0]"),
+    ("registration", "presmooth", "1"),
+    ("registration", "step_tol", "0.0"),
+    ("registration", "damping", "-1e-6"),
+    ("registration", "margin", "nan"),
+    ("registration", "min_overlap", "1.5"),
+    ("registration", "phase_level", "-1"),
+    ("registration", "fine_stride", "0"),
+    ("registration", "chunk_size", "2.0"),
+    ("classifier", "metric", '"delta_median"'),
+    ("classifier", "metric", "1"),
+    ("classifier", "reject_quantile", "0.0"),
+    ("classifier", "n_eigenvectors", "0"),
+    ("classifier", "n_neighbours", "false"),
+    ("selfcal", "levels", "0"),
+    ("selfcal", "iterations", "[12, 6]"),
+    ("selfcal", "sample_block", "[2, 4, 0]"),
+    ("selfcal", "newton", "-5"),
+    ("selfcal", "noise_floor", "0.0"),
+    ("selfcal", "ridge", "inf"),
+    ("selfcal", "confidence_threshold", "2.0"),
+    ("selfcal", "min_overlap", "nan"),
+    ("selfcal", "margin", "-1.0"),
+    ("regression", "k", "0"),
+    ("regression", "n_components", "3.5"),
+    ("regression", "cannot_tell_fraction", "-0.1"),
+    ("regression", "confidence_threshold", "nan"),
+    ("analysis", "no_distortion_px", "0.0"),
+    ("analysis", "min_overlap", "-0.5"),
+    ("analysis", "out_of_domain_factor", "inf"),
+]
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("section,key,value", BAD_VALUES, ids=[f"{s}.{k}={v}" for s, k, v in BAD_VALUES])
+def test_bad_value_in_toml(tmp_path, section, key, value):
+    path = tmp_path / "bad.toml"
+    path.write_text(f"[{section}]\n{key} = {value}\n")
+    with pytest.raises(ValueError) as info:
+        load_config(path)
+    _one_line_error(info, f"{section}.{key}", str(path))
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize(
+    "cls,kwargs,field",
+    [
+        (QualityConfig, {"sigma": 0.0}, "quality.sigma"),
+        (QualityConfig, {"k": math.nan}, "quality.k"),
+        (QualityConfig, {"theta_e": 0.99}, "quality.theta_e"),  # above gamma
+        (ImageConfig, {"height": 320.0}, "image.height"),
+        (DistortionConfig, {"k2_max": -1.0}, "distortion.k2_max"),
+        (ProtocolConfig, {"scenes": "grass"}, "protocol.scenes"),  # not iterated as characters
+        (ProtocolConfig, {"ty_range": (0.0, 40.0, 1.0)}, "protocol.ty_range"),
+        (ProtocolConfig, {"scale_range": (1.02, 0.98)}, "protocol.scale_range"),
+        (ProtocolConfig, {"seed": True}, "protocol.seed"),
+        (ProtocolConfig, {"scenes": ("grass", None)}, "protocol.scenes"),
+        (RegistrationConfig, {"levels": (2.0, 0.0)}, "registration.levels"),
+        (RegistrationConfig, {"presmooth": "yes"}, "registration.presmooth"),
+        (ClassifierConfig, {"metric": None}, "classifier.metric"),
+        (SelfCalConfig, {"iterations": "12,6,3"}, "selfcal.iterations"),
+        (RegressionConfig, {"k": True}, "regression.k"),
+        (AnalysisConfig, {"min_overlap": "0.5"}, "analysis.min_overlap"),
+    ],
+)
+def test_bad_value_in_python(cls, kwargs, field):
+    with pytest.raises(ValueError) as info:
+        cls(**kwargs)
+    _one_line_error(info, field)
+
+
+# ----------------------------------------------------------------------------- bad structure
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize(
+    "text,words",
+    [
+        ("quality = 5\n", ["quality", "table"]),  # a section that is not a table
+        ('protocol = ["gravel"]\n', ["protocol", "table"]),
+        ("sigma = 0.8\n", ["sigma", "outside any section"]),  # a key before any [section]
+        ("[quality.sub]\nsigma = 0.8\n", ["sub", "[quality]"]),  # a sub-table is an unknown key
+        ("[protocol]\nscenes = [[\"gravel\"]]\n", ["protocol.scenes"]),  # nested array
+    ],
+)
+def test_bad_structure_in_toml(tmp_path, text, words):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ValueError) as info:
+        load_config(path)
+    _one_line_error(info, str(path), *words)
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize(
+    "data,words",
+    [
+        ({"quality": "sigma=0.8"}, ["[quality]", "table"]),
+        ({"image": [320, 424]}, ["[image]", "table"]),
+        ({"quality": {"sigma": "0.8"}}, ["quality.sigma"]),
+        ({"protocol": {"ty_range": {"low": 0, "high": 40}}}, ["protocol.ty_range"]),
+    ],
+)
+def test_bad_structure_in_dict(data, words):
+    with pytest.raises(ValueError) as info:
+        config_from_dict(data)
+    _one_line_error(info, *words)
+
+
+@pytest.mark.bad_input
+def test_section_of_the_wrong_type():
+    with pytest.raises(ValueError) as info:
+        LensdistConfig(quality={"sigma": 0.8})  # type: ignore[arg-type]
+    _one_line_error(info, "quality", "QualityConfig")
+
+
+@pytest.mark.bad_input
+def test_config_file_not_utf8(tmp_path):
+    path = tmp_path / "latin1.toml"
+    path.write_bytes("# caf\xe9\n[quality]\nsigma = 0.8\n".encode("latin-1"))
+    with pytest.raises(ValueError) as info:
+        load_config(path)
+    _one_line_error(info, str(path), "UTF-8")
+
+
+@pytest.mark.bad_input
+def test_config_path_is_a_directory(tmp_path):
+    with pytest.raises(ValueError) as info:
+        load_config(tmp_path)
+    _one_line_error(info, str(tmp_path), "not a file")
+
+
+@pytest.mark.bad_input
+def test_cli_refuses_a_bad_config_before_writing_anything(tmp_path, capsys):
+    """The audit's case: sigma = 0 used to write a data set of all-zero maps and exit 0."""
+    from lensdist_torch.cli import main as cli_main
+
+    path = tmp_path / "sigma0.toml"
+    path.write_text("[quality]\nsigma = 0\n")
+    out = tmp_path / "data"
+    code = cli_main(["generate", "--config", str(path), "--out", str(out), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "quality.sigma" in err and err.count("\n") == 1
+    assert not out.exists() or not any(out.iterdir())
