@@ -119,10 +119,7 @@ def is_distorted(config: LensdistConfig, set_name: str, index: int) -> bool:
 
 
 def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) -> PairParams:
-    """Draw the parameters of pairs ``indices`` of a set, one generator per pair.
-
-    The draws of docs/method.md, section 7, in a fixed order per pair.
-    """
+    """Draw the parameters of pairs ``indices`` of a set (docs/method.md, section 7), one generator per pair."""
     p, dcfg = config.protocol, config.distortion
     rows, seeds, gens, distorted = [], [], [], []
     n = set_size(config, set_name)
@@ -297,10 +294,9 @@ def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: tor
 
     Ideal points relative to p0 (eq. 4): (x, y) = f (dx, dy), f = 1 + k2 r^2 + k4 r^4; then
     I1 samples at ``place`` (x, y, 1) and I2 at ``place @ A`` (x, y, 1), A the centred motion.
-    f is :func:`~lensdist_torch.geometry.distortion.radial_factor`, written here as one fused
-    kernel on the cached float32 r^2 and r^4 (r^4 squared in float64) for speed: calling
-    radial_factor instead changes the last bit of about a quarter of the factors, and the
-    rendered pairs (hence the shards) must stay bit-identical.
+    f is :func:`~lensdist_torch.geometry.distortion.radial_factor` as one fused kernel on cached
+    float32 r^2, r^4 (fast; radial_factor itself would change the last bit of ~1/4 of the
+    factors, and rendered pairs, hence shards, must stay bit-identical).
     """
     f = torch.add(r2 * k2, r4, alpha=k4).add_(1.0)
     x, y = dx * f, dy * f
@@ -320,10 +316,7 @@ def sequence_footprint(config: LensdistConfig) -> tuple[float, float, float, flo
 
 
 def _sequence_params(params: PairParams, n_frames: int) -> PairParams:
-    """Pair i of a sequence is frames (i mod (n - 1), i mod (n - 1) + 1).
-
-    Its motion is real and unknown, so the motion is stored as NaN and M as the identity.
-    """
+    """Pair i of a sequence is frames (i mod (n - 1), i mod (n - 1) + 1): motion unknown (NaN), M = I."""
     if n_frames < 2:
         raise ValueError(f"a sequence needs at least 2 frames, got {n_frames}")
     b = params.index.shape[0]
