@@ -135,8 +135,11 @@ class ImageConfig:
 
 @dataclass(frozen=True)
 class DistortionConfig:
-    """Ranges of the radial coefficients (docs/method.md section 6): k2 in ]0, k2_max], k4 in
-    ]0, k4_max]. ``n_classes`` is 4: the labels are the classes 1-4 and R."""
+    """Ranges of the radial coefficients (docs/method.md section 6).
+
+    k2 lies in ]0, k2_max], k4 in ]0, k4_max]. ``n_classes`` is 4: the labels are the classes
+    1-4 and R.
+    """
 
     _section: ClassVar[str] = "distortion"
 

@@ -365,7 +365,8 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
         ValueError: anything else that stops the file from giving a correct image; the one-line
             message names the file.
     """
-    from kornia.io import ImageLoadType, load_image as _kornia_load
+    from kornia.io import ImageLoadType
+    from kornia.io import load_image as _kornia_load
 
     if max_pixels is not None and (isinstance(max_pixels, bool) or not isinstance(max_pixels, int) or max_pixels <= 0):
         raise ValueError(f"max_pixels must be a positive int or None, got {max_pixels!r}")
@@ -456,13 +457,15 @@ def load_scene(name: str = "gravel") -> torch.Tensor:
 
 
 def resize_to(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Bring a (B, C, h, w) image to (height, width): centre crop to the aspect ratio, then
-    area-resample (antialiased bilinear). Used by entry points that take a user's photos.
+    """Bring a (B, C, h, w) image to (height, width).
 
-    The crop is a view and the antialiased resampling works in separable passes whose
-    intermediates are the size of the output (measured: under 16 MB extra for an 85-megapixel
-    input on the CPU, 0.5 MB on a GPU), so an image far larger than needed costs no more memory
-    than itself.
+    A centre crop to the aspect ratio, then area resampling (antialiased bilinear). Used by entry
+    points that take a user's photos.
+
+    The crop is a view, and the antialiased resampling works in separable passes whose
+    intermediates are about the size of the output (measured with torch 2.13: under 16 MB extra
+    for an 85-megapixel input on the CPU, 0.5 MB on a GPU), so an image far larger than needed
+    costs no memory beyond its own.
     """
     h, w = img.shape[-2:]
     target = width / height
