@@ -62,8 +62,10 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 
 def save_versioned(path: str | Path, kind: str, version: int, payload: dict) -> str:
-    """``torch.save`` of {kind, format_version, **payload}, atomically. The bytes never depend on
-    the file name (torch.save into memory first). Returns the sha256 (hex) of the bytes written."""
+    """``torch.save`` of {kind, format_version, **payload}, atomically; returns the sha256 (hex) of the bytes.
+
+    The bytes never depend on the file name (torch.save into memory first).
+    """
     buf = io.BytesIO()
     torch.save({"kind": kind, "format_version": version, **payload}, buf)
     data = buf.getvalue()

@@ -1,4 +1,4 @@
-"""Tests of generated data sets on disk (SPEC 7; `lensdist generate`) in lensdist_torch/dataset.py.
+"""Tests of generated data sets on disk (docs/method.md; `lensdist generate`) in lensdist_torch/data/shards.py.
 
 One tiny reference data set (96 x 128 views, 8 training and 4 + 2 test pairs, shards of 4) is
 generated once per module; array-job shares, resumed runs, worker processes and the command
@@ -8,6 +8,7 @@ line must all reproduce its files byte for byte.
 from __future__ import annotations
 
 import filecmp
+import hashlib
 import json
 import os
 import shutil
@@ -20,10 +21,10 @@ import torch
 
 from lensdist_torch.cli import main as cli_main
 from lensdist_torch.config import config_from_dict, config_to_dict
-from lensdist_torch.geometry.distortion import REJECT
 from lensdist_torch.data.shards import (
     FORMAT_VERSION,
     ShardError,
+    checksum_path,
     config_fingerprint,
     generate,
     load_scenes,
@@ -35,6 +36,7 @@ from lensdist_torch.data.shards import (
     write_shard,
 )
 from lensdist_torch.data.synthesis import make_pairs
+from lensdist_torch.geometry.distortion import REJECT
 
 TINY = {
     "image": {"height": 96, "width": 128},
@@ -91,11 +93,16 @@ class TestLayout:
         assert data_files(out) == [
             "manifest.json",
             "test/shard-00000.pt",
+            "test/shard-00000.pt.sha256",
             "test/shard-00001.pt",
+            "test/shard-00001.pt.sha256",
             "train/shard-00000.pt",
+            "train/shard-00000.pt.sha256",
             "train/shard-00001.pt",
+            "train/shard-00001.pt.sha256",
         ]
         assert summary["written"] == 4 and summary["pairs_generated"] == 14
+        assert summary["regenerated"] == [] and summary["manifest"] == "written" and summary["workers"] == 1
         tr, te = summary["sets"]["train"], summary["sets"]["test"]
         assert tr["complete"] and te["complete"]
         assert (tr["n_pairs"], tr["n_shards"], te["n_pairs"], te["n_shards"]) == (8, 2, 6, 2)
@@ -123,6 +130,9 @@ class TestLayout:
             assert rec["counts"].shape == (b - a, 1, 12, 16) and rec["counts"].dtype == torch.uint8
             # plain tensors and containers only: loads with weights_only=True
             torch.load(shard_path(out, s, k), weights_only=True)
+            # the checksum file is one `sha256sum` line
+            digest = hashlib.sha256(shard_path(out, s, k).read_bytes()).hexdigest()
+            assert checksum_path(shard_path(out, s, k)).read_text() == f"{digest}  shard-{k:05d}.pt\n"
 
     def test_shard_ranges(self):
         assert shard_ranges(10, 4) == [(0, 4), (4, 8), (8, 10)]
@@ -182,7 +192,13 @@ class TestLoadSet:
         out = tmp_path / "d"
         shutil.copytree(reference[0], out)
         shutil.copyfile(shard_path(out, "train", 0), shard_path(out, "train", 1))
-        with pytest.raises(ShardError, match="in order"):
+        with pytest.raises(ShardError, match=r"shard-00001\.pt is corrupted"):
+            load_set(out, "train")
+        # with its checksum file too: the shard holds the wrong pairs
+        shutil.copyfile(checksum_path(shard_path(out, "train", 0)), checksum_path(shard_path(out, "train", 1)))
+        checksum_path(shard_path(out, "train", 1)).write_text(
+            checksum_path(shard_path(out, "train", 0)).read_text().replace("00000", "00001"))
+        with pytest.raises(ShardError, match=r"holds 'train' pairs \[0, 4\), expected 'train' pairs \[4, 8\)"):
             load_set(out, "train")
 
 
@@ -222,6 +238,8 @@ class TestReproducible:
         os.utime(intact, (1_000_000, 1_000_000))
         summary = generate(CFG, out, progress=False)
         assert summary["written"] == 3 and summary["pairs_generated"] == 4 + 6
+        # the two damaged shards are reported (the missing one is just written)
+        assert len(summary["regenerated"]) == 2 and all("corrupted" in r for r in summary["regenerated"])
         assert intact.stat().st_mtime == 1_000_000  # skipped, not rewritten
         assert_same_shards(ref, out)
         assert filecmp.cmp(ref / "manifest.json", out / "manifest.json", shallow=False)
@@ -239,6 +257,8 @@ class TestReproducible:
         assert load_set(out, "test")["index"].tolist() == [0, 1, 2]
         full = generate(CFG, out, sets=["test"], progress=False)
         assert full["written"] == 2
+        assert full["regenerated"] == [f"shard {shard_path(out, 'test', 0)} holds 'test' pairs [0, 3), expected 'test' "
+                                       "pairs [0, 4) (a shard copied over another, or left by a shorter --limit run)"]
         assert load_set(out, "test")["index"].tolist() == list(range(6))
         assert_same_shards(ref, out, [("test", 0), ("test", 1)])
 
@@ -271,27 +291,43 @@ class TestReproducible:
 # ---------------------------------------------------------------------------------- shard checks
 
 
+def seal(path: Path) -> Path:
+    """Write the checksum file of ``path`` (a file not written by write_shard)."""
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    checksum_path(path).write_text(f"{digest}  {path.name}\n")
+    return path
+
+
 class TestShardErrors:
     def test_foreign_torch_file(self, tmp_path):
         p = tmp_path / "x.pt"
         torch.save({"a": 1}, p)
-        with pytest.raises(ShardError, match="not a lensdist shard"):
+        with pytest.raises(ShardError, match="no checksum file"):
+            load_shard(p)
+        seal(p)
+        with pytest.raises(ShardError, match="not a lensdist data-set shard"):
             load_shard(p)
         torch.save(torch.zeros(3), p)
-        with pytest.raises(ShardError, match="not a lensdist shard"):
+        seal(p)
+        with pytest.raises(ShardError, match="not a lensdist data-set shard"):
             load_shard(p)
 
     def test_pickled_object_is_refused(self, tmp_path):
         """weights_only: a pickle of an arbitrary object is never unpickled."""
         p = tmp_path / "x.pt"
         torch.save({"kind": "lensdist-shard", "obj": Path("/")}, p)
-        with pytest.raises(ShardError, match="corrupted or not a torch file"):
+        seal(p)
+        with pytest.raises(ShardError, match="corrupted or not a torch file") as exc:
             load_shard(p)
+        assert "\n" not in str(exc.value)  # one line
 
     def test_garbage_and_missing(self, tmp_path):
         p = tmp_path / "x.pt"
         p.write_bytes(b"not a zip file at all" * 10)
         with pytest.raises(ShardError, match=r"x\.pt"):
+            load_shard(p)
+        seal(p)
+        with pytest.raises(ShardError, match=r"x\.pt is corrupted or not a torch file"):
             load_shard(p)
         with pytest.raises(FileNotFoundError):
             load_shard(tmp_path / "missing.pt")
@@ -325,7 +361,8 @@ class TestShardErrors:
         write_shard(tmp_path / "b" / "two.pt", rec)
         assert (tmp_path / "a" / "one.pt").read_bytes() == (tmp_path / "b" / "two.pt").read_bytes()
         assert (tmp_path / "a" / "one.pt").read_bytes() == shard_path(out, "train", 0).read_bytes()
-        assert data_files(tmp_path) == ["a/one.pt", "b/two.pt"]  # no temporary file left
+        # no temporary file left
+        assert data_files(tmp_path) == ["a/one.pt", "a/one.pt.sha256", "b/two.pt", "b/two.pt.sha256"]
 
 
 # ---------------------------------------------------------------------------------- config checks
@@ -427,7 +464,7 @@ class TestCommandLine:
         cfg.write_text(TINY_TOML)
         out = tmp_path / "d"
         res = subprocess.run(
-            [sys.executable, "-m", "lensdist_torch.cli", "generate", "--config", str(cfg), "--out", str(out), "--quiet"],
+            [sys.executable, "-m", "lensdist_torch.cli", "generate", "--config", str(cfg), "--out", str(out), "--quiet", "--json"],
             capture_output=True,
             text=True,
             timeout=300,
@@ -438,10 +475,10 @@ class TestCommandLine:
         assert_same_shards(reference[0], out)
 
     @pytest.mark.parametrize("bad", ["3/2", "2/2", "-1/2", "1/0", "x", "1/2/3"])
-    def test_bad_shard(self, tmp_path, bad):
-        with pytest.raises(SystemExit) as exc:
-            cli_main(["generate", "--out", str(tmp_path / "d"), f"--shard={bad}"])
-        assert "--shard" in str(exc.value.code)
+    def test_bad_shard(self, tmp_path, bad, capsys):
+        code = cli_main(["generate", "--out", str(tmp_path / "d"), f"--shard={bad}"])
+        err = capsys.readouterr().err
+        assert code == 2 and "--shard" in err and err.count("\n") == 1
         assert not (tmp_path / "d").exists()
 
     def test_error_exit_code(self, tmp_path, capsys):
