@@ -20,7 +20,8 @@ from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
-from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, estimated_class
+from lensdist_torch.core.storage import CheckpointError, check_compatible
+from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, delta_avg, delta_max, estimated_class
 from lensdist_torch.geometry.registration import estimate_homography, warp_to_reference
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
@@ -43,14 +44,51 @@ def default_checkpoint(name: str = "delta_avg") -> Path:
     return path
 
 
+def _file_key(path) -> tuple[str, int, int]:
+    """(resolved path, mtime_ns, size): the cache key of a checkpoint.
+
+    A file replaced, rewritten or deleted is never answered from the cache.
+    """
+    p = Path(path)
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        raise FileNotFoundError(f"checkpoint not found: {p}") from None
+    return str(p.resolve()), st.st_mtime_ns, st.st_size
+
+
 @functools.lru_cache(maxsize=8)
-def _load_eigenspace(path: str) -> EigenSpaceClassifier:
+def _cached_eigenspace(path: str, mtime_ns: int, size: int) -> EigenSpaceClassifier:
     return EigenSpaceClassifier.load(path).eval()
 
 
 @functools.lru_cache(maxsize=4)
-def _load_regressor(path: str) -> DeltaRegressor:
+def _cached_regressor(path: str, mtime_ns: int, size: int) -> DeltaRegressor:
     return DeltaRegressor.load(path).eval()
+
+
+def _load_eigenspace(path) -> EigenSpaceClassifier:
+    return _cached_eigenspace(*_file_key(path))
+
+
+def _load_regressor(path) -> DeltaRegressor:
+    return _cached_regressor(*_file_key(path))
+
+
+def _eigenspace_models(checkpoint, checkpoint_max) -> tuple[EigenSpaceClassifier, EigenSpaceClassifier]:
+    """The Delta_avg and Delta_max classifiers, each checked against its metric.
+
+    Both must be fitted under the same image size, block size and thresholds.
+    """
+    paths = (checkpoint or default_checkpoint("delta_avg"), checkpoint_max or default_checkpoint("delta_max"))
+    models = tuple(_load_eigenspace(p) for p in paths)
+    for model, path, metric, option in zip(models, paths, METRICS, ("checkpoint (--checkpoint)", "checkpoint_max (--checkpoint-max)")):
+        if model.config.classifier.metric != metric:
+            raise CheckpointError(
+                f"{path} is a {model.config.classifier.metric} classifier, but {option} needs a {metric} one"
+            )
+    check_compatible(models[1].config, models[0].config, paths[1])
+    return models
 
 
 def _as_image(img, name: str) -> torch.Tensor:
@@ -62,10 +100,9 @@ def _as_image(img, name: str) -> torch.Tensor:
     return to_grey(x).float()
 
 
-def _eigenspace(qmap: torch.Tensor, checkpoint, checkpoint_max, cfg: LensdistConfig) -> dict:
+def _eigenspace(qmap: torch.Tensor, models, cfg: LensdistConfig) -> dict:
     """The paper's classifiers on a quality map: class, both Deltas, distances, domain check."""
-    model = _load_eigenspace(str(checkpoint or default_checkpoint("delta_avg")))
-    model_max = _load_eigenspace(str(checkpoint_max or default_checkpoint("delta_max")))
+    model, model_max = models
     with torch.no_grad():
         r_avg, r_max = model(qmap.flatten(1)), model_max(qmap.flatten(1))
     distances = [float(v) for v in r_avg.distances[0]]
@@ -81,9 +118,8 @@ def _eigenspace(qmap: torch.Tensor, checkpoint, checkpoint_max, cfg: LensdistCon
     }
 
 
-def _regression(qmap: torch.Tensor, checkpoint, cfg: LensdistConfig) -> dict:
+def _regression(qmap: torch.Tensor, reg: DeltaRegressor, cfg: LensdistConfig) -> dict:
     """The Delta regressor on a quality map: both Deltas with a confidence."""
-    reg = _load_regressor(str(checkpoint or default_checkpoint("regression")))
     with torch.no_grad():
         r = reg(qmap.flatten(1))
     return {
@@ -148,7 +184,10 @@ def analyze_pair(
             any size (both the same size).
         checkpoint: for ``eigenspace`` the Delta_avg checkpoint, for ``regression`` the
             regressor (default: the shipped ones, package data in lensdist_torch/checkpoints/).
-        checkpoint_max: for ``eigenspace``, the Delta_max checkpoint (default: shipped).
+            Refused (ValueError) with ``selfcal``, which uses none.
+        checkpoint_max: for ``eigenspace``, the Delta_max checkpoint (default: shipped); refused
+            with the other methods. Each eigen-space checkpoint must be fitted for its own metric
+            (CheckpointError otherwise).
         method: ``selfcal`` (the default and the most accurate: (k2, k4) estimated with the
             homography, with a confidence), ``regression`` (Delta from the quality map), or
             ``eigenspace`` (the paper's classifier).
@@ -171,12 +210,21 @@ def analyze_pair(
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    # an option the method does not use is refused, not ignored; checkpoints load before the images
+    if checkpoint_max is not None and method != "eigenspace":
+        raise ValueError(f"checkpoint_max (--checkpoint-max) is used by method 'eigenspace' only, not {method!r}")
+    if checkpoint is not None and method == "selfcal":
+        raise ValueError("checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'")
+    models = _eigenspace_models(checkpoint, checkpoint_max) if method == "eigenspace" else None
+    reg = _load_regressor(checkpoint or default_checkpoint("regression")) if method == "regression" else None
     a, b = _as_image(img1, "img1"), _as_image(img2, "img2")
     if a.shape[-2:] != b.shape[-2:]:
         raise ValueError(f"img1 and img2 must have the same size, got {tuple(a.shape[-2:])} and {tuple(b.shape[-2:])}")
     cfg = config if config is not None else LensdistConfig()
     if method == "eigenspace":
-        cfg = _load_eigenspace(str(checkpoint or default_checkpoint("delta_avg"))).config
+        cfg = models[0].config
+    elif method == "regression":
+        check_compatible(reg.config, cfg, checkpoint or default_checkpoint("regression"))
     h, w = cfg.image.size
     orig_h, orig_w = a.shape[-2:]
     scale = min(orig_w / w, orig_h / h)  # user px per analysis px (the crop keeps the aspect)
@@ -187,9 +235,9 @@ def analyze_pair(
     ok, overlap = bool(info.converged[0]), float(valid.mean())
     res = {"method": method, "distances": [], "reject_threshold": None, "confidence": None, "cannot_tell": False}
     if method == "eigenspace":
-        res.update(_eigenspace(qmap, checkpoint, checkpoint_max, cfg))
+        res.update(_eigenspace(qmap, models, cfg))
     elif method == "regression":
-        res.update(_regression(qmap, checkpoint, cfg))
+        res.update(_regression(qmap, reg, cfg))
     else:
         res.update(_selfcal(a, b, H, ok, cfg))
     far, diverged = res.pop("far_from_training", False), res.pop("diverged", False)
