@@ -77,9 +77,10 @@ def _block_mask(valid: torch.Tensor | None, maps: torch.Tensor) -> torch.Tensor 
     v = valid.detach().cpu().float().reshape(maps.shape[0], 1, *valid.shape[-2:])
     (h, w), (vh, vw) = maps.shape[-2:], v.shape[-2:]
     if (vh, vw) != (h, w):
-        if vh % h or vw % w or vh // h != vw // w:
-            raise ValueError(f"valid must be block-sized {(h, w)} or a whole multiple of it, got {(vh, vw)}")
-        v = torch.nn.functional.max_pool2d(v, vh // h)
+        b = vh // h
+        if b < 1 or vw // w != b:
+            raise ValueError(f"valid must be block-sized {(h, w)} or pixel-sized (a block size times it), got {(vh, vw)}")
+        v = torch.nn.functional.max_pool2d(v[..., : h * b, : w * b], b)
     return v > 0
 
 
@@ -91,7 +92,7 @@ def _map_image(ax, m: torch.Tensor, ok: torch.Tensor | None):
     m = m.detach().cpu().float().clone()
     if ok is not None:
         m[~ok] = float("nan")
-    return ax.imshow(m, cmap=cmap, vmin=0, vmax=1)
+    return ax.imshow(m.numpy(), cmap=cmap, vmin=0, vmax=1)
 
 
 def _map_colorbar(fig, im, axes, ok) -> None:
@@ -108,9 +109,9 @@ def save_demo_figure(
     """
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    axes[0].imshow(img1[0, 0].cpu(), cmap="gray", vmin=0, vmax=1)
+    axes[0].imshow(img1[0, 0].detach().cpu().float().numpy(), cmap="gray", vmin=0, vmax=1)
     axes[0].set_title("I1")
-    axes[1].imshow(img2[0, 0].cpu(), cmap="gray", vmin=0, vmax=1)
+    axes[1].imshow(img2[0, 0].detach().cpu().float().numpy(), cmap="gray", vmin=0, vmax=1)
     axes[1].set_title("I2 registered")
     ok = _block_mask(valid, qmap)
     im = _map_image(axes[2], qmap[0, 0], None if ok is None else ok[0, 0])
@@ -169,7 +170,7 @@ def save_confusion(confusion: torch.Tensor, labels, path, title: str = "") -> Pa
     plt = _plt()
     conf = confusion.detach().cpu()
     fig, ax = plt.subplots(figsize=(4.6, 3.8))
-    im = ax.imshow(conf, cmap="Blues", vmin=0)
+    im = ax.imshow(conf.float().numpy(), cmap="Blues", vmin=0)
     top = float(conf.max()) or 1.0
     for i in range(conf.shape[0]):
         for j in range(conf.shape[1]):
@@ -202,7 +203,7 @@ def save_eigenvectors(vectors: dict[str, torch.Tensor], shape: tuple[int, int], 
             if c < vectors[name].shape[0]:
                 v = vectors[name][c].detach().reshape(shape).cpu().float()
                 lim = float(v.abs().max()) or 1.0
-                im = ax.imshow(v, cmap="RdBu_r", vmin=-lim, vmax=lim)
+                im = ax.imshow(v.numpy(), cmap="RdBu_r", vmin=-lim, vmax=lim)
                 ax.set_title(f"{name} EV{c + 1}", fontsize=8)
                 cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
                 cb.ax.tick_params(labelsize=6)
