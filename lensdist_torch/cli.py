@@ -1,86 +1,130 @@
-"""The ``lensdist`` command line."""
+"""The ``lensdist`` command line.
+
+Results go to stdout: human text, or with ``--json`` exactly one strict JSON object (a missing
+figure is null). Progress bars and notes go to stderr. Every failure is one line
+``lensdist CMD: error: ...`` on stderr with exit status 2 (1 for an internal error, 130 after
+Ctrl-C); the global ``--debug`` adds the traceback. torch is imported inside the commands
+only, so ``lensdist --help`` stays fast.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import traceback
 from pathlib import Path
 
-import torch
+__all__ = ["main", "build_parser"]
 
-__all__ = ["main"]
+#: Exceptions that are the user's input or environment (a one-line error, exit 2); any other
+#: exception is an internal error (exit 1). CheckpointError and ShardError are ValueErrors.
+_USER_ERRORS = (ValueError, TypeError, OSError, ImportError)
 
 
+# ----------------------------------------------------------------------------- output helpers
+def _note(args: argparse.Namespace, text: str) -> None:
+    """A note for the user on stderr (silenced by --quiet)."""
+    if not getattr(args, "quiet", False):
+        print(text, file=sys.stderr)
+
+
+def _print_json(obj) -> None:
+    from lensdist_torch.workflows.reports import dumps_strict
+
+    print(dumps_strict(obj, indent=2))
+
+
+def _fmt(value, spec: str = ".1f", unit: str = " px") -> str:
+    """A number, or "n/a" where there is no (finite) estimate."""
+    return f"{value:{spec}}{unit}" if isinstance(value, (int, float)) and value == value and abs(value) != float("inf") else "n/a"
+
+
+def _check_out_file(path: str, option: str, suffixes: tuple[str, ...], shown: str | None = None) -> Path:
+    """Validate an output file before any long computation.
+
+    It must be a file path (not a directory) with one of ``suffixes`` (``shown`` in the message),
+    with nothing but a regular file there, in a folder that can be written.
+    """
+    p = Path(path)
+    want = shown or " or ".join(suffixes)
+    if path.endswith(("/", os.sep)) or p.is_dir():
+        raise ValueError(f"{option} must be a file path ending in {want}, got the directory {path!r}")
+    if p.exists() and not p.is_file():
+        raise ValueError(f"{option} {path} exists and is not a regular file (a device, FIFO or socket?)")
+    if p.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} must be a file path ending in {want}, got {path!r}")
+    _check_writable(p.parent, option, path)
+    return p
+
+
+def _check_out_dir(path: str, option: str) -> Path:
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{option} must be a folder, but {path} exists and is not one")
+    _check_writable(p, option, path)
+    return p
+
+
+def _check_writable(folder: Path, option: str, path: str) -> None:
+    """The nearest existing ancestor of ``folder`` must be a folder we may write in."""
+    here = folder.absolute()
+    while not here.exists() and here != here.parent:
+        here = here.parent
+    if not here.is_dir():
+        raise ValueError(f"cannot write {option} {path}: {here} is not a folder")
+    if not os.access(here, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot write {option} {path}: permission denied in {here}")
+
+
+# ----------------------------------------------------------------------------- commands
 def _cmd_demo(args: argparse.Namespace) -> int:
     """Two views of the gravel scene, the second misregistered by a known scale error."""
-    from kornia.geometry.transform import warp_perspective
-
+    out = _check_out_dir(args.out, "--out")
     from lensdist_torch.config import load_config
-    from lensdist_torch.geometry.distortion import distortion_center
-    from lensdist_torch.core.images import load_scene
-    from lensdist_torch.metric.quality import registration_quality
+    from lensdist_torch.workflows.demo import scale_error_demo
+    from lensdist_torch.workflows.figures import have_matplotlib, save_demo_figure
 
-    cfg = load_config(args.config)
-    h, w = cfg.image.height, cfg.image.width
-    scene = load_scene(args.scene)
-    y0, x0 = (scene.shape[-2] - h) // 2, (scene.shape[-1] - w) // 2
-    img1 = scene[..., y0 : y0 + h, x0 : x0 + w].contiguous()
-    # The registration error: a 1 % scale about the image centre (0.01 r px at radius r).
-    cx, cy = distortion_center(h, w)
-    s = 1.0 + args.scale_error
-    err = torch.tensor([[[s, 0.0, (1 - s) * cx], [0.0, s, (1 - s) * cy], [0.0, 0.0, 1.0]]])
-    img2 = warp_perspective(img1, err, (h, w), align_corners=True)
-    valid = warp_perspective(torch.ones_like(img1), err, (h, w), align_corners=True) > 0.999
-    res = registration_quality(img1, img2, valid.float(), cfg.quality)
-    qmap = res.registration_map
-    hb, wb = qmap.shape[-2:]
-    yy, xx = torch.meshgrid(torch.arange(hb), torch.arange(wb), indexing="ij")
-    r = torch.sqrt((yy - (hb - 1) / 2) ** 2 + (xx - (wb - 1) / 2) ** 2)
-    inner, outer = qmap[0, 0][r < r.max() / 3], qmap[0, 0][r > 2 * r.max() / 3]
-    summary = {
-        "scene": args.scene,
-        "size": [h, w],
-        "scale_error": args.scale_error,
-        "max_offset_px": args.scale_error * float(torch.hypot(torch.tensor(cx), torch.tensor(cy))),
-        "blocks": hb * wb,
-        "blocks_with_errors": int((qmap > 0).sum()),
-        "mean_error_ratio": float(qmap.mean()),
-        "quality_index": float(res.quality_index[0]),
-        "mean_error_ratio_centre_third": float(inner.mean()),
-        "mean_error_ratio_outer_third": float(outer.mean()),
-        "visual_error_blocks": int((res.visual_map > 0).sum()),
-    }
-    print(json.dumps(summary, indent=2))
+    summary, (img1, img2, qmap, valid) = scale_error_demo(load_config(args.config), args.scene, args.scale_error)
+    summary["figure"] = None
+    if have_matplotlib():
+        title = f"{args.scene}: {100 * args.scale_error:.1f} % scale error"
+        summary["figure"] = str(save_demo_figure(img1, img2, qmap, out / "demo.png", title, valid=valid))
+    else:
+        _note(args, "(install the 'plots' extra for a PNG of the images and the map)")
+    if args.json:
+        _print_json(summary)
+        return 0
     print(
         f"A {100 * args.scale_error:.1f} % scale error moves pixels by up to {summary['max_offset_px']:.1f} px: "
         f"{summary['blocks_with_errors']} of {summary['blocks']} blocks show registration errors, "
         f"{summary['mean_error_ratio_outer_third']:.3f} mean ratio in the outer third vs "
-        f"{summary['mean_error_ratio_centre_third']:.3f} in the centre."
+        f"{summary['mean_error_ratio_centre_third']:.3f} in the centre (quality index {summary['quality_index']:.3f})."
     )
-    from lensdist_torch.workflows.figures import have_matplotlib, save_demo_figure
-
-    if have_matplotlib():
-        out = Path(args.out)
-        path = save_demo_figure(img1, img2, qmap, out / "demo.png", f"{args.scene}: {100 * args.scale_error:.1f} % scale error")
-        print(f"figure: {path}")
-    else:
-        print("(install the 'plots' extra for a PNG of the images and the map)")
+    if summary["figure"]:
+        _note(args, f"figure: {summary['figure']}")
     return 0
 
 
+def _shards(summary: dict) -> tuple[int, int]:
+    """(shards written, shards reused) from a ``data.shards.generate`` summary."""
+    written = int(summary.get("written", 0))
+    total = sum(int(info.get("n_shards", 0)) for info in summary.get("sets", {}).values())
+    return written, max(0, total - written)
+
+
 def _cmd_generate(args: argparse.Namespace) -> int:
+    _check_out_dir(args.out, "--out")
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import generate
 
     cfg = load_config(args.config)
-    shard = _parse_shard(args.shard)
-    sets = args.sets.split(",")
     summary = generate(
         cfg,
         args.out,
-        sets=sets,
-        shard=shard,
+        sets=args.sets.split(","),
+        shard=_parse_shard(args.shard),
         workers=args.workers,
         batch_size=args.batch_size,
         scenes_dir=args.scenes if args.sequence is None else args.sequence,
@@ -88,11 +132,21 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         limit=args.limit,
         progress=not args.quiet,
     )
-    print(json.dumps(summary, indent=2))
+    if args.json:
+        _print_json(summary)
+        return 0
+    written, reused = _shards(summary)
+    print(f"{args.out}: {written} shards written ({summary.get('pairs_generated', '?')} pairs), {reused} reused")
+    for name, info in summary.get("sets", {}).items():
+        if info.get("complete"):
+            print(f"  {name}: {info['n_pairs']} pairs, complete; registration failed for {info['registration_failed']}")
+        else:
+            print(f"  {name}: {info.get('shards_present', 0)} of {info['n_shards']} shards present (other --shard jobs)")
     return 0
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    out = _check_out_file(args.out, "--out", (".pt",))
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import load_set
     from lensdist_torch.workflows.evaluate import fit_classifier
@@ -100,24 +154,37 @@ def _cmd_train(args: argparse.Namespace) -> int:
     train = load_set(args.data, "train")
     cfg = train["config"] if args.config is None else load_config(args.config)
     model = fit_classifier(train, cfg, args.eigenvectors, args.metric)
-    model.save(args.out)
-    print(json.dumps({
-        "checkpoint": str(args.out),
+    model.save(out)
+    summary = {
+        "checkpoint": str(out),
         "metric": model.config.classifier.metric,
         "n_eigenvectors": model.config.classifier.n_eigenvectors,
         "training_pairs": int(model.train_class.numel()),
         "left_out_failed_registration": int((~train["converged"]).sum()),
         "explained_variance": model.explained.tolist(),
         "reject_threshold": float(model.reject_threshold),
-    }, indent=2))
+    }
+    if args.json:
+        _print_json(summary)
+        return 0
+    print(
+        f"{out}: eigen-space classifier for {summary['metric']}, {summary['n_eigenvectors']} eigenvectors per class, "
+        f"{summary['training_pairs']} training pairs ({summary['left_out_failed_registration']} left out: "
+        f"registration failed); explained variance per class "
+        + ", ".join(f"{v:.2f}" for v in summary["explained_variance"])
+        + f"; reject above {summary['reject_threshold']:.3f}"
+    )
     return 0
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from lensdist_torch.data.shards import load_set
+    _check_out_dir(args.out, "--out")
+    if not (args.checkpoint or args.regression or args.selfcal):
+        raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
     from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
-    from lensdist_torch.workflows.reports import write_report
+    from lensdist_torch.data.shards import load_set
     from lensdist_torch.workflows.evaluate import evaluate_classifier
+    from lensdist_torch.workflows.reports import write_report
 
     test = load_set(args.data, "test")
     settings = {}
@@ -126,9 +193,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         c = model.config.classifier
         settings[f"{c.n_eigenvectors} EV, {c.metric}"] = evaluate_classifier(model, test)
     if args.regression:
-        from lensdist_torch.workflows.evaluate import evaluate_regressor
-        from lensdist_torch.workflows.evaluate import features_of
         from lensdist_torch.classify.regression import DeltaRegressor
+        from lensdist_torch.workflows.evaluate import evaluate_regressor, features_of
 
         reg = DeltaRegressor.load(args.regression, expected=test["config"])
         for metric, fig in evaluate_regressor(reg, test, features_of(test, test["config"])).items():
@@ -140,57 +206,92 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if any(":" in s for s in read_manifest(args.data)["scenes"]):
             raise ValueError("--selfcal re-renders the test pairs and needs a data set of the embedded scenes")
         scenes, _ = load_scenes(test["config"])
-        for metric, fig in evaluate_selfcal(test, test["config"], scenes).items():
+        for metric, fig in evaluate_selfcal(test, test["config"], scenes, progress=not args.quiet).items():
             settings[f"selfcal, {metric}"] = fig
-    if not settings:
-        raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
     report = {"title": f"lensdist evaluate: {args.data}", "settings": settings}
     md, js = write_report(report, args.out, "evaluate")
+    if args.json:
+        _print_json({**report, "written": [str(md), str(js)]})
+        return 0
     print(Path(md).read_text())
-    print(f"written: {md}, {js}")
+    _note(args, f"written: {md}, {js}")
     return 0
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
+    _check_out_dir(args.out, "--out")
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.reproduce import reproduce
 
     cfg = load_config(args.config)
     res = reproduce(cfg, args.out, quick=args.quick, workers=args.workers, batch_size=args.batch_size, progress=not args.quiet)
-    print(Path(res["markdown"]).read_text())
-    print(f"written: {res['markdown']}, {res['json']}")
+    report = json.loads(Path(res["json"]).read_text())
+    written, reused = _shards(report.get("generation", {}))
+    if args.json:
+        _print_json({**report, "written": [res["markdown"], res["json"]]})
+    else:
+        print(Path(res["markdown"]).read_text())
+    _note(args, f"data: {written} shards generated, reused {reused} shards" if reused else f"data: {written} shards generated")
+    _note(args, f"written: {res['markdown']}, {res['json']}")
     return 0
 
 
 def _cmd_analyze(args: argparse.Namespace) -> int:
+    if args.save_map:
+        from lensdist_torch.workflows.figures import figure_formats, have_matplotlib
+
+        if not have_matplotlib():
+            raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
+        _check_out_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)")
     from lensdist_torch.workflows.analyze import analyze_pair
 
     res, qmap = analyze_pair(
         args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max, method=args.method, return_map=True
     )
-    if args.save_map:
-        from lensdist_torch.workflows.figures import have_matplotlib, save_map_grid
-
-        if not have_matplotlib():
-            raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
-        save_map_grid(qmap, [f"class {res['class']}, Delta_avg {res['delta_avg']:.1f} px"], args.save_map)
+    # the result first: a failure to write the map must not lose the analysis
     if args.json:
-        print(json.dumps(res))
-        return 0
+        _print_json(res)
+    else:
+        _print_analysis(res)
+    if args.save_map:
+        from lensdist_torch.workflows.figures import save_map_grid
+
+        label = f"{res['method']}: Delta_avg {_fmt(res['delta_avg'])}"
+        save_map_grid(qmap, [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"]])
+        _note(args, f"map: {args.save_map}")
+    return 0
+
+
+def _print_analysis(res: dict) -> None:
     print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
     conf = "" if res["confidence"] is None else f", confidence {res['confidence']:.2f}"
     print(f"method: {res['method']}{conf}")
     print(f"distortion class: {res['class']}  (1 = small ... 4 = very strong, R = none visible)")
+    (h, w), (ih, iw) = res["analysis_size"], res["input_size"]
     print(
-        f"Delta_avg ~ {res['delta_avg']:.1f} px, Delta_max ~ {res['delta_max']:.1f} px at {res['analysis_size'][1]} x "
-        f"{res['analysis_size'][0]} (in your {res['input_size'][1]} x {res['input_size'][0]} pixels: "
-        f"{res['delta_avg_user_px']:.1f} and {res['delta_max_user_px']:.1f} px)"
+        f"Delta_avg ~ {_fmt(res['delta_avg'])}, Delta_max ~ {_fmt(res['delta_max'])} at {w} x {h} (in your {iw} x {ih} "
+        f"pixels: {_fmt(res['delta_avg_user_px'])} and {_fmt(res['delta_max_user_px'])})"
     )
     if res["distances"]:
         print("eigen-space distances: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
     for w in res["warnings"]:
         print(f"warning: {w}")
-    return 0
+
+
+def _valid_blocks(res: dict, qmap):
+    """(1, 1, h, w): blocks of the analysis frame with a valid pixel after the registration.
+
+    The metric's eroded validity, so that the map shows blocks without a valid pixel in grey.
+    """
+    import torch
+
+    from lensdist_torch import erode_valid, warp_to_reference
+
+    h, w = res["analysis_size"]
+    _, valid = warp_to_reference(torch.ones(1, 1, h, w), torch.tensor([res["homography"]]))
+    b = h // qmap.shape[-2]
+    v = erode_valid(valid.float())[..., : qmap.shape[-2] * b, : qmap.shape[-1] * b]
+    return torch.nn.functional.max_pool2d(v, b) > 0
 
 
 def _parse_shard(text: str | None) -> tuple[int, int]:
@@ -199,84 +300,147 @@ def _parse_shard(text: str | None) -> tuple[int, int]:
     try:
         i, n = (int(v) for v in text.split("/"))
     except ValueError:
-        raise SystemExit(f"--shard must look like I/N (e.g. 0/4), got {text!r}") from None
+        raise ValueError(f"--shard must look like I/N (e.g. 0/4), got {text!r}") from None
     if not (n >= 1 and 0 <= i < n):
-        raise SystemExit(f"--shard I/N needs 0 <= I < N, got {text!r}")
+        raise ValueError(f"--shard I/N needs 0 <= I < N, got {text!r}")
     return (i, n)
 
 
+# ----------------------------------------------------------------------------- the parser
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults in every option's help; the epilog's example lines kept as written.
+
+    An option whose default is None or a flag's False says in its own words what happens when
+    it is omitted, so "(default: None)" is not appended to it.
+    """
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="lensdist", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+    """The ``lensdist`` parser: one subcommand per workflow."""
+    from lensdist_torch import __version__
 
-    p = sub.add_parser("demo", help="quality map of a known misregistration on the embedded scene")
-    p.add_argument("--scene", default="gravel")
+    parser = argparse.ArgumentParser(
+        prog="lensdist",
+        description="Registration-quality maps and the analysis of lens distortions (docs/method.md).\n"
+        "Results on stdout (--json: one JSON object), progress and notes on stderr, errors as one line.",
+        epilog="examples:\n  lensdist demo\n  lensdist analyze left.jpg right.jpg --json\n  lensdist reproduce --quick",
+        formatter_class=_Formatter,
+    )
+    parser.add_argument("--version", action="version", version=f"lensdist {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="show the traceback of an error")
+
+    def command(name: str, help: str, example: str, func, json_help: str, quiet: str | None = None):
+        p = sub.add_parser(name, help=help, description=help, epilog=f"example:\n  {example}", parents=[common],
+                           formatter_class=_Formatter)
+        p.add_argument("--json", action="store_true", help=json_help)
+        if quiet:
+            p.add_argument("--quiet", action="store_true", help=quiet)
+        p.set_defaults(func=func)
+        return p
+
+    defaults = "TOML config (the defaults of docs/method.md when omitted)"
+    p = command("demo", "quality map of a known misregistration on the embedded scene",
+                "lensdist demo --scale-error 0.02 --out results", _cmd_demo, "print only the summary as one JSON object")
+    p.add_argument("--scene", default="gravel", help="embedded scene")
     p.add_argument("--scale-error", type=float, default=0.01, help="relative scale error of the second view")
-    p.add_argument("--config", default=None, help="TOML config (SPEC defaults when omitted)")
-    p.add_argument("--out", default="results", help="folder for the PNG")
-    p.set_defaults(func=_cmd_demo)
+    p.add_argument("--config", default=None, help=defaults)
+    p.add_argument("--out", default="results", help="folder for demo.png")
 
-    p = sub.add_parser("generate", help="generate the paper's training and test pairs as shards")
-    p.add_argument("--config", default=None, help="TOML config, e.g. configs/paper.toml")
+    p = command("generate", "generate the paper's training and test pairs as shards",
+                "lensdist generate --config configs/paper.toml --out data/paper --workers 4", _cmd_generate,
+                "print the summary as one JSON object", "no progress bar")
+    p.add_argument("--config", default=None, help=defaults + ", e.g. configs/paper.toml")
     p.add_argument("--out", required=True, help="output folder (shards + manifest.json)")
     p.add_argument("--sets", default="train,test", help="comma-separated: train,test")
-    p.add_argument("--shard", default=None, help="I/N: this job's share of the shards (array jobs)")
+    p.add_argument("--shard", default=None, help="I/N: this job's share of the shards (array jobs; default: all)")
     p.add_argument("--workers", type=int, default=2, help="worker processes (one thread each)")
     p.add_argument("--batch-size", type=int, default=16, help="pairs per batch (the maps do not depend on it; H only to ~1e-6)")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--scenes", default=None, help="folder of real, undistorted scene images")
+    src.add_argument("--scenes", default=None, help="folder of real, undistorted scene images (default: the embedded scenes)")
     src.add_argument("--sequence", default=None, help="folder of consecutive frames of a real, undistorted sequence: "
                      "pairs of consecutive frames instead of synthetic motion")
-    p.add_argument("--limit", type=int, default=None, help="only the first N pairs of each set")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_generate)
+    p.add_argument("--limit", type=int, default=None, help="only the first N pairs of each set (default: all)")
 
-    p = sub.add_parser("train", help="fit the eigen-space classifier on generated training pairs")
+    p = command("train", "fit the eigen-space classifier on generated training pairs",
+                "lensdist train --data data/paper --out ckpt/eigenspace_avg_10ev.pt --metric delta_avg --eigenvectors 10",
+                _cmd_train, "print the summary as one JSON object")
     p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
-    p.add_argument("--out", required=True, help="checkpoint path (.pt)")
-    p.add_argument("--metric", choices=["delta_avg", "delta_max"], default=None)
-    p.add_argument("--eigenvectors", type=int, default=None, help="eigenvectors per class (paper: 5 or 10)")
+    p.add_argument("--out", required=True, help="checkpoint file path, ending in .pt (not a folder)")
+    p.add_argument("--metric", choices=["delta_avg", "delta_max"], default=None, help="Delta metric (default: the config's)")
+    p.add_argument("--eigenvectors", type=int, default=None, help="eigenvectors per class (paper: 5 or 10; default: the config's)")
     p.add_argument("--config", default=None, help="TOML config (default: the data set's own)")
-    p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("evaluate", help="evaluate checkpoints on a generated test set (Markdown + JSON)")
+    p = command("evaluate", "evaluate checkpoints on a generated test set (Markdown + JSON)",
+                "lensdist evaluate --data data/paper --checkpoint ckpt/eigenspace_avg_10ev.pt --selfcal --out results",
+                _cmd_evaluate, "print the report as one JSON object", "no progress bar, no notes")
     p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
     p.add_argument("--checkpoint", nargs="+", default=None, help="one or more eigen-space checkpoints")
-    p.add_argument("--regression", default=None, help="a DeltaRegressor checkpoint (e.g. checkpoints/regression.pt)")
+    p.add_argument("--regression", default=None, help="a DeltaRegressor checkpoint")
     p.add_argument("--selfcal", action="store_true", help="also self-calibrate every test pair (re-rendered)")
     p.add_argument("--out", default="results", help="report folder")
-    p.set_defaults(func=_cmd_evaluate)
 
-    p = sub.add_parser("reproduce", help="the paper's Tables 1 and 2 on the embedded scenes, one command")
-    p.add_argument("--config", default=None, help="TOML config (SPEC defaults = configs/paper.toml)")
+    p = command("reproduce", "the paper's Tables 1 and 2 on the embedded scenes, one command",
+                "lensdist reproduce --quick --out results/quick", _cmd_reproduce,
+                "print the report as one JSON object", "no progress bars, no notes")
+    p.add_argument("--config", default=None, help=defaults + " (= configs/paper.toml)")
     p.add_argument("--out", default="results/reproduce", help="folder for data, checkpoints and the report")
     p.add_argument("--quick", action="store_true", help="a tenth of the pairs, for a first look")
     p.add_argument("--workers", type=int, default=2, help="worker processes for generation")
-    p.add_argument("--batch-size", type=int, default=16)
-    p.add_argument("--quiet", action="store_true")
-    p.set_defaults(func=_cmd_reproduce)
+    p.add_argument("--batch-size", type=int, default=16, help="pairs per batch for generation")
 
-    p = sub.add_parser("analyze", help="analyse your own pair of overlapping photographs")
-    p.add_argument("img1")
-    p.add_argument("img2")
+    p = command("analyze", "analyse your own pair of overlapping photographs",
+                "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", _cmd_analyze,
+                "print the result as one JSON object", "no notes on stderr")
+    p.add_argument("img1", help="first image")
+    p.add_argument("img2", help="second image, overlapping the first")
     p.add_argument("--method", choices=["selfcal", "regression", "eigenspace"], default="selfcal",
-                   help="selfcal (default, most accurate), regression, or the paper's eigenspace")
-    p.add_argument("--checkpoint", default=None, help="eigenspace Delta_avg or regression checkpoint (default: shipped)")
-    p.add_argument("--checkpoint-max", default=None, help="Delta_max checkpoint (default: shipped)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--save-map", default=None, help="PNG of the quality map")
-    p.set_defaults(func=_cmd_analyze)
+                   help="selfcal (most accurate), regression, or the paper's eigenspace")
+    p.add_argument("--checkpoint", default=None,
+                   help="eigenspace: the Delta_avg classifier; regression: the regressor (default: shipped)")
+    p.add_argument("--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)")
+    p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
     return parser
 
 
+def _one_line(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror and exc.filename:
+        text = f"{exc.filename}: {exc.strerror}"
+    else:
+        text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 500 else text[:497] + "..."
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Run ``lensdist`` with ``argv`` (default: the process arguments); returns the exit status."""
+    args = build_parser().parse_args(argv)
+    prog = f"lensdist {args.command}"
     try:
         return int(args.func(args) or 0)
-    except (ValueError, FileNotFoundError, TypeError) as exc:
-        print(f"lensdist {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    except KeyboardInterrupt:
+        if args.debug:
+            traceback.print_exc()
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:  # stdout closed early (`| head`): not an error worth a message
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
+    except Exception as exc:
+        if args.debug:
+            traceback.print_exc()
+        if isinstance(exc, _USER_ERRORS):
+            print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
+            return 2
+        hint = "" if args.debug else " (run with --debug for the traceback)"
+        print(f"{prog}: error: internal error: {type(exc).__name__}: {_one_line(exc)}{hint}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

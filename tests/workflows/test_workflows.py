@@ -136,8 +136,9 @@ class TestTinyProtocol:
         out, _ = tiny_run
         ck = tmp_path / "m.pt"
         cmd = [sys.executable, "-m", "lensdist_torch.cli"]
-        subprocess.run(cmd + ["train", "--data", str(out / "data"), "--out", str(ck), "--metric", "delta_max",
-                              "--eigenvectors", "3"], check=True, capture_output=True, timeout=300)
+        r = subprocess.run(cmd + ["train", "--data", str(out / "data"), "--out", str(ck), "--metric", "delta_max",
+                                  "--eigenvectors", "3", "--json"], check=True, capture_output=True, text=True, timeout=300)
+        assert json.loads(r.stdout)["checkpoint"] == str(ck)
         raw = torch.load(ck, weights_only=True)
         assert raw["config"]["classifier"] == {**raw["config"]["classifier"], "metric": "delta_max", "n_eigenvectors": 3}
         r = subprocess.run(cmd + ["evaluate", "--data", str(out / "data"), "--checkpoint", str(ck), "--out", str(tmp_path)],
@@ -166,6 +167,27 @@ class TestTinyProtocol:
         )
         if SHIPPED.is_file():
             assert r.returncode == 2 and "image size" in r.stderr
+
+
+    def test_reproduce_cli_reuses_shards(self, tiny_run, tmp_path, capsys):
+        """On existing data, `lensdist reproduce` says how many shards it reused; --json prints
+        the report alone on stdout, strict (no NaN)."""
+        import shutil
+
+        out, _ = tiny_run
+        shutil.copytree(out / "data", tmp_path / "data")
+        (tmp_path / "tiny.toml").write_text(
+            "[image]\nheight = 96\nwidth = 128\n\n[protocol]\nn_train = 200\nn_test_distorted = 8\n"
+            "n_test_undistorted = 4\nshard_size = 100\n\n[classifier]\nn_eigenvectors = 2\n"
+        )
+        from lensdist_torch.cli import main
+
+        code = main(["reproduce", "--config", str(tmp_path / "tiny.toml"), "--out", str(tmp_path), "--workers", "1", "--json"])
+        r = capsys.readouterr()
+        assert code == 0, r.err
+        rep = json.loads(r.out, parse_constant=lambda c: pytest.fail(f"{c} in strict JSON"))
+        assert rep["generation"]["written"] == 0 and "10 EV, delta_avg" in rep["settings"]
+        assert "reused 3 shards" in r.err
 
 
 class TestSequence:
@@ -210,9 +232,9 @@ class TestSequence:
 
 def test_demo_cli(tmp_path):
     """`lensdist demo`: a 1 % scale error gives more errors in the outer third than the centre."""
-    r = subprocess.run([sys.executable, "-m", "lensdist_torch.cli", "demo", "--out", str(tmp_path)],
+    r = subprocess.run([sys.executable, "-m", "lensdist_torch.cli", "demo", "--out", str(tmp_path), "--json"],
                        capture_output=True, text=True, timeout=300, check=True)
-    summary = json.loads(r.stdout[: r.stdout.index("}") + 1])
+    summary = json.loads(r.stdout)  # --json: one JSON object and nothing else on stdout
     assert summary["blocks"] == 40 * 53
     assert summary["max_offset_px"] == pytest.approx(0.01 * (211.5**2 + 159.5**2) ** 0.5, rel=1e-3)
     assert summary["mean_error_ratio_outer_third"] > 2 * summary["mean_error_ratio_centre_third"]
