@@ -1,0 +1,112 @@
+"""Host syncs and torch.compile: the value checks are switchable (``validate``, kornia's
+convention) and skipped while compiling, so the compiled loss has no graph break."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from metric_helpers import textured
+
+import lensdist_torch.metric._inputs as inputs
+from lensdist_torch import (
+    RegistrationQuality,
+    RegistrationQualityLoss,
+    local_criteria,
+    quality_map,
+    registration_error_counts,
+    registration_quality,
+    registration_quality_loss,
+)
+from lensdist_torch.metric.stateful import RegistrationQualityMetric
+
+pytestmark = pytest.mark.usefixtures("one_thread_module")
+
+
+def _compiled_vs_eager(backend: str) -> None:
+    torch._dynamo.reset()
+    loss_fn = RegistrationQualityLoss()  # validate=True: skipped while compiling
+    compiled = torch.compile(loss_fn, fullgraph=True, backend=backend)  # raises on a graph break
+    img1 = textured(1, 32, 32, seed=0, dtype=torch.float32)
+    img2 = torch.roll(img1, 1, dims=-1)
+    valid = torch.ones(1, 1, 32, 32)
+    valid[..., :, :5] = 0
+    x_eager = img1.clone().requires_grad_()
+    x_comp = img1.clone().requires_grad_()
+    eager = loss_fn(x_eager, img2, valid)
+    eager.backward()
+    comp = compiled(x_comp, img2, valid)
+    comp.backward()
+    assert float(eager.detach()) > 0.1
+    torch.testing.assert_close(comp.detach(), eager.detach(), atol=1e-5, rtol=0)
+    torch.testing.assert_close(x_comp.grad, x_eager.grad, atol=1e-5, rtol=0)
+
+
+@pytest.mark.slow
+def test_compiled_loss_inductor_equals_eager():
+    """The default backend (inductor, C++ on the CPU): forward and backward, no graph break.
+
+    About 25 s of CPU on a cold inductor cache (a few seconds warm); marked slow.
+    """
+    _compiled_vs_eager("inductor")
+
+
+def test_compiled_loss_has_no_graph_break():
+    """The same through dynamo and AOTAutograd without code generation (2 s): the graph-break
+    check that stays in a ``-m "not slow"`` run."""
+    _compiled_vs_eager("aot_eager")
+
+
+def _counting(monkeypatch):
+    calls = []
+    original = inputs.check_values
+
+    def counted(*args, **kwargs):
+        calls.append(args)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(inputs, "check_values", counted)
+    return calls
+
+
+def test_validate_false_skips_the_value_checks(monkeypatch):
+    calls = _counting(monkeypatch)
+    img = torch.rand(2, 1, 16, 24)
+    valid = torch.ones(2, 1, 16, 24)
+    entry_points = [
+        lambda v: quality_map(img, img, valid, validate=v),
+        lambda v: registration_error_counts(img, img, valid, validate=v),
+        lambda v: registration_quality(img, img, valid, validate=v),
+        lambda v: registration_quality(img, img, valid, smooth=True, validate=v),
+        lambda v: registration_quality_loss(img, img, valid, validate=v),
+        lambda v: local_criteria(img, img, validate=v),
+        lambda v: RegistrationQuality(validate=v)(img, img, valid),
+        lambda v: RegistrationQualityLoss(validate=v)(img, img, valid),
+        lambda v: RegistrationQualityMetric(validate=v).update(img, img, valid),
+    ]
+    for call in entry_points:
+        call(False)
+    assert calls == []
+    for call in entry_points:
+        call(True)
+    assert len(calls) == len(entry_points)
+
+
+def test_checks_are_skipped_while_compiling(monkeypatch):
+    calls = _counting(monkeypatch)
+    img = torch.rand(1, 1, 16, 16)
+    monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)
+    registration_quality_loss(img, img)
+    quality_map(img, img)
+    assert calls == []
+
+
+@pytest.mark.bad_input
+def test_validate_false_trusts_the_values():
+    """Without the checks a 0-255 float image goes through (the caller vouches for it)."""
+    img = 255 * torch.rand(1, 1, 16, 16)
+    with pytest.raises(ValueError, match="data_range=255"):
+        RegistrationQualityLoss()(img, img)
+    assert float(RegistrationQualityLoss(validate=False)(img, img)) >= 0
+    # shapes and types are still checked
+    with pytest.raises(ValueError, match="same shape"):
+        quality_map(img, img[..., :8], validate=False)
