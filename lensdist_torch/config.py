@@ -16,23 +16,21 @@ may override any field. Sections of the TOML file map one to one onto the datacl
 Every threshold of a decision lives here, nowhere else.
 
 Unknown sections or keys are an error (a typo must not silently fall back to a default), and
-so is every value of the wrong type or outside its range: each dataclass checks all of its
-fields when it is built, and the one-line ``ValueError`` names the section and the field
-(``protocol.ty_range must be (low, high) ...``). Integer fields take ints only (not floats, not
-bools); number fields take ints or floats (stored as floats) but not bools; tuple fields take
-tuples or lists (stored as tuples). ``configs/paper.toml`` writes every default out.
+so is a value of the wrong type or out of range: a one-line ``ValueError`` names the section and
+field (``protocol.ty_range must be (low, high) ...``); the checks are in ``config_checks.py``.
+``configs/paper.toml`` writes every default out.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
-import numbers
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
+
+from lensdist_torch.config_checks import choice, flag, integer, integers, names, one_line, pair, positive, real, show
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -40,19 +38,9 @@ else:  # Python 3.10: the same parser, as a package
     import tomli as tomllib
 
 __all__ = [
-    "QualityConfig",
-    "ImageConfig",
-    "DistortionConfig",
-    "ProtocolConfig",
-    "ClassifierConfig",
-    "RegistrationConfig",
-    "SelfCalConfig",
-    "RegressionConfig",
-    "AnalysisConfig",
-    "LensdistConfig",
-    "load_config",
-    "config_to_dict",
-    "config_from_dict",
+    "QualityConfig", "ImageConfig", "DistortionConfig", "ProtocolConfig", "ClassifierConfig",
+    "RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "LensdistConfig",
+    "load_config", "config_to_dict", "config_from_dict",
 ]
 
 
@@ -63,8 +51,7 @@ class QualityConfig:
     Attributes:
         block_size: side of the square pooling blocks in pixels.
         theta_g: gradient-magnitude threshold of the risk map (normalised Sobel on [0, 1]).
-        theta_e: edge-preservation threshold below which a structured pixel is an error; in
-            ]0, gamma[.
+        theta_e: edge-preservation threshold (in ]0, gamma[) below which a structured pixel errs.
         theta_d: intensity-difference threshold of the visual error.
         min_block_ratio: block error ratios below this are set to 0; in [0, 1].
         gamma, k, sigma: Xydeas-Petrovic constants of the edge-preservation sigmoid
@@ -74,8 +61,6 @@ class QualityConfig:
         chunk_size: pairs processed at once inside a big batch, so that the intermediates of a
             chunk stay in the CPU cache. The result does not depend on it.
     """
-
-    _section: ClassVar[str] = "quality"
 
     block_size: int = 8
     theta_g: float = 0.02
@@ -92,40 +77,33 @@ class QualityConfig:
     chunk_size: int = 2
 
     def __post_init__(self) -> None:
-        _int(self, "block_size")
-        _int(self, "chunk_size")
+        integer(self, "block_size")
+        integer(self, "chunk_size")
         for name in ("theta_g", "theta_d", "tau_g", "tau_e", "tau_d", "tau_b"):
-            _real(self, name, lo=0, lo_open=True)
-        _real(self, "gamma", lo=0, hi=1, lo_open=True)
-        _real(self, "theta_e", lo=0, hi=self.gamma, lo_open=True, hi_open=True, hi_name=f"gamma={self.gamma}")
-        _real(self, "min_block_ratio", lo=0, hi=1)
-        _real(self, "k", hi=0, hi_open=True, why="E grows with A")
-        _real(self, "sigma", lo=0, hi=1, lo_open=True, hi_open=True)
+            real(self, name, lo=0, lo_open=True)
+        real(self, "gamma", lo=0, hi=1, lo_open=True)
+        real(self, "theta_e", lo=0, hi=self.gamma, lo_open=True, hi_open=True, hi_name=f"gamma={self.gamma}")
+        real(self, "min_block_ratio", lo=0, hi=1)
+        real(self, "k", hi=0, hi_open=True, why="E grows with A")
+        real(self, "sigma", lo=0, hi=1, lo_open=True, hi_open=True)
 
     def with_temperature_scale(self, factor: float) -> "QualityConfig":
         """A copy with every temperature multiplied by ``factor`` (for annealing)."""
-        _check_positive_float("factor", factor)
-        return dataclasses.replace(
-            self,
-            tau_g=self.tau_g * factor,
-            tau_e=self.tau_e * factor,
-            tau_d=self.tau_d * factor,
-            tau_b=self.tau_b * factor,
-        )
+        positive("factor", factor)
+        t = {name: getattr(self, name) * factor for name in ("tau_g", "tau_e", "tau_d", "tau_b")}
+        return dataclasses.replace(self, **t)
 
 
 @dataclass(frozen=True)
 class ImageConfig:
     """Analysis size (docs/method.md section 1): 320 x 424 gives 40 x 53 blocks, feature vectors of 2120."""
 
-    _section: ClassVar[str] = "image"
-
     height: int = 320
     width: int = 424
 
     def __post_init__(self) -> None:
-        _int(self, "height")
-        _int(self, "width")
+        integer(self, "height")
+        integer(self, "width")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -141,20 +119,17 @@ class DistortionConfig:
     1-4 and R.
     """
 
-    _section: ClassVar[str] = "distortion"
-
     k2_max: float = 2.5e-6
     k4_max: float = 2.5e-11
     n_classes: int = 4
 
     def __post_init__(self) -> None:
-        _real(self, "k2_max", lo=0, lo_open=True)
-        _real(self, "k4_max", lo=0, lo_open=True)
-        _int(self, "n_classes")
+        real(self, "k2_max", lo=0, lo_open=True)
+        real(self, "k4_max", lo=0, lo_open=True)
+        integer(self, "n_classes")
         if self.n_classes != 4:
             raise ValueError(
-                f"distortion.n_classes must be 4 (the labels are the classes 1-4 and R of "
-                f"docs/method.md section 6), got {self.n_classes}"
+                f"distortion.n_classes must be 4 (the labels are the classes 1-4 and R), got {self.n_classes}"
             )
 
 
@@ -162,19 +137,9 @@ class DistortionConfig:
 class ProtocolConfig:
     """The pair protocol (docs/method.md section 7): motion ranges, set sizes, seed.
 
-    Attributes:
-        seed: the protocol seed (any int); pair i of a set is a function of (seed, set, i).
-        scenes: names of the embedded scenes (a tuple of distinct non-empty strings).
-        n_train, n_test_distorted, n_test_undistorted: set sizes (ints >= 0).
-        ty_range, tx_range: (low, high) of the translations, px; two finite numbers.
-        rotation_deg: rotations are uniform in [-rotation_deg, rotation_deg]; >= 0.
-        scale_range: (low, high) of the scale; two positive numbers.
-        perspective: the perspective terms are uniform in [-perspective, perspective]; >= 0.
-        perturbation: half-width of the relative class-R perturbation, in [0, 1[.
-        shard_size: pairs per shard file (a positive int).
+    ``seed`` is any int; ``scenes`` distinct embedded scene names; the ranges (low, high); the
+    rotation and perspective half-widths >= 0; the class-R ``perturbation`` in [0, 1[.
     """
-
-    _section: ClassVar[str] = "protocol"
 
     seed: int = 0
     scenes: tuple[str, ...] = ("gravel", "grass")
@@ -190,24 +155,22 @@ class ProtocolConfig:
     shard_size: int = 500
 
     def __post_init__(self) -> None:
-        _int(self, "seed", lo=None)
-        _names(self, "scenes")
+        integer(self, "seed", lo=None)
+        names(self, "scenes")
         for name in ("n_train", "n_test_distorted", "n_test_undistorted"):
-            _int(self, name, lo=0)
-        _pair(self, "ty_range")
-        _pair(self, "tx_range")
-        _pair(self, "scale_range", positive=True)
-        _real(self, "rotation_deg", lo=0)
-        _real(self, "perspective", lo=0)
-        _real(self, "perturbation", lo=0, hi=1, hi_open=True)
-        _int(self, "shard_size")
+            integer(self, name, lo=0)
+        pair(self, "ty_range")
+        pair(self, "tx_range")
+        pair(self, "scale_range", positive=True)
+        real(self, "rotation_deg", lo=0)
+        real(self, "perspective", lo=0)
+        real(self, "perturbation", lo=0, hi=1, hi_open=True)
+        integer(self, "shard_size")
 
 
 @dataclass(frozen=True)
 class ClassifierConfig:
     """The eigen-space classifier (docs/method.md section 8)."""
-
-    _section: ClassVar[str] = "classifier"
 
     n_eigenvectors: int = 10
     metric: str = "delta_avg"
@@ -215,10 +178,10 @@ class ClassifierConfig:
     n_neighbours: int = 4
 
     def __post_init__(self) -> None:
-        _int(self, "n_eigenvectors")
-        _int(self, "n_neighbours")
-        _choice(self, "metric", ("delta_avg", "delta_max"))
-        _real(self, "reject_quantile", lo=0, hi=1, lo_open=True)
+        integer(self, "n_eigenvectors")
+        integer(self, "n_neighbours")
+        choice(self, "metric", ("delta_avg", "delta_max"))
+        real(self, "reject_quantile", lo=0, hi=1, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -246,8 +209,6 @@ class RegistrationConfig:
         chunk_size: pairs registered together (cache locality); results do not depend on it.
     """
 
-    _section: ClassVar[str] = "registration"
-
     levels: tuple[int, ...] = (2, 0)
     iterations: tuple[int, ...] = (10, 6)
     step_tol: float = 0.01
@@ -264,20 +225,20 @@ class RegistrationConfig:
     chunk_size: int = 8
 
     def __post_init__(self) -> None:
-        _ints(self, "levels", lo=0)
+        integers(self, "levels", lo=0)
         lv = self.levels
         if lv[-1] != 0 or not all(a > b for a, b in itertools.pairwise(lv)):
             raise ValueError(f"registration.levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
-        _ints(self, "iterations", n=len(lv), per="level")
+        integers(self, "iterations", n=len(lv), per="level")
         for name in ("step_tol", "coarse_tol", "min_texture", "max_residual", "max_step"):
-            _real(self, name, lo=0, lo_open=True)
-        _int(self, "phase_level", lo=0)
-        _real(self, "damping", lo=0)
-        _real(self, "margin", lo=0)
-        _real(self, "min_overlap", lo=0, hi=1)
-        _int(self, "fine_stride")
-        _bool(self, "presmooth")
-        _int(self, "chunk_size")
+            real(self, name, lo=0, lo_open=True)
+        integer(self, "phase_level", lo=0)
+        real(self, "damping", lo=0)
+        real(self, "margin", lo=0)
+        real(self, "min_overlap", lo=0, hi=1)
+        integer(self, "fine_stride")
+        flag(self, "presmooth")
+        integer(self, "chunk_size")
 
 
 @dataclass(frozen=True)
@@ -302,8 +263,6 @@ class SelfCalConfig:
         ridge: absolute ridge on J^T J in the covariance.
     """
 
-    _section: ClassVar[str] = "selfcal"
-
     levels: int = 3
     iterations: tuple[int, ...] = (12, 6, 3)
     newton: int = 5
@@ -320,14 +279,14 @@ class SelfCalConfig:
 
     def __post_init__(self) -> None:
         for name in ("levels", "newton", "chunk_size"):
-            _int(self, name)
+            integer(self, name)
         for name in ("iterations", "sample_block"):
-            _ints(self, name, n=self.levels, per="level")
+            integers(self, name, n=self.levels, per="level")
         for name in ("damping", "max_coefficient", "cannot_tell_std_px", "noise_floor", "ridge"):
-            _real(self, name, lo=0, lo_open=True)
-        _real(self, "margin", lo=0)
-        _real(self, "min_overlap", lo=0, hi=1)
-        _real(self, "confidence_threshold", lo=0, hi=1)
+            real(self, name, lo=0, lo_open=True)
+        real(self, "margin", lo=0)
+        real(self, "min_overlap", lo=0, hi=1)
+        real(self, "confidence_threshold", lo=0, hi=1)
 
 
 @dataclass(frozen=True)
@@ -342,18 +301,16 @@ class RegressionConfig:
         confidence_threshold: below this confidence the answer is "cannot tell".
     """
 
-    _section: ClassVar[str] = "regression"
-
     n_components: int = 384
     k: int = 8
     cannot_tell_fraction: float = 0.125
     confidence_threshold: float = 0.5
 
     def __post_init__(self) -> None:
-        _int(self, "n_components")
-        _int(self, "k")
-        _real(self, "cannot_tell_fraction", lo=0, lo_open=True)
-        _real(self, "confidence_threshold", lo=0, hi=1)
+        integer(self, "n_components")
+        integer(self, "k")
+        real(self, "cannot_tell_fraction", lo=0, lo_open=True)
+        real(self, "confidence_threshold", lo=0, hi=1)
 
 
 @dataclass(frozen=True)
@@ -369,16 +326,14 @@ class AnalysisConfig:
             multiple of the reject threshold is unlike every training map.
     """
 
-    _section: ClassVar[str] = "analysis"
-
     no_distortion_px: float = 0.25
     min_overlap: float = 0.5
     out_of_domain_factor: float = 2.0
 
     def __post_init__(self) -> None:
-        _real(self, "no_distortion_px", lo=0, lo_open=True)
-        _real(self, "min_overlap", lo=0, hi=1)
-        _real(self, "out_of_domain_factor", lo=0, lo_open=True)
+        real(self, "no_distortion_px", lo=0, lo_open=True)
+        real(self, "min_overlap", lo=0, hi=1)
+        real(self, "out_of_domain_factor", lo=0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -397,11 +352,9 @@ class LensdistConfig:
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if not isinstance(value, f.default_factory):  # type: ignore[arg-type]
-                raise ValueError(
-                    f"{f.name} must be a {f.default_factory.__name__}, got {_show(value)}"  # type: ignore[union-attr]
-                )
+            cls, value = f.default_factory, getattr(self, f.name)
+            if not isinstance(value, cls):  # type: ignore[arg-type]
+                raise ValueError(f"{f.name} must be a {cls.__name__}, got {show(value)}")  # type: ignore[union-attr]
         b = self.quality.block_size
         if self.image.height % b or self.image.width % b:
             raise ValueError(
@@ -423,23 +376,19 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
     """
     if not isinstance(data, dict):
         raise TypeError(f"config data must be a dict, got {type(data).__name__}")
-    expected = ", ".join(f"[{n}]" for n in _SECTIONS)
     for name, values in data.items():
         if name not in _SECTIONS and not isinstance(values, dict):
-            raise ValueError(f"config key {name!r} is outside any section; the sections are {expected}")
-    unknown = set(data) - set(_SECTIONS)
+            raise ValueError(f"config key {name!r} is outside any section; the sections are {list(_SECTIONS)}")
+    unknown = sorted(set(data) - set(_SECTIONS))
     if unknown:
-        raise ValueError(f"unknown config section(s) {sorted(unknown)}; expected {sorted(_SECTIONS)}")
+        raise ValueError(f"unknown config section(s) {unknown}; expected {sorted(_SECTIONS)}")
     parts = {}
     for name, cls in _SECTIONS.items():
         values = data.get(name, {})
         if not isinstance(values, dict):
-            raise ValueError(
-                f"config section [{name}] must be a table of key = value pairs, got {_show(values)}"
-            )
+            raise ValueError(f"config section [{name}] must be a table of key = value pairs, got {show(values)}")
         values = dict(values)
-        names = {f.name for f in dataclasses.fields(cls)}
-        bad = set(values) - names
+        bad = set(values) - {f.name for f in dataclasses.fields(cls)}
         if bad:
             raise ValueError(f"unknown key(s) {sorted(bad)} in config section [{name}]")
         parts[name] = cls(**values)
@@ -482,127 +431,12 @@ def load_config(path: str | Path | None = None) -> LensdistConfig:
         with path.open("rb") as f:
             data = tomllib.load(f)
     except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"config file {path} is not valid TOML: {_one_line(exc)}") from exc
+        raise ValueError(f"config file {path} is not valid TOML: {one_line(exc)}") from exc
     except UnicodeDecodeError as exc:
-        raise ValueError(f"config file {path} is not UTF-8 text: {_one_line(exc)}") from exc
+        raise ValueError(f"config file {path} is not UTF-8 text: {one_line(exc)}") from exc
     except OSError as exc:
-        raise ValueError(f"cannot read config file {path}: {exc.strerror or _one_line(exc)}") from exc
+        raise ValueError(f"cannot read config file {path}: {exc.strerror or one_line(exc)}") from exc
     try:
         return config_from_dict(data)
     except ValueError as exc:
         raise ValueError(f"config file {path}: {exc}") from exc
-
-
-# ----------------------------------------------------------------------------- field checks
-# Each takes the dataclass being built and a field name, checks the value, and stores its
-# canonical form (float for numbers, tuple for sequences) with object.__setattr__.
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split())
-
-
-def _show(value: Any) -> str:
-    """The value for an error message: its repr (shortened), and its type when that is not a number."""
-    text = repr(value)
-    if len(text) > 80:
-        text = text[:77] + "..."
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        text += f" ({type(value).__name__})"
-    return text
-
-
-def _fail(obj: Any, name: str, what: str, value: Any) -> None:
-    raise ValueError(f"{obj._section}.{name} must be {what}, got {_show(value)}")
-
-
-def _is_real(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
-
-
-def _interval(lo, hi, lo_open, hi_open, hi_name=None) -> str:
-    hi_text = hi_name if hi_name is not None else f"{hi:g}" if hi is not None else None
-    if lo is not None and hi is not None:
-        return f"a number in {']' if lo_open else '['}{lo:g}, {hi_text}{'[' if hi_open else ']'}"
-    if lo is not None:
-        return f"a finite number {'>' if lo_open else '>='} {lo:g}"
-    if hi is not None:
-        return f"a finite number {'<' if hi_open else '<='} {hi_text}"
-    return "a finite number"
-
-
-def _real(obj, name, lo=None, hi=None, lo_open=False, hi_open=False, hi_name=None, why=None) -> None:
-    value = getattr(obj, name)
-    what = _interval(lo, hi, lo_open, hi_open, hi_name) + (f" ({why})" if why else "")
-    if not _is_real(value):
-        _fail(obj, name, what, value)
-    x = float(value)
-    if not math.isfinite(x) or (lo is not None and (x <= lo if lo_open else x < lo)) or (
-        hi is not None and (x >= hi if hi_open else x > hi)
-    ):
-        _fail(obj, name, what, value)
-    object.__setattr__(obj, name, x)
-
-
-def _int(obj, name, lo: int | None = 1) -> None:
-    value = getattr(obj, name)
-    what = "an int" if lo is None else "a positive int" if lo == 1 else f"an int >= {lo}"
-    if not _is_int(value) or (lo is not None and value < lo):
-        _fail(obj, name, what, value)
-    object.__setattr__(obj, name, int(value))
-
-
-def _bool(obj, name) -> None:
-    value = getattr(obj, name)
-    if not isinstance(value, bool):
-        _fail(obj, name, "true or false", value)
-
-
-def _choice(obj, name, options: tuple[str, ...]) -> None:
-    value = getattr(obj, name)
-    if not isinstance(value, str) or value not in options:
-        _fail(obj, name, " or ".join(repr(o) for o in options), value)
-
-
-def _sequence(obj, name, what: str) -> tuple:
-    value = getattr(obj, name)
-    if not isinstance(value, (tuple, list)):  # a string is not a list of its characters
-        _fail(obj, name, what, value)
-    return tuple(value)
-
-
-def _pair(obj, name, positive: bool = False) -> None:
-    what = f"(low, high): two {'positive' if positive else 'finite'} numbers with low <= high"
-    value = _sequence(obj, name, what)
-    if len(value) != 2 or not all(_is_real(v) and math.isfinite(v) and (v > 0 or not positive) for v in value):
-        _fail(obj, name, what, getattr(obj, name))
-    lo, hi = float(value[0]), float(value[1])
-    if not lo <= hi:
-        _fail(obj, name, what, getattr(obj, name))
-    object.__setattr__(obj, name, (lo, hi))
-
-
-def _ints(obj, name, lo: int = 1, n: int | None = None, per: str = "") -> None:
-    kind = "positive ints" if lo == 1 else f"ints >= {lo}"
-    what = f"a tuple of {n} {kind} (one per {per})" if n is not None else f"a non-empty tuple of {kind}"
-    value = _sequence(obj, name, what)
-    if (n is not None and len(value) != n) or not value or not all(_is_int(v) and v >= lo for v in value):
-        _fail(obj, name, what, getattr(obj, name))
-    object.__setattr__(obj, name, tuple(int(v) for v in value))
-
-
-def _names(obj, name) -> None:
-    what = "a non-empty list of distinct non-empty strings"
-    value = _sequence(obj, name, what)
-    if not value or not all(isinstance(v, str) and v.strip() for v in value) or len(set(value)) != len(value):
-        _fail(obj, name, what, getattr(obj, name))
-    object.__setattr__(obj, name, value)
-
-
-def _check_positive_float(name: str, value: Any) -> None:
-    if not _is_real(value) or not (math.isfinite(value) and value > 0):
-        raise ValueError(f"{name} must be a positive finite number, got {_show(value)}")

@@ -3,16 +3,16 @@
 Files are decoded by kornia (``kornia.io``, the Rust decoders of kornia_rs); the suffix, in any
 letter case, chooses the decoder. :data:`IMAGE_SUFFIXES` lists exactly what it reads here:
 
-=================  ==============================================================================
-``.png``           grey, RGB, RGBA at 8 or 16 bits; 8-bit palette (expanded to its colours)
-``.jpg``/``.jpeg`` grey and RGB (YCbCr), baseline and progressive
-``.tif``/``.tiff`` 1 or 3 channels of 8-bit, 16-bit or 32-bit float samples (float in [0, 1])
-``.webp``          RGB and RGBA, lossy and lossless
-=================  ==============================================================================
+===================  ============================================================================
+``.png``             grey, RGB, RGBA at 8 or 16 bits; 8-bit palette (expanded to its colours)
+``.jpg``, ``.jpeg``  grey and RGB (YCbCr), baseline and progressive
+``.tif``, ``.tiff``  1 or 3 channels of 8-bit, 16-bit or 32-bit float samples (float in [0, 1])
+``.webp``            RGB and RGBA, lossy and lossless
+===================  ============================================================================
 
 Refused with a one-line ``ValueError`` naming the file: other suffixes (BMP, GIF, PNM, ...), PNGs
 with 1, 2 or 4-bit samples or grey + alpha, CMYK JPEGs, 4-channel, 64-bit float or integer
-TIFFs, float TIFFs with values outside [0, 1], content that does not match the suffix (a PNG
+TIFFs, float TIFFs with values outside [0, 1] or NaN, content that does not match the suffix (a PNG
 named ``.jpg``), empty, truncated or corrupt files, directories, unreadable files, and images of
 more than ``max_pixels`` pixels (read from the header before decoding). An alpha channel is
 dropped (the colours are kept as stored); 8-bit samples are divided by 255, 16-bit by 65535.
@@ -114,13 +114,9 @@ def check_valid_mask(
 ) -> torch.Tensor:
     """Check a validity mask of shape (B, 1, H, W) matching ``like``; return it as ``like``'s dtype.
 
-    The mask is bool, or numbers in [0, 1] (1 = valid). With ``check_values`` (the default) a
-    float mask holding NaN, Inf or values outside [0, 1] is an error: a NaN would silently turn
-    the whole map into NaN, a negative weight would subtract errors.
-
-    Raises:
-        TypeError: not a tensor, or a dtype other than bool, an integer type or a float.
-        ValueError: the wrong shape, or (with ``check_values``) values that are not in [0, 1].
+    The mask is bool, or numbers in [0, 1] (1 = valid). With ``check_values`` (the default), NaN,
+    Inf or values outside [0, 1] are a ``ValueError`` naming the mask (a NaN would turn the whole
+    map into NaN). A non-tensor or a complex tensor is a ``TypeError``; a wrong shape a ``ValueError``.
     """
     if not isinstance(valid, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor or None, got {type(valid).__name__}")
@@ -130,8 +126,7 @@ def check_valid_mask(
     if tuple(valid.shape) != (b, 1, h, w):
         raise ValueError(f"{name} must have shape {(b, 1, h, w)}, got {tuple(valid.shape)}")
     if check_values and valid.dtype != torch.bool and valid.numel():
-        lo, hi = torch.aminmax(valid)  # one pass; NaN propagates into both
-        lo, hi = float(lo), float(hi)
+        lo, hi = (float(v) for v in torch.aminmax(valid))  # one pass; NaN propagates into both
         if not (lo >= 0 and hi <= 1):
             if not (math.isfinite(lo) and math.isfinite(hi)):
                 raise ValueError(f"{name} contains NaN or Inf values; a validity mask holds 0 to 1")
@@ -168,28 +163,11 @@ def as_batch(img: torch.Tensor, name: str = "img") -> torch.Tensor:
 # ----------------------------------------------------------------------------- file headers
 
 
-class _Header:
-    """What the first bytes of a file tell: its format, size and, for PNG, the palette."""
-
-    def __init__(self, kind: str | None, size: tuple[int, int] | None = None, palette: bytes | None = None):
-        self.kind, self.size, self.palette = kind, size, palette
-
-
-def _sniff(head: bytes) -> str | None:
-    if head.startswith(_PNG_SIGNATURE):
-        return "PNG"
-    if head.startswith(b"\xff\xd8\xff"):
-        return "JPEG"
-    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
-        return "TIFF"
-    if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
-        return "WebP"
-    for magic, kind in ((b"BM", "BMP"), (b"GIF8", "GIF"), (b"\x00\x00\x01\x00", "ICO"), (b"qoif", "QOI")):
-        if head.startswith(magic):
-            return kind
-    if head[:2] in (b"P1", b"P2", b"P3", b"P4", b"P5", b"P6"):
-        return "PNM"
-    return None
+# (size, palette) of a file: (height, width) or None where the header does not say plainly; the
+# PNG palette (PLTE) of a palette image, else None
+_Header = tuple[tuple[int, int] | None, bytes | None]
+_MAGIC = ((_PNG_SIGNATURE, "PNG"), (b"\xff\xd8\xff", "JPEG"), (b"II*\x00", "TIFF"), (b"MM\x00*", "TIFF"),
+          (b"II+\x00", "TIFF"), (b"MM\x00+", "TIFF"), (b"BM", "BMP"), (b"GIF8", "GIF"), (b"qoif", "QOI"))
 
 
 def _read_header(f, path: Path) -> _Header:
@@ -198,7 +176,8 @@ def _read_header(f, path: Path) -> _Header:
     if not head:
         raise ValueError(f"image file {path} is empty")
     expected = _KIND_OF_SUFFIX[path.suffix.lower()]
-    kind = _sniff(head)
+    kind = next((k for m, k in _MAGIC if head.startswith(m)), None)
+    kind = "WebP" if head[:4] == b"RIFF" and head[8:12] == b"WEBP" else kind
     if kind != expected:
         held = f"it holds {kind} data" if kind else "it is not in a known image format"
         hint = f"; rename it to {_SUFFIX_OF_KIND[kind]}" if kind in _SUFFIX_OF_KIND else ""
@@ -222,10 +201,9 @@ def _png_header(f, head: bytes, path: Path, truncated: ValueError) -> _Header:
     depth, colour = head[24], head[25]
     if width == 0 or height == 0:
         raise ValueError(f"image file {path} is not a valid PNG: its header gives {width} x {height} pixels")
-    if colour == 4:
-        raise ValueError(f"image file {path} is a grey + alpha PNG, which the decoder cannot read; save it as grey, RGB or RGBA")
-    if depth < 8:
-        raise ValueError(f"image file {path} is a PNG with {depth}-bit samples, which the decoder cannot read; save it with 8 or 16 bits")
+    if colour == 4 or depth < 8:
+        what, fix = ("a grey + alpha PNG", "grey, RGB or RGBA") if colour == 4 else (f"a {depth}-bit PNG", "8/16 bits")
+        raise ValueError(f"image file {path} is {what}, which the decoder cannot read; save it as {fix}")
     if (colour, depth) not in {(0, 8), (0, 16), (2, 8), (2, 16), (3, 8), (6, 8), (6, 16)}:
         raise ValueError(f"image file {path} is not a valid PNG: colour type {colour} with {depth}-bit samples")
     palette = None
@@ -246,7 +224,7 @@ def _png_header(f, head: bytes, path: Path, truncated: ValueError) -> _Header:
             if name in (b"IDAT", b"IEND"):
                 raise ValueError(f"image file {path} is not a valid PNG: a palette image without a palette")
             f.seek(length + 4, 1)  # body and CRC
-    return _Header("PNG", (height, width), palette)
+    return (height, width), palette
 
 
 def _jpeg_header(f, path: Path, truncated: ValueError) -> _Header:
@@ -274,13 +252,11 @@ def _jpeg_header(f, path: Path, truncated: ValueError) -> _Header:
                 raise truncated
             height, width = struct.unpack(">HH", frame[1:5])
             if frame[5] not in (1, 3):
-                raise ValueError(
-                    f"image file {path} is a JPEG with {frame[5]} colour components (CMYK?), which the "
-                    "decoder cannot read; save it as grey or RGB"
-                )
+                msg = f"is a JPEG with {frame[5]} colour components (CMYK?), which the decoder cannot read"
+                raise ValueError(f"image file {path} {msg}; save it as grey or RGB")
             if width == 0:
                 raise ValueError(f"image file {path} is not a valid JPEG: its frame header gives width 0")
-            return _Header("JPEG", (height, width) if height else None)  # height 0: set later (DNL)
+            return ((height, width) if height else None), None  # height 0: set later (DNL)
         if marker in (0xD9, 0xDA):  # end of image, start of scan
             raise ValueError(f"image file {path} is not a valid JPEG: no frame header before its data")
         f.seek(struct.unpack(">H", length)[0] - 2, 1)
@@ -289,16 +265,11 @@ def _jpeg_header(f, path: Path, truncated: ValueError) -> _Header:
 def _tiff_header(f, head: bytes, truncated: ValueError) -> _Header:
     """Width and height from the first IFD (classic and BigTIFF); None where they are not plain."""
     end = "<" if head[:2] == b"II" else ">"
-    big = head[2:4] in (b"+\x00", b"\x00+")
-    if big:
-        if len(head) < 16:
-            raise truncated
-        offset, count_fmt, entry_size, value_size = struct.unpack(end + "Q", head[8:16])[0], "Q", 20, 8
-    else:
-        if len(head) < 8:
-            raise truncated
-        offset, count_fmt, entry_size, value_size = struct.unpack(end + "I", head[4:8])[0], "H", 12, 4
-    f.seek(offset)
+    big = head[2:4] in (b"+\x00", b"\x00+")  # BigTIFF: 8-byte offsets and counts
+    count_fmt, entry_size, value_size = ("Q", 20, 8) if big else ("H", 12, 4)
+    if len(head) < (16 if big else 8):
+        raise truncated
+    f.seek(struct.unpack(end + "Q", head[8:16])[0] if big else struct.unpack(end + "I", head[4:8])[0])
     raw = f.read(struct.calcsize(count_fmt))
     if len(raw) < struct.calcsize(count_fmt):
         raise truncated
@@ -312,9 +283,7 @@ def _tiff_header(f, head: bytes, truncated: ValueError) -> _Header:
         if tag in (256, 257) and fmt is not None and struct.calcsize(fmt) <= value_size:
             value = e[entry_size - value_size :]  # left-justified in the value field
             dims[tag] = struct.unpack(end + fmt, value[: struct.calcsize(fmt)])[0]
-    if 256 in dims and 257 in dims:
-        return _Header("TIFF", (dims[257], dims[256]))
-    return _Header("TIFF")
+    return ((dims[257], dims[256]) if 256 in dims and 257 in dims else None), None
 
 
 def _webp_header(head: bytes, path: Path, truncated: ValueError) -> _Header:
@@ -331,7 +300,7 @@ def _webp_header(head: bytes, path: Path, truncated: ValueError) -> _Header:
         height = 1 + int.from_bytes(head[27:30], "little")
     else:
         raise ValueError(f"image file {path} is not a valid WebP: unknown first chunk {chunk!r}")
-    return _Header("WebP", (height, width))
+    return (height, width), None
 
 
 def _check_pixels(path: Path, height: int, width: int, max_pixels: int | None) -> None:
@@ -350,10 +319,9 @@ def _one_line(exc: BaseException) -> str:
 def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX_PIXELS) -> torch.Tensor:
     """Load an image file as a (1, C, H, W) float32 tensor in [0, 1] (C = 1 with ``grey``, else 1 or 3).
 
-    The formats and what is refused are listed in this module's docstring (:data:`IMAGE_SUFFIXES`).
-    The size is read from the file's header and checked against ``max_pixels`` before anything is
-    decoded, so a small file that claims a huge image costs nothing. The conversion to float
-    works in strips, so the memory used is the decoded file plus the result.
+    The formats and what is refused: this module's docstring. The size is read from the header and
+    checked against ``max_pixels`` before decoding (a small file claiming a huge image costs
+    nothing); the conversion to float works in strips (memory: the decoded file plus the result).
 
     Args:
         path: the image file.
@@ -384,30 +352,27 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
         )
     try:
         with path.open("rb") as f:
-            header = _read_header(f, path)
+            size, palette = _read_header(f, path)
     except OSError as exc:
         raise ValueError(f"cannot read image file {path}: {exc.strerror or _one_line(exc)}") from exc
-    if header.size is not None:
-        _check_pixels(path, *header.size, max_pixels)
+    if size is not None:
+        _check_pixels(path, *size, max_pixels)
     try:
         img = _kornia_load(str(path), ImageLoadType.UNCHANGED, device="cpu")
     except Exception as exc:  # kornia_rs raises several types for undecodable files
         reason = _one_line(exc).removeprefix(f"Failed to decode image '{path}': ")
         raise ValueError(f"cannot decode image file {path}: {reason}") from exc
-    if img.dim() == 2:
-        img = img[None]
+    img = img[None] if img.dim() == 2 else img
     channels, height, width = img.shape
     if height == 0 or width == 0:
         raise ValueError(f"image file {path} holds an empty image ({width} x {height} pixels)")
     _check_pixels(path, height, width, max_pixels)
     lut = None
-    if header.palette is not None and channels == 1 and img.dtype == torch.uint8:
-        lut = torch.frombuffer(bytearray(header.palette), dtype=torch.uint8).view(-1, 3)
-        top = int(img.max())
-        if top >= lut.shape[0]:
-            raise ValueError(
-                f"image file {path} is not a valid PNG: a pixel uses palette entry {top} of {lut.shape[0]}"
-            )
+    if palette is not None and channels == 1 and img.dtype == torch.uint8:  # the decoder gave the indices
+        lut = torch.frombuffer(bytearray(palette), dtype=torch.uint8).view(-1, 3)
+        if int(img.max()) >= lut.shape[0]:
+            raise ValueError(f"image file {path} is not a valid PNG: a pixel uses palette entry {int(img.max())} "
+                             f"of {lut.shape[0]}")
         channels = 3
     if channels not in (1, 3, 4):
         raise ValueError(f"image file {path} has {channels} channels; expected 1 (grey), 3 (RGB) or 4 (RGBA)")

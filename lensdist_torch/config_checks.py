@@ -1,0 +1,140 @@
+"""The field checks of the config dataclasses (``config.py``).
+
+Each check takes the dataclass being built (in its ``__post_init__``) and a field name, raises a
+one-line ``ValueError`` naming ``section.field`` (the section is the class name without
+``Config``, lower case: ``ProtocolConfig`` -> ``protocol``), and stores the value's canonical
+form with ``object.__setattr__``:
+
+* integer fields take ints only: not floats (``8.0``), not bools;
+* number fields take ints or floats, not bools, and store a float; NaN and Inf are refused;
+* sequence fields take tuples or lists, never a string (it would iterate as characters), and
+  store a tuple.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from typing import Any
+
+__all__ = ["one_line", "show", "real", "positive", "integer", "flag", "choice", "pair", "integers", "names"]
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message on one line."""
+    return " ".join(str(exc).split())
+
+
+def show(value: Any) -> str:
+    """The value for an error message: its repr (shortened), and its type when that is not a number."""
+    text = repr(value)
+    if len(text) > 80:
+        text = text[:77] + "..."
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        text += f" ({type(value).__name__})"
+    return text
+
+
+def _fail(obj: Any, name: str, what: str, value: Any) -> None:
+    section = type(obj).__name__.removesuffix("Config").lower()
+    raise ValueError(f"{section}.{name} must be {what}, got {show(value)}")
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _interval(lo, hi, lo_open, hi_open, hi_name=None) -> str:
+    hi_text = hi_name if hi_name is not None else f"{hi:g}" if hi is not None else None
+    if lo is not None and hi is not None:
+        return f"a number in {']' if lo_open else '['}{lo:g}, {hi_text}{'[' if hi_open else ']'}"
+    if lo is not None:
+        return f"a finite number {'>' if lo_open else '>='} {lo:g}"
+    if hi is not None:
+        return f"a finite number {'<' if hi_open else '<='} {hi_text}"
+    return "a finite number"
+
+
+def real(obj, name, lo=None, hi=None, lo_open=False, hi_open=False, hi_name=None, why=None) -> None:
+    """A finite number in the interval given by ``lo``/``hi`` (open ends with ``*_open``)."""
+    value = getattr(obj, name)
+    what = _interval(lo, hi, lo_open, hi_open, hi_name) + (f" ({why})" if why else "")
+    if not _is_real(value):
+        _fail(obj, name, what, value)
+    x = float(value)
+    if not math.isfinite(x) or (lo is not None and (x <= lo if lo_open else x < lo)) or (
+        hi is not None and (x >= hi if hi_open else x > hi)
+    ):
+        _fail(obj, name, what, value)
+    object.__setattr__(obj, name, x)
+
+
+def positive(name: str, value: Any) -> None:
+    """A positive finite number, for a plain argument (not a field)."""
+    if not _is_real(value) or not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be a positive finite number, got {show(value)}")
+
+
+def integer(obj, name, lo: int | None = 1) -> None:
+    """An int >= ``lo`` (positive by default; ``lo=None``: any int)."""
+    value = getattr(obj, name)
+    what = "an int" if lo is None else "a positive int" if lo == 1 else f"an int >= {lo}"
+    if not _is_int(value) or (lo is not None and value < lo):
+        _fail(obj, name, what, value)
+    object.__setattr__(obj, name, int(value))
+
+
+def flag(obj, name) -> None:
+    """A bool (TOML ``true`` or ``false``; not 0 or 1)."""
+    value = getattr(obj, name)
+    if not isinstance(value, bool):
+        _fail(obj, name, "true or false", value)
+
+
+def choice(obj, name, options: tuple[str, ...]) -> None:
+    """One of the strings ``options``."""
+    value = getattr(obj, name)
+    if not isinstance(value, str) or value not in options:
+        _fail(obj, name, " or ".join(repr(o) for o in options), value)
+
+
+def _sequence(obj, name, what: str) -> tuple:
+    value = getattr(obj, name)
+    if not isinstance(value, (tuple, list)):  # a string is not a list of its characters
+        _fail(obj, name, what, value)
+    return tuple(value)
+
+
+def pair(obj, name, positive: bool = False) -> None:
+    """(low, high): two finite (or positive) numbers with low <= high."""
+    what = f"(low, high): two {'positive' if positive else 'finite'} numbers with low <= high"
+    value = _sequence(obj, name, what)
+    if len(value) != 2 or not all(_is_real(v) and math.isfinite(v) and (v > 0 or not positive) for v in value):
+        _fail(obj, name, what, getattr(obj, name))
+    lo, hi = float(value[0]), float(value[1])
+    if not lo <= hi:
+        _fail(obj, name, what, getattr(obj, name))
+    object.__setattr__(obj, name, (lo, hi))
+
+
+def integers(obj, name, lo: int = 1, n: int | None = None, per: str = "") -> None:
+    """A non-empty tuple of ints >= ``lo``; of length ``n`` (one per ``per``) if given."""
+    kind = "positive ints" if lo == 1 else f"ints >= {lo}"
+    what = f"a tuple of {n} {kind} (one per {per})" if n is not None else f"a non-empty tuple of {kind}"
+    value = _sequence(obj, name, what)
+    if (n is not None and len(value) != n) or not value or not all(_is_int(v) and v >= lo for v in value):
+        _fail(obj, name, what, getattr(obj, name))
+    object.__setattr__(obj, name, tuple(int(v) for v in value))
+
+
+def names(obj, name) -> None:
+    """A non-empty tuple of distinct non-empty strings."""
+    what = "a non-empty list of distinct non-empty strings"
+    value = _sequence(obj, name, what)
+    if not value or not all(isinstance(v, str) and v.strip() for v in value) or len(set(value)) != len(value):
+        _fail(obj, name, what, getattr(obj, name))
+    object.__setattr__(obj, name, value)
