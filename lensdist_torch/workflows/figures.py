@@ -78,7 +78,7 @@ def _block_mask(valid: torch.Tensor | None, maps: torch.Tensor) -> torch.Tensor 
     (h, w), (vh, vw) = maps.shape[-2:], v.shape[-2:]
     if (vh, vw) != (h, w):
         b = vh // h
-        if b < 1 or vw // w != b:
+        if b < 1 or vw // w != b or vh - h * b >= b or vw - w * b >= b:
             raise ValueError(f"valid must be block-sized {(h, w)} or pixel-sized (a block size times it), got {(vh, vw)}")
         v = torch.nn.functional.max_pool2d(v[..., : h * b, : w * b], b)
     return v > 0

@@ -12,8 +12,8 @@ from kornia.io import write_image
 
 from lensdist_torch import analyze_pair
 from lensdist_torch.config import config_from_dict
-from lensdist_torch.geometry.distortion import CLASS_LABELS
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.geometry.distortion import CLASS_LABELS
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ROOT / "lensdist_torch" / "checkpoints" / "eigenspace_delta_avg_10ev.pt"
