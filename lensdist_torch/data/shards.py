@@ -1,6 +1,4 @@
-"""Generated data sets on disk: shards, checksums, manifest, resume, lock (`lensdist generate`).
-
-The pairs are those of docs/method.md.
+"""Generated data sets on disk: generate, resume, load (`lensdist generate`; pairs of docs/method.md).
 
 Layout of an output folder::
 
@@ -15,35 +13,20 @@ command runs as an array job (``--shard I/N`` takes the shards k with k % N == I
 by pair index, and an interrupted run resumes by skipping the shards already on disk. A shard's
 bytes depend only on the config and the pair indices: a resumed run gives byte-identical files.
 
-Integrity: every shard is written with the library's versioned writer (``save_versioned``,
-atomic) followed by a checksum file holding the sha256 of its bytes, and every read
-(``load_shard``, ``load_set``, the resume check of ``generate``) verifies that digest before it
-unpickles (``torch.load(weights_only=True)``) and then checks the kind, format version, config
-fingerprint and the pairs the shard must hold. A changed byte, a truncated file or a shard
-copied over another is never used: a one-line ShardError naming the file, or, when
-``generate`` resumes, the shard is regenerated and reported.
-
-The manifest only grows: a run merges its sets into the recorded ones, keeps the sets it was
-not asked for, refuses a ``limit`` that would shrink a recorded set, is validated on every read,
-and is not rewritten when nothing changed (a complete, read-only data set can be re-checked).
-A run that writes holds a lock file for its share; a run over overlapping shares is refused
-(the shares of one array job do not overlap and run side by side), and a lock left by a dead
-process on this host is taken over.
+Nothing damaged is used and nothing recorded is lost: every shard read (``load_shard``,
+``load_set``, the resume check) verifies its sha256 and place (``data/shardfile.py``), and a
+bad shard is an error or, on resume, regenerated and reported; the manifest is validated, only
+grows and is not rewritten when nothing changed (``data/manifest.py``); a run that writes holds
+its share's lock file (``data/locks.py``). This module re-exports their public names.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import json
-import math
 import multiprocessing as mp
 import os
-import re
-import socket
 import sys
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -51,7 +34,28 @@ from tqdm.auto import tqdm
 
 from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
 from lensdist_torch.core.images import load_image, load_scene
-from lensdist_torch.core.storage import atomic_write_bytes, load_versioned, save_versioned
+from lensdist_torch.data.locks import DataSetLocked, share_lock
+from lensdist_torch.data.manifest import (
+    FORMAT_VERSION,
+    MANIFEST,
+    ShardError,
+    check_same_data,
+    config_fingerprint,
+    merge_manifest,
+    read_manifest,
+    save_manifest,
+)
+from lensdist_torch.data.shardfile import (
+    KIND,
+    TENSOR_KEYS,
+    SetState,
+    checksum_path,
+    load_shard,
+    shard_path,
+    shard_ranges,
+    verify_set,
+    write_shard,
+)
 from lensdist_torch.data.synthesis import SETS, footprint, make_pairs, scene_zoom, sequence_footprint, set_size
 
 __all__ = [
@@ -72,51 +76,11 @@ __all__ = [
     "read_manifest",
 ]
 
-#: 2: a sha256 checksum file beside every shard, written and read by save/load_versioned.
-FORMAT_VERSION = 2
-_KIND = "lensdist-shard"
-_MANIFEST = "manifest.json"
 _IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 MIN_ZOOM = 0.25  # a scene that must be magnified more than 4 x is too small to be a scene
-_TENSOR_KEYS = (
-    "index", "seed", "scene", "k2", "k4", "delta_avg", "delta_max", "class_avg", "class_max",
-    "motion", "M", "H", "converged", "residual", "perturbed", "counts",
-)
-_N_CLASSES = 5  # classes 1-4 and R, as stored in class_avg / class_max
-_MANIFEST_LOCK_WAIT_S = 30.0  # the manifest's lock is held for one read-merge-write only
-_LOCK_NAME = re.compile(r"\.lock-(\d+)-of-(\d+)")
-
-
-#: The config sections that change a data set's pairs (the fingerprint covers them).
-_DATA_SECTIONS = ("quality", "image", "distortion", "protocol", "registration")
 
 #: The per-pair class key of each Delta metric in a shard record.
 CLASS_KEYS = {"delta_avg": "class_avg", "delta_max": "class_max"}
-
-
-class ShardError(ValueError):
-    """A shard or manifest file that is corrupted, foreign, or of another config or format version.
-
-    The message names the file.
-    """
-
-
-class DataSetLocked(ValueError):
-    """Another run is writing the same shards of the data set folder (the message names its lock file)."""
-
-
-def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
-    """A hash of every setting that changes the pairs or the files, and of the scenes.
-
-    The quality, image, distortion, protocol and registration sections count (chunk sizes do
-    not; ``shard_size`` does, since it fixes which pairs each shard file holds).
-    """
-    d = config_to_dict(config)
-    d = {name: d[name] for name in _DATA_SECTIONS}
-    for name in ("quality", "registration"):
-        d[name].pop("chunk_size", None)
-    d["scenes"] = scene_ids
-    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def load_scenes(
@@ -158,98 +122,12 @@ def load_scenes(
     return scenes, ids
 
 
-def shard_ranges(n_pairs: int, shard_size: int) -> list[tuple[int, int]]:
-    """The pairs [start, end) of each shard of a set of ``n_pairs``."""
-    return [(s, min(s + shard_size, n_pairs)) for s in range(0, n_pairs, shard_size)]
-
-
-def shard_path(out: str | Path, set_name: str, k: int) -> Path:
-    """The file of shard ``k`` of a set."""
-    return Path(out) / set_name / f"shard-{k:05d}.pt"
-
-
-def checksum_path(path: str | Path) -> Path:
-    """The checksum file of a shard: ``shard-00000.pt.sha256``, one ``sha256sum`` line."""
-    path = Path(path)
-    return path.with_name(path.name + ".sha256")
-
-
-def _checksum_line(digest: str, name: str) -> str:
-    return f"{digest}  {name}\n"
-
-
-def _read_checksum(path: Path) -> str:
-    """The sha256 recorded for the shard ``path``; ShardError if its checksum file is absent or damaged."""
-    side = checksum_path(path)
-    try:
-        text = side.read_bytes().decode("ascii", "replace")
-    except FileNotFoundError:
-        raise ShardError(
-            f"shard {path} has no checksum file {side.name} (an interrupted run or an older format: "
-            "rerun `lensdist generate`)"
-        ) from None
-    digest = text[:64]
-    if not re.fullmatch(r"[0-9a-f]{64}", digest) or text != _checksum_line(digest, path.name):
-        raise ShardError(f"checksum file {side} is damaged (expected one line: sha256, two spaces, {path.name})")
-    return digest
-
-
-def write_shard(path: str | Path, record: dict) -> str:
-    """Save a shard with ``save_versioned`` (atomically), then its checksum file; returns the sha256.
-
-    The bytes depend only on ``record`` (never on the file name).
-    """
-    path = Path(path)
-    digest = save_versioned(path, _KIND, FORMAT_VERSION, record)
-    atomic_write_bytes(checksum_path(path), _checksum_line(digest, path.name).encode())
-    return digest
-
-
-def load_shard(path: str | Path, fingerprint: str | None = None, expect: tuple[str, int, int] | None = None) -> dict:
-    """Load and check a shard: its sha256, kind, format version, keys and shapes.
-
-    Optionally also the config (``fingerprint``) and the pairs it must hold (``expect`` =
-    (set, start, end)).
-
-    Raises:
-        FileNotFoundError: no such shard.
-        ShardError: naming the file: no or another checksum (changed bytes, truncated, copied
-            over another shard), not a lensdist shard, another format version, config or place.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"shard not found: {path}")
-    rec = load_versioned(
-        path, _KIND, FORMAT_VERSION, "data-set", sha256=_read_checksum(path), error=ShardError, noun="shard"
-    )
-    if fingerprint is not None and rec.get("fingerprint") != fingerprint:
-        raise ShardError(
-            f"shard {path} was generated with another config or scenes (fingerprint "
-            f"{rec.get('fingerprint')}, expected {fingerprint})"
-        )
-    missing = [k for k in _TENSOR_KEYS if not isinstance(rec.get(k), torch.Tensor)]
-    if missing:
-        raise ShardError(f"shard {path} lacks {missing}")
-    start, end = rec.get("start"), rec.get("end")
-    if not (type(start) is int and type(end) is int and 0 <= start < end):
-        raise ShardError(f"shard {path} has no valid pair range (start {start!r}, end {end!r})")
-    n = end - start
-    if any(rec[k].shape[0] != n for k in _TENSOR_KEYS) or not torch.equal(rec["index"], torch.arange(start, end)):
-        raise ShardError(f"shard {path} is inconsistent: expected pairs [{start}, {end})")
-    if expect is not None and (rec.get("set"), start, end) != tuple(expect):
-        raise ShardError(
-            f"shard {path} holds {rec.get('set')!r} pairs [{start}, {end}), expected {expect[0]!r} pairs "
-            f"[{expect[1]}, {expect[2]}) (a shard copied over another, or left by a shorter --limit run)"
-        )
-    return rec
-
-
 def _record(batches, set_name: str, start: int, end: int, fingerprint: str) -> dict:
     def cat(f):
         return torch.cat([f(b) for b in batches])
 
     return {
-        "kind": _KIND,
+        "kind": KIND,
         "format_version": FORMAT_VERSION,
         "fingerprint": fingerprint,
         "set": set_name,
@@ -295,287 +173,6 @@ def _worker(task):
     return end - start
 
 
-# ---------------------------------------------------------------------------------- what is on disk
-
-
-@dataclass
-class _SetState:
-    """One set of ``n_pairs`` pairs on disk: each shard verified, missing, or bad (and why)."""
-
-    name: str
-    n_pairs: int
-    shard_size: int
-    stats: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = field(default_factory=dict)
-    bad: dict[int, str] = field(default_factory=dict)
-
-    @property
-    def ranges(self) -> list[tuple[int, int]]:
-        return shard_ranges(self.n_pairs, self.shard_size)
-
-    def record(self) -> dict:
-        """The set's manifest record: its size and, once every shard is verified, its counts."""
-        n_shards = len(self.ranges)
-        rec = {"n_pairs": self.n_pairs, "shard_size": self.shard_size, "n_shards": n_shards}
-        if len(self.stats) < n_shards:
-            return {**rec, "complete": False, "shards_present": len(self.stats)}
-        failed, per_avg, per_max = zip(*self.stats.values()) if self.stats else ((), (), ())
-        zero = torch.zeros(_N_CLASSES, dtype=torch.long)
-        return {
-            **rec,
-            "complete": True,
-            "registration_failed": sum(failed),
-            "pairs_per_class_avg": sum(per_avg, zero).tolist(),
-            "pairs_per_class_max": sum(per_max, zero).tolist(),
-        }
-
-
-def _verify_set(out: Path, set_name: str, n_pairs: int, shard_size: int, fingerprint: str) -> _SetState:
-    """Verify every shard of a set of ``n_pairs`` (checksum, config, pairs held)."""
-    state = _SetState(set_name, n_pairs, shard_size)
-    for k, (a, b) in enumerate(state.ranges):
-        path = shard_path(out, set_name, k)
-        if not path.exists():
-            continue
-        try:
-            rec = load_shard(path, fingerprint, expect=(set_name, a, b))
-        except FileNotFoundError:
-            continue  # removed meanwhile: missing
-        except ShardError as exc:
-            state.bad[k] = str(exc)  # corrupted, foreign or another range: regenerated, never trusted
-            continue
-        state.stats[k] = (
-            int((~rec["converged"]).sum()),
-            torch.bincount(rec["class_avg"], minlength=_N_CLASSES),
-            torch.bincount(rec["class_max"], minlength=_N_CLASSES),
-        )
-    return state
-
-
-# ---------------------------------------------------------------------------------- manifest
-
-
-def _manifest_problem(m) -> str | None:
-    """What is wrong with a parsed manifest, or None."""
-    if not isinstance(m, dict):
-        return f"a JSON {type(m).__name__}, not an object"
-    missing = [k for k in ("format_version", "fingerprint", "config", "scenes", "sets") if k not in m]
-    if missing:
-        return f"missing field(s) {missing}"
-    if m["format_version"] != FORMAT_VERSION or isinstance(m["format_version"], bool):
-        return f"format version {m['format_version']!r}, this library reads {FORMAT_VERSION} (generate into another --out)"
-    scenes = m["scenes"]
-    if not (isinstance(scenes, list) and scenes and all(isinstance(s, str) for s in scenes)):
-        return "scenes must be a non-empty list of names"
-    try:
-        config = config_from_dict(m["config"])
-    except (TypeError, ValueError, AttributeError) as exc:
-        return "config: " + " ".join(str(exc).split())
-    if m["fingerprint"] != config_fingerprint(config, scenes):
-        return f"fingerprint {m['fingerprint']!r} does not match its config and scenes (edited or damaged)"
-    if not isinstance(m["sets"], dict):
-        return "sets must be an object"
-    for name, rec in m["sets"].items():
-        problem = _record_problem(rec, config, name) if name in SETS else f"unknown set (sets are {list(SETS)})"
-        if problem:
-            return f"sets.{name}: {problem}"
-    return None
-
-
-def _is_count(v, top: int) -> bool:
-    return type(v) is int and 0 <= v <= top
-
-
-def _record_problem(rec, config: LensdistConfig, name: str) -> str | None:
-    if not isinstance(rec, dict):
-        return "not an object"
-    n, size = rec.get("n_pairs"), set_size(config, name)
-    if not _is_count(n, size):
-        return f"n_pairs must be an int in [0, {size}], got {n!r}"
-    if rec.get("shard_size") != config.protocol.shard_size:
-        return f"shard_size {rec.get('shard_size')!r}, its config says {config.protocol.shard_size}"
-    n_shards = len(shard_ranges(n, config.protocol.shard_size))
-    if rec.get("n_shards") != n_shards:
-        return f"n_shards {rec.get('n_shards')!r}, {n} pairs make {n_shards}"
-    if not isinstance(rec.get("complete"), bool):
-        return "complete must be true or false"
-    if not rec["complete"]:
-        return None if _is_count(rec.get("shards_present"), n_shards) else f"shards_present must be an int in [0, {n_shards}]"
-    if not _is_count(rec.get("registration_failed"), n):
-        return f"registration_failed must be an int in [0, {n}]"
-    for key in ("pairs_per_class_avg", "pairs_per_class_max"):
-        v = rec.get(key)
-        if not (isinstance(v, list) and len(v) == _N_CLASSES and all(_is_count(c, n) for c in v) and sum(v) == n):
-            return f"{key} must be {_N_CLASSES} counts summing to n_pairs {n}"
-    return None
-
-
-def read_manifest(out: str | Path) -> dict:
-    """The validated manifest of a data set folder.
-
-    Raises:
-        FileNotFoundError: no manifest.json.
-        ShardError: naming the file: not JSON, another format version, a missing or wrong field.
-    """
-    path = Path(out) / _MANIFEST
-    if not path.is_file():
-        raise FileNotFoundError(f"no manifest.json in {out}: run `lensdist generate --out {out}` first")
-    try:
-        m = json.loads(path.read_bytes())
-    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError
-        raise ShardError(
-            f"{path} is not valid JSON ({' '.join(str(exc).split())}); delete it and rerun `lensdist generate` "
-            "to rebuild it from the verified shards"
-        ) from None
-    problem = _manifest_problem(m)
-    if problem:
-        raise ShardError(
-            f"{path} is not a valid lensdist manifest: {problem}; delete it and rerun `lensdist generate` "
-            "to rebuild it from the verified shards"
-        )
-    return m
-
-
-def _merge(old: dict | None, header: dict, records: dict[str, dict]) -> dict:
-    """``header`` + the recorded sets + ``records``; a set's record only grows (more pairs wins)."""
-    sets = dict(old["sets"]) if old else {}
-    for name, rec in records.items():
-        if name not in sets or sets[name]["n_pairs"] <= rec["n_pairs"]:
-            sets[name] = rec
-    return json.loads(json.dumps({**header, "sets": sets}))  # as read back: lists, not tuples
-
-
-def _save_manifest(out: Path, header: dict, records: dict[str, dict]) -> bool:
-    """Merge ``records`` into the manifest on disk and write it if anything changed (returns whether)."""
-    with _lock(out / ".manifest.lock", wait_s=_MANIFEST_LOCK_WAIT_S):
-        old = read_manifest(out) if (out / _MANIFEST).exists() else None
-        _check_same_data(out, old, header["fingerprint"])
-        new = _merge(old, header, records)
-        if new == old:
-            return False
-        atomic_write_bytes(out / _MANIFEST, (json.dumps(new, indent=2) + "\n").encode())
-        return True
-
-
-def _check_same_data(out: Path, manifest: dict | None, fingerprint: str) -> None:
-    if manifest is not None and manifest["fingerprint"] != fingerprint:
-        raise ValueError(
-            f"{out} holds a data set of another config or scenes (fingerprint {manifest['fingerprint']}, "
-            f"now {fingerprint}); use another --out"
-        )
-
-
-# ---------------------------------------------------------------------------------- locks
-
-_HELD: set[Path] = set()  # the lock files this process holds
-
-
-def _lock_holder(path: Path) -> tuple[int, str] | None:
-    """(pid, host) written in a lock file; None if it cannot be read (being written, or damaged)."""
-    try:
-        parts = path.read_text().split()
-    except (OSError, UnicodeDecodeError):
-        return None
-    if len(parts) != 2 or not parts[0].isdigit() or int(parts[0]) < 1:
-        return None
-    return int(parts[0]), parts[1]
-
-
-def _is_stale(path: Path) -> bool:
-    """A lock left by a dead process of this host (or unreadable for a minute).
-
-    A lock of another host cannot be checked: it is live until deleted.
-    """
-    holder = _lock_holder(path)
-    if holder is None:
-        try:
-            return time.time() - path.stat().st_mtime > 60
-        except FileNotFoundError:
-            return True
-    pid, host = holder
-    if host != socket.gethostname():
-        return False
-    if pid == os.getpid():
-        return path not in _HELD  # our pid, but not our lock: a dead run's pid reused
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:
-        return False  # alive, another user's
-    return False
-
-
-def _try_lock(path: Path) -> bool:
-    """Create ``path`` exclusively (O_CREAT | O_EXCL) with our pid and host; False if it exists."""
-    try:
-        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-    except FileExistsError:
-        return False
-    with os.fdopen(fd, "w") as f:
-        f.write(f"{os.getpid()} {socket.gethostname()}\n")
-    _HELD.add(path)
-    return True
-
-
-def _take(path: Path) -> bool:
-    """Lock ``path``, taking over a stale lock; False while a live run holds it."""
-    if _try_lock(path):
-        return True
-    if not _is_stale(path):
-        return False
-    _note(f"taking over the stale lock {path} (held by {_lock_holder(path) or 'nobody readable'})")
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()
-    return _try_lock(path)
-
-
-def _release(path: Path) -> None:
-    _HELD.discard(path)
-    with contextlib.suppress(FileNotFoundError):
-        path.unlink()
-
-
-def _busy(out: Path, lock: Path) -> str:
-    pid, host = _lock_holder(lock) or ("?", "?")
-    return (
-        f"another `lensdist generate` (pid {pid} on {host}) is writing shards of {out}: wait for it to "
-        f"finish, or delete {lock} if no such run is going"
-    )
-
-
-@contextlib.contextmanager
-def _lock(path: Path, wait_s: float = 0.0):
-    """Hold the lock file ``path``; waits up to ``wait_s`` for a live holder, then DataSetLocked."""
-    deadline = time.monotonic() + wait_s
-    while not _take(path):
-        if time.monotonic() >= deadline:
-            raise DataSetLocked(_busy(path.parent, path))
-        time.sleep(0.05)
-    try:
-        yield
-    finally:
-        _release(path)
-
-
-@contextlib.contextmanager
-def _share_lock(out: Path, shard: tuple[int, int]):
-    """Hold ``.lock-I-of-N`` while this run writes; DataSetLocked if a live run holds an overlapping share.
-
-    Shares I/N and J/M have shards in common iff I = J mod gcd(N, M).
-    """
-    i, n = shard
-    out.mkdir(parents=True, exist_ok=True)
-    with _lock(out / f".lock-{i}-of-{n}"):
-        for other in out.glob(".lock-*-of-*"):
-            name = _LOCK_NAME.fullmatch(other.name)
-            if name is None or other.name == f".lock-{i}-of-{n}":
-                continue
-            j, m = int(name[1]), int(name[2])
-            if m >= 1 and (i - j) % math.gcd(n, m) == 0 and not _is_stale(other):
-                raise DataSetLocked(_busy(out, other))
-        yield
-
-
 # ---------------------------------------------------------------------------------- generate
 
 
@@ -604,7 +201,7 @@ class _Plan:
     """What a run finds: the manifest on disk, its sets verified, and the shards its share must write."""
 
     old: dict | None
-    states: dict[str, _SetState]
+    states: dict[str, SetState]
     tasks: list[tuple[str, int, int, int]]  # (set, k, start, end)
 
     def records(self) -> dict[str, dict]:
@@ -627,10 +224,10 @@ def _set_sizes(config: LensdistConfig, out: Path, old: dict | None, sets, limit:
 
 
 def _plan(config, out: Path, fingerprint: str, sets, shard, limit) -> _Plan:
-    old = read_manifest(out) if (out / _MANIFEST).exists() else None
-    _check_same_data(out, old, fingerprint)
+    old = read_manifest(out) if (out / MANIFEST).exists() else None
+    check_same_data(out, old, fingerprint)
     sizes = _set_sizes(config, out, old, sets, limit)
-    states = {s: _verify_set(out, s, n, config.protocol.shard_size, fingerprint) for s, n in sizes.items()}
+    states = {s: verify_set(out, s, n, config.protocol.shard_size, fingerprint) for s, n in sizes.items()}
     tasks = [
         (s, k, a, b)
         for s, st in states.items()
@@ -708,11 +305,11 @@ def generate(
     fp = config_fingerprint(config, scene_ids)
     header = {"format_version": FORMAT_VERSION, "fingerprint": fp, "config": config_to_dict(config), "scenes": scene_ids}
     plan = _plan(config, out, fp, sets, shard, limit)
-    if not plan.tasks and _merge(plan.old, header, plan.records()) == plan.old:
+    if not plan.tasks and merge_manifest(plan.old, header, plan.records()) == plan.old:
         return _summary(out, sets, plan.old, plan, pairs=0, workers=1, capped=None, written=False)
-    with _share_lock(out, shard):
+    with share_lock(out, shard):
         plan = _plan(config, out, fp, sets, shard, limit)  # again, under the lock
-        written = _save_manifest(out, header, plan.records())
+        written = save_manifest(out, header, plan.records())
         used, capped = _cap_workers(workers, len(plan.tasks))
         if capped:
             _note(capped)
@@ -721,8 +318,8 @@ def generate(
                 _note(f"regenerating {plan.states[s].bad[k]}")
         pairs = _run_tasks(plan.tasks, out, config, scenes, scenes_dir, sequence, fp, batch_size, used, progress)
         sizes = {s: st.n_pairs for s, st in plan.states.items()}
-        done = {s: _verify_set(out, s, n, config.protocol.shard_size, fp).record() for s, n in sizes.items()}
-        written = _save_manifest(out, header, done) or written
+        done = {s: verify_set(out, s, n, config.protocol.shard_size, fp).record() for s, n in sizes.items()}
+        written = save_manifest(out, header, done) or written
     return _summary(out, sets, read_manifest(out), plan, pairs=pairs, workers=used, capped=capped, written=written)
 
 
@@ -767,7 +364,7 @@ def load_set(out: str | Path, set_name: str, limit: int | None = None) -> dict:
             f"(first {missing[0]}); run `lensdist generate --out {out}` to finish it"
         )
     recs = [load_shard(p, m["fingerprint"], expect=(set_name, a, b)) for p, (a, b) in zip(paths, ranges)]
-    merged = {k: torch.cat([r[k] for r in recs]) for k in _TENSOR_KEYS}
+    merged = {k: torch.cat([r[k] for r in recs]) for k in TENSOR_KEYS}
     if limit is not None:
         merged = {k: v[:limit] for k, v in merged.items()}
     merged["config"] = config_from_dict(m["config"])

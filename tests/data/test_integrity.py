@@ -23,7 +23,7 @@ import pytest
 
 from lensdist_torch.cli import main as cli_main
 from lensdist_torch.config import config_from_dict
-from lensdist_torch.data import shards
+from lensdist_torch.data import locks, manifest, shardfile, shards
 from lensdist_torch.data.shards import (
     FORMAT_VERSION,
     DataSetLocked,
@@ -346,8 +346,8 @@ class TestNeverShrink:
 _HOLD_LOCK = """\
 import sys, time
 from pathlib import Path
-from lensdist_torch.data.shards import _share_lock
-with _share_lock(Path(sys.argv[1]), (int(sys.argv[2]), int(sys.argv[3]))):
+from lensdist_torch.data.locks import share_lock
+with share_lock(Path(sys.argv[1]), (int(sys.argv[2]), int(sys.argv[3]))):
     print("locked", flush=True)
     time.sleep(120)
 """
@@ -488,8 +488,10 @@ class TestNoOpRerun:
         def refuse(*args, **kwargs):
             raise PermissionError("read-only file system")
 
-        for name in ("atomic_write_bytes", "save_versioned", "_try_lock"):
-            monkeypatch.setattr(shards, name, refuse)
+        for module, name in [
+            (shardfile, "atomic_write_bytes"), (shardfile, "save_versioned"), (manifest, "atomic_write_bytes"), (locks, "_try_lock"),
+        ]:
+            monkeypatch.setattr(module, name, refuse)
         summary = generate(CFG, data, progress=False)
         assert summary["written"] == 0 and summary["manifest"] == "unchanged"
         # while a run that must write says so
