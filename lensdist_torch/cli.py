@@ -16,6 +16,8 @@ import sys
 import traceback
 from pathlib import Path
 
+from lensdist_torch.core.outputs import check_output_dir, check_output_file
+
 __all__ = ["main", "build_parser"]
 
 #: Exceptions that are the user's input or environment (a one-line error, exit 2); any other
@@ -41,47 +43,10 @@ def _fmt(value, spec: str = ".1f", unit: str = " px") -> str:
     return f"{value:{spec}}{unit}" if isinstance(value, (int, float)) and value == value and abs(value) != float("inf") else "n/a"
 
 
-def _check_out_file(path: str, option: str, suffixes: tuple[str, ...], shown: str | None = None) -> Path:
-    """Validate an output file before any long computation.
-
-    It must be a file path (not a directory) with one of ``suffixes`` (``shown`` in the message),
-    with nothing but a regular file there, in a folder that can be written.
-    """
-    p = Path(path)
-    want = shown or " or ".join(suffixes)
-    if path.endswith(("/", os.sep)) or p.is_dir():
-        raise ValueError(f"{option} must be a file path ending in {want}, got the directory {path!r}")
-    if p.exists() and not p.is_file():
-        raise ValueError(f"{option} {path} exists and is not a regular file (a device, FIFO or socket?)")
-    if p.suffix.lower() not in suffixes:
-        raise ValueError(f"{option} must be a file path ending in {want}, got {path!r}")
-    _check_writable(p.parent, option, path)
-    return p
-
-
-def _check_out_dir(path: str, option: str) -> Path:
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise ValueError(f"{option} must be a folder, but {path} exists and is not one")
-    _check_writable(p, option, path)
-    return p
-
-
-def _check_writable(folder: Path, option: str, path: str) -> None:
-    """The nearest existing ancestor of ``folder`` must be a folder we may write in."""
-    here = folder.absolute()
-    while not here.exists() and here != here.parent:
-        here = here.parent
-    if not here.is_dir():
-        raise ValueError(f"cannot write {option} {path}: {here} is not a folder")
-    if not os.access(here, os.W_OK | os.X_OK):
-        raise ValueError(f"cannot write {option} {path}: permission denied in {here}")
-
-
 # ----------------------------------------------------------------------------- commands
 def _cmd_demo(args: argparse.Namespace) -> int:
     """Two views of the gravel scene, the second misregistered by a known scale error."""
-    out = _check_out_dir(args.out, "--out")
+    out = check_output_dir(args.out, "--out")
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.demo import scale_error_demo
     from lensdist_torch.workflows.figures import have_matplotlib, save_demo_figure
@@ -115,7 +80,7 @@ def _shards(summary: dict) -> tuple[int, int]:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    _check_out_dir(args.out, "--out")
+    check_output_dir(args.out, "--out")
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import generate
 
@@ -137,6 +102,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         return 0
     written, reused = _shards(summary)
     print(f"{args.out}: {written} shards written ({summary.get('pairs_generated', '?')} pairs), {reused} reused")
+    for what in summary.get("regenerated", []):
+        print(f"  regenerated: {what}")
     for name, info in summary.get("sets", {}).items():
         if info.get("complete"):
             print(f"  {name}: {info['n_pairs']} pairs, complete; registration failed for {info['registration_failed']}")
@@ -146,7 +113,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    out = _check_out_file(args.out, "--out", (".pt",))
+    out = check_output_file(args.out, "--out", (".pt",))
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import load_set
     from lensdist_torch.workflows.evaluate import fit_classifier
@@ -178,7 +145,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    _check_out_dir(args.out, "--out")
+    check_output_dir(args.out, "--out")
     if not (args.checkpoint or args.regression or args.selfcal):
         raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
     from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
@@ -219,7 +186,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    _check_out_dir(args.out, "--out")
+    check_output_dir(args.out, "--out")
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.reproduce import reproduce
 
@@ -242,7 +209,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
 
         if not have_matplotlib():
             raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
-        _check_out_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)")
+        check_output_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)")
     from lensdist_torch.workflows.analyze import analyze_pair
 
     res, qmap = analyze_pair(

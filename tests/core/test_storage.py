@@ -110,3 +110,26 @@ def test_read_only_folder(tmp_path):
             atomic_write_bytes(ro / "out.png", b"x")
     finally:
         ro.chmod(0o755)
+
+
+@pytest.mark.bad_input
+def test_output_paths_checked_up_front(tmp_path):
+    """core.outputs: what the CLI checks before a long computation."""
+    from lensdist_torch.core.outputs import check_output_dir, check_output_file
+
+    (tmp_path / "f").write_text("x")
+    os.mkfifo(tmp_path / "p.pt")
+    assert check_output_file(tmp_path / "new" / "m.pt", "--out", (".pt",)) == tmp_path / "new" / "m.pt"
+    for bad, match in [
+        (str(tmp_path / "d") + "/", "got the directory"),
+        (tmp_path, "got the directory"),
+        (tmp_path / "p.pt", "not a regular file"),
+        (tmp_path / "m.pth", "ending in .pt"),
+        (tmp_path / "f" / "m.pt", "is not a folder"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            check_output_file(bad, "--out", (".pt",))
+    assert check_output_dir(tmp_path / "a" / "b", "--out") == tmp_path / "a" / "b"
+    with pytest.raises(ValueError, match="exists and is not one"):
+        check_output_dir(tmp_path / "f", "--out")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "d").exists()
