@@ -33,7 +33,7 @@ import torch
 from tqdm.auto import tqdm
 
 from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
-from lensdist_torch.core.images import load_image, load_scene
+from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
 from lensdist_torch.data.locks import DataSetLocked, share_lock
 from lensdist_torch.data.manifest import (
     FORMAT_VERSION,
@@ -76,7 +76,6 @@ __all__ = [
     "read_manifest",
 ]
 
-_IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 MIN_ZOOM = 0.25  # a scene that must be magnified more than 4 x is too small to be a scene
 
 #: The per-pair class key of each Delta metric in a shard record.
@@ -99,9 +98,9 @@ def load_scenes(
     folder = Path(scenes_dir)
     if not folder.is_dir():
         raise FileNotFoundError(f"--scenes folder not found: {folder}")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_SUFFIXES)
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
-        raise ValueError(f"--scenes folder {folder} holds no image files ({sorted(_IMAGE_SUFFIXES)})")
+        raise ValueError(f"--scenes folder {folder} holds no image files ({sorted(IMAGE_SUFFIXES)})")
     box = sequence_footprint(config) if sequence else footprint(config)
     scenes, ids = [], []
     for f in files:
