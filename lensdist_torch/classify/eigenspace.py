@@ -1,4 +1,4 @@
-"""The per-class eigen-space classifier (paper 4.2, SPEC section 8). It sees feature vectors
+"""The per-class eigen-space classifier (paper 4.2, docs/method.md section 8). It sees feature vectors
 (row-major flattened quality maps), never images.
 
 Per class c: the mean mu_c and the top n eigenvectors U_c (rows) of the centred training
