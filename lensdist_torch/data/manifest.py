@@ -57,7 +57,7 @@ def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
     for name in ("quality", "registration"):
         d[name].pop("chunk_size", None)
     d["scenes"] = scene_ids
-    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
+    return hashlib.sha256(json.dumps(d, sort_keys=True, allow_nan=False).encode()).hexdigest()[:16]
 
 
 def read_manifest(out: str | Path) -> dict:
@@ -151,7 +151,7 @@ def merge_manifest(old: dict | None, header: dict, records: dict[str, dict]) -> 
     for name, rec in records.items():
         if name not in sets or sets[name]["n_pairs"] <= rec["n_pairs"]:
             sets[name] = rec
-    return json.loads(json.dumps({**header, "sets": sets}))  # as read back: lists, not tuples
+    return json.loads(json.dumps({**header, "sets": sets}, allow_nan=False))  # as read back: lists, not tuples
 
 
 def save_manifest(out: Path, header: dict, records: dict[str, dict]) -> bool:
@@ -166,5 +166,5 @@ def save_manifest(out: Path, header: dict, records: dict[str, dict]) -> bool:
         new = merge_manifest(old, header, records)
         if new == old:
             return False
-        atomic_write_bytes(out / MANIFEST, (json.dumps(new, indent=2) + "\n").encode())
+        atomic_write_bytes(out / MANIFEST, (json.dumps(new, indent=2, allow_nan=False) + "\n").encode())
         return True

@@ -70,8 +70,8 @@ def reproduce(
         "title": "lensdist reproduce: the paper's Tables 1 and 2" + (" (quick: a tenth of the pairs)" if quick else ""),
         "protocol": (
             f"{p.n_train} training pairs, {p.n_test_distorted} distorted + {p.n_test_undistorted} class-R test pairs "
-            f"on the scenes {list(p.scenes)}, {config.image.height} x {config.image.width}; generation took "
-            f"{t_gen:.0f} s; registration failed for {gen['sets']['train'].get('registration_failed', '?')} training "
+            f"on the scenes {list(p.scenes)}, {config.image.height} x {config.image.width}; {_generation_note(gen, t_gen)}; "
+            f"registration failed for {gen['sets']['train'].get('registration_failed', '?')} training "
             f"and {gen['sets']['test'].get('registration_failed', '?')} test pairs."
         ),
         "notes": (
@@ -85,6 +85,16 @@ def reproduce(
     if figures:
         _figures(models, settings, test, config, out)
     return {"markdown": str(md), "json": str(js), "settings": settings}
+
+
+def _generation_note(gen: dict, seconds: float) -> str:
+    """'generated N shards in T s', or 'reused N shards' when the data were on disk already."""
+    total = sum(info.get("n_shards", 0) for info in gen["sets"].values())
+    written = gen.get("written", 0)
+    if written == 0:
+        return f"reused {total} shards already on disk"
+    reused = f", reused {total - written}" if total > written else ""
+    return f"generated {written} shards in {seconds:.0f} s{reused}"
 
 
 def _other_methods(train: dict, test: dict, config: LensdistConfig, out: Path, progress: bool) -> dict:
@@ -125,4 +135,5 @@ def _figures(models: dict, settings: dict, test: dict, config: LensdistConfig, o
     if len(r_pairs):
         picks.append(int(r_pairs[0]))
     labels = [f"Delta_avg {float(test['delta_avg'][i]):.1f} px, t_y {float(test['motion'][i, 0]):.0f}" for i in picks]
-    save_map_grid(maps[picks], labels, out / "maps_by_distortion.png", "quality maps (Fig. 1)")
+    classes = [CLASS_LABELS[int(test["class_avg"][i])] for i in picks]
+    save_map_grid(maps[picks], labels, out / "maps_by_distortion.png", "quality maps (Fig. 1)", classes=classes)
