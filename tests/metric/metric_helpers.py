@@ -56,7 +56,7 @@ def blocks(x: torch.Tensor, b: int) -> torch.Tensor:
 
 
 def spec_reference(img1, img2, valid=None, cfg: QualityConfig = CFG):
-    """SPEC 2-4 transcribed literally (kornia Sobel, double-angle vectors, binary validity)."""
+    """docs/method.md, sections 2-4 transcribed literally (kornia Sobel, double-angle vectors, binary validity)."""
     s1 = spatial_gradient(img1, mode="sobel", order=1, normalized=True)
     s2 = spatial_gradient(img2, mode="sobel", order=1, normalized=True)
     sx1, sy1, sx2, sy2 = s1[:, :, 0], s1[:, :, 1], s2[:, :, 0], s2[:, :, 1]
@@ -64,7 +64,7 @@ def spec_reference(img1, img2, valid=None, cfg: QualityConfig = CFG):
     u2x, u2y = sx2**2 - sy2**2, 2 * sx2 * sy2
     # "+ 0.0" turns a -0.0 dot product (a zero gradient times a negative component) into +0.0:
     # IEEE atan2(0, -0) = pi, which would give a zero vector the orientation difference pi / 2.
-    # A zero vector has no orientation; SPEC 5 masks it to dalpha = 0 (A = 1).
+    # A zero vector has no orientation; docs/method.md, section 5 masks it to dalpha = 0 (A = 1).
     dalpha = 0.5 * torch.atan2((u1x * u2y - u1y * u2x).abs(), u1x * u2x + u1y * u2y + 0.0)
     a = 1 - dalpha / HALF_PI
     e = cfg.gamma / (1 + torch.exp(cfg.k * (a - cfg.sigma)))

@@ -222,13 +222,13 @@ class TestHandWorked:
         torch.testing.assert_close(smooth.g1, hard.g1)
 
 
-# ----------------------------------------------------------------------------- SPEC, literally
+# ----------------------------------------------------------------------------- docs/method.md, literally
 
 
 class TestAgainstSpec:
     @pytest.mark.parametrize("seed", [0, 1, 2])
     def test_double_angle_formula(self, seed):
-        """local_criteria's A (atan2(|g1 x g2|, |g1 . g2|)) == SPEC's double-angle form."""
+        """local_criteria's A (atan2(|g1 x g2|, |g1 . g2|)) == the double-angle form of docs/method.md."""
         g = torch.Generator().manual_seed(seed)
         img1 = torch.rand(2, 1, 24, 32, generator=g, dtype=torch.float64)
         img2 = torch.rand(2, 1, 24, 32, generator=g, dtype=torch.float64)
@@ -282,7 +282,7 @@ class TestAgainstSpec:
         assert torch.equal(registration_quality(img1, img2).visual_map, ref["vis"])
 
     def test_edge_preservation_values(self):
-        """E(A=1) = 0.976, E(A=0.8) = 0.494, E(A=0) ~ 0 (SPEC 2)."""
+        """E(A=1) = 0.976, E(A=0.8) = 0.494, E(A=0) ~ 0 (docs/method.md, section 2)."""
         x = textured(1, 16, 16, seed=5)
         c = local_criteria(x, x)
         assert bool((c.a == 1).all())
@@ -292,7 +292,7 @@ class TestAgainstSpec:
         inner_a, inner_e = c.a[..., 1:-1, 1:-1], c.e[..., 1:-1, 1:-1]
         torch.testing.assert_close(inner_a, torch.full_like(inner_a, 0.8), atol=1e-9, rtol=0)
         torch.testing.assert_close(inner_e, torch.full_like(inner_e, 0.494), atol=1e-3, rtol=0)
-        # E is the SPEC sigmoid of A on arbitrary pairs
+        # E is the sigmoid of A of docs/method.md on arbitrary pairs
         img1, img2 = textured_pair(1, 32, 32, seed=6)
         c = local_criteria(img1, img2)
         torch.testing.assert_close(c.e, CFG.gamma / (1 + torch.exp(CFG.k * (c.a - CFG.sigma))), atol=1e-12, rtol=0)
@@ -318,7 +318,7 @@ class TestOrientation:
 
     def test_near_vertical_wrap_around(self):
         """Gradient directions +89.5 and -89.5 degrees: atan(s_y / s_x) = +-89.5 degrees differ by
-        179 degrees, but as axes they are 1 degree apart (SPEC's wrap-around)."""
+        179 degrees, but as axes they are 1 degree apart (the wrap-around of docs/method.md)."""
         img1 = angle_ramp(16, 16, 0.05, 89.5)
         img2 = angle_ramp(16, 16, 0.05, -89.5)
         c = local_criteria(img1, img2)

@@ -1,15 +1,15 @@
-"""Gradients of the smooth registration-quality path (SPEC 5).
+"""Gradients of the smooth registration-quality path (docs/method.md, section 5).
 
 gradcheck runs in float64 on tiny images (8 x 8 or 16 x 16, block size 8), with respect to both
 images. Where the loss is legitimately not differentiable the inputs are chosen to avoid it, and
 finiteness is checked instead (see the comments at each case).
 
-Points where the smooth loss is not differentiable, by construction of SPEC's formulas:
+Points where the smooth loss is not differentiable, by construction of the formulas of docs/method.md:
 * abs(dot) and abs(cross) at 0 (perpendicular or parallel gradients), the 3 x 3 max-pool of the
   risk map at ties. At these points the one-sided derivatives differ; gradcheck still passes
   when the kink is symmetric (a central difference of |x| at 0 is 0, as is torch's subgradient)
   or sits where the sigmoids are saturated, which is the case for the inputs below.
-* The orientation of a vanishing gradient: a zero vector counts as A = 1 (SPEC: dalpha =
+* The orientation of a vanishing gradient: a zero vector counts as A = 1 (docs/method.md: dalpha =
   0.5 atan2(0, 0) = 0), while a tiny non-zero vector has a definite direction, whatever its
   length. A pixel whose gradient is exactly zero in one image and strong in the other (outside
   the risk map) therefore makes the loss jump when a neighbouring pixel moves by +-1e-6: there
@@ -205,7 +205,7 @@ class TestFiniteGradients:
         assert bool(torch.isfinite(_finite(img1, img1 * 0.999, dtype)[0]).all())
 
     def test_flat_images_keep_their_orientation_values(self):
-        # "Guards must not move the values" (SPEC 5): the smooth path's A equals the hard one
+        # "Guards must not move the values" (docs/method.md, section 5): the smooth path's A equals the hard one
         # even when the gradients are tiny (no eps swamps the angle)
         g = torch.Generator().manual_seed(26)
         for noise in (1e-3, 1e-6, 1e-9):

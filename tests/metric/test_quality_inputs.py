@@ -112,7 +112,7 @@ class TestInputs:
             registration_quality_loss(u1, u2, reduction="none"), registration_quality_loss(f1, f2, reduction="none")
         )
         assert float((quality_map(u1, u2) > 0).float().mean()) > 0.5
-        # data_range describes float inputs only; uint8 is always / 255 (SPEC 1)
+        # data_range describes float inputs only; uint8 is always / 255 (docs/method.md, section 1)
         assert torch.equal(quality_map(u1, u2, data_range=255.0), quality_map(f1, f2))
         assert torch.equal(quality_map(u1, f2 * 2, data_range=2.0), quality_map(f1, f2))
 

@@ -229,7 +229,7 @@ class TestFastPath:
         assert torch.equal(counts_to_map(registration_error_counts(img1.double(), img2.double())), m.double().float())
         # blocks whose count is below 6.4 are floored, the others are count / 64
         assert torch.equal(m, torch.where(counts < 7, 0.0, counts.float() / 64))
-        # SPEC 4: the feature vector is the map's rows concatenated, 40 x 53 = 2120 at 320 x 424
+        # docs/method.md, section 4: the feature vector is the map's rows concatenated, 40 x 53 = 2120 at 320 x 424
         feat = m.flatten(1)
         assert feat.shape == (1, 2120)
         assert torch.equal(feat[0, 53:106], m[0, 0, 1])
