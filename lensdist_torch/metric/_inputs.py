@@ -187,10 +187,11 @@ def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None)
     g1, g2 = g1.to(dtype), g2.to(dtype)
     if valid is not None:
         check_mask_shape(valid, g1)
+        valid = valid.to(g1.device)
     if should_validate(validate):
         check_values([("img1", img1), ("img2", img2)], valid, data_range)
     if valid is not None:
-        valid = binarise_valid(valid.to(g1.device), g1)
+        valid = binarise_valid(valid, g1)
     if data_range != 1.0:  # uint8 is already / 255 (docs/method.md, section 1)
         if img1.is_floating_point():
             g1 = g1 / data_range

@@ -267,9 +267,10 @@ def error_images(
     v = None
     if valid is not None:
         check_mask_shape(valid, criteria.r)
+        valid = valid.to(criteria.r.device)
         if should_validate(validate):
             check_values([], valid, 1.0)
-        v = erode_valid(binarise_valid(valid.to(criteria.r.device), criteria.r))
+        v = erode_valid(binarise_valid(valid, criteria.r))
     return _error_images(criteria, v, cfg, smooth)
 
 
