@@ -224,16 +224,19 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         from lensdist_torch.workflows.figures import save_map_grid
 
         label = f"{res['method']}: Delta_avg {_fmt(res['delta_avg'])}"
-        save_map_grid(qmap, [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"]])
+        save_map_grid(qmap, [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"] or "?"])
         _note(args, f"map: {args.save_map}")
-    return 0
+    return 3 if args.strict and res["cannot_tell"] else 0
 
 
 def _print_analysis(res: dict) -> None:
     print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
     conf = "" if res["confidence"] is None else f", confidence {res['confidence']:.2f}"
     print(f"method: {res['method']}{conf}")
-    print(f"distortion class: {res['class']}  (1 = small ... 4 = very strong, R = none visible)")
+    if res["class"] is None:
+        print("distortion class: cannot tell (see the warnings)")
+    else:
+        print(f"distortion class: {res['class']}  (1 = small ... 4 = very strong, R = none visible)")
     (h, w), (ih, iw) = res["analysis_size"], res["input_size"]
     print(
         f"Delta_avg ~ {_fmt(res['delta_avg'])}, Delta_max ~ {_fmt(res['delta_max'])} at {w} x {h} (in your {iw} x {ih} "
@@ -374,6 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="eigenspace: the Delta_avg classifier; regression: the regressor (default: shipped)")
     p.add_argument("--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)")
     p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
+    p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
     return parser
 
 

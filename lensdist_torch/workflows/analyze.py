@@ -134,9 +134,8 @@ def _regression(qmap: torch.Tensor, reg: DeltaRegressor, cfg: LensdistConfig) ->
 def _selfcal(a: torch.Tensor, b: torch.Tensor, H: torch.Tensor, registered: bool, cfg: LensdistConfig) -> dict:
     """Self-calibration of (k2, k4) on the pair, started from the registration when it worked."""
     k2, k4, _, sc = estimate_distortion(a, b, init=H.double() if registered else None, config=cfg.selfcal)
-    if not bool(sc.converged[0]):
-        nan = float("nan")
-        return {"class": "R", "delta_avg": nan, "delta_max": nan, "confidence": 0.0, "cannot_tell": True, "diverged": True}
+    if not bool(sc.converged[0]):  # flagged, never a number and never "R"
+        return {"class": None, "delta_avg": None, "delta_max": None, "confidence": 0.0, "cannot_tell": True, "diverged": True}
     h, w = cfg.image.size
     d_avg, d_max = delta_avg(k2, k4, h, w), delta_max(k2, k4, h, w)
     return {
@@ -196,7 +195,9 @@ def analyze_pair(
         return_map: also return the (1, 1, H/8, W/8) quality map.
 
     Returns:
-        A dict with ``class`` ("1"-"4" or "R"), ``delta_avg`` and ``delta_max`` (analysis px),
+        A dict with ``class`` ("1"-"4" or "R"; None with ``cannot_tell`` True when the pair
+        cannot support an answer, the reasons in ``warnings``), ``delta_avg`` and ``delta_max``
+        (analysis px; None when the registration failed or the fit diverged),
         the same in the user's pixels, ``distances`` (eigen-space, per class), ``confidence``,
         ``cannot_tell``, ``registration_ok``, ``in_domain``, ``overlap``, ``warnings`` and
         more; with ``return_map``, the tuple (dict, quality map).
@@ -241,9 +242,11 @@ def analyze_pair(
     else:
         res.update(_selfcal(a, b, H, ok, cfg))
     far, diverged = res.pop("far_from_training", False), res.pop("diverged", False)
+    if not ok or diverged:  # no alignment, no estimate: the numbers would be noise
+        res.update(delta_avg=None, delta_max=None)
     res.update(
-        delta_avg_user_px=res["delta_avg"] * scale,
-        delta_max_user_px=res["delta_max"] * scale,
+        delta_avg_user_px=None if res["delta_avg"] is None else res["delta_avg"] * scale,
+        delta_max_user_px=None if res["delta_max"] is None else res["delta_max"] * scale,
         registration_ok=ok,
         registration_residual=float(info.residual[0]),
         overlap=overlap,
@@ -255,4 +258,16 @@ def analyze_pair(
         homography=H[0].tolist(),
     )
     res["warnings"] = _warnings(res, far, diverged, cfg)
+    _decide(res, cfg)
     return (res, qmap) if return_map else res
+
+
+def _decide(res: dict, cfg: LensdistConfig) -> None:
+    """The honest answer: ``class`` is None and ``cannot_tell`` True whenever the registration
+    failed, the fit diverged, the images overlap too little, the scene is unlike the training
+    scenes, or the confidence is below the threshold; the reasons are in ``warnings``."""
+    unsure = res["cannot_tell"] or not res["registration_ok"] or res["delta_avg"] is None
+    unsure |= res["overlap"] < cfg.analysis.min_overlap or not res["in_domain"]
+    res["cannot_tell"] = bool(unsure)
+    if unsure:
+        res["class"] = None

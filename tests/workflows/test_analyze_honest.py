@@ -1,0 +1,59 @@
+"""analyze never answers confidently when the pair cannot support an answer."""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+
+import pytest
+
+from lensdist_torch.cli import main
+from lensdist_torch.core.images import load_scene
+from lensdist_torch.workflows.analyze import analyze_pair
+
+
+def _unrelated():
+    return load_scene("gravel")[..., :320, :424], load_scene("grass")[..., :320, :424]
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("method", ["selfcal", "regression", "eigenspace"])
+def test_unrelated_images_cannot_tell(method):
+    a, b = _unrelated()
+    r = analyze_pair(a, b, method=method)
+    assert r["registration_ok"] is False
+    assert r["class"] is None and r["cannot_tell"] is True
+    assert r["delta_avg"] is None and r["delta_avg_user_px"] is None
+    assert any("registration failed" in w for w in r["warnings"])
+
+
+def test_a_good_pair_still_answers():
+    scene = load_scene("gravel")
+    r = analyze_pair(scene[..., :320, :424], scene[..., 8:328, :424])
+    assert r["registration_ok"] and not r["cannot_tell"] and r["class"] == "R"
+
+
+@pytest.mark.bad_input
+def test_strict_exits_3_and_json_says_null(tmp_path, capsys):
+    out = tmp_path
+    a, b = _unrelated()
+
+    def png(path, img):
+        h, w = img.shape[-2:]
+        rows = (img[0, 0] * 255).round().byte().tolist()
+        raw = b"".join(b"\x00" + bytes(r) for r in rows)
+
+        def chunk(tag, data):
+            return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
+                         + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+
+    png(out / "a.png", a)
+    png(out / "b.png", b)
+    assert main(["analyze", str(out / "a.png"), str(out / "b.png"), "--json", "--strict"]) == 3
+    res = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    assert res["class"] is None and res["cannot_tell"] is True
+    assert main(["analyze", str(out / "a.png"), str(out / "b.png")]) == 0
+    assert "cannot tell" in capsys.readouterr().out
