@@ -1,0 +1,152 @@
+"""Undistorted images: the inverse warp of eq. 4 (docs/method.md, section 6), batched, differentiable.
+
+A distorted image was rendered as I_d(p_d) = I(p(p_d)), p = p0 + (1 + k2 r^2 + k4 r^4) (p_d - p0)
+the ideal point of the distorted pixel p_d. Undistorting samples the distorted image, for every
+ideal pixel p of the output, at its distorted position p_d = distort(p), the Newton inverse of
+eq. 4 (:func:`~lensdist_torch.geometry.distortion.distort_points`):
+
+    I(p) = I_d(distort(p)),   one ``grid_sample`` per image, ``align_corners=True``.
+
+The output has the input's size and centre. Its validity mask is 1 where distort(p) lies inside
+the distorted image (1e-3 px of slack for rounding) and the Newton inverse is exact there (a
+round trip through eq. 4 within 0.01 px: strongly negative coefficients make eq. 4 fold over,
+and such pixels are marked invalid, never filled with a wrong sample). Outside the mask the
+image is 0. Gradients flow to the image and to k2, k4 (as for any bilinear warp, the gradient
+with respect to the coordinates is that of the bilinear interpolant).
+
+Kornia-style: the pure function :func:`undistort_image` and the thin module :class:`Undistort`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from lensdist_torch.core.images import check_image
+from lensdist_torch.geometry.distortion import distort_points, distortion_center, sample, undistort_points
+from lensdist_torch.geometry.frame import pixel_grid
+
+__all__ = ["undistortion_grid", "undistort_image", "Undistort"]
+
+_SLACK_PX = 1e-3
+_ROUND_TRIP_PX = 1e-2
+
+
+def _coefficient(value, name: str, like: torch.Tensor) -> torch.Tensor:
+    k = torch.as_tensor(value, dtype=like.dtype, device=like.device) if not isinstance(value, torch.Tensor) else value
+    if not k.is_floating_point():
+        k = k.to(like.dtype)
+    k = k.to(device=like.device).reshape(-1)
+    if k.numel() == 0:
+        raise ValueError(f"{name} must hold one value or one per image, got none")
+    if not bool(torch.isfinite(k.detach()).all()):
+        raise ValueError(f"{name} must be finite")
+    return k.to(like.dtype)
+
+
+def undistortion_grid(
+    k2, k4, height: int, width: int, dtype: torch.dtype = torch.float32, device=None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """For every ideal pixel of a (height, width) frame, its position in the distorted image.
+
+    Args:
+        k2: eq. 4's k2 in pixels, a number or a (B,) tensor.
+        k4: eq. 4's k4, as many values as k2.
+        height: the frame's height (its centre is eq. 4's p0).
+        width: the frame's width.
+        dtype: of the returned grid.
+        device: of the returned grid.
+
+    Returns:
+        grid: (B, H, W, 2) pixel coordinates (x, y) of distort(p) in the distorted image.
+        valid: (B, 1, H, W) of 0 and 1 (module docstring), ``dtype``.
+
+    Example:
+        >>> grid, valid = undistortion_grid(torch.tensor([1e-4, -1e-4]), torch.zeros(2), 32, 48)
+        >>> tuple(grid.shape), valid.mean(dim=(1, 2, 3)).lt(1).tolist()  # pincushion's corners lie outside
+        ((2, 32, 48, 2), [False, True])
+    """
+    if not (type(height) is int and type(width) is int and height > 0 and width > 0):
+        raise ValueError(f"height and width must be positive ints, got {height!r} and {width!r}")
+    ref = torch.empty(0, dtype=dtype, device=device)
+    k2, k4 = _coefficient(k2, "k2", ref), _coefficient(k4, "k4", ref)
+    if k2.shape != k4.shape:
+        raise ValueError(f"k2 and k4 must have the same number of values, got {k2.numel()} and {k4.numel()}")
+    centre = distortion_center(height, width)
+    ideal = pixel_grid(height, width, dtype, device).expand(k2.numel(), height, width, 2)
+    src = distort_points(ideal, k2, k4, centre)
+    back = undistort_points(src.detach(), k2.detach(), k4.detach(), centre)
+    exact = ((back - ideal).abs().amax(-1) <= _ROUND_TRIP_PX) & torch.isfinite(src.detach()).all(-1)
+    inside = ((src.detach()[..., 0] >= -_SLACK_PX) & (src.detach()[..., 0] <= width - 1 + _SLACK_PX)
+              & (src.detach()[..., 1] >= -_SLACK_PX) & (src.detach()[..., 1] <= height - 1 + _SLACK_PX))
+    valid = (exact & inside).unsqueeze(1).to(dtype)
+    return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6), valid
+
+
+def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear") -> tuple[torch.Tensor, torch.Tensor]:
+    """Undistort images: I(p) = I_d(distort(p)) for every ideal pixel p (module docstring).
+
+    Args:
+        img: (B, C, H, W) distorted images, float or uint8 (uint8 is divided by 255).
+        k2: eq. 4's k2 in the images' pixels: a number, or a (1,) or (B,) tensor (a tensor
+            that requires grad gets gradients).
+        k4: eq. 4's k4, as many values as k2.
+        mode: ``grid_sample``'s interpolation, "bilinear" (default), "nearest" or "bicubic".
+
+    Returns:
+        undistorted: (B, C, H, W) float (the input's float dtype, float32 for uint8), 0 outside
+            the mask.
+        valid: (B, 1, H, W) of 0 and 1: the sample came from inside the distorted image.
+
+    Example:
+        >>> from lensdist_torch.geometry.distortion import render_distorted
+        >>> ideal = torch.rand(2, 3, 40, 56)
+        >>> k2, k4 = torch.tensor([2e-5, 0.0]), torch.tensor([0.0, 1e-9])
+        >>> out, valid = undistort_image(render_distorted(ideal, k2, k4), k2, k4)
+        >>> tuple(out.shape), tuple(valid.shape)
+        ((2, 3, 40, 56), (2, 1, 40, 56))
+    """
+    check_image(img, "img")
+    x = img.float() / 255.0 if img.dtype == torch.uint8 else img
+    b, _, h, w = x.shape
+    if mode not in ("bilinear", "nearest", "bicubic"):
+        raise ValueError(f"mode must be 'bilinear', 'nearest' or 'bicubic', got {mode!r}")
+    grid, valid = undistortion_grid(k2, k4, h, w, x.dtype, x.device)
+    if grid.shape[0] not in (1, b):
+        raise ValueError(f"k2/k4 must hold 1 value or one per image ({b}), got {grid.shape[0]}")
+    grid, valid = grid.expand(b, -1, -1, -1), valid.expand(b, -1, -1, -1)
+    return sample(x, grid, mode) * valid, valid
+
+
+class Undistort(nn.Module):
+    """Module form of :func:`undistort_image` with fixed coefficients.
+
+    Args:
+        k2: eq. 4's k2 in pixels (a number or a (B,) tensor). An ``nn.Parameter`` is kept as a
+            parameter (trainable), anything else as a float64 buffer.
+        k4: eq. 4's k4, the same way.
+        mode: the interpolation of :func:`undistort_image`.
+
+    Example:
+        >>> undistort = Undistort(1e-6, 0.0)
+        >>> out, valid = undistort(torch.rand(1, 1, 32, 48))
+        >>> tuple(out.shape)
+        (1, 1, 32, 48)
+    """
+
+    def __init__(self, k2, k4, mode: str = "bilinear") -> None:
+        super().__init__()
+        for name, value in (("k2", k2), ("k4", k4)):
+            if isinstance(value, nn.Parameter):
+                self.register_parameter(name, value)
+            else:
+                self.register_buffer(name, torch.as_tensor(value, dtype=torch.float64).reshape(-1).clone())
+        self.mode = mode
+
+    def forward(self, img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, C, H, W) distorted -> (undistorted (B, C, H, W), valid (B, 1, H, W))."""
+        return undistort_image(img, self.k2, self.k4, self.mode)
+
+    def extra_repr(self) -> str:
+        """The coefficients and the mode."""
+        return f"k2={self.k2.tolist()}, k4={self.k4.tolist()}, mode={self.mode!r}"
