@@ -76,8 +76,9 @@ class ClassRMSE:
     Example:
         >>> m = ClassRMSE(2)
         >>> m.update(torch.tensor([1.0, 3.0, 5.0]), torch.tensor([0.0, 3.0, 4.0]), torch.tensor([0, 1, 1]))
-        >>> m.compute()
-        {'rmse': [1.0, 0.7071067811865476], 'bias': [1.0, 0.5], 'n': [1, 2]}
+        >>> out = m.compute()
+        >>> [round(r, 4) for r in out["rmse"]], out["bias"], out["n"]
+        ([1.0, 0.7071], [1.0, 0.5], [1, 2])
         >>> m.reset()
         >>> m.compute()["n"]
         [0, 0]

@@ -110,3 +110,26 @@ def test_validate_false_trusts_the_values():
     # shapes and types are still checked
     with pytest.raises(ValueError, match="same shape"):
         quality_map(img, img[..., :8], validate=False)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_no_host_sync_on_cuda_without_validation():
+    """With validate=False the maps, the loss (forward and backward) and the stateful update
+    never wait for the GPU; with the checks on, there is exactly the one synchronisation."""
+    img1 = textured(2, 37, 61, seed=1, dtype=torch.float32).cuda()
+    img2 = torch.roll(img1, 1, dims=-1)
+    valid = torch.ones(2, 1, 37, 61, device="cuda")
+    x = img1.clone().requires_grad_()
+    metric = RegistrationQualityMetric(validate=False).cuda()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        quality_map(img1, img2, valid, validate=False)
+        registration_quality(img1, img2, valid, validate=False)
+        registration_quality_loss(x, img2, valid, validate=False).backward()
+        metric.update(img1, img2, valid)
+        with pytest.raises(RuntimeError, match="synchroniz"):
+            quality_map(img1, img2, valid)
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    assert bool(torch.isfinite(x.grad).all())
