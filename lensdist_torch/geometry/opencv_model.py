@@ -82,7 +82,8 @@ def opencv_distort_normalized(x: torch.Tensor, dist_coeffs: torch.Tensor) -> tor
     """OpenCV's forward model (radial part): ideal normalised points (..., 2) -> distorted.
 
     Example:
-        >>> opencv_distort_normalized(torch.tensor([[0.5, 0.0]]), torch.tensor([-0.2, 0, 0, 0, 0.0])).tolist()
+        >>> d = torch.tensor([-0.4, 0, 0, 0, 0], dtype=torch.float64)  # k1 = -0.4: barrel
+        >>> opencv_distort_normalized(torch.tensor([[0.5, 0.0]], dtype=torch.float64), d).tolist()
         [[0.45, 0.0]]
     """
     d = torch.as_tensor(dist_coeffs, dtype=x.dtype, device=x.device)
@@ -101,9 +102,9 @@ def opencv_undistort_points(
 
     Example:
         >>> K = torch.tensor([[100.0, 0, 50], [0, 100, 40], [0, 0, 1]], dtype=torch.float64)
-        >>> d = torch.tensor([-0.02, 0, 0, 0, 0], dtype=torch.float64)
+        >>> d = torch.tensor([-0.4, 0, 0, 0, 0], dtype=torch.float64)  # (95, 40) is ideal (100, 40)
         >>> [round(v, 3) for v in opencv_undistort_points(torch.tensor([[95.0, 40.0]]), K, d)[0].tolist()]
-        [95.92, 40.0]
+        [99.998, 40.0]
     """
     k = torch.as_tensor(camera_matrix, dtype=torch.float64)
     d = torch.as_tensor(dist_coeffs, dtype=torch.float64).reshape(-1)
