@@ -1,0 +1,219 @@
+"""Sequence calibration (lensdist_torch.geometry.calibration) and the OpenCV export (opencv_model)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from lensdist_torch.geometry.calibration import (
+    CalibrationConfig,
+    _t_quantile,
+    analysis_scale,
+    analysis_size,
+    calibrate_sequence,
+    choose_pairs,
+    to_analysis,
+    user_coefficients,
+)
+from lensdist_torch.geometry.distortion import delta_avg, delta_max, distortion_center, undistort_points
+from lensdist_torch.geometry.opencv_model import opencv_camera, opencv_undistort_points
+from lensdist_torch.workflows.calibrate import synthetic_sequence
+
+SIZE = (240, 320)
+# 0.6 of the largest coefficients of docs/method.md, section 6 (at 320 x 424), scaled to 240 x 320
+S = 424 / 320
+K2, K4 = 0.6 * 2.5e-6 * S**2, 0.6 * 2.5e-11 * S**4
+
+
+@pytest.fixture(scope="module")
+def distorted_sequence(one_thread_module):
+    return synthetic_sequence(12, K2, K4, size=SIZE, seed=1)[0]
+
+
+# ------------------------------------------------------------------ the scaling law
+def test_eq4_scaling_law_is_exact():
+    """p_user - c_user = s (p - c) turns eq. 4 with (k2, k4) into eq. 4 with (k2 / s^2, k4 / s^4)."""
+    s, (h, w) = 2.5, (96, 128)
+    hh, ww = round(h * s), round(w * s)
+    pa = torch.rand(1, 500, 2, dtype=torch.float64) * torch.tensor([w - 1, h - 1], dtype=torch.float64)
+    ca, cu = (torch.tensor(distortion_center(*size), dtype=torch.float64) for size in ((h, w), (hh, ww)))
+    pu = cu + s * (pa - ca)
+    k2u, k4u = user_coefficients(3e-5, 2e-9, s)
+    ideal_a = undistort_points(pa, [3e-5], [2e-9], distortion_center(h, w))
+    ideal_u = undistort_points(pu, [k2u], [k4u], distortion_center(hh, ww))
+    assert torch.allclose(ideal_u, cu + s * (ideal_a - ca), atol=1e-9)
+
+
+def test_to_analysis_is_an_exactly_centred_scaling():
+    hh, ww, s = 300, 400, 2.5
+    x = torch.arange(ww, dtype=torch.float32).expand(1, 1, hh, ww) / ww  # a ramp survives box filters
+    y = torch.arange(hh, dtype=torch.float32)[:, None].expand(1, 1, hh, ww) / hh
+    h, w = analysis_size(hh, ww, s)
+    xa, ya = to_analysis(x, s), to_analysis(y, s)
+    want_x = ((ww - 1) / 2 + s * (torch.arange(w) - (w - 1) / 2)) / ww
+    want_y = ((hh - 1) / 2 + s * (torch.arange(h) - (h - 1) / 2)) / hh
+    assert (h, w) == (120, 160) and xa.shape == (1, 1, 120, 160)
+    assert torch.allclose(xa[0, 0, 5, 2:-2], want_x[2:-2].float(), atol=1e-5)
+    assert torch.allclose(ya[0, 0, 2:-2, 5], want_y[2:-2].float(), atol=1e-5)
+    assert analysis_scale(480, 640) == 1.25 and analysis_scale(100, 120) == 1.0
+
+
+def test_user_pixels_scale_as_derived(one_thread_module):
+    """The same camera (same normalised coefficients) filmed at 240 x 320 and at 480 x 640,
+    the latter analysed at 240 x 320 (s = 2): the user coefficients follow k2 / s^2, k4 / s^4."""
+    small = calibrate_sequence(synthetic_sequence(10, K2, K4, size=SIZE, seed=3)[0])
+    big_frames = synthetic_sequence(10, K2 / 4, K4 / 16, size=(480, 640), seed=3)[0]
+    big = calibrate_sequence(big_frames, CalibrationConfig(analysis_side=320))
+    assert big.scale == 2.0 and big.analysis_size == SIZE and big.image_size == (480, 640)
+    assert big.k2_user == pytest.approx(K2 / 4, rel=0.05) and small.k2_user == pytest.approx(K2, rel=0.05)
+    d_big = float(delta_avg([K2 / 4], [K4 / 16], 480, 640)[0])
+    assert big.delta_avg_user_px == pytest.approx(d_big, abs=0.2)
+    assert big.delta_avg_user_interval[0] <= d_big <= big.delta_avg_user_interval[1]
+    assert big.delta_avg_user_px == pytest.approx(2 * small.delta_avg_user_px, rel=0.03)
+
+
+# ------------------------------------------------------------------ recovery
+def test_recovers_the_camera_with_an_interval(distorted_sequence):
+    cal = calibrate_sequence(distorted_sequence)
+    true_avg, true_max = float(delta_avg([K2], [K4], *SIZE)[0]), float(delta_max([K2], [K4], *SIZE)[0])
+    assert cal.frames == 12 and cal.image_size == SIZE and cal.scale == 1.0 and cal.pairs_used >= 8
+    assert cal.delta_avg_user_px == pytest.approx(true_avg, abs=0.1)
+    assert cal.delta_max_user_px == pytest.approx(true_max, abs=0.5)
+    lo, hi = cal.delta_avg_user_interval
+    assert lo <= true_avg <= hi and hi - lo < 0.5
+    lo, hi = cal.delta_max_user_interval
+    assert lo <= true_max <= hi
+    assert cal.class_label == "3" and cal.reason == ""  # 0.6 of the top: the third of four bins
+    assert cal.pairs.shape == (cal.pairs_used + cal.pairs_rejected, 2) and bool(cal.pair_used.all())
+
+
+def test_undistorted_sequence_is_class_R(one_thread_module):
+    cal = calibrate_sequence(synthetic_sequence(10, 0.0, 0.0, size=SIZE, seed=2)[0])
+    assert cal.class_label == "R" and cal.delta_avg_user_px < 0.25 and cal.delta_avg_user_interval[0] == 0.0
+
+
+def test_a_broken_frame_is_rejected(distorted_sequence):
+    frames = distorted_sequence.clone()
+    frames[6] = torch.rand(frames[6].shape, generator=torch.Generator().manual_seed(0))  # a broken frame: noise
+    cal = calibrate_sequence(frames)
+    assert cal.pairs_rejected >= 2 and not bool(cal.pair_used[(cal.pairs == 6).any(1)].any())
+    assert cal.delta_avg_user_px == pytest.approx(float(delta_avg([K2], [K4], *SIZE)[0]), abs=0.1)
+
+
+def test_analysis_frames_with_frame_size_give_the_same_answer(distorted_sequence):
+    cfg = CalibrationConfig(analysis_side=160)
+    direct = calibrate_sequence(distorted_sequence, cfg)
+    small = to_analysis(distorted_sequence, analysis_scale(*SIZE, cfg))
+    again = calibrate_sequence(small, cfg, frame_size=SIZE)
+    assert again.k2_user == direct.k2_user and again.delta_avg_user_interval == direct.delta_avg_user_interval
+
+
+def test_a_static_camera_cannot_tell():
+    frames = synthetic_sequence(1, K2, K4, size=SIZE)[0].expand(6, -1, -1, -1)
+    cal = calibrate_sequence(frames)
+    assert cal.class_label is None and "motion" in cal.reason and cal.pairs_used == 0
+    assert math.isnan(cal.k2_user) and math.isnan(cal.delta_avg_user_interval[0])
+
+
+def test_pairs_follow_the_camera_path():
+    x = torch.rand(1, 1, 200, 200)
+    frames = torch.cat([torch.roll(x, -8 * i, dims=2) for i in range(12)])  # 8 px a frame
+    pairs, shifts = choose_pairs(frames, CalibrationConfig(motion_steps=(0.14, 0.22), max_pairs=64))
+    r = 0.5 * math.hypot(199, 199)
+    moved = 8.0 * (pairs[:, 1] - pairs[:, 0])
+    assert bool((moved >= 0.14 * r).all()) and bool((moved <= 0.35 * r).all())
+    # frame i (p) = x(p + 8 i) = frame j (p - 8 (j - i)): the pairs' own translations, vertical
+    assert torch.allclose(shifts[:, 1], -moved.double(), atol=0.05) and bool((shifts[:, 0].abs() < 0.05).all())
+    assert len(choose_pairs(frames, CalibrationConfig(max_pairs=5))[0]) == 5
+
+
+def test_t_quantiles():
+    for dof, want in ((1, 12.706), (2, 4.303), (3, 3.182), (7, 2.365), (30, 2.042)):
+        assert _t_quantile(0.975, dof) == pytest.approx(want, abs=2e-3)
+
+
+# ------------------------------------------------------------------ OpenCV
+def _grid(h, w, step=3.0):
+    xs, ys = torch.arange(0, w, step, dtype=torch.float64), torch.arange(0, h, step, dtype=torch.float64)
+    return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("frac", [0.125, 0.5, 0.875, -0.4])
+def test_opencv_export_matches_cv2_undistort_points(frac):
+    h, w = 480, 640
+    s = 424 / w
+    k2, k4 = frac * 2.5e-6 * s**2, frac * 2.5e-11 * s**4
+    cam = opencv_camera(k2, k4, h, w)
+    pd = _grid(h, w)
+    ideal = undistort_points(pd[None], [k2], [k4], distortion_center(h, w))[0].numpy()
+    k, d = cam.camera_matrix.numpy(), cam.dist_coeffs.numpy()
+    got = cv2.undistortPoints(pd.numpy().reshape(-1, 1, 2), k, d, P=k).reshape(-1, 2)
+    err = np.linalg.norm(got - ideal, axis=1)
+    assert err.mean() <= 0.1 and cam.fit_error_mean_px <= 0.1
+    assert d.shape == (5,) and d[2] == 0 and d[3] == 0 and k[0, 0] == k[1, 1] == pytest.approx(0.5 * math.hypot(639, 479))
+    assert (k[0, 2], k[1, 2]) == distortion_center(h, w)
+    ours = opencv_undistort_points(pd, cam.camera_matrix, cam.dist_coeffs).numpy()  # OpenCV's algorithm in torch
+    assert np.abs(ours - got).max() < 1e-6
+    assert cam.fit_error_mean_px == pytest.approx(float(err.mean()), rel=0.1, abs=1e-4)
+
+
+def test_opencv_rational_model_and_focal():
+    h, w = 320, 424
+    cam = opencv_camera(1.5e-6, 1.5e-11, h, w, model="rational", focal=300.0)
+    pd = _grid(h, w)
+    k, d = cam.camera_matrix.numpy(), cam.dist_coeffs.numpy()
+    got = cv2.undistortPoints(pd.numpy().reshape(-1, 1, 2), k, d, P=k).reshape(-1, 2)
+    ideal = undistort_points(pd[None], [1.5e-6], [1.5e-11], distortion_center(h, w))[0].numpy()
+    assert d.shape == (8,) and k[0, 0] == 300.0 and cam.forward_error_mean_px < 1e-3
+    assert np.linalg.norm(got - ideal, axis=1).mean() < 0.02
+    assert opencv_camera(0.0, 0.0, h, w).fit_error_max_px < 1e-9
+
+
+# ------------------------------------------------------------------ bad inputs
+@pytest.mark.bad_input
+@pytest.mark.parametrize(
+    "frames,match",
+    [
+        (torch.rand(1, 1, 64, 64), "at least 2 frames"),
+        ([torch.rand(1, 1, 64, 64), torch.rand(1, 1, 64, 80)], "one size"),
+        ([], "frames is empty"),
+        ("frames/", "frames must be a"),
+        (torch.rand(3, 1, 8, 8), "at least 16 px"),
+        (torch.full((2, 1, 64, 64), float("nan")), "NaN"),
+    ],
+)
+def test_bad_frames_are_one_line_errors(frames, match):
+    with pytest.raises((ValueError, TypeError), match=match) as err:
+        calibrate_sequence(frames)
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"analysis_side": 10}, "analysis_side"),
+        ({"motion_steps": (0.5,)}, "motion_steps"),
+        ({"max_motion": 1.5}, "max_motion"),
+        ({"confidence": 1.0}, "confidence"),
+        ({"jackknife_blocks": 1}, "jackknife_blocks"),
+        ({"outlier_mads": -1.0}, "outlier_mads"),
+    ],
+)
+def test_bad_config_is_a_one_line_error(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        CalibrationConfig(**kwargs)
+
+
+@pytest.mark.bad_input
+def test_bad_frame_size_and_opencv_arguments():
+    with pytest.raises(ValueError, match="frame_size"):
+        calibrate_sequence(torch.rand(3, 1, 64, 64), frame_size=(480, 640))
+    with pytest.raises(ValueError, match="model"):
+        opencv_camera(0.0, 0.0, 64, 64, model="fisheye")
+    with pytest.raises(ValueError, match="focal"):
+        opencv_camera(0.0, 0.0, 64, 64, focal=-1.0)
