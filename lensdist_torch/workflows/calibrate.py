@@ -1,0 +1,407 @@
+"""Calibrate a camera from a folder of frames or a video, and undistort its frames.
+
+``calibrate_path(path)`` reads the frames (a folder of images, sorted by name with numbers in
+their natural order, or a video through the optional PyAV), brings each to the analysis size as
+it is read (a long video stays small), and runs
+:func:`~lensdist_torch.geometry.calibration.calibrate_sequence`; it returns a strict-JSON-ready
+dict (None for unknown numbers, never NaN) with the coefficients of eq. 4 in the frames' own
+pixels, Delta_avg and Delta_max with their 95 % intervals, the class, and OpenCV's camera
+matrix and distortion coefficients (:mod:`~lensdist_torch.geometry.opencv_model`).
+``undistort_path(path, out_dir, k2=, k4=)`` (or ``from_json=`` a saved calibration) writes
+every corrected frame as a PNG (grey or colour, as the input) and its validity mask in
+``out_dir/masks/``. ``add_calibrate_commands(subparsers)`` registers ``lensdist calibrate`` and
+``lensdist undistort``. ``synthetic_sequence`` renders the test sequences of a panning camera.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import struct
+import zlib
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from lensdist_torch.config import LensdistConfig
+from lensdist_torch.core.images import load_image, load_scene
+from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
+from lensdist_torch.geometry.calibration import (
+    CalibrationConfig,
+    analysis_scale,
+    calibrate_sequence,
+    to_analysis,
+)
+from lensdist_torch.geometry.distortion import distortion_center, distortion_grid, sample
+from lensdist_torch.geometry.opencv_model import opencv_camera
+from lensdist_torch.geometry.undistort import undistortion_grid
+
+__all__ = ["IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path", "undistort_path",
+           "encode_png", "synthetic_sequence", "add_calibrate_commands"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+
+
+# ------------------------------------------------------------------ reading
+def _natural(name: str) -> list:
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def list_frames(folder: str | Path) -> list[Path]:
+    """The image files of a folder (``IMAGE_SUFFIXES``), by name, numbers in order (2 before 10)."""
+    folder = Path(folder)
+    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
+    if not files:
+        raise ValueError(f"path {folder} holds no image files ({', '.join(IMAGE_SUFFIXES)})")
+    return sorted(files, key=lambda p: _natural(p.name))
+
+
+def _video_frames(path: Path, grey: bool):
+    try:
+        import av  # the optional extra: pip install av
+    except ImportError:
+        raise ValueError(f"reading the video {path.name} needs the optional PyAV package: pip install av "
+                         "(or pass a folder of frames)") from None
+    with av.open(str(path)) as container:
+        for i, frame in enumerate(container.decode(video=0)):
+            arr = torch.from_numpy(frame.to_ndarray(format="gray" if grey else "rgb24"))
+            img = arr[None] if arr.dim() == 2 else arr.permute(2, 0, 1)
+            yield f"frame_{i:06d}", (img.float() / 255.0)[None].contiguous()
+
+
+def read_frames(path: str | Path, grey: bool = True, max_frames: int | None = None):
+    """Yield (name, (1, C, H, W) float frame in [0, 1]) from a folder of images or a video.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        ValueError: an empty folder, an unknown file type, or a video without PyAV.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"path not found: {path}")
+    if max_frames is not None and (type(max_frames) is not int or max_frames < 1):
+        raise ValueError(f"max_frames must be a positive int or None, got {max_frames!r}")
+    if path.is_dir():
+        source = ((p.stem, load_image(p, grey=grey)) for p in list_frames(path))
+    elif path.suffix.lower() in VIDEO_SUFFIXES:
+        source = _video_frames(path, grey)
+    else:
+        raise ValueError(f"path must be a folder of frames or a video ({', '.join(VIDEO_SUFFIXES)}), got {path.name}")
+    for i, item in enumerate(source):
+        if max_frames is not None and i >= max_frames:
+            return
+        yield item
+
+
+def _bar(total, quiet: bool, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=quiet, desc=desc, unit="frame" if desc != "pairs" else "pair", leave=False)
+
+
+def _count(path: Path, max_frames: int | None) -> int | None:
+    if not path.is_dir():
+        return max_frames
+    n = len(list_frames(path))
+    return n if max_frames is None else min(n, max_frames)
+
+
+# ------------------------------------------------------------------ calibration
+def _finite(value):
+    """NaN / inf -> None, recursively; tensors and tuples -> lists (strict JSON)."""
+    if isinstance(value, torch.Tensor):
+        value = value.tolist()
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _opencv(k2: float, k4: float, size: tuple[int, int], focal: float | None, model: str) -> dict | None:
+    if not (math.isfinite(k2) and math.isfinite(k4)):
+        return None
+    cam = opencv_camera(k2, k4, *size, focal=focal, model=model)
+    return {"camera_matrix": cam.camera_matrix, "dist_coeffs": cam.dist_coeffs, "fit_error_mean_px": cam.fit_error_mean_px,
+            "fit_error_max_px": cam.fit_error_max_px, "forward_error_mean_px": cam.forward_error_mean_px,
+            "forward_error_max_px": cam.forward_error_max_px}
+
+
+def calibrate_path(
+    path: str | Path,
+    config: CalibrationConfig | None = None,
+    settings: LensdistConfig | None = None,
+    max_frames: int | None = 300,
+    focal: float | None = None,
+    quiet: bool = True,
+) -> dict:
+    """Calibrate the camera of a folder of frames or a video (module docstring).
+
+    Args:
+        path: a folder of images (one camera, one size, in recording order by name) or a video.
+        config: :class:`~lensdist_torch.geometry.calibration.CalibrationConfig`.
+        settings: the library's :class:`~lensdist_torch.config.LensdistConfig`.
+        max_frames: read at most this many frames (None: all).
+        focal: OpenCV's fx = fy in pixels; the half diagonal when None.
+        quiet: no progress bars.
+
+    Returns:
+        A dict for ``json.dumps(..., allow_nan=False)``: path, frames, image_size [H, W],
+        analysis_size, scale, k2_user, k4_user, delta_avg_user_px, delta_avg_user_interval,
+        delta_max_user_px, delta_max_user_interval, confidence, class, reason, pairs_used,
+        pairs_rejected, opencv and opencv_rational (camera_matrix, dist_coeffs and their errors).
+    """
+    cfg = CalibrationConfig() if config is None else config
+    path = Path(path)
+    frames, size, scale = [], None, 1.0
+    with _bar(_count(path, max_frames) if path.exists() else None, quiet, "reading") as bar:
+        for name, img in read_frames(path, grey=True, max_frames=max_frames):
+            if size is None:
+                size = tuple(img.shape[-2:])
+                scale = analysis_scale(*size, cfg)
+            elif tuple(img.shape[-2:]) != size:
+                raise ValueError(f"frames must all have one size: the first is {size[0]} x {size[1]}, "
+                                 f"{name} is {img.shape[-2]} x {img.shape[-1]}")
+            frames.append(to_analysis(img, scale))
+            bar.update(1)
+    if len(frames) < 2:
+        raise ValueError(f"path {path} must hold at least 2 frames of one camera, got {len(frames)}")
+    with _bar(None, quiet, "pairs") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        cal = calibrate_sequence(torch.cat(frames), cfg, settings, frame_size=size, progress=progress)
+    out = {k: getattr(cal, k) for k in ("frames", "image_size", "analysis_size", "scale", "k2_user", "k4_user",
+                                        "delta_avg_user_px", "delta_avg_user_interval", "delta_max_user_px",
+                                        "delta_max_user_interval")}
+    out.update({"path": str(path), "confidence": cfg.confidence, "class": cal.class_label, "reason": cal.reason or None,
+                "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
+                "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
+                "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
+    return _finite(out)
+
+
+# ------------------------------------------------------------------ undistortion
+def encode_png(img: torch.Tensor) -> bytes:
+    r"""A (C, H, W) uint8 tensor (C = 1 grey, 3 RGB) as PNG bytes (stdlib zlib, 'Sub' filter).
+
+    Example:
+        >>> encode_png(torch.zeros(1, 2, 3, dtype=torch.uint8))[:8]
+        b'\x89PNG\r\n\x1a\n'
+    """
+    if not (isinstance(img, torch.Tensor) and img.dtype == torch.uint8 and img.dim() == 3 and img.shape[0] in (1, 3)):
+        raise ValueError("img must be a (C, H, W) uint8 tensor with C = 1 or 3")
+    c, h, w = img.shape
+    rows = img.permute(1, 2, 0).reshape(h, w * c).contiguous()
+    sub = rows.clone()
+    sub[:, c:] = rows[:, c:] - rows[:, :-c]  # uint8 arithmetic wraps modulo 256, as PNG's filter
+    raw = torch.cat([torch.ones(h, 1, dtype=torch.uint8), sub], 1).numpy().tobytes()
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", w, h, 8, 0 if c == 1 else 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
+
+
+def _to_uint8(x: torch.Tensor) -> torch.Tensor:
+    return (x.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, float]:
+    """(k2, k4) for frames of ``size``: given, or from a JSON (/ s^2, / s^4 for frames scaled by s)."""
+    if from_json is None:
+        if k2 is None or k4 is None:
+            raise ValueError("give both k2 and k4 (--k2, --k4), or from_json (--from CALIBRATION.json)")
+        k2, k4 = float(k2), float(k4)
+        if not (math.isfinite(k2) and math.isfinite(k4)):
+            raise ValueError(f"k2 and k4 must be finite numbers, got {k2} and {k4}")
+        return k2, k4
+    if k2 is not None or k4 is not None:
+        raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
+    src = Path(from_json)
+    if not src.is_file():
+        raise FileNotFoundError(f"calibration file not found: {src}")
+    try:
+        data = json.loads(src.read_text())
+        k2, k4, (hc, wc) = float(data["k2_user"]), float(data["k4_user"]), data["image_size"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({exc})") from None
+    s = size[1] / wc
+    if abs(size[0] / hc - s) > 5e-3 * s:
+        raise ValueError(f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling")
+    return k2 / s**2, k4 / s**4
+
+
+def undistort_path(
+    path: str | Path,
+    out_dir: str | Path,
+    k2: float | None = None,
+    k4: float | None = None,
+    from_json: str | Path | None = None,
+    max_frames: int | None = None,
+    quiet: bool = True,
+) -> dict:
+    """Undistort every frame of a folder or video into ``out_dir`` (PNG), masks in ``out_dir/masks``.
+
+    A mask is 255 where the corrected pixel came from inside the frame, 0 elsewhere.
+
+    Args:
+        path: a folder of images or a video.
+        out_dir: the output folder (created; not the input folder).
+        k2: eq. 4's k2 in the frames' pixels (with k4; or from_json).
+        k4: eq. 4's k4 in the frames' pixels.
+        from_json: instead of k2, k4: a ``calibration.json`` of ``lensdist calibrate --out``.
+        max_frames: at most this many frames (None: all).
+        quiet: no progress bar.
+
+    Returns:
+        dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks).
+    """
+    path, out = Path(path), Path(out_dir)
+    if path.is_dir() and out.resolve() == path.resolve():
+        raise ValueError(f"out_dir must differ from the input folder {path}")
+    grid = valid = size = None
+    n, valid_sum = 0, 0.0
+    with _bar(_count(path, max_frames) if path.exists() else None, quiet, "undistorting") as bar:
+        for name, img in read_frames(path, grey=False, max_frames=max_frames):
+            if grid is None:
+                size = tuple(img.shape[-2:])
+                k2, k4 = _coefficients_for(size, k2, k4, from_json)
+                grid, valid = undistortion_grid(k2, k4, *size)
+                (out / "masks").mkdir(parents=True, exist_ok=True)
+            elif tuple(img.shape[-2:]) != size:
+                raise ValueError(f"frames must all have one size: the first is {size[0]} x {size[1]}, {name} is "
+                                 f"{img.shape[-2]} x {img.shape[-1]}")
+            corrected = sample(img, grid) * valid
+            atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint8(corrected[0])))
+            atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0])))
+            n, valid_sum = n + 1, valid_sum + float(valid.mean())
+            bar.update(1)
+    if n == 0:
+        raise ValueError(f"path {path} holds no frames")
+    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "valid_fraction": valid_sum / n}
+
+
+# ------------------------------------------------------------------ synthetic sequences
+def synthetic_sequence(
+    n_frames: int = 20,
+    k2: float = 0.0,
+    k4: float = 0.0,
+    size: tuple[int, int] = (320, 424),
+    scene: str = "gravel",
+    step_px: tuple[float, float] = (5.0, 10.0),
+    jitter_px: float = 1.0,
+    rotation_deg: float = 0.2,
+    seed: int = 0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """A camera panning down an embedded scene, every frame distorted by one (k2, k4).
+
+    Frame n views the scene about c_n = (x0 + jitter, y0 + sum of steps) with a small rotation:
+    the ideal frame is I_n(p) = S(c_n + z Rot_n (p - p0)), the distorted one I_n(p(p_d)) (eq. 4),
+    one ``grid_sample`` each. Steps ~ U[step_px], horizontal jitter ~ U[-jitter_px, jitter_px],
+    rotation ~ U[-rotation_deg, rotation_deg]; the zoom z (scene px per frame px) is the largest
+    that keeps every sample inside the scene.
+
+    Returns:
+        distorted, ideal: (N, 1, H, W) float32 (ideal: the same path with k2 = k4 = 0).
+
+    Example:
+        >>> distorted, ideal = synthetic_sequence(4, 1e-6, 0.0, size=(64, 80))
+        >>> tuple(distorted.shape), tuple(ideal.shape)
+        ((4, 1, 64, 80), (4, 1, 64, 80))
+    """
+    g = torch.Generator().manual_seed(seed)
+    h, w = size
+    src = load_scene(scene).double()
+    hs, ws = src.shape[-2:]
+    c = torch.tensor(distortion_center(h, w), dtype=torch.float64)
+    rel = torch.stack([distortion_grid([k2], [k4], h, w, torch.float64)[0], distortion_grid([0.0], [0.0], h, w, torch.float64)[0]]) - c
+    u = torch.rand(3, n_frames, generator=g, dtype=torch.float64)
+    ty = torch.cat([torch.zeros(1, dtype=torch.float64), (step_px[0] + (step_px[1] - step_px[0]) * u[0, 1:]).cumsum(0)])
+    tx, th = jitter_px * (2 * u[1] - 1), torch.deg2rad(rotation_deg * (2 * u[2] - 1))
+    big = rel.abs().amax(dim=(0, 1, 2))
+    ext = big + math.sin(math.radians(abs(rotation_deg))) * big.flip(0) + 2  # half extents, any rotation drawn
+    z = min((ws - 1) / (2 * float(ext[0]) + 2 * jitter_px), (hs - 1) / (2 * float(ext[1]) + float(ty[-1])))
+    out = []
+    for i in range(n_frames):
+        cos, sin = math.cos(float(th[i])), math.sin(float(th[i]))
+        x = (ws - 1) / 2 + z * (tx[i] + cos * rel[..., 0] - sin * rel[..., 1])
+        y = z * (float(ext[1]) + ty[i] + sin * rel[..., 0] + cos * rel[..., 1])
+        out.append(F.grid_sample(src.expand(2, -1, -1, -1), torch.stack([x / (ws - 1), y / (hs - 1)], -1) * 2 - 1,
+                                 align_corners=True).float())
+    frames = torch.stack(out, 1)  # (2, N, 1, H, W)
+    return frames[0].contiguous(), frames[1].contiguous()
+
+
+# ------------------------------------------------------------------ command line
+def _print_calibration(res: dict) -> None:
+    (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
+    print(f"{res['frames']} frames of {w} x {h}, {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected")
+    if res["k2_user"] is None:
+        print(f"no estimate: {res['reason']}")
+        return
+    print(f"eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}")
+    for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
+        print(f"Delta_{name} = {d:.2f} px" + ("" if a is None else f" (95 % interval {a:.2f} to {b:.2f})"))
+    print(f"distortion class: {res['class'] or 'cannot tell (' + res['reason'] + ')'}  (1 = small ... 4 = very strong, "
+          "R = none visible)")
+    cv, k = res["opencv"], res["opencv"]["camera_matrix"]
+    print(f"OpenCV: fx = fy = {k[0][0]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
+          f"[{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error {cv['fit_error_mean_px']:.3f} px "
+          f"mean, {cv['fit_error_max_px']:.3f} px max)")
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    """``lensdist calibrate PATH [--json] [--out DIR] [--quiet]``."""
+    res = calibrate_path(args.path, max_frames=args.max_frames, focal=args.focal, quiet=args.quiet)
+    text = json.dumps(res, indent=2, allow_nan=False)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "calibration.json", text + "\n")
+    if args.json:
+        print(text)
+    else:
+        _print_calibration(res)
+        if args.out:
+            print(f"written: {Path(args.out) / 'calibration.json'}")
+    return 0
+
+
+def _cmd_undistort(args: argparse.Namespace) -> int:
+    """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--quiet]``."""
+    res = undistort_path(args.path, args.out, k2=args.k2, k4=args.k4, from_json=args.from_json,
+                         max_frames=args.max_frames, quiet=args.quiet)
+    print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}) into {res['out_dir']}, "
+          f"masks in {Path(res['out_dir']) / 'masks'} ({100 * res['valid_fraction']:.1f} % valid)")
+    return 0
+
+
+def add_calibrate_commands(subparsers) -> None:
+    """Register ``calibrate`` and ``undistort`` on the ``lensdist`` parser's subparsers."""
+    p = subparsers.add_parser("calibrate", help="the distortion of one camera from a folder of frames or a video")
+    p.add_argument("path", help="folder of frames (sorted by name) or a video file (needs PyAV: pip install av)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--out", default=None, help="folder for calibration.json")
+    p.add_argument("--max-frames", type=int, default=300, help="read at most this many frames")
+    p.add_argument("--focal", type=float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_calibrate)
+
+    p = subparsers.add_parser("undistort", help="correct every frame of a folder or video (PNG + validity masks)")
+    p.add_argument("path", help="folder of frames or a video file")
+    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels")
+    p.add_argument("--k4", type=float, default=None, help="eq. 4's k4 in the frames' pixels")
+    p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
+    p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_undistort)

@@ -1,0 +1,175 @@
+"""Calibrate and undistort from folders and videos (lensdist_torch.workflows.calibrate), and the
+`lensdist calibrate` / `lensdist undistort` commands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from lensdist_torch.core.images import load_image
+from lensdist_torch.geometry.distortion import delta_avg
+from lensdist_torch.workflows.calibrate import (
+    _coefficients_for,
+    _to_uint8,
+    add_calibrate_commands,
+    calibrate_path,
+    encode_png,
+    list_frames,
+    read_frames,
+    synthetic_sequence,
+    undistort_path,
+)
+
+SIZE = (240, 320)
+S = 424 / 320
+K2, K4 = 0.6 * 2.5e-6 * S**2, 0.6 * 2.5e-11 * S**4  # class 3: Delta_avg 8.6 px at 320 x 424
+TINT = torch.tensor([1.0, 0.8, 0.6]).view(1, 3, 1, 1)
+
+
+def _write(folder, frames, names=None):
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, f in enumerate(frames):
+        (folder / f"{(names or [f'frame_{j}' for j in range(len(frames))])[i]}.png").write_bytes(encode_png(_to_uint8(f)))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory, one_thread_module):
+    """A colour folder (frame_0 .. frame_9: natural order matters) and the undistorted truth."""
+    distorted, ideal = synthetic_sequence(10, K2, K4, size=SIZE, seed=4)
+    folder = _write(tmp_path_factory.mktemp("seq") / "frames", distorted * TINT)
+    return folder, ideal * TINT
+
+
+def _parser():
+    parser = argparse.ArgumentParser(prog="lensdist")
+    add_calibrate_commands(parser.add_subparsers(dest="command", required=True))
+    return parser
+
+
+def test_round_trip_distort_calibrate_undistort(sequence, tmp_path):
+    folder, ideal = sequence
+    res = calibrate_path(folder)
+    json.dumps(res, allow_nan=False)  # strict JSON
+    true = float(delta_avg([K2], [K4], *SIZE)[0])
+    assert res["frames"] == 10 and res["image_size"] == list(SIZE) and res["class"] == "3" and res["reason"] is None
+    assert res["delta_avg_user_px"] == pytest.approx(true, abs=0.1)
+    lo, hi = res["delta_avg_user_interval"]
+    assert lo <= true <= hi and res["pairs_used"] >= 6
+    assert res["opencv"]["fit_error_mean_px"] < 0.1 and len(res["opencv"]["dist_coeffs"]) == 5
+    assert len(res["opencv_rational"]["dist_coeffs"]) == 8
+    out = undistort_path(folder, tmp_path / "out", k2=res["k2_user"], k4=res["k4_user"])
+    assert out["frames"] == 10 and out["valid_fraction"] == 1.0  # barrel: every ideal pixel is inside
+    names = [p.stem for p in list_frames(folder)]
+    assert names == [f"frame_{i}" for i in range(10)]
+    for i, name in enumerate(names):
+        corrected = load_image(tmp_path / "out" / f"{name}.png", grey=False)
+        mask = load_image(tmp_path / "out" / "masks" / f"{name}.png")
+        assert corrected.shape == (1, 3, *SIZE) and mask.shape == (1, 1, *SIZE)
+        inner = mask[..., 4:-4, 4:-4]
+        err = ((corrected - ideal[i : i + 1]).abs()[..., 4:-4, 4:-4] * inner).sum() / (3 * inner.sum())
+        assert float(err) < 0.03, name  # bilinear twice and 8-bit rounding
+
+
+def test_cli_calibrate_then_undistort_from_json(sequence, tmp_path, capsys):
+    folder, _ = sequence
+    grey = _write(tmp_path / "grey", [load_image(p)[0] for p in list_frames(folder)][:4])
+    args = _parser().parse_args(["calibrate", str(folder), "--out", str(tmp_path / "cal"), "--quiet", "--json"])
+    assert args.func(args) == 0
+    printed = json.loads(capsys.readouterr().out)
+    saved = json.loads((tmp_path / "cal" / "calibration.json").read_text())
+    assert printed == saved and saved["class"] == "3"
+    args = _parser().parse_args(["undistort", str(grey), "--from", str(tmp_path / "cal" / "calibration.json"),
+                                 "--out", str(tmp_path / "und"), "--quiet"])
+    assert args.func(args) == 0 and "4 frames undistorted" in capsys.readouterr().out
+    img = cv2.imread(str(tmp_path / "und" / "frame_0.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == SIZE and img.dtype == np.uint8  # grey in, grey out
+    args = _parser().parse_args(["calibrate", str(folder), "--quiet"])
+    assert args.func(args) == 0
+    text = capsys.readouterr().out
+    assert "Delta_avg" in text and "95 % interval" in text and "OpenCV" in text and "distortion class: 3" in text
+
+
+def test_a_static_camera_gives_strict_json_and_no_class(tmp_path, capsys):
+    frame = synthetic_sequence(1, K2, K4, size=(96, 128))[0]
+    folder = _write(tmp_path / "static", [frame[0]] * 4)
+    res = calibrate_path(folder)
+    assert res["class"] is None and res["k2_user"] is None and "motion" in res["reason"] and res["opencv"] is None
+    json.dumps(res, allow_nan=False)
+    args = _parser().parse_args(["calibrate", str(folder), "--quiet"])
+    args.func(args)
+    assert "no estimate" in capsys.readouterr().out
+
+
+def test_png_writer_round_trips():
+    for c in (1, 3):
+        img = torch.randint(0, 256, (c, 37, 53), dtype=torch.uint8)
+        dec = cv2.imdecode(np.frombuffer(encode_png(img), np.uint8), cv2.IMREAD_UNCHANGED)
+        dec = dec[None] if c == 1 else dec[..., ::-1].transpose(2, 0, 1)  # BGR -> RGB, channels first
+        assert np.array_equal(dec, img.numpy())
+
+
+def test_calibration_json_rescales_to_other_frame_sizes(tmp_path):
+    cal = tmp_path / "calibration.json"
+    cal.write_text(json.dumps({"k2_user": 4e-6, "k4_user": 1.6e-11, "image_size": [240, 320]}))
+    assert _coefficients_for((120, 160), None, None, cal) == pytest.approx((1.6e-5, 2.56e-10))
+    with pytest.raises(ValueError, match="not a rescaling"):
+        _coefficients_for((240, 240), None, None, cal)
+
+
+def test_frames_are_read_in_natural_order_and_capped(tmp_path):
+    frames = synthetic_sequence(3, 0.0, 0.0, size=(32, 48))[0]
+    folder = _write(tmp_path / "f", frames, names=["f10", "f2", "f1"])
+    assert [n for n, _ in read_frames(folder)] == ["f1", "f2", "f10"]
+    assert len(list(read_frames(folder, max_frames=2))) == 2
+
+
+# ------------------------------------------------------------------ bad inputs
+@pytest.mark.bad_input
+def test_bad_paths_are_one_line_errors(tmp_path, monkeypatch):
+    (tmp_path / "empty").mkdir()
+    one = _write(tmp_path / "one", synthetic_sequence(1, 0.0, 0.0, size=(64, 64))[0])
+    mixed = _write(tmp_path / "mixed", [torch.rand(1, 64, 64), torch.rand(1, 64, 80)])
+    (tmp_path / "clip.mp4").write_bytes(b"\x00" * 64)
+    (tmp_path / "notes.txt").write_text("not a video")
+    monkeypatch.setitem(sys.modules, "av", None)  # PyAV missing (import av raises ImportError)
+    cases = [
+        (tmp_path / "empty", ValueError, "no image files"),
+        (tmp_path / "missing", FileNotFoundError, "path not found"),
+        (one, ValueError, "at least 2 frames"),
+        (mixed, ValueError, "frame_1 is 64 x 80"),
+        (tmp_path / "clip.mp4", ValueError, "pip install av"),
+        (tmp_path / "notes.txt", ValueError, "folder of frames or a video"),
+    ]
+    for path, kind, match in cases:
+        with pytest.raises(kind, match=match) as err:
+            calibrate_path(path)
+        assert "\n" not in str(err.value), path
+
+
+@pytest.mark.bad_input
+def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
+    folder, _ = sequence
+    (tmp_path / "bad.json").write_text("{}")
+    cases = [
+        ({"k2": 1e-6}, "give both k2 and k4"),
+        ({"k2": 1e-6, "k4": 0.0, "from_json": tmp_path / "x.json"}, "not both"),
+        ({"from_json": tmp_path / "bad.json"}, "not a calibration"),
+        ({"k2": float("nan"), "k4": 0.0}, "finite"),
+    ]
+    for kwargs, match in cases:
+        with pytest.raises(ValueError, match=match) as err:
+            undistort_path(folder, tmp_path / "out", max_frames=1, **kwargs)
+        assert "\n" not in str(err.value)
+    with pytest.raises(FileNotFoundError, match="calibration file not found"):
+        undistort_path(folder, tmp_path / "out", from_json=tmp_path / "missing.json")
+    with pytest.raises(ValueError, match="must differ from the input"):
+        undistort_path(folder, folder, k2=0.0, k4=0.0)
+    with pytest.raises(SystemExit):  # argparse: --out is required
+        _parser().parse_args(["undistort", str(folder), "--k2", "0", "--k4", "0"])
