@@ -132,6 +132,7 @@ class TestInputs:
         want = quality_map(rgb_to_grayscale(ug.float() / 255), rgb_to_grayscale(ug2.float() / 255))
         assert torch.equal(quality_map(ug, ug2), want)
 
+    @pytest.mark.bad_input
     @pytest.mark.parametrize(
         "img1,img2,exc,words",
         [
@@ -163,6 +164,7 @@ class TestInputs:
             for w in words:
                 assert w in str(info.value), (w, str(info.value))
 
+    @pytest.mark.bad_input
     @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
     @pytest.mark.parametrize("which", ["img1", "img2"])
     def test_non_finite(self, bad, which):
@@ -174,6 +176,7 @@ class TestInputs:
             with pytest.raises(ValueError, match=f"{which}.*(NaN|Inf)"):
                 call(*pair)
 
+    @pytest.mark.bad_input
     def test_bad_valid_mask(self):
         img = torch.rand(2, 1, 16, 16)
         for shape in ((1, 1, 16, 16), (2, 16, 16), (2, 1, 8, 16), (2, 3, 16, 16)):
@@ -186,6 +189,7 @@ class TestInputs:
         with pytest.raises(TypeError, match="valid"):
             quality_map(img, img, [[1.0]])
 
+    @pytest.mark.bad_input
     def test_bad_settings(self):
         img = torch.rand(1, 1, 16, 16)
         with pytest.raises(ValueError, match="reduction"):
@@ -202,6 +206,7 @@ class TestInputs:
         with pytest.raises(ValueError, match="block_size"):
             registration_error_counts(img, img, config=QualityConfig(block_size=16))
 
+    @pytest.mark.bad_input
     def test_validate_false_skips_only_the_finite_check(self):
         img = torch.rand(1, 1, 16, 16)
         assert quality_map(img, img, validate=False).shape == (1, 1, 2, 2)
