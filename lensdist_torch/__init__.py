@@ -57,6 +57,7 @@ _LAZY: dict[str, str] = {
     **dict.fromkeys(["estimate_homography", "warp_to_reference"], "lensdist_torch.geometry.registration"),
     **dict.fromkeys(["estimate_distortion"], "lensdist_torch.geometry.selfcal"),
     **dict.fromkeys(["ClassRMSE", "ConfusionMatrix"], "lensdist_torch.metric.classification"),
+    **dict.fromkeys(["RegistrationQualityMetric"], "lensdist_torch.metric.stateful"),
     **dict.fromkeys(
         [
             "ErrorImages",
@@ -115,6 +116,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from lensdist_torch.geometry.registration import estimate_homography, warp_to_reference
     from lensdist_torch.geometry.selfcal import estimate_distortion
     from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
+    from lensdist_torch.metric.stateful import RegistrationQualityMetric
     from lensdist_torch.metric.quality import (
         ErrorImages,
         LocalCriteria,
@@ -168,6 +170,7 @@ __all__ = [
     "RegistrationConfig",
     "RegistrationQuality",
     "RegistrationQualityLoss",
+    "RegistrationQualityMetric",
     "RegressionConfig",
     "SelfCalConfig",
     "analyze_pair",

@@ -1,5 +1,6 @@
-"""The per-class eigen-space classifier (paper 4.2, docs/method.md section 8). It sees feature vectors
-(row-major flattened quality maps), never images.
+"""The per-class eigen-space classifier (paper 4.2, docs/method.md section 8).
+
+It sees feature vectors (row-major flattened quality maps), never images.
 
 Per class c: the mean mu_c and the top n eigenvectors U_c (rows) of the centred training
 vectors, from ``torch.linalg.svd`` on the CPU in float64. A vector x is assigned to the class
@@ -32,9 +33,12 @@ _KIND = "lensdist-eigenspace"
 
 
 class ClassifierResult(NamedTuple):
-    """label: (B,) class index 0..3, or 4 for R. delta: (B,) interpolated Delta (px).
+    """The classifier's answer for a batch.
+
+    label: (B,) class index 0..3, or 4 for R. delta: (B,) interpolated Delta (px).
     distances: (B, C) distance to every class space. nearest: (B,) argmin class.
-    neighbours: (B, k) training-pair indices used. neighbour_distances: (B, k)."""
+    neighbours: (B, k) training-pair indices used. neighbour_distances: (B, k).
+    """
 
     label: torch.Tensor
     delta: torch.Tensor
@@ -80,6 +84,7 @@ class EigenSpaceClassifier(nn.Module):
 
     @property
     def settings(self) -> ClassifierConfig:
+        """The classifier section of the config it was fitted with."""
         return self.config.classifier
 
     # ------------------------------------------------------------------ fitting

@@ -41,9 +41,12 @@ _MAD_TO_STD = 1.4826
 
 
 class RegressionResult(NamedTuple):
-    """Each (B,): delta_avg, delta_max (px), class_avg, class_max (0..3, or 4 = R below
+    """The regressor's answer for a batch.
+
+    Each (B,): delta_avg, delta_max (px), class_avg, class_max (0..3, or 4 = R below
     ``config.analysis.no_distortion_px``), std_avg, std_max
-    (neighbour spread, px), confidence (0, 1] (from std_avg), confident (bool)."""
+    (neighbour spread, px), confidence (0, 1] (from std_avg), confident (bool).
+    """
 
     delta_avg: torch.Tensor
     delta_max: torch.Tensor
@@ -123,6 +126,7 @@ class DeltaRegressor(nn.Module):
 
     # ------------------------------------------------------------------ prediction
     def forward(self, features: torch.Tensor) -> RegressionResult:
+        """Predict both Deltas, their classes and a confidence for (B, n_features) feature vectors."""
         if not bool(self.fitted):
             raise RuntimeError("DeltaRegressor is not fitted")
         x = torch.as_tensor(features)

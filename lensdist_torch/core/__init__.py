@@ -1,0 +1,1 @@
+"""Primitives used everywhere: image checks and loading, atomic files and versioned checkpoints."""

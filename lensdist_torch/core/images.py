@@ -127,7 +127,7 @@ def check_valid_mask(
         raise ValueError(f"{name} must have shape {(b, 1, h, w)}, got {tuple(valid.shape)}")
     if check_values and valid.dtype != torch.bool and valid.numel():
         lo, hi = (float(v) for v in torch.aminmax(valid))  # one pass; NaN propagates into both
-        if not (lo >= 0 and hi <= 1):
+        if not (lo >= -1e-6 and hi <= 1 + 1e-6):  # warps round a hair past 0 and 1
             if not (math.isfinite(lo) and math.isfinite(hi)):
                 raise ValueError(f"{name} contains NaN or Inf values; a validity mask holds 0 to 1")
             raise ValueError(f"{name} must hold values in [0, 1] (1 = valid), got values in [{lo:g}, {hi:g}]")
@@ -383,7 +383,7 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
     elif img.dtype == torch.float32:
         scale = None
         lo, hi = (float(v) for v in torch.aminmax(img[:3]))
-        if not (lo >= 0 and hi <= 1):
+        if not (lo >= -1e-6 and hi <= 1 + 1e-6):  # warps round a hair past 0 and 1
             if not (math.isfinite(lo) and math.isfinite(hi)):
                 raise ValueError(f"image file {path} holds NaN or Inf values")
             raise ValueError(

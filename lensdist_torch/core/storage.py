@@ -108,8 +108,10 @@ def load_versioned(
 
 
 def check_compatible(have, want, path) -> None:
-    """Raise CheckpointError naming the first of image size, block size, quality thresholds in
-    which the config a checkpoint was fitted with (``have``) differs from ``want``."""
+    """Raise CheckpointError where a checkpoint's config (``have``) differs from ``want``.
+
+    Compared, in order: image size, block size, quality thresholds; the first difference is named.
+    """
     checks = [
         ("image size", (have.image.height, have.image.width), (want.image.height, want.image.width)),
         ("block size", have.quality.block_size, want.quality.block_size),

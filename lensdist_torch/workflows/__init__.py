@@ -1,0 +1,1 @@
+"""What the commands do: evaluation, reports, reproduction, analysis of a pair, figures."""

@@ -34,8 +34,10 @@ _SHIPPED = {"delta_avg": "eigenspace_delta_avg_10ev.pt", "delta_max": "eigenspac
 
 
 def default_checkpoint(name: str = "delta_avg") -> Path:
-    """The shipped checkpoint ``name``: ``delta_avg`` / ``delta_max`` (eigen-space, 10
-    eigenvectors) or ``regression``."""
+    """The shipped checkpoint ``name``.
+
+    ``delta_avg`` / ``delta_max`` (eigen-space, 10 eigenvectors) or ``regression``.
+    """
     if name not in _SHIPPED:
         raise ValueError(f"name must be one of {sorted(_SHIPPED)}, got {name!r}")
     path = _CKPT_DIR / _SHIPPED[name]
@@ -179,8 +181,8 @@ def analyze_pair(
     """Analyse one overlapping pair of photographs of a roughly planar scene.
 
     Args:
-        img1, img2: file paths, or tensors (H, W), (C, H, W) or (1, C, H, W); colour or grey,
-            any size (both the same size).
+        img1: a file path, or a tensor (H, W), (C, H, W) or (1, C, H, W); colour or grey, any size.
+        img2: the second image, overlapping the first; the same forms and the same size.
         checkpoint: for ``eigenspace`` the Delta_avg checkpoint, for ``regression`` the
             regressor (default: the shipped ones, package data in lensdist_torch/checkpoints/).
             Refused (ValueError) with ``selfcal``, which uses none.
@@ -263,9 +265,11 @@ def analyze_pair(
 
 
 def _decide(res: dict, cfg: LensdistConfig) -> None:
-    """The honest answer: ``class`` is None and ``cannot_tell`` True whenever the registration
-    failed, the fit diverged, the images overlap too little, the scene is unlike the training
-    scenes, or the confidence is below the threshold; the reasons are in ``warnings``."""
+    """The honest answer, set in place.
+
+    ``class`` is None and ``cannot_tell`` True whenever the registration failed, the fit diverged, the images overlap too little, the scene is unlike the training
+    scenes, or the confidence is below the threshold; the reasons are in ``warnings``.
+    """
     unsure = res["cannot_tell"] or not res["registration_ok"] or res["delta_avg"] is None
     unsure |= res["overlap"] < cfg.analysis.min_overlap or not res["in_domain"]
     res["cannot_tell"] = bool(unsure)

@@ -231,9 +231,13 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, 
         raise FileNotFoundError(f"calibration file not found: {src}")
     try:
         data = json.loads(src.read_text())
-        k2, k4, (hc, wc) = float(data["k2_user"]), float(data["k4_user"]), data["image_size"]
-    except (ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({exc})") from None
+        k2, k4, (hc, wc) = data["k2_user"], data["k4_user"], data["image_size"]
+        if k2 is not None and k4 is not None:
+            k2, k4, hc, wc = float(k2), float(k4), int(hc), int(wc)
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({exc!r})") from None
+    if k2 is None or k4 is None:
+        raise ValueError(f"{src} holds no estimate: {data.get('reason')}")
     s = size[1] / wc
     if abs(size[0] / hc - s) > 5e-3 * s:
         raise ValueError(f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling")

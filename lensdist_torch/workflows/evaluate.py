@@ -12,20 +12,22 @@ Both report their "cannot tell" share and the accuracy among confident pairs.
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 from tqdm.auto import tqdm
 
-import dataclasses
-
-from lensdist_torch.config import LensdistConfig
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
-from lensdist_torch.metric.quality import counts_to_map
-from lensdist_torch.data.shards import CLASS_KEYS
-from lensdist_torch.geometry.distortion import delta_avg as _delta_avg, delta_max as _delta_max, delta_top, estimated_class
-from lensdist_torch.workflows.reports import evaluate_predictions
 from lensdist_torch.classify.regression import DeltaRegressor
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.config import LensdistConfig
+from lensdist_torch.data.shards import CLASS_KEYS
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.geometry.distortion import delta_avg as _delta_avg
+from lensdist_torch.geometry.distortion import delta_max as _delta_max
+from lensdist_torch.geometry.distortion import delta_top, estimated_class
+from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.metric.quality import counts_to_map
+from lensdist_torch.workflows.reports import evaluate_predictions
 
 __all__ = [
     "TY_BINS",
@@ -93,6 +95,7 @@ def evaluate_classifier(model: EigenSpaceClassifier, test: dict) -> dict:
 
 
 def fit_regressor(train: dict, config: LensdistConfig, features: torch.Tensor) -> DeltaRegressor:
+    """Fit a :class:`DeltaRegressor` on the training pairs whose registration converged."""
     ok = train["converged"]
     model = DeltaRegressor(features.shape[1], config)
     return model.fit(features[ok], train["delta_avg"][ok].float(), train["delta_max"][ok].float())

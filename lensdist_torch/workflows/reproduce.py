@@ -1,5 +1,7 @@
-"""``lensdist reproduce``: generate the paper's sets, fit and evaluate every method, and write
-the paper's Tables 1 and 2 beside ours, with the figures."""
+"""``lensdist reproduce``: the paper's Tables 1 and 2 beside ours, one command.
+
+Generates the paper's sets, fits and evaluates every method, and writes the report and figures.
+"""
 
 from __future__ import annotations
 
@@ -48,7 +50,8 @@ def reproduce(
     """Generate the paper's sets, fit the four settings, and write the side-by-side report.
 
     With ``methods``, the regression and the self-calibration are evaluated on the same test
-    pairs and reported beside the eigen-space settings."""
+    pairs and reported beside the eigen-space settings.
+    """
     out = Path(out)
     if quick:
         config = quick_config(config)
