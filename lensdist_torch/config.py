@@ -139,6 +139,15 @@ class ProtocolConfig:
 
     ``seed`` is any int; ``scenes`` distinct embedded scene names; the ranges (low, high); the
     rotation and perspective half-widths >= 0; the class-R ``perturbation`` in [0, 1[.
+
+    ``realistic`` (off by default) adds the effects of a photograph (docs/method.md section 7,
+    the realistic protocol), each drawn per view or per pair: ``gain_range`` (> 0),
+    ``offset_range`` (in [-1, 1]), ``gamma_range`` (> 0, log-uniform), ``illumination`` (the
+    largest share, in [0, 1[, that a ramp / vignetting darkens), ``noise_range`` (Gaussian
+    sigma, in [0, 1]), ``jpeg_quality`` (ints in [1, 100]), ``parallax_px`` (>= 0, the largest
+    displacement of I2's samples along the motion), ``occluder_rate`` (share of pairs with a
+    moving or occluding patch, in [0, 1]) and ``occluder_area`` (its share of the frame, in
+    ]0, 1]).
     """
 
     seed: int = 0
@@ -153,6 +162,16 @@ class ProtocolConfig:
     perspective: float = 2e-5
     perturbation: float = 0.01
     shard_size: int = 500
+    realistic: bool = False
+    gain_range: tuple[float, float] = (0.7, 1.3)
+    offset_range: tuple[float, float] = (-0.1, 0.1)
+    gamma_range: tuple[float, float] = (0.8, 1.25)
+    illumination: float = 0.25
+    noise_range: tuple[float, float] = (0.0, 0.02)
+    jpeg_quality: tuple[int, int] = (60, 95)
+    parallax_px: float = 1.5
+    occluder_rate: float = 0.2
+    occluder_area: tuple[float, float] = (0.05, 0.15)
 
     def __post_init__(self) -> None:
         integer(self, "seed", lo=None)
@@ -166,6 +185,16 @@ class ProtocolConfig:
         real(self, "perspective", lo=0)
         real(self, "perturbation", lo=0, hi=1, hi_open=True)
         integer(self, "shard_size")
+        flag(self, "realistic")
+        pair(self, "gain_range", positive=True)
+        pair(self, "offset_range", within=(-1, 1))
+        pair(self, "gamma_range", positive=True)
+        real(self, "illumination", lo=0, hi=1, hi_open=True)
+        pair(self, "noise_range", within=(0, 1))
+        pair(self, "jpeg_quality", within=(1, 100), integral=True)
+        real(self, "parallax_px", lo=0)
+        real(self, "occluder_rate", lo=0, hi=1)
+        pair(self, "occluder_area", positive=True, within=(0, 1))
 
 
 @dataclass(frozen=True)

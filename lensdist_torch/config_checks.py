@@ -109,14 +109,24 @@ def _sequence(obj, name, what: str) -> tuple:
     return tuple(value)
 
 
-def pair(obj, name, positive: bool = False) -> None:
-    """(low, high): two finite (or positive) numbers with low <= high."""
-    what = f"(low, high): two {'positive' if positive else 'finite'} numbers with low <= high"
+def pair(obj, name, positive: bool = False, within: tuple[float, float] | None = None, integral: bool = False) -> None:
+    """(low, high): two finite (or positive) numbers with low <= high.
+
+    ``within`` = (a, b) also asks a <= low and high <= b; ``integral`` asks for ints (stored as
+    ints, floats otherwise).
+    """
+    kind = "ints" if integral else "numbers"
+    if within is not None:
+        where = f"two {kind} in {']' if positive else '['}{within[0]:g}, {within[1]:g}]"
+    else:
+        where = f"two {'positive' if positive else 'finite'} {kind}"
+    what = f"(low, high): {where} with low <= high"
     value = _sequence(obj, name, what)
-    if len(value) != 2 or not all(_is_real(v) and math.isfinite(v) and (v > 0 or not positive) for v in value):
+    ok = _is_int if integral else _is_real
+    if len(value) != 2 or not all(ok(v) and math.isfinite(v) and (v > 0 or not positive) for v in value):
         _fail(obj, name, what, getattr(obj, name))
-    lo, hi = float(value[0]), float(value[1])
-    if not lo <= hi:
+    lo, hi = (int(v) if integral else float(v) for v in value)
+    if not lo <= hi or (within is not None and not within[0] <= lo <= hi <= within[1]):
         _fail(obj, name, what, getattr(obj, name))
     object.__setattr__(obj, name, (lo, hi))
 
