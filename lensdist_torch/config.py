@@ -236,6 +236,12 @@ class RegistrationConfig:
         fine_stride: template pixel stride at full resolution.
         presmooth: binomial smoothing (sigma 1 px) of both images first.
         chunk_size: pairs registered together (cache locality); results do not depend on it.
+        feature_fallback: :func:`~lensdist_torch.geometry.wide_baseline.estimate_homography_robust`
+            retries the pairs that did not converge from SIFT matches (docs/method.md, section 10).
+        max_keypoints: SIFT keypoints kept per image by the fallback.
+        match_ratio: second-nearest-neighbour ratio of the fallback's mutual matches, in ]0, 1].
+        ransac_threshold: px, one-way transfer error of a RANSAC inlier in the fallback.
+        min_inliers: fewest RANSAC inliers for a feature homography.
     """
 
     levels: tuple[int, ...] = (2, 0)
@@ -252,6 +258,11 @@ class RegistrationConfig:
     fine_stride: int = 2
     presmooth: bool = True
     chunk_size: int = 8
+    feature_fallback: bool = True
+    max_keypoints: int = 2000
+    match_ratio: float = 0.9
+    ransac_threshold: float = 2.0
+    min_inliers: int = 15
 
     def __post_init__(self) -> None:
         integers(self, "levels", lo=0)
@@ -268,6 +279,11 @@ class RegistrationConfig:
         integer(self, "fine_stride")
         flag(self, "presmooth")
         integer(self, "chunk_size")
+        flag(self, "feature_fallback")
+        integer(self, "max_keypoints", lo=4)
+        real(self, "match_ratio", lo=0, hi=1, lo_open=True)
+        real(self, "ransac_threshold", lo=0, lo_open=True)
+        integer(self, "min_inliers", lo=4)
 
 
 @dataclass(frozen=True)
@@ -353,16 +369,51 @@ class AnalysisConfig:
         min_overlap: below this share of valid pixels the map is too small to judge.
         out_of_domain_factor: an eigen-space map whose smallest class distance exceeds this
             multiple of the reject threshold is unlike every training map.
+        min_confidence: below this calibrated confidence (an estimate of P(class right)) the
+            answer is "cannot tell" (self-calibration and regression).
+        selfcal_confidence_scale, selfcal_confidence_shift: the Platt map of the
+            self-calibration's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave
+            it as it is. Fitted on a validation split by ``calibrate_confidence``.
+        regression_confidence_scale, regression_confidence_shift: the same for the regression.
+        cross_check: the learned methods (regression, eigen-space) also run the
+            self-calibration and are out of domain where the two disagree.
+        max_class_disagreement: out of domain where the classes differ by more than this
+            (R counts as class 0).
+        max_delta_disagreement: out of domain where the Delta_avg estimates differ by more than
+            this share of the Delta_avg range.
+        texture_factor: out of domain where the images' gradient-magnitude histogram is farther
+            from every training scene than this multiple of the largest distance of a
+            training view (stored in the checkpoint).
+        validation_seed_offset: the validation split used to fit the decision is the test set
+            of the protocol seed plus this offset (never the test set itself).
     """
 
     no_distortion_px: float = 0.25
     min_overlap: float = 0.5
     out_of_domain_factor: float = 2.0
+    min_confidence: float = 0.5
+    selfcal_confidence_scale: float = 1.0
+    selfcal_confidence_shift: float = 0.0
+    regression_confidence_scale: float = 1.0
+    regression_confidence_shift: float = 0.0
+    cross_check: bool = True
+    max_class_disagreement: int = 1
+    max_delta_disagreement: float = 0.25
+    texture_factor: float = 2.0
+    validation_seed_offset: int = 1
 
     def __post_init__(self) -> None:
         real(self, "no_distortion_px", lo=0, lo_open=True)
         real(self, "min_overlap", lo=0, hi=1)
         real(self, "out_of_domain_factor", lo=0, lo_open=True)
+        real(self, "min_confidence", lo=0, hi=1)
+        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "max_delta_disagreement", "texture_factor"):
+            real(self, name, lo=0, lo_open=True)
+        real(self, "selfcal_confidence_shift")
+        real(self, "regression_confidence_shift")
+        flag(self, "cross_check")
+        integer(self, "max_class_disagreement", lo=0)
+        integer(self, "validation_seed_offset")
 
 
 @dataclass(frozen=True)
