@@ -81,6 +81,7 @@ class EigenSpaceClassifier(nn.Module):
         self.register_buffer("train_delta", torch.zeros(0))
         self.register_buffer("reject_threshold", torch.tensor(float("inf")))
         self.register_buffer("fitted", torch.tensor(False))
+        self.extra: dict = {}  # saved with the checkpoint: the scenes fitted on, their texture
 
     @property
     def settings(self) -> ClassifierConfig:
@@ -185,12 +186,16 @@ class EigenSpaceClassifier(nn.Module):
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path, extra: dict | None = None) -> None:
-        """Write atomically: format version, the config it was fitted with, and the buffers."""
+        """Write atomically: format version, the config it was fitted with, and the buffers.
+
+        ``extra`` (a dict of plain values: names, numbers, lists) is stored beside them; by
+        default ``self.extra`` (e.g. the scenes it was fitted on and their texture statistics).
+        """
         save_versioned(path, _KIND, CHECKPOINT_VERSION, {
             "n_features": self.n_features,
             "config": config_to_dict(self.config),
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-            "extra": extra or {},
+            "extra": dict(self.extra if extra is None else extra),
         })
 
     @classmethod

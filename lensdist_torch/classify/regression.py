@@ -89,7 +89,7 @@ class DeltaRegressor(nn.Module):
         self.register_buffer("train_coeffs", torch.zeros(0, 1, dtype=torch.float16))
         self.register_buffer("train_delta", torch.zeros(0, 2))
         self.register_buffer("fitted", torch.tensor(False))
-        self.extra: dict = {}
+        self.extra: dict = {}  # saved with the checkpoint: the scenes fitted on, their texture
 
     # ------------------------------------------------------------------ fitting
     def _describe(self, x: torch.Tensor) -> torch.Tensor:
@@ -147,14 +147,18 @@ class DeltaRegressor(nn.Module):
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path, extra: dict | None = None) -> None:
-        """Write atomically: kind, format version, config, sizes and the buffers."""
+        """Write atomically: kind, format version, config, sizes and the buffers.
+
+        ``extra`` (a dict of plain values: names, numbers, lists) is stored beside them; by
+        default ``self.extra`` (e.g. the scenes it was fitted on and their texture statistics).
+        """
         save_versioned(path, _KIND, CHECKPOINT_VERSION, {
             "n_features": self.n_features,
             "n_components": self.n_components,
             "k": self.k,
             "config": config_to_dict(self.config),
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-            "extra": extra or {},
+            "extra": dict(self.extra if extra is None else extra),
         })
 
     @classmethod

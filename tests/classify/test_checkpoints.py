@@ -173,3 +173,29 @@ def test_regressor_non_finite_buffers(tmp_path, reg_payload, key):
     t = reg_payload["state_dict"][key].clone(memory_format=torch.contiguous_format)
     t.view(-1)[-1] = float("inf")
     _fails(DeltaRegressor, tmp_path, _edit(reg_payload, **{key: t}), f"{key} holds NaN or infinite")
+
+
+def test_extra_is_saved_by_default_and_round_trips(tmp_path, eig_payload):
+    """``save`` stores ``model.extra`` unless told otherwise; ``load`` gives it back."""
+    model = EigenSpaceClassifier.load(_write(tmp_path, eig_payload))
+    model.extra = {"scenes": ["a", "b"], "texture": {"spread": 0.5, "reference": [[0.25, 0.75]]}}
+    model.save(tmp_path / "e.pt")
+    assert EigenSpaceClassifier.load(tmp_path / "e.pt").extra == model.extra
+    model.save(tmp_path / "f.pt", extra={"scenes": ["c"]})
+    assert EigenSpaceClassifier.load(tmp_path / "f.pt").extra == {"scenes": ["c"]}
+
+
+@pytest.mark.parametrize("name", ["eigenspace_delta_avg_10ev.pt", "eigenspace_delta_max_10ev.pt", "regression.pt"])
+def test_shipped_checkpoints_name_their_scenes(name):
+    """The shipped checkpoints say what they were fitted on, with the texture statistics of those scenes."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "lensdist_torch" / "checkpoints" / name
+    if not path.is_file():
+        pytest.skip("shipped checkpoints not present")
+    cls = DeltaRegressor if name == "regression.pt" else EigenSpaceClassifier
+    extra = cls.load(path).extra
+    assert extra["scenes"] == ["gravel", "grass"]
+    tex = extra["texture"]
+    assert tex["names"] == ["gravel", "grass"] and len(tex["reference"]) == 2 and 0 < tex["spread"] < 0.1
+    assert all(abs(sum(h) - 1) < 1e-9 for h in tex["reference"])
