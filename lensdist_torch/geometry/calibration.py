@@ -18,8 +18,9 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    ``outlier_mads`` robust deviations (1.4826 MAD, at least the median sigma_i) of the median.
 5. **Intervals**: pairs sharing frames have correlated errors, so the variance is a
    delete-a-block jackknife (``jackknife_blocks`` contiguous blocks), or the Birge-scaled
-   max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger; t on blocks - 1 degrees of
-   freedom; [max(0, D - t sd), D + t sd] for Delta_avg and Delta_max in the user's pixels.
+   max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger, plus ``systematic_rel`` D in
+   quadrature (what all pairs share); t on blocks - 1 degrees of freedom;
+   [max(0, D - t sd), D + t sd] for Delta_avg and Delta_max in the user's pixels.
 6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame, or None with a
    reason: under ``min_pairs`` usable pairs, or a half-width there over ``max_class_halfwidth_px``.
 
@@ -66,6 +67,8 @@ class CalibrationConfig:
         max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
             pairs' lower quartile are rejected (a broken or foreign frame).
         jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
+        systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
+            pairs share (on rendered sequences 0.05-0.16 % of Delta_max, mostly one sign).
         confidence: coverage of the intervals.
         min_pairs: fewer usable pairs give no class ("cannot tell").
         max_class_halfwidth_px: an interval half-width of Delta_avg above this, at the paper's
@@ -80,6 +83,7 @@ class CalibrationConfig:
     outlier_mads: float = 4.0
     max_residual_ratio: float = 3.0
     jackknife_blocks: int = 8
+    systematic_rel: float = 1e-3
     confidence: float = 0.95
     min_pairs: int = 4
     max_class_halfwidth_px: float = 1.0
@@ -94,10 +98,12 @@ class CalibrationConfig:
         steps = self.motion_steps
         if not (isinstance(steps, tuple) and steps and all(_number(v) and 0 < v < self.max_motion for v in steps)):
             raise ValueError(f"motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, got {steps!r}")
-        for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px", "confidence"):
-            v = getattr(self, name)
-            if not (_number(v) and v > 0 and (v < 1 or name != "confidence")):
-                raise ValueError(f"{name} must be a positive number{' below 1' if name == 'confidence' else ''}, got {v!r}")
+        for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px"):
+            if not (_number(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+        for name, lo in (("confidence", 0.0), ("systematic_rel", -1e-300)):
+            if not (_number(getattr(self, name)) and lo < getattr(self, name) < 1):
+                raise ValueError(f"{name} must lie in {']0' if lo == 0 else '[0'}, 1[, got {getattr(self, name)!r}")
 
 
 def _number(v) -> bool:
@@ -405,19 +411,19 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     theta, keep, sd, t = _combine(ab, std, pairs[:, 0], fun, cfg)
     a, b = float(theta[0]), float(theta[1])
     k2u, k4u = user_coefficients(a / ra**2, b / ra**4, scale)
-    n_used = int(keep.sum())
-    nan = float("nan")
+    n_used, nan = int(keep.sum()), float("nan")
     d_avg, d_max = (float(f([k2u], [k4u], hh, ww)[0]) if n_used else nan for f in (delta_avg, delta_max))
-    iv_avg, iv_max = ((max(0.0, d - t * float(e)) if n_used > 1 else nan, d + t * float(e)) for d, e in ((d_avg, sd[1]), (d_max, sd[2])))
+    dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
+    half = [t * math.hypot(float(e), cfg.systematic_rel * d) for e, d in zip(sd[1:], (d_avg, d_max, dc))]
+    iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
         reason = "too little motion: no two frames moved enough apart"
     elif n_used < cfg.min_pairs:
         reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}"
-    elif t * float(sd[3]) > cfg.max_class_halfwidth_px:
-        reason = f"interval too wide: +-{t * float(sd[3]):.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
+    elif not half[2] <= cfg.max_class_halfwidth_px:
+        reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
     else:
-        dc = delta_avg([a / rc**2], [b / rc**4], hc, wc)
-        label = CLASS_LABELS[int(estimated_class(dc, dc, "delta_avg", st)[0])]
+        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
     return SequenceCalibration(k2u, k4u, d_avg, iv_avg, d_max, iv_max, label, reason, n_used, len(pairs) - n_used,
                                xa.shape[0], (hh, ww), (h, w), scale, (a, b), pairs, (ab @ fun[0]).abs(), std, keep)

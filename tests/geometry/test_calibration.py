@@ -202,6 +202,7 @@ def test_bad_frames_are_one_line_errors(frames, match):
         ({"confidence": 1.0}, "confidence"),
         ({"jackknife_blocks": 1}, "jackknife_blocks"),
         ({"outlier_mads": -1.0}, "outlier_mads"),
+        ({"systematic_rel": -0.1}, "systematic_rel"),
     ],
 )
 def test_bad_config_is_a_one_line_error(kwargs, match):
