@@ -97,17 +97,20 @@ def read_frames(path: str | Path, grey: bool = True, max_frames: int | None = No
         yield item
 
 
-def _bar(total, quiet: bool, desc: str):
+def _frames_of_one_size(path: str | Path, grey: bool, max_frames: int | None, quiet: bool, desc: str):
+    """:func:`read_frames` with a progress bar, checking that every frame has the first's size."""
     from tqdm import tqdm
 
-    return tqdm(total=total, disable=quiet, desc=desc, unit="frame" if desc != "pairs" else "pair", leave=False)
-
-
-def _count(path: Path, max_frames: int | None) -> int | None:
-    if not path.is_dir():
-        return max_frames
-    n = len(list_frames(path))
-    return n if max_frames is None else min(n, max_frames)
+    path, size = Path(path), None
+    total = min(len(list_frames(path)), max_frames or 1 << 62) if path.is_dir() else None
+    with tqdm(total=total, disable=quiet, desc=desc, unit="frame", leave=False) as bar:
+        for name, img in read_frames(path, grey, max_frames):
+            size = size or tuple(img.shape[-2:])
+            if tuple(img.shape[-2:]) != size:
+                raise ValueError(f"frames must all have one size: the first is {size[0]} x {size[1]}, {name} is "
+                                 f"{img.shape[-2]} x {img.shape[-1]}")
+            yield name, img
+            bar.update(1)
 
 
 # ------------------------------------------------------------------ calibration
@@ -128,9 +131,7 @@ def _opencv(k2: float, k4: float, size: tuple[int, int], focal: float | None, mo
     if not (math.isfinite(k2) and math.isfinite(k4)):
         return None
     cam = opencv_camera(k2, k4, *size, focal=focal, model=model)
-    return {"camera_matrix": cam.camera_matrix, "dist_coeffs": cam.dist_coeffs, "fit_error_mean_px": cam.fit_error_mean_px,
-            "fit_error_max_px": cam.fit_error_max_px, "forward_error_mean_px": cam.forward_error_mean_px,
-            "forward_error_max_px": cam.forward_error_max_px}
+    return {k: v for k, v in cam._asdict().items() if k != "model"}
 
 
 def calibrate_path(
@@ -156,23 +157,31 @@ def calibrate_path(
         analysis_size, scale, k2_user, k4_user, delta_avg_user_px, delta_avg_user_interval,
         delta_max_user_px, delta_max_user_interval, confidence, class, reason, pairs_used,
         pairs_rejected, opencv and opencv_rational (camera_matrix, dist_coeffs and their errors).
+
+    Example:
+        >>> import tempfile
+        >>> tmp = tempfile.TemporaryDirectory()
+        >>> folder = Path(tmp.name)
+        >>> for i, frame in enumerate(synthetic_sequence(10, 1e-5, 0.0, size=(120, 160))[0]):
+        ...     _ = (folder / f"frame_{i}.png").write_bytes(encode_png(_to_uint8(frame)))
+        >>> res = calibrate_path(folder)
+        >>> res["frames"], res["class"], round(res["k2_user"] * 1e5, 1)
+        (10, '2', 1.0)
+        >>> out = undistort_path(folder, folder / "undistorted", k2=res["k2_user"], k4=res["k4_user"])
+        >>> out["frames"], (folder / "undistorted" / "masks" / "frame_9.png").is_file()
+        (10, True)
+        >>> tmp.cleanup()
     """
-    cfg = CalibrationConfig() if config is None else config
-    path = Path(path)
-    frames, size, scale = [], None, 1.0
-    with _bar(_count(path, max_frames) if path.exists() else None, quiet, "reading") as bar:
-        for name, img in read_frames(path, grey=True, max_frames=max_frames):
-            if size is None:
-                size = tuple(img.shape[-2:])
-                scale = analysis_scale(*size, cfg)
-            elif tuple(img.shape[-2:]) != size:
-                raise ValueError(f"frames must all have one size: the first is {size[0]} x {size[1]}, "
-                                 f"{name} is {img.shape[-2]} x {img.shape[-1]}")
-            frames.append(to_analysis(img, scale))
-            bar.update(1)
+    from tqdm import tqdm
+
+    cfg, frames, scale = CalibrationConfig() if config is None else config, [], 1.0
+    for _, img in _frames_of_one_size(path, True, max_frames, quiet, "reading"):
+        scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
+        frames.append(to_analysis(img, scale))
+        size = tuple(img.shape[-2:])
     if len(frames) < 2:
         raise ValueError(f"path {path} must hold at least 2 frames of one camera, got {len(frames)}")
-    with _bar(None, quiet, "pairs") as bar:
+    with tqdm(disable=quiet, desc="pairs", unit="pair", leave=False) as bar:
         def progress(done: int, total: int) -> None:
             bar.total = total
             bar.update(done - bar.n)
@@ -272,23 +281,15 @@ def undistort_path(
     path, out = Path(path), Path(out_dir)
     if path.is_dir() and out.resolve() == path.resolve():
         raise ValueError(f"out_dir must differ from the input folder {path}")
-    grid = valid = size = None
-    n, valid_sum = 0, 0.0
-    with _bar(_count(path, max_frames) if path.exists() else None, quiet, "undistorting") as bar:
-        for name, img in read_frames(path, grey=False, max_frames=max_frames):
-            if grid is None:
-                size = tuple(img.shape[-2:])
-                k2, k4 = _coefficients_for(size, k2, k4, from_json)
-                grid, valid = undistortion_grid(k2, k4, *size)
-                (out / "masks").mkdir(parents=True, exist_ok=True)
-            elif tuple(img.shape[-2:]) != size:
-                raise ValueError(f"frames must all have one size: the first is {size[0]} x {size[1]}, {name} is "
-                                 f"{img.shape[-2]} x {img.shape[-1]}")
-            corrected = sample(img, grid) * valid
-            atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint8(corrected[0])))
-            atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0])))
-            n, valid_sum = n + 1, valid_sum + float(valid.mean())
-            bar.update(1)
+    grid, n, valid_sum = None, 0, 0.0
+    for name, img in _frames_of_one_size(path, False, max_frames, quiet, "undistorting"):
+        if grid is None:
+            k2, k4 = _coefficients_for(tuple(img.shape[-2:]), k2, k4, from_json)
+            grid, valid = undistortion_grid(k2, k4, *img.shape[-2:])
+            (out / "masks").mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint8((sample(img, grid) * valid)[0])))
+        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0])))
+        n, valid_sum = n + 1, valid_sum + float(valid.mean())
     if n == 0:
         raise ValueError(f"path {path} holds no frames")
     return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "valid_fraction": valid_sum / n}

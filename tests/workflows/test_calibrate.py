@@ -6,13 +6,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import types
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from lensdist_torch.core.images import load_image
+from lensdist_torch.core.images import load_image, to_grey
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.workflows.calibrate import (
     _coefficients_for,
@@ -107,6 +108,43 @@ def test_a_static_camera_gives_strict_json_and_no_class(tmp_path, capsys):
     assert "no estimate" in capsys.readouterr().out
 
 
+def _fake_pyav(frames):
+    """A stand-in for PyAV's open / decode / to_ndarray over (N, 3, H, W) frames in [0, 1]."""
+
+    class Frame:
+        def __init__(self, img):
+            self.img = img
+
+        def to_ndarray(self, format):  # noqa: A002 (PyAV's keyword)
+            x = _to_uint8(to_grey(self.img[None])[0] if format == "gray" else self.img)
+            return x[0].numpy() if format == "gray" else x.permute(1, 2, 0).numpy()
+
+    class Container:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def decode(self, video):
+            assert video == 0
+            yield from (Frame(f) for f in frames)
+
+    return types.SimpleNamespace(open=lambda path: Container())
+
+
+def test_video_through_pyav(sequence, tmp_path, monkeypatch):
+    folder, _ = sequence
+    frames = torch.cat([load_image(p, grey=False) for p in list_frames(folder)])
+    monkeypatch.setitem(sys.modules, "av", _fake_pyav(frames))
+    (tmp_path / "clip.mp4").write_bytes(b"")
+    res = calibrate_path(tmp_path / "clip.mp4", max_frames=8)
+    assert res["frames"] == 8 and res["class"] == "3"
+    out = undistort_path(tmp_path / "clip.mp4", tmp_path / "out", k2=K2, k4=K4, max_frames=2)
+    assert out["frames"] == 2 and load_image(tmp_path / "out" / "frame_000001.png", grey=False).shape == (1, 3, *SIZE)
+    assert (tmp_path / "out" / "masks" / "frame_000001.png").is_file()
+
+
 def test_png_writer_round_trips():
     for c in (1, 3):
         img = torch.randint(0, 256, (c, 37, 53), dtype=torch.uint8)
@@ -157,7 +195,10 @@ def test_bad_paths_are_one_line_errors(tmp_path, monkeypatch):
 def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
     folder, _ = sequence
     (tmp_path / "bad.json").write_text("{}")
+    (tmp_path / "none.json").write_text(json.dumps({"k2_user": None, "k4_user": None, "image_size": [240, 320],
+                                                    "reason": "too little motion"}))
     cases = [
+        ({"from_json": tmp_path / "none.json"}, "holds no estimate: too little motion"),
         ({"k2": 1e-6}, "give both k2 and k4"),
         ({"k2": 1e-6, "k4": 0.0, "from_json": tmp_path / "x.json"}, "not both"),
         ({"from_json": tmp_path / "bad.json"}, "not a calibration"),
