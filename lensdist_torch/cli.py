@@ -148,33 +148,18 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     check_output_dir(args.out, "--out")
     if not (args.checkpoint or args.regression or args.selfcal):
         raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
-    from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
-    from lensdist_torch.data.shards import load_set
-    from lensdist_torch.workflows.evaluate import evaluate_classifier
+    from lensdist_torch.config import load_config
+    from lensdist_torch.data.shards import load_set, read_manifest
+    from lensdist_torch.workflows.analyze import resolve_device
+    from lensdist_torch.workflows.evaluate import evaluate_checkpoints
     from lensdist_torch.workflows.reports import write_report
 
+    device = resolve_device(args.device)
+    if any(":" in s for s in read_manifest(args.data)["scenes"]):
+        raise ValueError("evaluate re-renders the test pairs for the analysis and needs a data set of the embedded scenes")
     test = load_set(args.data, "test")
-    settings = {}
-    for ck in args.checkpoint or []:
-        model = EigenSpaceClassifier.load(ck, expected=test["config"])
-        c = model.config.classifier
-        settings[f"{c.n_eigenvectors} EV, {c.metric}"] = evaluate_classifier(model, test)
-    if args.regression:
-        from lensdist_torch.classify.regression import DeltaRegressor
-        from lensdist_torch.workflows.evaluate import evaluate_regressor, features_of
-
-        reg = DeltaRegressor.load(args.regression, expected=test["config"])
-        for metric, fig in evaluate_regressor(reg, test, features_of(test, test["config"])).items():
-            settings[f"regression, {metric}"] = fig
-    if args.selfcal:
-        from lensdist_torch.data.shards import load_scenes, read_manifest
-        from lensdist_torch.workflows.evaluate import evaluate_selfcal
-
-        if any(":" in s for s in read_manifest(args.data)["scenes"]):
-            raise ValueError("--selfcal re-renders the test pairs and needs a data set of the embedded scenes")
-        scenes, _ = load_scenes(test["config"])
-        for metric, fig in evaluate_selfcal(test, test["config"], scenes, progress=not args.quiet).items():
-            settings[f"selfcal, {metric}"] = fig
+    cfg = None if args.config is None else load_config(args.config)
+    settings = evaluate_checkpoints(test, args.checkpoint or [], args.regression, args.selfcal, not args.quiet, device, cfg)
     report = {"title": f"lensdist evaluate: {args.data}", "settings": settings}
     md, js = write_report(report, args.out, "evaluate")
     if args.json:
@@ -188,10 +173,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 def _cmd_reproduce(args: argparse.Namespace) -> int:
     check_output_dir(args.out, "--out")
     from lensdist_torch.config import load_config
+    from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.reproduce import reproduce
 
-    cfg = load_config(args.config)
-    res = reproduce(cfg, args.out, quick=args.quick, workers=args.workers, batch_size=args.batch_size, progress=not args.quiet)
+    cfg, device = load_config(args.config), resolve_device(args.device)
+    res = reproduce(cfg, args.out, quick=args.quick, workers=args.workers, batch_size=args.batch_size, progress=not args.quiet,
+                    device=device)
     report = json.loads(Path(res["json"]).read_text())
     written, reused = _shards(report.get("generation", {}))
     if args.json:
@@ -210,11 +197,12 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         if not have_matplotlib():
             raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
         check_output_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)")
-    from lensdist_torch.workflows.analyze import analyze_pair
+    from lensdist_torch.config import load_config
+    from lensdist_torch.workflows.analyze import analyze_pair, resolve_device
 
-    res, qmap = analyze_pair(
-        args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max, method=args.method, return_map=True
-    )
+    cfg, device = None if args.config is None else load_config(args.config), resolve_device(args.device)
+    res, qmap = analyze_pair(args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max,
+                             method=args.method, config=cfg, return_map=True, device=device)
     # the result first: a failure to write the map must not lose the analysis
     if args.json:
         _print_json(res)
@@ -224,7 +212,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
         from lensdist_torch.workflows.figures import save_map_grid
 
         label = f"{res['method']}: Delta_avg {_fmt(res['delta_avg'])}"
-        save_map_grid(qmap, [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"] or "?"])
+        save_map_grid(qmap.cpu(), [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"] or "?"])
         _note(args, f"map: {args.save_map}")
     return 3 if args.strict and res["cannot_tell"] else 0
 
@@ -232,7 +220,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
 def _print_analysis(res: dict) -> None:
     print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
     conf = "" if res["confidence"] is None else f", confidence {res['confidence']:.2f}"
-    print(f"method: {res['method']}{conf}")
+    print(f"method: {res['method']}{conf}" + (f"; fitted on: {', '.join(res['fitted_on'])}" if res.get("fitted_on") else ""))
     if res["class"] is None:
         print("distortion class: cannot tell (see the warnings)")
     else:
@@ -317,6 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
         return p
 
     defaults = "TOML config (the defaults of docs/method.md when omitted)"
+    device_help = "where the tensors go: cpu, cuda or cuda:N"
     p = command("demo", "quality map of a known misregistration on the embedded scene",
                 "lensdist demo --scale-error 0.02 --out results", _cmd_demo, "print only the summary as one JSON object")
     p.add_argument("--scene", default="gravel", help="embedded scene")
@@ -356,6 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--regression", default=None, help="a DeltaRegressor checkpoint")
     p.add_argument("--selfcal", action="store_true", help="also self-calibrate every test pair (re-rendered)")
     p.add_argument("--out", default="results", help="report folder")
+    p.add_argument("--config", default=None, help="TOML config of the analysis (default: the data set's), e.g. the "
+                   "calibration.toml of `lensdist reproduce`")
+    p.add_argument("--device", default="cpu", help=device_help)
 
     p = command("reproduce", "the paper's Tables 1 and 2 on the embedded scenes, one command",
                 "lensdist reproduce --quick --out results/quick", _cmd_reproduce,
@@ -364,7 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results/reproduce", help="folder for data, checkpoints and the report")
     p.add_argument("--quick", action="store_true", help="a tenth of the pairs, for a first look")
     p.add_argument("--workers", type=int, default=2, help="worker processes for generation")
-    p.add_argument("--batch-size", type=int, default=16, help="pairs per batch for generation")
+    p.add_argument("--batch-size", type=int, default=16, help="pairs per batch for generation and analysis")
+    p.add_argument("--device", default="cpu", help=device_help)
 
     p = command("analyze", "analyse your own pair of overlapping photographs",
                 "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", _cmd_analyze,
@@ -378,6 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)")
     p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
     p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
+    p.add_argument("--config", default=None, help=defaults + ", e.g. a calibration.toml written by `lensdist reproduce`")
+    p.add_argument("--device", default="cpu", help=device_help)
     return parser
 
 

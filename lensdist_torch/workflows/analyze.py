@@ -1,15 +1,24 @@
-"""Analyse a user's own image pair: registration, quality map, distortion class and Delta.
+"""Analyse a user's own image pairs: registration, quality map, distortion class and Delta.
 
-``analyze_pair(img1, img2)`` brings both images to the analysis size (centre crop to the
-aspect ratio, then area resampling), registers them with an estimated homography, computes the
-quality map and asks one estimator for the distortion: the self-calibration (default), the
-Delta regression, or the paper's eigen-space classifiers. Offsets are reported in analysis
-pixels and in the user's pixels. Every threshold of the decision is in
-``config.analysis`` (:class:`~lensdist_torch.config.AnalysisConfig`).
+:func:`analyze_batch` is the one analysis path: ``lensdist analyze``, :func:`analyze_pair`
+(a batch of one) and the evaluation behind every reported figure
+(:mod:`~lensdist_torch.workflows.evaluate`) all call it. Per pair it brings both images to the
+analysis size (centre crop to the aspect ratio, then area resampling), registers them with an
+estimated homography, computes the quality map and asks one estimator for the distortion: the
+self-calibration (default; started from the registration's H), the Delta regression, or the
+paper's eigen-space classifiers; then the decision of :mod:`~lensdist_torch.workflows.decision`
+(class or "cannot tell", calibrated confidence, domain checks). Offsets are reported in analysis
+pixels and in the user's pixels. Every threshold is in ``config.analysis``.
+
+The estimators (registration, self-calibration, classifiers) run pair by pair: their batched
+float32 kernels round differently with the batch's size, and a pair's answer must not depend on
+the pairs it was analysed with. Resampling, warps and quality maps are batched.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import functools
 from importlib import resources
 from pathlib import Path
@@ -25,8 +34,9 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, delta_avg,
 from lensdist_torch.geometry.registration import estimate_homography, warp_to_reference
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
+from lensdist_torch.workflows.decision import decide, domain_checks, platt, texture_histogram
 
-__all__ = ["analyze_pair", "default_checkpoint", "METHODS"]
+__all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "Prepared", "default_checkpoint", "resolve_device", "METHODS"]
 
 METHODS = ("selfcal", "regression", "eigenspace")
 _CKPT_DIR = Path(str(resources.files("lensdist_torch") / "checkpoints"))  # package data: in the wheel too
@@ -44,6 +54,17 @@ def default_checkpoint(name: str = "delta_avg") -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"shipped checkpoint {path} not found; pass checkpoint=PATH, e.g. one written by `lensdist reproduce`")
     return path
+
+
+def resolve_device(device=None) -> torch.device:
+    """``None`` -> the CPU; a name or torch.device, checked: a clear ValueError when CUDA is absent."""
+    dev = torch.device("cpu" if device is None else device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device {str(dev)!r} asked for, but only {torch.cuda.device_count()} CUDA device(s) exist")
+    return dev
 
 
 def _file_key(path) -> tuple[str, int, int]:
@@ -70,139 +91,340 @@ def _cached_regressor(path: str, mtime_ns: int, size: int) -> DeltaRegressor:
 
 
 def _load_eigenspace(path) -> EigenSpaceClassifier:
-    return _cached_eigenspace(*_file_key(path))
+    return path if isinstance(path, EigenSpaceClassifier) else _cached_eigenspace(*_file_key(path))
 
 
 def _load_regressor(path) -> DeltaRegressor:
+    if isinstance(path, DeltaRegressor):
+        return path
+    if isinstance(path, EigenSpaceClassifier):
+        raise CheckpointError("checkpoint (--checkpoint) is an eigen-space classifier, but method 'regression' needs a Delta regressor")
     return _cached_regressor(*_file_key(path))
 
 
-def _eigenspace_models(checkpoint, checkpoint_max) -> tuple[EigenSpaceClassifier, EigenSpaceClassifier]:
+def _eigenspace_models(checkpoint, checkpoint_max) -> tuple:
     """The Delta_avg and Delta_max classifiers, each checked against its metric.
 
+    None is the shipped one; False leaves that metric out (a lone classifier under evaluation).
     Both must be fitted under the same image size, block size and thresholds.
     """
-    paths = (checkpoint or default_checkpoint("delta_avg"), checkpoint_max or default_checkpoint("delta_max"))
-    models = tuple(_load_eigenspace(p) for p in paths)
-    for model, path, metric, option in zip(models, paths, METRICS, ("checkpoint (--checkpoint)", "checkpoint_max (--checkpoint-max)")):
+    wanted = [(c, metric, option) for c, metric, option in zip(
+        (checkpoint, checkpoint_max), METRICS, ("checkpoint (--checkpoint)", "checkpoint_max (--checkpoint-max)"))]
+    models = []
+    for c, metric, option in wanted:
+        if c is False:
+            models.append(None)
+            continue
+        path = default_checkpoint(metric) if c is None else c
+        model = _load_eigenspace(path)
         if model.config.classifier.metric != metric:
-            raise CheckpointError(
-                f"{path} is a {model.config.classifier.metric} classifier, but {option} needs a {metric} one"
-            )
-    check_compatible(models[1].config, models[0].config, paths[1])
-    return models
+            raise CheckpointError(f"{path} is a {model.config.classifier.metric} classifier, but {option} needs a {metric} one")
+        models.append(model)
+    if models[0] is None and models[1] is None:
+        raise ValueError("method 'eigenspace' needs at least one of checkpoint and checkpoint_max")
+    if models[0] is not None and models[1] is not None:
+        check_compatible(models[1].config, models[0].config, checkpoint_max or default_checkpoint("delta_max"))
+    return tuple(models)
 
 
-def _as_image(img, name: str) -> torch.Tensor:
-    """A path or an (H, W), (C, H, W), (1, C, H, W) tensor -> (1, 1, H, W) float grey."""
+def _on(model, device: torch.device):
+    """The model with its buffers on ``device`` (a copy when it lives elsewhere: the caller's and cached models stay)."""
+    if model is None or next(iter(model.buffers())).device == device:
+        return model
+    moved = copy.deepcopy(model).to(device)
+    moved.extra = getattr(model, "extra", {})
+    return moved
+
+
+def _as_images(img, name: str) -> list[torch.Tensor]:
+    """A path, a tensor (H, W), (C, H, W), (B, C, H, W), or a list of paths / tensors -> per pair (1, 1, H, W) grey."""
+    if isinstance(img, (list, tuple)):
+        return [x for i, one in enumerate(img) for x in _as_images(one, f"{name}[{i}]")]
     if isinstance(img, (str, Path)):
-        return load_image(img, grey=True)
+        return [load_image(img, grey=True)]
+    if isinstance(img, torch.Tensor) and img.dim() == 4:
+        check_image(img, name)
+        return [to_grey(x[None]).float() for x in img]
     x = as_batch(img, name)
     check_image(x, name)
-    return to_grey(x).float()
+    return [to_grey(x).float()]
 
 
-def _eigenspace(qmap: torch.Tensor, models, cfg: LensdistConfig) -> dict:
-    """The paper's classifiers on a quality map: class, both Deltas, distances, domain check."""
-    model, model_max = models
-    with torch.no_grad():
-        r_avg, r_max = model(qmap.flatten(1)), model_max(qmap.flatten(1))
-    distances = [float(v) for v in r_avg.distances[0]]
-    threshold = float(model.reject_threshold)
-    far = min(distances) > cfg.analysis.out_of_domain_factor * threshold
-    return {
-        "class": CLASS_LABELS[int(r_avg.label[0])],
-        "delta_avg": float(r_avg.delta[0]),
-        "delta_max": float(r_max.delta[0]),
-        "distances": distances,
-        "reject_threshold": threshold,
-        "far_from_training": far,
-    }
+@dataclasses.dataclass
+class Prepared:
+    """A batch brought to the analysis size and registered: what every method starts from.
+
+    img1, img2: (B, 1, h, w) on the analysis device; H: (B, 3, 3) float64 img1 -> img2;
+    registration_ok, residual, overlap: (B,); qmap: (B, 1, h/8, w/8); scale: user px per analysis
+    px; input_size: per pair (H, W). The self-calibration and the texture histograms are
+    computed once, on first use, and shared by every method run on this batch.
+    """
+
+    config: LensdistConfig
+    img1: torch.Tensor
+    img2: torch.Tensor
+    H: torch.Tensor
+    registration_ok: torch.Tensor
+    residual: torch.Tensor
+    overlap: torch.Tensor
+    qmap: torch.Tensor
+    scale: list
+    input_size: list
+    _selfcal: list | None = None
+    _texture: torch.Tensor | None = None
+
+    def selfcal(self) -> list[dict]:
+        """The self-calibration of every pair (started from the registration's H where it worked)."""
+        if self._selfcal is None:
+            self._selfcal = [_selfcal_one(self, i) for i in range(self.img1.shape[0])]
+        return self._selfcal
+
+    def texture(self) -> torch.Tensor:
+        """(B, n) gradient-magnitude histograms of both images together."""
+        if self._texture is None:
+            self._texture = 0.5 * (texture_histogram(self.img1) + texture_histogram(self.img2))
+        return self._texture
 
 
-def _regression(qmap: torch.Tensor, reg: DeltaRegressor, cfg: LensdistConfig) -> dict:
-    """The Delta regressor on a quality map: both Deltas with a confidence."""
-    with torch.no_grad():
-        r = reg(qmap.flatten(1))
-    return {
-        "class": CLASS_LABELS[int(r.class_avg[0])],
-        "delta_avg": float(r.delta_avg[0]),
-        "delta_max": float(r.delta_max[0]),
-        "confidence": float(r.confidence[0]),
-        "cannot_tell": not bool(r.confident[0]),
-    }
+def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=None, device=None) -> Prepared:
+    """Bring pairs to the analysis size, register them and compute their quality maps.
+
+    Args:
+        img1: as for :func:`analyze_batch`.
+        img2: as for :func:`analyze_batch`.
+        config: settings (analysis size, registration, quality); the defaults when None.
+        homography: optional (B, 3, 3) registrations img1 -> img2 at the analysis size, used
+            instead of estimating them (the pairs count as registered).
+        device: where the tensors go (default: the CPU).
+    """
+    cfg = config if config is not None else LensdistConfig()
+    dev = resolve_device(device)
+    ones, twos = _as_images(img1, "img1"), _as_images(img2, "img2")
+    if len(ones) != len(twos):
+        raise ValueError(f"img1 and img2 must hold as many images, got {len(ones)} and {len(twos)}")
+    h, w = cfg.image.size
+    a, b, scale, sizes = [], [], [], []
+    for x, y in zip(ones, twos):
+        if x.shape[-2:] != y.shape[-2:]:
+            raise ValueError(f"img1 and img2 must have the same size, got {tuple(x.shape[-2:])} and {tuple(y.shape[-2:])}")
+        oh, ow = x.shape[-2:]
+        scale.append(min(ow / w, oh / h))  # user px per analysis px (the crop keeps the aspect)
+        sizes.append([int(oh), int(ow)])
+        a.append(resize_to(x.to(dev), h, w).clamp(0, 1))
+        b.append(resize_to(y.to(dev), h, w).clamp(0, 1))
+    a, b = torch.cat(a), torch.cat(b)
+    n = a.shape[0]
+    if homography is None:
+        regs = [estimate_homography(a[i : i + 1], b[i : i + 1], config=cfg.registration) for i in range(n)]
+        H = torch.cat([r[0] for r in regs]).double()
+        ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
+        residual = torch.cat([r[1].residual for r in regs]).float().cpu()
+    else:
+        H = torch.as_tensor(homography, dtype=torch.float64).to(dev)
+        if H.shape != (n, 3, 3):
+            raise ValueError(f"homography must be ({n}, 3, 3), got {tuple(H.shape)}")
+        ok, residual = torch.isfinite(H).all(dim=(1, 2)).cpu(), torch.full((n,), float("nan"))
+    finite = torch.isfinite(H).all(dim=(1, 2))[:, None, None]  # a missing registration warps by the identity
+    warped, valid = warp_to_reference(b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)))
+    qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality), cfg.quality)
+    overlap = valid.flatten(1).float().mean(1).cpu()
+    return Prepared(cfg, a, b, H, ok, residual, overlap, qmap, scale, sizes)
 
 
-def _selfcal(a: torch.Tensor, b: torch.Tensor, H: torch.Tensor, registered: bool, cfg: LensdistConfig) -> dict:
-    """Self-calibration of (k2, k4) on the pair, started from the registration when it worked."""
-    k2, k4, _, sc = estimate_distortion(a, b, init=H.double() if registered else None, config=cfg.selfcal)
+# ------------------------------------------------------------------ the methods, one pair each
+def _selfcal_one(p: Prepared, i: int) -> dict:
+    """Self-calibration of pair i, started from the registration's H when it worked."""
+    cfg, sl = p.config, slice(i, i + 1)
+    init = p.H[sl].cpu() if bool(p.registration_ok[i]) else None
+    k2, k4, _, sc = estimate_distortion(p.img1[sl], p.img2[sl], init=init, config=cfg.selfcal)
     if not bool(sc.converged[0]):  # flagged, never a number and never "R"
-        return {"class": None, "delta_avg": None, "delta_max": None, "confidence": 0.0, "cannot_tell": True, "diverged": True}
+        return {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None,
+                "raw_confidence": 0.0, "_diverged": True}
     h, w = cfg.image.size
     d_avg, d_max = delta_avg(k2, k4, h, w), delta_max(k2, k4, h, w)
     return {
-        "class": CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])],
+        "estimated_class": CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])],
+        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
         "delta_avg": float(d_avg[0]),
         "delta_max": float(d_max[0]),
-        "confidence": float(sc.confidence[0]),
-        "cannot_tell": not bool(sc.confident[0]),
+        "raw_confidence": float(sc.confidence[0]),
         "k2": float(k2[0]),
         "k4": float(k4[0]),
         "delta_avg_std": float(sc.delta_avg_std[0]),
     }
 
 
-def _warnings(res: dict, far_from_training: bool, diverged: bool, cfg: LensdistConfig) -> list[str]:
-    out = []
-    if diverged:
-        out.append("self-calibration diverged: no estimate from this pair")
-    if far_from_training and res["registration_ok"]:
-        out.append("the quality map is unlike every training map (out of domain): treat the class with caution")
-    if not res["registration_ok"]:
-        out.append("registration failed: the pair could not be aligned by a homography; the result is not meaningful")
-    if res["overlap"] < cfg.analysis.min_overlap:
-        out.append(
-            f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): too little to judge"
-        )
-    if res["cannot_tell"]:
-        out.append("cannot tell from this pair: too little motion or texture to see the distortion (low confidence)")
+def _selfcal(p: Prepared, i: int, _models) -> dict:
+    a = p.config.analysis
+    res = dict(p.selfcal()[i])
+    res["confidence"] = float(platt(res["raw_confidence"], a.selfcal_confidence_scale, a.selfcal_confidence_shift))
+    return res
+
+
+def _regression(p: Prepared, i: int, reg: DeltaRegressor) -> dict:
+    """The Delta regressor on pair i's quality map: both Deltas with a confidence."""
+    cfg, a = p.config, p.config.analysis
+    with torch.no_grad():
+        r = reg(p.qmap[i : i + 1].flatten(1))
+    d_avg, d_max = r.delta_avg.double().cpu(), r.delta_max.double().cpu()
+    raw = float(r.confidence[0])
+    return {
+        "estimated_class": CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])],
+        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
+        "delta_avg": float(d_avg[0]),
+        "delta_max": float(d_max[0]),
+        "raw_confidence": raw,
+        "confidence": float(platt(raw, a.regression_confidence_scale, a.regression_confidence_shift)),
+    }
+
+
+def _eigenspace(p: Prepared, i: int, models) -> dict:
+    """The paper's classifiers on pair i's quality map: classes, both Deltas, distances, domain check."""
+    out = {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None, "confidence": None}
+    far = False
+    x = p.qmap[i : i + 1].flatten(1)
+    for model, metric in zip(models, METRICS):
+        if model is None:
+            continue
+        with torch.no_grad():
+            r = model(x)
+        suffix = "" if metric == "delta_avg" else "_max"
+        out[f"estimated_class{suffix}"] = CLASS_LABELS[int(r.label[0])]
+        out[metric] = float(r.delta[0])
+        if metric == "delta_avg" or models[0] is None:
+            out["distances"] = [float(v) for v in r.distances[0]]
+            out["reject_threshold"] = float(model.reject_threshold)
+            far = min(out["distances"]) > p.config.analysis.out_of_domain_factor * out["reject_threshold"]
+    out["_far"] = far
     return out
 
 
-def analyze_pair(
+_RUN = {"selfcal": _selfcal, "regression": _regression, "eigenspace": _eigenspace}
+
+
+def _models_and_config(method, checkpoint, checkpoint_max, config):
+    """The method's models and the config of the analysis.
+
+    Without a config, a checkpoint's measurement settings (image size, quality, distortion
+    ranges) are adopted and everything else is the default; with one, they must match.
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    # an option the method does not use is refused, not ignored; checkpoints load before the images
+    if checkpoint_max is not None and checkpoint_max is not False and method != "eigenspace":
+        raise ValueError(f"checkpoint_max (--checkpoint-max) is used by method 'eigenspace' only, not {method!r}")
+    if checkpoint is not None and method == "selfcal":
+        raise ValueError("checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'")
+    if method == "selfcal":
+        return None, (config if config is not None else LensdistConfig())
+    if method == "eigenspace":
+        models = _eigenspace_models(checkpoint, checkpoint_max)
+    else:
+        models = _load_regressor(checkpoint if checkpoint is not None else default_checkpoint("regression"))
+    first = models if isinstance(models, DeltaRegressor) else next(m for m in models if m is not None)
+    if config is None:
+        d = LensdistConfig()
+        mc = first.config
+        return models, dataclasses.replace(d, image=mc.image, quality=mc.quality, distortion=mc.distortion)
+    where = checkpoint if checkpoint not in (None, False) else checkpoint_max
+    check_compatible(first.config, config, where if isinstance(where, (str, Path)) else "(the given model)")
+    return models, config
+
+
+def analyze_batch(
     img1,
     img2,
-    checkpoint: str | Path | None = None,
-    checkpoint_max: str | Path | None = None,
     method: str = "selfcal",
     config: LensdistConfig | None = None,
-    return_map: bool = False,
-):
-    """Analyse one overlapping pair of photographs of a roughly planar scene.
+    checkpoint=None,
+    checkpoint_max=None,
+    device=None,
+    homography=None,
+    prepared: Prepared | None = None,
+) -> list[dict]:
+    """Analyse a batch of overlapping pairs of photographs of roughly planar scenes.
+
+    Args:
+        img1: file paths, a list of tensors, or a tensor (B, C, H, W); one image (a path or an
+            (H, W), (C, H, W) tensor) is a batch of one. Colour or grey, any size.
+        img2: the second images, each overlapping its img1 and of its size.
+        method: ``selfcal`` (the default and the most accurate: (k2, k4) estimated with the
+            homography, started from the registration's), ``regression`` (Delta from the
+            quality map) or ``eigenspace`` (the paper's classifiers).
+        config: settings (analysis size, registration, self-calibration, decision); without
+            one, a checkpoint's image size and quality thresholds are used.
+        checkpoint: for ``eigenspace`` the Delta_avg classifier, for ``regression`` the
+            regressor: a path or a loaded model (default: the shipped ones). Refused with
+            ``selfcal``.
+        checkpoint_max: for ``eigenspace``, the Delta_max classifier (default: shipped; False:
+            none). Each eigen-space checkpoint must be fitted for its own metric.
+        device: where the tensors go ("cpu" by default, "cuda", ...).
+        homography: optional (B, 3, 3) registrations img1 -> img2 at the analysis size, used
+            instead of estimating them.
+        prepared: a :class:`Prepared` batch from :func:`prepare_batch` (then img1, img2,
+            homography and device are ignored): several methods on one registration.
+
+    Returns:
+        One dict per pair: ``class`` and ``class_max`` ("1"-"4" or "R"; None with
+        ``cannot_tell`` True when the pair cannot support an answer, the reasons in
+        ``warnings``), ``estimated_class`` (the estimator's own answer, even when unsure),
+        ``delta_avg``, ``delta_max`` (analysis px; None without an estimate), the same in the
+        user's pixels, ``confidence`` (calibrated P(class right); None for eigenspace),
+        ``registration_ok``, ``in_domain``, ``overlap``, ``fitted_on``, ``warnings`` and more.
+    """
+    models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
+    p = prepared if prepared is not None else prepare_batch(img1, img2, cfg, homography, device)
+    if prepared is not None and (p.config.image != cfg.image or p.config.quality != cfg.quality):
+        raise CheckpointError("the prepared batch was made under another image size or quality thresholds than the checkpoint's")
+    cfg = p.config
+    dev = p.img1.device
+    models = tuple(_on(m, dev) for m in models) if isinstance(models, tuple) else _on(models, dev)
+    extra = {}
+    if models is not None:
+        first = models if isinstance(models, DeltaRegressor) else next(m for m in models if m is not None)
+        extra = getattr(first, "extra", {}) or {}
+    h, w = cfg.image.size
+    out = []
+    for i in range(p.img1.shape[0]):
+        res = {"method": method, "distances": [], "reject_threshold": None, "confidence": None}
+        res.update(_RUN[method](p, i, models))
+        res.update(registration_ok=bool(p.registration_ok[i]), overlap=float(p.overlap[i]))
+        if method != "selfcal":
+            domain_checks(res, p.selfcal()[i] if cfg.analysis.cross_check else None,
+                          p.texture()[i : i + 1] if extra.get("texture") else None, extra, cfg)
+        decide(res, cfg)
+        s = p.scale[i]
+        res.update(
+            delta_avg_user_px=None if res["delta_avg"] is None else res["delta_avg"] * s,
+            delta_max_user_px=None if res["delta_max"] is None else res["delta_max"] * s,
+            registration_residual=float(p.residual[i]),
+            error_blocks=int((p.qmap[i] > 0).sum()),
+            analysis_size=[h, w],
+            input_size=p.input_size[i],
+            user_px_per_analysis_px=s,
+            homography=p.H[i].cpu().tolist(),
+        )
+        out.append(res)
+    return out
+
+
+def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str = "selfcal",
+                 config: LensdistConfig | None = None, return_map: bool = False, device=None, homography=None):
+    """Analyse one overlapping pair: :func:`analyze_batch` of a batch of one.
 
     Args:
         img1: a file path, or a tensor (H, W), (C, H, W) or (1, C, H, W); colour or grey, any size.
         img2: the second image, overlapping the first; the same forms and the same size.
-        checkpoint: for ``eigenspace`` the Delta_avg checkpoint, for ``regression`` the
-            regressor (default: the shipped ones, package data in lensdist_torch/checkpoints/).
-            Refused (ValueError) with ``selfcal``, which uses none.
-        checkpoint_max: for ``eigenspace``, the Delta_max checkpoint (default: shipped); refused
-            with the other methods. Each eigen-space checkpoint must be fitted for its own metric
-            (CheckpointError otherwise).
-        method: ``selfcal`` (the default and the most accurate: (k2, k4) estimated with the
-            homography, with a confidence), ``regression`` (Delta from the quality map), or
-            ``eigenspace`` (the paper's classifier).
-        config: settings (analysis size, registration, self-calibration, decision); for
-            ``eigenspace`` the checkpoint's own config is used.
+        checkpoint: as for :func:`analyze_batch`.
+        checkpoint_max: as for :func:`analyze_batch`.
+        method: as for :func:`analyze_batch`.
+        config: as for :func:`analyze_batch`.
+        device: as for :func:`analyze_batch`.
         return_map: also return the (1, 1, H/8, W/8) quality map.
+        homography: optional (3, 3) or (1, 3, 3) registration img1 -> img2 at the analysis size.
 
     Returns:
-        A dict with ``class`` ("1"-"4" or "R"; None with ``cannot_tell`` True when the pair
-        cannot support an answer, the reasons in ``warnings``), ``delta_avg`` and ``delta_max``
-        (analysis px; None when the registration failed or the fit diverged),
-        the same in the user's pixels, ``distances`` (eigen-space, per class), ``confidence``,
-        ``cannot_tell``, ``registration_ok``, ``in_domain``, ``overlap``, ``warnings`` and
-        more; with ``return_map``, the tuple (dict, quality map).
+        The pair's dict (see :func:`analyze_batch`); with ``return_map``, (dict, quality map).
 
     Example:
         >>> from lensdist_torch import load_scene
@@ -211,67 +433,11 @@ def analyze_pair(
         >>> res["registration_ok"], res["method"]
         (True, 'selfcal')
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    # an option the method does not use is refused, not ignored; checkpoints load before the images
-    if checkpoint_max is not None and method != "eigenspace":
-        raise ValueError(f"checkpoint_max (--checkpoint-max) is used by method 'eigenspace' only, not {method!r}")
-    if checkpoint is not None and method == "selfcal":
-        raise ValueError("checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'")
-    models = _eigenspace_models(checkpoint, checkpoint_max) if method == "eigenspace" else None
-    reg = _load_regressor(checkpoint or default_checkpoint("regression")) if method == "regression" else None
-    a, b = _as_image(img1, "img1"), _as_image(img2, "img2")
-    if a.shape[-2:] != b.shape[-2:]:
-        raise ValueError(f"img1 and img2 must have the same size, got {tuple(a.shape[-2:])} and {tuple(b.shape[-2:])}")
-    cfg = config if config is not None else LensdistConfig()
-    if method == "eigenspace":
-        cfg = models[0].config
-    elif method == "regression":
-        check_compatible(reg.config, cfg, checkpoint or default_checkpoint("regression"))
-    h, w = cfg.image.size
-    orig_h, orig_w = a.shape[-2:]
-    scale = min(orig_w / w, orig_h / h)  # user px per analysis px (the crop keeps the aspect)
-    a, b = resize_to(a, h, w).clamp(0, 1), resize_to(b, h, w).clamp(0, 1)
-    H, info = estimate_homography(a, b, config=cfg.registration)
-    warped, valid = warp_to_reference(b, H)
-    qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality), cfg.quality)
-    ok, overlap = bool(info.converged[0]), float(valid.mean())
-    res = {"method": method, "distances": [], "reject_threshold": None, "confidence": None, "cannot_tell": False}
-    if method == "eigenspace":
-        res.update(_eigenspace(qmap, models, cfg))
-    elif method == "regression":
-        res.update(_regression(qmap, reg, cfg))
-    else:
-        res.update(_selfcal(a, b, H, ok, cfg))
-    far, diverged = res.pop("far_from_training", False), res.pop("diverged", False)
-    if not ok or diverged:  # no alignment, no estimate: the numbers would be noise
-        res.update(delta_avg=None, delta_max=None)
-    res.update(
-        delta_avg_user_px=None if res["delta_avg"] is None else res["delta_avg"] * scale,
-        delta_max_user_px=None if res["delta_max"] is None else res["delta_max"] * scale,
-        registration_ok=ok,
-        registration_residual=float(info.residual[0]),
-        overlap=overlap,
-        in_domain=ok and overlap >= cfg.analysis.min_overlap and not far,
-        error_blocks=int((qmap > 0).sum()),
-        analysis_size=[h, w],
-        input_size=[int(orig_h), int(orig_w)],
-        user_px_per_analysis_px=scale,
-        homography=H[0].tolist(),
-    )
-    res["warnings"] = _warnings(res, far, diverged, cfg)
-    _decide(res, cfg)
-    return (res, qmap) if return_map else res
-
-
-def _decide(res: dict, cfg: LensdistConfig) -> None:
-    """The honest answer, set in place.
-
-    ``class`` is None and ``cannot_tell`` True whenever the registration failed, the fit diverged, the images overlap too little, the scene is unlike the training
-    scenes, or the confidence is below the threshold; the reasons are in ``warnings``.
-    """
-    unsure = res["cannot_tell"] or not res["registration_ok"] or res["delta_avg"] is None
-    unsure |= res["overlap"] < cfg.analysis.min_overlap or not res["in_domain"]
-    res["cannot_tell"] = bool(unsure)
-    if unsure:
-        res["class"] = None
+    for img, name in ((img1, "img1"), (img2, "img2")):
+        if isinstance(img, (list, tuple)) or (isinstance(img, torch.Tensor) and img.dim() == 4 and img.shape[0] != 1):
+            raise ValueError(f"{name} must be one image (a path or an (H, W), (C, H, W), (1, C, H, W) tensor); use analyze_batch for more")
+    models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
+    hom = None if homography is None else torch.as_tensor(homography, dtype=torch.float64).reshape(1, 3, 3)
+    p = prepare_batch(img1, img2, cfg, hom, device)
+    res = analyze_batch(None, None, method, cfg, checkpoint, checkpoint_max, prepared=p)[0]
+    return (res, p.qmap) if return_map else res

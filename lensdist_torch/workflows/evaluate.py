@@ -1,13 +1,20 @@
-"""The beyond-the-paper methods on a generated test set, reported like the eigen-space one.
+"""Every method on a generated test set, through the user's analysis path.
 
-* ``regression``: :class:`DeltaRegressor` (nearest neighbours in PCA coefficients of the
-  quality map), trained on all training pairs at once; classes come from the predicted Delta
-  (:func:`estimated_class`: R below ``config.analysis.no_distortion_px``).
-* ``selfcal``: :func:`estimate_distortion` on the test pairs' images, re-rendered from their
-  seeds (a pair is a pure function of its index, so nothing but the maps is stored); classes
-  from the estimated Delta by the same rule.
+The test pairs are re-rendered from their seeds (a pair is a pure function of its index, so
+nothing but the maps is stored) and analysed by
+:func:`~lensdist_torch.workflows.analyze.analyze_batch`, exactly as ``lensdist analyze`` would
+analyse them: the registration, the quality map, the method and the decision (class or "cannot
+tell"). The class-R pairs are analysed with the protocol's perturbed registration
+(docs/method.md, section 7), passed as ``homography``. The figures
+(:func:`~lensdist_torch.workflows.reports.evaluate_predictions`) count "cannot tell" as its own
+outcome.
 
-Both report their "cannot tell" share and the accuracy among confident pairs.
+* ``eigenspace``: the paper's classifiers, a Delta_avg and a Delta_max one together.
+* ``regression``: :class:`DeltaRegressor` (nearest neighbours in PCA coefficients of the map).
+* ``selfcal``: :func:`estimate_distortion`, started from the registration's H.
+
+The learned methods' checkpoints carry the scenes they were fitted on and their texture
+statistics (:func:`training_extra`) for the domain check of the analysis.
 """
 
 from __future__ import annotations
@@ -20,24 +27,31 @@ from tqdm.auto import tqdm
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.data.shards import CLASS_KEYS
+from lensdist_torch.data.shards import CLASS_KEYS, load_scenes
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-from lensdist_torch.geometry.distortion import delta_avg as _delta_avg
-from lensdist_torch.geometry.distortion import delta_max as _delta_max
-from lensdist_torch.geometry.distortion import delta_top, estimated_class
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
 from lensdist_torch.metric.quality import counts_to_map
-from lensdist_torch.workflows.reports import evaluate_predictions
+from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
+from lensdist_torch.workflows.decision import texture_statistics
+from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions
 
 __all__ = [
     "TY_BINS",
     "motion_groups",
     "features_of",
+    "training_extra",
     "fit_classifier",
-    "evaluate_classifier",
     "fit_regressor",
+    "analyze_test_set",
+    "figures_of",
+    "evaluate_classifier",
     "evaluate_regressor",
     "evaluate_selfcal",
+    "evaluate_checkpoints",
+    "validation_config",
+    "fit_decision",
+    "calibration_table",
+    "calibrate_confidence",
 ]
 
 TY_BINS = (0.0, 5.0, 10.0, 20.0, 40.0001)
@@ -49,19 +63,27 @@ def motion_groups(test: dict) -> dict:
     return {f"t_y {lo:.0f}-{min(hi, 40):.0f} px": (ty >= lo) & (ty < hi) for lo, hi in zip(TY_BINS[:-1], TY_BINS[1:])}
 
 
-def _with_confidence(fig: dict, pred: torch.Tensor, truth: torch.Tensor, confident: torch.Tensor) -> dict:
-    fig["confident_share"] = 100.0 * float(confident.double().mean())
-    fig["confident_rate"] = 100.0 * float((pred[confident] == truth[confident]).double().mean()) if bool(confident.any()) else float("nan")
-    return fig
-
-
 def features_of(data: dict, config: LensdistConfig) -> torch.Tensor:
     """Feature vectors (N, (H/8)(W/8)) of a loaded set: quality maps, rows concatenated."""
     return counts_to_map(data["counts"], config.quality).flatten(1)
 
 
-def fit_classifier(train: dict, config: LensdistConfig, n_eigenvectors: int | None = None, metric: str | None = None) -> EigenSpaceClassifier:
-    """Fit on a loaded training set. Pairs whose registration failed are left out of the fit."""
+def training_extra(config: LensdistConfig, scenes: list | None = None, names: list | None = None) -> dict:
+    """A checkpoint's ``extra``: the scenes it is fitted on and their texture statistics.
+
+    ``scenes`` / ``names`` default to the embedded scenes of ``config.protocol.scenes``.
+    """
+    if scenes is None:
+        scenes, names = load_scenes(config)
+    return {"scenes": list(names), "texture": texture_statistics(config, scenes, names)}
+
+
+def fit_classifier(train: dict, config: LensdistConfig, n_eigenvectors: int | None = None, metric: str | None = None,
+                   extra: dict | None = None) -> EigenSpaceClassifier:
+    """Fit on a loaded training set. Pairs whose registration failed are left out of the fit.
+
+    ``extra`` (e.g. :func:`training_extra`) is kept as ``model.extra`` and saved with it.
+    """
     c = config.classifier
     c = dataclasses.replace(
         c,
@@ -73,77 +95,310 @@ def fit_classifier(train: dict, config: LensdistConfig, n_eigenvectors: int | No
     x = features_of(train, cfg)[ok]
     model = EigenSpaceClassifier(x.shape[1], cfg)
     model.fit(x, train[CLASS_KEYS[c.metric]][ok], train[c.metric][ok].float())
+    model.extra = dict(extra or {})
     return model
 
 
-def evaluate_classifier(model: EigenSpaceClassifier, test: dict) -> dict:
-    """Figures of a fitted classifier on a loaded test set (all pairs, failed ones counted)."""
-    cfg = model.config
-    metric = cfg.classifier.metric
-    with torch.no_grad():
-        res = model(features_of(test, cfg))
-    top = delta_top(metric, cfg)
-    out = evaluate_predictions(
-        res.label, res.delta, test[CLASS_KEYS[metric]], test[metric], top, test["converged"], motion_groups(test)
-    )
-    out["n_eigenvectors"] = cfg.classifier.n_eigenvectors
-    out["metric"] = metric
-    out["reject_threshold"] = float(model.reject_threshold)
-    out["explained_variance"] = model.explained.tolist()
-    out["paper_key"] = f"{cfg.classifier.n_eigenvectors}ev_{metric}"
-    return out
-
-
-def fit_regressor(train: dict, config: LensdistConfig, features: torch.Tensor) -> DeltaRegressor:
+def fit_regressor(train: dict, config: LensdistConfig, features: torch.Tensor | None = None,
+                  extra: dict | None = None) -> DeltaRegressor:
     """Fit a :class:`DeltaRegressor` on the training pairs whose registration converged."""
+    features = features_of(train, config) if features is None else features
     ok = train["converged"]
     model = DeltaRegressor(features.shape[1], config)
-    return model.fit(features[ok], train["delta_avg"][ok].float(), train["delta_max"][ok].float())
+    model = model.fit(features[ok], train["delta_avg"][ok].float(), train["delta_max"][ok].float())
+    model.extra = dict(extra or {})
+    return model
 
 
-def evaluate_regressor(model: DeltaRegressor, test: dict, features: torch.Tensor) -> dict:
-    """{metric: figures} for both Delta metrics, from one prediction per test pair."""
-    cfg = model.config
-    with torch.no_grad():
-        res = model(features)
-    out = {}
-    for metric, pred_delta, label in (("delta_avg", res.delta_avg, res.class_avg), ("delta_max", res.delta_max, res.class_max)):
-        top = delta_top(metric, cfg)
-        truth = test[CLASS_KEYS[metric]]
-        fig = evaluate_predictions(label, pred_delta, truth, test[metric], top, test["converged"], motion_groups(test))
-        fig.update(method="regression", metric=metric)
-        out[metric] = _with_confidence(fig, label, truth, res.confident)
-    return out
+# ------------------------------------------------------------------ the analysis of a test set
+def _scenes_of(test: dict, scenes):
+    return scenes if scenes is not None else load_scenes(test["config"])[0]
 
 
-def evaluate_selfcal(test: dict, config: LensdistConfig, scenes: list, batch_size: int = 16, progress: bool = True) -> dict:
-    """Self-calibrate every test pair (images re-rendered from the pairs' seeds).
+def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config: LensdistConfig | None = None,
+                     batch_size: int = 16, progress: bool = False, device=None, set_name: str = "test") -> dict:
+    """Analyse every pair of a loaded test set with :func:`analyze_batch`, once per run.
 
-    Returns {metric: figures} for both Delta metrics, from one estimation per pair.
+    Args:
+        test: a set from ``load_set``.
+        runs: {name: keyword arguments of analyze_batch} (``method``, ``checkpoint``, ...).
+        scenes: the scenes the set was rendered from (default: the embedded scenes of its config).
+        config: the analysis settings (default: the set's config).
+        batch_size: pairs rendered and registered together.
+        progress: a progress bar on stderr.
+        device: where the analysis runs.
+        set_name: the protocol set the pairs belong to (``test``).
+
+    Returns:
+        {name: one result dict per pair, in the set's order}. Every run of a batch shares one
+        rendering, registration and self-calibration.
     """
-    h, w = config.image.height, config.image.width
+    cfg = config if config is not None else test["config"]
+    scenes = _scenes_of(test, scenes)
     n = test["index"].numel()
-    k2s, k4s, confident, converged = [], [], [], []
-    for s in tqdm(range(0, n, batch_size), desc="self-calibration", disable=not progress):
-        idx = test["index"][s : s + batch_size].tolist()
-        params = draw_pairs(config, "test", idx, len(scenes))
-        img1, img2 = render_pairs(scenes, params, config)
-        k2, k4, _, info = estimate_distortion(img1, img2, config=config.selfcal)
-        k2s.append(k2)
-        k4s.append(k4)
-        confident.append(info.confident & info.converged)
-        converged.append(info.converged)
-    converged, confident = torch.cat(converged), torch.cat(confident)
-    # a diverged pair has NaN coefficients: it is predicted R with Delta 0, and counted
-    k2, k4 = torch.nan_to_num(torch.cat(k2s)), torch.nan_to_num(torch.cat(k4s))
-    d_avg = _delta_avg(k2, k4, h, w)
-    out = {}
-    for metric in ("delta_avg", "delta_max"):
-        pred_delta = d_avg if metric == "delta_avg" else _delta_max(k2, k4, h, w)
-        top = delta_top(metric, config)
-        label = estimated_class(torch.where(converged, pred_delta, torch.nan), torch.where(converged, d_avg, torch.nan), metric, config)
-        truth = test[CLASS_KEYS[metric]]
-        fig = evaluate_predictions(label, pred_delta, truth, test[metric], top, converged, motion_groups(test))
-        fig.update(method="selfcal", metric=metric, diverged=int((~converged).sum()))
-        out[metric] = _with_confidence(fig, label, truth, confident)
+    out = {name: [] for name in runs}
+    for s in tqdm(range(0, n, batch_size), desc="analysis", disable=not progress):
+        idx = test["index"][s : s + batch_size]
+        params = draw_pairs(test["config"], set_name, idx.tolist(), len(scenes))
+        img1, img2 = render_pairs(scenes, params, test["config"])
+        perturbed = test["perturbed"][s : s + batch_size].bool()
+        parts = []  # distorted pairs: the analysis's own registration; class R: the protocol's
+        for sel, hom in ((~perturbed, None), (perturbed, test["H"][s : s + batch_size][perturbed])):
+            if bool(sel.any()):
+                rows = sel.nonzero().flatten()
+                prep = prepare_batch(img1[rows], img2[rows], cfg, hom, device)
+                parts.append((rows, {name: analyze_batch(None, None, config=cfg, prepared=prep, **kw) for name, kw in runs.items()}))
+        for name in runs:
+            batch = [None] * len(idx)
+            for rows, res in parts:
+                for r, one in zip(rows.tolist(), res[name]):
+                    batch[r] = one
+            out[name] += batch
     return out
+
+
+def figures_of(results: list[dict], test: dict, metric: str, config: LensdistConfig) -> dict:
+    """One metric's figures from analysis results of a test set's pairs (``cannot tell`` its own outcome)."""
+    key = "class" if metric == "delta_avg" else "class_max"
+    pred = torch.tensor([CANNOT_TELL if r[key] is None else CLASS_LABELS.index(r[key]) for r in results])
+    delta = torch.tensor([float("nan") if r[metric] is None else r[metric] for r in results], dtype=torch.float64)
+    truth = test[CLASS_KEYS[metric]]
+    ok = torch.tensor([r["registration_ok"] for r in results])
+    fig = evaluate_predictions(pred, delta, truth, test[metric], delta_top(metric, config), ok, motion_groups(test))
+    fig["metric"] = metric
+    fig["per_pair"] = {
+        "index": test["index"].tolist(),
+        "class": [r[key] for r in results],
+        "delta": [r[metric] for r in results],
+        "confidence": [r["confidence"] for r in results],
+    }
+    return fig
+
+
+def _run_or_use(results, test, scenes, run, config, progress, device, batch_size=16):
+    if results is not None:
+        return results
+    return analyze_test_set(test, {"run": run}, scenes, config, batch_size, progress, device)["run"]
+
+
+def evaluate_classifier(model: EigenSpaceClassifier, test: dict, scenes: list | None = None, *,
+                        partner: EigenSpaceClassifier | None = None, results: list | None = None,
+                        config: LensdistConfig | None = None, progress: bool = False, device=None) -> dict:
+    """Figures of a fitted eigen-space classifier on a loaded test set, through the analysis.
+
+    ``partner`` is the classifier of the other Delta metric analysed with it (none by default);
+    ``results`` are analysis results of the set's pairs already computed with them.
+    """
+    cfg = config if config is not None else test["config"]
+    metric = model.config.classifier.metric
+    pair = (model, partner) if metric == "delta_avg" else (partner, model)
+    run = {"method": "eigenspace", "checkpoint": pair[0] or False, "checkpoint_max": pair[1] or False}
+    out = figures_of(_run_or_use(results, test, scenes, run, cfg, progress, device), test, metric, cfg)
+    out["method"] = "eigenspace"
+    out["n_eigenvectors"] = model.config.classifier.n_eigenvectors
+    out["reject_threshold"] = float(model.reject_threshold)
+    out["explained_variance"] = model.explained.tolist()
+    out["paper_key"] = f"{model.config.classifier.n_eigenvectors}ev_{metric}"
+    return out
+
+
+def evaluate_regressor(model: DeltaRegressor, test: dict, scenes: list | None = None, *, results: list | None = None,
+                       config: LensdistConfig | None = None, progress: bool = False, device=None) -> dict:
+    """{metric: figures} for both Delta metrics, from one analysis per test pair."""
+    cfg = config if config is not None else test["config"]
+    res = _run_or_use(results, test, scenes, {"method": "regression", "checkpoint": model}, cfg, progress, device)
+    return {m: {**figures_of(res, test, m, cfg), "method": "regression"} for m in ("delta_avg", "delta_max")}
+
+
+def evaluate_selfcal(test: dict, config: LensdistConfig | None = None, scenes: list | None = None, batch_size: int = 16,
+                     progress: bool = True, *, results: list | None = None, device=None) -> dict:
+    """{metric: figures} of the self-calibration of every test pair (re-rendered, analysed)."""
+    cfg = config if config is not None else test["config"]
+    res = _run_or_use(results, test, scenes, {"method": "selfcal"}, cfg, progress, device, batch_size)
+    out = {}
+    for m in ("delta_avg", "delta_max"):
+        out[m] = {**figures_of(res, test, m, cfg), "method": "selfcal",
+                  "diverged": sum(bool(r["registration_ok"]) and r["delta_avg"] is None for r in res)}
+    return out
+
+
+# ------------------------------------------------------------------ calibration of the decision
+_PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
+          "regression": ("regression_confidence_scale", "regression_confidence_shift")}
+
+
+def validation_config(config: LensdistConfig) -> LensdistConfig:
+    """The protocol of the validation split: the seed moved by ``analysis.validation_seed_offset``.
+
+    Its test set shares no pair with the test set of ``config`` (every pair's seed hashes the
+    protocol seed, docs/method.md, section 7).
+    """
+    p = config.protocol
+    return dataclasses.replace(config, protocol=dataclasses.replace(p, seed=p.seed + config.analysis.validation_seed_offset))
+
+
+def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
+    """(confidence, right) of the pairs the decision would answer but for their confidence.
+
+    ``right``: the class of the estimated Delta_avg under ``config`` (its R threshold) is the
+    true class; the confidence is the raw one, or its Platt map under ``config``.
+    """
+    from lensdist_torch.geometry.distortion import estimated_class
+    from lensdist_torch.workflows.decision import platt
+
+    keep = [i for i, r in enumerate(results) if r["in_domain"] and r["delta_avg"] is not None]
+    if not keep:
+        return torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool)
+    d = torch.tensor([results[i]["delta_avg"] for i in keep], dtype=torch.float64)
+    right = estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
+    raw = torch.tensor([results[i]["raw_confidence"] for i in keep], dtype=torch.float64)
+    if not calibrated:
+        return raw, right
+    scale, shift = (getattr(config.analysis, f) for f in _PLATT[method])
+    return platt(raw, scale, shift), right
+
+
+def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
+    """The [analysis] values fitted on a validation split's analysis results.
+
+    ``no_distortion_px``: the R threshold with the most right self-calibration classes (of a
+    log-spaced grid from 0.02 to 2 px; ties: the one nearest the current value); then, per
+    method in ``results`` (``selfcal``, ``regression``), the Platt map of its confidence.
+    """
+    import math
+
+    from lensdist_torch.workflows.decision import fit_platt
+
+    grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
+                  | {config.analysis.no_distortion_px})
+    best, best_key = config.analysis.no_distortion_px, None
+    for t in grid:
+        cfg = dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, no_distortion_px=t))
+        _, right = _outcomes(results["selfcal"], data, cfg, "selfcal", False)
+        key = (int(right.sum()), -abs(math.log(t / config.analysis.no_distortion_px)))
+        if best_key is None or key > best_key:
+            best, best_key = t, key
+    fitted = {"no_distortion_px": float(best)}
+    cfg = dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, no_distortion_px=best))
+    for method, (f_scale, f_shift) in _PLATT.items():
+        if method in results:
+            raw, right = _outcomes(results[method], data, cfg, method, False)
+            fitted[f_scale], fitted[f_shift] = fit_platt(raw, right)
+    return fitted
+
+
+def calibration_table(results: dict, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
+    """ECE rows (method, split, pairs, before, after) and reliability curves, per method in ``results``."""
+    from lensdist_torch.workflows.decision import reliability
+
+    rows, curves = [], {}
+    for method in _PLATT:
+        if method not in results:
+            continue
+        b = reliability(*_outcomes(results[method], data, before, method, True))
+        a = reliability(*_outcomes(results[method], data, after, method, True))
+        rows.append({"method": method, "split": split, "pairs": a["pairs"], "before": b["ece"], "after": a["ece"]})
+        curves[f"{method}, before"], curves[f"{method}, after"] = b, a
+    return rows, curves
+
+
+def _toml(config: LensdistConfig) -> str:
+    """The whole config as TOML (JSON's numbers, strings, booleans and lists are TOML's too)."""
+    import json
+
+    from lensdist_torch.config import config_to_dict
+
+    lines = ["# written by calibrate_confidence: load with --config (lensdist analyze / evaluate)"]
+    for section, values in config_to_dict(config).items():
+        lines += ["", f"[{section}]"] + [f"{k} = {json.dumps(v, allow_nan=False)}" for k, v in values.items()]
+    return "\n".join(lines) + "\n"
+
+
+def calibrate_confidence(config: LensdistConfig, out, regression=None, scenes: list | None = None, workers: int = 1,
+                         batch_size: int = 16, progress: bool = True, device=None, figures: bool = True) -> dict:
+    """Fit the R threshold and the confidence maps on a validation split, and write them.
+
+    The validation split is the test set of :func:`validation_config` (another protocol seed:
+    never the test set), generated under ``out/validation`` (reused when there). Its pairs are
+    analysed with the self-calibration (and ``regression``, a model or checkpoint path, when
+    given) and :func:`fit_decision` fits the [analysis] values.
+
+    Writes ``out/calibration.json`` (the fitted values, the ECE before and after, the
+    reliability bins), ``out/calibration.toml`` (the calibrated config, for ``--config``) and
+    ``out/reliability_validation.png`` (with matplotlib).
+
+    Returns:
+        {"config": the calibrated config, "analysis": the fitted values, "ece": rows,
+        "reliability": curves, "json": path}.
+    """
+    from pathlib import Path
+
+    from lensdist_torch.core.storage import atomic_write_text
+    from lensdist_torch.data.shards import generate, load_set
+    from lensdist_torch.workflows.reports import dumps_strict
+
+    out = Path(out)
+    generate(validation_config(config), out / "validation", sets=["test"], workers=workers, batch_size=batch_size, progress=progress)
+    data = load_set(out / "validation", "test")
+    runs = {"selfcal": {"method": "selfcal"}}
+    if regression is not None:
+        runs["regression"] = {"method": "regression", "checkpoint": regression}
+    results = analyze_test_set(data, runs, scenes, config, batch_size, progress, device)
+    fitted = fit_decision(results, data, config)
+    calibrated = dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, **fitted))
+    rows, curves = calibration_table(results, data, config, calibrated, "validation")
+    summary = {"analysis": fitted, "ece": rows, "reliability": curves, "validation_pairs": int(data["index"].numel()),
+               "validation_seed": validation_config(config).protocol.seed}
+    path = out / "calibration.json"
+    atomic_write_text(path, dumps_strict(summary, indent=2) + "\n")
+    atomic_write_text(out / "calibration.toml", _toml(calibrated))
+    if figures:
+        from lensdist_torch.workflows.figures import have_matplotlib, save_reliability
+
+        if have_matplotlib():
+            save_reliability(curves, out / "reliability_validation.png", "reliability on the validation split")
+    return {**summary, "config": calibrated, "json": str(path)}
+
+
+def evaluate_checkpoints(test: dict, checkpoints=(), regression=None, selfcal: bool = False, progress: bool = False,
+                         device=None, config: LensdistConfig | None = None) -> dict:
+    """``lensdist evaluate``: {setting: figures} of checkpoints (paths) on a loaded test set.
+
+    Eigen-space classifiers with the same number of eigenvectors, one per Delta metric, are
+    analysed together (as ``analyze`` does); a lone one alone. The test set must be of the
+    embedded scenes (its pairs are re-rendered). ``config`` holds the analysis settings (e.g. a
+    calibrated one; default: the set's own), of the set's image size and quality thresholds.
+    """
+    from lensdist_torch.core.storage import check_compatible
+
+    cfg = test["config"] if config is None else config
+    check_compatible(cfg, test["config"], "(--config)")
+    groups: list[dict] = []
+    for path in checkpoints:
+        model = EigenSpaceClassifier.load(path, expected=cfg)
+        c = model.config.classifier
+        group = next((g for g in groups if g["n"] == c.n_eigenvectors and c.metric not in g), None)
+        if group is None:
+            group = {"n": c.n_eigenvectors}
+            groups.append(group)
+        group[c.metric] = model
+    runs = {f"eigenspace {i}": {"method": "eigenspace", "checkpoint": g.get("delta_avg", False),
+                                "checkpoint_max": g.get("delta_max", False)} for i, g in enumerate(groups)}
+    reg = DeltaRegressor.load(regression, expected=cfg) if regression else None
+    if reg is not None:
+        runs["regression"] = {"method": "regression", "checkpoint": reg}
+    if selfcal:
+        runs["selfcal"] = {"method": "selfcal"}
+    results = analyze_test_set(test, runs, None, cfg, progress=progress, device=device)
+    settings = {}
+    for i, g in enumerate(groups):
+        for metric in ("delta_max", "delta_avg"):
+            if metric in g:
+                other = g.get("delta_avg" if metric == "delta_max" else "delta_max")
+                name = f"{g['n']} EV, {metric}" + ("" if f"{g['n']} EV, {metric}" not in settings else f" ({i + 1})")
+                settings[name] = evaluate_classifier(g[metric], test, partner=other, results=results[f"eigenspace {i}"], config=cfg)
+    if reg is not None:
+        settings.update({f"regression, {m}": f for m, f in evaluate_regressor(reg, test, results=results["regression"], config=cfg).items()})
+    if selfcal:
+        settings.update({f"selfcal, {m}": f for m, f in evaluate_selfcal(test, cfg, results=results["selfcal"]).items()})
+    return settings

@@ -18,6 +18,7 @@ __all__ = [
     "save_confusion",
     "save_eigenvectors",
     "save_curves",
+    "save_reliability",
 ]
 
 
@@ -227,4 +228,34 @@ def save_curves(curves: dict[str, list[float]], path, xlabel: str = "step", ylab
     ax.legend()
     if title:
         ax.set_title(title)
+    return _save(fig, path)
+
+
+def save_reliability(curves: dict[str, dict], path, title: str = "") -> Path:
+    """A reliability diagram: share right against confidence, per named curve, with the pairs per bin.
+
+    Each curve is a dict with ``confidence`` and ``accuracy`` (per bin; NaN for an empty bin),
+    ``n`` (pairs per bin) and ``ece``, as ``workflows.decision.reliability`` returns it. A
+    calibrated confidence lies on the diagonal.
+    """
+    plt = _plt()
+    fig, (ax, axn) = plt.subplots(2, 1, figsize=(4.8, 5.6), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
+    ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", linewidth=1, label="calibrated")
+    width = 1.0 / (len(next(iter(curves.values()))["n"]) if curves else 10)
+    for k, (name, c) in enumerate(curves.items()):
+        conf, acc, n = c["confidence"], c["accuracy"], c["n"]
+        pts = [(x, y) for x, y, m in zip(conf, acc, n) if m and x is not None and y is not None and x == x and y == y]
+        ece = c.get("ece")
+        label = f"{name} (ECE {100 * ece:.1f} %)" if isinstance(ece, float) and ece == ece else name
+        ax.plot([x for x, _ in pts], [y for _, y in pts], marker="o", markersize=4, label=label)
+        shift = (k - (len(curves) - 1) / 2) * width / max(1, len(curves))
+        axn.bar([(i + 0.5) * width + shift for i in range(len(n))], n, width=width / max(1, len(curves)), alpha=0.8)
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("share right")
+    ax.legend(fontsize=7, loc="upper left")
+    axn.set_xlabel("confidence")
+    axn.set_ylabel("pairs")
+    if title:
+        ax.set_title(title, fontsize=10)
     return _save(fig, path)

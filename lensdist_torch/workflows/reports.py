@@ -13,9 +13,13 @@ import torch
 
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.geometry.distortion import CLASS_LABELS, REJECT
-from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
+from lensdist_torch.metric.classification import ClassRMSE
+
+#: The predicted-class index of "cannot tell" (after the classes 1-4 and R).
+CANNOT_TELL = len(CLASS_LABELS)
 
 __all__ = [
+    "CANNOT_TELL",
     "PAPER",
     "evaluate_predictions",
     "json_safe",
@@ -65,23 +69,53 @@ def evaluate_predictions(
     registration_ok: torch.Tensor | None = None,
     extra_groups: dict | None = None,
 ) -> dict:
-    """One method's figures on a test set: confusion, rate, RMSE per class (px and % of range)."""
-    cm = ConfusionMatrix()
-    cm.update(pred_label, true_label)
+    """One method's figures on a test set, "cannot tell" counted as its own outcome.
+
+    Args:
+        pred_label: (N,) predicted class indices 0..4 (1-4, R), or ``CANNOT_TELL``.
+        pred_delta: (N,) predicted Delta (px); NaN where there is no estimate.
+        true_label: (N,) ground-truth class indices 0..4.
+        true_delta: (N,) true Delta (px).
+        delta_range: the top of the class range (px), for the RMSE as a share of it.
+        registration_ok: (N,) bool, counted as ``registration_failed``.
+        extra_groups: {name: (N,) mask}: the rate per group.
+
+    Returns:
+        ``confusion`` (5 x 6: rows truth 1-4, R; columns predicted 1-4, R, cannot tell),
+        ``rate`` (% right of all pairs), ``cannot_tell_share`` (%), ``confident_share`` (%),
+        ``confident_rate`` (% right among the confident answers), ``confident_wrong`` (pairs
+        answered with a wrong class), RMSE and bias per class over the pairs with an estimate
+        (``n_per_class``), and more.
+    """
+    pred_label, true_label = pred_label.reshape(-1).long().cpu(), true_label.reshape(-1).long().cpu()
+    k = len(CLASS_LABELS)
+    if bool(((pred_label < 0) | (pred_label > CANNOT_TELL)).any()) or bool(((true_label < 0) | (true_label >= k)).any()):
+        raise ValueError(f"predicted classes must lie in 0..{CANNOT_TELL} (the last: cannot tell), true ones in 0..{k - 1}")
+    conf = torch.bincount(true_label * (k + 1) + pred_label, minlength=k * (k + 1)).view(k, k + 1)
+    confident = pred_label != CANNOT_TELL
+    right = int(conf[:, :k].diag().sum())
+    total, n_conf = int(conf.sum()), int(confident.sum())
+    has = torch.isfinite(pred_delta.double().reshape(-1).cpu())
     rm = ClassRMSE()
-    rm.update(pred_delta, true_delta, true_label)
+    if bool(has.any()):
+        rm.update(pred_delta.reshape(-1).cpu()[has], true_delta.reshape(-1).cpu()[has], true_label[has])
     r = rm.compute()
-    conf = cm.compute()
+    nan = float("nan")
     out = {
         "confusion": conf.tolist(),
-        "rate": 100.0 * cm.rate(),
-        "correct": int(conf.diag().sum()),
-        "total": int(conf.sum()),
+        "rate": 100.0 * right / total if total else nan,
+        "correct": right,
+        "total": total,
+        "cannot_tell": total - n_conf,
+        "cannot_tell_share": 100.0 * (total - n_conf) / total if total else nan,
+        "confident_share": 100.0 * n_conf / total if total else nan,
+        "confident_rate": 100.0 * right / n_conf if n_conf else nan,
+        "confident_wrong": n_conf - right,
         "distorted_rate": 100.0 * float(conf[:REJECT, :REJECT].diag().sum()) / max(1, int(conf[:REJECT].sum())),
         "rejected_R": int(conf[REJECT, REJECT]),
         "n_R": int(conf[REJECT].sum()),
         "rmse_px": r["rmse"],
-        "rmse_pct": [100.0 * v / delta_range if not math.isnan(v) else float("nan") for v in r["rmse"]],
+        "rmse_pct": [100.0 * v / delta_range if not math.isnan(v) else nan for v in r["rmse"]],
         "bias_px": r["bias"],
         "n_per_class": r["n"],
         "delta_range_px": delta_range,
@@ -91,19 +125,37 @@ def evaluate_predictions(
     if extra_groups:
         out["groups"] = {}
         for name, mask in extra_groups.items():
-            m = mask.bool()
+            m = mask.bool().cpu()
             out["groups"][name] = {
                 "n": int(m.sum()),
-                "rate": 100.0 * float((pred_label[m] == true_label[m]).double().mean()) if bool(m.any()) else float("nan"),
+                "rate": 100.0 * float((pred_label[m] == true_label[m]).double().mean()) if bool(m.any()) else nan,
+                "cannot_tell_share": 100.0 * float((~confident[m]).double().mean()) if bool(m.any()) else nan,
             }
     return out
 
 
 def _md_confusion(conf) -> list[str]:
-    lines = ["| truth \\ pred | " + " | ".join(CLASS_LABELS) + " |", "|---" * (len(CLASS_LABELS) + 1) + "|"]
+    cols = list(CLASS_LABELS) + (["cannot tell"] if len(conf[0]) > len(CLASS_LABELS) else [])
+    lines = ["| truth \\ pred | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for lab, row in zip(CLASS_LABELS, conf):
         lines.append(f"| {lab} | " + " | ".join(str(int(v)) for v in row) + " |")
     return lines
+
+
+def _pct(v) -> str:
+    return f"{v:.1f} %" if isinstance(v, (int, float)) and math.isfinite(v) else "-"
+
+
+def _md_calibration(cal: dict) -> list[str]:
+    """The calibration section: the fitted decision and the ECE before and after, per split."""
+    lines = ["## Calibration of the decision and the confidence", "", str(cal.get("note", "")), ""]
+    fitted = cal.get("analysis", {})
+    if fitted:
+        lines += ["Fitted on the validation split ([analysis]): " + ", ".join(f"{k} = {v:.4g}" for k, v in fitted.items()), ""]
+    lines += ["| method | split | pairs | ECE before | ECE after |", "|---|---|---|---|---|"]
+    for row in cal.get("ece", []):
+        lines.append(f"| {row['method']} | {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} |")
+    return lines + [""]
 
 
 def report_markdown(report: dict) -> str:
@@ -116,17 +168,20 @@ def report_markdown(report: dict) -> str:
     lines += [
         "## Table 1: classification",
         "",
-        "| setting | ours: rate | ours: R rejected | confident: share, rate | paper: rate | paper: R rejected | registration failed |",
-        "|---|---|---|---|---|---|---|",
+        "Every pair is answered with a class or \"cannot tell\"; the rate counts right answers among all pairs.",
+        "",
+        "| setting | ours: rate | cannot tell | right among confident | confident wrong | ours: R rejected "
+        "| paper: rate | paper: R rejected | registration failed |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, fig in settings.items():
         paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
         p_rate = f"{paper['rate']:.1f} %" if paper else "-"
         p_rej = f"{paper['confusion'][4][4]} of 100" if paper else "-"
-        conf = f"{fig['confident_share']:.0f} %, {fig['confident_rate']:.1f} %" if "confident_share" in fig else "-"
         lines.append(
-            f"| {name} | {fig['rate']:.1f} % ({fig['correct']}/{fig['total']}) | {fig['rejected_R']} of {fig['n_R']} | "
-            f"{conf} | {p_rate} | {p_rej} | {fig.get('registration_failed', '-')} |"
+            f"| {name} | {_pct(fig['rate'])} ({fig['correct']}/{fig['total']}) | {_pct(fig.get('cannot_tell_share'))} | "
+            f"{_pct(fig.get('confident_rate'))} | {fig.get('confident_wrong', '-')} | {fig['rejected_R']} of {fig['n_R']} | "
+            f"{p_rate} | {p_rej} | {fig.get('registration_failed', '-')} |"
         )
     lines.append("")
     for name, fig in settings.items():
@@ -135,10 +190,12 @@ def report_markdown(report: dict) -> str:
         if paper:
             lines += [f"Paper ({fig['paper_key']}):", ""] + _md_confusion(paper["confusion"]) + [""]
         if fig.get("groups"):
-            lines.append("Rate by group: " + ", ".join(f"{g}: {v['rate']:.1f} % (n={v['n']})" for g, v in fig["groups"].items()))
+            lines.append("Rate by group: " + ", ".join(f"{g}: {_pct(v['rate'])} (n={v['n']})" for g, v in fig["groups"].items()))
             lines.append("")
     lines += [
         "## Table 2: RMSE of Delta per ground-truth class",
+        "",
+        "Over the pairs with an estimate (a \"cannot tell\" keeps its numbers where it has them).",
         "",
         "| setting | class 1 | class 2 | class 3 | class 4 | range | bias (mean) |",
         "|---|---|---|---|---|---|---|",
@@ -151,6 +208,8 @@ def report_markdown(report: dict) -> str:
         cells = [f"{v:.2f} px ({100 * v / PAPER['table2_range_px']:.1f} %)" for v in vals]
         lines.append(f"| paper, {ev} EV, Delta_avg | " + " | ".join(cells) + " | ]0, 30] px | - |")
     lines.append("")
+    if report.get("calibration"):
+        lines += _md_calibration(report["calibration"])
     return "\n".join(lines)
 
 

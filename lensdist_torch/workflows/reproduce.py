@@ -1,6 +1,9 @@
 """``lensdist reproduce``: the paper's Tables 1 and 2 beside ours, one command.
 
-Generates the paper's sets, fits and evaluates every method, and writes the report and figures.
+Generates the paper's sets, fits every method, fits the decision (the R threshold and the
+confidence maps) on a validation split, and reports every method's figures on the test pairs
+as the user's analysis answers them (:func:`~lensdist_torch.workflows.analyze.analyze_batch`),
+with the calibration's ECE and reliability diagrams.
 """
 
 from __future__ import annotations
@@ -12,14 +15,24 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.data.shards import generate, load_set
+from lensdist_torch.data.shards import generate, load_scenes, load_set
 from lensdist_torch.metric.quality import counts_to_map
-from lensdist_torch.workflows.evaluate import evaluate_classifier, features_of, fit_classifier
+from lensdist_torch.workflows.evaluate import (
+    analyze_test_set,
+    calibrate_confidence,
+    calibration_table,
+    evaluate_classifier,
+    evaluate_regressor,
+    evaluate_selfcal,
+    fit_classifier,
+    fit_regressor,
+    training_extra,
+)
 from lensdist_torch.workflows.reports import write_report
 
 __all__ = ["reproduce", "SETTINGS", "quick_config"]
 
-#: The paper's four settings: (eigenvectors, metric) -> the key of its Table 1 in SPEC 9.
+#: The paper's four settings: (eigenvectors, metric), as in its Table 1 (docs/method.md, section 9).
 SETTINGS = [(5, "delta_max"), (10, "delta_max"), (5, "delta_avg"), (10, "delta_avg")]
 
 
@@ -46,11 +59,15 @@ def reproduce(
     progress: bool = True,
     figures: bool = True,
     methods: bool = True,
+    device=None,
+    calibrate: bool = True,
 ) -> dict:
     """Generate the paper's sets, fit the four settings, and write the side-by-side report.
 
     With ``methods``, the regression and the self-calibration are evaluated on the same test
-    pairs and reported beside the eigen-space settings.
+    pairs and reported beside the eigen-space settings; with ``calibrate`` too, the decision is
+    first fitted on a validation split (:func:`calibrate_confidence`) and the test pairs are
+    analysed under it. ``device`` is where the analysis runs.
     """
     out = Path(out)
     if quick:
@@ -59,15 +76,35 @@ def reproduce(
     gen = generate(config, out / "data", workers=workers, batch_size=batch_size, progress=progress)
     t_gen = time.perf_counter() - t0
     train, test = load_set(out / "data", "train"), load_set(out / "data", "test")
-    settings, models = {}, {}
+    scenes, names = load_scenes(config)
+    extra = training_extra(config, scenes, names)
+    models = {}
     for n_ev, metric in SETTINGS:
-        model = fit_classifier(train, config, n_ev, metric)
-        name = f"{n_ev} EV, {metric}"
-        settings[name] = evaluate_classifier(model, test)
-        models[name] = model
+        model = fit_classifier(train, config, n_ev, metric, extra=extra)
+        models[f"{n_ev} EV, {metric}"] = model
         model.save(out / "checkpoints" / f"eigenspace_{metric}_{n_ev}ev.pt")
+    runs = {f"{n} EV": {"method": "eigenspace", "checkpoint": models[f"{n} EV, delta_avg"],
+                        "checkpoint_max": models[f"{n} EV, delta_max"]} for n in (5, 10)}
+    cal, acfg, reg = None, config, None
     if methods:
-        settings.update(_other_methods(train, test, config, out, progress))
+        reg = fit_regressor(train, config, extra=extra)
+        reg.save(out / "checkpoints" / "regression.pt")
+        runs.update(regression={"method": "regression", "checkpoint": reg}, selfcal={"method": "selfcal"})
+        if calibrate:
+            cal = calibrate_confidence(config, out, regression=reg, scenes=scenes, workers=workers, batch_size=batch_size,
+                                       progress=progress, device=device, figures=figures)
+            acfg = cal["config"]
+    results = analyze_test_set(test, runs, scenes, acfg, batch_size, progress, device)
+    settings = {}
+    for n_ev, metric in SETTINGS:
+        other = models[f"{n_ev} EV, {'delta_avg' if metric == 'delta_max' else 'delta_max'}"]
+        settings[f"{n_ev} EV, {metric}"] = evaluate_classifier(models[f"{n_ev} EV, {metric}"], test, partner=other,
+                                                               results=results[f"{n_ev} EV"], config=acfg)
+    if methods:
+        for metric, fig in evaluate_regressor(reg, test, results=results["regression"], config=acfg).items():
+            settings[f"regression, {metric}"] = fig
+        for metric, fig in evaluate_selfcal(test, acfg, results=results["selfcal"]).items():
+            settings[f"selfcal, {metric}"] = fig
     p = config.protocol
     report = {
         "title": "lensdist reproduce: the paper's Tables 1 and 2" + (" (quick: a tenth of the pairs)" if quick else ""),
@@ -75,18 +112,30 @@ def reproduce(
             f"{p.n_train} training pairs, {p.n_test_distorted} distorted + {p.n_test_undistorted} class-R test pairs "
             f"on the scenes {list(p.scenes)}, {config.image.height} x {config.image.width}; {_generation_note(gen, t_gen)}; "
             f"registration failed for {gen['sets']['train'].get('registration_failed', '?')} training "
-            f"and {gen['sets']['test'].get('registration_failed', '?')} test pairs."
+            f"and {gen['sets']['test'].get('registration_failed', '?')} test pairs (at generation)."
         ),
         "notes": (
+            "Every figure is what `lensdist analyze` answers on the test pairs (re-rendered from their seeds; the "
+            "class-R pairs analysed with the protocol's perturbed registration). "
             "Delta_avg spans ]0, 14.4] px at this size (the paper's unnamed pixel selection spans ]0, 30]), "
             "so RMSE is also given as a share of each range."
         ),
         "settings": settings,
         "generation": gen,
     }
+    curves = {}
+    if cal is not None:
+        rows, curves = calibration_table({k: results[k] for k in ("selfcal", "regression")}, test, config, acfg, "test")
+        report["calibration"] = {
+            "note": (f"Fitted on a validation split ({cal['validation_pairs']} pairs of the protocol with seed "
+                     f"{cal['validation_seed']}, never the test set); ECE of the confidence as an estimate of "
+                     "P(class right), 10 bins, over the pairs answered or withheld for low confidence."),
+            "analysis": cal["analysis"],
+            "ece": cal["ece"] + rows,
+        }
     md, js = write_report(report, out, "reproduce")
     if figures:
-        _figures(models, settings, test, config, out)
+        _figures(models, settings, test, config, out, curves)
     return {"markdown": str(md), "json": str(js), "settings": settings}
 
 
@@ -100,32 +149,27 @@ def _generation_note(gen: dict, seconds: float) -> str:
     return f"generated {written} shards in {seconds:.0f} s{reused}"
 
 
-def _other_methods(train: dict, test: dict, config: LensdistConfig, out: Path, progress: bool) -> dict:
-    from lensdist_torch.data.shards import load_scenes
-    from lensdist_torch.workflows.evaluate import evaluate_regressor, evaluate_selfcal, fit_regressor
-
-    settings = {}
-    reg = fit_regressor(train, config, features_of(train, config))
-    reg.save(out / "checkpoints" / "regression.pt")
-    for metric, fig in evaluate_regressor(reg, test, features_of(test, config)).items():
-        settings[f"regression, {metric}"] = fig
-    scenes, _ = load_scenes(config)
-    for metric, fig in evaluate_selfcal(test, config, scenes, progress=progress).items():
-        settings[f"selfcal, {metric}"] = fig
-    return settings
-
-
-def _figures(models: dict, settings: dict, test: dict, config: LensdistConfig, out: Path) -> None:
-    from lensdist_torch.workflows.figures import have_matplotlib, save_confusion, save_eigenvectors, save_map_grid
+def _figures(models: dict, settings: dict, test: dict, config: LensdistConfig, out: Path, curves: dict) -> None:
+    from lensdist_torch.workflows.figures import (
+        have_matplotlib,
+        save_confusion,
+        save_eigenvectors,
+        save_map_grid,
+        save_reliability,
+    )
 
     if not have_matplotlib():
         return
     from lensdist_torch.geometry.distortion import CLASS_LABELS
 
     hb, wb = config.image.height // config.quality.block_size, config.image.width // config.quality.block_size
-    for name in models:
+    for name, fig in settings.items():
         stem = name.replace(", ", "_").replace(" ", "")
-        save_confusion(torch.tensor(settings[name]["confusion"]), CLASS_LABELS, out / f"confusion_{stem}.png", name)
+        conf = torch.tensor(fig["confusion"])  # 5 x 6: a last, empty truth row "?" makes it square
+        conf = torch.cat([conf, torch.zeros(1, conf.shape[1], dtype=conf.dtype)])
+        save_confusion(conf, list(CLASS_LABELS) + ["?"], out / f"confusion_{stem}.png", f"{name} (? = cannot tell)")
+    if curves:
+        save_reliability(curves, out / "reliability_test.png", "reliability on the test pairs")
     best = models.get("10 EV, delta_avg")
     if best is not None:
         vecs = {"class 1": best.bases[0, :4], "class 4": best.bases[-1, :4]}

@@ -8,7 +8,8 @@ import torch
 from lensdist_torch.config import ClassifierConfig, ImageConfig, LensdistConfig, QualityConfig
 from lensdist_torch.geometry.distortion import REJECT
 from lensdist_torch.classify.eigenspace import CHECKPOINT_VERSION, CheckpointError, EigenSpaceClassifier
-from lensdist_torch.workflows.reports import ClassRMSE, ConfusionMatrix, evaluate_predictions, report_markdown
+from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
+from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions, report_markdown
 
 
 def _cfg(n_ev=2, q=0.95, k=4):
@@ -215,6 +216,24 @@ class TestEvaluation:
         fig["paper_key"] = "10ev_delta_avg"
         md = report_markdown({"title": "t", "settings": {"10 EV, delta_avg": fig}})
         assert "67.8 %" in md and "| R |" in md
+
+    def test_cannot_tell_is_its_own_outcome(self):
+        """A "cannot tell" is neither right nor a hidden wrong class: its own column, its own share."""
+        t = CANNOT_TELL
+        fig = evaluate_predictions(
+            torch.tensor([0, t, 2, t, 4]), torch.tensor([1.0, float("nan"), 9.0, 3.0, 0.0]),
+            torch.tensor([0, 1, 1, 2, 4]), torch.tensor([1.5, 4.0, 4.0, 8.0, 0.0]), 14.4,
+        )
+        conf = torch.tensor(fig["confusion"])
+        assert conf.shape == (5, 6) and int(conf[:, 5].sum()) == 2 and int(conf[1, 2]) == 1
+        assert fig["rate"] == pytest.approx(40.0)  # 2 right of 5
+        assert fig["cannot_tell_share"] == pytest.approx(40.0) and fig["confident_share"] == pytest.approx(60.0)
+        assert fig["confident_rate"] == pytest.approx(100 * 2 / 3) and fig["confident_wrong"] == 1
+        assert fig["n_per_class"] == [1, 1, 1, 0]  # the pair without an estimate is not in the RMSE
+        md = report_markdown({"title": "t", "settings": {"x": fig}})
+        assert "cannot tell" in md and "40.0 %" in md
+        with pytest.raises(ValueError, match="cannot tell"):
+            evaluate_predictions(torch.tensor([6]), torch.tensor([1.0]), torch.tensor([0]), torch.tensor([1.0]), 14.4)
 
 
 def test_fit_is_float64_on_cpu_invariant_to_order():

@@ -189,7 +189,7 @@ def test_unused_options_are_refused(capsys, pair, ckpts, monkeypatch):
     def never(*a, **k):
         raise AssertionError("the images were analysed although an option is wrong")
 
-    monkeypatch.setattr(analyze_mod, "_as_image", never)
+    monkeypatch.setattr(analyze_mod, "_as_images", never)
     one_error(capsys, "analyze", *pair, "--checkpoint-max", ckpts["delta_max"], match="'eigenspace' only")
     one_error(capsys, "analyze", *pair, "--method", "regression", "--checkpoint-max", ckpts["delta_max"],
               match="'eigenspace' only")

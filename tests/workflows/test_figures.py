@@ -72,3 +72,13 @@ def test_confusion_and_eigenvectors(tmp_path):
     assert figures.save_confusion(conf, ["1", "R"], tmp_path / "c.png", "t").read_bytes()[:4] == b"\x89PNG"
     ev = figures.save_eigenvectors({"class 1": torch.randn(2, 30)}, (5, 6), tmp_path / "e.pdf")
     assert ev.read_bytes()[:4] == b"%PDF"
+
+
+def test_reliability_diagram(tmp_path):
+    from lensdist_torch.workflows.decision import reliability
+
+    conf = torch.linspace(0.01, 0.99, 50)
+    right = torch.arange(50) % 3 != 0
+    curves = {"before": reliability(conf, right), "after": reliability(conf.clamp(0.6, 0.7), right)}
+    path = figures.save_reliability(curves, tmp_path / "r.png", "reliability")
+    assert path.read_bytes()[:4] == b"\x89PNG"

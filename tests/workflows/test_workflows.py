@@ -101,22 +101,6 @@ class TestAnalyze:
         assert r["class"] in CLASS_LABELS
 
 
-TINY = {
-    "image": {"height": 96, "width": 128},
-    "protocol": {"n_train": 200, "n_test_distorted": 8, "n_test_undistorted": 4, "shard_size": 100},
-    "classifier": {"n_eigenvectors": 2},
-}
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    from lensdist_torch.workflows.reproduce import reproduce
-
-    out = tmp_path_factory.mktemp("reproduce")
-    res = reproduce(config_from_dict(TINY), out, workers=1, progress=False, figures=False)
-    return out, res
-
-
 class TestTinyProtocol:
     def test_reproduce_report(self, tiny_run):
         out, res = tiny_run
@@ -125,10 +109,15 @@ class TestTinyProtocol:
         assert {"5 EV, delta_max", "10 EV, delta_max", "5 EV, delta_avg", "10 EV, delta_avg"} <= names
         assert {"regression, delta_avg", "selfcal, delta_avg"} <= names
         for fig in rep["settings"].values():
-            conf = torch.tensor(fig["confusion"])
-            assert conf.shape == (5, 5) and int(conf.sum()) == 12
-            assert fig["rate"] == pytest.approx(100.0 * float(conf.diag().sum()) / 12)
+            conf = torch.tensor(fig["confusion"])  # columns 1-4, R, cannot tell
+            assert conf.shape == (5, 6) and int(conf.sum()) == 12
+            assert fig["rate"] == pytest.approx(100.0 * float(conf[:, :5].diag().sum()) / 12)
+            assert fig["cannot_tell"] == int(conf[:, 5].sum())
+            assert fig["confident_wrong"] == int(conf[:, :5].sum() - conf[:, :5].diag().sum())
             assert int(conf[4].sum()) == 4  # the class-R pairs
+        cal = rep["calibration"]
+        assert {row["split"] for row in cal["ece"]} == {"validation", "test"}
+        assert (out / "calibration.json").is_file() and (out / "validation" / "manifest.json").is_file()
         md = (out / "reproduce.md").read_text()
         assert "67.8 %" in md and "Table 2" in md
 

@@ -1,0 +1,149 @@
+"""The decision of analyze: the calibrated confidence (Platt map, ECE), the domain checks of the
+learned methods (texture statistics, disagreement with the self-calibration), the fitted decision
+written by calibrate_confidence."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from lensdist_torch.cli import main
+from lensdist_torch.config import LensdistConfig, load_config
+from lensdist_torch.core.images import load_scene
+from lensdist_torch.data.shards import load_scenes, read_manifest
+from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.workflows.analyze import analyze_batch
+from lensdist_torch.workflows.decision import (
+    class_distance,
+    decide,
+    domain_checks,
+    expected_calibration_error,
+    fit_platt,
+    platt,
+    reliability,
+)
+
+pytestmark = pytest.mark.usefixtures("one_thread_module")
+
+
+# ------------------------------------------------------------------ confidence
+def test_platt_identity_and_fit():
+    c = torch.tensor([0.1, 0.5, 0.9])
+    assert torch.allclose(platt(c, 1.0, 0.0), c.double())
+    g = torch.Generator().manual_seed(0)
+    raw = torch.rand(4000, generator=g, dtype=torch.float64).clamp(0.01, 0.99)
+    truth = torch.sigmoid(0.5 * torch.log(raw / (1 - raw)) + 1.0)  # overconfident at the bottom, shifted
+    right = torch.rand(4000, generator=g, dtype=torch.float64) < truth
+    scale, shift = fit_platt(raw, right)
+    assert scale == pytest.approx(0.5, abs=0.1) and shift == pytest.approx(1.0, abs=0.15)
+    before = expected_calibration_error(raw, right)
+    after = expected_calibration_error(platt(raw, scale, shift), right)
+    assert after < 0.03 < before
+    assert fit_platt(raw[:5], torch.ones(5, dtype=torch.bool)) == (1.0, 0.0)  # nothing to learn from
+
+
+def test_reliability_by_hand():
+    conf = torch.tensor([0.05, 0.15, 0.95, 0.95])
+    right = torch.tensor([False, True, True, False])
+    r = reliability(conf, right, n_bins=10)
+    assert r["n"][0] == 1 and r["n"][1] == 1 and r["n"][9] == 2 and r["pairs"] == 4
+    # |0 - 0.05| + |1 - 0.15| + 2 |0.5 - 0.95|, over 4 pairs
+    assert r["ece"] == pytest.approx((0.05 + 0.85 + 2 * 0.45) / 4)
+    assert math.isnan(r["accuracy"][5])
+
+
+# ------------------------------------------------------------------ the answer
+def _res(**kw):
+    base = {"estimated_class": "3", "estimated_class_max": "3", "delta_avg": 9.0, "delta_max": 50.0, "confidence": None,
+            "registration_ok": True, "overlap": 0.9}
+    return {**base, **kw}
+
+
+def test_decide_cannot_tell_rules():
+    cfg = LensdistConfig()
+    r = _res()
+    decide(r, cfg)
+    assert r["class"] == "3" and r["class_max"] == "3" and not r["cannot_tell"] and r["in_domain"]
+    for change, warning in (({"confidence": 0.2}, "low confidence"), ({"overlap": 0.3}, "overlap"),
+                            ({"registration_ok": False}, "registration failed"), ({"_diverged": True}, "diverged")):
+        r = _res(**change)
+        decide(r, cfg)
+        assert r["class"] is None and r["cannot_tell"] and r["estimated_class"] == "3"
+        assert any(warning in w for w in r["warnings"]), (change, r["warnings"])
+
+
+def test_class_distance():
+    assert class_distance("R", "1") == 1 and class_distance("R", "4") == 4 and class_distance("2", "2") == 0
+    assert class_distance(None, "1") is None
+
+
+def test_disagreement_with_the_selfcal_is_out_of_domain():
+    cfg = LensdistConfig()
+    sc = {"estimated_class": "R", "delta_avg": 0.1, "raw_confidence": 0.9}
+    far = _res(estimated_class="3", delta_avg=9.0)
+    domain_checks(far, sc, None, {"scenes": ["gravel", "grass"]}, cfg)
+    decide(far, cfg)
+    assert not far["selfcal_check"]["agrees"] and not far["in_domain"] and far["class"] is None
+    assert any("self-calibration disagrees" in w for w in far["warnings"]) and far["fitted_on"] == ["gravel", "grass"]
+    near = _res(estimated_class="1", delta_avg=1.5)
+    domain_checks(near, sc, None, {}, cfg)
+    decide(near, cfg)
+    assert near["selfcal_check"]["agrees"] and near["in_domain"] and near["class"] == "1"
+    unsure = _res()
+    domain_checks(unsure, {**sc, "raw_confidence": 0.1}, None, {}, cfg)  # a selfcal that cannot tell says nothing
+    decide(unsure, cfg)
+    assert not unsure["selfcal_check"]["usable"] and unsure["in_domain"]
+
+
+def _unseen_pairs(cfg, n=2):
+    """Pairs of gravel at a third of its contrast: a scene the shipped checkpoints never saw."""
+    scene = 0.5 + 0.3 * (load_scene("gravel") - 0.5)
+    return render_pairs([scene], draw_pairs(cfg, "test", list(range(n)), 1), cfg)
+
+
+@pytest.mark.parametrize("method", ["regression", "eigenspace"])
+def test_shipped_checkpoints_flag_an_unseen_texture(method):
+    cfg = LensdistConfig()
+    a, b = _unseen_pairs(cfg)
+    for r in analyze_batch(a, b, method=method):
+        assert r["fitted_on"] == ["gravel", "grass"]
+        assert r["texture_distance"] > r["texture_limit"] and not r["in_domain"]
+        assert r["class"] is None and r["cannot_tell"] and any("texture is unlike" in w for w in r["warnings"])
+    scenes, _ = load_scenes(cfg)  # the training scenes stay in domain
+    a, b = render_pairs(scenes, draw_pairs(cfg, "test", [1, 2, 3], len(scenes)), cfg)
+    for r in analyze_batch(a, b, method=method):
+        assert r["texture_distance"] <= r["texture_limit"]
+
+
+def test_cli_says_what_the_checkpoint_was_fitted_on(tmp_path, capsys):
+    from kornia.io import write_image
+
+    s = load_scene("gravel")[0, 0]
+    for name, img in (("a.png", s[10:330, 20:444]), ("b.png", s[30:350, 22:446])):
+        write_image(str(tmp_path / name), (img * 255).round().to(torch.uint8)[None].expand(3, -1, -1).contiguous())
+    assert main(["analyze", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--method", "eigenspace"]) == 0
+    assert "fitted on: gravel, grass" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ calibrate_confidence
+def test_calibration_is_fitted_on_a_validation_split(tiny_run):
+    out, _ = tiny_run
+    cal = json.loads((out / "calibration.json").read_text())
+    test_seed = read_manifest(out / "data")["config"]["protocol"]["seed"]
+    val = read_manifest(out / "validation")
+    assert val["config"]["protocol"]["seed"] == cal["validation_seed"] != test_seed
+    assert set(val["sets"]) == {"test"}
+    fitted = cal["analysis"]
+    assert 0.02 <= fitted["no_distortion_px"] <= 2.0 and fitted["selfcal_confidence_scale"] > 0
+    cfg = load_config(out / "calibration.toml")
+    for key, value in fitted.items():
+        assert getattr(cfg.analysis, key) == pytest.approx(value)
+    assert cfg.image.size == (96, 128)
+    rows = {(r["method"], r["split"]) for r in cal["ece"]}
+    assert rows == {("selfcal", "validation"), ("regression", "validation")}
+    pytest.importorskip("matplotlib")
+    for name in ("reliability_validation.png", "reliability_test.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG"

@@ -1,0 +1,158 @@
+"""One analysis path: the figures of ``reproduce`` and ``evaluate`` are what ``analyze_pair``
+answers, pair by pair, on the same test pairs; ``analyze_batch`` answers a pair as it answers it
+alone."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from lensdist_torch.cli import main
+from lensdist_torch.config import load_config
+from lensdist_torch.core.images import load_scene
+from lensdist_torch.data.shards import load_scenes, load_set
+from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.workflows.analyze import analyze_batch, analyze_pair, prepare_batch, resolve_device
+from lensdist_torch.workflows.evaluate import figures_of
+from lensdist_torch.workflows.reports import json_safe
+
+pytestmark = pytest.mark.usefixtures("one_thread_module")
+
+#: method -> (analyze_pair's checkpoints under out/checkpoints, the report's settings)
+RUNS = {
+    "selfcal": ({}, ("selfcal, delta_avg", "selfcal, delta_max")),
+    "regression": ({"checkpoint": "regression.pt"}, ("regression, delta_avg", "regression, delta_max")),
+    "eigenspace": ({"checkpoint": "eigenspace_delta_avg_10ev.pt", "checkpoint_max": "eigenspace_delta_max_10ev.pt"},
+                   ("10 EV, delta_avg", "10 EV, delta_max")),
+}
+FIGURES = ("confusion", "correct", "total", "cannot_tell", "confident_wrong", "rejected_R", "n_per_class", "registration_failed")
+
+
+def _one_by_one(out, method, cfg):
+    """Every test pair, rendered alone from its seed and analysed alone by analyze_pair."""
+    test = load_set(out / "data", "test")
+    scenes, _ = load_scenes(test["config"])
+    ckpts = {k: out / "checkpoints" / v for k, v in RUNS[method][0].items()}
+    results = []
+    for i in range(test["index"].numel()):
+        params = draw_pairs(test["config"], "test", [int(test["index"][i])], len(scenes))
+        img1, img2 = render_pairs(scenes, params, test["config"])
+        hom = test["H"][i] if bool(test["perturbed"][i]) else None  # class R: the protocol's registration
+        results.append(analyze_pair(img1[0], img2[0], method=method, config=cfg, homography=hom, **ckpts))
+    return test, results
+
+
+def _same_figures(mine: dict, theirs: dict) -> None:
+    mine = json_safe(mine)
+    for key in FIGURES:
+        assert mine[key] == theirs[key], key
+    for key in ("rate", "cannot_tell_share", "confident_rate"):
+        assert mine[key] == pytest.approx(theirs[key], abs=1e-12) or (mine[key] is None and theirs[key] is None), key
+    for a, b in zip(mine["rmse_px"], theirs["rmse_px"]):
+        assert (a is None and b is None) or a == pytest.approx(b, abs=1e-9)
+
+
+@pytest.mark.parametrize("method", list(RUNS))
+def test_reproduce_reports_what_analyze_pair_answers(tiny_run, method):
+    out, _ = tiny_run
+    report = json.loads((out / "reproduce.json").read_text())
+    cfg = load_config(out / "calibration.toml")  # the calibrated settings reproduce analysed with
+    assert cfg.analysis.no_distortion_px == report["calibration"]["analysis"]["no_distortion_px"]
+    test, results = _one_by_one(out, method, cfg)
+    for name in RUNS[method][1]:
+        fig = report["settings"][name]
+        metric = "delta_avg" if name.endswith("delta_avg") else "delta_max"
+        key = "class" if metric == "delta_avg" else "class_max"
+        assert fig["per_pair"]["index"] == test["index"].tolist()
+        assert [r[key] for r in results] == fig["per_pair"]["class"], name
+        for r, d in zip(results, fig["per_pair"]["delta"]):
+            assert (r[metric] is None and d is None) or r[metric] == pytest.approx(d, abs=1e-9), name
+        _same_figures(figures_of(results, test, metric, cfg), fig)
+
+
+def test_evaluate_reports_what_reproduce_reports(tiny_run, tmp_path, capsys):
+    """`lensdist evaluate --config calibration.toml` on the same data: the same figures, pair by pair."""
+    out, _ = tiny_run
+    ck = out / "checkpoints"
+    code = main(["evaluate", "--data", str(out / "data"), "--checkpoint", str(ck / "eigenspace_delta_avg_10ev.pt"),
+                 str(ck / "eigenspace_delta_max_10ev.pt"), "--regression", str(ck / "regression.pt"), "--selfcal",
+                 "--config", str(out / "calibration.toml"), "--out", str(tmp_path), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    ev = json.loads((tmp_path / "evaluate.json").read_text())["settings"]
+    rep = json.loads((out / "reproduce.json").read_text())["settings"]
+    for name in ("10 EV, delta_avg", "10 EV, delta_max", "regression, delta_avg", "selfcal, delta_max"):
+        assert ev[name]["per_pair"] == rep[name]["per_pair"], name
+        _same_figures(ev[name], rep[name])
+
+
+def _rendered(n=3, size=(96, 128)):
+    cfg = load_config(None)
+    import dataclasses
+
+    cfg = dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, height=size[0], width=size[1]))
+    scenes, _ = load_scenes(cfg)
+    return cfg, *render_pairs(scenes, draw_pairs(cfg, "test", list(range(n)), len(scenes)), cfg)
+
+
+def test_a_pair_is_answered_as_in_a_batch():
+    """Batched kernels round differently with the batch size: the estimators run pair by pair."""
+    cfg, a, b = _rendered(3)
+    batch = analyze_batch(a, b, config=cfg)
+    for i in range(3):
+        one = analyze_pair(a[i], b[i], config=cfg)
+        assert one["homography"] == batch[i]["homography"]
+        assert one["delta_avg"] == batch[i]["delta_avg"] and one["class"] == batch[i]["class"]
+
+
+def test_inputs_and_shared_preparation(tmp_path):
+    """Lists of tensors or paths, one prepared batch for several methods, the given homography."""
+    cfg, a, b = _rendered(2)
+    as_list = analyze_batch([a[0], a[1]], [b[0], b[1]], config=cfg)
+    as_tensor = analyze_batch(a, b, config=cfg)
+    assert [r["delta_avg"] for r in as_list] == [r["delta_avg"] for r in as_tensor]
+    prep = prepare_batch(a, b, cfg)
+    again = analyze_batch(None, None, config=cfg, prepared=prep)
+    assert [r["delta_avg"] for r in again] == [r["delta_avg"] for r in as_tensor]
+    given = analyze_batch(a, b, config=cfg, homography=prep.H)
+    assert [r["homography"] for r in given] == [r["homography"] for r in as_tensor]
+    assert all(r["registration_ok"] for r in given)
+    with pytest.raises(ValueError, match="as many images"):
+        analyze_batch(a, b[:1], config=cfg)
+    with pytest.raises(ValueError, match="homography must be"):
+        analyze_batch(a, b, config=cfg, homography=torch.eye(3)[None])
+    with pytest.raises(ValueError, match="analyze_batch"):
+        analyze_pair(a, b, config=cfg)
+
+
+def test_device():
+    cfg, a, b = _rendered(1)
+    assert resolve_device(None) == torch.device("cpu")
+    r = analyze_pair(a[0], b[0], config=cfg, device="cpu")
+    assert r["registration_ok"]
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            resolve_device("cuda")
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            analyze_pair(a[0], b[0], config=cfg, device="cuda")
+    else:  # the same answer on the GPU, up to the float32 kernels
+        g = analyze_pair(a[0], b[0], config=cfg, device="cuda")
+        assert g["class"] == r["class"] and math.isclose(g["delta_avg"], r["delta_avg"], abs_tol=0.05)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA present")
+@pytest.mark.parametrize("command", ["analyze", "evaluate", "reproduce"])
+def test_device_cuda_absent_is_one_line(tmp_path, capsys, command):
+    s = load_scene("gravel")[0, 0]
+    from kornia.io import write_image
+
+    for name, img in (("a.png", s[:96, :128]), ("b.png", s[4:100, :128])):
+        write_image(str(tmp_path / name), (img * 255).round().to(torch.uint8)[None].expand(3, -1, -1).contiguous())
+    argv = {"analyze": ["analyze", str(tmp_path / "a.png"), str(tmp_path / "b.png")],
+            "evaluate": ["evaluate", "--data", str(tmp_path / "none"), "--selfcal", "--out", str(tmp_path / "o")],
+            "reproduce": ["reproduce", "--quick", "--out", str(tmp_path / "r")]}[command]
+    assert main(argv + ["--device", "cuda"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "CUDA is not available" in err[0]
