@@ -2,7 +2,8 @@
 
 Pair i of a set is a pure function of (protocol seed, set name, i): every random number of a
 pair comes from its own ``torch.Generator``, drawn in a fixed order, so a pair is the same
-whatever the batch size, the number of workers or the shard it falls in.
+whatever the batch size, the number of workers or the shard it falls in. ``protocol.realistic``
+(off by default) adds a photograph's effects to both views (``data.realism``).
 
 Geometry. A view maps its ideal pixel coordinates q into the scene by the placement
 ``P(q) = c + z (q - p0)`` (zoom z, scene point c under the view centre). I1 samples the scene
@@ -23,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.data.realism import Realism, degrade, draw_realism, parallax_shift
 from lensdist_torch.geometry.distortion import (
     METRICS,
     REJECT,
@@ -38,20 +40,8 @@ from lensdist_torch.geometry.registration import estimate_homography, perturb_ho
 from lensdist_torch.metric.quality import registration_error_counts
 
 __all__ = [
-    "SETS",
-    "PairParams",
-    "PairBatch",
-    "pair_seed",
-    "set_size",
-    "is_distorted",
-    "draw_pairs",
-    "motion_matrix",
-    "footprint",
-    "scene_zoom",
-    "render_pairs",
-    "make_pairs",
-    "render_sequence_pairs",
-    "sequence_footprint",
+    "SETS", "PairParams", "PairBatch", "pair_seed", "set_size", "is_distorted", "draw_pairs", "motion_matrix",
+    "footprint", "scene_zoom", "render_pairs", "make_pairs", "render_sequence_pairs", "sequence_footprint",
 ]
 
 SETS = ("train", "test")
@@ -66,6 +56,7 @@ class PairParams:
     degrees, scale, h31, h32). M: (B, 3, 3), I2's ideal coordinates -> I1's. position: (B, 2)
     uniform draws in [0, 1) placing the view in its scene. perturbed: (B,) bool, class-R pairs
     whose estimated homography is perturbed. generators: one per pair, for later draws.
+    realism: what the realistic protocol drew (``data.realism.Realism``), None when it is off.
     """
 
     index: torch.Tensor
@@ -78,6 +69,7 @@ class PairParams:
     position: torch.Tensor
     perturbed: torch.Tensor
     generators: list
+    realism: Realism | None = None
 
 
 @dataclass
@@ -166,6 +158,7 @@ def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) ->
         position=u[:, 9:11].clone(),
         perturbed=~dist,
         generators=gens,
+        realism=draw_realism(config, seeds) if p.realistic else None,
     )
 
 
@@ -212,7 +205,8 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
 
     The ideal box at the largest coefficients, moved by every extreme of the motion ranges
     (the border of a box maps to a quadrilateral whose extremes lie at its corners), plus a
-    2 px margin for bilinear support and rounding.
+    2 px margin for bilinear support and rounding, plus, in the realistic protocol, the
+    parallax (at most ``parallax_px`` in I2's ideal frame, times M's largest scale).
     """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
@@ -228,7 +222,7 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     M = motion_matrix(torch.tensor(extremes, dtype=torch.float64), h, w)
     moved = apply_homography(M, corners).reshape(-1, 2)
     allp = torch.cat([corners, moved])
-    margin = 2.0
+    margin = 2.0 + (p.parallax_px * max(1.0, p.scale_range[1]) if p.realistic else 0.0)
     return (
         float(allp[:, 0].min()) - x0 - margin,
         float(allp[:, 0].max()) - x0 + margin,
@@ -248,7 +242,9 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
 
     Per pair, placement, motion and grid_sample's normalisation fold into one 3 x 3 matrix
     per image (float64), applied to the ideal points of the distorted pixel grid (eq. 4,
-    centred), so each image costs a few elementwise passes and one grid_sample.
+    centred), so each image costs a few elementwise passes and one grid_sample. With
+    ``params.realism`` (the realistic protocol) I2's ideal points are displaced by the parallax
+    and both views are degraded (``data.realism.degrade``).
     """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
@@ -259,6 +255,7 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     a = torch.linalg.inv(centre) @ params.M @ centre  # the motion in centred coordinates
     img1 = torch.empty(b, 1, h, w)
     img2 = torch.empty(b, 1, h, w)
+    shift = None if params.realism is None else parallax_shift(params.realism, params.motion, h, w)
     for s in params.scene.unique().tolist():
         sel = (params.scene == s).nonzero().flatten()
         n = len(sel)
@@ -277,7 +274,8 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
         g1 = torch.empty(n, 2, h, w)
         g2 = torch.empty(n, 2, h, w)
         for j in range(n):  # per-pair scalars: plain vectorised kernels, no broadcasting
-            _pair_grid(dx, dy, r2, r4, float(params.k2[sel[j]]), float(params.k4[sel[j]]), place[j], m[j], g1[j], g2[j])
+            k2, k4, par = float(params.k2[sel[j]]), float(params.k4[sel[j]]), None if shift is None else shift[sel[j]]
+            _pair_grid(dx, dy, r2, r4, k2, k4, place[j], m[j], g1[j], g2[j], par)
         src = scenes[s].float().expand(n, -1, -1, -1)
         # (n, 2, H, W) viewed as (n, H, W, 2): grid_sample takes the strided grid as it is
         r1 = F.grid_sample(src, g1.permute(0, 2, 3, 1), mode="bilinear", padding_mode="zeros", align_corners=True)
@@ -286,23 +284,26 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
             img1, img2 = r1, r2_
         else:
             img1[sel], img2[sel] = r1, r2_
-    return img1, img2
+    return (img1, img2) if params.realism is None else degrade(img1, img2, params.realism)
 
 
-def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: torch.Tensor, out1, out2) -> None:
+def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: torch.Tensor, out1, out2, shift=None) -> None:
     """One pair's two sampling grids, written into out1, out2 (2, H, W) in grid_sample units.
 
     Ideal points relative to p0 (eq. 4): (x, y) = f (dx, dy), f = 1 + k2 r^2 + k4 r^4; then
     I1 samples at ``place`` (x, y, 1) and I2 at ``place @ A`` (x, y, 1), A the centred motion.
     f is :func:`~lensdist_torch.geometry.distortion.radial_factor` as one fused kernel on cached
     float32 r^2, r^4 (fast; radial_factor itself would change the last bit of ~1/4 of the
-    factors, and rendered pairs, hence shards, must stay bit-identical).
+    factors, and rendered pairs, hence shards, must stay bit-identical). ``shift`` (2, H*W), the
+    parallax of the realistic protocol, moves I2's ideal points only.
     """
     f = torch.add(r2 * k2, r4, alpha=k4).add_(1.0)
     x, y = dx * f, dy * f
     p, q = place.tolist(), m.tolist()
     torch.add(x * p[0][0], p[0][2], out=out1[0].view(-1))
     torch.add(y * p[1][1], p[1][2], out=out1[1].view(-1))
+    if shift is not None:
+        x, y = x + shift[0], y + shift[1]
     den = torch.add(x * q[2][0], y, alpha=q[2][1]).add_(q[2][2])
     torch.div(torch.add(x * q[0][0], y, alpha=q[0][1]).add_(q[0][2]), den, out=out2[0].view(-1))
     torch.div(torch.add(x * q[1][0], y, alpha=q[1][1]).add_(q[1][2]), den, out=out2[1].view(-1))
@@ -364,6 +365,8 @@ def make_pairs(
     With ``sequence``, ``scenes`` are consecutive frames of a real, undistorted sequence and
     pair i is frames (i mod (n-1), i mod (n-1) + 1), distorted, instead of synthetic motion.
     """
+    if sequence and config.protocol.realistic:
+        raise ValueError("protocol.realistic is for synthetic pairs; a real sequence's frames are photographs already")
     params = draw_pairs(config, set_name, indices, len(scenes))
     if sequence:
         params = _sequence_params(params, len(scenes))
