@@ -21,6 +21,7 @@ LAYERS = [
     ("geometry.registration", 2),
     ("geometry.selfcal", 2),
     ("geometry.calibration", 2),
+    ("geometry.wide_baseline", 2),
     ("geometry.", 1),
     ("classify.", 2),
     ("data.", 3),
