@@ -28,7 +28,7 @@ from pathlib import Path
 import torch
 from finestage.config import load_config, parse_overrides
 from finestage.experiment import run_all, setup_determinism
-from finestage.report import write_outputs
+from finestage.report import merge_results, write_outputs
 
 from lensdist_torch.core.storage import atomic_write_text
 
@@ -44,6 +44,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--no-refine", action="store_true", help="skip the test-time refinement")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override, e.g. train.steps=50")
     ap.add_argument("--no-progress", action="store_true")
+    ap.add_argument(
+        "--merge", nargs="+", metavar="RESULTS_JSON", help="only pool the seeds of these results into --out"
+    )
     return ap.parse_args(argv)
 
 
@@ -55,6 +58,11 @@ def describe_device(device: str) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
+    if args.merge:
+        merged = merge_results([json.loads(Path(p).read_text()) for p in args.merge])
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        print(write_outputs(Path(args.out), merged, {}, {}))
+        return merged
     try:
         overrides = parse_overrides(args.set)
     except ValueError as exc:

@@ -253,3 +253,30 @@ def test_cli_writes_results_json_with_every_field(tmp_path):
     assert set(res["network"]) == {"l1", "l1+quality", "ncc", "ncc+quality", "ngf", "ngf+quality"}
     assert "claim_met" in res["verdict"]["network"] and "claim_met" in res["verdict"]["refinement"]
     assert res["threads"] == 1 and (out / "results.md").read_text().count("|") > 20
+
+
+def test_merge_pools_seeds_of_arms_with_the_same_lambda():
+    def part(seeds, med, lam_ncc):
+        arm = lambda lam, m: {  # noqa: E731
+            "peer": "x",
+            "lambda": lam,
+            "seeds": seeds,
+            **report.seed_stats([{k: m for k in report.METRICS} for _ in seeds], seeds),
+        }
+        return {
+            "device": "d",
+            "identity": {},
+            "config": tiny(**{"train.seeds": seeds}),
+            "network": {"l1": arm(0.0, med), "ncc+quality": arm(lam_ncc, med)},
+        }
+
+    merged = report.merge_results([part([0, 1], 1.0, 0.5), part([3], 4.0, 0.2)])
+    l1 = merged["network"]["l1"]
+    assert l1["seeds"] == [0, 1, 3] and l1["median_corner_error"]["per_seed"] == [1.0, 1.0, 4.0]
+    assert l1["median_corner_error"]["mean"] == pytest.approx(2.0) and "ncc+quality" not in merged["network"]
+    with pytest.raises(ValueError, match="seed twice"):
+        report.merge_results([part([0, 1], 1.0, 0.5), part([1], 4.0, 0.5)])
+    with pytest.raises(ValueError, match="different configs"):
+        other = part([5], 1.0, 0.5)
+        other["config"]["loss"]["ngf_eta"] = 0.3
+        report.merge_results([part([0, 1], 1.0, 0.5), other])

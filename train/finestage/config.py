@@ -64,6 +64,7 @@ DEFAULTS: dict[str, dict[str, Any]] = {
         "enabled": True,
         "steps": 100,  # Adam steps on the 8 corner offsets of each pair
         "lrs": [0.01, 0.03, 0.1],  # chosen per loss on the validation pairs
+        "lambdas": [0.05, 0.2, 0.5],  # chosen jointly with lr per peer + quality on the validation pairs
         "val_pairs": 64,
         "test_sets": 3,  # disjoint test sets (the 'seeds' of the refinement arms)
         "test_pairs": 128,

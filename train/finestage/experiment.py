@@ -128,7 +128,7 @@ def assemble(cfg: dict, runs: dict, cells: dict) -> dict:
 def refinement_study(cfg, device, progress, scenes=None) -> tuple[dict, dict]:
     """Selection on validation, then every arm on the test sets; returns (sections, curves)."""
     scenes = scenes if scenes is not None else load_scenes(cfg)
-    r, lrs, lams = cfg["refine"], list(cfg["refine"]["lrs"]), list(cfg["sweep"]["lambdas"])
+    r, lrs, lams = cfg["refine"], list(cfg["refine"]["lrs"]), list(cfg["refine"]["lambdas"])
     val_seeds = split_seeds(int(cfg["eval"]["val_seed"]), int(r["val_pairs"]))
     tau = float(cfg["train"]["tau_scale"])
     grid = [(p, 0.0, lr) for p in PEERS for lr in lrs] + [(p, lam, lr) for p in PEERS for lam in lams for lr in lrs]
@@ -181,7 +181,14 @@ def run_all(cfg, out: Path, device: str, resume: bool, n_proc: int, progress: bo
     else:
         with ProcessPoolExecutor(n_proc, mp_context=get_context("spawn")) as pool:
             fut_refine = pool.submit(_refine_job, (cfg, device, False)) if do_refine else None
-            outs = list(tqdm(pool.map(_group_job, jobs), total=len(jobs), desc="groups", disable=not progress))
+            outs = []
+            for (specs, seed), rs in tqdm(
+                zip(groups, pool.map(_group_job, jobs)), total=len(jobs), desc="groups", disable=not progress
+            ):
+                outs.append(rs)
+                print(
+                    f"  seed {seed}: {', '.join(arm_name(s) for s in specs)} done ({rs[0]['wall_s']:.0f} s)", flush=True
+                )
             refined = fut_refine.result() if fut_refine is not None else None
     runs = {}
     for (specs, seed), rs in zip(groups, outs):

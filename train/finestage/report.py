@@ -11,7 +11,17 @@ import torch
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.workflows.figures import have_matplotlib, save_curves
 
-__all__ = ["METRICS", "LABELS", "seed_stats", "choose", "verdict", "write_markdown", "save_figures", "write_outputs"]
+__all__ = [
+    "METRICS",
+    "LABELS",
+    "seed_stats",
+    "choose",
+    "verdict",
+    "merge_results",
+    "write_markdown",
+    "save_figures",
+    "write_outputs",
+]
 
 METRICS = ("mean_corner_error", "median_corner_error", "share_below_0_5px", "share_below_1px")
 #: The sections of results.json that hold arms, with their titles.
@@ -66,6 +76,53 @@ def verdict(section: dict) -> dict | None:
         "level_with": level,
         "claim_met": bool(rel >= 0.10 and beyond and all(level.values())),
     }
+
+
+def merge_results(parts: list[dict]) -> dict:
+    """Pool the seeds of several results.json of the same study (e.g. seeds 0-2 and 3-5).
+
+    An arm is kept where every part has it with the same lambda (and lr); its per-seed values
+    are concatenated and the statistics recomputed. The training config must agree apart from
+    the seeds and the sweep (which do not change a run); a seed may appear only once.
+    """
+    base = parts[0]
+    keep = {"train": ("seeds", "log_every", "checkpoint_every", "group_size")}
+
+    def same(cfg):
+        out = {k: v for k, v in cfg.items() if k in ("data", "model", "loss", "train")}
+        out["train"] = {k: v for k, v in out["train"].items() if k not in keep["train"]}
+        return out
+
+    for p in parts[1:]:
+        if same(p["config"]) != same(base["config"]):
+            raise ValueError("merge_results: the parts were trained with different configs")
+    merged = {
+        "device": base["device"],
+        "merged_from": len(parts),
+        "identity": base["identity"],
+        "config": base["config"],
+    }
+    for section in LABELS:
+        arms = {}
+        for name, a in (base.get(section) or {}).items():
+            others = [p.get(section, {}).get(name) for p in parts[1:]]
+            if any(o is None or o["lambda"] != a["lambda"] or o.get("lr") != a.get("lr") for o in others):
+                continue
+            group = [a, *others]
+            seeds = [s for g in group for s in g["seeds"]]
+            if len(set(map(str, seeds))) != len(seeds):
+                raise ValueError(f"merge_results: {section}/{name} has a seed twice: {seeds}")
+            per_seed = [{m: g[m]["per_seed"][i] for m in METRICS} for g in group for i in range(len(g["seeds"]))]
+            arms[name] = {
+                "peer": a["peer"],
+                "lambda": a["lambda"],
+                **({"lr": a["lr"]} if "lr" in a else {}),
+                **seed_stats(per_seed, seeds),
+            }
+        if arms:
+            merged[section] = arms
+    merged["verdict"] = {s: v for s in LABELS if merged.get(s) and (v := verdict(merged[s])) is not None}
+    return merged
 
 
 def _fmt(arm: dict, key: str, pct: bool = False) -> str:
