@@ -37,6 +37,8 @@ _LOCK_WAIT_S = 30.0  # the manifest's lock is held for one read-merge-write only
 
 #: The config sections that change a data set's pairs (the fingerprint covers them).
 _DATA_SECTIONS = ("quality", "image", "distortion", "protocol", "registration")
+#: Registration settings that only the analysis of a user's pair uses (the wide-baseline fallback).
+_NOT_IN_DATA = ("feature_fallback", "max_keypoints", "match_ratio", "ransac_threshold", "min_inliers")
 
 
 class ShardError(ValueError):
@@ -50,12 +52,15 @@ def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
     """A hash of every setting that changes the pairs or the files, and of the scenes.
 
     The quality, image, distortion, protocol and registration sections count (chunk sizes do
-    not; ``shard_size`` does, since it fixes which pairs each shard file holds).
+    not; ``shard_size`` does, since it fixes which pairs each shard file holds; nor do the
+    feature fallback's settings: the protocol's registration never uses it).
     """
     d = config_to_dict(config)
     d = {name: d[name] for name in _DATA_SECTIONS}
     for name in ("quality", "registration"):
         d[name].pop("chunk_size", None)
+    for key in _NOT_IN_DATA:
+        d["registration"].pop(key, None)
     d["scenes"] = scene_ids
     return hashlib.sha256(json.dumps(d, sort_keys=True, allow_nan=False).encode()).hexdigest()[:16]
 
