@@ -12,7 +12,10 @@ gradient fields (NGF), each alone and each + lambda * ``RegistrationQualityLoss`
 * :mod:`.models`  the refinement network (a 1/4-resolution cost volume);
 * :mod:`.loop`    one training run (arm, seed) with versioned checkpoints and resume, evaluation;
 * :mod:`.refine`  test-time refinement of the corner offsets with Adam;
-* :mod:`.report`  seed statistics, lambda selection on validation, results.json / .md, figures.
+* :mod:`.report`  seed statistics, lambda selection on validation, the verdict, merging seeds,
+  results.json / .md, figures;
+* :mod:`.experiment` the plan of runs (groups of arms per seed, processes), the selections on
+  validation, the refinement study.
 
 It reuses ``train/learnreg`` (photometric changes, lens distortion, the warp, the corner
 error, the lambda schedule, the network's building blocks) by import.
