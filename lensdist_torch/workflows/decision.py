@@ -184,7 +184,9 @@ def domain_checks(res: dict, selfcal: dict | None, texture: torch.Tensor | None,
     check = {"class": selfcal["estimated_class"], "delta_avg": selfcal["delta_avg"], "usable": usable, "agrees": True}
     if usable:
         gap = class_distance(res["estimated_class"], selfcal["estimated_class"])
-        far = abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top("delta_avg", cfg)
+        # a class-R answer's Delta is the eigen-space's guess of its nearest class: the classes decide
+        no_r = CLASS_LABELS[-1] not in (res["estimated_class"], selfcal["estimated_class"])
+        far = no_r and abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top("delta_avg", cfg)
         check["agrees"] = not ((gap is not None and gap > a.max_class_disagreement) or far)
     res["selfcal_check"] = check
 

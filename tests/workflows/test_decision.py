@@ -92,6 +92,9 @@ def test_disagreement_with_the_selfcal_is_out_of_domain():
     domain_checks(near, sc, None, {}, cfg)
     decide(near, cfg)
     assert near["selfcal_check"]["agrees"] and near["in_domain"] and near["class"] == "1"
+    rejected = _res(estimated_class="R", delta_avg=6.0)  # an eigen-space R keeps its nearest class's Delta
+    domain_checks(rejected, sc, None, {}, cfg)
+    assert rejected["selfcal_check"]["agrees"]
     unsure = _res()
     domain_checks(unsure, {**sc, "raw_confidence": 0.1}, None, {}, cfg)  # a selfcal that cannot tell says nothing
     decide(unsure, cfg)
