@@ -373,6 +373,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
     p.add_argument("--config", default=None, help=defaults + ", e.g. a calibration.toml written by `lensdist reproduce`")
     p.add_argument("--device", default="cpu", help=device_help)
+
+    from lensdist_torch.cli_calibrate import add_calibrate_commands
+
+    add_calibrate_commands(sub)  # calibrate, undistort
     return parser
 
 

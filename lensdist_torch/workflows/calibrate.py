@@ -9,13 +9,12 @@ pixels, Delta_avg and Delta_max with their 95 % intervals, the class, and OpenCV
 matrix and distortion coefficients (:mod:`~lensdist_torch.geometry.opencv_model`).
 ``undistort_path(path, out_dir, k2=, k4=)`` (or ``from_json=`` a saved calibration) writes
 every corrected frame as a PNG (grey or colour, as the input) and its validity mask in
-``out_dir/masks/``. ``add_calibrate_commands(subparsers)`` registers ``lensdist calibrate`` and
+``out_dir/masks/``. ``lensdist_torch.cli_calibrate`` registers ``lensdist calibrate`` and
 ``lensdist undistort``. ``synthetic_sequence`` renders the test sequences of a panning camera.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import re
@@ -27,8 +26,8 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.core.images import load_image, load_scene
-from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
+from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
+from lensdist_torch.core.storage import atomic_write_bytes
 from lensdist_torch.geometry.calibration import (
     CalibrationConfig,
     analysis_scale,
@@ -40,9 +39,8 @@ from lensdist_torch.geometry.opencv_model import opencv_camera
 from lensdist_torch.geometry.undistort import undistortion_grid
 
 __all__ = ["IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path", "undistort_path",
-           "encode_png", "synthetic_sequence", "add_calibrate_commands"]
+           "encode_png", "synthetic_sequence"]
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 
 
@@ -56,7 +54,7 @@ def list_frames(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
     if not files:
-        raise ValueError(f"path {folder} holds no image files ({', '.join(IMAGE_SUFFIXES)})")
+        raise ValueError(f"path {folder} holds no image files ({', '.join(sorted(IMAGE_SUFFIXES))})")
     return sorted(files, key=lambda p: _natural(p.name))
 
 
@@ -344,69 +342,3 @@ def synthetic_sequence(
                                  align_corners=True).float())
     frames = torch.stack(out, 1)  # (2, N, 1, H, W)
     return frames[0].contiguous(), frames[1].contiguous()
-
-
-# ------------------------------------------------------------------ command line
-def _print_calibration(res: dict) -> None:
-    (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
-    print(f"{res['frames']} frames of {w} x {h}, {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected")
-    if res["k2_user"] is None:
-        print(f"no estimate: {res['reason']}")
-        return
-    print(f"eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}")
-    for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
-        print(f"Delta_{name} = {d:.2f} px" + ("" if a is None else f" (95 % interval {a:.2f} to {b:.2f})"))
-    print(f"distortion class: {res['class'] or 'cannot tell (' + res['reason'] + ')'}  (1 = small ... 4 = very strong, "
-          "R = none visible)")
-    cv, k = res["opencv"], res["opencv"]["camera_matrix"]
-    print(f"OpenCV: fx = fy = {k[0][0]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
-          f"[{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error {cv['fit_error_mean_px']:.3f} px "
-          f"mean, {cv['fit_error_max_px']:.3f} px max)")
-
-
-def _cmd_calibrate(args: argparse.Namespace) -> int:
-    """``lensdist calibrate PATH [--json] [--out DIR] [--quiet]``."""
-    res = calibrate_path(args.path, max_frames=args.max_frames, focal=args.focal, quiet=args.quiet)
-    text = json.dumps(res, indent=2, allow_nan=False)
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "calibration.json", text + "\n")
-    if args.json:
-        print(text)
-    else:
-        _print_calibration(res)
-        if args.out:
-            print(f"written: {Path(args.out) / 'calibration.json'}")
-    return 0
-
-
-def _cmd_undistort(args: argparse.Namespace) -> int:
-    """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--quiet]``."""
-    res = undistort_path(args.path, args.out, k2=args.k2, k4=args.k4, from_json=args.from_json,
-                         max_frames=args.max_frames, quiet=args.quiet)
-    print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}) into {res['out_dir']}, "
-          f"masks in {Path(res['out_dir']) / 'masks'} ({100 * res['valid_fraction']:.1f} % valid)")
-    return 0
-
-
-def add_calibrate_commands(subparsers) -> None:
-    """Register ``calibrate`` and ``undistort`` on the ``lensdist`` parser's subparsers."""
-    p = subparsers.add_parser("calibrate", help="the distortion of one camera from a folder of frames or a video")
-    p.add_argument("path", help="folder of frames (sorted by name) or a video file (needs PyAV: pip install av)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--out", default=None, help="folder for calibration.json")
-    p.add_argument("--max-frames", type=int, default=300, help="read at most this many frames")
-    p.add_argument("--focal", type=float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(func=_cmd_calibrate)
-
-    p = subparsers.add_parser("undistort", help="correct every frame of a folder or video (PNG + validity masks)")
-    p.add_argument("path", help="folder of frames or a video file")
-    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels")
-    p.add_argument("--k4", type=float, default=None, help="eq. 4's k4 in the frames' pixels")
-    p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
-    p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
-    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_cmd_undistort)

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
+from lensdist_torch.cli_calibrate import add_calibrate_commands
 from lensdist_torch.core.images import load_image, to_grey
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.workflows.calibrate import (
     _coefficients_for,
     _to_uint8,
-    add_calibrate_commands,
     calibrate_path,
     encode_png,
     list_frames,

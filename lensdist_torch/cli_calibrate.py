@@ -1,0 +1,84 @@
+"""The ``lensdist calibrate`` and ``lensdist undistort`` commands (parsers and printing).
+
+Kept apart from ``cli.py`` for length; like it, it imports torch only inside the commands, so
+``lensdist --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+__all__ = ["add_calibrate_commands"]
+
+
+def _print_calibration(res: dict) -> None:
+    (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
+    print(f"{res['frames']} frames of {w} x {h}, {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected")
+    if res["k2_user"] is None:
+        print(f"no estimate: {res['reason']}")
+        return
+    print(f"eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}")
+    for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
+        print(f"Delta_{name} = {d:.2f} px" + ("" if a is None else f" (95 % interval {a:.2f} to {b:.2f})"))
+    print(f"distortion class: {res['class'] or 'cannot tell (' + res['reason'] + ')'}  (1 = small ... 4 = very strong, "
+          "R = none visible)")
+    cv, k = res["opencv"], res["opencv"]["camera_matrix"]
+    print(f"OpenCV: fx = fy = {k[0][0]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
+          f"[{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error {cv['fit_error_mean_px']:.3f} px "
+          f"mean, {cv['fit_error_max_px']:.3f} px max)")
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    """``lensdist calibrate PATH [--json] [--out DIR] [--quiet]``."""
+    from lensdist_torch.workflows.calibrate import calibrate_path
+
+    res = calibrate_path(args.path, max_frames=args.max_frames, focal=args.focal, quiet=args.quiet)
+    text = json.dumps(res, indent=2, allow_nan=False)
+    if args.out:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        from lensdist_torch.core.storage import atomic_write_text
+
+        atomic_write_text(out / "calibration.json", text + "\n")
+    if args.json:
+        print(text)
+    else:
+        _print_calibration(res)
+        if args.out:
+            print(f"written: {Path(args.out) / 'calibration.json'}")
+    return 0
+
+
+def _cmd_undistort(args: argparse.Namespace) -> int:
+    """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--quiet]``."""
+    from lensdist_torch.workflows.calibrate import undistort_path
+
+    res = undistort_path(args.path, args.out, k2=args.k2, k4=args.k4, from_json=args.from_json,
+                         max_frames=args.max_frames, quiet=args.quiet)
+    print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}) into {res['out_dir']}, "
+          f"masks in {Path(res['out_dir']) / 'masks'} ({100 * res['valid_fraction']:.1f} % valid)")
+    return 0
+
+
+def add_calibrate_commands(subparsers) -> None:
+    """Register ``calibrate`` and ``undistort`` on the ``lensdist`` parser's subparsers."""
+    p = subparsers.add_parser("calibrate", help="the distortion of one camera from a folder of frames or a video")
+    p.add_argument("path", help="folder of frames (sorted by name) or a video file (needs PyAV: pip install av)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--out", default=None, help="folder for calibration.json")
+    p.add_argument("--max-frames", type=int, default=300, help="read at most this many frames")
+    p.add_argument("--focal", type=float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_calibrate)
+
+    p = subparsers.add_parser("undistort", help="correct every frame of a folder or video (PNG + validity masks)")
+    p.add_argument("path", help="folder of frames or a video file")
+    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels")
+    p.add_argument("--k4", type=float, default=None, help="eq. 4's k4 in the frames' pixels")
+    p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
+    p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
+    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_undistort)
