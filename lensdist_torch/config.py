@@ -306,6 +306,16 @@ class SelfCalConfig:
         noise_floor: intensity std floor of the covariance (8-bit quantisation), so that a
             textureless or identical pair cannot claim certainty.
         ridge: absolute ridge on J^T J in the covariance.
+        robust: the M-estimator of the photometric residual: "tukey" (biweight), "huber" or
+            "none" (least squares); IRLS with sigma = 1.4826 MAD re-estimated every iteration.
+        huber_k: Huber's constant, in sigmas (1.345: 95 % efficiency for Gaussian noise).
+        tukey_c: Tukey's biweight constant, in sigmas (4.685: 95 % efficiency).
+        photometric: "gain_bias" (img2 times a fitted gain plus a bias), "normalized"
+            (zero-mean, unit-variance samples per pair) or "none".
+        gain_range: (low, high) plausible gain of ``gain_bias``; the start is clamped to it, a
+            fit that leaves it is flagged.
+        both_starts: with an ``init`` homography, also fit from phase correlation in the same
+            batch and keep, per pair, the start with the lower final robust cost.
     """
 
     levels: int = 3
@@ -321,8 +331,20 @@ class SelfCalConfig:
     confidence_threshold: float = 0.5
     noise_floor: float = 0.5 / 255
     ridge: float = 1e-6
+    robust: str = "tukey"
+    huber_k: float = 1.345
+    tukey_c: float = 4.685
+    photometric: str = "gain_bias"
+    gain_range: tuple[float, float] = (0.25, 4.0)
+    both_starts: bool = True
 
     def __post_init__(self) -> None:
+        choice(self, "robust", ("none", "huber", "tukey"))
+        choice(self, "photometric", ("none", "gain_bias", "normalized"))
+        real(self, "huber_k", lo=0, lo_open=True)
+        real(self, "tukey_c", lo=0, lo_open=True)
+        pair(self, "gain_range", positive=True)
+        flag(self, "both_starts")
         for name in ("levels", "newton", "chunk_size"):
             integer(self, name)
         for name in ("iterations", "sample_block"):
