@@ -35,13 +35,12 @@ private Levenberg-Marquardt state, and the combination is already far inside the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Callable, NamedTuple
 
 import torch
 import torch.nn.functional as F
 
-from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.core.images import check_image, to_grey
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, estimated_class
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
@@ -50,64 +49,6 @@ from lensdist_torch.geometry.selfcal import estimate_distortion
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
            "user_coefficients", "choose_pairs", "calibrate_sequence"]
-
-
-@dataclass(frozen=True)
-class CalibrationConfig:
-    """Settings of :func:`calibrate_sequence` (module docstring).
-
-    Attributes:
-        analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
-        motion_steps: per frame, one pair with the first later frame that moved by at least
-            each of these fractions of the half diagonal.
-        max_motion: no pair moves by more than this fraction of the half diagonal.
-        max_pairs: at most this many pairs, evenly spread over those chosen.
-        batch_size: pairs self-calibrated together (the progress callback's step).
-        outlier_mads: rejection threshold in robust deviations of the signed Delta_avg.
-        max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
-            pairs' lower quartile are rejected (a broken or foreign frame).
-        jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
-        systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
-            pairs share (on rendered sequences 0.05-0.16 % of Delta_max, mostly one sign).
-        confidence: coverage of the intervals.
-        min_pairs: fewer usable pairs give no class ("cannot tell").
-        max_class_halfwidth_px: an interval half-width of Delta_avg above this, at the paper's
-            320 x 424 frame, gives no class (a class bin is 3.6 px wide there).
-    """
-
-    analysis_side: int = 512
-    motion_steps: tuple[float, ...] = (0.14, 0.22)
-    max_motion: float = 0.35
-    max_pairs: int = 64
-    batch_size: int = 16
-    outlier_mads: float = 4.0
-    max_residual_ratio: float = 3.0
-    jackknife_blocks: int = 8
-    systematic_rel: float = 1e-3
-    confidence: float = 0.95
-    min_pairs: int = 4
-    max_class_halfwidth_px: float = 1.0
-
-    def __post_init__(self) -> None:
-        for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
-            v, least = getattr(self, name), {"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1)
-            if type(v) is not int or v < least:
-                raise ValueError(f"{name} must be an int >= {least}, got {v!r}")
-        if not (_number(self.max_motion) and 0 < self.max_motion < 1):
-            raise ValueError(f"max_motion must lie in ]0, 1[, got {self.max_motion!r}")
-        steps = self.motion_steps
-        if not (isinstance(steps, tuple) and steps and all(_number(v) and 0 < v < self.max_motion for v in steps)):
-            raise ValueError(f"motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, got {steps!r}")
-        for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px"):
-            if not (_number(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
-        for name, lo in (("confidence", 0.0), ("systematic_rel", -1e-300)):
-            if not (_number(getattr(self, name)) and lo < getattr(self, name) < 1):
-                raise ValueError(f"{name} must lie in {']0' if lo == 0 else '[0'}, 1[, got {getattr(self, name)!r}")
-
-
-def _number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
 class SequenceCalibration(NamedTuple):

@@ -1,0 +1,300 @@
+"""The estimators' settings: registration, self-calibration, regression, analysis, calibration.
+
+Sections of :class:`~lensdist_torch.config.LensdistConfig` (``[registration]``, ``[selfcal]``,
+``[regression]``, ``[analysis]`` in a TOML file), kept in their own module for length; import
+them from ``lensdist_torch.config``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+from lensdist_torch.config_checks import choice, flag, integer, integers, pair, real
+
+__all__ = ["RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "CalibrationConfig"]
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Settings of :func:`estimate_homography`.
+
+    Attributes:
+        levels: pyramid levels to run, coarsest first, ending with 0 (level l is 1 / 2**l of the
+            size); levels whose smaller side would be under 16 px are dropped.
+        iterations: maximum IC iterations for each entry of ``levels``.
+        step_tol: full resolution is done when an update moves no corner by more than this (px).
+        coarse_tol: the same for the coarser levels (full-resolution px).
+        phase_level: pyramid level of the phase correlation (lowered for small images).
+        damping: Hessian damping, a fraction of its mean diagonal.
+        min_texture: smallest admissible eigenvalue of the per-pixel Gauss-Newton Hessian
+            (gradients in level px, coordinates in half-diagonals).
+        min_overlap: fraction of img1 that must map inside img2.
+        max_residual: largest RMS residual, relative to sqrt(2) x img1's standard deviation
+            (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with the strongest
+            distortion of docs/method.md section 6).
+        margin: level px by which the pixels used must map inside img2.
+        max_step: an update moving a corner by more than this fraction of the diagonal diverged.
+        fine_stride: template pixel stride at full resolution.
+        presmooth: binomial smoothing (sigma 1 px) of both images first.
+        chunk_size: pairs registered together (cache locality); results do not depend on it.
+        feature_fallback: :func:`~lensdist_torch.geometry.wide_baseline.estimate_homography_robust`
+            retries the pairs that did not converge from SIFT matches (docs/method.md, section 10).
+        max_keypoints: SIFT keypoints kept per image by the fallback.
+        match_ratio: second-nearest-neighbour ratio of the fallback's mutual matches, in ]0, 1].
+        ransac_threshold: px, one-way transfer error of a RANSAC inlier in the fallback.
+        min_inliers: fewest RANSAC inliers for a feature homography.
+    """
+
+    levels: tuple[int, ...] = (2, 0)
+    iterations: tuple[int, ...] = (10, 6)
+    step_tol: float = 0.01
+    coarse_tol: float = 0.2
+    phase_level: int = 3
+    damping: float = 1e-6
+    min_texture: float = 1e-8
+    min_overlap: float = 0.3
+    max_residual: float = 0.5
+    margin: float = 2.0
+    max_step: float = 0.25
+    fine_stride: int = 2
+    presmooth: bool = True
+    chunk_size: int = 8
+    feature_fallback: bool = True
+    max_keypoints: int = 2000
+    match_ratio: float = 0.9
+    ransac_threshold: float = 2.0
+    min_inliers: int = 15
+
+    def __post_init__(self) -> None:
+        integers(self, "levels", lo=0)
+        lv = self.levels
+        if lv[-1] != 0 or not all(a > b for a, b in itertools.pairwise(lv)):
+            raise ValueError(f"registration.levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
+        integers(self, "iterations", n=len(lv), per="level")
+        for name in ("step_tol", "coarse_tol", "min_texture", "max_residual", "max_step"):
+            real(self, name, lo=0, lo_open=True)
+        integer(self, "phase_level", lo=0)
+        real(self, "damping", lo=0)
+        real(self, "margin", lo=0)
+        real(self, "min_overlap", lo=0, hi=1)
+        integer(self, "fine_stride")
+        flag(self, "presmooth")
+        integer(self, "chunk_size")
+        flag(self, "feature_fallback")
+        integer(self, "max_keypoints", lo=4)
+        real(self, "match_ratio", lo=0, hi=1, lo_open=True)
+        real(self, "ransac_threshold", lo=0, lo_open=True)
+        integer(self, "min_inliers", lo=4)
+
+
+@dataclass(frozen=True)
+class SelfCalConfig:
+    """Settings of :func:`~lensdist_torch.geometry.selfcal.estimate_distortion`.
+
+    Attributes:
+        levels: pyramid levels (2 x 2 means), coarsest first in ``iterations``.
+        iterations: Levenberg-Marquardt iterations per level, coarsest first.
+        newton: Newton steps of the inverse of eq. 4.
+        damping: initial LM lambda, relative to diag(J^T J).
+        margin: level pixels kept inside img2.
+        max_coefficient: bound on |a|, |b| (normalised units) beyond which a fit diverged.
+        min_overlap: share of img1's sampled pixels that must map inside img2.
+        sample_block: per level (coarsest first), the residual uses the strongest-gradient
+            pixel of every block x block cell (1: every pixel).
+        chunk_size: pairs fitted together; results do not depend on it.
+        cannot_tell_std_px: posterior std of Delta_avg (px) at which confidence is 0.5.
+        confidence_threshold: pairs below this confidence are "cannot tell from this pair".
+        noise_floor: intensity std floor of the covariance (8-bit quantisation), so that a
+            textureless or identical pair cannot claim certainty.
+        ridge: absolute ridge on J^T J in the covariance.
+        robust: the M-estimator of the photometric residual: "tukey" (biweight), "huber" or
+            "none" (least squares); IRLS with sigma = 1.4826 MAD re-estimated every iteration.
+        huber_k: Huber's constant, in sigmas (1.345: 95 % efficiency for Gaussian noise).
+        tukey_c: Tukey's biweight constant, in sigmas (4.685: 95 % efficiency).
+        photometric: "gain_bias" (img2 times a fitted gain plus a bias), "normalized"
+            (zero-mean, unit-variance samples per pair) or "none".
+        gain_range: (low, high) plausible gain of ``gain_bias``; the start is clamped to it, a
+            fit that leaves it is flagged.
+        both_starts: with an ``init`` homography, also fit from phase correlation in the same
+            batch and keep, per pair, the start with the lower final robust cost.
+    """
+
+    levels: int = 3
+    iterations: tuple[int, ...] = (12, 6, 3)
+    newton: int = 5
+    damping: float = 1e-3
+    margin: float = 2.0
+    max_coefficient: float = 2.0
+    min_overlap: float = 0.3
+    sample_block: tuple[int, ...] = (2, 4, 4)
+    chunk_size: int = 16
+    cannot_tell_std_px: float = 0.5
+    confidence_threshold: float = 0.5
+    noise_floor: float = 0.5 / 255
+    ridge: float = 1e-6
+    robust: str = "tukey"
+    huber_k: float = 1.345
+    tukey_c: float = 4.685
+    photometric: str = "gain_bias"
+    gain_range: tuple[float, float] = (0.25, 4.0)
+    both_starts: bool = True
+
+    def __post_init__(self) -> None:
+        choice(self, "robust", ("none", "huber", "tukey"))
+        choice(self, "photometric", ("none", "gain_bias", "normalized"))
+        real(self, "huber_k", lo=0, lo_open=True)
+        real(self, "tukey_c", lo=0, lo_open=True)
+        pair(self, "gain_range", positive=True)
+        flag(self, "both_starts")
+        for name in ("levels", "newton", "chunk_size"):
+            integer(self, name)
+        for name in ("iterations", "sample_block"):
+            integers(self, name, n=self.levels, per="level")
+        for name in ("damping", "max_coefficient", "cannot_tell_std_px", "noise_floor", "ridge"):
+            real(self, name, lo=0, lo_open=True)
+        real(self, "margin", lo=0)
+        real(self, "min_overlap", lo=0, hi=1)
+        real(self, "confidence_threshold", lo=0, hi=1)
+
+
+@dataclass(frozen=True)
+class RegressionConfig:
+    """Settings of :class:`~lensdist_torch.classify.regression.DeltaRegressor`.
+
+    Attributes:
+        n_components: PCA components kept (capped by the training set).
+        k: neighbours whose median Delta is the prediction.
+        cannot_tell_fraction: neighbour spread of Delta_avg, as a fraction of the class range,
+            at which confidence is 0.5.
+        confidence_threshold: below this confidence the answer is "cannot tell".
+    """
+
+    n_components: int = 384
+    k: int = 8
+    cannot_tell_fraction: float = 0.125
+    confidence_threshold: float = 0.5
+
+    def __post_init__(self) -> None:
+        integer(self, "n_components")
+        integer(self, "k")
+        real(self, "cannot_tell_fraction", lo=0, lo_open=True)
+        real(self, "confidence_threshold", lo=0, hi=1)
+
+
+@dataclass(frozen=True)
+class AnalysisConfig:
+    """The decision of ``analyze`` and of the evaluation of the estimators.
+
+    Attributes:
+        no_distortion_px: an estimated Delta_avg (analysis px) below this is class R, "no
+            visible distortion" (class 1 spans ]0, 3.6] px at 320 x 424; a true Delta_avg below
+            0.25 px occurs in well under 1 % of the protocol's pairs).
+        min_overlap: below this share of valid pixels the map is too small to judge.
+        out_of_domain_factor: an eigen-space map whose smallest class distance exceeds this
+            multiple of the reject threshold is unlike every training map.
+        min_confidence: below this calibrated confidence (an estimate of P(class right)) the
+            answer is "cannot tell" (self-calibration and regression).
+        selfcal_confidence_scale, selfcal_confidence_shift: the Platt map of the
+            self-calibration's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave
+            it as it is. Fitted on a validation split by ``calibrate_confidence``.
+        regression_confidence_scale, regression_confidence_shift: the same for the regression.
+        cross_check: the learned methods (regression, eigen-space) also run the
+            self-calibration and are out of domain where the two disagree.
+        max_class_disagreement: out of domain where the classes differ by more than this
+            (R counts as class 0).
+        max_delta_disagreement: out of domain where the Delta_avg estimates differ by more than
+            this share of the Delta_avg range.
+        texture_factor: out of domain where the images' gradient-magnitude histogram is farther
+            from every training scene than this multiple of the largest distance of a
+            training view (stored in the checkpoint).
+        validation_seed_offset: the validation split used to fit the decision is the test set
+            of the protocol seed plus this offset (never the test set itself).
+    """
+
+    no_distortion_px: float = 0.25
+    min_overlap: float = 0.5
+    out_of_domain_factor: float = 2.0
+    min_confidence: float = 0.5
+    selfcal_confidence_scale: float = 1.0
+    selfcal_confidence_shift: float = 0.0
+    regression_confidence_scale: float = 1.0
+    regression_confidence_shift: float = 0.0
+    cross_check: bool = True
+    max_class_disagreement: int = 1
+    max_delta_disagreement: float = 0.25
+    texture_factor: float = 2.0
+    validation_seed_offset: int = 1
+
+    def __post_init__(self) -> None:
+        real(self, "no_distortion_px", lo=0, lo_open=True)
+        real(self, "min_overlap", lo=0, hi=1)
+        real(self, "out_of_domain_factor", lo=0, lo_open=True)
+        real(self, "min_confidence", lo=0, hi=1)
+        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "max_delta_disagreement", "texture_factor"):
+            real(self, name, lo=0, lo_open=True)
+        real(self, "selfcal_confidence_shift")
+        real(self, "regression_confidence_shift")
+        flag(self, "cross_check")
+        integer(self, "max_class_disagreement", lo=0)
+        integer(self, "validation_seed_offset")
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Settings of :func:`~lensdist_torch.geometry.calibration.calibrate_sequence` (``[calibration]``).
+
+    Attributes:
+        analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
+        motion_steps: per frame, one pair with the first later frame that moved by at least
+            each of these fractions of the half diagonal.
+        max_motion: no pair moves by more than this fraction of the half diagonal.
+        max_pairs: at most this many pairs, evenly spread over those chosen.
+        batch_size: pairs self-calibrated together (the progress callback's step).
+        outlier_mads: rejection threshold in robust deviations of the signed Delta_avg.
+        max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
+            pairs' lower quartile are rejected (a broken or foreign frame).
+        jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
+        systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
+            pairs share (on rendered sequences 0.05-0.16 % of Delta_max, mostly one sign).
+        confidence: coverage of the intervals.
+        min_pairs: fewer usable pairs give no class ("cannot tell").
+        max_class_halfwidth_px: an interval half-width of Delta_avg above this, at the paper's
+            320 x 424 frame, gives no class (a class bin is 3.6 px wide there).
+    """
+
+    analysis_side: int = 512
+    motion_steps: tuple[float, ...] = (0.14, 0.22)
+    max_motion: float = 0.35
+    max_pairs: int = 64
+    batch_size: int = 16
+    outlier_mads: float = 4.0
+    max_residual_ratio: float = 3.0
+    jackknife_blocks: int = 8
+    systematic_rel: float = 1e-3
+    confidence: float = 0.95
+    min_pairs: int = 4
+    max_class_halfwidth_px: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
+            v, least = getattr(self, name), {"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1)
+            if type(v) is not int or v < least:
+                raise ValueError(f"{name} must be an int >= {least}, got {v!r}")
+        if not (_number(self.max_motion) and 0 < self.max_motion < 1):
+            raise ValueError(f"max_motion must lie in ]0, 1[, got {self.max_motion!r}")
+        if isinstance(self.motion_steps, list):  # a TOML array
+            object.__setattr__(self, "motion_steps", tuple(self.motion_steps))
+        steps = self.motion_steps
+        if not (isinstance(steps, tuple) and steps and all(_number(v) and 0 < v < self.max_motion for v in steps)):
+            raise ValueError(f"motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, got {steps!r}")
+        for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px"):
+            if not (_number(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+        for name, lo in (("confidence", 0.0), ("systematic_rel", -1e-300)):
+            if not (_number(getattr(self, name)) and lo < getattr(self, name) < 1):
+                raise ValueError(f"{name} must lie in {']0' if lo == 0 else '[0'}, 1[, got {getattr(self, name)!r}")
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
