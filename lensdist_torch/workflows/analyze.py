@@ -4,7 +4,8 @@
 (a batch of one) and the evaluation behind every reported figure
 (:mod:`~lensdist_torch.workflows.evaluate`) all call it. Per pair it brings both images to the
 analysis size (centre crop to the aspect ratio, then area resampling), registers them with an
-estimated homography, computes the quality map and asks one estimator for the distortion: the
+estimated homography (:func:`~lensdist_torch.geometry.wide_baseline.estimate_homography_robust`:
+the direct registration, with a feature fallback for far-apart pairs), computes the quality map and asks one estimator for the distortion: the
 self-calibration (default; started from the registration's H), the Delta regression, or the
 paper's eigen-space classifiers; then the decision of :mod:`~lensdist_torch.workflows.decision`
 (class or "cannot tell", calibrated confidence, domain checks). Offsets are reported in analysis
@@ -31,8 +32,9 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
 from lensdist_torch.core.storage import CheckpointError, check_compatible
 from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, delta_avg, delta_max, estimated_class
-from lensdist_torch.geometry.registration import estimate_homography, warp_to_reference
+from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
 from lensdist_torch.workflows.decision import decide, domain_checks, platt, texture_histogram
 
@@ -215,7 +217,7 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
     a, b = torch.cat(a), torch.cat(b)
     n = a.shape[0]
     if homography is None:
-        regs = [estimate_homography(a[i : i + 1], b[i : i + 1], config=cfg.registration) for i in range(n)]
+        regs = [estimate_homography_robust(a[i : i + 1], b[i : i + 1], config=cfg.registration) for i in range(n)]
         H = torch.cat([r[0] for r in regs]).double()
         ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
         residual = torch.cat([r[1].residual for r in regs]).float().cpu()
