@@ -43,7 +43,7 @@ import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
-__all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_distort_normalized", "opencv_undistort_points"]
+__all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_export", "opencv_distort_normalized", "opencv_undistort_points"]
 
 MODELS = ("standard", "rational")
 
@@ -182,3 +182,29 @@ def opencv_camera(
     err = torch.nan_to_num((opencv_undistort_points(pd, cam, dist) - p).norm(dim=-1), nan=float("inf"))
     fwd = torch.nan_to_num((opencv_distort_normalized(x, dist) - xd).norm(dim=-1) * f, nan=float("inf"))
     return OpenCVCamera(cam, dist, float(err.mean()), float(err.max()), float(fwd.mean()), float(fwd.max()), model)
+
+
+def opencv_export(k2: float, k4: float, height: int, width: int, focal: float | None = None, model: str = "standard"):
+    """:func:`opencv_camera` as plain JSON-ready values, or None where (k2, k4) is not finite.
+
+    Args:
+        k2: eq. 4's k2 in the frame's pixels.
+        k4: eq. 4's k4 in the frame's pixels.
+        height: the frame's height (px).
+        width: the frame's width (px).
+        focal: fx = fy in pixels; the half diagonal when None.
+        model: "standard" (k1, k2, p1, p2, k3) or "rational" (8 coefficients).
+
+    Returns:
+        A dict: ``camera_matrix`` (3 x 3 list), ``dist_coeffs`` (list), ``fit_error_mean_px``,
+        ``fit_error_max_px``, ``forward_error_mean_px``, ``forward_error_max_px``.
+
+    Example:
+        >>> sorted(opencv_export(1e-6, 1e-11, 320, 424))[:2]
+        ['camera_matrix', 'dist_coeffs']
+    """
+    if not (math.isfinite(k2) and math.isfinite(k4)):
+        return None
+    cam = opencv_camera(k2, k4, height, width, focal=focal, model=model)
+    return {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"}
+

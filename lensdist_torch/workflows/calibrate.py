@@ -35,7 +35,7 @@ from lensdist_torch.geometry.calibration import (
     to_analysis,
 )
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid, sample
-from lensdist_torch.geometry.opencv_model import opencv_camera
+from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import undistortion_grid
 
 __all__ = ["IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path", "undistort_path",
@@ -126,10 +126,7 @@ def _finite(value):
 
 
 def _opencv(k2: float, k4: float, size: tuple[int, int], focal: float | None, model: str) -> dict | None:
-    if not (math.isfinite(k2) and math.isfinite(k4)):
-        return None
-    cam = opencv_camera(k2, k4, *size, focal=focal, model=model)
-    return {k: v for k, v in cam._asdict().items() if k != "model"}
+    return opencv_export(k2, k4, *size, focal=focal, model=model)
 
 
 def calibrate_path(

@@ -57,3 +57,26 @@ def test_strict_exits_3_and_json_says_null(tmp_path, capsys):
     assert res["class"] is None and res["cannot_tell"] is True
     assert main(["analyze", str(out / "a.png"), str(out / "b.png")]) == 0
     assert "cannot tell" in capsys.readouterr().out
+
+
+def test_selfcal_answer_in_user_pixels_and_opencv_terms():
+    """A distorted pair at twice the analysis size: the coefficients scale by s^2 and s^4, and
+    the OpenCV block maps the user's pixels (its own fit error is reported and small)."""
+    import torch.nn.functional as F
+
+    from lensdist_torch.config import LensdistConfig
+    from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+
+    cfg = LensdistConfig()
+    params = draw_pairs(cfg, "test", [3], 2)
+    a, b = render_pairs([load_scene("gravel"), load_scene("grass")], params, cfg)
+    big_a, big_b = (F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False) for x in (a, b))
+    r = analyze_pair(big_a, big_b)
+    s = r["user_px_per_analysis_px"]
+    assert s == pytest.approx(2.0)
+    assert r["k2_user"] == pytest.approx(r["k2"] / s**2) and r["k4_user"] == pytest.approx(r["k4"] / s**4)
+    cv = r["opencv"]
+    assert len(cv["camera_matrix"]) == 3 and len(cv["dist_coeffs"]) == 5
+    assert cv["camera_matrix"][0][2] == pytest.approx((848 - 1) / 2) and cv["camera_matrix"][1][2] == pytest.approx((640 - 1) / 2)
+    assert cv["fit_error_mean_px"] < 0.1
+    json.dumps(r, allow_nan=False)
