@@ -32,12 +32,11 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
 from lensdist_torch.core.storage import CheckpointError, check_compatible
 from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, delta_avg, delta_max, estimated_class
-from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
-from lensdist_torch.workflows.decision import decide, domain_checks, platt, texture_histogram
+from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels, platt, texture_histogram
 
 __all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "Prepared", "default_checkpoint", "resolve_device", "METHODS"]
 
@@ -408,21 +407,9 @@ def analyze_batch(
             homography=p.H[i].cpu().tolist(),
         )
         if method == "selfcal":
-            res.update(_in_user_pixels(res, s, p.input_size[i]))
+            res.update(in_user_pixels(res, s, p.input_size[i]))
         out.append(res)
     return out
-
-
-def _in_user_pixels(res: dict, s: float, size) -> dict:
-    """Eq. 4's coefficients in the user's pixels, and their OpenCV camera; None without an estimate.
-
-    The analysis frame is a centred crop scaled by s: p_user - c_user = s (p - c), so
-    k2_user = k2 / s^2 and k4_user = k4 / s^4.
-    """
-    if res.get("k2") is None or res["delta_avg"] is None:
-        return {"k2_user": None, "k4_user": None, "opencv": None}
-    k2_user, k4_user = res["k2"] / s**2, res["k4"] / s**4
-    return {"k2_user": k2_user, "k4_user": k4_user, "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1]))}
 
 
 def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str = "selfcal",

@@ -26,10 +26,13 @@ import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.geometry.calibration import user_coefficients
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
+from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.metric.criteria import local_criteria
 
 __all__ = [
+    "in_user_pixels",
     "TEXTURE_EDGES",
     "texture_histogram",
     "texture_statistics",
@@ -243,3 +246,15 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
     res["cannot_tell"] = bool(unsure)
     res["class"] = None if unsure else res["estimated_class"]
     res["class_max"] = None if unsure else res["estimated_class_max"]
+
+
+def in_user_pixels(res: dict, s: float, size) -> dict:
+    """Eq. 4's coefficients in the user's pixels, and their OpenCV camera; None without an estimate.
+
+    The analysis frame is a centred crop scaled by s: p_user - c_user = s (p - c), so
+    k2_user = k2 / s^2 and k4_user = k4 / s^4.
+    """
+    if res.get("k2") is None or res["delta_avg"] is None:
+        return {"k2_user": None, "k4_user": None, "opencv": None}
+    k2_user, k4_user = user_coefficients(res["k2"], res["k4"], s)
+    return {"k2_user": k2_user, "k4_user": k4_user, "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1]))}
