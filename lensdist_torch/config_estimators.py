@@ -118,6 +118,8 @@ class SelfCalConfig:
             fit that leaves it is flagged.
         both_starts: with an ``init`` homography, also fit from phase correlation in the same
             batch and keep, per pair, the start with the lower final robust cost.
+        distortion_levels: (a, b) are fitted on the finest this many levels; the coarser ones
+            fit the homography and the photometric model only (a = b = 0 there).
     """
 
     levels: int = 3
@@ -139,8 +141,10 @@ class SelfCalConfig:
     photometric: str = "gain_bias"
     gain_range: tuple[float, float] = (0.25, 4.0)
     both_starts: bool = True
+    distortion_levels: int = 2
 
     def __post_init__(self) -> None:
+        integer(self, "distortion_levels")
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
         real(self, "huber_k", lo=0, lo_open=True)
