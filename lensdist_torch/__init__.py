@@ -100,6 +100,7 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         load_config,
     )
     from lensdist_torch.core.images import load_image, load_scene, scene_names, to_grey
+    from lensdist_torch.data.shards import generate, load_set
     from lensdist_torch.geometry.distortion import (
         CLASS_LABELS,
         delta_avg,
@@ -116,7 +117,6 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
     from lensdist_torch.geometry.registration import estimate_homography, warp_to_reference
     from lensdist_torch.geometry.selfcal import estimate_distortion
     from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
-    from lensdist_torch.metric.stateful import RegistrationQualityMetric
     from lensdist_torch.metric.quality import (
         ErrorImages,
         LocalCriteria,
@@ -134,9 +134,9 @@ if TYPE_CHECKING:  # for type checkers and IDEs: the same names, eagerly
         registration_quality,
         registration_quality_loss,
     )
+    from lensdist_torch.metric.stateful import RegistrationQualityMetric
     from lensdist_torch.workflows.analyze import analyze_pair
     from lensdist_torch.workflows.reproduce import reproduce
-    from lensdist_torch.data.shards import generate, load_set
 
 
 def __getattr__(name: str) -> Any:
