@@ -1,15 +1,24 @@
 """Self-calibration (lensdist_torch.geometry.selfcal): eq. 4 inverse, recovery, confidence, flags,
-gradients, input checks."""
+gradients, the analytic Jacobian, the M-estimator, the two starts, devices, settings and input
+checks (docs/method.md, section 10). Robustness to photometric change, occluders and noise:
+test_selfcal_robust.py."""
 
 from __future__ import annotations
 
+import ast
 import math
+from pathlib import Path
 
 import pytest
 import torch
 
+from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.geometry import selfcal_model
 from lensdist_torch.geometry.distortion import delta_avg, distort_points, distortion_grid, sample, undistort_points
+from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid
+from lensdist_torch.geometry.registration import estimate_homography
 from lensdist_torch.geometry.selfcal import (
     SelfCalConfig,
     distort_normalized,
@@ -100,12 +109,18 @@ def test_divergent_pair_is_flagged_not_returned():
     far = torch.eye(3, dtype=torch.float64)[None].repeat(2, 1, 1)
     far[0, 0, 2] = 5000.0  # maps img1 entirely outside img2: no overlap
     far[1, 1, 2] = -8.0  # a sane one beside it
-    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2))
+    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2), both_starts=False)
     k2, k4, H, info = estimate_distortion(i1.repeat(2, 1, 1, 1), i2.repeat(2, 1, 1, 1), init=far, config=cfg)
     assert not bool(info.converged[0]) and not bool(info.confident[0])
     assert math.isnan(float(k2[0])) and math.isnan(float(k4[0])) and torch.isnan(H[0]).all()
     assert math.isnan(float(info.delta_avg[0]))
     assert bool(info.converged[1]) and math.isfinite(float(k2[1]))
+    assert info.from_init.tolist() == [True, True]
+    # with both starts (the default) the phase-correlation start rescues the far init
+    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2))
+    k2, _, H, info = estimate_distortion(i1.repeat(2, 1, 1, 1), i2.repeat(2, 1, 1, 1), init=far, config=cfg)
+    assert bool(info.converged.all()) and not bool(info.from_init[0])
+    assert torch.allclose(H[0, :2, 2], torch.tensor([0.0, -8.0], dtype=H.dtype), atol=0.3)
 
 
 def test_gradients_through_the_model_are_finite():
@@ -147,3 +162,149 @@ def test_public_exports():
 
     assert lensdist_torch.estimate_distortion is estimate_distortion
     assert lensdist_torch.DeltaRegressor.__name__ == "DeltaRegressor"
+
+
+# ------------------------------------------------------------------ the analytic Jacobian
+def _smooth(h, w, dx, dy):
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    x, y = xx + dx, yy + dy
+    return (0.5 + 0.2 * torch.sin(x / 15) * torch.cos(y / 21) + 0.1 * torch.sin((x + 0.5 * y) / 12)).float()[None, None]
+
+
+@pytest.mark.parametrize("photometric", ["none", "gain_bias", "normalized"])
+def test_jacobian_matches_finite_differences(photometric):
+    """Every column of evaluate's Jacobian against central differences of its residual, on a
+    smooth pair and central samples (the valid set does not change with the steps). The image
+    gradient is taken by central differences, the residual interpolates bilinearly: they agree
+    to a few per cent on a smooth image."""
+    h, w = 60, 80
+    i1, i2 = _smooth(h, w, 0, 0), _smooth(h, w, 1.5, 2.0)
+    ud = normalized_grid(0, h, w, h, w).view(-1, 2)
+    idx = torch.nonzero(ud.norm(dim=-1) < 0.4).flatten()[None]
+    ux, uy = ud[idx, 0], ud[idx, 1]
+    lv = selfcal_model.Level(torch.gather(i1.flatten(1), 1, idx), selfcal_model.with_gradients(i2), ux, uy,
+                             ux * ux + uy * uy, half_diagonal(h, w), level_to_grid(0, h, w, h, w), 8, 4.0, photometric, 1e-6)
+    n_par = 12 if photometric == "gain_bias" else 10
+    theta = torch.zeros(1, n_par, dtype=torch.float64)
+    theta[0, :10] = torch.tensor([0.01, -0.005, 0.02, 0.004, -0.01, 0.03, 0.002, -0.001, 0.05, 0.02])
+    if n_par == 12:
+        theta[0, 10:] = torch.tensor([1.1, -0.05])
+    _, valid, J = selfcal_model.evaluate(theta, lv)
+    assert J.shape == (1, n_par, idx.shape[1])
+    eps = 1e-3
+    for k in range(n_par):
+        step = torch.zeros_like(theta)
+        step[0, k] = eps
+        (rp, vp, _), (rm, vm, _) = (selfcal_model.evaluate(theta + s, lv, jac=False) for s in (step, -step))
+        assert bool((vp & vm & valid).all())
+        fd = (rp - rm) / (2 * eps)
+        assert float((J[0, k] - fd[0]).norm() / fd[0].norm()) < 0.06, k
+
+
+# ------------------------------------------------------------------ the M-estimator
+def test_robust_scale_weights_and_cost():
+    res = torch.tensor([[0.0, 1.0, -1.0, 2.0, -2.0, 100.0, 3.0, 50.0]])
+    valid = torch.tensor([[True] * 7 + [False]])
+    # median 1 of the seven valid residuals, |r - 1| = 1, 0, 2, 1, 3, 99, 2: MAD 2
+    assert math.isclose(float(selfcal_model.robust_scale(res, valid, 1e-3)[0]), 1.4826 * 2, rel_tol=1e-6)
+    assert math.isclose(float(selfcal_model.robust_scale(torch.zeros(1, 8), torch.ones(1, 8, dtype=torch.bool), 0.01)[0]), 0.01, rel_tol=1e-6)
+    sigma = torch.tensor([1.0])
+    assert selfcal_model.robust_weights(res, sigma, "none", 1.0) is None
+    hub = selfcal_model.robust_weights(res, sigma, "huber", 1.345)[0]
+    assert torch.allclose(hub[:5], torch.tensor([1.0, 1.0, 1.0, 1.345 / 2, 1.345 / 2]))
+    tuk = selfcal_model.robust_weights(res, sigma, "tukey", 4.685)[0]
+    assert float(tuk[5]) == 0.0 and float(tuk[0]) == 1.0 and 0 < float(tuk[3]) < 1
+    ls = selfcal_model.robust_cost(res * valid, valid, sigma, "none", 1.0)
+    assert math.isclose(float(ls[0]), (1 + 1 + 4 + 4 + 1e4 + 9) / 7)
+    # the robust costs grow at most linearly (Huber) or not at all (Tukey) with the outlier
+    big = res.clone()
+    big[0, 5] = 1e4  # 100 times the outlier
+    def cost(x, loss, k):
+        return float(selfcal_model.robust_cost(x * valid, valid, sigma, loss, k)[0])
+
+    assert cost(res, "huber", 1.345) < cost(big, "huber", 1.345) < 100 * cost(res, "huber", 1.345)
+    assert cost(res, "tukey", 4.685) == cost(big, "tukey", 4.685)
+
+
+# ------------------------------------------------------------------ the two starts
+def test_init_from_registration_is_never_worse_than_no_init():
+    """The registration's H absorbs part of the distortion; started from it alone, the fit stays
+    near it (Delta_avg 2 px low on these pairs). With both starts, per pair, the lower robust
+    cost wins: the phase-correlation start here, exactly the no-init fit."""
+    cfg = LensdistConfig()
+    p = draw_pairs(cfg, "test", [20, 28], 2)
+    i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
+    true = delta_avg(p.k2, p.k4, 320, 424)
+    H, reg = estimate_homography(i1, i2)
+    assert bool(reg.converged.all())
+    free = estimate_distortion(i1, i2)[3]
+    both = estimate_distortion(i1, i2, init=H)[3]
+    alone = estimate_distortion(i1, i2, init=H, config=SelfCalConfig(both_starts=False))[3]
+    assert bool(((free.delta_avg - true).abs() < 0.3).all())
+    assert bool(((alone.delta_avg - true).abs() > 1.0).all())
+    assert not bool(both.from_init.any()) and torch.equal(both.delta_avg, free.delta_avg)
+
+
+# ------------------------------------------------------------------ devices
+def _outputs(img1, img2, init=None, config=None):
+    k2, k4, H, info = estimate_distortion(img1, img2, init=init, config=config)
+    return [k2, k4, H, *info]
+
+
+def test_outputs_follow_the_input_device():
+    i1, i2 = _pair(64, 80, 2e-5, 1e-9, (0.5, 3.0))
+    init = torch.eye(3, dtype=torch.float64)[None]
+    cfg = SelfCalConfig(levels=2, iterations=(4, 2), sample_block=(1, 1))
+    for out in (_outputs(i1, i2, config=cfg), _outputs(i1, i2, init, cfg)):
+        assert all(t.device == i1.device for t in out)
+        assert out[0].dtype == out[1].dtype == out[2].dtype == torch.float64
+
+
+_FACTORIES = {"zeros", "ones", "full", "empty", "arange", "linspace", "eye", "tensor", "as_tensor", "rand", "randn"}
+_HELPERS = {"normalizer": 3, "normalized_grid": 6, "pixel_offsets": 5, "pixel_grid": 3}  # positional index of device
+
+
+@pytest.mark.parametrize("module", ["selfcal.py", "selfcal_model.py"])
+def test_every_tensor_is_made_on_a_named_device(module):
+    """No tensor of the self-calibration is created on the default device: every torch factory
+    (and frame / distortion helper) call names a device (the *_like / new_* forms inherit one)."""
+    tree = ast.parse((Path(selfcal_model.__file__).parent / module).read_text())
+    bad = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        f = node.func
+        name = f.attr if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id == "torch" else None
+        name = f.id if isinstance(f, ast.Name) and f.id in _HELPERS else name
+        if name in _FACTORIES or name in _HELPERS:
+            named = any(k.arg == "device" for k in node.keywords) or len(node.args) > _HELPERS.get(name, 99)
+            if not named:
+                bad.append(f"{module}:{node.lineno} {name}")
+    assert bad == []
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    cfg = LensdistConfig()
+    p = draw_pairs(cfg, "test", range(4), 2)
+    i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
+    H = torch.eye(3, dtype=torch.float64).repeat(4, 1, 1)
+    for init in (None, H):
+        cpu = _outputs(i1, i2, init)
+        gpu = _outputs(i1.cuda(), i2.cuda(), None if init is None else init.cuda())
+        assert all(t.device.type == "cuda" for t in gpu)
+        info_cpu, info_gpu = cpu[3:], gpu[3:]
+        assert torch.equal(info_cpu[0], info_gpu[0].cpu())  # converged
+        assert float((info_cpu[3] - info_gpu[3].cpu()).abs().max()) < 1e-3  # Delta_avg, px
+
+
+# ------------------------------------------------------------------ settings
+@pytest.mark.bad_input
+@pytest.mark.parametrize(
+    "field,value",
+    [("robust", "cauchy"), ("photometric", "gain"), ("huber_k", 0.0), ("tukey_c", -1.0), ("gain_range", (2.0, 1.0)),
+     ("both_starts", 1), ("distortion_levels", 0)],
+)
+def test_robust_settings_are_checked(field, value):
+    with pytest.raises(ValueError, match=rf"^selfcal\.{field} must be [^\n]*, got "):
+        SelfCalConfig(**{field: value})
