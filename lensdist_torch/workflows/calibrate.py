@@ -15,6 +15,7 @@ every corrected frame as a PNG (grey or colour, as the input) and its validity m
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -28,6 +29,7 @@ import torch.nn.functional as F
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
 from lensdist_torch.core.storage import atomic_write_bytes
+from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.geometry.calibration import (
     CalibrationConfig,
     analysis_scale,
@@ -301,6 +303,8 @@ def synthetic_sequence(
     jitter_px: float = 1.0,
     rotation_deg: float = 0.2,
     seed: int = 0,
+    realistic: bool = False,
+    config: LensdistConfig | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """A camera panning down an embedded scene, every frame distorted by one (k2, k4).
 
@@ -309,6 +313,13 @@ def synthetic_sequence(
     one ``grid_sample`` each. Steps ~ U[step_px], horizontal jitter ~ U[-jitter_px, jitter_px],
     rotation ~ U[-rotation_deg, rotation_deg]; the zoom z (scene px per frame px) is the largest
     that keeps every sample inside the scene.
+
+    With ``realistic`` each distorted frame also gets what a video frame has, drawn as the first
+    view of the realistic pair protocol (:func:`~lensdist_torch.data.realism.degrade`, ranges from
+    ``config.protocol``, default :class:`LensdistConfig`): its own gain, offset, gamma and
+    illumination ramp, sensor noise, 8-bit JPEG and, in ``occluder_rate`` of the frames, a patch
+    (a moving object: it is at another place or absent in the other frames). No parallax: the
+    scene stays a plane. The ideal frames stay clean.
 
     Returns:
         distorted, ideal: (N, 1, H, W) float32 (ideal: the same path with k2 = k4 = 0).
@@ -338,4 +349,10 @@ def synthetic_sequence(
         out.append(F.grid_sample(src.expand(2, -1, -1, -1), torch.stack([x / (ws - 1), y / (hs - 1)], -1) * 2 - 1,
                                  align_corners=True).float())
     frames = torch.stack(out, 1)  # (2, N, 1, H, W)
-    return frames[0].contiguous(), frames[1].contiguous()
+    distorted = frames[0].contiguous()
+    if realistic:
+        cfg = config or LensdistConfig()
+        cfg = dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, height=h, width=w))  # the patches' frame
+        real = draw_realism(cfg, [1_000_003 * seed + i for i in range(n_frames)])
+        distorted = degrade(distorted, distorted, real)[0]
+    return distorted, frames[1].contiguous()
