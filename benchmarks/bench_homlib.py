@@ -54,9 +54,9 @@ from bench_selfcal import figures  # the same figures as the self-calibration be
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.shards import load_scenes
+from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top
 from lensdist_torch.geometry.selfcal import estimate_distortion
-from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 
 PIP = "pip install homlib opencv-python-headless"
 

@@ -5,9 +5,9 @@ import dataclasses
 import pytest
 import torch
 
+from lensdist_torch.classify.eigenspace import CHECKPOINT_VERSION, CheckpointError, EigenSpaceClassifier
 from lensdist_torch.config import ClassifierConfig, ImageConfig, LensdistConfig, QualityConfig
 from lensdist_torch.geometry.distortion import REJECT
-from lensdist_torch.classify.eigenspace import CHECKPOINT_VERSION, CheckpointError, EigenSpaceClassifier
 from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
 from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions, report_markdown
 
@@ -42,7 +42,7 @@ class TestFit:
     def test_recovers_class_subspaces(self):
         x, c, d, spaces = _subspace_data()
         clf = EigenSpaceClassifier(20, _cfg()).fit(x, c, d)
-        for k, (mu, basis) in enumerate(spaces):
+        for k, (_mu, basis) in enumerate(spaces):
             # the fitted projector equals the true subspace's projector
             u = clf.bases[k].double()
             assert torch.allclose(u.T @ u, basis @ basis.T, atol=1e-4)

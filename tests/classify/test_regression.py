@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from lensdist_torch.config import LensdistConfig
 from lensdist_torch.classify.eigenspace import CheckpointError, EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
+from lensdist_torch.config import LensdistConfig
 
 
 def _synthetic(n, seed=0, n_features=40):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.calibration import (
     CalibrationConfig,
     _t_quantile,
@@ -19,7 +20,6 @@ from lensdist_torch.geometry.calibration import (
     to_analysis,
     user_coefficients,
 )
-from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     delta_avg,
