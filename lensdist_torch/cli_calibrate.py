@@ -32,9 +32,11 @@ def _print_calibration(res: dict) -> None:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     """``lensdist calibrate PATH [--json] [--out DIR] [--quiet]``."""
+    from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.calibrate import calibrate_path
 
-    res = calibrate_path(args.path, max_frames=args.max_frames, focal=args.focal, quiet=args.quiet)
+    res = calibrate_path(args.path, max_frames=args.max_frames, focal=args.focal, quiet=args.quiet,
+                         device=resolve_device(args.device))
     text = json.dumps(res, indent=2, allow_nan=False)
     if args.out:
         out = Path(args.out)
@@ -53,10 +55,11 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_undistort(args: argparse.Namespace) -> int:
     """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--quiet]``."""
+    from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.calibrate import undistort_path
 
     res = undistort_path(args.path, args.out, k2=args.k2, k4=args.k4, from_json=args.from_json,
-                         max_frames=args.max_frames, quiet=args.quiet)
+                         max_frames=args.max_frames, quiet=args.quiet, device=resolve_device(args.device))
     print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}) into {res['out_dir']}, "
           f"masks in {Path(res['out_dir']) / 'masks'} ({100 * res['valid_fraction']:.1f} % valid)")
     return 0
@@ -71,6 +74,7 @@ def add_calibrate_commands(subparsers) -> None:
     p.add_argument("--max-frames", type=int, default=300, help="read at most this many frames")
     p.add_argument("--focal", type=float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--device", default="cpu", help="where registration and self-calibration run: cpu, cuda or cuda:N")
     p.set_defaults(func=_cmd_calibrate)
 
     p = subparsers.add_parser("undistort", help="correct every frame of a folder or video (PNG + validity masks)")
@@ -81,4 +85,5 @@ def add_calibrate_commands(subparsers) -> None:
     p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
     p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--device", default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N")
     p.set_defaults(func=_cmd_undistort)

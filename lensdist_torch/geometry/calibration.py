@@ -169,8 +169,8 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
 
 
 def _translation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(n, 1, h, w) twice -> (n, 2) float64 t with a(p) ~ b(p + t) (phase correlation)."""
-    return phase_correlation(a[:, 0], b[:, 0]).double()
+    """(n, 1, h, w) twice -> (n, 2) float64 t on the CPU with a(p) ~ b(p + t) (phase correlation)."""
+    return phase_correlation(a[:, 0], b[:, 0]).double().cpu()
 
 
 def _self_calibrate(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
@@ -182,11 +182,13 @@ def _self_calibrate(frames, pairs, shifts, settings: LensdistConfig, cfg: Calibr
         sl = slice(s, s + cfg.batch_size)
         init = torch.eye(3, dtype=torch.float64).repeat(len(pairs[sl]), 1, 1)
         init[:, :2, 2] = shifts[sl]
-        info = estimate_distortion(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init, settings.selfcal)[3]
-        ok = info.converged & torch.isfinite(info.delta_avg_std)
-        ab[sl] = torch.where(ok[:, None], info.ab.double(), ab[sl])
-        std[sl] = torch.where(ok, info.delta_avg_std.double(), std[sl])
-        res[sl] = torch.where(ok, info.residual.double(), res[sl])
+        info = estimate_distortion(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init.to(frames.device), settings.selfcal)[3]
+        # the fit runs on the frames' device; its few numbers per pair come back to the CPU
+        got_ab, got_std, got_res = (x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual))
+        ok = info.converged.cpu() & torch.isfinite(got_std)
+        ab[sl] = torch.where(ok[:, None], got_ab, ab[sl])
+        std[sl] = torch.where(ok, got_std, std[sl])
+        res[sl] = torch.where(ok, got_res, res[sl])
         if progress is not None:
             progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
     if bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many

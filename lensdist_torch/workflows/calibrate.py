@@ -138,6 +138,7 @@ def calibrate_path(
     max_frames: int | None = 300,
     focal: float | None = None,
     quiet: bool = True,
+    device: torch.device | str | None = None,
 ) -> dict:
     """Calibrate the camera of a folder of frames or a video (module docstring).
 
@@ -148,6 +149,8 @@ def calibrate_path(
         max_frames: read at most this many frames (None: all).
         focal: OpenCV's fx = fy in pixels; the half diagonal when None.
         quiet: no progress bars.
+        device: where the registration and the self-calibration run (default: the CPU); the
+            frames are read and brought to the analysis size on the CPU.
 
     Returns:
         A dict for ``json.dumps(..., allow_nan=False)``: path, frames, image_size [H, W],
@@ -183,7 +186,7 @@ def calibrate_path(
             bar.total = total
             bar.update(done - bar.n)
 
-        cal = calibrate_sequence(torch.cat(frames), cfg, settings, frame_size=size, progress=progress)
+        cal = calibrate_sequence(torch.cat(frames).to(device or "cpu"), cfg, settings, frame_size=size, progress=progress)
     out = {k: getattr(cal, k) for k in ("frames", "image_size", "analysis_size", "scale", "k2_user", "k4_user",
                                         "delta_avg_user_px", "delta_avg_user_interval", "delta_max_user_px",
                                         "delta_max_user_interval")}
@@ -258,6 +261,7 @@ def undistort_path(
     from_json: str | Path | None = None,
     max_frames: int | None = None,
     quiet: bool = True,
+    device: torch.device | str | None = None,
 ) -> dict:
     """Undistort every frame of a folder or video into ``out_dir`` (PNG), masks in ``out_dir/masks``.
 
@@ -271,6 +275,7 @@ def undistort_path(
         from_json: instead of k2, k4: a ``calibration.json`` of ``lensdist calibrate --out``.
         max_frames: at most this many frames (None: all).
         quiet: no progress bar.
+        device: where the frames are resampled (default: the CPU).
 
     Returns:
         dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks).
@@ -278,14 +283,14 @@ def undistort_path(
     path, out = Path(path), Path(out_dir)
     if path.is_dir() and out.resolve() == path.resolve():
         raise ValueError(f"out_dir must differ from the input folder {path}")
-    grid, n, valid_sum = None, 0, 0.0
+    grid, n, valid_sum, dev = None, 0, 0.0, torch.device(device or "cpu")
     for name, img in _frames_of_one_size(path, False, max_frames, quiet, "undistorting"):
         if grid is None:
             k2, k4 = _coefficients_for(tuple(img.shape[-2:]), k2, k4, from_json)
-            grid, valid = undistortion_grid(k2, k4, *img.shape[-2:])
+            grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *img.shape[-2:]))
             (out / "masks").mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint8((sample(img, grid) * valid)[0])))
-        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0])))
+        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint8((sample(img.to(dev), grid) * valid)[0]).cpu()))
+        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0]).cpu()))
         n, valid_sum = n + 1, valid_sum + float(valid.mean())
     if n == 0:
         raise ValueError(f"path {path} holds no frames")

@@ -214,3 +214,28 @@ def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
         undistort_path(folder, folder, k2=0.0, k4=0.0)
     with pytest.raises(SystemExit):  # argparse: --out is required
         _parser().parse_args(["undistort", str(folder), "--k2", "0", "--k4", "0"])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_calibrates_and_undistorts_as_the_cpu(sequence, tmp_path):
+    folder, _ = sequence
+    cpu, gpu = calibrate_path(folder), calibrate_path(folder, device="cuda")
+    assert gpu["class"] == cpu["class"] and gpu["delta_avg_user_px"] == pytest.approx(cpu["delta_avg_user_px"], abs=0.02)
+    a = undistort_path(folder, tmp_path / "cpu", k2=K2, k4=K4)
+    b = undistort_path(folder, tmp_path / "gpu", k2=K2, k4=K4, device="cuda")
+    assert a["valid_fraction"] == pytest.approx(b["valid_fraction"], abs=1e-6)
+    x, y = (load_image(tmp_path / d / "frame_3.png") for d in ("cpu", "gpu"))
+    assert float((x - y).abs().max()) <= 1 / 255 + 1e-6  # 8-bit rounding of float differences
+
+
+@pytest.mark.bad_input
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA present")
+@pytest.mark.parametrize("command", ["calibrate", "undistort"])
+def test_cuda_without_cuda_is_a_one_line_error(sequence, tmp_path, capsys, command):
+    from lensdist_torch.cli import main
+
+    folder, _ = sequence
+    extra = ["--k2", "0", "--k4", "0", "--out", str(tmp_path / "u")] if command == "undistort" else []
+    assert main([command, str(folder), "--device", "cuda", *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "device 'cuda'" in err and "CUDA is not available" in err
