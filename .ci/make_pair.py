@@ -23,3 +23,11 @@ out = Path(sys.argv[1])
 scene = (load_scene("gravel")[0, 0] * 255).round().byte()
 write_png(out / "a.png", scene[:320, :424])
 write_png(out / "b.png", scene[8:328, :424])
+
+# a 10-frame sequence of a distorted camera panning down the scene, for calibrate / undistort
+from lensdist_torch.workflows.calibrate import encode_png, synthetic_sequence  # noqa: E402
+
+frames = out / "frames"
+frames.mkdir(exist_ok=True)
+for i, frame in enumerate(synthetic_sequence(10, 6e-6, 0.0, size=(240, 320), seed=3)[0]):
+    (frames / f"frame_{i:03d}.png").write_bytes(encode_png((frame * 255).round().byte()))
