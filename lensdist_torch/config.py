@@ -27,10 +27,11 @@ field (``protocol.ty_range must be (low, high) ...``); the checks are in ``confi
 from __future__ import annotations
 
 import dataclasses
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import tomllib  # Python >= 3.11 (pyproject.toml says why)
 
 from lensdist_torch.config_checks import choice, flag, integer, names, one_line, pair, positive, real, show
 from lensdist_torch.config_estimators import (
@@ -40,11 +41,6 @@ from lensdist_torch.config_estimators import (
     RegressionConfig,
     SelfCalConfig,
 )
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # Python 3.10: the same parser, as a package
-    import tomli as tomllib
 
 __all__ = [
     "QualityConfig", "ImageConfig", "DistortionConfig", "ProtocolConfig", "ClassifierConfig",

@@ -4,14 +4,10 @@ from __future__ import annotations
 
 import copy
 import json
-import sys
 from pathlib import Path
 from typing import Any
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # Python 3.10: the same parser, as a package (as in lensdist_torch/config.py)
-    import tomli as tomllib
+import tomllib
 
 __all__ = [
     "ARM_NAMES",
