@@ -37,6 +37,8 @@ class RegistrationConfig:
         max_step: an update moving a corner by more than this fraction of the diagonal diverged.
         fine_stride: template pixel stride at full resolution.
         presmooth: binomial smoothing (sigma 1 px) of both images first.
+        match_intensity: img2's grey levels mapped affinely to img1's mean and standard deviation
+            first (per pair): a change of exposure (gain, offset) is not read as misregistration.
         chunk_size: pairs registered together (cache locality); results do not depend on it.
         feature_fallback: :func:`~lensdist_torch.geometry.wide_baseline.estimate_homography_robust`
             retries the pairs that did not converge from SIFT matches (docs/method.md, section 10).
@@ -59,6 +61,7 @@ class RegistrationConfig:
     max_step: float = 0.25
     fine_stride: int = 2
     presmooth: bool = True
+    match_intensity: bool = True
     chunk_size: int = 8
     feature_fallback: bool = True
     max_keypoints: int = 2000
@@ -205,8 +208,8 @@ class AnalysisConfig:
         regression_confidence_scale, regression_confidence_shift: the same for the regression.
         cross_check: the learned methods (regression, eigen-space) also run the
             self-calibration and are out of domain where the two disagree.
-        max_class_disagreement: out of domain where the classes differ by more than this
-            (R counts as class 0).
+        max_class_disagreement: out of domain where the classes differ by more than this;
+            class R against any class (distortion found by one, none by the other) always does.
         max_delta_disagreement: out of domain where the Delta_avg estimates differ by more than
             this share of the Delta_avg range.
         texture_factor: out of domain where the images' gradient-magnitude histogram is farther

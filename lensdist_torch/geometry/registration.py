@@ -6,7 +6,8 @@ integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with the motion 
 
 :func:`estimate_homography`, batched over pairs (no Python loop over pairs):
 
-1. Grey images, both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px: it cuts the corner
+1. Grey images, img2's mapped affinely to img1's mean and standard deviation
+   (``match_intensity``: an exposure change is not misregistration), both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px: it cuts the corner
    error of rendered pairs about 2.5 x), and a pyramid of 2 x 2 means.
 2. Initial translation by phase correlation (Hann window, sub-pixel parabola) at 1/8, unless
    ``init`` is given.
@@ -60,6 +61,7 @@ __all__ = [
     "RegistrationInfo",
     "corner_error",
     "estimate_homography",
+    "match_intensity",
     "perturb_homography",
     "warp_to_reference",
 ]
@@ -214,10 +216,29 @@ def estimate_homography(
     for i in range(0, bsz, cfg.chunk_size):  # a chunk's planes stay in the CPU cache
         sl = slice(i, i + cfg.chunk_size)
         g1, g2 = (to_grey(x[sl])[:, 0].float() for x in (img1, img2))
+        if cfg.match_intensity:
+            g2 = match_intensity(g1, g2)
         parts.append(_register(g1, g2, None if hn0 is None else hn0[sl], cfg))
     hn, conv, res, its, ov, tex = (torch.cat(p) for p in zip(*parts))
     h = torch.linalg.inv(to_u) @ hn @ to_u
     return h / h[:, 2:, 2:], RegistrationInfo(conv, res, its, ov, tex)
+
+
+def match_intensity(ref: torch.Tensor, img: torch.Tensor) -> torch.Tensor:
+    """``img`` (B, H, W) mapped affinely to ``ref``'s per-image mean and standard deviation.
+
+    (img - mean(img)) std(ref) / std(img) + mean(ref), a flat ``img`` (std under 1e-6) only
+    shifted: the gain and offset between two exposures of one scene, removed before registration.
+
+    Example:
+        >>> x = torch.rand(1, 32, 32)
+        >>> bool(torch.allclose(match_intensity(x, 0.6 * x + 0.1), x, atol=1e-5))
+        True
+    """
+    m1, s1 = ref.mean((-2, -1), keepdim=True), ref.std(dim=(-2, -1), keepdim=True)
+    m2, s2 = img.mean((-2, -1), keepdim=True), img.std(dim=(-2, -1), keepdim=True)
+    gain = torch.where(s2 > 1e-6, s1 / s2.clamp_min(1e-6), torch.ones_like(s2))
+    return (img - m2) * gain + m1
 
 
 class _Level:

@@ -13,6 +13,7 @@ from lensdist_torch.geometry.registration import (
     RegistrationConfig,
     corner_error,
     estimate_homography,
+    match_intensity,
     perturb_homography,
     warp_to_reference,
 )
@@ -308,3 +309,26 @@ def test_corner_error():
     assert torch.allclose(err, torch.tensor([5.0], dtype=torch.float64))
     with pytest.raises(ValueError, match="H_true"):
         corner_error(eye.repeat(2, 1, 1), eye.repeat(3, 1, 1), H0, W0)
+
+
+def test_match_intensity_maps_mean_and_std():
+    g = torch.Generator().manual_seed(0)
+    ref, img = torch.rand(3, 40, 50, generator=g), torch.rand(3, 40, 50, generator=g) * 0.3 + 0.5
+    out = match_intensity(ref, img)
+    assert torch.allclose(out.mean((1, 2)), ref.mean((1, 2)), atol=1e-6)
+    assert torch.allclose(out.std(dim=(1, 2)), ref.std(dim=(1, 2)), atol=1e-6)
+    flat = match_intensity(ref, torch.full((3, 40, 50), 0.2))  # nothing to scale: only shifted
+    assert torch.allclose(flat, ref.mean((1, 2), keepdim=True).expand_as(flat), atol=1e-6)
+
+
+@pytest.mark.parametrize("gain, offset", [(0.7, 0.1), (1.3, -0.1), (1.0, 0.2)])
+def test_an_exposure_change_still_registers(gain, offset):
+    """A shifted view with another gain and offset: registered as well as with none."""
+    s = load_scene("gravel")
+    a, b = s[..., 10:170, 20:232], s[..., 22:182, 23:235]  # img1(p) = img2(p - (3, 12))
+    b2 = (gain * b + offset).clamp(0, 1)
+    H, info = estimate_homography(a, b2)
+    assert bool(info.converged[0])
+    assert float(H[0, 0, 2]) == pytest.approx(-3.0, abs=0.02) and float(H[0, 1, 2]) == pytest.approx(-12.0, abs=0.02)
+    _, off = estimate_homography(a, b2, config=RegistrationConfig(match_intensity=False))
+    assert float(info.residual[0]) < float(off.residual[0])
