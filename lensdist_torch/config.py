@@ -144,6 +144,9 @@ class ProtocolConfig:
 
     ``seed`` is any int; ``scenes`` distinct embedded scene names; the ranges (low, high); the
     rotation and perspective half-widths >= 0; the class-R ``perturbation`` in [0, 1[.
+    ``unseen_scenes``: embedded scenes none of ``scenes``, on which ``lensdist reproduce`` also
+    tests every method (a scene unlike the training ones; empty: no such test; not in the data
+    fingerprint: the training and test pairs do not depend on it).
 
     ``realistic`` (off by default) adds the effects of a photograph (docs/method.md section 7,
     the realistic protocol), each drawn per view or per pair: ``gain_range`` (> 0),
@@ -157,6 +160,7 @@ class ProtocolConfig:
 
     seed: int = 0
     scenes: tuple[str, ...] = ("gravel", "grass")
+    unseen_scenes: tuple[str, ...] = ("brick",)
     n_train: int = 12000
     n_test_distorted: int = 400
     n_test_undistorted: int = 100
@@ -181,6 +185,10 @@ class ProtocolConfig:
     def __post_init__(self) -> None:
         integer(self, "seed", lo=None)
         names(self, "scenes")
+        names(self, "unseen_scenes", empty=True)
+        if set(self.unseen_scenes) & set(self.scenes):
+            raise ValueError(f"protocol.unseen_scenes must share no scene with protocol.scenes, both hold "
+                             f"{sorted(set(self.unseen_scenes) & set(self.scenes))}")
         for name in ("n_train", "n_test_distorted", "n_test_undistorted"):
             integer(self, name, lo=0)
         pair(self, "ty_range")

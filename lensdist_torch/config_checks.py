@@ -141,10 +141,10 @@ def integers(obj, name, lo: int = 1, n: int | None = None, per: str = "") -> Non
     object.__setattr__(obj, name, tuple(int(v) for v in value))
 
 
-def names(obj, name) -> None:
-    """A non-empty tuple of distinct non-empty strings."""
-    what = "a non-empty list of distinct non-empty strings"
+def names(obj, name, empty: bool = False) -> None:
+    """A tuple of distinct non-empty strings, non-empty unless ``empty``."""
+    what = ("a" if empty else "a non-empty") + " list of distinct non-empty strings"
     value = _sequence(obj, name, what)
-    if not value or not all(isinstance(v, str) and v.strip() for v in value) or len(set(value)) != len(value):
+    if (not value and not empty) or not all(isinstance(v, str) and v.strip() for v in value) or len(set(value)) != len(value):
         _fail(obj, name, what, getattr(obj, name))
     object.__setattr__(obj, name, value)

@@ -53,7 +53,8 @@ def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
 
     The quality, image, distortion, protocol and registration sections count (chunk sizes do
     not; ``shard_size`` does, since it fixes which pairs each shard file holds; nor do the
-    feature fallback's settings: the protocol's registration never uses it).
+    feature fallback's settings: the protocol's registration never uses it; nor
+    ``protocol.unseen_scenes``).
     """
     d = config_to_dict(config)
     d = {name: d[name] for name in _DATA_SECTIONS}
@@ -61,6 +62,7 @@ def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
         d[name].pop("chunk_size", None)
     for key in _NOT_IN_DATA:
         d["registration"].pop(key, None)
+    d["protocol"].pop("unseen_scenes", None)  # only reproduce's extra test set reads it
     d["scenes"] = scene_ids
     return hashlib.sha256(json.dumps(d, sort_keys=True, allow_nan=False).encode()).hexdigest()[:16]
 

@@ -10,9 +10,9 @@ Every threshold is in ``config.analysis`` (:class:`~lensdist_torch.config.Analys
   a few scenes: a pair is out of domain where its gradient-magnitude histogram is farther from
   every training scene than ``texture_factor`` times the largest distance of a training view
   (:func:`texture_statistics`, stored in the checkpoint's ``extra``), or where the
-  self-calibration, which learns nothing, confidently disagrees (classes more than
-  ``max_class_disagreement`` apart, or Delta_avg more than ``max_delta_disagreement`` of its
-  range apart).
+  self-calibration, which learns nothing, confidently disagrees: one finds distortion and the
+  other none (class R against a class), the classes are more than ``max_class_disagreement``
+  apart, or Delta_avg more than ``max_delta_disagreement`` of its range apart.
 * **The answer** (:func:`decide`): ``class`` is None and ``cannot_tell`` True whenever the
   registration failed, there is no estimate, the overlap is too small, the pair is out of
   domain or the confidence is low; ``estimated_class`` keeps the estimator's own guess.
@@ -189,10 +189,11 @@ def domain_checks(res: dict, selfcal: dict | None, texture: torch.Tensor | None,
     check = {"class": selfcal["estimated_class"], "delta_avg": selfcal["delta_avg"], "usable": usable, "agrees": True}
     if usable:
         gap = class_distance(res["estimated_class"], selfcal["estimated_class"])
+        # whether there is distortion at all is asked first: R against a class disagrees
+        is_r = [c == CLASS_LABELS[-1] for c in (res["estimated_class"], selfcal["estimated_class"])]
         # a class-R answer's Delta is the eigen-space's guess of its nearest class: the classes decide
-        no_r = CLASS_LABELS[-1] not in (res["estimated_class"], selfcal["estimated_class"])
-        far = no_r and abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top("delta_avg", cfg)
-        check["agrees"] = not ((gap is not None and gap > a.max_class_disagreement) or far)
+        far = not any(is_r) and abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top("delta_avg", cfg)
+        check["agrees"] = not ((gap is not None and gap > a.max_class_disagreement) or far or is_r[0] != is_r[1])
     res["selfcal_check"] = check
 
 

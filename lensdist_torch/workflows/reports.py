@@ -23,6 +23,7 @@ __all__ = [
     "PAPER",
     "evaluate_predictions",
     "json_safe",
+    "md_goals",
     "dumps_strict",
     "report_markdown",
     "write_report",
@@ -119,6 +120,8 @@ def evaluate_predictions(
         "bias_px": r["bias"],
         "n_per_class": r["n"],
         "delta_range_px": delta_range,
+        "right_or_cannot_tell_share": 100.0 * (right + total - n_conf) / total if total else nan,
+        "confident_rmse_pct": _confident_rmse_pct(pred_label, pred_delta, true_label, true_delta, delta_range),
     }
     if registration_ok is not None:
         out["registration_failed"] = int((~registration_ok.bool()).sum())
@@ -132,6 +135,28 @@ def evaluate_predictions(
                 "cannot_tell_share": 100.0 * float((~confident[m]).double().mean()) if bool(m.any()) else nan,
             }
     return out
+
+
+def _confident_rmse_pct(pred_label, pred_delta, true_label, true_delta, delta_range: float) -> float:
+    """RMSE of Delta over the distorted pairs answered with a class (1-4 or R), % of the range."""
+    sel = (pred_label != CANNOT_TELL) & (true_label != REJECT)
+    sel &= torch.isfinite(pred_delta.double().reshape(-1).cpu())
+    if not bool(sel.any()):
+        return float("nan")
+    err = pred_delta.double().reshape(-1).cpu()[sel] - true_delta.double().reshape(-1).cpu()[sel]
+    return 100.0 * float(err.pow(2).mean().sqrt()) / delta_range
+
+
+def md_goals(settings: dict) -> list[str]:
+    """The trust table: per setting, the shares that say whether its answers can be relied on."""
+    lines = ["| setting | right or cannot tell | cannot tell | right among confident | RMSE on confident "
+             "(% of range) | undistorted called R | registration failed |", "|---|---|---|---|---|---|---|"]
+    for name, fig in settings.items():
+        r = 100.0 * fig["rejected_R"] / fig["n_R"] if fig.get("n_R") else float("nan")
+        lines.append(f"| {name} | {_pct(fig.get('right_or_cannot_tell_share'))} | {_pct(fig.get('cannot_tell_share'))} | "
+                     f"{_pct(fig.get('confident_rate'))} | {_pct(fig.get('confident_rmse_pct'))} | {_pct(r)} | "
+                     f"{fig.get('registration_failed', '-')} |")
+    return lines + [""]
 
 
 def _md_confusion(conf) -> list[str]:
@@ -208,6 +233,15 @@ def report_markdown(report: dict) -> str:
         cells = [f"{v:.2f} px ({100 * v / PAPER['table2_range_px']:.1f} %)" for v in vals]
         lines.append(f"| paper, {ev} EV, Delta_avg | " + " | ".join(cells) + " | ]0, 30] px | - |")
     lines.append("")
+    lines += ["## Can the answers be trusted?", "",
+              "Right or cannot tell: right answers plus \"cannot tell\", of all pairs; RMSE over the distorted pairs "
+              "answered with a class; undistorted called R: of the class-R pairs.", ""] + md_goals(settings)
+    unseen = report.get("unseen")
+    if unseen:
+        lines += [f"## On a scene no method was fitted on: {', '.join(unseen['scenes'])}", "", str(unseen.get("note", "")), ""]
+        lines += md_goals(unseen["settings"])
+        for name, fig in unseen["settings"].items():
+            lines += [f"### {name} (unseen scene)", ""] + _md_confusion(fig["confusion"]) + [""]
     if report.get("calibration"):
         lines += _md_calibration(report["calibration"])
     return "\n".join(lines)

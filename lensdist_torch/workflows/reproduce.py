@@ -3,7 +3,8 @@
 Generates the paper's sets, fits every method, fits the decision (the R threshold and the
 confidence maps) on a validation split, and reports every method's figures on the test pairs
 as the user's analysis answers them (:func:`~lensdist_torch.workflows.analyze.analyze_batch`),
-with the calibration's ECE and reliability diagrams.
+with the calibration's ECE and reliability diagrams; then the same on the test pairs rendered
+on ``protocol.unseen_scenes``, a scene no method was fitted on.
 """
 
 from __future__ import annotations
@@ -95,16 +96,8 @@ def reproduce(
                                        progress=progress, device=device, figures=figures)
             acfg = cal["config"]
     results = analyze_test_set(test, runs, scenes, acfg, batch_size, progress, device)
-    settings = {}
-    for n_ev, metric in SETTINGS:
-        other = models[f"{n_ev} EV, {'delta_avg' if metric == 'delta_max' else 'delta_max'}"]
-        settings[f"{n_ev} EV, {metric}"] = evaluate_classifier(models[f"{n_ev} EV, {metric}"], test, partner=other,
-                                                               results=results[f"{n_ev} EV"], config=acfg)
-    if methods:
-        for metric, fig in evaluate_regressor(reg, test, results=results["regression"], config=acfg).items():
-            settings[f"regression, {metric}"] = fig
-        for metric, fig in evaluate_selfcal(test, acfg, results=results["selfcal"]).items():
-            settings[f"selfcal, {metric}"] = fig
+    settings = _settings(models, reg, test, results, acfg)
+    unseen = _unseen(config, out, runs, models, reg, acfg, workers, batch_size, progress, device)
     p = config.protocol
     report = {
         "title": "lensdist reproduce: the paper's Tables 1 and 2" + (" (quick: a tenth of the pairs)" if quick else ""),
@@ -123,6 +116,8 @@ def reproduce(
         "settings": settings,
         "generation": gen,
     }
+    if unseen is not None:
+        report["unseen"] = unseen
     curves = {}
     if cal is not None:
         rows, curves = calibration_table({k: results[k] for k in ("selfcal", "regression")}, test, config, acfg, "test")
@@ -137,6 +132,48 @@ def reproduce(
     if figures:
         _figures(models, settings, test, config, out, curves)
     return {"markdown": str(md), "json": str(js), "settings": settings}
+
+
+def _settings(models: dict, reg, test: dict, results: dict, config: LensdistConfig) -> dict:
+    """Every method's figures on a test set, from the one analysis path's ``results``."""
+    settings = {}
+    for n_ev, metric in SETTINGS:
+        other = models[f"{n_ev} EV, {'delta_avg' if metric == 'delta_max' else 'delta_max'}"]
+        settings[f"{n_ev} EV, {metric}"] = evaluate_classifier(models[f"{n_ev} EV, {metric}"], test, partner=other,
+                                                               results=results[f"{n_ev} EV"], config=config)
+    if "regression" in results:
+        for metric, fig in evaluate_regressor(reg, test, results=results["regression"], config=config).items():
+            settings[f"regression, {metric}"] = fig
+    if "selfcal" in results:
+        for metric, fig in evaluate_selfcal(test, config, results=results["selfcal"]).items():
+            settings[f"selfcal, {metric}"] = fig
+    return settings
+
+
+def _unseen(config, out: Path, runs, models, reg, acfg, workers, batch_size, progress, device) -> dict | None:
+    """Every method, as fitted on the training scenes, on the test pairs of the unseen scenes.
+
+    The test protocol rendered on ``protocol.unseen_scenes`` (the same draws, another scene) and
+    analysed through the same path; None without such scenes.
+    """
+    p = config.protocol
+    if not p.unseen_scenes:
+        return None
+    ucfg = dataclasses.replace(config, protocol=dataclasses.replace(p, scenes=p.unseen_scenes, unseen_scenes=()))
+    gen = generate(ucfg, out / "unseen", sets=("test",), workers=workers, batch_size=batch_size, progress=progress)
+    test = load_set(out / "unseen", "test")
+    scenes, _ = load_scenes(ucfg)
+    results = analyze_test_set(test, runs, scenes, dataclasses.replace(acfg, protocol=ucfg.protocol), batch_size,
+                               progress, device)
+    failed = gen["sets"]["test"].get("registration_failed", "?")
+    return {
+        "scenes": list(p.unseen_scenes),
+        "note": (f"The {p.n_test_distorted} + {p.n_test_undistorted} test pairs drawn again (the same motions and "
+                 f"distortions) on {', '.join(p.unseen_scenes)}, which no method was fitted on; the learned methods "
+                 "should answer right or say cannot tell (out of domain). Registration failed for "
+                 f"{failed} of them at generation."),
+        "settings": _settings(models, reg, test, results, acfg),
+    }
 
 
 def _generation_note(gen: dict, seconds: float) -> str:

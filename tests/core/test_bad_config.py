@@ -275,3 +275,18 @@ def test_cli_refuses_a_bad_config_before_writing_anything(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "quality.sigma" in err and err.count("\n") == 1
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.bad_input
+def test_unseen_scenes_must_not_be_training_scenes():
+    with pytest.raises(ValueError, match=r"^protocol.unseen_scenes must share no scene with protocol.scenes.*'gravel'"):
+        ProtocolConfig(scenes=("gravel", "grass"), unseen_scenes=("gravel",))
+    assert ProtocolConfig(unseen_scenes=()).unseen_scenes == ()  # empty: no unseen test
+
+
+def test_unseen_scenes_are_not_in_the_data_fingerprint():
+    from lensdist_torch.data.manifest import config_fingerprint
+
+    a, b = LensdistConfig(), LensdistConfig(protocol=ProtocolConfig(unseen_scenes=()))
+    c = LensdistConfig(protocol=ProtocolConfig(seed=1))
+    assert config_fingerprint(a, ["x"]) == config_fingerprint(b, ["x"]) != config_fingerprint(c, ["x"])

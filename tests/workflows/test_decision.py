@@ -88,10 +88,17 @@ def test_disagreement_with_the_selfcal_is_out_of_domain():
     decide(far, cfg)
     assert not far["selfcal_check"]["agrees"] and not far["in_domain"] and far["class"] is None
     assert any("self-calibration disagrees" in w for w in far["warnings"]) and far["fitted_on"] == ["gravel", "grass"]
-    near = _res(estimated_class="1", delta_avg=1.5)
-    domain_checks(near, sc, None, {}, cfg)
+    some = _res(estimated_class="1", delta_avg=1.5)  # distortion where the self-calibration sees none
+    domain_checks(some, sc, None, {}, cfg)
+    decide(some, cfg)
+    assert not some["selfcal_check"]["agrees"] and some["class"] is None
+    near = _res(estimated_class="1", delta_avg=1.5)  # one class apart, 1.3 px: agrees
+    domain_checks(near, {**sc, "estimated_class": "2", "delta_avg": 2.8}, None, {}, cfg)
     decide(near, cfg)
     assert near["selfcal_check"]["agrees"] and near["in_domain"] and near["class"] == "1"
+    apart = _res(estimated_class="1", delta_avg=1.5)  # two classes apart
+    domain_checks(apart, {**sc, "estimated_class": "3", "delta_avg": 5.0}, None, {}, cfg)
+    assert not apart["selfcal_check"]["agrees"]
     rejected = _res(estimated_class="R", delta_avg=6.0)  # an eigen-space R keeps its nearest class's Delta
     domain_checks(rejected, sc, None, {}, cfg)
     assert rejected["selfcal_check"]["agrees"]
