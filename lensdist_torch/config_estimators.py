@@ -126,7 +126,7 @@ class SelfCalConfig:
     """
 
     levels: int = 3
-    iterations: tuple[int, ...] = (12, 6, 3)
+    iterations: tuple[int, ...] = (8, 4, 6)
     newton: int = 5
     damping: float = 1e-3
     margin: float = 2.0
