@@ -123,6 +123,9 @@ class SelfCalConfig:
             batch and keep, per pair, the start with the lower final robust cost.
         distortion_levels: (a, b) are fitted on the finest this many levels; the coarser ones
             fit the homography and the photometric model only (a = b = 0 there).
+        clusters: the full-size samples are grouped in clusters x clusters rectangles of the
+            frame for the cluster-robust (sandwich) covariance of the fit; 0: the Gauss-Newton
+            covariance alone (docs/method.md, section 10).
     """
 
     levels: int = 3
@@ -145,9 +148,11 @@ class SelfCalConfig:
     gain_range: tuple[float, float] = (0.25, 4.0)
     both_starts: bool = True
     distortion_levels: int = 2
+    clusters: int = 6
 
     def __post_init__(self) -> None:
         integer(self, "distortion_levels")
+        integer(self, "clusters", lo=0)
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
         real(self, "huber_k", lo=0, lo_open=True)

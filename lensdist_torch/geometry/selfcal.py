@@ -262,7 +262,11 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
 
 
 def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig) -> torch.Tensor:
-    """Std (px) of Delta_avg from the weighted Gauss-Newton covariance of the final fit; inf where not finite."""
+    """Std (px) of Delta_avg from the covariance of the final fit; inf where not finite.
+
+    The weighted Gauss-Newton covariance, or (``clusters`` > 1) the cluster-robust one where it
+    is larger (:func:`_sandwich`).
+    """
     w = robust_weights(st.res, st.sigma, cfg.robust, _k(cfg))
     w = st.valid.float() if w is None else w * st.valid
     jtj, _ = _normal_equations(st.J, st.res, w)
@@ -271,7 +275,10 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig) -> torc
     # textureless or identical pair cannot claim certainty
     s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(cfg.noise_floor**2)
     eye = torch.eye(n_par, dtype=torch.float64, device=ab.device)
-    cov = s2[:, None, None] * torch.linalg.inv(jtj + cfg.ridge * eye)
+    inv = torch.linalg.inv(jtj + cfg.ridge * eye)
+    cov = s2[:, None, None] * inv
+    if cfg.clusters > 1:  # cluster-robust: the larger of the two
+        cov = torch.maximum(cov, _sandwich(inv, st, w, h0, w0, cfg))
     # Delta_avg and its gradient in (a, b): R * mean |a u^3 + b u^5|, the mean over the centres
     # of 4 x 4 blocks (the gradient is smooth; 16 times fewer terms)
     u2 = (normalized_grid(2, h0 // 4, w0 // 4, h0, w0, torch.float64, ab.device).view(1, -1, 2) ** 2).sum(-1)
@@ -281,6 +288,29 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig) -> torc
     grad = half_diagonal(h0, w0) * torch.stack([(sgn * m3).mean(1), (sgn * m5).mean(1)], -1)
     std = torch.einsum("bi,bij,bj->b", grad, cov[:, 8:10, 8:10], grad).clamp_min(0).sqrt()
     return torch.where(torch.isfinite(std), std, torch.full_like(std, float("inf")))
+
+
+def _sandwich(inv: torch.Tensor, st: _State, w: torch.Tensor, h0: int, w0: int, cfg: SelfCalConfig) -> torch.Tensor:
+    """Cluster-robust covariance A^-1 (sum_c g_c g_c^T) A^-1 C / (C - 1), g_c = sum_{i in c} J_i w_i r_i.
+
+    The full-size samples (one per block of ``sample_block[-1]`` px, row-major) are grouped in
+    ``clusters`` x ``clusters`` rectangles of the frame. Residuals that a smooth misfit (parallax,
+    a non-planar scene) makes alike within a region pull together and widen it; for independent
+    noise it matches the Gauss-Newton covariance. (the linearised delete-one-cluster jackknife).
+    """
+    block = cfg.sample_block[-1]
+    hb, wb = (h0 // block, w0 // block) if block > 1 else (h0, w0)
+    n = st.J.shape[-1]
+    if n != hb * wb:  # not the full-size grid of samples: no clusters to form
+        return torch.zeros_like(inv)
+    rows = torch.arange(hb, device=inv.device) * cfg.clusters // hb
+    cols = torch.arange(wb, device=inv.device) * cfg.clusters // wb
+    cid = (rows[:, None] * cfg.clusters + cols[None, :]).flatten()
+    score = (st.J * (w * st.res)[:, None]).double()  # (B, P, N)
+    g = torch.zeros(*score.shape[:2], cfg.clusters**2, dtype=torch.float64, device=inv.device).index_add_(2, cid, score)
+    c = cfg.clusters**2
+    meat = g @ g.transpose(1, 2) * (c / (c - 1))
+    return inv @ meat @ inv
 
 
 def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> torch.Tensor:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config import LensdistConfig, ProtocolConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry import selfcal_model
@@ -313,3 +313,46 @@ def test_cuda_matches_cpu():
 def test_robust_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=rf"^selfcal\.{field} must be [^\n]*, got "):
         SelfCalConfig(**{field: value})
+
+
+# ------------------------------------------------------------------ the cluster-robust covariance
+def _state(res, J):
+    from lensdist_torch.geometry.selfcal import _State
+
+    return _State(res, torch.ones_like(res, dtype=torch.bool), J, torch.ones(res.shape[0]), torch.zeros(1), torch.zeros(1))
+
+
+def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clustered_residuals():
+    from lensdist_torch.geometry.selfcal import _normal_equations, _sandwich
+
+    cfg = SelfCalConfig(clusters=6, robust="none")
+    h0, w0 = 96, 128  # full-size samples: 24 x 32 blocks of 4 px
+    g = torch.Generator().manual_seed(0)
+    n = (h0 // 4) * (w0 // 4)
+    J = torch.randn(1, 3, n, generator=g)
+    w = torch.ones(1, n)
+    inv = torch.linalg.inv(_normal_equations(J, torch.zeros(1, n), w)[0])
+    noise = 0.1 * torch.randn(1, n, generator=g)
+    gn = 0.01 * inv.diagonal(dim1=1, dim2=2)
+    sw = _sandwich(inv, _state(noise, J), w, h0, w0, cfg).diagonal(dim1=1, dim2=2)
+    assert torch.allclose(sw, gn, rtol=0.6)  # 36 clusters: a noisy but unbiased estimate
+    # a residual shared within each cluster, correlated with the Jacobian there: much wider
+    rows = torch.arange(h0 // 4) * 6 // (h0 // 4)
+    cols = torch.arange(w0 // 4) * 6 // (w0 // 4)
+    cid = (rows[:, None] * 6 + cols[None, :]).flatten()
+    shared = torch.randn(36, generator=g)[cid] * 0.1 * torch.sign(J[0, 0])
+    wide = _sandwich(inv, _state(noise + shared[None], J), w, h0, w0, cfg).diagonal(dim1=1, dim2=2)
+    assert float(wide[0, 0] / gn[0, 0]) > 10
+
+
+def test_parallax_widens_the_interval():
+    """Pairs of a non-planar scene (parallax only): the Gauss-Newton std ignores the misfit, the
+    cluster-robust one grows several times (docs/method.md, section 10, the limit)."""
+    cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, gain_range=(1.0, 1.0), offset_range=(0.0, 0.0),
+                                                 gamma_range=(1.0, 1.0), illumination=0.0, noise_range=(0.0, 0.0),
+                                                 jpeg_quality=(100, 100), occluder_rate=0.0, parallax_px=1.5))
+    p = draw_pairs(cfg, "test", [0, 1, 2, 3], 2)
+    i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
+    plain = estimate_distortion(i1, i2, config=SelfCalConfig(clusters=0))[3].delta_avg_std
+    robust = estimate_distortion(i1, i2)[3].delta_avg_std
+    assert float((robust / plain).median()) > 3
