@@ -228,10 +228,12 @@ class AnalysisConfig:
     min_overlap: float = 0.5
     out_of_domain_factor: float = 2.0
     min_confidence: float = 0.5
-    selfcal_confidence_scale: float = 1.0
-    selfcal_confidence_shift: float = 0.0
-    regression_confidence_scale: float = 1.0
-    regression_confidence_shift: float = 0.0
+    # fitted by `lensdist reproduce` (configs/paper.toml) on its validation split, the run that
+    # fitted the shipped checkpoints (docs/results/reproduce.md, "Calibration")
+    selfcal_confidence_scale: float = 1.2722
+    selfcal_confidence_shift: float = 1.2236
+    regression_confidence_scale: float = 0.6906
+    regression_confidence_shift: float = 1.0013
     cross_check: bool = True
     max_class_disagreement: int = 1
     max_delta_disagreement: float = 0.25
