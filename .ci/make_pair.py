@@ -1,31 +1,19 @@
-"""Write two overlapping grey PNG views of the embedded gravel scene (8 px vertical motion),
-with the standard library only, for the wheel check in .ci/wheel_check.sh."""
+"""The inputs .ci/wheel_check.sh feeds the README's commands, made with the installed package.
 
-import struct
+Two overlapping grey PNG views of the embedded gravel scene (8 px vertical motion), a.png and
+b.png, and frames/: 10 frames of a distorted camera panning down the scene.
+"""
+
 import sys
-import zlib
 from pathlib import Path
 
 from lensdist_torch import load_scene
-
-
-def write_png(path: Path, img) -> None:
-    h, w = img.shape
-    raw = b"".join(b"\x00" + bytes(row) for row in img.tolist())
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-    png += chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
-    path.write_bytes(png)
-
+from lensdist_torch.workflows.calibrate import encode_png, synthetic_sequence
 
 out = Path(sys.argv[1])
-scene = (load_scene("gravel")[0, 0] * 255).round().byte()
-write_png(out / "a.png", scene[:320, :424])
-write_png(out / "b.png", scene[8:328, :424])
-
-# a 10-frame sequence of a distorted camera panning down the scene, for calibrate / undistort
-from lensdist_torch.workflows.calibrate import encode_png, synthetic_sequence  # noqa: E402
+scene = (load_scene("gravel")[0] * 255).round().byte()  # (1, H, W) uint8
+(out / "a.png").write_bytes(encode_png(scene[:, :320, :424].contiguous()))
+(out / "b.png").write_bytes(encode_png(scene[:, 8:328, :424].contiguous()))
 
 frames = out / "frames"
 frames.mkdir(exist_ok=True)

@@ -1,4 +1,4 @@
-"""Shared fixtures: the embedded scene at the default analysis size (SPEC 1)."""
+"""Shared fixtures: the embedded scene at the default analysis size (docs/method.md, section 1)."""
 
 from __future__ import annotations
 

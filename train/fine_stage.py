@@ -26,9 +26,10 @@ import time
 from pathlib import Path
 
 import torch
-from finestage.config import load_config, parse_overrides
+from finestage.config import load_config
 from finestage.experiment import run_all, setup_determinism
 from finestage.report import merge_results, write_outputs
+from learnreg.config import config_from_args
 
 from lensdist_torch.core.storage import atomic_write_text
 
@@ -63,15 +64,7 @@ def main(argv: list[str] | None = None) -> dict:
         Path(args.out).mkdir(parents=True, exist_ok=True)
         print(write_outputs(Path(args.out), merged, {}, {}))
         return merged
-    try:
-        overrides = parse_overrides(args.set)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from None
-    if args.steps is not None:
-        overrides["train.steps"] = args.steps
-    cfg = load_config(args.config or None, overrides)
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: no CUDA device available")
+    cfg = config_from_args(args, load_config)
     setup_determinism(args.device, cfg["train"]["threads"])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import torch
-from learnreg.config import load_train_config, parse_overrides
+from learnreg.config import config_from_args, load_train_config
 from learnreg.data import load_scenes
 from learnreg.loop import train_arm
 from learnreg.report import evaluate, write_outputs
@@ -49,15 +49,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
-    try:
-        overrides = parse_overrides(args.set)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from None
-    if args.steps is not None:
-        overrides["train.steps"] = args.steps
-    cfg = load_train_config(args.config or None, overrides)
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        raise SystemExit("--device cuda: no CUDA device available")
+    cfg = config_from_args(args, load_train_config)
     threads = int(cfg["train"]["threads"])
     torch.set_num_threads(threads)  # the floats can depend on it: pinned by the config
     arms = args.arms.split(",") if args.arms else list(cfg["arms"])

@@ -296,13 +296,10 @@ def _sandwich(inv: torch.Tensor, st: _State, w: torch.Tensor, h0: int, w0: int, 
     The full-size samples (one per block of ``sample_block[-1]`` px, row-major) are grouped in
     ``clusters`` x ``clusters`` rectangles of the frame. Residuals that a smooth misfit (parallax,
     a non-planar scene) makes alike within a region pull together and widen it; for independent
-    noise it matches the Gauss-Newton covariance. (the linearised delete-one-cluster jackknife).
+    noise it matches the Gauss-Newton covariance (it is the linearised delete-one-cluster jackknife).
     """
     block = cfg.sample_block[-1]
-    hb, wb = (h0 // block, w0 // block) if block > 1 else (h0, w0)
-    n = st.J.shape[-1]
-    if n != hb * wb:  # not the full-size grid of samples: no clusters to form
-        return torch.zeros_like(inv)
+    hb, wb = (h0 // block, w0 // block) if block > 1 else (h0, w0)  # select_samples' grid
     rows = torch.arange(hb, device=inv.device) * cfg.clusters // hb
     cols = torch.arange(wb, device=inv.device) * cfg.clusters // wb
     cid = (rows[:, None] * cfg.clusters + cols[None, :]).flatten()

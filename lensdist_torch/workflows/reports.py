@@ -139,12 +139,9 @@ def evaluate_predictions(
 
 def _confident_rmse_pct(pred_label, pred_delta, true_label, true_delta, delta_range: float) -> float:
     """RMSE of Delta over the distorted pairs answered with a class (1-4 or R), % of the range."""
-    sel = (pred_label != CANNOT_TELL) & (true_label != REJECT)
-    sel &= torch.isfinite(pred_delta.double().reshape(-1).cpu())
-    if not bool(sel.any()):
-        return float("nan")
-    err = pred_delta.double().reshape(-1).cpu()[sel] - true_delta.double().reshape(-1).cpu()[sel]
-    return 100.0 * float(err.pow(2).mean().sqrt()) / delta_range
+    err = pred_delta.double().reshape(-1).cpu() - true_delta.double().reshape(-1).cpu()
+    sel = (pred_label != CANNOT_TELL) & (true_label != REJECT) & torch.isfinite(err)
+    return 100.0 * float(err[sel].pow(2).mean().sqrt()) / delta_range if bool(sel.any()) else float("nan")
 
 
 def md_goals(settings: dict) -> list[str]:

@@ -37,6 +37,16 @@ def _entry_points(img1, img2, valid=None, **kw):
     ]
 
 
+def _one_line_error(call, words) -> None:
+    """``call()`` raises a one-line ValueError that holds every one of ``words``."""
+    with pytest.raises(ValueError) as info:
+        call()
+    msg = str(info.value)
+    assert "\n" not in msg
+    for w in words:
+        assert w in msg, (w, msg)
+
+
 # ----------------------------------------------------------------------------- any image size
 
 
@@ -143,12 +153,7 @@ class TestDataRange:
         bad = scale * img + shift
         good = torch.zeros(1, 1, 16, 16)
         for call in _entry_points(bad, good, data_range=data_range):
-            with pytest.raises(ValueError) as info:
-                call()
-            msg = str(info.value)
-            assert "\n" not in msg
-            for w in words:
-                assert w in msg, (w, msg)
+            _one_line_error(call, words)
         with pytest.raises(ValueError, match="img1"):
             local_criteria(bad, good, data_range=data_range)
 
@@ -193,12 +198,7 @@ class TestMaskValues:
         valid[1, 0, 3, 4] = value
         calls = _entry_points(img, img, valid) + [lambda: error_images(local_criteria(img, img), valid)]
         for call in calls:
-            with pytest.raises(ValueError) as info:
-                call()
-            msg = str(info.value)
-            assert "\n" not in msg
-            for w in words:
-                assert w in msg, (w, msg)
+            _one_line_error(call, words)
         assert quality_map(img, img, valid, validate=False).shape == (2, 1, 2, 2)
 
     @pytest.mark.bad_input

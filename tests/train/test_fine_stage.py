@@ -53,12 +53,7 @@ def scenes():
     return data.load_scenes(tiny())
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")  # tests/conftest.py
 
 
 # --- the peer losses on hand-worked values ---------------------------------------------------

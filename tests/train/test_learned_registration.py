@@ -54,12 +54,7 @@ def scenes():
     return [load_scene(s) for s in ("gravel", "grass")]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")  # tests/conftest.py
 
 
 def test_default_config_loads_with_three_arms():

@@ -14,11 +14,11 @@ import time
 from pathlib import Path
 
 import torch
-from learnreg.loop import arm_schedule, learning_rate
+from learnreg.loop import arm_schedule, learning_rate, restore, save_checkpoint
 from learnreg.losses import corner_error, warp_a_to_b
 from tqdm.auto import tqdm
 
-from lensdist_torch.core.storage import CheckpointError, load_versioned, save_versioned
+from lensdist_torch.core.storage import CheckpointError, load_versioned
 
 from .config import arm_name, comparable
 from .data import load_scenes, make_pairs, split_seeds, train_seeds
@@ -85,20 +85,8 @@ def checkpoint_path(out: Path, spec: dict, seed: int) -> Path:
 
 
 def _save(path, model, opt, step, history, cfg, spec, seed, wall_s, evaluation=None) -> None:
-    payload = {
-        "model": model.state_dict(),
-        "optimizer": opt.state_dict(),
-        "step": step,
-        "rng": torch.get_rng_state(),
-        "history": history,
-        "config": comparable(cfg),
-        "arm": arm_name(spec),
-        "spec": dict(spec),
-        "seed": int(seed),
-        "wall_s": wall_s,
-        "eval": evaluation,
-    }
-    save_versioned(path, CHECKPOINT_KIND, CHECKPOINT_VERSION, payload)
+    save_checkpoint(path, model, opt, step, history, comparable(cfg), arm_name(spec), wall_s, CHECKPOINT_KIND,
+                    CHECKPOINT_VERSION, spec=dict(spec), seed=int(seed), eval=evaluation)
 
 
 def _load(path, cfg, spec, seed, model, opt) -> dict:
@@ -107,10 +95,7 @@ def _load(path, cfg, spec, seed, model, opt) -> dict:
         raise CheckpointError(f"{path} holds arm {state.get('arm')!r} seed {state.get('seed')}, not {arm_name(spec)!r}")
     if state["config"] != comparable(cfg) or state.get("spec") != dict(spec):
         raise CheckpointError(f"{path} was written with another config; remove it or drop --resume")
-    model.load_state_dict(state["model"])
-    opt.load_state_dict(state["optimizer"])
-    torch.set_rng_state(state["rng"])
-    return state
+    return restore(state, model, opt)
 
 
 def metrics(errors: torch.Tensor) -> dict[str, float]:

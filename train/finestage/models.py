@@ -9,34 +9,25 @@ learnreg's.
 
 from __future__ import annotations
 
-import torch
-import torch.nn.functional as F
-from learnreg.models import _bounded, _offset_head, _standardise
+from learnreg.models import CorrelationHomographyNet, _block, _offset_head
 from torch import nn
 
 __all__ = ["FineNet", "build_model"]
 
 
-def _block(cin: int, cout: int, stride: int, norm: bool) -> list[nn.Module]:
-    return (
-        [nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=not norm)]
-        + ([nn.BatchNorm2d(cout)] if norm else [])
-        + [nn.ReLU(inplace=True)]
-    )
-
-
-class FineNet(nn.Module):
+class FineNet(CorrelationHomographyNet):
     """(B, 1, P, P) x 2 -> (B, 4, 2) corner offsets in px, bounded to +-1.5 ``rho``.
 
     A siamese encoder to unit feature vectors at 1/4 resolution, their local correlation over
     (2 radius + 1)^2 displacements, three stride-2 blocks (1/32) and learnreg's offset head,
-    which starts at zero: the untrained network predicts no correction.
+    which starts at zero: the untrained network predicts no correction. The forward pass is
+    learnreg's correlation network's; only the layers differ.
     """
 
     def __init__(
         self, patch: int = 128, rho: float = 3.0, width: int = 16, hidden: int = 256, radius: int = 2, norm: bool = True
     ) -> None:
-        super().__init__()
+        nn.Module.__init__(self)  # other layers than the parent's, the same forward
         w = width
         self.encoder = nn.Sequential(
             *_block(1, w, 2, norm),
@@ -51,15 +42,6 @@ class FineNet(nn.Module):
         )
         self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = float(rho)
-
-    def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-        f = F.normalize(self.encoder(_standardise(torch.cat([a, b], dim=0))), dim=1)
-        fa, fb = f[: a.shape[0]], f[a.shape[0] :]
-        n, c, h, w = fa.shape
-        k = 2 * self.radius + 1
-        windows = F.unfold(fb, k, padding=self.radius).view(n, c, k * k, h * w)
-        cost = (fa.view(n, c, 1, h * w) * windows).sum(1).view(n, k * k, h, w)
-        return _bounded(self.head(self.regressor(cost)), self.rho)
 
 
 def build_model(cfg: dict) -> FineNet:

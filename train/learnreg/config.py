@@ -13,6 +13,7 @@ __all__ = [
     "ARM_NAMES",
     "DEFAULTS",
     "ARM_DEFAULTS",
+    "config_from_args",
     "load_train_config",
     "parse_overrides",
     "parse_value",
@@ -103,6 +104,26 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
             raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
         overrides[key.strip()] = parse_value(value.strip())
     return overrides
+
+
+def config_from_args(args, load) -> dict:
+    """The config a training script's command line asks for, or SystemExit with a one-line reason.
+
+    ``--set KEY=VALUE`` overrides and ``--steps`` go over ``--config`` through ``load(path,
+    overrides)``; ``--device cuda`` needs CUDA.
+    """
+    try:
+        overrides = parse_overrides(args.set)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
+    if args.steps is not None:
+        overrides["train.steps"] = args.steps
+    cfg = load(args.config or None, overrides)
+    import torch  # only here: the config itself needs no torch
+
+    if args.device.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: no CUDA device available")
+    return cfg
 
 
 def _read_toml(path: str | Path) -> dict:

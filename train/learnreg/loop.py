@@ -31,6 +31,7 @@ __all__ = [
     "build",
     "train_step",
     "checkpoint_path",
+    "restore",
     "save_checkpoint",
     "load_checkpoint",
     "train_arm",
@@ -103,8 +104,13 @@ def checkpoint_path(out: Path, arm_name: str) -> Path:
     return Path(out) / "checkpoints" / f"{arm_name}.pt"
 
 
-def save_checkpoint(path: Path, model, opt, step: int, history: list, cfg: dict, arm_name: str, wall_s: float) -> None:
-    """Everything needed to continue the arm bit for bit, written atomically."""
+def save_checkpoint(path: Path, model, opt, step: int, history: list, cfg: dict, arm_name: str, wall_s: float,
+                    kind: str = CHECKPOINT_KIND, version: int = CHECKPOINT_VERSION, **extra) -> None:
+    """Everything needed to continue the arm bit for bit, written atomically.
+
+    ``kind`` / ``version`` name the file format (another training script passes its own);
+    ``extra`` entries are stored beside the standard ones.
+    """
     payload = {
         "model": model.state_dict(),
         "optimizer": opt.state_dict(),
@@ -114,8 +120,9 @@ def save_checkpoint(path: Path, model, opt, step: int, history: list, cfg: dict,
         "config": json.loads(json.dumps(cfg)),
         "arm": arm_name,
         "wall_s": wall_s,
+        **extra,
     }
-    save_versioned(path, CHECKPOINT_KIND, CHECKPOINT_VERSION, payload)
+    save_versioned(path, kind, version, payload)
 
 
 def load_checkpoint(path: Path, cfg: dict, arm_name: str, model, opt) -> dict:
@@ -128,6 +135,11 @@ def load_checkpoint(path: Path, cfg: dict, arm_name: str, model, opt) -> dict:
         raise CheckpointError(f"{path} holds arm {state.get('arm')!r}, not {arm_name!r}")
     if comparable(state["config"]) != comparable(cfg):
         raise CheckpointError(f"{path} was written with another config; remove it or drop --resume")
+    return restore(state, model, opt)
+
+
+def restore(state: dict, model, opt) -> dict:
+    """Load a checked checkpoint payload's model, optimiser and RNG state; returns the payload."""
     model.load_state_dict(state["model"])
     opt.load_state_dict(state["optimizer"])
     torch.set_rng_state(state["rng"])

@@ -36,6 +36,15 @@ def _bounded(raw: torch.Tensor, rho: float) -> torch.Tensor:
     return 1.5 * rho * torch.tanh(raw.view(-1, 4, 2) / 1.5)
 
 
+def _block(cin: int, cout: int, stride: int, norm: bool) -> list[nn.Module]:
+    """3 x 3 convolution (no bias under batch norm), [batch norm], ReLU."""
+    return (
+        [nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=not norm)]
+        + ([nn.BatchNorm2d(cout)] if norm else [])
+        + [nn.ReLU(inplace=True)]
+    )
+
+
 class HomographyNet(nn.Module):
     """Two stacked grey patches (B, 2, P, P) -> four corner offsets (B, 4, 2) in px.
 
@@ -51,12 +60,8 @@ class HomographyNet(nn.Module):
         w = width
         chans = [w, 2 * w, 4 * w, 4 * w, 8 * w]  # five stride-2 convolutions: P -> P / 32
         layers: list[nn.Module] = []
-        cin = 2
-        for cout in chans:
-            layers += [nn.Conv2d(cin, cout, 3, stride=2, padding=1, bias=not norm)]
-            layers += [nn.BatchNorm2d(cout)] if norm else []
-            layers += [nn.ReLU(inplace=True)]
-            cin = cout
+        for cin, cout in zip([2, *chans[:-1]], chans):
+            layers += _block(cin, cout, 2, norm)
         self.features = nn.Sequential(*layers)
         self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = rho
@@ -80,25 +85,21 @@ class CorrelationHomographyNet(nn.Module):
         self, patch: int = 128, rho: float = 16.0, width: int = 16, hidden: int = 256, norm: bool = True
     ) -> None:
         super().__init__()
-
-        def block(cin, cout, stride):
-            return (
-                [nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=not norm)]
-                + ([nn.BatchNorm2d(cout)] if norm else [])
-                + [nn.ReLU(inplace=True)]
-            )
-
         w = width
         self.encoder = nn.Sequential(
-            *block(1, w, 2), *block(w, 2 * w, 2), *block(2 * w, 2 * w, 2), nn.Conv2d(2 * w, 2 * w, 3, padding=1)
+            *_block(1, w, 2, norm), *_block(w, 2 * w, 2, norm), *_block(2 * w, 2 * w, 2, norm),
+            nn.Conv2d(2 * w, 2 * w, 3, padding=1),
         )
         self.radius = math.ceil(1.5 * rho / 8)  # feature pixels are 8 px
         n_disp = (2 * self.radius + 1) ** 2
-        self.regressor = nn.Sequential(*block(n_disp, 4 * w, 1), *block(4 * w, 4 * w, 2), *block(4 * w, 8 * w, 2))
+        self.regressor = nn.Sequential(
+            *_block(n_disp, 4 * w, 1, norm), *_block(4 * w, 4 * w, 2, norm), *_block(4 * w, 8 * w, 2, norm)
+        )
         self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = rho
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """Encode both patches, correlate over +-``radius`` feature px, regress the offsets."""
         f = F.normalize(self.encoder(_standardise(torch.cat([a, b], dim=0))), dim=1)
         fa, fb = f[: a.shape[0]], f[a.shape[0] :]
         n, c, h, w = fa.shape
