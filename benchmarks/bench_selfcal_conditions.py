@@ -1,0 +1,118 @@
+"""Self-calibration and registration under one condition at a time (docs/method.md, section 10).
+
+Renders the test pairs (indices 0 .. n-1 of the 'test' set, all distorted) of one scene under a
+config, registers them as the protocol does, and self-calibrates them from the registration's H
+(as ``analyze``) with the default settings and with each ``--variant``. Per variant: RMSE, bias
+(and bias where Delta_avg > 10 px) and largest error of Delta_avg, pairs more than 1 px off,
+median |error| / std and the share within 2 std (is the std honest?), pairs below confidence
+0.5, pairs/s. With ``--effects``: the registration failures of 96 training pairs with each
+realistic effect alone.
+
+    python benchmarks/bench_selfcal_conditions.py --scene brick --variant iterations=12,6,3
+    python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --set parallax_px=1.5 \
+        --only parallax_px --variant clusters=0
+    python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --effects \
+        [--registration match_intensity=false]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+
+import torch
+
+from lensdist_torch.config import LensdistConfig, load_config
+from lensdist_torch.core.images import load_scene
+from lensdist_torch.data.synthesis import make_pairs
+from lensdist_torch.geometry.distortion import delta_avg
+from lensdist_torch.geometry.selfcal import estimate_distortion
+
+#: Each realistic effect's "off" values (configs/realistic.toml turns them all on).
+EFFECTS_OFF = {
+    "gain_range": (1.0, 1.0), "offset_range": (0.0, 0.0), "gamma_range": (1.0, 1.0), "illumination": 0.0,
+    "noise_range": (0.0, 0.0), "jpeg_quality": (100, 100), "parallax_px": 0.0, "occluder_rate": 0.0,
+}
+EFFECTS = {"gain+offset": ("gain_range", "offset_range"), "gamma": ("gamma_range",), "illumination": ("illumination",),
+           "noise+jpeg": ("noise_range", "jpeg_quality"), "parallax": ("parallax_px",), "occluder": ("occluder_rate",)}
+
+
+def _value(text: str):
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    parts = [float(x) for x in text.split(",")]
+    parts = [int(x) if x.is_integer() else x for x in parts]
+    return tuple(parts) if len(parts) > 1 else parts[0]
+
+
+def with_only(cfg: LensdistConfig, keep: tuple[str, ...]) -> LensdistConfig:
+    """The config with every realistic effect off except ``keep``."""
+    off = {k: v for k, v in EFFECTS_OFF.items() if k not in keep}
+    return dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, **off))
+
+
+def figures(cfg: LensdistConfig, scene: str, n: int, variants: dict) -> dict:
+    cfg = dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, scenes=(scene,), unseen_scenes=()))
+    pb = make_pairs([load_scene(scene)], cfg, "test", list(range(n)), keep_images=True)
+    true = pb.delta["delta_avg"].double()
+    out = {"pairs": n, "registration_failed": int((~pb.converged).sum())}
+    for name, sc in variants.items():
+        t0 = time.perf_counter()
+        k2, k4, _, info = estimate_distortion(pb.img1, pb.img2, init=pb.H, config=sc)
+        seconds = time.perf_counter() - t0
+        err = delta_avg(k2, k4, *cfg.image.size).double() - true
+        ok = torch.isfinite(err)
+        z = err.abs() / info.delta_avg_std.double()
+        out[name] = {
+            "rmse_px": float(err[ok].pow(2).mean().sqrt()), "bias_px": float(err[ok].mean()),
+            "bias_over_10px": float(err[ok & (true > 10)].mean()), "max_abs_px": float(err[ok].abs().max()),
+            "over_1px": int((err.abs() > 1).sum()), "median_err_over_std": float(z[ok].median()),
+            "within_2_std": float((z[ok] < 2).double().mean()), "confidence_below_half": int((info.confidence < 0.5).sum()),
+            "diverged": int((~ok).sum()), "pairs_per_s": n / seconds,
+        }
+    return out
+
+
+def effects(cfg: LensdistConfig, n: int = 96) -> dict:
+    scenes = [load_scene(s) for s in cfg.protocol.scenes]
+    out = {}
+    for name, keys in {**EFFECTS, "all": tuple(EFFECTS_OFF)}.items():
+        pb = make_pairs(scenes, with_only(cfg, keys), "train", list(range(n)))
+        out[name] = int((~pb.converged).sum())
+    return {"pairs": n, "registration_failed": out}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default=None, help="TOML config (default: the defaults)")
+    ap.add_argument("--scene", default="gravel", help="embedded scene")
+    ap.add_argument("--n", type=int, default=96, help="test pairs")
+    ap.add_argument("--only", default="", help="comma-separated realistic fields to keep on (e.g. parallax_px)")
+    ap.add_argument("--set", action="append", default=[], help="protocol FIELD=VALUE (commas for pairs)")
+    ap.add_argument("--registration", action="append", default=[], help="registration FIELD=VALUE")
+    ap.add_argument("--variant", action="append", default=[], help="selfcal FIELD=VALUE[,VALUE...] beside the default")
+    ap.add_argument("--effects", action="store_true", help="registration failures per realistic effect instead")
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    cfg = load_config(a.config) if a.config else LensdistConfig()
+    sets = dict(item.split("=", 1) for item in a.set)
+    cfg = dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, **{k: _value(v) for k, v in sets.items()}))
+    regs = dict(item.split("=", 1) for item in a.registration)
+    cfg = dataclasses.replace(cfg, registration=dataclasses.replace(cfg.registration, **{k: _value(v) for k, v in regs.items()}))
+    if a.only:
+        cfg = with_only(cfg, tuple(a.only.split(",")))
+    if a.effects:
+        print(json.dumps(effects(cfg), indent=1))
+        return
+    variants = {"default": cfg.selfcal}
+    for item in a.variant:
+        key, value = item.split("=", 1)
+        variants[item] = dataclasses.replace(cfg.selfcal, **{key: _value(value)})
+    print(json.dumps({"threads": a.threads, "scene": a.scene, **figures(cfg, a.scene, a.n, variants)}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
