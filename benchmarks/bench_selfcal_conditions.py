@@ -92,7 +92,7 @@ def main() -> None:
     ap.add_argument("--only", default="", help="comma-separated realistic fields to keep on (e.g. parallax_px)")
     ap.add_argument("--set", action="append", default=[], help="protocol FIELD=VALUE (commas for pairs)")
     ap.add_argument("--registration", action="append", default=[], help="registration FIELD=VALUE")
-    ap.add_argument("--variant", action="append", default=[], help="selfcal FIELD=VALUE[,VALUE...] beside the default")
+    ap.add_argument("--variant", action="append", default=[], help="selfcal FIELD=VALUE[,VALUE...][;FIELD=...] beside the default")
     ap.add_argument("--effects", action="store_true", help="registration failures per realistic effect instead")
     ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args()
@@ -108,9 +108,9 @@ def main() -> None:
         print(json.dumps(effects(cfg), indent=1))
         return
     variants = {"default": cfg.selfcal}
-    for item in a.variant:
-        key, value = item.split("=", 1)
-        variants[item] = dataclasses.replace(cfg.selfcal, **{key: _value(value)})
+    for item in a.variant:  # FIELD=VALUE[;FIELD=VALUE...]
+        fields = dict(part.split("=", 1) for part in item.split(";"))
+        variants[item] = dataclasses.replace(cfg.selfcal, **{k: _value(v) for k, v in fields.items()})
     print(json.dumps({"threads": a.threads, "scene": a.scene, **figures(cfg, a.scene, a.n, variants)}, indent=1))
 
 

@@ -126,6 +126,17 @@ class SelfCalConfig:
         clusters: the full-size samples are grouped in clusters x clusters rectangles of the
             frame for the cluster-robust (sandwich) covariance of the fit; 0: the Gauss-Newton
             covariance alone (docs/method.md, section 10).
+        parallax: plane + parallax model: a relief displacing img2's points along the
+            registration's translation, a smooth field of parallax x parallax Gaussian bumps
+            (fitted where (a, b) are); 0: a planar scene.
+        parallax_width: the bumps' sigma, in half-diagonals.
+        parallax_iterations: LM iterations of the plane + parallax model at full size, started
+            from the planar fit.
+        parallax_block: its samples: the strongest-gradient pixel of every block x block cell.
+        parallax_test: the plane + parallax answer replaces the planar one where their
+            Delta_avg differ by more than this many standard deviations of the difference
+            (Hausman's test: under a planar scene both are right and the planar one is the
+            more precise).
     """
 
     levels: int = 3
@@ -149,10 +160,20 @@ class SelfCalConfig:
     both_starts: bool = True
     distortion_levels: int = 2
     clusters: int = 6
+    parallax: int = 0
+    parallax_width: float = 0.3
+    parallax_iterations: int = 4
+    parallax_test: float = 2.0
+    parallax_block: int = 8
 
     def __post_init__(self) -> None:
         integer(self, "distortion_levels")
         integer(self, "clusters", lo=0)
+        integer(self, "parallax", lo=0)
+        integer(self, "parallax_iterations")
+        integer(self, "parallax_block")
+        real(self, "parallax_test", lo=0)
+        real(self, "parallax_width", lo=0, lo_open=True)
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
         real(self, "huber_k", lo=0, lo_open=True)

@@ -74,6 +74,7 @@ from lensdist_torch.geometry.selfcal_model import (
     evaluate,
     h_matrix,
     invertible,
+    relief_basis,
     robust_cost,
     robust_scale,
     robust_weights,
@@ -101,8 +102,8 @@ class SelfCalInfo(NamedTuple):
     delta_avg (px, NaN if not converged), delta_avg_std (px), residual (RMS of the
     photometrically corrected residual at full resolution), overlap, ab (B, 2) the normalised
     coefficients, gain_bias (B, 2) the photometric gain and bias (1, 0 without that model),
-    scale (the robust sigma, 1.4826 MAD, of the final residual) and from_init (bool: the start
-    from ``init`` won).
+    scale (the robust sigma, 1.4826 MAD, of the final residual), from_init (bool: the start
+    from ``init`` won) and relief (bool: the plane + parallax model's answer was kept).
     """
 
     converged: torch.Tensor
@@ -116,6 +117,7 @@ class SelfCalInfo(NamedTuple):
     gain_bias: torch.Tensor
     scale: torch.Tensor
     from_init: torch.Tensor
+    relief: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -199,16 +201,53 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     n_starts = theta.shape[0] // bsz
     lam = torch.full((theta.shape[0],), cfg.damping, dtype=torch.float64, device=g1.device)
     for lev, iters in zip(range(cfg.levels - 1, -1, -1), cfg.iterations):
-        i1, h, w = pyr1[lev], *pyr1[lev].shape[-2:]
-        idx = select_samples(i1, cfg.sample_block[cfg.levels - 1 - lev], cfg.margin)
-        ud = normalized_grid(lev, h, w, h0, w0, device=g1.device).view(-1, 2)
-        ux_d, uy_d = ud[idx, 0], ud[idx, 1]
-        lv = [torch.gather(i1.flatten(1), 1, idx), with_gradients(pyr2[lev]), ux_d, uy_d, ux_d * ux_d + uy_d * uy_d]
-        lv = Level(*(x.repeat(n_starts, *(1,) * (x.dim() - 1)) if n_starts > 1 else x for x in lv), half_diagonal(h0, w0) / 2**lev,
-                   level_to_grid(lev, h, w, h0, w0), cfg.newton, cfg.margin, cfg.photometric, cfg.noise_floor)
+        lv = _level(pyr1, pyr2, lev, theta, n_starts, cfg, relief=False)
         theta, lam, state = _levenberg_marquardt(theta, lam, lv, iters, cfg, lev < cfg.distortion_levels)
         lam = lam.clamp_min(cfg.damping)  # a fresh start of the damping at the next level
-    return _result(theta, state, n_starts, init is not None, h0, w0, cfg)
+    theta, *planar = _result(theta, state, n_starts, init is not None, h0, w0, cfg, cfg.sample_block[-1])
+    if cfg.parallax == 0:
+        return planar
+    # the plane + parallax model, from the planar fit; kept where it moves Delta_avg significantly
+    theta = torch.cat([theta, theta.new_zeros(bsz, cfg.parallax**2)], 1)
+    lam = torch.full((bsz,), cfg.damping, dtype=torch.float64, device=g1.device)
+    theta, _, state = _levenberg_marquardt(theta, lam, _level(pyr1, pyr2, 0, theta, 1, cfg, relief=True),
+                                           cfg.parallax_iterations, cfg)
+    _, *relief = _result(theta, state, 1, False, h0, w0, cfg, cfg.parallax_block)
+    (d0, s0), (d1, s1) = (planar[3].delta_avg, planar[3].delta_avg_std), (relief[3].delta_avg, relief[3].delta_avg_std)
+    z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(cfg.noise_floor).sqrt()  # Hausman: planar efficient under H0
+    use = relief[3].converged & planar[3].converged & (z > cfg.parallax_test)
+    pick = [torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b) for a, b in zip(relief[:3], planar[:3])]
+    info = planar[3]._replace(**{f: torch.where(use.view(-1, *(1,) * (getattr(relief[3], f).dim() - 1)),
+                                                 getattr(relief[3], f), getattr(planar[3], f))
+                                 for f in SelfCalInfo._fields if f not in ("from_init", "relief")}, relief=use)
+    return (*pick, info)
+
+
+def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relief: bool) -> Level:
+    """The fixed data of level ``lev`` (samples of img1, img2 and its gradients), repeated per start."""
+    i1, h, w = pyr1[lev], *pyr1[lev].shape[-2:]
+    h0, w0 = pyr1[0].shape[-2:]
+    idx = select_samples(i1, cfg.parallax_block if relief else cfg.sample_block[cfg.levels - 1 - lev], cfg.margin)
+    ud = normalized_grid(lev, h, w, h0, w0, device=i1.device).view(-1, 2)
+    ux_d, uy_d = ud[idx, 0], ud[idx, 1]
+    lv = [torch.gather(i1.flatten(1), 1, idx), with_gradients(pyr2[lev]), ux_d, uy_d, ux_d * ux_d + uy_d * uy_d]
+    lv = [x.repeat(n_starts, *(1,) * (x.dim() - 1)) if n_starts > 1 else x for x in lv]
+    extra = _relief(theta, lv[2], lv[3], cfg, h0, w0) if relief else (None, None)
+    return Level(*lv, half_diagonal(h0, w0) / 2**lev, level_to_grid(lev, h, w, h0, w0), cfg.newton, cfg.margin,
+                 cfg.photometric, cfg.noise_floor, *extra)
+
+
+def _relief(theta, ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
+    """(basis (B, K, N), direction (B, 2)) of the plane + parallax model.
+
+    The direction is the current homography's translation (h02, h12), fixed for the level
+    (downwards where it is 0): a camera translating parallel to the scene moves every point of a
+    relief along it.
+    """
+    t = theta[:, [2, 5]].float()
+    n = t.norm(dim=1, keepdim=True)
+    down = torch.tensor([0.0, 1.0], device=t.device).expand_as(t)
+    return relief_basis(ux_d, uy_d, cfg.parallax, cfg.parallax_width, h0, w0), torch.where(n > 0, t / n.clamp_min(1e-12), down)
 
 
 def _plausible(theta: torch.Tensor, cfg: SelfCalConfig) -> torch.Tensor:
@@ -239,8 +278,9 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     res0, valid0 = res, valid
     for _ in range(iterations):
         jtj, jtr = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
-        if not free_ab:  # (a, b) held: their rows and columns out of the system (step 0)
-            jtj[:, 8:10], jtj[:, :, 8:10], jtr[:, 8:10] = 0, 0, 0
+        if not free_ab:  # (a, b) and the relief held: their rows and columns out of the system (step 0)
+            held = [8, 9, *range(12 if cfg.photometric == "gain_bias" else 10, jtj.shape[1])]
+            jtj[:, held], jtj[:, :, held], jtr[:, held] = 0, 0, 0
         diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
         A = jtj + torch.diag_embed(lam[:, None] * diag + 1e-9 * diag.amax(1, keepdim=True))
         step = -torch.linalg.solve(A, jtr)
@@ -261,7 +301,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     return theta, lam, _State(res, valid, J, sigma, cost, robust_cost(res0, valid0, sigma, loss, k))
 
 
-def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig) -> torch.Tensor:
+def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: int) -> torch.Tensor:
     """Std (px) of Delta_avg from the covariance of the final fit; inf where not finite.
 
     The weighted Gauss-Newton covariance, or (``clusters`` > 1) the cluster-robust one where it
@@ -278,7 +318,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig) -> torc
     inv = torch.linalg.inv(jtj + cfg.ridge * eye)
     cov = s2[:, None, None] * inv
     if cfg.clusters > 1:  # cluster-robust: the larger of the two
-        cov = torch.maximum(cov, _sandwich(inv, st, w, h0, w0, cfg))
+        cov = torch.maximum(cov, _sandwich(inv, st, w, h0, w0, cfg, block))
     # Delta_avg and its gradient in (a, b): R * mean |a u^3 + b u^5|, the mean over the centres
     # of 4 x 4 blocks (the gradient is smooth; 16 times fewer terms)
     u2 = (normalized_grid(2, h0 // 4, w0 // 4, h0, w0, torch.float64, ab.device).view(1, -1, 2) ** 2).sum(-1)
@@ -290,15 +330,14 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig) -> torc
     return torch.where(torch.isfinite(std), std, torch.full_like(std, float("inf")))
 
 
-def _sandwich(inv: torch.Tensor, st: _State, w: torch.Tensor, h0: int, w0: int, cfg: SelfCalConfig) -> torch.Tensor:
+def _sandwich(inv: torch.Tensor, st: _State, w: torch.Tensor, h0: int, w0: int, cfg: SelfCalConfig, block: int) -> torch.Tensor:
     """Cluster-robust covariance A^-1 (sum_c g_c g_c^T) A^-1 C / (C - 1), g_c = sum_{i in c} J_i w_i r_i.
 
-    The full-size samples (one per block of ``sample_block[-1]`` px, row-major) are grouped in
+    The full-size samples (one per ``block`` x ``block`` cell, row-major) are grouped in
     ``clusters`` x ``clusters`` rectangles of the frame. Residuals that a smooth misfit (parallax,
     a non-planar scene) makes alike within a region pull together and widen it; for independent
     noise it matches the Gauss-Newton covariance (it is the linearised delete-one-cluster jackknife).
     """
-    block = cfg.sample_block[-1]
     hb, wb = (h0 // block, w0 // block) if block > 1 else (h0, w0)  # select_samples' grid
     rows = torch.arange(hb, device=inv.device) * cfg.clusters // hb
     cols = torch.arange(wb, device=inv.device) * cfg.clusters // wb
@@ -322,7 +361,7 @@ def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> 
     return rows + bsz * cost.argmin(0)  # ties: the first start (init)
 
 
-def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, cfg: SelfCalConfig):
+def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, cfg: SelfCalConfig, block: int):
     """k2, k4, H and :class:`SelfCalInfo` of a chunk from its final fits; NaN where it diverged."""
     dev = theta.device
     overlap = st.valid.float().mean(1)
@@ -333,7 +372,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
     st = _State(*(x[keep] for x in st))
     r0 = half_diagonal(h0, w0)
-    std = _delta_avg_std(ab, st, h0, w0, cfg)
+    std = _delta_avg_std(ab, st, h0, w0, cfg, block)
     nan = torch.tensor(float("nan"), dtype=torch.float64, device=dev)
     k2, k4 = torch.where(ok, ab[:, 0] / r0**2, nan), torch.where(ok, ab[:, 1] / r0**4, nan)
     nrm = normalizer(h0, w0, device=dev)
@@ -347,5 +386,5 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     rms = torch.sqrt((st.res.double() ** 2).sum(1) / st.valid.sum(1).clamp_min(1)).float()
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
-                       st.sigma.double(), from_init)
-    return k2, k4, H, info
+                       st.sigma.double(), from_init, torch.zeros_like(ok))
+    return theta, k2, k4, H, info

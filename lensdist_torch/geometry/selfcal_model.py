@@ -37,6 +37,7 @@ __all__ = [
     "with_gradients",
     "evaluate",
     "select_samples",
+    "relief_basis",
     "invertible",
     "robust_scale",
     "robust_weights",
@@ -126,7 +127,9 @@ class Level(NamedTuple):
     img1 at the sampled pixels (B, N), img2 with its gradients (B, 3, h, w), the sampled pixels'
     u_d (x, y planes, (B, N)) and |u_d|^2, level px per unit, the map u -> grid_sample
     coordinates (sx, ox, sy, oy), Newton steps, the margin (level px), the photometric model
-    and the std floor of the normalised model.
+    and the std floor of the normalised model; with the plane + parallax model, the relief's
+    basis at the sampled pixels (B, K, N) and, per row, the unit direction (B, 2) the relief moves
+    img2's points along.
     """
 
     i1: torch.Tensor
@@ -140,6 +143,8 @@ class Level(NamedTuple):
     margin: float
     photometric: str
     floor: float
+    basis: torch.Tensor | None = None
+    direction: torch.Tensor | None = None
 
 
 def _valid_mean(x: torch.Tensor, vf: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
@@ -149,8 +154,8 @@ def _valid_mean(x: torch.Tensor, vf: torch.Tensor, n: torch.Tensor) -> torch.Ten
 def evaluate(theta: torch.Tensor, lv: Level, jac: bool = True):
     """Residual (B, N), mask (B, N) and (optionally) the Jacobian (B, P, N) at theta (B, P).
 
-    P = 12 with the ``gain_bias`` model (its last two rows d r / d g = -img2(...), d r / d c
-    = -1), 10 otherwise. Coordinates are kept as separate x / y planes (B, N): elementwise ops
+    P = 12 with the ``gain_bias`` model (its rows 10, 11 d r / d g = -img2(...), d r / d c
+    = -1), 10 otherwise, plus K relief coefficients with the plane + parallax model. Coordinates are kept as separate x / y planes (B, N): elementwise ops
     stay contiguous.
     """
     bsz, _, h, w = lv.stack2.shape
@@ -164,6 +169,10 @@ def evaluate(theta: torch.Tensor, lv: Level, jac: bool = True):
     w3 = 1.0 + h20 * ux + h21 * uy
     iw3 = 1.0 / w3
     vx, vy = (h00 * ux + h01 * uy + h02) * iw3, (h10 * ux + h11 * uy + h12) * iw3
+    n_fixed = 12 if lv.photometric == "gain_bias" else 10
+    if lv.basis is not None:  # the relief along the motion: v += (c . phi(u_d)) d
+        relief = torch.bmm(th[:, None, n_fixed:], lv.basis)[:, 0]
+        vx, vy = vx + relief * lv.direction[:, :1], vy + relief * lv.direction[:, 1:]
     s, sig = radial_inverse(vx * vx + vy * vy, a, b, lv.newton)
     ratio = s / sig
     vdx, vdy = vx * ratio, vy * ratio
@@ -209,10 +218,26 @@ def evaluate(theta: torch.Tensor, lv: Level, jac: bool = True):
     if lv.photometric == "gain_bias":
         rows += [-i2 * vf, -vf]
     J = torch.stack(rows, 1)
+    if lv.basis is not None:
+        ed = ex * lv.direction[:, :1] + ey * lv.direction[:, 1:]
+        J = torch.cat([J, ed[:, None] * lv.basis], 1)
     if lv.photometric == "normalized":  # the moments move with the samples: project them out
         J = (J - _valid_mean(J, vf[:, None], n[:, None]) - z[:, None] * _valid_mean(z[:, None] * J, vf[:, None], n[:, None]))
         J = J * vf[:, None]
     return res, valid, J
+
+
+def relief_basis(ux_d: torch.Tensor, uy_d: torch.Tensor, n: int, width: float, h0: int, w0: int) -> torch.Tensor:
+    """Gaussian bumps of sigma ``width`` (half-diagonals) on an n x n grid spanning the frame.
+
+    ``ux_d``, ``uy_d`` (B, N): normalised points -> (B, n^2, N). The relief of the plane + parallax model is
+    their weighted sum.
+    """
+    r = half_diagonal(h0, w0)
+    cx = torch.linspace(-(w0 - 1) / (2 * r), (w0 - 1) / (2 * r), n, device=ux_d.device)
+    cy = torch.linspace(-(h0 - 1) / (2 * r), (h0 - 1) / (2 * r), n, device=ux_d.device)
+    d2 = (ux_d[:, None] - cx.repeat_interleave(n)[:, None]) ** 2 + (uy_d[:, None] - cy.repeat(n)[:, None]) ** 2
+    return torch.exp(-d2 / (2 * width * width))
 
 
 def select_samples(img: torch.Tensor, block: int, margin: float) -> torch.Tensor:

@@ -334,14 +334,14 @@ def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clus
     inv = torch.linalg.inv(_normal_equations(J, torch.zeros(1, n), w)[0])
     noise = 0.1 * torch.randn(1, n, generator=g)
     gn = 0.01 * inv.diagonal(dim1=1, dim2=2)
-    sw = _sandwich(inv, _state(noise, J), w, h0, w0, cfg).diagonal(dim1=1, dim2=2)
+    sw = _sandwich(inv, _state(noise, J), w, h0, w0, cfg, cfg.sample_block[-1]).diagonal(dim1=1, dim2=2)
     assert torch.allclose(sw, gn, rtol=0.6)  # 36 clusters: a noisy but unbiased estimate
     # a residual shared within each cluster, correlated with the Jacobian there: much wider
     rows = torch.arange(h0 // 4) * 6 // (h0 // 4)
     cols = torch.arange(w0 // 4) * 6 // (w0 // 4)
     cid = (rows[:, None] * 6 + cols[None, :]).flatten()
     shared = torch.randn(36, generator=g)[cid] * 0.1 * torch.sign(J[0, 0])
-    wide = _sandwich(inv, _state(noise + shared[None], J), w, h0, w0, cfg).diagonal(dim1=1, dim2=2)
+    wide = _sandwich(inv, _state(noise + shared[None], J), w, h0, w0, cfg, cfg.sample_block[-1]).diagonal(dim1=1, dim2=2)
     assert float(wide[0, 0] / gn[0, 0]) > 10
 
 
