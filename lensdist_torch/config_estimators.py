@@ -130,6 +130,8 @@ class SelfCalConfig:
             registration's translation, a smooth field of parallax x parallax Gaussian bumps
             (fitted where (a, b) are); 0: a planar scene.
         parallax_width: the bumps' sigma, in half-diagonals.
+        parallax_px: the std (px) of the Gaussian prior on each bump's height: how far a
+            relief may move points, as the user expects it (MAP; larger: freer relief).
         parallax_iterations: LM iterations of the plane + parallax model at full size, started
             from the planar fit.
         parallax_block: its samples: the strongest-gradient pixel of every block x block cell.
@@ -162,9 +164,10 @@ class SelfCalConfig:
     clusters: int = 6
     parallax: int = 0
     parallax_width: float = 0.3
-    parallax_iterations: int = 4
+    parallax_px: float = 1.0
+    parallax_iterations: int = 6
     parallax_test: float = 2.0
-    parallax_block: int = 8
+    parallax_block: int = 4
 
     def __post_init__(self) -> None:
         integer(self, "distortion_levels")
@@ -174,6 +177,7 @@ class SelfCalConfig:
         integer(self, "parallax_block")
         real(self, "parallax_test", lo=0)
         real(self, "parallax_width", lo=0, lo_open=True)
+        real(self, "parallax_px", lo=0, lo_open=True)
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
         real(self, "huber_k", lo=0, lo_open=True)

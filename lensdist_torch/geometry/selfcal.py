@@ -121,7 +121,11 @@ class SelfCalInfo(NamedTuple):
 
 
 class _State(NamedTuple):
-    """The final full-resolution fit of each row: residual, mask, Jacobian, sigma, cost, start cost."""
+    """The final full-resolution fit of each row.
+
+    Residual, mask, Jacobian, sigma, cost, start cost and whether the relief (with its prior)
+    was fitted.
+    """
 
     res: torch.Tensor
     valid: torch.Tensor
@@ -129,6 +133,7 @@ class _State(NamedTuple):
     sigma: torch.Tensor
     cost: torch.Tensor
     start_cost: torch.Tensor
+    relief: bool = False
 
 
 def _k(cfg: SelfCalConfig) -> float:
@@ -274,19 +279,23 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     loss, k = cfg.robust, _k(cfg)
     res, valid, J = evaluate(theta, lv)
     sigma = robust_scale(res, valid, cfg.noise_floor)
-    cost = robust_cost(res, valid, sigma, loss, k)
-    res0, valid0 = res, valid
+    cost = _cost(theta, res, valid, sigma, lv, cfg)
+    theta0, res0, valid0 = theta, res, valid
     for _ in range(iterations):
         jtj, jtr = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
         if not free_ab:  # (a, b) and the relief held: their rows and columns out of the system (step 0)
             held = [8, 9, *range(12 if cfg.photometric == "gain_bias" else 10, jtj.shape[1])]
             jtj[:, held], jtj[:, :, held], jtr[:, held] = 0, 0, 0
+        elif lv.basis is not None:  # the relief's Gaussian prior
+            prec, rel = _prior(sigma, lv, cfg)
+            torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
+            jtr[:, rel] += prec[:, None] * theta[:, rel]
         diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
         A = jtj + torch.diag_embed(lam[:, None] * diag + 1e-9 * diag.amax(1, keepdim=True))
         step = -torch.linalg.solve(A, jtr)
         cand = theta + torch.nan_to_num(step, nan=0.0)
         res_c, valid_c, J_c = evaluate(cand, lv)
-        cost_c = robust_cost(res_c, valid_c, sigma, loss, k)
+        cost_c = _cost(cand, res_c, valid_c, sigma, lv, cfg)
         acc = (cost_c < cost) & torch.isfinite(cost_c) & _plausible(cand, cfg) & (valid_c.float().mean(1) > 0.05)
         m = acc[:, None]
         theta = torch.where(m, cand, theta)
@@ -295,10 +304,33 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
         lam = torch.where(acc, lam / 3, lam * 4).clamp(1e-7, 1e7)
         if loss != "none":  # sigma re-estimated: the cost moves with it
             sigma = torch.where(acc, robust_scale(res, valid, cfg.noise_floor), sigma)
-            cost = robust_cost(res, valid, sigma, loss, k)
+            cost = _cost(theta, res, valid, sigma, lv, cfg)
         else:
             cost = torch.where(acc, cost_c, cost)
-    return theta, lam, _State(res, valid, J, sigma, cost, robust_cost(res0, valid0, sigma, loss, k))
+    return theta, lam, _State(res, valid, J, sigma, cost, _cost(theta0, res0, valid0, sigma, lv, cfg), lv.basis is not None)
+
+
+def _prior(sigma, lv: Level, cfg: SelfCalConfig):
+    """(precision (B,) float64, indices) of the relief coefficients' Gaussian prior.
+
+    Std ``parallax_px`` (px) per coefficient, in the units of the normal equations (the
+    residual variance sigma^2 over the prior variance): MAP, not a hard constraint.
+    """
+    n_fixed = 12 if cfg.photometric == "gain_bias" else 10
+    tau = cfg.parallax_px / lv.px  # normalised units: px over the level's half diagonal
+    return sigma.double() ** 2 / tau**2, slice(n_fixed, n_fixed + lv.basis.shape[1])
+
+
+def _cost(theta, res, valid, sigma, lv: Level, cfg: SelfCalConfig):
+    """The robust cost, plus the relief prior's term (on the same per-sample scale) where fitted."""
+    cost = robust_cost(res, valid, sigma, cfg.robust, _k(cfg))
+    if lv.basis is None:
+        return cost
+    prec, rel = _prior(sigma, lv, cfg)
+    return cost + prec * (theta[:, rel].double() ** 2).sum(1) / valid.sum(1).clamp_min(1).double()
+
+
+
 
 
 def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: int) -> torch.Tensor:
@@ -315,6 +347,9 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: 
     # textureless or identical pair cannot claim certainty
     s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(cfg.noise_floor**2)
     eye = torch.eye(n_par, dtype=torch.float64, device=ab.device)
+    if st.relief:  # the posterior precision J W J^T / s^2 + I / tau^2 of the relief's coefficients
+        rel = slice(12 if cfg.photometric == "gain_bias" else 10, n_par)
+        torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += (s2 * (half_diagonal(h0, w0) / cfg.parallax_px) ** 2)[:, None]
     inv = torch.linalg.inv(jtj + cfg.ridge * eye)
     cov = s2[:, None, None] * inv
     if cfg.clusters > 1:  # cluster-robust: the larger of the two
@@ -370,7 +405,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
           & (overlap >= cfg.min_overlap) & (st.cost <= st.start_cost * (1 + 1e-6)))
     keep = _choose(st, ok, n_starts, cfg)
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
-    st = _State(*(x[keep] for x in st))
+    st = _State(*(x[keep] for x in st[:6]), st.relief)
     r0 = half_diagonal(h0, w0)
     std = _delta_avg_std(ab, st, h0, w0, cfg, block)
     nan = torch.tensor(float("nan"), dtype=torch.float64, device=dev)

@@ -106,9 +106,26 @@ def test_relief_model_leaves_a_planar_scene_nearly_as_it_was():
     assert not bool(_errors(i1, i2, true, off)[1].relief.any())
 
 
+@pytest.mark.usefixtures("one_thread_module")
+def test_the_prior_narrows_the_relief_and_its_interval():
+    """A tighter prior on the relief (parallax_px) holds the fit nearer the planar one: the std
+    of Delta_avg falls from a free relief to a tight one, and so does, on average, how far
+    Delta_avg moves from the planar answer (on pairs with relief the data still move it: with
+    thousands of samples they outweigh any prior)."""
+    i1, i2, true = _pairs(1.5, n=4)
+    planar = _errors(i1, i2, true, SelfCalConfig())[1].delta_avg
+    infos = [_errors(i1, i2, true, dataclasses.replace(RELIEF, parallax_test=0.0, parallax_px=p))[1]
+             for p in (100.0, 1.0, 0.01)]
+    stds = [i.delta_avg_std for i in infos]
+    moved = [float((i.delta_avg - planar).abs().mean()) for i in infos]
+    assert bool((stds[0] >= stds[1]).all()) and bool((stds[1] >= stds[2]).all())
+    assert moved[0] > moved[2]
+
+
 @pytest.mark.bad_input
 @pytest.mark.parametrize("field,value", [("parallax", -1), ("parallax", 2.5), ("parallax_width", 0.0),
-                                         ("parallax_iterations", 0), ("parallax_block", 0), ("parallax_test", -1.0)])
+                                         ("parallax_iterations", 0), ("parallax_block", 0), ("parallax_test", -1.0),
+                                         ("parallax_px", 0.0)])
 def test_relief_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=field) as err:
         SelfCalConfig(**{field: value})

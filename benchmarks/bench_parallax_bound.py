@@ -1,0 +1,141 @@
+"""What one pair of a non-planar scene can tell, whatever the estimator (docs/method.md, section 10).
+
+For the realistic protocol's test pairs (distorted ones) the exact correspondences are known: a
+pixel p of I2 sees the scene point of I1's pixel distort(A (undistort(p) + s(p))), A the centred
+motion, s the parallax (docs/method.md, section 7). This fits two models to those exact points
+(every 8th pixel, no image, no noise) by Levenberg-Marquardt in float64 and reports Delta_avg's
+error and class:
+
+- planar: (k2, k4) and a homography, the self-calibration's model;
+- relief: the same plus n x n Gaussian bumps of relief along the true translation (the plane +
+  parallax model of ``SelfCalConfig.parallax``).
+
+The planar model's errors here are a bound: no planar estimator does better on these pairs.
+
+    python benchmarks/bench_parallax_bound.py --n 48 --out docs/results/bench_parallax_bound.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import torch
+
+from lensdist_torch.config import load_config
+from lensdist_torch.core.storage import atomic_write_text
+from lensdist_torch.data.realism import parallax_shift
+from lensdist_torch.data.synthesis import draw_pairs
+from lensdist_torch.geometry.distortion import (
+    delta_avg,
+    delta_top,
+    distort_points,
+    distortion_center,
+    distortion_class,
+    estimated_class,
+    undistort_points,
+)
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.selfcal_model import relief_basis
+
+
+def correspondences(cfg, params, i: int, shift: torch.Tensor, step: int):
+    """I2's pixels (N, 2) and their exact matches in I1 (N, 2), both inside the frame."""
+    h, w = cfg.image.size
+    x0, y0 = distortion_center(h, w)
+    c = torch.tensor([x0, y0], dtype=torch.float64)
+    ys, xs = torch.meshgrid(torch.arange(0, h, step, dtype=torch.float64), torch.arange(0, w, step, dtype=torch.float64),
+                            indexing="ij")
+    p2 = torch.stack([xs.flatten(), ys.flatten()], -1)
+    flat = (ys.flatten() * w + xs.flatten()).long()
+    k2, k4 = params.k2[i : i + 1], params.k4[i : i + 1]
+    q = undistort_points(p2[None], k2, k4, (x0, y0))[0] + shift[:, flat].T.double()
+    m = params.M[i]
+    qh = torch.cat([q, torch.ones_like(q[:, :1])], -1) @ m.T
+    p1 = distort_points((qh[:, :2] / qh[:, 2:])[None], k2, k4, (x0, y0))[0]
+    inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+    return p2[inside], p1[inside], c
+
+
+def fit(src, dst, c, r, basis, direction, iterations: int = 25):
+    """LM fit of [a, b, 8 homography entries, relief coefficients] mapping src -> dst (pixels)."""
+    nb = 0 if basis is None else basis.shape[1]
+
+    def model(th):
+        k2, k4 = (th[0] / r**2).reshape(1), (th[1] / r**4).reshape(1)
+        hm = torch.cat([th[2:10], torch.ones(1, dtype=th.dtype)]).reshape(3, 3)
+        u = (undistort_points(src[None], k2, k4, tuple(c.tolist()))[0] - c) / r
+        if nb:
+            u = u + (basis @ th[10:])[:, None] * direction[None]
+        v = torch.cat([u, torch.ones_like(u[:, :1])], -1) @ hm.T
+        return distort_points((v[:, :2] / v[:, 2:] * r + c)[None], k2, k4, tuple(c.tolist()))[0]
+
+    th = torch.zeros(10 + nb, dtype=torch.float64)
+    th[2], th[6] = 1.0, 1.0
+    th[4], th[7] = ((dst - src).mean(0) / r).unbind()
+    cost, lam = float((model(th) - dst).pow(2).sum()), 1e-3
+    for _ in range(iterations):
+        res = (model(th) - dst).flatten()
+        jac = torch.func.jacfwd(lambda t: model(t).flatten())(th)
+        jtj = jac.T @ jac
+        cand = th - torch.linalg.solve(jtj + lam * torch.diag(torch.diag(jtj).clamp_min(1e-12)), jac.T @ res)
+        new = float((model(cand) - dst).pow(2).sum())
+        if new < cost:
+            done = cost - new < 1e-12 * cost
+            th, cost, lam = cand, new, lam / 3
+            if done:
+                break
+        else:
+            lam *= 4
+    return th, (cost / len(src)) ** 0.5
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default="configs/realistic.toml")
+    ap.add_argument("--n", type=int, default=48, help="test pairs (the first n, all distorted)")
+    ap.add_argument("--step", type=int, default=8, help="every step-th pixel of I2")
+    ap.add_argument("--bumps", type=int, default=5, help="the relief model's n x n bumps")
+    ap.add_argument("--width", type=float, default=0.3, help="their sigma, half-diagonals")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--out", default=None, help="also write the JSON here")
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    cfg = load_config(a.config)
+    h, w = cfg.image.size
+    r = half_diagonal(h, w)
+    params = draw_pairs(cfg, "test", list(range(a.n)), len(cfg.protocol.scenes))
+    shift = parallax_shift(params.realism, params.motion, h, w)
+    true = delta_avg(params.k2, params.k4, h, w).double()
+    t0 = time.perf_counter()
+    est = {"planar": [], "relief": []}
+    for i in range(a.n):
+        src, dst, c = correspondences(cfg, params, i, shift[i], a.step)
+        t = torch.stack([params.motion[i, 1], params.motion[i, 0]])
+        direction = t / t.norm().clamp_min(1e-12)
+        un = (src - c) / r
+        basis = relief_basis(un[None, :, 0], un[None, :, 1], a.bumps, a.width, h, w)[0].T.double()
+        for name, b in (("planar", None), ("relief", basis)):
+            th, _ = fit(src, dst, c, r, b, direction)
+            ok = bool(torch.isfinite(th).all() and th[:2].abs().max() <= 2)
+            est[name].append(float(delta_avg(th[0:1] / r**2, th[1:2] / r**4, h, w)) if ok else float("nan"))
+    out = {"config": a.config, "pairs": a.n, "step": a.step, "bumps": a.bumps, "width": a.width,
+           "seconds": round(time.perf_counter() - t0, 1)}
+    truth = distortion_class(true, delta_top("delta_avg", cfg), cfg.distortion.n_classes)
+    for name, values in est.items():
+        e = torch.tensor(values, dtype=torch.float64)
+        ok = torch.isfinite(e)
+        err = (e - true)[ok]
+        right = estimated_class(e[ok], e[ok], "delta_avg", cfg) == truth[ok]
+        out[name] = {"right": float(right.double().mean()), "over_1px": int((err.abs() > 1).sum()),
+                     "median_abs_px": float(err.abs().median()), "rmse_px": float(err.pow(2).mean().sqrt()),
+                     "diverged": int((~ok).sum())}
+    text = json.dumps(out, indent=1)
+    print(text)
+    if a.out:
+        atomic_write_text(a.out, text + "\n")
+
+
+if __name__ == "__main__":
+    main()
