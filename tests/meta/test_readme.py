@@ -28,3 +28,17 @@ def test_loss_snippet_prints_what_the_readme_says(capsys):
     assert claimed is not None
     printed = [line for line in out if line]
     assert printed == list(claimed.groups())
+
+
+TOML_BLOCKS = re.findall(r"```toml\n(.*?)```", README.read_text(), flags=re.S)
+
+
+@pytest.mark.parametrize("index", range(len(TOML_BLOCKS)))
+def test_readme_toml_block_is_a_valid_config(index, tmp_path):
+    """Every TOML block of the README loads as a config and sets what it says (non-default)."""
+    from lensdist_torch.config import LensdistConfig, config_to_dict, load_config
+
+    path = tmp_path / "block.toml"
+    path.write_text(TOML_BLOCKS[index])
+    loaded, default = config_to_dict(load_config(path)), config_to_dict(LensdistConfig())
+    assert loaded != default
