@@ -167,7 +167,7 @@ class SelfCalConfig:
     parallax_px: float = 1.0
     parallax_iterations: int = 6
     parallax_test: float = 2.0
-    parallax_block: int = 4
+    parallax_block: int = 2
 
     def __post_init__(self) -> None:
         integer(self, "distortion_levels")

@@ -136,6 +136,11 @@ class _State(NamedTuple):
     relief: bool = False
 
 
+#: floor (px) of the std of the difference in Hausman's test: the relief's std can fall below the
+#: planar one where the relief explains a misfit that widened the planar interval
+_HAUSMAN_FLOOR_PX = 0.05
+
+
 def _k(cfg: SelfCalConfig) -> float:
     return cfg.tukey_c if cfg.robust == "tukey" else cfg.huber_k
 
@@ -219,7 +224,8 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
                                            cfg.parallax_iterations, cfg)
     _, *relief = _result(theta, state, 1, False, h0, w0, cfg, cfg.parallax_block)
     (d0, s0), (d1, s1) = (planar[3].delta_avg, planar[3].delta_avg_std), (relief[3].delta_avg, relief[3].delta_avg_std)
-    z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(cfg.noise_floor).sqrt()  # Hausman: planar efficient under H0
+    # Hausman: under a planar scene the planar answer is the efficient one, var(d1 - d0) = s1^2 - s0^2
+    z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(_HAUSMAN_FLOOR_PX**2).sqrt()
     use = relief[3].converged & planar[3].converged & (z > cfg.parallax_test)
     pick = [torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b) for a, b in zip(relief[:3], planar[:3])]
     info = planar[3]._replace(**{f: torch.where(use.view(-1, *(1,) * (getattr(relief[3], f).dim() - 1)),

@@ -70,7 +70,7 @@ def _errors(i1, i2, true, config):
 def test_relief_model_removes_most_of_the_parallax_error():
     """Pairs of a scene with relief (parallax up to 1.5 px, nothing else): the planar model is
     pulled by it (first-order confounding), the plane + parallax model much less (12 pairs:
-    RMSE 1.61 -> 0.82 px when written)."""
+    RMSE 1.61 -> 0.83 px, the relief kept on 9, when written)."""
     i1, i2, true = _pairs(1.5)
     planar, _ = _errors(i1, i2, true, SelfCalConfig())
     relief, info = _errors(i1, i2, true, RELIEF)
