@@ -253,6 +253,7 @@ def _selfcal_one(p: Prepared, i: int) -> dict:
         "k2": float(k2[0]),
         "k4": float(k4[0]),
         "delta_avg_std": float(sc.delta_avg_std[0]),
+        "relief": bool(sc.relief[0]),  # the plane + parallax model's answer (selfcal.parallax)
     }
 
 

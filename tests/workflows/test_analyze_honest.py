@@ -80,3 +80,19 @@ def test_selfcal_answer_in_user_pixels_and_opencv_terms():
     assert cv["camera_matrix"][0][2] == pytest.approx((848 - 1) / 2) and cv["camera_matrix"][1][2] == pytest.approx((640 - 1) / 2)
     assert cv["fit_error_mean_px"] < 0.1
     json.dumps(r, allow_nan=False)
+
+
+def test_the_answer_says_which_model_gave_it():
+    """With the plane + parallax model on every pair (selfcal.parallax, parallax_test = 0) the
+    answer says it came from that model; by default it never does."""
+    import dataclasses
+
+    from lensdist_torch.config import LensdistConfig
+
+    scene = load_scene("gravel")
+    a, b = scene[..., :320, :424], scene[..., 8:328, 4:428]
+    base = LensdistConfig()
+    relief = dataclasses.replace(base, selfcal=dataclasses.replace(base.selfcal, parallax=5, parallax_test=0.0))
+    assert analyze_pair(a, b)["relief"] is False
+    r = analyze_pair(a, b, config=relief)
+    assert r["relief"] is True and r["class"] == "R"
