@@ -37,6 +37,7 @@ from lensdist_torch.geometry.distortion import (
     undistort_points,
 )
 from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.selfcal_model import relief_basis
 
 
@@ -51,9 +52,7 @@ def correspondences(cfg, params, i: int, shift: torch.Tensor, step: int):
     flat = (ys.flatten() * w + xs.flatten()).long()
     k2, k4 = params.k2[i : i + 1], params.k4[i : i + 1]
     q = undistort_points(p2[None], k2, k4, (x0, y0))[0] + shift[:, flat].T.double()
-    m = params.M[i]
-    qh = torch.cat([q, torch.ones_like(q[:, :1])], -1) @ m.T
-    p1 = distort_points((qh[:, :2] / qh[:, 2:])[None], k2, k4, (x0, y0))[0]
+    p1 = distort_points(apply_homography(params.M[i : i + 1], q), k2, k4, (x0, y0))[0]
     inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
     return p2[inside], p1[inside], c
 
@@ -68,8 +67,7 @@ def fit(src, dst, c, r, basis, direction, iterations: int = 25):
         u = (undistort_points(src[None], k2, k4, tuple(c.tolist()))[0] - c) / r
         if nb:
             u = u + (basis @ th[10:])[:, None] * direction[None]
-        v = torch.cat([u, torch.ones_like(u[:, :1])], -1) @ hm.T
-        return distort_points((v[:, :2] / v[:, 2:] * r + c)[None], k2, k4, tuple(c.tolist()))[0]
+        return distort_points(apply_homography(hm[None], u) * r + c, k2, k4, tuple(c.tolist()))[0]
 
     th = torch.zeros(10 + nb, dtype=torch.float64)
     th[2], th[6] = 1.0, 1.0
@@ -88,7 +86,7 @@ def fit(src, dst, c, r, basis, direction, iterations: int = 25):
                 break
         else:
             lam *= 4
-    return th, (cost / len(src)) ** 0.5
+    return th
 
 
 def main() -> None:
@@ -117,7 +115,7 @@ def main() -> None:
         un = (src - c) / r
         basis = relief_basis(un[None, :, 0], un[None, :, 1], a.bumps, a.width, h, w)[0].T.double()
         for name, b in (("planar", None), ("relief", basis)):
-            th, _ = fit(src, dst, c, r, b, direction)
+            th = fit(src, dst, c, r, b, direction)
             ok = bool(torch.isfinite(th).all() and th[:2].abs().max() <= 2)
             est[name].append(float(delta_avg(th[0:1] / r**2, th[1:2] / r**4, h, w)) if ok else float("nan"))
     out = {"config": a.config, "pairs": a.n, "step": a.step, "bumps": a.bumps, "width": a.width,

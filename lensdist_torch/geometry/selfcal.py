@@ -74,6 +74,7 @@ from lensdist_torch.geometry.selfcal_model import (
     evaluate,
     h_matrix,
     invertible,
+    planar_parameters,
     relief_basis,
     robust_cost,
     robust_scale,
@@ -121,11 +122,7 @@ class SelfCalInfo(NamedTuple):
 
 
 class _State(NamedTuple):
-    """The final full-resolution fit of each row.
-
-    Residual, mask, Jacobian, sigma, cost, start cost and whether the relief (with its prior)
-    was fitted.
-    """
+    """The final full-resolution fit of each row: residual, mask, Jacobian, sigma, cost, start cost."""
 
     res: torch.Tensor
     valid: torch.Tensor
@@ -133,7 +130,6 @@ class _State(NamedTuple):
     sigma: torch.Tensor
     cost: torch.Tensor
     start_cost: torch.Tensor
-    relief: bool = False
 
 
 #: floor (px) of the std of the difference in Hausman's test: the relief's std can fall below the
@@ -185,7 +181,7 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
 def _starts(pyr1, pyr2, init, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Tensor:
     """(S B, P) float64 starting parameters: [init start,] [phase-correlation start]."""
     bsz, dev = pyr1[0].shape[0], pyr1[0].device
-    theta = torch.zeros(bsz, 12 if cfg.photometric == "gain_bias" else 10, dtype=torch.float64, device=dev)
+    theta = torch.zeros(bsz, planar_parameters(cfg.photometric), dtype=torch.float64, device=dev)
     c1, c2 = pyr1[-1].flatten(1), pyr2[-1].flatten(1)
     if cfg.photometric == "gain_bias":  # robust std ratio and median difference of the coarsest level
         every = torch.ones_like(c1, dtype=torch.bool)
@@ -227,11 +223,12 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     # Hausman: under a planar scene the planar answer is the efficient one, var(d1 - d0) = s1^2 - s0^2
     z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(_HAUSMAN_FLOOR_PX**2).sqrt()
     use = relief[3].converged & planar[3].converged & (z > cfg.parallax_test)
-    pick = [torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b) for a, b in zip(relief[:3], planar[:3])]
-    info = planar[3]._replace(**{f: torch.where(use.view(-1, *(1,) * (getattr(relief[3], f).dim() - 1)),
-                                                 getattr(relief[3], f), getattr(planar[3], f))
-                                 for f in SelfCalInfo._fields if f not in ("from_init", "relief")}, relief=use)
-    return (*pick, info)
+
+    def per_pair(a, b):  # a where the relief answer is kept, else b
+        return torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b)
+
+    info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(from_init=planar[3].from_init, relief=use)
+    return (*map(per_pair, relief[:3], planar[:3]), info)
 
 
 def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relief: bool) -> Level:
@@ -289,11 +286,10 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     theta0, res0, valid0 = theta, res, valid
     for _ in range(iterations):
         jtj, jtr = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
-        if not free_ab:  # (a, b) and the relief held: their rows and columns out of the system (step 0)
-            held = [8, 9, *range(12 if cfg.photometric == "gain_bias" else 10, jtj.shape[1])]
-            jtj[:, held], jtj[:, :, held], jtr[:, held] = 0, 0, 0
-        elif lv.basis is not None:  # the relief's Gaussian prior
-            prec, rel = _prior(sigma, lv, cfg)
+        if not free_ab:  # (a, b) held: their rows and columns out of the system (step 0)
+            jtj[:, 8:10], jtj[:, :, 8:10], jtr[:, 8:10] = 0, 0, 0
+        if lv.basis is not None:  # the relief's Gaussian prior
+            prec, rel = _prior(sigma.double() ** 2, lv.px, cfg)
             torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
             jtr[:, rel] += prec[:, None] * theta[:, rel]
         diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
@@ -313,18 +309,18 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
             cost = _cost(theta, res, valid, sigma, lv, cfg)
         else:
             cost = torch.where(acc, cost_c, cost)
-    return theta, lam, _State(res, valid, J, sigma, cost, _cost(theta0, res0, valid0, sigma, lv, cfg), lv.basis is not None)
+    return theta, lam, _State(res, valid, J, sigma, cost, _cost(theta0, res0, valid0, sigma, lv, cfg))
 
 
-def _prior(sigma, lv: Level, cfg: SelfCalConfig):
-    """(precision (B,) float64, indices) of the relief coefficients' Gaussian prior.
+def _prior(variance: torch.Tensor, px: float, cfg: SelfCalConfig):
+    """(precision (B,) float64, columns) of the relief coefficients' Gaussian prior.
 
-    Std ``parallax_px`` (px) per coefficient, in the units of the normal equations (the
-    residual variance sigma^2 over the prior variance): MAP, not a hard constraint.
+    Std ``parallax_px`` (px) per coefficient, i.e. tau = parallax_px / px in normalised units
+    (``px`` the level's pixels per unit), in the units of the normal equations: the residual
+    ``variance`` over tau^2. MAP, not a hard constraint.
     """
-    n_fixed = 12 if cfg.photometric == "gain_bias" else 10
-    tau = cfg.parallax_px / lv.px  # normalised units: px over the level's half diagonal
-    return sigma.double() ** 2 / tau**2, slice(n_fixed, n_fixed + lv.basis.shape[1])
+    start = planar_parameters(cfg.photometric)
+    return variance * (px / cfg.parallax_px) ** 2, slice(start, start + cfg.parallax**2)
 
 
 def _cost(theta, res, valid, sigma, lv: Level, cfg: SelfCalConfig):
@@ -332,11 +328,8 @@ def _cost(theta, res, valid, sigma, lv: Level, cfg: SelfCalConfig):
     cost = robust_cost(res, valid, sigma, cfg.robust, _k(cfg))
     if lv.basis is None:
         return cost
-    prec, rel = _prior(sigma, lv, cfg)
+    prec, rel = _prior(sigma.double() ** 2, lv.px, cfg)
     return cost + prec * (theta[:, rel].double() ** 2).sum(1) / valid.sum(1).clamp_min(1).double()
-
-
-
 
 
 def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: int) -> torch.Tensor:
@@ -353,9 +346,9 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: 
     # textureless or identical pair cannot claim certainty
     s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(cfg.noise_floor**2)
     eye = torch.eye(n_par, dtype=torch.float64, device=ab.device)
-    if st.relief:  # the posterior precision J W J^T / s^2 + I / tau^2 of the relief's coefficients
-        rel = slice(12 if cfg.photometric == "gain_bias" else 10, n_par)
-        torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += (s2 * (half_diagonal(h0, w0) / cfg.parallax_px) ** 2)[:, None]
+    if n_par > planar_parameters(cfg.photometric):  # the relief: posterior precision J W J^T / s^2 + I / tau^2
+        prec, rel = _prior(s2, half_diagonal(h0, w0), cfg)
+        torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
     inv = torch.linalg.inv(jtj + cfg.ridge * eye)
     cov = s2[:, None, None] * inv
     if cfg.clusters > 1:  # cluster-robust: the larger of the two
@@ -411,7 +404,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
           & (overlap >= cfg.min_overlap) & (st.cost <= st.start_cost * (1 + 1e-6)))
     keep = _choose(st, ok, n_starts, cfg)
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
-    st = _State(*(x[keep] for x in st[:6]), st.relief)
+    st = _State(*(x[keep] for x in st))
     r0 = half_diagonal(h0, w0)
     std = _delta_avg_std(ab, st, h0, w0, cfg, block)
     nan = torch.tensor(float("nan"), dtype=torch.float64, device=dev)

@@ -33,6 +33,7 @@ __all__ = [
     "distort_normalized",
     "h_matrix",
     "theta_of",
+    "planar_parameters",
     "selfcal_residual",
     "with_gradients",
     "evaluate",
@@ -61,6 +62,11 @@ def distort_normalized(v: torch.Tensor, a: torch.Tensor, b: torch.Tensor, iterat
     shape = (-1,) + (1,) * (v.dim() - 1)
     r, rho = radial_inverse((v * v).sum(-1, keepdim=True), a.view(shape), b.view(shape), iterations)
     return v * (r / rho)
+
+
+def planar_parameters(photometric: str) -> int:
+    """Parameters of the planar model: 8 of H, (a, b), and (g, c) with ``gain_bias``; the relief's follow."""
+    return 12 if photometric == "gain_bias" else 10
 
 
 def h_matrix(theta: torch.Tensor) -> torch.Tensor:
@@ -169,9 +175,8 @@ def evaluate(theta: torch.Tensor, lv: Level, jac: bool = True):
     w3 = 1.0 + h20 * ux + h21 * uy
     iw3 = 1.0 / w3
     vx, vy = (h00 * ux + h01 * uy + h02) * iw3, (h10 * ux + h11 * uy + h12) * iw3
-    n_fixed = 12 if lv.photometric == "gain_bias" else 10
     if lv.basis is not None:  # the relief along the motion: v += (c . phi(u_d)) d
-        relief = torch.bmm(th[:, None, n_fixed:], lv.basis)[:, 0]
+        relief = torch.bmm(th[:, None, planar_parameters(lv.photometric):], lv.basis)[:, 0]
         vx, vy = vx + relief * lv.direction[:, :1], vy + relief * lv.direction[:, 1:]
     s, sig = radial_inverse(vx * vx + vy * vy, a, b, lv.newton)
     ratio = s / sig

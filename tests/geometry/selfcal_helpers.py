@@ -1,11 +1,15 @@
-"""Shared by the self-calibration tests: a smooth test image and the finite-difference check of
-the model's Jacobian columns."""
+"""Shared by the self-calibration tests: a smooth test image, the finite-difference check of
+the model's Jacobian columns, and rendered pairs of a scene with relief."""
 
 from __future__ import annotations
 
 import torch
 
+from lensdist_torch.config import LensdistConfig, ProtocolConfig
+from lensdist_torch.core.images import load_scene
+from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry import selfcal_model
+from lensdist_torch.geometry.distortion import delta_avg
 
 
 def smooth(h: int, w: int, dx: float, dy: float) -> torch.Tensor:
@@ -26,3 +30,14 @@ def assert_columns_match_finite_differences(theta: torch.Tensor, lv: selfcal_mod
         assert bool((vp & vm & valid).all())
         fd = (rp - rm) / (2 * eps)
         assert float((J[0, k] - fd[0]).norm() / fd[0].norm()) < 0.06, k
+
+
+def parallax_only_pairs(parallax_px: float, n: int):
+    """The first n test pairs of the realistic protocol with every effect off but the parallax
+    (up to ``parallax_px``): img1, img2 (n, 1, H, W) and their true Delta_avg (n,)."""
+    cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, gain_range=(1.0, 1.0), offset_range=(0.0, 0.0),
+                                                 gamma_range=(1.0, 1.0), illumination=0.0, noise_range=(0.0, 0.0),
+                                                 jpeg_quality=(100, 100), occluder_rate=0.0, parallax_px=parallax_px))
+    p = draw_pairs(cfg, "test", list(range(n)), 2)
+    i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
+    return i1, i2, delta_avg(p.k2, p.k4, *cfg.image.size)

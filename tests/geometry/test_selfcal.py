@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from selfcal_helpers import assert_columns_match_finite_differences, smooth
+from selfcal_helpers import assert_columns_match_finite_differences, parallax_only_pairs, smooth
 
-from lensdist_torch.config import LensdistConfig, ProtocolConfig
+from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry import selfcal_model
@@ -335,11 +335,7 @@ def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clus
 def test_parallax_widens_the_interval():
     """Pairs of a non-planar scene (parallax only): the Gauss-Newton std ignores the misfit, the
     cluster-robust one grows several times (docs/method.md, section 10, the limit)."""
-    cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, gain_range=(1.0, 1.0), offset_range=(0.0, 0.0),
-                                                 gamma_range=(1.0, 1.0), illumination=0.0, noise_range=(0.0, 0.0),
-                                                 jpeg_quality=(100, 100), occluder_rate=0.0, parallax_px=1.5))
-    p = draw_pairs(cfg, "test", [0, 1, 2, 3], 2)
-    i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
+    i1, i2, _ = parallax_only_pairs(1.5, 4)
     plain = estimate_distortion(i1, i2, config=SelfCalConfig(clusters=0))[3].delta_avg_std
     robust = estimate_distortion(i1, i2)[3].delta_avg_std
     assert float((robust / plain).median()) > 3

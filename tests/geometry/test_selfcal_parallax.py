@@ -8,11 +8,8 @@ import dataclasses
 
 import pytest
 import torch
-from selfcal_helpers import assert_columns_match_finite_differences, smooth
+from selfcal_helpers import assert_columns_match_finite_differences, parallax_only_pairs, smooth
 
-from lensdist_torch.config import LensdistConfig, ProtocolConfig
-from lensdist_torch.core.images import load_scene
-from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry import selfcal_model
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid
@@ -52,15 +49,6 @@ def test_relief_columns_of_the_jacobian_match_finite_differences():
     assert_columns_match_finite_differences(theta, lv, range(12, 21))
 
 
-def _pairs(parallax_px: float, n: int = 12):
-    cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, gain_range=(1.0, 1.0), offset_range=(0.0, 0.0),
-                                                 gamma_range=(1.0, 1.0), illumination=0.0, noise_range=(0.0, 0.0),
-                                                 jpeg_quality=(100, 100), occluder_rate=0.0, parallax_px=parallax_px))
-    p = draw_pairs(cfg, "test", list(range(n)), 2)
-    i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
-    return i1, i2, delta_avg(p.k2, p.k4, *cfg.image.size)
-
-
 def _errors(i1, i2, true, config):
     k2, k4, _, info = estimate_distortion(i1, i2, config=config)
     return (delta_avg(k2, k4, *i1.shape[-2:]) - true).abs(), info
@@ -71,7 +59,7 @@ def test_relief_model_removes_most_of_the_parallax_error():
     """Pairs of a scene with relief (parallax up to 1.5 px, nothing else): the planar model is
     pulled by it (first-order confounding), the plane + parallax model much less (12 pairs:
     RMSE 1.61 -> 0.83 px, the relief kept on 9, when written)."""
-    i1, i2, true = _pairs(1.5)
+    i1, i2, true = parallax_only_pairs(1.5, 12)
     planar, _ = _errors(i1, i2, true, SelfCalConfig())
     relief, info = _errors(i1, i2, true, RELIEF)
     assert float(planar.pow(2).mean().sqrt()) > 1.0
@@ -83,7 +71,7 @@ def test_relief_model_removes_most_of_the_parallax_error():
 def test_relief_model_leaves_a_planar_scene_nearly_as_it_was():
     """Without relief, Hausman's test keeps the planar answer on most pairs, and where it does
     not, the relief model's answer is still close."""
-    i1, i2, true = _pairs(0.0)
+    i1, i2, true = parallax_only_pairs(0.0, 12)
     planar, _ = _errors(i1, i2, true, SelfCalConfig())
     relief, info = _errors(i1, i2, true, RELIEF)
     assert int(info.relief.sum()) <= 3
@@ -99,7 +87,7 @@ def test_the_prior_narrows_the_relief_and_its_interval():
     of Delta_avg falls from a free relief to a tight one, and so does, on average, how far
     Delta_avg moves from the planar answer (on pairs with relief the data still move it: with
     thousands of samples they outweigh any prior)."""
-    i1, i2, true = _pairs(1.5, n=4)
+    i1, i2, true = parallax_only_pairs(1.5, n=4)
     planar = _errors(i1, i2, true, SelfCalConfig())[1].delta_avg
     infos = [_errors(i1, i2, true, dataclasses.replace(RELIEF, parallax_test=0.0, parallax_px=p))[1]
              for p in (100.0, 1.0, 0.01)]
