@@ -15,7 +15,14 @@ __all__ = ["add_calibrate_commands"]
 
 def _print_calibration(res: dict) -> None:
     (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
-    print(f"{res['frames']} frames of {w} x {h}, {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected")
+    print(f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected")
+    mv = res.get("multiview")
+    if mv is not None and "model" not in mv:
+        print(f"multi-view path: no answer ({mv['reason']})")
+    elif mv is not None:
+        print(f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, camera model {mv['model']} "
+              f"(by BIC), reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px")
+    print(f"answer from: {res['method']}")
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")
         return
@@ -24,8 +31,12 @@ def _print_calibration(res: dict) -> None:
         print(f"Delta_{name} = {d:.2f} px" + ("" if a is None else f" (95 % interval {a:.2f} to {b:.2f})"))
     print(f"distortion class: {res['class'] or 'cannot tell (' + res['reason'] + ')'}  (1 = small ... 4 = very strong, "
           "R = none visible)")
-    cv, k = res["opencv"], res["opencv"]["camera_matrix"]
-    print(f"OpenCV: fx = fy = {k[0][0]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
+    if res.get("eq4_fit_error_px") is not None:
+        print(f"Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where the lens model inverts; eq. 4 "
+              f"follows it to {res['eq4_fit_error_px']:.2f} px RMS")
+    cv = res["opencv"] or res["opencv_rational"]
+    k = cv["camera_matrix"]
+    print(f"OpenCV: fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
           f"[{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error {cv['fit_error_mean_px']:.3f} px "
           f"mean, {cv['fit_error_max_px']:.3f} px max)")
 
@@ -36,7 +47,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from lensdist_torch.workflows.calibrate import calibrate_path
 
     res = calibrate_path(args.path, max_frames=args.max_frames, focal=args.focal, quiet=args.quiet,
-                         device=resolve_device(args.device))
+                         device=resolve_device(args.device), method=args.method)
     text = json.dumps(res, indent=2, allow_nan=False)
     if args.out:
         out = Path(args.out)
@@ -75,6 +86,9 @@ def add_calibrate_commands(subparsers) -> None:
     p.add_argument("--focal", type=float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--device", default="cpu", help="where registration and self-calibration run: cpu, cuda or cuda:N")
+    p.add_argument("--method", default="auto", choices=("auto", "multiview", "direct"),
+                   help="multiview: bundle adjustment on COLMAP's tracks (pycolmap); direct: photometric pairs; "
+                        "auto: both, 'cannot tell' where they disagree (default)")
     p.set_defaults(func=_cmd_calibrate)
 
     p = subparsers.add_parser("undistort", help="correct every frame of a folder or video (PNG + validity masks)")

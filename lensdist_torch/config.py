@@ -12,7 +12,8 @@ may override any field. Sections of the TOML file map one to one onto the datacl
     [selfcal]       self-calibration of (k2, k4) and H
     [regression]    Delta regression without classes
     [analysis]      the decision of ``analyze``: R threshold, overlap, confidence
-    [calibration]   a camera's distortion from a sequence (``lensdist calibrate``)
+    [calibration]   a camera's distortion from a sequence (``lensdist calibrate``), the direct path
+    [multiview]     the same by bundle adjustment on COLMAP's tracks (``lensdist calibrate``)
 
 The estimators' sections are defined in ``config_estimators.py`` (for length) and exported here.
 
@@ -37,6 +38,7 @@ from lensdist_torch.config_checks import choice, flag, integer, names, one_line,
 from lensdist_torch.config_estimators import (
     AnalysisConfig,
     CalibrationConfig,
+    MultiViewConfig,
     RegistrationConfig,
     RegressionConfig,
     SelfCalConfig,
@@ -44,7 +46,8 @@ from lensdist_torch.config_estimators import (
 
 __all__ = [
     "QualityConfig", "ImageConfig", "DistortionConfig", "ProtocolConfig", "ClassifierConfig",
-    "RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "CalibrationConfig", "LensdistConfig",
+    "RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "CalibrationConfig", "MultiViewConfig",
+    "LensdistConfig",
     "load_config", "config_to_dict", "config_from_dict",
 ]
 
@@ -240,6 +243,7 @@ class LensdistConfig:
     regression: RegressionConfig = field(default_factory=RegressionConfig)
     analysis: AnalysisConfig = field(default_factory=AnalysisConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    multiview: MultiViewConfig = field(default_factory=MultiViewConfig)
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):

@@ -11,9 +11,9 @@ import itertools
 import math
 from dataclasses import dataclass
 
-from lensdist_torch.config_checks import choice, flag, integer, integers, pair, real
+from lensdist_torch.config_checks import choice, flag, integer, integers, names, pair, real
 
-__all__ = ["RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "CalibrationConfig"]
+__all__ = ["RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "CalibrationConfig", "MultiViewConfig"]
 
 @dataclass(frozen=True)
 class RegistrationConfig:
@@ -333,6 +333,68 @@ class CalibrationConfig:
         for name, lo in (("confidence", 0.0), ("systematic_rel", -1e-300)):
             if not (_number(getattr(self, name)) and lo < getattr(self, name) < 1):
                 raise ValueError(f"{name} must lie in {']0' if lo == 0 else '[0'}, 1[, got {getattr(self, name)!r}")
+
+
+#: The camera models :class:`MultiViewConfig` may choose from: COLMAP's names, all OpenCV-compatible.
+MULTIVIEW_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+
+
+@dataclass(frozen=True)
+class MultiViewConfig:
+    """Settings of :mod:`~lensdist_torch.geometry.multiview` (``[multiview]``): bundle adjustment on COLMAP.
+
+    Attributes:
+        models: the camera models to fit on the reconstruction's tracks; the one of lowest BIC
+            is the answer (COLMAP names, all with an exact OpenCV equivalent).
+        max_image_side: frames are read by COLMAP's SIFT at most this long (px).
+        max_features: SIFT features per frame at most.
+        exhaustive_below: up to this many frames every pair is matched; more: each frame with
+            its ``sequential_overlap`` successors (a video).
+        sequential_overlap: successors matched per frame in sequential matching.
+        min_registered: fewer registered frames than this share of the frames (or than 3):
+            "cannot tell" (the engine could not reconstruct the sequence).
+        jackknife_blocks: contiguous blocks of frames left out in turn for the interval.
+        bic_margin: models within this BIC of the best fit equally well: their spread of Delta
+            joins the interval.
+        confidence: coverage of the intervals.
+        max_halfwidth_rel: an interval half-width over this share of Delta_avg (and over
+            ``max_halfwidth_px``) gives no class.
+        max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
+        min_rotation_deg: frames whose orientations differ by less than this (degrees) at most
+            give no class: under translation alone relief imitates distortion.
+        num_threads: threads of COLMAP (pinned: the answer does not depend on the machine).
+        seed: COLMAP's random seed.
+    """
+
+    models: tuple[str, ...] = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+    max_image_side: int = 1600
+    max_features: int = 8192
+    exhaustive_below: int = 60
+    sequential_overlap: int = 12
+    min_registered: float = 0.5
+    jackknife_blocks: int = 6
+    bic_margin: float = 10.0
+    confidence: float = 0.95
+    max_halfwidth_rel: float = 0.25
+    max_halfwidth_px: float = 1.0
+    min_rotation_deg: float = 5.0
+    num_threads: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        names(self, "models")
+        for m in self.models:
+            if m not in MULTIVIEW_MODELS:
+                raise ValueError(f"multiview.models must hold names from {', '.join(MULTIVIEW_MODELS)}, got {m!r}")
+        for name, lo in (("max_image_side", 64), ("max_features", 64), ("exhaustive_below", 2), ("sequential_overlap", 1),
+                         ("jackknife_blocks", 2), ("num_threads", 1), ("seed", 0)):
+            integer(self, name, lo=lo)
+        real(self, "min_registered", lo=0, hi=1, lo_open=True)
+        real(self, "bic_margin", lo=0)
+        real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
+        real(self, "max_halfwidth_rel", lo=0, lo_open=True)
+        real(self, "max_halfwidth_px", lo=0, lo_open=True)
+        real(self, "min_rotation_deg", lo=0)
 
 
 def _number(v) -> bool:

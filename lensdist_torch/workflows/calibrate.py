@@ -39,8 +39,11 @@ from lensdist_torch.geometry.calibration import (
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid, sample
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import undistortion_grid
+from lensdist_torch.workflows.multiview import combine, multiview_path
 
-__all__ = ["IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path", "undistort_path",
+METHODS = ("auto", "multiview", "direct")
+
+__all__ = ["METHODS", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path", "undistort_path",
            "encode_png", "synthetic_sequence"]
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
@@ -139,6 +142,7 @@ def calibrate_path(
     focal: float | None = None,
     quiet: bool = True,
     device: torch.device | str | None = None,
+    method: str = "auto",
 ) -> dict:
     """Calibrate the camera of a folder of frames or a video (module docstring).
 
@@ -151,12 +155,17 @@ def calibrate_path(
         quiet: no progress bars.
         device: where the registration and the self-calibration run (default: the CPU); the
             frames are read and brought to the analysis size on the CPU.
+        method: "direct" (the photometric self-calibration of pairs), "multiview" (bundle
+            adjustment on COLMAP's tracks, needs pycolmap) or "auto" (both, combined by
+            :func:`~lensdist_torch.workflows.multiview.combine`; the direct path alone where
+            pycolmap is missing).
 
     Returns:
         A dict for ``json.dumps(..., allow_nan=False)``: path, frames, image_size [H, W],
         analysis_size, scale, k2_user, k4_user, delta_avg_user_px, delta_avg_user_interval,
         delta_max_user_px, delta_max_user_interval, confidence, class, reason, pairs_used,
-        pairs_rejected, opencv and opencv_rational (camera_matrix, dist_coeffs and their errors).
+        pairs_rejected, opencv and opencv_rational (camera_matrix, dist_coeffs and their errors),
+        method (which path answered), direct and multiview (each path's own numbers).
 
     Example:
         >>> import tempfile
@@ -174,6 +183,8 @@ def calibrate_path(
     """
     from tqdm import tqdm
 
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     cfg, frames, scale = CalibrationConfig() if config is None else config, [], 1.0
     for _, img in _frames_of_one_size(path, True, max_frames, quiet, "reading"):
         scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
@@ -194,7 +205,13 @@ def calibrate_path(
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
-    return _finite(out)
+    if method == "direct":
+        return _finite(combine(out, None))
+    st = settings or LensdistConfig()
+    mv = multiview_path(path, size, st.multiview, st, max_frames)
+    if method == "multiview" and not mv["ok"]:
+        raise ValueError(mv["reason"])
+    return _finite(combine(out, mv))
 
 
 # ------------------------------------------------------------------ undistortion

@@ -22,6 +22,7 @@ LAYERS = [
     ("geometry.selfcal", 2),
     ("geometry.calibration", 2),
     ("geometry.wide_baseline", 2),
+    ("geometry.multiview", 2),
     ("geometry.", 1),
     ("classify.", 2),
     ("data.", 3),

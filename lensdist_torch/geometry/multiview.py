@@ -1,0 +1,324 @@
+"""A camera's lens distortion from many views by bundle adjustment on COLMAP (pycolmap).
+
+One pair of a scene with relief cannot tell relief from distortion (docs/method.md, section 10);
+many views with varied motion can, once the relief belongs to the scene (free 3-D points) and
+the distortion to the camera (one shared camera). That is bundle adjustment with
+self-calibration, and an established engine does it: COLMAP, through its Python bindings
+``pycolmap`` (an optional dependency: ``pip install pycolmap``).
+
+1. :func:`reconstruct`: COLMAP's SIFT on every frame (at most ``max_image_side`` px), exhaustive
+   matching (or sequential for long videos), geometric verification, incremental mapping with one
+   shared RADIAL camera whose principal point stays at the frame centre (it is not refined: the
+   data rarely pin it, and refining it was measured to go wrong).
+2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
+   adjustment on the same tracks (structure, poses, focal length and the model's distortion
+   free); the **model is chosen by BIC**, n ln(RSS / n) + k ln n over the n reprojection
+   coordinates, k the camera's free parameters (the tracks and poses are common to all).
+3. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of frames
+   (each left out in turn and the chosen model re-adjusted), t on blocks - 1 degrees of freedom,
+   with the spread of the models within ``bic_margin`` of the best in quadrature (models that fit
+   equally well but disagree on Delta). No class when the camera turned by less than
+   ``min_rotation_deg`` (translation alone: relief imitates distortion, :func:`rotation_spread_deg`).
+4. **In the user's pixels and OpenCV's terms**: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV and
+   FULL_OPENCV are OpenCV's model with some coefficients 0, so the OpenCV camera is exact (the
+   principal point moves by -0.5 px: COLMAP's pixel centres lie at +0.5). Delta is
+   |p - ideal(p)| of the converged inverse over the pixels where the model inverts
+   (:func:`~lensdist_torch.geometry.opencv_model.opencv_delta`); eq. 4's (k2, k4) are fitted to
+   that map by least squares and ``eq4_fit_error_px`` says how well eq. 4 can follow the lens.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+from typing import NamedTuple
+
+import torch
+
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.geometry.calibration import _t_quantile
+from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, estimated_class
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_ideal_points
+
+__all__ = ["MultiViewCalibration", "pycolmap_or_error", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
+           "rotation_spread_deg"]
+
+
+class MultiViewCalibration(NamedTuple):
+    """The result of :func:`self_calibrate_reconstruction`, in the user's pixels; NaN where unknown.
+
+    model: the COLMAP model chosen by BIC; camera_matrix (3, 3) and dist_coeffs (5 or 8, OpenCV's
+    order) its exact OpenCV camera; delta_avg_user_px, delta_max_user_px over the pixels where
+    the model inverts (``invertible_fraction`` of them), with ``confidence`` intervals;
+    k2_user, k4_user: eq. 4 fitted to the camera, ``eq4_fit_error_px`` its RMS error;
+    class_label or None with ``reason``; registered of ``frames``; points3D; reprojection_px
+    (RMS of the chosen model); models: per fitted model its BIC, Delta_avg and RMS;
+    jackknife: the leave-a-block-out Delta_avg values; rotation_spread_deg: the largest
+    rotation between two frames (below ``min_rotation_deg``: degenerate, no class).
+    """
+
+    model: str
+    camera_matrix: list
+    dist_coeffs: list
+    delta_avg_user_px: float
+    delta_avg_user_interval: tuple[float, float]
+    delta_max_user_px: float
+    delta_max_user_interval: tuple[float, float]
+    invertible_fraction: float
+    k2_user: float
+    k4_user: float
+    eq4_fit_error_px: float
+    class_label: str | None
+    reason: str
+    registered: int
+    frames: int
+    points3D: int
+    reprojection_px: float
+    models: dict
+    jackknife: list
+    rotation_spread_deg: float
+
+
+def pycolmap_or_error():
+    """The ``pycolmap`` module, or a one-line ``ValueError`` saying how to install it."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise ValueError("the multi-view calibration needs pycolmap (COLMAP's Python bindings): pip install pycolmap, "
+                         "or --method direct") from None
+    pycolmap.logging.minloglevel = 2  # COLMAP's errors only: its progress log would bury the answer
+    return pycolmap
+
+
+# ------------------------------------------------------------------ the reconstruction
+def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None):
+    """COLMAP's sparse reconstruction of frames ``names`` in ``image_dir`` (module docstring, step 1).
+
+    Returns:
+        The largest ``pycolmap.Reconstruction`` (one shared camera), or None when COLMAP
+        reconstructed nothing.
+    """
+    pc, cfg = pycolmap_or_error(), config or MultiViewConfig()
+    pc.set_random_seed(cfg.seed)
+    with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
+        db = Path(tmp) / "db.db"
+        reader = pc.ImageReaderOptions()
+        reader.camera_model = "RADIAL"
+        extraction = pc.FeatureExtractionOptions()
+        extraction.num_threads, extraction.max_image_size, extraction.use_gpu = cfg.num_threads, cfg.max_image_side, False
+        extraction.sift.max_num_features = cfg.max_features
+        pc.extract_features(db, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
+                            reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
+        matching = pc.FeatureMatchingOptions()
+        matching.num_threads, matching.use_gpu = cfg.num_threads, False
+        if len(names) <= cfg.exhaustive_below:
+            pc.match_exhaustive(db, matching_options=matching, device=pc.Device.cpu)
+        else:
+            pairing = pc.SequentialPairingOptions()
+            pairing.overlap = cfg.sequential_overlap
+            pc.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pc.Device.cpu)
+        mapping = pc.IncrementalPipelineOptions()
+        mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed, False
+        recs = pc.incremental_mapping(db, image_dir, Path(tmp) / "sparse", options=mapping)
+    if not recs:
+        return None
+    return max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+
+
+# ------------------------------------------------------------------ models on the tracks
+def _camera(rec):
+    cams = list(rec.cameras.values())
+    if len(cams) != 1:
+        raise ValueError(f"reconstruction must hold one shared camera, got {len(cams)}")
+    return cams[0]
+
+
+def _rss(rec) -> tuple[float, int]:
+    """Sum of squared reprojection errors (px^2) and the number of observations."""
+    import numpy as np
+
+    cam, ss, n = _camera(rec), 0.0, 0
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        obs = [(p.xy, rec.point3D(p.point3D_id).xyz) for p in image.points2D if p.has_point3D()]
+        if not obs:
+            continue
+        xy, xyz = np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
+        proj = cam.img_from_cam(image.cam_from_world() * xyz)
+        ss, n = ss + float(np.nansum((proj - xy) ** 2)), n + len(obs)
+    return ss, n
+
+
+def _adjust(rec) -> None:
+    pc = pycolmap_or_error()
+    options = pc.BundleAdjustmentOptions()
+    options.refine_principal_point, options.print_summary = False, False
+    pc.bundle_adjustment(rec, options)
+
+
+def _with_model(rec, model: str):
+    """A copy of ``rec`` whose camera is ``model`` (focal and the first radial terms carried over), adjusted."""
+    pc = pycolmap_or_error()
+    out, cam = pc.Reconstruction(rec), _camera(rec)
+    new = pc.Camera.create_from_model_name(cam.camera_id, model, cam.mean_focal_length(), cam.width, cam.height)
+    params = new.params.copy()
+    old_extra, new_extra = list(cam.extra_params_idxs()), list(new.extra_params_idxs())
+    for i, j in zip(old_extra[:2], new_extra[:2]):  # k1 (and k2) mean the same in every model here
+        params[j] = cam.params[i]
+    new.params = params
+    out.cameras[cam.camera_id] = new
+    _adjust(out)
+    return out
+
+
+def opencv_from_colmap(camera, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """COLMAP camera -> OpenCV's K (3, 3) and dist_coeffs (5 or 8), float64, in pixels scaled by ``scale``.
+
+    Exact for SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV (OpenCV's model with some
+    coefficients 0); the principal point moves by -0.5 px (COLMAP's pixel centres lie at +0.5).
+    """
+    p, name = [float(v) for v in camera.params], camera.model_name
+    if name in ("SIMPLE_RADIAL", "RADIAL"):
+        fx = fy = p[0]
+        cx, cy, extra = p[1], p[2], p[3:]
+        dist = [extra[0], extra[1] if len(extra) > 1 else 0.0, 0.0, 0.0, 0.0]
+    elif name in ("OPENCV", "FULL_OPENCV"):
+        fx, fy, cx, cy, extra = p[0], p[1], p[2], p[3], p[4:]
+        dist = extra + [0.0] if name == "OPENCV" else extra
+    else:
+        raise ValueError(f"camera model must be one of SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, got {name}")
+    k = torch.tensor([[scale * fx, 0.0, scale * cx - 0.5], [0.0, scale * fy, scale * cy - 0.5], [0.0, 0.0, 1.0]],
+                     dtype=torch.float64)
+    return k, torch.tensor(dist, dtype=torch.float64)
+
+
+def _deltas(camera, size: tuple[int, int], scale: float, step: int) -> dict:
+    k, d = opencv_from_colmap(camera, scale)
+    return opencv_delta(k, d, *size, step=step)
+
+
+def _eq4_fit(camera, size: tuple[int, int], scale: float, step: int) -> tuple[float, float, float]:
+    """Eq. 4's (k2, k4) about the frame centre fitted to the camera's ideal points, and the RMS error (px)."""
+    h, w = size
+    k, d = opencv_from_colmap(camera, scale)
+    xs, ys = torch.arange(0, w, step, dtype=torch.float64), torch.arange(0, h, step, dtype=torch.float64)
+    p = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+    ideal, ok = opencv_ideal_points(p, k, d)
+    if not bool(ok.any()):
+        return float("nan"), float("nan"), float("nan")
+    q = p[ok] - p.new_tensor([(w - 1) / 2, (h - 1) / 2])
+    r2 = (q * q).sum(-1, keepdim=True)
+    a = torch.stack([q * r2, q * r2 * r2], -1).reshape(-1, 2)
+    target = (ideal[ok] - p[ok]).reshape(-1, 1)
+    scale_cols = a.norm(dim=0).clamp_min(1e-300)
+    sol = torch.linalg.lstsq(a / scale_cols, target).solution[:, 0] / scale_cols
+    err = ((a @ sol[:, None] - target) ** 2).reshape(-1, 2).sum(-1).mean().sqrt()
+    return float(sol[0]), float(sol[1]), float(err)
+
+
+def rotation_spread_deg(rec) -> float:
+    """The largest rotation (degrees) between two registered frames' orientations.
+
+    Under translation alone a relief of the scene imitates radial distortion however many
+    frames there are (docs/method.md, section 11): the bundle adjustment then has a valley, not
+    a minimum, and every jackknife replicate stops at the same point of it.
+    """
+    import numpy as np
+
+    rots = np.stack([rec.image(i).cam_from_world().rotation.matrix() for i in rec.reg_image_ids()])
+    rel = np.einsum("aij,bkj->abik", rots, rots)  # R_a R_b^T
+    cos = np.clip((np.trace(rel, axis1=2, axis2=3) - 1) / 2, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos.min())))
+
+
+def _blocks(rec, n_blocks: int) -> list[list[int]]:
+    """Registered frame ids in contiguous blocks by image name (recording order)."""
+    images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
+    n = len(images)
+    return [[im.frame_id for im in images[g * n // n_blocks:(g + 1) * n // n_blocks]] for g in range(n_blocks)]
+
+
+def self_calibrate_reconstruction(
+    rec,
+    config: MultiViewConfig | None = None,
+    settings: LensdistConfig | None = None,
+    *,
+    frames: int | None = None,
+    image_size: tuple[int, int] | None = None,
+    scale: float = 1.0,
+) -> MultiViewCalibration:
+    """The camera's distortion from a reconstruction's tracks (module docstring, steps 2-4).
+
+    Args:
+        rec: a ``pycolmap.Reconstruction`` with one shared camera (it is not changed).
+        config: :class:`~lensdist_torch.config.MultiViewConfig`.
+        settings: the library's config (the class rule and the paper's frame).
+        frames: the sequence's number of frames (default: the registered ones).
+        image_size: the user's (H, W) (default: the camera's, times ``scale``).
+        scale: user px per reconstruction px.
+
+    Returns:
+        :class:`MultiViewCalibration`.
+    """
+    cfg, st = config or MultiViewConfig(), settings or LensdistConfig()
+    if rec.num_reg_images() < 3:
+        raise ValueError(f"rec must hold at least 3 registered frames, got {rec.num_reg_images()}")
+    cam0 = _camera(rec)
+    size = image_size or (round(cam0.height * scale), round(cam0.width * scale))
+    step = max(1, round(math.sqrt(size[0] * size[1] / 20000)))
+    fitted, table = {}, {}
+    for model in cfg.models:
+        r = _with_model(rec, model)
+        ss, n = _rss(r)
+        k = len(_camera(r).params) - 2  # the principal point is held
+        dl = _deltas(_camera(r), size, scale, step)
+        bic = 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n)
+        fitted[model] = r
+        table[model] = {"bic": bic, "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(ss / max(n, 1))}
+    best = min(table, key=lambda m: table[m]["bic"])
+    chosen, cam = fitted[best], _camera(fitted[best])
+    dl = _deltas(cam, size, scale, step)
+    spread = max(abs(v["delta_avg_px"] - dl["delta_avg_px"]) for v in table.values()
+                 if v["bic"] - table[best]["bic"] <= cfg.bic_margin)
+    n_blocks = min(cfg.jackknife_blocks, chosen.num_reg_images())  # each replicate keeps >= 2 frames
+    jk_avg, jk_max = [], []
+    for block in _blocks(chosen, n_blocks):
+        r = _pycolmap_copy(chosen)
+        for frame_id in block:
+            r.deregister_frame(frame_id)
+        _adjust(r)
+        d = _deltas(_camera(r), size, scale, step)
+        jk_avg.append(d["delta_avg_px"])
+        jk_max.append(d["delta_max_px"])
+    t = _t_quantile(0.5 + cfg.confidence / 2, n_blocks - 1)
+    intervals = []
+    for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0)):
+        jt = torch.tensor(jk, dtype=torch.float64)
+        var = (n_blocks - 1) / n_blocks * float(((jt - jt.mean()) ** 2).sum())
+        half = t * math.sqrt(var + extra**2)
+        intervals.append((max(0.0, value - half), value + half))
+    k2u, k4u, fit_err = _eq4_fit(cam, size, scale, step)
+    half_avg = (intervals[0][1] - intervals[0][0]) / 2
+    label, reason, spread_deg = None, "", rotation_spread_deg(chosen)
+    if spread_deg < cfg.min_rotation_deg:
+        reason = (f"degenerate motion: the camera turned by at most {spread_deg:.1f} degrees (at least "
+                  f"{cfg.min_rotation_deg:g} needed), so relief and distortion cannot be told apart")
+    elif not math.isfinite(half_avg) or half_avg > max(cfg.max_halfwidth_px, cfg.max_halfwidth_rel * dl["delta_avg_px"]):
+        reason = f"interval too wide: +-{half_avg:.2f} px"
+    else:
+        hc, wc = st.image.size
+        ratio = half_diagonal(hc, wc) / half_diagonal(*size)  # eq. 4 at the paper's frame, same normalised lens
+        dc = float(delta_avg([k2u / ratio**2], [k4u / ratio**4], hc, wc)[0])
+        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
+    k, d = opencv_from_colmap(cam, scale)
+    return MultiViewCalibration(
+        best, k.tolist(), (d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),
+        dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1], dl["invertible_fraction"], k2u, k4u,
+        fit_err, label, reason, chosen.num_reg_images(), frames or chosen.num_reg_images(), chosen.num_points3D(),
+        table[best]["reprojection_px"], table, jk_avg, spread_deg)
+
+
+def _pycolmap_copy(rec):
+    return pycolmap_or_error().Reconstruction(rec)

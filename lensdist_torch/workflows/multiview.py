@@ -1,0 +1,127 @@
+"""The multi-view path of ``lensdist calibrate``, and how its answer and the direct one combine.
+
+:func:`multiview_path` hands the frames of a folder (as they are) or of a video (written once as
+lossless grey PNG into a temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`)
+and returns a strict-JSON-ready dict, or the reason it has no answer. :func:`combine` makes the
+one answer of :func:`~lensdist_torch.workflows.calibrate.calibrate_path` from the two paths:
+
+* the multi-view answer when it has one and the direct path's interval does not contradict it;
+* the direct answer (confident or "cannot tell") where the multi-view path has none: pycolmap
+  missing, the engine could not reconstruct the sequence, degenerate motion, an interval too wide;
+* "cannot tell" with both numbers when both are confident and their intervals do not overlap.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import torch
+
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
+
+__all__ = ["COLMAP_SUFFIXES", "multiview_path", "combine"]
+
+#: Image files COLMAP reads as they are; other frames are written as PNG first.
+COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+
+
+def _encode(frame: torch.Tensor) -> bytes:
+    from lensdist_torch.workflows.calibrate import _to_uint8, encode_png  # one PNG writer
+
+    return encode_png(_to_uint8(frame[0]))
+
+
+def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiViewConfig | None = None,
+                   settings: LensdistConfig | None = None, max_frames: int | None = 300) -> dict:
+    """The multi-view calibration of a folder of frames or a video, as a dict (module docstring).
+
+    Args:
+        path: a folder of frames or a video (already read once by the caller, who knows their size).
+        image_size: the frames' (H, W).
+        config: :class:`~lensdist_torch.config.MultiViewConfig`.
+        settings: the library's config (the class rule).
+        max_frames: at most this many frames (None: all).
+
+    Returns:
+        A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
+        fields of :class:`~lensdist_torch.geometry.multiview.MultiViewCalibration`.
+    """
+    from lensdist_torch.workflows.calibrate import list_frames, read_frames
+
+    cfg = config or MultiViewConfig()
+    try:
+        pycolmap_or_error()
+    except ValueError as exc:
+        return {"ok": False, "reason": str(exc)}
+    path = Path(path)
+    with tempfile.TemporaryDirectory(prefix="lensdist-frames-") as tmp:
+        files = list_frames(path) if path.is_dir() else []
+        if files and all(p.suffix.lower() in COLMAP_SUFFIXES for p in files):
+            folder, names = path, [p.name for p in files[: max_frames or len(files)]]
+        else:
+            folder, names = Path(tmp), []
+            for _, img in read_frames(path, True, max_frames):
+                (folder / f"{len(names):06d}.png").write_bytes(_encode(img))
+                names.append(f"{len(names):06d}.png")
+        if len(names) < 3:
+            return {"ok": False, "reason": f"the multi-view calibration needs at least 3 frames, got {len(names)}"}
+        rec = reconstruct(folder, names, cfg)
+        least = max(3, math.ceil(cfg.min_registered * len(names)))
+        if rec is None or rec.num_reg_images() < least:
+            got = 0 if rec is None else rec.num_reg_images()
+            return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
+                                           f"registered (at least {least} needed)"}
+        res = self_calibrate_reconstruction(rec, cfg, settings, frames=len(names), image_size=tuple(image_size))
+    return {"ok": True, **res._asdict()}
+
+
+def _overlap(a: tuple, b: tuple) -> bool:
+    return a[0] <= b[1] and b[0] <= a[1]
+
+
+def _summary(res: dict, keys: tuple[str, ...]) -> dict:
+    return {k: res.get(k) for k in keys}
+
+
+_KEYS = ("class", "reason", "delta_avg_user_px", "delta_avg_user_interval", "delta_max_user_px", "delta_max_user_interval")
+
+
+def combine(direct: dict, mv: dict | None) -> dict:
+    """One answer from the direct result (``calibrate_path``'s dict) and the multi-view one (or None).
+
+    Adds ``method`` (which path answered), ``direct`` and ``multiview`` (each path's own numbers).
+    """
+    out = dict(direct)
+    out["direct"] = _summary(direct, _KEYS)
+    if mv is None:
+        out.update(method="direct", multiview=None)
+        return out
+    if not mv["ok"]:
+        out.update(method="direct", multiview={"reason": mv["reason"]})
+        return out
+    mv_view = {"class": mv["class_label"], "reason": mv["reason"] or None, "model": mv["model"],
+               **{k: mv[k] for k in _KEYS[2:]}, "invertible_fraction": mv["invertible_fraction"],
+               "eq4_fit_error_px": mv["eq4_fit_error_px"], "registered": mv["registered"], "points3D": mv["points3D"],
+               "reprojection_px": mv["reprojection_px"], "rotation_spread_deg": mv["rotation_spread_deg"],
+               "models": mv["models"]}
+    out["multiview"] = mv_view
+    if mv["class_label"] is None:  # no multi-view answer: the direct one stands, confident or not
+        out["method"] = "direct"
+        return out
+    if direct.get("class") is not None and not _overlap(tuple(direct["delta_avg_user_interval"]),
+                                                        tuple(mv["delta_avg_user_interval"])):
+        out.update(method="both", **{"class": None})
+        out["reason"] = (f"the multi-view ({mv['delta_avg_user_px']:.2f} px) and the direct ({direct['delta_avg_user_px']:.2f} "
+                         "px) estimates of Delta_avg disagree beyond their intervals")
+        return out
+    k = mv["camera_matrix"]
+    exact = {"camera_matrix": k, "dist_coeffs": mv["dist_coeffs"], "fit_error_mean_px": 0.0, "fit_error_max_px": 0.0,
+             "forward_error_mean_px": 0.0, "forward_error_max_px": 0.0}
+    out.update({k_: mv[k_] for k_ in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
+    out.update({"method": "multiview", "class": mv["class_label"], "reason": None, "camera_model": mv["model"],
+                "opencv": exact if len(mv["dist_coeffs"]) == 5 else None,
+                "opencv_rational": exact if len(mv["dist_coeffs"]) == 8 else None})
+    return out

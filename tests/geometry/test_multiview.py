@@ -1,0 +1,163 @@
+"""The multi-view calibration: OpenCV's model inverted to convergence, COLMAP cameras as OpenCV's, BIC and intervals."""
+
+import math
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_ideal_points
+from lensdist_torch.workflows.multiview import combine
+
+cv2 = pytest.importorskip("cv2")
+
+# A wide-angle action camera (GoPro HERO4, 1280 x 960): OpenCV's calibration of the chessboard views
+# of github.com/udacity/CarND-Camera-Calibration (MIT), computed with calibrateCamera's defaults.
+GOPRO_K = np.array([[560.2738673000947, 0.0, 651.2616487995417], [0.0, 561.3238292031594, 499.05810110554165], [0, 0, 1]])
+GOPRO_DIST = np.array([-0.23287939835072627, 0.06167987983514998, -1.4677466480809523e-05, 3.785501319615777e-05,
+                       -0.007540935298540569])
+
+
+def _converged_cv2(points, k, dist):
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 500, 1e-14)
+    return cv2.undistortPointsIter(points[:, None], k, dist, None, k, crit)[:, 0] if hasattr(cv2, "undistortPointsIter") \
+        else cv2.undistortPoints(points[:, None], k, dist, None, k, criteria=crit)[:, 0]
+
+
+def test_ideal_points_agree_with_opencv_run_to_convergence():
+    rng = np.random.default_rng(0)
+    p = np.c_[rng.uniform(200, 1080, 400), rng.uniform(150, 810, 400)]
+    ideal, ok = opencv_ideal_points(torch.from_numpy(p), torch.from_numpy(GOPRO_K), torch.from_numpy(GOPRO_DIST))
+    assert bool(ok.all())
+    ref = _converged_cv2(p, GOPRO_K, GOPRO_DIST)
+    assert np.abs(ideal.numpy() - ref).max() < 1e-5
+
+
+def test_ideal_points_invert_the_forward_model_with_tangential_and_rational_terms():
+    k = np.array([[400.0, 0, 320], [0, 410, 240], [0, 0, 1]])
+    dist = np.array([-0.3, 0.08, 1e-3, -2e-3, -0.01, 0.02, 0.003, 0.001])
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-0.7, 0.7, (300, 3))
+    x[:, 2] = 1
+    pd = cv2.projectPoints(x, np.zeros(3), np.zeros(3), k, dist)[0][:, 0]
+    ideal, ok = opencv_ideal_points(torch.from_numpy(pd), torch.from_numpy(k), torch.from_numpy(dist))
+    truth = x[:, :2] * [400, 410] + [320, 240]
+    assert bool(ok.all()) and np.abs(ideal.numpy() - truth).max() < 1e-6
+
+
+def test_delta_of_the_wide_angle_camera_by_hand():
+    # radial part alone: r F(r) = r - 0.2329 r^3 + ... turns at r* = 1.9066, F(r*) = 1.1559 (normalised), so only
+    # the pixels with a distorted radius below 1.1559 invert: 90.6 % of the frame, Delta 103.2 px there
+    out = opencv_delta(torch.from_numpy(GOPRO_K), torch.from_numpy(GOPRO_DIST), 960, 1280, step=2)
+    assert out["invertible_fraction"] == pytest.approx(0.906, abs=0.002)
+    assert out["delta_avg_px"] == pytest.approx(103.2, abs=0.3)
+    none = opencv_delta(torch.from_numpy(GOPRO_K), torch.zeros(5, dtype=torch.float64), 96, 128)
+    assert none["delta_avg_px"] < 1e-9 and none["invertible_fraction"] == 1.0
+
+
+def test_ideal_points_refuse_a_wrong_number_of_coefficients():
+    with pytest.raises(ValueError, match="dist_coeffs must hold 4, 5 or 8"):
+        opencv_ideal_points(torch.zeros(1, 2), torch.eye(3), torch.zeros(3))
+
+
+# ------------------------------------------------------------------ COLMAP
+pycolmap = pytest.importorskip("pycolmap")
+from lensdist_torch.geometry.multiview import opencv_from_colmap, self_calibrate_reconstruction  # noqa: E402
+
+
+@pytest.mark.parametrize("model, params", [
+    ("SIMPLE_RADIAL", [500.0, 320.0, 240.0, -0.1]),
+    ("RADIAL", [500.0, 320.0, 240.0, -0.2, 0.04]),
+    ("OPENCV", [500.0, 505.0, 321.0, 239.0, -0.2, 0.04, 1e-3, -2e-3]),
+    ("FULL_OPENCV", [500.0, 505.0, 321.0, 239.0, -0.2, 0.04, 1e-3, -2e-3, -0.01, 0.02, 0.003, 0.001]),
+])
+def test_colmap_camera_is_opencvs_exactly(model, params):
+    cam = pycolmap.Camera.create_from_model_name(1, model, 500.0, 640, 480)
+    cam.params = params
+    rng = np.random.default_rng(2)
+    x = np.c_[rng.uniform(-0.5, 0.5, (200, 2)), np.ones(200)]
+    colmap_px = cam.img_from_cam(x)
+    k, d = opencv_from_colmap(cam)
+    opencv_px = cv2.projectPoints(x, np.zeros(3), np.zeros(3), k.numpy(), d.numpy())[0][:, 0]
+    assert np.abs(colmap_px - 0.5 - opencv_px).max() < 1e-6  # COLMAP's pixel centres lie at +0.5
+
+
+def _synthetic(seed, frames=8, noise=0.5):
+    pycolmap.set_random_seed(seed)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_frames_per_rig, o.num_points3D = 1, frames, 200
+    o.camera_model_id, o.camera_params = pycolmap.CameraModelId.RADIAL, [600.0, 320.0, 240.0, -0.2, 0.05]
+    o.camera_width, o.camera_height = 640, 480
+    rec = pycolmap.synthesize_dataset(o)
+    truth = opencv_delta(*opencv_from_colmap(next(iter(rec.cameras.values()))), 480, 640)
+    n = pycolmap.SyntheticNoiseOptions()
+    n.point2D_stddev = noise
+    pycolmap.synthesize_noise(n, rec)
+    return rec, truth
+
+
+def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_that_covers():
+    # COLMAP's synthetic scene projects within 122 px of the centre: Delta over the 640 x 480 frame is an
+    # extrapolation, the models fit the tracks equally well and disagree on it; the interval must say so
+    rec, truth = _synthetic(0)
+    res = self_calibrate_reconstruction(rec, MultiViewConfig(jackknife_blocks=4))
+    assert res.class_label is None and "interval too wide" in res.reason
+    lo, hi = res.delta_avg_user_interval
+    assert lo <= truth["delta_avg_px"] <= hi
+    assert set(res.models) == set(MultiViewConfig().models) and len(res.jackknife) == 4
+    assert res.model == min(res.models, key=lambda m: res.models[m]["bic"])
+    assert res.reprojection_px == pytest.approx(0.5 * math.sqrt(2), rel=0.15)  # the noise, both coordinates
+    assert rec.num_reg_images() == 8  # the input is left as it was
+
+
+def test_too_few_frames_is_a_one_line_error():
+    rec, _ = _synthetic(0, frames=2)
+    with pytest.raises(ValueError, match="at least 3 registered frames"):
+        self_calibrate_reconstruction(rec)
+
+
+# ------------------------------------------------------------------ combining the two paths
+def _direct(cls, d, lo, hi):
+    return {"class": cls, "reason": None if cls else "interval too wide", "delta_avg_user_px": d,
+            "delta_avg_user_interval": [lo, hi], "delta_max_user_px": 2 * d, "delta_max_user_interval": [2 * lo, 2 * hi],
+            "k2_user": 1e-7, "k4_user": 0.0, "opencv": {"camera_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}
+
+
+def _mv(cls, d, lo, hi):
+    return {"ok": True, "class_label": cls, "reason": "" if cls else "interval too wide: +-9 px", "model": "RADIAL",
+            "delta_avg_user_px": d, "delta_avg_user_interval": (lo, hi), "delta_max_user_px": 3 * d,
+            "delta_max_user_interval": (3 * lo, 3 * hi), "invertible_fraction": 1.0, "eq4_fit_error_px": 0.1,
+            "registered": 20, "points3D": 900, "reprojection_px": 0.4, "rotation_spread_deg": 30.0, "models": {}, "k2_user": 2e-7, "k4_user": 1e-13,
+            "camera_matrix": [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]], "dist_coeffs": [-0.1, 0.01, 0, 0, 0]}
+
+
+def test_confident_paths_that_disagree_cannot_tell_and_give_both_numbers():
+    out = combine(_direct("R", 0.1, 0.0, 0.8), _mv("2", 7.0, 6.5, 7.5))
+    assert out["class"] is None and out["method"] == "both" and "disagree" in out["reason"]
+    assert out["direct"]["delta_avg_user_px"] == 0.1 and out["multiview"]["delta_avg_user_px"] == 7.0
+
+
+def test_multiview_answers_with_its_exact_opencv_camera_where_the_paths_agree():
+    out = combine(_direct("2", 6.9, 6.0, 7.2), _mv("2", 7.0, 6.5, 7.5))
+    assert out["method"] == "multiview" and out["class"] == "2" and out["delta_avg_user_px"] == 7.0
+    assert out["opencv"]["dist_coeffs"] == [-0.1, 0.01, 0, 0, 0] and out["opencv_rational"] is None
+
+
+def test_direct_answers_where_multiview_cannot():
+    failed = combine(_direct("3", 9.0, 8.8, 9.2), {"ok": False, "reason": "the engine could not reconstruct the sequence"})
+    assert failed["method"] == "direct" and failed["class"] == "3" and "reconstruct" in failed["multiview"]["reason"]
+    wide = combine(_direct("3", 9.0, 8.8, 9.2), _mv(None, 12.0, 0.0, 30.0))
+    assert wide["method"] == "direct" and wide["class"] == "3"
+    neither = combine(_direct(None, 1.0, 0.0, 9.0), _mv(None, 12.0, 0.0, 30.0))
+    assert neither["class"] is None and neither["method"] == "direct" and neither["reason"]
+    assert neither["multiview"]["reason"].startswith("interval too wide")
+
+
+def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
+    from lensdist_torch.workflows.multiview import multiview_path
+
+    monkeypatch.setitem(sys.modules, "pycolmap", None)
+    res = multiview_path(tmp_path, (10, 10))
+    assert res == {"ok": False, "reason": res["reason"]} and "pip install pycolmap" in res["reason"]
