@@ -49,6 +49,17 @@ def homography_rms(k, dist, corners: dict) -> list[float]:
     return out
 
 
+def on_footprint(k, dist, truth_k, truth_dist, size: tuple[int, int], step: int = 4) -> float:
+    """Delta_avg (px) of (k, dist) over the pixels where both it and the truth's model invert."""
+    h, w = size
+    xs, ys = torch.arange(0, w, step, dtype=torch.float64), torch.arange(0, h, step, dtype=torch.float64)
+    p = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+    _, ok_t = opencv_ideal_points(p, torch.tensor(truth_k), torch.tensor(truth_dist))
+    ideal, ok = opencv_ideal_points(p, torch.tensor(k), torch.tensor(dist))
+    both = ok & ok_t
+    return float((ideal - p).norm(dim=-1)[both].mean()) if bool(both.any()) else float("nan")
+
+
 def main() -> None:
     from lensdist_torch.workflows.calibrate import calibrate_path
 
@@ -81,6 +92,11 @@ def main() -> None:
           f"{100 * truth['invertible_fraction']:.1f} % of pixels where the calibration's model inverts")
     if "model" not in mv:
         print(f"multi-view path: no answer ({mv.get('reason')})")
+    else:
+        print(f"multi-view path: {mv['registered']} of {res['frames']} frames registered, {mv['points3D']} tracks, "
+              f"reprojection RMS {mv['reprojection_px']:.2f} px, model {mv['model']}, {mv['delta_avg_user_px']:.2f} px "
+              f"[{mv['delta_avg_user_interval'][0]:.2f}, {mv['delta_avg_user_interval'][1]:.2f}], "
+              f"class {mv['class'] or 'cannot tell (' + str(mv['reason']) + ')'}")
     print("| estimate | detail | Delta_avg (px) | % of truth | 95 % interval | covers | class | note |")
     print("|---|---|---|---|---|---|---|---|")
     for name, detail, value, iv, cls, note in rows:
@@ -95,6 +111,15 @@ def main() -> None:
         cam = res["opencv"] or res["opencv_rational"]
         if cam is not None:
             checks["lensdist answer"] = (cam["camera_matrix"], cam["dist_coeffs"])
+            report["answer_on_truth_footprint_px"] = on_footprint(cam["camera_matrix"], cam["dist_coeffs"], cal["K"],
+                                                                  cal["dist"], (h, w))
+            print(f"the answer's Delta_avg over the pixels where the calibration inverts too: "
+                  f"{report['answer_on_truth_footprint_px']:.2f} px")
+        if "model" in mv:
+            checks["multi-view estimate"] = (mv["camera_matrix"], mv["dist_coeffs"])
+            report["multiview_on_truth_footprint_px"] = on_footprint(mv["camera_matrix"], mv["dist_coeffs"], cal["K"],
+                                                                     cal["dist"], (h, w))
+            print(f"the multi-view estimate's Delta_avg there: {report['multiview_on_truth_footprint_px']:.2f} px")
         report["homography_rms"] = {}
         for name, (k, dist) in checks.items():
             rms = homography_rms(k, dist, corners)

@@ -106,6 +106,7 @@ def combine(direct: dict, mv: dict | None) -> dict:
                **{k: mv[k] for k in _KEYS[2:]}, "invertible_fraction": mv["invertible_fraction"],
                "eq4_fit_error_px": mv["eq4_fit_error_px"], "registered": mv["registered"], "points3D": mv["points3D"],
                "reprojection_px": mv["reprojection_px"], "rotation_spread_deg": mv["rotation_spread_deg"],
+               "camera_matrix": mv["camera_matrix"], "dist_coeffs": mv["dist_coeffs"],
                "models": mv["models"]}
     out["multiview"] = mv_view
     if mv["class_label"] is None:  # no multi-view answer: the direct one stands, confident or not
