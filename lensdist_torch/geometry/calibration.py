@@ -48,7 +48,7 @@ from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.selfcal import estimate_distortion
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
-           "user_coefficients", "choose_pairs", "calibrate_sequence"]
+           "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence"]
 
 
 class SequenceCalibration(NamedTuple):
@@ -166,6 +166,29 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
         pairs = pairs[torch.linspace(0, len(pairs) - 1, cfg.max_pairs).round().long()]
     shifts = [_translation(frames[p[:, 0]], frames[p[:, 1]]) for p in pairs.split(16) if len(p)]  # each its own
     return pairs, torch.cat(shifts) if shifts else torch.zeros(0, 2, dtype=torch.float64)
+
+
+def no_pairs_reason(frames: torch.Tensor) -> str:
+    """Why :func:`choose_pairs` found no pair: the frames did not move, or they could not be registered.
+
+    The frames did not move when neighbouring frames differ less than half as much as a frame
+    differs from itself moved by 2 px; otherwise they changed but the phase correlation found no
+    motion that large: a registration failure (views too far apart, or unrelated).
+
+    Example:
+        >>> x = torch.rand(1, 1, 64, 64)
+        >>> no_pairs_reason(torch.cat([x, x + 0.01]))
+        'too little motion: no two frames moved enough apart'
+        >>> no_pairs_reason(torch.cat([x, torch.rand(1, 1, 64, 64)]))[:30]
+        'the frames could not be regist'
+    """
+    a, b = frames[:-1].float(), frames[1:].float()
+    static = (a - b).abs().mean(dim=(1, 2, 3))
+    texture = (a - torch.roll(a, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))
+    if bool((static <= 0.5 * texture).all()):
+        return "too little motion: no two frames moved enough apart"
+    return ("the frames could not be registered: they change, but phase correlation finds no consistent motion "
+            "between neighbours (views too far apart or unrelated)")
 
 
 def _translation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -361,7 +384,7 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
-        reason = "too little motion: no two frames moved enough apart"
+        reason = no_pairs_reason(xa)
     elif n_used < cfg.min_pairs:
         reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}"
     elif not half[2] <= cfg.max_class_halfwidth_px:

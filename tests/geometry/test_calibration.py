@@ -257,3 +257,15 @@ def test_bad_frame_size_and_opencv_arguments():
         opencv_camera(0.0, 0.0, 64, 64, model="fisheye")
     with pytest.raises(ValueError, match="focal"):
         opencv_camera(0.0, 0.0, 64, 64, focal=-1.0)
+
+
+def test_no_pairs_says_whether_the_frames_did_not_move_or_did_not_register():
+    from lensdist_torch.core.images import load_scene
+
+    scene = load_scene("gravel")[..., :96, :128]
+    still = calibrate_sequence(torch.cat([scene] * 6))
+    assert still.class_label is None and still.reason.startswith("too little motion")
+    # six far-apart views of one scene (no neighbour overlaps the next): they change, phase correlation finds nothing
+    views = torch.cat([load_scene(name)[..., 100 * i: 100 * i + 96, 200: 328] for name in ("gravel", "grass") for i in range(3)])
+    far = calibrate_sequence(views)
+    assert far.class_label is None and not far.reason.startswith("too little motion")
