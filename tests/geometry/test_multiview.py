@@ -161,3 +161,17 @@ def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "pycolmap", None)
     res = multiview_path(tmp_path, (10, 10))
     assert res == {"ok": False, "reason": res["reason"]} and "pip install pycolmap" in res["reason"]
+
+
+def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
+    from lensdist_torch.workflows.calibrate import _to_uint8, calibrate_path, encode_png, synthetic_sequence
+
+    frames, _ = synthetic_sequence(2, 1e-6, 0.0, size=(96, 128))
+    for i, f in enumerate(frames):
+        (tmp_path / f"f{i}.png").write_bytes(encode_png(_to_uint8(f)))
+    with pytest.raises(ValueError, match="needs at least 3 frames, got 2"):
+        calibrate_path(tmp_path, method="multiview")
+    with pytest.raises(ValueError, match="method must be one of auto, multiview, direct"):
+        calibrate_path(tmp_path, method="colmap")
+    auto = calibrate_path(tmp_path)  # the direct answer stands, the multi-view reason beside it
+    assert auto["method"] == "direct" and "at least 3 frames" in auto["multiview"]["reason"]
