@@ -29,7 +29,10 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import NamedTuple
@@ -88,8 +91,25 @@ def pycolmap_or_error():
     except ImportError:
         raise ValueError("the multi-view calibration needs pycolmap (COLMAP's Python bindings): pip install pycolmap, "
                          "or --method direct") from None
-    pycolmap.logging.minloglevel = 2  # COLMAP's errors only: its progress log would bury the answer
     return pycolmap
+
+
+@contextlib.contextmanager
+def _quiet():
+    """COLMAP's log (glog, written to file descriptor 2 from C++) sent to the null device meanwhile.
+
+    Its progress and its solver's warnings (thousands of lines on ill-conditioned models) would
+    bury the answer; what fails reaches the caller as a missing reconstruction or a reason.
+    """
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 # ------------------------------------------------------------------ the reconstruction
@@ -102,7 +122,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
     """
     pc, cfg = pycolmap_or_error(), config or MultiViewConfig()
     pc.set_random_seed(cfg.seed)
-    with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp, _quiet():
         db = Path(tmp) / "db.db"
         reader = pc.ImageReaderOptions()
         reader.camera_model = "RADIAL"
@@ -155,7 +175,8 @@ def _adjust(rec) -> None:
     pc = pycolmap_or_error()
     options = pc.BundleAdjustmentOptions()
     options.refine_principal_point, options.print_summary = False, False
-    pc.bundle_adjustment(rec, options)
+    with _quiet():
+        pc.bundle_adjustment(rec, options)
 
 
 def _with_model(rec, model: str):
