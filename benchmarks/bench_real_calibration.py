@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from lensdist_torch.core.storage import atomic_write_text
-from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
 
 def homography_rms(k, dist, corners: dict) -> list[float]:
@@ -52,8 +52,7 @@ def homography_rms(k, dist, corners: dict) -> list[float]:
 def on_footprint(k, dist, truth_k, truth_dist, size: tuple[int, int], step: int = 4) -> float:
     """Delta_avg (px) of (k, dist) over the pixels where both it and the truth's model invert."""
     h, w = size
-    xs, ys = torch.arange(0, w, step, dtype=torch.float64), torch.arange(0, h, step, dtype=torch.float64)
-    p = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+    p = grid_points(h, w, step)
     _, ok_t = opencv_ideal_points(p, torch.tensor(truth_k), torch.tensor(truth_dist))
     ideal, ok = opencv_ideal_points(p, torch.tensor(k), torch.tensor(dist))
     both = ok & ok_t

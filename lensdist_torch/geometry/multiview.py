@@ -43,7 +43,7 @@ from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.geometry.calibration import _t_quantile
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, estimated_class
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
            "rotation_spread_deg"]
@@ -182,7 +182,7 @@ def _adjust(rec) -> None:
 def _with_model(rec, model: str):
     """A copy of ``rec`` whose camera is ``model`` (focal and the first radial terms carried over), adjusted."""
     pc = pycolmap_or_error()
-    out, cam = pc.Reconstruction(rec), _camera(rec)
+    out, cam = _pycolmap_copy(rec), _camera(rec)
     new = pc.Camera.create_from_model_name(cam.camera_id, model, cam.mean_focal_length(), cam.width, cam.height)
     params = new.params.copy()
     old_extra, new_extra = list(cam.extra_params_idxs()), list(new.extra_params_idxs())
@@ -224,8 +224,7 @@ def _eq4_fit(camera, size: tuple[int, int], scale: float, step: int) -> tuple[fl
     """Eq. 4's (k2, k4) about the frame centre fitted to the camera's ideal points, and the RMS error (px)."""
     h, w = size
     k, d = opencv_from_colmap(camera, scale)
-    xs, ys = torch.arange(0, w, step, dtype=torch.float64), torch.arange(0, h, step, dtype=torch.float64)
-    p = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+    p = grid_points(h, w, step)
     ideal, ok = opencv_ideal_points(p, k, d)
     if not bool(ok.any()):
         return float("nan"), float("nan"), float("nan")
@@ -289,18 +288,17 @@ def self_calibrate_reconstruction(
     cam0 = _camera(rec)
     size = image_size or (round(cam0.height * scale), round(cam0.width * scale))
     step = max(1, round(math.sqrt(size[0] * size[1] / 20000)))
-    fitted, table = {}, {}
+    fitted, table, deltas = {}, {}, {}
     for model in cfg.models:
         r = _with_model(rec, model)
         ss, n = _rss(r)
         k = len(_camera(r).params) - 2  # the principal point is held
         dl = _deltas(_camera(r), size, scale, step)
         bic = 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n)
-        fitted[model] = r
+        fitted[model], deltas[model] = r, dl
         table[model] = {"bic": bic, "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(ss / max(n, 1))}
     best = min(table, key=lambda m: table[m]["bic"])
-    chosen, cam = fitted[best], _camera(fitted[best])
-    dl = _deltas(cam, size, scale, step)
+    chosen, cam, dl = fitted[best], _camera(fitted[best]), deltas[best]
     spread = max(abs(v["delta_avg_px"] - dl["delta_avg_px"]) for v in table.values()
                  if v["bic"] - table[best]["bic"] <= cfg.bic_margin)
     n_blocks = min(cfg.jackknife_blocks, chosen.num_reg_images())  # each replicate keeps >= 2 frames

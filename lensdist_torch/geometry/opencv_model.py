@@ -44,7 +44,7 @@ import torch
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
 __all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_export", "opencv_distort_normalized", "opencv_undistort_points",
-           "opencv_ideal_points", "opencv_delta"]
+           "opencv_ideal_points", "opencv_delta", "grid_points"]
 
 MODELS = ("standard", "rational")
 
@@ -268,6 +268,13 @@ def opencv_ideal_points(
     return x * f + c, valid
 
 
+def grid_points(height: int, width: int, step: int) -> torch.Tensor:
+    """Every ``step``-th pixel of a (height, width) frame as (N, 2) float64 (x, y), x fastest."""
+    xs = torch.arange(0, width, step, dtype=torch.float64)
+    ys = torch.arange(0, height, step, dtype=torch.float64)
+    return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+
+
 def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, step: int = 4) -> dict:
     """Delta over a (height, width) frame of an OpenCV camera: |p - ideal(p)| in pixels.
 
@@ -281,9 +288,7 @@ def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, step: int 
         >>> round(out["delta_avg_px"], 9), out["invertible_fraction"]
         (0.0, 1.0)
     """
-    xs = torch.arange(0, width, step, dtype=torch.float64)
-    ys = torch.arange(0, height, step, dtype=torch.float64)
-    p = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+    p = grid_points(height, width, step)
     ideal, ok = opencv_ideal_points(p, camera_matrix, dist_coeffs)
     off = (ideal - p).norm(dim=-1)[ok]
     if off.numel() == 0:
