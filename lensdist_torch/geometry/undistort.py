@@ -8,10 +8,13 @@ eq. 4 (:func:`~lensdist_torch.geometry.distortion.distort_points`):
     I(p) = I_d(distort(p)),   one ``grid_sample`` per image, ``align_corners=True``.
 
 The output has the input's size and centre. Its validity mask is 1 where distort(p) lies inside
-the distorted image (1e-3 px of slack for rounding) and the Newton inverse is exact there (a
-round trip through eq. 4 within 0.01 px: strongly negative coefficients make eq. 4 fold over,
-and such pixels are marked invalid, never filled with a wrong sample). Outside the mask the
-image is 0. Gradients flow to the image and to k2, k4 (as for any bilinear warp, the gradient
+the distorted image (1e-3 px of slack for rounding), the Newton inverse is exact there (a round
+trip through eq. 4 within 0.01 px) and distort(p) lies on eq. 4's monotone branch: on the same
+side of p0 as p, at a distorted radius r where r (1 + k2 r^2 + k4 r^4) still increases on all of
+[0, r] (:func:`monotone_branch`). Strongly negative coefficients make eq. 4 fold over: past the
+fold an ideal radius has no preimage or a second one (a mirrored or folded-back position whose
+round trip is exact all the same); such pixels are marked invalid, never filled with a wrong
+sample. Outside the mask the image is 0. Gradients flow to the image and to k2, k4 (as for any bilinear warp, the gradient
 with respect to the coordinates is that of the bilinear interpolant).
 
 Kornia-style: the pure function :func:`undistort_image` and the thin module :class:`Undistort`.
@@ -23,10 +26,16 @@ import torch
 from torch import nn
 
 from lensdist_torch.core.images import check_image
-from lensdist_torch.geometry.distortion import distort_points, distortion_center, sample, undistort_points
+from lensdist_torch.geometry.distortion import (
+    distort_points,
+    distortion_center,
+    radial_derivative,
+    sample,
+    undistort_points,
+)
 from lensdist_torch.geometry.frame import pixel_grid
 
-__all__ = ["undistortion_grid", "undistort_image", "Undistort"]
+__all__ = ["monotone_branch", "undistortion_grid", "undistort_image", "Undistort"]
 
 _SLACK_PX = 1e-3
 _ROUND_TRIP_PX = 1e-2
@@ -42,6 +51,26 @@ def _coefficient(value, name: str, like: torch.Tensor) -> torch.Tensor:
     if not bool(torch.isfinite(k.detach()).all()):
         raise ValueError(f"{name} must be finite")
     return k.to(like.dtype)
+
+
+def monotone_branch(r2: torch.Tensor, k2, k4) -> torch.Tensor:
+    """True where eq. 4's radius map r -> r (1 + k2 r^2 + k4 r^4) increases on all of [0, r], r2 = r^2.
+
+    Its derivative (:func:`~lensdist_torch.geometry.distortion.radial_derivative`) is a quadratic
+    in s = r^2 equal to 1 at s = 0, so its least value on [0, r2] is at r2 or, where k4 > 0, at
+    the quadratic's vertex -3 k2 / (10 k4) when that lies inside; both must be positive. k2, k4
+    broadcast against r2.
+
+    Example:
+        >>> monotone_branch(torch.tensor([100.0, 400.0]), -1e-3, 0.0).tolist()  # folds at r = 18.3 px
+        [True, False]
+    """
+    k2 = torch.as_tensor(k2, dtype=r2.dtype, device=r2.device)
+    k4 = torch.as_tensor(k4, dtype=r2.dtype, device=r2.device)
+    curved = k4 > 0
+    vertex = -3.0 * k2 / (10.0 * torch.where(curved, k4, torch.ones_like(k4)))
+    low = torch.where(curved, torch.minimum(vertex.clamp_min(0.0), r2), r2)
+    return (radial_derivative(r2, k2, k4) > 0) & (radial_derivative(low, k2, k4) > 0)
 
 
 def undistortion_grid(
@@ -77,6 +106,11 @@ def undistortion_grid(
     src = distort_points(ideal, k2, k4, centre)
     back = undistort_points(src.detach(), k2.detach(), k4.detach(), centre)
     exact = ((back - ideal).abs().amax(-1) <= _ROUND_TRIP_PX) & torch.isfinite(src.detach()).all(-1)
+    d_src, d_ideal = src.detach() - src.new_tensor(centre), ideal - ideal.new_tensor(centre)
+    same_side = (d_src * d_ideal).sum(-1) >= 0  # a negative Newton root is the mirrored position
+    shape = (-1, 1, 1)
+    branch = monotone_branch((d_src * d_src).sum(-1), k2.detach().view(shape), k4.detach().view(shape))
+    exact = exact & same_side & branch
     inside = ((src.detach()[..., 0] >= -_SLACK_PX) & (src.detach()[..., 0] <= width - 1 + _SLACK_PX)
               & (src.detach()[..., 1] >= -_SLACK_PX) & (src.detach()[..., 1] <= height - 1 + _SLACK_PX))
     valid = (exact & inside).unsqueeze(1).to(dtype)
@@ -96,7 +130,8 @@ def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear") -> tuple[
     Returns:
         undistorted: (B, C, H, W) float (the input's float dtype, float32 for uint8), 0 outside
             the mask.
-        valid: (B, 1, H, W) of 0 and 1: the sample came from inside the distorted image.
+        valid: (B, 1, H, W) of 0 and 1: the sample came from inside the distorted image, on eq. 4's
+            monotone branch (module docstring).
 
     Example:
         >>> from lensdist_torch.geometry.distortion import render_distorted

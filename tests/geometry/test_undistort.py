@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -15,7 +16,7 @@ from lensdist_torch.geometry.distortion import (
     render_distorted,
     sample,
 )
-from lensdist_torch.geometry.undistort import Undistort, undistort_image, undistortion_grid
+from lensdist_torch.geometry.undistort import Undistort, monotone_branch, undistort_image, undistortion_grid
 
 H, W = 96, 128
 # The largest coefficients of docs/method.md, section 6 at 320 x 424, scaled to 96 x 128
@@ -154,3 +155,58 @@ def test_bad_image_and_mode():
         undistort_image(torch.rand(1, 1, 16, 16), 0.0, 0.0, mode="area")
     with pytest.raises(ValueError, match="height and width"):
         undistortion_grid(0.0, 0.0, 0, 16)
+
+
+# ------------------------------------------------------------------ folded coefficients (issue 19)
+def _numeric_fold_radius(k2: float, k4: float, r_max: float, step: float = 1e-4) -> float:
+    """Independently of the library: the first radius where r (1 + k2 r^2 + k4 r^4) stops
+    increasing, on a grid of ``step`` px (numpy, float64); inf if it increases up to r_max."""
+    r = np.arange(0.0, r_max, step)
+    f = r * (1 + k2 * r**2 + k4 * r**4)
+    down = np.nonzero(np.diff(f) <= 0)[0]
+    return float(r[down[0]]) if down.size else float("inf")
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("k2,k4", [(-1e-3, 0.0), (-1e-4, -1e-9), (-8e-6, 2e-11)])
+def test_folded_coefficients_never_give_a_mirrored_or_folded_sample(k2, k4):
+    # the audit's coefficients at 320 x 424: before the fix 17-20 k pixels were sampled from
+    # mirrored positions (the negative Newton root, whose round trip is exact) and marked valid
+    h, w = 320, 424
+    grid, valid = undistortion_grid(k2, k4, h, w, torch.float64)
+    c = np.array(distortion_center(h, w))
+    src = grid[0].numpy() - c
+    ideal = pixel_grid(h, w, torch.float64).numpy() - c
+    ok = valid[0, 0].numpy() > 0
+    fold = _numeric_fold_radius(k2, k4, 300.0)
+    r = np.linalg.norm(src, axis=-1)
+    assert fold < 265  # every case folds inside the frame's half diagonal
+    assert (r[ok] < fold + 1e-3).all()  # only the monotone branch is sampled
+    assert ((src * ideal).sum(-1)[ok] >= 0).all()  # never the mirrored side
+    # and everything that has a preimage on the monotone branch inside the frame is kept
+    rho_max = fold * (1 + k2 * fold**2 + k4 * fold**4)
+    rho = np.linalg.norm(ideal, axis=-1)
+    x, y = src[..., 0] + c[0], src[..., 1] + c[1]
+    inside = (x >= -1e-3) & (x <= w - 1 + 1e-3) & (y >= -1e-3) & (y <= h - 1 + 1e-3)
+    expected = (rho < rho_max - 1e-2) & inside
+    assert (ok >= expected).all() and ok.sum() <= (rho < rho_max + 1e-2).sum()
+    if (k2, k4) == (-1e-3, 0.0):
+        assert 440 < ok.sum() < 480  # a disc of radius rho_max = 12.2 px: pi 12.2^2 = 466 pixels
+
+
+@pytest.mark.bad_input
+def test_monotone_branch_agrees_with_a_numeric_check():
+    gen = torch.Generator().manual_seed(0)
+    k2 = (torch.rand(400, generator=gen, dtype=torch.float64) * 2 - 1) * 1e-4
+    k4 = (torch.rand(400, generator=gen, dtype=torch.float64) * 2 - 1) * 2e-9
+    r = torch.rand(400, generator=gen, dtype=torch.float64) * 300
+    got = monotone_branch(r * r, k2, k4)
+    fold = torch.tensor([_numeric_fold_radius(float(a), float(b), 310.0, 1e-2) for a, b in zip(k2, k4)])
+    want = r < fold
+    near = (fold - r).abs() < 2e-2  # grid resolution of the numeric check
+    assert torch.equal(got[~near], want[~near]) and int(near.sum()) < 5
+    assert 50 < int(want.sum()) < 350  # both answers are well represented
+    # a dip that comes back up (k2 < 0, k4 > 0): positive derivative at r, yet folded before it
+    assert 1 + 3 * -8e-6 * 450.0**2 + 5 * 2e-11 * 450.0**4 > 0  # eq. 4 folds at 231 px and unfolds at 432 px
+    assert not bool(monotone_branch(torch.tensor(450.0**2), -8e-6, 2e-11))
+    assert bool(monotone_branch(torch.tensor(200.0**2), -8e-6, 2e-11))
