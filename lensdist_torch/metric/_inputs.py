@@ -7,7 +7,11 @@ One place decides what the maps and the loss accept:
   and column (``pad=True``), or H and W multiples of the block size (``pad=False``);
 * the validity mask: (B, 1, H, W), bool or numeric in [0, 1]; a pixel is valid where the mask
   is >= 0.5 (warped masks are fractional at their edges). The mask is binarised and detached:
-  no gradient ever reaches it. Padding pixels are invalid.
+  no gradient ever reaches it. Padding pixels are invalid. An error is counted only where the
+  mask is valid after a 3 x 3 erosion (:func:`erode_valid`); a sample with no such pixel has
+  nothing to measure (:func:`measurable_samples`);
+* placement: dense (strided) tensors, ``img2`` and ``valid`` on ``img1``'s device, none on the
+  meta device (a meta tensor has no values to measure).
 
 The value checks (NaN/Inf, the range of the images, the values of the mask) need the data on
 the host: they cost one reduction per tensor and one synchronisation per call. ``validate=False``
@@ -84,6 +88,25 @@ def _range_error(name: str, lo: float, hi: float, data_range: float) -> str | No
     return None
 
 
+def check_placement(tensors: list[tuple[str, torch.Tensor]], device: torch.device) -> None:
+    """Dense tensors with values, all on ``device`` (img1's): a one-line error naming the tensor.
+
+    Free (no data is read), so it always runs, with or without ``validate``.
+
+    Raises:
+        TypeError: a sparse (or otherwise non-strided) tensor.
+        ValueError: a tensor on the meta device, or on another device than ``device``.
+    """
+    for name, t in tensors:
+        if t.layout != torch.strided:
+            raise TypeError(f"{name} must be a dense tensor, got layout {t.layout} (call .to_dense())")
+        if t.is_meta:
+            where = "" if device.type == "meta" else f" on {device}"
+            raise ValueError(f"{name} is on the meta device (a shape, no values); expected a tensor with values{where}")
+        if t.device != device:
+            raise ValueError(f"{name} is on {t.device}; expected img1's device {device} (every input on one device)")
+
+
 def check_mask_shape(valid: object, like: torch.Tensor, name: str = "valid") -> None:
     """Type and shape of a validity mask: a real or bool (B, 1, H, W) tensor matching ``like``.
 
@@ -102,8 +125,19 @@ def check_values(
     images: list[tuple[str, torch.Tensor]],
     valid: torch.Tensor | None,
     data_range: float,
+    measurable: torch.Tensor | None = None,
+    measurable_name: str = "valid",
 ) -> None:
     """NaN/Inf and range of float images, NaN and range of the mask: one host sync in all.
+
+    Args:
+        images: (name, image) pairs.
+        valid: the mask as given, or None.
+        data_range: the value of white in float images.
+        measurable: (B,) {0, 1} from :func:`measurable_samples`, or None: every sample must have
+            a pixel to measure (checked in the same host sync).
+        measurable_name: the argument to blame when a sample has nothing to measure (``valid``,
+            or ``img1`` when the images are too small to keep a pixel after padding).
 
     Raises:
         ValueError: one line naming the tensor (and ``data_range`` where it would help).
@@ -116,6 +150,8 @@ def check_values(
     if valid is not None and valid.dtype != torch.bool:
         parts += torch.aminmax(valid)
         names.append("valid")
+    if measurable is not None:
+        parts += [measurable.min(), measurable.argmin()]
     if not parts:
         return
     if len({p.dtype for p in parts}) > 1:
@@ -137,6 +173,63 @@ def check_values(
         message = _range_error(name, lo, hi, data_range)
         if message is not None:
             raise ValueError(message)
+    if measurable is not None and stats[-2] < 0.5:
+        raise ValueError(_nothing_to_measure(measurable_name, int(stats[-1]), measurable.numel()))
+
+
+def _nothing_to_measure(name: str, index: int, batch: int) -> str:
+    where = f"sample [{index}] of the batch of {batch}" if batch > 1 else "the pair"
+    if name == "valid":
+        return (
+            f"valid leaves no pixel to measure in {where} (none is valid after the 3 x 3 erosion); "
+            "a pair with nothing to measure has no quality index — drop it (validate=False gives NaN)"
+        )
+    return (
+        f"{name} is too small to measure: with one row or column, padded to whole blocks, no pixel "
+        "is left after the 3 x 3 erosion; use at least 2 x 2 pixels (validate=False gives NaN)"
+    )
+
+
+def erode_valid(valid: torch.Tensor) -> torch.Tensor:
+    """3 x 3 erosion of a validity mask; the image border counts as valid.
+
+    max_pool2d pads with -inf, so pixels outside the image never invalidate their neighbours.
+
+    Args:
+        valid: (B, 1, H, W) float mask (1 = valid).
+
+    Returns:
+        (B, 1, H, W): the minimum of ``valid`` over each 3 x 3 window.
+
+    Example:
+        >>> v = torch.ones(1, 1, 5, 5)
+        >>> v[0, 0, 2, 2] = 0
+        >>> int(erode_valid(v).sum())  # the invalid pixel removes its 3 x 3 neighbourhood
+        16
+    """
+    return -F.max_pool2d(-valid, kernel_size=3, stride=1, padding=1)
+
+
+def measurable_samples(valid: torch.Tensor | None) -> torch.Tensor | None:
+    """Which samples have a pixel where an error can be counted: (B,) {0, 1}, or None for all.
+
+    Errors are counted only where the binarised (and padded) mask is valid after the 3 x 3
+    erosion, so a sample whose eroded mask is empty (an all-zero mask, a stripe one or two
+    pixels wide, an image of one row padded to a block) has nothing to measure: its quality
+    index would read 1 (perfect) although nothing was compared. No device sync.
+
+    Args:
+        valid: the {0, 1} (B, 1, H, W) mask as prepared (binarised, padded), or None.
+
+    Example:
+        >>> v = torch.ones(2, 1, 8, 8)
+        >>> v[1] = 0
+        >>> measurable_samples(v).tolist()
+        [1.0, 0.0]
+    """
+    if valid is None:
+        return None
+    return erode_valid(valid).amax(dim=(1, 2, 3))
 
 
 def binarise_valid(valid: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -168,8 +261,8 @@ def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None)
 
     Args:
         img1: (B, C, H, W) uint8 or float image.
-        img2: (B, C, H, W) the other image.
-        valid: (B, 1, H, W) mask or None.
+        img2: (B, C, H, W) the other image, on img1's device.
+        valid: (B, 1, H, W) mask on img1's device, or None.
         config: QualityConfig or None.
         data_range: the value of white in float images.
         validate: run the value checks (skipped while compiling).
@@ -179,17 +272,40 @@ def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None)
     Returns:
         g1, g2 (B, 1, H', W'), valid ({0, 1} (B, 1, H', W') or None), the config.
     """
+    g1, g2, valid, cfg, _ = prepare_measured(img1, img2, valid, config, data_range, validate, pad, None)
+    return g1, g2, valid, cfg
+
+
+def prepare_measured(img1, img2, valid, config, data_range, validate=True, pad=None, empty="raise"):
+    """:func:`prepare_pair` plus which samples have a pixel to measure.
+
+    Args:
+        img1: as :func:`prepare_pair`.
+        img2: as :func:`prepare_pair`.
+        valid: as :func:`prepare_pair`.
+        config: as :func:`prepare_pair`.
+        data_range: as :func:`prepare_pair`.
+        validate: as :func:`prepare_pair`.
+        pad: as :func:`prepare_pair`.
+        empty: a sample with nothing to measure (see :func:`measurable_samples`): ``"raise"``
+            a one-line ValueError naming ``valid`` when validating (in the same host sync as
+            the value checks); ``"flag"`` never raise; None: do not compute the flags.
+
+    Returns:
+        g1, g2, valid, config as :func:`prepare_pair`, and the (B,) {0, 1} flags (None when
+        every pixel is valid or ``empty`` is None).
+    """
     cfg = get_config(config)
     check_data_range(data_range)
     check_image_pair(img1, img2, cfg.block_size if pad is False else None, finite=False)
+    if valid is not None:
+        check_mask_shape(valid, img1)
+    check_placement([("img1", img1), ("img2", img2)] + ([] if valid is None else [("valid", valid)]), img1.device)
+    given = valid is not None
     g1, g2 = to_grey(img1), to_grey(img2)
     dtype = torch.promote_types(g1.dtype, g2.dtype)
     g1, g2 = g1.to(dtype), g2.to(dtype)
-    if valid is not None:
-        check_mask_shape(valid, g1)
-        valid = valid.to(g1.device)
-    if should_validate(validate):
-        check_values([("img1", img1), ("img2", img2)], valid, data_range)
+    raw_valid = valid
     if valid is not None:
         valid = binarise_valid(valid, g1)
     if data_range != 1.0:  # uint8 is already / 255 (docs/method.md, section 1)
@@ -199,4 +315,13 @@ def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None)
             g2 = g2 / data_range
     if pad:
         g1, g2, valid = pad_to_blocks(g1, g2, valid, cfg.block_size)
-    return g1, g2, valid, cfg
+    flags = measurable_samples(valid) if empty is not None else None
+    if should_validate(validate):
+        check_values(
+            [("img1", img1), ("img2", img2)],
+            raw_valid,
+            data_range,
+            flags if empty == "raise" else None,
+            "valid" if given else "img1",
+        )
+    return g1, g2, valid, cfg, flags

@@ -19,7 +19,9 @@ from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._inputs import (
     binarise_valid,
     check_mask_shape,
+    check_placement,
     check_values,
+    erode_valid,
     get_config,
     prepare_pair,
     should_validate,
@@ -158,26 +160,6 @@ def _dilate3(x: torch.Tensor) -> torch.Tensor:
     return F.max_pool2d(x, kernel_size=3, stride=1, padding=1)
 
 
-def erode_valid(valid: torch.Tensor) -> torch.Tensor:
-    """3 x 3 erosion of a validity mask; the image border counts as valid.
-
-    max_pool2d pads with -inf, so pixels outside the image never invalidate their neighbours.
-
-    Args:
-        valid: (B, 1, H, W) float mask (1 = valid).
-
-    Returns:
-        (B, 1, H, W): the minimum of ``valid`` over each 3 x 3 window.
-
-    Example:
-        >>> v = torch.ones(1, 1, 5, 5)
-        >>> v[0, 0, 2, 2] = 0
-        >>> int(erode_valid(v).sum())  # the invalid pixel removes its 3 x 3 neighbourhood
-        16
-    """
-    return -F.max_pool2d(-valid, kernel_size=3, stride=1, padding=1)
-
-
 # ----------------------------------------------------------------------------- the pieces
 
 
@@ -248,7 +230,8 @@ def error_images(
     Args:
         criteria: from :func:`local_criteria` (with the same ``smooth``).
         valid: (B, 1, H, W) validity of the registered pair (1 = real content), bool or in
-            [0, 1], or None. Binarised at 0.5 and detached on both paths.
+            [0, 1], on the criteria's device, or None. Binarised at 0.5 and detached on both
+            paths.
         config: thresholds and temperatures; the defaults of docs/method.md when None.
         smooth: sigmoids instead of thresholds.
         validate: check the mask for NaN and values outside [0, 1] (one host sync).
@@ -267,7 +250,7 @@ def error_images(
     v = None
     if valid is not None:
         check_mask_shape(valid, criteria.r)
-        valid = valid.to(criteria.r.device)
+        check_placement([("valid", valid)], criteria.r.device)
         if should_validate(validate):
             check_values([], valid, 1.0)
         v = erode_valid(binarise_valid(valid, criteria.r))

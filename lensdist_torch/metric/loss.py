@@ -7,8 +7,14 @@ image out of the frame (a quarter of the frame valid: a quarter of the loss); th
 does not fall when the mask shrinks over equally misregistered content. Partially covered
 blocks are left out because their ratios are biased low (their invalid pixels cannot err);
 image padding (any size is padded to whole blocks) is invalid, so partial edge blocks are left
-out too. The mask is binarised at 0.5 and detached: no gradient reaches it. A batch with no
-valid block gives 0 with a zero gradient.
+out too. The mask is binarised at 0.5 and detached: no gradient reaches it.
+
+Nothing to measure. A sample with no valid block adds nothing to the masked mean (the mean is
+over the valid blocks of the whole batch), and a batch with no valid block gives 0 with a zero
+gradient, with or without ``validate``: unlike :func:`~lensdist_torch.metric.quality.registration_quality`,
+which refuses to call such a pair perfect, a loss must keep training going, and 0 with no
+gradient says "no signal" (a NaN would poison the weights). Keep a photometric or overlap term
+beside it, since this loss alone cannot see a warp that leaves the frame.
 """
 
 from __future__ import annotations
@@ -62,9 +68,9 @@ def registration_quality_loss(
     Args:
         img1: (B, C, H, W) float image in [0, data_range] (e.g. the warped one); gradients
             flow to it.
-        img2: (B, C, H, W) the other image; gradients flow to it too.
-        valid: (B, 1, H, W) validity (e.g. the warp's in-bounds mask), bool or in [0, 1],
-            binarised at 0.5 and detached; or None (everything valid).
+        img2: (B, C, H, W) the other image, on img1's device; gradients flow to it too.
+        valid: (B, 1, H, W) validity (e.g. the warp's in-bounds mask) on img1's device, bool or
+            in [0, 1], binarised at 0.5 and detached; or None (everything valid).
         config: temperatures and thresholds; the defaults when None.
         reduction: ``"masked_mean"`` (default: mean over the valid blocks of the batch),
             ``"mean"`` (over all blocks and the batch, invalid blocks count as 0), ``"sum"``,
@@ -74,7 +80,9 @@ def registration_quality_loss(
         pad: pad to whole blocks (else H, W must be multiples of the block size).
 
     Returns:
-        A scalar tensor, or the map for ``reduction="none"``.
+        A scalar tensor, or the map for ``reduction="none"``. With no valid block in the batch
+        the masked mean is 0 with a zero gradient (see the module docstring); ``"mean"`` and
+        ``"sum"`` count invalid blocks as 0, and ``"none"`` shows them as 0.
 
     Example:
         >>> x = torch.rand(1, 1, 32, 32, requires_grad=True)

@@ -23,8 +23,12 @@ exactly ``dalpha > dalpha*``, i.e. ``|b| > tan(dalpha*) |a|``; no atan, no exp o
 
 Inputs (all entry points): images of any size, padded to whole blocks (replicate padding, the
 padding invalid; ``pad=False`` requires multiples of the block size); float images in
-[0, data_range], uint8 in [0, 255]; a validity mask binarised at 0.5 and detached;
-``validate=False`` (or ``torch.compile``) skips the value checks and their host sync.
+[0, data_range], uint8 in [0, 255]; a validity mask binarised at 0.5 and detached; dense
+tensors, ``img2`` and ``valid`` on ``img1``'s device, none on the meta device (one-line errors
+naming the argument, always checked: they read no data); ``validate=False`` (or
+``torch.compile``) skips the value checks and their host sync. A pair with nothing to measure
+(no pixel valid after the mask's 3 x 3 erosion) has no quality index: ``registration_quality``
+raises naming ``valid`` (NaN with ``validate=False``), the stateful metrics skip and count it.
 The loss lives in :mod:`lensdist_torch.metric.loss` and is re-exported here.
 """
 
@@ -37,7 +41,7 @@ from torch import nn
 
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._hard import hard_counts
-from lensdist_torch.metric._inputs import get_config, prepare_pair
+from lensdist_torch.metric._inputs import get_config, prepare_measured, prepare_pair
 from lensdist_torch.metric.criteria import (
     ErrorImages,
     LocalCriteria,
@@ -77,7 +81,9 @@ class QualityResult(NamedTuple):
         registration_map: (B, 1, ceil(H/b), ceil(W/b)) block error ratios, 0 or in [0.1, 1].
         visual_map: (B, 1, ceil(H/b), ceil(W/b)) the same for visual errors.
         quality_index: (B,) 1 - mean of the registration map; 1 means no registration error.
-            Invalid blocks count as error-free.
+            Invalid blocks count as error-free. A sample with nothing to measure (no pixel
+            valid after the 3 x 3 erosion of the mask) has no index: a ValueError naming
+            ``valid`` with ``validate=True``, NaN with ``validate=False`` (never 1).
         criteria: per-pixel (B, 1, H, W) maps, only with ``return_pixels`` (else None).
         errors: per-pixel (B, 1, H, W) error images, only with ``return_pixels`` (else None).
 
@@ -168,9 +174,9 @@ def quality_map(
 
     Args:
         img1: (B, C, H, W) registered image, C in {1, 3}, float in [0, data_range] or uint8.
-        img2: (B, C, H, W) the other image.
+        img2: (B, C, H, W) the other image, on img1's device.
         valid: (B, 1, H, W) validity of the registered pair (1 = real content; bool or in
-            [0, 1], binarised at 0.5), or None.
+            [0, 1], binarised at 0.5) on img1's device, or None.
         config: thresholds and block size; the defaults when None.
         data_range: the value of white in float inputs (they are divided by it).
         validate: check values (NaN/Inf, range, mask; one host sync); skipped while compiling.
@@ -179,7 +185,10 @@ def quality_map(
             False they must be multiples of the block size.
 
     Returns:
-        (B, 1, ceil(H/8), ceil(W/8)) block error ratios, 0 or in [0.1, 1].
+        (B, 1, ceil(H/8), ceil(W/8)) block error ratios, 0 or in [0.1, 1]. Blocks with no
+        valid pixel read 0 (no error counted), also when the whole mask is empty: the map
+        records where errors were seen; :func:`registration_quality` refuses to summarise a
+        pair with nothing to measure.
 
     Example:
         >>> x = torch.rand(2, 1, 32, 48)
@@ -194,6 +203,25 @@ def quality_map(
     with torch.no_grad():
         reg, _ = hard_counts(g1, g2, valid, cfg, visual=False)
     return _floor(reg, cfg)
+
+
+def _measured_map(img1, img2, valid, config, data_range, validate, pad):
+    """quality_map and the (B,) {0, 1} flags of the samples with a pixel to measure (or None).
+
+    Never raises for a sample with nothing to measure (the stateful metrics skip those).
+    """
+    g1, g2, valid, cfg, flags = prepare_measured(img1, img2, valid, config, data_range, validate, pad, "flag")
+    with torch.no_grad():
+        reg, _ = hard_counts(g1, g2, valid, cfg, visual=False)
+    return _floor(reg, cfg), flags
+
+
+def _index(reg_map: torch.Tensor, flags: torch.Tensor | None) -> torch.Tensor:
+    """1 - mean of each sample's map; NaN where the sample has nothing to measure."""
+    q = 1.0 - reg_map.mean(dim=(1, 2, 3))
+    if flags is None:
+        return q
+    return torch.where(flags > 0, q, torch.full_like(q, float("nan")))
 
 
 def registration_quality(
@@ -211,8 +239,9 @@ def registration_quality(
 
     Args:
         img1: (B, C, H, W) registered image, float in [0, data_range] or uint8.
-        img2: (B, C, H, W) the other image.
-        valid: (B, 1, H, W) validity mask (bool or in [0, 1], binarised at 0.5) or None.
+        img2: (B, C, H, W) the other image, on img1's device.
+        valid: (B, 1, H, W) validity mask (bool or in [0, 1], binarised at 0.5) on img1's
+            device, or None.
         config: thresholds, temperatures and block size; the defaults when None.
         smooth: the differentiable sigmoid path (docs/method.md, section 5).
         return_pixels: also return the per-pixel criteria and error images (B, 1, H, W).
@@ -221,7 +250,14 @@ def registration_quality(
         pad: pad to whole blocks (else H, W must be multiples of the block size).
 
     Returns:
-        QualityResult: maps (B, 1, ceil(H/b), ceil(W/b)), the (B,) index, per-pixel maps.
+        QualityResult: maps (B, 1, ceil(H/b), ceil(W/b)), the (B,) index, per-pixel maps. The
+        index of a sample with nothing to measure (see Raises) is NaN with ``validate=False``.
+
+    Raises:
+        ValueError: with ``validate=True``, a sample has nothing to measure: no pixel of its
+            mask is valid after the 3 x 3 erosion (an all-zero mask, a stripe one or two pixels
+            wide, or an image of one row or column); its index would otherwise read 1.0,
+            perfect. Checked in the same host sync as the values.
 
     Example:
         >>> x = torch.rand(1, 1, 32, 32)
@@ -231,18 +267,18 @@ def registration_quality(
         >>> bool(res.quality_index < 1)
         True
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
+    g1, g2, valid, cfg, flags = prepare_measured(img1, img2, valid, config, data_range, validate, pad, "raise")
     h, w = img1.shape[-2:]
     if not smooth and not return_pixels:
         with torch.no_grad():
             reg, vis = hard_counts(g1, g2, valid, cfg, visual=True)
         reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
-        return QualityResult(reg_map, vis_map, 1.0 - reg_map.mean(dim=(1, 2, 3)))
+        return QualityResult(reg_map, vis_map, _index(reg_map, flags))
     crit = _criteria(g1, g2, cfg, smooth)
     errs = _error_images(crit, None if valid is None else erode_valid(valid), cfg, smooth)
     reg_map = block_pool(errs.e_reg, cfg, smooth)
     vis_map = block_pool(errs.e_vis, cfg, smooth)
-    q = 1.0 - reg_map.mean(dim=(1, 2, 3))
+    q = _index(reg_map, flags)
     if not return_pixels:
         return QualityResult(reg_map, vis_map, q)
     if g1.shape[-2:] != (h, w):  # padded: per-pixel maps at the input size

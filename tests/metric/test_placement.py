@@ -1,0 +1,122 @@
+"""Where the inputs live (issue 19): every public metric entry point refuses a meta tensor, a
+sparse tensor, or an input on another device than img1's with a one-line error naming the
+argument (torch's own errors said nothing about which input). Always checked: these checks
+read no data, so ``validate=False`` keeps them."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from lensdist_torch import (
+    RegistrationQuality,
+    RegistrationQualityLoss,
+    error_images,
+    local_criteria,
+    quality_map,
+    registration_error_counts,
+    registration_quality,
+    registration_quality_loss,
+)
+from lensdist_torch.metric.stateful import RegistrationQualityMetric
+
+pytestmark = pytest.mark.usefixtures("one_thread_module")
+
+SHAPE = (2, 1, 16, 24)
+
+ENTRY_POINTS = {
+    "quality_map": lambda a, b, v, **k: quality_map(a, b, v, **k),
+    "registration_error_counts": lambda a, b, v, **k: registration_error_counts(a, b, v, **k),
+    "registration_quality": lambda a, b, v, **k: registration_quality(a, b, v, **k),
+    "registration_quality smooth": lambda a, b, v, **k: registration_quality(a, b, v, smooth=True, **k),
+    "registration_quality pixels": lambda a, b, v, **k: registration_quality(a, b, v, return_pixels=True, **k),
+    "RegistrationQuality": lambda a, b, v, **k: RegistrationQuality(**k)(a, b, v),
+    "registration_quality_loss": lambda a, b, v, **k: registration_quality_loss(a, b, v, **k),
+    "RegistrationQualityLoss": lambda a, b, v, **k: RegistrationQualityLoss(**k)(a, b, v),
+    "RegistrationQualityMetric": lambda a, b, v, **k: RegistrationQualityMetric(**k).update(a, b, v),
+    "local_criteria": lambda a, b, v, **k: local_criteria(a, b, **k),
+}
+
+
+def inputs():
+    g = torch.Generator().manual_seed(3)
+    return torch.rand(SHAPE, generator=g), torch.rand(SHAPE, generator=g), torch.ones(SHAPE)
+
+
+def one_line_error(exc, call, *words):
+    with pytest.raises(exc) as info:
+        call()
+    message = str(info.value)
+    assert "\n" not in message, message
+    for w in words:
+        assert w in message, (w, message)
+    return message
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("validate", [True, False])
+@pytest.mark.parametrize("name", sorted(ENTRY_POINTS))
+def test_meta_tensors_are_named(name, validate):
+    call = ENTRY_POINTS[name]
+    img1, img2, valid = inputs()
+    meta = lambda t: t.to("meta")  # noqa: E731
+    one_line_error(ValueError, lambda: call(img1, meta(img2), valid, validate=validate), "img2", "meta", "cpu")
+    one_line_error(ValueError, lambda: call(meta(img1), img2, valid, validate=validate), "img1", "meta")
+    one_line_error(ValueError, lambda: call(meta(img1), meta(img2), None, validate=validate), "img1", "meta")
+    if name != "local_criteria":  # it takes no mask
+        one_line_error(ValueError, lambda: call(img1, img2, meta(valid), validate=validate), "valid", "meta", "cpu")
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("name", sorted(ENTRY_POINTS))
+def test_sparse_tensors_are_named(name):
+    call = ENTRY_POINTS[name]
+    img1, img2, valid = inputs()
+    one_line_error(TypeError, lambda: call(img1, img2.to_sparse(), valid), "img2", "dense", "sparse")
+    one_line_error(TypeError, lambda: call(img1.to_sparse(), img2, valid), "img1", "dense")
+    if name != "local_criteria":
+        one_line_error(TypeError, lambda: call(img1, img2, valid.to_sparse()), "valid", "dense")
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("name", sorted(ENTRY_POINTS))
+def test_wrong_dtypes_are_named(name):
+    call = ENTRY_POINTS[name]
+    img1, img2, valid = inputs()
+    for bad in (torch.complex64, torch.bool, torch.int16):
+        worse1, worse2 = img1.to(bad), img2.to(bad)
+        one_line_error(TypeError, lambda w=worse2: call(img1, w, valid), "img2", str(bad).replace("torch.", ""))
+        one_line_error(TypeError, lambda w=worse1: call(w, img2, valid), "img1")
+    if name != "local_criteria":
+        one_line_error(TypeError, lambda: call(img1, img2, valid.to(torch.complex64)), "valid", "complex64")
+
+
+@pytest.mark.bad_input
+def test_error_images_mask_placement():
+    img1, img2, valid = inputs()
+    crit = local_criteria(img1, img2)
+    one_line_error(ValueError, lambda: error_images(crit, valid.to("meta")), "valid", "meta")
+    one_line_error(ValueError, lambda: error_images(crit, valid.to("meta"), validate=False), "valid", "meta")
+    one_line_error(TypeError, lambda: error_images(crit, valid.to_sparse()), "valid", "dense")
+    # a good mask still works
+    assert float(error_images(crit, torch.zeros(SHAPE)).e_reg.sum()) == 0.0
+
+
+def test_same_device_inputs_are_unchanged():
+    img1, img2, valid = inputs()
+    assert torch.equal(quality_map(img1, img2, valid), quality_map(img1, img2))
+    assert torch.equal(quality_map(img1, img2, valid.bool()), quality_map(img1, img2))
+
+
+@pytest.mark.bad_input
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("name", sorted(ENTRY_POINTS))
+def test_inputs_on_two_devices_are_named(name):
+    call = ENTRY_POINTS[name]
+    img1, img2, valid = inputs()
+    cuda = torch.device("cuda", torch.cuda.current_device())
+    one_line_error(ValueError, lambda: call(img1.cuda(), img2, valid.cuda()), "img2 is on cpu", str(cuda))
+    one_line_error(ValueError, lambda: call(img1, img2.cuda(), valid), "img2 is on cuda", "cpu")
+    if name != "local_criteria":
+        one_line_error(ValueError, lambda: call(img1.cuda(), img2.cuda(), valid), "valid is on cpu", str(cuda))
+    call(img1.cuda(), img2.cuda(), valid.cuda())  # one device: no error
