@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 from lensdist_torch import load_scene
-from lensdist_torch.workflows.calibrate import encode_png, synthetic_sequence
+from lensdist_torch.workflows.calibrate import synthetic_sequence
+from lensdist_torch.workflows.undistort import encode_png
 
 out = Path(sys.argv[1])
 scene = (load_scene("gravel")[0] * 255).round().byte()  # (1, H, W) uint8

@@ -10,8 +10,6 @@ import argparse
 import json
 from pathlib import Path
 
-from lensdist_torch import cli_support as argtypes
-
 __all__ = ["add_calibrate_commands"]
 
 
@@ -45,10 +43,6 @@ def _print_calibration(res: dict) -> None:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     """``lensdist calibrate PATH [--json] [--out DIR] [--quiet]``."""
-    from lensdist_torch.core.outputs import check_output_dir
-
-    if args.out:
-        check_output_dir(args.out, "--out", {"path": args.path}, writes=["calibration.json"])
     from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.calibrate import calibrate_path
 
@@ -71,14 +65,16 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_undistort(args: argparse.Namespace) -> int:
-    """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--quiet]``."""
+    """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--overwrite] [--quiet]``."""
     from lensdist_torch.workflows.analyze import resolve_device
-    from lensdist_torch.workflows.calibrate import undistort_path
+    from lensdist_torch.workflows.undistort import undistort_path
 
     res = undistort_path(args.path, args.out, k2=args.k2, k4=args.k4, from_json=args.from_json,
-                         max_frames=args.max_frames, quiet=args.quiet, device=resolve_device(args.device))
-    print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}) into {res['out_dir']}, "
-          f"masks in {Path(res['out_dir']) / 'masks'} ({100 * res['valid_fraction']:.1f} % valid)")
+                         max_frames=args.max_frames, quiet=args.quiet, device=resolve_device(args.device),
+                         overwrite=args.overwrite)
+    print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}) into {res['out_dir']} as "
+          f"{' and '.join(f'{b}-bit' for b in res['bits'])} PNG, masks in {Path(res['out_dir']) / 'masks'} "
+          f"({100 * res['valid_fraction']:.1f} % valid)")
     return 0
 
 
@@ -88,23 +84,31 @@ def add_calibrate_commands(subparsers) -> None:
     p.add_argument("path", help="folder of frames (sorted by name) or a video file (needs PyAV: pip install av)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--out", default=None, help="folder for calibration.json")
-    p.add_argument("--max-frames", type=argtypes.positive_int, default=300, help="read at most this many frames")
-    p.add_argument("--focal", type=argtypes.positive_float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
+    p.add_argument("--max-frames", type=int, default=300, help="read at most this many frames")
+    p.add_argument("--focal", type=float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--device", type=argtypes.device, default="cpu",
-                   help="where registration and self-calibration run: cpu, cuda or cuda:N")
+    p.add_argument("--device", default="cpu", help="where registration and self-calibration run: cpu, cuda or cuda:N")
     p.add_argument("--method", default="auto", choices=("auto", "multiview", "direct"),
                    help="multiview: bundle adjustment on COLMAP's tracks (pycolmap); direct: photometric pairs; "
                         "auto: both, 'cannot tell' where they disagree (default)")
     p.set_defaults(func=_cmd_calibrate)
 
-    p = subparsers.add_parser("undistort", help="correct every frame of a folder or video (PNG + validity masks)")
+    p = subparsers.add_parser(
+        "undistort", help="correct every frame of a folder or video (PNG + validity masks)",
+        description="Correct every frame of a folder or video with eq. 4: FRAME.EXT becomes OUT/FRAME.png (16-bit PNG "
+                    "for 16-bit input, else 8-bit) and its validity mask OUT/masks/FRAME.png (0 where the sample lies "
+                    "outside the frame or where eq. 4 folds over). Refused, before anything is written: two inputs "
+                    "with one name stem (frame_01.png and frame_01.jpg), coefficients that fold before the frame's "
+                    "nearest edge, an OUT that is the input folder or would overwrite an input, and existing files "
+                    "of the names it writes unless --overwrite.")
     p.add_argument("path", help="folder of frames or a video file")
-    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels")
+    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels (negative: --k2=-1e-6)")
     p.add_argument("--k4", type=float, default=None, help="eq. 4's k4 in the frames' pixels")
     p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
     p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace existing files of the names it writes in --out (never an input)")
     p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N")
+    p.add_argument("--device", default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N")
     p.set_defaults(func=_cmd_undistort)

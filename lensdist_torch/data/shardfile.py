@@ -80,7 +80,7 @@ def write_shard(path: str | Path, record: dict) -> str:
     The bytes depend only on ``record`` (never on the file name).
     """
     path = Path(path)
-    digest = save_versioned(path, KIND, FORMAT_VERSION, record, digest=False)  # the checksum file covers it
+    digest = save_versioned(path, KIND, FORMAT_VERSION, record)
     atomic_write_bytes(checksum_path(path), _checksum_line(digest, path.name).encode())
     return digest
 

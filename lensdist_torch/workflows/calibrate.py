@@ -1,4 +1,4 @@
-"""Calibrate a camera from a folder of frames or a video, and undistort its frames.
+"""Calibrate a camera from a folder of frames or a video (and the frame reading that undistorting shares).
 
 ``calibrate_path(path)`` reads the frames (a folder of images, sorted by name with numbers in
 their natural order, or a video through the optional PyAV), brings each to the analysis size as
@@ -7,20 +7,16 @@ it is read (a long video stays small), and runs
 dict (None for unknown numbers, never NaN) with the coefficients of eq. 4 in the frames' own
 pixels, Delta_avg and Delta_max with their 95 % intervals, the class, and OpenCV's camera
 matrix and distortion coefficients (:mod:`~lensdist_torch.geometry.opencv_model`).
-``undistort_path(path, out_dir, k2=, k4=)`` (or ``from_json=`` a saved calibration) writes
-every corrected frame as a PNG (grey or colour, as the input) and its validity mask in
-``out_dir/masks/``. ``lensdist_torch.cli_calibrate`` registers ``lensdist calibrate`` and
-``lensdist undistort``. ``synthetic_sequence`` renders the test sequences of a panning camera.
+Undistorting the frames: :mod:`lensdist_torch.workflows.undistort`. ``lensdist_torch.cli_calibrate``
+registers ``lensdist calibrate`` and ``lensdist undistort``. ``synthetic_sequence`` renders the
+test sequences of a panning camera.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import re
-import struct
-import zlib
 from pathlib import Path
 
 import torch
@@ -28,7 +24,6 @@ import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
-from lensdist_torch.core.storage import atomic_write_bytes
 from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.geometry.calibration import (
     CalibrationConfig,
@@ -36,15 +31,14 @@ from lensdist_torch.geometry.calibration import (
     calibrate_sequence,
     to_analysis,
 )
-from lensdist_torch.geometry.distortion import distortion_center, distortion_grid, sample
+from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
 from lensdist_torch.geometry.opencv_model import opencv_export
-from lensdist_torch.geometry.undistort import undistortion_grid
 from lensdist_torch.workflows.multiview import combine, multiview_path
 
 METHODS = ("auto", "multiview", "direct")
 
-__all__ = ["METHODS", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path", "undistort_path",
-           "encode_png", "synthetic_sequence"]
+__all__ = ["METHODS", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path",
+           "synthetic_sequence"]
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 
@@ -169,6 +163,7 @@ def calibrate_path(
 
     Example:
         >>> import tempfile
+        >>> from lensdist_torch.workflows.undistort import _to_uint8, encode_png, undistort_path
         >>> tmp = tempfile.TemporaryDirectory()
         >>> folder = Path(tmp.name)
         >>> for i, frame in enumerate(synthetic_sequence(10, 1e-5, 0.0, size=(120, 160))[0]):
@@ -212,106 +207,6 @@ def calibrate_path(
     if method == "multiview" and not mv["ok"]:
         raise ValueError(mv["reason"])
     return _finite(combine(out, mv))
-
-
-# ------------------------------------------------------------------ undistortion
-def encode_png(img: torch.Tensor) -> bytes:
-    r"""A (C, H, W) uint8 tensor (C = 1 grey, 3 RGB) as PNG bytes (stdlib zlib, 'Sub' filter).
-
-    Example:
-        >>> encode_png(torch.zeros(1, 2, 3, dtype=torch.uint8))[:8]
-        b'\x89PNG\r\n\x1a\n'
-    """
-    if not (isinstance(img, torch.Tensor) and img.dtype == torch.uint8 and img.dim() == 3 and img.shape[0] in (1, 3)):
-        raise ValueError("img must be a (C, H, W) uint8 tensor with C = 1 or 3")
-    c, h, w = img.shape
-    rows = img.permute(1, 2, 0).reshape(h, w * c).contiguous()
-    sub = rows.clone()
-    sub[:, c:] = rows[:, c:] - rows[:, :-c]  # uint8 arithmetic wraps modulo 256, as PNG's filter
-    raw = torch.cat([torch.ones(h, 1, dtype=torch.uint8), sub], 1).numpy().tobytes()
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-    header = struct.pack(">IIBBBBB", w, h, 8, 0 if c == 1 else 2, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
-
-
-def _to_uint8(x: torch.Tensor) -> torch.Tensor:
-    return (x.clamp(0, 1) * 255).round().to(torch.uint8)
-
-
-def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, float]:
-    """(k2, k4) for frames of ``size``: given, or from a JSON (/ s^2, / s^4 for frames scaled by s)."""
-    if from_json is None:
-        if k2 is None or k4 is None:
-            raise ValueError("give both k2 and k4 (--k2, --k4), or from_json (--from CALIBRATION.json)")
-        k2, k4 = float(k2), float(k4)
-        if not (math.isfinite(k2) and math.isfinite(k4)):
-            raise ValueError(f"k2 and k4 must be finite numbers, got {k2} and {k4}")
-        return k2, k4
-    if k2 is not None or k4 is not None:
-        raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
-    src = Path(from_json)
-    if not src.is_file():
-        raise FileNotFoundError(f"calibration file not found: {src}")
-    try:
-        data = json.loads(src.read_text())
-        k2, k4, (hc, wc) = data["k2_user"], data["k4_user"], data["image_size"]
-        if k2 is not None and k4 is not None:
-            k2, k4, hc, wc = float(k2), float(k4), int(hc), int(wc)
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({exc!r})") from None
-    if k2 is None or k4 is None:
-        raise ValueError(f"{src} holds no estimate: {data.get('reason')}")
-    s = size[1] / wc
-    if abs(size[0] / hc - s) > 5e-3 * s:
-        raise ValueError(f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling")
-    return k2 / s**2, k4 / s**4
-
-
-def undistort_path(
-    path: str | Path,
-    out_dir: str | Path,
-    k2: float | None = None,
-    k4: float | None = None,
-    from_json: str | Path | None = None,
-    max_frames: int | None = None,
-    quiet: bool = True,
-    device: torch.device | str | None = None,
-) -> dict:
-    """Undistort every frame of a folder or video into ``out_dir`` (PNG), masks in ``out_dir/masks``.
-
-    A mask is 255 where the corrected pixel came from inside the frame, 0 elsewhere.
-
-    Args:
-        path: a folder of images or a video.
-        out_dir: the output folder (created; not the input folder).
-        k2: eq. 4's k2 in the frames' pixels (with k4; or from_json).
-        k4: eq. 4's k4 in the frames' pixels.
-        from_json: instead of k2, k4: a ``calibration.json`` of ``lensdist calibrate --out``.
-        max_frames: at most this many frames (None: all).
-        quiet: no progress bar.
-        device: where the frames are resampled (default: the CPU).
-
-    Returns:
-        dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks).
-    """
-    path, out = Path(path), Path(out_dir)
-    if path.is_dir() and out.resolve() == path.resolve():
-        raise ValueError(f"out_dir must differ from the input folder {path}")
-    grid, n, valid_sum, dev = None, 0, 0.0, torch.device(device or "cpu")
-    for name, img in _frames_of_one_size(path, False, max_frames, quiet, "undistorting"):
-        if grid is None:
-            k2, k4 = _coefficients_for(tuple(img.shape[-2:]), k2, k4, from_json)
-            grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *img.shape[-2:]))
-            (out / "masks").mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint8((sample(img.to(dev), grid) * valid)[0]).cpu()))
-        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0]).cpu()))
-        n, valid_sum = n + 1, valid_sum + float(valid.mean())
-    if n == 0:
-        raise ValueError(f"path {path} holds no frames")
-    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "valid_fraction": valid_sum / n}
 
 
 # ------------------------------------------------------------------ synthetic sequences

@@ -29,7 +29,7 @@ COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
 def _encode(frame: torch.Tensor) -> bytes:
-    from lensdist_torch.workflows.calibrate import _to_uint8, encode_png  # one PNG writer
+    from lensdist_torch.workflows.undistort import _to_uint8, encode_png  # one PNG writer
 
     return encode_png(_to_uint8(frame[0]))
 

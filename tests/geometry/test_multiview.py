@@ -164,7 +164,8 @@ def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
 
 
 def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
-    from lensdist_torch.workflows.calibrate import _to_uint8, calibrate_path, encode_png, synthetic_sequence
+    from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
+    from lensdist_torch.workflows.undistort import _to_uint8, encode_png
 
     frames, _ = synthetic_sequence(2, 1e-6, 0.0, size=(96, 128))
     for i, f in enumerate(frames):

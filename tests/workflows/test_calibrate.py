@@ -17,15 +17,12 @@ from lensdist_torch.cli_calibrate import add_calibrate_commands
 from lensdist_torch.core.images import load_image, to_grey
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.workflows.calibrate import (
-    _coefficients_for,
-    _to_uint8,
     calibrate_path,
-    encode_png,
     list_frames,
     read_frames,
     synthetic_sequence,
-    undistort_path,
 )
+from lensdist_torch.workflows.undistort import _coefficients_for, _to_uint8, encode_png, undistort_path
 
 SIZE = (240, 320)
 S = 424 / 320

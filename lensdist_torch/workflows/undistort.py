@@ -1,0 +1,253 @@
+"""Undistort the frames of a folder or a video: ``lensdist undistort`` (docs/method.md, section 6).
+
+``undistort_path(path, out_dir, k2=, k4=)`` (or ``from_json=`` a saved calibration) writes every
+corrected frame as a PNG (grey or colour, as the input) and its validity mask in
+``out_dir/masks/``. The contract, checked before anything is written:
+
+- **Coefficients.** Given as numbers (finite; a bool is not a number) or read from a
+  ``calibration.json`` of ``lensdist calibrate --out``, whose ``k2_user`` and ``k4_user`` must be
+  real finite numbers (or both null: no estimate) and ``image_size`` two positive integers; each
+  bad field is a one-line error naming the file and the field. Pixels that eq. 4 folds over
+  (past the monotone branch of its radius, :func:`~lensdist_torch.geometry.undistort.monotone_branch`)
+  are 0 in the mask and in the image. Coefficients that fold before the nearest edge of the frame
+  are refused: no lens does that, it is most often coefficients in another unit.
+- **Names.** Frame ``NAME.EXT`` is written as ``NAME.png`` (a video's frames as
+  ``frame_000000.png`` ...). Two inputs with one stem (``frame_01.png`` and ``frame_01.jpg``, or
+  names that differ only in letter case) are refused: one would overwrite the other.
+- **Nothing destroyed.** The output folder may not be the input folder, and no output may be one
+  of the inputs (a frame, the video, the calibration file), even with ``overwrite``. An existing
+  file of a name it would write (for a video: any ``frame_NNNNNN.png``) is refused unless
+  ``overwrite=True`` (``--overwrite``).
+- **Bit depth.** A frame read from a file with more than 8 bits a sample (a 16-bit PNG; a 16-bit
+  or float TIFF whose samples are finer than 8 bits) is written as a 16-bit PNG, every other frame
+  as an 8-bit one; the masks are 8-bit (0 or 255).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import struct
+import zlib
+from pathlib import Path
+
+import torch
+
+from lensdist_torch.core.storage import atomic_write_bytes
+from lensdist_torch.geometry.distortion import distortion_center, sample
+from lensdist_torch.geometry.undistort import monotone_branch, undistortion_grid
+from lensdist_torch.workflows.calibrate import _frames_of_one_size, list_frames
+
+__all__ = ["encode_png", "undistort_path"]
+
+_VIDEO_NAME = re.compile(r"frame_\d{6}\.png")
+
+
+# ------------------------------------------------------------------ PNG
+def encode_png(img: torch.Tensor) -> bytes:
+    r"""A (C, H, W) uint8 or uint16 tensor (C = 1 grey, 3 RGB) as PNG bytes (8 or 16 bits a sample).
+
+    stdlib zlib, the 'Sub' filter on every row.
+
+    Example:
+        >>> encode_png(torch.zeros(1, 2, 3, dtype=torch.uint8))[:8]
+        b'\x89PNG\r\n\x1a\n'
+        >>> encode_png(torch.zeros(3, 2, 3, dtype=torch.uint16))[24]  # the IHDR's bit depth
+        16
+    """
+    if not (isinstance(img, torch.Tensor) and img.dtype in (torch.uint8, torch.uint16) and img.dim() == 3
+            and img.shape[0] in (1, 3)):
+        raise ValueError("img must be a (C, H, W) uint8 or uint16 tensor with C = 1 or 3")
+    c, h, w = img.shape
+    rows = img.permute(1, 2, 0).contiguous()
+    depth, bpp = (8, c) if img.dtype == torch.uint8 else (16, 2 * c)
+    if depth == 16:  # big-endian bytes
+        wide = rows.to(torch.int32)
+        rows = torch.stack([(wide >> 8).to(torch.uint8), (wide & 255).to(torch.uint8)], -1)
+    rows = rows.reshape(h, w * bpp)
+    sub = rows.clone()
+    sub[:, bpp:] = rows[:, bpp:] - rows[:, :-bpp]  # uint8 arithmetic wraps modulo 256, as PNG's filter
+    raw = torch.cat([torch.ones(h, 1, dtype=torch.uint8), sub], 1).numpy().tobytes()
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", w, h, depth, 0 if c == 1 else 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
+
+
+def _to_uint8(x: torch.Tensor) -> torch.Tensor:
+    return (x.clamp(0, 1) * 255).round().to(torch.uint8)
+
+
+def _to_uint16(x: torch.Tensor) -> torch.Tensor:
+    return (x.clamp(0, 1) * 65535).round().to(torch.uint16)
+
+
+def _deep(source: Path | None, img: torch.Tensor) -> bool:
+    """Whether a frame read from ``source`` (None: a video) has more than 8 bits a sample."""
+    if source is None:
+        return False
+    suffix = source.suffix.lower()
+    if suffix == ".png":
+        with source.open("rb") as f:
+            return f.read(25)[24:25] == b"\x10"  # the IHDR's bit depth (load_image checked the header)
+    if suffix in (".tif", ".tiff"):  # 16-bit or float samples: off the 8-bit grid somewhere
+        return bool(((img * 255 - (img * 255).round()).abs() > 1e-3).any())
+    return False  # JPEG, WebP: 8 bits
+
+
+# ------------------------------------------------------------------ coefficients
+def _number(data: dict, field: str, src: Path, allow_null: bool = False):
+    value = data.get(field)
+    if value is None and allow_null and field in data:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{src}: field {field!r} must be a finite number, got {value!r:.60}")
+    return float(value)
+
+
+def _calibration(src: Path) -> tuple[float | None, float | None, int, int, str]:
+    """(k2_user, k4_user, height, width, reason) of a calibration.json, every field checked."""
+    if not src.is_file():
+        raise FileNotFoundError(f"calibration file not found: {src}")
+    try:
+        data = json.loads(src.read_text())
+    except (ValueError, OSError) as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({type(exc).__name__})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out (not a JSON object)")
+    for field in ("k2_user", "k4_user", "image_size"):
+        if field not in data:
+            raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out (no field {field!r})")
+    size = data["image_size"]
+    if not (isinstance(size, list) and len(size) == 2
+            and all(type(v) is int and v > 0 for v in size)):  # type(): a bool is not a size
+        raise ValueError(f"{src}: field 'image_size' must be [height, width], two positive integers, got {size!r:.60}")
+    k2, k4 = _number(data, "k2_user", src, True), _number(data, "k4_user", src, True)
+    if (k2 is None) != (k4 is None):
+        raise ValueError(f"{src}: fields 'k2_user' and 'k4_user' must both be numbers or both null")
+    reason = data.get("reason")
+    return k2, k4, size[0], size[1], reason if isinstance(reason, str) else "no reason given"
+
+
+def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, float]:
+    """(k2, k4) for frames of ``size``: given, or from a JSON (/ s^2, / s^4 for frames scaled by s)."""
+    if from_json is None:
+        if k2 is None or k4 is None:
+            raise ValueError("give both k2 and k4 (--k2, --k4), or from_json (--from CALIBRATION.json)")
+        for name, value in (("k2", k2), ("k4", k4)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"{name} (--{name}) must be a finite number, got {value!r}")
+        return float(k2), float(k4)
+    if k2 is not None or k4 is not None:
+        raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
+    src = Path(from_json)
+    k2, k4, hc, wc, reason = _calibration(src)
+    if k2 is None:
+        raise ValueError(f"{src} holds no estimate: {' '.join(reason.split())}")
+    s = size[1] / wc
+    if abs(size[0] / hc - s) > 5e-3 * s:
+        raise ValueError(f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling")
+    return k2 / s**2, k4 / s**4
+
+
+def _check_fold(k2: float, k4: float, height: int, width: int, from_json) -> None:
+    """Refuse coefficients whose eq. 4 folds before the nearest edge of the frame (module docstring)."""
+    edge = min(distortion_center(height, width))  # p0 to the nearest edge pixel centre
+    if bool(monotone_branch(torch.tensor(edge * edge, dtype=torch.float64), k2, k4)):
+        return
+    what = f"the coefficients of {from_json} (k2_user, k4_user)" if from_json is not None else "--k2/--k4"
+    raise ValueError(f"{what} k2 = {k2:.4g}, k4 = {k4:.4g} make eq. 4 fold (its radius stops increasing) less than "
+                     f"{edge:.1f} px from the centre, inside the {height} x {width} frames: no lens does that; "
+                     "give the coefficients in the frames' own pixels")
+
+
+# ------------------------------------------------------------------ the outputs
+def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: bool) -> list[Path] | None:
+    """The input files of a folder (None for a video), once every output was checked (module docstring)."""
+    if path.is_dir() and out.resolve() == path.resolve():
+        raise ValueError(f"out_dir must differ from the input folder {path}")
+    files = list_frames(path)[:max_frames] if path.is_dir() else None
+    names = [p.stem for p in files] if files is not None else None
+    if names is not None:
+        seen: dict[str, Path] = {}
+        for p in files:
+            if p.stem.lower() in seen:
+                raise ValueError(f"{seen[p.stem.lower()].name} and {p.name} would both be written as {p.stem}.png; "
+                                 "rename one of them or move it out of the folder")
+            seen[p.stem.lower()] = p
+    protected = {p.resolve() for p in (files or [path])} | ({Path(from_json).resolve()} if from_json is not None else set())
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir {out} exists and is not a folder")
+    for folder in (out, out / "masks"):
+        if not folder.is_dir():
+            continue
+        for existing in folder.iterdir():
+            mine = (existing.stem.lower() in {n.lower() for n in names} and existing.suffix.lower() == ".png"
+                    if names is not None else bool(_VIDEO_NAME.fullmatch(existing.name)))
+            if not mine:
+                continue
+            if existing.resolve() in protected:
+                raise ValueError(f"{existing} is one of the inputs; choose another out_dir (--out)")
+            if not overwrite:
+                raise ValueError(f"{existing} exists; choose an empty out_dir (--out) or pass overwrite=True "
+                                 "(--overwrite) to replace what a previous run wrote")
+    return files
+
+
+def undistort_path(
+    path: str | Path,
+    out_dir: str | Path,
+    k2: float | None = None,
+    k4: float | None = None,
+    from_json: str | Path | None = None,
+    max_frames: int | None = None,
+    quiet: bool = True,
+    device: torch.device | str | None = None,
+    overwrite: bool = False,
+) -> dict:
+    """Undistort every frame of a folder or video into ``out_dir`` (PNG), masks in ``out_dir/masks``.
+
+    A mask is 255 where the corrected pixel came from inside the frame on eq. 4's monotone branch,
+    0 elsewhere. What is refused, the names and the bit depth: the module docstring.
+
+    Args:
+        path: a folder of images or a video.
+        out_dir: the output folder (created; not the input folder).
+        k2: eq. 4's k2 in the frames' pixels (with k4; or from_json).
+        k4: eq. 4's k4 in the frames' pixels.
+        from_json: instead of k2, k4: a ``calibration.json`` of ``lensdist calibrate --out``.
+        max_frames: at most this many frames (None: all).
+        quiet: no progress bar.
+        device: where the frames are resampled (default: the CPU).
+        overwrite: replace existing files of the names it writes (never an input).
+
+    Returns:
+        dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks),
+        bits (the sample depths written, e.g. [16]).
+    """
+    path, out = Path(path), Path(out_dir)
+    if not path.exists():
+        raise FileNotFoundError(f"path not found: {path}")
+    if max_frames is not None and (type(max_frames) is not int or max_frames < 1):
+        raise ValueError(f"max_frames must be a positive int or None, got {max_frames!r}")
+    if type(overwrite) is not bool:
+        raise TypeError(f"overwrite must be a bool, got {overwrite!r}")
+    files = _plan(path, out, max_frames, from_json, overwrite)
+    grid, n, valid_sum, dev, bits = None, 0, 0.0, torch.device(device or "cpu"), set()
+    for i, (name, img) in enumerate(_frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
+        if grid is None:
+            k2, k4 = _coefficients_for(tuple(img.shape[-2:]), k2, k4, from_json)
+            _check_fold(k2, k4, *img.shape[-2:], from_json)
+            grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *img.shape[-2:]))
+            (out / "masks").mkdir(parents=True, exist_ok=True)
+        deep = _deep(files[i] if files is not None else None, img)
+        corrected = (sample(img.to(dev), grid) * valid)[0].cpu()
+        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint16(corrected) if deep else _to_uint8(corrected)))
+        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0]).cpu()))
+        n, valid_sum, bits = n + 1, valid_sum + float(valid.mean()), bits | {16 if deep else 8}
+    if n == 0:
+        raise ValueError(f"path {path} holds no frames")
+    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "valid_fraction": valid_sum / n, "bits": sorted(bits)}
