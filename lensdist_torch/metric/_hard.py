@@ -58,7 +58,7 @@ def _block_sum(x: torch.Tensor, block: int) -> torch.Tensor:
     return x.view(b, h // block, w // block, block).sum(-1).view(b, 1, h // block, w // block)
 
 
-def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool):
+def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool, measured: bool = False):
     sx1, sy1 = _sobel8(g1)
     sx2, sy2 = _sobel8(g2)
     if t is None:
@@ -73,21 +73,24 @@ def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visua
     # no weak pixel in the 3 x 3 window  <=>  R = 0 (R the dilated weak-pixel map)
     not_r = _erode3(torch.maximum(strong1, strong2))
     err = mis.mul_(not_r)
+    flags = None
     if valid is not None:
         # valid is {0, 1} already (binarised when the inputs were prepared); its erosion is the
         # dilation of the invalid pixels; outside the image counts as valid
         v = _erode3(valid)
         err.mul_(v)
+        if measured:  # a sample is measured where its eroded mask keeps a pixel
+            flags = v.amax(dim=(1, 2, 3))
     reg = _block_sum(err, cfg.block_size)
     if not visual:
-        return reg, None
+        return reg, None, flags
     vis = _positive((g1 - g2).abs_().sub_(cfg.theta_d)).mul_(1.0 - not_r)
     if valid is not None:
         vis.mul_(v)
-    return reg, _block_sum(vis, cfg.block_size)
+    return reg, _block_sum(vis, cfg.block_size), flags
 
 
-def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool):
+def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool, measured: bool = False):
     """Error pixels per block of the hard path.
 
     Args:
@@ -96,20 +99,33 @@ def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool):
         valid: (B, 1, H, W) {0, 1} mask (already binarised) or None.
         cfg: the metric's settings.
         visual: also count the visual errors.
+        measured: also return which samples keep a valid pixel after the 3 x 3 erosion (the
+            pixels where an error can be counted), from the erosion the counts use anyway.
 
     Returns:
-        (registration counts, visual counts or None), each (B, 1, H/b, W/b) in the images' dtype.
+        (registration counts, visual counts or None), each (B, 1, H/b, W/b) in the images' dtype;
+        with ``measured``, a third element: (B,) {0, 1} flags, or None when ``valid`` is None.
     """
     t = tan_threshold(cfg)
     n, step = g1.shape[0], cfg.chunk_size
     if n <= step:
-        return _hard_counts_chunk(g1, g2, valid, cfg, t, visual)
+        out = _hard_counts_chunk(g1, g2, valid, cfg, t, visual, measured)
+        return out if measured else out[:2]
     # Chunks keep the ~20 intermediates of a chunk in cache; the maps do not depend on it.
     parts = [
         _hard_counts_chunk(
-            g1[i : i + step], g2[i : i + step], None if valid is None else valid[i : i + step], cfg, t, visual
+            g1[i : i + step],
+            g2[i : i + step],
+            None if valid is None else valid[i : i + step],
+            cfg,
+            t,
+            visual,
+            measured,
         )
         for i in range(0, n, step)
     ]
     reg = torch.cat([p[0] for p in parts])
-    return reg, (torch.cat([p[1] for p in parts]) if visual else None)
+    vis = torch.cat([p[1] for p in parts]) if visual else None
+    if not measured:
+        return reg, vis
+    return reg, vis, (None if valid is None else torch.cat([p[2] for p in parts]))

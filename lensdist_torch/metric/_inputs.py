@@ -9,7 +9,7 @@ One place decides what the maps and the loss accept:
   is >= 0.5 (warped masks are fractional at their edges). The mask is binarised and detached:
   no gradient ever reaches it. Padding pixels are invalid. An error is counted only where the
   mask is valid after a 3 x 3 erosion (:func:`erode_valid`); a sample with no such pixel has
-  nothing to measure (:func:`measurable_samples`);
+  nothing to measure (:func:`check_pair_values` refuses it where a quality index is asked);
 * placement: dense (strided) tensors, ``img2`` and ``valid`` on ``img1``'s device, none on the
   meta device (a meta tensor has no values to measure).
 
@@ -134,8 +134,8 @@ def check_values(
         images: (name, image) pairs.
         valid: the mask as given, or None.
         data_range: the value of white in float images.
-        measurable: (B,) {0, 1} from :func:`measurable_samples`, or None: every sample must have
-            a pixel to measure (checked in the same host sync).
+        measurable: (B,) {0, 1}, whether each sample keeps a pixel to measure, or None: every
+            sample must have one (checked in the same host sync).
         measurable_name: the argument to blame when a sample has nothing to measure (``valid``,
             or ``img1`` when the images are too small to keep a pixel after padding).
 
@@ -210,28 +210,6 @@ def erode_valid(valid: torch.Tensor) -> torch.Tensor:
     return -F.max_pool2d(-valid, kernel_size=3, stride=1, padding=1)
 
 
-def measurable_samples(valid: torch.Tensor | None) -> torch.Tensor | None:
-    """Which samples have a pixel where an error can be counted: (B,) {0, 1}, or None for all.
-
-    Errors are counted only where the binarised (and padded) mask is valid after the 3 x 3
-    erosion, so a sample whose eroded mask is empty (an all-zero mask, a stripe one or two
-    pixels wide, an image of one row padded to a block) has nothing to measure: its quality
-    index would read 1 (perfect) although nothing was compared. No device sync.
-
-    Args:
-        valid: the {0, 1} (B, 1, H, W) mask as prepared (binarised, padded), or None.
-
-    Example:
-        >>> v = torch.ones(2, 1, 8, 8)
-        >>> v[1] = 0
-        >>> measurable_samples(v).tolist()
-        [1.0, 0.0]
-    """
-    if valid is None:
-        return None
-    return erode_valid(valid).amax(dim=(1, 2, 3))
-
-
 def binarise_valid(valid: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     """The mask as {0, 1} in ``like``'s dtype: valid where >= 0.5 (bool: where True), detached."""
     if valid.dtype == torch.bool:
@@ -272,28 +250,17 @@ def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None)
     Returns:
         g1, g2 (B, 1, H', W'), valid ({0, 1} (B, 1, H', W') or None), the config.
     """
-    g1, g2, valid, cfg, _ = prepare_measured(img1, img2, valid, config, data_range, validate, pad, None)
-    return g1, g2, valid, cfg
+    prepared = prepare_unchecked(img1, img2, valid, config, data_range, pad)
+    if should_validate(validate):
+        check_values([("img1", img1), ("img2", img2)], valid, data_range)
+    return prepared
 
 
-def prepare_measured(img1, img2, valid, config, data_range, validate=True, pad=None, empty="raise"):
-    """:func:`prepare_pair` plus which samples have a pixel to measure.
+def prepare_unchecked(img1, img2, valid, config, data_range, pad=None):
+    """:func:`prepare_pair` without the value checks (types, shapes and placement are checked).
 
-    Args:
-        img1: as :func:`prepare_pair`.
-        img2: as :func:`prepare_pair`.
-        valid: as :func:`prepare_pair`.
-        config: as :func:`prepare_pair`.
-        data_range: as :func:`prepare_pair`.
-        validate: as :func:`prepare_pair`.
-        pad: as :func:`prepare_pair`.
-        empty: a sample with nothing to measure (see :func:`measurable_samples`): ``"raise"``
-            a one-line ValueError naming ``valid`` when validating (in the same host sync as
-            the value checks); ``"flag"`` never raise; None: do not compute the flags.
-
-    Returns:
-        g1, g2, valid, config as :func:`prepare_pair`, and the (B,) {0, 1} flags (None when
-        every pixel is valid or ``empty`` is None).
+    For entry points that learn which samples have a pixel to measure while computing and then
+    run :func:`check_pair_values` (one host sync for all the checks).
     """
     cfg = get_config(config)
     check_data_range(data_range)
@@ -301,11 +268,9 @@ def prepare_measured(img1, img2, valid, config, data_range, validate=True, pad=N
     if valid is not None:
         check_mask_shape(valid, img1)
     check_placement([("img1", img1), ("img2", img2)] + ([] if valid is None else [("valid", valid)]), img1.device)
-    given = valid is not None
     g1, g2 = to_grey(img1), to_grey(img2)
     dtype = torch.promote_types(g1.dtype, g2.dtype)
     g1, g2 = g1.to(dtype), g2.to(dtype)
-    raw_valid = valid
     if valid is not None:
         valid = binarise_valid(valid, g1)
     if data_range != 1.0:  # uint8 is already / 255 (docs/method.md, section 1)
@@ -315,13 +280,23 @@ def prepare_measured(img1, img2, valid, config, data_range, validate=True, pad=N
             g2 = g2 / data_range
     if pad:
         g1, g2, valid = pad_to_blocks(g1, g2, valid, cfg.block_size)
-    flags = measurable_samples(valid) if empty is not None else None
-    if should_validate(validate):
-        check_values(
-            [("img1", img1), ("img2", img2)],
-            raw_valid,
-            data_range,
-            flags if empty == "raise" else None,
-            "valid" if given else "img1",
-        )
-    return g1, g2, valid, cfg, flags
+    return g1, g2, valid, cfg
+
+
+def check_pair_values(img1, img2, valid, data_range, measurable=None) -> None:
+    """The value checks of :func:`prepare_pair`, and that every sample has a pixel to measure.
+
+    Args:
+        img1: the image as given.
+        img2: the other image as given.
+        valid: the mask as given, or None.
+        data_range: the value of white in float images.
+        measurable: (B,) {0, 1}: whether each sample keeps a valid pixel after the 3 x 3
+            erosion of its (padded) mask, or None (not checked).
+
+    Raises:
+        ValueError: one line naming the tensor; a sample with nothing to measure names
+            ``valid`` (or ``img1`` when no mask was given and the image is too small).
+    """
+    name = "valid" if valid is not None else "img1"
+    check_values([("img1", img1), ("img2", img2)], valid, data_range, measurable, name)

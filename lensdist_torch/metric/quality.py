@@ -41,7 +41,13 @@ from torch import nn
 
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._hard import hard_counts
-from lensdist_torch.metric._inputs import get_config, prepare_measured, prepare_pair
+from lensdist_torch.metric._inputs import (
+    check_pair_values,
+    get_config,
+    prepare_pair,
+    prepare_unchecked,
+    should_validate,
+)
 from lensdist_torch.metric.criteria import (
     ErrorImages,
     LocalCriteria,
@@ -210,9 +216,11 @@ def _measured_map(img1, img2, valid, config, data_range, validate, pad):
 
     Never raises for a sample with nothing to measure (the stateful metrics skip those).
     """
-    g1, g2, valid, cfg, flags = prepare_measured(img1, img2, valid, config, data_range, validate, pad, "flag")
+    g1, g2, v, cfg = prepare_unchecked(img1, img2, valid, config, data_range, pad)
     with torch.no_grad():
-        reg, _ = hard_counts(g1, g2, valid, cfg, visual=False)
+        reg, _, flags = hard_counts(g1, g2, v, cfg, visual=False, measured=True)
+    if should_validate(validate):
+        check_pair_values(img1, img2, valid, data_range)
     return _floor(reg, cfg), flags
 
 
@@ -267,15 +275,21 @@ def registration_quality(
         >>> bool(res.quality_index < 1)
         True
     """
-    g1, g2, valid, cfg, flags = prepare_measured(img1, img2, valid, config, data_range, validate, pad, "raise")
+    g1, g2, v, cfg = prepare_unchecked(img1, img2, valid, config, data_range, pad)
     h, w = img1.shape[-2:]
     if not smooth and not return_pixels:
         with torch.no_grad():
-            reg, vis = hard_counts(g1, g2, valid, cfg, visual=True)
+            reg, vis, flags = hard_counts(g1, g2, v, cfg, visual=True, measured=True)
+        if should_validate(validate):  # the value checks and the flags: one host sync
+            check_pair_values(img1, img2, valid, data_range, flags)
         reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
         return QualityResult(reg_map, vis_map, _index(reg_map, flags))
+    eroded = None if v is None else erode_valid(v)
+    flags = None if eroded is None else eroded.amax(dim=(1, 2, 3))
+    if should_validate(validate):
+        check_pair_values(img1, img2, valid, data_range, flags)
     crit = _criteria(g1, g2, cfg, smooth)
-    errs = _error_images(crit, None if valid is None else erode_valid(valid), cfg, smooth)
+    errs = _error_images(crit, eroded, cfg, smooth)
     reg_map = block_pool(errs.e_reg, cfg, smooth)
     vis_map = block_pool(errs.e_vis, cfg, smooth)
     q = _index(reg_map, flags)
