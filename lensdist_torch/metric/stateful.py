@@ -6,16 +6,22 @@
   of a pair being 1 - the mean of its hard registration map (docs/method.md, section 4);
 * the mean registration-error map, the lens-distortion signature of a data set (a homography
   fitted to distorted images leaves errors that grow with the distance from the centre);
-* the number of pairs.
+* the number of pairs, and the number of pairs skipped because they had nothing to measure (no
+  pixel of the mask valid after its 3 x 3 erosion: an index there would read 1.0, perfect,
+  although nothing was compared). Such pairs are never averaged, with or without ``validate``.
 
-The state is three sums (float64 for the sums, int64 for the count) kept as buffers, so
-``.to(device)`` moves them and ``state_dict`` saves them. :class:`RegistrationQualityMetric`
+The state is four sums (float64 for the sums, int64 for the counts) kept as buffers, so
+``.to(device)`` moves them and ``state_dict`` saves them. The sums stay float64 whatever
+``.half()``, ``.float()``, ``.bfloat16()`` or ``.to(dtype)`` ask (float16 sums stop growing after
+a few thousand pairs); device moves apply. ``load_state_dict`` checks what it loads: counts
+non-negative integers, sums finite and consistent with the count, the map of the metric's shape. :class:`RegistrationQualityMetric`
 needs nothing beyond PyTorch; where torchmetrics is installed, :class:`RegistrationQualityTorchMetric`
 is the same metric as a ``torchmetrics.Metric`` (states summed across processes).
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -23,7 +29,7 @@ from torch import nn
 
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._inputs import check_data_range, get_config
-from lensdist_torch.metric.quality import quality_map
+from lensdist_torch.metric.quality import _measured_map
 
 try:  # optional: only for RegistrationQualityTorchMetric
     import torchmetrics as _torchmetrics
@@ -39,7 +45,9 @@ class QualityMetricResult(NamedTuple):
     Attributes:
         quality_index: () float64, the mean over pairs of 1 - mean(registration map).
         registration_map: (1, h, w) float64, the mean hard registration map over pairs.
-        num_pairs: () int64, the number of pairs.
+        num_pairs: () int64, the number of pairs averaged.
+        num_skipped: () int64, the pairs left out because they had nothing to measure (no
+            pixel of the mask valid after its 3 x 3 erosion).
 
     Example:
         >>> m = RegistrationQualityMetric()
@@ -52,13 +60,31 @@ class QualityMetricResult(NamedTuple):
     quality_index: torch.Tensor
     registration_map: torch.Tensor
     num_pairs: torch.Tensor
+    num_skipped: torch.Tensor
+
+
+#: The accumulators, in the order of the buffers (and of the state_dict).
+_STATE = ("quality_sum", "map_sum", "num_pairs", "num_skipped")
 
 
 def _batch_state(img1, img2, valid, config, data_range, validate, pad):
-    """(sum of the quality indices, sum of the maps (1, h, w), number of pairs) of a batch."""
-    m = quality_map(img1, img2, valid, config, data_range, validate, pad)  # (B, 1, h, w)
+    """(sum of the quality indices, sum of the maps (1, h, w), pairs counted, pairs skipped).
+
+    Pairs with nothing to measure are left out of the sums and counted as skipped. The counts
+    are ints when every pair counts, else int64 tensors on the maps' device: no host sync.
+    """
+    m, flags = _measured_map(img1, img2, valid, config, data_range, validate, pad)  # (B, 1, h, w)
+    m = m.double()
     q = 1.0 - m.mean(dim=(1, 2, 3))  # as registration_quality's quality_index
-    return q.double().sum(), m.double().sum(dim=0), m.shape[0]
+    if flags is None:
+        return q.sum(), m.sum(dim=0), m.shape[0], 0
+    keep = flags.double()
+    n = flags.sum().long()
+    return (q * keep).sum(), (m * keep[:, None, None, None]).sum(dim=0), n, m.shape[0] - n
+
+
+def _on(count: int | torch.Tensor, device: torch.device) -> int | torch.Tensor:
+    return count.to(device) if isinstance(count, torch.Tensor) else count
 
 
 def _add_map(current: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
@@ -71,11 +97,108 @@ def _add_map(current: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
     return current + batch
 
 
-def _result(quality_sum, map_sum, num_pairs) -> QualityMetricResult:
+def _result(quality_sum, map_sum, num_pairs, num_skipped) -> QualityMetricResult:
     n = int(num_pairs)
     if n == 0:
+        skipped = int(num_skipped)
+        if skipped:
+            raise RuntimeError(
+                f"compute() has no pair to average: the {skipped} pair(s) added had nothing to measure "
+                "(no pixel of the mask valid after its 3 x 3 erosion)"
+            )
         raise RuntimeError("compute() needs at least one update() with a pair (or call it after reset + update)")
-    return QualityMetricResult(quality_sum / n, map_sum / n, num_pairs.clone())
+    return QualityMetricResult(quality_sum / n, map_sum / n, num_pairs.clone(), num_skipped.clone())
+
+
+def _keeping_dtypes(fn):
+    """``fn`` for ``nn.Module._apply`` that moves the accumulators but never changes their dtype."""
+
+    def apply(t: torch.Tensor) -> torch.Tensor:
+        out = fn(t)
+        return out if out.dtype == t.dtype else t.to(device=out.device)
+
+    return apply
+
+
+def _count(name: str, value: object) -> int:
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be a tensor in the state_dict, got {type(value).__name__}")
+    if value.is_meta:
+        raise ValueError(f"{name} is on the meta device (no value) in the state_dict")
+    if value.dim() != 0 or value.dtype == torch.bool or value.is_floating_point() or value.is_complex():
+        raise ValueError(
+            f"{name} must be a 0-dim integer tensor in the state_dict, got {value.dtype} {tuple(value.shape)}"
+        )
+    n = int(value)
+    if n < 0:
+        raise ValueError(f"{name} must be a count >= 0 in the state_dict, got {n}")
+    return n
+
+
+def _float_sum(name: str, value: object) -> torch.Tensor:
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name} must be a tensor in the state_dict, got {type(value).__name__}")
+    if value.is_meta:
+        raise ValueError(f"{name} is on the meta device (no values) in the state_dict")
+    if not value.is_floating_point():
+        raise ValueError(f"{name} must be a float tensor in the state_dict, got dtype {value.dtype}")
+    value = value.detach().double().cpu()
+    if not bool(torch.isfinite(value).all()):
+        raise ValueError(f"{name} contains NaN or Inf values in the state_dict")
+    return value
+
+
+def _check_state(state: dict, map_shape: tuple[int, int] | None) -> None:
+    """One-line errors naming the field for a state that no sequence of updates can produce.
+
+    Args:
+        state: the four accumulators as they would be after loading.
+        map_shape: the metric's fixed (h, w), or None (the map's shape taken from the state).
+    """
+    n = _count("num_pairs", state["num_pairs"])
+    _count("num_skipped", state["num_skipped"])
+    q = _float_sum("quality_sum", state["quality_sum"])
+    m = _float_sum("map_sum", state["map_sum"])
+    if q.dim() != 0:
+        raise ValueError(f"quality_sum must be a 0-dim tensor in the state_dict, got shape {tuple(q.shape)}")
+    tol = 1e-6 * n + 1e-9  # a pair's index and map mean agree to float64 rounding (float32 in old states)
+    if not -tol <= float(q) <= n + tol:
+        raise ValueError(
+            f"quality_sum must lie in [0, num_pairs] = [0, {n}] (each index is in [0, 1]), got {float(q)!r}"
+        )
+    if map_shape is not None and tuple(m.shape) != (1, *map_shape):
+        raise ValueError(f"map_sum must have shape {(1, *map_shape)} (this metric's map_shape), got {tuple(m.shape)}")
+    if m.dim() == 0:
+        if n or float(m) != 0.0:
+            raise ValueError(
+                f"map_sum must be a (1, h, w) map once pairs are counted, got a 0-dim {float(m)!r} with num_pairs {n}"
+            )
+        return
+    if m.dim() != 3 or m.shape[0] != 1 or m.numel() == 0:
+        raise ValueError(f"map_sum must have shape (1, h, w) with h, w > 0, got {tuple(m.shape)}")
+    lo, hi = float(m.min()), float(m.max())
+    if lo < -tol or hi > n + tol:
+        raise ValueError(
+            f"map_sum must lie in [0, num_pairs] = [0, {n}] (each block ratio is in [0, 1]), got [{lo!r}, {hi!r}]"
+        )
+    # every pair adds 1 - mean(map) to quality_sum and map to map_sum
+    gap = float(q) + float(m.mean()) - n
+    if not math.isfinite(gap) or abs(gap) > tol:
+        raise ValueError(
+            f"quality_sum ({float(q)!r}) does not match map_sum: quality_sum + mean(map_sum) must equal "
+            f"num_pairs ({n}), off by {gap:.3g}"
+        )
+
+
+def _loaded_state(module, state_dict, prefix: str) -> dict:
+    """The accumulators after loading: the state_dict's, or the module's own where it has none.
+
+    A state saved before ``num_skipped`` existed loads with no pair skipped.
+    """
+    key = prefix + "num_skipped"
+    if key not in state_dict and all(prefix + k in state_dict for k in _STATE[:3]):
+        state_dict[key] = torch.zeros((), dtype=torch.long)
+    return {k: state_dict.get(prefix + k, getattr(module, k)) for k in _STATE}
 
 
 def _initial_map(map_shape: tuple[int, int] | None) -> torch.Tensor:
@@ -101,7 +224,14 @@ class RegistrationQualityMetric(nn.Module):
     Shape:
         - img1, img2: (B, C, H, W); valid: (B, 1, H, W) or None.
         - compute(): QualityMetricResult with a () index, a (1, ceil(H/b), ceil(W/b)) map and
-          the () pair count.
+          the () counts of pairs averaged and skipped.
+
+    A pair with nothing to measure (no pixel of its mask valid after the 3 x 3 erosion) is
+    never averaged, with or without ``validate``: ``update`` leaves it out of the sums and
+    counts it in ``num_skipped`` (``compute`` reports it). The accumulators stay float64/int64
+    under ``.half()``, ``.float()``, ``.bfloat16()`` and ``.to(dtype)`` (device moves apply), and
+    ``load_state_dict`` refuses a state no sequence of updates can give (a negative count, a
+    NaN sum, sums that do not match the count) with a one-line ValueError naming the field.
 
     Example:
         >>> metric = RegistrationQualityMetric()
@@ -119,6 +249,7 @@ class RegistrationQualityMetric(nn.Module):
     quality_sum: torch.Tensor
     map_sum: torch.Tensor
     num_pairs: torch.Tensor
+    num_skipped: torch.Tensor
 
     def __init__(
         self,
@@ -138,24 +269,29 @@ class RegistrationQualityMetric(nn.Module):
         self.register_buffer("quality_sum", torch.zeros((), dtype=torch.float64))
         self.register_buffer("map_sum", _initial_map(map_shape))
         self.register_buffer("num_pairs", torch.zeros((), dtype=torch.long))
+        self.register_buffer("num_skipped", torch.zeros((), dtype=torch.long))
 
     @torch.no_grad()
     def update(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> None:
         """Add a batch of registered pairs (no host sync with ``validate=False``).
 
+        Pairs with nothing to measure are counted in ``num_skipped``, not averaged.
+
         Args:
             img1: (B, C, H, W) registered images, float in [0, data_range] or uint8.
-            img2: (B, C, H, W) the other images.
-            valid: (B, 1, H, W) validity masks or None.
+            img2: (B, C, H, W) the other images, on img1's device.
+            valid: (B, 1, H, W) validity masks on img1's device, or None.
         """
         self._add(img1, img2, valid)
 
     def _add(self, img1, img2, valid):
-        q, m, n = _batch_state(img1, img2, valid, self.config, self.data_range, self.validate, self.pad)
-        self.map_sum = _add_map(self.map_sum, m.to(self.map_sum.device))
-        self.quality_sum += q.to(self.quality_sum.device)
-        self.num_pairs += n
-        return q, m, n
+        q, m, n, skipped = _batch_state(img1, img2, valid, self.config, self.data_range, self.validate, self.pad)
+        device = self.quality_sum.device
+        self.map_sum = _add_map(self.map_sum, m.to(device))
+        self.quality_sum += q.to(device)
+        self.num_pairs += _on(n, device)
+        self.num_skipped += _on(skipped, device)
+        return q, m, n, skipped
 
     def compute(self) -> QualityMetricResult:
         """The means over every pair since the last reset.
@@ -166,7 +302,7 @@ class RegistrationQualityMetric(nn.Module):
         Raises:
             RuntimeError: no pair was added.
         """
-        return _result(self.quality_sum, self.map_sum, self.num_pairs)
+        return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
 
     def reset(self) -> None:
         """Forget every pair (the buffers stay on their device)."""
@@ -174,16 +310,26 @@ class RegistrationQualityMetric(nn.Module):
         self.quality_sum = torch.zeros((), dtype=torch.float64, device=device)
         self.map_sum = _initial_map(self.map_shape).to(device)
         self.num_pairs = torch.zeros((), dtype=torch.long, device=device)
+        self.num_skipped = torch.zeros((), dtype=torch.long, device=device)
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> QualityMetricResult:
-        """Add the batch and return its own result (as ``torchmetrics.Metric.forward``)."""
-        q, m, n = self._add(img1, img2, valid)
-        return QualityMetricResult(q / n, m / n, torch.tensor(n, device=m.device))
+        """Add the batch and return its own result (as ``torchmetrics.Metric.forward``).
+
+        The batch's index and map are NaN when none of its pairs has anything to measure.
+        """
+        q, m, n, skipped = self._add(img1, img2, valid)
+        n, skipped = torch.as_tensor(n, device=m.device), torch.as_tensor(skipped, device=m.device)
+        return QualityMetricResult(q / n, m / n, n, skipped)
+
+    def _apply(self, fn, *args, **kwargs):
+        """Device moves apply to the accumulators; dtype changes do not (they stay float64/int64)."""
+        return super()._apply(_keeping_dtypes(fn), *args, **kwargs)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        _check_state(_loaded_state(self, state_dict, prefix), self.map_shape)
         key = prefix + "map_sum"
         if key in state_dict and state_dict[key].shape != self.map_sum.shape:  # a lazily shaped map
-            self.map_sum = torch.zeros_like(state_dict[key], device=self.map_sum.device)
+            self.map_sum = torch.zeros(state_dict[key].shape, dtype=torch.float64, device=self.map_sum.device)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
@@ -198,6 +344,10 @@ if _torchmetrics is not None:
         """:class:`RegistrationQualityMetric` as a ``torchmetrics.Metric``.
 
         Defined only when torchmetrics is installed; the states are summed across processes.
+        As :class:`RegistrationQualityMetric`: pairs with nothing to measure are skipped and
+        counted in ``num_skipped``, the states stay float64/int64 whatever dtype the module is
+        cast to (``.to(dtype)``, ``.bfloat16()``; torchmetrics already ignores ``.half()``), and
+        persistent states are checked when loaded.
 
         Args:
             config: thresholds and block size; the defaults when None.
@@ -239,16 +389,31 @@ if _torchmetrics is not None:
             self.add_state("quality_sum", default=torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
             self.add_state("map_sum", default=_initial_map(map_shape), dist_reduce_fx="sum")
             self.add_state("num_pairs", default=torch.zeros((), dtype=torch.long), dist_reduce_fx="sum")
+            self.add_state("num_skipped", default=torch.zeros((), dtype=torch.long), dist_reduce_fx="sum")
+            self.map_shape = map_shape
 
         def update(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> None:
-            """Add a batch of registered pairs: img1, img2 (B, C, H, W), valid (B, 1, H, W)."""
-            q, m, n = _batch_state(
+            """Add a batch of registered pairs: img1, img2 (B, C, H, W), valid (B, 1, H, W).
+
+            Pairs with nothing to measure are counted in ``num_skipped``, not averaged.
+            """
+            q, m, n, skipped = _batch_state(
                 img1, img2, valid, self.quality_config, self.data_range, self.validate, self.pad
             )
             self.map_sum = _add_map(self.map_sum, m)
             self.quality_sum += q
             self.num_pairs += n
+            self.num_skipped += skipped
 
         def compute(self) -> QualityMetricResult:
             """The means over every pair (of every process) since the last reset."""
-            return _result(self.quality_sum, self.map_sum, self.num_pairs)
+            return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
+
+        def _apply(self, fn, *args, **kwargs):
+            """Device moves apply to the states (and their defaults); dtype changes do not."""
+            return super()._apply(_keeping_dtypes(fn), *args, **kwargs)
+
+        def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+            if any(prefix + k in state_dict for k in _STATE):  # states are saved only when persistent
+                _check_state(_loaded_state(self, state_dict, prefix), self.map_shape)
+            super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

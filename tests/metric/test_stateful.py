@@ -94,7 +94,7 @@ class TestRegistrationQualityMetric:
         img1, img2, valid = pairs()
         metric = RegistrationQualityMetric(QualityConfig(theta_g=0.03))
         feed(metric, img1, img2, valid, [4, 7])
-        assert set(dict(metric.named_buffers())) == {"quality_sum", "map_sum", "num_pairs"}
+        assert set(dict(metric.named_buffers())) == {"quality_sum", "map_sum", "num_pairs", "num_skipped"}
         fresh = RegistrationQualityMetric(QualityConfig(theta_g=0.03))  # map shape not known yet
         fresh.load_state_dict(metric.state_dict())
         for a, b in zip(fresh.compute(), metric.compute()):
@@ -138,6 +138,140 @@ class TestRegistrationQualityMetric:
             RegistrationQualityMetric(map_shape=(0, 3))
         with pytest.raises(ValueError, match="data_range=255"):
             RegistrationQualityMetric().update(255 * torch.rand(1, 1, 16, 16), torch.rand(1, 1, 16, 16))
+
+
+# ----------------------------------------------------------------------------- dtype casts (issue 19)
+
+
+CASTS = {
+    "half": lambda m: m.half(),
+    "float": lambda m: m.float(),
+    "bfloat16": lambda m: m.bfloat16(),
+    "double": lambda m: m.double(),
+    "to(float16)": lambda m: m.to(torch.float16),
+    "to(dtype=float32)": lambda m: m.to(dtype=torch.float32),
+    "type(float16)": lambda m: m.type(torch.float16),
+}
+
+
+class TestAccumulatorDtypes:
+    @pytest.mark.bad_input
+    @pytest.mark.parametrize("cast", sorted(CASTS))
+    def test_a_cast_keeps_float64_sums_and_int64_counts(self, cast):
+        img1, img2, valid = pairs(n=6, h=16, w=24)
+        metric = CASTS[cast](RegistrationQualityMetric())
+        for _ in range(2):  # after updates and after a reset too
+            for name in ("quality_sum", "map_sum"):
+                assert getattr(metric, name).dtype == torch.float64, name
+            for name in ("num_pairs", "num_skipped"):
+                assert getattr(metric, name).dtype == torch.long, name
+            feed(metric, img1, img2, valid, [3, 3])
+            metric = CASTS[cast](metric)
+            assert metric.map_sum.dtype == torch.float64
+            metric.reset()
+
+    @pytest.mark.bad_input
+    def test_a_half_metric_reproduces_the_float64_result(self):
+        """The issue's case: float16 sums stop growing (0.668 for 0.559 after 3000 updates)."""
+        img1, img2, valid = pairs(n=6, h=16, w=24)
+        plain, half = RegistrationQualityMetric(), RegistrationQualityMetric().half()
+        for i in range(300):
+            j = i % 6
+            for m in (plain, half):
+                m.update(img1[j : j + 1], img2[j : j + 1], valid[j : j + 1])
+        a, b = plain.compute(), half.compute()
+        assert int(b.num_pairs) == 300
+        assert abs(float(a.quality_index) - float(b.quality_index)) < 1e-12
+        torch.testing.assert_close(b.registration_map, a.registration_map, atol=1e-12, rtol=0)
+        # and the hand-worked mean: 50 times each of the 6 pairs
+        q, _ = functional(img1, img2, valid)
+        assert abs(float(b.quality_index) - float(q)) < 1e-6
+
+    @pytest.mark.bad_input
+    def test_device_moves_still_apply(self):
+        metric = RegistrationQualityMetric(map_shape=(2, 3)).to("meta", torch.float16)
+        for name in ("quality_sum", "map_sum", "num_pairs", "num_skipped"):
+            assert getattr(metric, name).is_meta, name
+        assert metric.quality_sum.dtype == torch.float64 and metric.map_sum.shape == (1, 2, 3)
+
+
+# ----------------------------------------------------------------------------- loading a state (issue 19)
+
+
+def _state(**changes):
+    img1, img2, valid = pairs(n=4, h=16, w=24)
+    metric = RegistrationQualityMetric()
+    feed(metric, img1, img2, valid, [4])
+    state = metric.state_dict()
+    state.update(changes)
+    return metric, state
+
+
+class TestLoadedState:
+    @pytest.mark.bad_input
+    @pytest.mark.parametrize(
+        "field,value,exc,words",
+        [
+            ("num_pairs", torch.tensor(-3), ValueError, ["num_pairs", ">= 0", "-3"]),
+            ("num_pairs", torch.tensor(4.0), ValueError, ["num_pairs", "integer"]),
+            ("num_pairs", torch.tensor([4]), ValueError, ["num_pairs", "0-dim"]),
+            ("num_pairs", torch.tensor(True), ValueError, ["num_pairs", "integer"]),
+            ("num_pairs", 4, TypeError, ["num_pairs", "tensor"]),
+            ("num_pairs", torch.tensor(5), ValueError, ["quality_sum", "num_pairs (5)"]),
+            ("num_skipped", torch.tensor(-1), ValueError, ["num_skipped", ">= 0"]),
+            ("quality_sum", torch.tensor(float("nan"), dtype=torch.float64), ValueError, ["quality_sum", "NaN"]),
+            ("quality_sum", torch.tensor(float("inf"), dtype=torch.float64), ValueError, ["quality_sum", "Inf"]),
+            ("quality_sum", torch.tensor(4.5, dtype=torch.float64), ValueError, ["quality_sum", "[0, 4]"]),
+            ("quality_sum", torch.tensor(-0.5, dtype=torch.float64), ValueError, ["quality_sum", "[0, 4]"]),
+            ("quality_sum", torch.tensor(3, dtype=torch.long), ValueError, ["quality_sum", "float"]),
+            ("map_sum", torch.full((1, 2, 3), float("nan"), dtype=torch.float64), ValueError, ["map_sum", "NaN"]),
+            ("map_sum", torch.full((1, 2, 3), 5.0, dtype=torch.float64), ValueError, ["map_sum", "[0, 4]"]),
+            ("map_sum", torch.full((1, 2, 3), -1.0, dtype=torch.float64), ValueError, ["map_sum", "[0, 4]"]),
+            ("map_sum", torch.zeros((2, 3), dtype=torch.float64), ValueError, ["map_sum", "(1, h, w)"]),
+            ("map_sum", torch.zeros((), dtype=torch.float64), ValueError, ["map_sum", "num_pairs 4"]),
+        ],
+    )
+    def test_a_state_no_update_can_give_is_refused(self, field, value, exc, words):
+        _, state = _state(**{field: value})
+        target = RegistrationQualityMetric()
+        before = {k: v.clone() for k, v in target.state_dict().items()}
+        with pytest.raises(exc) as info:
+            target.load_state_dict(state)
+        message = str(info.value)
+        assert "\n" not in message
+        for w in words:
+            assert w in message, (w, message)
+        after = target.state_dict()  # nothing loaded
+        assert set(after) == set(before) and all(torch.equal(after[k], before[k]) for k in before)
+
+    @pytest.mark.bad_input
+    def test_sums_that_do_not_match_the_count_are_refused(self):
+        """Within the ranges, but quality_sum + mean(map_sum) != num_pairs: a tampered sum."""
+        metric, state = _state()
+        state["quality_sum"] = state["quality_sum"] - 0.25
+        assert 0 <= float(state["quality_sum"]) <= 4
+        with pytest.raises(ValueError, match=r"quality_sum .* does not match map_sum"):
+            RegistrationQualityMetric().load_state_dict(state)
+
+    @pytest.mark.bad_input
+    def test_a_map_of_another_shape_than_map_shape_is_refused(self):
+        _, state = _state()
+        assert state["map_sum"].shape == (1, 2, 3)
+        with pytest.raises(ValueError, match=r"map_sum must have shape \(1, 5, 6\).*map_shape"):
+            RegistrationQualityMetric(map_shape=(5, 6)).load_state_dict(state)
+
+    def test_good_states_load(self):
+        metric, state = _state()
+        for target in (RegistrationQualityMetric(), RegistrationQualityMetric(map_shape=(2, 3))):
+            target.load_state_dict(state)
+            for a, b in zip(target.compute(), metric.compute()):
+                assert torch.equal(a, b)
+        # a fresh metric's state, and one saved before num_skipped existed (no pair skipped)
+        RegistrationQualityMetric().load_state_dict(RegistrationQualityMetric().state_dict())
+        old = {k: v for k, v in state.items() if k != "num_skipped"}
+        target = RegistrationQualityMetric()
+        target.load_state_dict(old)
+        assert int(target.num_skipped) == 0 and int(target.compute().num_pairs) == 4
 
 
 # ----------------------------------------------------------------------------- torchmetrics
@@ -185,6 +319,13 @@ def test_torchmetrics_metric_against_a_stub(monkeypatch):
             for name, default in self._defaults.items():
                 setattr(self, name, default.clone())
 
+        def _apply(self, fn, *args, **kwargs):  # as torchmetrics: fn reaches the states and defaults
+            this = super()._apply(fn, *args, **kwargs)
+            for name in self._defaults:
+                self._defaults[name] = fn(self._defaults[name])
+                setattr(self, name, fn(getattr(self, name)))
+            return this
+
     stub = types.ModuleType("torchmetrics")
     stub.Metric = Metric
     monkeypatch.setitem(sys.modules, "torchmetrics", stub)
@@ -195,8 +336,24 @@ def test_torchmetrics_metric_against_a_stub(monkeypatch):
     cls = module.RegistrationQualityTorchMetric
     assert cls.higher_is_better and not cls.is_differentiable
     metric = cls(map_shape=(5, 6))
-    assert metric.map_sum.shape == (1, 5, 6) and set(metric._reductions) == {"quality_sum", "map_sum", "num_pairs"}
+    assert metric.map_sum.shape == (1, 5, 6)
+    assert set(metric._reductions) == {"quality_sum", "map_sum", "num_pairs", "num_skipped"}
     _run_torchmetric(cls)
+    # the states and their defaults keep float64/int64 under a dtype cast (device moves apply)
+    for cast in (lambda m: m.to(torch.float16), lambda m: m.bfloat16(), lambda m: m.to("meta", torch.float32)):
+        metric = cast(cls())
+        metric.reset()
+        assert metric.quality_sum.dtype == torch.float64 and metric.num_skipped.dtype == torch.long
+        assert metric._defaults["quality_sum"].dtype == torch.float64
+    assert cls().to("meta").quality_sum.is_meta
+    img1, img2, valid = pairs()
+    valid[2] = 0
+    metric = cls()
+    metric.update(img1, img2, valid)
+    res = metric.compute()
+    assert int(res.num_pairs) == 10 and int(res.num_skipped) == 1
+    keep = torch.arange(11) != 2
+    torch.testing.assert_close(res.quality_index, functional(img1[keep], img2[keep], valid[keep])[0], atol=1e-7, rtol=0)
 
 
 # ----------------------------------------------------------------------------- classification
