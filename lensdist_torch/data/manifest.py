@@ -1,7 +1,9 @@
 """The manifest of a generated data set, ``manifest.json``.
 
 It holds the format version, config, fingerprint and scenes, and per set its size and, once
-complete, its counts. Every read validates it (one-line ShardError naming the file); a write merges a run's sets into
+complete, its counts and the sha256 of every shard file (``shard_sha256``; ``load_set`` checks
+each shard against it, so a shard changed together with its checksum file is refused). Every
+read validates it (one-line ShardError naming the file); a write merges a run's sets into
 the recorded ones, so a set's record only grows and the sets a run was not asked for are kept,
 and nothing is written when nothing changed (a complete, read-only data set can be re-checked).
 """
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from pathlib import Path
 
 from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
@@ -140,7 +143,15 @@ def _record_problem(rec, config: LensdistConfig, name: str) -> str | None:
         v = rec.get(key)
         if not (isinstance(v, list) and len(v) == N_CLASSES and all(_is_count(c, n) for c in v) and sum(v) == n):
             return f"{key} must be {N_CLASSES} counts summing to n_pairs {n}"
+    digests = rec.get("shard_sha256")  # absent in a record of an older lensdist: load_set asks for a re-check
+    if digests is not None and not (
+        isinstance(digests, list) and len(digests) == n_shards and all(isinstance(d, str) and _SHA256.fullmatch(d) for d in digests)
+    ):
+        return f"shard_sha256 must list {n_shards} sha256 digests (hex), one per shard"
     return None
+
+
+_SHA256 = re.compile(r"[0-9a-f]{64}")
 
 
 def check_same_data(out: Path, manifest: dict | None, fingerprint: str) -> None:

@@ -49,8 +49,10 @@ from lensdist_torch.data.shardfile import (
     KIND,
     TENSOR_KEYS,
     SetState,
+    check_counts,
     checksum_path,
     load_shard,
+    no_stray_shards,
     shard_path,
     shard_ranges,
     verify_set,
@@ -180,6 +182,8 @@ def _note(msg: str) -> None:
 
 
 def _check_arguments(sets, shard, workers, batch_size, limit, scenes_dir, sequence) -> None:
+    if isinstance(sets, str) or not isinstance(sets, (list, tuple)) or not sets:
+        raise ValueError(f"sets must be a non-empty list of set names among {SETS}, got {sets!r}")
     for s in sets:
         if s not in SETS:
             raise ValueError(f"sets must be among {SETS}, got {s!r}")
@@ -187,8 +191,11 @@ def _check_arguments(sets, shard, workers, batch_size, limit, scenes_dir, sequen
         raise ValueError(f"workers must be a positive int, got {workers!r}")
     if not (type(batch_size) is int and batch_size >= 1):
         raise ValueError(f"batch_size must be a positive int, got {batch_size!r}")
-    if not (len(shard) == 2 and shard[1] >= 1 and 0 <= shard[0] < shard[1]):
-        raise ValueError(f"shard must be (I, N) with 0 <= I < N, got {shard!r}")
+    if not (
+        isinstance(shard, (tuple, list)) and len(shard) == 2 and all(type(v) is int for v in shard)
+        and shard[1] >= 1 and 0 <= shard[0] < shard[1]
+    ):
+        raise ValueError(f"shard must be (I, N), two ints with 0 <= I < N, got {shard!r}")
     if limit is not None and not (type(limit) is int and limit >= 1):
         raise ValueError(f"limit must be a positive int, got {limit!r}")
     if sequence and scenes_dir is None:
@@ -222,11 +229,22 @@ def _set_sizes(config: LensdistConfig, out: Path, old: dict | None, sets, limit:
     return sizes
 
 
+def _recorded(old: dict | None, set_name: str, n_pairs: int, shard_size: int) -> list[str] | None:
+    """The shard digests the manifest records for this very set (same pairs and shard size), if any."""
+    rec = (old or {}).get("sets", {}).get(set_name)
+    if rec and rec.get("complete") and rec["n_pairs"] == n_pairs and rec["shard_size"] == shard_size:
+        return rec.get("shard_sha256")
+    return None
+
+
 def _plan(config, out: Path, fingerprint: str, sets, shard, limit) -> _Plan:
     old = read_manifest(out) if (out / MANIFEST).exists() else None
     check_same_data(out, old, fingerprint)
     sizes = _set_sizes(config, out, old, sets, limit)
-    states = {s: verify_set(out, s, n, config.protocol.shard_size, fingerprint) for s, n in sizes.items()}
+    states = {
+        s: verify_set(out, s, n, config.protocol.shard_size, fingerprint, _recorded(old, s, n, config.protocol.shard_size))
+        for s, n in sizes.items()
+    }
     tasks = [
         (s, k, a, b)
         for s, st in states.items()
@@ -341,15 +359,22 @@ def _summary(out: Path, sets, manifest: dict, plan: _Plan, *, pairs: int, worker
 
 
 def load_set(out: str | Path, set_name: str, limit: int | None = None) -> dict:
-    """Merge a set's shards by pair index into one dict of tensors.
+    """Merge a set's shards by pair index into one dict of tensors (the first ``limit`` pairs).
 
-    Every shard must be present and verified (sha256, config, the pairs it holds).
+    The set must be recorded complete in the manifest, and every shard present and verified
+    (sha256 against its checksum file and against the manifest's ``shard_sha256``, config,
+    the pairs it holds); no shard file may lie beyond the recorded ones, and the pairs'
+    failed registrations and classes must be the manifest's counts.
 
     Raises:
         FileNotFoundError: no manifest, or a shard missing (the set is incomplete).
-        ShardError: naming the file: a manifest that is not valid, or a shard that fails a check.
-        ValueError: no such set in the folder.
+        ShardError: naming the file: a manifest that is not valid, that records the set as
+            incomplete or without shard digests, or that disagrees with the shards; a shard that
+            fails a check.
+        ValueError: no such set in the folder; ``limit`` not None or a positive int.
     """
+    if limit is not None and not (type(limit) is int and limit >= 1):
+        raise ValueError(f"limit must be None or a positive int, got {limit!r}")
     m = read_manifest(out)
     if set_name not in m["sets"]:
         raise ValueError(f"{out} holds no {set_name!r} set; it has {sorted(m['sets'])}")
@@ -357,13 +382,27 @@ def load_set(out: str | Path, set_name: str, limit: int | None = None) -> dict:
     ranges = shard_ranges(info["n_pairs"], info["shard_size"])
     paths = [shard_path(out, set_name, k) for k in range(len(ranges))]
     missing = [p for p in paths if not p.exists()]
+    run = f"run `lensdist generate --out {out}`"
     if missing:
         raise FileNotFoundError(
             f"the {set_name!r} set in {out} is incomplete: {len(missing)} of {len(paths)} shards missing "
-            f"(first {missing[0]}); run `lensdist generate --out {out}` to finish it"
+            f"(first {missing[0]}); {run} to finish it"
         )
-    recs = [load_shard(p, m["fingerprint"], expect=(set_name, a, b)) for p, (a, b) in zip(paths, ranges)]
+    where = Path(out) / MANIFEST
+    if not info["complete"]:
+        raise ShardError(f"{where} records the {set_name!r} set as incomplete; {run} to verify and record it")
+    if "shard_sha256" not in info:
+        raise ShardError(
+            f"{where} records no shard digests for the {set_name!r} set (written by an older lensdist); "
+            f"{run} to verify the shards and record them"
+        )
+    no_stray_shards(Path(out), set_name, len(ranges), info["n_pairs"])
+    recs = [
+        load_shard(p, m["fingerprint"], expect=(set_name, a, b), sha256=d)
+        for p, (a, b), d in zip(paths, ranges, info["shard_sha256"])
+    ]
     merged = {k: torch.cat([r[k] for r in recs]) for k in TENSOR_KEYS}
+    check_counts(merged, info, where, set_name)
     if limit is not None:
         merged = {k: v[:limit] for k, v in merged.items()}
     merged["config"] = config_from_dict(m["config"])
