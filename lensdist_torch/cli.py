@@ -3,7 +3,10 @@
 Results go to stdout: human text, or with ``--json`` exactly one strict JSON object (a missing
 figure is null). Progress bars and notes go to stderr. Every failure is one line
 ``lensdist CMD: error: ...`` on stderr with exit status 2 (1 for an internal error, 130 after
-Ctrl-C); the global ``--debug`` adds the traceback. torch is imported inside the commands
+Ctrl-C); the global ``--debug`` adds the traceback. A result that cannot be written to stdout
+(closed, disk full) is such an error too; a broken pipe (``| head``) ends quietly with status 1.
+Argument types and the parser class live in ``cli_support.py``; output paths are checked (and
+refused where they name an input) by ``core/outputs.py``. torch is imported inside the commands
 only, so ``lensdist --help`` stays fast.
 """
 
@@ -11,11 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import traceback
 from pathlib import Path
 
+from lensdist_torch import cli_support as argtypes
+from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
 from lensdist_torch.core.outputs import check_output_dir, check_output_file
 
 __all__ = ["main", "build_parser"]
@@ -46,7 +50,7 @@ def _fmt(value, spec: str = ".1f", unit: str = " px") -> str:
 # ----------------------------------------------------------------------------- commands
 def _cmd_demo(args: argparse.Namespace) -> int:
     """Two views of the gravel scene, the second misregistered by a known scale error."""
-    out = check_output_dir(args.out, "--out")
+    out = check_output_dir(args.out, "--out", {"--config": args.config}, writes=["demo.png"])
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.demo import scale_error_demo
     from lensdist_torch.workflows.figures import have_matplotlib, save_demo_figure
@@ -80,7 +84,8 @@ def _shards(summary: dict) -> tuple[int, int]:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    check_output_dir(args.out, "--out")
+    check_output_dir(args.out, "--out", {"--config": args.config, "--scenes": args.scenes, "--sequence": args.sequence},
+                     writes=["manifest.json"])
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import generate
 
@@ -89,7 +94,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         cfg,
         args.out,
         sets=args.sets.split(","),
-        shard=_parse_shard(args.shard),
+        shard=args.shard or (0, 1),
         workers=args.workers,
         batch_size=args.batch_size,
         scenes_dir=args.scenes if args.sequence is None else args.sequence,
@@ -145,7 +150,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    check_output_dir(args.out, "--out")
+    check_output_dir(args.out, "--out", {"--data": args.data, "--checkpoint": args.checkpoint or [], "--regression": args.regression,
+                                         "--config": args.config}, writes=["evaluate.md", "evaluate.json"])
     if not (args.checkpoint or args.regression or args.selfcal):
         raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
     from lensdist_torch.config import load_config
@@ -171,7 +177,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
-    check_output_dir(args.out, "--out")
+    check_output_dir(args.out, "--out", {"--config": args.config},
+                     writes=["reproduce.md", "reproduce.json", "calibration.toml", "calibration.json"])
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.reproduce import reproduce
@@ -196,7 +203,9 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
 
         if not have_matplotlib():
             raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
-        check_output_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)")
+        check_output_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)",
+                          {"img1": args.img1, "img2": args.img2, "--checkpoint": args.checkpoint,
+                           "--checkpoint-max": args.checkpoint_max, "--config": args.config})
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.analyze import analyze_pair, resolve_device
 
@@ -252,19 +261,14 @@ def _valid_blocks(res: dict, qmap):
     return torch.nn.functional.max_pool2d(v, b) > 0
 
 
-def _parse_shard(text: str | None) -> tuple[int, int]:
-    if text is None:
-        return (0, 1)
-    try:
-        i, n = (int(v) for v in text.split("/"))
-    except ValueError:
-        raise ValueError(f"--shard must look like I/N (e.g. 0/4), got {text!r}") from None
-    if not (n >= 1 and 0 <= i < n):
-        raise ValueError(f"--shard I/N needs 0 <= I < N, got {text!r}")
-    return (i, n)
-
-
 # ----------------------------------------------------------------------------- the parser
+def _scale_error(text: str) -> float:
+    """``demo --scale-error``: the range the demo can show (``workflows.demo.MAX_SCALE_ERROR``)."""
+    from lensdist_torch.workflows.demo import MAX_SCALE_ERROR
+
+    return argtypes.float_in(0.0, MAX_SCALE_ERROR)(text)
+
+
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
     """Defaults in every option's help; the epilog's example lines kept as written.
 
@@ -282,7 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``lensdist`` parser: one subcommand per workflow."""
     from lensdist_torch import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = argtypes.Parser(
         prog="lensdist",
         description="Registration-quality maps and the analysis of lens distortions (docs/method.md).\n"
         "Results on stdout (--json: one JSON object), progress and notes on stderr, errors as one line.",
@@ -305,11 +309,12 @@ def build_parser() -> argparse.ArgumentParser:
         return p
 
     defaults = "TOML config (the defaults of docs/method.md when omitted)"
-    device_help = "where the tensors go: cpu, cuda or cuda:N"
+    device_help = "where the tensors go: cpu, cuda or cuda:N (N below the number of CUDA devices)"
     p = command("demo", "quality map of a known misregistration on the embedded scene",
                 "lensdist demo --scale-error 0.02 --out results", _cmd_demo, "print only the summary as one JSON object")
     p.add_argument("--scene", default="gravel", help="embedded scene")
-    p.add_argument("--scale-error", type=float, default=0.01, help="relative scale error of the second view")
+    p.add_argument("--scale-error", type=_scale_error, default=0.01,
+                   help="relative scale error of the second view, from 0 to 0.1 (beyond, errors no longer grow outwards)")
     p.add_argument("--config", default=None, help=defaults)
     p.add_argument("--out", default="results", help="folder for demo.png")
 
@@ -319,14 +324,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help=defaults + ", e.g. configs/paper.toml")
     p.add_argument("--out", required=True, help="output folder (shards + manifest.json)")
     p.add_argument("--sets", default="train,test", help="comma-separated: train,test")
-    p.add_argument("--shard", default=None, help="I/N: this job's share of the shards (array jobs; default: all)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes (one thread each)")
-    p.add_argument("--batch-size", type=int, default=16, help="pairs per batch (the maps do not depend on it; H only to ~1e-6)")
+    p.add_argument("--shard", type=argtypes.shard, default=None, help="I/N: this job's share of the shards (array jobs; default: all)")
+    p.add_argument("--workers", type=argtypes.positive_int, default=2, help="worker processes (one thread each)")
+    p.add_argument("--batch-size", type=argtypes.positive_int, default=16, help="pairs per batch (the maps do not depend on it; H only to ~1e-6)")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--scenes", default=None, help="folder of real, undistorted scene images (default: the embedded scenes)")
     src.add_argument("--sequence", default=None, help="folder of consecutive frames of a real, undistorted sequence: "
                      "pairs of consecutive frames instead of synthetic motion")
-    p.add_argument("--limit", type=int, default=None, help="only the first N pairs of each set (default: all)")
+    p.add_argument("--limit", type=argtypes.positive_int, default=None, help="only the first N pairs of each set (default: all)")
 
     p = command("train", "fit the eigen-space classifier on generated training pairs",
                 "lensdist train --data data/paper --out ckpt/eigenspace_avg_10ev.pt --metric delta_avg --eigenvectors 10",
@@ -334,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
     p.add_argument("--out", required=True, help="checkpoint file path, ending in .pt (not a folder)")
     p.add_argument("--metric", choices=["delta_avg", "delta_max"], default=None, help="Delta metric (default: the config's)")
-    p.add_argument("--eigenvectors", type=int, default=None, help="eigenvectors per class (paper: 5 or 10; default: the config's)")
+    p.add_argument("--eigenvectors", type=argtypes.positive_int, default=None, help="eigenvectors per class (paper: 5 or 10; default: the config's)")
     p.add_argument("--config", default=None, help="TOML config (default: the data set's own)")
 
     p = command("evaluate", "evaluate checkpoints on a generated test set (Markdown + JSON)",
@@ -347,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results", help="report folder")
     p.add_argument("--config", default=None, help="TOML config of the analysis (default: the data set's), e.g. the "
                    "calibration.toml of `lensdist reproduce`")
-    p.add_argument("--device", default="cpu", help=device_help)
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=device_help)
 
     p = command("reproduce", "the paper's Tables 1 and 2 on the embedded scenes, one command",
                 "lensdist reproduce --quick --out results/quick", _cmd_reproduce,
@@ -355,9 +360,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default=None, help=defaults + " (= configs/paper.toml)")
     p.add_argument("--out", default="results/reproduce", help="folder for data, checkpoints and the report")
     p.add_argument("--quick", action="store_true", help="a tenth of the pairs, for a first look")
-    p.add_argument("--workers", type=int, default=2, help="worker processes for generation")
-    p.add_argument("--batch-size", type=int, default=16, help="pairs per batch for generation and analysis")
-    p.add_argument("--device", default="cpu", help=device_help)
+    p.add_argument("--workers", type=argtypes.positive_int, default=2, help="worker processes for generation")
+    p.add_argument("--batch-size", type=argtypes.positive_int, default=16, help="pairs per batch for generation and analysis")
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=device_help)
 
     p = command("analyze", "analyse your own pair of overlapping photographs",
                 "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", _cmd_analyze,
@@ -372,7 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
     p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
     p.add_argument("--config", default=None, help=defaults + ", e.g. a calibration.toml written by `lensdist reproduce`")
-    p.add_argument("--device", default="cpu", help=device_help)
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=device_help)
 
     from lensdist_torch.cli_calibrate import add_calibrate_commands
 
@@ -390,18 +395,31 @@ def _one_line(exc: BaseException) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run ``lensdist`` with ``argv`` (default: the process arguments); returns the exit status."""
-    args = build_parser().parse_args(argv)
-    prog = f"lensdist {args.command}"
     try:
-        return int(args.func(args) or 0)
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # a usage error, one line already on stderr: its status (2) returned
+        if exc.code in (0, None):  # --help, --version
+            raise
+        return exc.code if isinstance(exc.code, int) else 2
+    prog = f"lensdist {args.command}"
+    if sys.stdout is None:  # started with stdout closed (`>&-`): the result would be lost
+        print(f"{prog}: error: stdout is closed, the result would be lost (redirect it, e.g. > /dev/null)", file=sys.stderr)
+        return 2
+    try:
+        with guarded_stdout():
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         if args.debug:
             traceback.print_exc()
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
     except BrokenPipeError:  # stdout closed early (`| head`): not an error worth a message
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        silence_stdout()
         return 1
+    except StdoutError as exc:
+        silence_stdout()
+        print(f"{prog}: error: cannot write the result to stdout: {exc}", file=sys.stderr)
+        return 2
     except Exception as exc:
         if args.debug:
             traceback.print_exc()

@@ -10,6 +10,8 @@ import argparse
 import json
 from pathlib import Path
 
+from lensdist_torch import cli_support as argtypes
+
 __all__ = ["add_calibrate_commands"]
 
 
@@ -43,6 +45,10 @@ def _print_calibration(res: dict) -> None:
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     """``lensdist calibrate PATH [--json] [--out DIR] [--quiet]``."""
+    from lensdist_torch.core.outputs import check_output_dir
+
+    if args.out:
+        check_output_dir(args.out, "--out", {"path": args.path}, writes=["calibration.json"])
     from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.calibrate import calibrate_path
 
@@ -84,10 +90,11 @@ def add_calibrate_commands(subparsers) -> None:
     p.add_argument("path", help="folder of frames (sorted by name) or a video file (needs PyAV: pip install av)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--out", default=None, help="folder for calibration.json")
-    p.add_argument("--max-frames", type=int, default=300, help="read at most this many frames")
-    p.add_argument("--focal", type=float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
+    p.add_argument("--max-frames", type=argtypes.positive_int, default=300, help="read at most this many frames")
+    p.add_argument("--focal", type=argtypes.positive_float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--device", default="cpu", help="where registration and self-calibration run: cpu, cuda or cuda:N")
+    p.add_argument("--device", type=argtypes.device, default="cpu",
+                   help="where registration and self-calibration run: cpu, cuda or cuda:N")
     p.add_argument("--method", default="auto", choices=("auto", "multiview", "direct"),
                    help="multiview: bundle adjustment on COLMAP's tracks (pycolmap); direct: photometric pairs; "
                         "auto: both, 'cannot tell' where they disagree (default)")
@@ -110,5 +117,5 @@ def add_calibrate_commands(subparsers) -> None:
                    help="replace existing files of the names it writes in --out (never an input)")
     p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--device", default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N")
+    p.add_argument("--device", type=argtypes.device, default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N")
     p.set_defaults(func=_cmd_undistort)

@@ -307,8 +307,8 @@ def load_config(path: str | Path | None = None) -> LensdistConfig:
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: not a readable UTF-8 TOML file, or an invalid config; the one-line message
-            names the file and the section and field.
+        ValueError: not a readable UTF-8 TOML file (a UTF-8 byte-order mark is skipped), or an
+            invalid config; the one-line message names the file and the section and field.
 
     Example:
         >>> cfg = load_config(None)
@@ -323,8 +323,11 @@ def load_config(path: str | Path | None = None) -> LensdistConfig:
     if not path.is_file():
         raise ValueError(f"config path {path} is not a file")
     try:
-        with path.open("rb") as f:
-            data = tomllib.load(f)
+        raw = path.read_bytes()
+        if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+            raise ValueError(f"config file {path} starts with a UTF-16 byte-order mark: save it as UTF-8")
+        # a UTF-8 byte-order mark (Windows editors) is not TOML: skipped, as Python's utf-8-sig does
+        data = tomllib.loads(raw.removeprefix(b"\xef\xbb\xbf").decode("utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"config file {path} is not valid TOML: {one_line(exc)}") from exc
     except UnicodeDecodeError as exc:

@@ -21,14 +21,29 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from lensdist_torch.classify._checkpoint import check_state, config_of, extra_of, positive_int, require_keys
+from lensdist_torch.classify._checkpoint import (
+    FEATURE_RANGE,
+    check_deltas,
+    check_extra,
+    check_features_domain,
+    check_state,
+    config_of,
+    in_range,
+    max_coefficient_norm,
+    max_delta,
+    orthonormal_rows,
+    positive_int,
+    require_keys,
+    row_norms_below,
+)
 from lensdist_torch.config import ClassifierConfig, LensdistConfig, config_to_dict
 from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
 from lensdist_torch.geometry.distortion import REJECT
 
 __all__ = ["EigenSpaceClassifier", "ClassifierResult", "CheckpointError", "CHECKPOINT_VERSION"]
 
-CHECKPOINT_VERSION = 1
+#: 2: a content digest (core.storage.content_digest); version 1 files are refused (refit them).
+CHECKPOINT_VERSION = 2
 _KIND = "lensdist-eigenspace"
 
 
@@ -134,6 +149,8 @@ class EigenSpaceClassifier(nn.Module):
             raise ValueError(f"deltas must be a tensor of shape ({n},)")
         if not bool(torch.isfinite(features).all()) or not bool(torch.isfinite(deltas).all()):
             raise ValueError("features and deltas must be finite")
+        check_features_domain(features)
+        check_deltas(deltas, self.config)
         return features, classes, deltas
 
     # ------------------------------------------------------------------ inference
@@ -202,8 +219,10 @@ class EigenSpaceClassifier(nn.Module):
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":
         """Load a checkpoint (``torch.load(weights_only=True)``).
 
-        The payload is validated before anything is allocated: the sizes against the stored
-        tensors, every buffer's shape and dtype, finite values, class indices in range.
+        The content digest is verified, then the payload is validated before anything is
+        allocated: the sizes against the stored tensors, every buffer's shape and dtype, finite
+        values, class indices in range, values a fit can produce (``classify/_checkpoint.py``),
+        the ``extra`` entries read by the analysis.
 
         Args:
             path: the checkpoint file.
@@ -213,9 +232,10 @@ class EigenSpaceClassifier(nn.Module):
         Raises:
             FileNotFoundError: no such file.
             CheckpointError: another kind or format version, image size, block size or
-                thresholds; missing entries, wrong shapes or dtypes, non-finite values.
+                thresholds; a content that does not match its digest; missing entries, wrong
+                shapes or dtypes, non-finite or implausible values (the message names the field).
         """
-        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location)
+        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location, digest=True)
         require_keys(payload, ("n_features", "config", "state_dict"), path)
         config = config_of(payload, path)
         if expected is not None:
@@ -238,9 +258,13 @@ class EigenSpaceClassifier(nn.Module):
         sd = payload["state_dict"]
         check_state(sd, spec, {"k": k, "n": n, "D": d}, path)
         counts = torch.bincount(sd["train_class"].clamp(0, k), minlength=k + 1)
-        if bool((sd["train_class"] < 0).any()) or int(counts[k]) or bool((counts[:k] == 0).any()):
-            raise CheckpointError(f"checkpoint {path}: train_class must hold every class 0..{k - 1} and nothing else")
-        extra = extra_of(payload, path)
+        if bool((sd["train_class"] < 0).any()) or int(counts[k]) or bool((counts[:k] <= n).any()):
+            raise CheckpointError(
+                f"checkpoint {path}: train_class must hold every class 0..{k - 1} more than n_eigenvectors={n} "
+                "times (what a fit needs) and nothing else"
+            )
+        _check_plausible(sd, config, d, path)
+        extra = check_extra(payload, path)
         model = cls(d, config)
         # fitted sizes vary with the training set: resize the buffers before loading
         for name in ("train_coeffs", "train_class", "train_delta"):
@@ -248,3 +272,14 @@ class EigenSpaceClassifier(nn.Module):
         model.load_state_dict(sd)
         model.extra = extra
         return model
+
+
+def _check_plausible(sd: dict, config: LensdistConfig, d: int, path) -> None:
+    """The fitted values are ones a fit on quality maps can produce (bounds: classify/_checkpoint.py)."""
+    in_range(sd, "means", *FEATURE_RANGE, path, "a mean of quality maps")
+    orthonormal_rows(sd, "bases", 1e-3, path)
+    in_range(sd, "explained", 0.0, 1.0 + 1e-5, path, "a share of the variance")
+    top = max_coefficient_norm(d)
+    row_norms_below(sd, "train_coeffs", top, path)
+    in_range(sd, "reject_threshold", 0.0, top, path, "a distance between quality maps")
+    in_range(sd, "train_delta", 0.0, max_delta(config), path, "a Delta in px, at most the image diagonal")

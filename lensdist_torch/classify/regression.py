@@ -28,14 +28,29 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from lensdist_torch.classify._checkpoint import check_state, config_of, extra_of, positive_int, require_keys
+from lensdist_torch.classify._checkpoint import (
+    FEATURE_RANGE,
+    check_deltas,
+    check_extra,
+    check_features_domain,
+    check_state,
+    config_of,
+    in_range,
+    max_coefficient_norm,
+    max_delta,
+    orthonormal_rows,
+    positive_int,
+    require_keys,
+    row_norms_below,
+)
 from lensdist_torch.config import LensdistConfig, config_to_dict
 from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
 from lensdist_torch.geometry.distortion import METRICS, delta_top, estimated_class
 
 __all__ = ["DeltaRegressor", "RegressionResult", "CHECKPOINT_VERSION"]
 
-CHECKPOINT_VERSION = 2
+#: 3: a content digest (core.storage.content_digest); version 2 files are refused (refit them).
+CHECKPOINT_VERSION = 3
 _KIND = "lensdist-delta-regression"
 _MAD_TO_STD = 1.4826
 
@@ -113,6 +128,8 @@ class DeltaRegressor(nn.Module):
             raise ValueError(f"need more than k={self.k} training pairs, got {n}")
         if not (torch.isfinite(x).all() and torch.isfinite(da).all() and torch.isfinite(dm).all()):
             raise ValueError("features and deltas must be finite")
+        check_features_domain(x)
+        check_deltas(torch.cat([da, dm]), self.config)
         x64 = x.detach().cpu().double()
         mu = x64.mean(0)
         _, _, vh = torch.linalg.svd(x64 - mu, full_matrices=False)
@@ -165,8 +182,10 @@ class DeltaRegressor(nn.Module):
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "DeltaRegressor":
         """Load a checkpoint (``torch.load(weights_only=True)``).
 
-        The payload is validated before anything is allocated: the sizes against the stored
-        tensors, every buffer's shape and dtype, finite values.
+        The content digest is verified, then the payload is validated before anything is
+        allocated: the sizes against the stored tensors, every buffer's shape and dtype, finite
+        values, values a fit can produce (``classify/_checkpoint.py``), the ``extra`` entries
+        read by the analysis.
 
         Args:
             path: the checkpoint file.
@@ -175,10 +194,11 @@ class DeltaRegressor(nn.Module):
 
         Raises:
             FileNotFoundError: no such file.
-            CheckpointError: another kind, format version or (with ``expected``) config;
-                missing entries, wrong shapes or dtypes, non-finite values.
+            CheckpointError: another kind, format version or (with ``expected``) config; a
+                content that does not match its digest; missing entries, wrong shapes or
+                dtypes, non-finite or implausible values (the message names the field).
         """
-        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "Delta-regression", map_location)
+        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "Delta-regression", map_location, digest=True)
         require_keys(payload, ("n_features", "n_components", "k", "config", "state_dict"), path)
         config = config_of(payload, path)
         if expected is not None:
@@ -198,7 +218,20 @@ class DeltaRegressor(nn.Module):
                 f"checkpoint {path}: components {tuple(sd['components'].shape)} and train_coeffs "
                 f"{tuple(sd['train_coeffs'].shape)} do not fit n_components={nc}"
             )
-        extra = extra_of(payload, path)
+        if dims["C"] != min(nc, dims["N"], d):
+            raise CheckpointError(
+                f"checkpoint {path}: components has {dims['C']} rows; a fit of n_components={nc} on {dims['N']} "
+                f"pairs of {d} features keeps {min(nc, dims['N'], d)}"
+            )
+        if k >= dims["N"]:
+            raise CheckpointError(f"checkpoint {path}: k={k} neighbours needs more than k training pairs, it holds {dims['N']}")
+        in_range(sd, "mean", *FEATURE_RANGE, path, "a mean of quality maps")
+        orthonormal_rows(sd, "components", 2e-2, path)
+        row_norms_below(sd, "train_coeffs", max_coefficient_norm(d), path)
+        in_range(sd, "train_delta", 0.0, max_delta(config), path, "a Delta in px, at most the image diagonal")
+        if bool((sd["train_coeffs"][:, -1] < 0).any()):
+            raise CheckpointError(f"checkpoint {path}: train_coeffs holds a negative residual norm (its last column)")
+        extra = check_extra(payload, path)
         model = cls(d, config, nc, k)
         for name in ("components", "train_coeffs", "train_delta"):
             setattr(model, name, torch.empty_like(sd[name]))

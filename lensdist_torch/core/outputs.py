@@ -1,21 +1,32 @@
 """Output paths checked before a long computation, so that a bad path fails in a second.
 
-Only the standard library: the command line imports this before torch.
+The one place that refuses an output path: a directory where a file is wanted, a device, an
+unwritable folder, and an output that is one of the command's own inputs (the same file by
+resolved path or ``os.path.samefile``: symlinks and hard links included), so that nothing a
+command reads is overwritten. Only the standard library: the command line imports this before
+torch.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-__all__ = ["check_output_file", "check_output_dir"]
+#: The command's inputs by the option that names them (a path, a list of paths, or None).
+Inputs = Mapping[str, "str | os.PathLike | Iterable[str | os.PathLike] | None"]
+
+__all__ = ["check_output_file", "check_output_dir", "refuse_inputs"]
 
 
-def check_output_file(path: str | Path, option: str, suffixes: tuple[str, ...], shown: str | None = None) -> Path:
+def check_output_file(
+    path: str | Path, option: str, suffixes: tuple[str, ...], shown: str | None = None, inputs: Inputs | None = None
+) -> Path:
     """Validate an output file before any long computation.
 
     It must be a file path (not a directory) with one of ``suffixes`` (``shown`` in the message),
-    with nothing but a regular file there, in a folder that can be written.
+    with nothing but a regular file there, in a folder that can be written, and none of
+    ``inputs`` (the command's input paths by the option or argument that names them).
     """
     path = os.fspath(path)
     p = Path(path)
@@ -26,15 +37,23 @@ def check_output_file(path: str | Path, option: str, suffixes: tuple[str, ...], 
         raise ValueError(f"{option} {path} exists and is not a regular file (a device, FIFO or socket?)")
     if p.suffix.lower() not in suffixes:
         raise ValueError(f"{option} must be a file path ending in {want}, got {path!r}")
+    refuse_inputs(p, option, inputs)
     _check_writable(p.parent, option, path)
     return p
 
 
-def check_output_dir(path: str | Path, option: str) -> Path:
-    """Validate an output folder: a folder or nothing at ``path``, below a folder that can be written."""
+def check_output_dir(path: str | Path, option: str, inputs: Inputs | None = None, writes: Iterable[str] = ()) -> Path:
+    """Validate an output folder: a folder or nothing at ``path``, below a folder that can be written.
+
+    Neither the folder nor the files the command writes in it (``writes``, names relative to it)
+    may be one of ``inputs``.
+    """
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ValueError(f"{option} must be a folder, but {path} exists and is not one")
+    refuse_inputs(p, option, inputs)
+    for name in writes:
+        refuse_inputs(p / name, option, inputs, written=True)
     _check_writable(p, option, path)
     return p
 
@@ -48,3 +67,27 @@ def _check_writable(folder: Path, option: str, path: str) -> None:
         raise ValueError(f"cannot write {option} {path}: {here} is not a folder")
     if not os.access(here, os.W_OK | os.X_OK):
         raise ValueError(f"cannot write {option} {path}: permission denied in {here}")
+
+
+def refuse_inputs(path: str | Path, option: str, inputs: Inputs | None, written: bool = False) -> None:
+    """Refuse (ValueError) an output ``path`` that is one of ``inputs``.
+
+    ``written``: ``path`` is a file the command writes inside the folder ``option`` names.
+    """
+    out = Path(path)
+    for name, value in (inputs or {}).items():
+        values = [value] if value is None or isinstance(value, (str, os.PathLike)) else list(value)
+        for v in values:
+            if v is not None and _same_path(out, Path(v)):
+                what = f"{option} would overwrite {out}, which is" if written else f"{option} {os.fspath(path)} is"
+                raise ValueError(f"{what} the input {name} {os.fspath(v)}: refusing to overwrite an input, give another path")
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    """The same file or folder: the same resolved path, or (both existing) the same inode."""
+    try:
+        if a.resolve() == b.resolve():
+            return True
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except (OSError, RuntimeError):  # unreadable, a symlink loop: not provably the same
+        return False

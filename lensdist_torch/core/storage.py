@@ -1,10 +1,18 @@
-"""Files that are never half-written, and versioned checkpoints read with weights_only=True."""
+"""Files that are never half-written, and versioned checkpoints read with weights_only=True.
+
+A versioned file written with ``digest=True`` (the default) carries ``content_sha256``, the
+SHA-256 of a canonical encoding of everything else in it (:func:`content_digest`): dict keys
+sorted, every value tagged with its type, each tensor by dtype, shape, stride, storage offset
+and the bytes of its storage (each storage once). One changed value, key or tensor byte is a
+CheckpointError on load; a file that must carry the digest and does not is refused too.
+"""
 
 from __future__ import annotations
 
 import hashlib
 import io
 import os
+import struct
 import tempfile
 from pathlib import Path
 
@@ -14,6 +22,8 @@ __all__ = [
     "CheckpointError",
     "atomic_write_bytes",
     "atomic_write_text",
+    "DIGEST_KEY",
+    "content_digest",
     "save_versioned",
     "load_versioned",
     "check_compatible",
@@ -61,13 +71,88 @@ def atomic_write_text(path: str | Path, text: str) -> None:
     atomic_write_bytes(path, text.encode())
 
 
-def save_versioned(path: str | Path, kind: str, version: int, payload: dict) -> str:
+#: The entry of a versioned file that holds its content digest.
+DIGEST_KEY = "content_sha256"
+
+
+def _encode(value, h, storages: dict, error: type[Exception]) -> None:
+    """Feed a canonical, typed encoding of ``value`` to the hash ``h``."""
+
+    def tag(t: bytes, body: bytes = b"") -> None:
+        h.update(t + struct.pack("<Q", len(body)) + body)
+
+    if value is None:
+        tag(b"N")
+    elif isinstance(value, bool):
+        tag(b"B", b"1" if value else b"0")
+    elif isinstance(value, int):
+        tag(b"I", str(value).encode())
+    elif isinstance(value, float):
+        tag(b"F", value.hex().encode())
+    elif isinstance(value, complex):
+        tag(b"C", f"{value.real.hex()},{value.imag.hex()}".encode())
+    elif isinstance(value, str):
+        tag(b"S", value.encode("utf-8", "surrogatepass"))
+    elif isinstance(value, (bytes, bytearray)):
+        tag(b"Y", bytes(value))
+    elif isinstance(value, torch.dtype):
+        tag(b"D", str(value).encode())
+    elif isinstance(value, torch.Tensor):
+        if value.layout != torch.strided:
+            raise error(f"holds a tensor of layout {value.layout}; only dense tensors are stored")
+        storage = value.untyped_storage()
+        key = (storage.device.type, storage.data_ptr(), storage.nbytes())
+        first = key not in storages
+        index = storages.setdefault(key, len(storages))
+        head = f"{value.dtype}|{tuple(value.shape)}|{value.stride()}|{value.storage_offset()}|{index}".encode()
+        tag(b"T", head)
+        if first:  # each storage's bytes once: never more than the file holds
+            raw = torch.empty(0, dtype=torch.uint8, device=storage.device).set_(storage).cpu()
+            tag(b"M", struct.pack("<Q", storage.nbytes()))
+            h.update(raw.numpy())
+    elif isinstance(value, dict):
+        items = []
+        for k, v in value.items():
+            kh = hashlib.sha256()
+            _encode(k, kh, {}, error)
+            items.append((kh.digest(), k, v))
+        items.sort(key=lambda item: item[0])
+        tag(b"{", struct.pack("<Q", len(items)))
+        for kd, _, v in items:
+            h.update(kd)
+            _encode(v, h, storages, error)
+    elif isinstance(value, (list, tuple)):
+        tag(b"(" if isinstance(value, tuple) else b"[", struct.pack("<Q", len(value)))
+        for v in value:
+            _encode(v, h, storages, error)
+    else:
+        raise error(f"holds a value of type {type(value).__name__}, which has no canonical encoding")
+
+
+def content_digest(payload: dict, error: type[Exception] = TypeError) -> str:
+    """SHA-256 (hex) of a canonical encoding of ``payload`` without its ``content_sha256`` entry.
+
+    Independent of dict order and of the file's bytes (zip layout, pickle protocol): it is the
+    digest of the values. ``error`` is raised for a value with no canonical encoding.
+    """
+    if not isinstance(payload, dict):
+        raise error(f"a payload must be a dict, got {type(payload).__name__}")
+    h = hashlib.sha256(b"lensdist-content-v1")
+    _encode({k: v for k, v in payload.items() if k != DIGEST_KEY}, h, {}, error)
+    return h.hexdigest()
+
+
+def save_versioned(path: str | Path, kind: str, version: int, payload: dict, *, digest: bool = True) -> str:
     """``torch.save`` of {kind, format_version, **payload}, atomically; returns the sha256 (hex) of the bytes.
 
-    The bytes never depend on the file name (torch.save into memory first).
+    With ``digest`` (the default), the payload's :func:`content_digest` is stored in it as
+    ``content_sha256``. The bytes never depend on the file name (torch.save into memory first).
     """
+    full = {"kind": kind, "format_version": version, **payload}
+    if digest:
+        full[DIGEST_KEY] = content_digest(full)
     buf = io.BytesIO()
-    torch.save({"kind": kind, "format_version": version, **payload}, buf)
+    torch.save(full, buf)
     data = buf.getvalue()
     atomic_write_bytes(path, data)
     return hashlib.sha256(data).hexdigest()
@@ -76,11 +161,14 @@ def save_versioned(path: str | Path, kind: str, version: int, payload: dict) -> 
 def load_versioned(
     path: str | Path, kind: str, version: int, what: str, map_location="cpu", *,
     sha256: str | None = None, error: type[Exception] = CheckpointError, noun: str = "checkpoint",
+    digest: bool = False,
 ) -> dict:
-    """Load with ``torch.load(weights_only=True)`` and check the kind and format version.
+    """Load with ``torch.load(weights_only=True)`` and check the kind, format version and content digest.
 
     With ``sha256``, the file's bytes must have that digest (checked before they are unpickled).
-    ``error`` is the exception raised and ``noun`` names the file in its one-line message.
+    A stored ``content_sha256`` is always verified (and removed from the returned dict); with
+    ``digest`` the file must carry one. ``error`` is the exception raised and ``noun`` names
+    the file in its one-line message.
 
     Raises:
         FileNotFoundError: no such file.
@@ -104,6 +192,20 @@ def load_versioned(
         raise error(
             f"{noun} {path} has format version {payload.get('format_version')}, this library reads {version}"
         )
+    stored = payload.pop(DIGEST_KEY, None)
+    if stored is None and digest:
+        raise error(f"{noun} {path} carries no content digest ({DIGEST_KEY}): damaged or edited")
+    if stored is not None:
+        try:
+            actual = content_digest(payload, error)
+        except error as exc:
+            raise error(f"{noun} {path} {exc}") from None
+        except RecursionError:
+            raise error(f"{noun} {path} is nested too deeply to be a lensdist file") from None
+        if not isinstance(stored, str) or stored != actual:
+            raise error(
+                f"{noun} {path} is corrupted or edited: its content does not match the digest recorded when it was written"
+            )
     return payload
 
 

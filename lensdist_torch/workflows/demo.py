@@ -10,7 +10,16 @@ from lensdist_torch.core.images import load_scene
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.metric.quality import registration_quality
 
-__all__ = ["scale_error_demo"]
+__all__ = ["MAX_SCALE_ERROR", "scale_error_demo"]
+
+#: The largest relative scale error the demo shows. Its point is that errors grow from the
+#: centre outwards: that holds while the offset at the edge of the centre third (s R / 3, R the
+#: half diagonal, 88 px at 424 x 320) stays below about one 8 px block of the map, s <~ 0.09.
+#: The quality index is lowest near 0.1 (0.372) and rises again as the error grows (0.395 at
+#: 0.5, 0.967 at 1e6, where the second view is a flat patch): beyond 0.1 a larger error would read
+#: as a better registration. A negative error (a shrink) leaves the outer third without valid
+#: pixels (its mean error ratio 0), and an offset "up to" a negative number means nothing.
+MAX_SCALE_ERROR = 0.1
 
 
 def scale_error_demo(config: LensdistConfig, scene: str = "gravel", scale_error: float = 0.01) -> tuple[dict, tuple]:
@@ -22,12 +31,17 @@ def scale_error_demo(config: LensdistConfig, scene: str = "gravel", scale_error:
     Args:
         config: image size and quality thresholds.
         scene: an embedded scene.
-        scale_error: the relative scale error of the second view.
+        scale_error: the relative scale error of the second view, in [0, MAX_SCALE_ERROR].
+
+    Raises:
+        ValueError: ``scale_error`` outside [0, MAX_SCALE_ERROR] or not a number.
 
     Returns:
         A summary dict (offsets, blocks with errors, mean error ratio in the centre and outer
         thirds, quality index) and the tensors (img1, img2, quality map, pixel validity).
     """
+    if isinstance(scale_error, bool) or not isinstance(scale_error, (int, float)) or not 0 <= scale_error <= MAX_SCALE_ERROR:
+        raise ValueError(f"scale_error must be a number from 0 to {MAX_SCALE_ERROR} (the range the demo shows), got {scale_error!r}")
     h, w = config.image.height, config.image.width
     full = load_scene(scene)
     y0, x0 = (full.shape[-2] - h) // 2, (full.shape[-1] - w) // 2

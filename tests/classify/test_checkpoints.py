@@ -1,5 +1,8 @@
 """Checkpoints are untrusted input: every malformed payload is one CheckpointError naming the
-file and what is wrong, raised before anything is allocated from the payload's sizes."""
+file and what is wrong, raised before anything is allocated from the payload's sizes.
+
+The payloads here are written with their content digest recomputed (``_write``), as a tamperer
+who knows the format would: the content checks must hold on their own."""
 
 from __future__ import annotations
 
@@ -11,9 +14,13 @@ import torch
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.config import ClassifierConfig, LensdistConfig
-from lensdist_torch.core.storage import CheckpointError
+from lensdist_torch.core.storage import DIGEST_KEY, CheckpointError, content_digest
 
 pytestmark = pytest.mark.bad_input
+
+
+#: Texture statistics of the form of workflows.decision.texture_statistics (two scenes, three bins).
+TEXTURE = {"names": ["a", "b"], "edges": [0.01, 0.1], "reference": [[0.25, 0.5, 0.25], [0.5, 0.25, 0.25]], "spread": 0.05}
 
 
 def _cfg(n=2):
@@ -38,8 +45,9 @@ def reg_payload(tmp_path_factory):
 
 
 def _write(tmp_path, payload, name="bad.pt"):
+    """torch.save of ``payload`` with its content digest recomputed."""
     path = tmp_path / name
-    torch.save(payload, path)
+    torch.save({**payload, DIGEST_KEY: content_digest(payload)}, path)
     return path
 
 
@@ -178,7 +186,7 @@ def test_regressor_non_finite_buffers(tmp_path, reg_payload, key):
 def test_extra_is_saved_by_default_and_round_trips(tmp_path, eig_payload):
     """``save`` stores ``model.extra`` unless told otherwise; ``load`` gives it back."""
     model = EigenSpaceClassifier.load(_write(tmp_path, eig_payload))
-    model.extra = {"scenes": ["a", "b"], "texture": {"spread": 0.5, "reference": [[0.25, 0.75]]}}
+    model.extra = {"scenes": ["a", "b"], "texture": TEXTURE}
     model.save(tmp_path / "e.pt")
     assert EigenSpaceClassifier.load(tmp_path / "e.pt").extra == model.extra
     model.save(tmp_path / "f.pt", extra={"scenes": ["c"]})

@@ -17,7 +17,7 @@ def _cfg(n_ev=2, q=0.95, k=4):
 
 
 def _subspace_data(n_per=30, d=20, n_ev=2, noise=0.0, seed=0):
-    """Four classes, each on its own affine 2-D subspace of R^d."""
+    """Four classes, each on its own affine 2-D subspace of R^d, inside the quality maps' [0, 1]."""
     g = torch.Generator().manual_seed(seed)
     xs, cs, ds, spaces = [], [], [], []
     for c in range(4):
@@ -25,6 +25,7 @@ def _subspace_data(n_per=30, d=20, n_ev=2, noise=0.0, seed=0):
         basis, _ = torch.linalg.qr(torch.randn(d, n_ev, generator=g, dtype=torch.float64))
         coef = torch.randn(n_per, n_ev, generator=g, dtype=torch.float64)
         x = mu + coef @ basis.T + noise * torch.randn(n_per, d, generator=g, dtype=torch.float64)
+        x = 0.5 + x / 40  # an affine map keeps each class on an affine 2-D subspace
         xs.append(x)
         cs.append(torch.full((n_per,), c))
         ds.append(torch.rand(n_per, generator=g, dtype=torch.float64) + c)
@@ -79,14 +80,14 @@ class TestFit:
         x = torch.zeros(4 * 5, d_feat)
         cls = torch.arange(4).repeat_interleave(5)
         for k in range(4):
-            x[cls == k, k] = torch.tensor([0.0, 1.0, 2.0, 3.0, 4.0]) + 10 * k  # a line per class
+            x[cls == k, k] = (torch.tensor([0.0, 1.0, 2.0, 3.0, 4.0]) + 10 * k) / 40  # a line per class, in [0, 1]
         deltas = torch.arange(20, dtype=torch.float32)
         clf = EigenSpaceClassifier(d_feat, cfg).fit(x, cls, deltas)
         q = torch.zeros(1, d_feat)
-        q[0, 0] = 1.25  # between training points 1.0 (delta 1) and 2.0 (delta 2) of class 0
+        q[0, 0] = 1.25 / 40  # between training points 1 (delta 1) and 2 (delta 2) of class 0
         res = clf(q)
         assert int(res.nearest[0]) == 0
-        w1, w2 = 1 / (0.25 + 1e-6), 1 / (0.75 + 1e-6)
+        w1, w2 = 1 / (0.25 / 40 + 1e-6), 1 / (0.75 / 40 + 1e-6)
         expected = (w1 * 1 + w2 * 2) / (w1 + w2)
         assert float(res.delta[0]) == pytest.approx(expected, rel=1e-4)
         assert sorted(res.neighbours[0].tolist()) == [1, 2]

@@ -17,7 +17,7 @@ def _synthetic(n, seed=0, n_features=40):
     basis = torch.rand(2, n_features, generator=g, dtype=torch.float64)
     x = (d_avg[:, None] / 14.4) * basis[0] + (d_avg[:, None] / 14.4) ** 2 * basis[1]
     x = x + 0.01 * torch.randn(n, n_features, generator=g, dtype=torch.float64)
-    return x.float(), d_avg, 5.5 * d_avg
+    return (x / 2).float().clamp(-0.1, 1.1), d_avg, 5.5 * d_avg  # quality-map range
 
 
 def test_fit_predicts_deltas_and_classes():

@@ -256,6 +256,29 @@ def test_config_file_not_utf8(tmp_path):
 
 
 @pytest.mark.bad_input
+def test_config_file_with_a_utf8_byte_order_mark(tmp_path):
+    """A Windows editor's UTF-8 BOM is skipped: the file loads as without it (was refused as
+    "not valid TOML" at line 1, column 1, without saying why)."""
+    text = "[quality]\ntheta_e = 0.75\n"
+    plain, bom = tmp_path / "plain.toml", tmp_path / "bom.toml"
+    plain.write_text(text)
+    bom.write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert load_config(bom) == load_config(plain) != LensdistConfig()
+    assert load_config(bom).quality.theta_e == 0.75
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("encoding", ["utf-16", "utf-16-be"])
+def test_config_file_utf16_says_byte_order_mark(tmp_path, encoding):
+    path = tmp_path / "c.toml"
+    data = "[quality]\ntheta_e = 0.75\n".encode(encoding)
+    path.write_bytes(data if encoding == "utf-16" else b"\xfe\xff" + data)
+    with pytest.raises(ValueError) as info:
+        load_config(path)
+    _one_line_error(info, str(path), "UTF-16 byte-order mark", "UTF-8")
+
+
+@pytest.mark.bad_input
 def test_config_path_is_a_directory(tmp_path):
     with pytest.raises(ValueError) as info:
         load_config(tmp_path)

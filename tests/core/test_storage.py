@@ -133,3 +133,55 @@ def test_output_paths_checked_up_front(tmp_path):
     with pytest.raises(ValueError, match="exists and is not one"):
         check_output_dir(tmp_path / "f", "--out")
     assert not (tmp_path / "a").exists() and not (tmp_path / "d").exists()
+
+
+# ------------------------------------------------------------------ versioned files and their content digest
+@pytest.mark.bad_input
+def test_content_digest_covers_every_value(tmp_path):
+    """One changed value, key, type, dtype, stride or tensor byte changes the digest; dict order does not."""
+    import torch
+
+    from lensdist_torch.core.storage import DIGEST_KEY, content_digest
+
+    base = {"a": torch.arange(6.0).reshape(2, 3), "b": [1, 2.5, "x", None, True], "c": {"k": 3}}
+    d0 = content_digest(base)
+    assert content_digest(dict(reversed(list(base.items())))) == d0
+    assert content_digest({**base, DIGEST_KEY: "anything"}) == d0  # the digest never covers itself
+    variants = [
+        {**base, "a": base["a"].clone().index_put_((torch.tensor([1]), torch.tensor([2])), torch.tensor(5.0001))},
+        {**base, "a": base["a"].double()},
+        {**base, "a": base["a"].t().contiguous().t()},  # same values, other strides
+        {**base, "b": [1, 2.5, "x", None, 1]},  # True and 1 differ
+        {**base, "b": (1, 2.5, "x", None, True)},
+        {**base, "c": {"k": 3.0}},
+        {**base, "d": None},
+        {"A": base["a"], "b": base["b"], "c": base["c"]},
+    ]
+    assert len({content_digest(v) for v in variants} | {d0}) == len(variants) + 1
+    with pytest.raises(TypeError, match="no canonical encoding"):
+        content_digest({"f": object()})
+
+
+@pytest.mark.bad_input
+def test_load_versioned_verifies_the_digest(tmp_path):
+    import torch
+
+    from lensdist_torch.core.storage import DIGEST_KEY, CheckpointError, load_versioned, save_versioned
+
+    path = tmp_path / "m.pt"
+    save_versioned(path, "k", 3, {"w": torch.ones(4), "name": "n"})
+    back = load_versioned(path, "k", 3, "test", digest=True)
+    assert DIGEST_KEY not in back and torch.equal(back["w"], torch.ones(4))
+    raw = torch.load(path, weights_only=True)
+    raw["w"][2] = 1.5
+    torch.save(raw, tmp_path / "edited.pt")
+    for digest in (False, True):  # a stored digest is always verified
+        with pytest.raises(CheckpointError, match=r"edited\.pt is corrupted or edited"):
+            load_versioned(tmp_path / "edited.pt", "k", 3, "test", digest=digest)
+    del raw[DIGEST_KEY]
+    torch.save(raw, tmp_path / "bare.pt")
+    with pytest.raises(CheckpointError, match=r"bare\.pt carries no content digest"):
+        load_versioned(tmp_path / "bare.pt", "k", 3, "test", digest=True)
+    assert load_versioned(tmp_path / "bare.pt", "k", 3, "test")["w"][2] == 1.5  # not required: as before
+    save_versioned(tmp_path / "plain.pt", "k", 3, {"w": torch.ones(1)}, digest=False)
+    assert DIGEST_KEY not in torch.load(tmp_path / "plain.pt", weights_only=True)

@@ -90,8 +90,16 @@ def _crafted(tmp_path, base: Path, name: str, **changes) -> Path:
         else:
             raw[key] = value
     path = tmp_path / name
-    torch.save(raw, path)
+    torch.save(_resigned(raw), path)
     return path
+
+
+def _resigned(raw: dict) -> dict:
+    """``raw`` with its content digest recomputed, as a tamperer who knows the format would."""
+    from lensdist_torch.core.storage import DIGEST_KEY, content_digest
+
+    raw = {k: v for k, v in raw.items() if k != DIGEST_KEY}
+    return {**raw, DIGEST_KEY: content_digest(raw)}
 
 
 # ----------------------------------------------------------------------------- conventions
@@ -171,7 +179,7 @@ def test_checkpoint_missing_keys(capsys, pair, ckpts, tmp_path, missing):
         del raw[missing]
     else:
         del raw["state_dict"][missing]
-    torch.save(raw, tmp_path / "m.pt")
+    torch.save(_resigned(raw), tmp_path / "m.pt")
     one_error(capsys, "analyze", *pair, "--method", "eigenspace", "--checkpoint", tmp_path / "m.pt",
               "--checkpoint-max", ckpts["delta_max"], match=f"lacks {missing}")
 

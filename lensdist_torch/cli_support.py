@@ -1,0 +1,207 @@
+"""The parser class, the argument types and the stdout guard of the ``lensdist`` command line.
+
+Only the standard library at import (``lensdist --help`` stays fast); torch is imported only to
+check a CUDA device that was asked for.
+
+Contracts:
+
+- A usage error (an unknown option, a value its type refuses) is one line
+  ``lensdist CMD: error: argument --OPT: ...`` on stderr and exit status 2.
+- A negative number in any notation (``-3``, ``-.5``, ``-1e-3``, ``-1.5E-9``) is an option's
+  value, not an option: ``--k2 -1e-3`` works as ``--k2=-1e-3`` does.
+- Numbers are finite ('nan' and 'inf', which Python's ``float`` accepts, are refused) and in the
+  range the option states.
+- The result cannot be written to stdout (closed, EBADF, disk full): one line on stderr, exit
+  2. A broken pipe (``lensdist ... | head``) ends quietly with exit 1 (Python's convention).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import re
+import sys
+
+__all__ = [
+    "Parser",
+    "StdoutError",
+    "device",
+    "finite_float",
+    "float_in",
+    "guarded_stdout",
+    "positive_float",
+    "positive_int",
+    "shard",
+    "silence_stdout",
+]
+
+#: A negative number as a value: argparse's own pattern (``^-\d+$|^-\d*\.\d+$``) misses
+#: exponents; 'inf' and 'nan' are matched so that their type refuses them by name.
+_NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE)
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with negative numbers in scientific notation as values and one-line usage errors.
+
+    Subparsers made by ``add_subparsers`` are of this class too (argparse uses the parent's).
+    """
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # argparse (3.8 to 3.13) decides with this private pattern whether '-1e-3' is an option
+        # or a value; tests/workflows/test_cli_hostile.py fails if a Python changes that.
+        self._negative_number_matcher = _NEGATIVE_NUMBER
+
+    def error(self, message: str):
+        """One line ``PROG: error: MESSAGE`` on stderr, exit status 2 (argparse adds the usage)."""
+        text = " ".join(str(message).split())
+        self.exit(2, f"{self.prog}: error: {text} (see {self.prog} --help)\n")
+
+
+# ----------------------------------------------------------------------------- argument types
+def device(text: str) -> str:
+    """``--device``: cpu, cuda or cuda:N with N below the number of CUDA devices here."""
+    if text == "cpu":
+        return text
+    m = re.fullmatch(r"cuda(?::(\d+))?", text)
+    if m is None:
+        raise argparse.ArgumentTypeError(f"unknown device {text!r}: use cpu, cuda or cuda:N (N a CUDA device index)")
+    import torch
+
+    if not torch.cuda.is_available():
+        raise argparse.ArgumentTypeError(f"device {text!r} asked for, but CUDA is not available here; use cpu")
+    n = torch.cuda.device_count()
+    if m.group(1) is None:
+        return "cuda"
+    if int(m.group(1)) >= n:
+        raise argparse.ArgumentTypeError(f"device {text!r} asked for, but this machine has {n} CUDA device(s): cuda:0 to cuda:{n - 1}")
+    return f"cuda:{int(m.group(1))}"
+
+
+def _float(text: str, what: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r} (not a finite number)")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """A finite number (negative allowed), in any notation float() reads."""
+    return _float(text, "a finite number")
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    value = _float(text, "a positive number")
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+    return value
+
+
+def float_in(low: float, high: float):
+    """A type: a finite number in [low, high]."""
+    what = f"a number from {low:g} to {high:g}"
+
+    def in_range(text: str) -> float:
+        value = _float(text, what)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return value
+
+    return in_range
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (a count or a size)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return value
+
+
+def shard(text: str) -> tuple[int, int]:
+    """``generate --shard I/N``: this job's share, 0 <= I < N."""
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected I/N (e.g. 0/4), got {text!r}") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise argparse.ArgumentTypeError(f"I/N needs 0 <= I < N, got {text!r}")
+    return (i, n)
+
+
+# ----------------------------------------------------------------------------- stdout
+class StdoutError(Exception):
+    """Writing the result to stdout failed (not a broken pipe): the result is lost."""
+
+    def __init__(self, exc: OSError):
+        super().__init__(exc.strerror or str(exc) or type(exc).__name__)
+
+
+class _Guarded:
+    """``sys.stdout`` whose write errors, other than a broken pipe, become :class:`StdoutError`."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _call(self, name: str, *args):
+        try:
+            return getattr(self._stream, name)(*args)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise StdoutError(exc) from exc
+
+    def write(self, text):
+        return self._call("write", text)
+
+    def writelines(self, lines):
+        return self._call("writelines", lines)
+
+    def flush(self):
+        return self._call("flush")
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+class guarded_stdout:  # noqa: N801 (used as a context manager)
+    """Within: a failed write to stdout raises :class:`StdoutError`.
+
+    stdout is flushed at the end, so that a failure of the last buffered write is seen here and
+    not lost at exit.
+    """
+
+    def __enter__(self):
+        self._saved = sys.stdout
+        sys.stdout = _Guarded(self._saved)
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        try:
+            if kind is None:
+                sys.stdout.flush()
+        finally:
+            sys.stdout = self._saved
+        return False
+
+
+def silence_stdout() -> None:
+    """Point fd 1 at the null device (after a broken pipe or a failed write).
+
+    The interpreter's last flush at exit then neither fails nor prints "Exception ignored".
+    """
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        return  # not a real file (captured in tests)
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, fd)
+    os.close(null)
