@@ -5,7 +5,10 @@ checksum file beside it (``shard-00000.pt.sha256``, one ``sha256sum`` line) with
 its bytes. ``load_shard`` verifies that digest before it unpickles (``load_versioned``,
 ``torch.load(weights_only=True)``), then the kind, format version, config fingerprint, keys,
 shapes and the pairs the shard must hold: a changed byte, a truncated file or a shard copied
-over another is a one-line ShardError naming the file, never data.
+over another is a one-line ShardError naming the file, never data. A shard is also checked
+against the sha256 the manifest recorded for it (a shard rewritten together with its checksum
+file), and a set's shards against the manifest's counts and shard count (``check_counts``,
+``no_stray_shards``: an edited manifest).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.core.storage import atomic_write_bytes, load_versioned, save_versioned
-from lensdist_torch.data.manifest import FORMAT_VERSION, N_CLASSES, ShardError
+from lensdist_torch.data.manifest import FORMAT_VERSION, MANIFEST, N_CLASSES, ShardError
 
 __all__ = [
     "KIND",
@@ -29,6 +32,8 @@ __all__ = [
     "write_shard",
     "load_shard",
     "verify_set",
+    "no_stray_shards",
+    "check_counts",
 ]
 
 KIND = "lensdist-shard"
@@ -85,11 +90,14 @@ def write_shard(path: str | Path, record: dict) -> str:
     return digest
 
 
-def load_shard(path: str | Path, fingerprint: str | None = None, expect: tuple[str, int, int] | None = None) -> dict:
+def load_shard(
+    path: str | Path, fingerprint: str | None = None, expect: tuple[str, int, int] | None = None, sha256: str | None = None
+) -> dict:
     """Load and check a shard: its sha256, kind, format version, keys and shapes.
 
-    Optionally also the config (``fingerprint``) and the pairs it must hold (``expect`` =
-    (set, start, end)).
+    Optionally also the config (``fingerprint``), the pairs it must hold (``expect`` =
+    (set, start, end)) and the sha256 the manifest recorded for it (``sha256``: a shard
+    changed together with its checksum file is refused).
 
     Raises:
         FileNotFoundError: no such shard.
@@ -99,9 +107,8 @@ def load_shard(path: str | Path, fingerprint: str | None = None, expect: tuple[s
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"shard not found: {path}")
-    rec = load_versioned(
-        path, KIND, FORMAT_VERSION, "data-set", sha256=_read_checksum(path), error=ShardError, noun="shard"
-    )
+    digest = _read_checksum(path)
+    rec = load_versioned(path, KIND, FORMAT_VERSION, "data-set", sha256=digest, error=ShardError, noun="shard")
     if fingerprint is not None and rec.get("fingerprint") != fingerprint:
         raise ShardError(
             f"shard {path} was generated with another config or scenes (fingerprint "
@@ -121,6 +128,11 @@ def load_shard(path: str | Path, fingerprint: str | None = None, expect: tuple[s
             f"shard {path} holds {rec.get('set')!r} pairs [{start}, {end}), expected {expect[0]!r} pairs "
             f"[{expect[1]}, {expect[2]}) (a shard copied over another, or left by a shorter --limit run)"
         )
+    if sha256 is not None and digest != sha256:  # last: the checks above name what is wrong more precisely
+        raise ShardError(
+            f"shard {path} is not the one recorded in {MANIFEST}: its sha256 differs from the manifest's "
+            "(the shard and its checksum file were changed)"
+        )
     return rec
 
 
@@ -133,6 +145,7 @@ class SetState:
     shard_size: int
     stats: dict[int, tuple[int, torch.Tensor, torch.Tensor]] = field(default_factory=dict)
     bad: dict[int, str] = field(default_factory=dict)
+    digests: dict[int, str] = field(default_factory=dict)
 
     @property
     def ranges(self) -> list[tuple[int, int]]:
@@ -153,26 +166,63 @@ class SetState:
             "registration_failed": sum(failed),
             "pairs_per_class_avg": sum(per_avg, zero).tolist(),
             "pairs_per_class_max": sum(per_max, zero).tolist(),
+            "shard_sha256": [self.digests[k] for k in range(n_shards)],
         }
 
 
-def verify_set(out: Path, set_name: str, n_pairs: int, shard_size: int, fingerprint: str) -> SetState:
-    """Verify every shard of a set of ``n_pairs`` (checksum, config, pairs held)."""
+def verify_set(
+    out: Path, set_name: str, n_pairs: int, shard_size: int, fingerprint: str, recorded: list[str] | None = None
+) -> SetState:
+    """Verify every shard of a set of ``n_pairs`` (checksum, config, pairs held).
+
+    ``recorded``: the sha256 per shard the manifest holds for this very set (same pairs and
+    shard size); a shard that differs from it is bad (regenerated: a shard's bytes are a pure
+    function of the config and its pairs).
+    """
     state = SetState(set_name, n_pairs, shard_size)
     for k, (a, b) in enumerate(state.ranges):
         path = shard_path(out, set_name, k)
         if not path.exists():
             continue
         try:
-            rec = load_shard(path, fingerprint, expect=(set_name, a, b))
+            rec = load_shard(path, fingerprint, expect=(set_name, a, b), sha256=recorded[k] if recorded else None)
+            digest = _read_checksum(path)
         except FileNotFoundError:
             continue  # removed meanwhile: missing
         except ShardError as exc:
             state.bad[k] = str(exc)  # corrupted, foreign or another range: regenerated, never trusted
             continue
+        state.digests[k] = digest
         state.stats[k] = (
             int((~rec["converged"]).sum()),
             torch.bincount(rec["class_avg"], minlength=N_CLASSES),
             torch.bincount(rec["class_max"], minlength=N_CLASSES),
         )
     return state
+
+
+def no_stray_shards(out: Path, set_name: str, n_shards: int, n_pairs: int) -> None:
+    """ShardError if the set's folder holds a shard file beyond the ones the manifest records."""
+    for p in sorted((out / set_name).glob("shard-*.pt")):
+        name = re.fullmatch(r"shard-(\d{5})\.pt", p.name)
+        if name and int(name[1]) >= n_shards:
+            raise ShardError(
+                f"{p} lies beyond the {n_shards} shards ({n_pairs} pairs) that {out / MANIFEST} records for the "
+                f"{set_name!r} set: the manifest was edited or the shard left by another run"
+            )
+
+
+def check_counts(merged: dict, info: dict, where: Path, set_name: str) -> None:
+    """ShardError naming the manifest where its counts are not those of the shards' pairs."""
+    have = {
+        "n_pairs": int(merged["index"].numel()),
+        "registration_failed": int((~merged["converged"]).sum()),
+        "pairs_per_class_avg": torch.bincount(merged["class_avg"], minlength=N_CLASSES).tolist(),
+        "pairs_per_class_max": torch.bincount(merged["class_max"], minlength=N_CLASSES).tolist(),
+    }
+    for key, value in have.items():
+        if info[key] != value:
+            raise ShardError(
+                f"{where} records {key} {info[key]} for the {set_name!r} set, but its shards hold {value}: "
+                "the manifest was edited"
+            )
