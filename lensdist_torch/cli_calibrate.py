@@ -109,7 +109,7 @@ def add_calibrate_commands(subparsers) -> None:
                     "nearest edge, an OUT that is the input folder or would overwrite an input, and existing files "
                     "of the names it writes unless --overwrite.")
     p.add_argument("path", help="folder of frames or a video file")
-    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels (negative: --k2=-1e-6)")
+    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels")
     p.add_argument("--k4", type=float, default=None, help="eq. 4's k4 in the frames' pixels")
     p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
     p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
