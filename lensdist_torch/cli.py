@@ -20,7 +20,7 @@ from pathlib import Path
 
 from lensdist_torch import cli_support as argtypes
 from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
-from lensdist_torch.core.outputs import check_output_dir, check_output_file
+from lensdist_torch.core.outputs import check_output_dir, check_output_file, refuse_inputs
 
 __all__ = ["main", "build_parser"]
 
@@ -84,8 +84,14 @@ def _shards(summary: dict) -> tuple[int, int]:
 
 
 def _cmd_generate(args: argparse.Namespace) -> int:
-    check_output_dir(args.out, "--out", {"--config": args.config, "--scenes": args.scenes, "--sequence": args.sequence},
-                     writes=["manifest.json"])
+    import os
+
+    inputs = {"--config": args.config, "--scenes": args.scenes, "--sequence": args.sequence}
+    if (Path(args.out) / "manifest.json").is_file() and not os.access(args.out, os.W_OK | os.X_OK):
+        refuse_inputs(args.out, "--out", inputs)  # a read-only data set is re-checked; generate says if it must write
+        refuse_inputs(Path(args.out) / "manifest.json", "--out", inputs, written=True)
+    else:
+        check_output_dir(args.out, "--out", inputs, writes=["manifest.json"])
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import generate
 

@@ -207,13 +207,15 @@ class EigenSpaceClassifier(nn.Module):
 
         ``extra`` (a dict of plain values: names, numbers, lists) is stored beside them; by
         default ``self.extra`` (e.g. the scenes it was fitted on and their texture statistics).
+        An existing file at ``path`` is replaced only if it is a checkpoint of this kind
+        (FileExistsError otherwise: never an image, a data shard or another file).
         """
         save_versioned(path, _KIND, CHECKPOINT_VERSION, {
             "n_features": self.n_features,
             "config": config_to_dict(self.config),
             "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
             "extra": dict(self.extra if extra is None else extra),
-        })
+        }, replace_same_kind_only=True)
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":

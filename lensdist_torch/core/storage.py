@@ -24,6 +24,7 @@ __all__ = [
     "atomic_write_text",
     "DIGEST_KEY",
     "content_digest",
+    "check_replaceable",
     "save_versioned",
     "load_versioned",
     "check_compatible",
@@ -142,12 +143,37 @@ def content_digest(payload: dict, error: type[Exception] = TypeError) -> str:
     return h.hexdigest()
 
 
-def save_versioned(path: str | Path, kind: str, version: int, payload: dict, *, digest: bool = True) -> str:
+def check_replaceable(path: str | Path, kind: str) -> None:
+    """FileExistsError unless ``path`` is free or holds a versioned file of ``kind`` (any version).
+
+    What a checkpoint may overwrite: an earlier checkpoint of its kind, never an image, a data
+    set's shard or any other file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        return
+    try:
+        old = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # not a torch file, truncated, foreign objects
+        old = None
+    if not (isinstance(old, dict) and old.get("kind") == kind):
+        raise FileExistsError(
+            f"refusing to overwrite {path}: it is not a lensdist {kind} file (delete it first or choose another path)"
+        )
+
+
+def save_versioned(
+    path: str | Path, kind: str, version: int, payload: dict, *, digest: bool = True, replace_same_kind_only: bool = False,
+) -> str:
     """``torch.save`` of {kind, format_version, **payload}, atomically; returns the sha256 (hex) of the bytes.
 
     With ``digest`` (the default), the payload's :func:`content_digest` is stored in it as
-    ``content_sha256``. The bytes never depend on the file name (torch.save into memory first).
+    ``content_sha256``. With ``replace_same_kind_only``, an existing file is replaced only if
+    it is a file of ``kind`` (:func:`check_replaceable`). The bytes never depend on the file
+    name (torch.save into memory first).
     """
+    if replace_same_kind_only:
+        check_replaceable(path, kind)
     full = {"kind": kind, "format_version": version, **payload}
     if digest:
         full[DIGEST_KEY] = content_digest(full)

@@ -26,6 +26,7 @@ __all__ = [
     "N_CLASSES",
     "ShardError",
     "config_fingerprint",
+    "data_config_difference",
     "read_manifest",
     "check_same_data",
     "merge_manifest",
@@ -59,6 +60,12 @@ def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
     feature fallback's settings: the protocol's registration never uses it; nor
     ``protocol.unseen_scenes``).
     """
+    d = {**_data_fields(config), "scenes": scene_ids}
+    return hashlib.sha256(json.dumps(d, sort_keys=True, allow_nan=False).encode()).hexdigest()[:16]
+
+
+def _data_fields(config: LensdistConfig) -> dict:
+    """The config's sections and fields that change a data set's pairs (what the fingerprint covers)."""
     d = config_to_dict(config)
     d = {name: d[name] for name in _DATA_SECTIONS}
     for name in ("quality", "registration"):
@@ -66,8 +73,20 @@ def config_fingerprint(config: LensdistConfig, scene_ids: list[str]) -> str:
     for key in _NOT_IN_DATA:
         d["registration"].pop(key, None)
     d["protocol"].pop("unseen_scenes", None)  # only reproduce's extra test set reads it
-    d["scenes"] = scene_ids
-    return hashlib.sha256(json.dumps(d, sort_keys=True, allow_nan=False).encode()).hexdigest()[:16]
+    return d
+
+
+def data_config_difference(data: LensdistConfig, other: LensdistConfig) -> str | None:
+    """The first field that changes the pairs where ``other`` differs from a data set's config, or None.
+
+    As "section.field (VALUE here, VALUE in the data)".
+    """
+    a, b = _data_fields(data), _data_fields(other)
+    for section in _DATA_SECTIONS:
+        for key in sorted(set(a[section]) | set(b[section])):
+            if a[section].get(key) != b[section].get(key):
+                return f"{section}.{key} ({b[section].get(key)!r} here, {a[section].get(key)!r} in the data)"
+    return None
 
 
 def read_manifest(out: str | Path) -> dict:

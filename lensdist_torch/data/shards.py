@@ -23,7 +23,6 @@ its share's lock file (``data/locks.py``). This module re-exports their public n
 from __future__ import annotations
 
 import hashlib
-import multiprocessing as mp
 import os
 import sys
 from dataclasses import dataclass
@@ -59,6 +58,7 @@ from lensdist_torch.data.shardfile import (
     write_shard,
 )
 from lensdist_torch.data.synthesis import SETS, footprint, make_pairs, scene_zoom, sequence_footprint, set_size
+from lensdist_torch.data.workers import parent_alive, stop_on_sigterm, worker_pool
 
 __all__ = [
     "FORMAT_VERSION",
@@ -170,6 +170,8 @@ def _worker(task):
     config = config_from_dict(cfg_dict)
     scenes, _ = load_scenes(config, scenes_dir, sequence)
     rec = generate_shard(scenes, config, set_name, start, end, fingerprint, batch_size, sequence=sequence)
+    if not parent_alive():
+        os._exit(0)  # orphaned: no shard written on behalf of a run that is gone, and no broken pipe
     write_shard(shard_path(out, set_name, k), rec)
     return end - start
 
@@ -281,7 +283,7 @@ def _run_tasks(tasks, out: Path, config, scenes, scenes_dir, sequence, fingerpri
     elif tasks:
         cfg = config_to_dict(config)
         jobs = [(cfg, scenes_dir, sequence, s, k, a, b, fingerprint, batch_size, str(out)) for s, k, a, b in tasks]
-        with mp.get_context("spawn").Pool(workers) as pool:
+        with worker_pool(workers) as pool:  # workers ignore Ctrl-C and exit quietly if this process dies
             for n in pool.imap_unordered(_worker, jobs):
                 bar.update(n)
     bar.close()
@@ -333,7 +335,8 @@ def generate(
         for s, k, _, _ in plan.tasks:
             if k in plan.states[s].bad:
                 _note(f"regenerating {plan.states[s].bad[k]}")
-        pairs = _run_tasks(plan.tasks, out, config, scenes, scenes_dir, sequence, fp, batch_size, used, progress)
+        with stop_on_sigterm():  # SIGTERM: one line, the workers stopped, exit 143 (data/workers.py)
+            pairs = _run_tasks(plan.tasks, out, config, scenes, scenes_dir, sequence, fp, batch_size, used, progress)
         sizes = {s: st.n_pairs for s, st in plan.states.items()}
         done = {s: verify_set(out, s, n, config.protocol.shard_size, fp).record() for s, n in sizes.items()}
         written = save_manifest(out, header, done) or written
