@@ -241,10 +241,16 @@ def _print_analysis(res: dict) -> None:
     else:
         print(f"distortion class: {res['class']}  (1 = small ... 4 = very strong, R = none visible)")
     (h, w), (ih, iw) = res["analysis_size"], res["input_size"]
-    print(
-        f"Delta_avg ~ {_fmt(res['delta_avg'])}, Delta_max ~ {_fmt(res['delta_max'])} at {w} x {h} (in your {iw} x {ih} "
-        f"pixels: {_fmt(res['delta_avg_user_px'])} and {_fmt(res['delta_max_user_px'])})"
-    )
+    if res["class"] is None:  # no number that reads as an answer (the JSON keeps estimated_*)
+        print(f"Delta: none given (the views moved by {_fmt(res.get('motion_px'), '.2f')})")
+    else:
+        interval = res.get("delta_avg_interval")
+        kind = f", {res['distortion_type']}" if res.get("distortion_type") else ""
+        print(f"Delta_avg ~ {_fmt(res['delta_avg'], '.2f')}" + (f" [{interval[0]:.2f}, {interval[1]:.2f}] (95 %)" if interval else "")
+              + f", Delta_max ~ {_fmt(res['delta_max'])} at {w} x {h}{kind}")
+        print(f"in your {iw} x {ih} pixels: Delta_avg {_fmt(res['delta_avg_user_px'])}, Delta_max "
+              f"{_fmt(res['delta_max_user_px'])} over the whole frame; {_fmt(res['delta_avg_region_user_px'])} and "
+              f"{_fmt(res['delta_max_region_user_px'])} over the analysed centre crop")
     if res["distances"]:
         print("eigen-space distances: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
     for w in res["warnings"]:

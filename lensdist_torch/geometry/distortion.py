@@ -41,6 +41,8 @@ __all__ = [
     "delta_top",
     "distortion_class",
     "estimated_class",
+    "class_bounds",
+    "distortion_type",
     "to_normalized",
     "sample",
     "render_distorted",
@@ -203,6 +205,26 @@ def estimated_class(
     return torch.where(none, torch.full_like(label, REJECT), label)
 
 
+def class_bounds(label: str, metric: str, config: LensdistConfig) -> tuple[float, float]:
+    """The Delta (of ``metric``) interval ]lo, hi] that :func:`estimated_class` labels ``label``.
+
+    R is [0, ``analysis.no_distortion_px``[ (of Delta_avg); class i of n is ](i - 1) w, i w] with
+    w = top / n, class 1 starting at the R threshold and the last class open above (a Delta
+    beyond the range is the last class).
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> [round(x, 2) for x in class_bounds("2", "delta_avg", LensdistConfig())]
+        [3.59, 7.18]
+    """
+    if label == CLASS_LABELS[REJECT]:
+        return 0.0, config.analysis.no_distortion_px
+    n, w = config.distortion.n_classes, delta_top(metric, config) / config.distortion.n_classes
+    i = CLASS_LABELS.index(label) + 1
+    lo = max((i - 1) * w, config.analysis.no_distortion_px) if i == 1 else (i - 1) * w
+    return lo, (math.inf if i == n else i * w)
+
+
 def sample(img: torch.Tensor, points: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Sample (B, C, h, w) images at pixel coordinates (B, H, W, 2); zeros outside."""
     h, w = img.shape[-2:]
@@ -217,3 +239,26 @@ def render_distorted(img: torch.Tensor, k2, k4) -> torch.Tensor:
     if grid.shape[0] != b:
         raise ValueError(f"k2/k4 must have one value per image: {grid.shape[0]} for a batch of {b}")
     return sample(img, grid)
+
+
+def distortion_type(a: float, b: float) -> str | None:
+    """"barrel", "pincushion" or "mustache" of eq. 4 with normalised coefficients (a, b) = (k2 R^2, k4 R^4).
+
+    The ideal point lies at u_d (1 + a |u_d|^2 + b |u_d|^4): its radial offset, divided by
+    |u_d|^3, is a + b |u_d|^2, linear in |u_d|^2, so its sign over the frame (|u_d| in ]0, 1],
+    R the half diagonal) is that of a and of a + b. Outward (>= 0 everywhere) is **barrel**: the
+    lens drew every point nearer the centre than its ideal place; inward is **pincushion**; a
+    sign change inside the frame is **mustache**. None for a = b = 0 or non-finite input.
+
+    Example:
+        >>> distortion_type(0.1, 0.0), distortion_type(-0.05, 0.01), distortion_type(0.1, -0.3)
+        ('barrel', 'pincushion', 'mustache')
+    """
+    if not (math.isfinite(a) and math.isfinite(b)) or (a == 0 and b == 0):
+        return None
+    ends = (a, a + b)
+    if min(ends) >= 0:
+        return "barrel"
+    if max(ends) <= 0:
+        return "pincushion"
+    return "mustache"

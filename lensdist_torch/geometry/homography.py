@@ -1,4 +1,4 @@
-"""Homography helpers on (B, 3, 3) tensors: checks, the class-R perturbation, corner error.
+"""Homography helpers on (B, 3, 3) tensors: checks, the class-R perturbation, corner error, motion.
 
 The perturbation is that of docs/method.md, section 7.
 """
@@ -9,7 +9,7 @@ from typing import Sequence
 
 import torch
 
-__all__ = ["perturb_homography", "corner_error", "check_homography", "apply_homography"]
+__all__ = ["perturb_homography", "corner_error", "check_homography", "apply_homography", "mean_displacement"]
 
 
 def apply_homography(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
@@ -88,3 +88,34 @@ def corner_error(H_est: torch.Tensor, H_true: torch.Tensor, height: int, width: 
     pts = [[0, 0], [width - 1, 0], [width - 1, height - 1], [0, height - 1]]
     pts = torch.tensor(pts, dtype=torch.float64, device=a.device)
     return (apply_homography(a.double(), pts) - apply_homography(b.double(), pts)).norm(dim=-1).mean(1)
+
+
+def mean_displacement(H: torch.Tensor, height: int, width: int, step: int = 4) -> torch.Tensor:
+    """How far a pair moved: the mean of |H p - p| (px) over the frame, on a grid of every ``step`` px.
+
+    This is the motion that reveals a lens's distortion: both views carry the same distortion,
+    which cancels where a point did not move (docs/method.md, section 10). NaN where H is not
+    finite.
+
+    Args:
+        H: (B, 3, 3) or (3, 3) homographies img1 -> img2, in pixels of a height x width frame.
+        height: the frame's height (px).
+        width: the frame's width (px).
+        step: the grid's spacing (px).
+
+    Returns:
+        (B,) float64 (B = 1 for (3, 3)).
+
+    Example:
+        >>> H = torch.tensor([[1.0, 0, 3], [0, 1, 4], [0, 0, 1]])
+        >>> float(mean_displacement(H, 32, 32)[0])
+        5.0
+    """
+    hb = H[None] if isinstance(H, torch.Tensor) and H.dim() == 2 else H
+    if not isinstance(hb, torch.Tensor) or hb.dim() != 3 or hb.shape[1:] != (3, 3) or not hb.is_floating_point():
+        raise ValueError(f"H must be a float tensor of shape (3, 3) or (B, 3, 3), got {getattr(H, 'shape', type(H).__name__)}")
+    hb = hb.double()
+    ys = torch.arange(0, height, step, dtype=torch.float64, device=hb.device)
+    xs = torch.arange(0, width, step, dtype=torch.float64, device=hb.device)
+    pts = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+    return (apply_homography(hb, pts) - pts).norm(dim=-1).mean(1)

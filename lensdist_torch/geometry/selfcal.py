@@ -66,6 +66,7 @@ from lensdist_torch.config import SelfCalConfig
 from lensdist_torch.core.images import check_image_pair, to_grey
 from lensdist_torch.geometry.distortion import pixel_offsets
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid, normalizer
+from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import mean_pyramid
 from lensdist_torch.geometry.selfcal_model import (
@@ -104,7 +105,8 @@ class SelfCalInfo(NamedTuple):
     photometrically corrected residual at full resolution), overlap, ab (B, 2) the normalised
     coefficients, gain_bias (B, 2) the photometric gain and bias (1, 0 without that model),
     scale (the robust sigma, 1.4826 MAD, of the final residual), from_init (bool: the start
-    from ``init`` won) and relief (bool: the plane + parallax model's answer was kept).
+    from ``init`` won), relief (bool: the plane + parallax model's answer was kept) and motion
+    (the fitted H's mean displacement over the frame, px; NaN if not converged).
     """
 
     converged: torch.Tensor
@@ -119,6 +121,7 @@ class SelfCalInfo(NamedTuple):
     scale: torch.Tensor
     from_init: torch.Tensor
     relief: torch.Tensor
+    motion: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -414,11 +417,16 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     H = torch.where(ok[:, None, None], H / H[:, 2:, 2:], nan)
     d_avg = pixel_offsets(torch.nan_to_num(k2), torch.nan_to_num(k4), h0, w0, device=dev).flatten(1).mean(1)
     d_avg = torch.where(ok, d_avg, nan)
-    std = torch.where(ok, std, torch.full_like(std, float("inf")))
+    # what the covariance leaves out: a registration error of the order of the interpolation's,
+    # which the pair's motion m turns into a Delta error ~ 1 / m (the distortion cancels where the
+    # views did not move); fitted on rendered validation pairs (docs/method.md, section 10)
+    motion = mean_displacement(torch.where(ok[:, None, None], H, torch.eye(3, dtype=H.dtype, device=dev)), h0, w0)
+    floor = cfg.small_motion_error * r0**2 / motion.clamp_min(1e-3)  # 1e-3 px: no motion, no information
+    std = torch.where(ok, torch.sqrt(std**2 + floor**2), torch.full_like(std, float("inf")))
     conf = cfg.cannot_tell_std_px / (cfg.cannot_tell_std_px + std)
     gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)
     rms = torch.sqrt((st.res.double() ** 2).sum(1) / st.valid.sum(1).clamp_min(1)).float()
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
-                       st.sigma.double(), from_init, torch.zeros_like(ok))
+                       st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan))
     return theta, k2, k4, H, info

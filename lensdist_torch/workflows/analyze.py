@@ -5,7 +5,8 @@
 (:mod:`~lensdist_torch.workflows.evaluate`) all call it. Per pair it brings both images to the
 analysis size (centre crop to the aspect ratio, then area resampling), registers them with an
 estimated homography (:func:`~lensdist_torch.geometry.wide_baseline.estimate_homography_robust`:
-the direct registration, with a feature fallback for far-apart pairs), computes the quality map and asks one estimator for the distortion: the
+the direct registration, with a feature fallback for far-apart pairs; :mod:`.prepare`),
+computes the quality map and asks one estimator for the distortion: the
 self-calibration (default; started from the registration's H), the Delta regression, or the
 paper's eigen-space classifiers; then the decision of :mod:`~lensdist_torch.workflows.decision`
 (class or "cannot tell", calibrated confidence, domain checks). Offsets are reported in analysis
@@ -21,6 +22,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
+import math
 from importlib import resources
 from pathlib import Path
 
@@ -29,14 +31,12 @@ import torch
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
+from lensdist_torch.core.images import centre_crop_box
 from lensdist_torch.core.storage import CheckpointError, check_compatible
-from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, delta_avg, delta_max, estimated_class
-from lensdist_torch.geometry.registration import warp_to_reference
-from lensdist_torch.geometry.selfcal import estimate_distortion
-from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
-from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
-from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels, platt, texture_histogram
+from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, estimated_class
+from lensdist_torch.geometry.homography import check_homography
+from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels, platt
+from lensdist_torch.workflows.prepare import Prepared, prepare_batch, resolve_device
 
 __all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "Prepared", "default_checkpoint", "resolve_device", "METHODS"]
 
@@ -56,17 +56,6 @@ def default_checkpoint(name: str = "delta_avg") -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"shipped checkpoint {path} not found; pass checkpoint=PATH, e.g. one written by `lensdist reproduce`")
     return path
-
-
-def resolve_device(device=None) -> torch.device:
-    """``None`` -> the CPU; a name or torch.device, checked: a clear ValueError when CUDA is absent."""
-    dev = torch.device("cpu" if device is None else device)
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError(f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); use --device cpu")
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ValueError(f"device {str(dev)!r} asked for, but only {torch.cuda.device_count()} CUDA device(s) exist")
-    return dev
 
 
 def _file_key(path) -> tuple[str, int, int]:
@@ -138,125 +127,7 @@ def _on(model, device: torch.device):
     return moved
 
 
-def _as_images(img, name: str) -> list[torch.Tensor]:
-    """A path, a tensor (H, W), (C, H, W), (B, C, H, W), or a list of paths / tensors -> per pair (1, 1, H, W) grey."""
-    if isinstance(img, (list, tuple)):
-        return [x for i, one in enumerate(img) for x in _as_images(one, f"{name}[{i}]")]
-    if isinstance(img, (str, Path)):
-        return [load_image(img, grey=True)]
-    if isinstance(img, torch.Tensor) and img.dim() == 4:
-        check_image(img, name)
-        return [to_grey(x[None]).float() for x in img]
-    x = as_batch(img, name)
-    check_image(x, name)
-    return [to_grey(x).float()]
-
-
-@dataclasses.dataclass
-class Prepared:
-    """A batch brought to the analysis size and registered: what every method starts from.
-
-    img1, img2: (B, 1, h, w) on the analysis device; H: (B, 3, 3) float64 img1 -> img2;
-    registration_ok, residual, overlap: (B,); qmap: (B, 1, h/8, w/8); scale: user px per analysis
-    px; input_size: per pair (H, W). The self-calibration and the texture histograms are
-    computed once, on first use, and shared by every method run on this batch.
-    """
-
-    config: LensdistConfig
-    img1: torch.Tensor
-    img2: torch.Tensor
-    H: torch.Tensor
-    registration_ok: torch.Tensor
-    residual: torch.Tensor
-    overlap: torch.Tensor
-    qmap: torch.Tensor
-    scale: list
-    input_size: list
-    _selfcal: list | None = None
-    _texture: torch.Tensor | None = None
-
-    def selfcal(self) -> list[dict]:
-        """The self-calibration of every pair (started from the registration's H where it worked)."""
-        if self._selfcal is None:
-            self._selfcal = [_selfcal_one(self, i) for i in range(self.img1.shape[0])]
-        return self._selfcal
-
-    def texture(self) -> torch.Tensor:
-        """(B, n) gradient-magnitude histograms of both images together."""
-        if self._texture is None:
-            self._texture = 0.5 * (texture_histogram(self.img1) + texture_histogram(self.img2))
-        return self._texture
-
-
-def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=None, device=None) -> Prepared:
-    """Bring pairs to the analysis size, register them and compute their quality maps.
-
-    Args:
-        img1: as for :func:`analyze_batch`.
-        img2: as for :func:`analyze_batch`.
-        config: settings (analysis size, registration, quality); the defaults when None.
-        homography: optional (B, 3, 3) registrations img1 -> img2 at the analysis size, used
-            instead of estimating them (the pairs count as registered).
-        device: where the tensors go (default: the CPU).
-    """
-    cfg = config if config is not None else LensdistConfig()
-    dev = resolve_device(device)
-    ones, twos = _as_images(img1, "img1"), _as_images(img2, "img2")
-    if len(ones) != len(twos):
-        raise ValueError(f"img1 and img2 must hold as many images, got {len(ones)} and {len(twos)}")
-    h, w = cfg.image.size
-    a, b, scale, sizes = [], [], [], []
-    for x, y in zip(ones, twos):
-        if x.shape[-2:] != y.shape[-2:]:
-            raise ValueError(f"img1 and img2 must have the same size, got {tuple(x.shape[-2:])} and {tuple(y.shape[-2:])}")
-        oh, ow = x.shape[-2:]
-        scale.append(min(ow / w, oh / h))  # user px per analysis px (the crop keeps the aspect)
-        sizes.append([int(oh), int(ow)])
-        a.append(resize_to(x.to(dev), h, w).clamp(0, 1))
-        b.append(resize_to(y.to(dev), h, w).clamp(0, 1))
-    a, b = torch.cat(a), torch.cat(b)
-    n = a.shape[0]
-    if homography is None:
-        regs = [estimate_homography_robust(a[i : i + 1], b[i : i + 1], config=cfg.registration) for i in range(n)]
-        H = torch.cat([r[0] for r in regs]).double()
-        ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
-        residual = torch.cat([r[1].residual for r in regs]).float().cpu()
-    else:
-        H = torch.as_tensor(homography, dtype=torch.float64).to(dev)
-        if H.shape != (n, 3, 3):
-            raise ValueError(f"homography must be ({n}, 3, 3), got {tuple(H.shape)}")
-        ok, residual = torch.isfinite(H).all(dim=(1, 2)).cpu(), torch.full((n,), float("nan"))
-    finite = torch.isfinite(H).all(dim=(1, 2))[:, None, None]  # a missing registration warps by the identity
-    warped, valid = warp_to_reference(b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)))
-    qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality), cfg.quality)
-    overlap = valid.flatten(1).float().mean(1).cpu()
-    return Prepared(cfg, a, b, H, ok, residual, overlap, qmap, scale, sizes)
-
-
 # ------------------------------------------------------------------ the methods, one pair each
-def _selfcal_one(p: Prepared, i: int) -> dict:
-    """Self-calibration of pair i, started from the registration's H when it worked."""
-    cfg, sl = p.config, slice(i, i + 1)
-    init = p.H[sl] if bool(p.registration_ok[i]) else None
-    k2, k4, _, sc = estimate_distortion(p.img1[sl], p.img2[sl], init=init, config=cfg.selfcal)
-    if not bool(sc.converged[0]):  # flagged, never a number and never "R"
-        return {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None,
-                "raw_confidence": 0.0, "_diverged": True}
-    h, w = cfg.image.size
-    d_avg, d_max = delta_avg(k2, k4, h, w), delta_max(k2, k4, h, w)
-    return {
-        "estimated_class": CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])],
-        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
-        "delta_avg": float(d_avg[0]),
-        "delta_max": float(d_max[0]),
-        "raw_confidence": float(sc.confidence[0]),
-        "k2": float(k2[0]),
-        "k4": float(k4[0]),
-        "delta_avg_std": float(sc.delta_avg_std[0]),
-        "relief": bool(sc.relief[0]),  # the plane + parallax model's answer (selfcal.parallax)
-    }
-
-
 def _selfcal(p: Prepared, i: int, _models) -> dict:
     a = p.config.analysis
     res = dict(p.selfcal()[i])
@@ -391,15 +262,25 @@ def analyze_batch(
     for i in range(p.img1.shape[0]):
         res = {"method": method, "distances": [], "reject_threshold": None, "confidence": None}
         res.update(_RUN[method](p, i, models))
-        res.update(registration_ok=bool(p.registration_ok[i]), overlap=float(p.overlap[i]))
+        motion = float(p.motion[i])
+        res.update(registration_ok=bool(p.registration_ok[i]), overlap=float(p.overlap[i]),
+                   motion_px=motion if math.isfinite(motion) else None)
         if method != "selfcal":
             domain_checks(res, p.selfcal()[i] if cfg.analysis.cross_check else None,
                           p.texture()[i : i + 1] if extra.get("texture") else None, extra, cfg)
         decide(res, cfg)
-        s = p.scale[i]
+        s, (ih, iw) = p.scale[i], p.input_size[i]
+        box = centre_crop_box(ih, iw, h, w)
+        whole = box == (0, 0, ih, iw)
+        region = {m: None if res[m] is None else res[m] * s for m in METRICS}
         res.update(
-            delta_avg_user_px=None if res["delta_avg"] is None else res["delta_avg"] * s,
-            delta_max_user_px=None if res["delta_max"] is None else res["delta_max"] * s,
+            analysed_region_user_px=list(box),
+            delta_avg_region_user_px=region["delta_avg"],
+            delta_max_region_user_px=region["delta_max"],
+            # over the user's whole frame: the region's when it is the frame (the self-calibration
+            # extends its coefficients to the whole frame below)
+            delta_avg_user_px=region["delta_avg"] if whole else None,
+            delta_max_user_px=region["delta_max"] if whole else None,
             registration_residual=float(p.residual[i]),
             error_blocks=int((p.qmap[i] > 0).sum()),
             analysis_size=[h, w],
@@ -442,7 +323,15 @@ def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str =
         if isinstance(img, (list, tuple)) or (isinstance(img, torch.Tensor) and img.dim() == 4 and img.shape[0] != 1):
             raise ValueError(f"{name} must be one image (a path or an (H, W), (C, H, W), (1, C, H, W) tensor); use analyze_batch for more")
     models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
-    hom = None if homography is None else torch.as_tensor(homography, dtype=torch.float64).reshape(1, 3, 3)
+    hom = None
+    if homography is not None:
+        try:
+            hom = torch.as_tensor(homography, dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"homography must be a (3, 3) or (1, 3, 3) array of numbers, got {type(homography).__name__}") from None
+        if hom.shape not in ((3, 3), (1, 3, 3)):
+            raise ValueError(f"homography must have shape (3, 3) or (1, 3, 3), got {tuple(hom.shape)}")
+        hom = check_homography(hom.reshape(1, 3, 3), "homography")
     p = prepare_batch(img1, img2, cfg, hom, device)
     res = analyze_batch(None, None, method, cfg, checkpoint, checkpoint_max, prepared=p)[0]
     return (res, p.qmap) if return_map else res

@@ -27,7 +27,7 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.calibration import user_coefficients
-from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
+from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, delta_top
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.metric.criteria import local_criteria
 
@@ -229,8 +229,13 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
 def decide(res: dict, cfg: LensdistConfig) -> None:
     """Set ``warnings``, ``in_domain``, ``cannot_tell``, ``class`` and ``class_max`` of one result, in place.
 
-    ``estimated_class`` / ``estimated_class_max`` (the estimator's own answer) stay; ``class``
-    and ``class_max`` are None whenever the answer is "cannot tell".
+    "Cannot tell" where the confidence is low, there is no estimate, the pair is out of domain or
+    the views moved by less than ``analysis.min_motion_px`` (``motion_px``: the registration's
+    mean displacement; every method, since none can see a distortion that cancels). Then
+    ``class``, ``class_max``, ``delta_avg``, ``delta_max`` and ``distortion_type`` are None: no
+    number that reads as an answer. ``estimated_class``, ``estimated_class_max``,
+    ``estimated_delta_avg`` and ``estimated_delta_max`` keep the estimator's own output, for
+    evaluation. A Delta_avg beyond the classes' range is class 4 with a warning saying so.
     """
     a = cfg.analysis
     check = res.get("selfcal_check")
@@ -241,21 +246,45 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
     if not res["registration_ok"] or res.get("_diverged", False):  # no alignment, no estimate
         res.update(delta_avg=None, delta_max=None)
     res["warnings"] = _warnings(res, cfg)
+    motion = res.get("motion_px")
+    still = res["registration_ok"] and motion is not None and not motion >= a.min_motion_px
+    if still:
+        res["warnings"].append(
+            f"cannot tell from this pair: the views moved by {motion:.2f} px only (< {a.min_motion_px:g}); both carry "
+            "the same distortion, which cancels where the scene did not move"
+        )
     low = res["confidence"] is not None and res["confidence"] < a.min_confidence
     no_number = res["delta_avg"] is None and res["delta_max"] is None
-    unsure = low or no_number or not res["in_domain"]
+    unsure = low or no_number or still or not res["in_domain"]
     res["cannot_tell"] = bool(unsure)
     res["class"] = None if unsure else res["estimated_class"]
     res["class_max"] = None if unsure else res["estimated_class_max"]
+    # the estimator's own numbers stay, named as such; the answer's numbers only where there is one
+    res["estimated_delta_avg"], res["estimated_delta_max"] = res["delta_avg"], res["delta_max"]
+    if unsure:
+        res.update(delta_avg=None, delta_max=None, delta_avg_interval=None)
+    # barrel, pincushion or mustache: from the sign of eq. 4's offsets (the self-calibration only)
+    res["distortion_type"] = None if unsure or res["class"] == CLASS_LABELS[-1] else res.get("distortion_type")
+    if not unsure and res["delta_avg"] is not None and res["delta_avg"] > delta_top("delta_avg", cfg):
+        res["warnings"].append(
+            f"Delta_avg {res['delta_avg']:.1f} px is beyond the classes' range (class 4 ends at "
+            f"{delta_top('delta_avg', cfg):.1f} px at this size): class 4 here means 'at least class 4'"
+        )
 
 
 def in_user_pixels(res: dict, s: float, size) -> dict:
-    """Eq. 4's coefficients in the user's pixels, and their OpenCV camera; None without an estimate.
+    """Eq. 4's coefficients in the user's pixels, Delta over the user's whole frame, and the OpenCV camera.
 
     The analysis frame is a centred crop scaled by s: p_user - c_user = s (p - c), so
-    k2_user = k2 / s^2 and k4_user = k4 / s^4.
+    k2_user = k2 / s^2 and k4_user = k4 / s^4. ``delta_avg_user_px`` / ``delta_max_user_px``
+    are over the user's whole H x W frame (not only the analysed crop), sampled at the analysis
+    resolution: s times Delta of (k2, k4) on a round(H / s) x round(W / s) frame. All None
+    without an answer (``delta_avg`` None: no estimate, or "cannot tell").
     """
     if res.get("k2") is None or res["delta_avg"] is None:
-        return {"k2_user": None, "k4_user": None, "opencv": None}
+        return {"k2_user": None, "k4_user": None, "opencv": None, "delta_avg_user_px": None, "delta_max_user_px": None}
     k2_user, k4_user = user_coefficients(res["k2"], res["k4"], s)
-    return {"k2_user": k2_user, "k4_user": k4_user, "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1]))}
+    fh, fw = max(1, round(int(size[0]) / s)), max(1, round(int(size[1]) / s))
+    k2, k4 = torch.tensor([res["k2"]], dtype=torch.float64), torch.tensor([res["k4"]], dtype=torch.float64)
+    return {"k2_user": k2_user, "k4_user": k4_user, "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1])),
+            "delta_avg_user_px": float(delta_avg(k2, k4, fh, fw)[0]) * s, "delta_max_user_px": float(delta_max(k2, k4, fh, fw)[0]) * s}

@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.data.manifest import data_config_difference
 from lensdist_torch.data.shards import CLASS_KEYS, load_scenes
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
@@ -82,8 +83,19 @@ def fit_classifier(train: dict, config: LensdistConfig, n_eigenvectors: int | No
                    extra: dict | None = None) -> EigenSpaceClassifier:
     """Fit on a loaded training set. Pairs whose registration failed are left out of the fit.
 
+    ``config`` must agree with the config the set was generated with (``train["config"]``) on
+    every field that changes the pairs (the data fingerprint's: quality thresholds, image size,
+    distortion, protocol, registration); ValueError naming the first that differs. So the
+    checkpoint records the data's config there, and ``config``'s own classifier settings.
     ``extra`` (e.g. :func:`training_extra`) is kept as ``model.extra`` and saved with it.
     """
+    if "config" in train:
+        diff = data_config_difference(train["config"], config)
+        if diff:
+            raise ValueError(
+                f"the config differs from the one the training data was generated with on {diff}: the maps were made "
+                "with the data's; drop --config, change only its classifier settings, or generate data with it"
+            )
     c = config.classifier
     c = dataclasses.replace(
         c,
@@ -161,7 +173,8 @@ def figures_of(results: list[dict], test: dict, metric: str, config: LensdistCon
     """One metric's figures from analysis results of a test set's pairs (``cannot tell`` its own outcome)."""
     key = "class" if metric == "delta_avg" else "class_max"
     pred = torch.tensor([CANNOT_TELL if r[key] is None else CLASS_LABELS.index(r[key]) for r in results])
-    delta = torch.tensor([float("nan") if r[metric] is None else r[metric] for r in results], dtype=torch.float64)
+    est = f"estimated_{metric}"  # the estimator's own number, also where the answer is "cannot tell"
+    delta = torch.tensor([float("nan") if r[est] is None else r[est] for r in results], dtype=torch.float64)
     truth = test[CLASS_KEYS[metric]]
     ok = torch.tensor([r["registration_ok"] for r in results])
     fig = evaluate_predictions(pred, delta, truth, test[metric], delta_top(metric, config), ok, motion_groups(test))
@@ -169,7 +182,7 @@ def figures_of(results: list[dict], test: dict, metric: str, config: LensdistCon
     fig["per_pair"] = {
         "index": test["index"].tolist(),
         "class": [r[key] for r in results],
-        "delta": [r[metric] for r in results],
+        "delta": [r[est] for r in results],
         "confidence": [r["confidence"] for r in results],
     }
     return fig
@@ -218,7 +231,7 @@ def evaluate_selfcal(test: dict, config: LensdistConfig | None = None, scenes: l
     out = {}
     for m in ("delta_avg", "delta_max"):
         out[m] = {**figures_of(res, test, m, cfg), "method": "selfcal",
-                  "diverged": sum(bool(r["registration_ok"]) and r["delta_avg"] is None for r in res)}
+                  "diverged": sum(bool(r["registration_ok"]) and r["estimated_delta_avg"] is None for r in res)}
     return out
 
 
@@ -246,10 +259,10 @@ def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: s
     from lensdist_torch.geometry.distortion import estimated_class
     from lensdist_torch.workflows.decision import platt
 
-    keep = [i for i, r in enumerate(results) if r["in_domain"] and r["delta_avg"] is not None]
+    keep = [i for i, r in enumerate(results) if r["in_domain"] and r["estimated_delta_avg"] is not None]
     if not keep:
         return torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool)
-    d = torch.tensor([results[i]["delta_avg"] for i in keep], dtype=torch.float64)
+    d = torch.tensor([results[i]["estimated_delta_avg"] for i in keep], dtype=torch.float64)
     right = estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
     raw = torch.tensor([results[i]["raw_confidence"] for i in keep], dtype=torch.float64)
     if not calibrated:
@@ -262,8 +275,9 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     """The [analysis] values fitted on a validation split's analysis results.
 
     ``no_distortion_px``: the R threshold with the most right self-calibration classes (of a
-    log-spaced grid from 0.02 to 2 px; ties: the one nearest the current value); then, per
-    method in ``results`` (``selfcal``, ``regression``), the Platt map of its confidence.
+    log-spaced grid from 0.02 to 2 px; ties: the one nearest the current value); then the Platt
+    map of the regression's confidence (the self-calibration's is a probability already: its
+    map is the config's, the identity by default).
     """
     import math
 
@@ -281,7 +295,11 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     fitted = {"no_distortion_px": float(best)}
     cfg = dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, no_distortion_px=best))
     for method, (f_scale, f_shift) in _PLATT.items():
-        if method in results:
+        # the self-calibration's raw confidence is already a probability (its class's mass under
+        # N(estimate, std^2)); a map fitted on the protocol, whose pairs mostly move by tens of
+        # pixels, made pairs that moved by < 2 px claim 0.93 where 0.69 were right (docs/method.md,
+        # section 10): it stays the identity of the config unless the config sets one
+        if method in results and method != "selfcal":
             raw, right = _outcomes(results[method], data, cfg, method, False)
             fitted[f_scale], fitted[f_shift] = fit_platt(raw, right)
     return fitted

@@ -147,8 +147,11 @@ def test_calibration_is_fitted_on_a_validation_split(tiny_run):
     assert val["config"]["protocol"]["seed"] == cal["validation_seed"] != test_seed
     assert set(val["sets"]) == {"test"}
     fitted = cal["analysis"]
-    assert 0.02 <= fitted["no_distortion_px"] <= 2.0 and fitted["selfcal_confidence_scale"] > 0
+    assert 0.02 <= fitted["no_distortion_px"] <= 2.0 and fitted["regression_confidence_scale"] > 0
+    # the self-calibration's confidence is a probability already: no map is fitted for it
+    assert "selfcal_confidence_scale" not in fitted and "selfcal_confidence_shift" not in fitted
     cfg = load_config(out / "calibration.toml")
+    assert (cfg.analysis.selfcal_confidence_scale, cfg.analysis.selfcal_confidence_shift) == (1.0, 0.0)
     for key, value in fitted.items():
         assert getattr(cfg.analysis, key) == pytest.approx(value)
     assert cfg.image.size == (96, 128)

@@ -44,8 +44,11 @@ class TestAnalyze:
         assert r["class"] == "R" or (method != "selfcal" and r["class"] is None and r["estimated_class"] != "R")
         disagrees = r["class"] is None
         assert disagrees == any("self-calibration disagrees" in w for w in r["warnings"]) == (not r["in_domain"])
-        for key in ("delta_avg", "delta_max", "delta_avg_user_px", "overlap"):
+        # the numbers of an answer; "cannot tell" keeps only the estimator's own (estimated_*)
+        for key in ("estimated_delta_avg", "estimated_delta_max", "overlap", "motion_px"):
             assert isinstance(r[key], float)
+        for key in ("delta_avg", "delta_max", "delta_avg_user_px"):
+            assert isinstance(r[key], float) if r["class"] is not None else r[key] is None
         # eigen-space distances, per class, come with the eigen-space method only
         n_dist = 4 if method == "eigenspace" else 0
         assert len(r["distances"]) == n_dist and all(d >= 0 for d in r["distances"])
@@ -65,15 +68,18 @@ class TestAnalyze:
         r1 = analyze_pair(a, b, method="eigenspace")
         r2 = analyze_pair(a[None].expand(3, -1, -1), b[None, None], method="eigenspace")
         assert r1["class"] == r2["class"]
-        assert r1["delta_avg"] == pytest.approx(r2["delta_avg"], rel=1e-4)
+        assert r1["estimated_delta_avg"] == pytest.approx(r2["estimated_delta_avg"], rel=1e-4)
 
     def test_user_pixels_scale(self):
         s = load_scene("gravel")
         a = torch.nn.functional.interpolate(s[..., 0:320, 0:424], scale_factor=2.0, mode="bilinear")[0]
         b = torch.nn.functional.interpolate(s[..., 16:336, 2:426], scale_factor=2.0, mode="bilinear")[0]
-        r = analyze_pair(a, b, method="eigenspace")
-        assert r["input_size"] == [640, 848]
-        assert r["delta_avg_user_px"] == pytest.approx(2.0 * r["delta_avg"])
+        r = analyze_pair(a, b)
+        assert r["input_size"] == [640, 848] and r["class"] is not None
+        assert r["analysed_region_user_px"] == [0, 0, 640, 848]  # the same aspect: the whole frame
+        assert r["delta_avg_region_user_px"] == pytest.approx(2.0 * r["delta_avg"])
+        # over the whole frame from the coefficients, sampled at the analysis resolution
+        assert r["delta_avg_user_px"] == pytest.approx(2.0 * r["delta_avg"], rel=1e-6)
 
     def test_textureless_pair_warns(self):
         flat = torch.full((320, 424), 0.5)

@@ -1,0 +1,193 @@
+"""A batch of a user's pairs made ready for every analysis method: size, registration, quality map.
+
+:func:`prepare_batch` brings pairs to the analysis size (a centred crop, then area resampling),
+registers them, measures how far each moved (the registration's mean displacement) and computes
+their quality maps; :class:`Prepared` holds that, and computes on first use what several methods
+share: the self-calibration of each pair (with its 95 % interval) and the texture histograms.
+:func:`~lensdist_torch.workflows.analyze.analyze_batch` runs the methods on it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import torch
+
+from lensdist_torch.config import LensdistConfig
+from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
+from lensdist_torch.geometry.distortion import (
+    CLASS_LABELS,
+    class_bounds,
+    delta_avg,
+    delta_max,
+    distortion_type,
+    estimated_class,
+)
+from lensdist_torch.geometry.homography import mean_displacement
+from lensdist_torch.geometry.registration import warp_to_reference
+from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
+from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
+from lensdist_torch.workflows.decision import texture_histogram
+
+__all__ = ["Prepared", "prepare_batch", "resolve_device"]
+
+
+def resolve_device(device=None) -> torch.device:
+    """``None`` -> the CPU; a name or torch.device, checked: a clear ValueError when CUDA is absent."""
+    dev = torch.device("cpu" if device is None else device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device {str(dev)!r} asked for, but only {torch.cuda.device_count()} CUDA device(s) exist")
+    return dev
+
+
+
+
+def _as_images(img, name: str) -> list[torch.Tensor]:
+    """A path, a tensor (H, W), (C, H, W), (B, C, H, W), or a list of paths / tensors -> per pair (1, 1, H, W) grey."""
+    if isinstance(img, (list, tuple)):
+        return [x for i, one in enumerate(img) for x in _as_images(one, f"{name}[{i}]")]
+    if isinstance(img, (str, Path)):
+        return [load_image(img, grey=True)]
+    if isinstance(img, torch.Tensor) and img.dim() == 4:
+        check_image(img, name)
+        return [to_grey(x[None]).float() for x in img]
+    x = as_batch(img, name)
+    check_image(x, name)
+    return [to_grey(x).float()]
+
+
+@dataclasses.dataclass
+class Prepared:
+    """A batch brought to the analysis size and registered: what every method starts from.
+
+    img1, img2: (B, 1, h, w) on the analysis device; H: (B, 3, 3) float64 img1 -> img2;
+    registration_ok, residual, overlap: (B,); motion: (B,) the registration's mean displacement
+    (analysis px, NaN without one); qmap: (B, 1, h/8, w/8); scale: user px per analysis px;
+    input_size: per pair (H, W). The self-calibration and the texture histograms are
+    computed once, on first use, and shared by every method run on this batch.
+    """
+
+    config: LensdistConfig
+    img1: torch.Tensor
+    img2: torch.Tensor
+    H: torch.Tensor
+    registration_ok: torch.Tensor
+    residual: torch.Tensor
+    overlap: torch.Tensor
+    motion: torch.Tensor
+    qmap: torch.Tensor
+    scale: list
+    input_size: list
+    _selfcal: list | None = None
+    _texture: torch.Tensor | None = None
+
+    def selfcal(self) -> list[dict]:
+        """The self-calibration of every pair (started from the registration's H where it worked)."""
+        if self._selfcal is None:
+            self._selfcal = [_selfcal_one(self, i) for i in range(self.img1.shape[0])]
+        return self._selfcal
+
+    def texture(self) -> torch.Tensor:
+        """(B, n) gradient-magnitude histograms of both images together."""
+        if self._texture is None:
+            self._texture = 0.5 * (texture_histogram(self.img1) + texture_histogram(self.img2))
+        return self._texture
+
+
+def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=None, device=None) -> Prepared:
+    """Bring pairs to the analysis size, register them and compute their quality maps.
+
+    Args:
+        img1: as for :func:`analyze_batch`.
+        img2: as for :func:`analyze_batch`.
+        config: settings (analysis size, registration, quality); the defaults when None.
+        homography: optional (B, 3, 3) registrations img1 -> img2 at the analysis size, used
+            instead of estimating them (the pairs count as registered).
+        device: where the tensors go (default: the CPU).
+    """
+    cfg = config if config is not None else LensdistConfig()
+    dev = resolve_device(device)
+    ones, twos = _as_images(img1, "img1"), _as_images(img2, "img2")
+    if len(ones) != len(twos):
+        raise ValueError(f"img1 and img2 must hold as many images, got {len(ones)} and {len(twos)}")
+    h, w = cfg.image.size
+    a, b, scale, sizes = [], [], [], []
+    for x, y in zip(ones, twos):
+        if x.shape[-2:] != y.shape[-2:]:
+            raise ValueError(f"img1 and img2 must have the same size, got {tuple(x.shape[-2:])} and {tuple(y.shape[-2:])}")
+        oh, ow = x.shape[-2:]
+        scale.append(min(ow / w, oh / h))  # user px per analysis px (the crop keeps the aspect)
+        sizes.append([int(oh), int(ow)])
+        a.append(resize_to(x.to(dev), h, w).clamp(0, 1))
+        b.append(resize_to(y.to(dev), h, w).clamp(0, 1))
+    a, b = torch.cat(a), torch.cat(b)
+    n = a.shape[0]
+    if homography is None:
+        regs = [estimate_homography_robust(a[i : i + 1], b[i : i + 1], config=cfg.registration) for i in range(n)]
+        H = torch.cat([r[0] for r in regs]).double()
+        ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
+        residual = torch.cat([r[1].residual for r in regs]).float().cpu()
+    else:
+        H = torch.as_tensor(homography, dtype=torch.float64).to(dev)
+        if H.shape != (n, 3, 3):
+            raise ValueError(f"homography must be ({n}, 3, 3), got {tuple(H.shape)}")
+        ok, residual = torch.isfinite(H).all(dim=(1, 2)).cpu(), torch.full((n,), float("nan"))
+    finite = torch.isfinite(H).all(dim=(1, 2))[:, None, None]  # a missing registration warps by the identity
+    warped, valid = warp_to_reference(b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)))
+    qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality), cfg.quality)
+    overlap = valid.flatten(1).float().mean(1).cpu()
+    motion = mean_displacement(H, h, w).cpu()
+    return Prepared(cfg, a, b, H, ok, residual, overlap, motion, qmap, scale, sizes)
+
+
+def _selfcal_one(p: Prepared, i: int) -> dict:
+    """Self-calibration of pair i, started from the registration's H when it worked."""
+    cfg, sl = p.config, slice(i, i + 1)
+    init = p.H[sl] if bool(p.registration_ok[i]) else None
+    k2, k4, _, sc = estimate_distortion(p.img1[sl], p.img2[sl], init=init, config=cfg.selfcal)
+    if not bool(sc.converged[0]):  # flagged, never a number and never "R"
+        return {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None,
+                "raw_confidence": 0.0, "_diverged": True}
+    h, w = cfg.image.size
+    d_avg, d_max = delta_avg(k2, k4, h, w), delta_max(k2, k4, h, w)
+    label = CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])]
+    return {
+        "estimated_class": label,
+        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
+        "delta_avg": float(d_avg[0]),
+        "delta_max": float(d_max[0]),
+        "raw_confidence": _class_mass(float(d_avg[0]), float(sc.delta_avg_std[0]), label, cfg),
+        "k2": float(k2[0]),
+        "k4": float(k4[0]),
+        "delta_avg_std": float(sc.delta_avg_std[0]),
+        "delta_avg_interval": _interval(float(d_avg[0]), float(sc.delta_avg_std[0]), cfg.analysis.interval_confidence),
+        "relief": bool(sc.relief[0]),  # the plane + parallax model's answer (selfcal.parallax)
+        "distortion_type": distortion_type(float(sc.ab[0, 0]), float(sc.ab[0, 1])),
+    }
+
+
+def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:
+    """P(Delta_avg in the class ``label``'s bin) under N(d, std^2): the raw confidence of a class.
+
+    Near a class boundary the class is a coin toss however small the std; the Platt map of
+    ``analysis`` (fitted on validation pairs) calibrates it as P(class right).
+    """
+    if not math.isfinite(std) or std <= 0:
+        return 0.0 if not math.isfinite(std) else 1.0
+    lo, hi = class_bounds(label, "delta_avg", cfg)
+    cdf = torch.special.ndtr(torch.tensor([(lo - d) / std, (hi - d) / std], dtype=torch.float64))
+    return float((cdf[1] - cdf[0]).clamp(1e-9, 1 - 1e-9))
+
+
+def _interval(d: float, std: float, coverage: float) -> list[float] | None:
+    """[max(0, d - z std), d + z std], z the normal quantile of ``coverage``; None if std is not finite."""
+    if not math.isfinite(std):
+        return None
+    z = float(torch.special.ndtri(torch.tensor(0.5 + coverage / 2, dtype=torch.float64)))
+    return [max(0.0, d - z * std), d + z * std]
