@@ -276,12 +276,13 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
 
     ``no_distortion_px``: the R threshold with the most right self-calibration classes (of a
     log-spaced grid from 0.02 to 2 px; ties: the one nearest the current value); then the Platt
-    map of the regression's confidence (the self-calibration's is a probability already: its
-    map is the config's, the identity by default).
+    map of the regression's confidence, kept only where it lowers the split's ECE below the
+    config's map (else the config's stays). The self-calibration's confidence is a probability
+    already: its map is the config's, the identity by default.
     """
     import math
 
-    from lensdist_torch.workflows.decision import fit_platt
+    from lensdist_torch.workflows.decision import expected_calibration_error, fit_platt, platt
 
     grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
                   | {config.analysis.no_distortion_px})
@@ -301,7 +302,12 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
         # section 10): it stays the identity of the config unless the config sets one
         if method in results and method != "selfcal":
             raw, right = _outcomes(results[method], data, cfg, method, False)
-            fitted[f_scale], fitted[f_shift] = fit_platt(raw, right)
+            new, old = fit_platt(raw, right), (getattr(config.analysis, f_scale), getattr(config.analysis, f_shift))
+            # a refit must earn its place: on a small split (--quick) it can fall back to the
+            # identity and double the ECE of the map it replaces; then the config's map stays
+            if expected_calibration_error(platt(raw, *new), right) >= expected_calibration_error(platt(raw, *old), right):
+                new = old
+            fitted[f_scale], fitted[f_shift] = new
     return fitted
 
 
