@@ -20,7 +20,7 @@ from pathlib import Path
 
 from lensdist_torch import cli_support as argtypes
 from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
-from lensdist_torch.core.outputs import check_output_dir, check_output_file, refuse_inputs
+from lensdist_torch.core.outputs import check_output_dir, check_output_file, refuse_inputs, refuse_inside
 
 __all__ = ["main", "build_parser"]
 
@@ -124,7 +124,8 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    out = check_output_file(args.out, "--out", (".pt",))
+    out = check_output_file(args.out, "--out", (".pt",), inputs={"--config": args.config, "--data": args.data})
+    refuse_inside(out, "--out", args.data, "--data")
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import load_set
     from lensdist_torch.workflows.evaluate import fit_classifier
@@ -349,7 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
                 "lensdist train --data data/paper --out ckpt/eigenspace_avg_10ev.pt --metric delta_avg --eigenvectors 10",
                 _cmd_train, "print the summary as one JSON object")
     p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
-    p.add_argument("--out", required=True, help="checkpoint file path, ending in .pt (not a folder)")
+    p.add_argument("--out", required=True, help="checkpoint file path, ending in .pt (not a folder), outside the --data folder")
     p.add_argument("--metric", choices=["delta_avg", "delta_max"], default=None, help="Delta metric (default: the config's)")
     p.add_argument("--eigenvectors", type=argtypes.positive_int, default=None, help="eigenvectors per class (paper: 5 or 10; default: the config's)")
     p.add_argument("--config", default=None, help="TOML config (default: the data set's own)")

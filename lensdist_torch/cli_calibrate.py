@@ -109,13 +109,13 @@ def add_calibrate_commands(subparsers) -> None:
                     "nearest edge, an OUT that is the input folder or would overwrite an input, and existing files "
                     "of the names it writes unless --overwrite.")
     p.add_argument("path", help="folder of frames or a video file")
-    p.add_argument("--k2", type=float, default=None, help="eq. 4's k2 in the frames' pixels")
-    p.add_argument("--k4", type=float, default=None, help="eq. 4's k4 in the frames' pixels")
+    p.add_argument("--k2", type=argtypes.finite_float, default=None, help="eq. 4's k2 in the frames' pixels")
+    p.add_argument("--k4", type=argtypes.finite_float, default=None, help="eq. 4's k4 in the frames' pixels")
     p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
     p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing files of the names it writes in --out (never an input)")
-    p.add_argument("--max-frames", type=int, default=None, help="at most this many frames")
+    p.add_argument("--max-frames", type=argtypes.positive_int, default=None, help="at most this many frames (default: all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--device", type=argtypes.device, default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N")
     p.set_defaults(func=_cmd_undistort)

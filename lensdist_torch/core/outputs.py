@@ -3,8 +3,8 @@
 The one place that refuses an output path: a directory where a file is wanted, a device, an
 unwritable folder, and an output that is one of the command's own inputs (the same file by
 resolved path or ``os.path.samefile``: symlinks and hard links included), so that nothing a
-command reads is overwritten. Only the standard library: the command line imports this before
-torch.
+command reads is overwritten, and an output inside an input folder (a data set gets no foreign
+files). Only the standard library: the command line imports this before torch.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 #: The command's inputs by the option that names them (a path, a list of paths, or None).
 Inputs = Mapping[str, "str | os.PathLike | Iterable[str | os.PathLike] | None"]
 
-__all__ = ["check_output_file", "check_output_dir", "refuse_inputs"]
+__all__ = ["check_output_file", "check_output_dir", "refuse_inputs", "refuse_inside"]
 
 
 def check_output_file(
@@ -81,6 +81,26 @@ def refuse_inputs(path: str | Path, option: str, inputs: Inputs | None, written:
             if v is not None and _same_path(out, Path(v)):
                 what = f"{option} would overwrite {out}, which is" if written else f"{option} {os.fspath(path)} is"
                 raise ValueError(f"{what} the input {name} {os.fspath(v)}: refusing to overwrite an input, give another path")
+
+
+def refuse_inside(path: str | Path, option: str, folder: str | os.PathLike | None, folder_option: str) -> None:
+    """Refuse (ValueError) an output ``path`` inside the input folder ``folder`` (a data set gets no foreign files).
+
+    Inside: below the folder once both are resolved (symlinks followed), or, where ``path``
+    exists, the same file as one in the folder (a hard link).
+    """
+    if folder is None:
+        return
+    out, top = Path(path), Path(folder)
+    try:
+        inside = top.resolve() in out.resolve().parents
+    except (OSError, RuntimeError):  # a symlink loop: not provably inside
+        inside = False
+    if not inside and out.is_file() and top.is_dir():
+        inside = any(_same_path(out, f) for f in top.rglob("*") if f.is_file())
+    if inside:
+        raise ValueError(f"{option} {os.fspath(path)} is inside the input {folder_option} folder {os.fspath(folder)}: "
+                         "refusing to write there (a data set gets no foreign files), give a path outside it")
 
 
 def _same_path(a: Path, b: Path) -> bool:

@@ -1,5 +1,6 @@
 """`lensdist` against hostile command lines (issue 19): devices, negative numbers in scientific
-notation, stdout that cannot be written, outputs that name an input, numbers out of range.
+notation, stdout that cannot be written, outputs that name an input or lie in an input folder,
+numbers out of range.
 In-process through ``main([...])``; a subprocess only for a stdout closed at start."""
 
 from __future__ import annotations
@@ -241,6 +242,71 @@ def test_calibrate_out_is_the_input_folder(capsys, tmp_path):
     frames.mkdir()
     one_error(capsys, "calibrate", frames, "--out", frames, match=("--out", "the input path"))
     assert list(frames.iterdir()) == []
+
+
+@pytest.fixture
+def data_folder(tmp_path) -> Path:
+    """A folder laid out as `lensdist generate` writes one (contents never read: the refusal comes first)."""
+    data = tmp_path / "mid"
+    (data / "train").mkdir(parents=True)
+    (data / "manifest.json").write_text("{}")
+    (data / "train" / "shard-00000.pt").write_bytes(b"shard bytes")
+    return data
+
+
+def _tree(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_train_out_inside_the_data_folder(capsys, monkeypatch, data_folder, tmp_path):
+    """`train --out` in the --data folder (a shard, the manifest, a new file, a new subfolder, the
+    folder's own name through `..` or a symlinked alias): one line naming --out, before any fitting."""
+    import lensdist_torch.data.shards as shards
+
+    monkeypatch.setattr(shards, "load_set", lambda *a, **k: pytest.fail("train read its data before refusing --out"))
+    before = _tree(data_folder)
+    alias = tmp_path / "alias"
+    alias.symlink_to(data_folder, target_is_directory=True)
+    link = tmp_path / "link.pt"
+    link.symlink_to(data_folder / "train" / "shard-00000.pt")
+    hard = tmp_path / "hard.pt"
+    os.link(data_folder / "train" / "shard-00000.pt", hard)
+    targets = [data_folder / "train" / "shard-00000.pt", data_folder / "new.pt", data_folder / "sub" / "new.pt",
+               data_folder / "train" / ".." / "x.pt", alias / "x.pt", link, hard]
+    for out in targets:
+        one_error(capsys, "train", "--data", data_folder, "--out", out,
+                  match=(f"--out {out} is inside the input --data folder {data_folder}", "refusing to write there"))
+    assert _tree(data_folder) == before and link.is_symlink() and hard.read_bytes() == b"shard bytes"
+
+
+def test_train_out_is_its_config(capsys, monkeypatch, data_folder, tmp_path):
+    import lensdist_torch.data.shards as shards
+
+    monkeypatch.setattr(shards, "load_set", lambda *a, **k: pytest.fail("train read its data before refusing --out"))
+    cfg = tmp_path / "cfg.pt"  # a TOML file with a checkpoint's suffix
+    cfg.write_text("[quality]\ntheta_e = 0.5\n")
+    sym = tmp_path / "sym.pt"
+    sym.symlink_to(cfg)
+    for out in (cfg, sym):
+        one_error(capsys, "train", "--data", data_folder, "--config", cfg, "--out", out,
+                  match=(f"--out {out} is the input --config", "refusing to overwrite an input"))
+    assert cfg.read_text() == "[quality]\ntheta_e = 0.5\n"
+    one_error(capsys, "train", "--data", data_folder, "--out", data_folder, match=("--out must be a file path", "directory"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cfg.pt", "mid", "sym.pt"]
+
+
+def test_refuse_inside_api(tmp_path):
+    from lensdist_torch.core.outputs import refuse_inside
+
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "a.pt").write_bytes(b"x")
+    for out in (data / "a.pt", data / "b.pt", data / "s" / "b.pt", tmp_path / "." / "data" / "b.pt"):
+        with pytest.raises(ValueError, match="^--out .* is inside the input --data folder"):
+            refuse_inside(out, "--out", data, "--data")
+    # outside: a sibling whose name starts with the folder's, the parent, no folder given
+    for out, folder in ((tmp_path / "data2" / "b.pt", data), (tmp_path / "b.pt", data), (data / "b.pt", None)):
+        refuse_inside(out, "--out", folder, "--data")
 
 
 def test_refuse_inputs_api(tmp_path):

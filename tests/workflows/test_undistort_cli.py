@@ -186,6 +186,44 @@ def test_coefficients_given_in_python_are_real_numbers(tmp_path, k2, k4):
     assert "\n" not in str(err.value) and not (tmp_path / "out").exists()
 
 
+@pytest.mark.bad_input
+@pytest.mark.parametrize(
+    "option,value,wants",
+    [
+        ("--k2", "nan", "a finite number"),  # before: a one-line error from the workflow, not the option's
+        ("--k2", "inf", "a finite number"),
+        ("--k2", "-inf", "a finite number"),
+        ("--k4", "NaN", "a finite number"),
+        ("--k4", "Infinity", "a finite number"),
+        ("--k4", "1e400", "a finite number"),
+        ("--k2", "abc", "a finite number"),
+        ("--max-frames", "0", "a positive integer"),  # before: "max_frames must be a positive int or None"
+        ("--max-frames", "-3", "a positive integer"),
+        ("--max-frames", "2.5", "a positive integer"),
+    ],
+)
+def test_numeric_options_are_refused_by_their_type(tmp_path, capsys, option, value, wants):
+    """Every numeric option of undistort refuses nan, inf, 0 and negatives where they mean nothing:
+    argparse's one line naming the option and the value, before anything is read or written."""
+    folder = _frames(tmp_path / "frames")
+    frames = {p.name: p.read_bytes() for p in folder.iterdir()}
+    values = {"--k2": "1e-6", "--k4": "0", "--max-frames": "1", option: value}
+    argv = [a for name, v in values.items() for a in (name, v)]
+    code, _, err = _run(capsys, folder, *argv, "--out", tmp_path / "out")
+    _one_line_usage_error(code, err)
+    assert err.startswith(f"lensdist undistort: error: argument {option}: expected {wants}, got {value!r}"), err
+    assert not (tmp_path / "out").exists() and {p.name: p.read_bytes() for p in folder.iterdir()} == frames
+
+
+@pytest.mark.bad_input
+def test_negative_coefficients_and_counts_that_mean_something_still_parse():
+    from lensdist_torch.cli import build_parser
+
+    args = build_parser().parse_args(["undistort", "f", "--k2", "-1e-7", "--k4", "-0", "--max-frames", "1", "--out", "o"])
+    assert (args.k2, args.k4, args.max_frames) == (-1e-7, 0.0, 1)
+    assert build_parser().parse_args(["undistort", "f", "--k2", "0", "--k4", "0", "--out", "o"]).max_frames is None
+
+
 # ------------------------------------------------------------------ 5. nothing destroyed
 @pytest.mark.bad_input
 def test_an_existing_file_of_an_output_name_is_not_overwritten(tmp_path, capsys):
