@@ -317,6 +317,10 @@ class CalibrationConfig:
         min_pairs: fewer usable pairs give no class ("cannot tell").
         max_class_halfwidth_px: an interval half-width of Delta_avg above this, at the paper's
             320 x 424 frame, gives no class (a class bin is 3.6 px wide there).
+        verify_pairs: an answer with a distortion class is verified on this many of the
+            sequence's pairs: registered again after undistorting with it, the share of
+            registration-error blocks (the paper's metric) must fall, else no class
+            (``workflows/verify.py``); 0: no verification.
     """
 
     analysis_side: int = 512
@@ -331,8 +335,11 @@ class CalibrationConfig:
     confidence: float = 0.95
     min_pairs: int = 4
     max_class_halfwidth_px: float = 1.0
+    verify_pairs: int = 6
 
     def __post_init__(self) -> None:
+        if type(self.verify_pairs) is not int or self.verify_pairs < 0:
+            raise ValueError(f"verify_pairs must be an int >= 0, got {self.verify_pairs!r}")
         for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
             v, least = getattr(self, name), {"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1)
             if type(v) is not int or v < least:

@@ -34,6 +34,7 @@ from lensdist_torch.geometry.calibration import (
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.workflows.multiview import combine, multiview_path
+from lensdist_torch.workflows.verify import verify_undistortion
 
 METHODS = ("auto", "multiview", "direct")
 
@@ -200,13 +201,38 @@ def calibrate_path(
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
-    if method == "direct":
-        return _finite(combine(out, None))
     st = settings or LensdistConfig()
-    mv = multiview_path(path, size, st.multiview, st, max_frames)
-    if method == "multiview" and not mv["ok"]:
-        raise ValueError(mv["reason"])
-    return _finite(combine(out, mv))
+    mv = None
+    if method != "direct":
+        mv = multiview_path(path, size, st.multiview, st, max_frames)
+        if method == "multiview" and not mv["ok"]:
+            raise ValueError(mv["reason"])
+    return _finite(_verified(combine(out, mv), torch.cat(frames), cal, cfg, st))
+
+
+def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: LensdistConfig) -> dict:
+    """The answer, its class withheld where undistorting with it does not lower the registration errors.
+
+    Adds ``verification`` (:func:`~lensdist_torch.workflows.verify.verify_undistortion`'s dict,
+    or None where there is no distortion class to verify).
+    """
+    res["verification"] = None
+    if cfg.verify_pairs == 0 or res["class"] in (None, "R") or res.get("k2_user") is None:
+        return res
+    pairs = cal.pairs[cal.pair_used] if bool(cal.pair_used.any()) else cal.pairs
+    if len(pairs) == 0:  # the direct path chose none (the multi-view path answered): far-apart frames
+        n = len(frames)
+        pairs = torch.stack([torch.arange(n - n // 2), torch.arange(n // 2, n)], 1)
+    s = res["scale"]
+    check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, st, cfg.verify_pairs)
+    res["verification"] = check
+    before, after = check["error_share_before"], check["error_share_after"]
+    if after is None or before is None or not after < before:
+        shares = "no pair could be registered after it" if after is None else (
+            f"{100 * before:.1f} % of the blocks before, {100 * after:.1f} % after")
+        res.update({"class": None, "reason": "undistorting the frames with the estimate does not lower their "
+                    f"registration errors (the paper's metric over {check['pairs']} pairs: {shares})"})
+    return res
 
 
 # ------------------------------------------------------------------ synthetic sequences

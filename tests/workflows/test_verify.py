@@ -1,0 +1,66 @@
+"""The paper's metric as the verifier of a calibration (issue 18, item 5)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from lensdist_torch.config import CalibrationConfig, LensdistConfig
+from lensdist_torch.workflows.calibrate import _verified, synthetic_sequence
+from lensdist_torch.workflows.verify import error_blocks, verify_undistortion
+
+K2 = 2e-6  # at 160 x 212: Delta_avg ~ 2 px
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return synthetic_sequence(6, K2, 0.0, size=(160, 212), step_px=(20, 24))[0]
+
+
+PAIRS = torch.tensor([[0, 3], [1, 4], [2, 5]])
+
+
+def test_identical_views_have_no_error_block():
+    img = synthetic_sequence(1, 0.0, 0.0, size=(64, 96))[0]
+    ones = torch.ones_like(img)
+    errors, counted, ok = error_blocks(img, img.clone(), ones, ones, LensdistConfig())
+    assert ok and errors == 0 and counted == 8 * 12  # every 8 x 8 block of the 64 x 96 frame
+
+
+def test_the_true_coefficients_lower_the_errors_most(frames):
+    shares = {k: verify_undistortion(frames, PAIRS, k, 0.0)["error_share_after"] for k in (0.0, K2 / 2, K2, 2 * K2)}
+    before = verify_undistortion(frames, PAIRS, K2, 0.0)["error_share_before"]
+    assert shares[0.0] == pytest.approx(before)  # no correction, the same registration
+    assert shares[K2] < 0.5 * before  # the truth removes most of them
+    assert shares[K2] < shares[K2 / 2] < before and shares[K2] < shares[2 * K2]
+
+
+def test_at_most_max_pairs_evenly_spread(frames):
+    out = verify_undistortion(frames, torch.tensor([[0, 1], [1, 2], [2, 3], [3, 4], [4, 5]]), K2, 0.0, max_pairs=2)
+    assert out["pairs"] == 2 and out["registered_before"] == out["registered_after"] == 2
+
+
+def _answer(k2):
+    return {"class": "1", "reason": None, "k2_user": k2, "k4_user": 0.0, "scale": 1.0}
+
+
+def test_a_class_is_withheld_when_the_correction_does_not_help(frames):
+    cal = SimpleNamespace(pairs=PAIRS, pair_used=torch.ones(3, dtype=torch.bool))
+    cfg, st = CalibrationConfig(), LensdistConfig()
+    right = _verified(_answer(K2), frames, cal, cfg, st)
+    assert right["class"] == "1" and right["verification"]["error_share_after"] < right["verification"]["error_share_before"]
+    wrong = _verified(_answer(-K2), frames, cal, cfg, st)  # pincushion for a barrel lens: more errors
+    assert wrong["class"] is None and "does not lower their registration errors" in wrong["reason"]
+    # nothing to verify: no class, class R, or verification off
+    assert _verified({**_answer(K2), "class": "R"}, frames, cal, cfg, st)["verification"] is None
+    off = _verified(_answer(-K2), frames, cal, CalibrationConfig(verify_pairs=0), st)
+    assert off["class"] == "1" and off["verification"] is None
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("bad", [-1, 1.5, "6", True])
+def test_verify_pairs_is_checked(bad):
+    with pytest.raises(ValueError, match="verify_pairs"):
+        CalibrationConfig(verify_pairs=bad)
