@@ -173,16 +173,18 @@ def _selfcal_one(p: Prepared, i: int) -> dict:
 
 
 def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:
-    """P(Delta_avg in the class ``label``'s bin) under N(d, std^2): the raw confidence of a class.
+    """P(|D| in the class ``label``'s bin) for D ~ N(d, std^2): the raw confidence of a class.
 
-    Near a class boundary the class is a coin toss however small the std; the Platt map of
-    ``analysis`` (fitted on validation pairs) calibrates it as P(class right).
+    Delta_avg is the size of a signed offset (barrel or pincushion), so its distribution is the
+    folded normal: an estimate near 0 with a std of 0.2 px is R (|D| < 0.25 px) on both sides.
+    Near a class boundary the class is a coin toss however small the std.
     """
     if not math.isfinite(std) or std <= 0:
         return 0.0 if not math.isfinite(std) else 1.0
     lo, hi = class_bounds(label, "delta_avg", cfg)
-    cdf = torch.special.ndtr(torch.tensor([(lo - d) / std, (hi - d) / std], dtype=torch.float64))
-    return float((cdf[1] - cdf[0]).clamp(1e-9, 1 - 1e-9))
+    z = torch.tensor([hi - d, lo - d, -lo - d, -hi - d], dtype=torch.float64) / std
+    cdf = torch.special.ndtr(z)
+    return float((cdf[0] - cdf[1] + cdf[2] - cdf[3]).clamp(1e-9, 1 - 1e-9))
 
 
 def _interval(d: float, std: float, coverage: float) -> list[float] | None:
