@@ -235,7 +235,7 @@ def _cmd_analyze(args: argparse.Namespace) -> int:
 
 def _print_analysis(res: dict) -> None:
     print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
-    conf = "" if res["confidence"] is None else f", confidence {res['confidence']:.2f}"
+    conf = "" if res["confidence"] is None or res["class"] is None else f", confidence {res['confidence']:.2f}"
     print(f"method: {res['method']}{conf}" + (f"; fitted on: {', '.join(res['fitted_on'])}" if res.get("fitted_on") else ""))
     if res["class"] is None:
         print("distortion class: cannot tell (see the warnings)")

@@ -28,17 +28,19 @@ def _print_calibration(res: dict) -> None:
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")
         return
-    print(f"eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}")
-    for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
-        print(f"Delta_{name} = {d:.2f} px" + ("" if a is None else f" (95 % interval {a:.2f} to {b:.2f})"))
     print(f"distortion class: {res['class'] or 'cannot tell (' + res['reason'] + ')'}  (1 = small ... 4 = very strong, "
           "R = none visible)")
+    # where it cannot tell, the numbers are the estimate that could not be trusted, and say so
+    tag = "" if res["class"] is not None else "estimate, not an answer: "
+    print(f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}")
+    for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
+        print(f"{tag}Delta_{name} = {d:.2f} px" + ("" if a is None else f" (95 % interval {a:.2f} to {b:.2f})"))
     if res.get("eq4_fit_error_px") is not None:
         print(f"Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where the lens model inverts; eq. 4 "
               f"follows it to {res['eq4_fit_error_px']:.2f} px RMS")
     cv = res["opencv"] or res["opencv_rational"]
     k = cv["camera_matrix"]
-    print(f"OpenCV: fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
+    print(f"{tag}OpenCV: fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
           f"[{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error {cv['fit_error_mean_px']:.3f} px "
           f"mean, {cv['fit_error_max_px']:.3f} px max)")
 

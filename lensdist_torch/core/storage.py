@@ -158,7 +158,7 @@ def check_replaceable(path: str | Path, kind: str) -> None:
         old = None
     if not (isinstance(old, dict) and old.get("kind") == kind):
         raise FileExistsError(
-            f"refusing to overwrite {path}: it is not a lensdist {kind} file (delete it first or choose another path)"
+            f"refusing to overwrite {path}: it is not a {kind} checkpoint (delete it first or choose another path)"
         )
 
 

@@ -329,6 +329,8 @@ def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str =
             hom = torch.as_tensor(homography, dtype=torch.float64)
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"homography must be a (3, 3) or (1, 3, 3) array of numbers, got {type(homography).__name__}") from None
+        if hom.device.type == "meta":
+            raise ValueError("homography is on the meta device (a shape, no values): give a (3, 3) matrix")
         if hom.shape not in ((3, 3), (1, 3, 3)):
             raise ValueError(f"homography must have shape (3, 3) or (1, 3, 3), got {tuple(hom.shape)}")
         hom = check_homography(hom.reshape(1, 3, 3), "homography")

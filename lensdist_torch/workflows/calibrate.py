@@ -213,8 +213,11 @@ def calibrate_path(
 def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: LensdistConfig) -> dict:
     """The answer, its class withheld where undistorting with it does not lower the registration errors.
 
-    Adds ``verification`` (:func:`~lensdist_torch.workflows.verify.verify_undistortion`'s dict,
-    or None where there is no distortion class to verify).
+    Adds ``verification`` (:func:`~lensdist_torch.workflows.verify.verify_undistortion`'s dict
+    with a ``verdict``: "lowered", "not lowered" (the class is withheld: a lower share of error
+    blocks, or fewer pairs registered, after the correction) or "not measurable" (no pair
+    registered both times: far-apart views; the class stands, unverified); None where there is
+    no distortion class to verify).
     """
     res["verification"] = None
     if cfg.verify_pairs == 0 or res["class"] in (None, "R") or res.get("k2_user") is None:
@@ -225,11 +228,17 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
         pairs = torch.stack([torch.arange(n - n // 2), torch.arange(n // 2, n)], 1)
     s = res["scale"]
     check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, st, cfg.verify_pairs)
-    res["verification"] = check
     before, after = check["error_share_before"], check["error_share_after"]
-    if after is None or before is None or not after < before:
-        shares = "no pair could be registered after it" if after is None else (
-            f"{100 * before:.1f} % of the blocks before, {100 * after:.1f} % after")
+    if before is not None:  # pairs registered both times: the shares decide
+        check["verdict"] = "lowered" if after < before else "not lowered"
+        shares = f"{100 * before:.1f} % of the blocks before, {100 * after:.1f} % after"
+    elif check["registered_before"] > check["registered_after"]:  # the correction broke registrations
+        check["verdict"], shares = "not lowered", (f"{check['registered_before']} pairs registered before, "
+                                                   f"{check['registered_after']} after")
+    else:  # nothing to compare (far-apart views no homography relates): not verified, not refuted
+        check["verdict"] = "not measurable"
+    res["verification"] = check
+    if check["verdict"] == "not lowered":
         res.update({"class": None, "reason": "undistorting the frames with the estimate does not lower their "
                     f"registration errors (the paper's metric over {check['pairs']} pairs: {shares})"})
     return res

@@ -37,7 +37,12 @@ __all__ = ["Prepared", "prepare_batch", "resolve_device"]
 
 def resolve_device(device=None) -> torch.device:
     """``None`` -> the CPU; a name or torch.device, checked: a clear ValueError when CUDA is absent."""
-    dev = torch.device("cpu" if device is None else device)
+    try:
+        dev = torch.device("cpu" if device is None else device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); use --device cpu")
@@ -54,6 +59,8 @@ def _as_images(img, name: str) -> list[torch.Tensor]:
         return [x for i, one in enumerate(img) for x in _as_images(one, f"{name}[{i}]")]
     if isinstance(img, (str, Path)):
         return [load_image(img, grey=True)]
+    if isinstance(img, torch.Tensor) and img.device.type == "meta":
+        raise ValueError(f"{name} is on the meta device (a shape, no values): give an image")
     if isinstance(img, torch.Tensor) and img.dim() == 4:
         check_image(img, name)
         return [to_grey(x[None]).float() for x in img]

@@ -129,7 +129,11 @@ def _calibration(src: Path) -> tuple[float | None, float | None, int, int, str]:
     if (k2 is None) != (k4 is None):
         raise ValueError(f"{src}: fields 'k2_user' and 'k4_user' must both be numbers or both null")
     reason = data.get("reason")
-    return k2, k4, size[0], size[1], reason if isinstance(reason, str) else "no reason given"
+    reason = reason if isinstance(reason, str) else "no reason given"
+    if k2 is not None and "class" in data and data["class"] is None:  # an estimate, but not an answer
+        raise ValueError(f"{src} could not tell ({' '.join(reason.split())}): its numbers are not an answer; to use "
+                         f"them anyway, pass them as --k2 {k2:.6g} --k4 {k4:.6g}")
+    return k2, k4, size[0], size[1], reason
 
 
 def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, float]:

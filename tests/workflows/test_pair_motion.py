@@ -137,3 +137,18 @@ def test_min_motion_is_a_setting():
     strict = type(cfg)(**{**cfg.__dict__, "analysis": type(cfg.analysis)(**{**cfg.analysis.__dict__, "min_motion_px": 5.0})})
     r = analyze_pair(a, b, config=strict)
     assert r["class"] is None and any("(< 5)" in w for w in r["warnings"])
+
+
+@pytest.mark.bad_input
+def test_api_device_and_meta_inputs_are_one_line_errors():
+    """Issue 19 audit: analyze_pair raised torch's own RuntimeError for these."""
+    scene = load_scene("gravel")
+    a, b = scene[..., :320, :424], scene[..., 8:328, :424]
+    with pytest.raises(ValueError, match="device must be 'cpu', 'cuda' or 'cuda:N', got 'bogus'"):
+        analyze_pair(a, b, device="bogus")
+    with pytest.raises(ValueError, match="device must be"):
+        analyze_pair(a, b, device="meta")
+    with pytest.raises(ValueError, match="img2 is on the meta device"):
+        analyze_pair(a, b.to("meta"))
+    with pytest.raises(ValueError, match="homography is on the meta device"):
+        analyze_pair(a, b, homography=torch.eye(3, device="meta"))

@@ -64,3 +64,37 @@ def test_a_class_is_withheld_when_the_correction_does_not_help(frames):
 def test_verify_pairs_is_checked(bad):
     with pytest.raises(ValueError, match="verify_pairs"):
         CalibrationConfig(verify_pairs=bad)
+
+
+def test_unrelated_views_are_not_measurable_and_keep_the_class():
+    """Far-apart views that no homography relates, before or after: not verified, not refuted."""
+    from lensdist_torch.core.images import load_scene
+
+    a = load_scene("gravel")[..., :160, :212]
+    b = load_scene("grass")[..., :160, :212]
+    frames = torch.cat([a, b, a.flip(-1), b.flip(-2)])
+    cal = SimpleNamespace(pairs=torch.tensor([[0, 1], [2, 3]]), pair_used=torch.ones(2, dtype=torch.bool))
+    res = _verified(_answer(K2), frames, cal, CalibrationConfig(), LensdistConfig())
+    check = res["verification"]
+    assert check["registered_before"] == check["registered_after"] == 0
+    assert check["verdict"] == "not measurable" and res["class"] == "1"
+
+
+@pytest.mark.bad_input
+def test_undistort_from_a_calibration_that_could_not_tell(tmp_path, frames):
+    """Issue 19 audit: `undistort --from` used the numbers of a 'cannot tell' calibration without a word."""
+    import json
+
+    from lensdist_torch.workflows.undistort import _to_uint8, encode_png, undistort_path
+
+    (tmp_path / "in").mkdir()
+    for i, f in enumerate(frames[:2]):
+        (tmp_path / "in" / f"f{i}.png").write_bytes(encode_png(_to_uint8(f)))
+    cal = {"k2_user": 2e-6, "k4_user": 0.0, "image_size": [160, 212], "class": None, "reason": "interval too wide"}
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    with pytest.raises(ValueError, match="could not tell .interval too wide.*--k2 2e-06 --k4 0"):
+        undistort_path(tmp_path / "in", tmp_path / "out", from_json=tmp_path / "cal.json")
+    assert not (tmp_path / "out").exists()
+    cal["class"] = "1"
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    assert undistort_path(tmp_path / "in", tmp_path / "out", from_json=tmp_path / "cal.json")["frames"] == 2
