@@ -159,6 +159,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     check_output_dir(args.out, "--out", {"--data": args.data, "--checkpoint": args.checkpoint or [], "--regression": args.regression,
                                          "--config": args.config}, writes=["evaluate.md", "evaluate.json"])
+    refuse_inside(Path(args.out) / "evaluate.json", "--out", args.data, "--data")
     if not (args.checkpoint or args.regression or args.selfcal):
         raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
     from lensdist_torch.config import load_config

@@ -112,3 +112,12 @@ def test_fit_classifier_names_the_field(data):
     other = config_from_dict({**SMALL, "image": {"height": 128, "width": 160}})
     with pytest.raises(ValueError, match=r"image.height \(128 here, 96 in the data\)"):
         fit_classifier(train, other, n_eigenvectors=1)
+
+
+def test_evaluate_out_inside_the_data_folder_is_refused(data, capsys):
+    """Issue 19 audit: `lensdist evaluate --data data --out data/train` wrote its report into the shards' folder."""
+    before = sorted(p.name for p in (data / "train").iterdir())
+    code = main(["evaluate", "--data", str(data), "--selfcal", "--out", str(data / "train")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "--out" in err and "inside the input --data folder" in err
+    assert sorted(p.name for p in (data / "train").iterdir()) == before
