@@ -95,4 +95,4 @@ def test_the_answer_says_which_model_gave_it():
     relief = dataclasses.replace(base, selfcal=dataclasses.replace(base.selfcal, parallax=5, parallax_test=0.0))
     assert analyze_pair(a, b)["relief"] is False
     r = analyze_pair(a, b, config=relief)
-    assert r["relief"] is True and r["class"] == "R"
+    assert r["relief"] is True and r["estimated_class"] == "R"  # the wider relief interval may not support "R"
