@@ -18,7 +18,7 @@ python "$repo/.ci/make_pair.py" "$work"
 lensdist --version
 for method in selfcal regression eigenspace; do
   lensdist analyze a.png b.png --method "$method" --json > "out_$method.json"
-  python -c "import json, sys; r = json.load(open('out_$method.json')); assert r['registration_ok'], r; print('wheel: analyze --method $method ->', r['class'], round(r['delta_avg'], 2))"
+  python -c "import json, sys; r = json.load(open('out_$method.json')); assert r['registration_ok'], r; print('wheel: analyze --method $method ->', r['class'], r['estimated_delta_avg'] and round(r['estimated_delta_avg'], 2))"
 done
 lensdist analyze a.png b.png --save-map map.png | tee analyze.txt
 test -s map.png && grep -q "Delta_avg" analyze.txt
