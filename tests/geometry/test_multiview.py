@@ -165,9 +165,18 @@ def test_direct_answers_where_multiview_cannot():
     assert failed["method"] == "direct" and failed["class"] == "3" and "reconstruct" in failed["multiview"]["reason"]
     wide = combine(_direct("3", 9.0, 8.8, 9.2), _mv(None, 12.0, 0.0, 30.0))
     assert wide["method"] == "direct" and wide["class"] == "3"
-    neither = combine(_direct(None, 1.0, 0.0, 9.0), _mv(None, 12.0, 0.0, 30.0))
-    assert neither["class"] is None and neither["method"] == "direct" and neither["reason"]
+    # neither can tell: the numbers of the estimate whose relative half-width is smaller, both named
+    neither = combine(_direct(None, 1.0, 0.0, 9.0), _mv(None, 12.0, 0.0, 30.0))  # half-widths 450 % and 125 %
+    assert neither["class"] is None and neither["method"] == "multiview" and neither["delta_avg_user_px"] == 12.0
+    assert "neither path can tell" in neither["reason"] and "direct 1.00 px [0.00, 9.00]" in neither["reason"]
+    assert "do not overlap" not in neither["reason"] and neither["opencv"]["dist_coeffs"] == [-0.1, 0.01, 0, 0, 0]
     assert neither["multiview"]["reason"].startswith("interval too wide")
+    # the GoPro views (2026-11-24): direct 16.49 [0, 43.11], multi-view 119.24 [61.21, 177.27]
+    gopro = combine(_direct(None, 16.49, 0.0, 43.11), _mv(None, 119.24, 61.21, 177.27))
+    assert gopro["method"] == "multiview" and gopro["class"] is None and gopro["delta_avg_user_px"] == 119.24
+    assert "do not overlap" in gopro["reason"]
+    kept = combine(_direct(None, 5.0, 4.0, 6.0), _mv(None, 12.0, 0.0, 30.0))  # the direct one is the tighter
+    assert kept["method"] == "direct" and kept["delta_avg_user_px"] == 5.0 and "numbers are the direct" in kept["reason"]
 
 
 def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
