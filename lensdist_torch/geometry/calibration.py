@@ -168,12 +168,15 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
     return pairs, torch.cat(shifts) if shifts else torch.zeros(0, 2, dtype=torch.float64)
 
 
-def no_pairs_reason(frames: torch.Tensor) -> str:
-    """Why :func:`choose_pairs` found no pair: the frames did not move, or they could not be registered.
+def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = None) -> str:
+    """Why :func:`choose_pairs` found no pair: the frames did not move enough, or they could not be registered.
 
-    The frames did not move when neighbouring frames differ less than half as much as a frame
-    differs from itself moved by 2 px; otherwise they changed but the phase correlation found no
-    motion that large: a registration failure (views too far apart, or unrelated).
+    Too little motion where neighbouring frames differ less than half as much as a frame
+    differs from itself moved by 2 px (they did not move), or where every neighbour, moved back by
+    its phase-correlation translation, matches that well (they moved, and consistently) but the
+    camera path never spans ``motion_steps[0]`` of the half diagonal; otherwise they changed
+    and the phase correlation could not relate them: a registration failure (views too far
+    apart, or unrelated).
 
     Example:
         >>> x = torch.rand(1, 1, 64, 64)
@@ -182,11 +185,21 @@ def no_pairs_reason(frames: torch.Tensor) -> str:
         >>> no_pairs_reason(torch.cat([x, torch.rand(1, 1, 64, 64)]))[:30]
         'the frames could not be regist'
     """
+    cfg = config or CalibrationConfig()
     a, b = frames[:-1].float(), frames[1:].float()
     static = (a - b).abs().mean(dim=(1, 2, 3))
     texture = (a - torch.roll(a, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))
     if bool((static <= 0.5 * texture).all()):
         return "too little motion: no two frames moved enough apart"
+    t = _translation(a, b)  # a(p) ~ b(p + t): b moved back by t matches a where they were registered
+    m = int(t.abs().max().ceil()) + 2
+    back = torch.stack([torch.roll(b[i], (-round(float(t[i, 1])), -round(float(t[i, 0]))), dims=(1, 2)) for i in range(len(b))])
+    aligned = (a - back).abs()[..., m:-m, m:-m].mean(dim=(1, 2, 3)) if 2 * m < min(a.shape[-2:]) else static
+    if bool((aligned <= 0.5 * texture).all()):
+        path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), t.cumsum(0)])
+        span = float((path[None] - path[:, None]).norm(dim=-1).max())
+        need = min(cfg.motion_steps) * half_diagonal(*frames.shape[-2:])
+        return f"too little motion: the camera moved {span:.1f} px at most between two frames (a pair needs {need:.1f} px)"
     return ("the frames could not be registered: they change, but phase correlation finds no consistent motion "
             "between neighbours (views too far apart or unrelated)")
 
@@ -384,7 +397,7 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
-        reason = no_pairs_reason(xa)
+        reason = no_pairs_reason(xa, cfg)
     elif n_used < cfg.min_pairs:
         reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}"
     elif not half[2] <= cfg.max_class_halfwidth_px:

@@ -269,3 +269,17 @@ def test_no_pairs_says_whether_the_frames_did_not_move_or_did_not_register():
     views = torch.cat([load_scene(name)[..., 100 * i: 100 * i + 96, 200: 328] for name in ("gravel", "grass") for i in range(3)])
     far = calibrate_sequence(views)
     assert far.class_label is None and not far.reason.startswith("too little motion")
+
+
+@pytest.mark.bad_input
+def test_frames_that_move_a_little_say_so_and_by_how_much():
+    """Issue 19 audit: a pan of 1.2-2 px a frame said 'phase correlation finds no consistent motion'."""
+    from lensdist_torch.workflows.calibrate import synthetic_sequence
+
+    frames, _ = synthetic_sequence(15, 1.5e-6, 0.0, size=(320, 424), step_px=(1.2, 2.0), seed=3)
+    cal = calibrate_sequence(frames)
+    assert cal.class_label is None and cal.pairs_used == 0
+    assert cal.reason.startswith("too little motion: the camera moved ")
+    span = float(cal.reason.split("moved ")[1].split(" px")[0])
+    assert 14 * 1.2 <= span <= 14 * 2.0 + 2  # 14 steps of 1.2-2 px (and the jitter)
+    assert "a pair needs 37.1 px" in cal.reason  # 0.14 of the half diagonal, 265.0 px
