@@ -91,7 +91,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         refuse_inputs(args.out, "--out", inputs)  # a read-only data set is re-checked; generate says if it must write
         refuse_inputs(Path(args.out) / "manifest.json", "--out", inputs, written=True)
     else:
-        check_output_dir(args.out, "--out", inputs, writes=["manifest.json"])
+        check_output_dir(args.out, "--out", inputs, writes=["manifest.json"], data_set=True)
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import generate
 

@@ -9,6 +9,7 @@ files). Only the standard library: the command line imports this before torch.
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -16,7 +17,7 @@ from pathlib import Path
 #: The command's inputs by the option that names them (a path, a list of paths, or None).
 Inputs = Mapping[str, "str | os.PathLike | Iterable[str | os.PathLike] | None"]
 
-__all__ = ["check_output_file", "check_output_dir", "refuse_inputs", "refuse_inside"]
+__all__ = ["check_output_file", "check_output_dir", "refuse_inputs", "refuse_inside", "refuse_data_sets"]
 
 
 def check_output_file(
@@ -38,24 +39,49 @@ def check_output_file(
     if p.suffix.lower() not in suffixes:
         raise ValueError(f"{option} must be a file path ending in {want}, got {path!r}")
     refuse_inputs(p, option, inputs)
+    refuse_data_sets(p.parent, option, path)
     _check_writable(p.parent, option, path)
     return p
 
 
-def check_output_dir(path: str | Path, option: str, inputs: Inputs | None = None, writes: Iterable[str] = ()) -> Path:
+def check_output_dir(path: str | Path, option: str, inputs: Inputs | None = None, writes: Iterable[str] = (),
+                     data_set: bool = False) -> Path:
     """Validate an output folder: a folder or nothing at ``path``, below a folder that can be written.
 
     Neither the folder nor the files the command writes in it (``writes``, names relative to it)
-    may be one of ``inputs``.
+    may be one of ``inputs``, and it may not lie in a lensdist data set (a folder holding the
+    data set's manifest.json); ``data_set``: the folder is itself one (``lensdist generate``).
     """
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ValueError(f"{option} must be a folder, but {path} exists and is not one")
+    refuse_data_sets(p.parent if data_set else p, option, path)
     refuse_inputs(p, option, inputs)
     for name in writes:
         refuse_inputs(p / name, option, inputs, written=True)
     _check_writable(p, option, path)
     return p
+
+
+def refuse_data_sets(folder: Path, option: str, path: str | Path) -> None:
+    """Refuse (ValueError) writing in ``folder`` where it or an ancestor is a lensdist data set.
+
+    A data set is a folder whose manifest.json is a JSON object with a ``fingerprint`` and
+    ``sets`` (what ``lensdist generate`` writes): it gets no foreign files.
+    """
+    try:
+        here = folder.resolve()
+    except (OSError, RuntimeError):
+        return
+    for top in (here, *here.parents):
+        manifest = top / "manifest.json"
+        try:
+            m = json.loads(manifest.read_text()) if manifest.is_file() else None
+        except (OSError, ValueError):
+            m = None
+        if isinstance(m, dict) and "fingerprint" in m and "sets" in m:
+            raise ValueError(f"{option} {os.fspath(path)} is inside the lensdist data set {top}: refusing to write "
+                             "there (a data set gets no foreign files), give a path outside it")
 
 
 def _check_writable(folder: Path, option: str, path: str) -> None:

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import torch
 
+from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.storage import atomic_write_bytes
 from lensdist_torch.geometry.distortion import distortion_center, sample
 from lensdist_torch.geometry.undistort import monotone_branch, undistortion_grid
@@ -173,6 +174,7 @@ def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: b
     """The input files of a folder (None for a video), once every output was checked (module docstring)."""
     if path.is_dir() and out.resolve() == path.resolve():
         raise ValueError(f"out_dir must differ from the input folder {path}")
+    refuse_data_sets(out, "out_dir (--out)", out)
     files = list_frames(path)[:max_frames] if path.is_dir() else None
     names = [p.stem for p in files] if files is not None else None
     if names is not None:

@@ -56,7 +56,7 @@ def test_out_naming_a_data_shard_is_refused(data, capsys):
     code = main(["train", "--data", str(data), "--eigenvectors", "1", "--out", str(shard)])
     err = capsys.readouterr().err
     assert code == 2, err
-    assert err.count("\n") == 1 and "--out" in err and "is inside the input --data folder" in err
+    assert err.count("\n") == 1 and "--out" in err and "inside the lensdist data set" in err
     assert _digest(shard) == before
 
 
@@ -119,5 +119,28 @@ def test_evaluate_out_inside_the_data_folder_is_refused(data, capsys):
     before = sorted(p.name for p in (data / "train").iterdir())
     code = main(["evaluate", "--data", str(data), "--selfcal", "--out", str(data / "train")])
     err = capsys.readouterr().err
-    assert code == 2 and err.count("\n") == 1 and "--out" in err and "inside the input --data folder" in err
+    assert code == 2 and err.count("\n") == 1 and "--out" in err and "inside the lensdist data set" in err
     assert sorted(p.name for p in (data / "train").iterdir()) == before
+
+
+@pytest.mark.parametrize("where", ["train", "train/sub", "."])
+def test_outputs_inside_a_data_set_are_refused(data, tmp_path, capsys, where):
+    """Issue 19 audit: `--save-map data/train/map.png` and `undistort --out data/train` wrote into a data set."""
+    from lensdist_torch.workflows.calibrate import synthetic_sequence
+    from lensdist_torch.workflows.undistort import _to_uint8, encode_png
+
+    pair = []
+    for i, f in enumerate(synthetic_sequence(2, 0.0, 0.0, size=(64, 96))[0]):
+        (tmp_path / f"f{i}.png").write_bytes(encode_png(_to_uint8(f)))
+        pair.append(str(tmp_path / f"f{i}.png"))
+    before = sorted(str(p.relative_to(data)) for p in data.rglob("*"))
+    target = data / where
+    for argv in (["analyze", *pair, "--save-map", str(target / "map.png")],
+                 ["demo", "--out", str(target)],
+                 ["undistort", str(tmp_path), "--k2", "1e-7", "--k4", "0", "--out", str(target / "u")]):
+        code = main(argv)
+        err = capsys.readouterr().err
+        assert code == 2 and err.count("\n") == 1 and "inside the lensdist data set" in err, (argv, err)
+    assert sorted(str(p.relative_to(data)) for p in data.rglob("*")) == before
+    # the data set itself stays generate's to re-check and resume
+    assert main(["generate", "--config", str(_toml(tmp_path / "c.toml", 0.06)), "--out", str(data), "--quiet"]) == 0
