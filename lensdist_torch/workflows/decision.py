@@ -27,7 +27,7 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.calibration import user_coefficients
-from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, delta_top
+from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top, pixel_offsets
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.metric.criteria import local_criteria
 
@@ -285,6 +285,6 @@ def in_user_pixels(res: dict, s: float, size) -> dict:
         return {"k2_user": None, "k4_user": None, "opencv": None, "delta_avg_user_px": None, "delta_max_user_px": None}
     k2_user, k4_user = user_coefficients(res["k2"], res["k4"], s)
     fh, fw = max(1, round(int(size[0]) / s)), max(1, round(int(size[1]) / s))
-    k2, k4 = torch.tensor([res["k2"]], dtype=torch.float64), torch.tensor([res["k4"]], dtype=torch.float64)
+    off = pixel_offsets(res["k2"], res["k4"], fh, fw)  # one map for both Deltas
     return {"k2_user": k2_user, "k4_user": k4_user, "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1])),
-            "delta_avg_user_px": float(delta_avg(k2, k4, fh, fw)[0]) * s, "delta_max_user_px": float(delta_max(k2, k4, fh, fw)[0]) * s}
+            "delta_avg_user_px": float(off.mean()) * s, "delta_max_user_px": float(off.max()) * s}

@@ -86,10 +86,13 @@ def _relative_halfwidth(interval: tuple, value: float) -> float:
     return (interval[1] - interval[0]) / 2 / max(value, 1e-12)
 
 
-def _exact(mv: dict) -> dict:
-    """The multi-view camera as the OpenCV export: exact (COLMAP's models are OpenCV's)."""
-    return {"camera_matrix": mv["camera_matrix"], "dist_coeffs": mv["dist_coeffs"], "fit_error_mean_px": 0.0,
-            "fit_error_max_px": 0.0, "forward_error_mean_px": 0.0, "forward_error_max_px": 0.0}
+def _take_multiview(out: dict, mv: dict) -> None:
+    """``out`` gets the multi-view numbers and its camera as the OpenCV export, exact (COLMAP's models are OpenCV's)."""
+    exact = {"camera_matrix": mv["camera_matrix"], "dist_coeffs": mv["dist_coeffs"], "fit_error_mean_px": 0.0,
+             "fit_error_max_px": 0.0, "forward_error_mean_px": 0.0, "forward_error_max_px": 0.0}
+    out.update({k: mv[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
+    out.update(method="multiview", camera_model=mv["model"], opencv=exact if len(mv["dist_coeffs"]) == 5 else None,
+               opencv_rational=exact if len(mv["dist_coeffs"]) == 8 else None)
 
 
 def _summary(res: dict, keys: tuple[str, ...]) -> dict:
@@ -129,9 +132,7 @@ def combine(direct: dict, mv: dict | None) -> dict:
         apart = "" if _overlap(tuple(d_iv), m_iv) else ", and their intervals do not overlap"
         if _relative_halfwidth(m_iv, mv["delta_avg_user_px"]) < _relative_halfwidth(tuple(d_iv), direct["delta_avg_user_px"]):
             # the numbers of the less uncertain estimate (relative half-width), still no class
-            out.update({k_: mv[k_] for k_ in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
-            out.update(method="multiview", opencv=_exact(mv) if len(mv["dist_coeffs"]) == 5 else None,
-                       opencv_rational=_exact(mv) if len(mv["dist_coeffs"]) == 8 else None, camera_model=mv["model"])
+            _take_multiview(out, mv)
         out["reason"] = f"neither path can tell ({both}{apart}); the numbers are the {out['method']} path's"
         return out
     if direct.get("class") is not None and not _overlap(tuple(direct["delta_avg_user_interval"]),
@@ -140,9 +141,6 @@ def combine(direct: dict, mv: dict | None) -> dict:
         out["reason"] = (f"the multi-view ({mv['delta_avg_user_px']:.2f} px) and the direct ({direct['delta_avg_user_px']:.2f} "
                          "px) estimates of Delta_avg disagree beyond their intervals")
         return out
-    exact = _exact(mv)
-    out.update({k_: mv[k_] for k_ in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
-    out.update({"method": "multiview", "class": mv["class_label"], "reason": None, "camera_model": mv["model"],
-                "opencv": exact if len(mv["dist_coeffs"]) == 5 else None,
-                "opencv_rational": exact if len(mv["dist_coeffs"]) == 8 else None})
+    _take_multiview(out, mv)
+    out.update({"class": mv["class_label"], "reason": None})
     return out

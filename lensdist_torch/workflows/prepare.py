@@ -20,10 +20,9 @@ from lensdist_torch.core.images import as_batch, check_image, load_image, resize
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     class_bounds,
-    delta_avg,
-    delta_max,
     distortion_type,
     estimated_class,
+    pixel_offsets,
 )
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.registration import warp_to_reference
@@ -162,7 +161,8 @@ def _selfcal_one(p: Prepared, i: int) -> dict:
         return {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None,
                 "raw_confidence": 0.0, "_diverged": True}
     h, w = cfg.image.size
-    d_avg, d_max = delta_avg(k2, k4, h, w), delta_max(k2, k4, h, w)
+    off = pixel_offsets(k2, k4, h, w).flatten(1)  # one map for both Deltas
+    d_avg, d_max = off.mean(1), off.amax(1)
     label = CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])]
     return {
         "estimated_class": label,

@@ -79,12 +79,15 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
     if len(pairs) > max_pairs:
         pairs = pairs[torch.linspace(0, len(pairs) - 1, max_pairs).round().long()]
     ones = torch.ones_like(frames[:1])
-    fixed, masks = undistort_image(frames, k2, k4)
+    used = sorted(set(pairs.flatten().tolist()))  # only the frames checked are corrected
+    row = {f: r for r, f in enumerate(used)}
+    fixed, masks = undistort_image(frames[used], k2, k4)
     totals = dict.fromkeys(("error_blocks_before", "blocks_before", "error_blocks_after", "blocks_after",
                             "registered_before", "registered_after"), 0)
     for i, j in pairs.tolist():
         e0, n0, ok0 = error_blocks(frames[i : i + 1], frames[j : j + 1], ones, ones, st)
-        e1, n1, ok1 = error_blocks(fixed[i : i + 1], fixed[j : j + 1], masks[i : i + 1], masks[j : j + 1], st)
+        fi, fj = row[i], row[j]
+        e1, n1, ok1 = error_blocks(fixed[fi : fi + 1], fixed[fj : fj + 1], masks[fi : fi + 1], masks[fj : fj + 1], st)
         totals["registered_before"] += ok0
         totals["registered_after"] += ok1
         if ok0 and ok1:
