@@ -79,11 +79,13 @@ def positive(name: str, value: Any) -> None:
         raise ValueError(f"{name} must be a positive finite number, got {show(value)}")
 
 
-def integer(obj, name, lo: int | None = 1) -> None:
-    """An int >= ``lo`` (positive by default; ``lo=None``: any int)."""
+def integer(obj, name, lo: int | None = 1, hi: int | None = None, why: str | None = None) -> None:
+    """An int >= ``lo`` (positive by default; ``lo=None``: any int), and <= ``hi`` if given."""
     value = getattr(obj, name)
     what = "an int" if lo is None else "a positive int" if lo == 1 else f"an int >= {lo}"
-    if not _is_int(value) or (lo is not None and value < lo):
+    if hi is not None:
+        what += f" <= {hi}" + (f" ({why})" if why else "")
+    if not _is_int(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
         _fail(obj, name, what, value)
     object.__setattr__(obj, name, int(value))
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from lensdist_torch.config_checks import choice, flag, integer, integers, names, pair, real
 
-__all__ = ["RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "CalibrationConfig", "MultiViewConfig"]
+__all__ = ["MAX_NEIGHBOURS", "RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig", "CalibrationConfig", "MultiViewConfig"]
 
 @dataclass(frozen=True)
 class RegistrationConfig:
@@ -202,13 +202,19 @@ class SelfCalConfig:
         real(self, "confidence_threshold", lo=0, hi=1)
 
 
+#: The most neighbours of the Delta regression (``regression.k``; ``DeltaRegressor.load`` refuses a
+#: checkpoint's k beyond it): a local median stays consistent while k / N shrinks; the usual
+#: k ~ sqrt(N) is 110 at the protocol's 12000 training pairs (the validation chose 8).
+MAX_NEIGHBOURS = 100
+
+
 @dataclass(frozen=True)
 class RegressionConfig:
     """Settings of :class:`~lensdist_torch.classify.regression.DeltaRegressor`.
 
     Attributes:
         n_components: PCA components kept (capped by the training set).
-        k: neighbours whose median Delta is the prediction.
+        k: neighbours whose median Delta is the prediction, at most ``MAX_NEIGHBOURS``.
         cannot_tell_fraction: neighbour spread of Delta_avg, as a fraction of the class range,
             at which confidence is 0.5.
         confidence_threshold: below this confidence the answer is "cannot tell".
@@ -221,7 +227,7 @@ class RegressionConfig:
 
     def __post_init__(self) -> None:
         integer(self, "n_components")
-        integer(self, "k")
+        integer(self, "k", hi=MAX_NEIGHBOURS, why="a local median; config_estimators.MAX_NEIGHBOURS")
         real(self, "cannot_tell_fraction", lo=0, lo_open=True)
         real(self, "confidence_threshold", lo=0, hi=1)
 

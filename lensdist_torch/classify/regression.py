@@ -44,6 +44,7 @@ from lensdist_torch.classify._checkpoint import (
     row_norms_below,
 )
 from lensdist_torch.config import LensdistConfig, config_to_dict
+from lensdist_torch.config_estimators import MAX_NEIGHBOURS
 from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
 from lensdist_torch.geometry.distortion import METRICS, delta_top, estimated_class
 
@@ -81,7 +82,7 @@ class DeltaRegressor(nn.Module):
         config: the config it is fitted under (image size, block size, thresholds).
         n_components: PCA components kept (capped by the training set); default
             ``config.regression.n_components``.
-        k: neighbours; default ``config.regression.k``.
+        k: neighbours; default ``config.regression.k``; at most ``config_estimators.MAX_NEIGHBOURS``.
 
     Example:
         >>> reg = DeltaRegressor(12, n_components=3, k=4).fit(torch.rand(50, 12), torch.rand(50) * 14, torch.rand(50) * 79)
@@ -98,6 +99,8 @@ class DeltaRegressor(nn.Module):
         k = self.config.regression.k if k is None else k
         if n_features < 1 or n_components < 1 or k < 1:
             raise ValueError("n_features, n_components and k must be positive")
+        if k > MAX_NEIGHBOURS:
+            raise ValueError(f"k must be at most {MAX_NEIGHBOURS} neighbours (a local median), got {k}")
         self.n_features, self.n_components, self.k = int(n_features), int(n_components), int(k)
         self.register_buffer("mean", torch.zeros(n_features))
         self.register_buffer("components", torch.zeros(0, n_features, dtype=torch.float16))
@@ -227,6 +230,11 @@ class DeltaRegressor(nn.Module):
             )
         if k >= dims["N"]:
             raise CheckpointError(f"checkpoint {path}: k={k} neighbours needs more than k training pairs, it holds {dims['N']}")
+        if k > MAX_NEIGHBOURS:  # the bound of regression.k: the median must stay local
+            raise CheckpointError(
+                f"checkpoint {path}: k={k} neighbours of {dims['N']} training pairs, expected at most {MAX_NEIGHBOURS} "
+                "(a local median, as for regression.k)"
+            )
         in_range(sd, "mean", *FEATURE_RANGE, path, "a mean of quality maps")
         orthonormal_rows(sd, "components", 2e-2, path)
         row_norms_below(sd, "train_coeffs", max_coefficient_norm(d), path)

@@ -15,7 +15,7 @@ import torch
 
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
-from lensdist_torch.config import ClassifierConfig, LensdistConfig
+from lensdist_torch.config import ClassifierConfig, LensdistConfig, RegressionConfig
 from lensdist_torch.core.storage import DIGEST_KEY, CheckpointError, content_digest
 
 pytestmark = pytest.mark.bad_input
@@ -250,3 +250,19 @@ def test_command_line_exit_2_with_one_line(saved, tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2, err
     assert err.count("\n") == 1 and "extra.texture reference" in err and "internal error" not in err
+
+
+def test_regressor_k_beyond_a_local_median(tmp_path):
+    """The re-audit's case: k = 11000 neighbours of 12000 training pairs (below N) loaded and answered
+    the median of nearly the whole training set for every input; k is bounded like regression.k."""
+    g = torch.Generator().manual_seed(3)
+    model = DeltaRegressor(12, n_components=3, k=8).fit(torch.rand(12000, 12, generator=g), torch.rand(12000) * 9, torch.rand(12000) * 40)
+    model.save(tmp_path / "r.pt")
+    assert DeltaRegressor.load(tmp_path / "r.pt").k == 8
+    bad = _rewrite(_top_level(_raw(tmp_path / "r.pt"), k=11000), tmp_path / "x.pt", resign=True)
+    _refused(DeltaRegressor, bad, r"k=11000 neighbours of 12000 training pairs, expected at most 100 \(a local median")
+    with pytest.raises(ValueError, match=r"regression.k must be a positive int <= 100"):
+        LensdistConfig(regression=RegressionConfig(k=101))
+    with pytest.raises(ValueError, match="k must be at most 100 neighbours"):
+        DeltaRegressor(12, k=101)
+    assert DeltaRegressor.load(SHIPPED / "regression.pt").k == 8  # the shipped checkpoint still loads

@@ -154,6 +154,7 @@ BAD_VALUES = [
     ("selfcal", "min_overlap", "nan"),
     ("selfcal", "margin", "-1.0"),
     ("regression", "k", "0"),
+    ("regression", "k", "11000"),
     ("regression", "n_components", "3.5"),
     ("regression", "cannot_tell_fraction", "-0.1"),
     ("regression", "confidence_threshold", "nan"),
