@@ -10,7 +10,10 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
   bad field is a one-line error naming the file and the field. Pixels that eq. 4 folds over
   (past the monotone branch of its radius, :func:`~lensdist_torch.geometry.undistort.monotone_branch`)
   are 0 in the mask and in the image. Coefficients that fold before the nearest edge of the frame
-  are refused: no lens does that, it is most often coefficients in another unit.
+  are refused: no lens does that, it is most often coefficients in another unit. So are
+  coefficients whose radial stretch 1 + k2 r^2 + k4 r^4 exceeds ``MAX_STRETCH`` inside the frame
+  (largest at the farthest corner unless k4 < 0): the ideal image would be that many times the
+  frame (``--k2=1e-3`` at 320 x 424: 71 times), and the output a silent zoom on its centre.
 - **Names.** Frame ``NAME.EXT`` is written as ``NAME.png`` (a video's frames as
   ``frame_000000.png`` ...). Two inputs with one stem (``frame_01.png`` and ``frame_01.jpg``, or
   names that differ only in letter case) are refused: one would overwrite the other.
@@ -40,9 +43,16 @@ from lensdist_torch.geometry.distortion import distortion_center, sample
 from lensdist_torch.geometry.undistort import monotone_branch, undistortion_grid
 from lensdist_torch.workflows.calibrate import _frames_of_one_size, list_frames
 
-__all__ = ["encode_png", "undistort_path"]
+__all__ = ["MAX_STRETCH", "encode_png", "undistort_path"]
 
 _VIDEO_NAME = re.compile(r"frame_\d{6}\.png")
+
+#: The largest radial stretch 1 + k2 r^2 + k4 r^4 (ideal radius / distorted radius) that undistort
+#: accepts inside the frame. An equidistant fisheye of half field theta stretches its corner by
+#: tan(theta) / theta: 10 is theta = 86 degrees, a 172-degree diagonal field, which eq. 4's two
+#: terms cannot describe (a fisheye needs another model). The protocol's strongest lens stretches
+#: by 1.30 at 320 x 424, and eq. 4 fitted to the GoPro HERO4's wide calibration by 2.1 at 1280 x 960.
+MAX_STRETCH = 10.0
 
 
 # ------------------------------------------------------------------ PNG
@@ -169,6 +179,22 @@ def _check_fold(k2: float, k4: float, height: int, width: int, from_json) -> Non
                      "give the coefficients in the frames' own pixels")
 
 
+def _check_stretch(k2: float, k4: float, height: int, width: int, from_json) -> None:
+    """Refuse coefficients whose radial stretch exceeds ``MAX_STRETCH`` inside the frame (module docstring)."""
+    top = math.hypot(*distortion_center(height, width)) ** 2  # r^2 at the farthest corner pixel centre
+    # 1 + k2 s + k4 s^2 on [0, top], s = r^2: largest at the corner or, where k4 < 0, at its vertex
+    s2 = min(max(-k2 / (2 * k4), 0.0), top) if k4 < 0 else top
+    stretch = 1 + k2 * s2 + k4 * s2 * s2
+    if stretch <= MAX_STRETCH:
+        return
+    what = f"the coefficients of {from_json} (k2_user, k4_user)" if from_json is not None else "--k2/--k4"
+    where = "the farthest corner" if s2 == top else "inside"
+    raise ValueError(f"{what} k2 = {k2:.4g}, k4 = {k4:.4g} stretch the {height} x {width} frames {stretch:.3g}-fold "
+                     f"(1 + k2 r^2 + k4 r^4 at r = {math.sqrt(s2):.1f} px, {where}), expected at most {MAX_STRETCH:g}: "
+                     "no lens that eq. 4 describes (a fisheye needs another model); give the coefficients in the "
+                     "frames' own pixels")
+
+
 # ------------------------------------------------------------------ the outputs
 def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: bool) -> list[Path] | None:
     """The input files of a folder (None for a video), once every output was checked (module docstring)."""
@@ -247,6 +273,7 @@ def undistort_path(
         if grid is None:
             k2, k4 = _coefficients_for(tuple(img.shape[-2:]), k2, k4, from_json)
             _check_fold(k2, k4, *img.shape[-2:], from_json)
+            _check_stretch(k2, k4, *img.shape[-2:], from_json)
             grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *img.shape[-2:]))
             (out / "masks").mkdir(parents=True, exist_ok=True)
         deep = _deep(files[i] if files is not None else None, img)

@@ -72,6 +72,48 @@ def test_folding_coefficients_from_a_file_name_the_file(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.bad_input
+def test_coefficients_that_stretch_the_frame_beyond_any_lens_are_refused(tmp_path, capsys):
+    # the re-audit's case: --k2=1e-3 at 320 x 424 gave exit 0 and a 71-fold zoom on the centre;
+    # 1 + k2 r^2 at the farthest corner (r^2 = 211.5^2 + 159.5^2 = 70172.5) is 71.2
+    folder = _frames(tmp_path / "frames", names=("a.png",), size=(320, 424))
+    code, _, err = _run(capsys, folder, "--k2=1e-3", "--k4", "0", "--out", tmp_path / "out")
+    _one_line_usage_error(code, err)
+    assert "--k2/--k4" in err and "k2 = 0.001, k4 = 0" in err and "stretch the 320 x 424 frames 71.2-fold" in err
+    assert "r = 264.9 px, the farthest corner" in err and "expected at most 10" in err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.bad_input
+def test_a_stretch_peaking_inside_the_frame_is_refused(tmp_path):
+    # k4 < 0: 1 + k2 s + k4 s^2 peaks at s = r^2 = 5e4, 1 + 50 - 25 = 26, though the corner gives 1 + 70.2 - 49.2 = 22;
+    # it does not fold before the nearest edge (159.5 px)
+    folder = _frames(tmp_path / "frames", names=("a.png",), size=(320, 424))
+    with pytest.raises(ValueError, match=r"k2 = 0.001, k4 = -1e-08 stretch the 320 x 424 frames 26-fold .*r = 223.6 px, inside"):
+        undistort_path(folder, tmp_path / "out", k2=1e-3, k4=-1e-8)
+
+
+@pytest.mark.bad_input
+def test_a_stretching_calibration_file_is_refused_naming_it(tmp_path, capsys):
+    folder = _frames(tmp_path / "frames")
+    cal = tmp_path / "calibration.json"
+    cal.write_text(json.dumps({"k2_user": 1e-3, "k4_user": 0.0, "image_size": list(SIZE)}))
+    code, _, err = _run(capsys, folder, "--from", cal, "--out", tmp_path / "out")
+    _one_line_usage_error(code, err)  # 240 x 320: r^2 = 119.5^2 + 159.5^2 = 39720.5 at the corner: 40.7
+    assert str(cal) in err and "k2_user" in err and "40.7-fold" in err and "expected at most 10" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_wide_angle_lens_within_the_bound_is_undistorted(tmp_path, capsys):
+    # eq. 4 fitted to the GoPro HERO4's wide calibration (k2 = 6.37e-7, k4 = 1.763e-12 at 1280 x 960), here at
+    # a quarter of that size (k2 x 16, k4 x 256): a stretch of 2.13 at the corner, accepted
+    folder = _frames(tmp_path / "frames", names=("a.png",))
+    code, out, err = _run(capsys, folder, f"--k2={6.37e-7 * 16!r}", f"--k4={1.763e-12 * 256!r}", "--out", tmp_path / "out")
+    assert code == 0 and "1 frames undistorted" in out, err
+    mask = cv2.imread(str(tmp_path / "out" / "masks" / "a.png"), cv2.IMREAD_UNCHANGED)
+    assert (mask == 255).all()  # barrel: every ideal pixel samples inside the frame
+
+
 def test_a_fold_in_the_corners_is_masked_there(tmp_path, capsys):
     # eq. 4 folds at 160 px (k2 = -1 / (3 160^2)): beyond the nearest edge (119.5 px), inside the
     # half diagonal (199.7 px). Accepted; no ideal pixel beyond rho_max = 2/3 160 px has a preimage
