@@ -253,6 +253,9 @@ class AnalysisConfig:
             self-calibration and are out of domain where the two disagree.
         max_class_disagreement: out of domain where the classes differ by more than this;
             class R against any class (distortion found by one, none by the other) always does.
+        eigenspace_max_class_disagreement: the eigen-space gives no confidence, so its class stands
+            only where the self-calibration confidently finds a class at most this far from it
+            (0: the same); elsewhere "cannot tell" (with ``cross_check``).
         max_delta_disagreement: out of domain where the Delta_avg estimates differ by more than
             this share of the Delta_avg range.
         texture_factor: out of domain where the images' gradient-magnitude histogram is farther
@@ -280,6 +283,7 @@ class AnalysisConfig:
     regression_confidence_shift: float = 1.0013
     cross_check: bool = True
     max_class_disagreement: int = 1
+    eigenspace_max_class_disagreement: int = 0
     max_delta_disagreement: float = 0.25
     texture_factor: float = 2.0
     validation_seed_offset: int = 1
@@ -299,6 +303,7 @@ class AnalysisConfig:
         real(self, "regression_confidence_shift")
         flag(self, "cross_check")
         integer(self, "max_class_disagreement", lo=0)
+        integer(self, "eigenspace_max_class_disagreement", lo=0)
         integer(self, "validation_seed_offset")
 
 

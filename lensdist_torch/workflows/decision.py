@@ -13,6 +13,10 @@ Every threshold is in ``config.analysis`` (:class:`~lensdist_torch.config.Analys
   self-calibration, which learns nothing, confidently disagrees: one finds distortion and the
   other none (class R against a class), the classes are more than ``max_class_disagreement``
   apart, or Delta_avg more than ``max_delta_disagreement`` of its range apart.
+* **Confirmation** of an answer without a confidence (the eigen-space's: nothing says how sure
+  it is, and on rendered pairs 30 of its 75 answers were a class off): its class stands only
+  where the self-calibration confidently finds a class at most ``eigenspace_max_class_disagreement``
+  (0) from it; where the self-calibration cannot tell or finds another class, "cannot tell".
 * **The answer** (:func:`decide`): ``class`` is None and ``cannot_tell`` True whenever the
   registration failed, there is no estimate, the overlap is too small, the pair is out of
   domain or the confidence is low; ``estimated_class`` keeps the estimator's own guess.
@@ -194,6 +198,9 @@ def domain_checks(res: dict, selfcal: dict | None, texture: torch.Tensor | None,
         # a class-R answer's Delta is the eigen-space's guess of its nearest class: the classes decide
         far = not any(is_r) and abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top("delta_avg", cfg)
         check["agrees"] = not ((gap is not None and gap > a.max_class_disagreement) or far or is_r[0] != is_r[1])
+    if res.get("confidence") is None:  # the eigen-space: its class needs the self-calibration's confirmation
+        gap = class_distance(res["estimated_class"], selfcal["estimated_class"]) if usable else None
+        check["confirms"] = bool(check["agrees"] and gap is not None and gap <= a.eigenspace_max_class_disagreement)
     res["selfcal_check"] = check
 
 
@@ -215,6 +222,11 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
             f"the self-calibration disagrees (class {check['class']}, Delta_avg {check['delta_avg']:.2f} px): "
             "the scene is probably unlike the training scenes (out of domain)"
         )
+    if check and check["agrees"] and check.get("confirms") is False and res["registration_ok"]:
+        found = (f"finds class {check['class']} (Delta_avg {check['delta_avg']:.2f} px), not {res['estimated_class']}"
+                 if check["usable"] else "cannot tell from this pair")
+        out.append(f"cannot tell: the eigen-space gives no confidence, and the self-calibration {found}; its class "
+                   "stands only where the self-calibration confirms it")
     if not res["registration_ok"]:
         out.append("registration failed: the pair could not be aligned by a homography; the result is not meaningful")
     if res["overlap"] < cfg.analysis.min_overlap:
@@ -229,7 +241,8 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
 def decide(res: dict, cfg: LensdistConfig) -> None:
     """Set ``warnings``, ``in_domain``, ``cannot_tell``, ``class`` and ``class_max`` of one result, in place.
 
-    "Cannot tell" where the confidence is low, there is no estimate, the pair is out of domain or
+    "Cannot tell" where the confidence is low, there is no estimate, the pair is out of domain, an
+    answer without a confidence is not confirmed by the self-calibration (:func:`domain_checks`), or
     the views moved by less than ``analysis.min_motion_px`` (``motion_px``: the registration's
     mean displacement; every method, since none can see a distortion that cancels). Then
     ``class``, ``class_max``, ``delta_avg``, ``delta_max`` and ``distortion_type`` are None: no
@@ -255,7 +268,8 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
         )
     low = res["confidence"] is not None and res["confidence"] < a.min_confidence
     no_number = res["delta_avg"] is None and res["delta_max"] is None
-    unsure = low or no_number or still or not res["in_domain"]
+    unconfirmed = bool(check) and check.get("confirms") is False  # an answer without confidence (domain_checks)
+    unsure = low or no_number or still or not res["in_domain"] or unconfirmed
     res["cannot_tell"] = bool(unsure)
     res["class"] = None if unsure else res["estimated_class"]
     res["class_max"] = None if unsure else res["estimated_class_max"]

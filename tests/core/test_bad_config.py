@@ -161,6 +161,7 @@ BAD_VALUES = [
     ("analysis", "no_distortion_px", "0.0"),
     ("analysis", "min_overlap", "-0.5"),
     ("analysis", "out_of_domain_factor", "inf"),
+    ("analysis", "eigenspace_max_class_disagreement", "-1"),
 ]
 
 

@@ -4,6 +4,7 @@ written by calibrate_confidence."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -92,7 +93,7 @@ def test_disagreement_with_the_selfcal_is_out_of_domain():
     domain_checks(some, sc, None, {}, cfg)
     decide(some, cfg)
     assert not some["selfcal_check"]["agrees"] and some["class"] is None
-    near = _res(estimated_class="1", delta_avg=1.5)  # one class apart, 1.3 px: agrees
+    near = _res(estimated_class="1", delta_avg=1.5, confidence=0.8)  # one class apart, 1.3 px: agrees (a regression)
     domain_checks(near, {**sc, "estimated_class": "2", "delta_avg": 2.8}, None, {}, cfg)
     decide(near, cfg)
     assert near["selfcal_check"]["agrees"] and near["in_domain"] and near["class"] == "1"
@@ -102,10 +103,42 @@ def test_disagreement_with_the_selfcal_is_out_of_domain():
     rejected = _res(estimated_class="R", delta_avg=6.0)  # an eigen-space R keeps its nearest class's Delta
     domain_checks(rejected, sc, None, {}, cfg)
     assert rejected["selfcal_check"]["agrees"]
-    unsure = _res()
+    unsure = _res(confidence=0.8)
     domain_checks(unsure, {**sc, "raw_confidence": 0.1}, None, {}, cfg)  # a selfcal that cannot tell says nothing
     decide(unsure, cfg)
-    assert not unsure["selfcal_check"]["usable"] and unsure["in_domain"]
+    assert not unsure["selfcal_check"]["usable"] and unsure["in_domain"] and unsure["class"] == "3"
+
+
+@pytest.mark.bad_input
+def test_an_eigenspace_class_stands_only_where_the_selfcal_confirms_it():
+    """The re-audit's case: the eigen-space (no confidence) answered an adjacent wrong class, which the
+    cross-check tolerated (one class apart); on rendered pairs 30 of its 75 answers were wrong."""
+    cfg = LensdistConfig()
+    sc = {"estimated_class": "2", "delta_avg": 6.2, "raw_confidence": 0.99}
+    adjacent = _res(estimated_class="3", delta_avg=8.3)  # confidence None: the eigen-space
+    domain_checks(adjacent, sc, None, {}, cfg)
+    decide(adjacent, cfg)
+    assert adjacent["selfcal_check"]["agrees"] and not adjacent["selfcal_check"]["confirms"]
+    assert adjacent["class"] is None and adjacent["cannot_tell"] and adjacent["delta_avg"] is None
+    assert adjacent["estimated_class"] == "3" and adjacent["in_domain"]  # not out of domain: unconfirmed
+    assert "the self-calibration finds class 2 (Delta_avg 6.20 px), not 3" in " ".join(adjacent["warnings"])
+    same = _res(estimated_class="2", delta_avg=5.9)
+    domain_checks(same, sc, None, {}, cfg)
+    decide(same, cfg)
+    assert same["selfcal_check"]["confirms"] and same["class"] == "2" and same["delta_avg"] == 5.9
+    unsure = _res(estimated_class="2", delta_avg=5.9)  # a self-calibration that cannot tell confirms nothing
+    domain_checks(unsure, {**sc, "raw_confidence": 0.3}, None, {}, cfg)
+    decide(unsure, cfg)
+    assert unsure["class"] is None and "the self-calibration cannot tell from this pair" in " ".join(unsure["warnings"])
+    loose = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, eigenspace_max_class_disagreement=1))
+    adjacent = _res(estimated_class="3", delta_avg=8.3)
+    domain_checks(adjacent, sc, None, {}, loose)
+    decide(adjacent, loose)
+    assert adjacent["class"] == "3"  # the setting: one class apart tolerated
+    regression = _res(estimated_class="3", delta_avg=8.3, confidence=0.9)  # a confidence: the gate applies instead
+    domain_checks(regression, sc, None, {}, cfg)
+    decide(regression, cfg)
+    assert "confirms" not in regression["selfcal_check"] and regression["class"] == "3"
 
 
 def _unseen_pairs(cfg, n=2):
