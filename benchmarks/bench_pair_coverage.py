@@ -7,8 +7,8 @@ third pair with the realistic protocol's photometry, noise and JPEG), one motion
 ``analyze_batch`` (the user's path). Per bin of the registration's motion (``motion_px``): the
 pairs, the share answered (a class), the coverage of ``delta_avg_interval`` over the answered
 pairs, the coverage of the estimate +- z std over all pairs, and the answered pairs whose class
-is wrong. ``--methods`` adds the learned methods' answers on the same pairs (how many answer
-below ``analysis.min_motion_px``).
+is wrong. ``--methods`` adds the learned methods' answers on the same pairs (how many answer,
+how many answer below ``analysis.min_motion_px``, how many of their answers are a wrong class).
 
 ``--fit`` (validation only: use another ``--seed`` than the one you report) runs with
 ``selfcal.small_motion_error = 0`` and prints the smallest floor e (std = sqrt(std_cov^2 +
@@ -115,6 +115,7 @@ def main() -> None:
             still = [r for r in sel if r["motion"] is not None and r["motion"] < cfg.analysis.min_motion_px]
             result[f"{method}_answered_below_min_motion"] = [sum(r["class"] is not None for r in still), len(still)]
             result[f"{method}_answered"] = sum(r["class"] is not None for r in sel)
+            result[f"{method}_wrong_class_answered"] = sum(r["class"] not in (None, _true_class(r["truth"], cfg)) for r in sel)
     if args.fit:
         for e in [k * 1e-6 for k in range(0, 101)]:
             bins = table(rows, cfg, floor=e)
