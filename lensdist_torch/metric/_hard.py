@@ -58,6 +58,26 @@ def _block_sum(x: torch.Tensor, block: int) -> torch.Tensor:
     return x.view(b, h // block, w // block, block).sum(-1).view(b, 1, h // block, w // block)
 
 
+def measure_codes(v: torch.Tensor | None, not_r: torch.Tensor) -> torch.Tensor:
+    """(B,) codes of what each sample leaves to measure.
+
+    1: a valid pixel outside the risk map; 0.5: valid pixels, but every one at risk (both
+    images flat there: no edge to compare); 0: no valid pixel.
+
+    Args:
+        v: (B, 1, H, W) the eroded {0, 1} validity, or None (everything valid).
+        not_r: (B, 1, H, W) {0, 1}, 1 where the dilated risk map is 0.
+    """
+    if v is None:
+        return not_r.amax(dim=(1, 2, 3)).clamp(min=0.5)
+    return torch.maximum(0.5 * v.amax(dim=(1, 2, 3)), (v * not_r).amax(dim=(1, 2, 3)))
+
+
+def measured(codes: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: the samples of :func:`measure_codes` that have something to measure."""
+    return codes > 0.75
+
+
 def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool, measured: bool = False):
     sx1, sy1 = _sobel8(g1)
     sx2, sy2 = _sobel8(g2)
@@ -67,9 +87,13 @@ def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visua
         cross = torch.addcmul(sx1 * sy2, sy1, sx2, value=-1.0).abs_()
         dot = torch.addcmul(sx1 * sx2, sy1, sy2).abs_()
         mis = _positive(cross.sub_(dot.mul_(t)))
+    sq1 = torch.addcmul(sx1 * sx1, sy1, sy1)
+    sq2 = torch.addcmul(sx2 * sx2, sy2, sy2)
+    # a vanishing gradient against a non-vanishing one: no orientation agrees (A = 0, an error)
+    mis = torch.maximum(mis, sq1.sign().sub_(sq2.sign()).abs_())
     theta2 = 64.0 * cfg.theta_g * cfg.theta_g  # G <= theta <=> (8G)^2 <= 64 theta^2; 64 is exact
-    strong1 = _positive(torch.addcmul(sx1 * sx1, sy1, sy1).sub_(theta2))
-    strong2 = _positive(torch.addcmul(sx2 * sx2, sy2, sy2).sub_(theta2))
+    strong1 = _positive(sq1.sub_(theta2))
+    strong2 = _positive(sq2.sub_(theta2))
     # no weak pixel in the 3 x 3 window  <=>  R = 0 (R the dilated weak-pixel map)
     not_r = _erode3(torch.maximum(strong1, strong2))
     err = mis.mul_(not_r)
@@ -79,8 +103,10 @@ def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visua
         # dilation of the invalid pixels; outside the image counts as valid
         v = _erode3(valid)
         err.mul_(v)
-        if measured:  # a sample is measured where its eroded mask keeps a pixel
-            flags = v.amax(dim=(1, 2, 3))
+        if measured:
+            flags = measure_codes(v, not_r)
+    elif measured:
+        flags = measure_codes(None, not_r)
     reg = _block_sum(err, cfg.block_size)
     if not visual:
         return reg, None, flags
@@ -99,12 +125,12 @@ def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool, measured: bool 
         valid: (B, 1, H, W) {0, 1} mask (already binarised) or None.
         cfg: the metric's settings.
         visual: also count the visual errors.
-        measured: also return which samples keep a valid pixel after the 3 x 3 erosion (the
-            pixels where an error can be counted), from the erosion the counts use anyway.
+        measured: also return what each sample leaves to measure (:func:`measure_codes`), from
+            the erosion and the risk map the counts use anyway.
 
     Returns:
         (registration counts, visual counts or None), each (B, 1, H/b, W/b) in the images' dtype;
-        with ``measured``, a third element: (B,) {0, 1} flags, or None when ``valid`` is None.
+        with ``measured``, a third element: the (B,) codes of :func:`measure_codes`.
     """
     t = tan_threshold(cfg)
     n, step = g1.shape[0], cfg.chunk_size
@@ -128,4 +154,4 @@ def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool, measured: bool 
     vis = torch.cat([p[1] for p in parts]) if visual else None
     if not measured:
         return reg, vis
-    return reg, vis, (None if valid is None else torch.cat([p[2] for p in parts]))
+    return reg, vis, torch.cat([p[2] for p in parts])

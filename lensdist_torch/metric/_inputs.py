@@ -134,8 +134,9 @@ def check_values(
         images: (name, image) pairs.
         valid: the mask as given, or None.
         data_range: the value of white in float images.
-        measurable: (B,) {0, 1}, whether each sample keeps a pixel to measure, or None: every
-            sample must have one (checked in the same host sync).
+        measurable: (B,) codes of what each sample leaves to measure (1 a valid pixel outside
+            the risk map, 0.5 only pixels at risk, 0 no valid pixel), or None: every sample
+            must have something (checked in the same host sync).
         measurable_name: the argument to blame when a sample has nothing to measure (``valid``,
             or ``img1`` when the images are too small to keep a pixel after padding).
 
@@ -173,12 +174,19 @@ def check_values(
         message = _range_error(name, lo, hi, data_range)
         if message is not None:
             raise ValueError(message)
-    if measurable is not None and stats[-2] < 0.5:
-        raise ValueError(_nothing_to_measure(measurable_name, int(stats[-1]), measurable.numel()))
+    if measurable is not None and stats[-2] < 0.75:
+        at_risk = stats[-2] > 0.25
+        raise ValueError(_nothing_to_measure(measurable_name, int(stats[-1]), measurable.numel(), at_risk))
 
 
-def _nothing_to_measure(name: str, index: int, batch: int) -> str:
+def _nothing_to_measure(name: str, index: int, batch: int, at_risk: bool = False) -> str:
     where = f"sample [{index}] of the batch of {batch}" if batch > 1 else "the pair"
+    if at_risk:
+        return (
+            f"img1 and img2 leave no edge to measure in {where}: every valid pixel is in the risk map "
+            "(both gradients at most theta_G nearby: flat images); a pair with nothing to measure has "
+            "no quality index — drop it (validate=False gives NaN)"
+        )
     if name == "valid":
         return (
             f"valid leaves no pixel to measure in {where} (none is valid after the 3 x 3 erosion); "
@@ -291,8 +299,8 @@ def check_pair_values(img1, img2, valid, data_range, measurable=None) -> None:
         img2: the other image as given.
         valid: the mask as given, or None.
         data_range: the value of white in float images.
-        measurable: (B,) {0, 1}: whether each sample keeps a valid pixel after the 3 x 3
-            erosion of its (padded) mask, or None (not checked).
+        measurable: (B,) codes of what each sample leaves to measure (``measure_codes``), or
+            None (not checked).
 
     Raises:
         ValueError: one line naming the tensor; a sample with nothing to measure names

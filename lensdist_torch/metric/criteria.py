@@ -134,7 +134,10 @@ def _direction(sx: torch.Tensor, sy: torch.Tensor) -> tuple[torch.Tensor, torch.
 
 
 def _orientation_difference(dot: torch.Tensor, cross: torch.Tensor, smooth: bool) -> torch.Tensor:
-    """The orientation difference atan2(|cross|, |dot|) in [0, pi/2]; 0 where both gradients vanish."""
+    """The orientation difference atan2(|cross|, |dot|) in [0, pi/2]; 0 where a gradient vanishes.
+
+    The caller sets pi / 2 where exactly one gradient vanishes (docs/method.md, section 2).
+    """
     x, y = dot.abs(), cross.abs()
     if not smooth:
         return torch.atan2(y, x)  # atan2(0, 0) = 0: the exact formula, no guard needed
@@ -206,7 +209,10 @@ def _criteria(g1, g2, cfg: QualityConfig, smooth: bool) -> LocalCriteria:
         ux1, uy1, ux2, uy2 = sx1, sy1, sx2, sy2
     dot = ux1 * ux2 + uy1 * uy2
     cross = ux1 * uy2 - uy1 * ux2
-    a = 1.0 - _orientation_difference(dot, cross, smooth) / _HALF_PI
+    dalpha = _orientation_difference(dot, cross, smooth)
+    # a vanishing gradient has no orientation: against a non-vanishing one nothing agrees (A = 0)
+    lone = ((ux1 == 0) & (uy1 == 0)) != ((ux2 == 0) & (uy2 == 0))
+    a = 1.0 - torch.where(lone, torch.full_like(dalpha, _HALF_PI), dalpha) / _HALF_PI
     e = _edge_preservation(a, cfg, smooth)
     if smooth:
         m1, m2 = _safe_sqrt(sx1 * sx1 + sy1 * sy1), _safe_sqrt(sx2 * sx2 + sy2 * sy2)

@@ -27,8 +27,11 @@ padding invalid; ``pad=False`` requires multiples of the block size); float imag
 tensors, ``img2`` and ``valid`` on ``img1``'s device, none on the meta device (one-line errors
 naming the argument, always checked: they read no data); ``validate=False`` (or
 ``torch.compile``) skips the value checks and their host sync. A pair with nothing to measure
-(no pixel valid after the mask's 3 x 3 erosion) has no quality index: ``registration_quality``
-raises naming ``valid`` (NaN with ``validate=False``), the stateful metrics skip and count it.
+(no pixel valid after the mask's 3 x 3 erosion, or every valid pixel in the risk map: flat
+images, no edge to compare) has no quality index: ``registration_quality`` raises naming
+``valid`` or the images (NaN with ``validate=False``), the stateful metrics skip and count it.
+A vanishing gradient has no orientation: against a non-vanishing one it agrees with nothing
+(A = 0); two vanishing gradients agree (A = 1, and they lie in the risk map anyway).
 The loss lives in :mod:`lensdist_torch.metric.loss` and is re-exported here.
 """
 
@@ -40,7 +43,7 @@ import torch
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.metric._hard import hard_counts
+from lensdist_torch.metric._hard import hard_counts, measure_codes, measured
 from lensdist_torch.metric._inputs import (
     check_pair_values,
     get_config,
@@ -88,8 +91,9 @@ class QualityResult(NamedTuple):
         visual_map: (B, 1, ceil(H/b), ceil(W/b)) the same for visual errors.
         quality_index: (B,) 1 - mean of the registration map; 1 means no registration error.
             Invalid blocks count as error-free. A sample with nothing to measure (no pixel
-            valid after the 3 x 3 erosion of the mask) has no index: a ValueError naming
-            ``valid`` with ``validate=True``, NaN with ``validate=False`` (never 1).
+            valid after the 3 x 3 erosion of the mask, or every valid pixel in the risk map:
+            flat images) has no index: a ValueError naming ``valid`` or the images with
+            ``validate=True``, NaN with ``validate=False`` (never 1).
         criteria: per-pixel (B, 1, H, W) maps, only with ``return_pixels`` (else None).
         errors: per-pixel (B, 1, H, W) error images, only with ``return_pixels`` (else None).
 
@@ -212,7 +216,7 @@ def quality_map(
 
 
 def _measured_map(img1, img2, valid, config, data_range, validate, pad):
-    """quality_map and the (B,) {0, 1} flags of the samples with a pixel to measure (or None).
+    """quality_map and the (B,) codes of what each sample leaves to measure (``measure_codes``).
 
     Never raises for a sample with nothing to measure (the stateful metrics skip those).
     """
@@ -224,12 +228,10 @@ def _measured_map(img1, img2, valid, config, data_range, validate, pad):
     return _floor(reg, cfg), flags
 
 
-def _index(reg_map: torch.Tensor, flags: torch.Tensor | None) -> torch.Tensor:
-    """1 - mean of each sample's map; NaN where the sample has nothing to measure."""
+def _index(reg_map: torch.Tensor, codes: torch.Tensor) -> torch.Tensor:
+    """1 - mean of each sample's map; NaN where the sample has nothing to measure (``measured``)."""
     q = 1.0 - reg_map.mean(dim=(1, 2, 3))
-    if flags is None:
-        return q
-    return torch.where(flags > 0, q, torch.full_like(q, float("nan")))
+    return torch.where(measured(codes), q, torch.full_like(q, float("nan")))
 
 
 def registration_quality(
@@ -264,7 +266,8 @@ def registration_quality(
     Raises:
         ValueError: with ``validate=True``, a sample has nothing to measure: no pixel of its
             mask is valid after the 3 x 3 erosion (an all-zero mask, a stripe one or two pixels
-            wide, or an image of one row or column); its index would otherwise read 1.0,
+            wide, or an image of one row or column), or every valid pixel is in the risk map
+            (both images flat: no edge to compare); its index would otherwise read 1.0,
             perfect. Checked in the same host sync as the values.
 
     Example:
@@ -285,10 +288,10 @@ def registration_quality(
         reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
         return QualityResult(reg_map, vis_map, _index(reg_map, flags))
     eroded = None if v is None else erode_valid(v)
-    flags = None if eroded is None else eroded.amax(dim=(1, 2, 3))
+    crit = _criteria(g1, g2, cfg, smooth)
+    flags = measure_codes(eroded, (crit.r < 0.5).to(crit.r.dtype).detach())
     if should_validate(validate):
         check_pair_values(img1, img2, valid, data_range, flags)
-    crit = _criteria(g1, g2, cfg, smooth)
     errs = _error_images(crit, eroded, cfg, smooth)
     reg_map = block_pool(errs.e_reg, cfg, smooth)
     vis_map = block_pool(errs.e_vis, cfg, smooth)

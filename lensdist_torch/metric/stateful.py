@@ -7,8 +7,8 @@
 * the mean registration-error map, the lens-distortion signature of a data set (a homography
   fitted to distorted images leaves errors that grow with the distance from the centre);
 * the number of pairs, and the number of pairs skipped because they had nothing to measure (no
-  pixel of the mask valid after its 3 x 3 erosion: an index there would read 1.0, perfect,
-  although nothing was compared). Such pairs are never averaged, with or without ``validate``.
+  pixel of the mask valid after its 3 x 3 erosion, or every valid pixel in the risk map: an
+  index there would read 1.0, perfect, although nothing was compared). Such pairs are never averaged, with or without ``validate``.
 
 The state is four sums (float64 for the sums, int64 for the counts) kept as buffers, so
 ``.to(device)`` moves them and ``state_dict`` saves them. The sums stay float64 whatever
@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
+from lensdist_torch.metric._hard import measured
 from lensdist_torch.metric._inputs import check_data_range, get_config
 from lensdist_torch.metric.quality import _measured_map
 
@@ -47,7 +48,7 @@ class QualityMetricResult(NamedTuple):
         registration_map: (1, h, w) float64, the mean hard registration map over pairs.
         num_pairs: () int64, the number of pairs averaged.
         num_skipped: () int64, the pairs left out because they had nothing to measure (no
-            pixel of the mask valid after its 3 x 3 erosion).
+            pixel of the mask valid after its 3 x 3 erosion, or every valid pixel at risk).
 
     Example:
         >>> m = RegistrationQualityMetric()
@@ -76,10 +77,8 @@ def _batch_state(img1, img2, valid, config, data_range, validate, pad):
     m, flags = _measured_map(img1, img2, valid, config, data_range, validate, pad)  # (B, 1, h, w)
     m = m.double()
     q = 1.0 - m.mean(dim=(1, 2, 3))  # as registration_quality's quality_index
-    if flags is None:
-        return q.sum(), m.sum(dim=0), m.shape[0], 0
-    keep = flags.double()
-    n = flags.sum().long()
+    keep = measured(flags).double()
+    n = keep.sum().long()
     return (q * keep).sum(), (m * keep[:, None, None, None]).sum(dim=0), n, m.shape[0] - n
 
 
@@ -226,7 +225,8 @@ class RegistrationQualityMetric(nn.Module):
         - compute(): QualityMetricResult with a () index, a (1, ceil(H/b), ceil(W/b)) map and
           the () counts of pairs averaged and skipped.
 
-    A pair with nothing to measure (no pixel of its mask valid after the 3 x 3 erosion) is
+    A pair with nothing to measure (no pixel of its mask valid after the 3 x 3 erosion, or
+    every valid pixel in the risk map) is
     never averaged, with or without ``validate``: ``update`` leaves it out of the sums and
     counts it in ``num_skipped`` (``compute`` reports it). The accumulators stay float64/int64
     under ``.half()``, ``.float()``, ``.bfloat16()`` and ``.to(dtype)`` (device moves apply), and

@@ -64,8 +64,11 @@ def spec_reference(img1, img2, valid=None, cfg: QualityConfig = CFG):
     u2x, u2y = sx2**2 - sy2**2, 2 * sx2 * sy2
     # "+ 0.0" turns a -0.0 dot product (a zero gradient times a negative component) into +0.0:
     # IEEE atan2(0, -0) = pi, which would give a zero vector the orientation difference pi / 2.
-    # A zero vector has no orientation; docs/method.md, section 5 masks it to dalpha = 0 (A = 1).
+    # A zero vector has no orientation (docs/method.md, section 2): two of them agree (dalpha =
+    # 0, atan2(0, 0)), one against a non-zero vector agrees with nothing (dalpha = pi / 2).
     dalpha = 0.5 * torch.atan2((u1x * u2y - u1y * u2x).abs(), u1x * u2x + u1y * u2y + 0.0)
+    zero1, zero2 = (sx1 == 0) & (sy1 == 0), (sx2 == 0) & (sy2 == 0)
+    dalpha = torch.where(zero1 != zero2, torch.full_like(dalpha, HALF_PI), dalpha)
     a = 1 - dalpha / HALF_PI
     e = cfg.gamma / (1 + torch.exp(cfg.k * (a - cfg.sigma)))
     g1, g2 = torch.sqrt(sx1**2 + sy1**2), torch.sqrt(sx2**2 + sy2**2)

@@ -1,6 +1,7 @@
 """A pair with nothing to measure (issue 19, item 8): no pixel of the mask valid after its 3 x 3
-erosion. Its quality index must never read 1.0 (perfect): ``registration_quality`` raises naming
-``valid`` (NaN with ``validate=False``), the stateful metric skips the pair and counts it, and
+erosion, or every valid pixel in the risk map (both images flat: no edge whose orientation could
+disagree). Its quality index must never read 1.0 (perfect): ``registration_quality`` raises naming
+``valid`` or the images (NaN with ``validate=False``), the stateful metric skips the pair and counts it, and
 the loss gives 0 with a zero gradient for such a batch (documented: a loss must not poison the
 weights, and the masked mean leaves an empty sample out of the batch's mean)."""
 
@@ -152,6 +153,73 @@ class TestStatefulMetric:
         assert float(res.quality_index) == pytest.approx(index_of(img1[:1], img2[:1], valid[:1])[0], abs=1e-7)
         metric.reset()
         assert int(metric.num_skipped) == 0
+
+
+def flat(b: int = 1, h: int = 32, w: int = 40, level: float = 0.5) -> torch.Tensor:
+    return torch.full((b, 1, h, w), level)
+
+
+class TestFlatImages:
+    """Every valid pixel at risk (both gradients <= theta_G nearby): nothing to measure. An edge
+    against a vanishing gradient is an error (docs/method.md, section 2), not a perfect pixel."""
+
+    @pytest.mark.bad_input
+    @pytest.mark.parametrize("path", sorted(ENTRY_POINTS))
+    def test_two_flat_images_have_no_index(self, path):
+        # identical, and two different grey levels (a visual error, no edge to compare)
+        for a, b in ((flat(), flat()), (flat(), flat(level=0.8))):
+            with pytest.raises(ValueError, match=r"^img1 and img2 leave no edge to measure in the pair") as info:
+                ENTRY_POINTS[path](a, b, None)
+            assert "\n" not in str(info.value)
+            assert math.isnan(float(ENTRY_POINTS[path](a, b, None, validate=False)[0]))
+
+    @pytest.mark.bad_input
+    def test_weak_texture_below_theta_g_is_flat_too(self):
+        # a ramp of 0.01 per pixel: normalised Sobel G = 0.01 <= theta_G = 0.02 everywhere
+        ramp = (torch.arange(40.0) * 0.01)[None, None, None, :].expand(1, 1, 32, 40).contiguous()
+        with pytest.raises(ValueError, match="no edge to measure"):
+            registration_quality(ramp, ramp.flip(-1))
+        # 0.03 per pixel is above theta_G: measured, and the opposite ramps agree axially
+        steep = ramp * 3 / 1.2
+        assert index_of(steep, steep.flip(-1)) == [1.0]
+
+    @pytest.mark.bad_input
+    @pytest.mark.parametrize("path", sorted(ENTRY_POINTS))
+    def test_texture_against_a_flat_image_is_an_error(self, path):
+        img1, _ = misregistered(1)
+        for a, b in ((img1, flat()), (flat(), img1)):
+            q = float(ENTRY_POINTS[path](a, b, None)[0])
+            # about a third of the texture is weak (in the risk map); every other pixel is an
+            # error: far from the 1.0 a zero vector used to give
+            assert q < 0.4, (path, q)
+            res = registration_quality(a, b, return_pixels=True)
+            assert torch.equal(res.errors.e_reg, 1 - res.criteria.r)  # every risk-free pixel errs
+            c = res.criteria  # A = 0 wherever the texture has a gradient (its flat patch: A = 1)
+            assert float(c.a[(c.g1 + c.g2) > 0].max()) == 0.0 and float(c.a[(c.g1 + c.g2) == 0].min()) == 1.0
+
+    @pytest.mark.bad_input
+    def test_the_message_names_the_flat_sample_and_the_metric_skips_it(self):
+        img1, img2 = misregistered(3)
+        img1[1], img2[1] = 0.3, 0.3
+        with pytest.raises(ValueError, match=r"no edge to measure in sample \[1\] of the batch of 3"):
+            registration_quality(img1, img2)
+        q = registration_quality(img1, img2, validate=False).quality_index
+        assert math.isnan(float(q[1])) and 0.2 < float(q[0]) < 0.9 and 0.2 < float(q[2]) < 0.9
+        metric = RegistrationQualityMetric()
+        metric.update(img1, img2)
+        res = metric.compute()
+        assert int(res.num_pairs) == 2 and int(res.num_skipped) == 1
+        assert float(res.quality_index) == pytest.approx((float(q[0]) + float(q[2])) / 2, abs=1e-7)
+
+    def test_a_flat_half_is_still_measured(self):
+        # sky above, texture below: the texture's pixels are measured, the sky's are not errors
+        img1, img2 = misregistered(1)
+        a, b = img1.clone(), img1.clone()
+        a[..., :16, :], b[..., :16, :] = 0.7, 0.7
+        assert index_of(a, b) == [1.0]
+        c = b.clone()
+        c[..., 16:, :] = img2[..., 16:, :]
+        assert index_of(a, c)[0] < index_of(img1, img2)[0] + 0.5 * (1 - index_of(img1, img2)[0])
 
 
 class TestLoss:

@@ -88,18 +88,20 @@ class TestSmoke:
 # and the structured rows are Ry = {4, ..., 12}.
 #
 # A: where both gradients are non-zero (x in Cx, y in Ry) they are perpendicular: dot = 0,
-#    cross != 0, dalpha = pi / 2, A = 0. Everywhere else one gradient is the zero vector:
-#    u = 0, dalpha = 0.5 atan2(0, 0) = 0, A = 1.
+#    cross != 0, dalpha = pi / 2, A = 0. Where exactly one is the zero vector it has no
+#    orientation to agree with: A = 0 too (docs/method.md, section 2). Where both vanish
+#    (x not in Cx, y not in Ry) u1 = u2 = 0, dalpha = 0.5 atan2(0, 0) = 0, A = 1.
+#    So A = 0 exactly where x in Cx or y in Ry.
 # E = gamma / (1 + exp(k (A - sigma))): E(0) = 0.9879 / (1 + e^17.6) ~ 2e-8, E(1) ~ 0.976.
 # R0 = [x not in Cx and y not in Ry]. A pixel escapes the 3 x 3 dilation iff all its
 #    neighbours are structured, i.e. iff its three columns lie in Cx (x in {3, 4}) or its
 #    three rows lie in Ry (y in {5, ..., 11}). So R = [x not in {3, 4}] * [y not in {5..11}].
-# e_reg = (1 - R) [E < 0.5] = [x in Cx][y in Ry][x in {3, 4} or y in {5..11}]:
-#    TL (rows 4-7, cols 2-5): row 4 only cols 3, 4 (2) + rows 5-7 all four cols (12) = 14
-#    TR (rows 4-7, cols 10-11): rows 5-7 (6)                                          =  6
-#    BL (rows 8-12, cols 2-5): rows 8-11 (16) + row 12 cols 3, 4 (2)                  = 18
-#    BR (rows 8-12, cols 10-11): rows 8-11 (8)                                        =  8
-#    ratios 14/64 = 0.21875, 6/64 = 0.09375 < 0.1 -> 0 (the floor), 18/64, 8/64 = 0.125.
+# e_reg = (1 - R) [E < 0.5] = [x in {3, 4} or y in {5..11}] (a risk-free pixel always has
+#    x in Cx or y in Ry, so A = 0 there):
+#    TL (rows 0-7, cols 0-7): cols 3, 4 (16) + rows 5-7, the other six cols (18)       = 34
+#    TR (rows 0-7, cols 8-15): rows 5-7 (24)                                           = 24
+#    BL (rows 8-15, cols 0-7): cols 3, 4 (16) + rows 8-11, the other six cols (24)     = 40
+#    BR (rows 8-15, cols 8-15): rows 8-11 (32)                                         = 32
 # e_vis = R [D > 0.1], D = |a(x) - d(y)| / 16: 1/16 = 0.0625 is below 0.1, 2/16 is above,
 #    so D > 0.1 iff |a - d| >= 2 units. R = 1 only on rows 0-4 (d = 0) and 12-15 (d = 8),
 #    columns other than 3 and 4:
@@ -116,8 +118,8 @@ CX = [2, 3, 4, 5, 10, 11]
 RY = list(range(4, 13))
 RISK_FREE_COLS = [3, 4]
 RISK_FREE_ROWS = list(range(5, 12))
-HAND_REG_COUNTS = [[14, 6], [18, 8]]
-HAND_REG_MAP = [[14 / 64, 0.0], [18 / 64, 8 / 64]]
+HAND_REG_COUNTS = [[34, 24], [40, 32]]
+HAND_REG_MAP = [[34 / 64, 24 / 64], [40 / 64, 32 / 64]]
 HAND_VIS_MAP = [[15 / 64, 40 / 64], [24 / 64, 32 / 64]]
 
 
@@ -147,10 +149,10 @@ class TestHandWorked:
         a_units = torch.tensor(A_UNITS, dtype=dtype)[None, :]
         d_units = torch.tensor(D_UNITS, dtype=dtype)[:, None]
         assert torch.equal(c.d[0, 0], (a_units - d_units).abs() / 16)
-        both = indicator(RY, dtype=dtype)[:, None] * indicator(CX, dtype=dtype)[None, :]
-        torch.testing.assert_close(c.a[0, 0], 1 - both, atol=1e-6, rtol=0)
-        assert float(c.e[0, 0][both == 1].max()) < 1e-7  # E(A=0) ~ 2.2e-8
-        e_one = c.e[0, 0][both == 0]
+        neither = (1 - indicator(RY, dtype=dtype))[:, None] * (1 - indicator(CX, dtype=dtype))[None, :]
+        torch.testing.assert_close(c.a[0, 0], neither, atol=1e-6, rtol=0)
+        assert float(c.e[0, 0][neither == 0].max()) < 1e-7  # E(A=0) ~ 2.2e-8
+        e_one = c.e[0, 0][neither == 1]
         torch.testing.assert_close(e_one, torch.full_like(e_one, 0.97592), atol=1e-5, rtol=0)
         risky_rows = 1 - indicator(RISK_FREE_ROWS, dtype=dtype)
         risky_cols = 1 - indicator(RISK_FREE_COLS, dtype=dtype)
@@ -160,11 +162,10 @@ class TestHandWorked:
     def test_error_images(self, dtype):
         img1, img2 = hand_pair(dtype)
         errs = error_images(local_criteria(img1, img2))
-        cx, ry = indicator(CX, dtype=dtype), indicator(RY, dtype=dtype)
         risky_rows = 1 - indicator(RISK_FREE_ROWS, dtype=dtype)
         risky_cols = 1 - indicator(RISK_FREE_COLS, dtype=dtype)
         free = 1 - risky_rows[:, None] * risky_cols[None, :]
-        assert torch.equal(errs.e_reg[0, 0], ry[:, None] * cx[None, :] * free)
+        assert torch.equal(errs.e_reg[0, 0], free)
         a_units = torch.tensor(A_UNITS, dtype=dtype)[None, :]
         d_units = torch.tensor(D_UNITS, dtype=dtype)[:, None]
         assert torch.equal(errs.e_vis[0, 0], (1 - free) * ((a_units - d_units).abs() >= 2).to(dtype))
@@ -180,18 +181,19 @@ class TestHandWorked:
             res = registration_quality(img1, img2, return_pixels=pixels)
             assert torch.equal(res.registration_map, want_reg)
             assert torch.equal(res.visual_map, want_vis)
-            torch.testing.assert_close(res.quality_index, torch.tensor([1 - (14 + 18 + 8) / 64 / 4], dtype=dtype))
+            torch.testing.assert_close(res.quality_index, torch.tensor([1 - (34 + 24 + 40 + 32) / 64 / 4], dtype=dtype))
 
     def test_invalid_pixel_removes_its_neighbourhood(self, dtype):
-        # (6, 3) invalid: erosion removes rows 5-7 x cols 2-4, all nine registration errors in
-        # TL (rows 5-7 are risk-free, cols 2-4 structured) -> 14 - 9 = 5 < 6.4 -> floored to 0.
+        # (6, 9) and (6, 13) invalid: erosion removes rows 5-7 x cols 8-10 and 12-14, 18 of TR's
+        # 24 registration errors (rows 5-7 are risk-free) -> 6 < 6.4 -> floored to 0.
         img1, img2 = hand_pair(dtype)
         valid = torch.ones(1, 1, 16, 16, dtype=dtype)
-        valid[..., 6, 3] = 0
+        valid[..., 6, 9] = 0
+        valid[..., 6, 13] = 0
         counts = registration_error_counts(img1, img2, valid)
-        assert counts.flatten().tolist() == [5, 6, 18, 8]
+        assert counts.flatten().tolist() == [34, 6, 40, 32]
         res = registration_quality(img1, img2, valid)
-        assert torch.equal(res.registration_map, torch.tensor([[[[0.0, 0.0], [18 / 64, 8 / 64]]]], dtype=dtype))
+        assert torch.equal(res.registration_map, torch.tensor([[[[34 / 64, 0.0], [40 / 64, 32 / 64]]]], dtype=dtype))
         # no visual errors in rows 5-7 (risk-free), so the visual map is unchanged
         assert torch.equal(res.visual_map, torch.tensor(HAND_VIS_MAP, dtype=dtype)[None, None])
 
@@ -199,16 +201,16 @@ class TestHandWorked:
         # R0 = [G <= theta_G]. With theta_G = 1/32 (exact in binary) the ramp ends, whose G is
         # exactly 1/32, become weak: the structured columns are {3, 4} (none has both
         # neighbours structured) and the structured rows {5..11}, interior rows {6..10}. So
-        # R = 0 exactly on rows 6-10. A is unchanged (A = 0 where both gradients are non-zero:
-        # cols {2..5, 10, 11} x rows {4..12}), so e_reg = rows 6-10 x cols {2..5, 10, 11}:
-        # TL 2 x 4 = 8, TR 2 x 2 = 4, BL 3 x 4 = 12, BR 3 x 2 = 6 (4/64 and 6/64 floored).
+        # R = 0 exactly on rows 6-10. A does not depend on theta_G (A = 0 wherever x in Cx or
+        # y in Ry, rows 6-10 included), so e_reg = rows 6-10, every column:
+        # TL 2 x 8 = 16, TR 16, BL 3 x 8 = 24, BR 24.
         img1, img2 = hand_pair(dtype)
         at = QualityConfig(theta_g=1 / 32)
-        assert registration_error_counts(img1, img2, config=at).flatten().tolist() == [8, 4, 12, 6]
-        want = torch.tensor([[[[8 / 64, 0.0], [12 / 64, 0.0]]]], dtype=dtype)
+        assert registration_error_counts(img1, img2, config=at).flatten().tolist() == [16, 16, 24, 24]
+        want = torch.tensor([[[[16 / 64, 16 / 64], [24 / 64, 24 / 64]]]], dtype=dtype)
         assert torch.equal(quality_map(img1, img2, config=at), want)
         e_reg = error_images(local_criteria(img1, img2, at), config=at).e_reg
-        cols = indicator(CX, dtype=dtype)
+        cols = torch.ones(16, dtype=dtype)
         assert torch.equal(e_reg[0, 0], indicator(range(6, 11), dtype=dtype)[:, None] * cols[None, :])
         assert torch.equal(registration_quality(img1, img2, config=at, return_pixels=True).registration_map, want)
         # just below 1/32 the ends are structured again: the counts of the default threshold
@@ -384,6 +386,7 @@ class TestRiskMap:
         flat = torch.full((1, 1, 16, 16), 0.5, dtype=torch.float64)
         c = local_criteria(flat, x_ramp(16, 16, 0.05))
         assert bool((c.r == 0).all())
-        # the zero vector of img1 has no orientation: A = 1, no registration error
-        assert bool((c.a == 1).all())
-        assert bool((quality_map(flat, x_ramp(16, 16, 0.05)) == 0).all())
+        # the zero vector of img1 has no orientation to agree with the ramp's: A = 0, every
+        # pixel a registration error (the edge of img2 is lost in img1)
+        assert bool((c.a == 0).all())
+        assert bool((quality_map(flat, x_ramp(16, 16, 0.05)) == 1).all())

@@ -9,11 +9,11 @@ Points where the smooth loss is not differentiable, by construction of the formu
   risk map at ties. At these points the one-sided derivatives differ; gradcheck still passes
   when the kink is symmetric (a central difference of |x| at 0 is 0, as is torch's subgradient)
   or sits where the sigmoids are saturated, which is the case for the inputs below.
-* The orientation of a vanishing gradient: a zero vector counts as A = 1 (docs/method.md: dalpha =
-  0.5 atan2(0, 0) = 0), while a tiny non-zero vector has a definite direction, whatever its
-  length. A pixel whose gradient is exactly zero in one image and strong in the other (outside
-  the risk map) therefore makes the loss jump when a neighbouring pixel moves by +-1e-6: there
-  gradcheck must fail, and only finite gradients can be asked for (test_discontinuity_...).
+* The orientation of a vanishing gradient: a zero vector has none (docs/method.md, section 2:
+  against a non-zero vector A = 0, against another zero vector A = 1), while a tiny non-zero
+  vector has a definite direction, whatever its length. Where a gradient is exactly zero a
+  neighbouring pixel moved by +-1e-6 gives it a direction and the loss jumps: there gradcheck
+  must fail, and only finite gradients can be asked for (test_discontinuity_...).
 """
 
 from __future__ import annotations
@@ -224,9 +224,9 @@ class TestFiniteGradients:
         """Why gradcheck cannot pass on every saturated input (module docstring, last point).
 
         img1 is a square, img2 the square moved right by one pixel. Column 7 of img1 is flat
-        (zero gradient) while img2 has its strong edge there, outside the risk map. Moving
-        img1[1, 6] by +-1e-6 gives column 7 a tiny gradient with a definite direction, so the
-        loss jumps by the same amount either way: the difference quotients are +-1e4.
+        (zero gradient) while img2 has its strong edge there. Moving img1[1, 6] by +-1e-6 gives
+        the zero vectors around it a tiny gradient with a definite direction, so the loss jumps
+        by about the same amount either way: the difference quotients exceed 1e3.
         """
         sq = _square()
         img2 = torch.roll(sq, 1, -1)
