@@ -5,7 +5,8 @@
 
 FRAMES_DIR: the frames of one camera; CALIBRATION.json: {"primary": {"K": 3 x 3, "dist": OpenCV's
 coefficients}} (its chessboard calibration). What runs is the user's path, ``calibrate_path``
-(= ``lensdist calibrate``, method auto: the multi-view and the direct answers combined). Beside it:
+(= ``lensdist calibrate``, method auto: the multi-view and the direct answers combined; the
+multi-view answer from ``multiview.reconstructions`` mappings, each listed). Beside it:
 every COLMAP camera model fitted by bundle adjustment on the same tracks (what COLMAP gives with
 that model fixed), and the direct path alone. The truth is Delta = |p - undistortPoints(p, K, dist,
 P=K)| run to convergence, over the pixels where the calibration's model inverts.
@@ -96,6 +97,14 @@ def main() -> None:
               f"reprojection RMS {mv['reprojection_px']:.2f} px, model {mv['model']}, {mv['delta_avg_user_px']:.2f} px "
               f"[{mv['delta_avg_user_interval'][0]:.2f}, {mv['delta_avg_user_interval'][1]:.2f}], "
               f"class {mv['class'] or 'cannot tell (' + str(mv['reason']) + ')'}")
+    for run in mv.get("reconstructions") or []:  # one per mapping seed (multiview.reconstructions)
+        if "failed" in run:
+            print(f"  reconstruction, seed {run['seed']}: failed ({run['failed']})")
+            continue
+        iv = run["delta_avg_user_interval"]
+        print(f"  reconstruction, seed {run['seed']}: {run['registered']} registered, {run['points3D']} tracks, "
+              f"{run['model']} {run['delta_avg_user_px']:.2f} px [{iv[0]:.2f}, {iv[1]:.2f}], covers "
+              f"{'yes' if iv[0] <= truth['delta_avg_px'] <= iv[1] else 'no'}, class {run['class'] or 'cannot tell'}")
     print("| estimate | detail | Delta_avg (px) | % of truth | 95 % interval | covers | class | note |")
     print("|---|---|---|---|---|---|---|---|")
     for name, detail, value, iv, cls, note in rows:

@@ -9,7 +9,8 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
 1. :func:`reconstruct`: COLMAP's SIFT on every frame (at most ``max_image_side`` px), exhaustive
    matching (or sequential for long videos), geometric verification, incremental mapping with one
    shared RADIAL camera whose principal point stays at the frame centre (it is not refined: the
-   data rarely pin it, and refining it was measured to go wrong).
+   data rarely pin it, and refining it was measured to go wrong); the mapping is run
+   ``reconstructions`` times with other seeds on the same matches.
 2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
    adjustment on the same tracks (structure, poses, focal length and the model's distortion
    free); the **model is chosen by BIC**, n ln(RSS / n) + k ln n over the n reprojection
@@ -20,6 +21,8 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    within ``rms_margin`` of the best's, in quadrature (models that fit equally well but disagree
    on Delta: on thousands of tracks BIC prefers the richest model for a few % of RMS). No class when the camera turned by less than
    ``min_rotation_deg`` (translation alone: relief imitates distortion, :func:`rotation_spread_deg`).
+   The spread between reconstructions joins in quadrature too
+   (:func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`).
 4. **In the user's pixels and OpenCV's terms**: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV and
    FULL_OPENCV are OpenCV's model with some coefficients 0, so the OpenCV camera is exact (the
    principal point moves by -0.5 px: COLMAP's pixel centres lie at +0.5). Delta is
@@ -60,7 +63,10 @@ class MultiViewCalibration(NamedTuple):
     class_label or None with ``reason``; registered of ``frames``; points3D; reprojection_px
     (RMS of the chosen model); models: per fitted model its BIC, Delta_avg and RMS;
     jackknife: the leave-a-block-out Delta_avg values; rotation_spread_deg: the largest
-    rotation between two frames (below ``min_rotation_deg``: degenerate, no class).
+    rotation between two frames (below ``min_rotation_deg``: degenerate, no class);
+    reconstructions: per seed of the mapping its numbers (set by
+    :func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`), and
+    reconstruction_spread_px the largest |Delta_avg - this one's| among them.
     """
 
     model: str
@@ -83,6 +89,8 @@ class MultiViewCalibration(NamedTuple):
     models: dict
     jackknife: list
     rotation_spread_deg: float
+    reconstructions: tuple = ()
+    reconstruction_spread_px: float = 0.0
 
 
 def pycolmap_or_error():
@@ -114,15 +122,21 @@ def _quiet():
 
 
 # ------------------------------------------------------------------ the reconstruction
-def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None):
-    """COLMAP's sparse reconstruction of frames ``names`` in ``image_dir`` (module docstring, step 1).
+def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None) -> list:
+    """COLMAP's sparse reconstructions of frames ``names`` in ``image_dir`` (module docstring, step 1).
+
+    The features and the verified matches are computed once (geometric verification seeded by
+    ``seed``); the incremental mapping runs ``reconstructions`` times on them, with the seeds
+    ``seed``, ``seed`` + 1, ... (the engine's run-to-run variation, which the interval takes in:
+    :mod:`~lensdist_torch.geometry.multiview_runs`).
 
     Returns:
-        The largest ``pycolmap.Reconstruction`` (one shared camera), or None when COLMAP
-        reconstructed nothing.
+        Per seed the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
+        COLMAP reconstructed nothing.
     """
     pc, cfg = pycolmap_or_error(), config or MultiViewConfig()
     pc.set_random_seed(cfg.seed)
+    out = []
     with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp, _quiet():
         db = Path(tmp) / "db.db"
         reader = pc.ImageReaderOptions()
@@ -134,18 +148,22 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
                             reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
         matching = pc.FeatureMatchingOptions()
         matching.num_threads, matching.use_gpu = cfg.num_threads, False
+        verification = pc.TwoViewGeometryOptions()
+        verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
         if len(names) <= cfg.exhaustive_below:
-            pc.match_exhaustive(db, matching_options=matching, device=pc.Device.cpu)
+            pc.match_exhaustive(db, matching_options=matching, verification_options=verification, device=pc.Device.cpu)
         else:
             pairing = pc.SequentialPairingOptions()
             pairing.overlap = cfg.sequential_overlap
-            pc.match_sequential(db, matching_options=matching, pairing_options=pairing, device=pc.Device.cpu)
-        mapping = pc.IncrementalPipelineOptions()
-        mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed, False
-        recs = pc.incremental_mapping(db, image_dir, Path(tmp) / "sparse", options=mapping)
-    if not recs:
-        return None
-    return max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+            pc.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                verification_options=verification, device=pc.Device.cpu)
+        for i in range(cfg.reconstructions):
+            pc.set_random_seed(cfg.seed + i)
+            mapping = pc.IncrementalPipelineOptions()
+            mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed + i, False
+            recs = pc.incremental_mapping(db, image_dir, Path(tmp) / f"sparse{i}", options=mapping)
+            out.append(max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None)
+    return out
 
 
 # ------------------------------------------------------------------ models on the tracks

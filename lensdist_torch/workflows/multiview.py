@@ -21,6 +21,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
+from lensdist_torch.geometry.multiview_runs import combine_reconstructions
 
 __all__ = ["COLMAP_SUFFIXES", "multiview_path", "combine"]
 
@@ -68,13 +69,18 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
                 names.append(f"{len(names):06d}.png")
         if len(names) < 3:
             return {"ok": False, "reason": f"the multi-view calibration needs at least 3 frames, got {len(names)}"}
-        rec = reconstruct(folder, names, cfg)
         least = max(3, math.ceil(cfg.min_registered * len(names)))
-        if rec is None or rec.num_reg_images() < least:
-            got = 0 if rec is None else rec.num_reg_images()
+        runs, got = [], 0
+        for i, rec in enumerate(reconstruct(folder, names, cfg)):  # one per mapping seed
+            n = 0 if rec is None else rec.num_reg_images()
+            got = max(got, n)
+            runs.append((cfg.seed + i, f"{n} of {len(names)} frames registered" if n < least else
+                         self_calibrate_reconstruction(rec, cfg, settings, frames=len(names), image_size=tuple(image_size))))
+        if all(isinstance(r, str) for _, r in runs):
+            tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
-                                           f"registered (at least {least} needed)"}
-        res = self_calibrate_reconstruction(rec, cfg, settings, frames=len(names), image_size=tuple(image_size))
+                                           f"registered at most{tries} (at least {least} needed)"}
+        res = combine_reconstructions(runs, cfg)
     return {"ok": True, **res._asdict()}
 
 
@@ -120,7 +126,8 @@ def combine(direct: dict, mv: dict | None) -> dict:
                "eq4_fit_error_px": mv["eq4_fit_error_px"], "registered": mv["registered"], "points3D": mv["points3D"],
                "reprojection_px": mv["reprojection_px"], "rotation_spread_deg": mv["rotation_spread_deg"],
                "camera_matrix": mv["camera_matrix"], "dist_coeffs": mv["dist_coeffs"],
-               "models": mv["models"]}
+               "models": mv["models"], "reconstructions": list(mv.get("reconstructions", ())),
+               "reconstruction_spread_px": mv.get("reconstruction_spread_px", 0.0)}
     out["multiview"] = mv_view
     if mv["class_label"] is None:  # no multi-view class: the direct answer stands, unless neither can tell
         out["method"] = "direct"

@@ -1,0 +1,108 @@
+"""Several reconstructions of one sequence: the spread between them in the interval, and one-thread runs
+that repeat exactly (lensdist_torch.geometry.multiview_runs, geometry.multiview.reconstruct)."""
+
+import math
+
+import pytest
+
+from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.geometry.multiview import MultiViewCalibration
+from lensdist_torch.geometry.multiview_runs import (
+    combine_reconstructions,
+    reconstruction_spread,
+    widened_half_width,
+)
+
+T5 = 2.5705818356596932  # t at 97.5 % on 5 degrees of freedom (6 jackknife blocks)
+
+
+def _cal(d, lo, hi, label="4", reason="", registered=28, rms=1.3):
+    return MultiViewCalibration(
+        "RADIAL", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], [-0.2, 0.05, 0, 0, 0], d, (lo, hi), 2 * d, (2 * lo, 2 * hi), 0.9,
+        -1e-7, 0.0, 0.5, label, reason, registered, 37, 1000, rms, {}, [d] * 6, 40.0)
+
+
+def test_spread_joins_the_interval_in_quadrature_by_hand():
+    # answer 100 +- 10 (t sqrt(var + model^2) = 10); the others 104 and 97: spread 4,
+    # half-width sqrt(10^2 + (2.5706 * 4)^2) = sqrt(100 + 105.73) = 14.343
+    runs = [(0, _cal(104.0, 95.0, 113.0)), (1, _cal(100.0, 90.0, 110.0)), (2, _cal(97.0, 88.0, 106.0))]
+    assert reconstruction_spread([104.0, 100.0, 97.0], 100.0) == 4.0
+    assert widened_half_width(100.0, (90.0, 110.0), 4.0, T5) == pytest.approx(14.343, abs=1e-3)
+    res = combine_reconstructions(runs)
+    assert res.delta_avg_user_px == 100.0 and res.reconstruction_spread_px == 4.0  # the median answers
+    assert res.delta_avg_user_interval == pytest.approx((85.657, 114.343), abs=1e-3)
+    # Delta_max: 200 +- 20, spread 8: sqrt(400 + (2.5706 * 8)^2) = 28.687
+    assert res.delta_max_user_interval == pytest.approx((171.313, 228.687), abs=1e-3)
+    assert res.class_label == "4" and res.reason == ""  # 14.3 px is within 25 % of 100
+    assert [r["seed"] for r in res.reconstructions] == [0, 1, 2] and res.reconstructions[2]["delta_avg_user_px"] == 97.0
+    # spread 10 (others 110 and 96): sqrt(225 + (2.5706 * 10)^2) = 29.762 > 25 % of 100: no class, the spread named
+    wide = combine_reconstructions([(0, _cal(110.0, 95.0, 125.0)), (1, _cal(100.0, 85.0, 115.0)), (2, _cal(96.0, 81.0, 111.0))])
+    assert wide.class_label is None and wide.delta_avg_user_interval[1] == pytest.approx(129.762, abs=1e-3)
+    assert wide.reason == "interval too wide: +-29.76 px (the 3 reconstructions differ by up to 10.00 px)"
+
+
+def test_one_reconstruction_keeps_its_interval():
+    res = combine_reconstructions([(5, _cal(100.0, 90.0, 110.0))])
+    assert res.delta_avg_user_interval == pytest.approx((90.0, 110.0)) and res.reconstruction_spread_px == 0.0
+    assert res.class_label == "4"
+
+
+def test_reconstructions_that_disagree_beyond_their_intervals_cannot_tell():
+    """The GoPro views' runs of 2026-11-24 (truth 103.2 px): 122.4 [107.3, 137.5] alone was confidently wrong."""
+    runs = [(0, _cal(122.4, 107.3, 137.5)), (1, _cal(53.0, 17.9, 88.2, label=None, reason="interval too wide: +-35.15 px")),
+            (2, _cal(119.2, 61.2, 177.3, label=None, reason="interval too wide: +-58.05 px"))]
+    res = combine_reconstructions(runs)
+    assert res.class_label is None and res.delta_avg_user_px == 119.2
+    assert res.reason.startswith("the reconstructions disagree beyond their intervals (seed 0 122.40 px [107.30, 137.50]")
+    lo, hi = res.delta_avg_user_interval
+    assert lo <= 103.2 <= hi and res.reconstruction_spread_px == pytest.approx(66.2)
+    assert hi - 119.2 == pytest.approx(math.hypot(58.1, T5 * 66.2), abs=1e-9)
+
+
+def test_too_few_reconstructions_cannot_tell_and_a_median_of_two_prefers_more_views():
+    res = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0)), (1, "5 of 37 frames registered"),
+                                   (2, "0 of 37 frames registered")])
+    assert res.class_label is None and res.reason.startswith("only 1 of 3 reconstructions succeeded (2 needed)")
+    assert "seed 1: 5 of 37 frames registered" in res.reason and res.reconstructions[1] == {"seed": 1, "failed": "5 of 37 frames registered"}
+    two = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0, registered=20)), (1, _cal(102.0, 97.0, 107.0, registered=30))])
+    assert two.delta_avg_user_px == 102.0 and two.reconstruction_spread_px == 2.0
+    with pytest.raises(ValueError, match="at least one successful reconstruction"):
+        combine_reconstructions([(0, "0 of 37 frames registered")])
+
+
+def test_degenerate_motion_stays_the_reason():
+    degenerate = "degenerate motion: the camera turned by at most 3.3 degrees"
+    res = combine_reconstructions([(0, _cal(10.0, 9.8, 10.2, label=None, reason=degenerate)),
+                                   (1, _cal(10.1, 9.9, 10.3, label=None, reason=degenerate))])
+    assert res.class_label is None and res.reason == degenerate
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("value", [0, -1, 1.5, "3", True])
+def test_reconstructions_must_be_a_positive_int(value):
+    with pytest.raises(ValueError, match=r"^multiview.reconstructions must be a positive int, got "):
+        MultiViewConfig(reconstructions=value)
+
+
+# ------------------------------------------------------------------ one thread: the same numbers
+def test_one_thread_reconstructions_repeat_exactly(tmp_path):
+    pycolmap = pytest.importorskip("pycolmap")
+    from lensdist_torch.geometry.multiview import reconstruct
+    from lensdist_torch.workflows.calibrate import synthetic_sequence
+    from lensdist_torch.workflows.undistort import _to_uint8, encode_png
+
+    frames, _ = synthetic_sequence(5, 1.5e-6, 0.0, size=(120, 160), seed=4)
+    for i, f in enumerate(frames):
+        (tmp_path / f"frame_{i}.png").write_bytes(encode_png(_to_uint8(f)))
+    names = [f"frame_{i}.png" for i in range(5)]
+    cfg = MultiViewConfig(num_threads=1, reconstructions=2)
+
+    def numbers():
+        recs = reconstruct(tmp_path, names, cfg)
+        assert len(recs) == 2 and all(isinstance(r, pycolmap.Reconstruction) for r in recs)
+        return [(r.num_reg_images(), r.num_points3D(), [float(v) for v in next(iter(r.cameras.values())).params])
+                for r in recs]
+
+    first = numbers()
+    assert first == numbers()  # bit for bit
+    assert first[0][0] == 5 and first[0][2] != first[1][2]  # the second seed is another reconstruction
