@@ -86,14 +86,16 @@ def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visua
     else:  # |b| > t |a|  <=>  E < theta_E  (see the module docstring)
         cross = torch.addcmul(sx1 * sy2, sy1, sx2, value=-1.0).abs_()
         dot = torch.addcmul(sx1 * sx2, sy1, sy2).abs_()
-        mis = _positive(cross.sub_(dot.mul_(t)))
-    sq1 = torch.addcmul(sx1 * sx1, sy1, sy1)
-    sq2 = torch.addcmul(sx2 * sx2, sy2, sy2)
-    # a vanishing gradient against a non-vanishing one: no orientation agrees (A = 0, an error)
-    mis = torch.maximum(mis, sq1.sign().sub_(sq2.sign()).abs_())
+        # A vanishing gradient has no orientation: against a non-vanishing one it is an error
+        # (A = 0). For 2-D vectors a = b = 0 exactly when one of them vanishes, so "+ tiny"
+        # (the smallest normal number) turns |b| > t |a| into |b| >= t |a| there, and only
+        # there: a non-zero |b| - t |a| is never within tiny of 0 unless the gradients are
+        # below ~1e-19 (float32), which count as vanishing (as on the smooth path). Two
+        # vanishing gradients also count, but such a pixel is in the risk map anyway.
+        mis = _positive(cross.sub_(dot.mul_(t)).add_(torch.finfo(cross.dtype).tiny))
     theta2 = 64.0 * cfg.theta_g * cfg.theta_g  # G <= theta <=> (8G)^2 <= 64 theta^2; 64 is exact
-    strong1 = _positive(sq1.sub_(theta2))
-    strong2 = _positive(sq2.sub_(theta2))
+    strong1 = _positive(torch.addcmul(sx1 * sx1, sy1, sy1).sub_(theta2))
+    strong2 = _positive(torch.addcmul(sx2 * sx2, sy2, sy2).sub_(theta2))
     # no weak pixel in the 3 x 3 window  <=>  R = 0 (R the dilated weak-pixel map)
     not_r = _erode3(torch.maximum(strong1, strong2))
     err = mis.mul_(not_r)
