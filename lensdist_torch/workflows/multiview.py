@@ -1,8 +1,10 @@
 """The multi-view path of ``lensdist calibrate``, and how its answer and the direct one combine.
 
 :func:`multiview_path` hands the frames of a folder (as they are) or of a video (written once as
-lossless grey PNG into a temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`)
-and returns a strict-JSON-ready dict, or the reason it has no answer. :func:`combine` makes the
+lossless grey PNG into a temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`;
+``multiview.reconstructions`` mappings, each self-calibrated, combined by
+:mod:`~lensdist_torch.geometry.multiview_runs`) and returns a strict-JSON-ready dict, or the
+reason it has no answer (no mapping registered enough frames). :func:`combine` makes the
 one answer of :func:`~lensdist_torch.workflows.calibrate.calibrate_path` from the two paths:
 
 * the multi-view answer when it has one and the direct path's interval does not contradict it;
