@@ -401,20 +401,11 @@ class MultiViewConfig:
         max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
         min_rotation_deg: frames whose orientations differ by less than this (degrees) at most
             give no class: under translation alone relief imitates distortion.
-        reconstructions: the incremental mapping runs this many times on the same features and
-            matches (seeds ``seed``, ``seed`` + 1, ...); the median answers, the largest
-            difference of Delta_avg from it joins the interval in quadrature, and the class is
-            withheld when fewer than a majority succeed or two disagree beyond their intervals
-            (the engine's run-to-run variation: 53-127 px on the GoPro views, truth 103.2).
-        num_threads: threads of COLMAP. With 1 a run is reproducible: the same frames, seed and
-            settings give the same reconstructions bit for bit (tested; the GoPro views' mapping
-            twice: the same 28 views, 924 tracks, camera). With more, the features and the
-            verified matches are the same (SIFT per frame; each verification RANSAC seeded from
-            ``seed``), but the mapping is not promised to repeat and differs from one thread's
-            (2 threads on the same matches: 915 tracks, k1 -0.162 against -0.152). Before the
-            verification was seeded (COLMAP's default seeds it from the clock) every run differed.
-        seed: COLMAP's random seed (the geometric verification's RANSAC and the first mapping's;
-            the others take ``seed`` + 1, ...).
+        reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); their
+            spread of Delta_avg joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`).
+        num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
+            and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
+        seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
     """
 
     models: tuple[str, ...] = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
