@@ -15,6 +15,10 @@ gradient, with or without ``validate``: unlike :func:`~lensdist_torch.metric.qua
 which refuses to call such a pair perfect, a loss must keep training going, and 0 with no
 gradient says "no signal" (a NaN would poison the weights). Keep a photometric or overlap term
 beside it, since this loss alone cannot see a warp that leaves the frame.
+
+Reductions. ``"per_sample"`` gives (B,): each sample's own masked mean (what piq's losses call
+``reduction="none"``), for weighting samples or logging them. ``"none"`` keeps the meaning it has
+in ``torch.nn`` and kornia's losses: nothing reduced, the (B, 1, h, w) map of blocks.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from lensdist_torch.metric.pooling import block_pool
 __all__ = ["REDUCTIONS", "registration_quality_loss", "RegistrationQualityLoss"]
 
 #: The reductions of the loss; the first is the default.
-REDUCTIONS = ("masked_mean", "mean", "sum", "none")
+REDUCTIONS = ("masked_mean", "mean", "sum", "per_sample", "none")
 
 
 def _check_reduction(reduction: str) -> None:
@@ -44,11 +48,14 @@ def _reduce(reg_map: torch.Tensor, v: torch.Tensor | None, block: int, reduction
         return reg_map
     if reduction == "sum":
         return reg_map.sum()
-    if reduction == "mean" or v is None:  # no mask: every block is valid
+    if reduction == "mean" or (v is None and reduction == "masked_mean"):  # no mask: every block is valid
         return reg_map.mean()
+    if v is None:  # per_sample, every block valid
+        return reg_map.mean(dim=(1, 2, 3))
     full = -F.max_pool2d(-v, kernel_size=block, stride=block)  # 1 where the whole block is valid
     # clamp: no valid block gives 0 / 1 = 0 and a zero gradient (no NaN, no host sync)
-    return (reg_map * full).sum() / full.sum().clamp_min(1.0)
+    dims = (1, 2, 3) if reduction == "per_sample" else None
+    return (reg_map * full).sum(dim=dims) / full.sum(dim=dims).clamp_min(1.0)
 
 
 def registration_quality_loss(
@@ -74,15 +81,19 @@ def registration_quality_loss(
         config: temperatures and thresholds; the defaults when None.
         reduction: ``"masked_mean"`` (default: mean over the valid blocks of the batch),
             ``"mean"`` (over all blocks and the batch, invalid blocks count as 0), ``"sum"``,
-            or ``"none"`` for the (B, 1, ceil(H/b), ceil(W/b)) map.
+            ``"per_sample"`` for (B,), each sample's mean over its own valid blocks (0 for a
+            sample with none; piq's ``"none"``), or ``"none"`` for the
+            (B, 1, ceil(H/b), ceil(W/b)) map (torch's and kornia's ``"none"``).
         data_range: the value of white in float inputs (they are divided by it).
         validate: check values (NaN/Inf, range, mask; one host sync); skipped while compiling.
         pad: pad to whole blocks (else H, W must be multiples of the block size).
 
     Returns:
-        A scalar tensor, or the map for ``reduction="none"``. With no valid block in the batch
-        the masked mean is 0 with a zero gradient (see the module docstring); ``"mean"`` and
-        ``"sum"`` count invalid blocks as 0, and ``"none"`` shows them as 0.
+        A scalar tensor, (B,) for ``"per_sample"``, or the map for ``"none"``. With no valid
+        block in the batch the masked mean is 0 with a zero gradient (see the module docstring),
+        and so is a sample's ``"per_sample"`` value; ``"mean"`` and ``"sum"`` count invalid
+        blocks as 0, and ``"none"`` shows them as 0. The masked mean weights samples by their
+        valid blocks, so it equals the mean of ``"per_sample"`` when they have as many.
 
     Example:
         >>> x = torch.rand(1, 1, 32, 32, requires_grad=True)
@@ -95,6 +106,15 @@ def registration_quality_loss(
         >>> full = registration_quality_loss(x, y)
         >>> bool(registration_quality_loss(x, y, valid) > 0.5 * full)
         True
+
+        Per sample, as piq's ``reduction="none"``; the map, as torch's and kornia's:
+
+        >>> x2, y2 = torch.cat([x.detach(), y]), torch.cat([y, y])  # misregistered, identical
+        >>> per = registration_quality_loss(x2, y2, reduction="per_sample")
+        >>> per.shape, bool(per[0] > 0.3), round(float(per[1]), 3)  # smooth: near 0, not 0
+        (torch.Size([2]), True, 0.0)
+        >>> registration_quality_loss(x2, y2, reduction="none").shape
+        torch.Size([2, 1, 4, 4])
     """
     _check_reduction(reduction)
     g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
@@ -109,14 +129,16 @@ class RegistrationQualityLoss(nn.Module):
 
     Args:
         config: temperatures and thresholds; the defaults when None.
-        reduction: ``"masked_mean"`` (default), ``"mean"``, ``"sum"`` or ``"none"``.
+        reduction: ``"masked_mean"`` (default), ``"mean"``, ``"sum"``, ``"per_sample"`` (B,)
+            or ``"none"`` (the block map); see :func:`registration_quality_loss`.
         data_range: the value of white in float inputs.
         validate: check values (one host sync per call); skipped while compiling.
         pad: pad to whole blocks (else H, W must be multiples of the block size).
 
     Shape:
         - img1, img2: (B, C, H, W); valid: (B, 1, H, W) or None.
-        - Output: scalar, or (B, 1, ceil(H/b), ceil(W/b)) for ``reduction="none"``.
+        - Output: scalar, (B,) for ``reduction="per_sample"``, or (B, 1, ceil(H/b),
+          ceil(W/b)) for ``reduction="none"``.
 
     Example:
         >>> loss_fn = RegistrationQualityLoss()

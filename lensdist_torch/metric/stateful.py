@@ -1,6 +1,8 @@
 """Stateful registration-quality metrics for validation loops (torchmetrics' pattern).
 
-``update`` adds a batch of registered pairs, ``compute`` reports, ``reset`` starts again:
+``update`` adds a batch of registered pairs, ``compute`` returns the mean quality index as a
+0-dim tensor (what ``MetricCollection``, ``self.log`` and ``log_dict`` expect),
+``compute_details`` returns everything, ``reset`` starts again:
 
 * the mean quality index over all pairs seen (weighted by pairs, not by batches), the index
   of a pair being 1 - the mean of its hard registration map (docs/method.md, section 4);
@@ -21,7 +23,6 @@ is the same metric as a ``torchmetrics.Metric`` (states summed across processes)
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
@@ -30,6 +31,7 @@ from torch import nn
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._hard import measured
 from lensdist_torch.metric._inputs import check_data_range, get_config
+from lensdist_torch.metric._state import STATE, check_state, loaded_state
 from lensdist_torch.metric.quality import _measured_map
 
 try:  # optional: only for RegistrationQualityTorchMetric
@@ -41,7 +43,7 @@ __all__ = ["QualityMetricResult", "RegistrationQualityMetric"]
 
 
 class QualityMetricResult(NamedTuple):
-    """What the stateful metrics' ``compute`` returns.
+    """What the stateful metrics' ``compute_details`` returns (``compute`` is its quality_index).
 
     Attributes:
         quality_index: () float64, the mean over pairs of 1 - mean(registration map).
@@ -53,7 +55,7 @@ class QualityMetricResult(NamedTuple):
     Example:
         >>> m = RegistrationQualityMetric()
         >>> m.update(torch.rand(2, 1, 16, 16), torch.rand(2, 1, 16, 16))
-        >>> res = m.compute()
+        >>> res = m.compute_details()
         >>> res.registration_map.shape, int(res.num_pairs)
         (torch.Size([1, 2, 2]), 2)
     """
@@ -62,10 +64,6 @@ class QualityMetricResult(NamedTuple):
     registration_map: torch.Tensor
     num_pairs: torch.Tensor
     num_skipped: torch.Tensor
-
-
-#: The accumulators, in the order of the buffers (and of the state_dict).
-_STATE = ("quality_sum", "map_sum", "num_pairs", "num_skipped")
 
 
 def _batch_state(img1, img2, valid, config, data_range, validate, pad):
@@ -119,87 +117,6 @@ def _keeping_dtypes(fn):
     return apply
 
 
-def _count(name: str, value: object) -> int:
-    if not isinstance(value, torch.Tensor):
-        raise TypeError(f"{name} must be a tensor in the state_dict, got {type(value).__name__}")
-    if value.is_meta:
-        raise ValueError(f"{name} is on the meta device (no value) in the state_dict")
-    if value.dim() != 0 or value.dtype == torch.bool or value.is_floating_point() or value.is_complex():
-        raise ValueError(
-            f"{name} must be a 0-dim integer tensor in the state_dict, got {value.dtype} {tuple(value.shape)}"
-        )
-    n = int(value)
-    if n < 0:
-        raise ValueError(f"{name} must be a count >= 0 in the state_dict, got {n}")
-    return n
-
-
-def _float_sum(name: str, value: object) -> torch.Tensor:
-    if not isinstance(value, torch.Tensor):
-        raise TypeError(f"{name} must be a tensor in the state_dict, got {type(value).__name__}")
-    if value.is_meta:
-        raise ValueError(f"{name} is on the meta device (no values) in the state_dict")
-    if not value.is_floating_point():
-        raise ValueError(f"{name} must be a float tensor in the state_dict, got dtype {value.dtype}")
-    value = value.detach().double().cpu()
-    if not bool(torch.isfinite(value).all()):
-        raise ValueError(f"{name} contains NaN or Inf values in the state_dict")
-    return value
-
-
-def _check_state(state: dict, map_shape: tuple[int, int] | None) -> None:
-    """One-line errors naming the field for a state that no sequence of updates can produce.
-
-    Args:
-        state: the four accumulators as they would be after loading.
-        map_shape: the metric's fixed (h, w), or None (the map's shape taken from the state).
-    """
-    n = _count("num_pairs", state["num_pairs"])
-    _count("num_skipped", state["num_skipped"])
-    q = _float_sum("quality_sum", state["quality_sum"])
-    m = _float_sum("map_sum", state["map_sum"])
-    if q.dim() != 0:
-        raise ValueError(f"quality_sum must be a 0-dim tensor in the state_dict, got shape {tuple(q.shape)}")
-    tol = 1e-6 * n + 1e-9  # a pair's index and map mean agree to float64 rounding (float32 in old states)
-    if not -tol <= float(q) <= n + tol:
-        raise ValueError(
-            f"quality_sum must lie in [0, num_pairs] = [0, {n}] (each index is in [0, 1]), got {float(q)!r}"
-        )
-    if map_shape is not None and tuple(m.shape) != (1, *map_shape):
-        raise ValueError(f"map_sum must have shape {(1, *map_shape)} (this metric's map_shape), got {tuple(m.shape)}")
-    if m.dim() == 0:
-        if n or float(m) != 0.0:
-            raise ValueError(
-                f"map_sum must be a (1, h, w) map once pairs are counted, got a 0-dim {float(m)!r} with num_pairs {n}"
-            )
-        return
-    if m.dim() != 3 or m.shape[0] != 1 or m.numel() == 0:
-        raise ValueError(f"map_sum must have shape (1, h, w) with h, w > 0, got {tuple(m.shape)}")
-    lo, hi = float(m.min()), float(m.max())
-    if lo < -tol or hi > n + tol:
-        raise ValueError(
-            f"map_sum must lie in [0, num_pairs] = [0, {n}] (each block ratio is in [0, 1]), got [{lo!r}, {hi!r}]"
-        )
-    # every pair adds 1 - mean(map) to quality_sum and map to map_sum
-    gap = float(q) + float(m.mean()) - n
-    if not math.isfinite(gap) or abs(gap) > tol:
-        raise ValueError(
-            f"quality_sum ({float(q)!r}) does not match map_sum: quality_sum + mean(map_sum) must equal "
-            f"num_pairs ({n}), off by {gap:.3g}"
-        )
-
-
-def _loaded_state(module, state_dict, prefix: str) -> dict:
-    """The accumulators after loading: the state_dict's, or the module's own where it has none.
-
-    A state saved before ``num_skipped`` existed loads with no pair skipped.
-    """
-    key = prefix + "num_skipped"
-    if key not in state_dict and all(prefix + k in state_dict for k in _STATE[:3]):
-        state_dict[key] = torch.zeros((), dtype=torch.long)
-    return {k: state_dict.get(prefix + k, getattr(module, k)) for k in _STATE}
-
-
 def _initial_map(map_shape: tuple[int, int] | None) -> torch.Tensor:
     """0-dim zero (shape taken from the first batch) or zeros (1, h, w)."""
     if map_shape is None:
@@ -222,13 +139,14 @@ class RegistrationQualityMetric(nn.Module):
 
     Shape:
         - img1, img2: (B, C, H, W); valid: (B, 1, H, W) or None.
-        - compute(): QualityMetricResult with a () index, a (1, ceil(H/b), ceil(W/b)) map and
-          the () counts of pairs averaged and skipped.
+        - compute(): () float64, the mean quality index (1 = no registration error).
+        - compute_details(): QualityMetricResult with that index, the (1, ceil(H/b), ceil(W/b))
+          mean map and the () counts of pairs averaged and skipped.
 
     A pair with nothing to measure (no pixel of its mask valid after the 3 x 3 erosion, or
     every valid pixel in the risk map) is
     never averaged, with or without ``validate``: ``update`` leaves it out of the sums and
-    counts it in ``num_skipped`` (``compute`` reports it). The accumulators stay float64/int64
+    counts it in ``num_skipped`` (``compute_details`` reports it). The accumulators stay float64/int64
     under ``.half()``, ``.float()``, ``.bfloat16()`` and ``.to(dtype)`` (device moves apply), and
     ``load_state_dict`` refuses a state no sequence of updates can give (a negative count, a
     NaN sum, sums that do not match the count) with a one-line ValueError naming the field.
@@ -238,9 +156,11 @@ class RegistrationQualityMetric(nn.Module):
         >>> x = torch.rand(3, 1, 32, 32)
         >>> metric.update(x, x)
         >>> metric.update(x[:1], torch.roll(x[:1], 1, dims=-1))
-        >>> res = metric.compute()
-        >>> int(res.num_pairs), bool(res.quality_index < 1)
-        (4, True)
+        >>> metric.compute().shape, bool(metric.compute() < 1)
+        (torch.Size([]), True)
+        >>> res = metric.compute_details()
+        >>> int(res.num_pairs), res.registration_map.shape
+        (4, torch.Size([1, 4, 4]))
         >>> metric.reset()
         >>> int(metric.num_pairs)
         0
@@ -293,11 +213,16 @@ class RegistrationQualityMetric(nn.Module):
         self.num_skipped += _on(skipped, device)
         return q, m, n, skipped
 
-    def compute(self) -> QualityMetricResult:
-        """The means over every pair since the last reset.
+    def compute(self) -> torch.Tensor:
+        """The mean quality index over every pair since the last reset: a () float64 tensor.
 
-        Returns:
-            QualityMetricResult (index, mean map, pair count).
+        Raises:
+            RuntimeError: no pair was added.
+        """
+        return self.compute_details().quality_index
+
+    def compute_details(self) -> QualityMetricResult:
+        """The mean index, the mean registration map and the counts of pairs averaged and skipped.
 
         Raises:
             RuntimeError: no pair was added.
@@ -312,21 +237,20 @@ class RegistrationQualityMetric(nn.Module):
         self.num_pairs = torch.zeros((), dtype=torch.long, device=device)
         self.num_skipped = torch.zeros((), dtype=torch.long, device=device)
 
-    def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> QualityMetricResult:
-        """Add the batch and return its own result (as ``torchmetrics.Metric.forward``).
+    def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
+        """Add the batch and return its own mean index (as ``torchmetrics.Metric.forward``).
 
-        The batch's index and map are NaN when none of its pairs has anything to measure.
+        NaN when none of the batch's pairs has anything to measure.
         """
-        q, m, n, skipped = self._add(img1, img2, valid)
-        n, skipped = torch.as_tensor(n, device=m.device), torch.as_tensor(skipped, device=m.device)
-        return QualityMetricResult(q / n, m / n, n, skipped)
+        q, _, n, _ = self._add(img1, img2, valid)
+        return q / torch.as_tensor(n, device=q.device)
 
     def _apply(self, fn, *args, **kwargs):
         """Device moves apply to the accumulators; dtype changes do not (they stay float64/int64)."""
         return super()._apply(_keeping_dtypes(fn), *args, **kwargs)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        _check_state(_loaded_state(self, state_dict, prefix), self.map_shape)
+        check_state(loaded_state(self, state_dict, prefix), self.map_shape)
         key = prefix + "map_sum"
         if key in state_dict and state_dict[key].shape != self.map_sum.shape:  # a lazily shaped map
             self.map_sum = torch.zeros(state_dict[key].shape, dtype=torch.float64, device=self.map_sum.device)
@@ -363,8 +287,10 @@ if _torchmetrics is not None:
             >>> metric = RegistrationQualityTorchMetric()
             >>> x = torch.rand(2, 1, 16, 16)
             >>> metric.update(x, x)
-            >>> float(metric.compute().quality_index)
+            >>> float(metric.compute())
             1.0
+            >>> int(metric.compute_details().num_pairs)
+            2
         """
 
         is_differentiable = False
@@ -405,15 +331,22 @@ if _torchmetrics is not None:
             self.num_pairs += n
             self.num_skipped += skipped
 
-        def compute(self) -> QualityMetricResult:
-            """The means over every pair (of every process) since the last reset."""
-            return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
+        def compute(self) -> torch.Tensor:
+            """The mean quality index over every pair (of every process) since the last reset."""
+            return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped).quality_index
+
+        def compute_details(self) -> QualityMetricResult:
+            """Index, mean map and counts over every pair (of every process), synced as ``compute``."""
+            with self.sync_context(
+                dist_sync_fn=self.dist_sync_fn, should_sync=self._to_sync, should_unsync=self._should_unsync
+            ):
+                return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
 
         def _apply(self, fn, *args, **kwargs):
             """Device moves apply to the states (and their defaults); dtype changes do not."""
             return super()._apply(_keeping_dtypes(fn), *args, **kwargs)
 
         def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-            if any(prefix + k in state_dict for k in _STATE):  # states are saved only when persistent
-                _check_state(_loaded_state(self, state_dict, prefix), self.map_shape)
+            if any(prefix + k in state_dict for k in STATE):  # states are saved only when persistent
+                check_state(loaded_state(self, state_dict, prefix), self.map_shape)
             super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -3,6 +3,7 @@ installed), and reset() of ConfusionMatrix and ClassRMSE."""
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import sys
 import types
@@ -34,7 +35,10 @@ def feed(metric, img1, img2, valid, sizes):
         metric.update(img1[i : i + s], img2[i : i + s], valid[i : i + s])
         i += s
     assert i == img1.shape[0]
-    return metric.compute()
+    res = metric.compute_details()
+    index = metric.compute()  # what MetricCollection and log_dict see: the index alone
+    assert isinstance(index, torch.Tensor) and index.dim() == 0 and torch.equal(index, res.quality_index)
+    return res
 
 
 def functional(img1, img2, valid):
@@ -71,9 +75,11 @@ class TestRegistrationQualityMetric:
         assert int(metric.num_pairs) == 0 and float(metric.quality_sum) == 0.0
         with pytest.raises(RuntimeError, match="update"):
             metric.compute()
+        with pytest.raises(RuntimeError, match="update"):
+            metric.compute_details()
         # after a reset another image size is fine, and the old pairs are forgotten
         metric.update(img1[:2, ..., :16, :16], img1[:2, ..., :16, :16])
-        res = metric.compute()
+        res = metric.compute_details()
         assert int(res.num_pairs) == 2 and float(res.quality_index) == 1.0
         assert res.registration_map.shape == (1, 2, 2)
         metric.reset()
@@ -85,10 +91,12 @@ class TestRegistrationQualityMetric:
         metric = RegistrationQualityMetric()
         batch = metric(img1[:3], img2[:3], valid[:3])
         q, m = functional(img1[:3], img2[:3], valid[:3])
-        torch.testing.assert_close(batch.quality_index, q, atol=1e-7, rtol=0)
-        torch.testing.assert_close(batch.registration_map, m, atol=1e-7, rtol=0)
-        metric(img1[3:], img2[3:], valid[3:])
-        torch.testing.assert_close(metric.compute().quality_index, functional(img1, img2, valid)[0], atol=1e-7, rtol=0)
+        assert batch.shape == () and 0.3 < float(batch) < 0.9
+        torch.testing.assert_close(batch, q, atol=1e-7, rtol=0)
+        torch.testing.assert_close(metric.compute_details().registration_map, m, atol=1e-7, rtol=0)
+        later = metric(img1[3:], img2[3:], valid[3:])
+        torch.testing.assert_close(later, functional(img1[3:], img2[3:], valid[3:])[0], atol=1e-7, rtol=0)
+        torch.testing.assert_close(metric.compute(), functional(img1, img2, valid)[0], atol=1e-7, rtol=0)
 
     def test_buffers_state_dict_and_map_shape(self):
         img1, img2, valid = pairs()
@@ -97,13 +105,13 @@ class TestRegistrationQualityMetric:
         assert set(dict(metric.named_buffers())) == {"quality_sum", "map_sum", "num_pairs", "num_skipped"}
         fresh = RegistrationQualityMetric(QualityConfig(theta_g=0.03))  # map shape not known yet
         fresh.load_state_dict(metric.state_dict())
-        for a, b in zip(fresh.compute(), metric.compute()):
+        for a, b in zip(fresh.compute_details(), metric.compute_details()):
             assert torch.equal(a, b)
         sized = RegistrationQualityMetric(map_shape=(5, 6))
         assert sized.map_sum.shape == (1, 5, 6)
         feed(sized, img1, img2, valid, [11])
         plain = feed(RegistrationQualityMetric(), img1, img2, valid, [11])
-        assert torch.equal(sized.compute().registration_map, plain.registration_map)
+        assert torch.equal(sized.compute_details().registration_map, plain.registration_map)
         assert "block_size=8" in repr(metric)
 
     def test_config_and_validate_reach_the_map(self):
@@ -179,7 +187,7 @@ class TestAccumulatorDtypes:
             j = i % 6
             for m in (plain, half):
                 m.update(img1[j : j + 1], img2[j : j + 1], valid[j : j + 1])
-        a, b = plain.compute(), half.compute()
+        a, b = plain.compute_details(), half.compute_details()
         assert int(b.num_pairs) == 300
         assert abs(float(a.quality_index) - float(b.quality_index)) < 1e-12
         torch.testing.assert_close(b.registration_map, a.registration_map, atol=1e-12, rtol=0)
@@ -264,14 +272,14 @@ class TestLoadedState:
         metric, state = _state()
         for target in (RegistrationQualityMetric(), RegistrationQualityMetric(map_shape=(2, 3))):
             target.load_state_dict(state)
-            for a, b in zip(target.compute(), metric.compute()):
+            for a, b in zip(target.compute_details(), metric.compute_details()):
                 assert torch.equal(a, b)
         # a fresh metric's state, and one saved before num_skipped existed (no pair skipped)
         RegistrationQualityMetric().load_state_dict(RegistrationQualityMetric().state_dict())
         old = {k: v for k, v in state.items() if k != "num_skipped"}
         target = RegistrationQualityMetric()
         target.load_state_dict(old)
-        assert int(target.num_skipped) == 0 and int(target.compute().num_pairs) == 4
+        assert int(target.num_skipped) == 0 and int(target.compute_details().num_pairs) == 4
 
 
 # ----------------------------------------------------------------------------- torchmetrics
@@ -306,9 +314,14 @@ def test_torchmetrics_metric_against_a_stub(monkeypatch):
     (add_state, reset): its update/compute/reset logic runs where torchmetrics is absent."""
 
     class Metric(torch.nn.Module):
+        dist_sync_fn, _to_sync, _should_unsync = None, True, True
+
         def __init__(self, **kwargs):
             super().__init__()
             self._defaults, self._reductions = {}, {}
+
+        def sync_context(self, dist_sync_fn=None, should_sync=True, should_unsync=True):
+            return contextlib.nullcontext()
 
         def add_state(self, name, default, dist_reduce_fx=None, persistent=False):
             assert dist_reduce_fx == "sum"
@@ -350,7 +363,7 @@ def test_torchmetrics_metric_against_a_stub(monkeypatch):
     valid[2] = 0
     metric = cls()
     metric.update(img1, img2, valid)
-    res = metric.compute()
+    res = metric.compute_details()
     assert int(res.num_pairs) == 10 and int(res.num_skipped) == 1
     keep = torch.arange(11) != 2
     torch.testing.assert_close(res.quality_index, functional(img1[keep], img2[keep], valid[keep])[0], atol=1e-7, rtol=0)
