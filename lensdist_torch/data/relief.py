@@ -1,0 +1,127 @@
+"""A scene with relief seen by a pinhole camera looking straight down (docs/method.md, section 7).
+
+The scene is the embedded texture laid on the ground, raised by a smooth height field. A height
+is given as a **relief fraction** rho = height / the camera's height above the ground, so the
+same field serves every altitude. A camera whose optical axis is vertical sees a point raised by
+rho at the place where the flat ground would be seen at
+
+    X_plane = X_c + (X - X_c) / (1 - rho(X)),
+
+X_c being the ground point straight below the camera (the nadir: where the principal point
+looks). So the ground point that a pixel sees solves the fixed point
+
+    X = X_c + (1 - rho(X)) (X_plane - X_c),
+
+X_plane being where the pixel would see a flat scene. :func:`relief_samples` solves it by
+iteration (the map contracts by about rho times the field's relative slope over the view, a few
+percent, so four steps reach 1e-5 of a pixel). Everything follows from that, as a camera draws
+it: a rotation about the optical axis keeps X_c and moves no point against the others (no
+parallax), a translation moves X_c and gives each point a parallax in proportion to the
+baseline and its height, a change of altitude scales X_plane - X_c and gives a radial parallax.
+The coordinates may be scaled per axis (scene pixels, or grid_sample units): the equation is
+affine per axis.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+__all__ = ["HeightField", "draw_height_field", "relief_fraction", "relief_samples"]
+
+N_BUMPS = 4  # Gaussian bumps of a height field
+SIGMA_RANGE = (0.15, 0.4)  # bump widths, as a share of the region's half diagonal
+ITERATIONS = 4  # fixed-point steps of relief_samples
+
+
+class HeightField(NamedTuple):
+    """A height field: a sum of Gaussian bumps, in relief fractions (height / camera height).
+
+    centres: (K, 2) bump centres (x, y) in the scene's coordinates; sigmas: (K,) their widths;
+    weights: (K,) signed peak fractions (a negative one is a hollow), scaled so that the largest
+    |rho| over the region drawn is ``relief``.
+    """
+
+    centres: torch.Tensor
+    sigmas: torch.Tensor
+    weights: torch.Tensor
+
+
+def relief_fraction(field: HeightField, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """rho(x, y): the field at points of any shape (float64 recommended).
+
+    Example:
+        >>> f = HeightField(torch.tensor([[0.0, 0.0]]), torch.tensor([1.0]), torch.tensor([0.02]))
+        >>> round(float(relief_fraction(f, torch.tensor(0.0), torch.tensor(0.0))), 6)
+        0.02
+    """
+    c = field.centres.to(x.dtype)
+    s = field.sigmas.to(x.dtype)
+    w = field.weights.to(x.dtype)
+    d2 = (x[..., None] - c[:, 0]) ** 2 + (y[..., None] - c[:, 1]) ** 2
+    return (w * torch.exp(-d2 / (2 * s * s))).sum(-1)
+
+
+def draw_height_field(
+    generator: torch.Generator, region: tuple[float, float, float, float], relief: float, n_bumps: int = N_BUMPS
+) -> HeightField:
+    """A random height field over ``region`` (x_lo, x_hi, y_lo, y_hi) whose largest |rho| is ``relief``.
+
+    Bump centres are uniform over the region, widths ~ U[SIGMA_RANGE] x its half diagonal,
+    weights ~ U[-1, 1] (hills and hollows); the peak |rho| is measured on a 64 x 64 grid of the
+    region and scaled to ``relief`` (0 gives a flat scene).
+
+    Example:
+        >>> f = draw_height_field(torch.Generator().manual_seed(0), (0.0, 100.0, 0.0, 80.0), 0.03)
+        >>> xs, ys = torch.meshgrid(torch.linspace(0, 100, 64, dtype=torch.float64),
+        ...                         torch.linspace(0, 80, 64, dtype=torch.float64), indexing="xy")
+        >>> round(float(relief_fraction(f, xs, ys).abs().max()), 6)
+        0.03
+    """
+    if not 0.0 <= relief < 0.5:
+        raise ValueError(f"relief must be a fraction of the camera's height in [0, 0.5), got {relief}")
+    x_lo, x_hi, y_lo, y_hi = region
+    u = torch.rand(n_bumps, 4, generator=generator, dtype=torch.float64)
+    centres = torch.stack([x_lo + (x_hi - x_lo) * u[:, 0], y_lo + (y_hi - y_lo) * u[:, 1]], 1)
+    half_diag = 0.5 * math.hypot(x_hi - x_lo, y_hi - y_lo)
+    sigmas = (SIGMA_RANGE[0] + (SIGMA_RANGE[1] - SIGMA_RANGE[0]) * u[:, 2]) * half_diag
+    weights = 2 * u[:, 3] - 1
+    xs, ys = torch.meshgrid(
+        torch.linspace(x_lo, x_hi, 64, dtype=torch.float64), torch.linspace(y_lo, y_hi, 64, dtype=torch.float64), indexing="xy"
+    )
+    peak = float(relief_fraction(HeightField(centres, sigmas, weights), xs, ys).abs().max())
+    scale = relief / peak if peak > 0 else 0.0
+    return HeightField(centres, sigmas, weights * scale)
+
+
+def relief_samples(
+    x: torch.Tensor, y: torch.Tensor, nadir: tuple[float, float] | torch.Tensor, field: HeightField | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ground points seen where a flat scene would be seen at (x, y) (module docstring).
+
+    Args:
+        x: the flat scene's sample abscissae (any shape, float64 recommended).
+        y: their ordinates, of x's shape.
+        nadir: (x_c, y_c), the ground point below the camera, in the same coordinates.
+        field: the height field, or None (a flat scene: x, y unchanged).
+
+    Returns:
+        The ground points (x', y'), each of x's shape.
+
+    Example:
+        >>> f = HeightField(torch.tensor([[0.0, 0.0]]), torch.tensor([1e6]), torch.tensor([0.1]))
+        >>> xs, ys = relief_samples(torch.tensor([10.0]), torch.tensor([0.0]), (0.0, 0.0), f)
+        >>> round(float(xs), 4)  # a flat rise of 10 %: points seen 10 % nearer the nadir
+        9.0
+    """
+    if field is None:
+        return x, y
+    xc, yc = float(nadir[0]), float(nadir[1])
+    px, py = x - xc, y - yc
+    gx, gy = x, y
+    for _ in range(ITERATIONS):
+        keep = 1.0 - relief_fraction(field, gx, gy)
+        gx, gy = xc + keep * px, yc + keep * py
+    return gx, gy
