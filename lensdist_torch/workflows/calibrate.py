@@ -1,7 +1,8 @@
 """Calibrate a camera from a folder of frames or a video (and the frame reading that undistorting shares).
 
 ``calibrate_path(path)`` reads the frames (a folder of images, sorted by name with numbers in
-their natural order, or a video through the optional PyAV), brings each to the analysis size as
+their natural order, or a video through PyAV, the ``video`` extra, or OpenCV:
+:mod:`lensdist_torch.core.video`), brings each to the analysis size as
 it is read (a long video stays small), and runs
 :func:`~lensdist_torch.geometry.calibration.calibrate_sequence`; it returns a strict-JSON-ready
 dict (None for unknown numbers, never NaN) with the coefficients of eq. 4 in the frames' own
@@ -24,7 +25,9 @@ import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
+from lensdist_torch.core.video import VIDEO_SUFFIXES, video_frames
 from lensdist_torch.data.realism import degrade, draw_realism
+from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.calibration import (
     CalibrationConfig,
     analysis_scale,
@@ -41,9 +44,6 @@ METHODS = ("auto", "multiview", "direct")
 __all__ = ["METHODS", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path",
            "synthetic_sequence"]
 
-VIDEO_SUFFIXES = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
-
-
 # ------------------------------------------------------------------ reading
 def _natural(name: str) -> list:
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
@@ -58,25 +58,12 @@ def list_frames(folder: str | Path) -> list[Path]:
     return sorted(files, key=lambda p: _natural(p.name))
 
 
-def _video_frames(path: Path, grey: bool):
-    try:
-        import av  # the optional extra: pip install av
-    except ImportError:
-        raise ValueError(f"reading the video {path.name} needs the optional PyAV package: pip install av "
-                         "(or pass a folder of frames)") from None
-    with av.open(str(path)) as container:
-        for i, frame in enumerate(container.decode(video=0)):
-            arr = torch.from_numpy(frame.to_ndarray(format="gray" if grey else "rgb24"))
-            img = arr[None] if arr.dim() == 2 else arr.permute(2, 0, 1)
-            yield f"frame_{i:06d}", (img.float() / 255.0)[None].contiguous()
-
-
 def read_frames(path: str | Path, grey: bool = True, max_frames: int | None = None):
     """Yield (name, (1, C, H, W) float frame in [0, 1]) from a folder of images or a video.
 
     Raises:
         FileNotFoundError: ``path`` does not exist.
-        ValueError: an empty folder, an unknown file type, or a video without PyAV.
+        ValueError: an empty folder, an unknown file type, or a video with neither PyAV nor OpenCV installed.
     """
     path = Path(path)
     if not path.exists():
@@ -86,7 +73,7 @@ def read_frames(path: str | Path, grey: bool = True, max_frames: int | None = No
     if path.is_dir():
         source = ((p.stem, load_image(p, grey=grey)) for p in list_frames(path))
     elif path.suffix.lower() in VIDEO_SUFFIXES:
-        source = _video_frames(path, grey)
+        source = video_frames(path, grey)
     else:
         raise ValueError(f"path must be a folder of frames or a video ({', '.join(VIDEO_SUFFIXES)}), got {path.name}")
     for i, item in enumerate(source):
@@ -181,6 +168,9 @@ def calibrate_path(
 
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if focal is not None and (isinstance(focal, bool) or not isinstance(focal, (int, float)) or not math.isfinite(focal)
+                              or focal <= 0):  # checked before the run, not by the OpenCV export at its end
+        raise ValueError(f"focal must be a positive number of pixels or None, got {focal!r}")
     cfg, frames, scale = CalibrationConfig() if config is None else config, [], 1.0
     for _, img in _frames_of_one_size(path, True, max_frames, quiet, "reading"):
         scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
@@ -257,6 +247,8 @@ def synthetic_sequence(
     seed: int = 0,
     realistic: bool = False,
     config: LensdistConfig | None = None,
+    relief: float = 0.0,
+    altitude: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """A camera panning down an embedded scene, every frame distorted by one (k2, k4).
 
@@ -270,8 +262,15 @@ def synthetic_sequence(
     view of the realistic pair protocol (:func:`~lensdist_torch.data.realism.degrade`, ranges from
     ``config.protocol``, default :class:`LensdistConfig`): its own gain, offset, gamma and
     illumination ramp, sensor noise, 8-bit JPEG and, in ``occluder_rate`` of the frames, a patch
-    (a moving object: it is at another place or absent in the other frames). No parallax: the
-    scene stays a plane. The ideal frames stay clean.
+    (a moving object: it is at another place or absent in the other frames). The ideal frames
+    stay clean.
+
+    With ``relief`` > 0 the scene is not a plane: a height field of 4 Gaussian hills and hollows
+    whose largest height is ``relief`` times the camera's height (drawn from ``seed``), seen as
+    a pinhole camera looking straight down sees it (:mod:`lensdist_torch.data.relief`): parallax
+    in proportion to each frame's baseline, none for the rotation. ``altitude`` > 0 changes the
+    camera's height per frame: the view's scale ~ U[1 - altitude, 1], the heights' fractions
+    divided by it (a radial parallax).
 
     Returns:
         distorted, ideal: (N, 1, H, W) float32 (ideal: the same path with k2 = k4 = 0).
@@ -292,12 +291,19 @@ def synthetic_sequence(
     tx, th = jitter_px * (2 * u[1] - 1), torch.deg2rad(rotation_deg * (2 * u[2] - 1))
     big = rel.abs().amax(dim=(0, 1, 2))
     ext = big + math.sin(math.radians(abs(rotation_deg))) * big.flip(0) + 2  # half extents, any rotation drawn
+    ext = ext * (1 + relief / (1 - altitude))  # a hollow moves samples away from the nadir
     z = min((ws - 1) / (2 * float(ext[0]) + 2 * jitter_px), (hs - 1) / (2 * float(ext[1]) + float(ty[-1])))
+    scale = 1 - altitude * torch.rand(n_frames, generator=g, dtype=torch.float64) if altitude > 0 else torch.ones(n_frames, dtype=torch.float64)
+    field = draw_height_field(g, (0.0, ws - 1.0, 0.0, hs - 1.0), relief) if relief > 0 else None
     out = []
     for i in range(n_frames):
         cos, sin = math.cos(float(th[i])), math.sin(float(th[i]))
-        x = (ws - 1) / 2 + z * (tx[i] + cos * rel[..., 0] - sin * rel[..., 1])
-        y = z * (float(ext[1]) + ty[i] + sin * rel[..., 0] + cos * rel[..., 1])
+        ri = rel * float(scale[i])  # exactly rel at a constant altitude
+        x = (ws - 1) / 2 + z * (tx[i] + cos * ri[..., 0] - sin * ri[..., 1])
+        y = z * (float(ext[1]) + ty[i] + sin * ri[..., 0] + cos * ri[..., 1])
+        nadir = ((ws - 1) / 2 + z * float(tx[i]), z * (float(ext[1]) + float(ty[i])))
+        # heights are fractions of the camera's height: a lower camera sees the same hills larger
+        x, y = relief_samples(x, y, nadir, None if field is None else field._replace(weights=field.weights / float(scale[i])))
         out.append(F.grid_sample(src.expand(2, -1, -1, -1), torch.stack([x / (ws - 1), y / (hs - 1)], -1) * 2 - 1,
                                  align_corners=True).float())
     frames = torch.stack(out, 1)  # (2, N, 1, H, W)

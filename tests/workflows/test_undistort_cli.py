@@ -312,6 +312,8 @@ def test_a_video_does_not_overwrite_earlier_frames(tmp_path, monkeypatch):
             return np.zeros((*SIZE, 3), np.uint8)
 
     class Container:
+        streams = types.SimpleNamespace(video=[0])
+
         def __enter__(self):
             return self
 

@@ -1,0 +1,94 @@
+"""Issue 22, item 3: `lensdist calibrate video.mp4` reads a video as easily as a folder: PyAV (the
+'video' extra) where installed, OpenCV's VideoCapture where only cv2 is, and a one-line error
+naming the extra where neither is."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from lensdist_torch import cli
+from lensdist_torch.core.video import video_frames, video_reader
+from lensdist_torch.workflows.calibrate import read_frames, synthetic_sequence
+
+K2, SIZE, N = 1e-5, (120, 160), 8
+
+
+@pytest.fixture(scope="module")
+def frames() -> np.ndarray:
+    distorted, _ = synthetic_sequence(N, K2, 0.0, size=SIZE)
+    return (distorted[:, 0].clamp(0, 1) * 255).round().byte().numpy()
+
+
+def _write(path, frames: np.ndarray) -> None:
+    """A lossless (PyAV: x264 crf 0, 4:4:4) or near-lossless (cv2: mp4v) mp4 of grey frames."""
+    try:
+        import av
+    except ImportError:
+        cv2 = pytest.importorskip("cv2")
+        out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, SIZE[::-1])
+        for f in frames:
+            out.write(cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
+        out.release()
+        return
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=10)
+        stream.width, stream.height, stream.pix_fmt, stream.options = SIZE[1], SIZE[0], "yuv444p", {"crf": "0"}
+        for f in frames:
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(np.repeat(f[..., None], 3, 2), format="rgb24")))
+        container.mux(stream.encode())
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory, frames):
+    path = tmp_path_factory.mktemp("video") / "dive.mp4"
+    _write(path, frames)
+    return path
+
+
+def test_calibrate_reads_a_video_as_a_folder(video, capsys):
+    if video_reader() is None:
+        pytest.skip("neither PyAV nor OpenCV installed")
+    assert cli.main(["calibrate", str(video), "--method", "direct", "--json", "--quiet"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["frames"] == N and res["image_size"] == list(SIZE) and res["class"] == "2"
+    assert res["k2_user"] == pytest.approx(K2, rel=0.1)
+
+
+@pytest.mark.parametrize("reader", ["pyav", "opencv"])
+def test_both_readers_give_the_frames(video, frames, reader, monkeypatch):
+    pytest.importorskip("av" if reader == "pyav" else "cv2")
+    if reader == "opencv":  # PyAV missing: OpenCV reads the video
+        monkeypatch.setitem(sys.modules, "av", None)
+        assert video_reader() == "opencv"
+    got = list(read_frames(video))
+    assert [n for n, _ in got] == [f"frame_{i:06d}" for i in range(N)]
+    grey = np.stack([(img[0, 0].numpy() * 255).round() for _, img in got])
+    assert grey.shape == (N, *SIZE) and np.abs(grey - frames).mean() < 2.0  # lossless but for the colour conversion
+    rgb = next(video_frames(video, grey=False, reader=reader))[1]
+    assert tuple(rgb.shape) == (1, 3, *SIZE)
+
+
+@pytest.mark.bad_input
+def test_without_a_reader_the_error_names_the_extra(video, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "av", None)
+    monkeypatch.setitem(sys.modules, "cv2", None)
+    assert video_reader() is None
+    assert cli.main(["calibrate", str(video), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("lensdist calibrate: error: reading the video dive.mp4 needs PyAV or OpenCV: "
+                   "pip install 'lensdist_torch[video]' (or pass a folder of frames)\n")
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("reader", ["pyav", "opencv"])
+def test_a_file_that_is_no_video_is_one_line(tmp_path, reader, monkeypatch):
+    pytest.importorskip("av" if reader == "pyav" else "cv2")
+    bad = tmp_path / "clip.mp4"
+    bad.write_bytes(b"not a video at all")
+    with pytest.raises(ValueError, match="clip.mp4 is not a video") as err:
+        list(video_frames(bad, reader=reader))
+    assert "\n" not in str(err.value)
