@@ -5,7 +5,8 @@ figure is null). Progress bars and notes go to stderr. Every failure is one line
 ``lensdist CMD: error: ...`` on stderr with exit status 2 (1 for an internal error, 130 after
 Ctrl-C); the global ``--debug`` adds the traceback. A result that cannot be written to stdout
 (closed, disk full) is such an error too; a broken pipe (``| head``) ends quietly with status 1.
-Argument types and the parser class live in ``cli_support.py``; output paths are checked (and
+Argument types, the parser class and the output helpers live in ``cli_support.py``; ``analyze`` in
+``cli_analyze.py``, ``calibrate`` and ``undistort`` in ``cli_calibrate.py``; output paths are checked (and
 refused where they name an input) by ``core/outputs.py``. torch is imported inside the commands
 only, so ``lensdist --help`` stays fast.
 """
@@ -19,7 +20,10 @@ import traceback
 from pathlib import Path
 
 from lensdist_torch import cli_support as argtypes
+from lensdist_torch.cli_analyze import _cmd_analyze
 from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
+from lensdist_torch.cli_support import note as _note
+from lensdist_torch.cli_support import print_json as _print_json
 from lensdist_torch.core.outputs import check_output_dir, check_output_file, refuse_inputs, refuse_inside
 
 __all__ = ["main", "build_parser"]
@@ -27,24 +31,6 @@ __all__ = ["main", "build_parser"]
 #: Exceptions that are the user's input or environment (a one-line error, exit 2); any other
 #: exception is an internal error (exit 1). CheckpointError and ShardError are ValueErrors.
 _USER_ERRORS = (ValueError, TypeError, OSError, ImportError)
-
-
-# ----------------------------------------------------------------------------- output helpers
-def _note(args: argparse.Namespace, text: str) -> None:
-    """A note for the user on stderr (silenced by --quiet)."""
-    if not getattr(args, "quiet", False):
-        print(text, file=sys.stderr)
-
-
-def _print_json(obj) -> None:
-    from lensdist_torch.workflows.reports import dumps_strict
-
-    print(dumps_strict(obj, indent=2))
-
-
-def _fmt(value, spec: str = ".1f", unit: str = " px") -> str:
-    """A number, or "n/a" where there is no (finite) estimate."""
-    return f"{value:{spec}}{unit}" if isinstance(value, (int, float)) and value == value and abs(value) != float("inf") else "n/a"
 
 
 # ----------------------------------------------------------------------------- commands
@@ -198,81 +184,13 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     written, reused = _shards(report.get("generation", {}))
     if args.json:
         _print_json({**report, "written": [res["markdown"], res["json"]]})
-    else:
-        print(Path(res["markdown"]).read_text())
+    else:  # the headline table and its terms; the rest is in the report file
+        from lensdist_torch.workflows.reports import report_summary
+
+        print(report_summary(report, res["markdown"]), end="")
     _note(args, f"data: {written} shards generated, reused {reused} shards" if reused else f"data: {written} shards generated")
     _note(args, f"written: {res['markdown']}, {res['json']}")
     return 0
-
-
-def _cmd_analyze(args: argparse.Namespace) -> int:
-    if args.save_map:
-        from lensdist_torch.workflows.figures import figure_formats, have_matplotlib
-
-        if not have_matplotlib():
-            raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
-        check_output_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)",
-                          {"img1": args.img1, "img2": args.img2, "--checkpoint": args.checkpoint,
-                           "--checkpoint-max": args.checkpoint_max, "--config": args.config})
-    from lensdist_torch.config import load_config
-    from lensdist_torch.workflows.analyze import analyze_pair, resolve_device
-
-    cfg, device = None if args.config is None else load_config(args.config), resolve_device(args.device)
-    res, qmap = analyze_pair(args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max,
-                             method=args.method, config=cfg, return_map=True, device=device)
-    # the result first: a failure to write the map must not lose the analysis
-    if args.json:
-        _print_json(res)
-    else:
-        _print_analysis(res)
-    if args.save_map:
-        from lensdist_torch.workflows.figures import save_map_grid
-
-        label = f"{res['method']}: Delta_avg {_fmt(res['delta_avg'])}"
-        save_map_grid(qmap.cpu(), [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"] or "?"])
-        _note(args, f"map: {args.save_map}")
-    return 3 if args.strict and res["cannot_tell"] else 0
-
-
-def _print_analysis(res: dict) -> None:
-    print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
-    conf = "" if res["confidence"] is None or res["class"] is None else f", confidence {res['confidence']:.2f}"
-    print(f"method: {res['method']}{conf}" + (f"; fitted on: {', '.join(res['fitted_on'])}" if res.get("fitted_on") else ""))
-    if res["class"] is None:
-        print("distortion class: cannot tell (see the warnings)")
-    else:
-        print(f"distortion class: {res['class']}  (1 = small ... 4 = very strong, R = none visible)")
-    (h, w), (ih, iw) = res["analysis_size"], res["input_size"]
-    if res["class"] is None:  # no number that reads as an answer (the JSON keeps estimated_*)
-        print(f"Delta: none given (the views moved by {_fmt(res.get('motion_px'), '.2f')})")
-    else:
-        interval = res.get("delta_avg_interval")
-        kind = f", {res['distortion_type']}" if res.get("distortion_type") else ""
-        print(f"Delta_avg ~ {_fmt(res['delta_avg'], '.2f')}" + (f" [{interval[0]:.2f}, {interval[1]:.2f}] (95 %)" if interval else "")
-              + f", Delta_max ~ {_fmt(res['delta_max'])} at {w} x {h}{kind}")
-        print(f"in your {iw} x {ih} pixels: Delta_avg {_fmt(res['delta_avg_user_px'])}, Delta_max "
-              f"{_fmt(res['delta_max_user_px'])} over the whole frame; {_fmt(res['delta_avg_region_user_px'])} and "
-              f"{_fmt(res['delta_max_region_user_px'])} over the analysed centre crop")
-    if res["distances"]:
-        print("eigen-space distances: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
-    for w in res["warnings"]:
-        print(f"warning: {w}")
-
-
-def _valid_blocks(res: dict, qmap):
-    """(1, 1, h, w): blocks of the analysis frame with a valid pixel after the registration.
-
-    The metric's eroded validity, so that the map shows blocks without a valid pixel in grey.
-    """
-    import torch
-
-    from lensdist_torch import erode_valid, warp_to_reference
-
-    h, w = res["analysis_size"]
-    _, valid = warp_to_reference(torch.ones(1, 1, h, w), torch.tensor([res["homography"]]))
-    b = h // qmap.shape[-2]
-    v = erode_valid(valid.float())[..., : qmap.shape[-2] * b, : qmap.shape[-1] * b]
-    return torch.nn.functional.max_pool2d(v, b) > 0
 
 
 # ----------------------------------------------------------------------------- the parser
@@ -281,19 +199,6 @@ def _scale_error(text: str) -> float:
     from lensdist_torch.workflows.demo import MAX_SCALE_ERROR
 
     return argtypes.float_in(0.0, MAX_SCALE_ERROR)(text)
-
-
-class _Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Defaults in every option's help; the epilog's example lines kept as written.
-
-    An option whose default is None or a flag's False says in its own words what happens when
-    it is omitted, so "(default: None)" is not appended to it.
-    """
-
-    def _get_help_string(self, action):
-        if action.default is None or action.default is False:
-            return action.help
-        return super()._get_help_string(action)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -305,17 +210,16 @@ def build_parser() -> argparse.ArgumentParser:
         description="Registration-quality maps and the analysis of lens distortions (docs/method.md).\n"
         "Results on stdout (--json: one JSON object), progress and notes on stderr, errors as one line.",
         epilog="examples:\n  lensdist demo\n  lensdist analyze left.jpg right.jpg --json\n  lensdist reproduce --quick",
-        formatter_class=_Formatter,
+        formatter_class=argtypes.Formatter,
     )
     parser.add_argument("--version", action="version", version=f"lensdist {__version__}")
     parser.add_argument("--debug", action="store_true", help="show the traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="show the traceback of an error")
+    common = argtypes.debug_parent()
 
     def command(name: str, help: str, example: str, func, json_help: str, quiet: str | None = None):
         p = sub.add_parser(name, help=help, description=help, epilog=f"example:\n  {example}", parents=[common],
-                           formatter_class=_Formatter)
+                           formatter_class=argtypes.Formatter)
         p.add_argument("--json", action="store_true", help=json_help)
         if quiet:
             p.add_argument("--quiet", action="store_true", help=quiet)
@@ -395,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from lensdist_torch.cli_calibrate import add_calibrate_commands
 
-    add_calibrate_commands(sub)  # calibrate, undistort
+    add_calibrate_commands(sub, [common])  # calibrate, undistort
     return parser
 
 

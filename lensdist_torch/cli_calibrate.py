@@ -46,15 +46,18 @@ def _print_calibration(res: dict) -> None:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    """``lensdist calibrate PATH [--json] [--out DIR] [--quiet]``."""
+    """``lensdist calibrate PATH [--json] [--out DIR] [--config TOML] [--quiet]``."""
     from lensdist_torch.core.outputs import check_output_dir
 
     if args.out:
-        check_output_dir(args.out, "--out", {"path": args.path}, writes=["calibration.json"])
+        check_output_dir(args.out, "--out", {"path": args.path, "--config": args.config}, writes=["calibration.json"])
+    from lensdist_torch.config import load_config
     from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.calibrate import calibrate_path
 
-    res = calibrate_path(args.path, max_frames=args.max_frames, focal=args.focal, quiet=args.quiet,
+    settings = None if args.config is None else load_config(args.config)  # checked before any frame is read
+    res = calibrate_path(args.path, config=None if settings is None else settings.calibration, settings=settings,
+                         max_frames=args.max_frames, focal=args.focal, quiet=args.quiet,
                          device=resolve_device(args.device), method=args.method)
     text = json.dumps(res, indent=2, allow_nan=False)
     if args.out:
@@ -73,25 +76,56 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_undistort(args: argparse.Namespace) -> int:
-    """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--overwrite] [--quiet]``."""
+    """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--alpha A] [--overwrite]``."""
     from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.undistort import undistort_path
 
     res = undistort_path(args.path, args.out, k2=args.k2, k4=args.k4, from_json=args.from_json,
                          max_frames=args.max_frames, quiet=args.quiet, device=resolve_device(args.device),
-                         overwrite=args.overwrite)
-    print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}) into {res['out_dir']} as "
-          f"{' and '.join(f'{b}-bit' for b in res['bits'])} PNG, masks in {Path(res['out_dir']) / 'masks'} "
+                         overwrite=args.overwrite, alpha=args.alpha)
+    if args.json:
+        print(json.dumps(res, indent=2, allow_nan=False))
+        return 0
+    view = "the input's scale" if res["alpha"] is None else f"alpha {res['alpha']:g}"
+    k = res["camera"]["new_camera_matrix"]
+    print(f"{res['frames']} frames undistorted (k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}, {view}) into {res['out_dir']} "
+          f"as {' and '.join(f'{b}-bit' for b in res['bits'])} PNG, masks in {Path(res['out_dir']) / 'masks'} "
           f"({100 * res['valid_fraction']:.1f} % valid)")
+    print(f"new camera matrix: fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f} "
+          f"(with the OpenCV camera and coefficients in {res['camera_file']})")
     return 0
 
 
-def add_calibrate_commands(subparsers) -> None:
-    """Register ``calibrate`` and ``undistort`` on the ``lensdist`` parser's subparsers."""
-    p = subparsers.add_parser("calibrate", help="the distortion of one camera from a folder of frames or a video")
-    p.add_argument("path", help="folder of frames (sorted by name) or a video file (needs PyAV: pip install av)")
+_CALIBRATE = """\
+Estimate the lens distortion of one camera (eq. 4's k2, k4, Delta_avg and Delta_max with 95 %
+intervals, the class, OpenCV's camera matrix and coefficients) from a folder of frames or a
+video (.mp4, .mov, .avi, .mkv, ...: PyAV from the 'video' extra, or OpenCV where PyAV is
+missing). The frames must show one camera moving over a scene; every option is checked before
+any frame is read."""
+
+_UNDISTORT = """\
+Correct every frame of a folder or video with eq. 4: FRAME.EXT becomes OUT/FRAME.png (16-bit PNG
+for 16-bit input, else 8-bit), its validity mask OUT/masks/FRAME.png (0 where the sample lies
+outside the frame or where eq. 4 folds over), and OUT/undistortion.json the coefficients used,
+the output size and the new camera matrix (OpenCV's). --alpha chooses the view as OpenCV's
+getOptimalNewCameraMatrix: 0 only valid pixels, 1 every source pixel kept; without it the
+frames keep their scale (cv2.undistort's default). Refused, before anything is written: two
+inputs with one name stem (frame_01.png and frame_01.jpg), coefficients that fold before the
+frame's nearest edge, an OUT that is the input folder or would overwrite an input, and existing
+files of the names it writes unless --overwrite."""
+
+
+def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
+    """Register ``calibrate`` and ``undistort`` on the ``lensdist`` parser's subparsers (``parents``: --debug)."""
+    p = subparsers.add_parser(
+        "calibrate", help="the distortion of one camera from a folder of frames or a video", description=_CALIBRATE,
+        epilog="examples:\n  lensdist calibrate frames/ --out calib/\n  lensdist calibrate dive.mp4 --json --method direct",
+        parents=parents or [], formatter_class=argtypes.Formatter)
+    p.add_argument("path", help="folder of frames (sorted by name) or a video file")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--out", default=None, help="folder for calibration.json")
+    p.add_argument("--config", default=None, help="TOML config ([calibration] and [multiview]; the defaults of "
+                   "docs/method.md when omitted)")
     p.add_argument("--max-frames", type=argtypes.positive_int, default=300, help="read at most this many frames")
     p.add_argument("--focal", type=argtypes.positive_float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -99,22 +133,23 @@ def add_calibrate_commands(subparsers) -> None:
                    help="where registration and self-calibration run: cpu, cuda or cuda:N")
     p.add_argument("--method", default="auto", choices=("auto", "multiview", "direct"),
                    help="multiview: bundle adjustment on COLMAP's tracks (pycolmap); direct: photometric pairs; "
-                        "auto: both, 'cannot tell' where they disagree (default)")
+                        "auto: both, 'cannot tell' where they disagree")
     p.set_defaults(func=_cmd_calibrate)
 
     p = subparsers.add_parser(
-        "undistort", help="correct every frame of a folder or video (PNG + validity masks)",
-        description="Correct every frame of a folder or video with eq. 4: FRAME.EXT becomes OUT/FRAME.png (16-bit PNG "
-                    "for 16-bit input, else 8-bit) and its validity mask OUT/masks/FRAME.png (0 where the sample lies "
-                    "outside the frame or where eq. 4 folds over). Refused, before anything is written: two inputs "
-                    "with one name stem (frame_01.png and frame_01.jpg), coefficients that fold before the frame's "
-                    "nearest edge, an OUT that is the input folder or would overwrite an input, and existing files "
-                    "of the names it writes unless --overwrite.")
+        "undistort", help="correct every frame of a folder or video (PNG + validity masks + the new camera)",
+        description=_UNDISTORT, parents=parents or [], formatter_class=argtypes.Formatter,
+        epilog="examples:\n  lensdist undistort frames/ --from calib/calibration.json --out corrected/\n"
+               "  lensdist undistort dive.mp4 --k2 2e-7 --k4 0 --alpha 1 --out corrected/")
     p.add_argument("path", help="folder of frames or a video file")
     p.add_argument("--k2", type=argtypes.finite_float, default=None, help="eq. 4's k2 in the frames' pixels")
     p.add_argument("--k4", type=argtypes.finite_float, default=None, help="eq. 4's k4 in the frames' pixels")
     p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
-    p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks)")
+    p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks, undistortion.json)")
+    p.add_argument("--alpha", type=argtypes.float_in(0.0, 1.0), default=None,
+                   help="0: only valid pixels, 1: every source pixel kept, between: interpolated (OpenCV's "
+                        "getOptimalNewCameraMatrix); omitted: the frames keep their scale and centre")
+    p.add_argument("--json", action="store_true", help="print the result (with undistortion.json's content) as one JSON object")
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing files of the names it writes in --out (never an input)")
     p.add_argument("--max-frames", type=argtypes.positive_int, default=None, help="at most this many frames (default: all)")

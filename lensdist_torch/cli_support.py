@@ -6,7 +6,10 @@ check a CUDA device that was asked for.
 Contracts:
 
 - A usage error (an unknown option, a value its type refuses) is one line
-  ``lensdist CMD: error: argument --OPT: ...`` on stderr and exit status 2.
+  ``lensdist CMD: error: argument --OPT: ...`` on stderr and exit status 2. A mistyped option or
+  command gets the nearest one (difflib): ``unrecognized arguments: --jsn (did you mean
+  --json?)``, under the subcommand's name (argparse's own ``suggest_on_error`` comes with Python
+  3.14 only).
 - A negative number in any notation (``-3``, ``-.5``, ``-1e-3``, ``-1.5E-9``) is an option's
   value, not an option: ``--k2 -1e-3`` works as ``--k2=-1e-3`` does.
 - Numbers are finite ('nan' and 'inf', which Python's ``float`` accepts, are refused) and in the
@@ -18,20 +21,26 @@ Contracts:
 from __future__ import annotations
 
 import argparse
+import difflib
 import math
 import os
 import re
 import sys
 
 __all__ = [
+    "Formatter",
     "Parser",
+    "debug_parent",
     "StdoutError",
     "device",
     "finite_float",
     "float_in",
+    "fmt",
     "guarded_stdout",
+    "note",
     "positive_float",
     "positive_int",
+    "print_json",
     "shard",
     "silence_stdout",
 ]
@@ -41,10 +50,40 @@ __all__ = [
 _NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE)
 
 
+class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults in every option's help; the description's and the epilog's lines kept as written.
+
+    An option whose default is None or a flag's False says in its own words what happens when
+    it is omitted, so "(default: None)" is not appended to it.
+    """
+
+    def _get_help_string(self, action):
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
+def debug_parent() -> argparse.ArgumentParser:
+    """The ``--debug`` option every subcommand takes (as ``lensdist --debug CMD`` does)."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="show the traceback of an error (an internal error prints one line without it)")
+    return common
+
+
+def _nearest(word: str, options: list[str]) -> str | None:
+    found = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
+    return found[0] if found else None
+
+
+_INVALID_CHOICE = re.compile(r"invalid choice: '?([^' ]*)'? \(choose from (.*)\)$")
+
+
 class Parser(argparse.ArgumentParser):
     """argparse with negative numbers in scientific notation as values and one-line usage errors.
 
     Subparsers made by ``add_subparsers`` are of this class too (argparse uses the parent's).
+    Mistyped options and choices get a suggestion (module docstring).
     """
 
     def __init__(self, *args, **kwargs):
@@ -53,9 +92,35 @@ class Parser(argparse.ArgumentParser):
         # or a value; tests/workflows/test_cli_hostile.py fails if a Python changes that.
         self._negative_number_matcher = _NEGATIVE_NUMBER
 
+    def _options(self) -> list[str]:
+        return [s for a in self._actions for s in a.option_strings if s.startswith("--")]
+
+    def _chosen_subparser(self, namespace) -> Parser | None:
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                return action.choices.get(getattr(namespace, action.dest, None) or "")
+        return None
+
+    def parse_args(self, args=None, namespace=None):
+        """argparse's, with a suggestion for each unrecognised option, under the subcommand's name."""
+        namespace, extras = self.parse_known_args(args, namespace)
+        if extras:
+            sub = self._chosen_subparser(namespace)
+            options = self._options() + (sub._options() if sub is not None else [])
+            words = []
+            for extra in extras:
+                near = _nearest(extra.split("=", 1)[0], options) if extra.startswith("--") else None
+                words.append(f"{extra} (did you mean {near}?)" if near else extra)
+            (sub or self).error("unrecognized arguments: " + " ".join(words))
+        return namespace
+
     def error(self, message: str):
         """One line ``PROG: error: MESSAGE`` on stderr, exit status 2 (argparse adds the usage)."""
         text = " ".join(str(message).split())
+        m = _INVALID_CHOICE.search(text)
+        if m:
+            near = _nearest(m.group(1), [c.strip(" '") for c in m.group(2).split(",")])
+            text += f"; did you mean {near}?" if near else ""
         self.exit(2, f"{self.prog}: error: {text} (see {self.prog} --help)\n")
 
 
@@ -135,6 +200,25 @@ def shard(text: str) -> tuple[int, int]:
     if not (n >= 1 and 0 <= i < n):
         raise argparse.ArgumentTypeError(f"I/N needs 0 <= I < N, got {text!r}")
     return (i, n)
+
+
+# ----------------------------------------------------------------------------- output helpers
+def note(args: argparse.Namespace, text: str) -> None:
+    """A note for the user on stderr (silenced by --quiet)."""
+    if not getattr(args, "quiet", False):
+        print(text, file=sys.stderr)
+
+
+def print_json(obj) -> None:
+    """One strict JSON object on stdout (``workflows.reports.dumps_strict``)."""
+    from lensdist_torch.workflows.reports import dumps_strict
+
+    print(dumps_strict(obj, indent=2))
+
+
+def fmt(value, spec: str = ".1f", unit: str = " px") -> str:
+    """A number, or "n/a" where there is no (finite) estimate."""
+    return f"{value:{spec}}{unit}" if isinstance(value, (int, float)) and value == value and abs(value) != float("inf") else "n/a"
 
 
 # ----------------------------------------------------------------------------- stdout

@@ -7,7 +7,14 @@ eq. 4 (:func:`~lensdist_torch.geometry.distortion.distort_points`):
 
     I(p) = I_d(distort(p)),   one ``grid_sample`` per image, ``align_corners=True``.
 
-The output has the input's size and centre. Its validity mask is 1 where distort(p) lies inside
+The output has the input's size. By default it keeps the input's scale and centre (an ideal pixel
+p is output pixel p: ``cv2.undistort``'s default new camera matrix, the input's own): barrel
+distortion loses the frame's edges, pincushion leaves its corners empty. A ``view``
+(sx, sy, tx, ty) maps the ideal pixel (u, v) to the output pixel (sx u + tx, sy v + ty);
+:func:`optimal_view` chooses it as OpenCV's ``getOptimalNewCameraMatrix`` does, by ``alpha``: 0
+only valid pixels (the largest axis-aligned rectangle inside the undistorted frame fills the
+output), 1 every source pixel kept (the rectangle around the undistorted frame fills it), in
+between the linear interpolation of the two. Its validity mask is 1 where distort(p) lies inside
 the distorted image (1e-3 px of slack for rounding), the Newton inverse is exact there (a round
 trip through eq. 4 within 0.01 px) and distort(p) lies on eq. 4's monotone branch: on the same
 side of p0 as p, at a distorted radius r where r (1 + k2 r^2 + k4 r^4) still increases on all of
@@ -22,6 +29,8 @@ Kornia-style: the pure function :func:`undistort_image` and the thin module :cla
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -35,7 +44,7 @@ from lensdist_torch.geometry.distortion import (
 )
 from lensdist_torch.geometry.frame import pixel_grid
 
-__all__ = ["monotone_branch", "undistortion_grid", "undistort_image", "Undistort"]
+__all__ = ["monotone_branch", "optimal_view", "undistortion_grid", "undistort_image", "Undistort"]
 
 _SLACK_PX = 1e-3
 _ROUND_TRIP_PX = 1e-2
@@ -73,8 +82,70 @@ def monotone_branch(r2: torch.Tensor, k2, k4) -> torch.Tensor:
     return (radial_derivative(r2, k2, k4) > 0) & (radial_derivative(low, k2, k4) > 0)
 
 
+def optimal_view(k2: float, k4: float, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
+    """The view (sx, sy, tx, ty) of OpenCV's ``getOptimalNewCameraMatrix(..., alpha)`` for eq. 4.
+
+    The frame's border pixels are brought to their ideal positions by eq. 4 (those on its
+    monotone branch, :func:`monotone_branch`). The inner rectangle runs from the innermost ideal
+    x of the left edge to that of the right edge (y: top and bottom edges), the outer one around
+    all of them; each is mapped onto the output's pixel centres 0 ... W - 1 and 0 ... H - 1
+    (separate x and y scales, as OpenCV), and the two maps are interpolated linearly by
+    ``alpha``: 0 the inner rectangle (no invalid pixel), 1 the outer one (no source pixel lost).
+    With OpenCV's K = [[f, 0, cx], [0, f, cy], [0, 0, 1]] about the frame centre, the new camera
+    matrix is [[sx f, 0, sx cx + tx], [0, sy f, sy cy + ty], [0, 0, 1]].
+
+    Example:
+        >>> sx, sy, tx, ty = optimal_view(1e-5, 0.0, 120, 160, 0.0)  # barrel: zoom out to the valid rectangle
+        >>> round(sx, 3), round(sy, 3)
+        (0.941, 0.966)
+        >>> optimal_view(0.0, 0.0, 120, 160, 1.0)  # no distortion: the frame itself
+        (1.0, 1.0, 0.0, 0.0)
+    """
+    if not (type(height) is int and type(width) is int and height > 1 and width > 1):
+        raise ValueError(f"height and width must be ints above 1, got {height!r} and {width!r}")
+    if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"alpha must be a number from 0 to 1, got {alpha!r}")
+    xs = torch.arange(width, dtype=torch.float64)
+    ys = torch.arange(height, dtype=torch.float64)
+    edges = {"left": torch.stack([torch.zeros_like(ys), ys], -1), "right": torch.stack([torch.full_like(ys, width - 1.0), ys], -1),
+             "top": torch.stack([xs, torch.zeros_like(xs)], -1), "bottom": torch.stack([xs, torch.full_like(xs, height - 1.0)], -1)}
+    centre = distortion_center(height, width)
+    ideal = {}
+    for name, pts in edges.items():
+        d = pts - pts.new_tensor(centre)
+        keep = monotone_branch((d * d).sum(-1), float(k2), float(k4))
+        ideal[name] = undistort_points(pts[keep][None], float(k2), float(k4), centre)[0]
+    if any(len(v) == 0 for v in ideal.values()):
+        raise ValueError(f"k2 = {k2:.4g}, k4 = {k4:.4g} fold eq. 4 before a whole edge of the {height} x {width} frame")
+    every = torch.cat(list(ideal.values()))
+    inner = (float(ideal["left"][:, 0].max()), float(ideal["top"][:, 1].max()),
+             float(ideal["right"][:, 0].min()), float(ideal["bottom"][:, 1].min()))
+    outer = (float(every[:, 0].min()), float(every[:, 1].min()), float(every[:, 0].max()), float(every[:, 1].max()))
+    if not (inner[2] > inner[0] and inner[3] > inner[1]):
+        raise ValueError(f"k2 = {k2:.4g}, k4 = {k4:.4g} leave no valid rectangle in the undistorted {height} x {width} frame")
+
+    def fit(x0: float, y0: float, x1: float, y1: float) -> tuple[float, float, float, float]:
+        sx, sy = (width - 1) / (x1 - x0), (height - 1) / (y1 - y0)
+        return sx, sy, -sx * x0, -sy * y0
+
+    a, b = fit(*inner), fit(*outer)
+    return tuple(float(u * (1 - alpha) + v * alpha) + 0.0 for u, v in zip(a, b))  # + 0.0: no -0.0
+
+
+def _check_view(view) -> tuple[float, float, float, float] | None:
+    if view is None:
+        return None
+    try:
+        sx, sy, tx, ty = (float(v) for v in view)
+    except (TypeError, ValueError):
+        raise ValueError(f"view must be (sx, sy, tx, ty), four numbers, or None, got {view!r:.80}") from None
+    if not (math.isfinite(tx) and math.isfinite(ty) and math.isfinite(sx) and math.isfinite(sy) and sx > 0 and sy > 0):
+        raise ValueError(f"view must hold positive finite scales and finite offsets, got {view!r:.80}")
+    return sx, sy, tx, ty
+
+
 def undistortion_grid(
-    k2, k4, height: int, width: int, dtype: torch.dtype = torch.float32, device=None
+    k2, k4, height: int, width: int, dtype: torch.dtype = torch.float32, device=None, view=None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """For every ideal pixel of a (height, width) frame, its position in the distorted image.
 
@@ -85,6 +156,8 @@ def undistortion_grid(
         width: the frame's width.
         dtype: of the returned grid.
         device: of the returned grid.
+        view: (sx, sy, tx, ty): output pixel q shows the ideal pixel ((q_x - tx) / sx, (q_y - ty) / sy)
+            (:func:`optimal_view`); None: q itself (the input's scale and centre).
 
     Returns:
         grid: (B, H, W, 2) pixel coordinates (x, y) of distort(p) in the distorted image.
@@ -97,12 +170,16 @@ def undistortion_grid(
     """
     if not (type(height) is int and type(width) is int and height > 0 and width > 0):
         raise ValueError(f"height and width must be positive ints, got {height!r} and {width!r}")
+    view = _check_view(view)
     ref = torch.empty(0, dtype=dtype, device=device)
     k2, k4 = _coefficient(k2, "k2", ref), _coefficient(k4, "k4", ref)
     if k2.shape != k4.shape:
         raise ValueError(f"k2 and k4 must have the same number of values, got {k2.numel()} and {k4.numel()}")
     centre = distortion_center(height, width)
-    ideal = pixel_grid(height, width, dtype, device).expand(k2.numel(), height, width, 2)
+    ideal = pixel_grid(height, width, dtype, device)
+    if view is not None:
+        ideal = (ideal - ideal.new_tensor(view[2:])) / ideal.new_tensor(view[:2])
+    ideal = ideal.expand(k2.numel(), height, width, 2)
     src = distort_points(ideal, k2, k4, centre)
     back = undistort_points(src.detach(), k2.detach(), k4.detach(), centre)
     exact = ((back - ideal).abs().amax(-1) <= _ROUND_TRIP_PX) & torch.isfinite(src.detach()).all(-1)
@@ -117,7 +194,7 @@ def undistortion_grid(
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6), valid
 
 
-def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear") -> tuple[torch.Tensor, torch.Tensor]:
+def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear", view=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Undistort images: I(p) = I_d(distort(p)) for every ideal pixel p (module docstring).
 
     Args:
@@ -126,6 +203,7 @@ def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear") -> tuple[
             that requires grad gets gradients).
         k4: eq. 4's k4, as many values as k2.
         mode: ``grid_sample``'s interpolation, "bilinear" (default), "nearest" or "bicubic".
+        view: the output's (sx, sy, tx, ty) (:func:`optimal_view`); None: the input's scale and centre.
 
     Returns:
         undistorted: (B, C, H, W) float (the input's float dtype, float32 for uint8), 0 outside
@@ -146,7 +224,7 @@ def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear") -> tuple[
     b, _, h, w = x.shape
     if mode not in ("bilinear", "nearest", "bicubic"):
         raise ValueError(f"mode must be 'bilinear', 'nearest' or 'bicubic', got {mode!r}")
-    grid, valid = undistortion_grid(k2, k4, h, w, x.dtype, x.device)
+    grid, valid = undistortion_grid(k2, k4, h, w, x.dtype, x.device, view)
     if grid.shape[0] not in (1, b):
         raise ValueError(f"k2/k4 must hold 1 value or one per image ({b}), got {grid.shape[0]}")
     grid, valid = grid.expand(b, -1, -1, -1), valid.expand(b, -1, -1, -1)

@@ -233,7 +233,8 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
         out.append(
             f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): too little to judge"
         )
-    if res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence:
+    aligned = res["registration_ok"] and res["overlap"] >= cfg.analysis.min_overlap  # else that is the reason given
+    if aligned and res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence:
         out.append("cannot tell from this pair: too little motion or texture to see the distortion (low confidence)")
     return out
 
@@ -248,7 +249,9 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
     ``class``, ``class_max``, ``delta_avg``, ``delta_max`` and ``distortion_type`` are None: no
     number that reads as an answer. ``estimated_class``, ``estimated_class_max``,
     ``estimated_delta_avg`` and ``estimated_delta_max`` keep the estimator's own output, for
-    evaluation. A Delta_avg beyond the classes' range is class 4 with a warning saying so.
+    evaluation. A Delta_avg beyond the classes' range is class 4 with a warning saying so and
+    ``beyond_class_range`` True. A failed registration or too small an overlap is the one reason
+    given for a low confidence (not also "too little motion or texture").
     """
     a = cfg.analysis
     check = res.get("selfcal_check")
@@ -279,7 +282,9 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
         res.update(delta_avg=None, delta_max=None, delta_avg_interval=None)
     # barrel, pincushion or mustache: from the sign of eq. 4's offsets (the self-calibration only)
     res["distortion_type"] = None if unsure or res["class"] == CLASS_LABELS[-1] else res.get("distortion_type")
-    if not unsure and res["delta_avg"] is not None and res["delta_avg"] > delta_top("delta_avg", cfg):
+    res["beyond_class_range"] = bool(not unsure and res["delta_avg"] is not None
+                                     and res["delta_avg"] > delta_top("delta_avg", cfg))
+    if res["beyond_class_range"]:
         # the interval was validated within the range only: on real wide-angle pairs (a GoPro,
         # 103 px) 5 of 6 intervals beyond it missed the truth (eq. 4 cannot follow such a lens)
         res["delta_avg_interval"] = None

@@ -21,6 +21,18 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
   of the inputs (a frame, the video, the calibration file), even with ``overwrite``. An existing
   file of a name it would write (for a video: any ``frame_NNNNNN.png``) is refused unless
   ``overwrite=True`` (``--overwrite``).
+- **Output size.** The frames keep their size. ``alpha`` None (the default, as before) keeps the
+  input's scale and centre (``cv2.undistort``'s default: barrel distortion loses the frame's
+  edges, pincushion leaves its corners empty); 0 to 1 chooses the view as OpenCV's
+  ``getOptimalNewCameraMatrix`` does (:func:`~lensdist_torch.geometry.undistort.optimal_view`):
+  0 only valid pixels, 1 every source pixel kept, in between interpolated.
+- **The camera.** ``OUT/undistortion.json`` (written last, atomically) holds what was applied:
+  eq. 4's k2, k4 in the frames' pixels, alpha, the input and output sizes, the view, and the
+  OpenCV equivalent: ``camera_matrix`` and ``dist_coeffs`` (the standard model fitted to eq. 4,
+  :func:`~lensdist_torch.geometry.opencv_model.opencv_export`; the focal length of the
+  ``--from`` calibration's, else the half diagonal) and ``new_camera_matrix``, the camera of the
+  undistorted frames (``cv2.undistort(frame, camera_matrix, dist_coeffs,
+  newCameraMatrix=new_camera_matrix)`` gives the same frames to OpenCV's model fit).
 - **Bit depth.** A frame read from a file with more than 8 bits a sample (a 16-bit PNG; a 16-bit
   or float TIFF whose samples are finer than 8 bits) is written as a 16-bit PNG, every other frame
   as an 8-bit one; the masks are 8-bit (0 or 255).
@@ -38,14 +50,16 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.core.outputs import refuse_data_sets
-from lensdist_torch.core.storage import atomic_write_bytes
+from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center, sample
-from lensdist_torch.geometry.undistort import monotone_branch, undistortion_grid
+from lensdist_torch.geometry.opencv_model import opencv_export
+from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
 from lensdist_torch.workflows.calibrate import _frames_of_one_size, list_frames
 
 __all__ = ["MAX_STRETCH", "encode_png", "undistort_path"]
 
 _VIDEO_NAME = re.compile(r"frame_\d{6}\.png")
+CAMERA_FILE = "undistortion.json"
 
 #: The largest radial stretch 1 + k2 r^2 + k4 r^4 (ideal radius / distorted radius) that undistort
 #: accepts inside the frame. An equidistant fisheye of half field theta stretches its corner by
@@ -119,8 +133,8 @@ def _number(data: dict, field: str, src: Path, allow_null: bool = False):
     return float(value)
 
 
-def _calibration(src: Path) -> tuple[float | None, float | None, int, int, str]:
-    """(k2_user, k4_user, height, width, reason) of a calibration.json, every field checked."""
+def _calibration(src: Path) -> tuple[float | None, float | None, int, int, str, float | None]:
+    """(k2_user, k4_user, height, width, reason, OpenCV focal or None) of a calibration.json, every field checked."""
     if not src.is_file():
         raise FileNotFoundError(f"calibration file not found: {src}")
     try:
@@ -144,7 +158,12 @@ def _calibration(src: Path) -> tuple[float | None, float | None, int, int, str]:
     if k2 is not None and "class" in data and data["class"] is None:  # an estimate, but not an answer
         raise ValueError(f"{src} could not tell ({' '.join(reason.split())}): its numbers are not an answer; to use "
                          f"them anyway, pass them as --k2 {k2:.6g} --k4 {k4:.6g}")
-    return k2, k4, size[0], size[1], reason
+    try:
+        focal = data["opencv"]["camera_matrix"][0][0]
+    except (KeyError, IndexError, TypeError):
+        focal = None
+    ok = not isinstance(focal, bool) and isinstance(focal, (int, float)) and math.isfinite(focal) and focal > 0
+    return k2, k4, size[0], size[1], reason, float(focal) if ok else None
 
 
 def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, float]:
@@ -159,13 +178,21 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, 
     if k2 is not None or k4 is not None:
         raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
     src = Path(from_json)
-    k2, k4, hc, wc, reason = _calibration(src)
+    k2, k4, hc, wc, reason, _ = _calibration(src)
     if k2 is None:
         raise ValueError(f"{src} holds no estimate: {' '.join(reason.split())}")
     s = size[1] / wc
     if abs(size[0] / hc - s) > 5e-3 * s:
         raise ValueError(f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling")
     return k2 / s**2, k4 / s**4
+
+
+def _focal_for(size: tuple[int, int], from_json) -> float | None:
+    """The OpenCV focal length of a ``--from`` calibration in the frames' pixels (None: none there)."""
+    if from_json is None:
+        return None
+    _, _, _, wc, _, focal = _calibration(Path(from_json))
+    return None if focal is None else focal * size[1] / wc
 
 
 def _check_fold(k2: float, k4: float, height: int, width: int, from_json) -> None:
@@ -219,6 +246,7 @@ def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: b
         for existing in folder.iterdir():
             mine = (existing.stem.lower() in {n.lower() for n in names} and existing.suffix.lower() == ".png"
                     if names is not None else bool(_VIDEO_NAME.fullmatch(existing.name)))
+            mine = mine or (folder == out and existing.name.lower() == CAMERA_FILE)
             if not mine:
                 continue
             if existing.resolve() in protected:
@@ -239,11 +267,13 @@ def undistort_path(
     quiet: bool = True,
     device: torch.device | str | None = None,
     overwrite: bool = False,
+    alpha: float | None = None,
 ) -> dict:
     """Undistort every frame of a folder or video into ``out_dir`` (PNG), masks in ``out_dir/masks``.
 
     A mask is 255 where the corrected pixel came from inside the frame on eq. 4's monotone branch,
-    0 elsewhere. What is refused, the names and the bit depth: the module docstring.
+    0 elsewhere. What is refused, the names, the output size, ``undistortion.json`` and the bit
+    depth: the module docstring.
 
     Args:
         path: a folder of images or a video.
@@ -255,10 +285,13 @@ def undistort_path(
         quiet: no progress bar.
         device: where the frames are resampled (default: the CPU).
         overwrite: replace existing files of the names it writes (never an input).
+        alpha: None (the input's scale and centre) or 0 (only valid pixels) to 1 (every source
+            pixel kept), as OpenCV's ``getOptimalNewCameraMatrix``.
 
     Returns:
-        dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks),
-        bits (the sample depths written, e.g. [16]).
+        dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks), bits (the
+        sample depths written, e.g. [16]), alpha, camera (what ``undistortion.json`` holds) and
+        camera_file (its path).
     """
     path, out = Path(path), Path(out_dir)
     if not path.exists():
@@ -267,14 +300,23 @@ def undistort_path(
         raise ValueError(f"max_frames must be a positive int or None, got {max_frames!r}")
     if type(overwrite) is not bool:
         raise TypeError(f"overwrite must be a bool, got {overwrite!r}")
+    if alpha is not None and (isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1):
+        raise ValueError(f"alpha (--alpha) must be a number from 0 to 1 or None, got {alpha!r}")
+    if from_json is not None and k2 is None and k4 is None:  # every coefficient checked before any frame is read
+        _coefficients_for(_calibration(Path(from_json))[2:4], None, None, from_json)
+    else:
+        _coefficients_for((1, 1), k2, k4, from_json)
     files = _plan(path, out, max_frames, from_json, overwrite)
     grid, n, valid_sum, dev, bits = None, 0, 0.0, torch.device(device or "cpu"), set()
     for i, (name, img) in enumerate(_frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
         if grid is None:
-            k2, k4 = _coefficients_for(tuple(img.shape[-2:]), k2, k4, from_json)
-            _check_fold(k2, k4, *img.shape[-2:], from_json)
-            _check_stretch(k2, k4, *img.shape[-2:], from_json)
-            grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *img.shape[-2:]))
+            size = tuple(img.shape[-2:])
+            k2, k4 = _coefficients_for(size, k2, k4, from_json)
+            _check_fold(k2, k4, *size, from_json)
+            _check_stretch(k2, k4, *size, from_json)
+            view = None if alpha is None else optimal_view(k2, k4, *size, float(alpha))
+            camera = _camera(k2, k4, size, _focal_for(size, from_json), alpha, view)
+            grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *size, view=view))
             (out / "masks").mkdir(parents=True, exist_ok=True)
         deep = _deep(files[i] if files is not None else None, img)
         corrected = (sample(img.to(dev), grid) * valid)[0].cpu()
@@ -283,4 +325,20 @@ def undistort_path(
         n, valid_sum, bits = n + 1, valid_sum + float(valid.mean()), bits | {16 if deep else 8}
     if n == 0:
         raise ValueError(f"path {path} holds no frames")
-    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "valid_fraction": valid_sum / n, "bits": sorted(bits)}
+    camera["frames"], camera["valid_fraction"] = n, valid_sum / n
+    atomic_write_text(out / CAMERA_FILE, json.dumps(camera, indent=2, allow_nan=False) + "\n")
+    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "valid_fraction": valid_sum / n, "bits": sorted(bits),
+            "alpha": alpha, "camera": camera, "camera_file": str(out / CAMERA_FILE)}
+
+
+def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, alpha, view) -> dict:
+    """What ``undistortion.json`` holds (module docstring): eq. 4, the view and OpenCV's cameras."""
+    h, w = size
+    cv = opencv_export(k2, k4, h, w, focal=focal, model="standard")
+    sx, sy, tx, ty = (1.0, 1.0, 0.0, 0.0) if view is None else view
+    (f, _, cx), (_, _, cy) = cv["camera_matrix"][0], cv["camera_matrix"][1]
+    new = [[sx * f, 0.0, sx * cx + tx], [0.0, sy * f, sy * cy + ty], [0.0, 0.0, 1.0]]
+    return {"k2": k2, "k4": k4, "alpha": alpha, "input_size": [h, w], "output_size": [h, w],
+            "view": {"sx": sx, "sy": sy, "tx": tx, "ty": ty}, "camera_matrix": cv["camera_matrix"],
+            "dist_coeffs": cv["dist_coeffs"], "new_camera_matrix": new, "opencv_model": "standard",
+            "opencv_fit_error_mean_px": cv["fit_error_mean_px"], "opencv_fit_error_max_px": cv["fit_error_max_px"]}

@@ -111,12 +111,12 @@ def test_version(capsys):
     assert capsys.readouterr().out.startswith("lensdist ")
 
 
-@pytest.mark.parametrize("command", ["demo", "generate", "train", "evaluate", "reproduce", "analyze"])
+@pytest.mark.parametrize("command", ["demo", "generate", "train", "evaluate", "reproduce", "analyze", "calibrate", "undistort"])
 def test_help_shows_defaults_example_json_debug(capsys, command):
     with pytest.raises(SystemExit):
         cli.main([command, "--help"])
     out = capsys.readouterr().out
-    assert "example:\n  lensdist " + command in out
+    assert ("example:\n  lensdist " + command in out) or ("examples:\n  lensdist " + command in out)
     assert "default" in out and "--json" in out and "--debug" in out
     if command in ("generate", "reproduce", "evaluate", "analyze"):
         assert "--quiet" in out

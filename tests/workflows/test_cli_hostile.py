@@ -95,7 +95,7 @@ def test_device_index_beyond_the_devices(capsys, monkeypatch):
 
 def test_usage_errors_are_one_line(capsys):
     """argparse's own refusals (an unknown option, a bad choice) are one line, not usage + error."""
-    usage_error(capsys, "analyze", "a", "b", "--bogus", match=("unrecognized arguments: --bogus",), prog="lensdist")
+    usage_error(capsys, "analyze", "a", "b", "--bogus", match=("unrecognized arguments: --bogus",))
     usage_error(capsys, "analyze", "a", "b", "--method", "nope", match=("argument --method", "invalid choice"))
 
 

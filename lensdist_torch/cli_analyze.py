@@ -1,0 +1,93 @@
+"""The ``lensdist analyze`` command: running it and its text answer.
+
+Kept apart from ``cli.py`` for length; like it, it imports torch only inside the command. The
+text answer gives one reason per "cannot tell" (a failed registration is not also "too little
+motion or texture"), names barrel or pincushion on the class line, and says there when the
+estimate lies beyond the classes' range.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from lensdist_torch.cli_support import fmt as _fmt
+from lensdist_torch.cli_support import note as _note
+from lensdist_torch.cli_support import print_json as _print_json
+from lensdist_torch.core.outputs import check_output_file
+
+__all__ = ["print_analysis"]
+
+
+def _cmd_analyze(args: argparse.Namespace) -> int:
+    if args.save_map:
+        from lensdist_torch.workflows.figures import figure_formats, have_matplotlib
+
+        if not have_matplotlib():
+            raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
+        check_output_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)",
+                          {"img1": args.img1, "img2": args.img2, "--checkpoint": args.checkpoint,
+                           "--checkpoint-max": args.checkpoint_max, "--config": args.config})
+    from lensdist_torch.config import load_config
+    from lensdist_torch.workflows.analyze import analyze_pair, resolve_device
+
+    cfg, device = None if args.config is None else load_config(args.config), resolve_device(args.device)
+    res, qmap = analyze_pair(args.img1, args.img2, checkpoint=args.checkpoint, checkpoint_max=args.checkpoint_max,
+                             method=args.method, config=cfg, return_map=True, device=device)
+    # the result first: a failure to write the map must not lose the analysis
+    if args.json:
+        _print_json(res)
+    else:
+        _print_analysis(res)
+    if args.save_map:
+        from lensdist_torch.workflows.figures import save_map_grid
+
+        label = f"{res['method']}: Delta_avg {_fmt(res['delta_avg'])}"
+        save_map_grid(qmap.cpu(), [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"] or "?"])
+        _note(args, f"map: {args.save_map}")
+    return 3 if args.strict and res["cannot_tell"] else 0
+
+
+def _print_analysis(res: dict) -> None:
+    print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
+    conf = "" if res["confidence"] is None or res["class"] is None else f", confidence {res['confidence']:.2f}"
+    print(f"method: {res['method']}{conf}" + (f"; fitted on: {', '.join(res['fitted_on'])}" if res.get("fitted_on") else ""))
+    if res["class"] is None:
+        print("distortion class: cannot tell (see the warnings)")
+    else:
+        kind = f", {res['distortion_type']}" if res.get("distortion_type") else ""
+        beyond = " or beyond (Delta_avg lies past the classes' range)" if res.get("beyond_class_range") else ""
+        print(f"distortion class: {res['class']}{beyond}{kind}  (1 = small ... 4 = very strong, R = none visible)")
+    (h, w), (ih, iw) = res["analysis_size"], res["input_size"]
+    if res["class"] is None:  # no number that reads as an answer (the JSON keeps estimated_*)
+        why = f"the views moved by {_fmt(res.get('motion_px'), '.2f')}" if res["registration_ok"] else "registration failed"
+        print(f"Delta: none given ({why})")
+    else:
+        interval = res.get("delta_avg_interval")
+        print(f"Delta_avg ~ {_fmt(res['delta_avg'], '.2f')}" + (f" [{interval[0]:.2f}, {interval[1]:.2f}] (95 %)" if interval else "")
+              + f", Delta_max ~ {_fmt(res['delta_max'])} at {w} x {h}")
+        print(f"in your {iw} x {ih} pixels: Delta_avg {_fmt(res['delta_avg_user_px'])}, Delta_max "
+              f"{_fmt(res['delta_max_user_px'])} over the whole frame; {_fmt(res['delta_avg_region_user_px'])} and "
+              f"{_fmt(res['delta_max_region_user_px'])} over the analysed centre crop")
+    if res["distances"]:
+        print("eigen-space distances: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
+    for w in res["warnings"]:
+        print(f"warning: {w}")
+
+
+def _valid_blocks(res: dict, qmap):
+    """(1, 1, h, w): blocks of the analysis frame with a valid pixel after the registration.
+
+    The metric's eroded validity, so that the map shows blocks without a valid pixel in grey.
+    """
+    import torch
+
+    from lensdist_torch import erode_valid, warp_to_reference
+
+    h, w = res["analysis_size"]
+    _, valid = warp_to_reference(torch.ones(1, 1, h, w), torch.tensor([res["homography"]]))
+    b = h // qmap.shape[-2]
+    v = erode_valid(valid.float())[..., : qmap.shape[-2] * b, : qmap.shape[-1] * b]
+    return torch.nn.functional.max_pool2d(v, b) > 0
+
+
+print_analysis = _print_analysis
