@@ -1,6 +1,8 @@
 """Reports of an evaluation: one method's figures on a test set, Markdown and JSON.
 
 The paper's Tables 1 and 2 are shown beside ours; the JSON is strict (a missing figure is null).
+Every term is defined under the table it appears in (:data:`TERMS`); :func:`report_summary` is
+the short text a command prints (the headline table and its terms), the file holds the rest.
 """
 
 from __future__ import annotations
@@ -21,11 +23,13 @@ CANNOT_TELL = len(CLASS_LABELS)
 __all__ = [
     "CANNOT_TELL",
     "PAPER",
+    "TERMS",
     "evaluate_predictions",
     "json_safe",
     "md_goals",
     "dumps_strict",
     "report_markdown",
+    "report_summary",
     "write_report",
 ]
 
@@ -40,6 +44,36 @@ PAPER = {
     "table2_range_px": 30.0,
     "table2": {"5": [3.48, 4.73, 5.13, 4.85], "10": [3.56, 4.79, 5.19, 4.93]},
 }
+
+
+#: What each term of the reports means, shown where the term appears.
+TERMS = {
+    "EV": "the eigen-space classifier with 5 or 10 eigenvectors per class (the paper's settings); delta_max or "
+          "delta_avg: the Delta its classes are binned on",
+    "Delta": "how far the lens distortion moves a pixel: Delta_avg the mean over the frame, Delta_max the largest (px)",
+    "rate": "right answers among all test pairs (\"cannot tell\" is not right)",
+    "cannot tell": "share of the pairs answered \"cannot tell\" (too little evidence for a class)",
+    "right among confident": "right answers among the pairs answered with a class (1-4 or R)",
+    "confident wrong": "pairs answered with a wrong class",
+    "R rejected": "class-R test pairs (no distortion; homography perturbed by 1 % per parameter) answered R, "
+                  "i.e. rightly rejected as not distorted; the paper's of its 100",
+    "registration failed": "pairs whose homography could not be estimated at generation (kept and analysed)",
+    "t_y": "the pair's vertical translation (px); the distortion shows less when it is small",
+    "RMSE": "root-mean-square error of the estimated Delta_avg against the truth, in px and as % of the class range",
+    "bias": "mean of estimate - truth over all classes (px): > 0 overestimates",
+    "right or cannot tell": "right answers plus \"cannot tell\", of all pairs: the answers that do not mislead",
+    "RMSE on confident": "root-mean-square error of the estimated Delta over the distorted pairs answered with a "
+                         "class, as % of the class range",
+    "undistorted called R": "share of the class-R pairs answered R (R rejected, as a share)",
+    "ECE": "expected calibration error of the confidence as an estimate of P(class right): the pair-weighted "
+           "mean gap between confidence and share right in 10 bins; before: under the default decision, "
+           "after: under the decision fitted on the validation split; lower is better",
+}
+
+
+def _terms(*names: str) -> list[str]:
+    """Markdown lines that define ``names`` (keys of :data:`TERMS`)."""
+    return ["Terms: " + "; ".join(f"**{n}**: {TERMS[n]}" for n in names) + ".", ""]
 
 
 def json_safe(obj):
@@ -177,7 +211,7 @@ def _md_calibration(cal: dict) -> list[str]:
     lines += ["| method | split | pairs | ECE before | ECE after |", "|---|---|---|---|---|"]
     for row in cal.get("ece", []):
         lines.append(f"| {row['method']} | {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} |")
-    return lines + [""]
+    return lines + [""] + _terms("ECE")
 
 
 def report_markdown(report: dict) -> str:
@@ -206,13 +240,17 @@ def report_markdown(report: dict) -> str:
             f"{p_rate} | {p_rej} | {fig.get('registration_failed', '-')} |"
         )
     lines.append("")
+    lines += _terms("EV", "rate", "cannot tell", "right among confident", "confident wrong", "R rejected",
+                    "registration failed")
+    lines += ["Confusion matrices: rows the true class (1-4 by Delta, R no distortion), columns the answer.", ""]
     for name, fig in settings.items():
         lines += [f"### {name}", ""] + _md_confusion(fig["confusion"]) + [""]
         paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
         if paper:
             lines += [f"Paper ({fig['paper_key']}):", ""] + _md_confusion(paper["confusion"]) + [""]
         if fig.get("groups"):
-            lines.append("Rate by group: " + ", ".join(f"{g}: {_pct(v['rate'])} (n={v['n']})" for g, v in fig["groups"].items()))
+            lines.append("Rate by group (t_y: the vertical translation): "
+                         + ", ".join(f"{g}: {_pct(v['rate'])} (n={v['n']})" for g, v in fig["groups"].items()))
             lines.append("")
     lines += [
         "## Table 2: RMSE of Delta per ground-truth class",
@@ -230,18 +268,56 @@ def report_markdown(report: dict) -> str:
         cells = [f"{v:.2f} px ({100 * v / PAPER['table2_range_px']:.1f} %)" for v in vals]
         lines.append(f"| paper, {ev} EV, Delta_avg | " + " | ".join(cells) + " | ]0, 30] px | - |")
     lines.append("")
+    lines += _terms("RMSE", "bias", "Delta")
     lines += ["## Can the answers be trusted?", "",
               "Right or cannot tell: right answers plus \"cannot tell\", of all pairs; RMSE over the distorted pairs "
               "answered with a class; undistorted called R: of the class-R pairs.", ""] + md_goals(settings)
+    lines += _terms("right or cannot tell", "RMSE on confident", "undistorted called R", "registration failed")
     unseen = report.get("unseen")
     if unseen:
         lines += [f"## On a scene no method was fitted on: {', '.join(unseen['scenes'])}", "", str(unseen.get("note", "")), ""]
-        lines += md_goals(unseen["settings"])
+        lines += ["Columns as in \"Can the answers be trusted?\" above.", ""] + md_goals(unseen["settings"])
         for name, fig in unseen["settings"].items():
             lines += [f"### {name} (unseen scene)", ""] + _md_confusion(fig["confusion"]) + [""]
     if report.get("calibration"):
         lines += _md_calibration(report["calibration"])
     return "\n".join(lines)
+
+
+def report_summary(report: dict, full_report: str | Path | None = None) -> str:
+    """The short text a command prints (about 25 lines): the headline table, its terms, the file.
+
+    One row per setting (rate, cannot tell, right among confident, R rejected, each with the
+    paper's where it has one; RMSE on the confident answers), one line for the unseen scene and
+    one for the calibration, every term defined; the confusion matrices, Table 2 and the rest
+    stay in the file, named on the last line.
+    """
+    lines = [str(report.get("title", "lensdist evaluation"))]
+    if report.get("protocol"):
+        lines.append(str(report["protocol"]))
+    lines += ["", "| setting | rate (paper) | cannot tell | right among confident | R rejected (paper) | RMSE on confident |",
+              "|---|---|---|---|---|---|"]
+    for name, fig in report["settings"].items():
+        paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
+        p_rate, p_rej = (f" ({paper['rate']:.1f} %)", f" ({paper['confusion'][4][4]} of 100)") if paper else ("", "")
+        lines.append(f"| {name} | {_pct(fig['rate'])}{p_rate} | {_pct(fig.get('cannot_tell_share'))} | "
+                     f"{_pct(fig.get('confident_rate'))} | {fig['rejected_R']} of {fig['n_R']}{p_rej} | "
+                     f"{_pct(fig.get('confident_rmse_pct'))} |")
+    lines.append("")
+    unseen = report.get("unseen")
+    if unseen:
+        shares = ", ".join(f"{n} {_pct(f.get('right_or_cannot_tell_share'))}" for n, f in unseen["settings"].items())
+        lines.append(f"On {', '.join(unseen['scenes'])}, a scene no method was fitted on, right or cannot tell: {shares}.")
+    ece = [r for r in report.get("calibration", {}).get("ece", []) if r.get("split") == "test"]
+    if ece:
+        lines.append("ECE on the test pairs, before -> after the fitted decision: "
+                     + ", ".join(f"{r['method']} {_pct(100 * r['before'])} -> {_pct(100 * r['after'])}" for r in ece) + ".")
+    used = ["EV", "rate", "cannot tell", "right among confident", "R rejected", "RMSE on confident"]
+    used += (["right or cannot tell"] if unseen else []) + (["ECE"] if ece else [])
+    lines += [""] + [f"{n}: {TERMS[n]}." for n in used]
+    if full_report is not None:
+        lines += ["", f"Full report (confusion matrices, Table 2: RMSE per class, each term where it appears): {full_report}"]
+    return "\n".join(lines) + "\n"
 
 
 def write_report(report: dict, out: str | Path, stem: str = "report") -> tuple[Path, Path]:

@@ -218,6 +218,7 @@ def _figures(models: dict, settings: dict, test: dict, config: LensdistConfig, o
     r_pairs = (test["delta_avg"] == 0).nonzero().flatten()
     if len(r_pairs):
         picks.append(int(r_pairs[0]))
-    labels = [f"Delta_avg {float(test['delta_avg'][i]):.1f} px, t_y {float(test['motion'][i, 0]):.0f}" for i in picks]
+    labels = [f"Delta_avg {float(test['delta_avg'][i]):.1f} px, vertical motion {float(test['motion'][i, 0]):.0f} px"
+              for i in picks]
     classes = [CLASS_LABELS[int(test["class_avg"][i])] for i in picks]
     save_map_grid(maps[picks], labels, out / "maps_by_distortion.png", "quality maps (Fig. 1)", classes=classes)
