@@ -120,6 +120,8 @@ def _fake_pyav(frames):
             return x[0].numpy() if format == "gray" else x.permute(1, 2, 0).numpy()
 
     class Container:
+        streams = types.SimpleNamespace(video=[0])
+
         def __enter__(self):
             return self
 
@@ -177,12 +179,13 @@ def test_bad_paths_are_one_line_errors(tmp_path, monkeypatch):
     (tmp_path / "clip.mp4").write_bytes(b"\x00" * 64)
     (tmp_path / "notes.txt").write_text("not a video")
     monkeypatch.setitem(sys.modules, "av", None)  # PyAV missing (import av raises ImportError)
+    monkeypatch.setitem(sys.modules, "cv2", None)  # and OpenCV, which would read the video without it
     cases = [
         (tmp_path / "empty", ValueError, "no image files"),
         (tmp_path / "missing", FileNotFoundError, "path not found"),
         (one, ValueError, "at least 2 frames"),
         (mixed, ValueError, "frame_1 is 64 x 80"),
-        (tmp_path / "clip.mp4", ValueError, "pip install av"),
+        (tmp_path / "clip.mp4", ValueError, r"pip install 'lensdist_torch\[video\]'"),
         (tmp_path / "notes.txt", ValueError, "folder of frames or a video"),
     ]
     for path, kind, match in cases:
