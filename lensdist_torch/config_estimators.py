@@ -173,7 +173,7 @@ class SelfCalConfig:
     parallax_iterations: int = 6
     parallax_test: float = 2.0
     parallax_block: int = 2
-    small_motion_error: float = 2.8e-5
+    small_motion_error: float = 3.6e-5
 
     def __post_init__(self) -> None:
         real(self, "small_motion_error", lo=0)

@@ -22,6 +22,7 @@ the checkpoint small); checkpoints carry a format version and the config.
 
 from __future__ import annotations
 
+import numbers
 from pathlib import Path
 from typing import NamedTuple
 
@@ -97,8 +98,9 @@ class DeltaRegressor(nn.Module):
         self.config = config if config is not None else LensdistConfig()
         n_components = self.config.regression.n_components if n_components is None else n_components
         k = self.config.regression.k if k is None else k
-        if n_features < 1 or n_components < 1 or k < 1:
-            raise ValueError("n_features, n_components and k must be positive")
+        for name, value in (("n_features", n_features), ("n_components", n_components), ("k", k)):
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if k > MAX_NEIGHBOURS:
             raise ValueError(f"k must be at most {MAX_NEIGHBOURS} neighbours (a local median), got {k}")
         self.n_features, self.n_components, self.k = int(n_features), int(n_components), int(k)

@@ -139,8 +139,9 @@ def _calibration(src: Path) -> tuple[float | None, float | None, int, int, str, 
         raise FileNotFoundError(f"calibration file not found: {src}")
     try:
         data = json.loads(src.read_text())
-    except (ValueError, OSError) as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
-        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({type(exc).__name__})") from None
+    except (ValueError, OSError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError: ValueErrors
+        why = "nested too deeply" if isinstance(exc, RecursionError) else type(exc).__name__
+        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({why})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out (not a JSON object)")
     for field in ("k2_user", "k4_user", "image_size"):

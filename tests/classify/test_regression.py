@@ -68,3 +68,14 @@ def test_bad_checkpoints(tmp_path):
         DeltaRegressor(12)(torch.rand(2, 12))
     with pytest.raises(ValueError):
         DeltaRegressor(12).fit(torch.rand(10, 11), torch.rand(10), torch.rand(10))
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("field", ["n_features", "n_components", "k"])
+@pytest.mark.parametrize("value", [True, 2.5, 0, -3, "8"])
+def test_sizes_must_be_positive_integers(field, value):
+    # the third issue-19 audit: k=True was taken as k = 1 (a checkpoint's loader refuses a bool k)
+    kwargs = {"n_features": 12, "n_components": 3, "k": 4, field: value}
+    n_features = kwargs.pop("n_features")
+    with pytest.raises(ValueError, match=rf"^{field} must be a positive integer, got {value!r}$".replace("(", r"\(")):
+        DeltaRegressor(n_features, **kwargs)

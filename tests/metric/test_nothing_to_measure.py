@@ -211,6 +211,14 @@ class TestFlatImages:
         assert int(res.num_pairs) == 2 and int(res.num_skipped) == 1
         assert float(res.quality_index) == pytest.approx((float(q[0]) + float(q[2])) / 2, abs=1e-7)
 
+    @pytest.mark.bad_input
+    def test_a_metric_of_flat_pairs_only_says_so(self):
+        # the third issue-19 audit: the message named only the mask, which was full
+        metric = RegistrationQualityMetric()
+        metric.update(flat(), flat())
+        with pytest.raises(RuntimeError, match=r"1 pair\(s\) added had nothing to measure .*flat images"):
+            metric.compute()
+
     def test_a_flat_half_is_still_measured(self):
         # sky above, texture below: the texture's pixels are measured, the sky's are not errors
         img1, img2 = misregistered(1)

@@ -333,3 +333,15 @@ def test_a_video_does_not_overwrite_earlier_frames(tmp_path, monkeypatch):
     assert "\n" not in str(err.value) and (out / "masks" / "frame_000001.png").read_bytes() == b"earlier"
     assert sorted(p.name for p in out.rglob("*")) == ["frame_000001.png", "masks"]
     assert undistort_path(tmp_path / "clip.mp4", out, k2=1e-6, k4=0.0, overwrite=True)["frames"] == 2
+
+
+@pytest.mark.bad_input
+def test_a_deeply_nested_calibration_file_is_a_one_line_error(tmp_path, capsys):
+    # the third issue-19 audit: 100 000 nested '[' made json.loads raise RecursionError ("internal error", exit 1)
+    folder = _frames(tmp_path / "frames")
+    cal = tmp_path / "deep.json"
+    cal.write_text("[" * 100_000)
+    code, _, err = _run(capsys, folder, "--from", cal, "--out", tmp_path / "out")
+    _one_line_usage_error(code, err)
+    assert str(cal) in err and "nested too deeply" in err
+    assert not (tmp_path / "out").exists()
