@@ -4,15 +4,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from workflow_helpers import TINY
 
 from lensdist_torch.config import config_from_dict
-
-#: A protocol small enough for CI: 96 x 128 images, 200 training and 12 test pairs.
-TINY = {
-    "image": {"height": 96, "width": 128},
-    "protocol": {"n_train": 200, "n_test_distorted": 8, "n_test_undistorted": 4, "shard_size": 100},
-    "classifier": {"n_eigenvectors": 2},
-}
 
 
 @pytest.fixture(scope="session")

@@ -7,6 +7,7 @@ import json
 import re
 
 import torch
+from workflow_helpers import tiny_cli_folder
 
 from lensdist_torch.workflows.reports import (
     CANNOT_TELL,
@@ -79,16 +80,10 @@ def test_the_report_defines_each_term_in_the_section_it_appears_in():
 
 def test_lensdist_reproduce_prints_the_summary_not_the_report(tiny_run, tmp_path, capsys):
     """The command a user types: its stdout is the summary (the report file is the long one)."""
-    import shutil
-
     from lensdist_torch.cli import main
 
     out, _ = tiny_run
-    shutil.copytree(out / "data", tmp_path / "data")
-    (tmp_path / "tiny.toml").write_text(
-        "[image]\nheight = 96\nwidth = 128\n\n[protocol]\nn_train = 200\nn_test_distorted = 8\n"
-        "n_test_undistorted = 4\nshard_size = 100\n\n[classifier]\nn_eigenvectors = 2\n"
-    )
+    tiny_cli_folder(out, tmp_path)
     code = main(["reproduce", "--config", str(tmp_path / "tiny.toml"), "--out", str(tmp_path), "--workers", "1", "--quiet"])
     r = capsys.readouterr()
     assert code == 0, r.err

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 from kornia.io import write_image
+from workflow_helpers import tiny_cli_folder
 
 from lensdist_torch import analyze_pair
 from lensdist_torch.config import config_from_dict
@@ -187,14 +188,8 @@ class TestTinyProtocol:
     def test_reproduce_cli_reuses_shards(self, tiny_run, tmp_path, capsys):
         """On existing data, `lensdist reproduce` says how many shards it reused; --json prints
         the report alone on stdout, strict (no NaN)."""
-        import shutil
-
         out, _ = tiny_run
-        shutil.copytree(out / "data", tmp_path / "data")
-        (tmp_path / "tiny.toml").write_text(
-            "[image]\nheight = 96\nwidth = 128\n\n[protocol]\nn_train = 200\nn_test_distorted = 8\n"
-            "n_test_undistorted = 4\nshard_size = 100\n\n[classifier]\nn_eigenvectors = 2\n"
-        )
+        tiny_cli_folder(out, tmp_path)
         from lensdist_torch.cli import main
 
         code = main(["reproduce", "--config", str(tmp_path / "tiny.toml"), "--out", str(tmp_path), "--workers", "1", "--json"])
