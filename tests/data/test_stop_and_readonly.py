@@ -60,7 +60,11 @@ def _start(tmp_path: Path, out: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "lensdist_torch.cli", "generate", "--config", str(cfg), "--out", str(out), "--workers", "2", "--quiet"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     # its own session: Ctrl-C is a SIGINT to the whole group (parent and workers), as a terminal sends it
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, env=env)
+    # SIGINT at its default, as a terminal's foreground job has it: a test run started in the
+    # background of a non-interactive shell (nohup bash -c '... &') ignores SIGINT, and an ignored
+    # signal stays ignored across exec
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_for(cond, proc: subprocess.Popen, timeout: float = 120.0) -> None:
