@@ -39,6 +39,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.geometry.distortion import delta_avg, delta_top, distortion_class
 from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
+from lensdist_torch.workflows.undistort import encode_png
 
 LEVELS = (0.0, 0.125, 0.375, 0.625, 0.875)
 SIZE = (320, 424)
@@ -63,11 +64,9 @@ def case(i: int) -> dict:
 
 
 def write_frames(frames: torch.Tensor, folder: Path) -> None:
-    import numpy as np
-    from PIL import Image
-
+    """(N, 1, H, W) frames in [0, 1] as 8-bit PNGs, with the writer undistort uses."""
     for j, f in enumerate(frames):
-        Image.fromarray((f[0].clamp(0, 1).numpy() * 255).round().astype(np.uint8)).save(folder / f"frame_{j:03d}.png")
+        (folder / f"frame_{j:03d}.png").write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
 
 
 def run_one(spec: dict) -> dict:

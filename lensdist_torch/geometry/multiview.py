@@ -50,7 +50,7 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
-           "rotation_spread_deg", "model_spread"]
+           "rotation_spread_deg", "model_spread", "interval_too_wide"]
 
 
 class MultiViewCalibration(NamedTuple):
@@ -257,6 +257,11 @@ def _eq4_fit(camera, size: tuple[int, int], scale: float, step: int) -> tuple[fl
     return float(sol[0]), float(sol[1]), float(err)
 
 
+def interval_too_wide(half: float, value: float, cfg: MultiViewConfig) -> bool:
+    """Whether a Delta_avg of ``value`` px with 95 % half-width ``half`` is too uncertain for a class."""
+    return not math.isfinite(half) or half > max(cfg.max_halfwidth_px, cfg.max_halfwidth_rel * value)
+
+
 def rotation_spread_deg(rec) -> float:
     """The largest rotation (degrees) between two registered frames' orientations.
 
@@ -353,7 +358,7 @@ def self_calibrate_reconstruction(
     if spread_deg < cfg.min_rotation_deg:
         reason = (f"degenerate motion: the camera turned by at most {spread_deg:.1f} degrees (at least "
                   f"{cfg.min_rotation_deg:g} needed), so relief and distortion cannot be told apart")
-    elif not math.isfinite(half_avg) or half_avg > max(cfg.max_halfwidth_px, cfg.max_halfwidth_rel * dl["delta_avg_px"]):
+    elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
         reason = f"interval too wide: +-{half_avg:.2f} px"
     else:
         hc, wc = st.image.size

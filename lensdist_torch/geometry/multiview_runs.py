@@ -25,7 +25,7 @@ import math
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.calibration import _t_quantile
-from lensdist_torch.geometry.multiview import MultiViewCalibration
+from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide
 
 __all__ = ["reconstruction_spread", "widened_half_width", "combine_reconstructions"]
 
@@ -62,10 +62,9 @@ def _median(ok: list[MultiViewCalibration]) -> MultiViewCalibration:
 
 def _disagreement(runs: list[tuple[int, MultiViewCalibration]]) -> str:
     """'' when every two reconstructions' Delta_avg intervals overlap, else the reconstructions named."""
-    apart = {i for i, (_, a) in enumerate(runs) for _, b in runs[i + 1:]
-             if a.delta_avg_user_interval[1] < b.delta_avg_user_interval[0]
-             or b.delta_avg_user_interval[1] < a.delta_avg_user_interval[0]}
-    if not apart:
+    ivs = [r.delta_avg_user_interval for _, r in runs]
+    # intervals overlap pairwise exactly when the largest lower end is at most the smallest upper end
+    if max(lo for lo, _ in ivs) <= min(hi for _, hi in ivs):
         return ""
     return ", ".join(f"seed {s} {r.delta_avg_user_px:.2f} px [{r.delta_avg_user_interval[0]:.2f}, "
                      f"{r.delta_avg_user_interval[1]:.2f}]" for s, r in runs)
@@ -100,7 +99,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     half = intervals[0][1] - best.delta_avg_user_px
     need, label, reason = len(runs) // 2 + 1, best.class_label, best.reason
     apart = _disagreement(ok)
-    if reason and not reason.startswith("interval too wide"):
+    if best.rotation_spread_deg < cfg.min_rotation_deg:
         label = None  # degenerate motion: the answer's own reason stands
     elif len(ok) < need:
         failed = "; ".join(f"seed {s}: {r}" for s, r in runs if isinstance(r, str))
@@ -108,7 +107,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
                                f"engine's own variation is not known ({failed})")
     elif apart:
         label, reason = None, f"the reconstructions disagree beyond their intervals ({apart})"
-    elif not math.isfinite(half) or half > max(cfg.max_halfwidth_px, cfg.max_halfwidth_rel * best.delta_avg_user_px):
+    elif interval_too_wide(half, best.delta_avg_user_px, cfg):
         among = f" (the {len(ok)} reconstructions differ by up to {spread:.2f} px)" if len(ok) > 1 else ""
         label, reason = None, f"interval too wide: +-{half:.2f} px{among}"
     return best._replace(delta_avg_user_interval=intervals[0], delta_max_user_interval=intervals[1], class_label=label,

@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
+from lensdist_torch.metric._inputs import ONLY_AT_RISK
 from lensdist_torch.metric.criteria import _HALF_PI, _sobel8
 
 
@@ -61,21 +62,16 @@ def _block_sum(x: torch.Tensor, block: int) -> torch.Tensor:
 def measure_codes(v: torch.Tensor | None, not_r: torch.Tensor) -> torch.Tensor:
     """(B,) codes of what each sample leaves to measure.
 
-    1: a valid pixel outside the risk map; 0.5: valid pixels, but every one at risk (both
-    images flat there: no edge to compare); 0: no valid pixel.
+    ``MEASURABLE`` (1): a valid pixel outside the risk map; ``ONLY_AT_RISK`` (0.5): valid pixels,
+    but every one at risk (both images flat there: no edge to compare); ``NOTHING_VALID`` (0).
 
     Args:
         v: (B, 1, H, W) the eroded {0, 1} validity, or None (everything valid).
         not_r: (B, 1, H, W) {0, 1}, 1 where the dilated risk map is 0.
     """
     if v is None:
-        return not_r.amax(dim=(1, 2, 3)).clamp(min=0.5)
-    return torch.maximum(0.5 * v.amax(dim=(1, 2, 3)), (v * not_r).amax(dim=(1, 2, 3)))
-
-
-def measured(codes: torch.Tensor) -> torch.Tensor:
-    """(B,) bool: the samples of :func:`measure_codes` that have something to measure."""
-    return codes > 0.75
+        return not_r.amax(dim=(1, 2, 3)).clamp(min=ONLY_AT_RISK)
+    return torch.maximum(ONLY_AT_RISK * v.amax(dim=(1, 2, 3)), (v * not_r).amax(dim=(1, 2, 3)))
 
 
 def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool, measured: bool = False):

@@ -121,6 +121,16 @@ def check_mask_shape(valid: object, like: torch.Tensor, name: str = "valid") -> 
         raise ValueError(f"{name} must have shape {(b, 1, h, w)}, got {tuple(valid.shape)}")
 
 
+#: What a sample leaves to measure (:func:`~lensdist_torch.metric._hard.measure_codes`): no valid
+#: pixel, valid pixels all in the risk map (flat images: no edge to compare), a pixel to measure.
+NOTHING_VALID, ONLY_AT_RISK, MEASURABLE = 0.0, 0.5, 1.0
+
+
+def measured(codes: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: the samples whose code is ``MEASURABLE`` (the codes are exact: 0, 0.5 or 1)."""
+    return codes == MEASURABLE
+
+
 def check_values(
     images: list[tuple[str, torch.Tensor]],
     valid: torch.Tensor | None,
@@ -174,8 +184,8 @@ def check_values(
         message = _range_error(name, lo, hi, data_range)
         if message is not None:
             raise ValueError(message)
-    if measurable is not None and stats[-2] < 0.75:
-        at_risk = stats[-2] > 0.25
+    if measurable is not None and stats[-2] != MEASURABLE:
+        at_risk = stats[-2] == ONLY_AT_RISK
         raise ValueError(_nothing_to_measure(measurable_name, int(stats[-1]), measurable.numel(), at_risk))
 
 

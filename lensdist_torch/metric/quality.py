@@ -43,10 +43,11 @@ import torch
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.metric._hard import hard_counts, measure_codes, measured
+from lensdist_torch.metric._hard import hard_counts, measure_codes
 from lensdist_torch.metric._inputs import (
     check_pair_values,
     get_config,
+    measured,
     prepare_pair,
     prepare_unchecked,
     should_validate,

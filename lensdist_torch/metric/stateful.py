@@ -29,8 +29,7 @@ import torch
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.metric._hard import measured
-from lensdist_torch.metric._inputs import check_data_range, get_config
+from lensdist_torch.metric._inputs import check_data_range, get_config, measured
 from lensdist_torch.metric._state import STATE, check_state, loaded_state
 from lensdist_torch.metric.quality import _measured_map
 
