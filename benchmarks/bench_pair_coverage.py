@@ -16,6 +16,8 @@ how many answer below ``analysis.min_motion_px``, how many of their answers are 
 
     python benchmarks/bench_pair_coverage.py --seed 1 --n 650 --fit            # validation: e
     python benchmarks/bench_pair_coverage.py --seed 2 --n 650 --out docs/results/bench_pair_coverage.json
+    python benchmarks/bench_pair_coverage.py --design slow-pans --seed 11 --n 72 --fit  # the second validation set
+    python benchmarks/bench_pair_coverage.py --design slow-pans --seed 0 --n 96        # the audit's own seeds
 """
 
 from __future__ import annotations
@@ -49,12 +51,27 @@ def draw(seed: int, j: int) -> dict:
             "realistic": j % 3 == 0, "seed": seed * 1_000_003 + j}
 
 
-def run(seed: int, n: int, cfg: LensdistConfig, methods: tuple[str, ...]) -> list[dict]:
+SLOW_K2 = (0.7e-6, 1.5e-6, 2.5e-6, 3.2e-6)  # Delta_avg 2.9, 6.3, 10.5, 13.4 px: near class boundaries
+SLOW_STEPS = (1.2, 1.6, 2.2, 3.0, 4.0, 6.0)
+
+
+def draw_slow(seed: int, j: int) -> dict:
+    """Pair j of the slow-pan design (the third issue-19 audit's): clean gravel pans of a step
+    ~ U[s, 1.1 s] px, +-0.5 px jitter, +-0.1 degree, every (k2, s) of the grid once per seed
+    ``seed``, ``seed`` + 1, ..."""
+    k2, step = SLOW_K2[(j // len(SLOW_STEPS)) % len(SLOW_K2)], SLOW_STEPS[j % len(SLOW_STEPS)]
+    truth = float(delta_avg(torch.tensor([k2], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *SIZE)[0])
+    return {"step": step, "truth": truth, "k2": k2, "scene": "gravel", "realistic": False,
+            "seed": seed + j // (len(SLOW_K2) * len(SLOW_STEPS)), "design": "slow-pans"}
+
+
+def run(seed: int, n: int, cfg: LensdistConfig, methods: tuple[str, ...], design: str = "pans") -> list[dict]:
     rows = []
     for j in range(n):
-        d = draw(seed, j)
-        frames, _ = synthetic_sequence(2, d["k2"], 0.0, size=SIZE, scene=d["scene"], seed=d["seed"], step_px=(d["step"],) * 2,
-                                       jitter_px=1.0, rotation_deg=0.5, realistic=d["realistic"], config=cfg)
+        d = draw(seed, j) if design == "pans" else draw_slow(seed, j)
+        steps, jitter, rot = ((d["step"],) * 2, 1.0, 0.5) if design == "pans" else ((d["step"], 1.1 * d["step"]), 0.5, 0.1)
+        frames, _ = synthetic_sequence(2, d["k2"], 0.0, size=SIZE, scene=d["scene"], seed=d["seed"], step_px=steps,
+                                       jitter_px=jitter, rotation_deg=rot, realistic=d["realistic"], config=cfg)
         prep = prepare_batch(frames[:1], frames[1:], cfg)
         for method in methods:
             r = analyze_batch(None, None, method=method, config=cfg, prepared=prep)[0]
@@ -98,6 +115,8 @@ def main() -> None:
     ap.add_argument("--config", default=None)
     ap.add_argument("--fit", action="store_true", help="fit selfcal.small_motion_error (validation seed only)")
     ap.add_argument("--methods", nargs="+", default=["selfcal"], choices=["selfcal", "regression", "eigenspace"])
+    ap.add_argument("--design", choices=["pans", "slow-pans"], default="pans",
+                    help="pans: 0-40 px, any distortion; slow-pans: 1.2-6.6 px near class boundaries (n = 24 per seed)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
@@ -106,8 +125,8 @@ def main() -> None:
     if args.fit:
         cfg = dataclasses.replace(cfg, selfcal=dataclasses.replace(cfg.selfcal, small_motion_error=0.0))
     t0 = time.perf_counter()
-    rows = run(args.seed, args.n, cfg, tuple(dict.fromkeys(["selfcal", *args.methods])))
-    result = {"seed": args.seed, "pairs": args.n, "seconds": time.perf_counter() - t0,
+    rows = run(args.seed, args.n, cfg, tuple(dict.fromkeys(["selfcal", *args.methods])), args.design)
+    result = {"seed": args.seed, "pairs": args.n, "design": args.design, "seconds": time.perf_counter() - t0,
               "small_motion_error": cfg.selfcal.small_motion_error, "bins": table(rows, cfg)}
     for method in args.methods:
         if method != "selfcal":
