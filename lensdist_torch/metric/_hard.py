@@ -74,6 +74,16 @@ def measure_codes(v: torch.Tensor | None, not_r: torch.Tensor) -> torch.Tensor:
     return torch.maximum(ONLY_AT_RISK * v.amax(dim=(1, 2, 3)), (v * not_r).amax(dim=(1, 2, 3)))
 
 
+def criteria_codes(v: torch.Tensor | None, crit) -> torch.Tensor:
+    """:func:`measure_codes` from the per-pixel criteria (either path): the risk map read at 0.5.
+
+    Args:
+        v: (B, 1, H, W) the eroded {0, 1} validity, or None.
+        crit: the :class:`~lensdist_torch.metric.criteria.LocalCriteria` of the pair.
+    """
+    return measure_codes(v, (crit.r < 0.5).to(crit.r.dtype).detach())
+
+
 def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool, measured: bool = False):
     sx1, sy1 = _sobel8(g1)
     sx2, sy2 = _sobel8(g2)

@@ -9,12 +9,18 @@ blocks are left out because their ratios are biased low (their invalid pixels ca
 image padding (any size is padded to whole blocks) is invalid, so partial edge blocks are left
 out too. The mask is binarised at 0.5 and detached: no gradient reaches it.
 
-Nothing to measure. A sample with no valid block adds nothing to the masked mean (the mean is
-over the valid blocks of the whole batch), and a batch with no valid block gives 0 with a zero
-gradient, with or without ``validate``: unlike :func:`~lensdist_torch.metric.quality.registration_quality`,
-which refuses to call such a pair perfect, a loss must keep training going, and 0 with no
-gradient says "no signal" (a NaN would poison the weights). Keep a photometric or overlap term
-beside it, since this loss alone cannot see a warp that leaves the frame.
+Nothing to measure. A sample with nothing to measure (no valid block, or every valid pixel in
+the risk map: flat, textureless images; the rule of
+:func:`~lensdist_torch.metric.quality.registration_quality`, read with ``measured``) adds
+nothing to the masked mean, neither error nor blocks: the mean is over the valid blocks of the
+measurable samples of the batch, so a flat pair does not dilute the others (three flat pairs
+beside a misregistered one used to divide its loss by 4), as the stateful metric skips such
+pairs. A batch with nothing to measure gives 0 with a zero gradient, with or without
+``validate``: unlike :func:`~lensdist_torch.metric.quality.registration_quality`, which
+refuses to call such a pair perfect (NaN with ``validate=False``), a loss must keep training
+going, and 0 with no gradient says "no signal" (a NaN would poison the weights). Keep a
+photometric or overlap term beside it, since this loss alone cannot see a warp that leaves the
+frame.
 
 Reductions. ``"per_sample"`` gives (B,): each sample's own masked mean (what piq's losses call
 ``reduction="none"``), for weighting samples or logging them. ``"none"`` keeps the meaning it has
@@ -28,7 +34,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.metric._inputs import get_config, prepare_pair
+from lensdist_torch.metric._hard import criteria_codes
+from lensdist_torch.metric._inputs import get_config, measured, prepare_pair
 from lensdist_torch.metric.criteria import _criteria, _error_images, erode_valid
 from lensdist_torch.metric.pooling import block_pool
 
@@ -43,17 +50,17 @@ def _check_reduction(reduction: str) -> None:
         raise ValueError(f"reduction must be one of {REDUCTIONS}, got {reduction!r}")
 
 
-def _reduce(reg_map: torch.Tensor, v: torch.Tensor | None, block: int, reduction: str) -> torch.Tensor:
+def _reduce(reg_map: torch.Tensor, v: torch.Tensor | None, codes: torch.Tensor, block: int, reduction: str):
     if reduction == "none":
         return reg_map
     if reduction == "sum":
         return reg_map.sum()
-    if reduction == "mean" or (v is None and reduction == "masked_mean"):  # no mask: every block is valid
+    if reduction == "mean":
         return reg_map.mean()
-    if v is None:  # per_sample, every block valid
-        return reg_map.mean(dim=(1, 2, 3))
-    full = -F.max_pool2d(-v, kernel_size=block, stride=block)  # 1 where the whole block is valid
-    # clamp: no valid block gives 0 / 1 = 0 and a zero gradient (no NaN, no host sync)
+    # 1 where the whole block is valid (every block without a mask), in a measurable sample
+    full = torch.ones_like(reg_map) if v is None else -F.max_pool2d(-v, kernel_size=block, stride=block)
+    full = full * measured(codes).to(full.dtype).view(-1, 1, 1, 1)
+    # clamp: nothing to measure gives 0 / 1 = 0 and a zero gradient (no NaN, no host sync)
     dims = (1, 2, 3) if reduction == "per_sample" else None
     return (reg_map * full).sum(dim=dims) / full.sum(dim=dims).clamp_min(1.0)
 
@@ -79,21 +86,23 @@ def registration_quality_loss(
         valid: (B, 1, H, W) validity (e.g. the warp's in-bounds mask) on img1's device, bool or
             in [0, 1], binarised at 0.5 and detached; or None (everything valid).
         config: temperatures and thresholds; the defaults when None.
-        reduction: ``"masked_mean"`` (default: mean over the valid blocks of the batch),
-            ``"mean"`` (over all blocks and the batch, invalid blocks count as 0), ``"sum"``,
-            ``"per_sample"`` for (B,), each sample's mean over its own valid blocks (0 for a
-            sample with none; piq's ``"none"``), or ``"none"`` for the
+        reduction: ``"masked_mean"`` (default: mean over the valid blocks of the measurable
+            samples of the batch), ``"mean"`` (over all blocks and the batch: invalid blocks
+            count as 0, flat pairs dilute it), ``"sum"``, ``"per_sample"`` for (B,), each sample's
+            mean over its own valid blocks (0 for a sample with nothing to measure; piq's
+            ``"none"``), or ``"none"`` for the
             (B, 1, ceil(H/b), ceil(W/b)) map (torch's and kornia's ``"none"``).
         data_range: the value of white in float inputs (they are divided by it).
         validate: check values (NaN/Inf, range, mask; one host sync); skipped while compiling.
         pad: pad to whole blocks (else H, W must be multiples of the block size).
 
     Returns:
-        A scalar tensor, (B,) for ``"per_sample"``, or the map for ``"none"``. With no valid
-        block in the batch the masked mean is 0 with a zero gradient (see the module docstring),
-        and so is a sample's ``"per_sample"`` value; ``"mean"`` and ``"sum"`` count invalid
-        blocks as 0, and ``"none"`` shows them as 0. The masked mean weights samples by their
-        valid blocks, so it equals the mean of ``"per_sample"`` when they have as many.
+        A scalar tensor, (B,) for ``"per_sample"``, or the map for ``"none"``. With nothing
+        to measure in the batch (no valid block, or flat images) the masked mean is 0 with a
+        zero gradient (see the module docstring), and so is such a sample's ``"per_sample"``
+        value; ``"mean"`` and ``"sum"`` count invalid blocks as 0, and ``"none"`` shows them
+        as 0. The masked mean weights measurable samples by their valid blocks, so it equals
+        the mean of their ``"per_sample"`` values when they have as many.
 
     Example:
         >>> x = torch.rand(1, 1, 32, 32, requires_grad=True)
@@ -121,7 +130,7 @@ def registration_quality_loss(
     v = None if valid is None else erode_valid(valid)
     crit = _criteria(g1, g2, cfg, smooth=True)
     reg_map = block_pool(_error_images(crit, v, cfg, smooth=True).e_reg, cfg, smooth=True)
-    return _reduce(reg_map, v, cfg.block_size, reduction)
+    return _reduce(reg_map, v, criteria_codes(v, crit), cfg.block_size, reduction)
 
 
 class RegistrationQualityLoss(nn.Module):

@@ -43,7 +43,7 @@ import torch
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.metric._hard import hard_counts, measure_codes
+from lensdist_torch.metric._hard import criteria_codes, hard_counts
 from lensdist_torch.metric._inputs import (
     check_pair_values,
     get_config,
@@ -290,7 +290,7 @@ def registration_quality(
         return QualityResult(reg_map, vis_map, _index(reg_map, flags))
     eroded = None if v is None else erode_valid(v)
     crit = _criteria(g1, g2, cfg, smooth)
-    flags = measure_codes(eroded, (crit.r < 0.5).to(crit.r.dtype).detach())
+    flags = criteria_codes(eroded, crit)
     if should_validate(validate):
         check_pair_values(img1, img2, valid, data_range, flags)
     errs = _error_images(crit, eroded, cfg, smooth)

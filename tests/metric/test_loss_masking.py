@@ -155,6 +155,52 @@ class TestMaskedMean:
             RegistrationQualityLoss(reduction="avg")
 
 
+@pytest.mark.bad_input
+class TestPairsWithNothingToMeasure:
+    """Flat pairs (every valid pixel in the risk map) are left out of the masked mean, as the
+    hard metric and the stateful one skip them: they used to count their blocks in the
+    denominator (three flat pairs beside a misregistered one: its loss 0.457 read 0.114)."""
+
+    def batch(self, n_flat=3, dtype=torch.float64):
+        img1 = textured(1, 64, 64, seed=1, dtype=dtype)
+        flat = torch.full((n_flat, 1, 64, 64), 0.5, dtype=dtype)
+        return torch.cat([img1, flat]), torch.cat([torch.roll(img1, 1, dims=-1), flat])
+
+    @pytest.mark.parametrize("with_mask", [False, True])
+    def test_flat_pairs_do_not_dilute_the_mean(self, with_mask):
+        x1, x2 = self.batch()
+        valid = torch.ones(4, 1, 64, 64, dtype=torch.float64) if with_mask else None
+        alone = float(registration_quality_loss(x1[:1], x2[:1]))
+        assert alone > 0.4
+        assert float(registration_quality_loss(x1, x2, valid)) == pytest.approx(alone, rel=1e-12)
+        per = registration_quality_loss(x1, x2, valid, reduction="per_sample")
+        assert float(per[0]) == pytest.approx(alone, rel=1e-12)
+        assert per[1:].tolist() == [0.0, 0.0, 0.0]
+        # the plain mean keeps its documented meaning: every block counts
+        plain = float(registration_quality_loss(x1, x2, valid, reduction="mean"))
+        assert plain == pytest.approx(alone / 4, rel=1e-6)
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_gradients_are_the_measurable_pairs_alone(self, dtype):
+        x1, x2 = self.batch(dtype=dtype)
+        x1.requires_grad_()
+        registration_quality_loss(x1, x2).backward()
+        one = x1.detach()[:1].clone().requires_grad_()
+        registration_quality_loss(one, x2[:1]).backward()
+        assert bool(torch.isfinite(x1.grad).all())
+        torch.testing.assert_close(x1.grad[:1], one.grad)
+        assert bool((x1.grad[1:] == 0).all())
+
+    @pytest.mark.parametrize("reduction", ["masked_mean", "per_sample"])
+    def test_a_batch_with_nothing_to_measure_gives_zero(self, reduction):
+        # the documented rule of a batch with no valid block: 0 and a zero gradient, no NaN
+        flat = torch.full((2, 1, 32, 32), 0.5, dtype=torch.float64, requires_grad=True)
+        loss = registration_quality_loss(flat, flat.detach() + 0.001, reduction=reduction)
+        loss.sum().backward()
+        assert loss.detach().tolist() == (0.0 if reduction == "masked_mean" else [0.0, 0.0])
+        assert bool((flat.grad == 0).all())
+
+
 def test_max_pool_block_validity_matches_a_loop():
     """The block validity used by the masked mean, against a loop over blocks."""
     g = torch.Generator().manual_seed(6)
