@@ -265,7 +265,7 @@ class AnalysisConfig:
             of the protocol seed plus this offset (never the test set itself).
         min_motion_px: below this mean displacement (analysis px) of the registration, every
             method says "cannot tell": both views carry the same distortion, which cancels
-            where the scene did not move.
+            where the scene did not move. Positive, and applied with or without ``cross_check``.
         interval_confidence: coverage of a pair's Delta_avg interval (self-calibration).
     """
 
@@ -292,7 +292,7 @@ class AnalysisConfig:
 
     def __post_init__(self) -> None:
         real(self, "no_distortion_px", lo=0, lo_open=True)
-        real(self, "min_motion_px", lo=0)
+        real(self, "min_motion_px", lo=0, lo_open=True, why="at 0 every method answers on the same image twice")
         real(self, "interval_confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "min_overlap", lo=0, hi=1)
         real(self, "out_of_domain_factor", lo=0, lo_open=True)

@@ -162,6 +162,8 @@ BAD_VALUES = [
     ("analysis", "min_overlap", "-0.5"),
     ("analysis", "out_of_domain_factor", "inf"),
     ("analysis", "eigenspace_max_class_disagreement", "-1"),
+    ("analysis", "min_motion_px", "0.0"),  # every method would answer on the same image twice
+    ("analysis", "min_motion_px", "-1.0"),
 ]
 
 

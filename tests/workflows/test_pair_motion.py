@@ -7,11 +7,13 @@ number that reads as an answer.
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 import torch
 
+from lensdist_torch.cli import main
 from lensdist_torch.config import LensdistConfig, SelfCalConfig
 from lensdist_torch.core.images import centre_crop_box, load_scene
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, distortion_type
@@ -70,18 +72,23 @@ def test_issue_small_motion_is_not_confidently_wrong(step):
     assert r["estimated_delta_avg"] == pytest.approx(TRUTH, abs=1.6)
 
 
-@pytest.mark.bad_input
-@pytest.mark.parametrize("method", ["selfcal", "regression", "eigenspace"])
-@pytest.mark.parametrize("shift", [0.0, 0.3])
-def test_no_motion_cannot_tell_for_every_method(method, shift):
-    """Before: the same image twice gave class 1 with the learned methods (confidence 0.87)."""
+def _shifted(shift: float):
+    """A gravel view and the same view moved down by ``shift`` px (bilinear), (1, 1, 320, 424) float."""
     scene = load_scene("gravel")[..., :336, :424].double()
     a = scene[..., :320, :]
     b = torch.nn.functional.grid_sample(
         scene, torch.stack(torch.meshgrid(torch.linspace(-1, 1, 424, dtype=torch.float64),
                                           torch.linspace(-1, 1, 336, dtype=torch.float64), indexing="xy"), -1)[None]
         + torch.tensor([0.0, 2 * shift / 335], dtype=torch.float64), align_corners=True)[..., :320, :]
-    r = analyze_pair(a.float(), b.float(), method=method)
+    return a.float(), b.float()
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("method", ["selfcal", "regression", "eigenspace"])
+@pytest.mark.parametrize("shift", [0.0, 0.3])
+def test_no_motion_cannot_tell_for_every_method(method, shift):
+    """Before: the same image twice gave class 1 with the learned methods (confidence 0.87)."""
+    r = analyze_pair(*_shifted(shift), method=method)
     assert r["registration_ok"] and r["motion_px"] == pytest.approx(shift, abs=0.1)
     assert r["class"] is None and r["cannot_tell"]
     assert any("moved by" in w and "cancels" in w for w in r["warnings"])
@@ -91,6 +98,49 @@ def test_no_motion_cannot_tell_for_every_method(method, shift):
     if method == "selfcal":
         assert r["k2_user"] is None and r["opencv"] is None and r["delta_avg_interval"] is None
     assert "estimated_delta_avg" in r
+
+
+@pytest.fixture(scope="module")
+def shifted_pngs(tmp_path_factory):
+    """The same view twice and moved by 0.3 px, as PNG files."""
+    from kornia.io import write_image
+
+    out = tmp_path_factory.mktemp("shifted")
+    for name, img in zip(("a.png", "b.png"), _shifted(0.3)):
+        write_image(str(out / name), (img[0] * 255).round().clamp(0, 255).byte().expand(3, -1, -1).contiguous())
+    return out / "a.png", out / "b.png"
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("method", ["regression", "eigenspace"])
+@pytest.mark.parametrize("second", ["a.png", "b.png"])
+def test_cross_check_off_keeps_the_motion_floor(tmp_path, capsys, shifted_pngs, method, second):
+    """Issue 19 audit: without the self-calibration's confirmation the learned methods still say
+    "cannot tell" below analysis.min_motion_px (the floor does not depend on the cross-check)."""
+    config = tmp_path / "no_cross_check.toml"
+    config.write_text("[analysis]\ncross_check = false\n")
+    a = shifted_pngs[0]
+    rc = main(["analyze", str(a), str(a.parent / second), "--method", method, "--config", str(config), "--json"])
+    r = json.loads(capsys.readouterr().out)
+    assert rc == 0 and r["cannot_tell"] and r["class"] is None and r["delta_avg"] is None
+    assert r["motion_px"] == pytest.approx(0.0 if second == "a.png" else 0.3, abs=0.05)
+    assert any("moved by" in w and "(< 1)" in w for w in r["warnings"])
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("value", ["0", "0.0", "-1.0"])
+def test_min_motion_zero_is_refused(tmp_path, capsys, shifted_pngs, value):
+    """Before: analysis.min_motion_px = 0 (with cross_check = false) gave the same image twice
+    class 1 (eigen-space Delta_avg 2.37 px; regression 0.83 px at confidence 0.87)."""
+    config = tmp_path / "zero.toml"
+    config.write_text(f"[analysis]\ncross_check = false\nmin_motion_px = {value}\n")
+    a = shifted_pngs[0]
+    rc = main(["analyze", str(a), str(a), "--method", "regression", "--config", str(config), "--json"])
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert rc == 2 and captured.out == "" and len(lines) == 1, captured.err
+    assert lines[0].startswith("lensdist analyze: error: ")
+    assert "analysis.min_motion_px must be a finite number > 0" in lines[0] and "same image twice" in lines[0]
 
 
 def test_user_frame_delta_over_the_whole_portrait_frame():
