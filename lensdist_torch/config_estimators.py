@@ -75,8 +75,9 @@ class RegistrationConfig:
         if lv[-1] != 0 or not all(a > b for a, b in itertools.pairwise(lv)):
             raise ValueError(f"registration.levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
         integers(self, "iterations", n=len(lv), per="level")
-        for name in ("step_tol", "coarse_tol", "min_texture", "max_residual", "max_step"):
+        for name in ("step_tol", "coarse_tol", "min_texture", "max_residual"):
             real(self, name, lo=0, lo_open=True)
+        real(self, "max_step", lo=0, hi=1, lo_open=True, why="a share of the diagonal")
         integer(self, "phase_level", lo=0)
         real(self, "damping", lo=0)
         real(self, "margin", lo=0)
@@ -216,7 +217,7 @@ class RegressionConfig:
         n_components: PCA components kept (capped by the training set).
         k: neighbours whose median Delta is the prediction, at most ``MAX_NEIGHBOURS``.
         cannot_tell_fraction: neighbour spread of Delta_avg, as a fraction of the class range,
-            at which confidence is 0.5.
+            at which confidence is 0.5, in ]0, 1].
         confidence_threshold: below this confidence the answer is "cannot tell".
     """
 
@@ -228,7 +229,7 @@ class RegressionConfig:
     def __post_init__(self) -> None:
         integer(self, "n_components")
         integer(self, "k", hi=MAX_NEIGHBOURS, why="a local median; config_estimators.MAX_NEIGHBOURS")
-        real(self, "cannot_tell_fraction", lo=0, lo_open=True)
+        real(self, "cannot_tell_fraction", lo=0, hi=1, lo_open=True, why="a share of the class range")
         real(self, "confidence_threshold", lo=0, hi=1)
 
 
@@ -297,8 +298,9 @@ class AnalysisConfig:
         real(self, "min_overlap", lo=0, hi=1)
         real(self, "out_of_domain_factor", lo=0, lo_open=True)
         real(self, "min_confidence", lo=0, hi=1)
-        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "max_delta_disagreement", "texture_factor"):
+        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "texture_factor"):
             real(self, name, lo=0, lo_open=True)
+        real(self, "max_delta_disagreement", lo=0, hi=1, lo_open=True, why="a share of the Delta_avg range")
         real(self, "selfcal_confidence_shift")
         real(self, "regression_confidence_shift")
         flag(self, "cross_check")
@@ -437,7 +439,7 @@ class MultiViewConfig:
         real(self, "bic_margin", lo=0)
         real(self, "rms_margin", lo=0)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
-        real(self, "max_halfwidth_rel", lo=0, lo_open=True)
+        real(self, "max_halfwidth_rel", lo=0, hi=1, lo_open=True, why="a share of Delta_avg")
         real(self, "max_halfwidth_px", lo=0, lo_open=True)
         real(self, "min_rotation_deg", lo=0)
 

@@ -159,6 +159,50 @@ def test_unfitted_invalid_config_and_extra(tmp_path, eig_payload):
     _fails(EigenSpaceClassifier, tmp_path, _edit(eig_payload, extra=[1]), "extra must be a dict")
 
 
+#: Shares and probabilities of the stored config, out of range: a checkpoint holding one is refused
+#: at load, by the config's own checks, naming the field. cannot_tell_fraction = 1000 loaded: the
+#: regressor's confidence at a neighbour spread of the whole class range (14.4 px) read 0.999, not 0.11.
+OUT_OF_RANGE = [
+    ("regression", "cannot_tell_fraction", 1000.0),
+    ("regression", "cannot_tell_fraction", 1.5),
+    ("regression", "cannot_tell_fraction", -0.5),
+    ("regression", "confidence_threshold", 1.5),
+    ("classifier", "reject_quantile", 2.0),
+    ("analysis", "min_confidence", -0.1),
+    ("analysis", "interval_confidence", 1.0),
+    ("analysis", "max_delta_disagreement", 3.0),
+    ("registration", "max_step", 2.0),
+    ("multiview", "max_halfwidth_rel", 5.0),
+    ("calibration", "confidence", 1.5),
+]
+
+
+@pytest.mark.parametrize("section,field,value", OUT_OF_RANGE, ids=[f"{s}.{f}={v}" for s, f, v in OUT_OF_RANGE])
+@pytest.mark.parametrize("kind", ["regression", "eigenspace"])
+def test_stored_fraction_out_of_range(tmp_path, reg_payload, eig_payload, kind, section, field, value):
+    payload = reg_payload if kind == "regression" else eig_payload
+    cfg = {**payload["config"], section: {**payload["config"][section], field: value}}
+    cls = DeltaRegressor if kind == "regression" else EigenSpaceClassifier
+    msg = _fails(cls, tmp_path, _edit(payload, config=cfg), "invalid config")
+    assert field in msg and repr(value) in msg
+
+
+def test_stored_fraction_out_of_range_cli(tmp_path, capsys, reg_payload):
+    from kornia.io import write_image
+
+    from lensdist_torch import cli
+
+    cfg = {**reg_payload["config"], "regression": {**reg_payload["config"]["regression"], "cannot_tell_fraction": 1000}}
+    path = _write(tmp_path, _edit(reg_payload, config=cfg))
+    pngs = [tmp_path / "a.png", tmp_path / "b.png"]
+    for p in pngs:
+        write_image(str(p), torch.full((3, 32, 48), 90, dtype=torch.uint8))
+    rc = cli.main(["analyze", *map(str, pngs), "--method", "regression", "--checkpoint", str(path)])
+    err = capsys.readouterr().err
+    assert rc == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("lensdist analyze: error: ") and "regression.cannot_tell_fraction must be a number in ]0, 1]" in err
+
+
 @pytest.mark.parametrize("key", ["n_features", "n_components", "k", "config", "state_dict"])
 def test_regressor_missing_payload_key(tmp_path, reg_payload, key):
     _fails(DeltaRegressor, tmp_path, {k: v for k, v in reg_payload.items() if k != key}, f"lacks {key}")

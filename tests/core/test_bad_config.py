@@ -157,6 +157,10 @@ BAD_VALUES = [
     ("regression", "k", "11000"),
     ("regression", "n_components", "3.5"),
     ("regression", "cannot_tell_fraction", "-0.1"),
+    ("regression", "cannot_tell_fraction", "1000.0"),  # a share of the class range: 1000 read as confident
+    ("analysis", "max_delta_disagreement", "1.5"),
+    ("registration", "max_step", "2.0"),
+    ("multiview", "max_halfwidth_rel", "3.0"),
     ("regression", "confidence_threshold", "nan"),
     ("analysis", "no_distortion_px", "0.0"),
     ("analysis", "min_overlap", "-0.5"),
