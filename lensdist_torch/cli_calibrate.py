@@ -144,7 +144,8 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
     p.add_argument("path", help="folder of frames or a video file")
     p.add_argument("--k2", type=argtypes.finite_float, default=None, help="eq. 4's k2 in the frames' pixels")
     p.add_argument("--k4", type=argtypes.finite_float, default=None, help="eq. 4's k4 in the frames' pixels")
-    p.add_argument("--from", dest="from_json", default=None, help="calibration.json written by lensdist calibrate --out")
+    p.add_argument("--from", dest="from_json", default=None,
+                   help="the JSON of lensdist calibrate (--out or --json) or of lensdist analyze --json")
     p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks, undistortion.json)")
     p.add_argument("--alpha", type=argtypes.float_in(0.0, 1.0), default=None,
                    help="0: only valid pixels, 1: every source pixel kept, between: interpolated (OpenCV's "

@@ -260,6 +260,11 @@ class LensdistConfig:
 
 _SECTIONS = {f.name: f.default_factory for f in dataclasses.fields(LensdistConfig)}
 
+#: ``lensdist undistort --from``: a file's class must be the one its coefficients give, Delta_avg at
+#: the paper's frame within this share of the class's bounds (the analysis sizes' rounding moves
+#: it by less than 0.5 %; the audit's class-R file, Delta_avg 12.6 px, is 50 times the R bound).
+FROM_CLASS_TOLERANCE = 0.02
+
 
 def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
     """Build a :class:`LensdistConfig` from nested dicts (a parsed TOML file).

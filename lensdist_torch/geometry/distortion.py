@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.geometry.frame import pixel_grid, to_normalized
+from lensdist_torch.geometry.frame import half_diagonal, pixel_grid, to_normalized
 
 __all__ = [
     "CLASS_LABELS",
@@ -38,6 +38,7 @@ __all__ = [
     "delta_max",
     "delta_avg",
     "delta_metric",
+    "paper_frame_delta_avg",
     "delta_top",
     "distortion_class",
     "estimated_class",
@@ -203,6 +204,17 @@ def estimated_class(
     top = delta_top(metric, config)
     label = distortion_class(torch.where(none, top, delta).clamp_min(1e-12), top, config.distortion.n_classes)
     return torch.where(none, torch.full_like(label, REJECT), label)
+
+
+def paper_frame_delta_avg(k2: float, k4: float, size: tuple[int, int], config: LensdistConfig) -> float:
+    """Delta_avg at the paper's frame (``config.image.size``) of the lens (k2, k4) of a ``size`` frame.
+
+    The same normalised lens (a = k2 R^2, b = k4 R^4, R the half diagonal): the Delta whose class
+    ``lensdist calibrate`` and ``analyze`` report for coefficients in a user's pixels.
+    """
+    hc, wc = config.image.size
+    ratio = half_diagonal(hc, wc) / half_diagonal(*size)
+    return float(delta_avg([k2 / ratio**2], [k4 / ratio**4], hc, wc)[0])
 
 
 def class_bounds(label: str, metric: str, config: LensdistConfig) -> tuple[float, float]:

@@ -45,8 +45,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.geometry.calibration import _t_quantile
-from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, estimated_class
-from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
@@ -361,9 +360,7 @@ def self_calibrate_reconstruction(
     elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
         reason = f"interval too wide: +-{half_avg:.2f} px"
     else:
-        hc, wc = st.image.size
-        ratio = half_diagonal(hc, wc) / half_diagonal(*size)  # eq. 4 at the paper's frame, same normalised lens
-        dc = float(delta_avg([k2u / ratio**2], [k4u / ratio**4], hc, wc)[0])
+        dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
         label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
     k, d = opencv_from_colmap(cam, scale)
     return MultiViewCalibration(

@@ -37,7 +37,7 @@ from lensdist_torch.geometry.calibration import (
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.workflows.multiview import combine, multiview_path
-from lensdist_torch.workflows.verify import verify_undistortion
+from lensdist_torch.workflows.verify import verdict, verify_undistortion
 
 METHODS = ("auto", "multiview", "direct")
 
@@ -219,14 +219,11 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
     s = res["scale"]
     check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, st, cfg.verify_pairs)
     before, after = check["error_share_before"], check["error_share_after"]
-    if before is not None:  # pairs registered both times: the shares decide
-        check["verdict"] = "lowered" if after < before else "not lowered"
+    check["verdict"] = verdict(check)
+    if before is not None and after is not None:  # pairs registered both times: the shares decided
         shares = f"{100 * before:.1f} % of the blocks before, {100 * after:.1f} % after"
-    elif check["registered_before"] > check["registered_after"]:  # the correction broke registrations
-        check["verdict"], shares = "not lowered", (f"{check['registered_before']} pairs registered before, "
-                                                   f"{check['registered_after']} after")
-    else:  # nothing to compare (far-apart views no homography relates): not verified, not refuted
-        check["verdict"] = "not measurable"
+    else:  # the correction broke registrations ("not lowered"), or nothing to compare ("not measurable")
+        shares = f"{check['registered_before']} pairs registered before, {check['registered_after']} after"
     res["verification"] = check
     if check["verdict"] == "not lowered":
         res.update({"class": None, "reason": "undistorting the frames with the estimate does not lower their "

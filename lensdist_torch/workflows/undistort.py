@@ -4,10 +4,11 @@
 corrected frame as a PNG (grey or colour, as the input) and its validity mask in
 ``out_dir/masks/``. The contract, checked before anything is written:
 
-- **Coefficients.** Given as numbers (finite; a bool is not a number) or read from a
-  ``calibration.json`` of ``lensdist calibrate --out``, whose ``k2_user`` and ``k4_user`` must be
-  real finite numbers (or both null: no estimate) and ``image_size`` two positive integers; each
-  bad field is a one-line error naming the file and the field. Pixels that eq. 4 folds over
+- **Coefficients.** Given as numbers (finite; a bool is not a number) or read from the JSON of
+  ``lensdist calibrate`` or ``lensdist analyze --json``: ``k2_user``, ``k4_user``, the frame size
+  and every field that could contradict them (the class, the verification, OpenCV's camera) are
+  checked by :mod:`~lensdist_torch.workflows.calibration_file`; each bad field is a one-line
+  error naming the file and the field. Pixels that eq. 4 folds over
   (past the monotone branch of its radius, :func:`~lensdist_torch.geometry.undistort.monotone_branch`)
   are 0 in the mask and in the image. Coefficients that fold before the nearest edge of the frame
   are refused: no lens does that, it is most often coefficients in another unit. So are
@@ -55,6 +56,7 @@ from lensdist_torch.geometry.distortion import distortion_center, sample
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
 from lensdist_torch.workflows.calibrate import _frames_of_one_size, list_frames
+from lensdist_torch.workflows.calibration_file import read_calibration
 
 __all__ = ["MAX_STRETCH", "encode_png", "undistort_path"]
 
@@ -124,49 +126,6 @@ def _deep(source: Path | None, img: torch.Tensor) -> bool:
 
 
 # ------------------------------------------------------------------ coefficients
-def _number(data: dict, field: str, src: Path, allow_null: bool = False):
-    value = data.get(field)
-    if value is None and allow_null and field in data:
-        return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{src}: field {field!r} must be a finite number, got {value!r:.60}")
-    return float(value)
-
-
-def _calibration(src: Path) -> tuple[float | None, float | None, int, int, str, float | None]:
-    """(k2_user, k4_user, height, width, reason, OpenCV focal or None) of a calibration.json, every field checked."""
-    if not src.is_file():
-        raise FileNotFoundError(f"calibration file not found: {src}")
-    try:
-        data = json.loads(src.read_text())
-    except (ValueError, OSError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError: ValueErrors
-        why = "nested too deeply" if isinstance(exc, RecursionError) else type(exc).__name__
-        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out ({why})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out (not a JSON object)")
-    for field in ("k2_user", "k4_user", "image_size"):
-        if field not in data:
-            raise ValueError(f"{src} is not a calibration written by lensdist calibrate --out (no field {field!r})")
-    size = data["image_size"]
-    if not (isinstance(size, list) and len(size) == 2
-            and all(type(v) is int and v > 0 for v in size)):  # type(): a bool is not a size
-        raise ValueError(f"{src}: field 'image_size' must be [height, width], two positive integers, got {size!r:.60}")
-    k2, k4 = _number(data, "k2_user", src, True), _number(data, "k4_user", src, True)
-    if (k2 is None) != (k4 is None):
-        raise ValueError(f"{src}: fields 'k2_user' and 'k4_user' must both be numbers or both null")
-    reason = data.get("reason")
-    reason = reason if isinstance(reason, str) else "no reason given"
-    if k2 is not None and "class" in data and data["class"] is None:  # an estimate, but not an answer
-        raise ValueError(f"{src} could not tell ({' '.join(reason.split())}): its numbers are not an answer; to use "
-                         f"them anyway, pass them as --k2 {k2:.6g} --k4 {k4:.6g}")
-    try:
-        focal = data["opencv"]["camera_matrix"][0][0]
-    except (KeyError, IndexError, TypeError):
-        focal = None
-    ok = not isinstance(focal, bool) and isinstance(focal, (int, float)) and math.isfinite(focal) and focal > 0
-    return k2, k4, size[0], size[1], reason, float(focal) if ok else None
-
-
 def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, float]:
     """(k2, k4) for frames of ``size``: given, or from a JSON (/ s^2, / s^4 for frames scaled by s)."""
     if from_json is None:
@@ -179,7 +138,7 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, 
     if k2 is not None or k4 is not None:
         raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
     src = Path(from_json)
-    k2, k4, hc, wc, reason, _ = _calibration(src)
+    k2, k4, hc, wc, reason, _ = read_calibration(src)
     if k2 is None:
         raise ValueError(f"{src} holds no estimate: {' '.join(reason.split())}")
     s = size[1] / wc
@@ -192,7 +151,7 @@ def _focal_for(size: tuple[int, int], from_json) -> float | None:
     """The OpenCV focal length of a ``--from`` calibration in the frames' pixels (None: none there)."""
     if from_json is None:
         return None
-    _, _, _, wc, _, focal = _calibration(Path(from_json))
+    _, _, _, wc, _, focal = read_calibration(Path(from_json))
     return None if focal is None else focal * size[1] / wc
 
 
@@ -281,7 +240,7 @@ def undistort_path(
         out_dir: the output folder (created; not the input folder).
         k2: eq. 4's k2 in the frames' pixels (with k4; or from_json).
         k4: eq. 4's k4 in the frames' pixels.
-        from_json: instead of k2, k4: a ``calibration.json`` of ``lensdist calibrate --out``.
+        from_json: instead of k2, k4: the JSON of ``lensdist calibrate`` or ``analyze --json``.
         max_frames: at most this many frames (None: all).
         quiet: no progress bar.
         device: where the frames are resampled (default: the CPU).
@@ -304,7 +263,7 @@ def undistort_path(
     if alpha is not None and (isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1):
         raise ValueError(f"alpha (--alpha) must be a number from 0 to 1 or None, got {alpha!r}")
     if from_json is not None and k2 is None and k4 is None:  # every coefficient checked before any frame is read
-        _coefficients_for(_calibration(Path(from_json))[2:4], None, None, from_json)
+        _coefficients_for(read_calibration(Path(from_json))[2:4], None, None, from_json)
     else:
         _coefficients_for((1, 1), k2, k4, from_json)
     files = _plan(path, out, max_frames, from_json, overwrite)

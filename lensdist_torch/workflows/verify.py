@@ -22,7 +22,27 @@ from lensdist_torch.geometry.undistort import undistort_image
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
 
-__all__ = ["error_blocks", "verify_undistortion"]
+__all__ = ["COUNTS", "VERDICTS", "error_blocks", "verdict", "verify_undistortion"]
+
+#: The counts of :func:`verify_undistortion`'s dict.
+COUNTS = ("pairs", "registered_before", "registered_after", "error_blocks_before", "error_blocks_after",
+          "blocks_before", "blocks_after")
+#: What a verification says of an estimate: its correction lowered the registration errors, did
+#: not (the class is withheld), or nothing could be compared (the class stands, unverified).
+VERDICTS = ("lowered", "not lowered", "not measurable")
+
+
+def verdict(check: dict) -> str:
+    """The verdict of :func:`verify_undistortion`'s dict (one of ``VERDICTS``).
+
+    Pairs registered both times: the shares decide ("lowered" where the share falls); else
+    "not lowered" where the correction broke registrations, "not measurable" where there was
+    nothing to compare (far-apart views no homography relates).
+    """
+    before, after = check["error_share_before"], check["error_share_after"]
+    if before is not None and after is not None:
+        return VERDICTS[0] if after < before else VERDICTS[1]
+    return VERDICTS[1] if check["registered_before"] > check["registered_after"] else VERDICTS[2]
 
 
 def error_blocks(img1: torch.Tensor, img2: torch.Tensor, mask1: torch.Tensor, mask2: torch.Tensor,

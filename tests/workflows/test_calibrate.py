@@ -157,7 +157,7 @@ def test_png_writer_round_trips():
 
 def test_calibration_json_rescales_to_other_frame_sizes(tmp_path):
     cal = tmp_path / "calibration.json"
-    cal.write_text(json.dumps({"k2_user": 4e-6, "k4_user": 1.6e-11, "image_size": [240, 320]}))
+    cal.write_text(json.dumps({"k2_user": 4e-6, "k4_user": 1.6e-11, "image_size": [240, 320], "class": "3"}))
     assert _coefficients_for((120, 160), None, None, cal) == pytest.approx((1.6e-5, 2.56e-10))
     with pytest.raises(ValueError, match="not a rescaling"):
         _coefficients_for((240, 240), None, None, cal)
@@ -199,7 +199,7 @@ def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
     folder, _ = sequence
     (tmp_path / "bad.json").write_text("{}")
     (tmp_path / "none.json").write_text(json.dumps({"k2_user": None, "k4_user": None, "image_size": [240, 320],
-                                                    "reason": "too little motion"}))
+                                                    "class": None, "reason": "too little motion"}))
     cases = [
         ({"from_json": tmp_path / "none.json"}, "holds no estimate: too little motion"),
         ({"k2": 1e-6}, "give both k2 and k4"),

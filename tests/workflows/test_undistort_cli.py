@@ -65,7 +65,7 @@ def test_coefficients_that_fold_inside_the_frame_are_refused(tmp_path, capsys, c
 def test_folding_coefficients_from_a_file_name_the_file(tmp_path, capsys):
     folder = _frames(tmp_path / "frames")
     cal = tmp_path / "calibration.json"
-    cal.write_text(json.dumps({"k2_user": -1e-3, "k4_user": 0.0, "image_size": list(SIZE)}))
+    cal.write_text(json.dumps({"k2_user": -1e-3, "k4_user": 0.0, "image_size": list(SIZE), "class": "4"}))
     code, _, err = _run(capsys, folder, "--from", cal, "--out", tmp_path / "out")
     _one_line_usage_error(code, err)
     assert str(cal) in err and "k2_user" in err and "fold" in err
@@ -97,7 +97,7 @@ def test_a_stretch_peaking_inside_the_frame_is_refused(tmp_path):
 def test_a_stretching_calibration_file_is_refused_naming_it(tmp_path, capsys):
     folder = _frames(tmp_path / "frames")
     cal = tmp_path / "calibration.json"
-    cal.write_text(json.dumps({"k2_user": 1e-3, "k4_user": 0.0, "image_size": list(SIZE)}))
+    cal.write_text(json.dumps({"k2_user": 1e-3, "k4_user": 0.0, "image_size": list(SIZE), "class": "4"}))
     code, _, err = _run(capsys, folder, "--from", cal, "--out", tmp_path / "out")
     _one_line_usage_error(code, err)  # 240 x 320: r^2 = 119.5^2 + 159.5^2 = 39720.5 at the corner: 40.7
     assert str(cal) in err and "k2_user" in err and "40.7-fold" in err and "expected at most 10" in err
@@ -184,7 +184,7 @@ def test_8_bit_frames_stay_8_bit(tmp_path, capsys):
 
 
 # ------------------------------------------------------------------ 4. numbers read from --from
-_GOOD = {"k2_user": 1e-6, "k4_user": 0.0, "image_size": list(SIZE)}
+_GOOD = {"k2_user": 1e-6, "k4_user": 0.0, "image_size": list(SIZE), "class": "1"}
 
 
 @pytest.mark.bad_input

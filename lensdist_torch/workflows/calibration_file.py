@@ -1,0 +1,192 @@
+"""What ``lensdist undistort --from FILE`` reads from a saved answer, every field checked.
+
+FILE is the JSON of ``lensdist calibrate`` (``--out``'s calibration.json, or ``--json``) or of
+``lensdist analyze --json`` (the self-calibration's answer). Undistorting needs eq. 4's
+``k2_user`` and ``k4_user`` (the frames' pixels) and the frame size they are for (calibrate's
+``image_size``, analyze's ``input_size``); the OpenCV export also takes the focal length of
+``opencv.camera_matrix``. Each is checked, and so is every field that could contradict them;
+each problem is one ValueError naming the file and the field:
+
+- ``k2_user``, ``k4_user``: finite numbers, or both null (no estimate); the size: two positive
+  integers (``image_size`` and ``input_size`` agree where both are given), and analyze's
+  ``analysed_region_user_px`` a box inside it;
+- ``class``: present (both commands write it), one of ``CLASS_LABELS`` or null. Null with
+  numbers is "could not tell": refused, with the ``--k2 --k4`` that use them anyway. A class
+  must be the one its coefficients give: Delta_avg at the paper's frame of the same normalised
+  lens (:func:`~lensdist_torch.geometry.distortion.paper_frame_delta_avg`) within
+  ``FROM_CLASS_TOLERANCE`` of the class's bounds (the default classes);
+- ``verification`` (calibrate): null, or :func:`~lensdist_torch.workflows.verify.verify_undistortion`'s
+  counts with their shares and the verdict that follows from them
+  (:func:`~lensdist_torch.workflows.verify.verdict`); there is one only for a distortion class,
+  and "not lowered" withholds the class;
+- ``opencv``: null or absent, or a ``camera_matrix`` [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] of
+  positive focal lengths with its principal point inside the frame.
+
+Fields undistort ignores (Deltas, intervals, warnings ...) are not checked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
+from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, paper_frame_delta_avg
+from lensdist_torch.workflows.verify import COUNTS, VERDICTS, verdict
+
+__all__ = ["Calibration", "read_calibration"]
+
+_WHAT = "a calibration written by lensdist calibrate or lensdist analyze --json"
+
+
+class Calibration(NamedTuple):
+    """What a ``--from`` file gives: coefficients (None: no estimate), the frame, why not, OpenCV's focal."""
+
+    k2: float | None
+    k4: float | None
+    height: int
+    width: int
+    reason: str
+    focal: float | None
+
+
+def _number(x: Any) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def _count(x: Any) -> bool:
+    return type(x) is int and x >= 0  # type(): a bool is not a count
+
+
+def _coefficient(data: dict, field: str, src: Path) -> float | None:
+    value = data[field]
+    if value is not None and not _number(value):
+        raise ValueError(f"{src}: field {field!r} must be a finite number, got {value!r:.60}")
+    return None if value is None else float(value)
+
+
+def _size(data: dict, src: Path) -> tuple[int, int]:
+    sizes = []
+    for field in ("image_size", "input_size"):
+        if field not in data:
+            continue
+        size = data[field]
+        if not (isinstance(size, list) and len(size) == 2 and all(type(v) is int and v > 0 for v in size)):
+            raise ValueError(f"{src}: field {field!r} must be [height, width], two positive integers, got {size!r:.60}")
+        sizes.append(tuple(size))
+    if not sizes:
+        raise ValueError(f"{src} is not {_WHAT} (no field 'image_size')")
+    if len(sizes) == 2 and sizes[0] != sizes[1]:
+        raise ValueError(f"{src}: fields 'image_size' {list(sizes[0])} and 'input_size' {list(sizes[1])} disagree")
+    return sizes[0]
+
+
+def _reference(data: dict, size: tuple[int, int], src: Path) -> tuple[int, int]:
+    """The frame (user px) whose normalised lens the class was given for: analyze's analysed region, else the frame."""
+    box = data.get("analysed_region_user_px")
+    if box is None:
+        return size
+    if not (isinstance(box, list) and len(box) == 4 and all(_count(v) for v in box) and box[2] > 0 and box[3] > 0
+            and box[0] + box[2] <= size[0] and box[1] + box[3] <= size[1]):
+        raise ValueError(f"{src}: field 'analysed_region_user_px' must be [top, left, height, width] inside the "
+                         f"{size[0]} x {size[1]} frame, got {box!r:.60}")
+    return box[2], box[3]
+
+
+def _check_class(label, k2, k4, ref: tuple[int, int], src: Path) -> None:
+    """Refuse a class that its coefficients do not give (module docstring)."""
+    cfg = LensdistConfig()
+    dc = paper_frame_delta_avg(k2, k4, ref, cfg)
+    lo, hi = class_bounds(label, "delta_avg", cfg)
+    if lo * (1 - FROM_CLASS_TOLERANCE) <= dc <= hi * (1 + FROM_CLASS_TOLERANCE):
+        return
+    bounds = f"below {hi:g} px" if lo == 0 else f"above {lo:.2f} px" if math.isinf(hi) else f"{lo:.2f}-{hi:.2f} px"
+    h, w = cfg.image.size
+    raise ValueError(f"{src}: field 'class' is {label!r}, but 'k2_user' = {k2:.4g}, 'k4_user' = {k4:.4g} give "
+                     f"Delta_avg {dc:.2f} px at the paper's {h} x {w} frame (class {label!r}: {bounds}): the file "
+                     "contradicts itself")
+
+
+def _check_verification(data: dict, label, src: Path) -> None:
+    """The verification block: well formed, its verdict the one its numbers give, agreeing with the class."""
+    check = data.get("verification")
+    if check is None:
+        return
+    if not isinstance(check, dict):
+        raise ValueError(f"{src}: field 'verification' must be null or an object, got {check!r:.60}")
+    for field in COUNTS:
+        if not _count(check.get(field)):
+            raise ValueError(f"{src}: field 'verification.{field}' must be an int >= 0, got {check.get(field)!r:.60}")
+    for when in ("before", "after"):
+        if check[f"registered_{when}"] > check["pairs"] or check[f"error_blocks_{when}"] > check[f"blocks_{when}"]:
+            raise ValueError(f"{src}: field 'verification' counts more registered pairs or error blocks {when} than "
+                             "pairs or blocks")
+        share, blocks = check.get(f"error_share_{when}"), check[f"blocks_{when}"]
+        want = check[f"error_blocks_{when}"] / blocks if blocks else None
+        if not (share is None and want is None or _number(share) and want is not None and abs(share - want) <= 1e-9):
+            raise ValueError(f"{src}: field 'verification.error_share_{when}' must be error_blocks_{when} / "
+                             f"blocks_{when} ({want!r}), got {share!r:.60}")
+    given = check.get("verdict")
+    if given not in VERDICTS:
+        raise ValueError(f"{src}: field 'verification.verdict' must be one of {', '.join(map(repr, VERDICTS))}, "
+                         f"got {given!r:.60}")
+    if given != verdict(check):
+        raise ValueError(f"{src}: field 'verification.verdict' is {given!r}, but its shares and counts say "
+                         f"{verdict(check)!r}")
+    if label == CLASS_LABELS[-1] or given == "not lowered":
+        why = "class 'R' is never verified" if label == CLASS_LABELS[-1] else "a verdict 'not lowered' withholds the class"
+        raise ValueError(f"{src}: fields 'class' ({label!r}) and 'verification' contradict each other: {why}")
+
+
+def _focal(data: dict, size: tuple[int, int], src: Path) -> float | None:
+    cv = data.get("opencv")
+    if cv is None:
+        return None
+    m = cv.get("camera_matrix") if isinstance(cv, dict) else None
+    ok = (isinstance(m, list) and len(m) == 3 and all(isinstance(r, list) and len(r) == 3 and all(map(_number, r)) for r in m)
+          and m[0][0] > 0 and m[1][1] > 0 and m[0][1] == m[1][0] == m[2][0] == m[2][1] == 0 and m[2][2] == 1
+          and 0 <= m[0][2] <= size[1] - 1 and 0 <= m[1][2] <= size[0] - 1)
+    if not ok:
+        raise ValueError(f"{src}: field 'opencv.camera_matrix' must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, "
+                         f"fy > 0 and (cx, cy) inside the {size[0]} x {size[1]} frame, got {m!r:.80}")
+    return float(m[0][0])
+
+
+def read_calibration(src: Path) -> Calibration:
+    """The fields ``--from`` uses, each checked with those that could contradict them (module docstring)."""
+    if not src.is_file():
+        raise FileNotFoundError(f"calibration file not found: {src}")
+    try:
+        data = json.loads(src.read_text())
+    except (ValueError, OSError, RecursionError) as exc:  # UnicodeDecodeError, JSONDecodeError: ValueErrors
+        why = "nested too deeply" if isinstance(exc, RecursionError) else type(exc).__name__
+        raise ValueError(f"{src} is not {_WHAT} ({why})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{src} is not {_WHAT} (not a JSON object)")
+    for field in ("k2_user", "k4_user"):
+        if field not in data:
+            raise ValueError(f"{src} is not {_WHAT} (no field {field!r})")
+    size = _size(data, src)
+    k2, k4 = _coefficient(data, "k2_user", src), _coefficient(data, "k4_user", src)
+    if (k2 is None) != (k4 is None):
+        raise ValueError(f"{src}: fields 'k2_user' and 'k4_user' must both be numbers or both null")
+    if "class" not in data:
+        raise ValueError(f"{src} is not {_WHAT} (no field 'class')")
+    label = data["class"]
+    if label is not None and label not in CLASS_LABELS:
+        raise ValueError(f"{src}: field 'class' must be one of {', '.join(map(repr, CLASS_LABELS))} or null, "
+                         f"got {label!r:.60}")
+    reason = data.get("reason")
+    reason = " ".join(reason.split()) if isinstance(reason, str) and reason.strip() else "no reason given"
+    if label is not None and k2 is None:
+        raise ValueError(f"{src}: field 'class' is {label!r}, but 'k2_user' and 'k4_user' are null: the file "
+                         "contradicts itself")
+    if k2 is not None and label is None:  # an estimate, but not an answer
+        raise ValueError(f"{src} could not tell ({reason}): its numbers are not an answer; to use "
+                         f"them anyway, pass them as --k2 {k2:.6g} --k4 {k4:.6g}")
+    if label is not None:
+        _check_class(label, k2, k4, _reference(data, size, src), src)
+    _check_verification(data, label, src)
+    return Calibration(k2, k4, size[0], size[1], reason, _focal(data, size, src))
