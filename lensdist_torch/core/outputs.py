@@ -11,13 +11,15 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 #: The command's inputs by the option that names them (a path, a list of paths, or None).
 Inputs = Mapping[str, "str | os.PathLike | Iterable[str | os.PathLike] | None"]
 
-__all__ = ["check_output_file", "check_output_dir", "refuse_inputs", "refuse_inside", "refuse_data_sets"]
+__all__ = ["check_output_file", "check_output_dir", "refuse_inputs", "refuse_inside", "refuse_data_sets",
+           "refuse_foreign_folder"]
 
 
 def check_output_file(
@@ -82,6 +84,37 @@ def refuse_data_sets(folder: Path, option: str, path: str | Path) -> None:
         if isinstance(m, dict) and "fingerprint" in m and "sets" in m:
             raise ValueError(f"{option} {os.fspath(path)} is inside the lensdist data set {top}: refusing to write "
                              "there (a data set gets no foreign files), give a path outside it")
+
+
+#: The files ``lensdist generate`` writes at the top of a data set folder (its manifest, its locks,
+#: their atomic writes' temporary files) and in a set's folder (shards, checksums, temporary files).
+_DATA_SET_FILES = re.compile(r"manifest\.json|\.manifest\.lock|\.lock-\d+-of-\d+|\.manifest\.json\..+\.tmp")
+_SHARD_FILES = re.compile(r"\.?shard-\d+\.pt(\.sha256)?(\..+\.tmp)?")
+
+
+def refuse_foreign_folder(folder: str | Path, option: str, sets: Iterable[str]) -> None:
+    """Refuse (ValueError) writing a data set into an existing folder that is neither empty nor a data set.
+
+    A data set: a folder with a manifest.json (whose content the data set's own checks read),
+    or one holding only what ``lensdist generate`` writes (a run stopped before its manifest: its
+    locks, temporary files, and the folders of ``sets`` with shards in them). Anything else is
+    someone's folder: generating into it would mix the data set with its files.
+    """
+    p = Path(folder)
+    if not p.is_dir() or (p / "manifest.json").is_file():
+        return
+    sets = set(sets)
+
+    def own(e: Path) -> bool:
+        if e.is_dir() and not e.is_symlink():
+            return e.name in sets and all(f.is_file() and _SHARD_FILES.fullmatch(f.name) for f in e.iterdir())
+        return e.is_file() and bool(_DATA_SET_FILES.fullmatch(e.name))
+
+    foreign = sorted(e.name for e in p.iterdir() if not own(e))
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise ValueError(f"{option} {os.fspath(folder)} holds files that are not a lensdist data set ({shown}; no "
+                         "manifest.json): refusing to write a data set among them, give an empty or new folder")
 
 
 def _check_writable(folder: Path, option: str, path: str) -> None:

@@ -33,6 +33,7 @@ from tqdm.auto import tqdm
 
 from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
+from lensdist_torch.core.outputs import refuse_foreign_folder
 from lensdist_torch.data.locks import DataSetLocked, share_lock
 from lensdist_torch.data.manifest import (
     FORMAT_VERSION,
@@ -313,13 +314,14 @@ def generate(
     record (pairs, shards and, once complete, failed registrations and pairs per class).
 
     Raises:
-        ValueError: bad arguments; another config's data set in ``out``; a ``limit`` that would
-            shrink a recorded set.
+        ValueError: bad arguments; another config's data set, or other files and no data set, in
+            ``out`` (``core.outputs.refuse_foreign_folder``); a ``limit`` that would shrink a recorded set.
         ShardError: a manifest that is not valid (naming the file).
         DataSetLocked: another live run over overlapping shares.
     """
     out = Path(out)
     _check_arguments(sets, shard, workers, batch_size, limit, scenes_dir, sequence)
+    refuse_foreign_folder(out, "out (--out)", SETS)  # someone's folder gets no data set written among its files
     scenes, scene_ids = load_scenes(config, scenes_dir, sequence)
     fp = config_fingerprint(config, scene_ids)
     header = {"format_version": FORMAT_VERSION, "fingerprint": fp, "config": config_to_dict(config), "scenes": scene_ids}

@@ -1,6 +1,7 @@
 """`lensdist generate` stopped and re-checked (issue 19): Ctrl-C and SIGTERM with worker
 processes end in one line and the right status with no worker left behind, the next run resumes
-byte-identical; a complete data set on a read-only file system is re-checked by the command line.
+byte-identical; a complete data set on a read-only file system is re-checked by the command line;
+a folder that is neither empty nor a data set (someone's photos) gets no data set written into it.
 """
 
 from __future__ import annotations
@@ -8,6 +9,7 @@ from __future__ import annotations
 import os
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -155,3 +157,42 @@ def test_read_only_data_set_is_rechecked_by_the_command_line(reference, tmp_path
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "Read-only file system" in err, err
     assert load_set(reference, "train")["index"].numel() == 32
+
+
+# ------------------------------------------------------------------ someone else's folder
+def _someones_folder(tmp_path: Path) -> tuple[Path, dict[str, bytes]]:
+    folder = tmp_path / "photos"
+    (folder / "2024").mkdir(parents=True)
+    (folder / "IMG_0001.jpg").write_bytes(b"\xff\xd8 a photo")
+    (folder / "2024" / "IMG_0002.jpg").write_bytes(b"\xff\xd8 another")
+    (folder / "test").mkdir()  # a set's name, but not shards
+    (folder / "test" / "notes.txt").write_text("mine")
+    return folder, {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+def test_a_folder_that_is_not_a_data_set_is_refused(tmp_path, capsys):
+    """Issue 19 audit: generate --out into a folder of photos wrote its manifest and shards among them (exit 0)."""
+    folder, before = _someones_folder(tmp_path)
+    (tmp_path / "tiny.toml").write_text(TOML)
+    code = cli_main(["generate", "--config", str(tmp_path / "tiny.toml"), "--out", str(folder), "--sets", "test", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith(f"lensdist generate: error: out (--out) {folder} holds files that are not a lensdist data set "
+                          "(2024, IMG_0001.jpg, test; no manifest.json)"), err
+    with pytest.raises(ValueError, match="not a lensdist data set"):
+        generate(CFG, folder, sets=["test"], progress=False)
+    after = {str(p.relative_to(folder)): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    assert after == before  # not a file added (no lock, no manifest), none changed
+
+
+def test_an_empty_folder_and_a_run_stopped_before_its_manifest_are_written(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert generate(CFG, empty, sets=["test"], limit=2, progress=False)["written"] == 1
+    # a run killed before it wrote its manifest: its (stale) lock and a partial shard are its own files
+    stopped = tmp_path / "stopped"
+    (stopped / "test").mkdir(parents=True)
+    (stopped / ".lock-0-of-1").write_text(f"999999999 {socket.gethostname()}\n")
+    (stopped / "test" / ".shard-00000.pt.k1ll3d.tmp").write_bytes(b"partial")
+    assert generate(CFG, stopped, sets=["test"], limit=2, progress=False)["written"] == 1
+    assert _files(stopped) == _files(empty)
