@@ -48,7 +48,7 @@ from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.selfcal import estimate_distortion
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
-           "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence"]
+           "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION"]
 
 
 class SequenceCalibration(NamedTuple):
@@ -168,6 +168,10 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
     return pairs, torch.cat(shifts) if shifts else torch.zeros(0, 2, dtype=torch.float64)
 
 
+#: How :func:`no_pairs_reason` begins where the frames did not move enough (``calibrate`` then runs no mapping).
+TOO_LITTLE_MOTION = "too little motion"
+
+
 def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = None) -> str:
     """Why :func:`choose_pairs` found no pair: the frames did not move enough, or they could not be registered.
 
@@ -190,7 +194,7 @@ def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = Non
     static = (a - b).abs().mean(dim=(1, 2, 3))
     texture = (a - torch.roll(a, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))
     if bool((static <= 0.5 * texture).all()):
-        return "too little motion: no two frames moved enough apart"
+        return f"{TOO_LITTLE_MOTION}: no two frames moved enough apart"
     t = _translation(a, b)  # a(p) ~ b(p + t): b moved back by t matches a where they were registered
     m = int(t.abs().max().ceil()) + 2
     back = torch.stack([torch.roll(b[i], (-round(float(t[i, 1])), -round(float(t[i, 0]))), dims=(1, 2)) for i in range(len(b))])
@@ -199,7 +203,7 @@ def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = Non
         path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), t.cumsum(0)])
         span = float((path[None] - path[:, None]).norm(dim=-1).max())
         need = min(cfg.motion_steps) * half_diagonal(*frames.shape[-2:])
-        return f"too little motion: the camera moved {span:.1f} px at most between two frames (a pair needs {need:.1f} px)"
+        return f"{TOO_LITTLE_MOTION}: the camera moved {span:.1f} px at most between two frames (a pair needs {need:.1f} px)"
     return ("the frames could not be registered: they change, but phase correlation finds no consistent motion "
             "between neighbours (views too far apart or unrelated)")
 

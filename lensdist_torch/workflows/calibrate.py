@@ -29,6 +29,7 @@ from lensdist_torch.core.video import VIDEO_SUFFIXES, video_frames
 from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.calibration import (
+    TOO_LITTLE_MOTION,
     CalibrationConfig,
     analysis_scale,
     calibrate_sequence,
@@ -140,7 +141,8 @@ def calibrate_path(
         method: "direct" (the photometric self-calibration of pairs), "multiview" (bundle
             adjustment on COLMAP's tracks, needs pycolmap) or "auto" (both, combined by
             :func:`~lensdist_torch.workflows.multiview.combine`; the direct path alone where
-            pycolmap is missing).
+            pycolmap is missing). Frames that moved too little for the direct path (its
+            ``too little motion`` reason) get that answer from every method, before any mapping.
 
     Returns:
         A dict for ``json.dumps(..., allow_nan=False)``: path, frames, image_size [H, W],
@@ -193,7 +195,10 @@ def calibrate_path(
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = settings or LensdistConfig()
     mv = None
-    if method != "direct":
+    if method != "direct" and not len(cal.pairs) and cal.reason.startswith(TOO_LITTLE_MOTION):
+        # the frames' phase correlations say they did not move: no mapping can see more, so none runs
+        mv = {"ok": False, "reason": cal.reason}
+    elif method != "direct":
         mv = multiview_path(path, size, st.multiview, st, max_frames)
         if method == "multiview" and not mv["ok"]:
             raise ValueError(mv["reason"])

@@ -108,6 +108,36 @@ def test_a_static_camera_gives_strict_json_and_no_class(tmp_path, capsys):
     assert "no estimate" in capsys.readouterr().out
 
 
+@pytest.mark.bad_input
+@pytest.mark.parametrize("moved", ["identical", "1 px a frame"])
+def test_too_little_motion_is_said_before_any_mapping(tmp_path, capsys, monkeypatch, moved):
+    """Issue 19 audit: --method multiview on a static sequence ran COLMAP (24 s for 12 frames of
+    480 x 640, minutes on a long video), then exited 2 with "the engine could not reconstruct the
+    sequence"; the direct path says "too little motion: ..." with status 0 and no estimate."""
+    import lensdist_torch.workflows.calibrate as calibrate_mod
+
+    scene = synthetic_sequence(1, K2, K4, size=(112, 144))[0][0]
+    frames = [scene[..., 8:104, 8:136] if moved == "identical" else scene[..., 8:104, 8 + i : 136 + i] for i in range(6)]
+    folder = _write(tmp_path / "static", frames)
+
+    def no_mapping(*args, **kwargs):
+        raise AssertionError("COLMAP ran on frames that did not move")
+
+    monkeypatch.setattr(calibrate_mod, "multiview_path", no_mapping)  # said before any mapping
+    runs = []
+    parser = _parser()
+    for method in ("direct", "multiview", "auto"):
+        args = parser.parse_args(["calibrate", str(folder), "--quiet", "--json", "--method", method])
+        runs.append((args.func(args), json.loads(capsys.readouterr().out)))
+    (rc, direct), *others = runs
+    assert rc == 0 and direct["class"] is None and direct["k2_user"] is None
+    want = ("too little motion: no two frames moved enough apart" if moved == "identical" else
+            "too little motion: the camera moved 5.0 px at most between two frames (a pair needs 11.1 px)")
+    assert direct["reason"] == want
+    for code, res in others:
+        assert code == rc and res["reason"] == want and res["class"] is None and res["multiview"] == {"reason": want}
+
+
 def _fake_pyav(frames):
     """A stand-in for PyAV's open / decode / to_ndarray over (N, 3, H, W) frames in [0, 1]."""
 
