@@ -37,7 +37,7 @@ from lensdist_torch.geometry.calibration import (
 )
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
 from lensdist_torch.geometry.opencv_model import opencv_export
-from lensdist_torch.workflows.multiview import combine, multiview_path
+from lensdist_torch.workflows.multiview import MIN_FRAMES, combine, multiview_path
 from lensdist_torch.workflows.verify import verdict, verify_undistortion
 
 METHODS = ("auto", "multiview", "direct")
@@ -195,8 +195,9 @@ def calibrate_path(
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = settings or LensdistConfig()
     mv = None
-    if method != "direct" and not len(cal.pairs) and cal.reason.startswith(TOO_LITTLE_MOTION):
+    if method != "direct" and len(frames) >= MIN_FRAMES and not len(cal.pairs) and cal.reason.startswith(TOO_LITTLE_MOTION):
         # the frames' phase correlations say they did not move: no mapping can see more, so none runs
+        # (too few frames for a mapping is the multi-view path's own reason)
         mv = {"ok": False, "reason": cal.reason}
     elif method != "direct":
         mv = multiview_path(path, size, st.multiview, st, max_frames)

@@ -29,6 +29,8 @@ __all__ = ["COLMAP_SUFFIXES", "multiview_path", "combine"]
 
 #: Image files COLMAP reads as they are; other frames are written as PNG first.
 COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+#: the fewest frames a multi-view calibration takes
+MIN_FRAMES = 3
 
 
 def _encode(frame: torch.Tensor) -> bytes:
@@ -69,9 +71,9 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
             for _, img in read_frames(path, True, max_frames):
                 (folder / f"{len(names):06d}.png").write_bytes(_encode(img))
                 names.append(f"{len(names):06d}.png")
-        if len(names) < 3:
-            return {"ok": False, "reason": f"the multi-view calibration needs at least 3 frames, got {len(names)}"}
-        least = max(3, math.ceil(cfg.min_registered * len(names)))
+        if len(names) < MIN_FRAMES:
+            return {"ok": False, "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}"}
+        least = max(MIN_FRAMES, math.ceil(cfg.min_registered * len(names)))
         runs, got = [], 0
         for i, rec in enumerate(reconstruct(folder, names, cfg)):  # one per mapping seed
             n = 0 if rec is None else rec.num_reg_images()
