@@ -136,15 +136,14 @@ class SelfCalConfig:
         parallax_iterations: LM iterations of the plane + parallax model at full size, started
             from the planar fit.
         parallax_block: its samples: the strongest-gradient pixel of every block x block cell.
-        small_motion_error: a floor on the std of Delta_avg that the covariance leaves out:
-            e R^2 / m px, m the fitted H's mean displacement (px), R the half diagonal (a
-            registration error the motion turns into a distortion error; dimensionless, fitted
-            on rendered validation pairs so that the 95 % intervals cover the truth in every
-            motion bin: docs/method.md, section 10).
+        small_motion_error: a floor e R^2 / m px on the std of Delta_avg that the covariance
+            leaves out, m the fitted H's mean displacement (px), R the half diagonal: fitted on
+            rendered validation pairs to cover the truth in every motion bin (docs/method.md, 10).
         parallax_test: the plane + parallax answer replaces the planar one where their
             Delta_avg differ by more than this many standard deviations of the difference
             (Hausman's test: under a planar scene both are right and the planar one is the
             more precise).
+        interpolation: img2's sampling kernel: "bilinear", "bicubic" or "blend" (their mean).
     """
 
     levels: int = 3
@@ -174,7 +173,8 @@ class SelfCalConfig:
     parallax_iterations: int = 6
     parallax_test: float = 2.0
     parallax_block: int = 2
-    small_motion_error: float = 3.6e-5
+    small_motion_error: float = 1.5e-5
+    interpolation: str = "blend"
 
     def __post_init__(self) -> None:
         real(self, "small_motion_error", lo=0)
@@ -188,6 +188,7 @@ class SelfCalConfig:
         real(self, "parallax_px", lo=0, lo_open=True)
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
+        choice(self, "interpolation", ("bilinear", "bicubic", "blend"))
         real(self, "huber_k", lo=0, lo_open=True)
         real(self, "tukey_c", lo=0, lo_open=True)
         pair(self, "gain_range", positive=True)
