@@ -366,7 +366,7 @@ def calibrate_sequence(
         >>> frames = torch.cat([sample(scene, grid + torch.tensor([150.0, 100.0 + 8 * i])) for i in range(10)])
         >>> cal = calibrate_sequence(frames)
         >>> round(cal.k2_user * 1e6, 1), cal.class_label, cal.frames, cal.image_size
-        (8.0, '3', 10, (160, 200))
+        (8.1, '3', 10, (160, 200))
     """
     cfg = CalibrationConfig() if config is None else config
     st = LensdistConfig() if settings is None else settings
