@@ -22,6 +22,7 @@ and wrong), "cannot tell", per motion and overall. Results are appended to ``--o
 sequence (a long run keeps what it finished).
 
     python benchmarks/bench_relief_sequences.py --n 16 --threads 2 --out docs/results/bench_relief_sequences.json
+    python benchmarks/bench_relief_sequences.py --n 40 --method direct --out docs/results/bench_relief_sequences_direct.json
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def write_frames(frames: torch.Tensor, folder: Path) -> None:
         (folder / f"frame_{j:03d}.png").write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
 
 
-def run_one(spec: dict) -> dict:
+def run_one(spec: dict, method: str = "auto") -> dict:
     frames, _ = synthetic_sequence(20, spec["k2"], spec["k4"], size=SIZE, scene=spec["scene"], seed=spec["index"],
                                    rotation_deg=spec["rotation_deg"], altitude=spec["altitude"],
                                    relief=spec["relief"], realistic=True)
@@ -77,7 +78,7 @@ def run_one(spec: dict) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         write_frames(frames, Path(tmp))
         t0 = time.perf_counter()
-        res = calibrate_path(tmp, method="auto")
+        res = calibrate_path(tmp, method=method)
         seconds = time.perf_counter() - t0
     top = delta_top("delta_avg", LensdistConfig())
     true_class = "R" if truth == 0 else str(int(distortion_class(torch.tensor([truth]), top)[0]) + 1)
@@ -120,12 +121,14 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=16, help="number of sequences (the motions in turn)")
     ap.add_argument("--start", type=int, default=0, help="first sequence index (to resume)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--method", choices=["auto", "direct", "multiview"], default="auto",
+                    help="calibrate_path's method (direct: the photometric path alone, seconds a sequence)")
     ap.add_argument("--out", type=Path, default=Path("bench_relief_sequences.json"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     rows = json.loads(args.out.read_text())["rows"] if args.start and args.out.exists() else []
     for i in range(args.start, args.start + args.n):
-        rows.append(run_one(case(i)))
+        rows.append(run_one(case(i), args.method))
         r = rows[-1]
         print(f"{i:3d} {r['motion']:13s} relief {100 * r['relief']:.1f} %  truth {r['truth_delta_avg']:6.2f}  "
               f"est {r['estimate']}  interval {r['interval']}  class {r['class']} ({r['true_class']})  "
