@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.geometry.distortion import delta_avg, delta_top, distortion_class
 from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
@@ -70,7 +70,7 @@ def write_frames(frames: torch.Tensor, folder: Path) -> None:
         (folder / f"frame_{j:03d}.png").write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
 
 
-def run_one(spec: dict, method: str = "auto") -> dict:
+def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = None) -> dict:
     frames, _ = synthetic_sequence(20, spec["k2"], spec["k4"], size=SIZE, scene=spec["scene"], seed=spec["index"],
                                    rotation_deg=spec["rotation_deg"], altitude=spec["altitude"],
                                    relief=spec["relief"], realistic=True)
@@ -78,7 +78,7 @@ def run_one(spec: dict, method: str = "auto") -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         write_frames(frames, Path(tmp))
         t0 = time.perf_counter()
-        res = calibrate_path(tmp, method=method)
+        res = calibrate_path(tmp, method=method, config=None if settings is None else settings.calibration, settings=settings)
         seconds = time.perf_counter() - t0
     top = delta_top("delta_avg", LensdistConfig())
     true_class = "R" if truth == 0 else str(int(distortion_class(torch.tensor([truth]), top)[0]) + 1)
@@ -123,12 +123,13 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--method", choices=["auto", "direct", "multiview"], default="auto",
                     help="calibrate_path's method (direct: the photometric path alone, seconds a sequence)")
+    ap.add_argument("--config", default=None, help="a TOML config for calibrate_path's settings (e.g. [selfcal] parallax)")
     ap.add_argument("--out", type=Path, default=Path("bench_relief_sequences.json"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     rows = json.loads(args.out.read_text())["rows"] if args.start and args.out.exists() else []
     for i in range(args.start, args.start + args.n):
-        rows.append(run_one(case(i), args.method))
+        rows.append(run_one(case(i), args.method, load_config(args.config) if args.config else None))
         r = rows[-1]
         print(f"{i:3d} {r['motion']:13s} relief {100 * r['relief']:.1f} %  truth {r['truth_delta_avg']:6.2f}  "
               f"est {r['estimate']}  interval {r['interval']}  class {r['class']} ({r['true_class']})  "

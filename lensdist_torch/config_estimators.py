@@ -316,8 +316,7 @@ class CalibrationConfig:
 
     Attributes:
         analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
-        motion_steps: per frame, one pair with the first later frame that moved by at least
-            each of these fractions of the half diagonal.
+        motion_steps: per frame, a pair with the first later frame moved by each fraction of R.
         max_motion: no pair moves by more than this fraction of the half diagonal.
         max_pairs: at most this many pairs, evenly spread over those chosen.
         batch_size: pairs self-calibrated together (the progress callback's step).
@@ -326,15 +325,15 @@ class CalibrationConfig:
             pairs' lower quartile are rejected (a broken or foreign frame).
         jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
         systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
-            pairs share (on rendered sequences 0.05-0.16 % of Delta_max, mostly one sign).
+            pairs share (rendered sequences: 0.05-0.16 % of Delta_max, mostly one sign).
         confidence: coverage of the intervals.
         min_pairs: fewer usable pairs give no class ("cannot tell").
-        max_class_halfwidth_px: an interval half-width of Delta_avg above this, at the paper's
-            320 x 424 frame, gives no class (a class bin is 3.6 px wide there).
-        verify_pairs: an answer with a distortion class is verified on this many of the
-            sequence's pairs: registered again after undistorting with it, the share of
-            registration-error blocks (the paper's metric) must fall, else no class
-            (``workflows/verify.py``); 0: no verification.
+        max_class_halfwidth_px: a half-width of Delta_avg above this at the paper's 320 x 424 frame
+            gives no class (a class bin is 3.6 px wide there).
+        verify_pairs: a class is verified on this many pairs, registered again after undistorting:
+            the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
+        parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
+            sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
     """
 
     analysis_side: int = 512
@@ -350,10 +349,12 @@ class CalibrationConfig:
     min_pairs: int = 4
     max_class_halfwidth_px: float = 1.0
     verify_pairs: int = 6
+    parallax: int = 5
 
     def __post_init__(self) -> None:
-        if type(self.verify_pairs) is not int or self.verify_pairs < 0:
-            raise ValueError(f"verify_pairs must be an int >= 0, got {self.verify_pairs!r}")
+        for name in ("verify_pairs", "parallax"):
+            if type(getattr(self, name)) is not int or getattr(self, name) < 0:
+                raise ValueError(f"{name} must be an int >= 0, got {getattr(self, name)!r}")
         for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
             v, least = getattr(self, name), {"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1)
             if type(v) is not int or v < least:

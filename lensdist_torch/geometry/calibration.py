@@ -11,7 +11,8 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    ``motion_steps`` of the half diagonal R (little motion cancels the distortion), at most
    ``max_motion`` R.
 3. **Per pair**, :func:`~lensdist_torch.geometry.selfcal.estimate_distortion` (batched, from the
-   pair's phase correlation): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
+   pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
+   where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
    diverged or whose residual exceeds ``max_residual_ratio`` times the lower quartile's drop.
 4. **Combination: the inverse-variance mean** of (a_i, b_i) (weights 1 / sigma_i^2), without the
    pairs whose signed Delta_avg R (a m3 + b m5) (m_k: the frame's mean |u|^k) lies beyond
@@ -34,6 +35,7 @@ private Levenberg-Marquardt state, and the combination is already far inside the
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable, NamedTuple
 
@@ -218,11 +220,12 @@ def _self_calibrate(frames, pairs, shifts, settings: LensdistConfig, cfg: Calibr
     ab = torch.full((len(pairs), 2), float("nan"), dtype=torch.float64)
     std = torch.full((len(pairs),), float("inf"), dtype=torch.float64)
     res = torch.full((len(pairs),), float("inf"), dtype=torch.float64)
+    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)  # the sequence path's relief model
     for s in range(0, len(pairs), cfg.batch_size):
         sl = slice(s, s + cfg.batch_size)
         init = torch.eye(3, dtype=torch.float64).repeat(len(pairs[sl]), 1, 1)
         init[:, :2, 2] = shifts[sl]
-        info = estimate_distortion(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init.to(frames.device), settings.selfcal)[3]
+        info = estimate_distortion(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init.to(frames.device), selfcal)[3]
         # the fit runs on the frames' device; its few numbers per pair come back to the CPU
         got_ab, got_std, got_res = (x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual))
         ok = info.converged.cpu() & torch.isfinite(got_std)
