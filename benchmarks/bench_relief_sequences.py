@@ -128,8 +128,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     rows = json.loads(args.out.read_text())["rows"] if args.start and args.out.exists() else []
+    settings = load_config(args.config) if args.config else None  # read once, not per sequence
     for i in range(args.start, args.start + args.n):
-        rows.append(run_one(case(i), args.method, load_config(args.config) if args.config else None))
+        rows.append(run_one(case(i), args.method, settings))
         r = rows[-1]
         print(f"{i:3d} {r['motion']:13s} relief {100 * r['relief']:.1f} %  truth {r['truth_delta_avg']:6.2f}  "
               f"est {r['estimate']}  interval {r['interval']}  class {r['class']} ({r['true_class']})  "

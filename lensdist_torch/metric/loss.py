@@ -50,16 +50,17 @@ def _check_reduction(reduction: str) -> None:
         raise ValueError(f"reduction must be one of {REDUCTIONS}, got {reduction!r}")
 
 
-def _reduce(reg_map: torch.Tensor, v: torch.Tensor | None, codes: torch.Tensor, block: int, reduction: str):
+def _reduce(reg_map: torch.Tensor, v: torch.Tensor | None, crit, block: int, reduction: str):
     if reduction == "none":
         return reg_map
     if reduction == "sum":
         return reg_map.sum()
     if reduction == "mean":
         return reg_map.mean()
-    # 1 where the whole block is valid (every block without a mask), in a measurable sample
+    # 1 where the whole block is valid (every block without a mask), in a measurable sample: the
+    # codes are read only here, the reductions above do not need them
     full = torch.ones_like(reg_map) if v is None else -F.max_pool2d(-v, kernel_size=block, stride=block)
-    full = full * measured(codes).to(full.dtype).view(-1, 1, 1, 1)
+    full = full * measured(criteria_codes(v, crit)).to(full.dtype).view(-1, 1, 1, 1)
     # clamp: nothing to measure gives 0 / 1 = 0 and a zero gradient (no NaN, no host sync)
     dims = (1, 2, 3) if reduction == "per_sample" else None
     return (reg_map * full).sum(dim=dims) / full.sum(dim=dims).clamp_min(1.0)
@@ -130,7 +131,7 @@ def registration_quality_loss(
     v = None if valid is None else erode_valid(valid)
     crit = _criteria(g1, g2, cfg, smooth=True)
     reg_map = block_pool(_error_images(crit, v, cfg, smooth=True).e_reg, cfg, smooth=True)
-    return _reduce(reg_map, v, criteria_codes(v, crit), cfg.block_size, reduction)
+    return _reduce(reg_map, v, crit, cfg.block_size, reduction)
 
 
 class RegistrationQualityLoss(nn.Module):

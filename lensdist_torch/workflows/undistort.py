@@ -56,7 +56,7 @@ from lensdist_torch.geometry.distortion import distortion_center, sample
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
 from lensdist_torch.workflows.calibrate import _frames_of_one_size, list_frames
-from lensdist_torch.workflows.calibration_file import read_calibration
+from lensdist_torch.workflows.calibration_file import Calibration, read_calibration
 
 __all__ = ["MAX_STRETCH", "encode_png", "undistort_path"]
 
@@ -126,8 +126,11 @@ def _deep(source: Path | None, img: torch.Tensor) -> bool:
 
 
 # ------------------------------------------------------------------ coefficients
-def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, float]:
-    """(k2, k4) for frames of ``size``: given, or from a JSON (/ s^2, / s^4 for frames scaled by s)."""
+def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration | None = None) -> tuple[float, float]:
+    """(k2, k4) for frames of ``size``: given, or from the JSON (/ s^2, / s^4 for frames scaled by s).
+
+    ``cal``: ``from_json`` already read (:func:`read_calibration`), so that it is read once.
+    """
     if from_json is None:
         if k2 is None or k4 is None:
             raise ValueError("give both k2 and k4 (--k2, --k4), or from_json (--from CALIBRATION.json)")
@@ -138,7 +141,7 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, 
     if k2 is not None or k4 is not None:
         raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
     src = Path(from_json)
-    k2, k4, hc, wc, reason, _ = read_calibration(src)
+    k2, k4, hc, wc, reason, _ = read_calibration(src) if cal is None else cal
     if k2 is None:
         raise ValueError(f"{src} holds no estimate: {' '.join(reason.split())}")
     s = size[1] / wc
@@ -147,12 +150,11 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json) -> tuple[float, 
     return k2 / s**2, k4 / s**4
 
 
-def _focal_for(size: tuple[int, int], from_json) -> float | None:
+def _focal_for(size: tuple[int, int], cal: Calibration | None) -> float | None:
     """The OpenCV focal length of a ``--from`` calibration in the frames' pixels (None: none there)."""
-    if from_json is None:
+    if cal is None or cal.focal is None:
         return None
-    _, _, _, wc, _, focal = read_calibration(Path(from_json))
-    return None if focal is None else focal * size[1] / wc
+    return cal.focal * size[1] / cal.width
 
 
 def _check_fold(k2: float, k4: float, height: int, width: int, from_json) -> None:
@@ -262,20 +264,19 @@ def undistort_path(
         raise TypeError(f"overwrite must be a bool, got {overwrite!r}")
     if alpha is not None and (isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1):
         raise ValueError(f"alpha (--alpha) must be a number from 0 to 1 or None, got {alpha!r}")
-    if from_json is not None and k2 is None and k4 is None:  # every coefficient checked before any frame is read
-        _coefficients_for(read_calibration(Path(from_json))[2:4], None, None, from_json)
-    else:
-        _coefficients_for((1, 1), k2, k4, from_json)
+    # the file read once (what is checked is what is used); every coefficient checked before any frame is read
+    cal = read_calibration(Path(from_json)) if from_json is not None and k2 is None and k4 is None else None
+    _coefficients_for((1, 1) if cal is None else (cal.height, cal.width), k2, k4, from_json, cal)
     files = _plan(path, out, max_frames, from_json, overwrite)
     grid, n, valid_sum, dev, bits = None, 0, 0.0, torch.device(device or "cpu"), set()
     for i, (name, img) in enumerate(_frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
         if grid is None:
             size = tuple(img.shape[-2:])
-            k2, k4 = _coefficients_for(size, k2, k4, from_json)
+            k2, k4 = _coefficients_for(size, k2, k4, from_json, cal)
             _check_fold(k2, k4, *size, from_json)
             _check_stretch(k2, k4, *size, from_json)
             view = None if alpha is None else optimal_view(k2, k4, *size, float(alpha))
-            camera = _camera(k2, k4, size, _focal_for(size, from_json), alpha, view)
+            camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view)
             grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *size, view=view))
             (out / "masks").mkdir(parents=True, exist_ok=True)
         deep = _deep(files[i] if files is not None else None, img)
