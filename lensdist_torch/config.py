@@ -15,7 +15,8 @@ may override any field. Sections of the TOML file map one to one onto the datacl
     [calibration]   a camera's distortion from a sequence (``lensdist calibrate``), the direct path
     [multiview]     the same by bundle adjustment on COLMAP's tracks (``lensdist calibrate``)
 
-The estimators' sections are defined in ``config_estimators.py`` (for length) and exported here.
+The estimators' sections are defined in ``config_estimators.py`` and ``config_sequence.py`` (for
+length) and exported here.
 
 Every threshold of a decision lives here, nowhere else.
 
@@ -35,14 +36,8 @@ from typing import Any
 import tomllib  # Python >= 3.11 (pyproject.toml says why)
 
 from lensdist_torch.config_checks import choice, flag, integer, names, one_line, pair, positive, real, show
-from lensdist_torch.config_estimators import (
-    AnalysisConfig,
-    CalibrationConfig,
-    MultiViewConfig,
-    RegistrationConfig,
-    RegressionConfig,
-    SelfCalConfig,
-)
+from lensdist_torch.config_estimators import AnalysisConfig, RegistrationConfig, RegressionConfig, SelfCalConfig
+from lensdist_torch.config_sequence import CalibrationConfig, MultiViewConfig
 
 __all__ = [
     "QualityConfig", "ImageConfig", "DistortionConfig", "ProtocolConfig", "ClassifierConfig",

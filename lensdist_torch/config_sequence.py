@@ -1,0 +1,154 @@
+"""The sequence estimators' settings: ``[calibration]`` (the direct path) and ``[multiview]`` (COLMAP).
+
+Sections of :class:`~lensdist_torch.config.LensdistConfig`, kept in their own module for length;
+import them from ``lensdist_torch.config``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from lensdist_torch.config_checks import integer, names, real
+
+__all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Settings of :func:`~lensdist_torch.geometry.calibration.calibrate_sequence` (``[calibration]``).
+
+    Attributes:
+        analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
+        motion_steps: per frame, a pair with the first later frame moved by each fraction of R.
+        max_motion: no pair moves by more than this fraction of the half diagonal.
+        max_pairs: at most this many pairs, evenly spread over those chosen.
+        batch_size: pairs self-calibrated together (the progress callback's step).
+        outlier_mads: rejection threshold in robust deviations of the signed Delta_avg.
+        max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
+            pairs' lower quartile are rejected (a broken or foreign frame).
+        jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
+        systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
+            pairs share (rendered sequences: 0.05-0.16 % of Delta_max, mostly one sign).
+        confidence: coverage of the intervals.
+        min_pairs: fewer usable pairs give no class ("cannot tell").
+        max_class_halfwidth_px: a half-width of Delta_avg above this at the paper's 320 x 424 frame
+            gives no class (a class bin is 3.6 px wide there).
+        verify_pairs: a class is verified on this many pairs, registered again after undistorting:
+            the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
+        parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
+            sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
+    """
+
+    analysis_side: int = 512
+    motion_steps: tuple[float, ...] = (0.14, 0.22)
+    max_motion: float = 0.35
+    max_pairs: int = 64
+    batch_size: int = 16
+    outlier_mads: float = 4.0
+    max_residual_ratio: float = 3.0
+    jackknife_blocks: int = 8
+    systematic_rel: float = 1e-3
+    confidence: float = 0.95
+    min_pairs: int = 4
+    max_class_halfwidth_px: float = 1.0
+    verify_pairs: int = 6
+    parallax: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("verify_pairs", "parallax"):
+            if type(getattr(self, name)) is not int or getattr(self, name) < 0:
+                raise ValueError(f"{name} must be an int >= 0, got {getattr(self, name)!r}")
+        for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
+            v, least = getattr(self, name), {"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1)
+            if type(v) is not int or v < least:
+                raise ValueError(f"{name} must be an int >= {least}, got {v!r}")
+        if not (_number(self.max_motion) and 0 < self.max_motion < 1):
+            raise ValueError(f"max_motion must lie in ]0, 1[, got {self.max_motion!r}")
+        if isinstance(self.motion_steps, list):  # a TOML array
+            object.__setattr__(self, "motion_steps", tuple(self.motion_steps))
+        steps = self.motion_steps
+        if not (isinstance(steps, tuple) and steps and all(_number(v) and 0 < v < self.max_motion for v in steps)):
+            raise ValueError(f"motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, got {steps!r}")
+        for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px"):
+            if not (_number(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+        for name, lo in (("confidence", 0.0), ("systematic_rel", -1e-300)):
+            if not (_number(getattr(self, name)) and lo < getattr(self, name) < 1):
+                raise ValueError(f"{name} must lie in {']0' if lo == 0 else '[0'}, 1[, got {getattr(self, name)!r}")
+
+
+#: The camera models :class:`MultiViewConfig` may choose from: COLMAP's names, all OpenCV-compatible.
+MULTIVIEW_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+
+
+@dataclass(frozen=True)
+class MultiViewConfig:
+    """Settings of :mod:`~lensdist_torch.geometry.multiview` (``[multiview]``): bundle adjustment on COLMAP.
+
+    Attributes:
+        models: the camera models to fit on the reconstruction's tracks; the one of lowest BIC
+            is the answer (COLMAP names, all with an exact OpenCV equivalent).
+        max_image_side: frames are read by COLMAP's SIFT at most this long (px).
+        max_features: SIFT features per frame at most.
+        exhaustive_below: up to this many frames every pair is matched; more: each frame with
+            its ``sequential_overlap`` successors (a video).
+        sequential_overlap: successors matched per frame in sequential matching.
+        min_registered: fewer registered frames than this share of the frames (or than 3):
+            "cannot tell" (the engine could not reconstruct the sequence).
+        jackknife_blocks: contiguous blocks of frames left out in turn for the interval.
+        bic_margin: models within this BIC of the best fit equally well: their spread of Delta
+            joins the interval.
+        rms_margin: so do models whose reprojection RMS is within this share of the best's: on
+            thousands of tracks BIC prefers the richest model for a few % of RMS, less than two
+            reconstructions of the same frames differ by (the GoPro views: 1.32-1.55 px), while
+            the models' Delta differ by 20 % (docs/method.md, section 11).
+        confidence: coverage of the intervals.
+        max_halfwidth_rel: an interval half-width over this share of Delta_avg (and over
+            ``max_halfwidth_px``) gives no class.
+        max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
+        min_rotation_deg: frames whose orientations differ by less than this (degrees) at most
+            give no class: under translation alone relief imitates distortion.
+        reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); their
+            spread of Delta_avg joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`).
+        num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
+            and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
+        seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
+    """
+
+    models: tuple[str, ...] = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+    max_image_side: int = 1600
+    max_features: int = 8192
+    exhaustive_below: int = 60
+    sequential_overlap: int = 12
+    min_registered: float = 0.5
+    jackknife_blocks: int = 6
+    bic_margin: float = 10.0
+    rms_margin: float = 0.05
+    confidence: float = 0.95
+    max_halfwidth_rel: float = 0.25
+    max_halfwidth_px: float = 1.0
+    min_rotation_deg: float = 5.0
+    reconstructions: int = 3
+    num_threads: int = 2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        names(self, "models")
+        for m in self.models:
+            if m not in MULTIVIEW_MODELS:
+                raise ValueError(f"multiview.models must hold names from {', '.join(MULTIVIEW_MODELS)}, got {m!r}")
+        for name, lo in (("max_image_side", 64), ("max_features", 64), ("exhaustive_below", 2), ("sequential_overlap", 1),
+                         ("jackknife_blocks", 2), ("reconstructions", 1), ("num_threads", 1), ("seed", 0)):
+            integer(self, name, lo=lo)
+        real(self, "min_registered", lo=0, hi=1, lo_open=True)
+        real(self, "bic_margin", lo=0)
+        real(self, "rms_margin", lo=0)
+        real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
+        real(self, "max_halfwidth_rel", lo=0, hi=1, lo_open=True, why="a share of Delta_avg")
+        real(self, "max_halfwidth_px", lo=0, lo_open=True)
+        real(self, "min_rotation_deg", lo=0)
+
+
+def _number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
