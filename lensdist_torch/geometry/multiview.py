@@ -10,13 +10,19 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    matching (or sequential for long videos), geometric verification, incremental mapping with one
    shared RADIAL camera whose principal point stays at the frame centre (it is not refined: the
    data rarely pin it, and refining it was measured to go wrong); the mapping is run
-   ``reconstructions`` times with other seeds on the same matches.
+   ``reconstructions`` times with other seeds on the same matches (a caller's ``stop`` may end
+   the series early: :func:`~lensdist_torch.workflows.multiview.multiview_path` does when the first
+   mapping shows degenerate motion).
 2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
    adjustment on the same tracks (structure, poses, focal length and the model's distortion
    free); the **model is chosen by BIC**, n ln(RSS / n) + k ln n over the n reprojection
-   coordinates, k the camera's free parameters (the tracks and poses are common to all).
+   coordinates, k the camera's free parameters (the tracks and poses are common to all). Every
+   adjustment stops when an iteration lowers the cost by less than ``BA_FUNCTION_TOLERANCE`` of
+   it (Ceres' default; COLMAP's 0 made 100 iterations crawl along the valley of a poorly conditioned
+   camera, 0.1 s each, for 1e-5 of the cost), and so do the mapping's own adjustments.
 3. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of frames
-   (each left out in turn and the chosen model re-adjusted), t on blocks - 1 degrees of freedom,
+   (each left out in turn and the chosen model re-adjusted; Delta on every second row and column
+   of the answer's grid, as only the replicates' spread enters), t on blocks - 1 degrees of freedom,
    with the spread of the models within ``bic_margin`` of the best, or whose reprojection RMS is
    within ``rms_margin`` of the best's, in quadrature (models that fit equally well but disagree
    on Delta: on thousands of tracks BIC prefers the richest model for a few % of RMS). No class when the camera turned by less than
@@ -38,6 +44,7 @@ import math
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -49,7 +56,10 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, pa
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
-           "rotation_spread_deg", "model_spread", "interval_too_wide"]
+           "rotation_spread_deg", "model_spread", "interval_too_wide", "BA_FUNCTION_TOLERANCE"]
+
+#: Relative cost decrease below which a bundle adjustment stops (module docstring, step 2).
+BA_FUNCTION_TOLERANCE = 1e-6
 
 
 class MultiViewCalibration(NamedTuple):
@@ -121,7 +131,8 @@ def _quiet():
 
 
 # ------------------------------------------------------------------ the reconstruction
-def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None) -> list:
+def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None,
+                stop: Callable[[int, object], bool] | None = None) -> list:
     """COLMAP's sparse reconstructions of frames ``names`` in ``image_dir`` (module docstring, step 1).
 
     The features and the verified matches are computed once (geometric verification seeded by
@@ -129,39 +140,52 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
     ``seed``, ``seed`` + 1, ... (the engine's run-to-run variation, which the interval takes in:
     :mod:`~lensdist_torch.geometry.multiview_runs`).
 
+    Args:
+        image_dir: the folder of the frames.
+        names: the frames' file names in it, in recording order.
+        config: :class:`~lensdist_torch.config.MultiViewConfig`.
+        stop: called after each mapping with its index and its reconstruction (or None), outside
+            the silenced log; True skips the remaining mappings (each costs as much as the
+            first: 40-45 s on 22 frames of 384 x 288 on 2 cores).
+
     Returns:
-        Per seed the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
-        COLMAP reconstructed nothing.
+        Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
+        COLMAP reconstructed nothing; shorter than ``reconstructions`` when ``stop`` said so.
     """
     pc, cfg = pycolmap_or_error(), config or MultiViewConfig()
     pc.set_random_seed(cfg.seed)
     out = []
-    with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp, _quiet():
+    with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
         db = Path(tmp) / "db.db"
         reader = pc.ImageReaderOptions()
         reader.camera_model = "RADIAL"
         extraction = pc.FeatureExtractionOptions()
         extraction.num_threads, extraction.max_image_size, extraction.use_gpu = cfg.num_threads, cfg.max_image_side, False
         extraction.sift.max_num_features = cfg.max_features
-        pc.extract_features(db, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
-                            reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
         matching = pc.FeatureMatchingOptions()
         matching.num_threads, matching.use_gpu = cfg.num_threads, False
         verification = pc.TwoViewGeometryOptions()
         verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
-        if len(names) <= cfg.exhaustive_below:
-            pc.match_exhaustive(db, matching_options=matching, verification_options=verification, device=pc.Device.cpu)
-        else:
-            pairing = pc.SequentialPairingOptions()
-            pairing.overlap = cfg.sequential_overlap
-            pc.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                verification_options=verification, device=pc.Device.cpu)
+        with _quiet():
+            pc.extract_features(db, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
+                                reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
+            if len(names) <= cfg.exhaustive_below:
+                pc.match_exhaustive(db, matching_options=matching, verification_options=verification, device=pc.Device.cpu)
+            else:
+                pairing = pc.SequentialPairingOptions()
+                pairing.overlap = cfg.sequential_overlap
+                pc.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                    verification_options=verification, device=pc.Device.cpu)
         for i in range(cfg.reconstructions):
             pc.set_random_seed(cfg.seed + i)
             mapping = pc.IncrementalPipelineOptions()
             mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed + i, False
-            recs = pc.incremental_mapping(db, image_dir, Path(tmp) / f"sparse{i}", options=mapping)
+            mapping.ba_global_function_tolerance = mapping.ba_local_function_tolerance = BA_FUNCTION_TOLERANCE
+            with _quiet():
+                recs = pc.incremental_mapping(db, image_dir, Path(tmp) / f"sparse{i}", options=mapping)
             out.append(max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None)
+            if stop is not None and stop(i, out[-1]):
+                break
     return out
 
 
@@ -193,6 +217,7 @@ def _adjust(rec) -> None:
     pc = pycolmap_or_error()
     options = pc.BundleAdjustmentOptions()
     options.refine_principal_point, options.print_summary = False, False
+    options.ceres.solver_options.function_tolerance = BA_FUNCTION_TOLERANCE
     with _quiet():
         pc.bundle_adjustment(rec, options)
 
@@ -341,7 +366,7 @@ def self_calibrate_reconstruction(
         for frame_id in block:
             r.deregister_frame(frame_id)
         _adjust(r)
-        d = _deltas(_camera(r), size, scale, step)
+        d = _deltas(_camera(r), size, scale, 2 * step)  # a quarter of the points: 4-5 times faster
         jk_avg.append(d["delta_avg_px"])
         jk_max.append(d["delta_max_px"])
     t = _t_quantile(0.5 + cfg.confidence / 2, n_blocks - 1)
