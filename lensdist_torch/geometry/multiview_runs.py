@@ -17,6 +17,11 @@ reconstruction is self-calibrated, and :func:`combine_reconstructions`
 * withholds the class ("cannot tell", the reason naming the spread) when fewer than a majority of
   the reconstructions succeeded, when two of them disagree beyond their own intervals, or when
   the widened interval is too wide (degenerate motion, the answer's own reason, comes first).
+
+Where the first mapping already showed degenerate motion the caller may skip the others
+(:func:`~lensdist_torch.workflows.multiview.multiview_path`): their seeds are passed as ``skipped``,
+listed in ``reconstructions`` and named in the reason, since the interval then lacks the spread
+between reconstructions (the answer gets no class either way).
 """
 
 from __future__ import annotations
@@ -46,6 +51,8 @@ def widened_half_width(value: float, interval: tuple[float, float], spread: floa
 
 
 def _summary(seed: int, run) -> dict:
+    if run is None:
+        return {"seed": seed, "skipped": "degenerate motion in the first mapping"}
     if isinstance(run, str):
         return {"seed": seed, "failed": run}
     return {"seed": seed, "registered": run.registered, "points3D": run.points3D, "model": run.model,
@@ -71,13 +78,15 @@ def _disagreement(runs: list[tuple[int, MultiViewCalibration]]) -> str:
 
 
 def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
-                            config: MultiViewConfig | None = None) -> MultiViewCalibration:
+                            config: MultiViewConfig | None = None, skipped: list[int] = ()) -> MultiViewCalibration:
     """One answer from several reconstructions' self-calibrations (module docstring).
 
     Args:
         runs: per mapping seed its :class:`~lensdist_torch.geometry.multiview.MultiViewCalibration`,
             or a string saying why that reconstruction failed; at least one must have succeeded.
         config: :class:`~lensdist_torch.config.MultiViewConfig` (``confidence``, the width limits).
+        skipped: the seeds of mappings not run because the answer's motion is degenerate (for any
+            other answer: ValueError, as the interval would lack their spread unsaid).
 
     Returns:
         The median reconstruction's calibration with the widened intervals, the class (or None and
@@ -99,8 +108,14 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     half = intervals[0][1] - best.delta_avg_user_px
     need, label, reason = len(runs) // 2 + 1, best.class_label, best.reason
     apart = _disagreement(ok)
+    if skipped and best.rotation_spread_deg >= cfg.min_rotation_deg:
+        raise ValueError(f"skipped must be empty unless the motion is degenerate, got {len(skipped)} seeds skipped "
+                         f"at {best.rotation_spread_deg:.1f} degrees")
     if best.rotation_spread_deg < cfg.min_rotation_deg:
         label = None  # degenerate motion: the answer's own reason stands
+        if skipped:
+            reason += (f" ({len(runs)} of {len(runs) + len(skipped)} mappings run, the others skipped: the motion is "
+                       "the camera path's, so the interval lacks the spread between reconstructions)")
     elif len(ok) < need:
         failed = "; ".join(f"seed {s}: {r}" for s, r in runs if isinstance(r, str))
         label, reason = None, (f"only {len(ok)} of {len(runs)} reconstructions succeeded ({need} needed), so the "
@@ -111,5 +126,5 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
         among = f" (the {len(ok)} reconstructions differ by up to {spread:.2f} px)" if len(ok) > 1 else ""
         label, reason = None, f"interval too wide: +-{half:.2f} px{among}"
     return best._replace(delta_avg_user_interval=intervals[0], delta_max_user_interval=intervals[1], class_label=label,
-                         reason=reason, reconstructions=tuple(_summary(s, r) for s, r in runs),
+                         reason=reason, reconstructions=tuple(_summary(s, r) for s, r in [*runs, *((s, None) for s in skipped)]),
                          reconstruction_spread_px=spread)

@@ -1,0 +1,111 @@
+"""The multi-view path's speed-ups keep its answers: one mapping where the first shows degenerate motion
+(lensdist_torch.workflows.multiview), the skipped seeds named (geometry.multiview_runs), the bundle
+adjustments' tolerance (geometry.multiview)."""
+
+import pytest
+
+from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.geometry.multiview import BA_FUNCTION_TOLERANCE, MultiViewCalibration
+from lensdist_torch.geometry.multiview_runs import combine_reconstructions
+from lensdist_torch.workflows import multiview as wmv
+
+DEGENERATE = "degenerate motion: the camera turned by at most 2.4 degrees"
+
+
+def _cal(d, rotation, registered=22, label=None, reason=DEGENERATE):
+    return MultiViewCalibration(
+        "FULL_OPENCV", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], [-0.2, 0.05, 0, 0, 0], d, (0.0, d + 12.0), 5 * d,
+        (0.0, 5 * d + 40), 1.0, 2e-6, 0.0, 0.1, label, reason, registered, 22, 6052, 0.33, {}, [d] * 6, rotation)
+
+
+def _fake_colmap(monkeypatch, tmp_path, answers):
+    """22 frames; ``reconstruct`` runs the mappings as the real one does (``stop`` after each), counted."""
+    pytest.importorskip("pycolmap")
+    for i in range(22):
+        (tmp_path / f"frame_{i:03d}.png").write_bytes(b"")
+    calls = {"mappings": 0}
+
+    class Rec:
+        def __init__(self, n):
+            self.n = n
+
+        def num_reg_images(self):
+            return self.n
+
+    def reconstruct(folder, names, cfg, stop=None):
+        out = []
+        for i in range(cfg.reconstructions):
+            calls["mappings"] += 1
+            out.append(Rec(answers[i].registered))
+            if stop is not None and stop(i, out[-1]):
+                break
+        return out
+
+    answers_by_rec = iter(answers)
+    monkeypatch.setattr(wmv, "reconstruct", reconstruct)
+    monkeypatch.setattr(wmv, "self_calibrate_reconstruction", lambda rec, *a, **k: next(answers_by_rec))
+    return calls
+
+
+def test_degenerate_first_mapping_answers_after_one_mapping(monkeypatch, tmp_path):
+    # 22 rendered frames of 384 x 288 panning over relief (the speed goal's sequence): the camera turned
+    # by 2.4 degrees in every mapping (seeds 0-2: 2.4, 2.4, 2.3), each mapping and its self-calibration
+    # cost 3 min of the 4 min 52 s; now one runs, and the answer says which seeds were skipped
+    calls = _fake_colmap(monkeypatch, tmp_path, [_cal(12.30, 2.38), _cal(12.24, 2.38), _cal(13.02, 2.31)])
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    assert calls["mappings"] == 1
+    assert res["ok"] and res["class_label"] is None and res["reason"].startswith(DEGENERATE)
+    assert "1 of 3 mappings run" in res["reason"] and "lacks the spread between reconstructions" in res["reason"]
+    assert [r.get("skipped") is not None for r in res["reconstructions"]] == [False, True, True]
+    assert res["delta_avg_user_interval"] == pytest.approx((0.3, 24.3))  # the one run's half-width, 12 px
+
+
+@pytest.mark.parametrize("first", [_cal(12.3, 4.6), _cal(12.3, 2.4, registered=20)],
+                         ids=["near-the-limit", "not-every-frame"])
+def test_all_mappings_run_unless_the_first_settles_degenerate_motion(monkeypatch, tmp_path, first):
+    # 4.6 degrees is under the 5 needed but within 10 % of it: another seed could cross it; a mapping that
+    # left frames out may not have seen the turn
+    calls = _fake_colmap(monkeypatch, tmp_path, [first, _cal(12.2, 4.6), _cal(13.0, 4.7)])
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    assert calls["mappings"] == 3 and res["class_label"] is None
+    assert "skipped" not in res["reason"] and res["reconstruction_spread_px"] == pytest.approx(0.7)
+
+
+def test_a_turning_camera_runs_every_mapping(monkeypatch, tmp_path):
+    # the same frames with +-3 degrees of yaw: 5.97 degrees in every mapping
+    runs = [_cal(7.65, 5.97, label=None, reason="interval too wide: +-4.18 px")] * 3
+    calls = _fake_colmap(monkeypatch, tmp_path, runs)
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    assert calls["mappings"] == 3 and len(res["reconstructions"]) == 3
+    assert all("skipped" not in r for r in res["reconstructions"])
+
+
+def test_skipped_seeds_only_with_degenerate_motion():
+    res = combine_reconstructions([(0, _cal(10.0, 2.4))], skipped=[1, 2])
+    assert res.class_label is None and res.reason.startswith(DEGENERATE) and "1 of 3 mappings run" in res.reason
+    assert res.reconstructions[1] == {"seed": 1, "skipped": "degenerate motion in the first mapping"}
+    with pytest.raises(ValueError, match=r"^skipped must be empty unless the motion is degenerate, got 2 seeds"):
+        combine_reconstructions([(0, _cal(10.0, 6.0, label="3", reason=""))], skipped=[1, 2])
+
+
+def test_a_cut_short_multiview_interval_does_not_win_over_the_direct_one():
+    # neither path can tell: the numbers are the less uncertain path's, but not a multi-view interval
+    # that lacks the spread between reconstructions
+    direct = {"class": None, "reason": "interval too wide", "delta_avg_user_px": 7.0,
+              "delta_avg_user_interval": [0.0, 20.0], "delta_max_user_px": 40.0, "delta_max_user_interval": [0.0, 90.0]}
+    mv = {"ok": True, **combine_reconstructions([(0, _cal(10.0, 2.4))], skipped=[1, 2])._asdict()}
+    mv["delta_avg_user_interval"] = (9.0, 11.0)  # narrower than the direct one, relatively
+    assert wmv.combine(direct, mv)["method"] == "direct"
+    mv["reconstructions"] = mv["reconstructions"][:1]  # all mappings run: the narrower one wins
+    assert wmv.combine(direct, mv)["method"] == "multiview"
+
+
+def test_bundle_adjustments_stop_at_ceres_default_tolerance(monkeypatch):
+    pycolmap = pytest.importorskip("pycolmap")
+    from lensdist_torch.geometry import multiview
+
+    seen = []
+    monkeypatch.setattr(pycolmap, "bundle_adjustment",
+                        lambda rec, options: seen.append(options.ceres.solver_options.function_tolerance))
+    multiview._adjust(object())
+    assert seen == [BA_FUNCTION_TOLERANCE] == [1e-6]
