@@ -91,6 +91,7 @@ def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = 
     return {**spec, "truth_delta_avg": truth, "true_class": true_class, "estimate": est, "interval": interval,
             "covered": covered, "class": cls, "reason": res.get("reason"), "method": res.get("method"),
             "confidence": res.get("confidence"), "seconds": round(seconds, 1),
+            "relief_effect_px": res.get("relief_effect_px"), "relief_z": res.get("relief_z"),
             "confidently_wrong": cls is not None and str(cls) != true_class}
 
 

@@ -30,6 +30,12 @@ class CalibrationConfig:
         jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
         systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
             pairs share (rendered sequences: 0.05-0.16 % of Delta_max, mostly one sign).
+        relief_rel: a std of this multiple of the relief's effect on each Delta (the pairs' plane +
+            parallax minus planar answers, combined), added in quadrature: the error the plane +
+            parallax model leaves, which all pairs share (fitted on validation sequences of
+            scenes with relief, docs/method.md section 7).
+        relief_test: the relief's effect counts where it is at least this many of its own
+            jackknife stds (a sequence-level Hausman test; on a planar scene the models part by noise).
         confidence: coverage of the intervals.
         min_pairs: fewer usable pairs give no class ("cannot tell").
         max_class_halfwidth_px: a half-width of Delta_avg above this at the paper's 320 x 424 frame
@@ -49,6 +55,8 @@ class CalibrationConfig:
     max_residual_ratio: float = 3.0
     jackknife_blocks: int = 8
     systematic_rel: float = 1e-3
+    relief_rel: float = 0.8
+    relief_test: float = 2.0
     confidence: float = 0.95
     min_pairs: int = 4
     max_class_halfwidth_px: float = 1.0
@@ -73,6 +81,8 @@ class CalibrationConfig:
         for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px"):
             if not (_number(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+        real(self, "relief_rel", lo=0)
+        real(self, "relief_test", lo=0)
         for name, lo in (("confidence", 0.0), ("systematic_rel", -1e-300)):
             if not (_number(getattr(self, name)) and lo < getattr(self, name) < 1):
                 raise ValueError(f"{name} must lie in {']0' if lo == 0 else '[0'}, 1[, got {getattr(self, name)!r}")

@@ -20,10 +20,15 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
 5. **Intervals**: pairs sharing frames have correlated errors, so the variance is a
    delete-a-block jackknife (``jackknife_blocks`` contiguous blocks), or the Birge-scaled
    max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger, plus ``systematic_rel`` D in
-   quadrature (what all pairs share); t on blocks - 1 degrees of freedom;
-   [max(0, D - t sd), D + t sd] for Delta_avg and Delta_max in the user's pixels.
+   quadrature (what all pairs share), plus ``relief_rel`` times the relief's effect: the pairs'
+   plane + parallax minus planar answers combined as the answers are, where it exceeds
+   ``relief_test`` of its jackknife stds (relief parts the models alike in every pair, noise
+   does not); no jackknife over pairs sees what relief leaves in all of them (docs/method.md,
+   section 7). t on blocks - 1 degrees of freedom; [max(0, D - t sd), D + t sd] in user px.
 6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame, or None with a
-   reason: under ``min_pairs`` usable pairs, or a half-width there over ``max_class_halfwidth_px``.
+   reason: under ``min_pairs`` usable pairs, a half-width there over ``max_class_halfwidth_px``,
+   or an interval there that spans ``analysis.no_distortion_px`` (R or class 1 cannot be told:
+   R's bin, 0.25 px, is narrower than the intervals of scenes with relief).
 
 Why (19 rendered 20-frame sequences, 320 x 424, 5-10 px of vertical motion a frame, Delta_avg
 0-12 px, pairs 5 and 8 frames apart): RMSE of Delta_avg 0.011 px for the inverse-variance mean,
@@ -60,7 +65,10 @@ class SequenceCalibration(NamedTuple):
     ``confidence`` intervals (low, high; NaN below 2 usable pairs); class_label "1".."4", "R" or
     None ("cannot tell", ``reason`` says why); pairs_rejected: diverged or outliers; scale: user
     px per analysis px; ab: the combined normalised (a, b). Per pair: pairs (P, 2) frame
-    indices, pair_delta_avg and its std (P,) in analysis px, pair_used (P,) bool.
+    indices, pair_delta_avg and its std (P,) in analysis px, pair_used (P,) bool;
+    relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
+    answers| (user px), combined as the answers are, where significant (relief_z, its ratio to
+    its jackknife std, at least ``relief_test``), else 0.
     """
 
     k2_user: float
@@ -82,6 +90,8 @@ class SequenceCalibration(NamedTuple):
     pair_delta_avg: torch.Tensor
     pair_delta_avg_std: torch.Tensor
     pair_used: torch.Tensor
+    relief_effect_px: float = 0.0
+    relief_z: float = 0.0
 
 
 # ------------------------------------------------------------------ analysis size
@@ -218,6 +228,7 @@ def _translation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 def _self_calibrate(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
     """Per pair: (a, b) (P, 2) and the std of Delta_avg (P,), NaN / inf where dropped (step 3)."""
     ab = torch.full((len(pairs), 2), float("nan"), dtype=torch.float64)
+    planar, relief = ab.clone(), ab.clone()
     std = torch.full((len(pairs),), float("inf"), dtype=torch.float64)
     res = torch.full((len(pairs),), float("inf"), dtype=torch.float64)
     selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)  # the sequence path's relief model
@@ -227,16 +238,19 @@ def _self_calibrate(frames, pairs, shifts, settings: LensdistConfig, cfg: Calibr
         init[:, :2, 2] = shifts[sl]
         info = estimate_distortion(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init.to(frames.device), selfcal)[3]
         # the fit runs on the frames' device; its few numbers per pair come back to the CPU
-        got_ab, got_std, got_res = (x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual))
+        got_ab, got_std, got_res, got_planar, got_relief = (
+            x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual, info.planar_ab, info.relief_ab))
         ok = info.converged.cpu() & torch.isfinite(got_std)
         ab[sl] = torch.where(ok[:, None], got_ab, ab[sl])
+        planar[sl] = torch.where(ok[:, None], got_planar, planar[sl])
+        relief[sl] = torch.where(ok[:, None] & torch.isfinite(got_relief), got_relief, ab[sl])
         std[sl] = torch.where(ok, got_std, std[sl])
         res[sl] = torch.where(ok, got_res, res[sl])
         if progress is not None:
             progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
     if bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many
         std = torch.where(res <= cfg.max_residual_ratio * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))
-    return ab, std
+    return ab, std, (planar, relief)
 
 
 # ------------------------------------------------------------------ combination
@@ -382,11 +396,19 @@ def calibrate_sequence(
     if min(xa.shape[-2:]) < least:
         raise ValueError(f"frames must be at least {least} px on each side, got {tuple(xa.shape[-2:])}")
     pairs, shifts = choose_pairs(xa, cfg)
-    ab, std = _self_calibrate(xa, pairs, shifts, st, cfg, progress)
-    return _result(ab, std, pairs, xa, size, scale, cfg, st)
+    ab, std, models = _self_calibrate(xa, pairs, shifts, st, cfg, progress)
+    return _result(ab, std, pairs, xa, size, scale, cfg, st, models)
 
 
-def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: LensdistConfig) -> SequenceCalibration:
+def _deltas(theta: torch.Tensor, ra: float, rc: float, scale: float, size, paper) -> tuple[float, float, float]:
+    """Delta_avg, Delta_max in the user's pixels and Delta_avg at the paper's frame of analysis (a, b)."""
+    k2u, k4u = user_coefficients(float(theta[0]) / ra**2, float(theta[1]) / ra**4, scale)
+    return (float(delta_avg([k2u], [k4u], *size)[0]), float(delta_max([k2u], [k4u], *size)[0]),
+            float(delta_avg([float(theta[0]) / rc**2], [float(theta[1]) / rc**4], *paper)[0]))
+
+
+def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: LensdistConfig,
+            models: tuple[torch.Tensor, torch.Tensor] | None = None) -> SequenceCalibration:
     """Combine the pairs, convert to the user's pixels, intervals and class."""
     (h, w), (hh, ww), (hc, wc) = xa.shape[-2:], size, st.image.size
     ra, rc = half_diagonal(h, w), half_diagonal(hc, wc)
@@ -398,9 +420,18 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     a, b = float(theta[0]), float(theta[1])
     k2u, k4u = user_coefficients(a / ra**2, b / ra**4, scale)
     n_used, nan = int(keep.sum()), float("nan")
-    d_avg, d_max = (float(f([k2u], [k4u], hh, ww)[0]) if n_used else nan for f in (delta_avg, delta_max))
-    dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
-    half = [t * math.hypot(float(e), cfg.systematic_rel * d) for e, d in zip(sd[1:], (d_avg, d_max, dc))]
+    d_avg, d_max, dc = _deltas(theta, ra, rc, scale, (hh, ww), (hc, wc)) if n_used else (nan, nan, nan)
+    # the relief's effect (step 5): the pairs' plane + parallax minus planar answers, combined as the answers are
+    relief, relief_z = (0.0, 0.0, 0.0), 0.0
+    if n_used > 1 and models is not None:
+        theta_d, _, sd_d, _ = _combine(models[1] - models[0], std, pairs[:, 0], fun, cfg)
+        effect = (theta_d @ fun.T).abs()
+        if float(effect[1]) > 0 and bool(torch.isfinite(sd_d[1])):
+            relief_z = float(effect[1] / sd_d[1]) if float(sd_d[1]) > 0 else math.inf
+        if relief_z >= cfg.relief_test:  # the models part consistently over the sequence: relief
+            relief = tuple(float(e) for e in effect[1:])
+    half = [t * math.sqrt(float(e) ** 2 + (cfg.systematic_rel * d) ** 2 + (cfg.relief_rel * r) ** 2)
+            for e, d, r in zip(sd[1:], (d_avg, d_max, dc), relief)]
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
@@ -409,7 +440,11 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
         reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}"
     elif not half[2] <= cfg.max_class_halfwidth_px:
         reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
+    elif dc - half[2] < st.analysis.no_distortion_px <= dc + half[2]:  # R's bin is narrower than any interval here
+        reason = (f"the interval [{max(0.0, dc - half[2]):.2f}, {dc + half[2]:.2f}] px at the paper's frame spans the "
+                  f"no-distortion threshold ({st.analysis.no_distortion_px} px): a distortion or none cannot be told")
     else:
         label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
     return SequenceCalibration(k2u, k4u, d_avg, iv_avg, d_max, iv_max, label, reason, n_used, len(pairs) - n_used,
-                               xa.shape[0], (hh, ww), (h, w), scale, (a, b), pairs, (ab @ fun[0]).abs(), std, keep)
+                               xa.shape[0], (hh, ww), (h, w), scale, (a, b), pairs, (ab @ fun[0]).abs(), std, keep,
+                               relief[0], min(relief_z, 1e6))

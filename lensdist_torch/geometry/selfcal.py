@@ -109,8 +109,10 @@ class SelfCalInfo(NamedTuple):
     photometrically corrected residual at full resolution), overlap, ab (B, 2) the normalised
     coefficients, gain_bias (B, 2) the photometric gain and bias (1, 0 without that model),
     scale (the robust sigma, 1.4826 MAD, of the final residual), from_init (bool: the start
-    from ``init`` won), relief (bool: the plane + parallax model's answer was kept) and motion
-    (the fitted H's mean displacement over the frame, px; NaN if not converged).
+    from ``init`` won), relief (bool: the plane + parallax model's answer was kept), motion
+    (the fitted H's mean displacement over the frame, px; NaN if not converged), planar_ab and
+    relief_ab (B, 2) the planar and the plane + parallax models' coefficients, both, whichever was kept
+    (relief_ab NaN without that model or where it did not converge).
     """
 
     converged: torch.Tensor
@@ -126,6 +128,8 @@ class SelfCalInfo(NamedTuple):
     from_init: torch.Tensor
     relief: torch.Tensor
     motion: torch.Tensor
+    planar_ab: torch.Tensor
+    relief_ab: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -238,7 +242,8 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     def per_pair(a, b):  # a where the relief answer is kept, else b
         return torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b)
 
-    info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(from_init=planar[3].from_init, relief=use)
+    info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(from_init=planar[3].from_init, relief=use,
+                                                                  planar_ab=planar[3].ab, relief_ab=relief[3].ab)
     return (*map(per_pair, relief[:3], planar[:3]), info)
 
 
@@ -436,5 +441,6 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     rms = torch.sqrt((st.res.double() ** 2).sum(1) / st.valid.sum(1).clamp_min(1)).float()
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
-                       st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan))
+                       st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan), ab,
+                       torch.full_like(ab, float("nan")))
     return theta, k2, k4, H, info

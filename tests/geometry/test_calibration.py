@@ -305,5 +305,70 @@ def test_the_relief_model_of_the_sequence_path():
     assert planar.delta_avg_user_px - truth > 1.5 and planar.delta_avg_user_interval[0] > truth
     lo, hi = relief.delta_avg_user_interval
     assert abs(relief.delta_avg_user_px - truth) < 0.4 and lo <= truth <= hi
+    # the relief's effect (the same pairs' relief against their planar answers) is what the planar sequence saw
+    assert relief.relief_effect_px == pytest.approx(planar.delta_avg_user_px - relief.delta_avg_user_px, rel=0.25)
+    assert planar.relief_effect_px == 0.0
     planar, relief = answers[32]
     assert relief.delta_avg_user_px == planar.delta_avg_user_px
+    assert planar.relief_effect_px == 0.0  # planar pairs have no relief answers
+
+
+def test_the_relief_effect_widens_the_interval_as_documented():
+    """Hand-built pairs whose plane + parallax answers lie 10 % above their planar ones.
+    relief_effect_px is the distance between the two models' inverse-variance combinations (an
+    independent sum here), and relief_rel adds
+    (t relief_rel relief_effect)^2 to the squared half-width; without relief it changes nothing."""
+    from lensdist_torch.geometry.calibration import _result
+    from lensdist_torch.geometry.frame import half_diagonal
+
+    g = torch.Generator().manual_seed(0)
+    n, (h, w) = 16, (96, 128)
+    ab = torch.tensor([0.4, 0.05], dtype=torch.float64) + 0.01 * torch.randn(n, 2, generator=g, dtype=torch.float64)
+    std = 0.05 + 0.05 * torch.rand(n, generator=g, dtype=torch.float64)
+    pairs = torch.stack([torch.arange(n), torch.arange(n) + 2], 1)
+    xa, st = torch.zeros(n + 2, 1, h, w), LensdistConfig()
+    base = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(), st, (ab, ab.clone()))
+    assert base.relief_effect_px == 0.0
+    wide = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(relief_rel=0.7), st, (ab, ab * 1.1))
+    assert wide.delta_avg_user_px == base.delta_avg_user_px
+    wgt = 1 / std**2
+    ra = half_diagonal(h, w)
+    a, b = ((wgt[:, None] * ab).sum(0) / wgt.sum()).tolist()
+    ap, bp = ((wgt[:, None] * ab * 1.1).sum(0) / wgt.sum()).tolist()
+    d = [float(delta_avg([x / ra**2], [y / ra**4], h, w)[0]) for x, y in ((a, b), (ap, bp))]
+    assert wide.relief_effect_px == pytest.approx(abs(d[1] - d[0]), rel=1e-9)
+    assert wide.relief_effect_px == pytest.approx(0.1 * d[0], rel=1e-6)  # Delta is linear in (a, b) of one sign
+    assert wide.relief_z > 20  # every pair's models part the same way
+    t = _t_quantile(0.975, 7)
+    h0, h1 = (c.delta_avg_user_interval[1] - c.delta_avg_user_px for c in (base, wide))
+    assert h1**2 - h0**2 == pytest.approx((t * 0.7 * wide.relief_effect_px) ** 2, rel=1e-6)
+    # models that part by noise alone (a planar scene): under relief_test stds, no relief effect
+    noisy = ab + 0.01 * torch.randn(n, 2, generator=g, dtype=torch.float64)
+    flat = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(relief_rel=0.7), st, (ab, noisy))
+    assert 0 < flat.relief_z < 2.0 and flat.relief_effect_px == 0.0
+    assert flat.delta_avg_user_interval == base.delta_avg_user_interval
+
+
+def test_an_interval_across_the_no_distortion_threshold_gives_no_class():
+    """Undistorted scenes with relief came out at 0.3-0.6 px, intervals reaching 0, and were
+    called class 1: where the interval at the paper's frame spans analysis.no_distortion_px
+    (0.25 px) R and 1 cannot be told. Hand-built pairs at Delta_avg ~0.4 px at the paper's frame."""
+    from lensdist_torch.geometry.calibration import _result
+    from lensdist_torch.geometry.frame import half_diagonal
+
+    n, (h, w), st = 16, (320, 424), LensdistConfig()
+    ra = half_diagonal(h, w)
+    a = 0.4 / float(delta_avg([1.0 / ra**2], [0.0], h, w)[0])  # Delta_avg 0.4 px, linear in a
+    g = torch.Generator().manual_seed(1)
+    pairs = torch.stack([torch.arange(n), torch.arange(n) + 2], 1)
+    xa = torch.zeros(n + 2, 1, h, w)
+    ab = torch.stack([a * (1 + 0.001 * torch.randn(n, generator=g, dtype=torch.float64)),
+                      torch.zeros(n, dtype=torch.float64)], 1)
+    std = torch.full((n,), 0.01, dtype=torch.float64)
+    # the same pairs; in the second their relief answers lie 50 % higher (a relief effect of 0.2 px)
+    cfg = CalibrationConfig(relief_rel=1.1)
+    tight, wide = (_result(ab, std, pairs, xa, (h, w), 1.0, cfg, st, (ab, ab * f)) for f in (1.0, 1.5))
+    assert tight.class_label == "1" and tight.delta_avg_user_interval[0] > 0.25
+    lo, hi = wide.delta_avg_user_interval
+    assert lo < 0.25 < hi and hi - lo < 2.0  # not too wide: the threshold is the reason
+    assert wide.class_label is None and "no-distortion threshold (0.25 px)" in wide.reason

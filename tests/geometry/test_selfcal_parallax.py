@@ -78,7 +78,14 @@ def test_relief_model_leaves_a_planar_scene_nearly_as_it_was():
     assert float(planar.max()) < 0.6 and float(relief.max()) < float(planar.max()) + 0.3
     assert float(relief.pow(2).mean().sqrt()) < float(planar.pow(2).mean().sqrt()) + 0.1
     off = dataclasses.replace(RELIEF, parallax=0)
-    assert not bool(_errors(i1, i2, true, off)[1].relief.any())
+    flat = _errors(i1, i2, true, off)[1]
+    assert not bool(flat.relief.any())
+    # both models' coefficients travel with the answer: ab is the kept one's, the planar ones are
+    # the planar model's answers, and a planar model has no relief answers
+    kept = info.relief[:, None]
+    assert torch.equal(torch.where(kept, info.relief_ab, info.planar_ab), info.ab)
+    assert torch.allclose(info.planar_ab, flat.ab, atol=1e-9) and torch.equal(flat.planar_ab, flat.ab)
+    assert bool(flat.relief_ab.isnan().all()) and bool(torch.isfinite(info.relief_ab).all())
 
 
 @pytest.mark.usefixtures("one_thread_module")
