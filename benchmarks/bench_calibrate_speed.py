@@ -1,0 +1,103 @@
+"""The speed of `lensdist calibrate` against its goal: 22 frames of 384 x 288 in 60 s on 2 cores.
+
+Renders the goal's sequence (``synthetic_sequence(22, k2, k4, size=(288, 384), scene="gravel",
+seed=0, relief=0.02, realistic=True)``, eq. 4 scaled from the library's largest coefficients to
+Delta_avg = 7.5 px; ``--rotation 3 --altitude 0.1`` for a camera that turns) as 8-bit PNGs into a
+temporary folder and times the user's path, ``calibrate_path(folder, method="auto")`` (the direct
+path and the multi-view path on COLMAP, combined), and as a peer measured in the same run the
+direct path alone (``method="direct"``), so the figure is a ratio as well as seconds. Each run is
+a fresh process (spawned), so its peak resident memory (``ru_maxrss``) is its own; torch and
+COLMAP use ``--threads`` threads. Writes JSON to ``--out``.
+
+    python benchmarks/bench_calibrate_speed.py --threads 2 --repeats 2 --out docs/results/bench_calibrate_speed.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import multiprocessing
+import os
+import platform
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from lensdist_torch.config import LensdistConfig
+from lensdist_torch.core.storage import atomic_write_text
+from lensdist_torch.geometry.distortion import delta_avg
+from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
+from lensdist_torch.workflows.undistort import encode_png
+
+SIZE = (288, 384)
+GOAL_S = 60.0
+
+
+def coefficients(target: float = 7.5) -> tuple[float, float]:
+    """(k2, k4) on the line to the library's largest pair whose Delta_avg at 384 x 288 is ``target`` px."""
+    d, lo, hi = LensdistConfig().distortion, 0.0, 1.0
+    for _ in range(60):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if float(delta_avg([mid * d.k2_max], [mid * d.k4_max], *SIZE)[0]) < target else (lo, mid)
+    return lo * d.k2_max, lo * d.k4_max
+
+
+def _one(folder: str, method: str, threads: int) -> dict:
+    """One timed run in this (spawned) process."""
+    torch.set_num_threads(threads)
+    settings = LensdistConfig()
+    settings = dataclasses.replace(settings, multiview=dataclasses.replace(settings.multiview, num_threads=threads))
+    t0 = time.perf_counter()
+    res = calibrate_path(folder, method=method, settings=settings)
+    seconds = time.perf_counter() - t0
+    mv = res.get("multiview") or {}
+    return {"method": method, "seconds": seconds, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "answered_by": res["method"], "class": res["class"], "reason": res["reason"],
+            "delta_avg_user_px": res["delta_avg_user_px"], "delta_avg_user_interval": res["delta_avg_user_interval"],
+            "multiview": {k: mv.get(k) for k in ("class", "reason", "delta_avg_user_px", "delta_avg_user_interval",
+                                                 "rotation_spread_deg", "registered", "reconstructions")}}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=1)
+    ap.add_argument("--rotation", type=float, default=0.2, help="synthetic_sequence's rotation_deg (its default: 0.2)")
+    ap.add_argument("--altitude", type=float, default=0.0)
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    k2, k4 = coefficients()
+    frames, _ = synthetic_sequence(22, k2, k4, size=SIZE, scene="gravel", seed=0, relief=0.02, realistic=True,
+                                   rotation_deg=args.rotation, altitude=args.altitude)
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for j, f in enumerate(frames):
+            (Path(tmp) / f"frame_{j:03d}.png").write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
+        for _ in range(args.repeats):
+            for method in ("direct", "auto"):
+                pool = multiprocessing.get_context("spawn").Pool(1)  # a fresh process: its own peak memory
+                runs.append(pool.apply(_one, (tmp, method, args.threads)))
+                pool.close()
+                pool.join()  # not terminate: COLMAP's signal handler would print a stack trace
+                print(f"{method}: {runs[-1]['seconds']:.1f} s, {runs[-1]['peak_rss_mb']:.0f} MB, "
+                      f"class {runs[-1]['class']}, {runs[-1]['delta_avg_user_px']:.2f} px", flush=True)
+    best = {m: min(r["seconds"] for r in runs if r["method"] == m) for m in ("direct", "auto")}
+    out = {"command": "python benchmarks/bench_calibrate_speed.py " + " ".join(
+               f"--{k} {v}" for k, v in vars(args).items() if k != "out") + f" --out {args.out}",
+           "sequence": {"frames": 22, "size": list(SIZE), "scene": "gravel", "seed": 0, "relief": 0.02, "realistic": True,
+                        "rotation_deg": args.rotation, "altitude": args.altitude, "k2": k2, "k4": k4,
+                        "truth_delta_avg_px": float(delta_avg([k2], [k4], *SIZE)[0])},
+           "machine": {"cpus": multiprocessing.cpu_count(), "threads": args.threads, "python": platform.python_version(),
+                       "load_average_at_end": list(os.getloadavg())},
+           "goal_s": GOAL_S, "best_seconds": best, "auto_over_direct": best["auto"] / best["direct"],
+           "meets_goal": best["auto"] <= GOAL_S, "runs": runs}
+    atomic_write_text(args.out, json.dumps(out, indent=1, allow_nan=False) + "\n")
+    print(f"auto {best['auto']:.1f} s = {out['auto_over_direct']:.1f} x direct {best['direct']:.1f} s (goal {GOAL_S:g} s)")
+
+
+if __name__ == "__main__":
+    main()
