@@ -119,6 +119,9 @@ class MultiViewConfig:
         max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
         min_rotation_deg: frames whose orientations differ by less than this (degrees) at most
             give no class: under translation alone relief imitates distortion.
+        degenerate_share: where the first mapping registers every frame and turned by less than
+            this share of ``min_rotation_deg``, the other mappings are skipped (degenerate motion
+            is the camera path's; their spread could only widen an answer without a class).
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); their
             spread of Delta_avg joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`).
         num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
@@ -139,6 +142,7 @@ class MultiViewConfig:
     max_halfwidth_rel: float = 0.25
     max_halfwidth_px: float = 1.0
     min_rotation_deg: float = 5.0
+    degenerate_share: float = 0.9
     reconstructions: int = 3
     num_threads: int = 2
     seed: int = 0
@@ -158,6 +162,7 @@ class MultiViewConfig:
         real(self, "max_halfwidth_rel", lo=0, hi=1, lo_open=True, why="a share of Delta_avg")
         real(self, "max_halfwidth_px", lo=0, lo_open=True)
         real(self, "min_rotation_deg", lo=0)
+        real(self, "degenerate_share", lo=0, hi=1, why="a share of min_rotation_deg")
 
 
 def _number(v) -> bool:

@@ -6,7 +6,7 @@ lossless grey PNG into a temporary folder) to COLMAP (:mod:`~lensdist_torch.geom
 :mod:`~lensdist_torch.geometry.multiview_runs`) and returns a strict-JSON-ready dict, or the
 reason it has no answer (no mapping registered enough frames). When the first mapping registers
 every frame and shows degenerate motion with room to spare (the camera turned by less than
-``DEGENERATE_SHARE`` of ``multiview.min_rotation_deg``), the other mappings are skipped: how far
+``multiview.degenerate_share`` of ``multiview.min_rotation_deg``), the other mappings are skipped: how far
 the camera turned is a property of its path, which another seed of the mapping does not change
 (seeds 0-2 on 22 rendered frames: 2.3-2.4 degrees; where it turned, 5.97 each), so they could
 only widen the interval of an answer that gets no class anyway; each costs as much as the first
@@ -39,14 +39,12 @@ __all__ = ["COLMAP_SUFFIXES", "multiview_path", "combine"]
 COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: the fewest frames a multi-view calibration takes
 MIN_FRAMES = 3
-#: the first mapping turned by less than this share of ``min_rotation_deg``: the others are skipped
-DEGENERATE_SHARE = 0.9
 
 
 def _degenerate_for_sure(run, frames: int, cfg: MultiViewConfig) -> bool:
     """Whether one mapping's answer settles 'degenerate motion' for every seed (module docstring)."""
     return (not isinstance(run, str) and run.registered == frames
-            and run.rotation_spread_deg < DEGENERATE_SHARE * cfg.min_rotation_deg)
+            and run.rotation_spread_deg < cfg.degenerate_share * cfg.min_rotation_deg)
 
 
 def _encode(frame: torch.Tensor) -> bytes:
