@@ -6,10 +6,9 @@ import them from ``lensdist_torch.config``.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-from lensdist_torch.config_checks import integer, names, real
+from lensdist_torch.config_checks import integer, names, real, show
 
 __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
@@ -65,27 +64,22 @@ class CalibrationConfig:
 
     def __post_init__(self) -> None:
         for name in ("verify_pairs", "parallax"):
-            if type(getattr(self, name)) is not int or getattr(self, name) < 0:
-                raise ValueError(f"{name} must be an int >= 0, got {getattr(self, name)!r}")
+            integer(self, name, lo=0)
         for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
-            v, least = getattr(self, name), {"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1)
-            if type(v) is not int or v < least:
-                raise ValueError(f"{name} must be an int >= {least}, got {v!r}")
-        if not (_number(self.max_motion) and 0 < self.max_motion < 1):
-            raise ValueError(f"max_motion must lie in ]0, 1[, got {self.max_motion!r}")
-        if isinstance(self.motion_steps, list):  # a TOML array
-            object.__setattr__(self, "motion_steps", tuple(self.motion_steps))
+            integer(self, name, lo={"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1))
+        real(self, "max_motion", lo=0, hi=1, lo_open=True, hi_open=True)
         steps = self.motion_steps
-        if not (isinstance(steps, tuple) and steps and all(_number(v) and 0 < v < self.max_motion for v in steps)):
-            raise ValueError(f"motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, got {steps!r}")
+        if not (isinstance(steps, (tuple, list)) and steps and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < self.max_motion for v in steps)):
+            raise ValueError(f"calibration.motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, "
+                             f"got {show(steps)}")
+        object.__setattr__(self, "motion_steps", tuple(float(v) for v in steps))
         for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px"):
-            if not (_number(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"{name} must be a positive number, got {getattr(self, name)!r}")
+            real(self, name, lo=0, lo_open=True)
+        real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
+        real(self, "systematic_rel", lo=0, hi=1, hi_open=True)
         real(self, "relief_rel", lo=0)
         real(self, "relief_test", lo=0)
-        for name, lo in (("confidence", 0.0), ("systematic_rel", -1e-300)):
-            if not (_number(getattr(self, name)) and lo < getattr(self, name) < 1):
-                raise ValueError(f"{name} must lie in {']0' if lo == 0 else '[0'}, 1[, got {getattr(self, name)!r}")
 
 
 #: The camera models :class:`MultiViewConfig` may choose from: COLMAP's names, all OpenCV-compatible.
@@ -164,6 +158,3 @@ class MultiViewConfig:
         real(self, "min_rotation_deg", lo=0)
         real(self, "degenerate_share", lo=0, hi=1, why="a share of min_rotation_deg")
 
-
-def _number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)

@@ -242,11 +242,17 @@ def test_bad_frames_are_one_line_errors(frames, match):
         ({"jackknife_blocks": 1}, "jackknife_blocks"),
         ({"outlier_mads": -1.0}, "outlier_mads"),
         ({"systematic_rel": -0.1}, "systematic_rel"),
+        ({"relief_rel": -0.5}, "relief_rel"),
+        ({"relief_test": float("nan")}, "relief_test"),
+        ({"parallax": 2.0}, "parallax"),
+        ({"motion_steps": "0.1"}, "motion_steps"),
     ],
 )
 def test_bad_config_is_a_one_line_error(kwargs, match):
-    with pytest.raises(ValueError, match=match):
+    """Each message names the section and the field (``calibration.<field>``), on one line."""
+    with pytest.raises(ValueError, match=rf"^calibration\.{match} must be [^\n]*, got ") as err:
         CalibrationConfig(**kwargs)
+    assert "\n" not in str(err.value)
 
 
 @pytest.mark.bad_input
