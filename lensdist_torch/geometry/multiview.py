@@ -26,7 +26,8 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    with the spread of the models within ``bic_margin`` of the best, or whose reprojection RMS is
    within ``rms_margin`` of the best's, in quadrature (models that fit equally well but disagree
    on Delta: on thousands of tracks BIC prefers the richest model for a few % of RMS). No class when the camera turned by less than
-   ``min_rotation_deg`` (translation alone: relief imitates distortion, :func:`rotation_spread_deg`).
+   ``min_rotation_deg`` (translation alone: relief imitates distortion, :func:`rotation_spread_deg`;
+   the least over the mapping and every model's adjustment, which drift by degrees along that valley).
    The spread between reconstructions joins in quadrature too
    (:func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`).
 4. **In the user's pixels and OpenCV's terms**: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV and
@@ -355,7 +356,8 @@ def self_calibrate_reconstruction(
         dl = _deltas(_camera(r), size, scale, step)
         bic = 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n)
         fitted[model], deltas[model] = r, dl
-        table[model] = {"bic": bic, "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(ss / max(n, 1))}
+        table[model] = {"bic": bic, "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(ss / max(n, 1)),
+                        "rotation_deg": rotation_spread_deg(r)}
     best = min(table, key=lambda m: table[m]["bic"])
     chosen, cam, dl = fitted[best], _camera(fitted[best]), deltas[best]
     spread = model_spread(table, best, cfg)
@@ -378,7 +380,9 @@ def self_calibrate_reconstruction(
         intervals.append((max(0.0, value - half), value + half))
     k2u, k4u, fit_err = _eq4_fit(cam, size, scale, step)
     half_avg = (intervals[0][1] - intervals[0][0]) / 2
-    label, reason, spread_deg = None, "", rotation_spread_deg(chosen)
+    # the least rotation of the mapping and every model's adjustment: in the valley of a pan they drift by degrees
+    label, reason = None, ""
+    spread_deg = min([rotation_spread_deg(rec)] + [v["rotation_deg"] for v in table.values()])
     if spread_deg < cfg.min_rotation_deg:
         reason = (f"degenerate motion: the camera turned by at most {spread_deg:.1f} degrees (at least "
                   f"{cfg.min_rotation_deg:g} needed), so relief and distortion cannot be told apart")

@@ -64,7 +64,12 @@ def test_ideal_points_refuse_a_wrong_number_of_coefficients():
 
 # ------------------------------------------------------------------ COLMAP
 pycolmap = pytest.importorskip("pycolmap")
-from lensdist_torch.geometry.multiview import model_spread, opencv_from_colmap, self_calibrate_reconstruction  # noqa: E402
+from lensdist_torch.geometry.multiview import (  # noqa: E402
+    model_spread,
+    opencv_from_colmap,
+    rotation_spread_deg,
+    self_calibrate_reconstruction,
+)
 
 
 @pytest.mark.parametrize("model, params", [
@@ -110,6 +115,10 @@ def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_t
     assert res.model == min(res.models, key=lambda m: res.models[m]["bic"])
     assert res.reprojection_px == pytest.approx(0.5 * math.sqrt(2), rel=0.15)  # the noise, both coordinates
     assert rec.num_reg_images() == 8  # the input is left as it was
+    # the degenerate-motion guard takes the least rotation of the mapping and of every model's adjustment
+    rotations = [v["rotation_deg"] for v in res.models.values()]
+    assert res.rotation_spread_deg == min([rotation_spread_deg(rec), *rotations])
+    assert all(r > 0 for r in rotations)
 
 
 def test_models_within_the_rms_margin_join_the_spread():
