@@ -345,6 +345,8 @@ def self_calibrate_reconstruction(
     cfg, st = config or MultiViewConfig(), settings or LensdistConfig()
     if rec.num_reg_images() < 3:
         raise ValueError(f"rec must hold at least 3 registered frames, got {rec.num_reg_images()}")
+    if rec.num_points3D() == 0:  # a mapping can register frames and keep no point (tiny frames)
+        raise ValueError(f"rec must hold 3-D points, got none ({rec.num_reg_images()} frames registered)")
     cam0 = _camera(rec)
     size = image_size or (round(cam0.height * scale), round(cam0.width * scale))
     step = max(1, round(math.sqrt(size[0] * size[1] / 20000)))

@@ -94,8 +94,13 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
             nonlocal got
             n = 0 if rec is None else rec.num_reg_images()
             got = max(got, n)
-            runs.append((cfg.seed + i, f"{n} of {len(names)} frames registered" if n < least else
-                         self_calibrate_reconstruction(rec, cfg, settings, frames=len(names), image_size=tuple(image_size))))
+            if n < least:
+                runs.append((cfg.seed + i, f"{n} of {len(names)} frames registered"))
+            elif rec.num_points3D() == 0:
+                runs.append((cfg.seed + i, f"{n} of {len(names)} frames registered, but no 3-D point kept"))
+            else:
+                runs.append((cfg.seed + i, self_calibrate_reconstruction(rec, cfg, settings, frames=len(names),
+                                                                         image_size=tuple(image_size))))
             return _degenerate_for_sure(runs[-1][1], len(names), cfg)
 
         reconstruct(folder, names, cfg, stop=take)

@@ -142,6 +142,17 @@ def test_too_few_frames_is_a_one_line_error():
         self_calibrate_reconstruction(rec)
 
 
+def test_frames_without_points_are_a_one_line_error():
+    """A mapping of 10 tiny frames (120 x 160) registered 8 and kept no 3-D point: BIC divided by
+    zero (the calibrate_path doctest, 3 of 4 runs). Refused by name; the workflow records a failed run."""
+    rec, _ = _synthetic(0)
+    for point_id in list(rec.point3D_ids()):
+        rec.delete_point3D(point_id)
+    assert rec.num_reg_images() == 8 and rec.num_points3D() == 0
+    with pytest.raises(ValueError, match=r"^rec must hold 3-D points, got none \(8 frames registered\)$"):
+        self_calibrate_reconstruction(rec)
+
+
 # ------------------------------------------------------------------ combining the two paths
 def _direct(cls, d, lo, hi):
     return {"class": cls, "reason": None if cls else "interval too wide", "delta_avg_user_px": d,
