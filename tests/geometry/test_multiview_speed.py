@@ -32,6 +32,9 @@ def _fake_colmap(monkeypatch, tmp_path, answers):
         def num_reg_images(self):
             return self.n
 
+        def num_points3D(self):
+            return 100 * self.n
+
     def reconstruct(folder, names, cfg, stop=None):
         out = []
         for i in range(cfg.reconstructions):
