@@ -400,13 +400,6 @@ def calibrate_sequence(
     return _result(ab, std, pairs, xa, size, scale, cfg, st, models)
 
 
-def _deltas(theta: torch.Tensor, ra: float, rc: float, scale: float, size, paper) -> tuple[float, float, float]:
-    """Delta_avg, Delta_max in the user's pixels and Delta_avg at the paper's frame of analysis (a, b)."""
-    k2u, k4u = user_coefficients(float(theta[0]) / ra**2, float(theta[1]) / ra**4, scale)
-    return (float(delta_avg([k2u], [k4u], *size)[0]), float(delta_max([k2u], [k4u], *size)[0]),
-            float(delta_avg([float(theta[0]) / rc**2], [float(theta[1]) / rc**4], *paper)[0]))
-
-
 def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: LensdistConfig,
             models: tuple[torch.Tensor, torch.Tensor] | None = None) -> SequenceCalibration:
     """Combine the pairs, convert to the user's pixels, intervals and class."""
@@ -420,7 +413,8 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     a, b = float(theta[0]), float(theta[1])
     k2u, k4u = user_coefficients(a / ra**2, b / ra**4, scale)
     n_used, nan = int(keep.sum()), float("nan")
-    d_avg, d_max, dc = _deltas(theta, ra, rc, scale, (hh, ww), (hc, wc)) if n_used else (nan, nan, nan)
+    d_avg, d_max = (float(f([k2u], [k4u], hh, ww)[0]) if n_used else nan for f in (delta_avg, delta_max))
+    dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
     # the relief's effect (step 5): the pairs' plane + parallax minus planar answers, combined as the answers are
     relief, relief_z = (0.0, 0.0, 0.0), 0.0
     if n_used > 1 and models is not None:
