@@ -20,7 +20,7 @@ import traceback
 from pathlib import Path
 
 from lensdist_torch import cli_support as argtypes
-from lensdist_torch.cli_analyze import _cmd_analyze
+from lensdist_torch.cli_analyze import cmd_analyze
 from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
 from lensdist_torch.cli_support import note as _note
 from lensdist_torch.cli_support import print_json as _print_json
@@ -283,7 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", type=argtypes.device, default="cpu", help=device_help)
 
     p = command("analyze", "analyse your own pair of overlapping photographs",
-                "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", _cmd_analyze,
+                "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", cmd_analyze,
                 "print the result as one JSON object", "no notes on stderr")
     p.add_argument("img1", help="first image")
     p.add_argument("img2", help="second image, overlapping the first")

@@ -18,7 +18,7 @@ from lensdist_torch.core.outputs import check_output_file
 __all__ = ["print_analysis"]
 
 
-def _cmd_analyze(args: argparse.Namespace) -> int:
+def cmd_analyze(args: argparse.Namespace) -> int:
     if args.save_map:
         from lensdist_torch.workflows.figures import figure_formats, have_matplotlib
 

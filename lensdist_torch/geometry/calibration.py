@@ -261,7 +261,7 @@ def _signed_mean(height: int, width: int, rn: float) -> torch.Tensor:
     return torch.stack([(r**3).mean() / rn**2, (r**5).mean() / rn**4])
 
 
-def _t_quantile(p: float, dof: int) -> float:
+def t_quantile(p: float, dof: int) -> float:
     """Student's t quantile: Newton on the CDF (Simpson's rule on the density) from the normal's."""
     c = math.exp(math.lgamma((dof + 1) / 2) - math.lgamma(dof / 2)) / math.sqrt(dof * math.pi)
 
@@ -316,7 +316,7 @@ def _combine(ab, std, first, fun, cfg: CalibrationConfig):
         var = var_jk * max(1.0, var_b / float(var_jk[0]))
     else:  # identical estimates: the pairs' own sigma, carried over by the functionals' sizes
         var = var_b * (fun.norm(dim=1) / fun[0].norm()) ** 2
-    return theta, keep, var.sqrt(), _t_quantile(0.5 + cfg.confidence / 2, blocks - 1)
+    return theta, keep, var.sqrt(), t_quantile(0.5 + cfg.confidence / 2, blocks - 1)
 
 
 # ------------------------------------------------------------------ the estimator

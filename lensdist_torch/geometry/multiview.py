@@ -52,7 +52,7 @@ from typing import NamedTuple
 import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
-from lensdist_torch.geometry.calibration import _t_quantile
+from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
@@ -373,7 +373,7 @@ def self_calibrate_reconstruction(
         d = _deltas(_camera(r), size, scale, 2 * step)  # a quarter of the points: 4-5 times faster
         jk_avg.append(d["delta_avg_px"])
         jk_max.append(d["delta_max_px"])
-    t = _t_quantile(0.5 + cfg.confidence / 2, n_blocks - 1)
+    t = t_quantile(0.5 + cfg.confidence / 2, n_blocks - 1)
     intervals = []
     for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0)):
         jt = torch.tensor(jk, dtype=torch.float64)

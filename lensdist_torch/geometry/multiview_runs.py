@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 
 from lensdist_torch.config import MultiViewConfig
-from lensdist_torch.geometry.calibration import _t_quantile
+from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide
 
 __all__ = ["reconstruction_spread", "widened_half_width", "combine_reconstructions"]
@@ -97,7 +97,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     if not ok:
         raise ValueError(f"runs must hold at least one successful reconstruction, got {len(runs)} failed")
     best = _median([r for _, r in ok])
-    t = _t_quantile(0.5 + cfg.confidence / 2, max(1, len(best.jackknife) - 1))
+    t = t_quantile(0.5 + cfg.confidence / 2, max(1, len(best.jackknife) - 1))
     spread = reconstruction_spread([r.delta_avg_user_px for _, r in ok], best.delta_avg_user_px)
     spread_max = reconstruction_spread([r.delta_max_user_px for _, r in ok], best.delta_max_user_px)
     intervals = []

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._inputs import ONLY_AT_RISK
-from lensdist_torch.metric.criteria import _HALF_PI, _sobel8
+from lensdist_torch.metric.criteria import HALF_PI, sobel8
 
 
 def tan_threshold(cfg: QualityConfig) -> float | None:
@@ -27,8 +27,8 @@ def tan_threshold(cfg: QualityConfig) -> float | None:
     a_star = cfg.sigma + math.log(cfg.gamma / cfg.theta_e - 1.0) / cfg.k
     if a_star > 1.0:
         return None
-    dalpha_star = (1.0 - a_star) * _HALF_PI
-    return math.inf if dalpha_star >= _HALF_PI else math.tan(dalpha_star)
+    dalpha_star = (1.0 - a_star) * HALF_PI
+    return math.inf if dalpha_star >= HALF_PI else math.tan(dalpha_star)
 
 
 def _erode3(x: torch.Tensor) -> torch.Tensor:
@@ -85,8 +85,8 @@ def criteria_codes(v: torch.Tensor | None, crit) -> torch.Tensor:
 
 
 def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visual: bool, measured: bool = False):
-    sx1, sy1 = _sobel8(g1)
-    sx2, sy2 = _sobel8(g2)
+    sx1, sy1 = sobel8(g1)
+    sx2, sy2 = sobel8(g2)
     if t is None:
         mis = torch.ones_like(sx1)
     else:  # |b| > t |a|  <=>  E < theta_E  (see the module docstring)

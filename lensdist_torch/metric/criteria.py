@@ -35,7 +35,7 @@ __all__ = [
     "erode_valid",
 ]
 
-_HALF_PI = math.pi / 2
+HALF_PI = math.pi / 2
 
 
 class LocalCriteria(NamedTuple):
@@ -82,7 +82,7 @@ class ErrorImages(NamedTuple):
     e_vis: torch.Tensor
 
 
-def _sobel8(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def sobel8(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """8 x the normalised Sobel gradients: the raw [1, 2, 1] x [-1, 0, 1] responses."""
     p = F.pad(grey, (1, 1, 1, 1), mode="replicate")
     dx = p[..., :, 2:] - p[..., :, :-2]  # (B, 1, H + 2, W)
@@ -99,9 +99,9 @@ def _gradients(grey: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     (replicate border, kernels / 8; the tests check agreement to 1e-6), computed separably
     with slices: several times faster on the CPU than kornia's 2-channel convolution, which
     dominated the whole metric's time. The fast hard path uses the raw responses
-    (:func:`_sobel8`) with thresholds scaled by the exact factor 8.
+    (:func:`sobel8`) with thresholds scaled by the exact factor 8.
     """
-    sx, sy = _sobel8(grey)
+    sx, sy = sobel8(grey)
     return sx * 0.125, sy * 0.125
 
 
@@ -197,10 +197,10 @@ def local_criteria(
         (True, True)
     """
     g1, g2, _, cfg = prepare_pair(img1, img2, None, config, data_range, validate, pad=None)
-    return _criteria(g1, g2, cfg, smooth)
+    return criteria_from_grey(g1, g2, cfg, smooth)
 
 
-def _criteria(g1, g2, cfg: QualityConfig, smooth: bool) -> LocalCriteria:
+def criteria_from_grey(g1, g2, cfg: QualityConfig, smooth: bool) -> LocalCriteria:
     sx1, sy1, sx2, sy2 = _pair_gradients(g1, g2)
     if smooth:
         ux1, uy1 = _direction(sx1, sy1)
@@ -212,7 +212,7 @@ def _criteria(g1, g2, cfg: QualityConfig, smooth: bool) -> LocalCriteria:
     dalpha = _orientation_difference(dot, cross, smooth)
     # a vanishing gradient has no orientation: against a non-vanishing one nothing agrees (A = 0)
     lone = ((ux1 == 0) & (uy1 == 0)) != ((ux2 == 0) & (uy2 == 0))
-    a = 1.0 - torch.where(lone, torch.full_like(dalpha, _HALF_PI), dalpha) / _HALF_PI
+    a = 1.0 - torch.where(lone, torch.full_like(dalpha, HALF_PI), dalpha) / HALF_PI
     e = _edge_preservation(a, cfg, smooth)
     if smooth:
         m1, m2 = _safe_sqrt(sx1 * sx1 + sy1 * sy1), _safe_sqrt(sx2 * sx2 + sy2 * sy2)
@@ -260,10 +260,10 @@ def error_images(
         if should_validate(validate):
             check_values([], valid, 1.0)
         v = erode_valid(binarise_valid(valid, criteria.r))
-    return _error_images(criteria, v, cfg, smooth)
+    return error_images_unchecked(criteria, v, cfg, smooth)
 
 
-def _error_images(criteria: LocalCriteria, v: torch.Tensor | None, cfg: QualityConfig, smooth: bool) -> ErrorImages:
+def error_images_unchecked(criteria: LocalCriteria, v: torch.Tensor | None, cfg: QualityConfig, smooth: bool) -> ErrorImages:
     """error_images with ``v`` the eroded {0, 1} validity (or None)."""
     r = criteria.r
     if smooth:

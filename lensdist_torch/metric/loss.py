@@ -36,7 +36,7 @@ from torch import nn
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._hard import criteria_codes
 from lensdist_torch.metric._inputs import get_config, measured, prepare_pair
-from lensdist_torch.metric.criteria import _criteria, _error_images, erode_valid
+from lensdist_torch.metric.criteria import criteria_from_grey, erode_valid, error_images_unchecked
 from lensdist_torch.metric.pooling import block_pool
 
 __all__ = ["REDUCTIONS", "registration_quality_loss", "RegistrationQualityLoss"]
@@ -129,8 +129,8 @@ def registration_quality_loss(
     _check_reduction(reduction)
     g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
     v = None if valid is None else erode_valid(valid)
-    crit = _criteria(g1, g2, cfg, smooth=True)
-    reg_map = block_pool(_error_images(crit, v, cfg, smooth=True).e_reg, cfg, smooth=True)
+    crit = criteria_from_grey(g1, g2, cfg, smooth=True)
+    reg_map = block_pool(error_images_unchecked(crit, v, cfg, smooth=True).e_reg, cfg, smooth=True)
     return _reduce(reg_map, v, crit, cfg.block_size, reduction)
 
 

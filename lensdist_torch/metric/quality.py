@@ -55,10 +55,10 @@ from lensdist_torch.metric._inputs import (
 from lensdist_torch.metric.criteria import (
     ErrorImages,
     LocalCriteria,
-    _criteria,
-    _error_images,
+    criteria_from_grey,
     erode_valid,
     error_images,
+    error_images_unchecked,
     local_criteria,
 )
 from lensdist_torch.metric.loss import RegistrationQualityLoss, registration_quality_loss
@@ -216,7 +216,7 @@ def quality_map(
     return _floor(reg, cfg)
 
 
-def _measured_map(img1, img2, valid, config, data_range, validate, pad):
+def measured_map(img1, img2, valid, config, data_range, validate, pad):
     """quality_map and the (B,) codes of what each sample leaves to measure (``measure_codes``).
 
     Never raises for a sample with nothing to measure (the stateful metrics skip those).
@@ -289,11 +289,11 @@ def registration_quality(
         reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
         return QualityResult(reg_map, vis_map, _index(reg_map, flags))
     eroded = None if v is None else erode_valid(v)
-    crit = _criteria(g1, g2, cfg, smooth)
+    crit = criteria_from_grey(g1, g2, cfg, smooth)
     flags = criteria_codes(eroded, crit)
     if should_validate(validate):
         check_pair_values(img1, img2, valid, data_range, flags)
-    errs = _error_images(crit, eroded, cfg, smooth)
+    errs = error_images_unchecked(crit, eroded, cfg, smooth)
     reg_map = block_pool(errs.e_reg, cfg, smooth)
     vis_map = block_pool(errs.e_vis, cfg, smooth)
     q = _index(reg_map, flags)

@@ -31,7 +31,7 @@ from torch import nn
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._inputs import check_data_range, get_config, measured
 from lensdist_torch.metric._state import STATE, check_state, loaded_state
-from lensdist_torch.metric.quality import _measured_map
+from lensdist_torch.metric.quality import measured_map
 
 try:  # optional: only for RegistrationQualityTorchMetric
     import torchmetrics as _torchmetrics
@@ -71,7 +71,7 @@ def _batch_state(img1, img2, valid, config, data_range, validate, pad):
     Pairs with nothing to measure are left out of the sums and counted as skipped. The counts
     are ints when every pair counts, else int64 tensors on the maps' device: no host sync.
     """
-    m, flags = _measured_map(img1, img2, valid, config, data_range, validate, pad)  # (B, 1, h, w)
+    m, flags = measured_map(img1, img2, valid, config, data_range, validate, pad)  # (B, 1, h, w)
     m = m.double()
     q = 1.0 - m.mean(dim=(1, 2, 3))  # as registration_quality's quality_index
     keep = measured(flags).double()

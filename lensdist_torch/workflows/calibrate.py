@@ -83,7 +83,7 @@ def read_frames(path: str | Path, grey: bool = True, max_frames: int | None = No
         yield item
 
 
-def _frames_of_one_size(path: str | Path, grey: bool, max_frames: int | None, quiet: bool, desc: str):
+def frames_of_one_size(path: str | Path, grey: bool, max_frames: int | None, quiet: bool, desc: str):
     """:func:`read_frames` with a progress bar, checking that every frame has the first's size."""
     from tqdm import tqdm
 
@@ -154,11 +154,11 @@ def calibrate_path(
 
     Example:
         >>> import tempfile
-        >>> from lensdist_torch.workflows.undistort import _to_uint8, encode_png, undistort_path
+        >>> from lensdist_torch.workflows.undistort import to_uint8, encode_png, undistort_path
         >>> tmp = tempfile.TemporaryDirectory()
         >>> folder = Path(tmp.name)
         >>> for i, frame in enumerate(synthetic_sequence(10, 1e-5, 0.0, size=(120, 160))[0]):
-        ...     _ = (folder / f"frame_{i}.png").write_bytes(encode_png(_to_uint8(frame)))
+        ...     _ = (folder / f"frame_{i}.png").write_bytes(encode_png(to_uint8(frame)))
         >>> res = calibrate_path(folder)
         >>> res["frames"], res["class"], round(res["k2_user"] * 1e5, 1)
         (10, '2', 1.0)
@@ -175,7 +175,7 @@ def calibrate_path(
                               or focal <= 0):  # checked before the run, not by the OpenCV export at its end
         raise ValueError(f"focal must be a positive number of pixels or None, got {focal!r}")
     cfg, frames, scale = CalibrationConfig() if config is None else config, [], 1.0
-    for _, img in _frames_of_one_size(path, True, max_frames, quiet, "reading"):
+    for _, img in frames_of_one_size(path, True, max_frames, quiet, "reading"):
         scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
         frames.append(to_analysis(img, scale))
         size = tuple(img.shape[-2:])

@@ -48,9 +48,9 @@ def _degenerate_for_sure(run, frames: int, cfg: MultiViewConfig) -> bool:
 
 
 def _encode(frame: torch.Tensor) -> bytes:
-    from lensdist_torch.workflows.undistort import _to_uint8, encode_png  # one PNG writer
+    from lensdist_torch.workflows.undistort import encode_png, to_uint8  # one PNG writer
 
-    return encode_png(_to_uint8(frame[0]))
+    return encode_png(to_uint8(frame[0]))
 
 
 def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiViewConfig | None = None,

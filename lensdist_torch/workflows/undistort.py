@@ -55,7 +55,7 @@ from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center, sample
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
-from lensdist_torch.workflows.calibrate import _frames_of_one_size, list_frames
+from lensdist_torch.workflows.calibrate import frames_of_one_size, list_frames
 from lensdist_torch.workflows.calibration_file import Calibration, read_calibration
 
 __all__ = ["MAX_STRETCH", "encode_png", "undistort_path"]
@@ -104,7 +104,7 @@ def encode_png(img: torch.Tensor) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
 
 
-def _to_uint8(x: torch.Tensor) -> torch.Tensor:
+def to_uint8(x: torch.Tensor) -> torch.Tensor:
     return (x.clamp(0, 1) * 255).round().to(torch.uint8)
 
 
@@ -269,7 +269,7 @@ def undistort_path(
     _coefficients_for((1, 1) if cal is None else (cal.height, cal.width), k2, k4, from_json, cal)
     files = _plan(path, out, max_frames, from_json, overwrite)
     grid, n, valid_sum, dev, bits = None, 0, 0.0, torch.device(device or "cpu"), set()
-    for i, (name, img) in enumerate(_frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
+    for i, (name, img) in enumerate(frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
         if grid is None:
             size = tuple(img.shape[-2:])
             k2, k4 = _coefficients_for(size, k2, k4, from_json, cal)
@@ -281,8 +281,8 @@ def undistort_path(
             (out / "masks").mkdir(parents=True, exist_ok=True)
         deep = _deep(files[i] if files is not None else None, img)
         corrected = (sample(img.to(dev), grid) * valid)[0].cpu()
-        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint16(corrected) if deep else _to_uint8(corrected)))
-        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(_to_uint8(valid[0]).cpu()))
+        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint16(corrected) if deep else to_uint8(corrected)))
+        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(to_uint8(valid[0]).cpu()))
         n, valid_sum, bits = n + 1, valid_sum + float(valid.mean()), bits | {16 if deep else 8}
     if n == 0:
         raise ValueError(f"path {path} holds no frames")

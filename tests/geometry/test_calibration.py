@@ -12,11 +12,11 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.calibration import (
     CalibrationConfig,
-    _t_quantile,
     analysis_scale,
     analysis_size,
     calibrate_sequence,
     choose_pairs,
+    t_quantile,
     to_analysis,
     user_coefficients,
 )
@@ -172,7 +172,7 @@ def test_pairs_follow_the_camera_path():
 
 def test_t_quantiles():
     for dof, want in ((1, 12.706), (2, 4.303), (3, 3.182), (7, 2.365), (30, 2.042)):
-        assert _t_quantile(0.975, dof) == pytest.approx(want, abs=2e-3)
+        assert t_quantile(0.975, dof) == pytest.approx(want, abs=2e-3)
 
 
 # ------------------------------------------------------------------ OpenCV
@@ -345,7 +345,7 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     assert wide.relief_effect_px == pytest.approx(abs(d[1] - d[0]), rel=1e-9)
     assert wide.relief_effect_px == pytest.approx(0.1 * d[0], rel=1e-6)  # Delta is linear in (a, b) of one sign
     assert wide.relief_z > 20  # every pair's models part the same way
-    t = _t_quantile(0.975, 7)
+    t = t_quantile(0.975, 7)
     h0, h1 = (c.delta_avg_user_interval[1] - c.delta_avg_user_px for c in (base, wide))
     assert h1**2 - h0**2 == pytest.approx((t * 0.7 * wide.relief_effect_px) ** 2, rel=1e-6)
     # models that part by noise alone (a planar scene): under relief_test stds, no relief effect

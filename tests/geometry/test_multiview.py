@@ -209,11 +209,11 @@ def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
 
 def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
     from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
-    from lensdist_torch.workflows.undistort import _to_uint8, encode_png
+    from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(2, 1e-6, 0.0, size=(96, 128))
     for i, f in enumerate(frames):
-        (tmp_path / f"f{i}.png").write_bytes(encode_png(_to_uint8(f)))
+        (tmp_path / f"f{i}.png").write_bytes(encode_png(to_uint8(f)))
     with pytest.raises(ValueError, match="needs at least 3 frames, got 2"):
         calibrate_path(tmp_path, method="multiview")
     with pytest.raises(ValueError, match="method must be one of auto, multiview, direct"):

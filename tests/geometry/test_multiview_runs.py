@@ -89,11 +89,11 @@ def test_one_thread_reconstructions_repeat_exactly(tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
     from lensdist_torch.geometry.multiview import reconstruct
     from lensdist_torch.workflows.calibrate import synthetic_sequence
-    from lensdist_torch.workflows.undistort import _to_uint8, encode_png
+    from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(5, 1.5e-6, 0.0, size=(120, 160), seed=4)
     for i, f in enumerate(frames):
-        (tmp_path / f"frame_{i}.png").write_bytes(encode_png(_to_uint8(f)))
+        (tmp_path / f"frame_{i}.png").write_bytes(encode_png(to_uint8(f)))
     names = [f"frame_{i}.png" for i in range(5)]
     cfg = MultiViewConfig(num_threads=1, reconstructions=2)
 

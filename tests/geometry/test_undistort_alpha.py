@@ -14,7 +14,7 @@ from lensdist_torch import cli
 from lensdist_torch.geometry.distortion import render_distorted
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import optimal_view, undistort_image, undistortion_grid
-from lensdist_torch.workflows.undistort import _to_uint8, encode_png
+from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
 cv2 = pytest.importorskip("cv2")
 
@@ -75,7 +75,7 @@ def test_undistort_writes_the_new_camera_beside_the_frames(tmp_path, capsys):
     src = tmp_path / "frames"
     src.mkdir()
     for i, f in enumerate(frames):
-        (src / f"f{i}.png").write_bytes(encode_png(_to_uint8(f)))
+        (src / f"f{i}.png").write_bytes(encode_png(to_uint8(f)))
     assert cli.main(["undistort", str(src), "--k2", str(k2), "--k4", "0", "--alpha", "1", "--out", str(tmp_path / "o"),
                      "--quiet"]) == 0
     out = capsys.readouterr().out

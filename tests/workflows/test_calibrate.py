@@ -22,7 +22,7 @@ from lensdist_torch.workflows.calibrate import (
     read_frames,
     synthetic_sequence,
 )
-from lensdist_torch.workflows.undistort import _coefficients_for, _to_uint8, encode_png, undistort_path
+from lensdist_torch.workflows.undistort import _coefficients_for, encode_png, to_uint8, undistort_path
 
 SIZE = (240, 320)
 S = 424 / 320
@@ -33,7 +33,7 @@ TINT = torch.tensor([1.0, 0.8, 0.6]).view(1, 3, 1, 1)
 def _write(folder, frames, names=None):
     folder.mkdir(parents=True, exist_ok=True)
     for i, f in enumerate(frames):
-        (folder / f"{(names or [f'frame_{j}' for j in range(len(frames))])[i]}.png").write_bytes(encode_png(_to_uint8(f)))
+        (folder / f"{(names or [f'frame_{j}' for j in range(len(frames))])[i]}.png").write_bytes(encode_png(to_uint8(f)))
     return folder
 
 
@@ -146,7 +146,7 @@ def _fake_pyav(frames):
             self.img = img
 
         def to_ndarray(self, format):  # noqa: A002 (PyAV's keyword)
-            x = _to_uint8(to_grey(self.img[None])[0] if format == "gray" else self.img)
+            x = to_uint8(to_grey(self.img[None])[0] if format == "gray" else self.img)
             return x[0].numpy() if format == "gray" else x.permute(1, 2, 0).numpy()
 
     class Container:

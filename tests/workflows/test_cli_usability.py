@@ -70,10 +70,10 @@ def test_options_are_refused_before_any_frame_is_read(tmp_path, capsys, monkeypa
         raise AssertionError("a frame was read before the options were checked")
 
     monkeypatch.setattr(calibrate, "read_frames", never)
-    monkeypatch.setattr(calibrate, "_frames_of_one_size", never)
+    monkeypatch.setattr(calibrate, "frames_of_one_size", never)
     import lensdist_torch.workflows.undistort as undistort
 
-    monkeypatch.setattr(undistort, "_frames_of_one_size", never)
+    monkeypatch.setattr(undistort, "frames_of_one_size", never)
     assert cli.main([a.format(d=tmp_path) for a in argv]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and " error: " in err, err

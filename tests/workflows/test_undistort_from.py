@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from lensdist_torch.cli import main
-from lensdist_torch.workflows.undistort import _to_uint8, encode_png
+from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
 pytestmark = pytest.mark.bad_input
 
@@ -52,7 +52,7 @@ def frames(tmp_path):
     folder = tmp_path / "frames"
     folder.mkdir()
     g = torch.Generator().manual_seed(0)
-    (folder / "a.png").write_bytes(encode_png(_to_uint8(torch.rand(1, 120, 160, generator=g))))
+    (folder / "a.png").write_bytes(encode_png(to_uint8(torch.rand(1, 120, 160, generator=g))))
     return folder
 
 

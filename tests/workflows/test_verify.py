@@ -85,11 +85,11 @@ def test_undistort_from_a_calibration_that_could_not_tell(tmp_path, frames):
     """Issue 19 audit: `undistort --from` used the numbers of a 'cannot tell' calibration without a word."""
     import json
 
-    from lensdist_torch.workflows.undistort import _to_uint8, encode_png, undistort_path
+    from lensdist_torch.workflows.undistort import encode_png, to_uint8, undistort_path
 
     (tmp_path / "in").mkdir()
     for i, f in enumerate(frames[:2]):
-        (tmp_path / "in" / f"f{i}.png").write_bytes(encode_png(_to_uint8(f)))
+        (tmp_path / "in" / f"f{i}.png").write_bytes(encode_png(to_uint8(f)))
     cal = {"k2_user": 2e-6, "k4_user": 0.0, "image_size": [160, 212], "class": None, "reason": "interval too wide"}
     (tmp_path / "cal.json").write_text(json.dumps(cal))
     with pytest.raises(ValueError, match="could not tell .interval too wide.*--k2 2e-06 --k4 0"):

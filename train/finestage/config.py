@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from learnreg.config import _merge, _read_toml, parse_overrides, parse_value
+from learnreg.config import merge_dicts, parse_overrides, parse_value, read_toml
 
 __all__ = ["DEFAULTS", "PEERS", "load_config", "parse_overrides", "parse_value", "comparable", "arm_spec", "arm_name"]
 
@@ -108,7 +108,7 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     """DEFAULTS <- the TOML file <- ``overrides`` (dotted keys); unknown keys are errors."""
     cfg = copy.deepcopy(DEFAULTS)
     if path is not None:
-        cfg = _merge(cfg, _read_toml(path))
+        cfg = merge_dicts(cfg, read_toml(path))
     for dotted, value in (overrides or {}).items():
         *parents, leaf = dotted.split(".")
         node = cfg

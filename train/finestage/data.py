@@ -16,7 +16,7 @@ import math
 import torch
 import torch.nn.functional as F
 from kornia.geometry.transform import get_perspective_transform
-from learnreg.data import _photometric, load_scenes, patch_corners, source_points
+from learnreg.data import load_scenes, patch_corners, photometric_jitter, source_points
 
 __all__ = ["SPLITS", "load_scenes", "make_pairs", "split_seeds", "train_seeds", "vignette"]
 
@@ -77,7 +77,7 @@ def vignette(img: torch.Tensor, gen: torch.Generator, d: dict) -> torch.Tensor:
 
 def _illuminate(img: torch.Tensor, gen: torch.Generator, d: dict) -> torch.Tensor:
     """learnreg's moving light (gain, offset, gamma, ramp, noise), then a vignetting."""
-    return vignette(_photometric(img, gen, d), gen, d)
+    return vignette(photometric_jitter(img, gen, d), gen, d)
 
 
 def make_pairs(scenes: list[torch.Tensor], seeds: list[int], d: dict, distorted: bool, split: str) -> dict:

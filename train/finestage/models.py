@@ -9,7 +9,7 @@ learnreg's.
 
 from __future__ import annotations
 
-from learnreg.models import CorrelationHomographyNet, _block, _offset_head
+from learnreg.models import CorrelationHomographyNet, conv_block, offset_head
 from torch import nn
 
 __all__ = ["FineNet", "build_model"]
@@ -30,17 +30,17 @@ class FineNet(CorrelationHomographyNet):
         nn.Module.__init__(self)  # other layers than the parent's, the same forward
         w = width
         self.encoder = nn.Sequential(
-            *_block(1, w, 2, norm),
-            *_block(w, 2 * w, 1, norm),
-            *_block(2 * w, 2 * w, 2, norm),
+            *conv_block(1, w, 2, norm),
+            *conv_block(w, 2 * w, 1, norm),
+            *conv_block(2 * w, 2 * w, 2, norm),
             nn.Conv2d(2 * w, 2 * w, 3, padding=1),
         )
         self.radius = int(radius)
         k = 2 * self.radius + 1
         self.regressor = nn.Sequential(
-            *_block(k * k, 4 * w, 2, norm), *_block(4 * w, 4 * w, 2, norm), *_block(4 * w, 8 * w, 2, norm)
+            *conv_block(k * k, 4 * w, 2, norm), *conv_block(4 * w, 4 * w, 2, norm), *conv_block(4 * w, 8 * w, 2, norm)
         )
-        self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
+        self.head = offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = float(rho)
 
 

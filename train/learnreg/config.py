@@ -77,11 +77,11 @@ ARM_DEFAULTS: dict[str, Any] = {
 _NOT_TRAINING = ("log_every", "checkpoint_every")
 
 
-def _merge(base: dict, over: dict) -> dict:
+def merge_dicts(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for key, value in over.items():
         if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
+            out[key] = merge_dicts(out[key], value)
         else:
             out[key] = copy.deepcopy(value)
     return out
@@ -126,7 +126,7 @@ def config_from_args(args, load) -> dict:
     return cfg
 
 
-def _read_toml(path: str | Path) -> dict:
+def read_toml(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config file not found: {path}")
@@ -160,10 +160,10 @@ def load_train_config(path: str | Path | None = None, overrides: dict[str, Any] 
     """
     cfg = copy.deepcopy(DEFAULTS)
     if path is not None:
-        data = _read_toml(path)
+        data = read_toml(path)
         if "arms" in data:
             cfg["arms"] = {}
-        cfg = _merge(cfg, data)
+        cfg = merge_dicts(cfg, data)
     for dotted, value in (overrides or {}).items():
         node = cfg
         *parents, leaf = dotted.split(".")

@@ -40,7 +40,7 @@ def source_points(patch: int, k2: torch.Tensor, k4: torch.Tensor, distorted: boo
     return pixel_grid(patch, patch).expand(k2.numel(), patch, patch, 2)
 
 
-def _photometric(img: torch.Tensor, gen: torch.Generator, d: dict) -> torch.Tensor:
+def photometric_jitter(img: torch.Tensor, gen: torch.Generator, d: dict) -> torch.Tensor:
     """A moving light: gain, offset, gamma, a brightness ramp across the patch, noise. (1,P,P)."""
     s = float(d["photometric"])
     if s <= 0:
@@ -107,8 +107,8 @@ def make_pairs(
     src_b = (src_b[..., :2] / src_b[..., 2:]).reshape(n, patch, patch, 2)
     grid = torch.cat([q + m, src_b]) / (big - 1) * 2 - 1
     imgs = F.grid_sample(torch.cat([crops, crops]), grid, mode="bilinear", padding_mode="border", align_corners=True)
-    a = torch.stack([_photometric(imgs[i], r["gen"], d) for i, r in enumerate(draws)])
-    b = torch.stack([_photometric(imgs[n + i], r["gen"], d) for i, r in enumerate(draws)])
+    a = torch.stack([photometric_jitter(imgs[i], r["gen"], d) for i, r in enumerate(draws)])
+    b = torch.stack([photometric_jitter(imgs[n + i], r["gen"], d) for i, r in enumerate(draws)])
     return {"a": a, "b": b, "delta": delta}
 
 

@@ -16,7 +16,7 @@ from torch import nn
 __all__ = ["HomographyNet", "CorrelationHomographyNet", "MODELS", "build_model"]
 
 
-def _offset_head(in_features: int, hidden: int) -> nn.Sequential:
+def offset_head(in_features: int, hidden: int) -> nn.Sequential:
     """Flatten -> hidden -> 8 corner offsets; the last layer starts at zero (identity)."""
     head = nn.Sequential(nn.Flatten(), nn.Linear(in_features, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 8))
     nn.init.zeros_(head[-1].weight)
@@ -36,7 +36,7 @@ def _bounded(raw: torch.Tensor, rho: float) -> torch.Tensor:
     return 1.5 * rho * torch.tanh(raw.view(-1, 4, 2) / 1.5)
 
 
-def _block(cin: int, cout: int, stride: int, norm: bool) -> list[nn.Module]:
+def conv_block(cin: int, cout: int, stride: int, norm: bool) -> list[nn.Module]:
     """3 x 3 convolution (no bias under batch norm), [batch norm], ReLU."""
     return (
         [nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=not norm)]
@@ -61,9 +61,9 @@ class HomographyNet(nn.Module):
         chans = [w, 2 * w, 4 * w, 4 * w, 8 * w]  # five stride-2 convolutions: P -> P / 32
         layers: list[nn.Module] = []
         for cin, cout in zip([2, *chans[:-1]], chans):
-            layers += _block(cin, cout, 2, norm)
+            layers += conv_block(cin, cout, 2, norm)
         self.features = nn.Sequential(*layers)
-        self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
+        self.head = offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = rho
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -87,15 +87,15 @@ class CorrelationHomographyNet(nn.Module):
         super().__init__()
         w = width
         self.encoder = nn.Sequential(
-            *_block(1, w, 2, norm), *_block(w, 2 * w, 2, norm), *_block(2 * w, 2 * w, 2, norm),
+            *conv_block(1, w, 2, norm), *conv_block(w, 2 * w, 2, norm), *conv_block(2 * w, 2 * w, 2, norm),
             nn.Conv2d(2 * w, 2 * w, 3, padding=1),
         )
         self.radius = math.ceil(1.5 * rho / 8)  # feature pixels are 8 px
         n_disp = (2 * self.radius + 1) ** 2
         self.regressor = nn.Sequential(
-            *_block(n_disp, 4 * w, 1, norm), *_block(4 * w, 4 * w, 2, norm), *_block(4 * w, 8 * w, 2, norm)
+            *conv_block(n_disp, 4 * w, 1, norm), *conv_block(4 * w, 4 * w, 2, norm), *conv_block(4 * w, 8 * w, 2, norm)
         )
-        self.head = _offset_head(8 * w * (patch // 32) ** 2, hidden)
+        self.head = offset_head(8 * w * (patch // 32) ** 2, hidden)
         self.rho = rho
 
     def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
