@@ -63,6 +63,15 @@ class QualityConfig:
             edge-preservation, intensity-difference and block-floor steps). Smaller is sharper.
         chunk_size: pairs processed at once inside a big batch, so that the intermediates of a
             chunk stay in the CPU cache. The result does not depend on it.
+
+    Example:
+        >>> from dataclasses import replace
+        >>> QualityConfig().theta_e, replace(QualityConfig(), theta_e=0.6).theta_e
+        (0.5, 0.6)
+        >>> QualityConfig(theta_e=0.99)
+        Traceback (most recent call last):
+        ...
+        ValueError: quality.theta_e must be a number in ]0, gamma=0.9879[, got 0.99
     """
 
     block_size: int = 8
@@ -99,7 +108,13 @@ class QualityConfig:
 
 @dataclass(frozen=True)
 class ImageConfig:
-    """Analysis size (docs/method.md section 1): 320 x 424 gives 40 x 53 blocks, feature vectors of 2120."""
+    """Analysis size (docs/method.md section 1): 320 x 424 gives 40 x 53 blocks, feature vectors of 2120.
+
+    Example:
+        >>> from dataclasses import replace
+        >>> ImageConfig().size, replace(ImageConfig(), width=512).size
+        ((320, 424), (320, 512))
+    """
 
     height: int = 320
     width: int = 424
@@ -120,6 +135,11 @@ class DistortionConfig:
 
     k2 lies in ]0, k2_max], k4 in ]0, k4_max]. ``n_classes`` is 4: the labels are the classes
     1-4 and R.
+
+    Example:
+        >>> from dataclasses import replace
+        >>> DistortionConfig().k2_max, replace(DistortionConfig(), k2_max=1e-6).k2_max
+        (2.5e-06, 1e-06)
     """
 
     k2_max: float = 2.5e-6
@@ -154,6 +174,15 @@ class ProtocolConfig:
     displacement of I2's samples along the motion), ``occluder_rate`` (share of pairs with a
     moving or occluding patch, in [0, 1]) and ``occluder_area`` (its share of the frame, in
     ]0, 1]).
+
+    Example:
+        >>> from dataclasses import replace
+        >>> ProtocolConfig().n_train, replace(ProtocolConfig(), n_train=100).n_train
+        (12000, 100)
+        >>> ProtocolConfig(ty_range=(40, 0))
+        Traceback (most recent call last):
+        ...
+        ValueError: protocol.ty_range must be (low, high): two finite numbers with low <= high, got (40, 0) (tuple)
     """
 
     seed: int = 0
@@ -210,7 +239,13 @@ class ProtocolConfig:
 
 @dataclass(frozen=True)
 class ClassifierConfig:
-    """The eigen-space classifier (docs/method.md section 8)."""
+    """The eigen-space classifier (docs/method.md section 8).
+
+    Example:
+        >>> from dataclasses import replace
+        >>> ClassifierConfig().metric, replace(ClassifierConfig(), metric="delta_max").metric
+        ('delta_avg', 'delta_max')
+    """
 
     n_eigenvectors: int = 10
     metric: str = "delta_avg"
@@ -226,7 +261,18 @@ class ClassifierConfig:
 
 @dataclass(frozen=True)
 class LensdistConfig:
-    """All settings, one section per concern."""
+    """All settings, one section per concern.
+
+    Example:
+        >>> from dataclasses import replace
+        >>> cfg = LensdistConfig()
+        >>> cfg.quality.block_size, replace(cfg, image=ImageConfig(96, 128)).image.size
+        (8, (96, 128))
+        >>> LensdistConfig(image=ImageConfig(321, 424))
+        Traceback (most recent call last):
+        ...
+        ValueError: image size 321 x 424 must be a multiple of quality.block_size=8
+    """
 
     quality: QualityConfig = field(default_factory=QualityConfig)
     image: ImageConfig = field(default_factory=ImageConfig)

@@ -46,6 +46,15 @@ class RegistrationConfig:
         match_ratio: second-nearest-neighbour ratio of the fallback's mutual matches, in ]0, 1].
         ransac_threshold: px, one-way transfer error of a RANSAC inlier in the fallback.
         min_inliers: fewest RANSAC inliers for a feature homography.
+
+    Example:
+        >>> from dataclasses import replace
+        >>> RegistrationConfig().levels, replace(RegistrationConfig(), levels=(3, 1, 0), iterations=(10, 8, 6)).levels
+        ((2, 0), (3, 1, 0))
+        >>> RegistrationConfig(levels=(0, 2))
+        Traceback (most recent call last):
+        ...
+        ValueError: registration.levels must be a decreasing tuple of ints ending with 0, got (0, 2)
     """
 
     levels: tuple[int, ...] = (2, 0)
@@ -144,6 +153,15 @@ class SelfCalConfig:
             (Hausman's test: under a planar scene both are right and the planar one is the
             more precise).
         interpolation: img2's sampling kernel: "bilinear", "bicubic" or "blend" (their mean).
+
+    Example:
+        >>> from dataclasses import replace
+        >>> SelfCalConfig().robust, replace(SelfCalConfig(), robust="huber").robust
+        ('tukey', 'huber')
+        >>> SelfCalConfig(robust="l1")
+        Traceback (most recent call last):
+        ...
+        ValueError: selfcal.robust must be 'none' or 'huber' or 'tukey', got 'l1' (str)
     """
 
     levels: int = 3
@@ -220,6 +238,11 @@ class RegressionConfig:
         cannot_tell_fraction: neighbour spread of Delta_avg, as a fraction of the class range,
             at which confidence is 0.5, in ]0, 1].
         confidence_threshold: below this confidence the answer is "cannot tell".
+
+    Example:
+        >>> from dataclasses import replace
+        >>> RegressionConfig().k, replace(RegressionConfig(), k=16).k
+        (8, 16)
     """
 
     n_components: int = 384
@@ -269,6 +292,11 @@ class AnalysisConfig:
             method says "cannot tell": both views carry the same distortion, which cancels
             where the scene did not move. Positive, and applied with or without ``cross_check``.
         interval_confidence: coverage of a pair's Delta_avg interval (self-calibration).
+
+    Example:
+        >>> from dataclasses import replace
+        >>> AnalysisConfig().no_distortion_px, replace(AnalysisConfig(), no_distortion_px=0.5).no_distortion_px
+        (0.25, 0.5)
     """
 
     no_distortion_px: float = 0.25

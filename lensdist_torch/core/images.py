@@ -136,6 +136,11 @@ def to_grey(img: torch.Tensor) -> torch.Tensor:
 
     uint8 is divided by 255; three channels become grey with the ITU-R 601 luma weights
     (kornia's ``rgb_to_grayscale``).
+
+    Example:
+        >>> red = torch.tensor([255, 0, 0], dtype=torch.uint8).view(1, 3, 1, 1)
+        >>> tuple(to_grey(red).shape), round(float(to_grey(red)), 3)  # red's luma weight
+        ((1, 1, 1, 1), 0.299)
     """
     if img.dtype == torch.uint8:
         img = img.float() / 255.0
@@ -186,6 +191,16 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
         FileNotFoundError: the file does not exist.
         ValueError: anything else that stops the file from giving a correct image; the one-line
             message names the file.
+
+    Example:
+        >>> import tempfile
+        >>> from kornia.io import write_image
+        >>> rgb = torch.tensor([[[255, 0]], [[0, 255]], [[0, 0]]], dtype=torch.uint8)  # (3, 1, 2): red, green
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     write_image(Path(tmp) / "tiny.png", rgb)
+        ...     grey, colour = load_image(Path(tmp) / "tiny.png"), load_image(Path(tmp) / "tiny.png", grey=False)
+        >>> tuple(grey.shape), [round(v, 3) for v in grey.flatten().tolist()], colour.flatten().tolist()
+        ((1, 1, 1, 2), [0.299, 0.587], [1.0, 0.0, 0.0, 1.0, 0.0, 0.0])
     """
     from kornia.io import ImageLoadType
     from kornia.io import load_image as _kornia_load
@@ -263,12 +278,23 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
 
 
 def scene_names() -> list[str]:
-    """Names of the embedded CC0 scenes (see ``lensdist_torch/data/README.md``)."""
+    """Names of the embedded CC0 scenes (see ``lensdist_torch/data/README.md``).
+
+    Example:
+        >>> scene_names()
+        ['brick', 'grass', 'gravel']
+    """
     return sorted(p.stem for p in _DATA.glob("*.png"))
 
 
 def load_scene(name: str = "gravel") -> torch.Tensor:
-    """An embedded scene as a (1, 1, 512, 512) float tensor in [0, 1]."""
+    """An embedded scene as a (1, 1, 512, 512) float tensor in [0, 1].
+
+    Example:
+        >>> img = load_scene("gravel")
+        >>> tuple(img.shape), img.dtype, 0 <= float(img.min()) <= float(img.max()) <= 1
+        ((1, 1, 512, 512), torch.float32, True)
+    """
     names = scene_names()
     if name not in names:
         raise ValueError(f"unknown scene {name!r}; embedded scenes are {names}")

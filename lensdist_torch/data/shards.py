@@ -318,6 +318,15 @@ def generate(
             ``out`` (``core.outputs.refuse_foreign_folder``); a ``limit`` that would shrink a recorded set.
         ShardError: a manifest that is not valid (naming the file).
         DataSetLocked: another live run over overlapping shares.
+
+    Example:
+        >>> import tempfile
+        >>> cfg = config_from_dict({"protocol": {"n_test_distorted": 3, "n_test_undistorted": 1}})  # 4 test pairs
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     summary = generate(cfg, tmp, sets=["test"], progress=False)
+        ...     again = generate(cfg, tmp, sets=["test"], progress=False)  # verified on disk: nothing to write
+        >>> summary["pairs_generated"], summary["sets"]["test"]["complete"], again["written"]
+        (4, True, 0)
     """
     out = Path(out)
     _check_arguments(sets, shard, workers, batch_size, limit, scenes_dir, sequence)
@@ -377,6 +386,15 @@ def load_set(out: str | Path, set_name: str, limit: int | None = None) -> dict:
             incomplete or without shard digests, or that disagrees with the shards; a shard that
             fails a check.
         ValueError: no such set in the folder; ``limit`` not None or a positive int.
+
+    Example:
+        >>> import tempfile
+        >>> cfg = config_from_dict({"protocol": {"n_test_distorted": 3, "n_test_undistorted": 1}})
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     _ = generate(cfg, tmp, sets=["test"], progress=False)
+        ...     test = load_set(tmp, "test", limit=2)
+        >>> tuple(test["k2"].shape), tuple(test["counts"].shape), test["config"] == cfg
+        ((2,), (2, 1, 40, 53), True)
     """
     if limit is not None and not (type(limit) is int and limit >= 1):
         raise ValueError(f"limit must be None or a positive int, got {limit!r}")

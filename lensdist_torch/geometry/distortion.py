@@ -10,6 +10,13 @@ The model's two primitives, used by every module that applies eq. 4 (in pixels o
 normalised frame, where a = k2 R^2 and b = k4 R^4 take the place of k2, k4):
 :func:`radial_factor`, the factor 1 + k2 r^2 + k4 r^4, and :func:`radial_inverse`, the
 distorted radius r of an ideal radius rho = r (1 + k2 r^2 + k4 r^4) by Newton.
+
+The classes: :func:`distortion_class` and :func:`estimated_class` return an index into
+``CLASS_LABELS``, the last one (``REJECT``) the class R, "no visible distortion".
+
+Example:
+    >>> CLASS_LABELS, CLASS_LABELS[REJECT]
+    (('1', '2', '3', '4', 'R'), 'R')
 """
 
 from __future__ import annotations
@@ -104,7 +111,14 @@ def radial_inverse(rho2: torch.Tensor, k2, k4, iterations: int = 8) -> tuple[tor
 
 
 def undistort_points(points: torch.Tensor, k2, k4, center: tuple[float, float]) -> torch.Tensor:
-    """Eq. 4: distorted points p_d (B, ..., 2) -> ideal points p, per-pair (k2, k4) of shape (B,)."""
+    """Eq. 4: distorted points p_d (B, ..., 2) -> ideal points p, per-pair (k2, k4) of shape (B,).
+
+    Example:
+        >>> c = distortion_center(320, 424)  # (211.5, 159.5)
+        >>> p_d = torch.tensor([[[c[0] + 100, c[1]]]], dtype=torch.float64)  # 100 px right of p0
+        >>> [round(v, 6) for v in undistort_points(p_d, [1e-6], [0.0], c)[0, 0].tolist()]  # 100 (1 + 1e-6 100^2) = 101
+        [312.5, 159.5]
+    """
     k2, k4 = _coefficients(k2, k4, points)
     shape = (-1,) + (1,) * (points.dim() - 1)
     c = points.new_tensor(center)
@@ -119,6 +133,13 @@ def distort_points(points: torch.Tensor, k2, k4, center: tuple[float, float], it
     :func:`radial_inverse` on the radius; differentiable. Accurate to well below 1e-6 px over
     the coefficient ranges of docs/method.md, section 6 (the tests check it); where the model
     is not invertible (strongly negative coefficients) the result is the Newton iterate.
+
+    Example:
+        >>> c, p = distortion_center(320, 424), torch.tensor([[[10.0, 20.0], [300.0, 200.0]]], dtype=torch.float64)
+        >>> p_d = distort_points(p, [1e-6], [1e-11], c)  # barrel: drawn towards p0
+        >>> back = undistort_points(p_d, [1e-6], [1e-11], c)  # eq. 4 returns the ideal points
+        >>> p_d[0, 0].round(decimals=2).tolist(), bool(torch.allclose(back, p, atol=1e-4))
+        ([24.64, 30.13], True)
     """
     k2, k4 = _coefficients(k2, k4, points)
     shape = (-1,) + (1,) * (points.dim() - 1)
@@ -129,7 +150,13 @@ def distort_points(points: torch.Tensor, k2, k4, center: tuple[float, float], it
 
 
 def distortion_grid(k2, k4, height: int, width: int, dtype=torch.float32, device=None) -> torch.Tensor:
-    """Ideal coordinates of every distorted pixel: (B, H, W, 2) in pixels (x, y)."""
+    """Ideal coordinates of every distorted pixel: (B, H, W, 2) in pixels (x, y).
+
+    Example:
+        >>> g = distortion_grid([0.0, 1e-6], [0.0, 0.0], 320, 424)  # without distortion each pixel is its own place
+        >>> tuple(g.shape), g[0, 0, 0].tolist(), [round(v, 2) for v in g[1, 0, 0].tolist()]  # barrel: outside
+        ((2, 320, 424, 2), [0.0, 0.0], [-14.84, -11.19])
+    """
     grid = pixel_grid(height, width, dtype, device)
     k2, k4 = _coefficients(k2, k4, grid)
     pts = grid.expand(k2.numel(), height, width, 2)
@@ -137,7 +164,13 @@ def distortion_grid(k2, k4, height: int, width: int, dtype=torch.float32, device
 
 
 def pixel_offsets(k2, k4, height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
-    """delta(p_d) = ||p - p_d|| = |k2 r^3 + k4 r^5| at every pixel centre: (B, H, W)."""
+    """delta(p_d) = ||p - p_d|| = |k2 r^3 + k4 r^5| at every pixel centre: (B, H, W).
+
+    Example:
+        >>> off = pixel_offsets([1e-6], [0.0], 320, 424)  # 1e-6 r^3: 0 at p0, largest at the corners
+        >>> tuple(off.shape), round(float(off[0, 0, 0]), 2), round(float(off.max()), 2)
+        ((1, 320, 424), 18.59, 18.59)
+    """
     grid = pixel_grid(height, width, dtype, device)
     k2, k4 = _coefficients(k2, k4, grid)
     x0, y0 = distortion_center(height, width)
@@ -147,12 +180,22 @@ def pixel_offsets(k2, k4, height: int, width: int, dtype=torch.float64, device=N
 
 
 def delta_max(k2, k4, height: int, width: int) -> torch.Tensor:
-    """Delta_max: the largest pixel offset over all pixel centres, (B,) float64."""
+    """Delta_max: the largest pixel offset over all pixel centres, (B,) float64.
+
+    Example:
+        >>> [round(float(d), 1) for d in delta_max([0.0, 2.5e-6], [0.0, 2.5e-11], 320, 424)]  # none; the top
+        [0.0, 79.1]
+    """
     return pixel_offsets(k2, k4, height, width).flatten(1).amax(1)
 
 
 def delta_avg(k2, k4, height: int, width: int) -> torch.Tensor:
-    """Delta_avg: the mean pixel offset over all pixel centres, (B,) float64."""
+    """Delta_avg: the mean pixel offset over all pixel centres, (B,) float64.
+
+    Example:
+        >>> [round(float(d), 2) for d in delta_avg([0.0, 1e-6, 2.5e-6], [0.0, 0.0, 2.5e-11], 320, 424)]
+        [0.0, 4.19, 14.37]
+    """
     return pixel_offsets(k2, k4, height, width).flatten(1).mean(1)
 
 
@@ -178,6 +221,11 @@ def distortion_class(delta: torch.Tensor, top: float, n_classes: int = 4) -> tor
     """Class index of a true Delta: 0..n-1 for the equal-width bins of ]0, top], ``REJECT`` for 0.
 
     Values above ``top`` fall into the last class.
+
+    Example:
+        >>> idx = distortion_class(torch.tensor([0.0, 1.0, 5.0, 14.4, 20.0]), top=14.4)  # bins of 3.6
+        >>> idx.tolist(), [CLASS_LABELS[i] for i in idx]
+        ([4, 0, 1, 3, 3], ['R', '1', '2', '4', '4'])
     """
     delta = torch.as_tensor(delta, dtype=torch.float64)
     if not math.isfinite(top) or top <= 0:
@@ -197,6 +245,11 @@ def estimated_class(
     The bin of ``delta`` (of ``metric``), and ``REJECT`` ("no visible distortion") where the
     estimated Delta_avg is below ``config.analysis.no_distortion_px`` or not finite. The one
     labelling rule of every estimator (self-calibration, regression) and of ``analyze``.
+
+    Example:
+        >>> d = torch.tensor([0.1, 5.0, 5.0])  # Delta_avg estimates (px at 320 x 424), the last one not finite:
+        >>> estimated_class(d, torch.tensor([0.1, 5.0, float("nan")]), "delta_avg", LensdistConfig()).tolist()
+        [4, 1, 4]
     """
     delta = torch.as_tensor(delta, dtype=torch.float64)
     d_avg = torch.as_tensor(delta_avg_estimate, dtype=torch.float64)
@@ -245,7 +298,14 @@ def sample(img: torch.Tensor, points: torch.Tensor, mode: str = "bilinear") -> t
 
 
 def render_distorted(img: torch.Tensor, k2, k4) -> torch.Tensor:
-    """A distorted image: I_d(p_d) = I(p(p_d)) for (B, C, H, W) images and (B,) coefficients."""
+    """A distorted image: I_d(p_d) = I(p(p_d)) for (B, C, H, W) images and (B,) coefficients.
+
+    Example:
+        >>> img = torch.rand(2, 1, 32, 48, generator=torch.Generator().manual_seed(0))
+        >>> out = render_distorted(img, [0.0, 1e-3], [0.0, 0.0])  # the first one undistorted
+        >>> bool(torch.allclose(out[0], img[0], atol=1e-5)), float(out[1, 0, 0, 0])  # a corner sees outside: 0
+        (True, 0.0)
+    """
     b, _, h, w = img.shape
     grid = distortion_grid(k2, k4, h, w, dtype=img.dtype, device=img.device)
     if grid.shape[0] != b:

@@ -383,6 +383,13 @@ def warp_to_reference(
 
     Returns:
         warped: (B, C, h, w), img2's float dtype (float32 for uint8); valid: (B, 1, h, w) of 0 and 1.
+
+    Example:
+        >>> img2 = torch.rand(1, 1, 32, 48, generator=torch.Generator().manual_seed(0))
+        >>> H = torch.tensor([[[1.0, 0, 2], [0, 1, 0], [0, 0, 1]]])  # img1(x, y) = img2(x + 2, y)
+        >>> warped, valid = warp_to_reference(img2, H)
+        >>> bool(torch.allclose(warped[..., :-2], img2[..., 2:], atol=1e-5)), valid[0, 0, 0, -4:].tolist()
+        (True, [1.0, 1.0, 0.0, 0.0])
     """
     check_image(img2, "img2")
     H = check_homography(H, "H", img2.shape[0])

@@ -69,6 +69,20 @@ def reproduce(
     pairs and reported beside the eigen-space settings; with ``calibrate`` too, the decision is
     first fitted on a validation split (:func:`calibrate_confidence`) and the test pairs are
     analysed under it. ``device`` is where the analysis runs.
+
+    Example:
+        A run generates thousands of pairs and fits every method (``quick``: a tenth of the pairs,
+        a few minutes on 2 CPU cores; ``lensdist reproduce --quick``), too long for an example; here
+        the pairs that ``quick`` keeps, and an argument refused before anything is written:
+
+        >>> import tempfile
+        >>> quick_config(LensdistConfig()).protocol.n_train
+        1200
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     reproduce(LensdistConfig(), tmp, workers=0)
+        Traceback (most recent call last):
+        ...
+        ValueError: workers must be a positive int, got 0
     """
     out = Path(out)
     if quick:
