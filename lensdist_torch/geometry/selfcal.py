@@ -12,9 +12,8 @@ batched over pairs, coarse to fine (2 x 2 mean pyramid), in the normalised frame
     v_d  = eq. 4 inverted by Newton on the radius (differentiable)
     r    = img1(p_d) - (g img2(p0 + R v_d) + c)   over the pixels whose v_d lies inside img2
 
-In normalised radius the coefficients are O(0.1): a = k2 R^2, b = k4 R^4 (R = 264.9 px at
-320 x 424, so the largest coefficients of section 6 are a = 0.18, b = 0.12); both signs are
-allowed (pincushion too). (a, b) are held at 0 on the levels coarser than
+In normalised radius the coefficients are O(0.1): a = k2 R^2, b = k4 R^4 (docs/method.md,
+section 10); both signs are allowed (pincushion too). (a, b) are held at 0 on the levels coarser than
 ``config.distortion_levels``: there they trade off with H on few samples and can lead the fit
 into a far minimum. The Jacobian is analytic (chain rule through eq. 4, the homography
 and the implicit derivative of the Newton inverse), times the image gradient of img2; one
@@ -33,9 +32,8 @@ leave the overlap); ``none`` compares raw intensities.
 Robust loss (``config.robust``): each LM iteration solves the weighted normal equations
 (J W J^T + lambda diag) d = -J W r with Tukey (default) or Huber weights of z = r / sigma,
 sigma = 1.4826 MAD of the pair's residuals, re-estimated every iteration; a step is accepted
-where the robust cost 2 sigma^2 mean rho(z), at the same sigma, falls. Tukey's weights drop
-an occluder or a saturated patch entirely; Huber's keep a bounded pull that, while the views
-are still misaligned, can drag the gain down.
+where the robust cost 2 sigma^2 mean rho(z), at the same sigma, falls. Tukey's weights drop an
+occluder entirely; Huber's keep a bounded pull that can drag the gain down.
 
 Starts. Without ``init``, H starts at the phase correlation of the coarsest level. With
 ``init`` (e.g. :func:`estimate_homography`'s H, which absorbs part of the distortion and can
@@ -56,8 +54,7 @@ Divergence. A pair whose fit goes non-finite, leaves the plausible range (|a|, |
 (dr/dr_d <= 0), loses its overlap or ends with a larger robust cost than it started with gets
 ``converged`` False and k2 = k4 = NaN, H = NaN: flagged, never returned as a number.
 
-Device: every tensor lives on the images' device (CUDA included); the model works in float32,
-the normal equations are solved in float64.
+Device: the images' (CUDA included); the model in float32, the normal equations in float64.
 """
 
 from __future__ import annotations
@@ -163,15 +160,22 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
     Args:
         img1: (B, C, H, W) float in [0, 1] or uint8; H and W at least 16 (and 2^levels).
         img2: the same shape and dtype, with the same distortion as img1.
-        init: optional (B, 3, 3) homography img1 -> img2 (pixels), e.g. from
-            :func:`estimate_homography`; fitted beside the phase-correlation start when
-            ``config.both_starts`` (the better one kept per pair), alone otherwise.
+        init: optional (B, 3, 3) homography img1 -> img2 (pixels), e.g. from :func:`estimate_homography`;
+            beside the phase-correlation start when ``config.both_starts`` (the better kept), alone otherwise.
         config: :class:`SelfCalConfig`; defaults when None.
 
     Returns:
         k2, k4: (B,) float64 in pixel units (eq. 4), NaN where the fit diverged.
         H: (B, 3, 3) float64, img1's ideal pixel coordinates -> img2's, NaN where diverged.
         info: :class:`SelfCalInfo`. Everything on img1's device.
+
+    Example:
+        >>> from lensdist_torch.geometry.distortion import delta_avg
+        >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
+        >>> frames, _ = synthetic_sequence(2, 4e-6, 0.0, size=(160, 212), seed=1)  # truth: Delta_avg 2.10 px
+        >>> k2, k4, H, info = estimate_distortion(frames[:1], frames[1:])
+        >>> abs(float(delta_avg(k2, k4, 160, 212)[0]) - 2.10) < 0.1
+        True
     """
     cfg = config if config is not None else SelfCalConfig()
     if not isinstance(cfg, SelfCalConfig):
