@@ -24,10 +24,12 @@ __version__ = "0.2.0"
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.config": (
         "AnalysisConfig",
+        "CalibrationConfig",
         "ClassifierConfig",
         "DistortionConfig",
         "ImageConfig",
         "LensdistConfig",
+        "MultiViewConfig",
         "ProtocolConfig",
         "QualityConfig",
         "RegistrationConfig",

@@ -4,10 +4,12 @@
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier as EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor as DeltaRegressor
 from lensdist_torch.config import AnalysisConfig as AnalysisConfig
+from lensdist_torch.config import CalibrationConfig as CalibrationConfig
 from lensdist_torch.config import ClassifierConfig as ClassifierConfig
 from lensdist_torch.config import DistortionConfig as DistortionConfig
 from lensdist_torch.config import ImageConfig as ImageConfig
 from lensdist_torch.config import LensdistConfig as LensdistConfig
+from lensdist_torch.config import MultiViewConfig as MultiViewConfig
 from lensdist_torch.config import ProtocolConfig as ProtocolConfig
 from lensdist_torch.config import QualityConfig as QualityConfig
 from lensdist_torch.config import RegistrationConfig as RegistrationConfig
@@ -67,6 +69,7 @@ __version__: str
 __all__ = [
     "AnalysisConfig",
     "CLASS_LABELS",
+    "CalibrationConfig",
     "ClassRMSE",
     "ClassifierConfig",
     "ConfusionMatrix",
@@ -77,6 +80,7 @@ __all__ = [
     "ImageConfig",
     "LensdistConfig",
     "LocalCriteria",
+    "MultiViewConfig",
     "ProtocolConfig",
     "QualityConfig",
     "QualityMetricResult",

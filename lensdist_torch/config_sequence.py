@@ -43,6 +43,16 @@ class CalibrationConfig:
             the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
+
+    Example:
+        >>> import dataclasses
+        >>> cfg = CalibrationConfig()
+        >>> cfg.analysis_side, dataclasses.replace(cfg, parallax=0).parallax
+        (512, 0)
+        >>> CalibrationConfig(relief_rel=-1)
+        Traceback (most recent call last):
+        ...
+        ValueError: calibration.relief_rel must be a finite number >= 0, got -1
     """
 
     analysis_side: int = 512
@@ -121,6 +131,14 @@ class MultiViewConfig:
         num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
             and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
         seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
+
+    Example:
+        >>> MultiViewConfig().models
+        ('SIMPLE_RADIAL', 'RADIAL', 'OPENCV', 'FULL_OPENCV')
+        >>> MultiViewConfig(models=("RADIAL", "FISHEYE"))
+        Traceback (most recent call last):
+        ...
+        ValueError: multiview.models must hold names from SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, got 'FISHEYE'
     """
 
     models: tuple[str, ...] = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
