@@ -35,7 +35,6 @@ __all__ = [
     "centre_crop_box",
     "check_image",
     "check_image_pair",
-    "check_valid_mask",
     "to_grey",
     "as_batch",
     "load_image",
@@ -104,31 +103,6 @@ def check_image_pair(
                 f"img1/img2 height and width must be multiples of block_size={block_size}, "
                 f"got {h} x {w}"
             )
-
-
-def check_valid_mask(
-    valid: object, like: torch.Tensor, name: str = "valid", check_values: bool = True
-) -> torch.Tensor:
-    """Check a validity mask of shape (B, 1, H, W) matching ``like``; return it as ``like``'s dtype.
-
-    The mask is bool, or numbers in [0, 1] (1 = valid). With ``check_values`` (the default), NaN,
-    Inf or values outside [0, 1] are a ``ValueError`` naming the mask (a NaN would turn the whole
-    map into NaN). A non-tensor or a complex tensor is a ``TypeError``; a wrong shape a ``ValueError``.
-    """
-    if not isinstance(valid, torch.Tensor):
-        raise TypeError(f"{name} must be a torch.Tensor or None, got {type(valid).__name__}")
-    if valid.is_complex():
-        raise TypeError(f"{name} must be a bool or real tensor, got dtype {valid.dtype}")
-    b, _, h, w = like.shape
-    if tuple(valid.shape) != (b, 1, h, w):
-        raise ValueError(f"{name} must have shape {(b, 1, h, w)}, got {tuple(valid.shape)}")
-    if check_values and valid.dtype != torch.bool and valid.numel():
-        lo, hi = (float(v) for v in torch.aminmax(valid))  # one pass; NaN propagates into both
-        if not (lo >= -1e-6 and hi <= 1 + 1e-6):  # warps round a hair past 0 and 1
-            if not (math.isfinite(lo) and math.isfinite(hi)):
-                raise ValueError(f"{name} contains NaN or Inf values; a validity mask holds 0 to 1")
-            raise ValueError(f"{name} must hold values in [0, 1] (1 = valid), got values in [{lo:g}, {hi:g}]")
-    return valid.to(dtype=like.dtype, device=like.device)
 
 
 def to_grey(img: torch.Tensor) -> torch.Tensor:

@@ -16,13 +16,13 @@ import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from kornia.io import write_image
 
+from lensdist_torch import quality_map
 from lensdist_torch.core import images
 from lensdist_torch.core.images import (
     IMAGE_SUFFIXES,
     MAX_PIXELS,
     as_batch,
     check_image,
-    check_valid_mask,
     load_image,
     resize_to,
 )
@@ -501,42 +501,41 @@ def test_bad_max_pixels(rgb_png, limit):
 # ----------------------------------------------------------------------------- bad tensors
 
 
+# the validity mask is checked where it is used: by the metric's entry points (metric/_inputs.py)
 @pytest.mark.bad_input
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_valid_mask_not_finite(bad):
-    like = torch.rand(2, 1, 8, 8)
-    valid = torch.ones(2, 1, 8, 8)
+    like = torch.rand(2, 1, 16, 16)
+    valid = torch.ones(2, 1, 16, 16)
     valid[1, 0, 3, 4] = bad
     with pytest.raises(ValueError) as info:
-        check_valid_mask(valid, like)
+        quality_map(like, like, valid=valid)
     _one_line(info, "valid", "NaN or Inf")
 
 
 @pytest.mark.bad_input
 @pytest.mark.parametrize("bad", [-0.5, 2.0])
 def test_valid_mask_out_of_range(bad):
-    like = torch.rand(1, 1, 8, 8, dtype=torch.float64)
-    valid = torch.ones(1, 1, 8, 8, dtype=torch.float64)
+    like = torch.rand(1, 1, 16, 16, dtype=torch.float64)
+    valid = torch.ones(1, 1, 16, 16, dtype=torch.float64)
     valid[0, 0, 0, 0] = bad
     with pytest.raises(ValueError) as info:
-        check_valid_mask(valid, like, name="mask")
-    _one_line(info, "mask", "[0, 1]")
+        quality_map(like, like, valid=valid)
+    _one_line(info, "valid", "[0, 1]")
 
 
 @pytest.mark.bad_input
 def test_valid_mask_complex():
     with pytest.raises(TypeError) as info:
-        check_valid_mask(torch.ones(1, 1, 4, 4, dtype=torch.complex64), torch.rand(1, 1, 4, 4))
+        quality_map(torch.rand(1, 1, 16, 16), torch.rand(1, 1, 16, 16), valid=torch.ones(1, 1, 16, 16, dtype=torch.complex64))
     _one_line(info, "valid")
 
 
 def test_valid_masks_that_are_fine():
-    like = torch.rand(1, 1, 4, 4)
-    soft = torch.rand(1, 1, 4, 4)
-    assert torch.equal(check_valid_mask(soft, like), soft)
-    assert torch.equal(check_valid_mask(torch.ones(1, 1, 4, 4, dtype=torch.uint8), like), torch.ones(1, 1, 4, 4))
-    nan = torch.full((1, 1, 4, 4), math.nan)
-    assert check_valid_mask(nan, like, check_values=False).isnan().all()  # the caller's choice
+    like = torch.rand(1, 1, 16, 16)
+    ones = quality_map(like, like, valid=torch.ones(1, 1, 16, 16, dtype=torch.uint8))
+    assert torch.equal(ones, quality_map(like, like, valid=torch.ones(1, 1, 16, 16, dtype=torch.bool)))
+    assert torch.equal(ones, quality_map(like, like))  # all valid = no mask
 
 
 @pytest.mark.bad_input

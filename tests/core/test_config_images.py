@@ -26,7 +26,6 @@ from lensdist_torch.core.images import (
     as_batch,
     check_image,
     check_image_pair,
-    check_valid_mask,
     load_image,
     load_scene,
     resize_to,
@@ -214,15 +213,6 @@ class TestChecks:
             check_image_pair(torch.rand(1, 1, 12, 12), torch.rand(1, 1, 12, 12), 8)
         with pytest.raises(ValueError, match="same shape"):
             check_image_pair(torch.rand(1, 1, 8, 8), torch.rand(2, 1, 8, 8))
-
-    def test_check_valid_mask(self):
-        like = torch.rand(2, 1, 8, 8, dtype=torch.float64)
-        out = check_valid_mask(torch.ones(2, 1, 8, 8, dtype=torch.bool), like)
-        assert out.dtype == torch.float64 and bool((out == 1).all())
-        with pytest.raises(ValueError, match=r"mask.*\(2, 1, 8, 8\)"):
-            check_valid_mask(torch.ones(2, 1, 8, 4), like, name="mask")
-        with pytest.raises(TypeError, match="valid"):
-            check_valid_mask(1.0, like)
 
 
 class TestGrey:
