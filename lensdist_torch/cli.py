@@ -24,6 +24,7 @@ from lensdist_torch.cli_analyze import cmd_analyze
 from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
 from lensdist_torch.cli_support import note as _note
 from lensdist_torch.cli_support import print_json as _print_json
+from lensdist_torch.config_checks import one_line
 from lensdist_torch.core.outputs import check_output_dir, check_output_file, refuse_inputs, refuse_inside
 
 __all__ = ["main", "build_parser"]
@@ -304,11 +305,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _one_line(exc: BaseException) -> str:
+    """The error line of ``exc``; an OSError as 'FILE: what the system said'."""
     if isinstance(exc, OSError) and exc.strerror and exc.filename:
-        text = f"{exc.filename}: {exc.strerror}"
-    else:
-        text = " ".join(str(exc).split()) or type(exc).__name__
-    return text if len(text) <= 500 else text[:497] + "..."
+        exc = OSError(f"{exc.filename}: {exc.strerror}")
+    return one_line(exc, 500)
 
 
 def main(argv: list[str] | None = None) -> int:

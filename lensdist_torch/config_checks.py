@@ -20,9 +20,17 @@ from typing import Any
 __all__ = ["one_line", "show", "real", "positive", "integer", "flag", "choice", "pair", "integers", "names"]
 
 
-def one_line(exc: BaseException) -> str:
-    """An exception's message on one line."""
-    return " ".join(str(exc).split())
+def one_line(exc: BaseException, limit: int | None = None) -> str:
+    """An exception's message on one line (its type's name when it has none), cut at ``limit`` characters.
+
+    Example:
+        >>> one_line(ValueError("bad" + chr(10) + "  value"))
+        'bad value'
+        >>> one_line(OSError(), 10), one_line(ValueError("x" * 20), 10)
+        ('OSError', 'xxxxxxx...')
+    """
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if limit is None or len(text) <= limit else text[: limit - 3] + "..."
 
 
 def show(value: Any) -> str:

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 
+from lensdist_torch.config_checks import one_line
 from lensdist_torch.core.image_headers import read_header
 
 __all__ = [
@@ -144,11 +145,6 @@ def _check_pixels(path: Path, height: int, width: int, max_pixels: int | None) -
         )
 
 
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    return text if len(text) <= 300 else text[:297] + "..."
-
-
 def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX_PIXELS) -> torch.Tensor:
     """Load an image file as a (1, C, H, W) float32 tensor in [0, 1] (C = 1 with ``grey``, else 1 or 3).
 
@@ -197,13 +193,13 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
         with path.open("rb") as f:
             size, palette = read_header(f, path)
     except OSError as exc:
-        raise ValueError(f"cannot read image file {path}: {exc.strerror or _one_line(exc)}") from exc
+        raise ValueError(f"cannot read image file {path}: {exc.strerror or one_line(exc, 300)}") from exc
     if size is not None:
         _check_pixels(path, *size, max_pixels)
     try:
         img = _kornia_load(str(path), ImageLoadType.UNCHANGED, device="cpu")
     except Exception as exc:  # kornia_rs raises several types for undecodable files
-        reason = _one_line(exc).removeprefix(f"Failed to decode image '{path}': ")
+        reason = one_line(exc, 300).removeprefix(f"Failed to decode image '{path}': ")
         raise ValueError(f"cannot decode image file {path}: {reason}") from exc
     img = img[None] if img.dim() == 2 else img
     channels, height, width = img.shape
