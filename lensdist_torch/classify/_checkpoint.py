@@ -31,10 +31,34 @@ from typing import Any
 
 import torch
 
-from lensdist_torch.config import LensdistConfig, config_from_dict
-from lensdist_torch.core.storage import CheckpointError
+from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
+from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
 
 Spec = dict[str, tuple[torch.dtype, tuple[Any, ...]]]
+
+
+def save_model(model: torch.nn.Module, path: str | Path, kind: str, version: int, sizes: dict, extra: dict) -> None:
+    """A fitted model's checkpoint, atomically: its sizes, its config, its buffers (on the CPU) and ``extra``.
+
+    An existing file at ``path`` is replaced only if it is a checkpoint of ``kind``.
+    """
+    save_versioned(path, kind, version, {
+        **sizes,
+        "config": config_to_dict(model.config),
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "extra": dict(extra),
+    }, replace_same_kind_only=True)
+
+
+def load_payload(path: str | Path, kind: str, version: int, what: str, map_location, sizes: tuple[str, ...],
+                 expected: LensdistConfig | None) -> tuple[dict, LensdistConfig]:
+    """A checkpoint's payload (digest verified) and its config, checked against ``expected``; ``sizes`` present."""
+    payload = load_versioned(path, kind, version, what, map_location, digest=True)
+    require_keys(payload, (*sizes, "config", "state_dict"), path)
+    config = config_of(payload, path)
+    if expected is not None:
+        check_compatible(config, expected, path)
+    return payload, config
 
 
 def require_keys(payload: dict, keys: tuple[str, ...], path: str | Path) -> None:

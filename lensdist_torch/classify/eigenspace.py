@@ -27,17 +27,17 @@ from lensdist_torch.classify._checkpoint import (
     check_extra,
     check_features_domain,
     check_state,
-    config_of,
     in_range,
+    load_payload,
     max_coefficient_norm,
     max_delta,
     orthonormal_rows,
     positive_int,
-    require_keys,
     row_norms_below,
+    save_model,
 )
-from lensdist_torch.config import ClassifierConfig, LensdistConfig, config_to_dict
-from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
+from lensdist_torch.config import ClassifierConfig, LensdistConfig
+from lensdist_torch.core.storage import CheckpointError
 from lensdist_torch.geometry.distortion import REJECT
 
 __all__ = ["EigenSpaceClassifier", "ClassifierResult", "CheckpointError", "CHECKPOINT_VERSION"]
@@ -210,12 +210,7 @@ class EigenSpaceClassifier(nn.Module):
         An existing file at ``path`` is replaced only if it is a checkpoint of this kind
         (FileExistsError otherwise: never an image, a data shard or another file).
         """
-        save_versioned(path, _KIND, CHECKPOINT_VERSION, {
-            "n_features": self.n_features,
-            "config": config_to_dict(self.config),
-            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-            "extra": dict(self.extra if extra is None else extra),
-        }, replace_same_kind_only=True)
+        save_model(self, path, _KIND, CHECKPOINT_VERSION, {"n_features": self.n_features}, self.extra if extra is None else extra)
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":
@@ -237,11 +232,7 @@ class EigenSpaceClassifier(nn.Module):
                 thresholds; a content that does not match its digest; missing entries, wrong
                 shapes or dtypes, non-finite or implausible values (the message names the field).
         """
-        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location, digest=True)
-        require_keys(payload, ("n_features", "config", "state_dict"), path)
-        config = config_of(payload, path)
-        if expected is not None:
-            check_compatible(config, expected, path)
+        payload, config = load_payload(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location, ("n_features",), expected)
         d = positive_int(payload, "n_features", path)
         k, n = config.distortion.n_classes, config.classifier.n_eigenvectors
         if d <= n:

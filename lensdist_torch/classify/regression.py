@@ -35,18 +35,18 @@ from lensdist_torch.classify._checkpoint import (
     check_extra,
     check_features_domain,
     check_state,
-    config_of,
     in_range,
+    load_payload,
     max_coefficient_norm,
     max_delta,
     orthonormal_rows,
     positive_int,
-    require_keys,
     row_norms_below,
+    save_model,
 )
-from lensdist_torch.config import LensdistConfig, config_to_dict
+from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config_estimators import MAX_NEIGHBOURS
-from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
+from lensdist_torch.core.storage import CheckpointError
 from lensdist_torch.geometry.distortion import METRICS, delta_top, estimated_class
 
 __all__ = ["DeltaRegressor", "RegressionResult", "CHECKPOINT_VERSION"]
@@ -176,14 +176,8 @@ class DeltaRegressor(nn.Module):
         An existing file at ``path`` is replaced only if it is a checkpoint of this kind
         (FileExistsError otherwise: never an image, a data shard or another file).
         """
-        save_versioned(path, _KIND, CHECKPOINT_VERSION, {
-            "n_features": self.n_features,
-            "n_components": self.n_components,
-            "k": self.k,
-            "config": config_to_dict(self.config),
-            "state_dict": {k: v.detach().cpu() for k, v in self.state_dict().items()},
-            "extra": dict(self.extra if extra is None else extra),
-        }, replace_same_kind_only=True)
+        sizes = {"n_features": self.n_features, "n_components": self.n_components, "k": self.k}
+        save_model(self, path, _KIND, CHECKPOINT_VERSION, sizes, self.extra if extra is None else extra)
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "DeltaRegressor":
@@ -205,11 +199,8 @@ class DeltaRegressor(nn.Module):
                 content that does not match its digest; missing entries, wrong shapes or
                 dtypes, non-finite or implausible values (the message names the field).
         """
-        payload = load_versioned(path, _KIND, CHECKPOINT_VERSION, "Delta-regression", map_location, digest=True)
-        require_keys(payload, ("n_features", "n_components", "k", "config", "state_dict"), path)
-        config = config_of(payload, path)
-        if expected is not None:
-            check_compatible(config, expected, path)
+        sizes = ("n_features", "n_components", "k")
+        payload, config = load_payload(path, _KIND, CHECKPOINT_VERSION, "Delta-regression", map_location, sizes, expected)
         d, nc, k = (positive_int(payload, key, path) for key in ("n_features", "n_components", "k"))
         spec = {
             "mean": (torch.float32, ("D",)),
