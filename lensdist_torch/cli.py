@@ -202,9 +202,14 @@ def _scale_error(text: str) -> float:
     return argtypes.float_in(0.0, MAX_SCALE_ERROR)(text)
 
 
+_DEFAULTS = "TOML config (the defaults of docs/method.md when omitted)"
+_DEVICE_HELP = "where the tensors go: cpu, cuda or cuda:N (N below the number of CUDA devices)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``lensdist`` parser: one subcommand per workflow."""
     from lensdist_torch import __version__
+    from lensdist_torch.cli_calibrate import add_calibrate_commands
 
     parser = argtypes.Parser(
         prog="lensdist",
@@ -227,20 +232,27 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
-    defaults = "TOML config (the defaults of docs/method.md when omitted)"
-    device_help = "where the tensors go: cpu, cuda or cuda:N (N below the number of CUDA devices)"
+    for add in (_add_demo, _add_generate, _add_train, _add_evaluate, _add_reproduce, _add_analyze):
+        add(command)
+    add_calibrate_commands(sub, [common])  # calibrate, undistort
+    return parser
+
+
+def _add_demo(command) -> None:
     p = command("demo", "quality map of a known misregistration on the embedded scene",
                 "lensdist demo --scale-error 0.02 --out results", _cmd_demo, "print only the summary as one JSON object")
     p.add_argument("--scene", default="gravel", help="embedded scene")
     p.add_argument("--scale-error", type=_scale_error, default=0.01,
                    help="relative scale error of the second view, from 0 to 0.1 (beyond, errors no longer grow outwards)")
-    p.add_argument("--config", default=None, help=defaults)
+    p.add_argument("--config", default=None, help=_DEFAULTS)
     p.add_argument("--out", default="results", help="folder for demo.png")
 
+
+def _add_generate(command) -> None:
     p = command("generate", "generate the paper's training and test pairs as shards",
                 "lensdist generate --config configs/paper.toml --out data/paper --workers 4", _cmd_generate,
                 "print the summary as one JSON object", "no progress bar")
-    p.add_argument("--config", default=None, help=defaults + ", e.g. configs/paper.toml")
+    p.add_argument("--config", default=None, help=_DEFAULTS + ", e.g. configs/paper.toml")
     p.add_argument("--out", required=True, help="output folder (shards + manifest.json)")
     p.add_argument("--sets", default="train,test", help="comma-separated: train,test")
     p.add_argument("--shard", type=argtypes.shard, default=None, help="I/N: this job's share of the shards (array jobs; default: all)")
@@ -252,6 +264,8 @@ def build_parser() -> argparse.ArgumentParser:
                      "pairs of consecutive frames instead of synthetic motion")
     p.add_argument("--limit", type=argtypes.positive_int, default=None, help="only the first N pairs of each set (default: all)")
 
+
+def _add_train(command) -> None:
     p = command("train", "fit the eigen-space classifier on generated training pairs",
                 "lensdist train --data data/paper --out ckpt/eigenspace_avg_10ev.pt --metric delta_avg --eigenvectors 10",
                 _cmd_train, "print the summary as one JSON object")
@@ -261,6 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eigenvectors", type=argtypes.positive_int, default=None, help="eigenvectors per class (paper: 5 or 10; default: the config's)")
     p.add_argument("--config", default=None, help="TOML config (default: the data set's own)")
 
+
+def _add_evaluate(command) -> None:
     p = command("evaluate", "evaluate checkpoints on a generated test set (Markdown + JSON)",
                 "lensdist evaluate --data data/paper --checkpoint ckpt/eigenspace_avg_10ev.pt --selfcal --out results",
                 _cmd_evaluate, "print the report as one JSON object", "no progress bar, no notes")
@@ -271,18 +287,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results", help="report folder")
     p.add_argument("--config", default=None, help="TOML config of the analysis (default: the data set's), e.g. the "
                    "calibration.toml of `lensdist reproduce`")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help=device_help)
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=_DEVICE_HELP)
 
+
+def _add_reproduce(command) -> None:
     p = command("reproduce", "the paper's Tables 1 and 2 on the embedded scenes, one command",
                 "lensdist reproduce --quick --out results/quick", _cmd_reproduce,
                 "print the report as one JSON object", "no progress bars, no notes")
-    p.add_argument("--config", default=None, help=defaults + " (= configs/paper.toml)")
+    p.add_argument("--config", default=None, help=_DEFAULTS + " (= configs/paper.toml)")
     p.add_argument("--out", default="results/reproduce", help="folder for data, checkpoints and the report")
     p.add_argument("--quick", action="store_true", help="a tenth of the pairs, for a first look")
     p.add_argument("--workers", type=argtypes.positive_int, default=2, help="worker processes for generation")
     p.add_argument("--batch-size", type=argtypes.positive_int, default=16, help="pairs per batch for generation and analysis")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help=device_help)
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=_DEVICE_HELP)
 
+
+def _add_analyze(command) -> None:
     p = command("analyze", "analyse your own pair of overlapping photographs",
                 "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", cmd_analyze,
                 "print the result as one JSON object", "no notes on stderr")
@@ -295,13 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)")
     p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
     p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
-    p.add_argument("--config", default=None, help=defaults + ", e.g. a calibration.toml written by `lensdist reproduce`")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help=device_help)
-
-    from lensdist_torch.cli_calibrate import add_calibrate_commands
-
-    add_calibrate_commands(sub, [common])  # calibrate, undistort
-    return parser
+    p.add_argument("--config", default=None, help=_DEFAULTS + ", e.g. a calibration.toml written by `lensdist reproduce`")
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=_DEVICE_HELP)
 
 
 def _one_line(exc: BaseException) -> str:
