@@ -215,7 +215,8 @@ def analyze_batch(
     device=None,
     homography=None,
     prepared: Prepared | None = None,
-) -> list[dict]:
+    return_maps: bool = False,
+) -> list[dict] | tuple[list[dict], torch.Tensor]:
     """Analyse a batch of overlapping pairs of photographs of roughly planar scenes.
 
     Args:
@@ -237,6 +238,7 @@ def analyze_batch(
             instead of estimating them.
         prepared: a :class:`Prepared` batch from :func:`prepare_batch` (then img1, img2,
             homography and device are ignored): several methods on one registration.
+        return_maps: also return the (B, 1, H/8, W/8) quality maps of the registered pairs.
 
     Returns:
         One dict per pair: ``class`` and ``class_max`` ("1"-"4" or "R"; None with
@@ -245,6 +247,7 @@ def analyze_batch(
         ``delta_avg``, ``delta_max`` (analysis px; None without an estimate), the same in the
         user's pixels, ``confidence`` (calibrated P(class right); None for eigenspace),
         ``registration_ok``, ``in_domain``, ``overlap``, ``fitted_on``, ``warnings`` and more.
+        With ``return_maps``, (that list, the quality maps).
 
     Example:
         >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
@@ -298,7 +301,7 @@ def analyze_batch(
         if method == "selfcal":
             res.update(in_user_pixels(res, s, p.input_size[i]))
         out.append(res)
-    return out
+    return (out, p.qmap) if return_maps else out
 
 
 def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str = "selfcal",
@@ -329,7 +332,6 @@ def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str =
     for img, name in ((img1, "img1"), (img2, "img2")):
         if isinstance(img, (list, tuple)) or (isinstance(img, torch.Tensor) and img.dim() == 4 and img.shape[0] != 1):
             raise ValueError(f"{name} must be one image (a path or an (H, W), (C, H, W), (1, C, H, W) tensor); use analyze_batch for more")
-    models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
     hom = None
     if homography is not None:
         try:
@@ -341,6 +343,5 @@ def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str =
         if hom.shape not in ((3, 3), (1, 3, 3)):
             raise ValueError(f"homography must have shape (3, 3) or (1, 3, 3), got {tuple(hom.shape)}")
         hom = check_homography(hom.reshape(1, 3, 3), "homography")
-    p = prepare_batch(img1, img2, cfg, hom, device)
-    res = analyze_batch(None, None, method, cfg, checkpoint, checkpoint_max, prepared=p)[0]
-    return (res, p.qmap) if return_map else res
+    out, qmap = analyze_batch(img1, img2, method, config, checkpoint, checkpoint_max, device, hom, return_maps=True)
+    return (out[0], qmap) if return_map else out[0]

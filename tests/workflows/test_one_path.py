@@ -157,3 +157,27 @@ def test_device_cuda_absent_is_one_line(tmp_path, capsys, command):
     assert main(argv + ["--device", "cuda"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "CUDA is not available" in err[0]
+
+
+@pytest.mark.parametrize("method", ["selfcal", "regression"])
+def test_analyze_pair_is_one_call_of_analyze_batch(monkeypatch, method):
+    """analyze_pair resolves the models and the config once, prepares (loads, checks, registers)
+    the pair once, and answers what analyze_batch answers for the same pair."""
+    from lensdist_torch.workflows import analyze as mod
+
+    calls = {"_models_and_config": 0, "prepare_batch": 0}
+    for name in calls:
+        real = getattr(mod, name)
+
+        def counted(*args, _real=real, _name=name, **kwargs):
+            calls[_name] += 1
+            return _real(*args, **kwargs)
+
+        monkeypatch.setattr(mod, name, counted)
+    scene = load_scene("gravel")
+    a, b = scene[..., :320, :424], scene[..., 6:326, 2:426]
+    res, qmap = analyze_pair(a, b, method=method, return_map=True)
+    assert calls == {"_models_and_config": 1, "prepare_batch": 1}
+    batch, maps = analyze_batch(a, b, method=method, return_maps=True)
+    assert torch.equal(qmap, maps)
+    assert json.dumps(json_safe(res), sort_keys=True) == json.dumps(json_safe(batch[0]), sort_keys=True)
