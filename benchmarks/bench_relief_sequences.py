@@ -23,6 +23,10 @@ sequence (a long run keeps what it finished).
 
     python benchmarks/bench_relief_sequences.py --n 16 --threads 2 --out docs/results/bench_relief_sequences.json
     python benchmarks/bench_relief_sequences.py --n 40 --method direct --out docs/results/bench_relief_sequences_direct.json
+    python benchmarks/bench_relief_sequences.py --start 40 --n 40 --method direct --config RAW.toml --out ..._raw_validation.json
+
+(RAW.toml: ``[calibration]`` ``relief_test = 0``, ``relief_rel = 0``: every sequence reports its raw relief
+effect and z, the intervals without the relief term.)
 """
 
 from __future__ import annotations
@@ -92,7 +96,16 @@ def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = 
             "covered": covered, "class": cls, "reason": res.get("reason"), "method": res.get("method"),
             "confidence": res.get("confidence"), "seconds": round(seconds, 1),
             "relief_effect_px": res.get("relief_effect_px"), "relief_z": res.get("relief_z"),
+            "paths": {k: _path_summary(res.get(k)) for k in ("direct", "multiview")}, "pairs_used": res.get("pairs_used"),
             "confidently_wrong": cls is not None and str(cls) != true_class}
+
+
+def _path_summary(part: dict | None) -> dict | None:
+    """One path's own answer (class, Delta_avg, interval, reason) as calibrate_path reports it."""
+    if not part:
+        return None
+    return {k: part.get(k) for k in ("class", "delta_avg_user_px", "delta_avg_user_interval", "reason", "model",
+                                      "rotation_spread_deg", "registered") if k in part}
 
 
 def summary(rows: list[dict]) -> dict:

@@ -34,7 +34,8 @@ class CalibrationConfig:
             parallax model leaves, which all pairs share (fitted on validation sequences of
             scenes with relief, docs/method.md section 7).
         relief_test: the relief's effect counts where it is at least this many of its own
-            jackknife stds (a sequence-level Hausman test; on a planar scene the models part by noise).
+            jackknife stds (a sequence-level Hausman test; on a planar scene the models part by
+            noise); below, this many of those stds count instead (what the test cannot exclude).
         confidence: coverage of the intervals.
         min_pairs: fewer usable pairs give no class ("cannot tell").
         max_class_halfwidth_px: a half-width of Delta_avg above this at the paper's 320 x 424 frame
