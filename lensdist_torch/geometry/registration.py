@@ -183,7 +183,8 @@ _frame = functools.lru_cache(maxsize=16)(_Frame)  # frames depend on sizes only
 
 @torch.no_grad()
 def estimate_homography(
-    img1: torch.Tensor, img2: torch.Tensor, init: torch.Tensor | None = None, config: RegistrationConfig | None = None
+    img1: torch.Tensor, img2: torch.Tensor, init: torch.Tensor | None = None, config: RegistrationConfig | None = None,
+    validate: bool = True,
 ) -> tuple[torch.Tensor, RegistrationInfo]:
     """Estimate, per pair, the homography H with img1(p) = img2(H p).
 
@@ -192,6 +193,7 @@ def estimate_homography(
         img2: the same shape and dtype as img1.
         init: optional (B, 3, 3) initial guess (pixel coordinates), instead of phase correlation.
         config: :class:`RegistrationConfig`; defaults when None.
+        validate: check the images' values (NaN, Inf: one host sync); False for images already checked.
 
     Returns:
         H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's.
@@ -206,7 +208,7 @@ def estimate_homography(
     cfg = RegistrationConfig() if config is None else config
     if not isinstance(cfg, RegistrationConfig):
         raise TypeError(f"config must be a RegistrationConfig or None, got {type(cfg).__name__}")
-    check_image_pair(img1, img2)
+    check_image_pair(img1, img2, finite=validate)
     bsz, _, h0, w0 = img1.shape
     if h0 < 16 or w0 < 16:
         raise ValueError(f"img1 and img2 must be at least 16 x 16 pixels, got {h0} x {w0}")
@@ -361,7 +363,8 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
 
 
 def warp_to_reference(
-    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None, backend: str = "kornia"
+    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None, backend: str = "kornia",
+    validate: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Warp img2 into img1's frame, warped(p) = img2(H p), with the validity of each pixel.
 
@@ -380,6 +383,7 @@ def warp_to_reference(
         H: (B, 3, 3) float homographies, img1 pixel coordinates -> img2's.
         dsize: (height, width) of the output; img2's size when None.
         backend: "grid" or "kornia".
+        validate: check the images' values (NaN, Inf: one host sync); False for images already checked.
 
     Returns:
         warped: (B, C, h, w), img2's float dtype (float32 for uint8); valid: (B, 1, h, w) of 0 and 1.
@@ -391,7 +395,7 @@ def warp_to_reference(
         >>> bool(torch.allclose(warped[..., :-2], img2[..., 2:], atol=1e-5)), valid[0, 0, 0, -4:].tolist()
         (True, [1.0, 1.0, 0.0, 0.0])
     """
-    check_image(img2, "img2")
+    check_image(img2, "img2", finite=validate)
     H = check_homography(H, "H", img2.shape[0])
     dsize = tuple(img2.shape[-2:]) if dsize is None else dsize
     if not (isinstance(dsize, (tuple, list)) and len(dsize) == 2 and all(type(d) is int and d > 0 for d in dsize)):

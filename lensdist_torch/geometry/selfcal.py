@@ -41,9 +41,8 @@ hold the fit in a wrong minimum) and ``config.both_starts``, both starts are fit
 batch and, per pair, the one with the lower final robust cost (at the smaller of the two
 sigmas; a flagged start loses) is kept; a = b = 0 in both.
 
-Confidence. The weighted Gauss-Newton covariance of the parameters, s_w^2 (J W J^T)^-1 with
-s_w^2 = sum w r^2 / (sum w - P) (W the final IRLS weights; plain least squares for ``robust =
-"none"``), is propagated to Delta_avg through its gradient in (a, b): ``delta_avg_std`` (px).
+Confidence. The weighted Gauss-Newton covariance s_w^2 (J W J^T)^-1, s_w^2 = sum w r^2 / (sum w - P)
+(W the final IRLS weights), is propagated to Delta_avg through its gradient in (a, b): ``delta_avg_std`` (px).
 With little motion the distortion of the two views cancels, J's (a, b) columns vanish and the
 std explodes. ``confidence = s0 / (s0 + delta_avg_std)`` with ``s0 = config.cannot_tell_std_px``;
 below ``config.confidence_threshold`` the answer is "cannot tell from this pair"
@@ -154,7 +153,7 @@ def _k(cfg: SelfCalConfig) -> float:
 
 
 @torch.no_grad()
-def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = None):
+def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = None, validate: bool = True):
     """Estimate (k2, k4) and H together, per pair of a batch (see the module docstring).
 
     Args:
@@ -163,6 +162,7 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
         init: optional (B, 3, 3) homography img1 -> img2 (pixels), e.g. from :func:`estimate_homography`;
             beside the phase-correlation start when ``config.both_starts`` (the better kept), alone otherwise.
         config: :class:`SelfCalConfig`; defaults when None.
+        validate: check the images' values (one host sync); False for images already checked.
 
     Returns:
         k2, k4: (B,) float64 in pixel units (eq. 4), NaN where the fit diverged.
@@ -180,7 +180,7 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
     cfg = config if config is not None else SelfCalConfig()
     if not isinstance(cfg, SelfCalConfig):
         raise TypeError(f"config must be a SelfCalConfig or None, got {type(cfg).__name__}")
-    check_image_pair(img1, img2)
+    check_image_pair(img1, img2, finite=validate)
     (bsz, _, h, w), least = img1.shape, max(16, 2**cfg.levels)
     if h < least or w < least:
         raise ValueError(f"img1 and img2 must be at least {least} x {least} pixels, got {h} x {w}")

@@ -67,7 +67,7 @@ def _in_front(m: torch.Tensor, h: int, w: int) -> torch.Tensor:
 
 @torch.no_grad()
 def feature_homography(
-    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None
+    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None, validate: bool = True
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per pair, a homography from SIFT matches and RANSAC, img1(p) = img2(H p).
 
@@ -80,6 +80,7 @@ def feature_homography(
         img2: the same shape and dtype as img1.
         config: :class:`~lensdist_torch.config.RegistrationConfig` (``max_keypoints``,
             ``match_ratio``, ``ransac_threshold``, ``min_inliers``); defaults when None.
+        validate: check the images' values (one host sync); False for images already checked.
 
     Returns:
         H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's; the identity
@@ -96,7 +97,7 @@ def feature_homography(
         (True, [-30, 20])
     """
     cfg = _config(config)
-    check_image_pair(img1, img2)
+    check_image_pair(img1, img2, finite=validate)
     bsz, _, h0, w0 = img1.shape
     dev = img1.device
     out = torch.eye(3, dtype=torch.float64, device=dev).repeat(bsz, 1, 1)
@@ -198,7 +199,7 @@ def _refine(g1: torch.Tensor, g2: torch.Tensor, hf: torch.Tensor, cfg: Registrat
 
 @torch.no_grad()
 def estimate_homography_robust(
-    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None
+    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None, validate: bool = True
 ) -> tuple[torch.Tensor, RegistrationInfo]:
     """:func:`~lensdist_torch.geometry.registration.estimate_homography`, with a feature fallback.
 
@@ -212,6 +213,7 @@ def estimate_homography_robust(
         img1: (B, C, H, W) float in [0, 1] or uint8, C in {1, 3}, H and W >= 16.
         img2: the same shape and dtype as img1.
         config: :class:`~lensdist_torch.config.RegistrationConfig`; defaults when None.
+        validate: check the images' values (one host sync); False for images already checked.
 
     Returns:
         H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's.
@@ -233,14 +235,14 @@ def estimate_homography_robust(
         (True, True)
     """
     cfg = _config(config)
-    h, info = estimate_homography(img1, img2, config=cfg)  # checks the images
+    h, info = estimate_homography(img1, img2, config=cfg, validate=validate)  # checks the images
     failed = (~info.converged).nonzero()[:, 0].tolist()
     if not cfg.feature_fallback or not failed:
         return h, info
     h, fields = h.clone(), [x.clone() for x in info]
     h0, w0 = img1.shape[-2:]
     idx = torch.tensor(failed, device=img1.device)
-    hf, ok, _ = feature_homography(img1[idx], img2[idx], cfg)
+    hf, ok, _ = feature_homography(img1[idx], img2[idx], cfg, validate=False)  # checked above
     for j, i in enumerate(failed):
         if not bool(ok[j]):
             continue

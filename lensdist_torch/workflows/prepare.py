@@ -135,7 +135,7 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
     a, b = torch.cat(a), torch.cat(b)
     n = a.shape[0]
     if homography is None:
-        regs = [estimate_homography_robust(a[i : i + 1], b[i : i + 1], config=cfg.registration) for i in range(n)]
+        regs = [estimate_homography_robust(a[i : i + 1], b[i : i + 1], config=cfg.registration, validate=False) for i in range(n)]
         H = torch.cat([r[0] for r in regs]).double()
         ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
         residual = torch.cat([r[1].residual for r in regs]).float().cpu()
@@ -145,8 +145,8 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
             raise ValueError(f"homography must be ({n}, 3, 3), got {tuple(H.shape)}")
         ok, residual = torch.isfinite(H).all(dim=(1, 2)).cpu(), torch.full((n,), float("nan"))
     finite = torch.isfinite(H).all(dim=(1, 2))[:, None, None]  # a missing registration warps by the identity
-    warped, valid = warp_to_reference(b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)))
-    qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality), cfg.quality)
+    warped, valid = warp_to_reference(b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)), validate=False)
+    qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality, validate=False), cfg.quality)
     overlap = valid.flatten(1).float().mean(1).cpu()
     motion = mean_displacement(H, h, w).cpu()
     return Prepared(cfg, a, b, H, ok, residual, overlap, motion, qmap, scale, sizes)
@@ -156,7 +156,7 @@ def _selfcal_one(p: Prepared, i: int) -> dict:
     """Self-calibration of pair i, started from the registration's H when it worked."""
     cfg, sl = p.config, slice(i, i + 1)
     init = p.H[sl] if bool(p.registration_ok[i]) else None
-    k2, k4, _, sc = estimate_distortion(p.img1[sl], p.img2[sl], init=init, config=cfg.selfcal)
+    k2, k4, _, sc = estimate_distortion(p.img1[sl], p.img2[sl], init=init, config=cfg.selfcal, validate=False)
     if not bool(sc.converged[0]):  # flagged, never a number and never "R"
         return {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None,
                 "raw_confidence": 0.0, "_diverged": True}

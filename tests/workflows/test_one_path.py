@@ -181,3 +181,27 @@ def test_analyze_pair_is_one_call_of_analyze_batch(monkeypatch, method):
     batch, maps = analyze_batch(a, b, method=method, return_maps=True)
     assert torch.equal(qmap, maps)
     assert json.dumps(json_safe(res), sort_keys=True) == json.dumps(json_safe(batch[0]), sort_keys=True)
+
+
+def test_each_image_is_checked_once_per_analyze_pair():
+    """The values of each image (NaN, Inf: a reduction and a host sync) are checked once, at the
+    entry; the estimators downstream take the checked tensors (validate=False)."""
+    import sys
+
+    scene = load_scene("gravel")
+    a, b = scene[..., :320, :424], scene[..., 6:326, 2:426]
+    analyze_pair(a, b)  # warm up: lazy imports
+    value_checks = []
+
+    def profile(frame, event, arg):
+        if event == "call" and frame.f_code.co_name == "check_image" and frame.f_locals.get("finite"):
+            value_checks.append(frame.f_locals.get("name"))
+        elif event == "call" and frame.f_code.co_name == "check_values":  # the metric's own value check
+            value_checks.append("metric")
+
+    sys.setprofile(profile)
+    try:
+        analyze_pair(a, b)
+    finally:
+        sys.setprofile(None)
+    assert sorted(value_checks) == ["img1", "img2"]
