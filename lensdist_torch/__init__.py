@@ -38,25 +38,16 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "load_config",
     ),
     "lensdist_torch.core.images": ("load_image", "load_scene", "scene_names", "to_grey"),
+    # the metric: its function and module, the loss and its module, the stateful metric; the
+    # paper's pieces (criteria, error images, pooling, counts, result types) in lensdist_torch.metric
     "lensdist_torch.metric.quality": (
-        "ErrorImages",
-        "LocalCriteria",
-        "QualityResult",
         "RegistrationQuality",
         "RegistrationQualityLoss",
-        "block_counts",
-        "block_pool",
-        "counts_to_map",
-        "erode_valid",
-        "error_images",
-        "local_criteria",
         "quality_map",
-        "registration_error_counts",
         "registration_quality",
         "registration_quality_loss",
     ),
     "lensdist_torch.metric.stateful": (
-        "QualityMetricResult",
         "RegistrationQualityMetric",
         "RegistrationQualityTorchMetric",  # only where torchmetrics is installed
     ),

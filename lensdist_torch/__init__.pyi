@@ -42,22 +42,11 @@ from lensdist_torch.geometry.undistort import Undistort as Undistort
 from lensdist_torch.geometry.undistort import undistort_image as undistort_image
 from lensdist_torch.metric.classification import ClassRMSE as ClassRMSE
 from lensdist_torch.metric.classification import ConfusionMatrix as ConfusionMatrix
-from lensdist_torch.metric.quality import ErrorImages as ErrorImages
-from lensdist_torch.metric.quality import LocalCriteria as LocalCriteria
-from lensdist_torch.metric.quality import QualityResult as QualityResult
 from lensdist_torch.metric.quality import RegistrationQuality as RegistrationQuality
 from lensdist_torch.metric.quality import RegistrationQualityLoss as RegistrationQualityLoss
-from lensdist_torch.metric.quality import block_counts as block_counts
-from lensdist_torch.metric.quality import block_pool as block_pool
-from lensdist_torch.metric.quality import counts_to_map as counts_to_map
-from lensdist_torch.metric.quality import erode_valid as erode_valid
-from lensdist_torch.metric.quality import error_images as error_images
-from lensdist_torch.metric.quality import local_criteria as local_criteria
 from lensdist_torch.metric.quality import quality_map as quality_map
-from lensdist_torch.metric.quality import registration_error_counts as registration_error_counts
 from lensdist_torch.metric.quality import registration_quality as registration_quality
 from lensdist_torch.metric.quality import registration_quality_loss as registration_quality_loss
-from lensdist_torch.metric.stateful import QualityMetricResult as QualityMetricResult
 from lensdist_torch.metric.stateful import RegistrationQualityMetric as RegistrationQualityMetric
 from lensdist_torch.metric.stateful import RegistrationQualityTorchMetric as RegistrationQualityTorchMetric
 from lensdist_torch.workflows.analyze import analyze_batch as analyze_batch
@@ -76,15 +65,11 @@ __all__ = [
     "DeltaRegressor",
     "DistortionConfig",
     "EigenSpaceClassifier",
-    "ErrorImages",
     "ImageConfig",
     "LensdistConfig",
-    "LocalCriteria",
     "MultiViewConfig",
     "ProtocolConfig",
     "QualityConfig",
-    "QualityMetricResult",
-    "QualityResult",
     "RegistrationConfig",
     "RegistrationQuality",
     "RegistrationQualityLoss",
@@ -95,18 +80,13 @@ __all__ = [
     "Undistort",
     "analyze_batch",
     "analyze_pair",
-    "block_counts",
-    "block_pool",
     "calibrate_sequence",
     "corner_error",
-    "counts_to_map",
     "delta_avg",
     "delta_max",
     "distort_points",
     "distortion_class",
     "distortion_grid",
-    "erode_valid",
-    "error_images",
     "estimate_distortion",
     "estimate_homography",
     "estimated_class",
@@ -115,11 +95,9 @@ __all__ = [
     "load_image",
     "load_scene",
     "load_set",
-    "local_criteria",
     "perturb_homography",
     "pixel_offsets",
     "quality_map",
-    "registration_error_counts",
     "registration_quality",
     "registration_quality_loss",
     "render_distorted",

@@ -81,7 +81,8 @@ def _valid_blocks(res: dict, qmap):
     """
     import torch
 
-    from lensdist_torch import erode_valid, warp_to_reference
+    from lensdist_torch import warp_to_reference
+    from lensdist_torch.metric import erode_valid
 
     h, w = res["analysis_size"]
     _, valid = warp_to_reference(torch.ones(1, 1, h, w), torch.tensor([res["homography"]]))

@@ -369,7 +369,7 @@ def test_an_interval_across_the_no_distortion_threshold_gives_no_class():
     """Undistorted scenes with relief came out at 0.3-0.6 px, intervals reaching 0, and were
     called class 1: where the interval at the paper's frame spans analysis.no_distortion_px
     (0.25 px) R and 1 cannot be told. Hand-built pairs at Delta_avg ~0.4 px at the paper's frame."""
-    from lensdist_torch.geometry.calibration import _combine, _result, _signed_mean
+    from lensdist_torch.geometry.calibration import _result
     from lensdist_torch.geometry.frame import half_diagonal
 
     n, (h, w), st = 16, (320, 424), LensdistConfig()

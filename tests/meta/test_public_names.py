@@ -53,6 +53,14 @@ def _readme_imports() -> set[str]:
     return found
 
 
+def _readme_sub_imports() -> dict[str, set[str]]:
+    """``from lensdist_torch.<subpackage> import ...`` in the README: subpackage -> names."""
+    found: dict[str, set[str]] = {}
+    for sub, wrapped, line in re.findall(r"from lensdist_torch\.([\w.]+) import (?:\(([^)]*)\)|([^\n]*))", README):
+        found.setdefault(sub, set()).update(n.strip() for n in (wrapped or line).split("#")[0].split(",") if n.strip())
+    return found
+
+
 def _readme_attributes() -> set[str]:
     """Dotted paths used as ``lensdist_torch.X`` anywhere in the README."""
     return {m.rstrip(".") for m in re.findall(r"lensdist_torch\.([A-Za-z_][\w.]*)", README)}
@@ -83,7 +91,8 @@ def _readme_code_names() -> set[str]:
     code = "\n".join(re.findall(r"```python\n(.*?)```", README, flags=re.S))
     code = re.sub(r"#[^\n]*", "", code)  # comments are prose
     in_code = set(re.findall(r"\b([A-Za-z_]\w*)\b", code))
-    return ((ticked | in_code) & _package_public_names()) - NOT_PYTHON_NAMES
+    from_subpackages = set().union(*_readme_sub_imports().values())
+    return ((ticked | in_code) & _package_public_names()) - NOT_PYTHON_NAMES - from_subpackages
 
 
 def _importable(name: str) -> bool:
@@ -107,6 +116,12 @@ def test_every_readme_name_imports_from_the_top_level(name):
     import lensdist_torch
 
     assert name in lensdist_torch.__all__ and name in dir(lensdist_torch)
+
+
+@pytest.mark.parametrize("sub, name", sorted((s, n) for s, names in _readme_sub_imports().items() for n in names))
+def test_every_readme_subpackage_import_works(sub, name):
+    module = importlib.import_module(f"lensdist_torch.{sub}")
+    assert name in module.__all__ and getattr(module, name) is not None
 
 
 @pytest.mark.parametrize("path", sorted(_readme_attributes()))

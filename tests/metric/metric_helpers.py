@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import spatial_gradient
 
-from lensdist_torch import QualityConfig, block_pool, error_images, local_criteria
+from lensdist_torch import QualityConfig
+from lensdist_torch.metric import block_pool, error_images, local_criteria
 
 CFG = QualityConfig()
 HALF_PI = math.pi / 2

@@ -11,12 +11,11 @@ import lensdist_torch.metric._inputs as inputs
 from lensdist_torch import (
     RegistrationQuality,
     RegistrationQualityLoss,
-    local_criteria,
     quality_map,
-    registration_error_counts,
     registration_quality,
     registration_quality_loss,
 )
+from lensdist_torch.metric import local_criteria, registration_error_counts
 from lensdist_torch.metric.stateful import RegistrationQualityMetric
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")

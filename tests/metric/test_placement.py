@@ -11,13 +11,11 @@ import torch
 from lensdist_torch import (
     RegistrationQuality,
     RegistrationQualityLoss,
-    error_images,
-    local_criteria,
     quality_map,
-    registration_error_counts,
     registration_quality,
     registration_quality_loss,
 )
+from lensdist_torch.metric import error_images, local_criteria, registration_error_counts
 from lensdist_torch.metric.stateful import RegistrationQualityMetric
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")

@@ -26,13 +26,11 @@ from lensdist_torch import (
     QualityConfig,
     RegistrationQuality,
     RegistrationQualityLoss,
-    error_images,
-    local_criteria,
     quality_map,
-    registration_error_counts,
     registration_quality,
     registration_quality_loss,
 )
+from lensdist_torch.metric import error_images, local_criteria, registration_error_counts
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 

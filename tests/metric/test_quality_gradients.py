@@ -22,13 +22,8 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
-from lensdist_torch import (
-    QualityConfig,
-    RegistrationQualityLoss,
-    local_criteria,
-    registration_quality,
-    registration_quality_loss,
-)
+from lensdist_torch import QualityConfig, RegistrationQualityLoss, registration_quality, registration_quality_loss
+from lensdist_torch.metric import local_criteria
 
 F64 = torch.float64
 

@@ -18,19 +18,15 @@ from metric_helpers import (
     x_ramp,
 )
 
-from lensdist_torch import (
-    QualityConfig,
+from lensdist_torch import QualityConfig, load_scene, quality_map, registration_quality, registration_quality_loss
+from lensdist_torch.metric import (
     block_counts,
     block_pool,
     counts_to_map,
     erode_valid,
     error_images,
-    load_scene,
     local_criteria,
-    quality_map,
     registration_error_counts,
-    registration_quality,
-    registration_quality_loss,
 )
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")

@@ -330,7 +330,7 @@ def test_cached_model_follows_its_file(tmp_path):
 
 @bad_input
 def test_analyze_json_is_strict_when_selfcal_diverges(capsys, pair, monkeypatch):
-    def diverged(a, b, init=None, config=None):
+    def diverged(a, b, init=None, config=None, validate=True):
         z = torch.zeros(1, dtype=torch.float64)
         return z, z, None, SimpleNamespace(converged=torch.tensor([False]))
 
