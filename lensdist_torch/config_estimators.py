@@ -272,7 +272,7 @@ class AnalysisConfig:
             answer is "cannot tell" (self-calibration and regression).
         selfcal_confidence_scale, selfcal_confidence_shift: the Platt map of the
             self-calibration's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave
-            it as it is. Fitted on a validation split by ``calibrate_confidence``.
+            it as it is. Fitted on a validation split by ``fit_confidence``.
         regression_confidence_scale, regression_confidence_shift: the same for the regression.
         cross_check: the learned methods (regression, eigen-space) also run the
             self-calibration and are out of domain where the two disagree.

@@ -20,7 +20,7 @@ noise either side; ``fit`` refuses features outside it), and from the fit itself
 * k neighbours need more than k training pairs, and k is at most ``config_estimators.MAX_NEIGHBOURS``
   (the bound of ``regression.k``: the median must stay local); the PCA keeps min(n_components, N, D) rows;
 * ``extra["scenes"]`` is a list of names and ``extra["texture"]`` the statistics of
-  ``workflows.decision.texture_statistics``: finite histograms that sum to 1, a spread in [0, 1].
+  ``workflows.texture.texture_statistics``: finite histograms that sum to 1, a spread in [0, 1].
 """
 
 from __future__ import annotations

@@ -35,7 +35,8 @@ from lensdist_torch.core.images import centre_crop_box
 from lensdist_torch.core.storage import CheckpointError, check_compatible
 from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, estimated_class
 from lensdist_torch.geometry.homography import check_homography
-from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels, platt
+from lensdist_torch.workflows.confidence import platt
+from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels
 from lensdist_torch.workflows.prepare import Prepared, prepare_batch, resolve_device
 
 __all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "Prepared", "default_checkpoint", "resolve_device", "METHODS"]

@@ -5,11 +5,12 @@ Every threshold is in ``config.analysis`` (:class:`~lensdist_torch.config.Analys
 * **Confidence.** The self-calibration and the regression give a raw confidence c = s0 /
   (s0 + std) (docs/method.md, section 10). The reported confidence is its Platt map
   sigmoid(scale * logit(c) + shift), fitted on a validation split so that it estimates
-  P(class right) (:func:`fit_platt`); below ``min_confidence`` the answer is "cannot tell".
+  P(class right) (:mod:`~lensdist_torch.workflows.confidence`); below ``min_confidence`` the
+  answer is "cannot tell".
 * **Domain** of the learned methods (regression, eigen-space), whose checkpoints were fitted on
   a few scenes: a pair is out of domain where its gradient-magnitude histogram is farther from
   every training scene than ``texture_factor`` times the largest distance of a training view
-  (:func:`texture_statistics`, stored in the checkpoint's ``extra``), or where the
+  (:mod:`~lensdist_torch.workflows.texture`, stored in the checkpoint's ``extra``), or where the
   self-calibration, which learns nothing, confidently disagrees: one finds distortion and the
   other none (class R against a class), the classes are more than ``max_class_disagreement``
   apart, or Delta_avg more than ``max_delta_disagreement`` of its range apart.
@@ -24,139 +25,16 @@ Every threshold is in ``config.analysis`` (:class:`~lensdist_torch.config.Analys
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.calibration import user_coefficients
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top, pixel_offsets
 from lensdist_torch.geometry.opencv_model import opencv_export
-from lensdist_torch.metric.criteria import local_criteria
+from lensdist_torch.workflows.confidence import platt
+from lensdist_torch.workflows.texture import texture_distance
 
-__all__ = [
-    "in_user_pixels",
-    "TEXTURE_EDGES",
-    "texture_histogram",
-    "texture_statistics",
-    "texture_distance",
-    "platt",
-    "fit_platt",
-    "expected_calibration_error",
-    "reliability",
-    "class_distance",
-    "domain_checks",
-    "decide",
-]
-
-#: Bin edges of the gradient-magnitude histogram (normalised Sobel on [0, 1] intensities),
-#: log-spaced; values below and above fall into two more bins.
-TEXTURE_EDGES = tuple(float(v) for v in torch.logspace(math.log10(0.002), math.log10(0.5), 17, dtype=torch.float64))
-
-
-def texture_histogram(img: torch.Tensor) -> torch.Tensor:
-    """(B, 1, H, W) grey images in [0, 1] -> (B, 18) float64 histograms of the gradient magnitude G."""
-    g = local_criteria(img, img, validate=False).g1.flatten(1).double()
-    idx = torch.bucketize(g, torch.tensor(TEXTURE_EDGES, dtype=torch.float64, device=g.device))
-    n = len(TEXTURE_EDGES) + 1
-    hist = torch.zeros(g.shape[0], n, dtype=torch.float64, device=g.device).scatter_add_(1, idx, torch.ones_like(g))
-    return (hist / hist.sum(1, keepdim=True)).cpu()
-
-
-def texture_statistics(config: LensdistConfig, scenes: list[torch.Tensor], names: list[str], n_views: int = 24) -> dict:
-    """The training scenes' texture, for a checkpoint's ``extra``.
-
-    Renders the first ``n_views`` training views (I1) of every scene through the protocol
-    (docs/method.md, section 7), and returns {"names", "reference": the mean histogram per
-    scene, "spread": the largest total-variation distance of a view from its scene's mean}.
-    """
-    n_scenes = len(scenes)
-    params = draw_pairs(config, "train", range(min(config.protocol.n_train, 4 * n_views * n_scenes)), n_scenes)
-    refs, spread = [], 0.0
-    for s in range(n_scenes):
-        sel = (params.scene == s).nonzero().flatten()[:n_views].tolist()
-        if not sel:
-            raise ValueError(f"no training view of scene {names[s]!r} among the first pairs")
-        sub = draw_pairs(config, "train", params.index[sel].tolist(), n_scenes)
-        img1, _ = render_pairs(scenes, sub, config)
-        h = texture_histogram(img1.clamp(0, 1))
-        ref = h.mean(0)
-        refs.append(ref.tolist())
-        spread = max(spread, float(0.5 * (h - ref).abs().sum(1).max()))
-    return {"names": list(names), "edges": list(TEXTURE_EDGES), "reference": refs, "spread": spread}
-
-
-def texture_distance(hist: torch.Tensor, stats: dict) -> torch.Tensor:
-    """(B,) total-variation distance of histograms (B, n) from the nearest training scene."""
-    ref = torch.tensor(stats["reference"], dtype=torch.float64)
-    return 0.5 * (hist[:, None, :] - ref[None]).abs().sum(-1).min(1).values
-
-
-# ------------------------------------------------------------------ confidence
-def _logit(c: torch.Tensor) -> torch.Tensor:
-    c = c.double().clamp(1e-9, 1 - 1e-9)
-    return torch.log(c) - torch.log1p(-c)
-
-
-def platt(confidence, scale: float, shift: float) -> torch.Tensor:
-    """sigmoid(scale * logit(c) + shift) of raw confidences c in (0, 1]; (1, 0) is the identity."""
-    c = torch.as_tensor(confidence, dtype=torch.float64)
-    return torch.where(torch.isfinite(c), torch.sigmoid(scale * _logit(c) + shift), c)
-
-
-def fit_platt(confidence: torch.Tensor, right: torch.Tensor, ridge: float = 1.0) -> tuple[float, float]:
-    """(scale, shift) of the Platt map maximising the likelihood of ``right`` given ``confidence``.
-
-    Newton's method on the logistic log-likelihood of right ~ sigmoid(scale * logit(c) + shift)
-    plus ``ridge`` / 2 x the squared distance of (scale, shift) from the identity (1, 0): a unit
-    Gaussian prior, which keeps a fit on a few dozen pairs near the identity and is negligible
-    on hundreds. The scale stays positive (a higher raw confidence never means a lower
-    calibrated one).
-    """
-    x, y = _logit(confidence), right.double()
-    if x.numel() < 2 or bool((y == y[0]).all()):
-        return 1.0, 0.0  # nothing to fit on: keep the identity
-    theta = torch.tensor([1.0, 0.0], dtype=torch.float64)
-    feats = torch.stack([x, torch.ones_like(x)], 1)
-    for _ in range(50):
-        p = torch.sigmoid(feats @ theta)
-        grad = feats.T @ (p - y) + ridge * (theta - torch.tensor([1.0, 0.0], dtype=torch.float64))
-        hess = feats.T @ (feats * (p * (1 - p))[:, None]) + ridge * torch.eye(2, dtype=torch.float64)
-        step = torch.linalg.solve(hess, grad)
-        theta = theta - step
-        if float(step.abs().max()) < 1e-10:
-            break
-    scale, shift = float(theta[0]), float(theta[1])
-    return (scale, shift) if scale > 1e-3 and math.isfinite(scale) and math.isfinite(shift) else (1.0, 0.0)
-
-
-def reliability(confidence: torch.Tensor, right: torch.Tensor, n_bins: int = 10) -> dict:
-    """Per equal-width confidence bin: pairs, mean confidence, share right; and the ECE.
-
-    ECE = sum over bins of (pairs in bin / pairs) x |share right - mean confidence|.
-    """
-    c, y = confidence.double().reshape(-1), right.double().reshape(-1)
-    ok = torch.isfinite(c)
-    c, y = c[ok], y[ok]
-    idx = (c * n_bins).long().clamp(0, n_bins - 1)
-    n = torch.bincount(idx, minlength=n_bins).double()
-    mean_c = torch.bincount(idx, c, minlength=n_bins) / n.clamp_min(1)
-    acc = torch.bincount(idx, y, minlength=n_bins) / n.clamp_min(1)
-    ece = float((n * (acc - mean_c).abs()).sum() / n.sum().clamp_min(1))
-    nan = float("nan")
-    return {
-        "n": [int(v) for v in n],
-        "confidence": [float(v) if k else nan for v, k in zip(mean_c, n)],
-        "accuracy": [float(v) if k else nan for v, k in zip(acc, n)],
-        "ece": ece if int(n.sum()) else nan,
-        "pairs": int(n.sum()),
-    }
-
-
-def expected_calibration_error(confidence: torch.Tensor, right: torch.Tensor, n_bins: int = 10) -> float:
-    """The expected calibration error of confidences against outcomes (equal-width bins)."""
-    return reliability(confidence, right, n_bins)["ece"]
+__all__ = ["in_user_pixels", "class_distance", "domain_checks", "decide"]
 
 
 # ------------------------------------------------------------------ the answer

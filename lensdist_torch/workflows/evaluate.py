@@ -33,8 +33,8 @@ from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
 from lensdist_torch.metric.quality import counts_to_map
 from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
-from lensdist_torch.workflows.decision import texture_statistics
 from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions
+from lensdist_torch.workflows.texture import texture_statistics
 
 __all__ = [
     "TY_BINS",
@@ -52,7 +52,7 @@ __all__ = [
     "validation_config",
     "fit_decision",
     "calibration_table",
-    "calibrate_confidence",
+    "fit_confidence",
 ]
 
 TY_BINS = (0.0, 5.0, 10.0, 20.0, 40.0001)
@@ -257,7 +257,7 @@ def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: s
     true class; the confidence is the raw one, or its Platt map under ``config``.
     """
     from lensdist_torch.geometry.distortion import estimated_class
-    from lensdist_torch.workflows.decision import platt
+    from lensdist_torch.workflows.confidence import platt
 
     keep = [i for i, r in enumerate(results) if r["in_domain"] and r["estimated_delta_avg"] is not None]
     if not keep:
@@ -282,7 +282,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     """
     import math
 
-    from lensdist_torch.workflows.decision import expected_calibration_error, fit_platt, platt
+    from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt
 
     grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
                   | {config.analysis.no_distortion_px})
@@ -313,7 +313,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
 
 def calibration_table(results: dict, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
     """ECE rows (method, split, pairs, before, after) and reliability curves, per method in ``results``."""
-    from lensdist_torch.workflows.decision import reliability
+    from lensdist_torch.workflows.confidence import reliability
 
     rows, curves = [], {}
     for method in _PLATT:
@@ -332,13 +332,13 @@ def _toml(config: LensdistConfig) -> str:
 
     from lensdist_torch.config import config_to_dict
 
-    lines = ["# written by calibrate_confidence: load with --config (lensdist analyze / evaluate)"]
+    lines = ["# written by fit_confidence: load with --config (lensdist analyze / evaluate)"]
     for section, values in config_to_dict(config).items():
         lines += ["", f"[{section}]"] + [f"{k} = {json.dumps(v, allow_nan=False)}" for k, v in values.items()]
     return "\n".join(lines) + "\n"
 
 
-def calibrate_confidence(config: LensdistConfig, out, regression=None, scenes: list | None = None, workers: int = 1,
+def fit_confidence(config: LensdistConfig, out, regression=None, scenes: list | None = None, workers: int = 1,
                          batch_size: int = 16, progress: bool = True, device=None, figures: bool = True) -> dict:
     """Fit the R threshold and the confidence maps on a validation split, and write them.
 

@@ -235,7 +235,7 @@ def save_reliability(curves: dict[str, dict], path, title: str = "") -> Path:
     """A reliability diagram: share right against confidence, per named curve, with the pairs per bin.
 
     Each curve is a dict with ``confidence`` and ``accuracy`` (per bin; NaN for an empty bin),
-    ``n`` (pairs per bin) and ``ece``, as ``workflows.decision.reliability`` returns it. A
+    ``n`` (pairs per bin) and ``ece``, as ``workflows.confidence.reliability`` returns it. A
     calibrated confidence lies on the diagonal.
     """
     plt = _plt()

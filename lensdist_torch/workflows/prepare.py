@@ -29,7 +29,7 @@ from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
-from lensdist_torch.workflows.decision import texture_histogram
+from lensdist_torch.workflows.texture import texture_histogram
 
 __all__ = ["Prepared", "prepare_batch", "resolve_device"]
 

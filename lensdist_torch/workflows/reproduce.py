@@ -20,12 +20,12 @@ from lensdist_torch.data.shards import generate, load_scenes, load_set
 from lensdist_torch.metric.quality import counts_to_map
 from lensdist_torch.workflows.evaluate import (
     analyze_test_set,
-    calibrate_confidence,
     calibration_table,
     evaluate_classifier,
     evaluate_regressor,
     evaluate_selfcal,
     fit_classifier,
+    fit_confidence,
     fit_regressor,
     training_extra,
 )
@@ -67,7 +67,7 @@ def reproduce(
 
     With ``methods``, the regression and the self-calibration are evaluated on the same test
     pairs and reported beside the eigen-space settings; with ``calibrate`` too, the decision is
-    first fitted on a validation split (:func:`calibrate_confidence`) and the test pairs are
+    first fitted on a validation split (:func:`fit_confidence`) and the test pairs are
     analysed under it. ``device`` is where the analysis runs.
 
     Example:
@@ -106,7 +106,7 @@ def reproduce(
         reg.save(out / "checkpoints" / "regression.pt")
         runs.update(regression={"method": "regression", "checkpoint": reg}, selfcal={"method": "selfcal"})
         if calibrate:
-            cal = calibrate_confidence(config, out, regression=reg, scenes=scenes, workers=workers, batch_size=batch_size,
+            cal = fit_confidence(config, out, regression=reg, scenes=scenes, workers=workers, batch_size=batch_size,
                                        progress=progress, device=device, figures=figures)
             acfg = cal["config"]
     results = analyze_test_set(test, runs, scenes, acfg, batch_size, progress, device)

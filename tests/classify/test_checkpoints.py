@@ -19,7 +19,7 @@ from lensdist_torch.core.storage import DIGEST_KEY, CheckpointError, content_dig
 pytestmark = pytest.mark.bad_input
 
 
-#: Texture statistics of the form of workflows.decision.texture_statistics (two scenes, three bins).
+#: Texture statistics of the form of workflows.texture.texture_statistics (two scenes, three bins).
 TEXTURE = {"names": ["a", "b"], "edges": [0.01, 0.1], "reference": [[0.25, 0.5, 0.25], [0.5, 0.25, 0.25]], "spread": 0.05}
 
 

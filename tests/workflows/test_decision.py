@@ -1,6 +1,6 @@
 """The decision of analyze: the calibrated confidence (Platt map, ECE), the domain checks of the
 learned methods (texture statistics, disagreement with the self-calibration), the fitted decision
-written by calibrate_confidence."""
+written by fit_confidence."""
 
 from __future__ import annotations
 
@@ -17,15 +17,8 @@ from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import load_scenes, read_manifest
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.workflows.analyze import analyze_batch
-from lensdist_torch.workflows.decision import (
-    class_distance,
-    decide,
-    domain_checks,
-    expected_calibration_error,
-    fit_platt,
-    platt,
-    reliability,
-)
+from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
+from lensdist_torch.workflows.decision import class_distance, decide, domain_checks
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 
@@ -171,7 +164,7 @@ def test_cli_says_what_the_checkpoint_was_fitted_on(tmp_path, capsys):
     assert "fitted on: gravel, grass" in capsys.readouterr().out
 
 
-# ------------------------------------------------------------------ calibrate_confidence
+# ------------------------------------------------------------------ fit_confidence
 def test_calibration_is_fitted_on_a_validation_split(tiny_run):
     out, _ = tiny_run
     cal = json.loads((out / "calibration.json").read_text())
@@ -216,7 +209,7 @@ def test_a_refit_that_raises_the_ece_is_not_kept():
     # where the refit does lower the ECE it is kept: half right at raw 0.9 -> a map towards 0.5
     results["regression"] = _results([0.9] * 20, [5.0] * 10 + [9.0] * 10)
     fitted = fit_decision(results, data, cfg)
-    from lensdist_torch.workflows.decision import platt
+    from lensdist_torch.workflows.confidence import platt
 
     mapped = float(platt(torch.tensor([0.9], dtype=torch.float64), fitted["regression_confidence_scale"],
                          fitted["regression_confidence_shift"])[0])

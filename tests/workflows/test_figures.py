@@ -75,7 +75,7 @@ def test_confusion_and_eigenvectors(tmp_path):
 
 
 def test_reliability_diagram(tmp_path):
-    from lensdist_torch.workflows.decision import reliability
+    from lensdist_torch.workflows.confidence import reliability
 
     conf = torch.linspace(0.01, 0.99, 50)
     right = torch.arange(50) % 3 != 0
