@@ -17,7 +17,26 @@ import math
 import numbers
 from typing import Any
 
-__all__ = ["one_line", "show", "real", "positive", "integer", "flag", "choice", "pair", "integers", "names"]
+__all__ = ["or_defaults", "one_line", "show", "real", "positive", "integer", "flag", "choice", "pair", "integers", "names"]
+
+
+def or_defaults(value: Any, cls: type, name: str = "config") -> Any:
+    """``value``, or ``cls()`` (the defaults of docs/method.md) where it is None; anything else a TypeError.
+
+    Example:
+        >>> from lensdist_torch.config import SelfCalConfig
+        >>> or_defaults(None, SelfCalConfig) == SelfCalConfig()
+        True
+        >>> or_defaults({"levels": 3}, SelfCalConfig)
+        Traceback (most recent call last):
+        ...
+        TypeError: config must be a SelfCalConfig or None, got dict
+    """
+    if value is None:
+        return cls()
+    if not isinstance(value, cls):
+        raise TypeError(f"{name} must be a {cls.__name__} or None, got {type(value).__name__}")
+    return value
 
 
 def one_line(exc: BaseException, limit: int | None = None) -> str:

@@ -37,6 +37,7 @@ from lensdist_torch.classify._checkpoint import (
     save_model,
 )
 from lensdist_torch.config import ClassifierConfig, LensdistConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.storage import CheckpointError
 from lensdist_torch.geometry.distortion import REJECT
 
@@ -81,7 +82,7 @@ class EigenSpaceClassifier(nn.Module):
 
     def __init__(self, n_features: int, config: LensdistConfig | None = None) -> None:
         super().__init__()
-        self.config = config if config is not None else LensdistConfig()
+        self.config = or_defaults(config, LensdistConfig)
         c = self.config.classifier
         k = self.config.distortion.n_classes
         n = c.n_eigenvectors

@@ -45,6 +45,7 @@ from lensdist_torch.classify._checkpoint import (
     save_model,
 )
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.config_estimators import MAX_NEIGHBOURS
 from lensdist_torch.core.storage import CheckpointError
 from lensdist_torch.geometry.distortion import METRICS, delta_top, estimated_class
@@ -95,7 +96,7 @@ class DeltaRegressor(nn.Module):
         self, n_features: int, config: LensdistConfig | None = None, n_components: int | None = None, k: int | None = None
     ) -> None:
         super().__init__()
-        self.config = config if config is not None else LensdistConfig()
+        self.config = or_defaults(config, LensdistConfig)
         n_components = self.config.regression.n_components if n_components is None else n_components
         k = self.config.regression.k if k is None else k
         for name, value in (("n_features", n_features), ("n_components", n_components), ("k", k)):

@@ -49,6 +49,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, estimated_class
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
@@ -98,7 +99,7 @@ class SequenceCalibration(NamedTuple):
 # ------------------------------------------------------------------ analysis size
 def analysis_scale(height: int, width: int, config: CalibrationConfig | None = None) -> float:
     """The scale s, user px per analysis px: max(1, longest side / ``config.analysis_side``)."""
-    cfg = config or CalibrationConfig()
+    cfg = or_defaults(config, CalibrationConfig)
     return max(1.0, max(height, width) / cfg.analysis_side)
 
 
@@ -158,7 +159,7 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
         >>> choose_pairs(frames)[0][:3].tolist()  # 0.14 and 0.22 of R = 141 px: 24 and 32 px apart
         [[0, 3], [0, 4], [1, 4]]
     """
-    cfg = config or CalibrationConfig()
+    cfg = or_defaults(config, CalibrationConfig)
     n, _, h, w = frames.shape
     if n < 2:
         return torch.zeros(0, 2, dtype=torch.int64), torch.zeros(0, 2, dtype=torch.float64)
@@ -202,7 +203,7 @@ def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = Non
         >>> no_pairs_reason(torch.cat([x, torch.rand(1, 1, 64, 64)]))[:30]
         'the frames could not be regist'
     """
-    cfg = config or CalibrationConfig()
+    cfg = or_defaults(config, CalibrationConfig)
     a, b = frames[:-1].float(), frames[1:].float()
     static = (a - b).abs().mean(dim=(1, 2, 3))
     texture = (a - torch.roll(a, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))
@@ -386,8 +387,7 @@ def calibrate_sequence(
         >>> round(cal.k2_user * 1e6, 1), cal.class_label, cal.frames, cal.image_size
         (8.1, '3', 10, (160, 200))
     """
-    cfg = CalibrationConfig() if config is None else config
-    st = LensdistConfig() if settings is None else settings
+    cfg, st = or_defaults(config, CalibrationConfig), or_defaults(settings, LensdistConfig, "settings")
     if not isinstance(cfg, CalibrationConfig):
         raise TypeError(f"config must be a CalibrationConfig or None, got {type(cfg).__name__}")
     if not isinstance(st, LensdistConfig):

@@ -52,6 +52,7 @@ from typing import NamedTuple
 import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
@@ -153,7 +154,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
         Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
         COLMAP reconstructed nothing; shorter than ``reconstructions`` when ``stop`` said so.
     """
-    pc, cfg = pycolmap_or_error(), config or MultiViewConfig()
+    pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
     pc.set_random_seed(cfg.seed)
     out = []
     with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
@@ -342,7 +343,7 @@ def self_calibrate_reconstruction(
     Returns:
         :class:`MultiViewCalibration`.
     """
-    cfg, st = config or MultiViewConfig(), settings or LensdistConfig()
+    cfg, st = or_defaults(config, MultiViewConfig), or_defaults(settings, LensdistConfig, "settings")
     if rec.num_reg_images() < 3:
         raise ValueError(f"rec must hold at least 3 registered frames, got {rec.num_reg_images()}")
     if rec.num_points3D() == 0:  # a mapping can register frames and keep no point (tiny frames)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 
 from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide
 
@@ -92,7 +93,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
         The median reconstruction's calibration with the widened intervals, the class (or None and
         the reason), ``reconstructions`` (one summary per seed) and ``reconstruction_spread_px``.
     """
-    cfg = config or MultiViewConfig()
+    cfg = or_defaults(config, MultiViewConfig)
     ok = [(s, r) for s, r in runs if not isinstance(r, str)]
     if not ok:
         raise ValueError(f"runs must hold at least one successful reconstruction, got {len(runs)} failed")

@@ -44,6 +44,7 @@ import torch.nn.functional as F
 from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import check_image, check_image_pair, to_grey
 from lensdist_torch.geometry.frame import (
     grid_sample_matrix,
@@ -205,9 +206,7 @@ def estimate_homography(
         >>> round(float(H[0, 0, 2]), 2), bool(info.converged)
         (3.0, True)
     """
-    cfg = RegistrationConfig() if config is None else config
-    if not isinstance(cfg, RegistrationConfig):
-        raise TypeError(f"config must be a RegistrationConfig or None, got {type(cfg).__name__}")
+    cfg = or_defaults(config, RegistrationConfig)
     check_image_pair(img1, img2, finite=validate)
     bsz, _, h0, w0 = img1.shape
     if h0 < 16 or w0 < 16:

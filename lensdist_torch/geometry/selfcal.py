@@ -63,6 +63,7 @@ from typing import NamedTuple
 import torch
 
 from lensdist_torch.config import SelfCalConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
 from lensdist_torch.geometry.distortion import pixel_offsets
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid, normalizer
@@ -177,9 +178,7 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
         >>> abs(float(delta_avg(k2, k4, 160, 212)[0]) - 2.10) < 0.1
         True
     """
-    cfg = config if config is not None else SelfCalConfig()
-    if not isinstance(cfg, SelfCalConfig):
-        raise TypeError(f"config must be a SelfCalConfig or None, got {type(cfg).__name__}")
+    cfg = or_defaults(config, SelfCalConfig)
     check_image_pair(img1, img2, finite=validate)
     (bsz, _, h, w), least = img1.shape, max(16, 2**cfg.levels)
     if h < least or w < least:

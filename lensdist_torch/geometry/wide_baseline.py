@@ -34,6 +34,7 @@ from kornia.feature import SIFTFeature, get_laf_center, match_smnn
 from kornia.geometry import RANSAC
 
 from lensdist_torch.config import RegistrationConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
 from lensdist_torch.geometry.registration import RegistrationInfo, estimate_homography, warp_to_reference
 
@@ -49,10 +50,7 @@ def _sift(max_keypoints: int, device: torch.device) -> SIFTFeature:
 
 
 def _config(config: object) -> RegistrationConfig:
-    cfg = RegistrationConfig() if config is None else config
-    if not isinstance(cfg, RegistrationConfig):
-        raise TypeError(f"config must be a RegistrationConfig or None, got {type(cfg).__name__}")
-    return cfg
+    return or_defaults(config, RegistrationConfig)
 
 
 def _corners(h: int, w: int, **kw) -> torch.Tensor:

@@ -31,6 +31,7 @@ import torch
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import centre_crop_box
 from lensdist_torch.core.storage import CheckpointError, check_compatible
 from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, estimated_class
@@ -191,7 +192,7 @@ def _models_and_config(method, checkpoint, checkpoint_max, config):
     if checkpoint is not None and method == "selfcal":
         raise ValueError("checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'")
     if method == "selfcal":
-        return None, (config if config is not None else LensdistConfig())
+        return None, or_defaults(config, LensdistConfig)
     if method == "eigenspace":
         models = _eigenspace_models(checkpoint, checkpoint_max)
     else:

@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
 from lensdist_torch.core.video import VIDEO_SUFFIXES, video_frames
 from lensdist_torch.data.realism import degrade, draw_realism
@@ -174,7 +175,7 @@ def calibrate_path(
     if focal is not None and (isinstance(focal, bool) or not isinstance(focal, (int, float)) or not math.isfinite(focal)
                               or focal <= 0):  # checked before the run, not by the OpenCV export at its end
         raise ValueError(f"focal must be a positive number of pixels or None, got {focal!r}")
-    cfg, frames, scale = CalibrationConfig() if config is None else config, [], 1.0
+    cfg, frames, scale = or_defaults(config, CalibrationConfig), [], 1.0
     for _, img in frames_of_one_size(path, True, max_frames, quiet, "reading"):
         scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
         frames.append(to_analysis(img, scale))
@@ -194,7 +195,7 @@ def calibrate_path(
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
-    st = settings or LensdistConfig()
+    st = or_defaults(settings, LensdistConfig, "settings")
     mv = None
     if method != "direct" and len(frames) >= MIN_FRAMES and not len(cal.pairs) and cal.reason.startswith(TOO_LITTLE_MOTION):
         # the frames' phase correlations say they did not move: no mapping can see more, so none runs
@@ -313,7 +314,7 @@ def synthetic_sequence(
     frames = torch.stack(out, 1)  # (2, N, 1, H, W)
     distorted = frames[0].contiguous()
     if realistic:
-        cfg = config or LensdistConfig()
+        cfg = or_defaults(config, LensdistConfig)
         cfg = dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, height=h, width=w))  # the patches' frame
         real = draw_realism(cfg, [1_000_003 * seed + i for i in range(n_frames)])
         distorted = degrade(distorted, distorted, real)[0]

@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.geometry.multiview_runs import combine_reconstructions
 
@@ -70,7 +71,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
     """
     from lensdist_torch.workflows.calibrate import list_frames, read_frames
 
-    cfg = config or MultiViewConfig()
+    cfg = or_defaults(config, MultiViewConfig)
     try:
         pycolmap_or_error()
     except ValueError as exc:

@@ -16,6 +16,7 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
@@ -117,7 +118,7 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
             instead of estimating them (the pairs count as registered).
         device: where the tensors go (default: the CPU).
     """
-    cfg = config if config is not None else LensdistConfig()
+    cfg = or_defaults(config, LensdistConfig)
     dev = resolve_device(device)
     ones, twos = _as_images(img1, "img1"), _as_images(img2, "img2")
     if len(ones) != len(twos):

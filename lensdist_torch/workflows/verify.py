@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.undistort import undistort_image
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
@@ -94,7 +95,7 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
         >>> out["error_share_after"] < out["error_share_before"]
         True
     """
-    st = settings if settings is not None else LensdistConfig()
+    st = or_defaults(settings, LensdistConfig, "settings")
     pairs = torch.as_tensor(pairs).reshape(-1, 2)
     if len(pairs) > max_pairs:
         pairs = pairs[torch.linspace(0, len(pairs) - 1, max_pairs).round().long()]
