@@ -21,7 +21,7 @@ over every sequence's estimate, coverage of the 95 % interval, confidently wrong
 and wrong), "cannot tell", per motion and overall. Results are appended to ``--out`` after each
 sequence (a long run keeps what it finished).
 
-    python benchmarks/bench_relief_sequences.py --n 16 --threads 2 --out docs/results/bench_relief_sequences.json
+    python benchmarks/bench_relief_sequences.py --n 20 --threads 2 --out docs/results/bench_relief_sequences.json
     python benchmarks/bench_relief_sequences.py --n 40 --method direct --out docs/results/bench_relief_sequences_direct.json
     python benchmarks/bench_relief_sequences.py --start 40 --n 40 --method direct --config RAW.toml --out ..._raw_validation.json
 
