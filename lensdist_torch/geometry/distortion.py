@@ -52,7 +52,7 @@ __all__ = [
     "class_bounds",
     "distortion_type",
     "to_normalized",
-    "sample",
+    "sample_at_pixels",
     "render_distorted",
 ]
 
@@ -290,7 +290,7 @@ def class_bounds(label: str, metric: str, config: LensdistConfig) -> tuple[float
     return lo, (math.inf if i == n else i * w)
 
 
-def sample(img: torch.Tensor, points: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
+def sample_at_pixels(img: torch.Tensor, points: torch.Tensor, mode: str = "bilinear") -> torch.Tensor:
     """Sample (B, C, h, w) images at pixel coordinates (B, H, W, 2); zeros outside."""
     h, w = img.shape[-2:]
     grid = to_normalized(points.to(img.dtype), h, w)
@@ -310,7 +310,7 @@ def render_distorted(img: torch.Tensor, k2, k4) -> torch.Tensor:
     grid = distortion_grid(k2, k4, h, w, dtype=img.dtype, device=img.device)
     if grid.shape[0] != b:
         raise ValueError(f"k2/k4 must have one value per image: {grid.shape[0]} for a batch of {b}")
-    return sample(img, grid)
+    return sample_at_pixels(img, grid)
 
 
 def distortion_type(a: float, b: float) -> str | None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["binomial_blur", "central_differences", "halve", "mean_pyramid"]
+__all__ = ["binomial_blur", "central_differences", "mean_pool_2x2", "mean_pyramid"]
 
 
 def central_differences(img: torch.Tensor, stride: int = 1, out: torch.Tensor | None = None) -> torch.Tensor:
@@ -29,17 +29,17 @@ def central_differences(img: torch.Tensor, stride: int = 1, out: torch.Tensor | 
     return out.mul_(0.5)
 
 
-def halve(img: torch.Tensor) -> torch.Tensor:
+def mean_pool_2x2(img: torch.Tensor) -> torch.Tensor:
     """2 x 2 means of the last two dimensions (an odd last row or column is dropped)."""
     p = img[..., : img.shape[-2] // 2 * 2, : img.shape[-1] // 2 * 2]
     return (p[..., ::2, ::2] + p[..., 1::2, ::2]).add_(p[..., ::2, 1::2]).add_(p[..., 1::2, 1::2]).mul_(0.25)
 
 
 def mean_pyramid(img: torch.Tensor, levels: int) -> list[torch.Tensor]:
-    """[img, halve(img), halve(halve(img)), ...], ``levels`` images in all, finest first."""
+    """[img, mean_pool_2x2(img), mean_pool_2x2(mean_pool_2x2(img)), ...], ``levels`` images in all, finest first."""
     pyr = [img]
     for _ in range(levels - 1):
-        pyr.append(halve(pyr[-1]))
+        pyr.append(mean_pool_2x2(pyr[-1]))
     return pyr
 
 

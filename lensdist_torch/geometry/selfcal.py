@@ -75,6 +75,7 @@ from lensdist_torch.geometry.selfcal_model import (
     distort_normalized,
     evaluate,
     h_matrix,
+    homography_parameters,
     invertible,
     planar_parameters,
     relief_basis,
@@ -83,7 +84,6 @@ from lensdist_torch.geometry.selfcal_model import (
     robust_weights,
     select_samples,
     selfcal_residual,
-    theta_of,
     undistort_normalized,
     with_gradients,
 )
@@ -149,7 +149,7 @@ _RELIEF_INTERPOLATION = "bilinear"
 _HAUSMAN_FLOOR_PX = 0.05
 
 
-def _k(cfg: SelfCalConfig) -> float:
+def _robust_constant(cfg: SelfCalConfig) -> float:
     return cfg.tukey_c if cfg.robust == "tukey" else cfg.huber_k
 
 
@@ -209,7 +209,7 @@ def _starts(pyr1, pyr2, init, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Ten
     if init is not None:
         nrm = normalizer(h0, w0, device=dev)
         out.append(theta.clone())
-        out[0][:, :8] = theta_of(nrm @ init @ torch.linalg.inv(nrm))
+        out[0][:, :8] = homography_parameters(nrm @ init @ torch.linalg.inv(nrm))
     if init is None or cfg.both_starts:  # the translation in level px -> u
         t = phase_correlation(pyr1[-1][:, 0], pyr2[-1][:, 0]).double()
         theta[:, 2:6:3] = t * 2 ** (cfg.levels - 1) / half_diagonal(h0, w0)
@@ -298,7 +298,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     plausible and some overlap remains; sigma is then re-estimated. Returns theta, lambda and
     the :class:`_State` at theta.
     """
-    loss, k = cfg.robust, _k(cfg)
+    loss, k = cfg.robust, _robust_constant(cfg)
     res, valid, J = evaluate(theta, lv)
     sigma = robust_scale(res, valid, cfg.noise_floor)
     cost = _cost(theta, res, valid, sigma, lv, cfg)
@@ -344,7 +344,7 @@ def _prior(variance: torch.Tensor, px: float, cfg: SelfCalConfig):
 
 def _cost(theta, res, valid, sigma, lv: Level, cfg: SelfCalConfig):
     """The robust cost, plus the relief prior's term (on the same per-sample scale) where fitted."""
-    cost = robust_cost(res, valid, sigma, cfg.robust, _k(cfg))
+    cost = robust_cost(res, valid, sigma, cfg.robust, _robust_constant(cfg))
     if lv.basis is None:
         return cost
     prec, rel = _prior(sigma.double() ** 2, lv.px, cfg)
@@ -357,7 +357,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: 
     The weighted Gauss-Newton covariance, or (``clusters`` > 1) the cluster-robust one where it
     is larger (:func:`_sandwich`).
     """
-    w = robust_weights(st.res, st.sigma, cfg.robust, _k(cfg))
+    w = robust_weights(st.res, st.sigma, cfg.robust, _robust_constant(cfg))
     w = st.valid.float() if w is None else w * st.valid
     jtj, _ = _normal_equations(st.J, st.res, w)
     n_par = st.J.shape[1]
@@ -409,7 +409,7 @@ def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> 
     if n_starts == 1:
         return rows
     sigma = st.sigma.view(n_starts, bsz).amin(0).repeat(n_starts)
-    cost = robust_cost(st.res, st.valid, sigma, cfg.robust, _k(cfg))
+    cost = robust_cost(st.res, st.valid, sigma, cfg.robust, _robust_constant(cfg))
     cost = torch.where(ok & torch.isfinite(cost), cost, torch.full_like(cost, float("inf"))).view(n_starts, bsz)
     return rows + bsz * cost.argmin(0)  # ties: the first start (init)
 

@@ -33,7 +33,7 @@ __all__ = [
     "undistort_normalized",
     "distort_normalized",
     "h_matrix",
-    "theta_of",
+    "homography_parameters",
     "planar_parameters",
     "selfcal_residual",
     "with_gradients",
@@ -79,7 +79,7 @@ def h_matrix(theta: torch.Tensor) -> torch.Tensor:
     return h.view(-1, 3, 3)
 
 
-def theta_of(hn: torch.Tensor) -> torch.Tensor:
+def homography_parameters(hn: torch.Tensor) -> torch.Tensor:
     """(B, 3, 3) normalised homographies -> their 8 parameters (inverse of :func:`h_matrix`)."""
     hn = hn / hn[:, 2:, 2:]
     f = hn.reshape(-1, 9)[:, :8].clone()

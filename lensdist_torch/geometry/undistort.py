@@ -39,7 +39,7 @@ from lensdist_torch.geometry.distortion import (
     distort_points,
     distortion_center,
     radial_derivative,
-    sample,
+    sample_at_pixels,
     undistort_points,
 )
 from lensdist_torch.geometry.frame import pixel_grid
@@ -228,7 +228,7 @@ def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear", view=None
     if grid.shape[0] not in (1, b):
         raise ValueError(f"k2/k4 must hold 1 value or one per image ({b}), got {grid.shape[0]}")
     grid, valid = grid.expand(b, -1, -1, -1), valid.expand(b, -1, -1, -1)
-    return sample(x, grid, mode) * valid, valid
+    return sample_at_pixels(x, grid, mode) * valid, valid
 
 
 class Undistort(nn.Module):

@@ -79,7 +79,7 @@ def _batch_state(img1, img2, valid, config, data_range, validate, pad):
     return (q * keep).sum(), (m * keep[:, None, None, None]).sum(dim=0), n, m.shape[0] - n
 
 
-def _on(count: int | torch.Tensor, device: torch.device) -> int | torch.Tensor:
+def _to_device(count: int | torch.Tensor, device: torch.device) -> int | torch.Tensor:
     return count.to(device) if isinstance(count, torch.Tensor) else count
 
 
@@ -208,8 +208,8 @@ class RegistrationQualityMetric(nn.Module):
         device = self.quality_sum.device
         self.map_sum = _add_map(self.map_sum, m.to(device))
         self.quality_sum += q.to(device)
-        self.num_pairs += _on(n, device)
-        self.num_skipped += _on(skipped, device)
+        self.num_pairs += _to_device(n, device)
+        self.num_skipped += _to_device(skipped, device)
         return q, m, n, skipped
 
     def compute(self) -> torch.Tensor:

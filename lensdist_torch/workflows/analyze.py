@@ -38,9 +38,9 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, estimated_
 from lensdist_torch.geometry.homography import check_homography
 from lensdist_torch.workflows.confidence import platt
 from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels
-from lensdist_torch.workflows.prepare import Prepared, prepare_batch, resolve_device
+from lensdist_torch.workflows.prepare import PreparedPairs, prepare_batch, resolve_device
 
-__all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "Prepared", "default_checkpoint", "resolve_device", "METHODS"]
+__all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "PreparedPairs", "default_checkpoint", "resolve_device", "METHODS"]
 
 METHODS = ("selfcal", "regression", "eigenspace")
 _CKPT_DIR = Path(str(resources.files("lensdist_torch") / "checkpoints"))  # package data: in the wheel too
@@ -120,7 +120,7 @@ def _eigenspace_models(checkpoint, checkpoint_max) -> tuple:
     return tuple(models)
 
 
-def _on(model, device: torch.device):
+def _model_on(model, device: torch.device):
     """The model with its buffers on ``device`` (a copy when it lives elsewhere: the caller's and cached models stay)."""
     if model is None or next(iter(model.buffers())).device == device:
         return model
@@ -130,14 +130,14 @@ def _on(model, device: torch.device):
 
 
 # ------------------------------------------------------------------ the methods, one pair each
-def _selfcal(p: Prepared, i: int, _models) -> dict:
+def _selfcal(p: PreparedPairs, i: int, _models) -> dict:
     a = p.config.analysis
     res = dict(p.selfcal()[i])
     res["confidence"] = float(platt(res["raw_confidence"], a.selfcal_confidence_scale, a.selfcal_confidence_shift))
     return res
 
 
-def _regression(p: Prepared, i: int, reg: DeltaRegressor) -> dict:
+def _regression(p: PreparedPairs, i: int, reg: DeltaRegressor) -> dict:
     """The Delta regressor on pair i's quality map: both Deltas with a confidence."""
     cfg, a = p.config, p.config.analysis
     with torch.no_grad():
@@ -154,7 +154,7 @@ def _regression(p: Prepared, i: int, reg: DeltaRegressor) -> dict:
     }
 
 
-def _eigenspace(p: Prepared, i: int, models) -> dict:
+def _eigenspace(p: PreparedPairs, i: int, models) -> dict:
     """The paper's classifiers on pair i's quality map: classes, both Deltas, distances, domain check."""
     out = {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None, "confidence": None}
     far = False
@@ -216,7 +216,7 @@ def analyze_batch(
     checkpoint_max=None,
     device=None,
     homography=None,
-    prepared: Prepared | None = None,
+    prepared: PreparedPairs | None = None,
     return_maps: bool = False,
 ) -> list[dict] | tuple[list[dict], torch.Tensor]:
     """Analyse a batch of overlapping pairs of photographs of roughly planar scenes.
@@ -238,7 +238,7 @@ def analyze_batch(
         device: where the tensors go ("cpu" by default, "cuda", ...).
         homography: optional (B, 3, 3) registrations img1 -> img2 at the analysis size, used
             instead of estimating them.
-        prepared: a :class:`Prepared` batch from :func:`prepare_batch` (then img1, img2,
+        prepared: a :class:`PreparedPairs` batch from :func:`prepare_batch` (then img1, img2,
             homography and device are ignored): several methods on one registration.
         return_maps: also return the (B, 1, H/8, W/8) quality maps of the registered pairs.
 
@@ -264,7 +264,7 @@ def analyze_batch(
         raise CheckpointError("the prepared batch was made under another image size or quality thresholds than the checkpoint's")
     cfg = p.config
     dev = p.img1.device
-    models = tuple(_on(m, dev) for m in models) if isinstance(models, tuple) else _on(models, dev)
+    models = tuple(_model_on(m, dev) for m in models) if isinstance(models, tuple) else _model_on(models, dev)
     extra = {}
     if models is not None:
         first = models if isinstance(models, DeltaRegressor) else next(m for m in models if m is not None)

@@ -2,7 +2,7 @@
 
 :func:`prepare_batch` brings pairs to the analysis size (a centred crop, then area resampling),
 registers them, measures how far each moved (the registration's mean displacement) and computes
-their quality maps; :class:`Prepared` holds that, and computes on first use what several methods
+their quality maps; :class:`PreparedPairs` holds that, and computes on first use what several methods
 share: the self-calibration of each pair (with its 95 % interval) and the texture histograms.
 :func:`~lensdist_torch.workflows.analyze.analyze_batch` runs the methods on it.
 """
@@ -32,7 +32,7 @@ from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
 from lensdist_torch.workflows.texture import texture_histogram
 
-__all__ = ["Prepared", "prepare_batch", "resolve_device"]
+__all__ = ["PreparedPairs", "prepare_batch", "resolve_device"]
 
 
 def resolve_device(device=None) -> torch.device:
@@ -70,7 +70,7 @@ def _as_images(img, name: str) -> list[torch.Tensor]:
 
 
 @dataclasses.dataclass
-class Prepared:
+class PreparedPairs:
     """A batch brought to the analysis size and registered: what every method starts from.
 
     img1, img2: (B, 1, h, w) on the analysis device; H: (B, 3, 3) float64 img1 -> img2;
@@ -107,7 +107,7 @@ class Prepared:
         return self._texture
 
 
-def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=None, device=None) -> Prepared:
+def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=None, device=None) -> PreparedPairs:
     """Bring pairs to the analysis size, register them and compute their quality maps.
 
     Args:
@@ -150,10 +150,10 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
     qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality, validate=False), cfg.quality)
     overlap = valid.flatten(1).float().mean(1).cpu()
     motion = mean_displacement(H, h, w).cpu()
-    return Prepared(cfg, a, b, H, ok, residual, overlap, motion, qmap, scale, sizes)
+    return PreparedPairs(cfg, a, b, H, ok, residual, overlap, motion, qmap, scale, sizes)
 
 
-def _selfcal_one(p: Prepared, i: int) -> dict:
+def _selfcal_one(p: PreparedPairs, i: int) -> dict:
     """Self-calibration of pair i, started from the registration's H when it worked."""
     cfg, sl = p.config, slice(i, i + 1)
     init = p.H[sl] if bool(p.registration_ok[i]) else None

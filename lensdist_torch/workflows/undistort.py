@@ -52,7 +52,7 @@ import torch
 
 from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
-from lensdist_torch.geometry.distortion import distortion_center, sample
+from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
 from lensdist_torch.workflows.calibrate import frames_of_one_size, list_frames
@@ -280,7 +280,7 @@ def undistort_path(
             grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *size, view=view))
             (out / "masks").mkdir(parents=True, exist_ok=True)
         deep = _deep(files[i] if files is not None else None, img)
-        corrected = (sample(img.to(dev), grid) * valid)[0].cpu()
+        corrected = (sample_at_pixels(img.to(dev), grid) * valid)[0].cpu()
         atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint16(corrected) if deep else to_uint8(corrected)))
         atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(to_uint8(valid[0]).cpu()))
         n, valid_sum, bits = n + 1, valid_sum + float(valid.mean()), bits | {16 if deep else 8}

@@ -34,7 +34,7 @@ from lensdist_torch.geometry.distortion import (
     delta_metric,
     distortion_center,
     distortion_grid,
-    sample,
+    sample_at_pixels,
 )
 
 HS, WS = 96, 128
@@ -209,8 +209,8 @@ def step_by_step(scenes, params: PairParams, config) -> tuple[torch.Tensor, torc
     out1, out2 = [], []
     for i in range(a.shape[0]):
         sc = scenes[int(params.scene[i])].double()
-        out1.append(sample(sc, a[i : i + 1]))
-        out2.append(sample(sc, b[i : i + 1]))
+        out1.append(sample_at_pixels(sc, a[i : i + 1]))
+        out2.append(sample_at_pixels(sc, b[i : i + 1]))
     return torch.cat(out1), torch.cat(out2)
 
 

@@ -24,7 +24,7 @@ from lensdist_torch.geometry.frame import (
     to_normalized,
 )
 from lensdist_torch.geometry.phase import phase_correlation
-from lensdist_torch.geometry.pyramid import binomial_blur, central_differences, halve, mean_pyramid
+from lensdist_torch.geometry.pyramid import binomial_blur, central_differences, mean_pool_2x2, mean_pyramid
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 
@@ -174,8 +174,8 @@ class TestPyramid:
     @pytest.mark.parametrize("h,w", [(16, 24), (17, 25), (5, 3)])
     def test_halve_is_avg_pool(self, h, w):
         img = torch.rand(3, 1, h, w)
-        torch.testing.assert_close(halve(img), F.avg_pool2d(img, 2), atol=1e-6, rtol=0)
-        torch.testing.assert_close(halve(img[:, 0]), F.avg_pool2d(img, 2)[:, 0], atol=1e-6, rtol=0)
+        torch.testing.assert_close(mean_pool_2x2(img), F.avg_pool2d(img, 2), atol=1e-6, rtol=0)
+        torch.testing.assert_close(mean_pool_2x2(img[:, 0]), F.avg_pool2d(img, 2)[:, 0], atol=1e-6, rtol=0)
 
     def test_mean_pyramid(self):
         img = torch.rand(2, 1, 41, 67)

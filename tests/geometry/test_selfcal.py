@@ -18,7 +18,13 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry import selfcal_model
-from lensdist_torch.geometry.distortion import delta_avg, distort_points, distortion_grid, sample, undistort_points
+from lensdist_torch.geometry.distortion import (
+    delta_avg,
+    distort_points,
+    distortion_grid,
+    sample_at_pixels,
+    undistort_points,
+)
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid
 from lensdist_torch.geometry.registration import estimate_homography
 from lensdist_torch.geometry.selfcal import (
@@ -43,8 +49,8 @@ def _pair(h, w, k2, k4, shift, offset=(40.0, 44.0)):
     k4 = torch.tensor([k4], dtype=torch.float64)
     g = distortion_grid(k2, k4, h, w, dtype=torch.float64)
     o = torch.tensor([offset[1], offset[0]], dtype=torch.float64)
-    i1 = sample(s, g + o).float()
-    i2 = sample(s, g + o + torch.tensor(shift, dtype=torch.float64)).float()
+    i1 = sample_at_pixels(s, g + o).float()
+    i2 = sample_at_pixels(s, g + o + torch.tensor(shift, dtype=torch.float64)).float()
     return i1, i2
 
 

@@ -14,7 +14,7 @@ from lensdist_torch.geometry.distortion import (
     distortion_grid,
     pixel_grid,
     render_distorted,
-    sample,
+    sample_at_pixels,
 )
 from lensdist_torch.geometry.undistort import Undistort, monotone_branch, undistort_image, undistortion_grid
 
@@ -31,8 +31,8 @@ def _truth_and_distorted(k2, k4, dtype=torch.float64):
     scene = load_scene("gravel").to(dtype)
     offset = torch.tensor([200.0, 200.0], dtype=dtype)
     k2t, k4t = torch.tensor([k2], dtype=dtype), torch.tensor([k4], dtype=dtype)
-    ideal = sample(scene, pixel_grid(H, W, dtype)[None] + offset)
-    distorted = sample(scene, distortion_grid(k2t, k4t, H, W, dtype) + offset)
+    ideal = sample_at_pixels(scene, pixel_grid(H, W, dtype)[None] + offset)
+    distorted = sample_at_pixels(scene, distortion_grid(k2t, k4t, H, W, dtype) + offset)
     return ideal, distorted, k2t, k4t
 
 
