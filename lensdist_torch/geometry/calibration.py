@@ -23,9 +23,8 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    quadrature (what all pairs share), plus ``relief_rel`` times the relief's effect: the pairs'
    plane + parallax minus planar answers combined as the answers are, where it exceeds
    ``relief_test`` of its jackknife stds (relief parts the models alike in every pair, noise
-   does not), else the effect that test cannot exclude, ``relief_test`` of those stds (a relief
-   can bias both models alike); no jackknife over pairs sees what relief leaves in all of them
-   (docs/method.md, section 7). t on blocks - 1 degrees of freedom; [max(0, D - t sd), D + t sd] in user px.
+   does not), else the effect that test cannot exclude, ``relief_test`` of those stds (a relief can bias
+   both models alike; no jackknife sees it: docs/method.md, 7). t on blocks - 1 dof; [max(0, D - t sd), D + t sd].
 6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame, or None with a
    reason: under ``min_pairs`` usable pairs, a half-width there over ``max_class_halfwidth_px``,
    or an interval there that spans ``analysis.no_distortion_px`` (R or class 1 cannot be told:
@@ -388,10 +387,6 @@ def calibrate_sequence(
         (8.1, '3', 10, (160, 200))
     """
     cfg, st = or_defaults(config, CalibrationConfig), or_defaults(settings, LensdistConfig, "settings")
-    if not isinstance(cfg, CalibrationConfig):
-        raise TypeError(f"config must be a CalibrationConfig or None, got {type(cfg).__name__}")
-    if not isinstance(st, LensdistConfig):
-        raise TypeError(f"settings must be a LensdistConfig or None, got {type(st).__name__}")
     xa, size, scale = _prepare(frames, cfg, frame_size)
     least = max(16, 2**st.selfcal.levels)
     if min(xa.shape[-2:]) < least:
@@ -399,6 +394,24 @@ def calibrate_sequence(
     pairs, shifts = choose_pairs(xa, cfg)
     ab, std, models = _self_calibrate(xa, pairs, shifts, st, cfg, progress)
     return _result(ab, std, pairs, xa, size, scale, cfg, st, models)
+
+
+def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple[float, ...], float, float]:
+    """Step 5's relief terms of the three stds, z (|effect| / its jackknife std) and the effect found.
+
+    Below ``relief_test``, that many stds count (the effect the test cannot exclude), none is found.
+    """
+    diff = None if models is None else models[1] - models[0]
+    if diff is None or not bool((diff[torch.isfinite(diff)] != 0).any()):
+        return (0.0, 0.0, 0.0), 0.0, 0.0
+    theta_d, _, sd_d, _ = _combine(diff, std, pairs[:, 0], fun, cfg)  # combined as the answers are
+    effect, z = (theta_d @ fun.T).abs(), 0.0
+    if float(effect[1]) > 0 and bool(torch.isfinite(sd_d[1])):
+        z = float(effect[1] / sd_d[1]) if float(sd_d[1]) > 0 else math.inf
+    if z >= cfg.relief_test:  # the models part consistently over the sequence: relief
+        return tuple(float(e) for e in effect[1:]), z, float(effect[1])
+    bound = tuple(cfg.relief_test * float(v) for v in sd_d[1:]) if bool(torch.isfinite(sd_d[1:]).all()) else (0.0,) * 3
+    return bound, z, 0.0
 
 
 def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: LensdistConfig,
@@ -416,19 +429,7 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     n_used, nan = int(keep.sum()), float("nan")
     d_avg, d_max = (float(f([k2u], [k4u], hh, ww)[0]) if n_used else nan for f in (delta_avg, delta_max))
     dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
-    # the relief's effect (step 5): the pairs' plane + parallax minus planar answers, combined as the answers are
-    relief, relief_z, found = (0.0, 0.0, 0.0), 0.0, 0.0
-    diff = None if models is None else models[1] - models[0]
-    if n_used > 1 and diff is not None and bool((diff[torch.isfinite(diff)] != 0).any()):  # models that agree add nothing
-        theta_d, _, sd_d, _ = _combine(diff, std, pairs[:, 0], fun, cfg)
-        effect = (theta_d @ fun.T).abs()
-        if float(effect[1]) > 0 and bool(torch.isfinite(sd_d[1])):
-            relief_z = float(effect[1] / sd_d[1]) if float(sd_d[1]) > 0 else math.inf
-        if relief_z >= cfg.relief_test:  # the models part consistently over the sequence: relief
-            relief = tuple(float(e) for e in effect[1:])
-            found = relief[0]
-        elif bool(torch.isfinite(sd_d[1:]).all()):  # none found: the effect the test cannot exclude counts
-            relief = tuple(cfg.relief_test * float(s) for s in sd_d[1:])
+    relief, relief_z, found = _relief_term(models, std, pairs, fun, cfg) if n_used > 1 else ((0.0, 0.0, 0.0), 0.0, 0.0)
     half = [t * math.sqrt(float(e) ** 2 + (cfg.systematic_rel * d) ** 2 + (cfg.relief_rel * r) ** 2)
             for e, d, r in zip(sd[1:], (d_avg, d_max, dc), relief)]
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
+from lensdist_torch.config_checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
 
 #: Tolerance of the range checks, in units of ``data_range``: interpolation and rounding may put
@@ -40,11 +41,7 @@ _DEFAULT_CONFIG = QualityConfig()
 
 def get_config(config: QualityConfig | None) -> QualityConfig:
     """``config`` or the defaults; a TypeError for anything else."""
-    if config is None:
-        return _DEFAULT_CONFIG
-    if not isinstance(config, QualityConfig):
-        raise TypeError(f"config must be a QualityConfig or None, got {type(config).__name__}")
-    return config
+    return _DEFAULT_CONFIG if config is None else or_defaults(config, QualityConfig)  # one default, built once
 
 
 def should_validate(validate: bool) -> bool:

@@ -33,6 +33,7 @@ from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
 from lensdist_torch.metric.quality import counts_to_map
 from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
+from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
 from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions
 from lensdist_torch.workflows.texture import texture_statistics
 
@@ -257,7 +258,6 @@ def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: s
     true class; the confidence is the raw one, or its Platt map under ``config``.
     """
     from lensdist_torch.geometry.distortion import estimated_class
-    from lensdist_torch.workflows.confidence import platt
 
     keep = [i for i, r in enumerate(results) if r["in_domain"] and r["estimated_delta_avg"] is not None]
     if not keep:
@@ -282,7 +282,6 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     """
     import math
 
-    from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt
 
     grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
                   | {config.analysis.no_distortion_px})
@@ -313,8 +312,6 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
 
 def calibration_table(results: dict, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
     """ECE rows (method, split, pairs, before, after) and reliability curves, per method in ``results``."""
-    from lensdist_torch.workflows.confidence import reliability
-
     rows, curves = [], {}
     for method in _PLATT:
         if method not in results:
