@@ -13,7 +13,6 @@ Example:
 from __future__ import annotations
 
 import importlib
-import importlib.util
 from typing import Any
 
 __version__ = "0.2.0"
@@ -47,10 +46,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "registration_quality",
         "registration_quality_loss",
     ),
-    "lensdist_torch.metric.stateful": (
-        "RegistrationQualityMetric",
-        "RegistrationQualityTorchMetric",  # only where torchmetrics is installed
-    ),
+    "lensdist_torch.metric.stateful": ("RegistrationQualityMetric",),
     "lensdist_torch.metric.classification": ("ClassRMSE", "ConfusionMatrix"),
     "lensdist_torch.geometry.distortion": (
         "CLASS_LABELS",
@@ -77,19 +73,14 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.workflows.reproduce": ("reproduce",),
 }
 
-#: Names that exist only where an optional package is installed: name -> that package.
-_OPTIONAL = {"RegistrationQualityTorchMetric": "torchmetrics"}
-
 #: Public name -> the module that defines it.
 _LAZY: dict[str, str] = {name: module for module, names in _EXPORTS.items() for name in names}
 
-__all__ = sorted(n for n in _LAZY if n not in _OPTIONAL or importlib.util.find_spec(_OPTIONAL[n]) is not None)
+__all__ = sorted(_LAZY)
 
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        if name in _OPTIONAL and importlib.util.find_spec(_OPTIONAL[name]) is None:
-            raise AttributeError(f"lensdist_torch.{name} needs {_OPTIONAL[name]}: pip install {_OPTIONAL[name]}")
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value
         return value

@@ -48,7 +48,6 @@ from lensdist_torch.metric.quality import quality_map as quality_map
 from lensdist_torch.metric.quality import registration_quality as registration_quality
 from lensdist_torch.metric.quality import registration_quality_loss as registration_quality_loss
 from lensdist_torch.metric.stateful import RegistrationQualityMetric as RegistrationQualityMetric
-from lensdist_torch.metric.stateful import RegistrationQualityTorchMetric as RegistrationQualityTorchMetric
 from lensdist_torch.workflows.analyze import analyze_batch as analyze_batch
 from lensdist_torch.workflows.analyze import analyze_pair as analyze_pair
 from lensdist_torch.workflows.calibrate import synthetic_sequence as synthetic_sequence
@@ -74,7 +73,6 @@ __all__ = [
     "RegistrationQuality",
     "RegistrationQualityLoss",
     "RegistrationQualityMetric",
-    "RegistrationQualityTorchMetric",
     "RegressionConfig",
     "SelfCalConfig",
     "Undistort",

@@ -3,7 +3,7 @@
 The top level (``lensdist_torch``) exports what most users need: :func:`quality_map`,
 :func:`registration_quality` and :class:`RegistrationQuality`, the loss
 :func:`registration_quality_loss` and :class:`RegistrationQualityLoss`, the stateful
-:class:`RegistrationQualityMetric` (and, with torchmetrics, ``RegistrationQualityTorchMetric``).
+:class:`RegistrationQualityMetric` (a ``torchmetrics.Metric`` where torchmetrics is installed).
 The paper's pieces, for those who build on them, are exported here: the per-pixel criteria
 (:func:`local_criteria`), the error images (:func:`error_images`, :func:`erode_valid`), block
 pooling (:func:`block_pool`, :func:`block_counts`, :func:`floor_ratio`), the compact counts
@@ -25,7 +25,6 @@ Example:
 """
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.metric import stateful as _stateful
 from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
 from lensdist_torch.metric.quality import (
     ErrorImages,
@@ -70,6 +69,3 @@ __all__ = [
     "registration_quality",
     "registration_quality_loss",
 ]
-if hasattr(_stateful, "RegistrationQualityTorchMetric"):  # with torchmetrics installed
-    RegistrationQualityTorchMetric = _stateful.RegistrationQualityTorchMetric
-    __all__.append("RegistrationQualityTorchMetric")

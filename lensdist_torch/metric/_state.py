@@ -1,4 +1,8 @@
-"""Checks of a stateful metric's loaded state (:mod:`~lensdist_torch.metric.stateful`).
+"""The stateful metric's base and the checks of its loaded state (:mod:`~lensdist_torch.metric.stateful`).
+
+:data:`MetricBase` is ``torchmetrics.Metric`` where torchmetrics is installed, else a plain
+``nn.Module`` offering the part of its interface the metric uses (``add_state`` as buffers,
+``reset``, a no-op ``sync_context``): one metric class either way.
 
 A state no sequence of updates can produce (a negative count, a NaN sum, sums that do not
 match the count, a map of another shape) is refused with a one-line ValueError naming the field.
@@ -6,11 +10,18 @@ match the count, a map of another shape) is refused with a one-line ValueError n
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import torch
+from torch import nn
 
-__all__ = ["STATE", "check_state", "loaded_state"]
+try:  # optional: the metric is a torchmetrics.Metric where torchmetrics is installed
+    import torchmetrics as _torchmetrics
+except ImportError:  # pragma: no cover - depends on the environment
+    _torchmetrics = None
+
+__all__ = ["STATE", "MetricBase", "check_state", "loaded_state"]
 
 #: The accumulators, in the order of the buffers (and of the state_dict).
 STATE = ("quality_sum", "map_sum", "num_pairs", "num_skipped")
@@ -95,3 +106,50 @@ def loaded_state(module, state_dict, prefix: str) -> dict:
     if key not in state_dict and all(prefix + k in state_dict for k in STATE[:3]):
         state_dict[key] = torch.zeros((), dtype=torch.long)
     return {k: state_dict.get(prefix + k, getattr(module, k)) for k in STATE}
+
+
+class _ModuleMetric(nn.Module):
+    """``torchmetrics.Metric``'s interface as the metric uses it, without torchmetrics.
+
+    States are buffers (moved by ``.to``, saved by ``state_dict`` when persistent); ``reset``
+    restores their defaults on the states' device; there are no processes to sync.
+    """
+
+    dist_sync_fn = None
+    _to_sync = _should_unsync = True
+
+    def __init__(self, **kwargs) -> None:
+        if kwargs:
+            raise TypeError(
+                f"{type(self).__name__}: {', '.join(sorted(kwargs))} are torchmetrics.Metric options; "
+                "pip install torchmetrics to use them"
+            )
+        super().__init__()
+        self._defaults: dict[str, torch.Tensor] = {}
+
+    def add_state(self, name: str, default: torch.Tensor, dist_reduce_fx: str | None = None, persistent: bool = False):
+        """A state called ``name``, a buffer starting at ``default`` (``dist_reduce_fx`` unused)."""
+        self._defaults[name] = default.clone()
+        self.register_buffer(name, default.clone(), persistent=persistent)
+
+    def reset(self) -> None:
+        """Every state back to its default, on the device the states are on."""
+        for name, default in self._defaults.items():
+            setattr(self, name, default.clone().to(getattr(self, name).device))
+
+    def sync_context(self, dist_sync_fn=None, should_sync: bool = True, should_unsync: bool = True):
+        """No processes to gather: a context that does nothing."""
+        return contextlib.nullcontext()
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        """As torchmetrics: a state takes the saved tensor's shape (a lazily shaped map)."""
+        for name in self._defaults:
+            value = state_dict.get(prefix + name)
+            current = getattr(self, name)
+            if isinstance(value, torch.Tensor) and value.shape != current.shape:
+                setattr(self, name, torch.zeros(value.shape, dtype=current.dtype, device=current.device))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
+#: The stateful metric's base class: ``torchmetrics.Metric`` when installed, else :class:`_ModuleMetric`.
+MetricBase = _torchmetrics.Metric if _torchmetrics is not None else _ModuleMetric

@@ -1,4 +1,4 @@
-"""Stateful registration-quality metrics for validation loops (torchmetrics' pattern).
+"""The stateful registration-quality metric for validation loops (torchmetrics' pattern).
 
 ``update`` adds a batch of registered pairs, ``compute`` returns the mean quality index as a
 0-dim tensor (what ``MetricCollection``, ``self.log`` and ``log_dict`` expect),
@@ -10,15 +10,16 @@
   fitted to distorted images leaves errors that grow with the distance from the centre);
 * the number of pairs, and the number of pairs skipped because they had nothing to measure (no
   pixel of the mask valid after its 3 x 3 erosion, or every valid pixel in the risk map: an
-  index there would read 1.0, perfect, although nothing was compared). Such pairs are never averaged, with or without ``validate``.
+  index there would read 1.0, perfect, although nothing was compared). Such pairs are never
+  averaged, with or without ``validate``.
 
-The state is four sums (float64 for the sums, int64 for the counts) kept as buffers, so
-``.to(device)`` moves them and ``state_dict`` saves them. The sums stay float64 whatever
-``.half()``, ``.float()``, ``.bfloat16()`` or ``.to(dtype)`` ask (float16 sums stop growing after
-a few thousand pairs); device moves apply. ``load_state_dict`` checks what it loads: counts
-non-negative integers, sums finite and consistent with the count, the map of the metric's shape. :class:`RegistrationQualityMetric`
-needs nothing beyond PyTorch; where torchmetrics is installed, :class:`RegistrationQualityTorchMetric`
-is the same metric as a ``torchmetrics.Metric`` (states summed across processes).
+The state is four sums (float64 for the sums, int64 for the counts). :class:`RegistrationQualityMetric`
+is one class: a ``torchmetrics.Metric`` where torchmetrics is installed (states summed across
+processes), else an ``nn.Module`` whose states are buffers
+(:class:`~lensdist_torch.metric._state.MetricBase`); either way ``.to(device)`` moves the states,
+``state_dict`` saves them, and dtype casts leave them float64/int64 (float16 sums stop growing
+after a few thousand pairs). ``load_state_dict`` checks what it loads: counts non-negative
+integers, sums finite and consistent with the count, the map of the metric's shape.
 """
 
 from __future__ import annotations
@@ -26,17 +27,11 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import torch
-from torch import nn
 
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.metric._inputs import check_data_range, get_config, measured
-from lensdist_torch.metric._state import STATE, check_state, loaded_state
+from lensdist_torch.metric._state import STATE, MetricBase, check_state, loaded_state
 from lensdist_torch.metric.quality import measured_map
-
-try:  # optional: only for RegistrationQualityTorchMetric
-    import torchmetrics as _torchmetrics
-except ImportError:  # pragma: no cover - depends on the environment
-    _torchmetrics = None
 
 __all__ = ["QualityMetricResult", "RegistrationQualityMetric"]
 
@@ -125,8 +120,12 @@ def _initial_map(map_shape: tuple[int, int] | None) -> torch.Tensor:
     return torch.zeros((1, *map_shape), dtype=torch.float64)
 
 
-class RegistrationQualityMetric(nn.Module):
+class RegistrationQualityMetric(MetricBase):
     """Accumulates the quality index and the registration map over a validation set.
+
+    One class: a ``torchmetrics.Metric`` where torchmetrics is installed (states summed across
+    processes, ready for ``MetricCollection`` and Lightning's ``log_dict``), else a plain
+    ``nn.Module`` with the same methods and the states as buffers.
 
     Args:
         config: thresholds and block size; the defaults when None.
@@ -134,7 +133,10 @@ class RegistrationQualityMetric(nn.Module):
         validate: check values in each ``update`` (one host sync); skipped while compiling.
         pad: pad images to whole blocks (else H, W must be multiples of the block size).
         map_shape: (h, w) of the maps in blocks, e.g. (40, 53) for 320 x 424 images; None
-            takes it from the first batch.
+            takes it from the first batch. Pass it for distributed runs in which a process may
+            see no batch (a lazily shaped map cannot be summed with an empty one).
+        **kwargs: ``torchmetrics.Metric``'s options (e.g. ``sync_on_compute``); they need
+            torchmetrics.
 
     Shape:
         - img1, img2: (B, C, H, W); valid: (B, 1, H, W) or None.
@@ -143,12 +145,12 @@ class RegistrationQualityMetric(nn.Module):
           mean map and the () counts of pairs averaged and skipped.
 
     A pair with nothing to measure (no pixel of its mask valid after the 3 x 3 erosion, or
-    every valid pixel in the risk map) is
-    never averaged, with or without ``validate``: ``update`` leaves it out of the sums and
-    counts it in ``num_skipped`` (``compute_details`` reports it). The accumulators stay float64/int64
-    under ``.half()``, ``.float()``, ``.bfloat16()`` and ``.to(dtype)`` (device moves apply), and
-    ``load_state_dict`` refuses a state no sequence of updates can give (a negative count, a
-    NaN sum, sums that do not match the count) with a one-line ValueError naming the field.
+    every valid pixel in the risk map) is never averaged, with or without ``validate``:
+    ``update`` leaves it out of the sums and counts it in ``num_skipped``. The states stay
+    float64/int64 under ``.half()``, ``.float()``, ``.bfloat16()`` and ``.to(dtype)`` (device
+    moves apply), and ``load_state_dict`` refuses a state no sequence of updates can give (a
+    negative count, a NaN sum, sums that do not match the count) with a one-line ValueError
+    naming the field.
 
     Example:
         >>> metric = RegistrationQualityMetric()
@@ -165,6 +167,10 @@ class RegistrationQualityMetric(nn.Module):
         0
     """
 
+    is_differentiable = False
+    higher_is_better = True
+    full_state_update = False
+
     quality_sum: torch.Tensor
     map_sum: torch.Tensor
     num_pairs: torch.Tensor
@@ -177,18 +183,19 @@ class RegistrationQualityMetric(nn.Module):
         validate: bool = True,
         pad: bool = True,
         map_shape: tuple[int, int] | None = None,
+        **kwargs,
     ) -> None:
-        super().__init__()
+        super().__init__(**kwargs)
         check_data_range(data_range)
         self.config = get_config(config)
         self.data_range = data_range
         self.validate = validate
         self.pad = pad
         self.map_shape = map_shape
-        self.register_buffer("quality_sum", torch.zeros((), dtype=torch.float64))
-        self.register_buffer("map_sum", _initial_map(map_shape))
-        self.register_buffer("num_pairs", torch.zeros((), dtype=torch.long))
-        self.register_buffer("num_skipped", torch.zeros((), dtype=torch.long))
+        defaults = (torch.zeros((), dtype=torch.float64), _initial_map(map_shape))
+        defaults += (torch.zeros((), dtype=torch.long), torch.zeros((), dtype=torch.long))
+        for name, default in zip(STATE, defaults):
+            self.add_state(name, default=default, dist_reduce_fx="sum", persistent=True)
 
     @torch.no_grad()
     def update(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> None:
@@ -201,151 +208,51 @@ class RegistrationQualityMetric(nn.Module):
             img2: (B, C, H, W) the other images, on img1's device.
             valid: (B, 1, H, W) validity masks on img1's device, or None.
         """
-        self._add(img1, img2, valid)
-
-    def _add(self, img1, img2, valid):
         q, m, n, skipped = _batch_state(img1, img2, valid, self.config, self.data_range, self.validate, self.pad)
         device = self.quality_sum.device
         self.map_sum = _add_map(self.map_sum, m.to(device))
-        self.quality_sum += q.to(device)
-        self.num_pairs += _to_device(n, device)
-        self.num_skipped += _to_device(skipped, device)
-        return q, m, n, skipped
+        self.quality_sum = self.quality_sum + q.to(device)
+        self.num_pairs = self.num_pairs + _to_device(n, device)
+        self.num_skipped = self.num_skipped + _to_device(skipped, device)
+        self._batch = (q, n)
 
     def compute(self) -> torch.Tensor:
-        """The mean quality index over every pair since the last reset: a () float64 tensor.
+        """The mean quality index over every pair (of every process) since the last reset: () float64.
 
         Raises:
             RuntimeError: no pair was added.
         """
-        return self.compute_details().quality_index
+        return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped).quality_index
 
     def compute_details(self) -> QualityMetricResult:
         """The mean index, the mean registration map and the counts of pairs averaged and skipped.
 
+        Synced across processes as ``compute`` is.
+
         Raises:
             RuntimeError: no pair was added.
         """
-        return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
-
-    def reset(self) -> None:
-        """Forget every pair (the buffers stay on their device)."""
-        device = self.num_pairs.device
-        self.quality_sum = torch.zeros((), dtype=torch.float64, device=device)
-        self.map_sum = _initial_map(self.map_shape).to(device)
-        self.num_pairs = torch.zeros((), dtype=torch.long, device=device)
-        self.num_skipped = torch.zeros((), dtype=torch.long, device=device)
+        with self.sync_context(dist_sync_fn=self.dist_sync_fn, should_sync=self._to_sync, should_unsync=self._should_unsync):
+            return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
         """Add the batch and return its own mean index (as ``torchmetrics.Metric.forward``).
 
         NaN when none of the batch's pairs has anything to measure.
         """
-        q, _, n, _ = self._add(img1, img2, valid)
+        self.update(img1, img2, valid)
+        q, n = self._batch
         return q / torch.as_tensor(n, device=q.device)
 
     def _apply(self, fn, *args, **kwargs):
-        """Device moves apply to the accumulators; dtype changes do not (they stay float64/int64)."""
+        """Device moves apply to the states (and their defaults); dtype changes do not."""
         return super()._apply(_keeping_dtypes(fn), *args, **kwargs)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-        check_state(loaded_state(self, state_dict, prefix), self.map_shape)
-        key = prefix + "map_sum"
-        if key in state_dict and state_dict[key].shape != self.map_sum.shape:  # a lazily shaped map
-            self.map_sum = torch.zeros(state_dict[key].shape, dtype=torch.float64, device=self.map_sum.device)
+        if any(prefix + k in state_dict for k in STATE):  # states are saved only when persistent
+            check_state(loaded_state(self, state_dict, prefix), self.map_shape)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         """The block size and data range, shown in the module's repr."""
         return f"block_size={self.config.block_size}, data_range={self.data_range}"
-
-
-if _torchmetrics is not None:
-    __all__.append("RegistrationQualityTorchMetric")
-
-    class RegistrationQualityTorchMetric(_torchmetrics.Metric):
-        """:class:`RegistrationQualityMetric` as a ``torchmetrics.Metric``.
-
-        Defined only when torchmetrics is installed; the states are summed across processes.
-        As :class:`RegistrationQualityMetric`: pairs with nothing to measure are skipped and
-        counted in ``num_skipped``, the states stay float64/int64 whatever dtype the module is
-        cast to (``.to(dtype)``, ``.bfloat16()``; torchmetrics already ignores ``.half()``), and
-        persistent states are checked when loaded.
-
-        Args:
-            config: thresholds and block size; the defaults when None.
-            data_range: the value of white in float inputs.
-            validate: check values in each ``update`` (one host sync).
-            pad: pad images to whole blocks.
-            map_shape: (h, w) of the maps in blocks; pass it for distributed runs in which a
-                process may see no batch (the lazily shaped map cannot be summed with an
-                empty one).
-            **kwargs: passed to ``torchmetrics.Metric``.
-
-        Example:
-            >>> metric = RegistrationQualityTorchMetric()
-            >>> x = torch.rand(2, 1, 16, 16)
-            >>> metric.update(x, x)
-            >>> float(metric.compute())
-            1.0
-            >>> int(metric.compute_details().num_pairs)
-            2
-        """
-
-        is_differentiable = False
-        higher_is_better = True
-        full_state_update = False
-
-        def __init__(
-            self,
-            config: QualityConfig | None = None,
-            data_range: float = 1.0,
-            validate: bool = True,
-            pad: bool = True,
-            map_shape: tuple[int, int] | None = None,
-            **kwargs,
-        ) -> None:
-            super().__init__(**kwargs)
-            check_data_range(data_range)
-            self.quality_config = get_config(config)
-            self.data_range = data_range
-            self.validate = validate
-            self.pad = pad
-            self.add_state("quality_sum", default=torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
-            self.add_state("map_sum", default=_initial_map(map_shape), dist_reduce_fx="sum")
-            self.add_state("num_pairs", default=torch.zeros((), dtype=torch.long), dist_reduce_fx="sum")
-            self.add_state("num_skipped", default=torch.zeros((), dtype=torch.long), dist_reduce_fx="sum")
-            self.map_shape = map_shape
-
-        def update(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> None:
-            """Add a batch of registered pairs: img1, img2 (B, C, H, W), valid (B, 1, H, W).
-
-            Pairs with nothing to measure are counted in ``num_skipped``, not averaged.
-            """
-            q, m, n, skipped = _batch_state(
-                img1, img2, valid, self.quality_config, self.data_range, self.validate, self.pad
-            )
-            self.map_sum = _add_map(self.map_sum, m)
-            self.quality_sum += q
-            self.num_pairs += n
-            self.num_skipped += skipped
-
-        def compute(self) -> torch.Tensor:
-            """The mean quality index over every pair (of every process) since the last reset."""
-            return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped).quality_index
-
-        def compute_details(self) -> QualityMetricResult:
-            """Index, mean map and counts over every pair (of every process), synced as ``compute``."""
-            with self.sync_context(
-                dist_sync_fn=self.dist_sync_fn, should_sync=self._to_sync, should_unsync=self._should_unsync
-            ):
-                return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
-
-        def _apply(self, fn, *args, **kwargs):
-            """Device moves apply to the states (and their defaults); dtype changes do not."""
-            return super()._apply(_keeping_dtypes(fn), *args, **kwargs)
-
-        def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
-            if any(prefix + k in state_dict for k in STATE):  # states are saved only when persistent
-                check_state(loaded_state(self, state_dict, prefix), self.map_shape)
-            super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -82,7 +82,7 @@ def _package_public_names() -> set[str]:
     for path in (ROOT / "lensdist_torch").rglob("*.py"):
         if not path.name.startswith("cli"):
             names |= set(_module_all(path))
-    return names | {"RegistrationQualityTorchMetric"}  # appended to __all__ where torchmetrics is installed
+    return names
 
 
 def _readme_code_names() -> set[str]:
@@ -95,21 +95,14 @@ def _readme_code_names() -> set[str]:
     return ((ticked | in_code) & _package_public_names()) - NOT_PYTHON_NAMES - from_subpackages
 
 
-def _importable(name: str) -> bool:
-    optional = {"RegistrationQualityTorchMetric": "torchmetrics"}
-    return name not in optional or importlib.util.find_spec(optional[name]) is not None
-
-
 def test_the_readme_shows_the_names_the_issue_names():
     shown = _readme_code_names() | _readme_imports()
-    for name in ("calibrate_sequence", "undistort_image", "Undistort", "analyze_batch", "RegistrationQualityTorchMetric"):
+    for name in ("calibrate_sequence", "undistort_image", "Undistort", "analyze_batch", "RegistrationQualityMetric"):
         assert name in shown
 
 
 @pytest.mark.parametrize("name", sorted(_readme_imports() | _readme_code_names()))
 def test_every_readme_name_imports_from_the_top_level(name):
-    if not _importable(name):
-        pytest.skip(f"{name} needs an optional package")
     namespace: dict = {}
     exec(f"from lensdist_torch import {name}", namespace)
     assert namespace[name] is not None
@@ -144,26 +137,15 @@ def test_all_is_built_from_the_one_table():
     import lensdist_torch
 
     table = {n for names in _exports().values() for n in names}
-    assert set(lensdist_torch.__all__) == {n for n in table if _importable(n)}
+    assert set(lensdist_torch.__all__) == table
     assert len(table) == sum(len(names) for names in _exports().values())  # no name twice
     for module, names in _exports().items():
         exported = _module_all(ROOT / (module.replace(".", "/") + ".py"))
-        assert set(names) <= set(exported) | {"RegistrationQualityTorchMetric"}, module
+        assert set(names) <= set(exported), module
 
 
 def test_the_stub_is_generated_from_the_table():
     assert STUB.read_text() == stub_text(), "run: python tests/meta/test_public_names.py --write"
-
-
-@pytest.mark.bad_input
-def test_an_optional_name_without_its_package_says_what_to_install(monkeypatch):
-    import lensdist_torch
-
-    monkeypatch.delitem(lensdist_torch.__dict__, "RegistrationQualityTorchMetric", raising=False)
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "torchmetrics" else real(n, *a))
-    with pytest.raises(AttributeError, match=r"^lensdist_torch.RegistrationQualityTorchMetric needs torchmetrics: pip install torchmetrics$"):
-        lensdist_torch.RegistrationQualityTorchMetric  # noqa: B018
 
 
 if __name__ == "__main__" and sys.argv[1:] == ["--write"]:

@@ -50,9 +50,7 @@ class TestTorchmetrics:
     @pytest.fixture(autouse=True)
     def _tm(self):
         self.tm = pytest.importorskip("torchmetrics")
-        from lensdist_torch import RegistrationQualityTorchMetric
-
-        self.cls = RegistrationQualityTorchMetric
+        self.cls = RegistrationQualityMetric
 
     def test_metric_collection_and_log_dict(self):
         img1, img2, valid = pairs()

@@ -1,12 +1,10 @@
-"""Stateful metrics: RegistrationQualityMetric (and its torchmetrics twin where torchmetrics is
-installed), and reset() of ConfusionMatrix and ClassRMSE."""
+"""Stateful metrics: RegistrationQualityMetric (a torchmetrics.Metric where torchmetrics is
+installed, an nn.Module with buffers where it is not), and reset() of ConfusionMatrix and ClassRMSE."""
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import sys
-import types
 
 import pytest
 import torch
@@ -102,7 +100,7 @@ class TestRegistrationQualityMetric:
         img1, img2, valid = pairs()
         metric = RegistrationQualityMetric(QualityConfig(theta_g=0.03))
         feed(metric, img1, img2, valid, [4, 7])
-        assert set(dict(metric.named_buffers())) == {"quality_sum", "map_sum", "num_pairs", "num_skipped"}
+        assert set(metric.state_dict()) == {"quality_sum", "map_sum", "num_pairs", "num_skipped"}
         fresh = RegistrationQualityMetric(QualityConfig(theta_g=0.03))  # map shape not known yet
         fresh.load_state_dict(metric.state_dict())
         for a, b in zip(fresh.compute_details(), metric.compute_details()):
@@ -285,88 +283,60 @@ class TestLoadedState:
 # ----------------------------------------------------------------------------- torchmetrics
 
 
-def test_pure_class_needs_no_torchmetrics():
+def test_one_class_a_torchmetrics_metric_where_installed():
+    assert "RegistrationQualityTorchMetric" not in stateful.__all__
+    assert not hasattr(stateful, "RegistrationQualityTorchMetric")
     if importlib.util.find_spec("torchmetrics") is None:
-        assert not hasattr(stateful, "RegistrationQualityTorchMetric")
-        assert "RegistrationQualityTorchMetric" not in stateful.__all__
-    assert RegistrationQualityMetric.__bases__ == (torch.nn.Module,)
+        assert RegistrationQualityMetric.__mro__[1].__bases__ == (torch.nn.Module,)
+    else:
+        import torchmetrics
+
+        assert issubclass(RegistrationQualityMetric, torchmetrics.Metric)
+        metric = RegistrationQualityMetric(sync_on_compute=False)  # the Metric's options pass through
+        assert metric.sync_on_compute is False and metric._reductions["map_sum"] is not None
 
 
-def _run_torchmetric(cls):
+def _without_torchmetrics(monkeypatch):
+    """The metric's class as it is defined where torchmetrics cannot be imported."""
+    monkeypatch.setitem(sys.modules, "torchmetrics", None)  # import raises ImportError
+    modules = {}
+    for name in ("_state", "stateful"):
+        full = f"lensdist_torch.metric.{name}"
+        spec = importlib.util.spec_from_file_location(full, importlib.util.find_spec(full).origin)
+        modules[name] = importlib.util.module_from_spec(spec)
+        monkeypatch.setitem(sys.modules, full, modules[name])
+        spec.loader.exec_module(modules[name])
+    return modules["stateful"].RegistrationQualityMetric
+
+
+def test_without_torchmetrics_the_same_class_on_nn_module(monkeypatch):
+    cls = _without_torchmetrics(monkeypatch)
+    assert cls.__mro__[1].__bases__ == (torch.nn.Module,)
+    assert cls.higher_is_better and not cls.is_differentiable
     img1, img2, valid = pairs()
+    q, m = functional(img1, img2, valid)
     metric = cls()
     res = feed(metric, img1, img2, valid, [1, 3, 7])
-    q, m = functional(img1, img2, valid)
     torch.testing.assert_close(res.quality_index, q, atol=1e-7, rtol=0)
     torch.testing.assert_close(res.registration_map, m, atol=1e-7, rtol=0)
+    assert set(dict(metric.named_buffers())) == {"quality_sum", "map_sum", "num_pairs", "num_skipped"}
+    fresh = cls()  # a lazily shaped map takes the saved shape
+    fresh.load_state_dict(metric.state_dict())
+    assert torch.equal(fresh.compute_details().registration_map, res.registration_map)
     metric.reset()
+    assert int(metric.num_pairs) == 0 and metric.map_sum.shape == ()
     res = feed(metric, img1, img2, valid, [11])
     torch.testing.assert_close(res.quality_index, q, atol=1e-7, rtol=0)
-
-
-def test_torchmetrics_metric():
-    pytest.importorskip("torchmetrics")
-    _run_torchmetric(stateful.RegistrationQualityTorchMetric)
-
-
-def test_torchmetrics_metric_against_a_stub(monkeypatch):
-    """The guarded class, defined against a minimal stand-in for ``torchmetrics.Metric``
-    (add_state, reset): its update/compute/reset logic runs where torchmetrics is absent."""
-
-    class Metric(torch.nn.Module):
-        dist_sync_fn, _to_sync, _should_unsync = None, True, True
-
-        def __init__(self, **kwargs):
-            super().__init__()
-            self._defaults, self._reductions = {}, {}
-
-        def sync_context(self, dist_sync_fn=None, should_sync=True, should_unsync=True):
-            return contextlib.nullcontext()
-
-        def add_state(self, name, default, dist_reduce_fx=None, persistent=False):
-            assert dist_reduce_fx == "sum"
-            self._defaults[name], self._reductions[name] = default.clone(), dist_reduce_fx
-            setattr(self, name, default.clone())
-
-        def reset(self):
-            for name, default in self._defaults.items():
-                setattr(self, name, default.clone())
-
-        def _apply(self, fn, *args, **kwargs):  # as torchmetrics: fn reaches the states and defaults
-            this = super()._apply(fn, *args, **kwargs)
-            for name in self._defaults:
-                self._defaults[name] = fn(self._defaults[name])
-                setattr(self, name, fn(getattr(self, name)))
-            return this
-
-    stub = types.ModuleType("torchmetrics")
-    stub.Metric = Metric
-    monkeypatch.setitem(sys.modules, "torchmetrics", stub)
-    spec = importlib.util.spec_from_file_location("_stateful_with_stub", stateful.__file__)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    assert "RegistrationQualityTorchMetric" in module.__all__
-    cls = module.RegistrationQualityTorchMetric
-    assert cls.higher_is_better and not cls.is_differentiable
-    metric = cls(map_shape=(5, 6))
-    assert metric.map_sum.shape == (1, 5, 6)
-    assert set(metric._reductions) == {"quality_sum", "map_sum", "num_pairs", "num_skipped"}
-    _run_torchmetric(cls)
-    # the states and their defaults keep float64/int64 under a dtype cast (device moves apply)
-    for cast in (lambda m: m.to(torch.float16), lambda m: m.bfloat16(), lambda m: m.to("meta", torch.float32)):
+    batch = metric(img1[:3], img2[:3], valid[:3])  # forward: the batch's index, and accumulates
+    torch.testing.assert_close(batch, functional(img1[:3], img2[:3], valid[:3])[0], atol=1e-7, rtol=0)
+    assert int(metric.num_pairs) == 14
+    for cast in (lambda x: x.to(torch.float16), lambda x: x.bfloat16(), lambda x: x.half()):
         metric = cast(cls())
         metric.reset()
         assert metric.quality_sum.dtype == torch.float64 and metric.num_skipped.dtype == torch.long
-        assert metric._defaults["quality_sum"].dtype == torch.float64
     assert cls().to("meta").quality_sum.is_meta
-    img1, img2, valid = pairs()
-    valid[2] = 0
-    metric = cls()
-    metric.update(img1, img2, valid)
-    res = metric.compute_details()
-    assert int(res.num_pairs) == 10 and int(res.num_skipped) == 1
-    keep = torch.arange(11) != 2
-    torch.testing.assert_close(res.quality_index, functional(img1[keep], img2[keep], valid[keep])[0], atol=1e-7, rtol=0)
+    with pytest.raises(TypeError, match=r"^RegistrationQualityMetric: sync_on_compute are torchmetrics.Metric options"):
+        cls(sync_on_compute=False)
 
 
 # ----------------------------------------------------------------------------- classification
