@@ -24,7 +24,7 @@ from lensdist_torch.cli_analyze import cmd_analyze
 from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
 from lensdist_torch.cli_support import note as _note
 from lensdist_torch.cli_support import print_json as _print_json
-from lensdist_torch.config_checks import one_line
+from lensdist_torch.config.checks import one_line
 from lensdist_torch.core.outputs import check_output_dir, check_output_file, refuse_inputs, refuse_inside
 
 __all__ = ["main", "build_parser"]

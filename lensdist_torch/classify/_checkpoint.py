@@ -17,7 +17,7 @@ noise either side; ``fit`` refuses features outside it), and from the fit itself
   below ||x - mu|| <= width(FEATURE_RANGE) sqrt(D); so has the reject threshold (a distance);
 * an explained-variance share lies in [0, 1];
 * a Delta lies in [0, the image diagonal] (px): no lens moves a pixel further than that;
-* k neighbours need more than k training pairs, and k is at most ``config_estimators.MAX_NEIGHBOURS``
+* k neighbours need more than k training pairs, and k is at most ``config.MAX_NEIGHBOURS``
   (the bound of ``regression.k``: the median must stay local); the PCA keeps min(n_components, N, D) rows;
 * ``extra["scenes"]`` is a list of names and ``extra["texture"]`` the statistics of
   ``workflows.texture.texture_statistics``: finite histograms that sum to 1, a spread in [0, 1].

@@ -37,7 +37,7 @@ from lensdist_torch.classify._checkpoint import (
     save_model,
 )
 from lensdist_torch.config import ClassifierConfig, LensdistConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.storage import CheckpointError
 from lensdist_torch.geometry.distortion import REJECT
 

@@ -44,9 +44,8 @@ from lensdist_torch.classify._checkpoint import (
     row_norms_below,
     save_model,
 )
-from lensdist_torch.config import LensdistConfig
-from lensdist_torch.config_checks import or_defaults
-from lensdist_torch.config_estimators import MAX_NEIGHBOURS
+from lensdist_torch.config import MAX_NEIGHBOURS, LensdistConfig
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.storage import CheckpointError
 from lensdist_torch.geometry.distortion import METRICS, delta_top, estimated_class
 
@@ -84,7 +83,7 @@ class DeltaRegressor(nn.Module):
         config: the config it is fitted under (image size, block size, thresholds).
         n_components: PCA components kept (capped by the training set); default
             ``config.regression.n_components``.
-        k: neighbours; default ``config.regression.k``; at most ``config_estimators.MAX_NEIGHBOURS``.
+        k: neighbours; default ``config.regression.k``; at most ``config.MAX_NEIGHBOURS``.
 
     Example:
         >>> reg = DeltaRegressor(12, n_components=3, k=4).fit(torch.rand(50, 12), torch.rand(50) * 14, torch.rand(50) * 79)

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 
-from lensdist_torch.config_checks import one_line
+from lensdist_torch.config.checks import one_line
 from lensdist_torch.core.image_headers import read_header
 
 __all__ = [
@@ -297,9 +297,8 @@ def resize_to(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
     points that take a user's photos.
 
     The crop is a view, and the antialiased resampling works in separable passes whose
-    intermediates are about the size of the output (measured with torch 2.13: under 16 MB extra
-    for an 85-megapixel input on the CPU, 0.5 MB on a GPU), so an image far larger than needed
-    costs no memory beyond its own.
+    intermediates are about the size of the output (the figures: docs/method.md, section 1), so
+    an image far larger than needed costs no memory beyond its own.
     """
     top, left, ch, cw = centre_crop_box(img.shape[-2], img.shape[-1], height, width)
     img = img[..., top : top + ch, left : left + cw]

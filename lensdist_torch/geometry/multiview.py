@@ -52,7 +52,7 @@ from typing import NamedTuple
 import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 
 from lensdist_torch.config import MultiViewConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide
 

@@ -44,7 +44,7 @@ import torch.nn.functional as F
 from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, check_image_pair, to_grey
 from lensdist_torch.geometry.frame import (
     grid_sample_matrix,

@@ -63,7 +63,7 @@ from typing import NamedTuple
 import torch
 
 from lensdist_torch.config import SelfCalConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
 from lensdist_torch.geometry.distortion import pixel_offsets
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid, normalizer

@@ -34,7 +34,7 @@ from kornia.feature import SIFTFeature, get_laf_center, match_smnn
 from kornia.geometry import RANSAC
 
 from lensdist_torch.config import RegistrationConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
 from lensdist_torch.geometry.registration import RegistrationInfo, estimate_homography, warp_to_reference
 

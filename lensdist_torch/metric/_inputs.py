@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
 
 #: Tolerance of the range checks, in units of ``data_range``: interpolation and rounding may put

@@ -31,7 +31,7 @@ import torch
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import centre_crop_box
 from lensdist_torch.core.storage import CheckpointError, check_compatible
 from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, estimated_class

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
 from lensdist_torch.core.video import VIDEO_SUFFIXES, video_frames
 from lensdist_torch.data.realism import degrade, draw_realism

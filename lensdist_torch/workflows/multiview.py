@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.geometry.multiview_runs import combine_reconstructions
 

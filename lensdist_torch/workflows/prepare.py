@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,

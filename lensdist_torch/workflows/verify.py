@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.config_checks import or_defaults
+from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.undistort import undistort_image
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust

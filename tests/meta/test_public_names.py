@@ -140,7 +140,8 @@ def test_all_is_built_from_the_one_table():
     assert set(lensdist_torch.__all__) == table
     assert len(table) == sum(len(names) for names in _exports().values())  # no name twice
     for module, names in _exports().items():
-        exported = _module_all(ROOT / (module.replace(".", "/") + ".py"))
+        path = ROOT / module.replace(".", "/")
+        exported = _module_all(path / "__init__.py" if path.is_dir() else path.with_suffix(".py"))
         assert set(names) <= set(exported), module
 
 

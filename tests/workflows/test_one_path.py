@@ -180,7 +180,19 @@ def test_analyze_pair_is_one_call_of_analyze_batch(monkeypatch, method):
     assert calls == {"_models_and_config": 1, "prepare_batch": 1}
     batch, maps = analyze_batch(a, b, method=method, return_maps=True)
     assert torch.equal(qmap, maps)
-    assert json.dumps(json_safe(res), sort_keys=True) == json.dumps(json_safe(batch[0]), sort_keys=True)
+    # the same answer to 10 significant digits: the batch's buffers may be aligned otherwise, and
+    # the CPU kernels' SIMD paths then round differently (seen: 1e-13 relative, once in ~3 runs)
+    assert _rounded(json_safe(res)) == _rounded(json_safe(batch[0]))
+
+
+def _rounded(value):
+    if isinstance(value, float):
+        return float(f"{value:.10g}")
+    if isinstance(value, dict):
+        return {k: _rounded(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_rounded(v) for v in value]
+    return value
 
 
 def test_each_image_is_checked_once_per_analyze_pair():

@@ -7,9 +7,9 @@ import json
 from pathlib import Path
 from typing import Any
 
-from learnreg.config import merge_dicts, parse_overrides, parse_value, read_toml
+from lensdist_torch.config import apply_overrides, check_tables, merge_tables, parse_overrides, read_toml
 
-__all__ = ["DEFAULTS", "PEERS", "load_config", "parse_overrides", "parse_value", "comparable", "arm_spec", "arm_name"]
+__all__ = ["DEFAULTS", "PEERS", "load_config", "parse_overrides", "comparable", "arm_spec", "arm_name"]
 
 PEERS = ("l1", "ncc", "ngf")
 
@@ -83,13 +83,7 @@ _NOT_TRAINING = {
 
 
 def _check(cfg: dict) -> None:
-    unknown = set(cfg) - set(DEFAULTS)
-    if unknown:
-        raise ValueError(f"unknown config section(s) {sorted(unknown)}")
-    for section, keys in DEFAULTS.items():
-        bad = set(cfg[section]) - set(keys)
-        if bad:
-            raise ValueError(f"unknown key(s) {sorted(bad)} in [{section}]")
+    check_tables(cfg, DEFAULTS)
     d = cfg["data"]
     if int(d["patch"]) % 32:
         raise ValueError("data.patch must be a multiple of 32")
@@ -108,13 +102,8 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     """DEFAULTS <- the TOML file <- ``overrides`` (dotted keys); unknown keys are errors."""
     cfg = copy.deepcopy(DEFAULTS)
     if path is not None:
-        cfg = merge_dicts(cfg, read_toml(path))
-    for dotted, value in (overrides or {}).items():
-        *parents, leaf = dotted.split(".")
-        node = cfg
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = value
+        cfg = merge_tables(cfg, read_toml(path))
+    cfg = apply_overrides(cfg, overrides)
     _check(cfg)
     return cfg
 

@@ -1,4 +1,8 @@
-"""The training configuration: defaults <- a TOML file <- ``--set key=value`` overrides."""
+"""The training configuration: defaults <- a TOML file <- ``--set key=value`` overrides.
+
+Read, merged and key-checked by the package's config reader (:mod:`lensdist_torch.config.toml`):
+one TOML reader, one set of messages, for the package and its training scripts.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +11,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-import tomllib
+from lensdist_torch.config import apply_overrides, check_tables, merge_tables, parse_overrides, read_toml
 
 __all__ = [
     "ARM_NAMES",
@@ -16,7 +20,6 @@ __all__ = [
     "config_from_args",
     "load_train_config",
     "parse_overrides",
-    "parse_value",
     "comparable",
 ]
 
@@ -77,35 +80,6 @@ ARM_DEFAULTS: dict[str, Any] = {
 _NOT_TRAINING = ("log_every", "checkpoint_every")
 
 
-def merge_dicts(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for key, value in over.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge_dicts(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
-
-def parse_value(text: str) -> Any:
-    """A ``--set`` value as TOML (``8``, ``0.5``, ``true``, ``["gravel"]``); a bare word stays a string."""
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
-
-
-def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``["train.steps=20", ...]`` -> ``{"train.steps": 20, ...}``."""
-    overrides = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--set expects KEY=VALUE, got {item!r}")
-        overrides[key.strip()] = parse_value(value.strip())
-    return overrides
-
-
 def config_from_args(args, load) -> dict:
     """The config a training script's command line asks for, or SystemExit with a one-line reason.
 
@@ -126,29 +100,9 @@ def config_from_args(args, load) -> dict:
     return cfg
 
 
-def read_toml(path: str | Path) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"config file not found: {path}")
-    with path.open("rb") as f:
-        try:
-            return tomllib.load(f)
-        except tomllib.TOMLDecodeError as exc:
-            raise ValueError(f"config file {path} is not valid TOML: {exc}") from exc
-
-
 def _check_keys(cfg: dict) -> None:
-    unknown = set(cfg) - set(DEFAULTS)
-    if unknown:
-        raise ValueError(f"unknown config section(s) {sorted(unknown)}")
-    for section in ("data", "model", "train", "eval"):
-        bad = set(cfg[section]) - set(DEFAULTS[section])
-        if bad:
-            raise ValueError(f"unknown key(s) {sorted(bad)} in [{section}]")
-    for name, arm in cfg["arms"].items():
-        bad = set(arm) - set(ARM_DEFAULTS)
-        if bad:
-            raise ValueError(f"unknown key(s) {sorted(bad)} in [arms.{name}]")
+    check_tables({k: v for k, v in cfg.items() if k != "arms"}, {k: v for k, v in DEFAULTS.items() if k != "arms"})
+    check_tables(cfg["arms"], {name: ARM_DEFAULTS for name in cfg["arms"]})
 
 
 def load_train_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> dict:
@@ -163,13 +117,8 @@ def load_train_config(path: str | Path | None = None, overrides: dict[str, Any] 
         data = read_toml(path)
         if "arms" in data:
             cfg["arms"] = {}
-        cfg = merge_dicts(cfg, data)
-    for dotted, value in (overrides or {}).items():
-        node = cfg
-        *parents, leaf = dotted.split(".")
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = value
+        cfg = merge_tables(cfg, data)
+    cfg = apply_overrides(cfg, overrides)
     _check_keys(cfg)
     for name, arm in cfg["arms"].items():
         cfg["arms"][name] = {**ARM_DEFAULTS, **arm}

@@ -1,4 +1,4 @@
-"""The field checks of the config dataclasses (``config.py``).
+"""The field checks of the config dataclasses (the modules of ``lensdist_torch.config``).
 
 Each check takes the dataclass being built (in its ``__post_init__``) and a field name, raises a
 one-line ``ValueError`` naming ``section.field`` (the section is the class name without

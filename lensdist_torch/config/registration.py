@@ -1,19 +1,14 @@
-"""The estimators' settings: registration, self-calibration, regression, analysis.
-
-Sections of :class:`~lensdist_torch.config.LensdistConfig` (``[registration]``, ``[selfcal]``,
-``[regression]``, ``[analysis]`` in a TOML file), kept in their own module for length; import
-them from ``lensdist_torch.config``. The sequence estimators' sections (``[calibration]``,
-``[multiview]``) are in ``config_sequence.py``.
-"""
+"""``[registration]``, ``[selfcal]``: one pair's homography registration and its self-calibration of (k2, k4) and H."""
 
 from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
 
-from lensdist_torch.config_checks import choice, flag, integer, integers, pair, real
+from lensdist_torch.config.checks import choice, flag, integer, integers, pair, real
 
-__all__ = ["MAX_NEIGHBOURS", "RegistrationConfig", "SelfCalConfig", "RegressionConfig", "AnalysisConfig"]
+__all__ = ["RegistrationConfig", "SelfCalConfig"]
+
 
 @dataclass(frozen=True)
 class RegistrationConfig:
@@ -220,119 +215,3 @@ class SelfCalConfig:
         real(self, "margin", lo=0)
         real(self, "min_overlap", lo=0, hi=1)
         real(self, "confidence_threshold", lo=0, hi=1)
-
-
-#: The most neighbours of the Delta regression (``regression.k``; ``DeltaRegressor.load`` refuses a
-#: checkpoint's k beyond it): a local median stays consistent while k / N shrinks; the usual
-#: k ~ sqrt(N) is 110 at the protocol's 12000 training pairs (the validation chose 8).
-MAX_NEIGHBOURS = 100
-
-
-@dataclass(frozen=True)
-class RegressionConfig:
-    """Settings of :class:`~lensdist_torch.classify.regression.DeltaRegressor`.
-
-    Attributes:
-        n_components: PCA components kept (capped by the training set).
-        k: neighbours whose median Delta is the prediction, at most ``MAX_NEIGHBOURS``.
-        cannot_tell_fraction: neighbour spread of Delta_avg, as a fraction of the class range,
-            at which confidence is 0.5, in ]0, 1].
-        confidence_threshold: below this confidence the answer is "cannot tell".
-
-    Example:
-        >>> from dataclasses import replace
-        >>> RegressionConfig().k, replace(RegressionConfig(), k=16).k
-        (8, 16)
-    """
-
-    n_components: int = 384
-    k: int = 8
-    cannot_tell_fraction: float = 0.125
-    confidence_threshold: float = 0.5
-
-    def __post_init__(self) -> None:
-        integer(self, "n_components")
-        integer(self, "k", hi=MAX_NEIGHBOURS, why="a local median; config_estimators.MAX_NEIGHBOURS")
-        real(self, "cannot_tell_fraction", lo=0, hi=1, lo_open=True, why="a share of the class range")
-        real(self, "confidence_threshold", lo=0, hi=1)
-
-
-@dataclass(frozen=True)
-class AnalysisConfig:
-    """The decision of ``analyze`` and of the evaluation of the estimators.
-
-    Attributes:
-        no_distortion_px: an estimated Delta_avg (analysis px) below this is class R, "no
-            visible distortion" (class 1 spans ]0, 3.6] px at 320 x 424; a true Delta_avg below
-            0.25 px occurs in well under 1 % of the protocol's pairs).
-        min_overlap: below this share of valid pixels the map is too small to judge.
-        out_of_domain_factor: an eigen-space map whose smallest class distance exceeds this
-            multiple of the reject threshold is unlike every training map.
-        min_confidence: below this calibrated confidence (an estimate of P(class right)) the
-            answer is "cannot tell" (self-calibration and regression).
-        selfcal_confidence_scale, selfcal_confidence_shift: the Platt map of the
-            self-calibration's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave
-            it as it is. Fitted on a validation split by ``fit_confidence``.
-        regression_confidence_scale, regression_confidence_shift: the same for the regression.
-        cross_check: the learned methods (regression, eigen-space) also run the
-            self-calibration and are out of domain where the two disagree.
-        max_class_disagreement: out of domain where the classes differ by more than this;
-            class R against any class (distortion found by one, none by the other) always does.
-        eigenspace_max_class_disagreement: the eigen-space gives no confidence, so its class stands
-            only where the self-calibration confidently finds a class at most this far from it
-            (0: the same); elsewhere "cannot tell" (with ``cross_check``).
-        max_delta_disagreement: out of domain where the Delta_avg estimates differ by more than
-            this share of the Delta_avg range.
-        texture_factor: out of domain where the images' gradient-magnitude histogram is farther
-            from every training scene than this multiple of the largest distance of a
-            training view (stored in the checkpoint).
-        validation_seed_offset: the validation split used to fit the decision is the test set
-            of the protocol seed plus this offset (never the test set itself).
-        min_motion_px: below this mean displacement (analysis px) of the registration, every
-            method says "cannot tell": both views carry the same distortion, which cancels
-            where the scene did not move. Positive, and applied with or without ``cross_check``.
-        interval_confidence: coverage of a pair's Delta_avg interval (self-calibration).
-
-    Example:
-        >>> from dataclasses import replace
-        >>> AnalysisConfig().no_distortion_px, replace(AnalysisConfig(), no_distortion_px=0.5).no_distortion_px
-        (0.25, 0.5)
-    """
-
-    no_distortion_px: float = 0.25
-    min_overlap: float = 0.5
-    out_of_domain_factor: float = 2.0
-    min_confidence: float = 0.5
-    # the identity: the self-calibration's raw confidence is its class's probability mass, with an
-    # ECE of 4.1 % on the validation split and 4.9 % over motions of 1-40 px (docs/method.md, section 10)
-    selfcal_confidence_scale: float = 1.0
-    selfcal_confidence_shift: float = 0.0
-    # fitted by `lensdist reproduce` (configs/paper.toml) on its validation split, the run that
-    # fitted the shipped checkpoints (docs/results/reproduce.md, "Calibration")
-    regression_confidence_scale: float = 0.6906
-    regression_confidence_shift: float = 1.0013
-    cross_check: bool = True
-    max_class_disagreement: int = 1
-    eigenspace_max_class_disagreement: int = 0
-    max_delta_disagreement: float = 0.25
-    texture_factor: float = 2.0
-    validation_seed_offset: int = 1
-    min_motion_px: float = 1.0
-    interval_confidence: float = 0.95
-
-    def __post_init__(self) -> None:
-        real(self, "no_distortion_px", lo=0, lo_open=True)
-        real(self, "min_motion_px", lo=0, lo_open=True, why="at 0 every method answers on the same image twice")
-        real(self, "interval_confidence", lo=0, hi=1, lo_open=True, hi_open=True)
-        real(self, "min_overlap", lo=0, hi=1)
-        real(self, "out_of_domain_factor", lo=0, lo_open=True)
-        real(self, "min_confidence", lo=0, hi=1)
-        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "texture_factor"):
-            real(self, name, lo=0, lo_open=True)
-        real(self, "max_delta_disagreement", lo=0, hi=1, lo_open=True, why="a share of the Delta_avg range")
-        real(self, "selfcal_confidence_shift")
-        real(self, "regression_confidence_shift")
-        flag(self, "cross_check")
-        integer(self, "max_class_disagreement", lo=0)
-        integer(self, "eigenspace_max_class_disagreement", lo=0)
-        integer(self, "validation_seed_offset")

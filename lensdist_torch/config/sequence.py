@@ -1,6 +1,6 @@
 """The sequence estimators' settings: ``[calibration]`` (the direct path) and ``[multiview]`` (COLMAP).
 
-Sections of :class:`~lensdist_torch.config.LensdistConfig`, kept in their own module for length;
+Sections of :class:`~lensdist_torch.config.LensdistConfig`;
 import them from ``lensdist_torch.config``.
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config_checks import integer, names, real, show
+from lensdist_torch.config.checks import integer, names, real, show
 
 __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
@@ -28,7 +28,7 @@ class CalibrationConfig:
             pairs' lower quartile are rejected (a broken or foreign frame).
         jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
         systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
-            pairs share (rendered sequences: 0.05-0.16 % of Delta_max, mostly one sign).
+            pairs share (fitted on rendered sequences: docs/method.md, section 10).
         relief_rel: a std of this multiple of the relief's effect on each Delta (the pairs' plane +
             parallax minus planar answers, combined), added in quadrature: the error the plane +
             parallax model leaves, which all pairs share (fitted on validation sequences of
