@@ -172,11 +172,15 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
         >>> tuple(grey.shape), [round(v, 3) for v in grey.flatten().tolist()], colour.flatten().tolist()
         ((1, 1, 1, 2), [0.299, 0.587], [1.0, 0.0, 0.0, 1.0, 0.0, 0.0])
     """
-    from kornia.io import ImageLoadType
-    from kornia.io import load_image as _kornia_load
-
     if max_pixels is not None and (isinstance(max_pixels, bool) or not isinstance(max_pixels, int) or max_pixels <= 0):
         raise ValueError(f"max_pixels must be a positive int or None, got {max_pixels!r}")
+    path = _image_path(path)
+    img, lut = _decode(path, max_pixels)
+    return _to_float(img, lut, _sample_scale(img, path), grey)
+
+
+def _image_path(path: str | Path) -> Path:
+    """``path`` as a Path to an existing regular file with an image suffix, else the one-line error."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"image file not found: {path}")
@@ -189,6 +193,17 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
             f"image file {path} has the suffix {path.suffix or '(none)'!r}; the decoder reads "
             f"{', '.join(sorted(IMAGE_SUFFIXES))} (any case)"
         )
+    return path
+
+
+def _decode(path: Path, max_pixels: int | None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The decoded samples (C, H, W) and a PNG's palette (N, 3) where the decoder gave its indices.
+
+    The header's size is checked against ``max_pixels`` before decoding, the decoded size after.
+    """
+    from kornia.io import ImageLoadType
+    from kornia.io import load_image as _kornia_load
+
     try:
         with path.open("rb") as f:
             size, palette = read_header(f, path)
@@ -215,23 +230,32 @@ def load_image(path: str | Path, grey: bool = True, max_pixels: int | None = MAX
         channels = 3
     if channels not in (1, 3, 4):
         raise ValueError(f"image file {path} has {channels} channels; expected 1 (grey), 3 (RGB) or 4 (RGBA)")
+    return img, lut
+
+
+def _sample_scale(img: torch.Tensor, path: Path) -> float | None:
+    """The value of white of the decoded samples (None: float32 already in [0, 1]), else the one-line error."""
     if img.dtype == torch.uint8:
-        scale = 255.0
-    elif img.dtype == torch.uint16:
-        scale = 65535.0
-    elif img.dtype == torch.float32:
-        scale = None
-        lo, hi = (float(v) for v in torch.aminmax(img[:3]))
-        if not (lo >= -1e-6 and hi <= 1 + 1e-6):  # warps round a hair past 0 and 1
-            if not (math.isfinite(lo) and math.isfinite(hi)):
-                raise ValueError(f"image file {path} holds NaN or Inf values")
-            raise ValueError(
-                f"image file {path} holds float values in [{lo:g}, {hi:g}]; a float image must lie in "
-                "[0, 1] (rescale it, or save it as 8 or 16-bit integers)"
-            )
-    else:
+        return 255.0
+    if img.dtype == torch.uint16:
+        return 65535.0
+    if img.dtype != torch.float32:
         raise ValueError(f"image file {path} decodes to {img.dtype} samples; expected 8 or 16-bit integers or float32")
-    colour = channels >= 3
+    lo, hi = (float(v) for v in torch.aminmax(img[:3]))
+    if not (lo >= -1e-6 and hi <= 1 + 1e-6):  # warps round a hair past 0 and 1
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"image file {path} holds NaN or Inf values")
+        raise ValueError(
+            f"image file {path} holds float values in [{lo:g}, {hi:g}]; a float image must lie in "
+            "[0, 1] (rescale it, or save it as 8 or 16-bit integers)"
+        )
+    return None
+
+
+def _to_float(img: torch.Tensor, lut: torch.Tensor | None, scale: float | None, grey: bool) -> torch.Tensor:
+    """(1, C, H, W) float32 in [0, 1], converted in strips of rows (memory: the input plus the result)."""
+    _, height, width = img.shape
+    colour = lut is not None or img.shape[0] >= 3
     out = torch.empty(1, 1 if (grey or not colour) else 3, height, width, dtype=torch.float32)
     rows = max(1, _CHUNK_PIXELS // width)
     for r0 in range(0, height, rows):
