@@ -36,6 +36,7 @@ __all__ = [
     "centre_crop_box",
     "check_image",
     "check_image_pair",
+    "should_validate",
     "to_grey",
     "as_batch",
     "load_image",
@@ -55,6 +56,19 @@ MAX_PIXELS = 100_000_000
 
 # pixels converted to float at once: bounds the conversion's temporaries (~16 MB a chunk)
 _CHUNK_PIXELS = 1 << 20
+
+
+def should_validate(validate: bool) -> bool:
+    """Whether to run the value checks (NaN, Inf, ranges: each a host sync): asked for, and not while torch.compile traces.
+
+    The one switch of the package's value checks: every entry point's ``validate`` (the
+    metric's, the estimators') and :func:`check_image`'s ``finite`` go through it.
+
+    Example:
+        >>> should_validate(True), should_validate(False)
+        (True, False)
+    """
+    return bool(validate) and not torch.compiler.is_compiling()
 
 
 def check_image(img: object, name: str = "img", finite: bool = True) -> torch.Tensor:
@@ -80,7 +94,7 @@ def check_image(img: object, name: str = "img", finite: bool = True) -> torch.Te
     # One reduction instead of isfinite().all(): NaN and Inf propagate through a sum. The exact
     # (slower) test runs only to word the error.
     acc = torch.float64 if img.dtype == torch.float64 else torch.float32  # float16 sums overflow
-    if finite and img.is_floating_point() and not bool(torch.isfinite(img.sum(dtype=acc))):
+    if should_validate(finite) and img.is_floating_point() and not bool(torch.isfinite(img.sum(dtype=acc))):
         if not bool(torch.isfinite(img).all()):
             raise ValueError(f"{name} contains NaN or Inf values")
         raise ValueError(f"{name} has values so large that they overflow; expected [0, 1]")

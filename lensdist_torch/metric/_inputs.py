@@ -28,7 +28,7 @@ import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.core.images import check_image_pair, to_grey
+from lensdist_torch.core.images import check_image_pair, should_validate, to_grey
 
 #: Tolerance of the range checks, in units of ``data_range``: interpolation and rounding may put
 #: a value a little outside [0, 1]; 0-255 images or mean/std-normalised ones are far outside.
@@ -42,11 +42,6 @@ _DEFAULT_CONFIG = QualityConfig()
 def get_config(config: QualityConfig | None) -> QualityConfig:
     """``config`` or the defaults; a TypeError for anything else."""
     return _DEFAULT_CONFIG if config is None else or_defaults(config, QualityConfig)  # one default, built once
-
-
-def should_validate(validate: bool) -> bool:
-    """Whether to run the value checks: asked for, and not while torch.compile traces."""
-    return bool(validate) and not torch.compiler.is_compiling()
 
 
 def check_data_range(data_range: object) -> None:

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
+from lensdist_torch.core.images import should_validate
 from lensdist_torch.metric._inputs import (
     binarise_valid,
     check_mask_shape,
@@ -24,7 +25,6 @@ from lensdist_torch.metric._inputs import (
     erode_valid,
     get_config,
     prepare_pair,
-    should_validate,
 )
 
 __all__ = [

@@ -43,6 +43,7 @@ import torch
 from torch import nn
 
 from lensdist_torch.config import QualityConfig
+from lensdist_torch.core.images import should_validate
 from lensdist_torch.metric._hard import criteria_codes, hard_counts
 from lensdist_torch.metric._inputs import (
     check_pair_values,
@@ -50,7 +51,6 @@ from lensdist_torch.metric._inputs import (
     measured,
     prepare_pair,
     prepare_unchecked,
-    should_validate,
 )
 from lensdist_torch.metric.criteria import (
     ErrorImages,

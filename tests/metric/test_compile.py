@@ -132,3 +132,18 @@ def test_no_host_sync_on_cuda_without_validation():
     finally:
         torch.cuda.set_sync_debug_mode(0)
     assert bool(torch.isfinite(x.grad).all())
+
+
+@pytest.mark.bad_input
+def test_one_switch_for_every_value_check(monkeypatch):
+    """check_image's finite check (the estimators' validate=) goes through should_validate, as
+    the metric's: asked for and not while compiling."""
+    from lensdist_torch.core.images import check_image
+
+    img = torch.rand(1, 1, 16, 16)
+    img[0, 0, 3, 4] = float("nan")
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        check_image(img)
+    check_image(img, finite=False)  # the caller vouches for the values
+    monkeypatch.setattr(torch.compiler, "is_compiling", lambda: True)
+    check_image(img)  # no host sync while tracing
