@@ -12,8 +12,7 @@ Example:
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from lensdist_torch._lazy import lazy_exports
 
 __version__ = "0.2.0"
 
@@ -73,19 +72,4 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.workflows.reproduce": ("reproduce",),
 }
 
-#: Public name -> the module that defines it.
-_LAZY: dict[str, str] = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = sorted(_LAZY)
-
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'lensdist_torch' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(__all__))
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

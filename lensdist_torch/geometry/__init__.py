@@ -1,9 +1,59 @@
 """Geometry: one home per primitive, and the estimators built on them.
 
-Primitives (layer 1): :mod:`.frame` (pixel grids, grid_sample coordinates, the centred
-normalised frame), :mod:`.phase` (phase correlation), :mod:`.pyramid` (central differences,
-2 x 2 mean pyramids, binomial smoothing), :mod:`.distortion` (eq. 4: its factor, Newton
-inverse, Delta metrics and classes), :mod:`.homography`.
-Estimators (layer 2): :mod:`.registration` (homography), :mod:`.selfcal` (distortion and
-homography together).
+Primitives (layer 1):
+
+* :mod:`~lensdist_torch.geometry.frame`: pixel grids, grid_sample coordinates, the centred normalised frame.
+* :mod:`~lensdist_torch.geometry.phase`: phase correlation, the translation between two images.
+* :mod:`~lensdist_torch.geometry.pyramid`: central differences, 2 x 2 mean pyramids, binomial smoothing.
+* :mod:`~lensdist_torch.geometry.distortion`: eq. 4: its factor, Newton inverse, Delta metrics and classes.
+* :mod:`~lensdist_torch.geometry.homography`: homographies on points, the class-R perturbation, corner error, motion.
+* :mod:`~lensdist_torch.geometry.opencv_model`: eq. 4 as OpenCV camera parameters, in pure torch.
+* :mod:`~lensdist_torch.geometry.undistort`: undistorted images, batched and differentiable.
+
+Estimators (layer 2):
+
+* :mod:`~lensdist_torch.geometry.registration`: batched homography registration.
+* :mod:`~lensdist_torch.geometry.wide_baseline`: far-apart pairs: features and RANSAC, then the direct refinement.
+* :mod:`~lensdist_torch.geometry.selfcal`: a pair's distortion and homography together (model in ``selfcal_model``).
+* :mod:`~lensdist_torch.geometry.calibration`: a camera's distortion from a whole sequence, the direct path.
+* :mod:`~lensdist_torch.geometry.multiview`: the same by bundle adjustment on COLMAP (runs combined in ``multiview_runs``).
+
+The names users need are exported here and imported on first use (PEP 562): importing
+:mod:`~lensdist_torch.geometry.distortion` loads neither OpenCV, pycolmap nor the estimators.
+
+Example:
+    >>> from lensdist_torch.geometry import delta_avg
+    >>> round(float(delta_avg([1e-6], [0.0], 320, 424)[0]), 2)  # px, at the paper's frame
+    4.19
 """
+
+from lensdist_torch._lazy import lazy_exports
+
+#: The public names of the package: module -> the names taken from it.
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "lensdist_torch.geometry.distortion": (
+        "CLASS_LABELS",
+        "delta_avg",
+        "delta_max",
+        "delta_top",
+        "distort_points",
+        "distortion_class",
+        "distortion_grid",
+        "estimated_class",
+        "pixel_offsets",
+        "radial_factor",
+        "radial_inverse",
+        "render_distorted",
+        "undistort_points",
+    ),
+    "lensdist_torch.geometry.homography": ("apply_homography", "corner_error", "mean_displacement", "perturb_homography"),
+    "lensdist_torch.geometry.phase": ("phase_correlation",),
+    "lensdist_torch.geometry.opencv_model": ("OpenCVCamera", "opencv_camera"),
+    "lensdist_torch.geometry.undistort": ("Undistort", "undistort_image"),
+    "lensdist_torch.geometry.registration": ("estimate_homography", "warp_to_reference"),
+    "lensdist_torch.geometry.wide_baseline": ("estimate_homography_robust",),
+    "lensdist_torch.geometry.selfcal": ("estimate_distortion",),
+    "lensdist_torch.geometry.calibration": ("SequenceCalibration", "calibrate_sequence"),
+}
+
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

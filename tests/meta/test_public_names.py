@@ -1,6 +1,7 @@
 """Every name the README shows imports from ``lensdist_torch`` (issue 22), and the public API
 has one list: ``_EXPORTS`` in ``lensdist_torch/__init__.py``, from which ``__all__``, the lazy
-loading and the type checkers' stub ``__init__.pyi`` are built.
+loading and the type checkers' stub ``__init__.pyi`` are built. Each subpackage exports its
+public names from its own ``_EXPORTS`` table the same way (issue 21, item 1).
 
 After editing ``_EXPORTS``: ``python tests/meta/test_public_names.py --write`` rewrites the stub.
 """
@@ -10,7 +11,9 @@ from __future__ import annotations
 import ast
 import importlib
 import importlib.util
+import pkgutil
 import re
+import subprocess
 import sys
 from pathlib import Path
 
@@ -66,14 +69,28 @@ def _readme_attributes() -> set[str]:
     return {m.rstrip(".") for m in re.findall(r"lensdist_torch\.([A-Za-z_][\w.]*)", README)}
 
 
+def _bound(node: ast.stmt) -> set[str]:
+    """The names a top-level statement defines (a def, a class, an assignment; an import defines none here)."""
+    if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+        return {node.name}
+    targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+    return {t.id for t in targets if isinstance(t, ast.Name)}
+
+
 def _module_all(path: Path) -> list[str]:
+    """A module's ``__all__``, read, not imported: its literal, or the names of its ``_EXPORTS``
+    table where ``__all__`` is built from one (``lazy_exports``, the subpackages)."""
+    table = None
     for node in ast.parse(path.read_text()).body:
-        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__" for t in node.targets):
+        ids = _bound(node) if getattr(node, "value", None) is not None else set()
+        if "__all__" in ids:
             try:
                 return list(ast.literal_eval(node.value))
             except ValueError:
-                return []
-    return []
+                pass
+        if "_EXPORTS" in ids:
+            table = ast.literal_eval(node.value)
+    return sorted(n for names in table.values() for n in names) if table else []
 
 
 def _package_public_names() -> set[str]:
@@ -143,6 +160,73 @@ def test_all_is_built_from_the_one_table():
         path = ROOT / module.replace(".", "/")
         exported = _module_all(path / "__init__.py" if path.is_dir() else path.with_suffix(".py"))
         assert set(names) <= set(exported), module
+
+
+SUBPACKAGES = ("core", "classify", "data", "geometry", "workflows")
+
+
+def _sub_exports(sub: str) -> dict[str, tuple[str, ...]]:
+    return importlib.import_module(f"lensdist_torch.{sub}")._EXPORTS
+
+
+SUB_NAMES = sorted((sub, module, name) for sub in SUBPACKAGES for module, names in _sub_exports(sub).items() for name in names)
+
+
+def _defines(module: str, name: str) -> bool:
+    """Whether ``module``'s source defines ``name`` at its top level (a def, class or assignment, not an import)."""
+    return any(name in _bound(node) for node in ast.parse(Path(importlib.util.find_spec(module).origin).read_text()).body)
+
+
+@pytest.mark.parametrize("sub, module, name", SUB_NAMES)
+def test_every_subpackage_export_resolves_to_its_definition(sub, module, name):
+    package = importlib.import_module(f"lensdist_torch.{sub}")
+    assert getattr(package, name) is getattr(importlib.import_module(module), name)
+    assert module.startswith(f"lensdist_torch.{sub}.")  # a subpackage exports its own modules' names
+    assert _defines(module, name), f"{name} is re-exported by {module}: name the module that defines it"
+    assert name in _module_all(Path(importlib.util.find_spec(module).origin)), f"{name} is not in {module}.__all__"
+
+
+@pytest.mark.parametrize("sub", SUBPACKAGES)
+def test_subpackage_all_and_dir_agree_with_its_table(sub):
+    package = importlib.import_module(f"lensdist_torch.{sub}")
+    table = sorted(n for names in _sub_exports(sub).values() for n in names)
+    assert package.__all__ == table
+    assert set(table) <= set(dir(package))
+    assert _module_all(ROOT / "lensdist_torch" / sub / "__init__.py") == table  # what the README checks read
+    with pytest.raises(AttributeError, match=f"module 'lensdist_torch.{sub}' has no attribute 'not_a_name'"):
+        package.not_a_name  # noqa: B018
+
+
+@pytest.mark.parametrize("package", ["", *SUBPACKAGES])
+def test_no_export_is_named_like_a_module_of_its_package(package):
+    """An export named like a module of its package would be shadowed by that module once imported."""
+    name = ".".join(["lensdist_torch", package]) if package else "lensdist_torch"
+    modules = {m.name for m in pkgutil.iter_modules(importlib.import_module(name).__path__)}
+    assert modules & set(importlib.import_module(name).__all__) == set()
+
+
+def test_top_level_and_subpackages_take_a_name_from_the_same_module():
+    top = {n: module for module, names in _exports().items() for n in names}
+    differ = [(sub, n, module, top[n]) for sub, module, n in SUB_NAMES if n in top and top[n] != module]
+    assert differ == []
+
+
+def test_importing_a_primitive_loads_no_heavy_module():
+    """Importing ``geometry.distortion`` runs ``geometry/__init__.py``: its exports stay unloaded."""
+    heavy = ("pycolmap", "cv2", "matplotlib", "lensdist_torch.workflows", "lensdist_torch.data")
+    code = (
+        "import sys, lensdist_torch.geometry.distortion\n"
+        f"print(','.join(m for m in sys.modules if any(m == h or m.startswith(h + '.') for h in {heavy!r})))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""
+
+
+def test_lazy_exports_refuses_a_name_twice():
+    from lensdist_torch._lazy import lazy_exports
+
+    with pytest.raises(ValueError, match="names exported twice: sqrt"):
+        lazy_exports("demo", {"math": ("sqrt",), "cmath": ("sqrt",)})
 
 
 def test_the_stub_is_generated_from_the_table():
