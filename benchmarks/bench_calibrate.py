@@ -33,10 +33,10 @@ import time
 import torch
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.geometry.calibration import calibrate_sequence
+from lensdist_torch.geometry import calibrate_sequence
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top, distortion_center, undistort_points
 from lensdist_torch.geometry.opencv_model import opencv_camera, opencv_undistort_points
-from lensdist_torch.workflows.calibrate import synthetic_sequence
+from lensdist_torch.workflows import synthetic_sequence
 
 LEVELS = (0.0, 0.125, 0.375, 0.625, 0.875)
 SIZE = (320, 424)

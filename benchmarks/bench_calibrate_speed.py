@@ -28,9 +28,9 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.core.storage import atomic_write_text
-from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
+from lensdist_torch.core import atomic_write_text
+from lensdist_torch.geometry import delta_avg
+from lensdist_torch.workflows import calibrate_path, synthetic_sequence
 from lensdist_torch.workflows.undistort import encode_png
 
 SIZE = (288, 384)

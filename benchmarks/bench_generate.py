@@ -24,10 +24,10 @@ def stages(pairs: int, batch: int, threads: int) -> dict:
 
     torch.set_num_threads(threads)
     from lensdist_torch.config import LensdistConfig
+    from lensdist_torch.data import draw_pairs, render_pairs
     from lensdist_torch.data.shards import load_scenes
-    from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-    from lensdist_torch.geometry.registration import corner_error, estimate_homography, warp_to_reference
-    from lensdist_torch.metric.quality import registration_error_counts
+    from lensdist_torch.geometry import corner_error, estimate_homography, warp_to_reference
+    from lensdist_torch.metric import registration_error_counts
 
     cfg = LensdistConfig()
     scenes, _ = load_scenes(cfg)
@@ -70,7 +70,7 @@ def stages(pairs: int, batch: int, threads: int) -> dict:
 
 def end_to_end(pairs: int, workers: int, batch: int) -> dict:
     from lensdist_torch.config import LensdistConfig
-    from lensdist_torch.data.shards import generate
+    from lensdist_torch.data import generate
 
     base = LensdistConfig()
     shard = max(1, pairs // (2 * workers))

@@ -53,10 +53,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_selfcal import figures  # the same figures as the self-calibration benchmark
 
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.data import draw_pairs, render_pairs
 from lensdist_torch.data.shards import load_scenes
-from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry import delta_avg, delta_max, delta_top, estimate_distortion
 
 PIP = "pip install homlib opencv-python-headless"
 

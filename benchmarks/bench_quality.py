@@ -37,7 +37,7 @@ def _case(args):
     from kornia.metrics import ssim
 
     from lensdist_torch import quality_map, registration_quality, registration_quality_loss
-    from lensdist_torch.core.images import load_scene
+    from lensdist_torch.core.images import load_scene  # a module path: a baseline may predate core's exports
 
     scene = load_scene("gravel")
     a = scene[..., :320, :424].repeat(batch, 1, 1, 1).contiguous()

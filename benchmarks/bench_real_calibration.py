@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from lensdist_torch.core.storage import atomic_write_text
+from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
 
@@ -61,7 +61,7 @@ def on_footprint(k, dist, truth_k, truth_dist, size: tuple[int, int], step: int 
 
 
 def main() -> None:
-    from lensdist_torch.workflows.calibrate import calibrate_path
+    from lensdist_torch.workflows import calibrate_path
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("frames")

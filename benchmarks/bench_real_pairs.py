@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.core.images import IMAGE_SUFFIXES
-from lensdist_torch.workflows.analyze import analyze_pair
+from lensdist_torch.workflows import analyze_pair
 
 
 def main() -> None:
@@ -45,7 +45,7 @@ def main() -> None:
                "estimates_user_px": [round(x["estimate_user_px"], 1) for x in answered]}
     print(json.dumps(summary, indent=1))
     if args.out:
-        from lensdist_torch.core.storage import atomic_write_text
+        from lensdist_torch.core import atomic_write_text
 
         atomic_write_text(args.out, json.dumps({**summary, "rows": rows}, indent=1) + "\n")
 

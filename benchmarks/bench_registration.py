@@ -27,9 +27,9 @@ import time
 import torch
 import torch.nn.functional as F
 
-from lensdist_torch.core.images import load_scene
-from lensdist_torch.geometry.registration import corner_error, estimate_homography, warp_to_reference
-from lensdist_torch.metric.quality import registration_error_counts
+from lensdist_torch.core import load_scene
+from lensdist_torch.geometry import corner_error, estimate_homography, warp_to_reference
+from lensdist_torch.metric import registration_error_counts
 
 H0, W0 = 320, 424
 

@@ -74,6 +74,7 @@ def _case(args) -> dict:
 
         sys.path.insert(0, code)
     torch.set_num_threads(threads)
+    # module paths, not the subpackages' exports: a baseline checkout may predate them
     from lensdist_torch.config import LensdistConfig
     from lensdist_torch.data.shards import load_scenes
     from lensdist_torch.data.synthesis import draw_pairs, render_pairs
@@ -130,12 +131,12 @@ def bench_selfcal(n: int, batch: int, threads: int, cases, baseline: str | None,
 
 def bench_regression(data: str, config) -> dict | None:
     from lensdist_torch.data.shards import load_set, read_manifest
-    from lensdist_torch.geometry.distortion import delta_top
+    from lensdist_torch.geometry import delta_top
     from lensdist_torch.workflows.evaluate import features_of, fit_classifier
 
     if not data or not os.path.isdir(data):
         return None
-    from lensdist_torch.classify.regression import DeltaRegressor
+    from lensdist_torch.classify import DeltaRegressor
 
     try:
         read_manifest(data)

@@ -52,7 +52,7 @@ def unseen_scenes() -> dict[str, torch.Tensor]:
     """(1, 1, 512, 512) scenes unlike the training ones, by name."""
     from kornia.filters import gaussian_blur2d
 
-    from lensdist_torch.core.images import load_scene
+    from lensdist_torch.core import load_scene
 
     gravel, grass = load_scene("gravel"), load_scene("grass")
     g = torch.Generator().manual_seed(0)
@@ -69,9 +69,9 @@ def unseen_scenes() -> dict[str, torch.Tensor]:
 
 def analyse(scenes: list, config, indices: list[int], batch_size: int = 8) -> dict:
     """{method: [(truth class, answer or None), ...]} over the protocol's test pairs ``indices``."""
-    from lensdist_torch.data.synthesis import make_pairs
-    from lensdist_torch.geometry.distortion import CLASS_LABELS
-    from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
+    from lensdist_torch.data import make_pairs
+    from lensdist_torch.geometry import CLASS_LABELS
+    from lensdist_torch.workflows import analyze_batch, prepare_batch
 
     out = {"eigenspace": [], "regression": [], "selfcal": []}
     for s in range(0, len(indices), batch_size):

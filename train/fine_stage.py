@@ -31,7 +31,7 @@ from finestage.experiment import run_all, setup_determinism
 from finestage.report import merge_results, write_outputs
 from learnreg.config import config_from_args
 
-from lensdist_torch.core.storage import atomic_write_text
+from lensdist_torch.core import atomic_write_text
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

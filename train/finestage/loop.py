@@ -18,7 +18,7 @@ from learnreg.loop import arm_schedule, learning_rate, restore, save_checkpoint
 from learnreg.losses import corner_error, warp_a_to_b
 from tqdm.auto import tqdm
 
-from lensdist_torch.core.storage import CheckpointError, load_versioned
+from lensdist_torch.core import CheckpointError, load_versioned
 
 from .config import arm_name, comparable
 from .data import load_scenes, make_pairs, split_seeds, train_seeds

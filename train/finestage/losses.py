@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch import QualityConfig, RegistrationQualityLoss
-from lensdist_torch.metric.criteria import erode_valid
+from lensdist_torch.metric import erode_valid
 
 __all__ = ["PEER_TERMS", "l1_term", "ncc_term", "ngf_term", "peer_loss", "quality_per_pair", "Criterion"]
 

@@ -16,7 +16,7 @@ import torch
 from tqdm.auto import tqdm
 
 from lensdist_torch import QualityConfig, RegistrationQualityLoss
-from lensdist_torch.core.storage import CheckpointError, load_versioned, save_versioned
+from lensdist_torch.core import CheckpointError, load_versioned, save_versioned
 
 from .config import comparable
 from .data import load_scenes, make_pairs, train_seeds

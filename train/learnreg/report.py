@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from lensdist_torch.core.storage import atomic_write_text
+from lensdist_torch.core import atomic_write_text
 from lensdist_torch.workflows.figures import have_matplotlib, save_curves
 
 from .data import eval_seeds, load_scenes, make_pairs
