@@ -73,8 +73,10 @@ class ProtocolConfig:
     the realistic protocol), each drawn per view or per pair: ``gain_range`` (> 0),
     ``offset_range`` (in [-1, 1]), ``gamma_range`` (> 0, log-uniform), ``illumination`` (the
     largest share, in [0, 1[, that a ramp / vignetting darkens), ``noise_range`` (Gaussian
-    sigma, in [0, 1]), ``jpeg_quality`` (ints in [1, 100]), ``parallax_px`` (>= 0, the largest
-    displacement of I2's samples along the motion), ``occluder_rate`` (share of pairs with a
+    sigma, in [0, 1]), ``jpeg_quality`` (ints in [1, 100]), ``relief`` (in [0, 0.5[: the
+    largest height of the scene over its plane as a fraction of camera 1's height; each pair
+    draws its own uniformly in [0, relief], and its parallax follows from its motion),
+    ``occluder_rate`` (share of pairs with a
     moving or occluding patch, in [0, 1]) and ``occluder_area`` (its share of the frame, in
     ]0, 1]).
 
@@ -108,7 +110,7 @@ class ProtocolConfig:
     illumination: float = 0.25
     noise_range: tuple[float, float] = (0.0, 0.02)
     jpeg_quality: tuple[int, int] = (60, 95)
-    parallax_px: float = 1.5
+    relief: float = 0.0
     occluder_rate: float = 0.2
     occluder_area: tuple[float, float] = (0.05, 0.15)
 
@@ -135,6 +137,6 @@ class ProtocolConfig:
         real(self, "illumination", lo=0, hi=1, hi_open=True)
         pair(self, "noise_range", within=(0, 1))
         pair(self, "jpeg_quality", within=(1, 100), integral=True)
-        real(self, "parallax_px", lo=0)
+        real(self, "relief", lo=0, hi=0.5, hi_open=True, why="a fraction of the camera's height")
         real(self, "occluder_rate", lo=0, hi=1)
         pair(self, "occluder_area", positive=True, within=(0, 1))

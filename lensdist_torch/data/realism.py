@@ -3,8 +3,9 @@
 The paper's pairs are clean renders of a planar scene. With ``protocol.realistic`` a pair also
 gets what a photograph pair has: per view a photometric change (gain, offset, gamma, a smooth
 illumination ramp / vignetting), Gaussian sensor noise, 8-bit quantisation and JPEG compression;
-per pair a mild parallax (a smooth random height field displacing I2's samples along the motion)
-and, in ``occluder_rate`` of the pairs, a patch present in one view only or at different places
+per pair, with ``relief`` > 0, a scene that is not a plane (a smooth random height field of up to
+``relief`` of camera 1's height: I2's parallax follows from the pair's own motion,
+:func:`~lensdist_torch.data.relief.second_view_points`) and, in ``occluder_rate`` of the pairs, a patch present in one view only or at different places
 in both (an occluder or a moving object).
 
 Draws. Every number of pair i comes from the pair's realism generator, seeded by a hash of the
@@ -34,6 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
+from lensdist_torch.data.relief import HeightField, scaled_field
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 
@@ -44,7 +46,7 @@ __all__ = [
     "Realism",
     "realism_seed",
     "draw_realism",
-    "parallax_shift",
+    "height_field",
     "illumination_field",
     "jpeg_table",
     "jpeg",
@@ -56,7 +58,7 @@ __all__ = [
 #: [1 - illumination, 1] from a ramp at ``ramp_angle`` degrees (weight ``ramp_weight``) and a
 #: radial falloff (weight 1 - ramp_weight); then noise of std ``noise_sigma`` and JPEG.
 PHOTOMETRIC = ("gain", "offset", "gamma", "illumination", "ramp_weight", "ramp_angle", "noise_sigma", "jpeg_quality")
-N_BUMPS = 4  # Gaussian bumps of the parallax height field
+N_BUMPS = 4  # Gaussian bumps of a pair's height field
 _BUMP_WIDTH = (0.15, 0.4)  # bump sigma, in half-diagonals: low frequency only
 _RATIO = (0.5, 2.0)  # occluder width / height, log-uniform
 _CONTRAST = (0.2, 0.5)  # texture amplitude of a textured occluder
@@ -82,16 +84,16 @@ class Realism:
     """What the realistic protocol drew for a batch of pairs.
 
     photometric: (B, 2, 8) float64, per view (I1, I2) the columns :data:`PHOTOMETRIC`.
-    parallax: (B, 1 + 4 N_BUMPS) float64: the largest displacement (px), then per bump its
-    centre (x, y) as a share of the half width / height from p0, its sigma in half-diagonals
-    and its weight in [-1, 1]. occluded: (B,) bool. occluder: (B, 2, 4) int64, per view the
+    relief: (B, 1 + 4 N_BUMPS) float64: the largest |height| over I1's view as a fraction of
+    camera 1's height (0: a plane), then per bump its centre (x, y) as a share of the half
+    width / height from p0, its sigma in half-diagonals and its weight in [-1, 1]. occluded: (B,) bool. occluder: (B, 2, 4) int64, per view the
     patch (x0, y0, width, height) in pixels, width = height = 0 where the view has none.
     look: (B, 3) float64: textured (1) or flat (0), grey level, texture contrast.
     seeds: (B, 2) int64, the noise and the texture generators' seeds.
     """
 
     photometric: torch.Tensor
-    parallax: torch.Tensor
+    relief: torch.Tensor
     occluded: torch.Tensor
     occluder: torch.Tensor
     look: torch.Tensor
@@ -112,7 +114,7 @@ def draw_realism(config: LensdistConfig, seeds: Sequence[int]) -> Realism:
     """Draw the realistic effects of the pairs whose own seeds are ``seeds`` (docs/method.md, section 7).
 
     Per pair, from its realism generator: ``N_UNIFORMS`` uniforms in one call (per view the 8
-    columns of :data:`PHOTOMETRIC`; the parallax amplitude; per bump x, y, width, weight; the
+    columns of :data:`PHOTOMETRIC`; the relief fraction; per bump x, y, width, weight; the
     occluder's presence, views (I1 only, both, I2 only: a third each), area, aspect, position in
     I1, position in I2, flat or textured, level, contrast), then the noise and texture seeds.
     """
@@ -147,7 +149,7 @@ def draw_realism(config: LensdistConfig, seeds: Sequence[int]) -> Realism:
     bumps = torch.stack(
         [2 * bumps[..., 0] - 1, 2 * bumps[..., 1] - 1, lin(bumps[..., 2], _BUMP_WIDTH), 2 * bumps[..., 3] - 1], -1
     )
-    parallax = torch.cat([p.parallax_px * u[:, 16:17], bumps.flatten(1)], 1)
+    relief = torch.cat([p.relief * u[:, 16:17], bumps.flatten(1)], 1)
 
     o = u[:, _OCC:]
     occluded = o[:, 0] < p.occluder_rate
@@ -163,12 +165,36 @@ def draw_realism(config: LensdistConfig, seeds: Sequence[int]) -> Realism:
     look = torch.stack([(o[:, 8] < 0.5).double(), o[:, 9], lin(o[:, 10], _CONTRAST)], 1)
     return Realism(
         photometric=photometric,
-        parallax=parallax,
+        relief=relief,
         occluded=occluded,
         occluder=occluder,
         look=look,
         seeds=torch.stack(sub).reshape(b, 2),
     )
+
+
+def height_field(real: Realism, i: int, height: int, width: int) -> HeightField | None:
+    """Pair ``i``'s height field in I1's ideal frame (pixels from p0), or None for a plane.
+
+    The N_BUMPS Gaussian bumps drawn for the pair, scaled so that the largest |rho| over I1's
+    view is the pair's relief fraction (:func:`~lensdist_torch.data.relief.scaled_field`).
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig, ProtocolConfig
+        >>> cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, relief=0.03))
+        >>> real = draw_realism(cfg, [7])
+        >>> f = height_field(real, 0, 320, 424)
+        >>> len(f.weights), round(float(real.relief[0, 0]), 4) <= 0.03
+        (4, True)
+    """
+    rho = float(real.relief[i, 0])
+    if rho <= 0:
+        return None
+    x0, y0 = distortion_center(height, width)
+    bumps = real.relief[i, 1:].reshape(N_BUMPS, 4)
+    centres = torch.stack([bumps[:, 0] * (width - 1) / 2, bumps[:, 1] * (height - 1) / 2], 1)
+    field = HeightField(centres, bumps[:, 2] * half_diagonal(height, width), bumps[:, 3])
+    return scaled_field(field, (-x0, width - 1 - x0, -y0, height - 1 - y0), rho)
 
 
 @functools.lru_cache(maxsize=4)
@@ -177,28 +203,6 @@ def _frame(h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
     x0, y0 = distortion_center(h, w)
     g = pixel_grid(h, w, torch.float64).reshape(-1, 2)
     return g[:, 0] - x0, g[:, 1] - y0
-
-
-def parallax_shift(real: Realism, motion: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """(B, 2, H*W) float32 displacement (px) of I2's ideal sampling points: the parallax.
-
-    Per pair a height field, the sum of N_BUMPS Gaussian bumps over I2's pixel grid scaled so
-    that its largest |value| is 1, times the drawn largest displacement, along the direction
-    of the motion's translation (t_x, t_y) (downwards where it is 0).
-    """
-    dx, dy = _frame(height, width)
-    r = half_diagonal(height, width)
-    b = real.parallax.shape[0]
-    bumps = real.parallax[:, 1:].reshape(b, N_BUMPS, 4)
-    cx = bumps[..., 0:1] * (width - 1) / 2
-    cy = bumps[..., 1:2] * (height - 1) / 2
-    sig = bumps[..., 2:3] * r
-    field = (bumps[..., 3:4] * torch.exp(-((dx - cx) ** 2 + (dy - cy) ** 2) / (2 * sig**2))).sum(1)  # (B, H*W)
-    field = field / field.abs().amax(1, keepdim=True).clamp_min(1e-12)
-    t = torch.stack([motion[:, 1], motion[:, 0]], 1).double()
-    norm = t.norm(dim=1, keepdim=True)
-    direction = torch.where(norm > 0, t / norm.clamp_min(1e-300), torch.tensor([0.0, 1.0], dtype=torch.float64))
-    return (real.parallax[:, :1, None] * field[:, None, :] * direction[:, :, None]).float()
 
 
 def illumination_field(photometric: torch.Tensor, height: int, width: int) -> torch.Tensor:

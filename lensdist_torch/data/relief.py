@@ -20,6 +20,15 @@ parallax), a translation moves X_c and gives each point a parallax in proportion
 baseline and its height, a change of altitude scales X_plane - X_c and gives a radial parallax.
 The coordinates may be scaled per axis (scene pixels, or grid_sample units): the equation is
 affine per axis.
+
+Two uses, one model. A **sequence** (``synthetic_sequence``) lays the texture on the ground and
+samples it where each frame sees the ground (:func:`relief_samples`). A **pair** of the
+realistic protocol keeps I1 as rendered and moves I2's samples: :func:`second_view_points` takes
+the points where camera 2 would see a flat scene, expressed in I1's frame (the ground
+homography applied), and returns where camera 1 sees the scene points that camera 2 sees there.
+For a camera 2 whose nadir is at c2 (camera 1's at the origin) the parallax is
+rho / (1 - rho) c2 to first order: zero for a pure rotation about the optical axis, in proportion
+to the baseline otherwise.
 """
 
 from __future__ import annotations
@@ -29,7 +38,7 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["HeightField", "draw_height_field", "relief_fraction", "relief_samples"]
+__all__ = ["HeightField", "draw_height_field", "relief_fraction", "relief_samples", "scaled_field", "second_view_points"]
 
 N_BUMPS = 4  # Gaussian bumps of a height field
 SIGMA_RANGE = (0.15, 0.4)  # bump widths, as a share of the region's half diagonal
@@ -87,13 +96,26 @@ def draw_height_field(
     centres = torch.stack([x_lo + (x_hi - x_lo) * u[:, 0], y_lo + (y_hi - y_lo) * u[:, 1]], 1)
     half_diag = 0.5 * math.hypot(x_hi - x_lo, y_hi - y_lo)
     sigmas = (SIGMA_RANGE[0] + (SIGMA_RANGE[1] - SIGMA_RANGE[0]) * u[:, 2]) * half_diag
-    weights = 2 * u[:, 3] - 1
+    return scaled_field(HeightField(centres, sigmas, 2 * u[:, 3] - 1), region, relief)
+
+
+def scaled_field(field: HeightField, region: tuple[float, float, float, float], relief: float) -> HeightField:
+    """``field`` with its weights scaled so that its largest |rho| over ``region`` is ``relief``.
+
+    The peak is measured on a 64 x 64 grid of the region (x_lo, x_hi, y_lo, y_hi); a field that
+    is zero there, or ``relief`` 0, gives a flat scene (weights 0).
+
+    Example:
+        >>> f = HeightField(torch.tensor([[0.0, 0.0]]), torch.tensor([10.0]), torch.tensor([-5.0]))
+        >>> [round(v, 6) for v in scaled_field(f, (-1.0, 1.0, -1.0, 1.0), 0.02).weights.tolist()]
+        [-0.02]
+    """
+    x_lo, x_hi, y_lo, y_hi = region
     xs, ys = torch.meshgrid(
         torch.linspace(x_lo, x_hi, 64, dtype=torch.float64), torch.linspace(y_lo, y_hi, 64, dtype=torch.float64), indexing="xy"
     )
-    peak = float(relief_fraction(HeightField(centres, sigmas, weights), xs, ys).abs().max())
-    scale = relief / peak if peak > 0 else 0.0
-    return HeightField(centres, sigmas, weights * scale)
+    peak = float(relief_fraction(field, xs, ys).abs().max())
+    return field._replace(weights=field.weights.double() * (relief / peak if peak > 0 else 0.0))
 
 
 def relief_samples(
@@ -125,3 +147,44 @@ def relief_samples(
         keep = 1.0 - relief_fraction(field, gx, gy)
         gx, gy = xc + keep * px, yc + keep * py
     return gx, gy
+
+
+def second_view_points(
+    x: torch.Tensor, y: torch.Tensor, nadir: tuple[float, float] | torch.Tensor, altitude: float, field: HeightField | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where camera 1 sees the scene points that camera 2 sees where it would see a flat scene at (x, y).
+
+    Coordinates are camera 1's (ideal, centred: its nadir at the origin), the field's heights
+    fractions of camera 1's height. Camera 2's nadir is ``nadir`` and its height ``altitude``
+    times camera 1's (the ground homography's scale), so its relief fractions are rho / altitude.
+    The ground point X solves camera 2's fixed point (:func:`relief_samples`); camera 1 sees it
+    at X / (1 - rho(X)). A camera 2 with camera 1's nadir and altitude (a pure rotation) gives
+    (x, y) back: no parallax.
+
+    Args:
+        x: abscissae of the flat scene's points seen by camera 2, in camera 1's frame (any shape).
+        y: their ordinates, of x's shape.
+        nadir: camera 2's nadir (x_c, y_c) in camera 1's frame.
+        altitude: camera 2's height over camera 1's, > 0.
+        field: the height field, or None (a flat scene: x, y unchanged).
+
+    Returns:
+        Camera 1's points (x1, y1), each of x's shape.
+
+    Example:
+        >>> f = HeightField(torch.tensor([[0.0, 0.0]]), torch.tensor([1e6]), torch.tensor([0.02]))
+        >>> x, y = torch.tensor([30.0], dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
+        >>> x1, _ = second_view_points(x, y, (10.0, 0.0), 1.0, f)
+        >>> round(float(x1 - 30.0), 4)  # rho / (1 - rho) times the nadir's 10 px
+        0.2041
+        >>> x1, _ = second_view_points(x, y, (0.0, 0.0), 1.0, f)
+        >>> round(float(x1 - 30.0), 6)  # the same nadir: a rotation, no parallax
+        0.0
+    """
+    if field is None:
+        return x, y
+    if not (math.isfinite(altitude) and altitude > 0):
+        raise ValueError(f"altitude must be a positive finite ratio of heights, got {altitude}")
+    gx, gy = relief_samples(x, y, nadir, field._replace(weights=field.weights / altitude))
+    keep = 1.0 - relief_fraction(field, gx, gy)
+    return gx / keep, gy / keep

@@ -24,7 +24,8 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.data.realism import Realism, degrade, draw_realism, parallax_shift
+from lensdist_torch.data.realism import Realism, degrade, draw_realism, height_field
+from lensdist_torch.data.relief import HeightField, second_view_points
 from lensdist_torch.geometry.distortion import (
     METRICS,
     REJECT,
@@ -206,7 +207,8 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     The ideal box at the largest coefficients, moved by every extreme of the motion ranges
     (the border of a box maps to a quadrilateral whose extremes lie at its corners), plus a
     2 px margin for bilinear support and rounding, plus, in the realistic protocol, the
-    parallax (at most ``parallax_px`` in I2's ideal frame, times M's largest scale).
+    parallax: at most relief / (1 - relief) times a sample's distance from camera 2's nadir,
+    bounded by 1.1 times the farthest extreme from p0 (the nadirs lie inside the moved frame).
     """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
@@ -222,7 +224,8 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     M = motion_matrix(torch.tensor(extremes, dtype=torch.float64), h, w)
     moved = apply_homography(M, corners).reshape(-1, 2)
     allp = torch.cat([corners, moved])
-    margin = 2.0 + (p.parallax_px * max(1.0, p.scale_range[1]) if p.realistic else 0.0)
+    reach = float((allp - torch.tensor([x0, y0], dtype=torch.float64)).norm(dim=1).max())
+    margin = 2.0 + (1.1 * reach * p.relief / (1 - p.relief) if p.realistic else 0.0)
     return (
         float(allp[:, 0].min()) - x0 - margin,
         float(allp[:, 0].max()) - x0 + margin,
@@ -243,8 +246,8 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     Per pair, placement, motion and grid_sample's normalisation fold into one 3 x 3 matrix
     per image (float64), applied to the ideal points of the distorted pixel grid (eq. 4,
     centred), so each image costs a few elementwise passes and one grid_sample. With
-    ``params.realism`` (the realistic protocol) I2's ideal points are displaced by the parallax
-    and both views are degraded (``data.realism.degrade``).
+    ``params.realism`` (the realistic protocol) I2's samples follow the pair's relief, if any
+    (``data.relief.second_view_points``), and both views are degraded (``data.realism.degrade``).
     """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
@@ -255,7 +258,6 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     a = torch.linalg.inv(centre) @ params.M @ centre  # the motion in centred coordinates
     img1 = torch.empty(b, 1, h, w)
     img2 = torch.empty(b, 1, h, w)
-    shift = None if params.realism is None else parallax_shift(params.realism, params.motion, h, w)
     for s in params.scene.unique().tolist():
         sel = (params.scene == s).nonzero().flatten()
         n = len(sel)
@@ -274,8 +276,10 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
         g1 = torch.empty(n, 2, h, w)
         g2 = torch.empty(n, 2, h, w)
         for j in range(n):  # per-pair scalars: plain vectorised kernels, no broadcasting
-            k2, k4, par = float(params.k2[sel[j]]), float(params.k4[sel[j]]), None if shift is None else shift[sel[j]]
-            _pair_grid(dx, dy, r2, r4, k2, k4, place[j], m[j], g1[j], g2[j], par)
+            i = int(sel[j])
+            field = None if params.realism is None else height_field(params.realism, i, h, w)
+            _pair_grid(dx, dy, r2, r4, float(params.k2[i]), float(params.k4[i]), place[j], m[j], g1[j], g2[j],
+                       None if field is None else (a[i], field))
         src = scenes[s].float().expand(n, -1, -1, -1)
         # (n, 2, H, W) viewed as (n, H, W, 2): grid_sample takes the strided grid as it is
         r1 = F.grid_sample(src, g1.permute(0, 2, 3, 1), mode="bilinear", padding_mode="zeros", align_corners=True)
@@ -287,23 +291,35 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     return (img1, img2) if params.realism is None else degrade(img1, img2, params.realism)
 
 
-def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: torch.Tensor, out1, out2, shift=None) -> None:
+def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: torch.Tensor, out1, out2,
+               relief: tuple[torch.Tensor, HeightField] | None = None) -> None:
     """One pair's two sampling grids, written into out1, out2 (2, H, W) in grid_sample units.
 
     Ideal points relative to p0 (eq. 4): (x, y) = f (dx, dy), f = 1 + k2 r^2 + k4 r^4; then
     I1 samples at ``place`` (x, y, 1) and I2 at ``place @ A`` (x, y, 1), A the centred motion.
     f is :func:`~lensdist_torch.geometry.distortion.radial_factor` as one fused kernel on cached
     float32 r^2, r^4 (fast; radial_factor itself would change the last bit of ~1/4 of the
-    factors, and rendered pairs, hence shards, must stay bit-identical). ``shift`` (2, H*W), the
-    parallax of the realistic protocol, moves I2's ideal points only.
+    factors, and rendered pairs, hence shards, must stay bit-identical). ``relief`` (A, the
+    pair's height field), the realistic protocol's scene with relief: I2 samples where camera 1
+    sees the points camera 2 sees (``data.relief.second_view_points``, camera 2's nadir A (0, 0)
+    and altitude sqrt |det A|, float64).
     """
     f = torch.add(r2 * k2, r4, alpha=k4).add_(1.0)
     x, y = dx * f, dy * f
     p, q = place.tolist(), m.tolist()
     torch.add(x * p[0][0], p[0][2], out=out1[0].view(-1))
     torch.add(y * p[1][1], p[1][2], out=out1[1].view(-1))
-    if shift is not None:
-        x, y = x + shift[0], y + shift[1]
+    if relief is not None:
+        a, field = relief
+        xa, ya = x.double(), y.double()
+        den = a[2, 0] * xa + a[2, 1] * ya + a[2, 2]
+        nadir = (float(a[0, 2] / a[2, 2]), float(a[1, 2] / a[2, 2]))
+        altitude = abs(float(torch.linalg.det(a[:2, :2] / a[2, 2]))) ** 0.5
+        xs, ys = second_view_points((a[0, 0] * xa + a[0, 1] * ya + a[0, 2]) / den,
+                                    (a[1, 0] * xa + a[1, 1] * ya + a[1, 2]) / den, nadir, altitude, field)
+        out2[0].view(-1).copy_(xs * p[0][0] + p[0][2])
+        out2[1].view(-1).copy_(ys * p[1][1] + p[1][2])
+        return
     den = torch.add(x * q[2][0], y, alpha=q[2][1]).add_(q[2][2])
     torch.div(torch.add(x * q[0][0], y, alpha=q[0][1]).add_(q[0][2]), den, out=out2[0].view(-1))
     torch.div(torch.add(x * q[1][0], y, alpha=q[1][1]).add_(q[1][2]), den, out=out2[1].view(-1))

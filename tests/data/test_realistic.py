@@ -26,11 +26,11 @@ from lensdist_torch.data.realism import (
     PHOTOMETRIC,
     degrade,
     draw_realism,
+    height_field,
     illumination_field,
     jpeg,
     jpeg_table,
     occluder_patch,
-    parallax_shift,
     realism_seed,
 )
 from lensdist_torch.data.synthesis import draw_pairs, make_pairs, render_pairs
@@ -45,7 +45,7 @@ REAL = config_from_dict({**BASE, "protocol": {**BASE["protocol"], "realistic": T
 #: Every effect off (JPEG at quality 100: steps of 1, about 0.3 grey levels of error).
 NEUTRAL = {
     "gain_range": [1.0, 1.0], "offset_range": [0.0, 0.0], "gamma_range": [1.0, 1.0], "illumination": 0.0,
-    "noise_range": [0.0, 0.0], "jpeg_quality": [100, 100], "parallax_px": 0.0, "occluder_rate": 0.0,
+    "noise_range": [0.0, 0.0], "jpeg_quality": [100, 100], "relief": 0.0, "occluder_rate": 0.0,
 }
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -86,7 +86,7 @@ class TestDefaultUnchanged:
 
     def test_realistic_fields_ignored_while_off(self, scenes):
         other = {k: v for k, v in NEUTRAL.items()}
-        other.update(gain_range=[0.5, 0.6], noise_range=[0.1, 0.2], parallax_px=3.0, occluder_rate=1.0)
+        other.update(gain_range=[0.5, 0.6], noise_range=[0.1, 0.2], relief=0.3, occluder_rate=1.0)
         off = config_from_dict({**BASE, "protocol": {**BASE["protocol"], **other}})
         for s, idx in (("train", [0, 1, 2]), ("test", [5, 6, 7])):
             a = make_pairs(scenes, CFG, s, idx, keep_images=True)
@@ -115,8 +115,9 @@ class TestDefaultUnchanged:
 
 @pytest.fixture(scope="module")
 def drawn():
-    """The realism of 400 pairs of the default realistic protocol."""
-    return draw_pairs(REAL, "train", range(400), 2).realism
+    """The realism of 400 pairs of the realistic protocol with relief up to 3 %."""
+    cfg = config_from_dict({**BASE, "protocol": {**BASE["protocol"], "realistic": True, "relief": 0.03}})
+    return draw_pairs(cfg, "train", range(400), 2).realism
 
 
 class TestDraws:
@@ -136,10 +137,11 @@ class TestDraws:
         # per view: the two views of a pair differ
         assert bool((col["gain"][:, 0] != col["gain"][:, 1]).all())
 
-    def test_parallax_and_occluder_ranges(self, drawn):
-        amp = drawn.parallax[:, 0]
-        assert drawn.parallax.shape == (400, 1 + 4 * N_BUMPS)
-        assert amp.min() >= 0 and amp.max() <= 1.5 and amp.max() > 1.4
+    def test_relief_and_occluder_ranges(self, drawn):
+        amp = drawn.relief[:, 0]
+        assert drawn.relief.shape == (400, 1 + 4 * N_BUMPS)
+        assert amp.min() >= 0 and amp.max() <= 0.03 and amp.max() > 0.029
+        assert bool((draw_pairs(REAL, "train", range(20), 2).realism.relief[:, 0] == 0).all())  # default: a plane
         share = float(drawn.occluded.double().mean())
         assert 0.13 <= share <= 0.27, share  # 20 % of 400: 3.5 standard deviations either side
         rect = drawn.occluder
@@ -167,11 +169,11 @@ class TestDraws:
         assert bool((b.photometric[..., 6] == 0).all())
         assert torch.equal(a.photometric[..., :6], b.photometric[..., :6])
         assert torch.equal(a.photometric[..., 7], b.photometric[..., 7])
-        for f in ("parallax", "occluded", "occluder", "look", "seeds"):
+        for f in ("relief", "occluded", "occluder", "look", "seeds"):
             assert torch.equal(getattr(a, f), getattr(b, f)), f
         # the bump geometry and the seeds do not depend on any range
         c = draw_pairs(only(), "train", range(40), 2).realism
-        assert torch.equal(a.parallax[:, 1:], c.parallax[:, 1:]) and torch.equal(a.seeds, c.seeds)
+        assert torch.equal(a.relief[:, 1:], c.relief[:, 1:]) and torch.equal(a.seeds, c.seeds)
 
 
 # ------------------------------------------------------------------------------ each effect
@@ -279,14 +281,12 @@ class TestEffects:
             with pytest.raises(ValueError, match="quality"):
                 jpeg_table(bad)
 
-    def test_parallax_bounded_and_along_the_motion(self, monkeypatch):
-        """On a linear scene (bilinear sampling exact) the change of I2 is the scene displacement."""
+    def _displacement(self, monkeypatch, cfg, p):
+        """(B, H, W, 2) px: how far the relief moved I2's samples, on a linear scene (bilinear exact)."""
         ramp = torch.arange(400, dtype=torch.float64) / 512
         scenes = [ramp.expand(400, 400).float()[None, None], ramp[:, None].expand(400, 400).float()[None, None]]
-        cfg = only(parallax_px=1.5)
         assert synthesis.scene_zoom((400, 400), synthesis.footprint(cfg)) == 1.0
         monkeypatch.setattr(synthesis, "degrade", lambda a, b, real: (a, b))  # the geometry alone
-        p = draw_pairs(cfg, "train", range(12), 2)
         moved = []
         for s in (0, 1):  # x from the first scene, y from the second
             q = dataclasses.replace(p, scene=torch.full_like(p.scene, s))
@@ -294,27 +294,50 @@ class TestEffects:
             c1, c2 = clean_of(scenes, q, cfg)
             assert torch.equal(r1, c1)  # I1 untouched
             moved.append((r2 - c2)[:, 0].double() * 512)
-        disp = torch.stack(moved, -1)  # (B, H, W, 2) px of the scene (zoom 1)
-        size = disp.norm(dim=-1).flatten(1).amax(1)
-        amp = p.realism.parallax[:, 0]
-        assert bool((size <= amp * 1.03 + 1e-3).all())  # M's scale is at most 1.02
-        assert bool((size >= amp * 0.95 - 1e-3).all())  # the field reaches its amplitude
-        t = torch.stack([p.motion[:, 1], p.motion[:, 0]], 1)
-        t = t / t.norm(dim=1, keepdim=True)
-        big = disp.norm(dim=-1) > 0.2
-        cross = (disp[..., 0] * t[:, None, None, 1] - disp[..., 1] * t[:, None, None, 0]).abs()
-        cross = cross / disp.norm(dim=-1).clamp_min(1e-9)  # sine of the angle to the motion
-        assert float(cross[big].max()) < math.sin(math.radians(2))  # along the motion (M rotates by <= 1 degree)
+        return torch.stack(moved, -1)
 
-    def test_parallax_shift_direct(self):
-        p = draw_pairs(REAL, "train", range(10), 2)
-        shift = parallax_shift(p.realism, p.motion, HS, WS)
-        assert shift.shape == (10, 2, HS * WS) and shift.dtype == torch.float32
-        size = shift.double().norm(dim=1).amax(1)
-        assert torch.allclose(size, p.realism.parallax[:, 0], atol=1e-5)
-        still = dataclasses.replace(p, motion=torch.zeros_like(p.motion))
-        down = parallax_shift(p.realism, still.motion, HS, WS)
-        assert bool((down[:, 0] == 0).all())  # no translation: downwards
+    def test_relief_parallax_follows_the_translation(self, monkeypatch):
+        """rho / (1 - rho) times camera 2's nadir, to first order: along the translation, in
+        proportion to it and to the height; the measured size against that bound."""
+        cfg = only(relief=0.03)
+        p = draw_pairs(cfg, "train", range(12), 2)
+        disp = self._displacement(monkeypatch, cfg, p)
+        size = disp.norm(dim=-1).flatten(1).amax(1)
+        t = torch.stack([p.motion[:, 1], p.motion[:, 0]], 1)  # camera 2's nadir is about (t_x, t_y)
+        rho = p.realism.relief[:, 0]
+        bound = rho / (1 - rho) * t.norm(dim=1)
+        assert bool((size <= bound * 1.1 + 0.05).all()), (size, bound)  # + the altitude's radial term
+        assert bool((size >= bound * 0.5 - 0.05).all()), (size, bound)  # the field reaches its peak somewhere
+        big = disp.norm(dim=-1) > 0.2
+        u = t / t.norm(dim=1, keepdim=True)
+        cross = (disp[..., 0] * u[:, None, None, 1] - disp[..., 1] * u[:, None, None, 0]).abs()
+        cross = cross / disp.norm(dim=-1).clamp_min(1e-9)  # sine of the angle to the motion
+        assert float(cross[big].max()) < math.sin(math.radians(6))  # along it, up to M's 1 degree and scale
+
+    def test_no_parallax_without_translation(self, monkeypatch):
+        """A pure rotation (and scale 1) keeps camera 2's nadir and altitude: the relief moves nothing."""
+        cfg = only(relief=0.03)
+        p = draw_pairs(cfg, "train", range(6), 2)
+        motion = torch.zeros_like(p.motion)
+        motion[:, 2], motion[:, 3] = torch.linspace(-1, 1, 6, dtype=torch.float64), 1.0
+        from lensdist_torch.data.synthesis import motion_matrix
+
+        still = dataclasses.replace(p, motion=motion, M=motion_matrix(motion, HS, WS))
+        disp = self._displacement(monkeypatch, cfg, still)
+        assert float(disp.abs().max()) < 1e-3
+
+    def test_height_field_peak(self):
+        cfg = only(relief=0.03)
+        p = draw_pairs(cfg, "train", range(10), 2)
+        from lensdist_torch.data.relief import relief_fraction
+
+        ys, xs = torch.meshgrid(torch.arange(HS, dtype=torch.float64) - (HS - 1) / 2,
+                                torch.arange(WS, dtype=torch.float64) - (WS - 1) / 2, indexing="ij")
+        for i in range(10):
+            f = height_field(p.realism, i, HS, WS)
+            peak = float(relief_fraction(f, xs, ys).abs().max())
+            assert abs(peak - float(p.realism.relief[i, 0])) < 0.02 * float(p.realism.relief[i, 0])  # 64 x 64 grid
+        assert height_field(draw_pairs(REAL, "train", [0], 2).realism, 0, HS, WS) is None
 
     def test_occluders(self, scenes):
         cfg = only(occluder_rate=1.0)
@@ -345,14 +368,15 @@ class TestDeterminism:
     def test_same_pair_any_batch(self, scenes):
         """Draws and images are bit-identical alone, in a batch and twice; the registration, as in
         the clean protocol (tests/data/test_synthesis.py), agrees to 1e-5 across batches."""
-        for set_name, i, idx in (("train", 9, [7, 8, 9, 10, 11]), ("test", 7, [4, 5, 6, 7, 8])):
-            alone = make_pairs(scenes, REAL, set_name, [i], keep_images=True)
-            batch = make_pairs(scenes, REAL, set_name, idx, keep_images=True)
-            again = make_pairs(scenes, REAL, set_name, [i], keep_images=True)
+        relief = config_from_dict({**BASE, "protocol": {**BASE["protocol"], "realistic": True, "relief": 0.03}})
+        for cfg, set_name, i, idx in ((REAL, "train", 9, [7, 8, 9, 10, 11]), (relief, "test", 7, [4, 5, 6, 7, 8])):
+            alone = make_pairs(scenes, cfg, set_name, [i], keep_images=True)
+            batch = make_pairs(scenes, cfg, set_name, idx, keep_images=True)
+            again = make_pairs(scenes, cfg, set_name, [i], keep_images=True)
             k = idx.index(i)
             ra, rb, rc = (x.params.realism for x in (alone, batch, again))
             pairs = [(alone.img1, batch.img1[k : k + 1], again.img1), (alone.img2, batch.img2[k : k + 1], again.img2)]
-            for f in ("photometric", "parallax", "occluded", "occluder", "look", "seeds"):
+            for f in ("photometric", "relief", "occluded", "occluder", "look", "seeds"):
                 pairs.append((getattr(ra, f), getattr(rb, f)[k : k + 1], getattr(rc, f)))
             for a, b, c in pairs:
                 assert torch.equal(a, b) and torch.equal(a, c)
@@ -402,8 +426,9 @@ class TestDeterminism:
         ("jpeg_quality", [60.0, 95]),
         ("jpeg_quality", [95, 60]),
         ("jpeg_quality", [True, 95]),
-        ("parallax_px", -1.0),
-        ("parallax_px", True),
+        ("relief", -0.01),
+        ("relief", 0.5),
+        ("relief", True),
         ("occluder_rate", 1.5),
         ("occluder_area", [0.0, 0.15]),
         ("occluder_area", [0.05, 1.5]),
