@@ -54,6 +54,16 @@ class ClassifierResult(NamedTuple):
     label: (B,) class index 0..3, or 4 for R. delta: (B,) interpolated Delta (px).
     distances: (B, C) distance to every class space. nearest: (B,) argmin class.
     neighbours: (B, k) training-pair indices used. neighbour_distances: (B, k).
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> x, cls = torch.rand(40, 12, generator=g), torch.arange(40) % 4
+        >>> clf = EigenSpaceClassifier(12, LensdistConfig(classifier=ClassifierConfig(n_eigenvectors=2)))
+        >>> res = clf.fit(x, cls, torch.rand(40, generator=g))(x[:3])
+        >>> tuple(res.distances.shape), bool((res.nearest == res.distances.argmin(1)).all())
+        ((3, 4), True)
+        >>> res.neighbours[:, 0].tolist()  # each training vector is its own nearest neighbour
+        [0, 1, 2]
     """
 
     label: torch.Tensor

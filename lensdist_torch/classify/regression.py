@@ -63,6 +63,17 @@ class RegressionResult(NamedTuple):
     Each (B,): delta_avg, delta_max (px), class_avg, class_max (0..3, or 4 = R below
     ``config.analysis.no_distortion_px``), std_avg, std_max
     (neighbour spread, px), confidence (0, 1] (from std_avg), confident (bool).
+
+    Example:
+        >>> g = torch.Generator().manual_seed(0)
+        >>> reg = DeltaRegressor(12, n_components=3, k=4)  # every training pair: Delta 5 px (avg), 20 px (max)
+        >>> res = reg.fit(torch.rand(50, 12, generator=g), torch.full((50,), 5.0), torch.full((50,), 20.0))(
+        ...     torch.rand(2, 12, generator=g))
+        >>> res.delta_avg.tolist(), res.std_avg.tolist(), res.confidence.tolist()
+        ([5.0, 5.0], [0.0, 0.0], [1.0, 1.0])
+        >>> from lensdist_torch.geometry.distortion import CLASS_LABELS
+        >>> [CLASS_LABELS[i] for i in res.class_avg]  # 5 px of Delta_avg: class 2 (3.6 to 7.2 px)
+        ['2', '2']
     """
 
     delta_avg: torch.Tensor

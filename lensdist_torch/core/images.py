@@ -78,6 +78,14 @@ def check_image(img: object, name: str = "img", finite: bool = True) -> torch.Te
         TypeError: not a tensor, or an integer dtype other than uint8.
         ValueError: not 4-D, an empty batch or image, a channel count other than 1 or 3, or
             (with ``finite``) NaN or Inf values.
+
+    Example:
+        >>> check_image(torch.zeros(2, 3, 4, 5, dtype=torch.uint8)).shape  # returned as it is
+        torch.Size([2, 3, 4, 5])
+        >>> check_image(torch.zeros(3, 4, 5), "frame")
+        Traceback (most recent call last):
+        ...
+        ValueError: frame must have shape (B, C, H, W), got (3, 4, 5)
     """
     if not isinstance(img, torch.Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(img).__name__}")
@@ -337,6 +345,15 @@ def resize_to(img: torch.Tensor, height: int, width: int) -> torch.Tensor:
     The crop is a view, and the antialiased resampling works in separable passes whose
     intermediates are about the size of the output (the figures: docs/method.md, section 1), so
     an image far larger than needed costs no memory beyond its own.
+
+    Example:
+        >>> row = torch.arange(10.0).view(1, 1, 1, 10)
+        >>> resize_to(row, 1, 4).flatten().tolist()  # the centre crop is 1 x 4 already: no resampling
+        [3.0, 4.0, 5.0, 6.0]
+        >>> big = torch.full((1, 3, 90, 200), 0.5)  # cropped to 90 x 120, then resampled
+        >>> out = resize_to(big, 30, 40)
+        >>> tuple(out.shape), bool(torch.allclose(out, torch.full_like(out, 0.5)))
+        ((1, 3, 30, 40), True)
     """
     top, left, ch, cw = centre_crop_box(img.shape[-2], img.shape[-1], height, width)
     img = img[..., top : top + ch, left : left + cw]

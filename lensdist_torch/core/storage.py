@@ -32,7 +32,18 @@ __all__ = [
 
 
 class CheckpointError(ValueError):
-    """A checkpoint of another kind or format version, corrupted, or fitted under another config."""
+    """A checkpoint of another kind or format version, corrupted, or fitted under another config.
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     _ = save_versioned(Path(tmp) / "old.pt", "demo", 1, {})
+        ...     try:
+        ...         load_versioned(Path(tmp) / "old.pt", "demo", 2, "demo")
+        ...     except CheckpointError as err:
+        ...         reason = str(err).split(" has ")[-1]
+        >>> reason, issubclass(CheckpointError, ValueError)
+        ('format version 1, this library reads 2', True)
+    """
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:
@@ -40,6 +51,13 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 
     Only a regular file (or nothing) at ``path`` is replaced: a directory, a device such as
     /dev/null, a FIFO or a socket there raises OSError naming it and is left as it was.
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     atomic_write_bytes(Path(tmp) / "new" / "a.bin", b"abc")  # the folder is created
+        ...     written, left = (Path(tmp) / "new" / "a.bin").read_bytes(), os.listdir(Path(tmp) / "new")
+        >>> written, left  # no temporary file left beside it
+        (b'abc', ['a.bin'])
     """
     if isinstance(path, str) and path.endswith(("/", os.sep)):
         raise IsADirectoryError(f"{path} names a directory; a file path is needed")
@@ -68,7 +86,16 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
-    """:func:`atomic_write_bytes` of UTF-8 text."""
+    """:func:`atomic_write_bytes` of UTF-8 text.
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     atomic_write_text(Path(tmp) / "note.txt", "first")
+        ...     atomic_write_text(Path(tmp) / "note.txt", "Delta = 3 px")  # replaced whole
+        ...     text = (Path(tmp) / "note.txt").read_text(encoding="utf-8")
+        >>> text
+        'Delta = 3 px'
+    """
     atomic_write_bytes(path, text.encode())
 
 
@@ -171,6 +198,13 @@ def save_versioned(
     ``content_sha256``. With ``replace_same_kind_only``, an existing file is replaced only if
     it is a file of ``kind`` (:func:`check_replaceable`). The bytes never depend on the file
     name (torch.save into memory first).
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     sha = save_versioned(Path(tmp) / "m.pt", "demo", 1, {"w": torch.arange(3)})
+        ...     same = sha == hashlib.sha256((Path(tmp) / "m.pt").read_bytes()).hexdigest()
+        >>> len(sha), same
+        (64, True)
     """
     if replace_same_kind_only:
         check_replaceable(path, kind)
@@ -200,6 +234,13 @@ def load_versioned(
         FileNotFoundError: no such file.
         CheckpointError (or ``error``): corrupted, another kind, or another format version
             (the message says which).
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     sha = save_versioned(Path(tmp) / "m.pt", "demo", 1, {"w": torch.arange(3)})
+        ...     payload = load_versioned(Path(tmp) / "m.pt", "demo", 1, "demo", sha256=sha, digest=True)
+        >>> sorted(payload), payload["w"].tolist()  # the digest checked and removed
+        (['format_version', 'kind', 'w'], [0, 1, 2])
     """
     path = Path(path)
     if not path.is_file():

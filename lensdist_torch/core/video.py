@@ -87,6 +87,15 @@ def video_frames(path: str | Path, grey: bool = True, reader: str | None = None)
     Raises:
         ValueError: neither PyAV nor OpenCV installed (the message names the extra), or a file
             the reader cannot open (raised at the first frame asked for).
+
+    Example:
+        A generator: nothing is opened or checked before the first frame is asked for.
+
+        >>> frames = video_frames("clip.mp4", reader="ffmpeg")
+        >>> next(frames)
+        Traceback (most recent call last):
+        ...
+        ValueError: reader must be 'pyav', 'opencv' or None, got 'ffmpeg'
     """
     path = Path(path)
     reader = video_reader() if reader is None else reader

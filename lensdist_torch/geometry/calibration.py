@@ -65,6 +65,11 @@ class SequenceCalibration(NamedTuple):
     relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
     answers| (user px), combined as the answers are, where significant (relief_z, its ratio to
     its jackknife std, at least ``relief_test``), else 0.
+
+    Example:
+        >>> cal = calibrate_sequence(torch.full((2, 1, 64, 64), 0.5))  # a still camera: no pair to use
+        >>> cal.class_label, cal.reason, cal.pairs_used, math.isnan(cal.k2_user), cal.image_size
+        (None, 'too little motion: no two frames moved enough apart', 0, True, (64, 64))
     """
 
     k2_user: float

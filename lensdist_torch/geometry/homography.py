@@ -13,7 +13,14 @@ __all__ = ["perturb_homography", "corner_error", "check_homography", "apply_homo
 
 
 def apply_homography(hn: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 3) homographies applied to (K, 2) points -> (B, K, 2)."""
+    """(B, 3, 3) homographies applied to (K, 2) points -> (B, K, 2).
+
+    Example:
+        >>> shift = torch.tensor([[1.0, 0, 3], [0, 1, 4], [0, 0, 1]])  # moves every point by (3, 4)
+        >>> half = torch.diag(torch.tensor([1.0, 1.0, 2.0]))  # w = 2: every point halved
+        >>> apply_homography(torch.stack([shift, half]), torch.tensor([[0.0, 0.0], [10.0, 20.0]])).tolist()
+        [[[3.0, 4.0], [13.0, 24.0]], [[0.0, 0.0], [5.0, 10.0]]]
+    """
     q = hn[:, None, :, :2] @ pts[None, :, :, None] + hn[:, None, :, 2:]
     return q[..., :2, 0] / q[..., 2:, 0]
 

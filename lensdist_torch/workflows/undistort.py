@@ -254,6 +254,18 @@ def undistort_path(
         dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks), bits (the
         sample depths written, e.g. [16]), alpha, camera (what ``undistortion.json`` holds) and
         camera_file (its path).
+
+    Example:
+        >>> import tempfile
+        >>> frame = encode_png(torch.zeros(1, 24, 32, dtype=torch.uint8))  # a 24 x 32 grey PNG
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     (Path(tmp) / "in").mkdir()
+        ...     for name in ("a", "b"):
+        ...         _ = (Path(tmp) / "in" / f"{name}.png").write_bytes(frame)
+        ...     res = undistort_path(Path(tmp) / "in", Path(tmp) / "out", k2=0.0, k4=0.0)
+        ...     written = sorted(p.name for p in (Path(tmp) / "out").iterdir())
+        >>> res["frames"], res["valid_fraction"], res["bits"], written  # no distortion: every pixel valid
+        (2, 1.0, [8], ['a.png', 'b.png', 'masks', 'undistortion.json'])
     """
     path, out = Path(path), Path(out_dir)
     if not path.exists():
