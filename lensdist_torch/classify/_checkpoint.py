@@ -31,7 +31,7 @@ from typing import Any
 
 import torch
 
-from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
+from lensdist_torch.config import LensdistConfig, config_to_dict, stored_config
 from lensdist_torch.core.storage import CheckpointError, check_compatible, load_versioned, save_versioned
 
 Spec = dict[str, tuple[torch.dtype, tuple[Any, ...]]]
@@ -76,7 +76,7 @@ def positive_int(payload: dict, key: str, path: str | Path) -> int:
 
 def config_of(payload: dict, path: str | Path) -> LensdistConfig:
     try:
-        return config_from_dict(payload["config"])
+        return stored_config(payload["config"])
     except (ValueError, TypeError, KeyError, AttributeError) as exc:
         raise CheckpointError(f"checkpoint {path} holds an invalid config: {exc}") from None
 

@@ -31,10 +31,13 @@ from lensdist_torch.config.analysis import AnalysisConfig
 from lensdist_torch.config.classify import MAX_NEIGHBOURS, ClassifierConfig, RegressionConfig
 from lensdist_torch.config.lensdist import (
     FROM_CLASS_TOLERANCE,
+    RETIRED,
     LensdistConfig,
     config_from_dict,
     config_to_dict,
     load_config,
+    retired_keys,
+    stored_config,
 )
 from lensdist_torch.config.protocol import DistortionConfig, ImageConfig, ProtocolConfig
 from lensdist_torch.config.quality import QualityConfig
@@ -53,6 +56,7 @@ __all__ = [
     "MAX_NEIGHBOURS",
     "MULTIVIEW_MODELS",
     "MultiViewConfig",
+    "RETIRED",
     "ProtocolConfig",
     "QualityConfig",
     "RegistrationConfig",
@@ -66,4 +70,6 @@ __all__ = [
     "merge_tables",
     "parse_overrides",
     "read_toml",
+    "retired_keys",
+    "stored_config",
 ]

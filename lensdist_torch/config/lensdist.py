@@ -22,7 +22,8 @@ from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
 from lensdist_torch.config.sequence import CalibrationConfig, MultiViewConfig
 from lensdist_torch.config.toml import check_tables, read_toml
 
-__all__ = ["FROM_CLASS_TOLERANCE", "LensdistConfig", "config_from_dict", "config_to_dict", "load_config"]
+__all__ = ["FROM_CLASS_TOLERANCE", "RETIRED", "LensdistConfig", "config_from_dict", "config_to_dict", "load_config",
+           "retired_keys", "stored_config"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +88,41 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
     """
     check_tables(data, {name: {f.name for f in dataclasses.fields(cls)} for name, cls in _SECTIONS.items()})
     return LensdistConfig(**{name: cls(**data.get(name, {})) for name, cls in _SECTIONS.items()})
+
+
+#: Keys an earlier version wrote that this one no longer reads: (section, key) -> what replaced it.
+RETIRED = {("protocol", "parallax_px"): "protocol.relief (a scene's relief; the parallax follows each pair's motion)"}
+
+
+def retired_keys(data: dict[str, Any]) -> list[str]:
+    """The ``section.key`` names of :data:`RETIRED` present in a saved config's dict.
+
+    Example:
+        >>> retired_keys({"protocol": {"parallax_px": 1.5}}), retired_keys({"protocol": {}})
+        (['protocol.parallax_px'], [])
+    """
+    return [f"{s}.{k}" for s, k in RETIRED if isinstance(data.get(s), dict) and k in data[s]]
+
+
+def stored_config(data: dict[str, Any]) -> LensdistConfig:
+    """The config a checkpoint of an earlier version was saved with.
+
+    A retired key is dropped where it had no effect (``protocol.parallax_px`` outside the
+    realistic protocol, or 0); where it had one, the saved object was made under a protocol
+    this version no longer has, and that is a one-line ValueError saying what replaced it.
+
+    Example:
+        >>> stored_config({"protocol": {"parallax_px": 1.5}}).protocol.relief
+        0.0
+    """
+    protocol = data.get("protocol")
+    if isinstance(protocol, dict) and "parallax_px" in protocol:
+        px = protocol["parallax_px"]
+        if protocol.get("realistic") and px:
+            raise ValueError(f"saved under the realistic protocol's former fixed parallax (protocol.parallax_px = {px!r}), "
+                             f"which this version replaced by {RETIRED[('protocol', 'parallax_px')]}: fit it again")
+        data = {**data, "protocol": {k: v for k, v in protocol.items() if k != "parallax_px"}}
+    return config_from_dict(data)
 
 
 def config_to_dict(config: LensdistConfig) -> dict[str, Any]:

@@ -133,7 +133,8 @@ class SelfCalConfig:
             covariance alone (docs/method.md, section 10).
         parallax: plane + parallax model: a relief displacing img2's points along the
             registration's translation, a smooth field of parallax x parallax Gaussian bumps
-            (fitted where (a, b) are); 0: a planar scene.
+            (fitted where (a, b) are); 0: a planar scene. On by default: whether a pair's scene is
+            a plane is decided per pair, by Hausman's test (``parallax_test``, ``analysis.relief_z``).
         parallax_width: the bumps' sigma, in half-diagonals.
         parallax_px: the std (px) of the Gaussian prior on each bump's height: how far a
             relief may move points, as the user expects it (MAP; larger: freer relief).
@@ -180,7 +181,7 @@ class SelfCalConfig:
     both_starts: bool = True
     distortion_levels: int = 2
     clusters: int = 6
-    parallax: int = 0
+    parallax: int = 5
     parallax_width: float = 0.3
     parallax_px: float = 1.0
     parallax_iterations: int = 6

@@ -107,9 +107,10 @@ class SelfCalInfo(NamedTuple):
     coefficients, gain_bias (B, 2) the photometric gain and bias (1, 0 without that model),
     scale (the robust sigma, 1.4826 MAD, of the final residual), from_init (bool: the start
     from ``init`` won), relief (bool: the plane + parallax model's answer was kept), motion
-    (the fitted H's mean displacement over the frame, px; NaN if not converged), planar_ab and
-    relief_ab (B, 2) the planar and the plane + parallax models' coefficients, both, whichever was kept
-    (relief_ab NaN without that model or where it did not converge).
+    (the fitted H's mean displacement, px; NaN if not converged), planar_ab and relief_ab (B, 2) the
+    planar and plane + parallax models' coefficients whichever was kept (relief_ab NaN without that
+    model or where it did not converge), relief_z Hausman's statistic of their Delta_avg difference
+    (what ``parallax_test`` thresholds; NaN without that model).
     """
 
     converged: torch.Tensor
@@ -127,6 +128,7 @@ class SelfCalInfo(NamedTuple):
     motion: torch.Tensor
     planar_ab: torch.Tensor
     relief_ab: torch.Tensor
+    relief_z: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -144,8 +146,7 @@ class _State(NamedTuple):
 #: of 24 flat pairs (errors up to 1.5 px), with bilinear on none (tests/geometry/test_selfcal_parallax.py)
 _RELIEF_INTERPOLATION = "bilinear"
 
-#: floor (px) of the std of the difference in Hausman's test: the relief's std can fall below the
-#: planar one where the relief explains a misfit that widened the planar interval
+#: floor (px) of the std of the difference in Hausman's test (the relief's std can fall below the planar one)
 _HAUSMAN_FLOOR_PX = 0.05
 
 
@@ -246,7 +247,7 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
         return torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b)
 
     info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(from_init=planar[3].from_init, relief=use,
-                                                                  planar_ab=planar[3].ab, relief_ab=relief[3].ab)
+                                                                  planar_ab=planar[3].ab, relief_ab=relief[3].ab, relief_z=z)
     return (*map(per_pair, relief[:3], planar[:3]), info)
 
 
@@ -445,5 +446,5 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
                        st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan), ab,
-                       torch.full_like(ab, float("nan")))
+                       torch.full_like(ab, float("nan")), torch.full_like(d_avg, float("nan")))
     return theta, k2, k4, H, info

@@ -34,7 +34,13 @@ from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.workflows.confidence import platt
 from lensdist_torch.workflows.texture import texture_distance
 
-__all__ = ["in_user_pixels", "class_distance", "domain_checks", "decide"]
+__all__ = ["REASONS", "in_user_pixels", "class_distance", "domain_checks", "decide"]
+
+#: The codes of ``cannot_tell_reasons``, in the order they are listed: the registration failed,
+#: the views overlap too little, no estimate, too little motion, relief found (the plane +
+#: parallax test), a low confidence, out of the learned methods' domain, an answer without a
+#: confidence that the self-calibration does not confirm.
+REASONS = ("registration", "overlap", "no_estimate", "motion", "relief", "low_confidence", "out_of_domain", "unconfirmed")
 
 
 # ------------------------------------------------------------------ the answer
@@ -112,16 +118,43 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
             f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): too little to judge"
         )
     aligned = res["registration_ok"] and res["overlap"] >= cfg.analysis.min_overlap  # else that is the reason given
-    if aligned and res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence:
+    if aligned and res.get("relief_found"):
+        lo, hi = res["relief_delta_avg_interval"] or (float("nan"), float("nan"))
+        out.append(
+            f"cannot tell: the scene is not a plane: its relief moves Delta_avg from {res['planar_delta_avg']:.2f} px "
+            f"(planar model) to {res['relief_delta_avg']:.2f} px [{lo:.2f}, {hi:.2f}] (plane + parallax model), "
+            "beyond what either interval allows"
+        )
+    elif aligned and res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence:
         out.append("cannot tell from this pair: too little motion or texture to see the distortion (low confidence)")
     return out
+
+
+def _reasons(res: dict, cfg: LensdistConfig, still: bool, low: bool, no_number: bool, unconfirmed: bool) -> list[str]:
+    """The machine-readable reasons of a "cannot tell", one code each (:data:`REASONS`), the text in ``warnings``."""
+    a = cfg.analysis
+    aligned = res["registration_ok"] and res["overlap"] >= a.min_overlap
+    found = {
+        "registration": not res["registration_ok"],
+        "overlap": res["registration_ok"] and res["overlap"] < a.min_overlap,
+        "no_estimate": aligned and no_number,
+        "motion": still,
+        "relief": aligned and bool(res.get("relief_found")),
+        "low_confidence": aligned and low and not res.get("relief_found"),
+        "out_of_domain": aligned and not res["in_domain"],
+        "unconfirmed": aligned and unconfirmed,
+    }
+    return [code for code in REASONS if found[code]]
 
 
 def decide(res: dict, cfg: LensdistConfig) -> None:
     """Set ``warnings``, ``in_domain``, ``cannot_tell``, ``class`` and ``class_max`` of one result, in place.
 
     "Cannot tell" where the confidence is low, there is no estimate, the pair is out of domain, an
-    answer without a confidence is not confirmed by the self-calibration (:func:`domain_checks`), or
+    answer without a confidence is not confirmed by the self-calibration (:func:`domain_checks`),
+    the self-calibration found relief (``relief_found``: the plane + parallax answer kept and
+    Hausman's statistic at least ``analysis.relief_z``; both answers stay in the result, as
+    ``planar_delta_avg`` and ``relief_delta_avg`` with its interval), or
     the views moved by less than ``analysis.min_motion_px`` (``motion_px``: the registration's
     mean displacement; every method, since none can see a distortion that cancels). Then
     ``class``, ``class_max``, ``delta_avg``, ``delta_max`` and ``distortion_type`` are None: no
@@ -129,7 +162,9 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
     ``estimated_delta_avg`` and ``estimated_delta_max`` keep the estimator's own output, for
     evaluation. A Delta_avg beyond the classes' range is class 4 with a warning saying so and
     ``beyond_class_range`` True. A failed registration or too small an overlap is the one reason
-    given for a low confidence (not also "too little motion or texture").
+    given for a low confidence (not also "too little motion or texture"), and found relief is the
+    one given for it. ``cannot_tell_reasons`` lists the reasons as codes of :data:`REASONS`
+    (empty with an answer).
     """
     a = cfg.analysis
     check = res.get("selfcal_check")
@@ -150,8 +185,9 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
     low = res["confidence"] is not None and res["confidence"] < a.min_confidence
     no_number = res["delta_avg"] is None and res["delta_max"] is None
     unconfirmed = bool(check) and check.get("confirms") is False  # an answer without confidence (domain_checks)
-    unsure = low or no_number or still or not res["in_domain"] or unconfirmed
+    unsure = low or no_number or still or not res["in_domain"] or unconfirmed or bool(res.get("relief_found"))
     res["cannot_tell"] = bool(unsure)
+    res["cannot_tell_reasons"] = _reasons(res, cfg, still, low, no_number, unconfirmed) if unsure else []
     res["class"] = None if unsure else res["estimated_class"]
     res["class_max"] = None if unsure else res["estimated_class_max"]
     # the estimator's own numbers stay, named as such; the answer's numbers only where there is one

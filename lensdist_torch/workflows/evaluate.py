@@ -34,6 +34,7 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
 from lensdist_torch.metric.quality import counts_to_map
 from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
+from lensdist_torch.workflows.decision import REASONS
 from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions
 from lensdist_torch.workflows.texture import texture_statistics
 
@@ -180,11 +181,14 @@ def figures_of(results: list[dict], test: dict, metric: str, config: LensdistCon
     ok = torch.tensor([r["registration_ok"] for r in results])
     fig = evaluate_predictions(pred, delta, truth, test[metric], delta_top(metric, config), ok, motion_groups(test))
     fig["metric"] = metric
+    reasons = [code for r in results for code in r.get("cannot_tell_reasons", [])]
+    fig["cannot_tell_reasons"] = {code: reasons.count(code) for code in REASONS if code in reasons}
     fig["per_pair"] = {
         "index": test["index"].tolist(),
         "class": [r[key] for r in results],
         "delta": [r[est] for r in results],
         "confidence": [r["confidence"] for r in results],
+        "cannot_tell_reasons": [r.get("cannot_tell_reasons", []) for r in results],
     }
     return fig
 

@@ -25,6 +25,7 @@ from lensdist_torch.geometry.distortion import (
     estimated_class,
     pixel_offsets,
 )
+from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.selfcal import estimate_distortion
@@ -175,9 +176,27 @@ def _selfcal_one(p: PreparedPairs, i: int) -> dict:
         "k4": float(k4[0]),
         "delta_avg_std": float(sc.delta_avg_std[0]),
         "delta_avg_interval": _interval(float(d_avg[0]), float(sc.delta_avg_std[0]), cfg.analysis.interval_confidence),
-        "relief": bool(sc.relief[0]),  # the plane + parallax model's answer (selfcal.parallax)
+        "relief": bool(sc.relief[0]),  # the plane + parallax model's answer kept (selfcal.parallax_test)
+        "relief_z": float(sc.relief_z[0]),  # Hausman's statistic; NaN without that model
+        "relief_found": bool(sc.relief[0]) and float(sc.relief_z[0]) >= cfg.analysis.relief_z,
         "distortion_type": distortion_type(float(sc.ab[0, 0]), float(sc.ab[0, 1])),
-    }
+    } | _relief_estimate(sc, d_avg, cfg)
+
+
+def _relief_estimate(sc, d_avg: torch.Tensor, cfg: LensdistConfig) -> dict:
+    """Where relief was found (``relief_found``): the plane + parallax estimate and interval, and the planar Delta_avg.
+
+    These stay beside the "cannot tell" that relief causes (``decision.decide``), so a user sees
+    what each model says; empty where no relief was found (or the model is off).
+    """
+    if not (bool(sc.relief[0]) and float(sc.relief_z[0]) >= cfg.analysis.relief_z):
+        return {}
+    h, w = cfg.image.size
+    r = half_diagonal(h, w)
+    planar = pixel_offsets(sc.planar_ab[:, 0] / r**2, sc.planar_ab[:, 1] / r**4, h, w).flatten(1).mean(1)
+    std = float(sc.delta_avg_std[0])
+    return {"relief_delta_avg": float(d_avg[0]), "relief_delta_avg_interval": _interval(float(d_avg[0]), std,
+            cfg.analysis.interval_confidence), "planar_delta_avg": float(planar[0])}
 
 
 def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:

@@ -248,6 +248,10 @@ def report_markdown(report: dict) -> str:
         paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
         if paper:
             lines += [f"Paper ({fig['paper_key']}):", ""] + _md_confusion(paper["confusion"]) + [""]
+        if fig.get("cannot_tell_reasons"):
+            lines.append("\"Cannot tell\" by reason (a pair may have several): "
+                         + ", ".join(f"{code} {n}" for code, n in fig["cannot_tell_reasons"].items()))
+            lines.append("")
         if fig.get("groups"):
             lines.append("Rate by group (t_y: the vertical translation): "
                          + ", ".join(f"{g}: {_pct(v['rate'])} (n={v['n']})" for g, v in fig["groups"].items()))

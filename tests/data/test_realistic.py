@@ -446,3 +446,20 @@ def test_realistic_sequence_is_refused(scenes):
     with pytest.raises(ValueError) as exc:
         make_pairs(scenes, REAL, "train", [0], sequence=True)
     assert "\n" not in str(exc.value) and "protocol.realistic" in str(exc.value)
+
+
+@pytest.mark.bad_input
+def test_a_config_saved_with_the_retired_parallax():
+    """Checkpoints saved before protocol.relief carry protocol.parallax_px: dropped where it had no
+    effect (the clean protocol: the shipped checkpoints), refused where it shaped the data."""
+    from lensdist_torch.config import retired_keys, stored_config
+
+    clean = {"protocol": {"realistic": False, "parallax_px": 1.5}}
+    assert retired_keys(clean) == ["protocol.parallax_px"]
+    assert stored_config(clean) == config_from_dict({"protocol": {"realistic": False}})
+    assert stored_config({"protocol": {"realistic": True, "parallax_px": 0.0}}).protocol.relief == 0.0
+    with pytest.raises(ValueError, match=r"^saved under the realistic protocol's former fixed parallax .*1\.5.*protocol\.relief") as err:
+        stored_config({"protocol": {"realistic": True, "parallax_px": 1.5}})
+    assert "\n" not in str(err.value)
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['parallax_px'\] in config section \[protocol\]"):
+        config_from_dict(clean)  # a user's file is not silently reinterpreted

@@ -32,12 +32,13 @@ def assert_columns_match_finite_differences(theta: torch.Tensor, lv: selfcal_mod
         assert float((J[0, k] - fd[0]).norm() / fd[0].norm()) < 0.06, k
 
 
-def parallax_only_pairs(parallax_px: float, n: int):
-    """The first n test pairs of the realistic protocol with every effect off but the parallax
-    (up to ``parallax_px``): img1, img2 (n, 1, H, W) and their true Delta_avg (n,)."""
+def relief_only_pairs(relief: float, n: int):
+    """The first n test pairs of the realistic protocol with every effect off but the scene's
+    relief (up to ``relief`` of camera 1's height; the parallax follows each pair's motion):
+    img1, img2 (n, 1, H, W) and their true Delta_avg (n,)."""
     cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, gain_range=(1.0, 1.0), offset_range=(0.0, 0.0),
                                                  gamma_range=(1.0, 1.0), illumination=0.0, noise_range=(0.0, 0.0),
-                                                 jpeg_quality=(100, 100), occluder_rate=0.0, parallax_px=parallax_px))
+                                                 jpeg_quality=(100, 100), occluder_rate=0.0, relief=relief))
     p = draw_pairs(cfg, "test", list(range(n)), 2)
     i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
     return i1, i2, delta_avg(p.k2, p.k4, *cfg.image.size)

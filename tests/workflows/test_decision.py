@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -19,6 +20,8 @@ from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.workflows.analyze import analyze_batch
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
 from lensdist_torch.workflows.decision import class_distance, decide, domain_checks
+
+ROOT = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 
@@ -67,6 +70,48 @@ def test_decide_cannot_tell_rules():
         decide(r, cfg)
         assert r["class"] is None and r["cannot_tell"] and r["estimated_class"] == "3"
         assert any(warning in w for w in r["warnings"]), (change, r["warnings"])
+
+
+def test_decide_names_each_reason_by_its_code():
+    cfg = LensdistConfig()
+    r = _res()
+    decide(r, cfg)
+    assert r["cannot_tell_reasons"] == []
+    for change, codes in (({"confidence": 0.2}, ["low_confidence"]), ({"overlap": 0.3}, ["overlap"]),
+                          ({"registration_ok": False}, ["registration"]), ({"_diverged": True}, ["no_estimate"]),
+                          ({"motion_px": 0.1}, ["motion"]), ({"_far": True}, ["out_of_domain"]),
+                          ({"motion_px": 0.1, "confidence": 0.2}, ["motion", "low_confidence"])):
+        r = _res(**change)
+        decide(r, cfg)
+        assert r["cannot_tell"] and r["cannot_tell_reasons"] == codes, (change, r["cannot_tell_reasons"])
+
+
+def test_relief_found_is_the_reason_and_both_answers_stay():
+    """The plane + parallax test found relief: "cannot tell", reason relief (not also low
+    confidence), the planar and the relief estimates in the result and the warning."""
+    cfg = LensdistConfig()
+    r = _res(relief=True, relief_found=True, relief_z=5.0, relief_delta_avg=8.1, relief_delta_avg_interval=[7.5, 8.7], planar_delta_avg=9.0,
+             confidence=0.3)
+    decide(r, cfg)
+    assert r["cannot_tell"] and r["class"] is None and r["delta_avg"] is None
+    assert r["cannot_tell_reasons"] == ["relief"]
+    assert r["relief_delta_avg"] == 8.1 and r["planar_delta_avg"] == 9.0
+    (w,) = r["warnings"]
+    assert "not a plane" in w and "9.00 px (planar model)" in w and "8.10 px [7.50, 8.70]" in w
+
+
+def test_a_pair_of_a_scene_with_relief_says_relief():
+    """Realistic test pair 9 with relief 2.7 % of the camera's height (truth 11.18 px): the planar
+    model says 9.25 px, the plane + parallax model's interval holds the truth, and the answer is
+    "cannot tell" for relief, with the default settings."""
+    cfg = load_config(ROOT / "configs" / "realistic_relief.toml")  # the default analysis settings
+    p = draw_pairs(cfg, "test", [9], len(cfg.protocol.scenes))
+    img1, img2 = render_pairs([load_scene(s) for s in cfg.protocol.scenes], p, cfg)
+    (r,) = analyze_batch(img1, img2, config=cfg)
+    assert float(p.realism.relief[0, 0]) == pytest.approx(0.0274, abs=1e-4)
+    assert r["cannot_tell"] and r["cannot_tell_reasons"] == ["relief"]
+    lo, hi = r["relief_delta_avg_interval"]
+    assert lo < 11.18 < hi and abs(r["planar_delta_avg"] - 11.18) > 1.5
 
 
 def test_class_distance():
