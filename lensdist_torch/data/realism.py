@@ -117,6 +117,12 @@ def draw_realism(config: LensdistConfig, seeds: Sequence[int]) -> Realism:
     columns of :data:`PHOTOMETRIC`; the relief fraction; per bump x, y, width, weight; the
     occluder's presence, views (I1 only, both, I2 only: a third each), area, aspect, position in
     I1, position in I2, flat or textured, level, contrast), then the noise and texture seeds.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig, ProtocolConfig
+        >>> real = draw_realism(LensdistConfig(protocol=ProtocolConfig(realistic=True)), [11, 12])
+        >>> tuple(real.photometric.shape), tuple(real.occluder.shape), real.relief[:, 0].tolist()  # a plane
+        ((2, 2, 8), (2, 2, 4), [0.0, 0.0])
     """
     p, h, w = config.protocol, config.image.height, config.image.width
     rows, sub = [], []

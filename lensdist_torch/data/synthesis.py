@@ -58,6 +58,12 @@ class PairParams:
     uniform draws in [0, 1) placing the view in its scene. perturbed: (B,) bool, class-R pairs
     whose estimated homography is perturbed. generators: one per pair, for later draws.
     realism: what the realistic protocol drew (``data.realism.Realism``), None when it is off.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> p = draw_pairs(LensdistConfig(), "test", [0, 499], 2)
+        >>> tuple(p.M.shape), p.perturbed.tolist(), p.realism is None  # pair 499 is class R
+        ((2, 3, 3), [False, True], True)
     """
 
     index: torch.Tensor
@@ -75,7 +81,16 @@ class PairParams:
 
 @dataclass
 class PairBatch:
-    """Generated pairs: their parameters, ground truth, registration and quality counts."""
+    """Generated pairs: their parameters, ground truth, registration and quality counts.
+
+    Example:
+        >>> from lensdist_torch.config import config_from_dict
+        >>> from lensdist_torch.core.images import load_scene
+        >>> cfg = config_from_dict({"image": {"height": 64, "width": 96}})
+        >>> batch = make_pairs([load_scene("gravel")], cfg, "train", [0])
+        >>> tuple(batch.counts.shape), batch.img1 is None, sorted(batch.delta)
+        ((1, 1, 8, 12), True, ['delta_avg', 'delta_max'])
+    """
 
     params: PairParams
     delta: dict  # metric name -> (B,) float64
@@ -112,7 +127,16 @@ def is_distorted(config: LensdistConfig, set_name: str, index: int) -> bool:
 
 
 def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) -> PairParams:
-    """Draw the parameters of pairs ``indices`` of a set (docs/method.md, section 7), one generator per pair."""
+    """Draw the parameters of pairs ``indices`` of a set (docs/method.md, section 7), one generator per pair.
+
+    A pair is a pure function of (protocol seed, set, index): the same pair alone or in any batch.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> a, b = draw_pairs(LensdistConfig(), "train", [3], 2), draw_pairs(LensdistConfig(), "train", [2, 3], 2)
+        >>> bool(torch.equal(a.k2, b.k2[1:])), bool(a.k2[0] > 0)
+        (True, True)
+    """
     p, dcfg = config.protocol, config.distortion
     rows, seeds, gens, distorted = [], [], [], []
     n = set_size(config, set_name)
@@ -380,6 +404,14 @@ def make_pairs(
 
     With ``sequence``, ``scenes`` are consecutive frames of a real, undistorted sequence and
     pair i is frames (i mod (n-1), i mod (n-1) + 1), distorted, instead of synthetic motion.
+
+    Example:
+        >>> from lensdist_torch.config import config_from_dict
+        >>> from lensdist_torch.core.images import load_scene
+        >>> cfg = config_from_dict({"image": {"height": 64, "width": 96}})
+        >>> batch = make_pairs([load_scene("gravel")], cfg, "test", [0], keep_images=True)
+        >>> tuple(batch.img2.shape), batch.classes["delta_avg"].tolist() != [-1]
+        ((1, 1, 64, 96), True)
     """
     if sequence and config.protocol.realistic:
         raise ValueError("protocol.realistic is for synthetic pairs; a real sequence's frames are photographs already")

@@ -79,6 +79,13 @@ class PreparedPairs:
     (analysis px, NaN without one); qmap: (B, 1, h/8, w/8); scale: user px per analysis px;
     input_size: per pair (H, W). The self-calibration and the texture histograms are
     computed once, on first use, and shared by every method run on this batch.
+
+    Example:
+        >>> from lensdist_torch.core.images import load_scene
+        >>> s = load_scene("gravel")
+        >>> p = prepare_batch(s[..., :320, :424], s[..., 4:324, :424])
+        >>> tuple(p.qmap.shape), bool(p.registration_ok[0]), round(float(p.motion[0]))
+        ((1, 1, 40, 53), True, 4)
     """
 
     config: LensdistConfig
@@ -118,6 +125,13 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
         homography: optional (B, 3, 3) registrations img1 -> img2 at the analysis size, used
             instead of estimating them (the pairs count as registered).
         device: where the tensors go (default: the CPU).
+
+    Example:
+        >>> from lensdist_torch.core.images import load_scene
+        >>> s = load_scene("grass")
+        >>> p = prepare_batch(s[..., :320, :424], s[..., :320, 3:427])
+        >>> [round(v, 1) for v in p.H[0, :2, 2].tolist()], float(p.overlap[0]) > 0.9  # 3 px to the left
+        ([-3.0, 0.0], True)
     """
     cfg = or_defaults(config, LensdistConfig)
     dev = resolve_device(device)

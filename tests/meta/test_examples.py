@@ -37,16 +37,7 @@ CONSTANT_TYPES = (tuple, list, dict, set, frozenset, str, bytes, int, float, com
 
 #: Public names (``package.name``) whose example waits on a module that another change is editing.
 #: An entry must still lack its example (the last test), so it is removed once the example is there.
-PENDING_EXAMPLES = {  # data/ and workflows/prepare.py: examples pending (issue 21)
-    "lensdist_torch.data.PairBatch",  # data/synthesis.py
-    "lensdist_torch.data.PairParams",  # data/synthesis.py
-    "lensdist_torch.data.draw_pairs",  # data/synthesis.py
-    "lensdist_torch.data.draw_realism",  # data/realism.py
-    "lensdist_torch.data.make_pairs",  # data/synthesis.py
-    "lensdist_torch.data.render_pairs",  # data/synthesis.py
-    "lensdist_torch.workflows.PreparedPairs",  # workflows/prepare.py
-    "lensdist_torch.workflows.prepare_batch",  # workflows/prepare.py
-}
+PENDING_EXAMPLES: set[str] = set()  # every subpackage name has its example (issue 21)
 
 
 def public_objects(names, namespace):
