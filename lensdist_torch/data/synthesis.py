@@ -272,6 +272,14 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     centred), so each image costs a few elementwise passes and one grid_sample. With
     ``params.realism`` (the realistic protocol) I2's samples follow the pair's relief, if any
     (``data.relief.second_view_points``), and both views are degraded (``data.realism.degrade``).
+
+    Example:
+        >>> from lensdist_torch.config import config_from_dict
+        >>> from lensdist_torch.core.images import load_scene
+        >>> cfg = config_from_dict({"image": {"height": 64, "width": 96}})
+        >>> img1, img2 = render_pairs([load_scene("gravel")], draw_pairs(cfg, "train", [0, 1], 1), cfg)
+        >>> tuple(img1.shape), bool(0 <= img2.min() and img2.max() <= 1)
+        ((2, 1, 64, 96), True)
     """
     h, w = config.image.height, config.image.width
     x0, y0 = distortion_center(h, w)
