@@ -33,7 +33,8 @@ def main() -> None:
         r = analyze_pair(str(a), str(b))
         s, iv = r["user_px_per_analysis_px"], r.get("delta_avg_interval")
         rows.append({"pair": [a.name, b.name], "registered": r["registration_ok"], "motion_px": r["motion_px"],
-                     "class": r["class"], "confidence": r["confidence"],
+                     "class": r["class"], "confidence": r["confidence"], "reasons": r["cannot_tell_reasons"],
+                     "relief_z": r.get("relief_z"),
                      "estimate_user_px": None if r["estimated_delta_avg"] is None else r["estimated_delta_avg"] * s,
                      "interval_user_px": None if iv is None else [iv[0] * s, iv[1] * s]})
     answered = [x for x in rows if x["class"] is not None]
@@ -42,7 +43,8 @@ def main() -> None:
     summary = {"pairs": len(rows), "registered": sum(x["registered"] for x in rows), "answered": len(answered),
                "classes": sorted({x["class"] for x in answered}), "answered_with_interval": len(with_iv),
                "interval_covers_truth": len(covers), "truth_user_px": args.truth,
-               "estimates_user_px": [round(x["estimate_user_px"], 1) for x in answered]}
+               "estimates_user_px": [round(x["estimate_user_px"], 1) for x in answered],
+               "cannot_tell_reasons": {c: sum(c in x["reasons"] for x in rows) for c in sorted({c for x in rows for c in x["reasons"]})}}
     print(json.dumps(summary, indent=1))
     if args.out:
         from lensdist_torch.core import atomic_write_text

@@ -83,7 +83,7 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
             the message names the section and the field.
 
     Example:
-        >>> config_from_dict({"quality": {"block_size": 16}}).quality.block_size
+        >>> config_from_dict({"quality": {"block_size": 16}, "image": {"height": 320, "width": 416}}).quality.block_size
         16
     """
     check_tables(data, {name: {f.name for f in dataclasses.fields(cls)} for name, cls in _SECTIONS.items()})

@@ -26,15 +26,8 @@ import torch.nn.functional as F
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.realism import Realism, degrade, draw_realism, height_field
 from lensdist_torch.data.relief import HeightField, second_view_points
-from lensdist_torch.geometry.distortion import (
-    METRICS,
-    REJECT,
-    delta_metric,
-    delta_top,
-    distortion_center,
-    distortion_class,
-    distortion_grid,
-)
+from lensdist_torch.geometry.distortion import METRICS, REJECT, delta_metric, delta_top, distortion_center
+from lensdist_torch.geometry.distortion import distortion_class, distortion_grid
 from lensdist_torch.geometry.frame import pixel_grid
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.registration import estimate_homography, perturb_homography, warp_to_reference
@@ -84,9 +77,8 @@ class PairBatch:
     """Generated pairs: their parameters, ground truth, registration and quality counts.
 
     Example:
-        >>> from lensdist_torch.config import config_from_dict
-        >>> from lensdist_torch.core.images import load_scene
-        >>> cfg = config_from_dict({"image": {"height": 64, "width": 96}})
+        >>> from lensdist_torch import ImageConfig, LensdistConfig, load_scene
+        >>> cfg = LensdistConfig(image=ImageConfig(64, 96))
         >>> batch = make_pairs([load_scene("gravel")], cfg, "train", [0])
         >>> tuple(batch.counts.shape), batch.img1 is None, sorted(batch.delta)
         ((1, 1, 8, 12), True, ['delta_avg', 'delta_max'])
@@ -132,7 +124,7 @@ def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) ->
     A pair is a pure function of (protocol seed, set, index): the same pair alone or in any batch.
 
     Example:
-        >>> from lensdist_torch.config import LensdistConfig
+        >>> from lensdist_torch import LensdistConfig
         >>> a, b = draw_pairs(LensdistConfig(), "train", [3], 2), draw_pairs(LensdistConfig(), "train", [2, 3], 2)
         >>> bool(torch.equal(a.k2, b.k2[1:])), bool(a.k2[0] > 0)
         (True, True)
@@ -274,9 +266,8 @@ def render_pairs(scenes: list[torch.Tensor], params: PairParams, config: Lensdis
     (``data.relief.second_view_points``), and both views are degraded (``data.realism.degrade``).
 
     Example:
-        >>> from lensdist_torch.config import config_from_dict
-        >>> from lensdist_torch.core.images import load_scene
-        >>> cfg = config_from_dict({"image": {"height": 64, "width": 96}})
+        >>> from lensdist_torch import ImageConfig, LensdistConfig, load_scene
+        >>> cfg = LensdistConfig(image=ImageConfig(64, 96))
         >>> img1, img2 = render_pairs([load_scene("gravel")], draw_pairs(cfg, "train", [0, 1], 1), cfg)
         >>> tuple(img1.shape), bool(0 <= img2.min() and img2.max() <= 1)
         ((2, 1, 64, 96), True)
@@ -332,9 +323,8 @@ def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: tor
     f is :func:`~lensdist_torch.geometry.distortion.radial_factor` as one fused kernel on cached
     float32 r^2, r^4 (fast; radial_factor itself would change the last bit of ~1/4 of the
     factors, and rendered pairs, hence shards, must stay bit-identical). ``relief`` (A, the
-    pair's height field), the realistic protocol's scene with relief: I2 samples where camera 1
-    sees the points camera 2 sees (``data.relief.second_view_points``, camera 2's nadir A (0, 0)
-    and altitude sqrt |det A|, float64).
+    pair's height field): I2 samples where camera 1 sees what camera 2 sees (float64;
+    ``data.relief.second_view_points``, camera 2's nadir A (0, 0), altitude sqrt |det A|).
     """
     f = torch.add(r2 * k2, r4, alpha=k4).add_(1.0)
     x, y = dx * f, dy * f
@@ -414,9 +404,8 @@ def make_pairs(
     pair i is frames (i mod (n-1), i mod (n-1) + 1), distorted, instead of synthetic motion.
 
     Example:
-        >>> from lensdist_torch.config import config_from_dict
-        >>> from lensdist_torch.core.images import load_scene
-        >>> cfg = config_from_dict({"image": {"height": 64, "width": 96}})
+        >>> from lensdist_torch import ImageConfig, LensdistConfig, load_scene
+        >>> cfg = LensdistConfig(image=ImageConfig(64, 96))
         >>> batch = make_pairs([load_scene("gravel")], cfg, "test", [0], keep_images=True)
         >>> tuple(batch.img2.shape), batch.classes["delta_avg"].tolist() != [-1]
         ((1, 1, 64, 96), True)

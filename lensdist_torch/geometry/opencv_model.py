@@ -60,8 +60,8 @@ class OpenCVCamera(NamedTuple):
 
     Example:
         >>> cam = opencv_camera(0.0, 0.0, 320, 424)  # no distortion: f the half diagonal, c the centre
-        >>> [round(v, 2) for v in cam.camera_matrix[:2].flatten().tolist()], cam.dist_coeffs.tolist()
-        ([264.9, 0.0, 211.5, 0.0, 264.9, 159.5], [0.0, 0.0, 0.0, 0.0, 0.0])
+        >>> [round(v, 2) for v in cam.camera_matrix[:2].flatten().tolist()], float(cam.dist_coeffs.abs().max())
+        ([264.9, 0.0, 211.5, 0.0, 264.9, 159.5], 0.0)
         >>> barrel = opencv_camera(1e-6, 0.0, 320, 424)
         >>> barrel.model, bool(barrel.dist_coeffs[0] < 0), barrel.fit_error_max_px < 0.05
         ('standard', True, True)

@@ -16,6 +16,7 @@ from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normaliz
 from lensdist_torch.geometry.selfcal import SelfCalConfig, estimate_distortion
 
 RELIEF = SelfCalConfig(parallax=5)
+PLANAR = SelfCalConfig(parallax=0)
 
 
 def test_relief_basis_is_gaussian_bumps_on_a_grid_over_the_frame():
@@ -61,7 +62,7 @@ def test_relief_model_removes_most_of_the_parallax_error():
     plane + parallax model much less (12 pairs: RMSE 1.45 -> 0.60 px, the relief kept on 9, when
     written)."""
     i1, i2, true = relief_only_pairs(0.06, 12)
-    planar, _ = _errors(i1, i2, true, SelfCalConfig())
+    planar, _ = _errors(i1, i2, true, PLANAR)
     relief, info = _errors(i1, i2, true, RELIEF)
     assert float(planar.pow(2).mean().sqrt()) > 1.0
     assert float(relief.pow(2).mean().sqrt()) < 0.65 * float(planar.pow(2).mean().sqrt())
@@ -73,7 +74,7 @@ def test_relief_model_leaves_a_planar_scene_nearly_as_it_was():
     """Without relief, Hausman's test keeps the planar answer on most pairs, and where it does
     not, the relief model's answer is still close."""
     i1, i2, true = relief_only_pairs(0.0, 12)
-    planar, _ = _errors(i1, i2, true, SelfCalConfig())
+    planar, _ = _errors(i1, i2, true, PLANAR)
     relief, info = _errors(i1, i2, true, RELIEF)
     assert int(info.relief.sum()) <= 3
     assert float(planar.max()) < 0.6 and float(relief.max()) < float(planar.max()) + 0.3
@@ -96,7 +97,7 @@ def test_the_prior_narrows_the_relief_and_its_interval():
     Delta_avg moves from the planar answer (on pairs with relief the data still move it: with
     thousands of samples they outweigh any prior)."""
     i1, i2, true = relief_only_pairs(0.06, n=4)
-    planar = _errors(i1, i2, true, SelfCalConfig())[1].delta_avg
+    planar = _errors(i1, i2, true, PLANAR)[1].delta_avg
     # the posterior std (Gauss-Newton, clusters = 0, without the motion floor); the cluster-robust one may widen where a tight
     # prior leaves a smooth misfit that the relief would have taken
     infos = [_errors(i1, i2, true, dataclasses.replace(RELIEF, parallax_test=0.0, parallax_px=p, clusters=0,
