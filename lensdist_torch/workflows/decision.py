@@ -121,9 +121,9 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
     if aligned and res.get("relief_found"):
         lo, hi = res["relief_delta_avg_interval"] or (float("nan"), float("nan"))
         out.append(
-            f"cannot tell: the scene is not a plane: its relief moves Delta_avg from {res['planar_delta_avg']:.2f} px "
-            f"(planar model) to {res['relief_delta_avg']:.2f} px [{lo:.2f}, {hi:.2f}] (plane + parallax model), "
-            "beyond what either interval allows"
+            f"cannot tell: relief: a plane + parallax model moves Delta_avg from {res['planar_delta_avg']:.2f} px "
+            f"(planar model) to {res['relief_delta_avg']:.2f} px [{lo:.2f}, {hi:.2f}], beyond what either interval "
+            "allows: the scene is not a plane (or the lens is beyond eq. 4's two coefficients)"
         )
     elif aligned and res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence:
         out.append("cannot tell from this pair: too little motion or texture to see the distortion (low confidence)")
