@@ -5,8 +5,10 @@ figure is null). Progress bars and notes go to stderr. Every failure is one line
 ``lensdist CMD: error: ...`` on stderr with exit status 2 (1 for an internal error, 130 after
 Ctrl-C); the global ``--debug`` adds the traceback. A result that cannot be written to stdout
 (closed, disk full) is such an error too; a broken pipe (``| head``) ends quietly with status 1.
-Argument types, the parser class and the output helpers live in ``cli_support.py``; ``analyze`` in
-``cli_analyze.py``, ``calibrate`` and ``undistort`` in ``cli_calibrate.py``; output paths are checked (and
+Argument types, the parser class and the output helpers live in ``cli_support.py``. The commands
+go by concept: the protocol's (demo, generate, train, evaluate, reproduce) here, a user's pair
+(``analyze``) in ``cli_analyze.py``, a user's camera (``calibrate``, ``undistort``) in
+``cli_calibrate.py``, each module with its parsers; output paths are checked (and
 refused where they name an input) by ``core/outputs.py``. torch is imported inside the commands
 only, so ``lensdist --help`` stays fast.
 """
@@ -20,7 +22,7 @@ import traceback
 from pathlib import Path
 
 from lensdist_torch import cli_support as argtypes
-from lensdist_torch.cli_analyze import cmd_analyze
+from lensdist_torch.cli_analyze import add_analyze_command
 from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
 from lensdist_torch.cli_support import note as _note
 from lensdist_torch.cli_support import print_json as _print_json
@@ -202,8 +204,6 @@ def _scale_error(text: str) -> float:
     return argtypes.float_in(0.0, MAX_SCALE_ERROR)(text)
 
 
-_DEFAULTS = "TOML config (the defaults of docs/method.md when omitted)"
-_DEVICE_HELP = "where the tensors go: cpu, cuda or cuda:N (N below the number of CUDA devices)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.set_defaults(func=func)
         return p
 
-    for add in (_add_demo, _add_generate, _add_train, _add_evaluate, _add_reproduce, _add_analyze):
+    for add in (_add_demo, _add_generate, _add_train, _add_evaluate, _add_reproduce, add_analyze_command):
         add(command)
     add_calibrate_commands(sub, [common])  # calibrate, undistort
     return parser
@@ -244,7 +244,7 @@ def _add_demo(command) -> None:
     p.add_argument("--scene", default="gravel", help="embedded scene")
     p.add_argument("--scale-error", type=_scale_error, default=0.01,
                    help="relative scale error of the second view, from 0 to 0.1 (beyond, errors no longer grow outwards)")
-    p.add_argument("--config", default=None, help=_DEFAULTS)
+    p.add_argument("--config", default=None, help=argtypes.CONFIG_HELP)
     p.add_argument("--out", default="results", help="folder for demo.png")
 
 
@@ -252,7 +252,7 @@ def _add_generate(command) -> None:
     p = command("generate", "generate the paper's training and test pairs as shards",
                 "lensdist generate --config configs/paper.toml --out data/paper --workers 4", _cmd_generate,
                 "print the summary as one JSON object", "no progress bar")
-    p.add_argument("--config", default=None, help=_DEFAULTS + ", e.g. configs/paper.toml")
+    p.add_argument("--config", default=None, help=argtypes.CONFIG_HELP + ", e.g. configs/paper.toml")
     p.add_argument("--out", required=True, help="output folder (shards + manifest.json)")
     p.add_argument("--sets", default="train,test", help="comma-separated: train,test")
     p.add_argument("--shard", type=argtypes.shard, default=None, help="I/N: this job's share of the shards (array jobs; default: all)")
@@ -287,36 +287,19 @@ def _add_evaluate(command) -> None:
     p.add_argument("--out", default="results", help="report folder")
     p.add_argument("--config", default=None, help="TOML config of the analysis (default: the data set's), e.g. the "
                    "calibration.toml of `lensdist reproduce`")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help=_DEVICE_HELP)
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=argtypes.DEVICE_HELP)
 
 
 def _add_reproduce(command) -> None:
     p = command("reproduce", "the paper's Tables 1 and 2 on the embedded scenes, one command",
                 "lensdist reproduce --quick --out results/quick", _cmd_reproduce,
                 "print the report as one JSON object", "no progress bars, no notes")
-    p.add_argument("--config", default=None, help=_DEFAULTS + " (= configs/paper.toml)")
+    p.add_argument("--config", default=None, help=argtypes.CONFIG_HELP + " (= configs/paper.toml)")
     p.add_argument("--out", default="results/reproduce", help="folder for data, checkpoints and the report")
     p.add_argument("--quick", action="store_true", help="a tenth of the pairs, for a first look")
     p.add_argument("--workers", type=argtypes.positive_int, default=2, help="worker processes for generation")
     p.add_argument("--batch-size", type=argtypes.positive_int, default=16, help="pairs per batch for generation and analysis")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help=_DEVICE_HELP)
-
-
-def _add_analyze(command) -> None:
-    p = command("analyze", "analyse your own pair of overlapping photographs",
-                "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", cmd_analyze,
-                "print the result as one JSON object", "no notes on stderr")
-    p.add_argument("img1", help="first image")
-    p.add_argument("img2", help="second image, overlapping the first")
-    p.add_argument("--method", choices=["selfcal", "regression", "eigenspace"], default="selfcal",
-                   help="selfcal (most accurate), regression, or the paper's eigenspace")
-    p.add_argument("--checkpoint", default=None,
-                   help="eigenspace: the Delta_avg classifier; regression: the regressor (default: shipped)")
-    p.add_argument("--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)")
-    p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
-    p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
-    p.add_argument("--config", default=None, help=_DEFAULTS + ", e.g. a calibration.toml written by `lensdist reproduce`")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help=_DEVICE_HELP)
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=argtypes.DEVICE_HELP)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -1,21 +1,22 @@
-"""The ``lensdist analyze`` command: running it and its text answer.
+"""The ``lensdist analyze`` command, a user's pair: its parser, running it and its text answer.
 
-Kept apart from ``cli.py`` for length; like it, it imports torch only inside the command. The
-text answer gives one reason per "cannot tell" (a failed registration is not also "too little
-motion or texture"), names barrel or pincushion on the class line, and says there when the
-estimate lies beyond the classes' range.
+Like ``cli.py`` it imports torch only inside the command. The text answer gives one reason per
+"cannot tell" (a failed registration is not also "too little motion or texture"), names barrel
+or pincushion on the class line, and says there when the estimate lies beyond the classes'
+range.
 """
 
 from __future__ import annotations
 
 import argparse
 
+from lensdist_torch import cli_support as argtypes
 from lensdist_torch.cli_support import fmt as _fmt
 from lensdist_torch.cli_support import note as _note
 from lensdist_torch.cli_support import print_json as _print_json
 from lensdist_torch.core.outputs import check_output_file
 
-__all__ = ["print_analysis"]
+__all__ = ["add_analyze_command", "print_analysis"]
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
@@ -92,3 +93,21 @@ def _valid_blocks(res: dict, qmap):
 
 
 print_analysis = _print_analysis
+
+
+def add_analyze_command(command) -> None:
+    """Register ``analyze`` through ``command`` (``cli.build_parser``'s helper: name, help, example, function)."""
+    p = command("analyze", "analyse your own pair of overlapping photographs",
+                "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", cmd_analyze,
+                "print the result as one JSON object", "no notes on stderr")
+    p.add_argument("img1", help="first image")
+    p.add_argument("img2", help="second image, overlapping the first")
+    p.add_argument("--method", choices=["selfcal", "regression", "eigenspace"], default="selfcal",
+                   help="selfcal (most accurate), regression, or the paper's eigenspace")
+    p.add_argument("--checkpoint", default=None,
+                   help="eigenspace: the Delta_avg classifier; regression: the regressor (default: shipped)")
+    p.add_argument("--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)")
+    p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
+    p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
+    p.add_argument("--config", default=None, help=argtypes.CONFIG_HELP + ", e.g. a calibration.toml written by `lensdist reproduce`")
+    p.add_argument("--device", type=argtypes.device, default="cpu", help=argtypes.DEVICE_HELP)

@@ -1,7 +1,6 @@
-"""The ``lensdist calibrate`` and ``lensdist undistort`` commands (parsers and printing).
+"""The ``lensdist calibrate`` and ``lensdist undistort`` commands, a user's camera (parsers and printing).
 
-Kept apart from ``cli.py`` for length; like it, it imports torch only inside the commands, so
-``lensdist --help`` stays fast.
+Like ``cli.py`` it imports torch only inside the commands, so ``lensdist --help`` stays fast.
 """
 
 from __future__ import annotations

@@ -28,6 +28,8 @@ import re
 import sys
 
 __all__ = [
+    "CONFIG_HELP",
+    "DEVICE_HELP",
     "Formatter",
     "Parser",
     "debug_parent",
@@ -44,6 +46,10 @@ __all__ = [
     "shard",
     "silence_stdout",
 ]
+
+#: The help of every command's ``--config`` and ``--device``.
+CONFIG_HELP = "TOML config (the defaults of docs/method.md when omitted)"
+DEVICE_HELP = "where the tensors go: cpu, cuda or cuda:N (N below the number of CUDA devices)"
 
 #: A negative number as a value: argparse's own pattern (``^-\d+$|^-\d*\.\d+$``) misses
 #: exponents; 'inf' and 'nan' are matched so that their type refuses them by name.
