@@ -8,7 +8,8 @@ planar model (d0, s0) and the plane + parallax model; ``SelfCalInfo.relief_z``, 
 statistic of their difference, is what ``selfcal.parallax_test`` thresholds (a threshold of 1e9
 keeps every planar answer, so one call gives both). Reported per condition and threshold: the share of pairs
 the test flags (on a planar scene, false alarms: each one a "cannot tell" for relief), and on
-the relief condition how many confidently wrong planar answers it catches.
+the relief condition how many wrong planar answers it catches; and the same for the rule
+"the two models' answers fall in different classes" (``classes_differ``).
 
     python benchmarks/bench_relief_test.py --n 96 --threads 2 --out docs/results/bench_relief_test.json
 """
@@ -26,7 +27,8 @@ from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-from lensdist_torch.geometry import delta_avg, estimate_distortion, estimated_class
+from lensdist_torch.geometry import delta_avg, estimate_distortion, estimated_class, pixel_offsets
+from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.workflows import prepare_batch
 from lensdist_torch.workflows.evaluate import validation_config
 
@@ -42,7 +44,9 @@ def condition(cfg: LensdistConfig, n: int, batch: int) -> dict:
     params = draw_pairs(val, "test", idx, len(scenes))
     img1, img2 = render_pairs(scenes, params, val)
     true = delta_avg(params.k2, params.k4, *val.image.size).double()
-    rows = {"true": true.tolist(), "d0": [], "s0": [], "z": []}
+    rows = {"true": true.tolist(), "d0": [], "s0": [], "z": [], "d1": []}
+    h, w = val.image.size
+    r = half_diagonal(h, w)
     rows["relief"] = params.realism.relief[:, 0].tolist() if params.realism is not None else [0.0] * len(idx)
     test_only = dataclasses.replace(val.selfcal, parallax=5, parallax_test=1e9)  # the statistic, planar answers kept
     for s in range(0, len(idx), batch):
@@ -54,6 +58,8 @@ def condition(cfg: LensdistConfig, n: int, batch: int) -> dict:
             rows["d0"].append(float(info.delta_avg[0]))
             rows["s0"].append(float(info.delta_avg_std[0]))
             rows["z"].append(float(info.relief_z[0]))
+            ab = torch.nan_to_num(info.relief_ab[0].cpu(), nan=0.0)  # the relief model's answer, kept or not
+            rows["d1"].append(float(pixel_offsets(ab[0:1] / r**2, ab[1:2] / r**4, h, w).mean()))
     return rows
 
 
@@ -62,6 +68,10 @@ def summary(rows: dict, cfg: LensdistConfig) -> dict:
     right = estimated_class(d0, d0, "delta_avg", cfg) == estimated_class(true, true, "delta_avg", cfg)
     wrong_planar = ~right & torch.isfinite(d0)
     out = {"pairs": len(rows["z"]), "planar_wrong_class": int(wrong_planar.sum())}
+    d1 = torch.tensor(rows["d1"], dtype=torch.float64)
+    differ = estimated_class(d0, d0, "delta_avg", cfg) != estimated_class(d1, d1, "delta_avg", cfg)
+    out["classes_differ"] = {"flagged": int(differ.sum()), "flagged_share": round(float(differ.double().mean()), 4),
+                             "planar_wrong_caught": int((differ & wrong_planar).sum())}
     for t in THRESHOLDS:
         flag = torch.nan_to_num(z, nan=0.0) >= t
         out[f"z>={t:g}"] = {"flagged": int(flag.sum()), "flagged_share": round(float(flag.double().mean()), 4),
