@@ -61,7 +61,8 @@ def _print_analysis(res: dict) -> None:
     (h, w), (ih, iw) = res["analysis_size"], res["input_size"]
     if res["class"] is None:  # no number that reads as an answer (the JSON keeps estimated_*)
         why = f"the views moved by {_fmt(res.get('motion_px'), '.2f')}" if res["registration_ok"] else "registration failed"
-        print(f"Delta: none given ({why})")
+        reasons = ", ".join(res.get("cannot_tell_reasons") or []) if res["registration_ok"] else ""
+        print(f"Delta: none given ({'reason: ' + reasons + '; ' if reasons else ''}{why})")
     else:
         interval = res.get("delta_avg_interval")
         print(f"Delta_avg ~ {_fmt(res['delta_avg'], '.2f')}" + (f" [{interval[0]:.2f}, {interval[1]:.2f}] (95 %)" if interval else "")

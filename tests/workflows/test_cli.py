@@ -378,3 +378,22 @@ def test_json_only_on_stdout(capsys, tmp_path):
     rc, out, err = run(capsys, "demo", "--out", tmp_path)
     assert rc == 0 and out.startswith("A 1.0 % scale error") and not out.lstrip().startswith("{")
     assert math.isfinite(summary["quality_index"])
+
+
+def test_the_text_answer_names_the_reason_codes(tmp_path, capsys):
+    """A pair of the realistic relief condition (test pair 9, relief 2.7 %): the text answer says
+    "cannot tell" with the reason code beside the motion, and the warning names both answers."""
+    from kornia.io import write_image
+
+    from lensdist_torch import load_config
+    from lensdist_torch.data import draw_pairs, render_pairs
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / "realistic_relief.toml")
+    p = draw_pairs(cfg, "test", [9], len(cfg.protocol.scenes))
+    pair = render_pairs([load_scene(s) for s in cfg.protocol.scenes], p, cfg)
+    for name, img in zip(("a.png", "b.png"), pair):
+        write_image(str(tmp_path / name), (img[0] * 255).round().to(torch.uint8))
+    assert cli.main(["analyze", str(tmp_path / "a.png"), str(tmp_path / "b.png")]) == 0
+    out = capsys.readouterr().out
+    assert "Delta: none given (reason: relief; the views moved by" in out
+    assert "warning: cannot tell: relief: a plane + parallax model moves Delta_avg from" in out
