@@ -3,9 +3,9 @@
 For the realistic protocol's test pairs (distorted ones) the exact correspondences are known: a
 pixel p of I2 sees the scene point of I1's pixel distort(V(A undistort(p))), A the centred
 motion and V where camera 1 sees the scene points camera 2 sees (the pair's relief,
-``data.relief.second_view_points``; docs/method.md, section 7). This fits two models to those exact points
-(every 8th pixel, no image, no noise) by Levenberg-Marquardt in float64 and reports Delta_avg's
-error and class:
+``data.relief.homography_view_points``, as the renderer; docs/method.md, section 7). This fits
+two models to those exact points (every 8th pixel, no image, no noise) by Levenberg-Marquardt in
+float64 and reports Delta_avg's error and class:
 
 - planar: (k2, k4) and a homography, the self-calibration's model;
 - relief: the same plus n x n Gaussian bumps of relief along the true translation (the plane +
@@ -31,7 +31,7 @@ import torch
 from lensdist_torch.config import load_config
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.data.realism import height_field
-from lensdist_torch.data.relief import second_view_points
+from lensdist_torch.data.relief import homography_view_points
 from lensdist_torch.data.synthesis import draw_pairs
 from lensdist_torch.geometry.distortion import (
     delta_avg,
@@ -56,10 +56,11 @@ def correspondences(cfg, params, i: int, step: int):
                             indexing="ij")
     p2 = torch.stack([xs.flatten(), ys.flatten()], -1)
     k2, k4 = params.k2[i : i + 1], params.k4[i : i + 1]
-    flat = apply_homography(params.M[i : i + 1], undistort_points(p2[None], k2, k4, (x0, y0))[0])[0] - c
-    nadir = apply_homography(params.M[i : i + 1], c[None])[0, 0] - c
-    altitude = float(torch.linalg.det(params.M[i, :2, :2] / params.M[i, 2, 2]).abs().sqrt())
-    qx, qy = second_view_points(flat[:, 0], flat[:, 1], nadir, altitude, height_field(params.realism, i, h, w))
+    u = undistort_points(p2[None], k2, k4, (x0, y0))[0] - c  # I2's ideal points, centred
+    to_c = torch.eye(3, dtype=torch.float64)
+    to_c[:2, 2] = c
+    a = torch.linalg.inv(to_c) @ params.M[i] @ to_c  # the centred motion, as the renderer uses it
+    qx, qy = homography_view_points(a, u[:, 0], u[:, 1], height_field(params.realism, i, h, w))
     p1 = distort_points(torch.stack([qx, qy], -1)[None] + c, k2, k4, (x0, y0))[0]
     inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
     return p2[inside], p1[inside], c

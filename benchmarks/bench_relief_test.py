@@ -27,8 +27,8 @@ from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-from lensdist_torch.geometry import delta_avg, estimate_distortion, estimated_class, pixel_offsets
-from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry import delta_avg, estimate_distortion, estimated_class
+from lensdist_torch.geometry.distortion import from_normalized
 from lensdist_torch.workflows import prepare_batch
 from lensdist_torch.workflows.evaluate import validation_config
 
@@ -45,8 +45,6 @@ def condition(cfg: LensdistConfig, n: int, batch: int) -> dict:
     img1, img2 = render_pairs(scenes, params, val)
     true = delta_avg(params.k2, params.k4, *val.image.size).double()
     rows = {"true": true.tolist(), "d0": [], "s0": [], "z": [], "d1": []}
-    h, w = val.image.size
-    r = half_diagonal(h, w)
     rows["relief"] = params.realism.relief[:, 0].tolist() if params.realism is not None else [0.0] * len(idx)
     test_only = dataclasses.replace(val.selfcal, parallax=5, parallax_test=1e9)  # the statistic, planar answers kept
     for s in range(0, len(idx), batch):
@@ -58,8 +56,8 @@ def condition(cfg: LensdistConfig, n: int, batch: int) -> dict:
             rows["d0"].append(float(info.delta_avg[0]))
             rows["s0"].append(float(info.delta_avg_std[0]))
             rows["z"].append(float(info.relief_z[0]))
-            ab = torch.nan_to_num(info.relief_ab[0].cpu(), nan=0.0)  # the relief model's answer, kept or not
-            rows["d1"].append(float(pixel_offsets(ab[0:1] / r**2, ab[1:2] / r**4, h, w).mean()))
+            ab = torch.nan_to_num(info.relief_ab.cpu(), nan=0.0)  # the relief model's answer, kept or not
+            rows["d1"].append(float(delta_avg(*from_normalized(ab, *val.image.size), *val.image.size)[0]))
     return rows
 
 

@@ -54,7 +54,7 @@ def _ece(report: dict) -> str:
 
 def bound_outcomes(relief: dict, bound: dict) -> dict:
     """On the bound's pairs a planar model gets wrong on exact points: how the analysis answered them."""
-    cfg = load_config("configs/realistic_relief.toml")
+    cfg = load_config(bound["config"])  # the config the bound's pairs were drawn with
     true = torch.tensor(bound["per_pair"]["true_px"], dtype=torch.float64)
     planar = torch.tensor(bound["per_pair"]["planar_px"], dtype=torch.float64)
     truth = estimated_class(true, true, "delta_avg", cfg)

@@ -43,7 +43,14 @@ from lensdist_torch.config.protocol import DistortionConfig, ImageConfig, Protoc
 from lensdist_torch.config.quality import QualityConfig
 from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
 from lensdist_torch.config.sequence import MULTIVIEW_MODELS, CalibrationConfig, MultiViewConfig
-from lensdist_torch.config.toml import apply_overrides, check_tables, merge_tables, parse_overrides, read_toml
+from lensdist_torch.config.toml import (
+    apply_overrides,
+    check_tables,
+    layered_tables,
+    merge_tables,
+    parse_overrides,
+    read_toml,
+)
 
 __all__ = [
     "AnalysisConfig",
@@ -66,6 +73,7 @@ __all__ = [
     "config_to_dict",
     "apply_overrides",
     "check_tables",
+    "layered_tables",
     "load_config",
     "merge_tables",
     "parse_overrides",

@@ -17,7 +17,7 @@ import tomllib  # Python >= 3.11 (pyproject.toml says why)
 
 from lensdist_torch.config.checks import one_line, show
 
-__all__ = ["apply_overrides", "check_tables", "merge_tables", "parse_overrides", "read_toml"]
+__all__ = ["apply_overrides", "check_tables", "layered_tables", "merge_tables", "parse_overrides", "read_toml"]
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:
@@ -132,6 +132,30 @@ def apply_overrides(data: dict, overrides: dict[str, Any] | None) -> dict:
         {'train': {'steps': 20}, 'arms': {'l1': {'lambda_quality': 0.5}}}
     """
     out = copy.deepcopy(data)
+    _set_dotted(out, overrides)
+    return out
+
+
+def layered_tables(defaults: dict, path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+                   replaced: tuple[str, ...] = ()) -> dict:
+    """``defaults`` <- the TOML file at ``path`` <- ``overrides`` (dotted keys), as one new dict.
+
+    The file's tables merge into the defaults' key by key, except those named in ``replaced``,
+    which replace the default table whole where the file has one. Keys are not checked here
+    (:func:`check_tables`).
+
+    Example:
+        >>> layered_tables({"train": {"steps": 800, "lr": 0.002}, "arms": {"l1": {}}}, None, {"train.steps": 20})
+        {'train': {'steps': 20, 'lr': 0.002}, 'arms': {'l1': {}}}
+    """
+    data = read_toml(path) if path is not None else {}
+    base = {k: ({} if k in replaced and k in data else v) for k, v in defaults.items()}
+    out = merge_tables(base, data)  # a deep copy: the defaults stay as they are
+    _set_dotted(out, overrides)
+    return out
+
+
+def _set_dotted(out: dict, overrides: dict[str, Any] | None) -> None:
     for dotted, value in (overrides or {}).items():
         node = out
         *parents, leaf = dotted.split(".")
@@ -140,4 +164,3 @@ def apply_overrides(data: dict, overrides: dict[str, Any] | None) -> dict:
             if not isinstance(node, dict):
                 raise ValueError(f"--set {dotted}: {p} is a value, not a table")
         node[leaf] = value
-    return out

@@ -38,7 +38,8 @@ from typing import NamedTuple
 
 import torch
 
-__all__ = ["HeightField", "draw_height_field", "relief_fraction", "relief_samples", "scaled_field", "second_view_points"]
+__all__ = ["HeightField", "draw_height_field", "relief_fraction", "relief_samples", "scaled_field", "second_view_points",
+           "homography_view_points"]
 
 N_BUMPS = 4  # Gaussian bumps of a height field
 SIGMA_RANGE = (0.15, 0.4)  # bump widths, as a share of the region's half diagonal
@@ -119,7 +120,8 @@ def scaled_field(field: HeightField, region: tuple[float, float, float, float], 
 
 
 def relief_samples(
-    x: torch.Tensor, y: torch.Tensor, nadir: tuple[float, float] | torch.Tensor, field: HeightField | None
+    x: torch.Tensor, y: torch.Tensor, nadir: tuple[float, float] | torch.Tensor, field: HeightField | None,
+    altitude: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The ground points seen where a flat scene would be seen at (x, y) (module docstring).
 
@@ -128,6 +130,8 @@ def relief_samples(
         y: their ordinates, of x's shape.
         nadir: (x_c, y_c), the ground point below the camera, in the same coordinates.
         field: the height field, or None (a flat scene: x, y unchanged).
+        altitude: the camera's height over the one the field's fractions refer to: a camera
+            twice as high sees every relief fraction halved (rho / altitude).
 
     Returns:
         The ground points (x', y'), each of x's shape.
@@ -140,6 +144,7 @@ def relief_samples(
     """
     if field is None:
         return x, y
+    field = field._replace(weights=field.weights / altitude)
     xc, yc = float(nadir[0]), float(nadir[1])
     px, py = x - xc, y - yc
     gx, gy = x, y
@@ -185,6 +190,38 @@ def second_view_points(
         return x, y
     if not (math.isfinite(altitude) and altitude > 0):
         raise ValueError(f"altitude must be a positive finite ratio of heights, got {altitude}")
-    gx, gy = relief_samples(x, y, nadir, field._replace(weights=field.weights / altitude))
+    gx, gy = relief_samples(x, y, nadir, field, altitude)
     keep = 1.0 - relief_fraction(field, gx, gy)
     return gx / keep, gy / keep
+
+
+def homography_view_points(
+    a: torch.Tensor, x: torch.Tensor, y: torch.Tensor, field: HeightField | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`second_view_points` for a pair whose ground homography is ``a``.
+
+    ``a`` (3, 3) maps camera 2's ideal points to camera 1's, both centred on camera 1's nadir
+    (the protocol's centred motion). Camera 2's nadir is a (0, 0) and its height over camera 1's
+    sqrt |det a| (the ground scale), so a rotation about the optical axis moves nothing.
+
+    Args:
+        a: (3, 3) float64 centred homography, camera 2 -> camera 1.
+        x: camera 2's ideal abscissae, centred (any shape; float64 recommended).
+        y: their ordinates, of x's shape.
+        field: the height field in camera 1's centred frame, or None (a plane).
+
+    Returns:
+        Camera 1's points (x1, y1), each of x's shape.
+
+    Example:
+        >>> f = HeightField(torch.tensor([[0.0, 0.0]]), torch.tensor([1e6]), torch.tensor([0.02]))
+        >>> shift = torch.tensor([[1.0, 0.0, 10.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        >>> x1, _ = homography_view_points(shift, torch.tensor([20.0], dtype=torch.float64), torch.zeros(1, dtype=torch.float64), f)
+        >>> round(float(x1 - 30.0), 4)  # A moves the point to 30; rho / (1 - rho) times the nadir's 10 px
+        0.2041
+    """
+    den = a[2, 0] * x + a[2, 1] * y + a[2, 2]
+    nadir = (float(a[0, 2] / a[2, 2]), float(a[1, 2] / a[2, 2]))
+    altitude = abs(float(torch.linalg.det(a[:2, :2] / a[2, 2]))) ** 0.5
+    return second_view_points((a[0, 0] * x + a[0, 1] * y + a[0, 2]) / den, (a[1, 0] * x + a[1, 1] * y + a[1, 2]) / den,
+                              nadir, altitude, field)

@@ -25,7 +25,7 @@ import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.realism import Realism, degrade, draw_realism, height_field
-from lensdist_torch.data.relief import HeightField, second_view_points
+from lensdist_torch.data.relief import HeightField, homography_view_points
 from lensdist_torch.geometry.distortion import METRICS, REJECT, delta_metric, delta_top, distortion_center
 from lensdist_torch.geometry.distortion import distortion_class, distortion_grid
 from lensdist_torch.geometry.frame import pixel_grid
@@ -324,7 +324,7 @@ def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: tor
     float32 r^2, r^4 (fast; radial_factor itself would change the last bit of ~1/4 of the
     factors, and rendered pairs, hence shards, must stay bit-identical). ``relief`` (A, the
     pair's height field): I2 samples where camera 1 sees what camera 2 sees (float64;
-    ``data.relief.second_view_points``, camera 2's nadir A (0, 0), altitude sqrt |det A|).
+    ``data.relief.homography_view_points``).
     """
     f = torch.add(r2 * k2, r4, alpha=k4).add_(1.0)
     x, y = dx * f, dy * f
@@ -332,13 +332,7 @@ def _pair_grid(dx, dy, r2, r4, k2: float, k4: float, place: torch.Tensor, m: tor
     torch.add(x * p[0][0], p[0][2], out=out1[0].view(-1))
     torch.add(y * p[1][1], p[1][2], out=out1[1].view(-1))
     if relief is not None:
-        a, field = relief
-        xa, ya = x.double(), y.double()
-        den = a[2, 0] * xa + a[2, 1] * ya + a[2, 2]
-        nadir = (float(a[0, 2] / a[2, 2]), float(a[1, 2] / a[2, 2]))
-        altitude = abs(float(torch.linalg.det(a[:2, :2] / a[2, 2]))) ** 0.5
-        xs, ys = second_view_points((a[0, 0] * xa + a[0, 1] * ya + a[0, 2]) / den,
-                                    (a[1, 0] * xa + a[1, 1] * ya + a[1, 2]) / den, nadir, altitude, field)
+        xs, ys = homography_view_points(relief[0], x.double(), y.double(), relief[1])
         out2[0].view(-1).copy_(xs * p[0][0] + p[0][2])
         out2[1].view(-1).copy_(ys * p[1][1] + p[1][2])
         return

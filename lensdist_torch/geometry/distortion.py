@@ -34,6 +34,7 @@ __all__ = [
     "REJECT",
     "METRICS",
     "distortion_center",
+    "from_normalized",
     "radial_factor",
     "radial_derivative",
     "radial_inverse",
@@ -170,6 +171,21 @@ def distortion_grid(k2, k4, height: int, width: int, dtype=torch.float32, device
     k2, k4 = _coefficients(k2, k4, grid)
     pts = grid.expand(k2.numel(), height, width, 2)
     return undistort_points(pts, k2, k4, distortion_center(height, width))
+
+
+def from_normalized(ab: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 4's (k2, k4) from the normalised coefficients (a, b) = (k2 R^2, k4 R^4), R the half diagonal.
+
+    The self-calibration fits (a, b) (``SelfCalInfo.ab``, ``planar_ab``, ``relief_ab``): both are
+    then the offsets, as shares of R, that eq. 4's two terms give at the corners.
+
+    Example:
+        >>> k2, k4 = from_normalized(torch.tensor([[0.25, 0.0]], dtype=torch.float64), 320, 424)
+        >>> round(float(k2[0]) * half_diagonal(320, 424) ** 2, 6), float(k4[0])  # R = 264.9 px
+        (0.25, 0.0)
+    """
+    r = half_diagonal(height, width)
+    return ab[..., 0] / r**2, ab[..., 1] / r**4
 
 
 def pixel_offsets(k2, k4, height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:

@@ -65,7 +65,7 @@ import torch
 from lensdist_torch.config import SelfCalConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
-from lensdist_torch.geometry.distortion import pixel_offsets
+from lensdist_torch.geometry.distortion import from_normalized, pixel_offsets
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid, normalizer
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.phase import phase_correlation
@@ -428,7 +428,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     r0 = half_diagonal(h0, w0)
     std = _delta_avg_std(ab, st, h0, w0, cfg, block)
     nan = torch.tensor(float("nan"), dtype=torch.float64, device=dev)
-    k2, k4 = torch.where(ok, ab[:, 0] / r0**2, nan), torch.where(ok, ab[:, 1] / r0**4, nan)
+    k2, k4 = (torch.where(ok, k, nan) for k in from_normalized(ab, h0, w0))
     nrm = normalizer(h0, w0, device=dev)
     H = torch.linalg.inv(nrm) @ h_matrix(theta) @ nrm
     H = torch.where(ok[:, None, None], H / H[:, 2:, 2:], nan)

@@ -308,7 +308,7 @@ def synthetic_sequence(
         y = z * (float(ext[1]) + ty[i] + sin * ri[..., 0] + cos * ri[..., 1])
         nadir = ((ws - 1) / 2 + z * float(tx[i]), z * (float(ext[1]) + float(ty[i])))
         # heights are fractions of the camera's height: a lower camera sees the same hills larger
-        x, y = relief_samples(x, y, nadir, None if field is None else field._replace(weights=field.weights / float(scale[i])))
+        x, y = relief_samples(x, y, nadir, field, float(scale[i]))
         out.append(F.grid_sample(src.expand(2, -1, -1, -1), torch.stack([x / (ws - 1), y / (hs - 1)], -1) * 2 - 1,
                                  align_corners=True).float())
     frames = torch.stack(out, 1)  # (2, N, 1, H, W)

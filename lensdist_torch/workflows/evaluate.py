@@ -286,7 +286,6 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     """
     import math
 
-
     grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
                   | {config.analysis.no_distortion_px})
     best, best_key = config.analysis.no_distortion_px, None

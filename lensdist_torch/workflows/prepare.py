@@ -21,11 +21,12 @@ from lensdist_torch.core.images import as_batch, check_image, load_image, resize
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     class_bounds,
+    delta_avg,
     distortion_type,
     estimated_class,
+    from_normalized,
     pixel_offsets,
 )
-from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.selfcal import estimate_distortion
@@ -180,7 +181,7 @@ def _selfcal_one(p: PreparedPairs, i: int) -> dict:
     off = pixel_offsets(k2, k4, h, w).flatten(1)  # one map for both Deltas
     d_avg, d_max = off.mean(1), off.amax(1)
     label = CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])]
-    return {
+    out = {
         "estimated_class": label,
         "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
         "delta_avg": float(d_avg[0]),
@@ -192,25 +193,23 @@ def _selfcal_one(p: PreparedPairs, i: int) -> dict:
         "delta_avg_interval": _interval(float(d_avg[0]), float(sc.delta_avg_std[0]), cfg.analysis.interval_confidence),
         "relief": bool(sc.relief[0]),  # the plane + parallax model's answer kept (selfcal.parallax_test)
         "relief_z": float(sc.relief_z[0]),  # Hausman's statistic; NaN without that model
-        "relief_found": bool(sc.relief[0]) and float(sc.relief_z[0]) >= cfg.analysis.relief_z,
         "distortion_type": distortion_type(float(sc.ab[0, 0]), float(sc.ab[0, 1])),
-    } | _relief_estimate(sc, d_avg, cfg)
+    }
+    return out | _relief_found(out, sc, cfg)
 
 
-def _relief_estimate(sc, d_avg: torch.Tensor, cfg: LensdistConfig) -> dict:
-    """Where relief was found (``relief_found``): the plane + parallax estimate and interval, and the planar Delta_avg.
+def _relief_found(out: dict, sc, cfg: LensdistConfig) -> dict:
+    """``relief_found``: the plane + parallax answer kept and Hausman's z at least ``analysis.relief_z``.
 
-    These stay beside the "cannot tell" that relief causes (``decision.decide``), so a user sees
-    what each model says; empty where no relief was found (or the model is off).
+    Where found, the kept answer (``delta_avg`` and its interval) is the plane + parallax one: it
+    stays beside the "cannot tell" that relief causes (``decision.decide``) as
+    ``relief_delta_avg`` and ``relief_delta_avg_interval``, with the planar model's Delta_avg.
     """
-    if not (bool(sc.relief[0]) and float(sc.relief_z[0]) >= cfg.analysis.relief_z):
-        return {}
-    h, w = cfg.image.size
-    r = half_diagonal(h, w)
-    planar = pixel_offsets(sc.planar_ab[:, 0] / r**2, sc.planar_ab[:, 1] / r**4, h, w).flatten(1).mean(1)
-    std = float(sc.delta_avg_std[0])
-    return {"relief_delta_avg": float(d_avg[0]), "relief_delta_avg_interval": _interval(float(d_avg[0]), std,
-            cfg.analysis.interval_confidence), "planar_delta_avg": float(planar[0])}
+    if not (out["relief"] and out["relief_z"] >= cfg.analysis.relief_z):
+        return {"relief_found": False}
+    planar = delta_avg(*from_normalized(sc.planar_ab, *cfg.image.size), *cfg.image.size)
+    return {"relief_found": True, "relief_delta_avg": out["delta_avg"], "relief_delta_avg_interval": out["delta_avg_interval"],
+            "planar_delta_avg": float(planar[0])}
 
 
 def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:

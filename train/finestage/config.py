@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import copy
 import json
 from pathlib import Path
 from typing import Any
 
-from lensdist_torch.config import apply_overrides, check_tables, merge_tables, parse_overrides, read_toml
+from lensdist_torch.config import check_tables, layered_tables, parse_overrides
 
 __all__ = ["DEFAULTS", "PEERS", "load_config", "parse_overrides", "comparable", "arm_spec", "arm_name"]
 
@@ -100,10 +99,7 @@ def _check(cfg: dict) -> None:
 
 def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> dict:
     """DEFAULTS <- the TOML file <- ``overrides`` (dotted keys); unknown keys are errors."""
-    cfg = copy.deepcopy(DEFAULTS)
-    if path is not None:
-        cfg = merge_tables(cfg, read_toml(path))
-    cfg = apply_overrides(cfg, overrides)
+    cfg = layered_tables(DEFAULTS, path, overrides)
     _check(cfg)
     return cfg
 

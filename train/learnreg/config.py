@@ -6,12 +6,11 @@ one TOML reader, one set of messages, for the package and its training scripts.
 
 from __future__ import annotations
 
-import copy
 import json
 from pathlib import Path
 from typing import Any
 
-from lensdist_torch.config import apply_overrides, check_tables, merge_tables, parse_overrides, read_toml
+from lensdist_torch.config import check_tables, layered_tables, parse_overrides
 
 __all__ = [
     "ARM_NAMES",
@@ -112,13 +111,7 @@ def load_train_config(path: str | Path | None = None, overrides: dict[str, Any] 
     values. The file's ``[arms.*]`` replace the default arms. Unknown sections or keys are an
     error, as in the package's configs.
     """
-    cfg = copy.deepcopy(DEFAULTS)
-    if path is not None:
-        data = read_toml(path)
-        if "arms" in data:
-            cfg["arms"] = {}
-        cfg = merge_tables(cfg, data)
-    cfg = apply_overrides(cfg, overrides)
+    cfg = layered_tables(DEFAULTS, path, overrides, replaced=("arms",))
     _check_keys(cfg)
     for name, arm in cfg["arms"].items():
         cfg["arms"][name] = {**ARM_DEFAULTS, **arm}
