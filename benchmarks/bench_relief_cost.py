@@ -1,0 +1,57 @@
+"""What the plane + parallax test costs a user's analysis: ``analyze_batch`` with and without it.
+
+The same rendered pairs of the protocol's test set, analysed with the default settings
+(``selfcal.parallax`` = 5, the test on every pair) and with ``selfcal.parallax = 0`` (planar
+scenes only), alternately in one process with pinned threads; reports ms per pair of each, the
+ratio, and how many pairs each says "cannot tell" for, and why.
+
+    python benchmarks/bench_relief_cost.py --n 48 --threads 1 [--config configs/realistic.toml]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+
+import torch
+
+from lensdist_torch import analyze_batch, load_config, load_scene
+from lensdist_torch.data import draw_pairs, render_pairs
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--n", type=int, default=48, help="test pairs, spread over the set")
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--repeats", type=int, default=2, help="alternating timed passes per setting (the best counts)")
+    ap.add_argument("--threads", type=int, default=1)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    cfg = load_config(a.config)
+    total = cfg.protocol.n_test_distorted + cfg.protocol.n_test_undistorted
+    idx = list(range(0, total, max(1, total // a.n)))[: a.n]
+    params = draw_pairs(cfg, "test", idx, len(cfg.protocol.scenes))
+    img1, img2 = render_pairs([load_scene(s) for s in cfg.protocol.scenes], params, cfg)
+    settings = {"planar (parallax 0)": dataclasses.replace(cfg, selfcal=dataclasses.replace(cfg.selfcal, parallax=0)),
+                "default (parallax 5)": cfg}
+    best, answers = {k: float("inf") for k in settings}, {}
+    for _ in range(a.repeats):
+        for name, c in settings.items():
+            t0 = time.perf_counter()
+            res = [r for s in range(0, len(idx), a.batch) for r in analyze_batch(img1[s : s + a.batch], img2[s : s + a.batch], config=c)]
+            best[name] = min(best[name], time.perf_counter() - t0)
+            answers[name] = res
+    out = {"config": a.config, "pairs": len(idx), "threads": a.threads}
+    for name, res in answers.items():
+        reasons = [code for r in res for code in r["cannot_tell_reasons"]]
+        out[name] = {"ms_per_pair": round(1000 * best[name] / len(idx), 1), "cannot_tell": sum(r["cannot_tell"] for r in res),
+                     "reasons": {c: reasons.count(c) for c in sorted(set(reasons))}}
+    out["ratio"] = round(best["default (parallax 5)"] / best["planar (parallax 0)"], 2)
+    print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
