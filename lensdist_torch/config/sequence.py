@@ -128,7 +128,11 @@ class MultiViewConfig:
             this share of ``min_rotation_deg``, the other mappings are skipped (degenerate motion
             is the camera path's; their spread could only widen an answer without a class).
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); their
-            spread of Delta_avg joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`).
+            spread of Delta_avg joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`);
+            a class needs this many mappings that registered enough frames.
+        extra_mappings: mappings tried with further seeds where some register too few frames
+            (the GoPro views: 3 of 8 seeds register 3 of 37 frames, their focal length run off
+            from a wrong initial pair, and end in about a second; the others register 28-29).
         num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
             and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
         seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
@@ -157,6 +161,7 @@ class MultiViewConfig:
     min_rotation_deg: float = 5.0
     degenerate_share: float = 0.9
     reconstructions: int = 3
+    extra_mappings: int = 3
     num_threads: int = 2
     seed: int = 0
 
@@ -166,7 +171,8 @@ class MultiViewConfig:
             if m not in MULTIVIEW_MODELS:
                 raise ValueError(f"multiview.models must hold names from {', '.join(MULTIVIEW_MODELS)}, got {m!r}")
         for name, lo in (("max_image_side", 64), ("max_features", 64), ("exhaustive_below", 2), ("sequential_overlap", 1),
-                         ("jackknife_blocks", 2), ("reconstructions", 1), ("num_threads", 1), ("seed", 0)):
+                         ("jackknife_blocks", 2), ("reconstructions", 1),
+                         ("extra_mappings", 0), ("num_threads", 1), ("seed", 0)):
             integer(self, name, lo=lo)
         real(self, "min_registered", lo=0, hi=1, lo_open=True)
         real(self, "bic_margin", lo=0)

@@ -10,9 +10,10 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    matching (or sequential for long videos), geometric verification, incremental mapping with one
    shared RADIAL camera whose principal point stays at the frame centre (it is not refined: the
    data rarely pin it, and refining it was measured to go wrong); the mapping is run
-   ``reconstructions`` times with other seeds on the same matches (a caller's ``stop`` may end
-   the series early: :func:`~lensdist_torch.workflows.multiview.multiview_path` does when the first
-   mapping shows degenerate motion).
+   ``reconstructions`` times with other seeds on the same matches; with a caller's ``stop``, up to
+   ``extra_mappings`` more, and ``stop`` ends the series
+   (:func:`~lensdist_torch.workflows.multiview.multiview_path` ends it once ``reconstructions``
+   mappings registered enough frames, or when the first shows degenerate motion).
 2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
    adjustment on the same tracks (structure, poses, focal length and the model's distortion
    free); the **model is chosen by BIC**, n ln(RSS / n) + k ln n over the n reprojection
@@ -148,11 +149,12 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
         config: :class:`~lensdist_torch.config.MultiViewConfig`.
         stop: called after each mapping with its index and its reconstruction (or None), outside
             the silenced log; True skips the remaining mappings (each costs as much as the
-            first: 40-45 s on 22 frames of 384 x 288 on 2 cores).
+            first: 40-45 s on 22 frames of 384 x 288 on 2 cores). With ``stop`` up to
+            ``reconstructions + extra_mappings`` mappings run, without it ``reconstructions``.
 
     Returns:
         Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
-        COLMAP reconstructed nothing; shorter than ``reconstructions`` when ``stop`` said so.
+        COLMAP reconstructed nothing.
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
     pc.set_random_seed(cfg.seed)
@@ -178,7 +180,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
                 pairing.overlap = cfg.sequential_overlap
                 pc.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                     verification_options=verification, device=pc.Device.cpu)
-        for i in range(cfg.reconstructions):
+        for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
             pc.set_random_seed(cfg.seed + i)
             mapping = pc.IncrementalPipelineOptions()
             mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed + i, False

@@ -7,16 +7,21 @@ nothing, and 53.0 px (truth 103.2), while each run's own jackknife interval was 
 jackknife over one reconstruction's frames cannot see that variation, and it was the largest
 error. So the mapping runs ``multiview.reconstructions`` times on the same features and matches
 (seeds ``seed``, ``seed`` + 1, ...; :func:`~lensdist_torch.geometry.multiview.reconstruct`), each
-reconstruction is self-calibrated, and :func:`combine_reconstructions`
+reconstruction is self-calibrated, and :func:`combine_reconstructions`. A mapping that registers
+too few frames is no answer but a failed start (on the GoPro views seeds 1, 2 and 6 of 0-7 register
+3 frames in about a second, the focal length run off to 1600-4400 px from a wrong initial pair;
+the others 28-29 frames at 546-698 px), so up to ``multiview.extra_mappings`` further seeds are
+tried until ``reconstructions`` succeed; the failures are listed. :func:`combine_reconstructions`
 
 * answers with the median reconstruction by Delta_avg (of two in the middle, the one with more
   registered frames, then the lower reprojection RMS);
 * adds the largest |Delta_avg - the answer's| over the reconstructions (``reconstruction_spread``)
   to the interval in quadrature with the jackknife variance and the model spread: half-width
   t sqrt(var_jackknife + model_spread^2 + reconstruction_spread^2), t as the jackknife's;
-* withholds the class ("cannot tell", the reason naming the spread) when fewer than a majority of
-  the reconstructions succeeded, when two of them disagree beyond their own intervals, or when
-  the widened interval is too wide (degenerate motion, the answer's own reason, comes first).
+* withholds the class ("cannot tell", the reason naming the spread) when fewer than
+  ``reconstructions`` reconstructions succeeded, when two of them disagree beyond their own
+  intervals, or when the widened interval is too wide (degenerate motion, the answer's own
+  reason, comes first).
 
 Where the first mapping already showed degenerate motion the caller may skip the others
 (:func:`~lensdist_torch.workflows.multiview.multiview_path`): their seeds are passed as ``skipped``,
@@ -85,7 +90,8 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     Args:
         runs: per mapping seed its :class:`~lensdist_torch.geometry.multiview.MultiViewCalibration`,
             or a string saying why that reconstruction failed; at least one must have succeeded.
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (``confidence``, the width limits).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (``confidence``, ``reconstructions``: the
+            successes a class needs, the width limits).
         skipped: the seeds of mappings not run because the answer's motion is degenerate (for any
             other answer: ValueError, as the interval would lack their spread unsaid).
 
@@ -107,7 +113,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
         half = widened_half_width(value, iv, s, t)
         intervals.append((max(0.0, value - half), value + half))
     half = intervals[0][1] - best.delta_avg_user_px
-    need, label, reason = len(runs) // 2 + 1, best.class_label, best.reason
+    need, label, reason = cfg.reconstructions, best.class_label, best.reason
     apart = _disagreement(ok)
     if skipped and best.rotation_spread_deg >= cfg.min_rotation_deg:
         raise ValueError(f"skipped must be empty unless the motion is degenerate, got {len(skipped)} seeds skipped "
@@ -120,7 +126,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     elif len(ok) < need:
         failed = "; ".join(f"seed {s}: {r}" for s, r in runs if isinstance(r, str))
         label, reason = None, (f"only {len(ok)} of {len(runs)} reconstructions succeeded ({need} needed), so the "
-                               f"engine's own variation is not known ({failed})")
+                               f"engine's own variation is not known" + (f" ({failed})" if failed else ""))
     elif apart:
         label, reason = None, f"the reconstructions disagree beyond their intervals ({apart})"
     elif interval_too_wide(half, best.delta_avg_user_px, cfg):

@@ -89,7 +89,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         if len(names) < MIN_FRAMES:
             return {"ok": False, "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}"}
         least = max(MIN_FRAMES, math.ceil(cfg.min_registered * len(names)))
-        runs, got = [], 0
+        runs, got, skipped = [], 0, []
 
         def take(i: int, rec) -> bool:  # one mapping's answer; True: the remaining mappings are skipped
             nonlocal got
@@ -102,14 +102,18 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
             else:
                 runs.append((cfg.seed + i, self_calibrate_reconstruction(rec, cfg, settings, frames=len(names),
                                                                          image_size=tuple(image_size))))
-            return _degenerate_for_sure(runs[-1][1], len(names), cfg)
+            done = sum(not isinstance(r, str) for _, r in runs)
+            if _degenerate_for_sure(runs[-1][1], len(names), cfg):
+                skipped.extend(cfg.seed + i + 1 + j for j in range(cfg.reconstructions - done))
+                return True
+            return done >= cfg.reconstructions  # failed mappings are retried with further seeds
 
         reconstruct(folder, names, cfg, stop=take)
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
                                            f"registered at most{tries} (at least {least} needed)"}
-        res = combine_reconstructions(runs, cfg, skipped=[cfg.seed + i for i in range(len(runs), cfg.reconstructions)])
+        res = combine_reconstructions(runs, cfg, skipped=skipped)
     return {"ok": True, **res._asdict()}
 
 

@@ -42,7 +42,7 @@ def test_spread_joins_the_interval_in_quadrature_by_hand():
 
 
 def test_one_reconstruction_keeps_its_interval():
-    res = combine_reconstructions([(5, _cal(100.0, 90.0, 110.0))])
+    res = combine_reconstructions([(5, _cal(100.0, 90.0, 110.0))], MultiViewConfig(reconstructions=1))
     assert res.delta_avg_user_interval == pytest.approx((90.0, 110.0)) and res.reconstruction_spread_px == 0.0
     assert res.class_label == "4"
 
@@ -62,7 +62,7 @@ def test_reconstructions_that_disagree_beyond_their_intervals_cannot_tell():
 def test_too_few_reconstructions_cannot_tell_and_a_median_of_two_prefers_more_views():
     res = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0)), (1, "5 of 37 frames registered"),
                                    (2, "0 of 37 frames registered")])
-    assert res.class_label is None and res.reason.startswith("only 1 of 3 reconstructions succeeded (2 needed)")
+    assert res.class_label is None and res.reason.startswith("only 1 of 3 reconstructions succeeded (3 needed)")
     assert "seed 1: 5 of 37 frames registered" in res.reason and res.reconstructions[1] == {"seed": 1, "failed": "5 of 37 frames registered"}
     two = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0, registered=20)), (1, _cal(102.0, 97.0, 107.0, registered=30))])
     assert two.delta_avg_user_px == 102.0 and two.reconstruction_spread_px == 2.0
@@ -70,10 +70,22 @@ def test_too_few_reconstructions_cannot_tell_and_a_median_of_two_prefers_more_vi
         combine_reconstructions([(0, "0 of 37 frames registered")])
 
 
+def test_failed_starts_beside_enough_successes_keep_the_class_and_are_listed():
+    # the GoPro views' seeds 0-4: 1 and 2 register 3 of 37 frames; 0, 3 and 4 answer
+    runs = [(0, _cal(100.0, 90.0, 110.0)), (1, "3 of 37 frames registered"), (2, "3 of 37 frames registered"),
+            (3, _cal(98.0, 88.0, 108.0)), (4, _cal(103.0, 93.0, 113.0))]
+    res = combine_reconstructions(runs)
+    assert res.class_label == "4" and res.delta_avg_user_px == 100.0 and res.reconstruction_spread_px == 3.0
+    assert [r.get("failed") for r in res.reconstructions] == [None, "3 of 37 frames registered",
+                                                              "3 of 37 frames registered", None, None]
+    short = combine_reconstructions(runs[:4])  # two successes of three needed
+    assert short.class_label is None and short.reason.startswith("only 2 of 4 reconstructions succeeded (3 needed)")
+
+
 def test_degenerate_motion_stays_the_reason():
     degenerate = "degenerate motion: the camera turned by at most 3.3 degrees"
     res = combine_reconstructions([(0, _cal(10.0, 9.8, 10.2, label=None, reason=degenerate)),
-                                   (1, _cal(10.1, 9.9, 10.3, label=None, reason=degenerate))])
+                                   (1, _cal(10.1, 9.9, 10.3, label=None, reason=degenerate))], MultiViewConfig(reconstructions=2))
     assert res.class_label is None and res.reason == degenerate
 
 
