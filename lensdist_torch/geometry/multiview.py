@@ -6,7 +6,8 @@ the distortion to the camera (one shared camera). That is bundle adjustment with
 self-calibration, and an established engine does it: COLMAP, through its Python bindings
 ``pycolmap`` (an optional dependency: ``pip install pycolmap``).
 
-1. :func:`reconstruct`: COLMAP's SIFT on every frame (at most ``max_image_side`` px), exhaustive
+1. :func:`reconstruct`: COLMAP's SIFT on every frame (at most ``max_image_side`` px and
+   :func:`feature_cap` features), exhaustive
    matching (or sequential for long videos), geometric verification, incremental mapping with one
    shared RADIAL camera whose principal point stays at the frame centre (it is not refined: the
    data rarely pin it, and refining it was measured to go wrong); the mapping is run
@@ -58,7 +59,7 @@ from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 
-__all__ = ["MultiViewCalibration", "pycolmap_or_error", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
+__all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
            "rotation_spread_deg", "model_spread", "interval_too_wide", "BA_FUNCTION_TOLERANCE"]
 
 #: Relative cost decrease below which a bundle adjustment stops (module docstring, step 2).
@@ -134,8 +135,25 @@ def _quiet():
 
 
 # ------------------------------------------------------------------ the reconstruction
+def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = None) -> int:
+    """SIFT features per frame at most (``max_features``, and by area where the frames' size is known).
+
+    ``features_per_megapixel`` of the frame's area as SIFT reads it (at most ``max_image_side``
+    long) where ``image_size`` (H, W) is given; never below 64.
+
+    Example:
+        >>> feature_cap(MultiViewConfig(), (288, 384)), feature_cap(MultiViewConfig(), (1080, 1920))
+        (906, 8192)
+    """
+    if image_size is None:
+        return config.max_features
+    h, w = image_size
+    shrink = min(1.0, config.max_image_side / max(h, w))
+    return max(64, min(config.max_features, math.ceil(config.features_per_megapixel * h * w * shrink * shrink / 1e6)))
+
+
 def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None,
-                stop: Callable[[int, object], bool] | None = None) -> list:
+                stop: Callable[[int, object], bool] | None = None, image_size: tuple[int, int] | None = None) -> list:
     """COLMAP's sparse reconstructions of frames ``names`` in ``image_dir`` (module docstring, step 1).
 
     The features and the verified matches are computed once (geometric verification seeded by
@@ -151,6 +169,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
             the silenced log; True skips the remaining mappings (each costs as much as the
             first: 40-45 s on 22 frames of 384 x 288 on 2 cores). With ``stop`` up to
             ``reconstructions + extra_mappings`` mappings run, without it ``reconstructions``.
+        image_size: the frames' (H, W), for the features' cap (:func:`feature_cap`); None: ``max_features``.
 
     Returns:
         Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
@@ -165,7 +184,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
         reader.camera_model = "RADIAL"
         extraction = pc.FeatureExtractionOptions()
         extraction.num_threads, extraction.max_image_size, extraction.use_gpu = cfg.num_threads, cfg.max_image_side, False
-        extraction.sift.max_num_features = cfg.max_features
+        extraction.sift.max_num_features = feature_cap(cfg, image_size)
         matching = pc.FeatureMatchingOptions()
         matching.num_threads, matching.use_gpu = cfg.num_threads, False
         verification = pc.TwoViewGeometryOptions()

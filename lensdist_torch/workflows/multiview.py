@@ -108,7 +108,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
                 return True
             return done >= cfg.reconstructions  # failed mappings are retried with further seeds
 
-        reconstruct(folder, names, cfg, stop=take)
+        reconstruct(folder, names, cfg, stop=take, image_size=tuple(image_size))
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "

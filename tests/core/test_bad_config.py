@@ -161,6 +161,8 @@ BAD_VALUES = [
     ("analysis", "max_delta_disagreement", "1.5"),
     ("registration", "max_step", "2.0"),
     ("multiview", "max_halfwidth_rel", "3.0"),
+    ("multiview", "features_per_megapixel", "0.0"),
+    ("multiview", "extra_mappings", "-1"),
     ("regression", "confidence_threshold", "nan"),
     ("analysis", "no_distortion_px", "0.0"),
     ("analysis", "min_overlap", "-0.5"),

@@ -207,6 +207,17 @@ def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
     assert res == {"ok": False, "reason": res["reason"]} and "pip install pycolmap" in res["reason"]
 
 
+def test_feature_cap_follows_the_area_sift_reads_by_hand():
+    from lensdist_torch.geometry.multiview import feature_cap
+
+    cfg = MultiViewConfig(features_per_megapixel=1000.0, max_image_side=1000, max_features=800)
+    assert feature_cap(cfg) == 800  # no size: the fixed cap
+    assert feature_cap(cfg, (300, 400)) == 120  # 0.12 megapixel
+    assert feature_cap(cfg, (1000, 2000)) == 500  # read at 500 x 1000: 0.5 megapixel
+    assert feature_cap(cfg, (3000, 3000)) == 800  # 1 megapixel read, capped by max_features
+    assert feature_cap(cfg, (10, 10)) == 64  # never below 64
+
+
 def _engine(monkeypatch, outcomes):
     """multiview_path on a stand-in engine: per mapping seed a (registered, Delta_avg, rotation) or None."""
     from lensdist_torch.geometry import multiview as geometry
@@ -222,7 +233,8 @@ def _engine(monkeypatch, outcomes):
         def num_points3D(self):
             return 100
 
-    def reconstruct(folder, names, cfg, stop=None):
+    def reconstruct(folder, names, cfg, stop=None, image_size=None):
+        assert image_size == (96, 128)  # the features' cap follows the frames' area
         out = []
         for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
             o = outcomes[i]
