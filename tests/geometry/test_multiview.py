@@ -218,61 +218,6 @@ def test_feature_cap_follows_the_area_sift_reads_by_hand():
     assert feature_cap(cfg, (10, 10)) == 64  # never below 64
 
 
-def _engine(monkeypatch, outcomes):
-    """multiview_path on a stand-in engine: per mapping seed a (registered, Delta_avg, rotation) or None."""
-    from lensdist_torch.geometry import multiview as geometry
-    from lensdist_torch.workflows import multiview as workflow
-
-    class Rec:
-        def __init__(self, n, d, rot):
-            self.n, self.d, self.rot = n, d, rot
-
-        def num_reg_images(self):
-            return self.n
-
-        def num_points3D(self):
-            return 100
-
-    def reconstruct(folder, names, cfg, stop=None, image_size=None):
-        assert image_size == (96, 128)  # the features' cap follows the frames' area
-        out = []
-        for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
-            o = outcomes[i]
-            out.append(None if o is None else Rec(*o))
-            if stop is not None and stop(i, out[-1]):
-                break
-        return out
-
-    def calibrate(rec, cfg, settings, frames, image_size):
-        return geometry.MultiViewCalibration(
-            "RADIAL", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], [0.0] * 5, rec.d, (rec.d - 1, rec.d + 1), 2 * rec.d,
-            (2 * rec.d - 2, 2 * rec.d + 2), 1.0, 0.0, 0.0, 0.0, "3", "", rec.n, frames, 100, 0.5, {}, [rec.d] * 6, rec.rot)
-
-    monkeypatch.setattr(workflow, "reconstruct", reconstruct)
-    monkeypatch.setattr(workflow, "self_calibrate_reconstruction", calibrate)
-    return workflow.multiview_path
-
-
-def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
-    for i in range(10):
-        (tmp_path / f"f{i:02d}.png").write_bytes(b"")  # COLMAP's suffix: handed over as they are, never read here
-    # seeds 1 and 2 fail (3 of 10 registered), 0, 3 and 4 answer: seed 5 is never run
-    path = _engine(monkeypatch, [(10, 8.0, 30.0), (3, 0, 0), None, (9, 8.4, 30.0), (10, 7.8, 30.0), (10, 99.0, 30.0)])
-    res = path(tmp_path, (96, 128))
-    assert res["ok"] and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.0
-    assert [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3, 4]
-    assert res["reconstructions"][1] == {"seed": 1, "failed": "3 of 10 frames registered"}
-    assert res["reconstructions"][2] == {"seed": 2, "failed": "0 of 10 frames registered"}
-    # all six tries, two successes: no class, the failures named
-    res = _engine(monkeypatch, [(10, 8.0, 30.0), None, None, None, None, (10, 8.2, 30.0)])(tmp_path, (96, 128))
-    assert res["class_label"] is None and res["reason"].startswith("only 2 of 6 reconstructions succeeded (3 needed)")
-    # degenerate motion after a failed start: the two successes still missing are skipped, not tried
-    res = _engine(monkeypatch, [None, (10, 8.0, 1.0), (10, 8.0, 30.0)])(tmp_path, (96, 128))
-    assert [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3]
-    assert res["reconstructions"][2] == {"seed": 2, "skipped": "degenerate motion in the first mapping"}
-    assert res["class_label"] is None
-
-
 def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
     from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
     from lensdist_torch.workflows.undistort import encode_png, to_uint8

@@ -1,6 +1,6 @@
-"""The multi-view path's speed-ups keep its answers: one mapping where the first shows degenerate motion
-(lensdist_torch.workflows.multiview), the skipped seeds named (geometry.multiview_runs), the bundle
-adjustments' tolerance (geometry.multiview)."""
+"""The multi-view path's series of mappings and its speed-ups keep its answers: failed mappings retried
+and one mapping where the first shows degenerate motion (lensdist_torch.workflows.multiview), the
+skipped seeds named (geometry.multiview_runs), the bundle adjustments' tolerance (geometry.multiview)."""
 
 import pytest
 
@@ -19,15 +19,19 @@ def _cal(d, rotation, registered=22, label=None, reason=DEGENERATE):
 
 
 def _fake_colmap(monkeypatch, tmp_path, answers):
-    """22 frames; ``reconstruct`` runs the mappings as the real one does (``stop`` after each), counted."""
+    """22 frames; ``reconstruct`` runs the mappings as the real one does (``stop`` after each), counted.
+
+    ``answers``: per mapping seed its self-calibration, or an int: a mapping that registered that many frames.
+    """
     pytest.importorskip("pycolmap")
     for i in range(22):
         (tmp_path / f"frame_{i:03d}.png").write_bytes(b"")
     calls = {"mappings": 0}
 
     class Rec:
-        def __init__(self, n):
-            self.n = n
+        def __init__(self, answer):
+            self.answer = answer
+            self.n = answer if isinstance(answer, int) else answer.registered
 
         def num_reg_images(self):
             return self.n
@@ -35,19 +39,41 @@ def _fake_colmap(monkeypatch, tmp_path, answers):
         def num_points3D(self):
             return 100 * self.n
 
-    def reconstruct(folder, names, cfg, stop=None):
+    def reconstruct(folder, names, cfg, stop=None, image_size=None):
+        assert image_size == (288, 384)  # the features' cap follows the frames' area
         out = []
-        for i in range(cfg.reconstructions):
+        for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
             calls["mappings"] += 1
-            out.append(Rec(answers[i].registered))
+            out.append(Rec(answers[i]))
             if stop is not None and stop(i, out[-1]):
                 break
         return out
 
-    answers_by_rec = iter(answers)
     monkeypatch.setattr(wmv, "reconstruct", reconstruct)
-    monkeypatch.setattr(wmv, "self_calibrate_reconstruction", lambda rec, *a, **k: next(answers_by_rec))
+    monkeypatch.setattr(wmv, "self_calibrate_reconstruction", lambda rec, *a, **k: rec.answer)
     return calls
+
+
+def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
+    # the GoPro views: seeds 1 and 2 stop at 3 views in about a second; 0, 3 and 4 answer, seed 5 never runs
+    ok = [_cal(d, 30.0, label="3", reason="")._replace(delta_avg_user_interval=(d - 1, d + 1)) for d in (8.0, 8.4, 7.8, 99.0)]
+    calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 0, ok[1], ok[2], ok[3]])
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    assert calls["mappings"] == 5 and res["ok"] and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.0
+    assert [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3, 4]
+    assert res["reconstructions"][1] == {"seed": 1, "failed": "3 of 22 frames registered"}
+    assert res["reconstructions"][2] == {"seed": 2, "failed": "0 of 22 frames registered"}
+    # all six tries run, two succeed: no class, the failures named
+    calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 3, 3, 3, ok[1]])
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    assert calls["mappings"] == 6 and res["class_label"] is None
+    assert res["reason"].startswith("only 2 of 6 reconstructions succeeded (3 needed)") and "seed 4: 3 of 22" in res["reason"]
+    # degenerate motion after a failed start: the two successes still missing are skipped, not tried
+    calls = _fake_colmap(monkeypatch, tmp_path, [3, _cal(12.3, 2.4), ok[0]])
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    assert calls["mappings"] == 2 and [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3]
+    assert res["reconstructions"][2] == {"seed": 2, "skipped": "degenerate motion in the first mapping"}
+    assert res["class_label"] is None and res["reason"].startswith(DEGENERATE)
 
 
 def test_degenerate_first_mapping_answers_after_one_mapping(monkeypatch, tmp_path):
