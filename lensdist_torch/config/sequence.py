@@ -114,6 +114,9 @@ class MultiViewConfig:
         exhaustive_below: up to this many frames every pair is matched; more: each frame with
             its ``sequential_overlap`` successors (a video).
         sequential_overlap: successors matched per frame in sequential matching.
+        mapped_frames: at most this many frames go to COLMAP, evenly spaced over the sequence (a
+            video's neighbouring frames add tracks but little baseline, while matching and
+            mapping grow with the frames): of 300 frames every 5th.
         min_registered: fewer registered frames than this share of the frames (or than 3):
             "cannot tell" (the engine could not reconstruct the sequence).
         jackknife_blocks: contiguous blocks of frames left out in turn for the interval.
@@ -157,6 +160,7 @@ class MultiViewConfig:
     features_per_megapixel: float = 8192.0
     exhaustive_below: int = 60
     sequential_overlap: int = 12
+    mapped_frames: int = 60
     min_registered: float = 0.5
     jackknife_blocks: int = 6
     bic_margin: float = 10.0
@@ -177,6 +181,7 @@ class MultiViewConfig:
             if m not in MULTIVIEW_MODELS:
                 raise ValueError(f"multiview.models must hold names from {', '.join(MULTIVIEW_MODELS)}, got {m!r}")
         for name, lo in (("max_image_side", 64), ("max_features", 64), ("exhaustive_below", 2), ("sequential_overlap", 1),
+                         ("mapped_frames", 3),
                          ("jackknife_blocks", 2), ("reconstructions", 1),
                          ("extra_mappings", 0), ("num_threads", 1), ("seed", 0)):
             integer(self, name, lo=lo)

@@ -202,7 +202,7 @@ def calibrate_path(
         # (too few frames for a mapping is the multi-view path's own reason)
         mv = {"ok": False, "reason": cal.reason}
     elif method != "direct":
-        mv = multiview_path(path, size, st.multiview, st, max_frames)
+        mv = multiview_path(path, size, st.multiview, st, max_frames, quiet)
         if method == "multiview" and not mv["ok"]:
             raise ValueError(mv["reason"])
     return _finite(_verified(combine(out, mv), torch.cat(frames), cal, cfg, st))

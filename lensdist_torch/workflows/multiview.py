@@ -1,7 +1,8 @@
 """The multi-view path of ``lensdist calibrate``, and how its answer and the direct one combine.
 
-:func:`multiview_path` hands the frames of a folder (as they are) or of a video (written once as
-lossless grey PNG into a temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`;
+:func:`multiview_path` hands at most ``multiview.mapped_frames`` frames, evenly spaced over the
+sequence, of a folder (as they are) or of a video (written once as lossless grey PNG into a
+temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`;
 ``multiview.reconstructions`` mappings, each self-calibrated, combined by
 :mod:`~lensdist_torch.geometry.multiview_runs`) and returns a strict-JSON-ready dict, or the
 reason it has no answer (no mapping registered enough frames). When the first mapping registers
@@ -28,13 +29,14 @@ import tempfile
 from pathlib import Path
 
 import torch
+from tqdm import tqdm
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.geometry.multiview_runs import combine_reconstructions
 
-__all__ = ["COLMAP_SUFFIXES", "multiview_path", "combine"]
+__all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "combine"]
 
 #: Image files COLMAP reads as they are; other frames are written as PNG first.
 COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -54,8 +56,20 @@ def _encode(frame: torch.Tensor) -> bytes:
     return encode_png(to_uint8(frame[0]))
 
 
+def evenly_spaced(n: int, most: int) -> list[int]:
+    """Indices of at most ``most`` of ``n`` frames, evenly spaced, the first and the last included.
+
+    Example:
+        >>> evenly_spaced(300, 5), evenly_spaced(4, 5)
+        ([0, 75, 150, 224, 299], [0, 1, 2, 3])
+    """
+    if n <= most:
+        return list(range(n))
+    return [round(i * (n - 1) / (most - 1)) for i in range(most)]
+
+
 def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiViewConfig | None = None,
-                   settings: LensdistConfig | None = None, max_frames: int | None = 300) -> dict:
+                   settings: LensdistConfig | None = None, max_frames: int | None = 300, quiet: bool = True) -> dict:
     """The multi-view calibration of a folder of frames or a video, as a dict (module docstring).
 
     Args:
@@ -63,7 +77,9 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         image_size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig`.
         settings: the library's config (the class rule).
-        max_frames: at most this many frames (None: all).
+        max_frames: at most this many frames (None: all), of which ``multiview.mapped_frames`` evenly
+            spaced (:func:`evenly_spaced`) go to COLMAP.
+        quiet: no progress bar (one step per mapping).
 
     Returns:
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
@@ -80,12 +96,20 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
     with tempfile.TemporaryDirectory(prefix="lensdist-frames-") as tmp:
         files = list_frames(path) if path.is_dir() else []
         if files and all(p.suffix.lower() in COLMAP_SUFFIXES for p in files):
-            folder, names = path, [p.name for p in files[: max_frames or len(files)]]
-        else:
-            folder, names = Path(tmp), []
-            for _, img in read_frames(path, True, max_frames):
-                (folder / f"{len(names):06d}.png").write_bytes(_encode(img))
-                names.append(f"{len(names):06d}.png")
+            files = files[: max_frames or len(files)]
+            folder, names = path, [files[i].name for i in evenly_spaced(len(files), cfg.mapped_frames)]
+        else:  # a video, whose length is known once read: every stride-th frame is written, the stride
+            folder, kept, stride = Path(tmp), [], 1  # doubled (every other file removed) past 2 x mapped_frames
+            for i, (_, img) in enumerate(read_frames(path, True, max_frames)):
+                if i % stride:
+                    continue
+                (folder / f"{i:06d}.png").write_bytes(_encode(img))
+                kept.append(f"{i:06d}.png")
+                if len(kept) > 2 * cfg.mapped_frames:
+                    for name in kept[1::2]:
+                        (folder / name).unlink()
+                    kept, stride = kept[::2], 2 * stride
+            names = [kept[i] for i in evenly_spaced(len(kept), cfg.mapped_frames)]
         if len(names) < MIN_FRAMES:
             return {"ok": False, "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}"}
         least = max(MIN_FRAMES, math.ceil(cfg.min_registered * len(names)))
@@ -108,7 +132,14 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
                 return True
             return done >= cfg.reconstructions  # failed mappings are retried with further seeds
 
-        reconstruct(folder, names, cfg, stop=take, image_size=tuple(image_size))
+        with tqdm(total=cfg.reconstructions, disable=quiet, desc="mappings", unit="mapping", leave=False) as bar:
+            def step(i: int, rec) -> bool:  # features and matches come first, within the first step
+                done = take(i, rec)
+                bar.total = max(bar.total, len(runs) + (0 if done else 1))
+                bar.update(1)
+                return done
+
+            reconstruct(folder, names, cfg, stop=step, image_size=tuple(image_size))
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "

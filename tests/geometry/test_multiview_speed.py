@@ -2,7 +2,10 @@
 and one mapping where the first shows degenerate motion (lensdist_torch.workflows.multiview), the
 skipped seeds named (geometry.multiview_runs), the bundle adjustments' tolerance (geometry.multiview)."""
 
+from pathlib import Path
+
 import pytest
+import torch
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.multiview import BA_FUNCTION_TOLERANCE, MultiViewCalibration
@@ -41,6 +44,7 @@ def _fake_colmap(monkeypatch, tmp_path, answers):
 
     def reconstruct(folder, names, cfg, stop=None, image_size=None):
         assert image_size == (288, 384)  # the features' cap follows the frames' area
+        calls["names"], calls["files"] = list(names), sorted(p.name for p in Path(folder).iterdir())
         out = []
         for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
             calls["mappings"] += 1
@@ -74,6 +78,38 @@ def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
     assert calls["mappings"] == 2 and [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3]
     assert res["reconstructions"][2] == {"seed": 2, "skipped": "degenerate motion in the first mapping"}
     assert res["class_label"] is None and res["reason"].startswith(DEGENERATE)
+
+
+def test_evenly_spaced_frames_by_hand_and_their_properties():
+    assert wmv.evenly_spaced(10, 4) == [0, 3, 6, 9] and wmv.evenly_spaced(3, 60) == [0, 1, 2]
+    for n in range(3, 400, 7):
+        for most in (3, 10, 60):
+            idx = wmv.evenly_spaced(n, most)
+            assert len(idx) == min(n, most) and idx[0] == 0 and idx[-1] == n - 1 and idx == sorted(set(idx))
+            gaps = [b - a for a, b in zip(idx, idx[1:])]
+            assert max(gaps) - min(gaps) <= 1  # as even as whole frames allow
+
+
+def test_at_most_mapped_frames_go_to_colmap(monkeypatch, tmp_path):
+    runs = [_cal(7.6, 30.0, label="3", reason="")] * 3
+    calls = _fake_colmap(monkeypatch, tmp_path, runs)
+    wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(mapped_frames=5))
+    assert calls["names"] == [f"frame_{i:03d}.png" for i in (0, 5, 10, 16, 21)]  # of 22 frames
+
+
+def test_a_long_video_is_written_with_a_doubling_stride(monkeypatch, tmp_path):
+    from lensdist_torch.workflows import calibrate
+
+    clip = tmp_path / "clip.mp4"
+    clip.write_bytes(b"")
+    monkeypatch.setattr(calibrate, "read_frames", lambda path, grey, most: ((str(i), torch.full((1, 1, 8, 8), i / 100))
+                                                                          for i in range(min(most, 100))))
+    (tmp_path / "frames").mkdir()
+    calls = _fake_colmap(monkeypatch, tmp_path / "frames", [_cal(7.6, 30.0, label="3", reason="")] * 3)
+    wmv.multiview_path(clip, (288, 384), MultiViewConfig(mapped_frames=10), max_frames=90)
+    # 90 frames: the stride doubled to 4 past 20 files and to 8 past 20 again; kept 0, 8, ..., 88 (12 files)
+    assert calls["files"] == [f"{i:06d}.png" for i in range(0, 90, 8)]
+    assert calls["names"] == [f"{8 * j:06d}.png" for j in (0, 1, 2, 4, 5, 6, 7, 9, 10, 11)]
 
 
 def test_degenerate_first_mapping_answers_after_one_mapping(monkeypatch, tmp_path):
