@@ -83,13 +83,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--upsample", type=int, default=1)
     args = ap.parse_args()
-    size, f = tuple(args.size), args.upsample
+    size, up = tuple(args.size), args.upsample
     goal = GOAL_S if (args.frames, size) == (22, SIZE) else GOAL_LONG_S
-    rendered = (size[0] // f, size[1] // f)
+    rendered = (size[0] // up, size[1] // up)
     k2, k4 = coefficients(7.5 * rendered[1] / SIZE[1], rendered)
     frames, _ = synthetic_sequence(args.frames, k2, k4, size=rendered, scene="gravel", seed=0, relief=0.02,
                                    realistic=True, rotation_deg=args.rotation, altitude=args.altitude)
-    if f > 1:
+    if up > 1:
         frames = torch.nn.functional.interpolate(frames, size=size, mode="bilinear", align_corners=False)
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -108,7 +108,7 @@ def main() -> None:
                f"--{k} {v}" for k, v in vars(args).items() if k != "out") + f" --out {args.out}",
            "sequence": {"frames": args.frames, "size": list(size), "scene": "gravel", "seed": 0, "relief": 0.02,
                         "realistic": True, "rotation_deg": args.rotation, "altitude": args.altitude, "k2": k2, "k4": k4,
-                        "upsample": f, "rendered_size": list(rendered), "truth_delta_avg_px": f * float(delta_avg([k2], [k4], *rendered)[0])},
+                        "upsample": up, "rendered_size": list(rendered), "truth_delta_avg_px": up * float(delta_avg([k2], [k4], *rendered)[0])},
            "machine": {"cpus": multiprocessing.cpu_count(), "threads": args.threads, "python": platform.python_version(),
                        "load_average_at_end": list(os.getloadavg())},
            "goal_s": goal, "best_seconds": best, "auto_over_direct": best["auto"] / best["direct"],
