@@ -14,8 +14,9 @@ COLMAP use ``--threads`` threads. Writes JSON to ``--out``.
 
 ``--frames`` and ``--size`` render another sequence (the same lens scaled to the frame: Delta_avg 7.5 px
 times width / 384); its goal is 60 s for the first and 600 s for any other (the 1080p video's).
-``--upsample F`` renders at 1 / F of the size and enlarges the frames F times (bilinear): rendering
-1080p frames takes seconds each; the truth is then F times the rendered frames' Delta_avg.
+``--upsample F`` renders at 1 / F of the size (the rows rounded up to 8) and enlarges the frames F times
+(bilinear, about the centre, cropped to the size): rendering 1080p frames takes seconds each. Eq. 4 is
+applied to the rendered frames with (k2 F^2, k4 F^4), which is (k2, k4) in the enlarged frames' pixels.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import multiprocessing
 import os
 import platform
@@ -85,12 +87,16 @@ def main() -> None:
     args = ap.parse_args()
     size, up = tuple(args.size), args.upsample
     goal = GOAL_S if (args.frames, size) == (22, SIZE) else GOAL_LONG_S
-    rendered = (size[0] // up, size[1] // up)
-    k2, k4 = coefficients(7.5 * rendered[1] / SIZE[1], rendered)
-    frames, _ = synthetic_sequence(args.frames, k2, k4, size=rendered, scene="gravel", seed=0, relief=0.02,
-                                   realistic=True, rotation_deg=args.rotation, altitude=args.altitude)
+    # rendered at 1 / up of the size, rows rounded up to the blocks, enlarged up times about the same centre and
+    # cropped to the size: eq. 4 about the centre with (k2 up^2, k4 up^4) becomes (k2, k4) in the frames' pixels
+    rendered = (8 * math.ceil(size[0] / up / 8), size[1] // up)
+    k2, k4 = coefficients(7.5 * size[1] / SIZE[1], size)
+    frames, _ = synthetic_sequence(args.frames, k2 * up**2, k4 * up**4, size=rendered, scene="gravel", seed=0,
+                                   relief=0.02, realistic=True, rotation_deg=args.rotation, altitude=args.altitude)
     if up > 1:
-        frames = torch.nn.functional.interpolate(frames, size=size, mode="bilinear", align_corners=False)
+        frames = torch.nn.functional.interpolate(frames, scale_factor=up, mode="bilinear", align_corners=False)
+        top, left = (frames.shape[-2] - size[0]) // 2, (frames.shape[-1] - size[1]) // 2
+        frames = frames[..., top:top + size[0], left:left + size[1]]
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for j, f in enumerate(frames):
@@ -108,7 +114,7 @@ def main() -> None:
                f"--{k} {v}" for k, v in vars(args).items() if k != "out") + f" --out {args.out}",
            "sequence": {"frames": args.frames, "size": list(size), "scene": "gravel", "seed": 0, "relief": 0.02,
                         "realistic": True, "rotation_deg": args.rotation, "altitude": args.altitude, "k2": k2, "k4": k4,
-                        "upsample": up, "rendered_size": list(rendered), "truth_delta_avg_px": up * float(delta_avg([k2], [k4], *rendered)[0])},
+                        "upsample": up, "rendered_size": list(rendered), "truth_delta_avg_px": float(delta_avg([k2], [k4], *size)[0])},
            "machine": {"cpus": multiprocessing.cpu_count(), "threads": args.threads, "python": platform.python_version(),
                        "load_average_at_end": list(os.getloadavg())},
            "goal_s": goal, "best_seconds": best, "auto_over_direct": best["auto"] / best["direct"],
