@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import integer, names, real, show
+from lensdist_torch.config.checks import flag, integer, names, real, show
 
 __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
@@ -24,6 +24,9 @@ class CalibrationConfig:
         max_pairs: at most this many pairs, evenly spread over those chosen.
         batch_size: pairs self-calibrated together (the progress callback's step).
         outlier_mads: rejection threshold in robust deviations of the signed Delta_avg.
+        outlier_range: a failed pair's signed Delta_avg is taken to fall anywhere within +- this many
+            times the classes' range (``delta_top``), evenly: the bad half of the good-and-bad mixture
+            that decides which pairs count (``geometry/pooling.py``).
         max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
             pairs' lower quartile are rejected (a broken or foreign frame).
         jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
@@ -44,6 +47,12 @@ class CalibrationConfig:
             the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
+        registered_start: each pair's fit also starts from the pair's own registration
+            (``estimate_homography_robust``: direct, then features + RANSAC), beside the phase
+            correlation's translation, the better kept, where it registers and its corners lie more
+            than one pixel of the fit's coarsest level (2^(selfcal.levels - 1) px) from that
+            translation; False: the translation alone (views far apart, turned or seen obliquely
+            hold that start in a wrong minimum: docs/method.md, section 10).
 
     Example:
         >>> import dataclasses
@@ -62,6 +71,7 @@ class CalibrationConfig:
     max_pairs: int = 64
     batch_size: int = 16
     outlier_mads: float = 4.0
+    outlier_range: float = 2.0
     max_residual_ratio: float = 3.0
     jackknife_blocks: int = 8
     systematic_rel: float = 1e-3
@@ -72,8 +82,10 @@ class CalibrationConfig:
     max_class_halfwidth_px: float = 1.0
     verify_pairs: int = 6
     parallax: int = 5
+    registered_start: bool = True
 
     def __post_init__(self) -> None:
+        flag(self, "registered_start")
         for name in ("verify_pairs", "parallax"):
             integer(self, name, lo=0)
         for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
@@ -85,7 +97,7 @@ class CalibrationConfig:
             raise ValueError(f"calibration.motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, "
                              f"got {show(steps)}")
         object.__setattr__(self, "motion_steps", tuple(float(v) for v in steps))
-        for name in ("outlier_mads", "max_residual_ratio", "max_class_halfwidth_px"):
+        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_class_halfwidth_px"):
             real(self, name, lo=0, lo_open=True)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "systematic_rel", lo=0, hi=1, hi_open=True)

@@ -5,6 +5,7 @@ Modules:
 * :mod:`~lensdist_torch.data.synthesis`: the pair protocol: draw, render, register, measure.
 * :mod:`~lensdist_torch.data.realism`: the realistic protocol's photometry, noise, JPEG, parallax, occluders.
 * :mod:`~lensdist_torch.data.relief`: a scene with relief seen from above: height fields, ground points.
+* :mod:`~lensdist_torch.data.relens`: real frames through a known lens (their calibration undone, eq. 4 applied).
 * :mod:`~lensdist_torch.data.shards`: generating, resuming and loading data sets (``lensdist generate``).
 * :mod:`~lensdist_torch.data.shardfile`: one checksummed shard file, and the check of a set's shards.
 * :mod:`~lensdist_torch.data.manifest`: a data set's manifest, validated, merged, never shrunk.
@@ -31,6 +32,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.data.synthesis": ("PairBatch", "PairParams", "draw_pairs", "make_pairs", "render_pairs"),
     "lensdist_torch.data.realism": ("draw_realism",),
     "lensdist_torch.data.relief": ("draw_height_field", "relief_samples"),
+    "lensdist_torch.data.relens": ("RelensedFrames", "relens_frames"),
 }
 
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

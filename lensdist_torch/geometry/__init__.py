@@ -16,6 +16,8 @@ Estimators (layer 2):
 * :mod:`~lensdist_torch.geometry.wide_baseline`: far-apart pairs: features and RANSAC, then the direct refinement.
 * :mod:`~lensdist_torch.geometry.selfcal`: a pair's distortion and homography together (model in ``selfcal_model``).
 * :mod:`~lensdist_torch.geometry.calibration`: a camera's distortion from a whole sequence, the direct path.
+* :mod:`~lensdist_torch.geometry.sequence_fits`: a sequence's pairs fitted, failures refitted from their registration.
+* :mod:`~lensdist_torch.geometry.pooling`: a sequence's pairs pooled: which count (the good-and-bad mixture), mean, interval.
 * :mod:`~lensdist_torch.geometry.multiview`: the same by bundle adjustment on COLMAP (runs combined in ``multiview_runs``).
 
 The names users need are exported here and imported on first use (PEP 562): importing
@@ -54,6 +56,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.geometry.wide_baseline": ("estimate_homography_robust",),
     "lensdist_torch.geometry.selfcal": ("estimate_distortion",),
     "lensdist_torch.geometry.calibration": ("SequenceCalibration", "calibrate_sequence"),
+    "lensdist_torch.geometry.pooling": ("GoodBadFit", "good_and_bad"),
 }
 
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -35,7 +35,6 @@ Why this combination (the figures measured when it was built): docs/method.md, s
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Callable, NamedTuple
 
@@ -45,10 +44,11 @@ import torch.nn.functional as F
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
-from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, estimated_class
+from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, delta_top, estimated_class
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 from lensdist_torch.geometry.phase import phase_correlation
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry.pooling import pair_weights, pool_pairs, within_mads
+from lensdist_torch.geometry.sequence_fits import fit_pairs, refit_from_registration, reject_residuals
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
            "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION"]
@@ -64,7 +64,9 @@ class SequenceCalibration(NamedTuple):
     indices, pair_delta_avg and its std (P,) in analysis px, pair_used (P,) bool;
     relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
     answers| (user px), combined as the answers are, where significant (relief_z, its ratio to
-    its jackknife std, at least ``relief_test``), else 0.
+    its jackknife std, at least ``relief_test``), else 0; pair_registered (P,) bool: the pair's own
+    registration was the fit's first start (``registered_start``: it converged, and its corners lie
+    more than one pixel of the fit's coarsest level from the phase correlation's translation).
 
     Example:
         >>> cal = calibrate_sequence(torch.full((2, 1, 64, 64), 0.5))  # a still camera: no pair to use
@@ -93,6 +95,7 @@ class SequenceCalibration(NamedTuple):
     pair_used: torch.Tensor
     relief_effect_px: float = 0.0
     relief_z: float = 0.0
+    pair_registered: torch.Tensor | None = None
 
 
 # ------------------------------------------------------------------ analysis size
@@ -226,98 +229,19 @@ def _translation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return phase_correlation(a[:, 0], b[:, 0]).double().cpu()
 
 
-def _self_calibrate(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
-    """Per pair: (a, b) (P, 2) and the std of Delta_avg (P,), NaN / inf where dropped (step 3)."""
-    ab = torch.full((len(pairs), 2), float("nan"), dtype=torch.float64)
-    planar, relief = ab.clone(), ab.clone()
-    std = torch.full((len(pairs),), float("inf"), dtype=torch.float64)
-    res = torch.full((len(pairs),), float("inf"), dtype=torch.float64)
-    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)  # the sequence path's relief model
-    for s in range(0, len(pairs), cfg.batch_size):
-        sl = slice(s, s + cfg.batch_size)
-        init = torch.eye(3, dtype=torch.float64).repeat(len(pairs[sl]), 1, 1)
-        init[:, :2, 2] = shifts[sl]
-        info = estimate_distortion(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init.to(frames.device), selfcal)[3]
-        # the fit runs on the frames' device; its few numbers per pair come back to the CPU
-        got_ab, got_std, got_res, got_planar, got_relief = (
-            x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual, info.planar_ab, info.relief_ab))
-        ok = info.converged.cpu() & torch.isfinite(got_std)
-        ab[sl] = torch.where(ok[:, None], got_ab, ab[sl])
-        planar[sl] = torch.where(ok[:, None], got_planar, planar[sl])
-        relief[sl] = torch.where(ok[:, None] & torch.isfinite(got_relief), got_relief, ab[sl])
-        std[sl] = torch.where(ok, got_std, std[sl])
-        res[sl] = torch.where(ok, got_res, res[sl])
-        if progress is not None:
-            progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
-    if bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many
-        std = torch.where(res <= cfg.max_residual_ratio * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))
-    return ab, std, (planar, relief)
-
-
 # ------------------------------------------------------------------ combination
+def _pooling_frame(size, cfg: CalibrationConfig, st: LensdistConfig) -> tuple[torch.Tensor, float]:
+    """The analysis frame's signed-Delta_avg functional (2,) and the span of a failed pair's value (px)."""
+    (h, w), (hc, wc) = size, st.image.size
+    ra, rc = half_diagonal(h, w), half_diagonal(hc, wc)
+    return _signed_mean(h, w, ra), 2 * cfg.outlier_range * delta_top("delta_avg", st) * ra / rc
+
+
 def _signed_mean(height: int, width: int, rn: float) -> torch.Tensor:
     """(2,) g: g . (a, b) is the mean signed offset (px) for k2 = a / rn^2, k4 = b / rn^4."""
     grid = pixel_grid(height, width, torch.float64) - torch.tensor([(width - 1) / 2, (height - 1) / 2], dtype=torch.float64)
     r = grid.norm(dim=-1)
     return torch.stack([(r**3).mean() / rn**2, (r**5).mean() / rn**4])
-
-
-def t_quantile(p: float, dof: int) -> float:
-    """Student's t quantile: Newton on the CDF (Simpson's rule on the density) from the normal's."""
-    c = math.exp(math.lgamma((dof + 1) / 2) - math.lgamma(dof / 2)) / math.sqrt(dof * math.pi)
-
-    def density(x):
-        return c * (1 + x * x / dof) ** (-(dof + 1) / 2)
-
-    t = float(torch.special.ndtri(torch.tensor(p, dtype=torch.float64)))
-    for _ in range(100):  # the CDF is concave above 0: Newton from below climbs monotonically
-        x = torch.linspace(0, t, 401, dtype=torch.float64)
-        f = density(x)
-        cdf = 0.5 + float(f[0] + 4 * f[1:-1:2].sum() + 2 * f[2:-1:2].sum() + f[-1]) * t / 1200
-        t += (p - cdf) / density(t)
-        if abs(p - cdf) < 1e-10:
-            break
-    return t
-
-
-def _combine(ab, std, first, fun, cfg: CalibrationConfig):
-    """Combine the pairs (module docstring, steps 4 and 5).
-
-    Returns the inverse-variance mean (a, b) (2,), the kept pairs (P,) bool, the sd (K,) of the
-    K linear functionals ``fun`` (K, 2) (row 0: the analysis frame's signed Delta_avg) and t.
-    """
-    lin = ab @ fun[0]
-    ok = torch.isfinite(lin) & torch.isfinite(std) & (std > 0)
-    nan = torch.full((fun.shape[0],), float("nan"), dtype=torch.float64)
-    if not bool(ok.any()):
-        return torch.full((2,), float("nan"), dtype=torch.float64), ok, nan, float("nan")
-    med = lin[ok].median()
-    spread = torch.maximum(1.4826 * (lin[ok] - med).abs().median(), std[ok].median())
-    keep = ok & ((lin - med).abs() <= cfg.outlier_mads * spread)
-    w = torch.where(keep, 1.0 / std.clamp_min(1e-12) ** 2, torch.zeros_like(std))
-    theta = (w[:, None] * torch.nan_to_num(ab)).sum(0) / w.sum()
-    n = int(keep.sum())
-    if n < 2:
-        return theta, keep, nan, float("nan")
-    blocks = min(cfg.jackknife_blocks, n)
-    idx = keep.nonzero()[:, 0]
-    rank = torch.empty(n, dtype=torch.int64)
-    rank[torch.argsort(first[idx], stable=True)] = torch.arange(n)
-    block = rank * blocks // n
-    loo = []
-    for g in range(blocks):
-        wg = w.clone()
-        wg[idx[block == g]] = 0
-        loo.append((wg[:, None] * torch.nan_to_num(ab)).sum(0) / wg.sum())
-    vals = torch.stack(loo) @ fun.T  # (G, K)
-    var_jk = (blocks - 1) / blocks * ((vals - vals.mean(0)) ** 2).sum(0)
-    birge = max(1.0, float((w * (torch.nan_to_num(lin) - theta @ fun[0]) ** 2).sum()) / (n - 1))
-    var_b = birge / float(w.sum())
-    if float(var_jk[0]) > 0:
-        var = var_jk * max(1.0, var_b / float(var_jk[0]))
-    else:  # identical estimates: the pairs' own sigma, carried over by the functionals' sizes
-        var = var_b * (fun.norm(dim=1) / fun[0].norm()) ** 2
-    return theta, keep, var.sqrt(), t_quantile(0.5 + cfg.confidence / 2, blocks - 1)
 
 
 # ------------------------------------------------------------------ the estimator
@@ -392,19 +316,33 @@ def calibrate_sequence(
     if min(xa.shape[-2:]) < least:
         raise ValueError(f"frames must be at least {least} px on each side, got {tuple(xa.shape[-2:])}")
     pairs, shifts = choose_pairs(xa, cfg)
-    ab, std, models = _self_calibrate(xa, pairs, shifts, st, cfg, progress)
-    return _result(ab, std, pairs, xa, size, scale, cfg, st, models)
+    fits = fit_pairs(xa, pairs, shifts, st, cfg, progress)
+    refitted = torch.zeros(len(pairs), dtype=torch.bool)
+    if cfg.registered_start and len(pairs):  # the pairs the pooling would not count get their registration as a start
+        g, width = _pooling_frame(xa.shape[-2:], cfg, st)
+        lin, std = fits[0] @ g, reject_residuals(fits[1], fits[2], cfg)
+        w, keep = pair_weights(lin, std, cfg, width)
+        mu = (w * torch.nan_to_num(lin)).sum() / w.sum() if bool(keep.any()) else torch.tensor(0.0, dtype=torch.float64)
+        retry = ~keep | ((lin - mu).abs() > 3 * std)  # not counted, or off the pooled value by more than its own 3 sigma
+        refitted = refit_from_registration(xa, pairs, shifts, fits, retry, st, cfg)
+    ab, std, res, planar, relief = fits
+    std = reject_residuals(std, res, cfg)
+    return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief))._replace(pair_registered=refitted)
 
 
 def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple[float, ...], float, float]:
     """Step 5's relief terms of the three stds, z (|effect| / its jackknife std) and the effect found.
 
+    The models' differences are pooled by inverse variance (1 / sigma_i^2) over those within
+    ``outlier_mads`` of their median: they part by noise or by relief, not by failures.
     Below ``relief_test``, that many stds count (the effect the test cannot exclude), none is found.
     """
     diff = None if models is None else models[1] - models[0]
     if diff is None or not bool((diff[torch.isfinite(diff)] != 0).any()):
         return (0.0, 0.0, 0.0), 0.0, 0.0
-    theta_d, _, sd_d, _ = _combine(diff, std, pairs[:, 0], fun, cfg)  # combined as the answers are
+    keep = within_mads(diff @ fun[0], std, cfg)
+    w = torch.where(keep, 1.0 / std.clamp_min(1e-12) ** 2, torch.zeros_like(std))
+    theta_d, sd_d, _ = pool_pairs(diff, w, keep, pairs[:, 0], fun, cfg)
     effect, z = (theta_d @ fun.T).abs(), 0.0
     if float(effect[1]) > 0 and bool(torch.isfinite(sd_d[1])):
         z = float(effect[1] / sd_d[1]) if float(sd_d[1]) > 0 else math.inf
@@ -423,7 +361,9 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     ru = scale * ra  # the analysis half diagonal in user px
     fun = torch.stack([_signed_mean(h, w, ra), _signed_mean(hh, ww, ru),
                        torch.tensor([corner**3 / ru**2, corner**5 / ru**4], dtype=torch.float64), _signed_mean(hc, wc, rc)])
-    theta, keep, sd, t = _combine(ab, std, pairs[:, 0], fun, cfg)
+    width = _pooling_frame((h, w), cfg, st)[1]
+    weights, keep = pair_weights(ab @ fun[0], std, cfg, width)
+    theta, sd, t = pool_pairs(ab, weights, keep, pairs[:, 0], fun, cfg)
     a, b = float(theta[0]), float(theta[1])
     k2u, k4u = user_coefficients(a / ra**2, b / ra**4, scale)
     n_used, nan = int(keep.sum()), float("nan")

@@ -55,9 +55,9 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.pooling import t_quantile
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
            "rotation_spread_deg", "model_spread", "interval_too_wide", "BA_FUNCTION_TOLERANCE"]

@@ -35,8 +35,8 @@ import math
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.calibration import t_quantile
 from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide
+from lensdist_torch.geometry.pooling import t_quantile
 
 __all__ = ["reconstruction_spread", "widened_half_width", "combine_reconstructions"]
 

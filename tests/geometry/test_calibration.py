@@ -16,7 +16,6 @@ from lensdist_torch.geometry.calibration import (
     analysis_size,
     calibrate_sequence,
     choose_pairs,
-    t_quantile,
     to_analysis,
     user_coefficients,
 )
@@ -29,6 +28,7 @@ from lensdist_torch.geometry.distortion import (
     undistort_points,
 )
 from lensdist_torch.geometry.opencv_model import opencv_camera, opencv_undistort_points
+from lensdist_torch.geometry.pooling import t_quantile
 from lensdist_torch.workflows.calibrate import synthetic_sequence
 
 SIZE = (240, 320)
@@ -327,8 +327,9 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     independent sum here), and relief_rel adds
     (t relief_rel relief_effect)^2 to the squared half-width; where the models part by noise alone,
     (t relief_rel relief_test sd)^2, sd the std of their difference; models that agree, nothing."""
-    from lensdist_torch.geometry.calibration import _combine, _result, _signed_mean
+    from lensdist_torch.geometry.calibration import _result, _signed_mean
     from lensdist_torch.geometry.frame import half_diagonal
+    from lensdist_torch.geometry.pooling import pool_pairs, within_mads
 
     g = torch.Generator().manual_seed(0)
     n, (h, w) = 16, (96, 128)
@@ -357,7 +358,9 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     flat = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(relief_rel=0.7), st, (ab, noisy))
     assert 0 < flat.relief_z < 2.0 and flat.relief_effect_px == 0.0
     fun = _signed_mean(h, w, ra).expand(2, 2)  # the user frame is the analysis frame here
-    sd_d = float(_combine(noisy - ab, std, pairs[:, 0], fun, CalibrationConfig())[2][1])
+    cfg = CalibrationConfig()
+    keep = within_mads((noisy - ab) @ fun[0], std, cfg)  # the differences pooled by inverse variance
+    sd_d = float(pool_pairs(noisy - ab, torch.where(keep, 1 / std**2, 0.0), keep, pairs[:, 0], fun, cfg)[1][1])
     assert flat.delta_avg_user_px == base.delta_avg_user_px and sd_d > 0
     h2 = flat.delta_avg_user_interval[1] - flat.delta_avg_user_px
     assert h2**2 - h0**2 == pytest.approx((t * 0.7 * 2.0 * sd_d) ** 2, rel=1e-6)

@@ -22,6 +22,8 @@ LAYERS = [
     ("geometry.registration", 2),
     ("geometry.selfcal", 2),
     ("geometry.calibration", 2),
+    ("geometry.sequence_fits", 2),
+    ("geometry.pooling", 2),
     ("geometry.wide_baseline", 2),
     ("geometry.multiview", 2),
     ("geometry.", 1),

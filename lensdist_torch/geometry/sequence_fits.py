@@ -1,0 +1,96 @@
+"""A sequence's pairs fitted one by one (step 3 of :mod:`~lensdist_torch.geometry.calibration`).
+
+:func:`fit_pairs` self-calibrates every chosen pair from the phase correlation's translation
+(:func:`~lensdist_torch.geometry.selfcal.estimate_distortion` with the sequence's plane + parallax
+model); :func:`refit_from_registration` gives the pairs the pooling would not count a second start,
+their own registration (direct, then features + RANSAC: views far apart, turned or seen obliquely
+hold a translation start in a wrong minimum, docs/method.md section 10), only where that
+registration lies more than one pixel of the fit's coarsest level from the translation; and
+:func:`reject_residuals` drops the pairs whose residual is far above the lower quartile (a broken
+or foreign frame).
+
+Example:
+    >>> import torch
+    >>> reject_residuals(torch.ones(5), torch.tensor([0.02, 0.02, 0.03, 0.02, 0.2]), CalibrationConfig()).tolist()
+    [1.0, 1.0, 1.0, 1.0, inf]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from lensdist_torch.config import CalibrationConfig, LensdistConfig
+from lensdist_torch.geometry.homography import corner_error
+from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
+
+__all__ = ["fit_pairs", "refit_from_registration", "reject_residuals"]
+
+
+def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
+    """One batch of pairs from the starts ``init``: (a, b), std, residual, planar and relief (a, b) on the CPU, NaN / inf where dropped."""
+    info = estimate_distortion(a, b, init, selfcal, validate=False)[3]
+    # the fit runs on the frames' device; its few numbers per pair come back to the CPU
+    ab, std, res, planar, relief = (x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual,
+                                                                info.planar_ab, info.relief_ab))
+    ok = info.converged.cpu() & torch.isfinite(std)
+    nan, inf = torch.tensor(float("nan"), dtype=torch.float64), torch.tensor(float("inf"), dtype=torch.float64)
+    relief = torch.where(torch.isfinite(relief), relief, ab)
+    return (torch.where(ok[:, None], ab, nan), torch.where(ok, std, inf), torch.where(ok, res, inf),
+            torch.where(ok[:, None], planar, nan), torch.where(ok[:, None], relief, nan))
+
+
+def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
+    """Step 3 per pair, from the phase correlation's translations: [(a, b) (P, 2), std (P,), residual (P,), planar, relief]."""
+    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)  # the sequence path's relief model
+    parts = []
+    for s in range(0, len(pairs), cfg.batch_size):
+        sl = slice(s, s + cfg.batch_size)
+        init = torch.eye(3, dtype=torch.float64).repeat(len(pairs[sl]), 1, 1)
+        init[:, :2, 2] = shifts[sl]
+        parts.append(_fit_batch(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init.to(frames.device), selfcal))
+        if progress is not None:
+            progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
+    if not parts:
+        return [torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, dtype=torch.float64),
+                torch.zeros(0, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64)]
+    return [torch.cat(x) for x in zip(*parts)]
+
+
+def refit_from_registration(frames, pairs, shifts, fits, retry, settings: LensdistConfig, cfg: CalibrationConfig) -> torch.Tensor:
+    """Step 3's second start: the pairs ``retry`` (P,) bool refitted from their own registration, in place.
+
+    A pair is refitted where ``estimate_homography_robust`` registers it and its corners lie more
+    than one pixel of the fit's coarsest level from the translation start (that start could not
+    reach the right minimum); the refit keeps the better of that start and the phase correlation's
+    and replaces the first fit where its residual is lower. Returns the refitted pairs (P,) bool.
+    """
+    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)
+    refitted = torch.zeros(len(pairs), dtype=torch.bool)
+    idx = retry.nonzero()[:, 0]
+    for s in range(0, len(idx), cfg.batch_size):
+        rows = idx[s : s + cfg.batch_size]
+        a, b = frames[pairs[rows, 0]], frames[pairs[rows, 1]]
+        shift = torch.eye(3, dtype=torch.float64).repeat(len(rows), 1, 1)
+        shift[:, :2, 2] = shifts[rows]
+        h, reg = estimate_homography_robust(a, b, config=settings.registration, validate=False)
+        h = h.double().cpu()
+        far = reg.converged.cpu() & (corner_error(torch.nan_to_num(h), shift, *frames.shape[-2:]) > 2 ** (selfcal.levels - 1))
+        if not bool(far.any()):
+            continue
+        sub = rows[far]
+        got = _fit_batch(a[far.to(a.device)], b[far.to(b.device)], h[far].to(frames.device), selfcal)
+        better = got[2] < fits[2][sub]
+        for k, x in enumerate(got):
+            fits[k][sub[better]] = x[better]
+        refitted[sub[better]] = True
+    return refitted
+
+
+def reject_residuals(std, res, cfg: CalibrationConfig) -> torch.Tensor:
+    """Step 3: inf std for pairs whose residual exceeds ``max_residual_ratio`` times the lower quartile."""
+    if not bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many
+        return std
+    return torch.where(res <= cfg.max_residual_ratio * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))
