@@ -14,9 +14,14 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
    where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
    diverged or whose residual exceeds ``max_residual_ratio`` times the lower quartile's drop.
-4. **Combination: the inverse-variance mean** of (a_i, b_i) (weights 1 / sigma_i^2), without the
-   pairs whose signed Delta_avg R (a m3 + b m5) (m_k: the frame's mean |u|^k) lies beyond
-   ``outlier_mads`` robust deviations (1.4826 MAD, at least the median sigma_i) of the median.
+   With ``registered_start``, the pairs step 4 would not count, or that lie more than 3 of their
+   own sigma_i from its value, are fitted again from their own registration where it lies far
+   from the translation (:mod:`~lensdist_torch.geometry.sequence_fits`).
+4. **Combination: the inverse-variance mean** of (a_i, b_i) (weights 1 / sigma_i^2) of the pairs
+   that count: those whose signed Delta_avg R (a m3 + b m5) (m_k: the frame's mean |u|^k) lies
+   within ``outlier_mads`` robust deviations (1.4826 MAD, at least the median sigma_i) of the
+   median and that the good-and-bad mixture finds more likely good than failed (failures spread
+   over +-``outlier_range`` class ranges: :func:`~lensdist_torch.geometry.pooling.good_and_bad`).
 5. **Intervals**: pairs sharing frames have correlated errors, so the variance is a
    delete-a-block jackknife (``jackknife_blocks`` contiguous blocks), or the Birge-scaled
    max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger, plus ``systematic_rel`` D in

@@ -29,6 +29,13 @@ from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 __all__ = ["fit_pairs", "refit_from_registration", "reject_residuals"]
 
 
+def _translations(shifts: torch.Tensor) -> torch.Tensor:
+    """(n, 2) shifts -> (n, 3, 3) float64 translation homographies."""
+    out = torch.eye(3, dtype=torch.float64).repeat(len(shifts), 1, 1)
+    out[:, :2, 2] = shifts
+    return out
+
+
 def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
     """One batch of pairs from the starts ``init``: (a, b), std, residual, planar and relief (a, b) on the CPU, NaN / inf where dropped."""
     info = estimate_distortion(a, b, init, selfcal, validate=False)[3]
@@ -48,9 +55,8 @@ def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationC
     parts = []
     for s in range(0, len(pairs), cfg.batch_size):
         sl = slice(s, s + cfg.batch_size)
-        init = torch.eye(3, dtype=torch.float64).repeat(len(pairs[sl]), 1, 1)
-        init[:, :2, 2] = shifts[sl]
-        parts.append(_fit_batch(frames[pairs[sl, 0]], frames[pairs[sl, 1]], init.to(frames.device), selfcal))
+        parts.append(_fit_batch(frames[pairs[sl, 0]], frames[pairs[sl, 1]], _translations(shifts[sl]).to(frames.device),
+                                selfcal))
         if progress is not None:
             progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
     if not parts:
@@ -73,11 +79,9 @@ def refit_from_registration(frames, pairs, shifts, fits, retry, settings: Lensdi
     for s in range(0, len(idx), cfg.batch_size):
         rows = idx[s : s + cfg.batch_size]
         a, b = frames[pairs[rows, 0]], frames[pairs[rows, 1]]
-        shift = torch.eye(3, dtype=torch.float64).repeat(len(rows), 1, 1)
-        shift[:, :2, 2] = shifts[rows]
         h, reg = estimate_homography_robust(a, b, config=settings.registration, validate=False)
         h = h.double().cpu()
-        far = reg.converged.cpu() & (corner_error(torch.nan_to_num(h), shift, *frames.shape[-2:]) > 2 ** (selfcal.levels - 1))
+        far = reg.converged.cpu() & (corner_error(torch.nan_to_num(h), _translations(shifts[rows]), *frames.shape[-2:]) > 2 ** (selfcal.levels - 1))
         if not bool(far.any()):
             continue
         sub = rows[far]

@@ -149,7 +149,8 @@ def calibrate_path(
         A dict for ``json.dumps(..., allow_nan=False)``: path, frames, image_size [H, W],
         analysis_size, scale, k2_user, k4_user, delta_avg_user_px, delta_avg_user_interval,
         delta_max_user_px, delta_max_user_interval, confidence, class, reason, pairs_used,
-        pairs_rejected, relief_effect_px and relief_z (the direct path's: how far its plane +
+        pairs_rejected, pairs_refitted (pairs fitted again from their own registration),
+        relief_effect_px and relief_z (the direct path's: how far its plane +
         parallax and planar answers part, and in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors),
         method (which path answered), direct and multiview (each path's own numbers).
 
@@ -193,6 +194,7 @@ def calibrate_path(
                                         "delta_max_user_interval", "relief_effect_px", "relief_z")}
     out.update({"path": str(path), "confidence": cfg.confidence, "class": cal.class_label, "reason": cal.reason or None,
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
+                "pairs_refitted": int(cal.pair_registered.sum()) if cal.pair_registered is not None else 0,
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = or_defaults(settings, LensdistConfig, "settings")
