@@ -171,16 +171,20 @@ def pair_weights(lin, std, cfg: CalibrationConfig, width: float) -> tuple[torch.
     """Step 4: each pair's weight (P,) and whether it counts (P,) bool, from its signed Delta_avg ``lin``.
 
     Pairs beyond ``outlier_mads`` robust deviations go first; the good-and-bad mixture
-    (:func:`good_and_bad`, failures spread over ``width``) then
-    keeps the pairs more likely good than failed, each weighted 1 / sigma_i^2 (their scatter beyond
-    the stds, the mixture's kappa, is what :func:`pool_pairs`' Birge factor and jackknife take in).
+    (:func:`good_and_bad`, failures spread over ``width``), fitted to the sharper half of the rest
+    (stds at most their median: a pair that cannot tell by itself, 0 +- 4 px stuck at its start,
+    does not choose which pairs are good), then keeps every pair more likely good than failed under
+    it, each weighted 1 / sigma_i^2 (their scatter beyond the stds, the mixture's kappa, is what
+    :func:`pool_pairs`' Birge factor and jackknife take in).
     """
     keep = within_mads(lin, std, cfg)
     if not bool(keep.any()):
         return torch.zeros_like(std), keep
     idx = keep.nonzero()[:, 0]
-    fit = good_and_bad(lin[idx], std[idx], width)  # which pairs are good
-    keep[idx[fit.p_good <= 0.5]] = False
+    sharp = std[idx] <= std[idx].median()  # a pair that cannot tell by itself does not choose the good ones
+    fit = good_and_bad(lin[idx][sharp], std[idx][sharp], width)
+    p = _posterior(lin[idx], std[idx] ** 2, fit.mean, fit.kappa**2, fit.good_share, -math.log(width))
+    keep[idx[p <= 0.5]] = False
     return torch.where(keep, 1.0 / std.clamp_min(1e-12) ** 2, torch.zeros_like(std)), keep
 
 
