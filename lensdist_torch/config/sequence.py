@@ -47,12 +47,13 @@ class CalibrationConfig:
             the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
-        registered_start: each pair's fit also starts from the pair's own registration
-            (``estimate_homography_robust``: direct, then features + RANSAC), beside the phase
-            correlation's translation, the better kept, where it registers and its corners lie more
-            than one pixel of the fit's coarsest level (2^(selfcal.levels - 1) px) from that
-            translation; False: the translation alone (views far apart, turned or seen obliquely
-            hold that start in a wrong minimum: docs/method.md, section 10).
+        registered_start: the pairs the pooling would not count, or that lie more than 3 of their
+            own sigma from its value, are fitted again from their own registration
+            (``estimate_homography_robust``: direct, then features + RANSAC) where it registers and
+            its corners lie more than one pixel of the fit's coarsest level (2^(selfcal.levels - 1)
+            px) from the phase correlation's translation; the refit replaces the first where its
+            residual is lower. False: the translation alone (views far apart, turned or seen
+            obliquely hold that start in a wrong minimum: docs/method.md, section 10).
 
     Example:
         >>> import dataclasses

@@ -31,13 +31,14 @@ Example:
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 
 from lensdist_torch.core.images import check_image, resize_to
-from lensdist_torch.geometry.distortion import distortion_center, pixel_grid, sample_at_pixels, undistort_points
-from lensdist_torch.geometry.opencv_model import opencv_distort_normalized
+from lensdist_torch.geometry.distortion import distortion_center, distortion_grid, sample_at_pixels
+from lensdist_torch.geometry.opencv_model import opencv_distort_normalized, radial_monotone
 
 __all__ = ["RelensedFrames", "relens_frames", "relens_map"]
 
@@ -97,24 +98,17 @@ def relens_map(
 
     Example:
         >>> K = torch.tensor([[100.0, 0, 63.5], [0, 100.0, 47.5], [0, 0, 1]], dtype=torch.float64)
+        >>> from lensdist_torch.geometry.frame import pixel_grid
         >>> src, ok = relens_map(96, 128, K, torch.zeros(5), 0.0, 0.0)
         >>> bool(torch.allclose(src, pixel_grid(96, 128, torch.float64))), bool(ok.all())
         (True, True)
     """
     k, d = _calibration(camera_matrix, dist_coeffs)
-    centre = distortion_center(height, width)
-    q = pixel_grid(height, width, torch.float64)
-    p = undistort_points(q[None], [k2], [k4], centre)[0]
-    f = (k[0, 0] + k[1, 1]) / 2
-    x = (p - p.new_tensor(centre)) / f
+    p = distortion_grid([k2], [k4], height, width, dtype=torch.float64)[0]  # eq. 4: each pixel's ideal point
+    x = (p - p.new_tensor(distortion_center(height, width))) / ((k[0, 0] + k[1, 1]) / 2)
     src = opencv_distort_normalized(x, d) * torch.stack([k[0, 0], k[1, 1]]) + k[:2, 2]
-    # the calibration's model is used only where its radius still grows with the ray's
-    r2 = (x * x).sum(-1, keepdim=True)
-    eps = 1e-6
-    grows = (opencv_distort_normalized(x * (1 + eps), d) - opencv_distort_normalized(x, d)).mul(x).sum(-1) > 0
-    grows = grows | (r2[..., 0] == 0)
     inside = (src[..., 0] >= 0) & (src[..., 0] <= width - 1) & (src[..., 1] >= 0) & (src[..., 1] <= height - 1)
-    return src, inside & grows
+    return src, inside & radial_monotone((x * x).sum(-1), d)  # the calibration's model only where it does not fold
 
 
 def relens_frames(
@@ -157,9 +151,7 @@ def relens_frames(
     h, w = (h_src, w_src) if size is None else (int(size[0]), int(size[1]))
     if h < 2 or w < 2:
         raise ValueError(f"size must be two integers >= 2, got {size}")
-    if not (isinstance(k2, (int, float)) and isinstance(k4, (int, float))) or not all(
-        abs(v) < float("inf") for v in (k2, k4)
-    ):
+    if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in (k2, k4)):
         raise ValueError(f"k2 and k4 must be finite numbers, got {k2!r}, {k4!r}")
     # the output's pixels are the source's scaled by s (after resize_to's centre crop to the aspect)
     s = max(h / h_src, w / w_src)

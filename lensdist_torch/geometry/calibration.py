@@ -69,9 +69,8 @@ class SequenceCalibration(NamedTuple):
     indices, pair_delta_avg and its std (P,) in analysis px, pair_used (P,) bool;
     relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
     answers| (user px), combined as the answers are, where significant (relief_z, its ratio to
-    its jackknife std, at least ``relief_test``), else 0; pair_registered (P,) bool: the pair's own
-    registration was the fit's first start (``registered_start``: it converged, and its corners lie
-    more than one pixel of the fit's coarsest level from the phase correlation's translation).
+    its jackknife std, at least ``relief_test``), else 0; pair_refitted (P,) bool: the pair was fitted
+    again from its own registration (``registered_start``) and that fit replaced the first.
 
     Example:
         >>> cal = calibrate_sequence(torch.full((2, 1, 64, 64), 0.5))  # a still camera: no pair to use
@@ -100,7 +99,7 @@ class SequenceCalibration(NamedTuple):
     pair_used: torch.Tensor
     relief_effect_px: float = 0.0
     relief_z: float = 0.0
-    pair_registered: torch.Tensor | None = None
+    pair_refitted: torch.Tensor | None = None
 
 
 # ------------------------------------------------------------------ analysis size
@@ -235,11 +234,9 @@ def _translation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------ combination
-def _pooling_frame(size, cfg: CalibrationConfig, st: LensdistConfig) -> tuple[torch.Tensor, float]:
-    """The analysis frame's signed-Delta_avg functional (2,) and the span of a failed pair's value (px)."""
-    (h, w), (hc, wc) = size, st.image.size
-    ra, rc = half_diagonal(h, w), half_diagonal(hc, wc)
-    return _signed_mean(h, w, ra), 2 * cfg.outlier_range * delta_top("delta_avg", st) * ra / rc
+def _failure_width(size, cfg: CalibrationConfig, st: LensdistConfig) -> float:
+    """The span (px of the analysis frame ``size``) over which a failed pair's signed Delta_avg may fall."""
+    return 2 * cfg.outlier_range * delta_top("delta_avg", st) * half_diagonal(*size) / half_diagonal(*st.image.size)
 
 
 def _signed_mean(height: int, width: int, rn: float) -> torch.Tensor:
@@ -323,16 +320,22 @@ def calibrate_sequence(
     pairs, shifts = choose_pairs(xa, cfg)
     fits = fit_pairs(xa, pairs, shifts, st, cfg, progress)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
-    if cfg.registered_start and len(pairs):  # the pairs the pooling would not count get their registration as a start
-        g, width = _pooling_frame(xa.shape[-2:], cfg, st)
-        lin, std = fits[0] @ g, reject_residuals(fits[1], fits[2], cfg)
-        w, keep = pair_weights(lin, std, cfg, width)
-        mu = (w * torch.nan_to_num(lin)).sum() / w.sum() if bool(keep.any()) else torch.tensor(0.0, dtype=torch.float64)
-        retry = ~keep | ((lin - mu).abs() > 3 * std)  # not counted, or off the pooled value by more than its own 3 sigma
-        refitted = refit_from_registration(xa, pairs, shifts, fits, retry, st, cfg)
+    if cfg.registered_start and len(pairs):
+        refitted = refit_from_registration(xa, pairs, shifts, fits, _doubtful(fits, xa, cfg, st), st, cfg)
     ab, std, res, planar, relief = fits
     std = reject_residuals(std, res, cfg)
-    return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief))._replace(pair_registered=refitted)
+    return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief))._replace(pair_refitted=refitted)
+
+
+def _doubtful(fits, xa, cfg: CalibrationConfig, st: LensdistConfig) -> torch.Tensor:
+    """(P,) bool: the pairs step 4 would not count, or that lie more than 3 of their own sigma from its value."""
+    h, w = xa.shape[-2:]
+    lin, std = fits[0] @ _signed_mean(h, w, half_diagonal(h, w)), reject_residuals(fits[1], fits[2], cfg)
+    weights, keep = pair_weights(lin, std, cfg, _failure_width((h, w), cfg, st))
+    if not bool(keep.any()):
+        return ~keep
+    mu = (weights * torch.nan_to_num(lin)).sum() / weights.sum()
+    return ~keep | ((lin - mu).abs() > 3 * std)
 
 
 def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple[float, ...], float, float]:
@@ -366,8 +369,7 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     ru = scale * ra  # the analysis half diagonal in user px
     fun = torch.stack([_signed_mean(h, w, ra), _signed_mean(hh, ww, ru),
                        torch.tensor([corner**3 / ru**2, corner**5 / ru**4], dtype=torch.float64), _signed_mean(hc, wc, rc)])
-    width = _pooling_frame((h, w), cfg, st)[1]
-    weights, keep = pair_weights(ab @ fun[0], std, cfg, width)
+    weights, keep = pair_weights(ab @ fun[0], std, cfg, _failure_width((h, w), cfg, st))
     theta, sd, t = pool_pairs(ab, weights, keep, pairs[:, 0], fun, cfg)
     a, b = float(theta[0]), float(theta[1])
     k2u, k4u = user_coefficients(a / ra**2, b / ra**4, scale)

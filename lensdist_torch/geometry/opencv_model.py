@@ -44,7 +44,7 @@ import torch
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
 __all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_export", "opencv_distort_normalized", "opencv_undistort_points",
-           "opencv_ideal_points", "opencv_delta", "grid_points"]
+           "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points"]
 
 MODELS = ("standard", "rational")
 
@@ -267,13 +267,26 @@ def opencv_ideal_points(
         step = torch.linalg.solve(j, (fx - xd)[..., None])[..., 0]
         x = x - torch.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0).clamp(-0.5, 0.5)
     err = (_forward_full(x, d)[0] - xd).norm(dim=-1)
-    r2 = (x * x).sum(-1)
-    t = torch.linspace(0.0625, 1.0, 16, dtype=torch.float64)
-    s2 = r2[..., None] * t * t  # squared radii along the ray
-    fr, dfr = _radial(s2, torch.cat([d, d.new_zeros(8 - d.numel())]) if d.numel() == 4 else d)
-    monotone = ((fr + 2 * s2 * dfr) > 0).all(-1)
-    valid = torch.isfinite(err) & (err < 1e-9) & monotone
+    valid = torch.isfinite(err) & (err < 1e-9) & radial_monotone((x * x).sum(-1), d)
     return x * f + c, valid
+
+
+def radial_monotone(r2: torch.Tensor, dist_coeffs: torch.Tensor) -> torch.Tensor:
+    """(...,) bool: OpenCV's radial map r -> r F(r^2) increases from the centre out to r, r2 = r^2 (normalised).
+
+    ``d(r F(r^2)) / dr = F + 2 r^2 F' > 0`` at 16 radii evenly along [0, r]: where it fails the
+    model folds back, and no point beyond is its image.
+
+    Example:
+        >>> d = torch.tensor([-0.4, 0, 0, 0, 0], dtype=torch.float64)  # 1 - 3 * 0.4 r^2 > 0 below r^2 = 0.83
+        >>> radial_monotone(torch.tensor([0.5, 1.0], dtype=torch.float64), d).tolist()
+        [True, False]
+    """
+    d = torch.as_tensor(dist_coeffs, dtype=torch.float64, device=r2.device).reshape(-1)
+    t = torch.linspace(0.0625, 1.0, 16, dtype=torch.float64, device=r2.device)
+    s2 = r2[..., None] * t * t  # squared radii along the ray
+    fr, dfr = _radial(s2, torch.cat([d, d.new_zeros(5 - d.numel())]) if d.numel() < 5 else d)
+    return ((fr + 2 * s2 * dfr) > 0).all(-1)
 
 
 def grid_points(height: int, width: int, step: int) -> torch.Tensor:

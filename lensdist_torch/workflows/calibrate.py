@@ -194,7 +194,7 @@ def calibrate_path(
                                         "delta_max_user_interval", "relief_effect_px", "relief_z")}
     out.update({"path": str(path), "confidence": cfg.confidence, "class": cal.class_label, "reason": cal.reason or None,
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
-                "pairs_refitted": int(cal.pair_registered.sum()) if cal.pair_registered is not None else 0,
+                "pairs_refitted": int(cal.pair_refitted.sum()) if cal.pair_refitted is not None else 0,
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = or_defaults(settings, LensdistConfig, "settings")
