@@ -16,7 +16,9 @@ __all__ = ["add_calibrate_commands"]
 
 def _print_calibration(res: dict) -> None:
     (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
-    print(f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected")
+    unregistered = f" ({res['pairs_unregistered']} not registered)" if res.get("pairs_unregistered") else ""
+    print(f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected"
+          + unregistered)
     mv = res.get("multiview")
     if mv is not None and "model" not in mv:
         print(f"multi-view path: no answer ({mv['reason']})")

@@ -29,6 +29,11 @@ class CalibrationConfig:
             that decides which pairs count (``geometry/pooling.py``).
         max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
             pairs' lower quartile are rejected (a broken or foreign frame).
+        max_misfit: a pair counts only where its registration explains its frames: the RMS of its
+            photometrically corrected residual at most this share of sqrt(var_1 + var_2), the
+            frames' intensity variances (0: a perfect fit; about 0.7 for unrelated frames of that
+            contrast). Real views far apart that the fit could not register, 0.4-0.9, say anything
+            (docs/method.md, section 10); such pairs get the second start of ``registered_start``.
         jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
         systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
             pairs share (fitted on rendered sequences: docs/method.md, section 10).
@@ -47,8 +52,8 @@ class CalibrationConfig:
             the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
-        registered_start: the pairs the pooling would not count, or that lie more than 3 of their
-            own sigma from its value, are fitted again from their own registration
+        registered_start: the pairs the pooling would not count (unregistered ones included), or
+            that lie more than 3 of their own sigma from its value, are fitted again from their own registration
             (``estimate_homography_robust``: direct, then features + RANSAC) where it registers and
             its corners lie more than one pixel of the fit's coarsest level (2^(selfcal.levels - 1)
             px) from the phase correlation's translation; the refit replaces the first where its
@@ -74,6 +79,7 @@ class CalibrationConfig:
     outlier_mads: float = 4.0
     outlier_range: float = 2.0
     max_residual_ratio: float = 3.0
+    max_misfit: float = 0.4
     jackknife_blocks: int = 8
     systematic_rel: float = 1e-3
     relief_rel: float = 0.8
@@ -98,7 +104,7 @@ class CalibrationConfig:
             raise ValueError(f"calibration.motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, "
                              f"got {show(steps)}")
         object.__setattr__(self, "motion_steps", tuple(float(v) for v in steps))
-        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_class_halfwidth_px"):
+        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_misfit", "max_class_halfwidth_px"):
             real(self, name, lo=0, lo_open=True)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "systematic_rel", lo=0, hi=1, hi_open=True)

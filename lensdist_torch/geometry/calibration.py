@@ -13,7 +13,9 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
 3. **Per pair**, :func:`~lensdist_torch.geometry.selfcal.estimate_distortion` (batched, from the
    pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
    where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
-   diverged or whose residual exceeds ``max_residual_ratio`` times the lower quartile's drop.
+   diverged or whose residual exceeds ``max_residual_ratio`` times the lower quartile's drop, or
+   that the fit did not register: residual RMS over ``max_misfit`` of sqrt(var_1 + var_2), the
+   frames' contrast (real views far apart stop in a wrong minimum and say anything there).
    With ``registered_start``, the pairs step 4 would not count, or that lie more than 3 of their
    own sigma_i from its value, are fitted again from their own registration where it lies far
    from the translation (:mod:`~lensdist_torch.geometry.sequence_fits`).
@@ -70,7 +72,9 @@ class SequenceCalibration(NamedTuple):
     relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
     answers| (user px), combined as the answers are, where significant (relief_z, its ratio to
     its jackknife std, at least ``relief_test``), else 0; pair_refitted (P,) bool: the pair was fitted
-    again from its own registration (``registered_start``) and that fit replaced the first.
+    again from its own registration (``registered_start``) and that fit replaced the first;
+    pair_misfit (P,): what the pair's registration leaves unexplained
+    (:func:`~lensdist_torch.geometry.sequence_fits.pair_misfit`; over ``max_misfit``: not registered, not used).
 
     Example:
         >>> cal = calibrate_sequence(torch.full((2, 1, 64, 64), 0.5))  # a still camera: no pair to use
@@ -100,6 +104,7 @@ class SequenceCalibration(NamedTuple):
     relief_effect_px: float = 0.0
     relief_z: float = 0.0
     pair_refitted: torch.Tensor | None = None
+    pair_misfit: torch.Tensor | None = None
 
 
 # ------------------------------------------------------------------ analysis size
@@ -322,15 +327,15 @@ def calibrate_sequence(
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     if cfg.registered_start and len(pairs):
         refitted = refit_from_registration(xa, pairs, shifts, fits, _doubtful(fits, xa, cfg, st), st, cfg)
-    ab, std, res, planar, relief = fits
-    std = reject_residuals(std, res, cfg)
-    return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief))._replace(pair_refitted=refitted)
+    ab, std, res, planar, relief, misfit = fits
+    std = reject_residuals(std, res, cfg, misfit)
+    return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief), misfit)._replace(pair_refitted=refitted)
 
 
 def _doubtful(fits, xa, cfg: CalibrationConfig, st: LensdistConfig) -> torch.Tensor:
     """(P,) bool: the pairs step 4 would not count, or that lie more than 3 of their own sigma from its value."""
     h, w = xa.shape[-2:]
-    lin, std = fits[0] @ _signed_mean(h, w, half_diagonal(h, w)), reject_residuals(fits[1], fits[2], cfg)
+    lin, std = fits[0] @ _signed_mean(h, w, half_diagonal(h, w)), reject_residuals(fits[1], fits[2], cfg, fits[5])
     weights, keep = pair_weights(lin, std, cfg, _failure_width((h, w), cfg, st))
     if not bool(keep.any()):
         return ~keep
@@ -361,7 +366,7 @@ def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple
 
 
 def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: LensdistConfig,
-            models: tuple[torch.Tensor, torch.Tensor] | None = None) -> SequenceCalibration:
+            models: tuple[torch.Tensor, torch.Tensor] | None = None, misfit: torch.Tensor | None = None) -> SequenceCalibration:
     """Combine the pairs, convert to the user's pixels, intervals and class."""
     (h, w), (hh, ww), (hc, wc) = xa.shape[-2:], size, st.image.size
     ra, rc = half_diagonal(h, w), half_diagonal(hc, wc)
@@ -384,7 +389,10 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     if len(pairs) == 0:
         reason = no_pairs_reason(xa, cfg)
     elif n_used < cfg.min_pairs:
-        reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}"
+        unregistered = 0 if misfit is None else int((~(misfit <= cfg.max_misfit)).sum())
+        reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}" + (
+            f" ({unregistered} of {len(pairs)} pairs not registered: their residual is over {cfg.max_misfit} of their "
+            "frames' contrast, views too far apart or too different)" if unregistered else "")
     elif not half[2] <= cfg.max_class_halfwidth_px:
         reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
     elif dc - half[2] < st.analysis.no_distortion_px <= dc + half[2]:  # R's bin is narrower than any interval here
@@ -394,4 +402,5 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
         label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
     return SequenceCalibration(k2u, k4u, d_avg, iv_avg, d_max, iv_max, label, reason, n_used, len(pairs) - n_used,
                                xa.shape[0], (hh, ww), (h, w), scale, (a, b), pairs, (ab @ fun[0]).abs(), std, keep,
-                               found, min(relief_z, 1e6))
+                               found, min(relief_z, 1e6), None,
+                               torch.full((len(pairs),), float("nan"), dtype=torch.float64) if misfit is None else misfit)

@@ -26,7 +26,29 @@ from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 
-__all__ = ["fit_pairs", "refit_from_registration", "reject_residuals"]
+__all__ = ["fit_pairs", "pair_misfit", "refit_from_registration", "reject_residuals"]
+
+
+def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
+    """How much of a pair its registration leaves unexplained: residual / sqrt(var(a) + var(b)), (n,) float64.
+
+    ``residual`` is each pair's RMS photometrically corrected residual (``SelfCalInfo.residual``)
+    and var the intensity variance over each whole frame: 0 for a perfect fit, about 0.7 for two
+    unrelated frames of that contrast (the photometric gain then fits nothing and the residual is
+    the second frame's own spread), inf for two flat frames.
+
+    Args:
+        a: (n, 1, h, w) the pairs' first frames.
+        b: (n, 1, h, w) their second frames.
+        residual: (n,) their residuals.
+
+    Example:
+        >>> a = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(0))  # var 1/12
+        >>> pair_misfit(a, a, torch.tensor([0.0, 0.2])).round(decimals=2).tolist()  # 0.2 / sqrt(2 / 12)
+        [0.0, 0.49]
+    """
+    contrast = (a.double().var(dim=(1, 2, 3), correction=0) + b.double().var(dim=(1, 2, 3), correction=0)).sqrt().cpu()
+    return torch.where(contrast > 0, residual.double().cpu() / contrast.clamp_min(1e-300), torch.tensor(float("inf"), dtype=torch.float64))
 
 
 def _translations(shifts: torch.Tensor) -> torch.Tensor:
@@ -37,20 +59,21 @@ def _translations(shifts: torch.Tensor) -> torch.Tensor:
 
 
 def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
-    """One batch of pairs from the starts ``init``: (a, b), std, residual, planar and relief (a, b) on the CPU, NaN / inf where dropped."""
+    """One batch of pairs from the starts ``init``: (a, b), std, residual, planar and relief (a, b), misfit on the CPU, NaN / inf where dropped."""
     info = estimate_distortion(a, b, init, selfcal, validate=False)[3]
     # the fit runs on the frames' device; its few numbers per pair come back to the CPU
     ab, std, res, planar, relief = (x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual,
                                                                 info.planar_ab, info.relief_ab))
+    misfit = pair_misfit(a, b, res)
     ok = info.converged.cpu() & torch.isfinite(std)
     nan, inf = torch.tensor(float("nan"), dtype=torch.float64), torch.tensor(float("inf"), dtype=torch.float64)
     relief = torch.where(torch.isfinite(relief), relief, ab)
     return (torch.where(ok[:, None], ab, nan), torch.where(ok, std, inf), torch.where(ok, res, inf),
-            torch.where(ok[:, None], planar, nan), torch.where(ok[:, None], relief, nan))
+            torch.where(ok[:, None], planar, nan), torch.where(ok[:, None], relief, nan), torch.where(ok, misfit, inf))
 
 
 def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
-    """Step 3 per pair, from the phase correlation's translations: [(a, b) (P, 2), std (P,), residual (P,), planar, relief]."""
+    """Step 3 per pair, from the phase correlation's translations: [(a, b) (P, 2), std (P,), residual (P,), planar, relief, misfit (P,)]."""
     selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)  # the sequence path's relief model
     parts = []
     for s in range(0, len(pairs), cfg.batch_size):
@@ -61,7 +84,8 @@ def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationC
             progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
     if not parts:
         return [torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, dtype=torch.float64),
-                torch.zeros(0, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64)]
+                torch.zeros(0, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64),
+                torch.zeros(0, dtype=torch.float64)]
     return [torch.cat(x) for x in zip(*parts)]
 
 
@@ -93,8 +117,10 @@ def refit_from_registration(frames, pairs, shifts, fits, retry, settings: Lensdi
     return refitted
 
 
-def reject_residuals(std, res, cfg: CalibrationConfig) -> torch.Tensor:
-    """Step 3: inf std for pairs whose residual exceeds ``max_residual_ratio`` times the lower quartile."""
+def reject_residuals(std, res, cfg: CalibrationConfig, misfit: torch.Tensor | None = None) -> torch.Tensor:
+    """Step 3: inf std for pairs whose residual exceeds ``max_residual_ratio`` times the lower quartile, or whose ``misfit`` (:func:`pair_misfit`) exceeds ``max_misfit`` (not registered)."""
+    if misfit is not None:
+        std = torch.where(misfit <= cfg.max_misfit, std, float("inf"))
     if not bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many
         return std
     return torch.where(res <= cfg.max_residual_ratio * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))

@@ -150,6 +150,7 @@ def calibrate_path(
         analysis_size, scale, k2_user, k4_user, delta_avg_user_px, delta_avg_user_interval,
         delta_max_user_px, delta_max_user_interval, confidence, class, reason, pairs_used,
         pairs_rejected, pairs_refitted (pairs fitted again from their own registration),
+        pairs_unregistered (pairs whose fit did not register them, ``calibration.max_misfit``; among the rejected),
         relief_effect_px and relief_z (the direct path's: how far its plane +
         parallax and planar answers part, and in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors),
         method (which path answered), direct and multiview (each path's own numbers).
@@ -195,6 +196,7 @@ def calibrate_path(
     out.update({"path": str(path), "confidence": cfg.confidence, "class": cal.class_label, "reason": cal.reason or None,
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
                 "pairs_refitted": int(cal.pair_refitted.sum()) if cal.pair_refitted is not None else 0,
+                "pairs_unregistered": int((~(cal.pair_misfit <= cfg.max_misfit)).sum()) if cal.pair_misfit is not None else 0,
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = or_defaults(settings, LensdistConfig, "settings")

@@ -9,16 +9,20 @@ motion of a hand-held camera, with a truth. ``calibrate_sequence`` must cover th
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
 import torch
 
-from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.core import load_image
+from lensdist_torch.core.images import load_scene, to_grey
 from lensdist_torch.data.relens import relens_frames
 from lensdist_torch.geometry import calibrate_sequence
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, estimated_class, paper_frame_delta_avg
+from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry.sequence_fits import pair_misfit
 
 REAL = Path(__file__).parents[1] / "data" / "real" / "gopro_hero4_wall"
 
@@ -46,3 +50,37 @@ def test_real_views_through_a_known_lens(views, k2):
         cfg = LensdistConfig()
         paper = torch.tensor([paper_frame_delta_avg(k2, 0.0, (240, 320), cfg)])  # the same lens at 320 x 424
         assert res.class_label == CLASS_LABELS[int(estimated_class(paper, paper, "delta_avg", cfg)[0])]
+
+
+# ------------------------------------------------------------------ registered or not: the misfit
+def test_pair_misfit_by_hand():
+    # a 0/1 checkerboard has variance 1/4: two of them sqrt(1/2); a residual RMS of 0.3536 is half that
+    board = (torch.arange(64).view(8, 8) % 2 ^ torch.arange(64).view(8, 8) // 8 % 2).double().view(1, 1, 8, 8)
+    flat = torch.full((1, 1, 8, 8), 0.5, dtype=torch.float64)
+    got = pair_misfit(torch.cat([board, board, flat]), torch.cat([board, board, flat]), torch.tensor([0.0, 0.5**1.5, 0.1], dtype=torch.float64))
+    assert got[:2].tolist() == pytest.approx([0.0, 0.5], abs=1e-12) and got[2] == math.inf  # flat frames: nothing registered
+
+
+def test_a_registered_real_pair_has_a_low_misfit_and_an_unrelated_one_a_high(views):
+    # a real view and itself moved by 12 px is registered (misfit near the noise's); a real view and a
+    # rendered gravel scene are not (about sqrt(1/2) of their contrast is left: the gain fits nothing)
+    frames, _ = views
+    a = to_grey(frames[:1]).float()
+    b = torch.roll(a, shifts=(0, -12), dims=(2, 3))
+    other = to_grey(load_scene("gravel")).float()[..., : a.shape[-2], : a.shape[-1]]
+    init = torch.eye(3, dtype=torch.float64).repeat(2, 1, 1)
+    init[0, 0, 2] = 12.0
+    info = estimate_distortion(torch.cat([a, a]), torch.cat([b, other]), init)[3]
+    misfit = pair_misfit(torch.cat([a, a]), torch.cat([b, other]), info.residual)
+    cfg = CalibrationConfig()
+    assert float(misfit[0]) < 0.1 < cfg.max_misfit < 0.55 < float(misfit[1]) < 1.0
+
+
+@pytest.mark.slow
+def test_unregistered_pairs_do_not_count_and_the_reason_says_so(views):
+    # with a misfit limit no pair meets, none counts, and the answer names the registration as the cause
+    frames, cal = views
+    out = relens_frames(frames, cal["K"], cal["dist"], 2e-6, 0.0)
+    res = calibrate_sequence(out.frames, CalibrationConfig(max_misfit=0.02, registered_start=False))
+    assert res.pairs_used == 0 and not bool(res.pair_used.any()) and bool((res.pair_misfit > 0.02).all())
+    assert res.class_label is None and "not registered" in res.reason and f"{len(res.pairs)} of {len(res.pairs)}" in res.reason
