@@ -92,10 +92,12 @@ def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationC
 def refit_from_registration(frames, pairs, shifts, fits, retry, settings: LensdistConfig, cfg: CalibrationConfig) -> torch.Tensor:
     """Step 3's second start: the pairs ``retry`` (P,) bool refitted from their own registration, in place.
 
-    A pair is refitted where ``estimate_homography_robust`` registers it and its corners lie more
-    than one pixel of the fit's coarsest level from the translation start (that start could not
-    reach the right minimum); the refit keeps the better of that start and the phase correlation's
-    and replaces the first fit where its residual is lower. Returns the refitted pairs (P,) bool.
+    A pair is refitted where the homography of ``estimate_homography_robust`` (converged or not:
+    on real views far apart its direct run often stops short of its own checks yet near the
+    answer) is finite and its corners lie more than one pixel of the fit's coarsest level from
+    the translation start (that start could not reach the right minimum); the refit keeps the
+    better of that start and the phase correlation's and replaces the first fit where its
+    residual is lower. Returns the refitted pairs (P,) bool.
     """
     selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
@@ -103,9 +105,11 @@ def refit_from_registration(frames, pairs, shifts, fits, retry, settings: Lensdi
     for s in range(0, len(idx), cfg.batch_size):
         rows = idx[s : s + cfg.batch_size]
         a, b = frames[pairs[rows, 0]], frames[pairs[rows, 1]]
-        h, reg = estimate_homography_robust(a, b, config=settings.registration, validate=False)
-        h = h.double().cpu()
-        far = reg.converged.cpu() & (corner_error(torch.nan_to_num(h), _translations(shifts[rows]), *frames.shape[-2:]) > 2 ** (selfcal.levels - 1))
+        h = estimate_homography_robust(a, b, config=settings.registration, validate=False)[0].double().cpu()
+        # a registration that did not pass its own checks is still a start: the refit keeps the better one
+        # and the misfit gate judges the result (real views far apart: docs/method.md, section 10)
+        finite = torch.isfinite(h).flatten(1).all(1)
+        far = finite & (corner_error(torch.nan_to_num(h), _translations(shifts[rows]), *frames.shape[-2:]) > 2 ** (selfcal.levels - 1))
         if not bool(far.any()):
             continue
         sub = rows[far]

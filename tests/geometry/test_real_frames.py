@@ -35,7 +35,8 @@ def views(one_thread_module):
 
 @pytest.mark.slow
 # Delta_avg 0, 3.58 and 14.33 px at 320 x 240; before the pooling and the second start these views gave
-# 0.06, 2.18 and 5.70 px (the last two outside the tolerance below), now 0.06, 3.66 and 12.80
+# 0.06, 2.18 and 5.70 px (the last two outside the tolerance below), then 0.06, 3.66 and 12.80; with the
+# misfit gate (calibration.max_misfit: 11-13 of the 15-16 pairs unregistered) 0.06, 3.68 and 15.76 [0, 35.73]
 @pytest.mark.parametrize("k2", [0.0, 2e-6, 8e-6])
 def test_real_views_through_a_known_lens(views, k2):
     frames, cal = views
