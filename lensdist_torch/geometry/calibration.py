@@ -55,7 +55,7 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_ma
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pooling import pair_weights, pool_pairs, within_mads
-from lensdist_torch.geometry.sequence_fits import fit_pairs, refit_from_registration, reject_residuals
+from lensdist_torch.geometry.sequence_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
            "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION"]
@@ -329,7 +329,7 @@ def calibrate_sequence(
         refitted = refit_from_registration(xa, pairs, shifts, fits, _doubtful(fits, xa, cfg, st), st, cfg)
     ab, std, res, planar, relief, misfit = fits
     std = reject_residuals(std, res, cfg, misfit)
-    return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief), misfit)._replace(pair_refitted=refitted)
+    return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief), misfit, refitted)
 
 
 def _doubtful(fits, xa, cfg: CalibrationConfig, st: LensdistConfig) -> torch.Tensor:
@@ -366,7 +366,8 @@ def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple
 
 
 def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: LensdistConfig,
-            models: tuple[torch.Tensor, torch.Tensor] | None = None, misfit: torch.Tensor | None = None) -> SequenceCalibration:
+            models: tuple[torch.Tensor, torch.Tensor] | None = None, misfit: torch.Tensor | None = None,
+            refitted: torch.Tensor | None = None) -> SequenceCalibration:
     """Combine the pairs, convert to the user's pixels, intervals and class."""
     (h, w), (hh, ww), (hc, wc) = xa.shape[-2:], size, st.image.size
     ra, rc = half_diagonal(h, w), half_diagonal(hc, wc)
@@ -389,10 +390,10 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     if len(pairs) == 0:
         reason = no_pairs_reason(xa, cfg)
     elif n_used < cfg.min_pairs:
-        unregistered = 0 if misfit is None else int((~(misfit <= cfg.max_misfit)).sum())
+        failed = 0 if misfit is None else int(unregistered(misfit, cfg).sum())
         reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}" + (
-            f" ({unregistered} of {len(pairs)} pairs not registered: their residual is over {cfg.max_misfit} of their "
-            "frames' contrast, views too far apart or too different)" if unregistered else "")
+            f" ({failed} of {len(pairs)} pairs not registered: their residual is over {cfg.max_misfit} of their "
+            "frames' contrast, views too far apart or too different)" if failed else "")
     elif not half[2] <= cfg.max_class_halfwidth_px:
         reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
     elif dc - half[2] < st.analysis.no_distortion_px <= dc + half[2]:  # R's bin is narrower than any interval here
@@ -402,5 +403,4 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
         label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
     return SequenceCalibration(k2u, k4u, d_avg, iv_avg, d_max, iv_max, label, reason, n_used, len(pairs) - n_used,
                                xa.shape[0], (hh, ww), (h, w), scale, (a, b), pairs, (ab @ fun[0]).abs(), std, keep,
-                               found, min(relief_z, 1e6), None,
-                               torch.full((len(pairs),), float("nan"), dtype=torch.float64) if misfit is None else misfit)
+                               found, min(relief_z, 1e6), refitted, misfit)

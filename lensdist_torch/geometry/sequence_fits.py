@@ -26,7 +26,7 @@ from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 
-__all__ = ["fit_pairs", "pair_misfit", "refit_from_registration", "reject_residuals"]
+__all__ = ["fit_pairs", "pair_misfit", "unregistered", "refit_from_registration", "reject_residuals"]
 
 
 def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
@@ -49,6 +49,16 @@ def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> tor
     """
     contrast = (a.double().var(dim=(1, 2, 3), correction=0) + b.double().var(dim=(1, 2, 3), correction=0)).sqrt().cpu()
     return torch.where(contrast > 0, residual.double().cpu() / contrast.clamp_min(1e-300), torch.tensor(float("inf"), dtype=torch.float64))
+
+
+def unregistered(misfit: torch.Tensor, cfg: CalibrationConfig) -> torch.Tensor:
+    """(P,) bool: the pairs whose :func:`pair_misfit` exceeds ``max_misfit`` (or is NaN): the fit did not register them.
+
+    Example:
+        >>> unregistered(torch.tensor([0.1, 0.6, float("inf")]), CalibrationConfig()).tolist()
+        [False, True, True]
+    """
+    return ~(misfit <= cfg.max_misfit)
 
 
 def _translations(shifts: torch.Tensor) -> torch.Tensor:
@@ -124,7 +134,7 @@ def refit_from_registration(frames, pairs, shifts, fits, retry, settings: Lensdi
 def reject_residuals(std, res, cfg: CalibrationConfig, misfit: torch.Tensor | None = None) -> torch.Tensor:
     """Step 3: inf std for pairs whose residual exceeds ``max_residual_ratio`` times the lower quartile, or whose ``misfit`` (:func:`pair_misfit`) exceeds ``max_misfit`` (not registered)."""
     if misfit is not None:
-        std = torch.where(misfit <= cfg.max_misfit, std, float("inf"))
+        std = torch.where(unregistered(misfit, cfg), float("inf"), std)
     if not bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many
         return std
     return torch.where(res <= cfg.max_residual_ratio * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))

@@ -38,6 +38,7 @@ from lensdist_torch.geometry.calibration import (
 )
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
 from lensdist_torch.geometry.opencv_model import opencv_export
+from lensdist_torch.geometry.sequence_fits import unregistered
 from lensdist_torch.workflows.multiview import MIN_FRAMES, combine, multiview_path
 from lensdist_torch.workflows.verify import verdict, verify_undistortion
 
@@ -196,7 +197,7 @@ def calibrate_path(
     out.update({"path": str(path), "confidence": cfg.confidence, "class": cal.class_label, "reason": cal.reason or None,
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
                 "pairs_refitted": int(cal.pair_refitted.sum()) if cal.pair_refitted is not None else 0,
-                "pairs_unregistered": int((~(cal.pair_misfit <= cfg.max_misfit)).sum()) if cal.pair_misfit is not None else 0,
+                "pairs_unregistered": int(unregistered(cal.pair_misfit, cfg).sum()),
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = or_defaults(settings, LensdistConfig, "settings")
