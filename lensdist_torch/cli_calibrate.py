@@ -25,6 +25,13 @@ def _print_calibration(res: dict) -> None:
     elif mv is not None:
         print(f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, camera model {mv['model']} "
               f"(by BIC), reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px")
+    pl = res.get("planar")
+    if pl is not None and "terms" not in pl:
+        print(f"homography model: no answer ({pl['reason']})")
+    elif pl is not None:
+        print(f"homography model: {pl['pairs']} pairs, {pl['inliers']} of {pl['matches']} matches on one homography per "
+              f"pair, {pl['terms']} radial terms (by BIC), RMS {pl['reprojection_px']:.2f} px, Delta_avg "
+              f"{pl['delta_avg_user_px']:.2f} px ({pl['class'] or 'cannot tell: ' + str(pl['reason'])})")
     print(f"answer from: {res['method']}")
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import flag, integer, names, real, show
+from lensdist_torch.config.checks import flag, integer, names, pair, real, show
 
 __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
@@ -163,6 +163,20 @@ class MultiViewConfig:
         num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
             and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
         seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
+        planar_terms: the homography model's radial terms at most (1 .. this many fitted, BIC
+            chooses; :mod:`~lensdist_torch.geometry.planar_features`); 0: no homography model.
+        planar_scan_range: the first radial term's start values, from and to (normalised frame).
+        planar_scan_steps: start values tried, evenly spaced over ``planar_scan_range``.
+        planar_ransac_px: LO-RANSAC's threshold (px) for each pair's homography at a start value.
+        planar_inlier_px: a match within this transfer error (px) of the first fit is an inlier.
+        planar_min_matches: a pair needs this many verified matches (and inliers) to count.
+        planar_min_pairs: fewer counting pairs: the homography model has no answer.
+        planar_min_inlier_share: under this share of the verified matches on one homography per
+            pair: not a plane (nor a turning camera), no class.
+        planar_iterations: Levenberg-Marquardt iterations at most per fit.
+        planar_max_relief_z: the homography model answers only where the direct path's plane +
+            parallax test finds no relief beyond this z (``relief_z``): under one homography per
+            pair a scene's relief passes for distortion.
 
     Example:
         >>> MultiViewConfig().models
@@ -193,6 +207,16 @@ class MultiViewConfig:
     extra_mappings: int = 3
     num_threads: int = 2
     seed: int = 0
+    planar_terms: int = 3
+    planar_scan_range: tuple[float, float] = (-0.3, 1.5)
+    planar_scan_steps: int = 19
+    planar_ransac_px: float = 2.0
+    planar_inlier_px: float = 3.0
+    planar_min_matches: int = 15
+    planar_min_pairs: int = 4
+    planar_min_inlier_share: float = 0.3
+    planar_iterations: int = 100
+    planar_max_relief_z: float = 2.0
 
     def __post_init__(self) -> None:
         names(self, "models")
@@ -202,8 +226,15 @@ class MultiViewConfig:
         for name, lo in (("max_image_side", 64), ("max_features", 64), ("exhaustive_below", 2), ("sequential_overlap", 1),
                          ("mapped_frames", 3),
                          ("jackknife_blocks", 2), ("reconstructions", 1),
-                         ("extra_mappings", 0), ("num_threads", 1), ("seed", 0)):
+                         ("extra_mappings", 0), ("num_threads", 1), ("seed", 0), ("planar_terms", 0),
+                         ("planar_scan_steps", 1), ("planar_min_matches", 8), ("planar_min_pairs", 1),
+                         ("planar_iterations", 1)):
             integer(self, name, lo=lo)
+        pair(self, "planar_scan_range")
+        real(self, "planar_ransac_px", lo=0, lo_open=True)
+        real(self, "planar_inlier_px", lo=0, lo_open=True)
+        real(self, "planar_min_inlier_share", lo=0, hi=1)
+        real(self, "planar_max_relief_z", lo=0)
         real(self, "min_registered", lo=0, hi=1, lo_open=True)
         real(self, "bic_margin", lo=0)
         real(self, "rms_margin", lo=0)

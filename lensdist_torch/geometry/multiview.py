@@ -153,7 +153,8 @@ def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = No
 
 
 def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None,
-                stop: Callable[[int, object], bool] | None = None, image_size: tuple[int, int] | None = None) -> list:
+                stop: Callable[[int, object], bool] | None = None, image_size: tuple[int, int] | None = None,
+                on_matches: Callable[[Path], None] | None = None) -> list:
     """COLMAP's sparse reconstructions of frames ``names`` in ``image_dir`` (module docstring, step 1).
 
     The features and the verified matches are computed once (geometric verification seeded by
@@ -170,6 +171,9 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
             first: 40-45 s on 22 frames of 384 x 288 on 2 cores). With ``stop`` up to
             ``reconstructions + extra_mappings`` mappings run, without it ``reconstructions``.
         image_size: the frames' (H, W), for the features' cap (:func:`feature_cap`); None: ``max_features``.
+        on_matches: called with the database's path once the features and verified matches are in
+            it, before the first mapping (the homography model reads them:
+            :func:`~lensdist_torch.geometry.planar_features.read_verified_matches`).
 
     Returns:
         Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
@@ -199,6 +203,8 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
                 pairing.overlap = cfg.sequential_overlap
                 pc.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                     verification_options=verification, device=pc.Device.cpu)
+        if on_matches is not None:
+            on_matches(db)
         for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
             pc.set_random_seed(cfg.seed + i)
             mapping = pc.IncrementalPipelineOptions()

@@ -43,7 +43,7 @@ import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
-__all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_export", "opencv_distort_normalized", "opencv_undistort_points",
+__all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_undistort_points",
            "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points"]
 
 MODELS = ("standard", "rational")
@@ -162,6 +162,33 @@ def opencv_camera(
         >>> cam.dist_coeffs.shape, cam.fit_error_mean_px < 0.05
         (torch.Size([5]), True)
     """
+    k2 = torch.as_tensor(k2, dtype=torch.float64).reshape(-1)[:1]
+    k4 = torch.as_tensor(k4, dtype=torch.float64).reshape(-1)[:1]
+    centre = distortion_center(height, width) if type(height) is int and type(width) is int else (0.0, 0.0)
+    return opencv_camera_from_map(lambda pd: undistort_points(pd[None], k2, k4, centre)[0], height, width, focal, model, step)
+
+
+def opencv_camera_from_map(
+    ideal, height: int, width: int, focal: float | None = None, model: str = "standard", step: int = 4
+) -> OpenCVCamera:
+    """Fit OpenCV's K and dist_coeffs to any radial lens map about the frame centre (module docstring, steps 1-4).
+
+    Args:
+        ideal: a function from (N, 2) float64 distorted pixels to their (N, 2) ideal pixels.
+        height: the frame's height; its centre is K's (cx, cy).
+        width: the frame's width.
+        focal: fx = fy in pixels; the half diagonal when None.
+        model: "standard" (k1, k2, 0, 0, k3) or "rational" (k1, k2, 0, 0, k3, k4, k5, k6).
+        step: spacing in pixels of the fitting and verification grid.
+
+    Returns:
+        :class:`OpenCVCamera`.
+
+    Example:
+        >>> cam = opencv_camera_from_map(lambda p: p, 120, 160)  # the identity: no distortion
+        >>> float(cam.dist_coeffs.abs().max()), cam.fit_error_max_px < 1e-9
+        (0.0, True)
+    """
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     if not (type(height) is int and type(width) is int and height > 1 and width > 1):
@@ -171,13 +198,11 @@ def opencv_camera(
     f = 0.5 * math.hypot(width - 1, height - 1) if focal is None else float(focal)
     if not (math.isfinite(f) and f > 0):
         raise ValueError(f"focal must be a positive number of pixels, got {focal!r}")
-    k2 = torch.as_tensor(k2, dtype=torch.float64).reshape(-1)[:1]
-    k4 = torch.as_tensor(k4, dtype=torch.float64).reshape(-1)[:1]
     centre = distortion_center(height, width)
     xs = torch.cat([torch.arange(0, width - 1, step, dtype=torch.float64), torch.tensor([width - 1.0], dtype=torch.float64)])
     ys = torch.cat([torch.arange(0, height - 1, step, dtype=torch.float64), torch.tensor([height - 1.0], dtype=torch.float64)])
     pd = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
-    p = undistort_points(pd[None], k2, k4, centre)[0]
+    p = ideal(pd)
     c = torch.tensor(centre, dtype=torch.float64)
     x, xd = (p - c) / f, (pd - c) / f
     a = _design(x, xd, model) * f

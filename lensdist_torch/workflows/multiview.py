@@ -35,8 +35,9 @@ from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.geometry.multiview_runs import combine_reconstructions
+from lensdist_torch.geometry.planar_features import read_verified_matches, self_calibrate_planar
 
-__all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "combine"]
+__all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "planar_path", "combine"]
 
 #: Image files COLMAP reads as they are; other frames are written as PNG first.
 COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -113,7 +114,11 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         if len(names) < MIN_FRAMES:
             return {"ok": False, "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}"}
         least = max(MIN_FRAMES, math.ceil(cfg.min_registered * len(names)))
-        runs, got, skipped = [], 0, []
+        runs, got, skipped, planar = [], 0, [], {}
+
+        def homography_model(database: Path) -> None:  # the same matches, before any mapping
+            if cfg.planar_terms:
+                planar["answer"] = planar_path(database, names, image_size, cfg, settings)
 
         def take(i: int, rec) -> bool:  # one mapping's answer; True: the remaining mappings are skipped
             nonlocal got
@@ -139,12 +144,27 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
                 bar.update(1)
                 return done
 
-            reconstruct(folder, names, cfg, stop=step, image_size=tuple(image_size))
+            reconstruct(folder, names, cfg, stop=step, image_size=tuple(image_size), on_matches=homography_model)
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
-                                           f"registered at most{tries} (at least {least} needed)"}
+                                           f"registered at most{tries} (at least {least} needed)",
+                    "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
         res = combine_reconstructions(runs, cfg, skipped=skipped)
+    return {"ok": True, **res._asdict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
+
+
+def planar_path(database: Path, names: list[str], image_size: tuple[int, int], config: MultiViewConfig,
+                settings: LensdistConfig | None) -> dict:
+    """The homography model on a COLMAP database's verified matches, as a strict-JSON-ready dict.
+
+    ``ok`` False with a ``reason`` where it has no answer (too few pairs of matches); otherwise the
+    fields of :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration`.
+    """
+    matches = read_verified_matches(database, names, config.planar_min_matches)
+    res = self_calibrate_planar(matches, image_size, config, settings)
+    if not math.isfinite(res.delta_avg_user_px):
+        return {"ok": False, "reason": res.reason}
     return {"ok": True, **res._asdict()}
 
 
@@ -175,8 +195,37 @@ _KEYS = ("class", "reason", "delta_avg_user_px", "delta_avg_user_interval", "del
 def combine(direct: dict, mv: dict | None) -> dict:
     """One answer from the direct result (``calibrate_path``'s dict) and the multi-view one (or None).
 
-    Adds ``method`` (which path answered), ``direct`` and ``multiview`` (each path's own numbers).
+    Adds ``method`` (which path answered), ``direct``, ``multiview`` and ``planar`` (each path's
+    own numbers). The homography model (``mv["planar"]``) answers only where the other two give
+    no class, with a class of its own and an interval that meets each of theirs.
     """
+    out = _combine_two(direct, mv)
+    planar = (mv or {}).get("planar")
+    out["planar"] = None if planar is None else (
+        {"reason": planar["reason"]} if not planar["ok"] else
+        {"class": planar["class_label"], "reason": planar["reason"] or None, "terms": planar["terms"],
+         **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "reprojection_px", "models", "jackknife",
+                                   "coefficients", "invertible_fraction", "eq4_fit_error_px")}})
+    if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
+        return out
+    z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)
+    if z is None or not math.isfinite(z) or z > most:  # relief imitates distortion under one homography per pair
+        out["planar"]["reason"] = ("relief: the direct path's plane + parallax test " + (
+            f"finds relief (z = {z:.1f}, at most {most:g})" if z is not None and math.isfinite(z) else "could not run"))
+        return out
+    iv = tuple(planar["delta_avg_user_interval"])
+    others = [tuple(x["delta_avg_user_interval"]) for x in (out["direct"], out.get("multiview") or {})
+              if x.get("delta_avg_user_interval") is not None and None not in x["delta_avg_user_interval"]]
+    if not all(_overlap(iv, o) for o in others):
+        return out
+    out.update({k: planar[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
+    out.update(method="planar", camera_model=f"planar-{planar['terms']}", opencv=planar["opencv"], opencv_rational=None,
+               **{"class": planar["class_label"], "reason": None})
+    return out
+
+
+def _combine_two(direct: dict, mv: dict | None) -> dict:
+    """The direct and the multi-view answers combined (module docstring), the homography model aside."""
     out = dict(direct)
     out["direct"] = _summary(direct, _KEYS)
     if mv is None:

@@ -199,6 +199,38 @@ def test_direct_answers_where_multiview_cannot():
     assert kept["method"] == "direct" and kept["delta_avg_user_px"] == 5.0 and "numbers are the direct" in kept["reason"]
 
 
+def _planar(cls, d, lo, hi):
+    return {"ok": True, "class_label": cls, "reason": "" if cls else "interval too wide: +-9 px", "terms": 3,
+            "delta_avg_user_px": d, "delta_avg_user_interval": (lo, hi), "delta_max_user_px": 4 * d,
+            "delta_max_user_interval": (4 * lo, 4 * hi), "invertible_fraction": 1.0, "eq4_fit_error_px": 2.9,
+            "k2_user": 7e-7, "k4_user": 1e-12, "pairs": 41, "inliers": 1133, "matches": 4925, "reprojection_px": 0.83,
+            "models": {}, "jackknife": [], "coefficients": [0.59, 0.1, 0.33],
+            "opencv": {"camera_matrix": [[800.0, 0, 639.5], [0, 800.0, 479.5], [0, 0, 1]], "dist_coeffs": [-0.4, 0.1, 0, 0, 0],
+                       "fit_error_mean_px": 9.7, "fit_error_max_px": 30.0}}
+
+
+def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_relief_is_found():
+    direct = {**_direct(None, 61.5, 0.0, 172.0), "relief_z": 0.1}
+    mv = {**_mv(None, 116.0, 0.0, 272.4), "planar": _planar("4", 134.2, 105.6, 162.8), "planar_max_relief_z": 2.0}
+    out = combine(direct, mv)
+    assert out["method"] == "planar" and out["class"] == "4" and out["reason"] is None
+    assert out["delta_avg_user_px"] == 134.2 and out["camera_model"] == "planar-3"
+    assert out["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["terms"] == 3
+    # relief found by the direct path's plane + parallax test: one homography per pair would absorb it
+    relief = combine({**direct, "relief_z": 5.6}, mv)
+    assert relief["method"] != "planar" and relief["class"] is None
+    assert relief["planar"]["reason"] == "relief: the direct path's plane + parallax test finds relief (z = 5.6, at most 2)"
+    # an interval that misses another path's: no answer from it
+    apart = combine({**_direct(None, 20.0, 10.0, 30.0), "relief_z": 0.1}, mv)
+    assert apart["method"] != "planar" and apart["class"] is None
+    # a path with a class keeps its answer
+    kept = combine({**_direct("3", 9.0, 8.8, 9.2), "relief_z": 0.1}, {**mv, "planar": _planar("4", 9.1, 8.0, 10.0)})
+    assert kept["method"] == "direct" and kept["class"] == "3" and kept["planar"]["class"] == "4"
+    # no answer of its own: its reason is kept
+    none = combine(direct, {**mv, "planar": {"ok": False, "reason": "too few matched pairs: 2 of at least 4"}})
+    assert none["planar"] == {"reason": "too few matched pairs: 2 of at least 4"} and none["method"] != "planar"
+
+
 def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
     from lensdist_torch.workflows.multiview import multiview_path
 

@@ -26,6 +26,8 @@ LAYERS = [
     ("geometry.pooling", 2),
     ("geometry.wide_baseline", 2),
     ("geometry.multiview", 2),
+    ("geometry.planar_features", 2),
+    ("geometry.planar_model", 2),
     ("geometry.", 1),
     ("classify.", 2),
     ("data.", 3),

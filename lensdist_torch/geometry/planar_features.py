@@ -1,0 +1,353 @@
+"""A camera's lens distortion from feature matches between views of a plane (or a turning camera).
+
+Where the scene is a plane (a wall, a floor, a document, a seabed seen from high up) or the
+camera only turns, two undistorted views are one homography apart, so a shared radial lens and
+one homography per pair explain every correct match. This is the direct path's model
+(:mod:`~lensdist_torch.geometry.calibration`) fitted to COLMAP's feature matches instead of
+intensities: it registers views that are far apart (the direct path's start, a translation, does
+not reach them) and follows lenses beyond eq. 4's two terms. docs/method.md, section 12.
+
+The lens: the ideal point of a pixel p is
+
+    p_ideal = c + (p - c) (1 + a_1 r^2 + a_2 r^4 + ... + a_n r^(2n)),   r = |p - c| / R,
+
+c the frame centre, R its half diagonal; with n = 2 this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
+
+1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.geometry.multiview.reconstruct`
+   computes them once for the mappings too), pairs with at least ``planar_min_matches``.
+2. **Start**: a_1 over ``planar_scan`` (the other terms 0); for each, every pair's homography by
+   COLMAP's LO-RANSAC (``pycolmap.estimate_homography_matrix``, ``planar_ransac_px``) on the
+   undistorted points; the a_1 with the most inliers over all pairs starts, with each pair's
+   homography and inliers. On repetitive texture (a chessboard) half of the epipolar-verified
+   matches are wrong, and only the homography tells them apart.
+3. **Fit**: Levenberg-Marquardt on the lens and every pair's homography together (the pairs'
+   8 x 8 blocks eliminated by the Schur complement), on the symmetric transfer error divided by
+   the lens's local scale (so, about, in the image's pixels); twice: the matches within
+   ``planar_inlier_px`` of the first fit are the inliers of the second.
+4. **The model by evidence**: n = 1 .. ``planar_terms`` on the same inliers, chosen by BIC (the
+   homographies are common to all); models within ``bic_margin``, or whose RMS is within
+   ``rms_margin`` of the best's, join the interval by their spread of Delta_avg
+   (:func:`~lensdist_torch.geometry.multiview.model_spread`).
+5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
+   frames (every pair with a frame of the block left out, the chosen model fitted again), t on
+   blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
+   is too wide (:func:`~lensdist_torch.geometry.multiview.interval_too_wide`), when fewer than
+   ``planar_min_pairs`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
+   the verified matches fit: the scene is not a plane and the camera did not only turn.
+6. **In the user's pixels and OpenCV's terms**: Delta over every pixel of the frame where the
+   lens map is monotone; eq. 4's (k2, k4) fitted to the map (``eq4_fit_error_px``); OpenCV's
+   K and dist_coeffs fitted to it (:func:`~lensdist_torch.geometry.opencv_model.opencv_camera_from_map`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error
+from lensdist_torch.geometry.opencv_model import grid_points, opencv_camera_from_map
+from lensdist_torch.geometry.planar_model import (
+    fit_lens_and_homographies,
+    lens_factor,
+    lens_ideal_points,
+    transfer_errors,
+    transfer_residuals,
+)
+from lensdist_torch.geometry.pooling import t_quantile
+
+__all__ = ["PlanarCalibration", "PlanarMatches", "read_verified_matches", "self_calibrate_planar"]
+
+
+class PlanarMatches(NamedTuple):
+    """Feature matches of a sequence, flat, in pixels with centres at integers.
+
+    x1, x2 (N, 2) float64: the matched points in frames first[pair] and second[pair]; pair (N,)
+    the pair of each match; first, second (P,) the frames' indices in ``names`` (recording order).
+
+    Example:
+        >>> p = torch.tensor([[10.0, 20.0]], dtype=torch.float64)
+        >>> m = PlanarMatches(p, p + 1, torch.tensor([0]), torch.tensor([0]), torch.tensor([1]), ("a.png", "b.png"))
+        >>> len(m.first), m.names[int(m.second[0])]
+        (1, 'b.png')
+    """
+
+    x1: torch.Tensor
+    x2: torch.Tensor
+    pair: torch.Tensor
+    first: torch.Tensor
+    second: torch.Tensor
+    names: tuple
+
+
+class PlanarCalibration(NamedTuple):
+    """The result of :func:`self_calibrate_planar`, in the user's pixels.
+
+    coefficients: a_1 .. a_n of the chosen model (module docstring); terms: n; k2_user, k4_user:
+    eq. 4 fitted to the lens map, ``eq4_fit_error_px`` its RMS error; delta_avg_user_px,
+    delta_max_user_px over the pixels where the map is monotone (``invertible_fraction``), with
+    ``confidence`` intervals; class_label or None with ``reason``; pairs: the pairs fitted;
+    inliers of ``matches`` verified matches; reprojection_px: the inliers' RMS transfer error;
+    models: per n its BIC, Delta_avg and RMS; jackknife: the leave-a-block-out Delta_avg values;
+    opencv: OpenCV's camera fitted to the map (``camera_matrix``, ``dist_coeffs`` and the fit's
+    errors, as :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
+
+    Example:
+        >>> PlanarCalibration._fields[:4]
+        ('coefficients', 'terms', 'k2_user', 'k4_user')
+    """
+
+    coefficients: list
+    terms: int
+    k2_user: float
+    k4_user: float
+    eq4_fit_error_px: float
+    delta_avg_user_px: float
+    delta_avg_user_interval: tuple[float, float]
+    delta_max_user_px: float
+    delta_max_user_interval: tuple[float, float]
+    invertible_fraction: float
+    class_label: str | None
+    reason: str
+    pairs: int
+    inliers: int
+    matches: int
+    reprojection_px: float
+    models: dict
+    jackknife: list
+    opencv: dict
+
+
+def read_verified_matches(database, names: list[str], min_matches: int = 15) -> PlanarMatches:
+    """Every verified pair's inlier matches from a COLMAP database, in pixels with centres at integers.
+
+    Args:
+        database: the path of a COLMAP database after feature extraction and matching.
+        names: the frames' names in recording order (the jackknife's blocks follow it).
+        min_matches: pairs with fewer verified matches are left out.
+
+    Returns:
+        :class:`PlanarMatches` (float64; COLMAP's pixel centres lie at +0.5, taken off).
+    """
+    pc = pycolmap_or_error()
+    order = {n: i for i, n in enumerate(names)}
+    x1, x2, pair, first, second = [], [], [], [], []
+    db = pc.Database.open(str(database))
+    try:
+        ids = {im.image_id: im.name for im in db.read_all_images()}
+        keypoints = {}
+        pair_ids, geometries = db.read_two_view_geometries()
+        for pid, m in zip(pair_ids, (g.inlier_matches for g in geometries)):
+            a, b = pc.pair_id_to_image_pair(pid)
+            if len(m) < min_matches or ids.get(a) not in order or ids.get(b) not in order:
+                continue
+            for i in (a, b):
+                if i not in keypoints:
+                    keypoints[i] = torch.as_tensor(db.read_keypoints(i)[:, :2], dtype=torch.float64) - 0.5
+            # SIFT gives a point several orientations, so a match can repeat: keep each once
+            both = torch.cat([keypoints[a][torch.as_tensor(m[:, 0], dtype=torch.long)],
+                              keypoints[b][torch.as_tensor(m[:, 1], dtype=torch.long)]], 1).unique(dim=0)
+            if len(both) < min_matches:
+                continue
+            x1.append(both[:, :2])
+            x2.append(both[:, 2:])
+            m = both
+            pair.append(torch.full((len(m),), len(first), dtype=torch.long))
+            first.append(order[ids[a]])
+            second.append(order[ids[b]])
+    finally:
+        db.close()
+    def cat(t: list, empty: tuple) -> torch.Tensor:
+        return torch.cat(t) if t else torch.zeros(empty, dtype=torch.float64)
+
+    return PlanarMatches(cat(x1, (0, 2)), cat(x2, (0, 2)), torch.cat(pair) if pair else torch.zeros(0, dtype=torch.long),
+                         torch.tensor(first, dtype=torch.long), torch.tensor(second, dtype=torch.long), tuple(names))
+
+
+# ------------------------------------------------------------------ the start
+def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg: MultiViewConfig):
+    """Every pair's homography (normalised frame, (P, 8)) and inliers ((N,) bool) under the lens ``a`` (step 2)."""
+    pc = pycolmap_or_error()
+    h, w = size
+    big_r = half_diagonal(h, w)
+    c = matches.x1.new_tensor([(w - 1) / 2, (h - 1) / 2])
+    u1, u2 = lens_ideal_points(matches.x1, a, h, w), lens_ideal_points(matches.x2, a, h, w)
+    s = torch.tensor([[big_r, 0, c[0]], [0, big_r, c[1]], [0, 0, 1]], dtype=torch.float64)
+    hs, inliers = torch.zeros(len(matches.first), 8, dtype=torch.float64), torch.zeros(len(u1), dtype=torch.bool)
+    options = pc.RANSACOptions()
+    options.random_seed, options.max_num_trials, options.confidence = cfg.seed, 2000, 0.999
+    for p in range(len(matches.first)):
+        idx = (matches.pair == p).nonzero()[:, 0]
+        scale = float(lens_factor(((matches.x2[idx] - c) / big_r).pow(2).sum(-1, keepdim=True), a).mean())
+        options.max_error = cfg.planar_ransac_px * max(scale, 1e-3)
+        est = pc.estimate_homography_matrix(u1[idx].numpy(), u2[idx].numpy(), options)
+        if est is None:
+            hs[p] = torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 0], dtype=torch.float64)
+            continue
+        m = torch.linalg.solve(s, torch.as_tensor(est["H"], dtype=torch.float64) @ s)  # pixels -> normalised frame
+        hs[p] = (m / m[2, 2]).reshape(-1)[:8]
+        if int(est["num_inliers"]) >= cfg.planar_min_matches:  # fewer: the pair does not count
+            inliers[idx] = torch.as_tensor(est["inlier_mask"], dtype=torch.bool).reshape(-1)
+    return hs, inliers
+
+
+def _start(matches: PlanarMatches, size, cfg: MultiViewConfig, terms: int):
+    """The scan of a_1 (step 2): the lens, the pairs' homographies and the inliers with the most inliers."""
+    lo, hi = cfg.planar_scan_range
+    best = None
+    for i in range(cfg.planar_scan_steps):
+        a = torch.zeros(terms, dtype=torch.float64)
+        a[0] = lo + (hi - lo) * i / max(cfg.planar_scan_steps - 1, 1)
+        hs, inl = _ransac(matches, a, size, cfg)
+        if best is None or int(inl.sum()) > int(best[2].sum()):
+            best = (a, hs, inl)
+    return best
+
+
+# ------------------------------------------------------------------ Delta and the exports
+def _monotone_radius(a: torch.Tensor) -> float:
+    """The normalised radius up to which r (1 + a_1 r^2 + ...) grows (the map inverts there), at most 1.5."""
+    r = torch.linspace(0, 1.5, 3001, dtype=torch.float64)[:, None]
+    g = (r * lens_factor(r * r, a))[:, 0]
+    falls = (g[1:] <= g[:-1]).nonzero()
+    return float(r[int(falls[0, 0]), 0]) if len(falls) else math.inf
+
+
+def _deltas(a: torch.Tensor, size: tuple[int, int], step: int) -> dict:
+    h, w = size
+    p = grid_points(h, w, step)
+    c = p.new_tensor([(w - 1) / 2, (h - 1) / 2])
+    ok = ((p - c).norm(dim=-1) / half_diagonal(h, w)) < _monotone_radius(a)
+    off = (lens_ideal_points(p, a, h, w) - p).norm(dim=-1)[ok]
+    if off.numel() == 0:
+        return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok}
+    return {"delta_avg_px": float(off.mean()), "delta_max_px": float(off.max()),
+            "invertible_fraction": float(ok.double().mean()), "points": p, "ok": ok}
+
+
+def _eq4_fit(a: torch.Tensor, size: tuple[int, int], dl: dict) -> tuple[float, float, float]:
+    """Eq. 4's (k2, k4) fitted to the lens map where it inverts, and the RMS error (px)."""
+    h, w = size
+    p = dl["points"][dl["ok"]]
+    if p.numel() == 0:
+        return math.nan, math.nan, math.nan
+    q = p - p.new_tensor([(w - 1) / 2, (h - 1) / 2])
+    r2 = (q * q).sum(-1, keepdim=True)
+    design = torch.stack([q * r2, q * r2 * r2], -1).reshape(-1, 2)
+    target = (lens_ideal_points(p, a, h, w) - p).reshape(-1, 1)
+    cols = design.norm(dim=0).clamp_min(1e-300)
+    sol = torch.linalg.lstsq(design / cols, target).solution[:, 0] / cols
+    err = ((design @ sol[:, None] - target) ** 2).reshape(-1, 2).sum(-1).mean().sqrt()
+    return float(sol[0]), float(sol[1]), float(err)
+
+
+# ------------------------------------------------------------------ the estimator
+def self_calibrate_planar(
+    matches: PlanarMatches,
+    image_size: tuple[int, int],
+    config: MultiViewConfig | None = None,
+    settings: LensdistConfig | None = None,
+) -> PlanarCalibration:
+    """The camera's distortion from matches between views of a plane (module docstring, steps 2-6).
+
+    Args:
+        matches: :class:`PlanarMatches` (:func:`read_verified_matches`), in the user's pixels.
+        image_size: the frames' (H, W).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (its ``planar_*`` fields, the
+            interval's ``jackknife_blocks``, ``confidence``, ``bic_margin``, ``rms_margin`` and
+            half-width rule).
+        settings: the library's config (the class rule and the paper's frame).
+
+    Returns:
+        :class:`PlanarCalibration`.
+
+    Example:
+        >>> none = torch.zeros(0, 2, dtype=torch.float64)
+        >>> m = PlanarMatches(none, none, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
+        ...                   torch.zeros(0, dtype=torch.long), ("a.png", "b.png"))
+        >>> self_calibrate_planar(m, (240, 320)).reason  # fitted figures: tests/geometry/test_planar_features.py
+        'too few matched pairs: 0 of at least 4'
+    """
+    cfg, st = or_defaults(config, MultiViewConfig), or_defaults(settings, LensdistConfig, "settings")
+    h, w = (int(v) for v in image_size)
+    big_r = half_diagonal(h, w)
+    n_frames = len(matches.names)
+    step = max(1, round(math.sqrt(h * w / 20000)))
+    c = matches.x1.new_tensor([(w - 1) / 2, (h - 1) / 2])
+    v1, v2 = (matches.x1 - c) / big_r, (matches.x2 - c) / big_r
+
+    def fail(reason: str, a=None, inl: int = 0, models=None) -> PlanarCalibration:
+        nan = math.nan
+        return PlanarCalibration([] if a is None else a.tolist(), 0 if a is None else a.numel(), nan, nan, nan, nan,
+                                 (nan, nan), nan, (nan, nan), 0.0, None, reason, len(matches.first), inl,
+                                 len(matches.pair), nan, models or {}, [], {})
+
+    if len(matches.first) < cfg.planar_min_pairs:
+        return fail(f"too few matched pairs: {len(matches.first)} of at least {cfg.planar_min_pairs}")
+    terms = cfg.planar_terms
+    a, hs, inl = _start(matches, (h, w), cfg, terms)
+    for _ in range(2):  # fit on the inliers, then again on the matches the fit explains
+        a, hs = fit_lens_and_homographies(a, hs, v1, v2, matches.pair, inl.double(), cfg.planar_iterations)
+        inl = transfer_errors(a, hs, v1, v2, matches.pair, big_r) < cfg.planar_inlier_px
+        per_pair = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
+        inl &= (per_pair >= cfg.planar_min_matches)[matches.pair]
+    kept = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
+    good_pairs = int((kept >= cfg.planar_min_matches).sum())
+    counted = (kept >= cfg.planar_min_matches)[matches.pair]  # the matches of the pairs that count
+    share = float(inl[counted].double().mean()) if bool(counted.any()) else 0.0
+    # the models n = 1 .. terms on the same inliers, from the full fit's homographies
+    table, fits = {}, {}
+    n_obs = 4 * int(inl.sum())
+    for n in range(1, terms + 1):
+        an, hn = fit_lens_and_homographies(a[:n].clone(), hs.clone(), v1, v2, matches.pair, inl.double(), cfg.planar_iterations)
+        r = transfer_residuals(an, hn[matches.pair], v1, v2)[inl] * big_r
+        rss = float((r * r).sum())
+        dl = _deltas(an, (h, w), step)
+        table[f"planar-{n}"] = {"bic": n_obs * math.log(max(rss, 1e-300) / max(n_obs, 1)) + n * math.log(max(n_obs, 1)),
+                                "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(rss / max(n_obs, 1))}
+        fits[f"planar-{n}"] = (an, hn, dl)
+    best = min(table, key=lambda m: table[m]["bic"])
+    a, hs, dl = fits[best]
+    if good_pairs < cfg.planar_min_pairs:
+        return fail(f"too few pairs fit one homography: {good_pairs} of at least {cfg.planar_min_pairs}", a, int(inl.sum()), table)
+    spread = model_spread(table, best, cfg)
+    # the jackknife over contiguous blocks of frames
+    n_blocks = min(cfg.jackknife_blocks, n_frames)
+    jk_avg, jk_max = [], []
+    for g in range(n_blocks):
+        block = torch.arange(g * n_frames // n_blocks, (g + 1) * n_frames // n_blocks)
+        out = torch.isin(matches.first, block) | torch.isin(matches.second, block)
+        wj = inl.double() * (~out[matches.pair]).double()
+        aj, _ = fit_lens_and_homographies(a.clone(), hs.clone(), v1, v2, matches.pair, wj, cfg.planar_iterations)
+        dj = _deltas(aj, (h, w), 2 * step)
+        jk_avg.append(dj["delta_avg_px"])
+        jk_max.append(dj["delta_max_px"])
+    t = t_quantile(0.5 + cfg.confidence / 2, n_blocks - 1)
+    intervals = []
+    for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0)):
+        jt = torch.tensor(jk, dtype=torch.float64)
+        var = (n_blocks - 1) / n_blocks * float(((jt - jt.mean()) ** 2).sum())
+        half = t * math.sqrt(var + extra**2)
+        intervals.append((max(0.0, value - half), value + half))
+    k2u, k4u, fit_err = _eq4_fit(a, (h, w), dl)
+    half_avg = (intervals[0][1] - intervals[0][0]) / 2
+    label, reason = None, ""
+    if share < cfg.planar_min_inlier_share:
+        reason = (f"not a plane: one homography per pair explains {100 * share:.0f} % of its pair's verified matches (at least "
+                  f"{100 * cfg.planar_min_inlier_share:.0f} % needed)")
+    elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
+        reason = f"interval too wide: +-{half_avg:.2f} px"
+    elif math.isfinite(k2u):
+        dc = paper_frame_delta_avg(k2u, k4u, (h, w), st)  # eq. 4 at the paper's frame, same normalised lens
+        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
+    cam = opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w), h, w, step=step)
+    return PlanarCalibration(
+        a.tolist(), a.numel(), k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
+        dl["invertible_fraction"], label, reason, good_pairs, int(inl.sum()), len(matches.pair),
+        table[best]["reprojection_px"], table, jk_avg,
+        {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"})

@@ -1,0 +1,136 @@
+"""The homography model's lens, residual, Jacobian and Levenberg-Marquardt (docs/method.md, section 12).
+
+The lens maps a pixel p to its ideal point c + (p - c) (1 + a_1 r^2 + ... + a_n r^(2n)),
+r = |p - c| / R (c the frame centre, R its half diagonal); n = 2 is eq. 4. A match between two
+views of a plane is explained by the lens and its pair's homography H (img1's ideal points to
+img2's, normalised frame, H[2, 2] = 1): the residual is the symmetric transfer error, each side
+divided by the lens's factor at the point, so it reads about in the image's pixels (times R).
+:mod:`~lensdist_torch.geometry.planar_features` fits it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch.func import vmap
+
+from lensdist_torch.geometry.frame import half_diagonal
+
+__all__ = ["lens_ideal_points", "lens_factor", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
+           "transfer_errors"]
+
+
+# ------------------------------------------------------------------ the lens and the residual
+def lens_ideal_points(points: torch.Tensor, coefficients, height: int, width: int) -> torch.Tensor:
+    """Ideal pixels of (..., 2) distorted pixels under the lens a_1 .. a_n (module docstring).
+
+    Example:
+        >>> p = torch.tensor([[0.0, 0.0], [4.5, 3.5]], dtype=torch.float64)  # a corner and the centre of 8 x 10
+        >>> lens_ideal_points(p, [0.1], 8, 10).round(decimals=4).tolist()  # r = 1 at the corner: 10 % further out
+        [[-0.45, -0.35], [4.5, 3.5]]
+    """
+    c = points.new_tensor([(width - 1) / 2, (height - 1) / 2])
+    big_r = half_diagonal(height, width)
+    v = (points - c) / big_r
+    return c + big_r * v * lens_factor((v * v).sum(-1, keepdim=True), torch.as_tensor(coefficients, dtype=points.dtype))
+
+
+def lens_factor(r2: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """1 + a_1 r^2 + ... + a_n r^(2n) by Horner's rule."""
+    out = torch.zeros_like(r2)
+    for k in range(a.shape[-1] - 1, -1, -1):
+        out = (out + a[k]) * r2
+    return 1 + out
+
+
+def _adjugate(m: torch.Tensor) -> torch.Tensor:
+    """The adjugates of (..., 3, 3) matrices (inverse times determinant) in closed form: exact under forward-mode AD.
+
+    (``torch.linalg.solve`` under ``vmap(jacfwd)`` gave wrong derivatives here.)
+    """
+    def cross(x, y):  # written out: linalg.cross has no fast batching rule under forward-mode AD
+        return torch.stack([x[..., 1] * y[..., 2] - x[..., 2] * y[..., 1], x[..., 2] * y[..., 0] - x[..., 0] * y[..., 2],
+                            x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]], -1)
+
+    c0, c1, c2 = m[..., :, 0], m[..., :, 1], m[..., :, 2]
+    return torch.stack([cross(c1, c2), cross(c2, c0), cross(c0, c1)], -2)
+
+
+def transfer_residuals(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor) -> torch.Tensor:
+    """(N, 4) symmetric transfer errors of N matches (normalised frame, ``v = (p - c) / R``) over the lens's scale.
+
+    ``h`` (N, 8): each match's pair's homography (the ninth entry 1) in the normalised frame.
+    """
+    f1, f2 = lens_factor((v1 * v1).sum(-1, keepdim=True), a), lens_factor((v2 * v2).sum(-1, keepdim=True), a)
+    u1, u2 = v1 * f1, v2 * f2
+    m = torch.cat([h, h.new_ones(len(h), 1)], 1).reshape(-1, 3, 3)
+    q = m[:, :, 0] * u1[:, :1] + m[:, :, 1] * u1[:, 1:] + m[:, :, 2]  # elementwise: 3 x 3 bmm is slow under AD
+    adj = _adjugate(m)
+    back = adj[:, :, 0] * u2[:, :1] + adj[:, :, 1] * u2[:, 1:] + adj[:, :, 2]  # H^-1 up to scale
+    return torch.cat([(q[:, :2] / q[:, 2:] - u2) / f2, (back[:, :2] / back[:, 2:] - u1) / f1], 1)
+
+
+def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 4, n) and (N, 4, 8): the residuals' derivatives by the lens and by each match's homography.
+
+    Forward mode, one tangent per parameter (a match's residual depends on its own row of ``h``
+    only, so one tangent gives the derivative by that entry for every match at once).
+    """
+    n, rows = a.numel(), len(h)
+    ta = torch.cat([torch.eye(n, dtype=a.dtype), a.new_zeros(8, n)])
+    th = torch.cat([h.new_zeros(n, rows, 8), torch.eye(8, dtype=h.dtype)[:, None, :].expand(8, rows, 8)])
+
+    def along(da, dh):
+        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2), (a, h), (da, dh))[1]
+
+    j = vmap(along)(ta, th)  # (n + 8, N, 4)
+    return j[:n].permute(1, 2, 0), j[n:].permute(1, 2, 0)
+
+
+def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Levenberg-Marquardt on the lens ``a`` (n,) and the pairs' homographies ``hs`` (P, 8) (step 3).
+
+    ``w`` (N,) weights the matches (0: left out). The pairs' blocks are eliminated (Schur complement).
+    """
+    n_pairs, lam = hs.shape[0], 1e-3
+
+    def cost(a_, hs_):
+        r = transfer_residuals(a_, hs_[pair], v1, v2)
+        return float((w[:, None] * r * r).sum())
+
+    c0 = cost(a, hs)
+    for _ in range(iterations):
+        r = transfer_residuals(a, hs[pair], v1, v2)
+        ja, jh = transfer_jacobians(a, hs[pair], v1, v2)
+        wr = w[:, None, None]
+        uhh = torch.zeros(n_pairs, 8, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * jh)))
+        whd = torch.zeros(n_pairs, 8, a.numel(), dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * ja)))
+        vdd = (ja.transpose(1, 2) @ (wr * ja)).sum(0)
+        gh = -torch.zeros(n_pairs, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0])
+        gd = -(ja.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0].sum(0)
+        eye8 = torch.eye(8, dtype=a.dtype)
+        while True:
+            ud = uhh + lam * (torch.diagonal(uhh, dim1=1, dim2=2)[..., None] * eye8 + 1e-12 * eye8)
+            ui = torch.linalg.pinv(ud)
+            s = vdd + lam * torch.diag(torch.diagonal(vdd) + 1e-12) - torch.einsum("pji,pjk,pkl->il", whd, ui, whd)
+            rhs = gd - torch.einsum("pji,pjk,pk->i", whd, ui, gh)
+            da = torch.linalg.lstsq(s, rhs[:, None]).solution[:, 0]
+            dh = torch.einsum("pij,pj->pi", ui, gh - whd @ da)
+            c1 = cost(a + da, hs + dh)
+            if math.isfinite(c1) and c1 < c0:
+                a, hs, lam = a + da, hs + dh, max(lam / 3, 1e-9)
+                break
+            lam *= 5
+            if lam > 1e8:
+                return a, hs
+        done = (c0 - c1) <= 1e-10 * c0
+        c0 = c1
+        if done:
+            break
+    return a, hs
+
+
+def transfer_errors(a, hs, v1, v2, pair, big_r: float) -> torch.Tensor:
+    """(N,) each match's larger transfer error in pixels."""
+    return transfer_residuals(a, hs[pair], v1, v2).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r

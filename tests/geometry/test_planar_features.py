@@ -1,0 +1,138 @@
+"""The homography model: a lens and one homography per pair fitted to feature matches between views of a plane."""
+
+import math
+
+import pytest
+import torch
+
+from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.geometry.distortion import delta_avg, delta_max, distort_points, undistort_points
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.planar_features import PlanarMatches, self_calibrate_planar
+from lensdist_torch.geometry.planar_model import _adjugate, lens_ideal_points, transfer_jacobians, transfer_residuals
+
+pytest.importorskip("pycolmap")
+
+SIZE = (240, 320)
+
+
+def _homography(rng: torch.Generator, h: int, w: int, shift: float) -> torch.Tensor:
+    """A view of the plane: a similarity about the centre, a shift of up to ``shift`` px and a little perspective."""
+    u = torch.rand(6, generator=rng, dtype=torch.float64) * 2 - 1
+    ang, s = 0.15 * u[0], 1 + 0.1 * u[1]
+    m = torch.tensor([[s * math.cos(ang), -s * math.sin(ang), shift * u[2]],
+                      [s * math.sin(ang), s * math.cos(ang), shift * u[3]],
+                      [3e-4 * u[4], 3e-4 * u[5], 1.0]], dtype=torch.float64)
+    c = torch.tensor([[1, 0, (w - 1) / 2], [0, 1, (h - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    return c @ m @ torch.linalg.inv(c)
+
+
+def _apply(m: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    q = p @ m[:, :2].T + m[:, 2]
+    return q[:, :2] / q[:, 2:]
+
+
+def _plane_matches(k2: float, k4: float, views: int = 8, noise: float = 0.3, outliers: float = 0.2, seed: int = 0,
+                   depth: float = 0.0) -> PlanarMatches:
+    """Every pair of ``views`` views of a textured plane through eq. 4's lens (k2, k4), as matches.
+
+    ``noise`` px of Gaussian noise on every point, ``outliers`` of the matches moved anywhere in the
+    frame; ``depth`` > 0 gives the points depths 1 .. 1 + depth and moves the camera sideways
+    instead (parallax: no homography explains a pair).
+    """
+    h, w = SIZE
+    rng = torch.Generator().manual_seed(seed)
+    base = torch.rand(400, 2, generator=rng, dtype=torch.float64) * torch.tensor([w * 1.4, h * 1.4]) - torch.tensor([0.2 * w, 0.2 * h])
+    z = 1 + depth * torch.rand(400, generator=rng, dtype=torch.float64)
+    centre = ((w - 1) / 2, (h - 1) / 2)
+    seen = []
+    for i in range(views):
+        if depth:  # a camera moving sideways over a scene of varied depth
+            ideal = base + torch.tensor([12.0 * i, 4.0 * i], dtype=torch.float64) / z[:, None] * 3
+        else:
+            ideal = _apply(_homography(rng, h, w, 40.0), base)
+        dist = distort_points(ideal[None], k2, k4, centre)[0]
+        inside = (dist[:, 0] >= 0) & (dist[:, 0] <= w - 1) & (dist[:, 1] >= 0) & (dist[:, 1] <= h - 1)
+        seen.append((dist + noise * torch.randn(dist.shape, generator=rng, dtype=torch.float64), inside))
+    x1, x2, pair, first, second = [], [], [], [], []
+    for i in range(views):
+        for j in range(i + 1, views):
+            both = seen[i][1] & seen[j][1]
+            a, b = seen[i][0][both], seen[j][0][both].clone()
+            wrong = torch.rand(len(b), generator=rng) < outliers
+            b[wrong] = torch.rand(int(wrong.sum()), 2, generator=rng, dtype=torch.float64) * torch.tensor([w - 1.0, h - 1.0])
+            x1.append(a)
+            x2.append(b)
+            pair.append(torch.full((len(a),), len(first)))
+            first.append(i)
+            second.append(j)
+    return PlanarMatches(torch.cat(x1), torch.cat(x2), torch.cat(pair), torch.tensor(first), torch.tensor(second),
+                         tuple(f"frame_{i}.png" for i in range(views)))
+
+
+def test_the_lens_with_two_terms_is_eq4():
+    h, w = SIZE
+    r = half_diagonal(h, w)
+    k2, k4 = 2e-6, -3e-12
+    p = torch.rand(50, 2, dtype=torch.float64) * torch.tensor([w - 1.0, h - 1.0])
+    ours = lens_ideal_points(p, [k2 * r**2, k4 * r**4], h, w)
+    eq4 = undistort_points(p[None], k2, k4, ((w - 1) / 2, (h - 1) / 2))[0]
+    assert torch.allclose(ours, eq4, atol=1e-10)
+
+
+def test_adjugate_is_the_inverse_times_the_determinant():
+    m = torch.tensor([[1.2, 0.1, 3.0], [-0.2, 0.9, -1.0], [1e-3, 2e-3, 1.0]], dtype=torch.float64)
+    assert torch.allclose(_adjugate(m), torch.linalg.inv(m) * torch.linalg.det(m), atol=1e-12)
+
+
+def test_jacobian_agrees_with_finite_differences():
+    a = torch.tensor([0.1, -0.02, 0.01], dtype=torch.float64)
+    h = torch.tensor([1.01, 0.02, 0.05, -0.01, 0.98, -0.03, 0.02, -0.01], dtype=torch.float64)[None].repeat(5, 1)
+    v1 = torch.rand(5, 2, dtype=torch.float64) - 0.5
+    v2 = v1 + 0.03
+    ja, jh = transfer_jacobians(a, h, v1, v2)
+    eps = 1e-7
+    for k in range(3):
+        d = torch.zeros(3, dtype=torch.float64)
+        d[k] = eps
+        fd = (transfer_residuals(a + d, h, v1, v2) - transfer_residuals(a - d, h, v1, v2)) / (2 * eps)
+        assert torch.allclose(ja[..., k], fd, atol=1e-6)
+    for k in range(8):
+        d = torch.zeros(8, dtype=torch.float64)
+        d[k] = eps
+        fd = (transfer_residuals(a, h + d, v1, v2) - transfer_residuals(a, h - d, v1, v2)) / (2 * eps)
+        assert torch.allclose(jh[..., k], fd, atol=1e-6)
+
+
+@pytest.mark.parametrize("k2,k4", [(2.5e-6, 0.0), (-2e-6, 0.0), (4e-6, 2e-11)])
+def test_recovers_a_known_lens_from_noisy_matches_with_outliers(k2, k4):
+    h, w = SIZE
+    res = self_calibrate_planar(_plane_matches(k2, k4), SIZE, MultiViewConfig(planar_terms=2))
+    truth = float(delta_avg([k2], [k4], h, w)[0])
+    lo, hi = res.delta_avg_user_interval
+    assert abs(res.delta_avg_user_px - truth) < 0.03 * truth
+    assert lo <= truth <= hi
+    assert res.delta_max_user_px == pytest.approx(float(delta_max([k2], [k4], h, w)[0]), rel=0.05)
+    assert res.class_label is not None and res.reason == ""
+    # 20 % of the matches were moved anywhere: the inliers are the others
+    assert 0.7 < res.inliers / res.matches < 0.85
+    assert res.opencv["fit_error_mean_px"] < 0.1
+
+
+def test_no_distortion_gives_a_small_delta_and_an_interval_from_zero():
+    res = self_calibrate_planar(_plane_matches(0.0, 0.0), SIZE, MultiViewConfig(planar_terms=2))
+    assert res.delta_avg_user_px < 0.15
+    assert res.delta_avg_user_interval[0] == 0.0 or res.class_label == "R"
+
+
+def test_a_scene_with_depth_is_not_a_plane():
+    res = self_calibrate_planar(_plane_matches(2e-6, 0.0, depth=1.0, outliers=0.0), SIZE, MultiViewConfig(planar_terms=2))
+    assert res.class_label is None
+    assert res.reason.startswith(("not a plane", "too few pairs fit one homography")), res.reason
+
+
+def test_too_few_pairs_say_so():
+    m = _plane_matches(2e-6, 0.0, views=3)
+    res = self_calibrate_planar(m, SIZE, MultiViewConfig(planar_min_pairs=4))
+    assert res.class_label is None and math.isnan(res.delta_avg_user_px)
+    assert res.reason == "too few matched pairs: 3 of at least 4"
