@@ -1,21 +1,25 @@
 """Real footage with a published calibration: lensdist calibrate against the truth and COLMAP, one table.
 
     python benchmarks/bench_real_calibration.py FRAMES_DIR CALIBRATION.json [--corners CORNERS.json]
-        [--out docs/results/bench_real_calibration.json]
+        [--out docs/results/bench_real_calibration.json] [--answer ANSWER.json]
 
 FRAMES_DIR: the frames of one camera; CALIBRATION.json: {"primary": {"K": 3 x 3, "dist": OpenCV's
 coefficients}} (its chessboard calibration). What runs is the user's path, ``calibrate_path``
 (= ``lensdist calibrate``, method auto: the multi-view and the direct answers combined; the
 multi-view answer from ``multiview.reconstructions`` mappings, each listed). Beside it:
 every COLMAP camera model fitted by bundle adjustment on the same tracks (what COLMAP gives with
-that model fixed), and the direct path alone. The truth is Delta = |p - undistortPoints(p, K, dist,
+that model fixed), the homography model (``multiview.planar_*``: one lens and one homography per
+pair on the same matches) and the direct path alone. ``--answer`` checks a saved answer (the JSON
+of ``lensdist calibrate FRAMES --json``) instead of running it again. The truth is Delta = |p - undistortPoints(p, K, dist,
 P=K)| run to convergence, over the pixels where the calibration's model inverts.
 
 With ``--corners`` (per view the chessboard's inner corners, {"image_points": {name: [[x, y], ...]},
 "object_points_xy": [[X, Y], ...]}), the check that does not trust any Delta: each answer's OpenCV
 camera undistorts every view's corners, one homography per view is fitted to them, and the RMS of
-the fit is reported (the chessboard's own calibration reaches about 0.6 px). The board is never
-shown to the estimators.
+the fit is reported (the chessboard's own calibration reaches about 0.6 px); the homography
+model's own lens map is checked beside its OpenCV export, with its Delta_avg over the pixels
+where the calibration's model inverts (its own covers every pixel). The board is never shown to
+the estimators.
 """
 
 from __future__ import annotations
@@ -28,22 +32,33 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
+from lensdist_torch.geometry.multiview import model_spread
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.planar_model import lens_ideal_points
+from lensdist_torch.geometry.pooling import jackknife_interval
 
 
-def homography_rms(k, dist, corners: dict) -> list[float]:
-    """Per view: RMS (px) of one homography fitted to the corners undistorted by (K, dist)."""
+def homography_rms(k, dist, corners: dict, ideal=None) -> list[float]:
+    """Per view: RMS (px) of one homography fitted to the corners undistorted by (K, dist), or by ``ideal``.
+
+    ``ideal``: a function from (N, 2) float64 pixels to their ideal pixels (a lens map), in place of (K, dist).
+    """
     import cv2
 
     obj = np.asarray(corners["object_points_xy"], dtype=np.float64)
     out = []
     for pts in corners["image_points"].values():
-        ideal, ok = opencv_ideal_points(torch.tensor(pts, dtype=torch.float64).reshape(-1, 2), torch.tensor(k), torch.tensor(dist))
+        p = torch.tensor(pts, dtype=torch.float64).reshape(-1, 2)
+        if ideal is None:
+            x, ok = opencv_ideal_points(p, torch.tensor(k), torch.tensor(dist))
+        else:
+            x, ok = ideal(p), torch.ones(len(p), dtype=torch.bool)
         if not bool(ok.all()):
             out.append(float("inf"))
             continue
-        x = ideal.numpy()
+        x = x.numpy()
         h, _ = cv2.findHomography(obj, x, 0)
         proj = cv2.perspectiveTransform(obj[:, None], h)[:, 0]
         out.append(float(np.sqrt(((proj - x) ** 2).sum(1).mean())))
@@ -69,12 +84,14 @@ def main() -> None:
     ap.add_argument("--corners", default=None)
     ap.add_argument("--out", default=None)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--answer", default=None, help="the JSON of `lensdist calibrate FRAMES --json` on these frames, "
+                                                     "checked instead of running it again")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cal = json.loads(Path(args.calibration).read_text())["primary"]
     t0 = time.perf_counter()
-    res = calibrate_path(args.frames, method="auto")
-    seconds = time.perf_counter() - t0
+    res = json.loads(Path(args.answer).read_text()) if args.answer else calibrate_path(args.frames, method="auto")
+    seconds = float("nan") if args.answer else time.perf_counter() - t0
     h, w = res["image_size"]
     truth = opencv_delta(torch.tensor(cal["K"]), torch.tensor(cal["dist"]), h, w, step=2)
     rows = [("lensdist calibrate (answer)", res.get("method"), res["delta_avg_user_px"], res["delta_avg_user_interval"],
@@ -83,6 +100,10 @@ def main() -> None:
     for model, v in (mv.get("models") or {}).items():
         rows.append((f"COLMAP, {model} fixed (same tracks)", f"BIC {v['bic']:.0f}", v["delta_avg_px"], None, None,
                      f"reprojection {v['reprojection_px']:.3f} px"))
+    pl = res.get("planar") or {}
+    if "terms" in pl:
+        rows.append(("lensdist, homography model", f"{pl['terms']} terms, {pl['pairs']} pairs", pl["delta_avg_user_px"],
+                     pl["delta_avg_user_interval"], pl["class"], pl.get("reason")))
     d = res["direct"]
     rows.append(("lensdist, direct path alone", "pairs", d["delta_avg_user_px"], d["delta_avg_user_interval"], d["class"],
                  d.get("reason")))
@@ -128,9 +149,31 @@ def main() -> None:
             report["multiview_on_truth_footprint_px"] = on_footprint(mv["camera_matrix"], mv["dist_coeffs"], cal["K"],
                                                                      cal["dist"], (h, w))
             print(f"the multi-view estimate's Delta_avg there: {report['multiview_on_truth_footprint_px']:.2f} px")
+        planar = res.get("planar") or {}
+        maps = {}
+        if planar.get("coefficients"):  # the homography model's own lens map, beside its OpenCV export
+            a = planar["coefficients"]
+            maps["homography model (its lens map)"] = lambda p: lens_ideal_points(p, a, h, w)
+            g = grid_points(h, w, 2)
+            _, ok_t = opencv_ideal_points(g, torch.tensor(cal["K"]), torch.tensor(cal["dist"]))
+
+            def there(c):  # Delta_avg of the lens c over the pixels where the calibration inverts
+                return float((lens_ideal_points(g, c, h, w) - g).norm(dim=-1)[ok_t].mean())
+
+            value = there(a)  # the answer's interval, its replicates and models measured there (same rule)
+            table = {m: {**v, "delta_avg_px": there(v["coefficients"])} for m, v in planar["models"].items()}
+            spread = model_spread(table, f"planar-{planar['terms']}", MultiViewConfig())
+            iv = jackknife_interval(value, [there(c) for c in planar["jackknife_coefficients"]], spread,
+                                    res.get("confidence", 0.95))
+            report["planar_on_truth_footprint"] = {"delta_avg_px": value, "interval": iv,
+                                                   "covers": iv[0] <= truth["delta_avg_px"] <= iv[1]}
+            print(f"the homography model's Delta_avg over the pixels where the calibration inverts: {value:.2f} px "
+                  f"({100 * value / truth['delta_avg_px']:.1f} % of the truth) [{iv[0]:.2f}, {iv[1]:.2f}], covers "
+                  f"{'yes' if report['planar_on_truth_footprint']['covers'] else 'no'} ({planar['delta_avg_user_px']:.2f} "
+                  "px over its own footprint, every pixel)")
         report["homography_rms"] = {}
-        for name, (k, dist) in checks.items():
-            rms = homography_rms(k, dist, corners)
+        for name, (k, dist, ideal) in ({n: (*v, None) for n, v in checks.items()} | {n: (None, None, f) for n, f in maps.items()}).items():
+            rms = homography_rms(k, dist, corners, ideal)
             report["homography_rms"][name] = rms
             finite = [v for v in rms if np.isfinite(v)]
             print(f"corners on one homography per view, {name}: median {np.median(finite):.2f} px, worst "

@@ -57,7 +57,7 @@ from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
-from lensdist_torch.geometry.pooling import t_quantile
+from lensdist_torch.geometry.pooling import jackknife_interval
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
            "rotation_spread_deg", "model_spread", "interval_too_wide", "BA_FUNCTION_TOLERANCE"]
@@ -401,13 +401,8 @@ def self_calibrate_reconstruction(
         d = _deltas(_camera(r), size, scale, 2 * step)  # a quarter of the points: 4-5 times faster
         jk_avg.append(d["delta_avg_px"])
         jk_max.append(d["delta_max_px"])
-    t = t_quantile(0.5 + cfg.confidence / 2, n_blocks - 1)
-    intervals = []
-    for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0)):
-        jt = torch.tensor(jk, dtype=torch.float64)
-        var = (n_blocks - 1) / n_blocks * float(((jt - jt.mean()) ** 2).sum())
-        half = t * math.sqrt(var + extra**2)
-        intervals.append((max(0.0, value - half), value + half))
+    intervals = [jackknife_interval(value, jk, extra, cfg.confidence)
+                 for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0))]
     k2u, k4u, fit_err = _eq4_fit(cam, size, scale, step)
     half_avg = (intervals[0][1] - intervals[0][0]) / 2
     # the least rotation of the mapping and every model's adjustment: in the valley of a pan they drift by degrees

@@ -59,7 +59,7 @@ from lensdist_torch.geometry.planar_model import (
     transfer_errors,
     transfer_residuals,
 )
-from lensdist_torch.geometry.pooling import t_quantile
+from lensdist_torch.geometry.pooling import jackknife_interval
 
 __all__ = ["PlanarCalibration", "PlanarMatches", "read_verified_matches", "self_calibrate_planar"]
 
@@ -93,9 +93,11 @@ class PlanarCalibration(NamedTuple):
     delta_max_user_px over the pixels where the map is monotone (``invertible_fraction``), with
     ``confidence`` intervals; class_label or None with ``reason``; pairs: the pairs fitted;
     inliers of ``matches`` verified matches; reprojection_px: the inliers' RMS transfer error;
-    models: per n its BIC, Delta_avg and RMS; jackknife: the leave-a-block-out Delta_avg values;
-    opencv: OpenCV's camera fitted to the map (``camera_matrix``, ``dist_coeffs`` and the fit's
-    errors, as :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
+    models: per n its BIC, Delta_avg, RMS and coefficients; jackknife: the leave-a-block-out
+    Delta_avg values, jackknife_coefficients their lenses (Delta on another footprint from them);
+    opencv, opencv_rational: OpenCV's camera fitted to the map, 5 and 8 coefficients
+    (``camera_matrix``, ``dist_coeffs`` and the fit's errors, as
+    :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
 
     Example:
         >>> PlanarCalibration._fields[:4]
@@ -120,7 +122,9 @@ class PlanarCalibration(NamedTuple):
     reprojection_px: float
     models: dict
     jackknife: list
+    jackknife_coefficients: list
     opencv: dict
+    opencv_rational: dict
 
 
 def read_verified_matches(database, names: list[str], min_matches: int = 15) -> PlanarMatches:
@@ -285,7 +289,7 @@ def self_calibrate_planar(
         nan = math.nan
         return PlanarCalibration([] if a is None else a.tolist(), 0 if a is None else a.numel(), nan, nan, nan, nan,
                                  (nan, nan), nan, (nan, nan), 0.0, None, reason, len(matches.first), inl,
-                                 len(matches.pair), nan, models or {}, [], {})
+                                 len(matches.pair), nan, models or {}, [], [], {}, {})
 
     if len(matches.first) < cfg.planar_min_pairs:
         return fail(f"too few matched pairs: {len(matches.first)} of at least {cfg.planar_min_pairs}")
@@ -309,7 +313,8 @@ def self_calibrate_planar(
         rss = float((r * r).sum())
         dl = _deltas(an, (h, w), step)
         table[f"planar-{n}"] = {"bic": n_obs * math.log(max(rss, 1e-300) / max(n_obs, 1)) + n * math.log(max(n_obs, 1)),
-                                "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(rss / max(n_obs, 1))}
+                                "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(rss / max(n_obs, 1)),
+                                "coefficients": an.tolist()}
         fits[f"planar-{n}"] = (an, hn, dl)
     best = min(table, key=lambda m: table[m]["bic"])
     a, hs, dl = fits[best]
@@ -318,7 +323,7 @@ def self_calibrate_planar(
     spread = model_spread(table, best, cfg)
     # the jackknife over contiguous blocks of frames
     n_blocks = min(cfg.jackknife_blocks, n_frames)
-    jk_avg, jk_max = [], []
+    jk_avg, jk_max, jk_a = [], [], []
     for g in range(n_blocks):
         block = torch.arange(g * n_frames // n_blocks, (g + 1) * n_frames // n_blocks)
         out = torch.isin(matches.first, block) | torch.isin(matches.second, block)
@@ -326,14 +331,10 @@ def self_calibrate_planar(
         aj, _ = fit_lens_and_homographies(a.clone(), hs.clone(), v1, v2, matches.pair, wj, cfg.planar_iterations)
         dj = _deltas(aj, (h, w), 2 * step)
         jk_avg.append(dj["delta_avg_px"])
+        jk_a.append(aj.tolist())
         jk_max.append(dj["delta_max_px"])
-    t = t_quantile(0.5 + cfg.confidence / 2, n_blocks - 1)
-    intervals = []
-    for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0)):
-        jt = torch.tensor(jk, dtype=torch.float64)
-        var = (n_blocks - 1) / n_blocks * float(((jt - jt.mean()) ** 2).sum())
-        half = t * math.sqrt(var + extra**2)
-        intervals.append((max(0.0, value - half), value + half))
+    intervals = [jackknife_interval(value, jk, extra, cfg.confidence)
+                 for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0))]
     k2u, k4u, fit_err = _eq4_fit(a, (h, w), dl)
     half_avg = (intervals[0][1] - intervals[0][0]) / 2
     label, reason = None, ""
@@ -345,9 +346,9 @@ def self_calibrate_planar(
     elif math.isfinite(k2u):
         dc = paper_frame_delta_avg(k2u, k4u, (h, w), st)  # eq. 4 at the paper's frame, same normalised lens
         label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
-    cam = opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w), h, w, step=step)
+    cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w), h, w, model=m, step=step) for m in ("standard", "rational")]
     return PlanarCalibration(
         a.tolist(), a.numel(), k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
         dl["invertible_fraction"], label, reason, good_pairs, int(inl.sum()), len(matches.pair),
-        table[best]["reprojection_px"], table, jk_avg,
-        {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"})
+        table[best]["reprojection_px"], table, jk_avg, jk_a,
+        *({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"} for cam in cams))

@@ -42,7 +42,7 @@ import torch
 
 from lensdist_torch.config import CalibrationConfig
 
-__all__ = ["GoodBadFit", "good_and_bad", "pair_weights", "pool_pairs", "t_quantile", "within_mads"]
+__all__ = ["GoodBadFit", "good_and_bad", "pair_weights", "pool_pairs", "t_quantile", "within_mads", "jackknife_interval"]
 
 _SHARES = (0.2, 0.35, 0.5, 0.65, 0.8, 0.95)  # the grid's good shares pi
 _KAPPAS = 64  # the grid's std scales, geometric from 1 to the values' spread over their smallest std
@@ -155,6 +155,23 @@ def t_quantile(p: float, dof: int) -> float:
         if abs(p - cdf) < 1e-10:
             break
     return t
+
+
+def jackknife_interval(value: float, replicates: list[float], extra: float, confidence: float) -> tuple[float, float]:
+    """The delete-a-block jackknife interval of a Delta (>= 0), an ``extra`` spread added in quadrature.
+
+    Half-width t sqrt((B - 1) / B sum (x_b - mean)^2 + extra^2), t Student's on B - 1 degrees of
+    freedom for B ``replicates``; the lower end clipped at 0.
+
+    Example:
+        >>> [round(v, 3) for v in jackknife_interval(10.0, [9.0, 11.0], 0.0, 0.95)]  # sqrt(1/2 * 2) = 1, t(1) = 12.706
+        [0.0, 22.706]
+    """
+    b = len(replicates)
+    jt = torch.tensor(replicates, dtype=torch.float64)
+    var = (b - 1) / b * float(((jt - jt.mean()) ** 2).sum())
+    half = t_quantile(0.5 + confidence / 2, b - 1) * math.sqrt(var + extra**2)
+    return max(0.0, value - half), value + half
 
 
 def within_mads(lin, std, cfg: CalibrationConfig) -> torch.Tensor:

@@ -204,7 +204,7 @@ def combine(direct: dict, mv: dict | None) -> dict:
     out["planar"] = None if planar is None else (
         {"reason": planar["reason"]} if not planar["ok"] else
         {"class": planar["class_label"], "reason": planar["reason"] or None, "terms": planar["terms"],
-         **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "reprojection_px", "models", "jackknife",
+         **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "reprojection_px", "models", "jackknife", "jackknife_coefficients",
                                    "coefficients", "invertible_fraction", "eq4_fit_error_px")}})
     if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
         return out
@@ -219,7 +219,8 @@ def combine(direct: dict, mv: dict | None) -> dict:
     if not all(_overlap(iv, o) for o in others):
         return out
     out.update({k: planar[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
-    out.update(method="planar", camera_model=f"planar-{planar['terms']}", opencv=planar["opencv"], opencv_rational=None,
+    out.update(method="planar", camera_model=f"planar-{planar['terms']}", opencv=planar["opencv"],
+               opencv_rational=planar["opencv_rational"],
                **{"class": planar["class_label"], "reason": None})
     return out
 
