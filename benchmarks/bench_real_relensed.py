@@ -100,6 +100,8 @@ def main() -> None:
             "multiview": {k: mv.get(k) for k in ("delta_avg_user_px", "delta_avg_user_interval", "class", "reason",
                                                  "registered", "model")},
             "colmap_models": {m: v.get("delta_avg_px") for m, v in (mv.get("models") or {}).items()},
+            "planar": {k: (res.get("planar") or {}).get(k) for k in ("delta_avg_user_px", "delta_avg_user_interval", "class",
+                                                                    "reason", "terms", "pairs", "inliers")},
         })
         r = rows[-1]
         print(f"level {level:g} px: truth {truth:.2f}, answer {r['answer_px']:.2f} "

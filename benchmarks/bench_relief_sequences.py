@@ -96,7 +96,7 @@ def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = 
             "covered": covered, "class": cls, "reason": res.get("reason"), "method": res.get("method"),
             "confidence": res.get("confidence"), "seconds": round(seconds, 1),
             "relief_effect_px": res.get("relief_effect_px"), "relief_z": res.get("relief_z"),
-            "paths": {k: _path_summary(res.get(k)) for k in ("direct", "multiview")}, "pairs_used": res.get("pairs_used"),
+            "paths": {k: _path_summary(res.get(k)) for k in ("direct", "multiview", "planar")}, "pairs_used": res.get("pairs_used"),
             "confidently_wrong": cls is not None and str(cls) != true_class}
 
 

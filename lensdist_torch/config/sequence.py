@@ -214,7 +214,7 @@ class MultiViewConfig:
     planar_inlier_px: float = 3.0
     planar_min_matches: int = 15
     planar_min_pairs: int = 4
-    planar_min_inlier_share: float = 0.3
+    planar_min_inlier_share: float = 0.5
     planar_iterations: int = 100
     planar_max_relief_z: float = 2.0
 

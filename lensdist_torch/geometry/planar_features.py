@@ -92,7 +92,7 @@ class PlanarCalibration(NamedTuple):
     eq. 4 fitted to the lens map, ``eq4_fit_error_px`` its RMS error; delta_avg_user_px,
     delta_max_user_px over the pixels where the map is monotone (``invertible_fraction``), with
     ``confidence`` intervals; class_label or None with ``reason``; pairs: the pairs fitted;
-    inliers of ``matches`` verified matches; reprojection_px: the inliers' RMS transfer error;
+    inliers of ``matches`` verified matches, inlier_share of the counted pairs' matches; reprojection_px: the inliers' RMS transfer error;
     models: per n its BIC, Delta_avg, RMS and coefficients; jackknife: the leave-a-block-out
     Delta_avg values, jackknife_coefficients their lenses (Delta on another footprint from them);
     opencv, opencv_rational: OpenCV's camera fitted to the map, 5 and 8 coefficients
@@ -119,6 +119,7 @@ class PlanarCalibration(NamedTuple):
     pairs: int
     inliers: int
     matches: int
+    inlier_share: float
     reprojection_px: float
     models: dict
     jackknife: list
@@ -184,7 +185,7 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
     s = torch.tensor([[big_r, 0, c[0]], [0, big_r, c[1]], [0, 0, 1]], dtype=torch.float64)
     hs, inliers = torch.zeros(len(matches.first), 8, dtype=torch.float64), torch.zeros(len(u1), dtype=torch.bool)
     options = pc.RANSACOptions()
-    options.random_seed, options.max_num_trials, options.confidence = cfg.seed, 2000, 0.999
+    options.random_seed = cfg.seed
     for p in range(len(matches.first)):
         idx = (matches.pair == p).nonzero()[:, 0]
         scale = float(lens_factor(((matches.x2[idx] - c) / big_r).pow(2).sum(-1, keepdim=True), a).mean())
@@ -289,7 +290,7 @@ def self_calibrate_planar(
         nan = math.nan
         return PlanarCalibration([] if a is None else a.tolist(), 0 if a is None else a.numel(), nan, nan, nan, nan,
                                  (nan, nan), nan, (nan, nan), 0.0, None, reason, len(matches.first), inl,
-                                 len(matches.pair), nan, models or {}, [], [], {}, {})
+                                 len(matches.pair), nan, nan, models or {}, [], [], {}, {})
 
     if len(matches.first) < cfg.planar_min_pairs:
         return fail(f"too few matched pairs: {len(matches.first)} of at least {cfg.planar_min_pairs}")
@@ -349,6 +350,6 @@ def self_calibrate_planar(
     cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w), h, w, model=m, step=step) for m in ("standard", "rational")]
     return PlanarCalibration(
         a.tolist(), a.numel(), k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
-        dl["invertible_fraction"], label, reason, good_pairs, int(inl.sum()), len(matches.pair),
+        dl["invertible_fraction"], label, reason, good_pairs, int(inl.sum()), len(matches.pair), share,
         table[best]["reprojection_px"], table, jk_avg, jk_a,
         *({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"} for cam in cams))
