@@ -140,8 +140,9 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
     p.add_argument("--device", type=argtypes.device, default="cpu",
                    help="where registration and self-calibration run: cpu, cuda or cuda:N")
     p.add_argument("--method", default="auto", choices=("auto", "multiview", "direct"),
-                   help="multiview: bundle adjustment on COLMAP's tracks (pycolmap); direct: photometric pairs; "
-                        "auto: both, 'cannot tell' where they disagree")
+                   help="multiview: bundle adjustment on COLMAP's tracks (pycolmap), with the homography model on its "
+                        "matches (a plane or a turning camera); direct: photometric pairs; auto: both, 'cannot tell' "
+                        "where they disagree")
     p.set_defaults(func=_cmd_calibrate)
 
     p = subparsers.add_parser(

@@ -178,7 +178,7 @@ def opencv_camera_from_map(
         height: the frame's height; its centre is K's (cx, cy).
         width: the frame's width.
         focal: fx = fy in pixels; the half diagonal when None.
-        model: "standard" (k1, k2, 0, 0, k3) or "rational" (k1, k2, 0, 0, k3, k4, k5, k6).
+        model: "standard" or "rational", as :func:`opencv_camera`.
         step: spacing in pixels of the fitting and verification grid.
 
     Returns:
