@@ -167,6 +167,8 @@ class MultiViewConfig:
             chooses; :mod:`~lensdist_torch.geometry.planar_features`); 0: no homography model.
         planar_scan_range: the first radial term's start values, from and to (normalised frame).
         planar_scan_steps: start values tried, evenly spaced over ``planar_scan_range``.
+        planar_scan_pairs: the scan looks at this many pairs at most, those with the most matches
+            (a video's 60 mapped frames give about 700 sequential pairs).
         planar_ransac_px: LO-RANSAC's threshold (px) for each pair's homography at a start value.
         planar_inlier_px: a match within this transfer error (px) of the first fit is an inlier.
         planar_min_matches: a pair needs this many verified matches (and inliers) to count.
@@ -210,6 +212,7 @@ class MultiViewConfig:
     planar_terms: int = 3
     planar_scan_range: tuple[float, float] = (-0.3, 1.5)
     planar_scan_steps: int = 19
+    planar_scan_pairs: int = 200
     planar_ransac_px: float = 2.0
     planar_inlier_px: float = 3.0
     planar_min_matches: int = 15
@@ -227,7 +230,7 @@ class MultiViewConfig:
                          ("mapped_frames", 3),
                          ("jackknife_blocks", 2), ("reconstructions", 1),
                          ("extra_mappings", 0), ("num_threads", 1), ("seed", 0), ("planar_terms", 0),
-                         ("planar_scan_steps", 1), ("planar_min_matches", 8), ("planar_min_pairs", 1),
+                         ("planar_scan_steps", 1), ("planar_scan_pairs", 1), ("planar_min_matches", 8), ("planar_min_pairs", 1),
                          ("planar_iterations", 1)):
             integer(self, name, lo=lo)
         pair(self, "planar_scan_range")

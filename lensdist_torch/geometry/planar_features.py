@@ -15,10 +15,10 @@ c the frame centre, R its half diagonal; with n = 2 this is eq. 4 (a_1 = k2 R^2,
 
 1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.geometry.multiview.reconstruct`
    computes them once for the mappings too), pairs with at least ``planar_min_matches``.
-2. **Start**: a_1 over ``planar_scan`` (the other terms 0); for each, every pair's homography by
-   COLMAP's LO-RANSAC (``pycolmap.estimate_homography_matrix``, ``planar_ransac_px``) on the
-   undistorted points; the a_1 with the most inliers over all pairs starts, with each pair's
-   homography and inliers. On repetitive texture (a chessboard) half of the epipolar-verified
+2. **Start**: a_1 over ``planar_scan_range`` (the other terms 0); for each, the homography of
+   each of the ``planar_scan_pairs`` pairs with the most matches by COLMAP's LO-RANSAC
+   (``pycolmap.estimate_homography_matrix``, ``planar_ransac_px``) on the undistorted points; the
+   a_1 with the most inliers starts, with every pair's homography and inliers there. On repetitive texture (a chessboard) half of the epipolar-verified
    matches are wrong, and only the homography tells them apart.
 3. **Fit**: Levenberg-Marquardt on the lens and every pair's homography together (the pairs'
    8 x 8 blocks eliminated by the Schur complement), on the symmetric transfer error divided by
@@ -175,8 +175,11 @@ def read_verified_matches(database, names: list[str], min_matches: int = 15) -> 
 
 
 # ------------------------------------------------------------------ the start
-def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg: MultiViewConfig):
-    """Every pair's homography (normalised frame, (P, 8)) and inliers ((N,) bool) under the lens ``a`` (step 2)."""
+def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg: MultiViewConfig, pairs=None):
+    """Every pair's homography (normalised frame, (P, 8)) and inliers ((N,) bool) under the lens ``a`` (step 2).
+
+    ``pairs``: only these pairs (indices), the others keep the identity and no inlier.
+    """
     pc = pycolmap_or_error()
     h, w = size
     big_r = half_diagonal(h, w)
@@ -186,7 +189,7 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
     hs, inliers = torch.zeros(len(matches.first), 8, dtype=torch.float64), torch.zeros(len(u1), dtype=torch.bool)
     options = pc.RANSACOptions()
     options.random_seed = cfg.seed
-    for p in range(len(matches.first)):
+    for p in range(len(matches.first)) if pairs is None else pairs.tolist():
         idx = (matches.pair == p).nonzero()[:, 0]
         scale = float(lens_factor(((matches.x2[idx] - c) / big_r).pow(2).sum(-1, keepdim=True), a).mean())
         options.max_error = cfg.planar_ransac_px * max(scale, 1e-3)
@@ -204,14 +207,16 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
 def _start(matches: PlanarMatches, size, cfg: MultiViewConfig, terms: int):
     """The scan of a_1 (step 2): the lens, the pairs' homographies and the inliers with the most inliers."""
     lo, hi = cfg.planar_scan_range
+    counts = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, torch.ones_like(matches.pair))
+    scanned = torch.sort(-counts, stable=True).indices[: cfg.planar_scan_pairs]  # the pairs with the most matches
     best = None
     for i in range(cfg.planar_scan_steps):
         a = torch.zeros(terms, dtype=torch.float64)
         a[0] = lo + (hi - lo) * i / max(cfg.planar_scan_steps - 1, 1)
-        hs, inl = _ransac(matches, a, size, cfg)
-        if best is None or int(inl.sum()) > int(best[2].sum()):
-            best = (a, hs, inl)
-    return best
+        n = int(_ransac(matches, a, size, cfg, scanned)[1].sum())
+        if best is None or n > best[1]:
+            best = (a, n)
+    return (best[0], *_ransac(matches, best[0], size, cfg))
 
 
 # ------------------------------------------------------------------ Delta and the exports
