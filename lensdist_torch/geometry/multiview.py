@@ -59,7 +59,7 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, pa
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 from lensdist_torch.geometry.pooling import jackknife_interval
 
-__all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
+__all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
            "rotation_spread_deg", "model_spread", "interval_too_wide", "BA_FUNCTION_TOLERANCE"]
 
 #: Relative cost decrease below which a bundle adjustment stops (module docstring, step 2).
@@ -180,29 +180,10 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
         COLMAP reconstructed nothing.
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
-    pc.set_random_seed(cfg.seed)
     out = []
     with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
         db = Path(tmp) / "db.db"
-        reader = pc.ImageReaderOptions()
-        reader.camera_model = "RADIAL"
-        extraction = pc.FeatureExtractionOptions()
-        extraction.num_threads, extraction.max_image_size, extraction.use_gpu = cfg.num_threads, cfg.max_image_side, False
-        extraction.sift.max_num_features = feature_cap(cfg, image_size)
-        matching = pc.FeatureMatchingOptions()
-        matching.num_threads, matching.use_gpu = cfg.num_threads, False
-        verification = pc.TwoViewGeometryOptions()
-        verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
-        with _quiet():
-            pc.extract_features(db, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
-                                reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
-            if len(names) <= cfg.exhaustive_below:
-                pc.match_exhaustive(db, matching_options=matching, verification_options=verification, device=pc.Device.cpu)
-            else:
-                pairing = pc.SequentialPairingOptions()
-                pairing.overlap = cfg.sequential_overlap
-                pc.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                    verification_options=verification, device=pc.Device.cpu)
+        extract_and_match(db, image_dir, names, cfg, image_size)
         if on_matches is not None:
             on_matches(db)
         for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
@@ -216,6 +197,37 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
             if stop is not None and stop(i, out[-1]):
                 break
     return out
+
+
+def extract_and_match(database: str | Path, image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None,
+                      image_size: tuple[int, int] | None = None) -> None:
+    """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
+
+    Exhaustive matching up to ``exhaustive_below`` frames, sequential beyond; one shared RADIAL
+    camera; the geometric verification's RANSAC seeded by ``seed``. :func:`reconstruct` maps on it;
+    :func:`~lensdist_torch.geometry.planar_features.read_verified_matches` reads its matches.
+    """
+    pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
+    pc.set_random_seed(cfg.seed)
+    reader = pc.ImageReaderOptions()
+    reader.camera_model = "RADIAL"
+    extraction = pc.FeatureExtractionOptions()
+    extraction.num_threads, extraction.max_image_size, extraction.use_gpu = cfg.num_threads, cfg.max_image_side, False
+    extraction.sift.max_num_features = feature_cap(cfg, image_size)
+    matching = pc.FeatureMatchingOptions()
+    matching.num_threads, matching.use_gpu = cfg.num_threads, False
+    verification = pc.TwoViewGeometryOptions()
+    verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
+    with _quiet():
+        pc.extract_features(database, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
+                            reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
+        if len(names) <= cfg.exhaustive_below:
+            pc.match_exhaustive(database, matching_options=matching, verification_options=verification, device=pc.Device.cpu)
+        else:
+            pairing = pc.SequentialPairingOptions()
+            pairing.overlap = cfg.sequential_overlap
+            pc.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                                verification_options=verification, device=pc.Device.cpu)
 
 
 # ------------------------------------------------------------------ models on the tracks
