@@ -204,7 +204,7 @@ def combine(direct: dict, mv: dict | None) -> dict:
     out["planar"] = None if planar is None else (
         {"reason": planar["reason"]} if not planar["ok"] else
         {"class": planar["class_label"], "reason": planar["reason"] or None, "terms": planar["terms"],
-         **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "reprojection_px", "models", "jackknife", "jackknife_coefficients",
+         **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife", "jackknife_coefficients",
                                    "coefficients", "invertible_fraction", "eq4_fit_error_px")}})
     if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
         return out

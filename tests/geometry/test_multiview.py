@@ -203,7 +203,7 @@ def _planar(cls, d, lo, hi):
     return {"ok": True, "class_label": cls, "reason": "" if cls else "interval too wide: +-9 px", "terms": 3,
             "delta_avg_user_px": d, "delta_avg_user_interval": (lo, hi), "delta_max_user_px": 4 * d,
             "delta_max_user_interval": (4 * lo, 4 * hi), "invertible_fraction": 1.0, "eq4_fit_error_px": 2.9,
-            "k2_user": 7e-7, "k4_user": 1e-12, "pairs": 41, "inliers": 1133, "matches": 4925, "reprojection_px": 0.83,
+            "k2_user": 7e-7, "k4_user": 1e-12, "pairs": 41, "inliers": 1133, "matches": 4925, "inlier_share": 0.61, "reprojection_px": 0.83,
             "models": {}, "jackknife": [], "jackknife_coefficients": [], "coefficients": [0.59, 0.1, 0.33], "opencv_rational": None,
             "opencv": {"camera_matrix": [[800.0, 0, 639.5], [0, 800.0, 479.5], [0, 0, 1]], "dist_coeffs": [-0.4, 0.1, 0, 0, 0],
                        "fit_error_mean_px": 9.7, "fit_error_max_px": 30.0}}
