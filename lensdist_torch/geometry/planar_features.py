@@ -31,7 +31,8 @@ c the frame centre, R its half diagonal; with n = 2 this is eq. 4 (a_1 = k2 R^2,
 5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
    frames (every pair with a frame of the block left out, the chosen model fitted again), t on
    blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
-   is too wide (:func:`~lensdist_torch.geometry.multiview.interval_too_wide`), when fewer than
+   is too wide (:func:`~lensdist_torch.geometry.multiview.interval_too_wide`), when it spans the
+   no-distortion threshold at the paper's frame (the direct path's rule), when fewer than
    ``planar_min_pairs`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
    the verified matches fit: the scene is not a plane and the camera did not only turn.
 6. **In the user's pixels and OpenCV's terms**: Delta over every pixel of the frame where the
@@ -351,7 +352,12 @@ def self_calibrate_planar(
         reason = f"interval too wide: +-{half_avg:.2f} px"
     elif math.isfinite(k2u):
         dc = paper_frame_delta_avg(k2u, k4u, (h, w), st)  # eq. 4 at the paper's frame, same normalised lens
-        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
+        half_c = half_avg * dc / max(dl["delta_avg_px"], 1e-12)  # the interval scaled to that frame
+        if dc - half_c < st.analysis.no_distortion_px <= dc + half_c:  # the direct path's rule: R or not is open
+            reason = (f"the interval [{max(0.0, dc - half_c):.2f}, {dc + half_c:.2f}] px at the paper's frame spans the "
+                      f"no-distortion threshold ({st.analysis.no_distortion_px} px): a distortion or none cannot be told")
+        else:
+            label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
     cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w), h, w, model=m, step=step) for m in ("standard", "rational")]
     return PlanarCalibration(
         a.tolist(), a.numel(), k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
