@@ -55,6 +55,7 @@ __all__ = [
     "to_normalized",
     "sample_at_pixels",
     "render_distorted",
+    "fit_eq4",
 ]
 
 #: Class labels; index 4 is the reject class R (no visible distortion).
@@ -363,3 +364,30 @@ def distortion_type(a: float, b: float) -> str | None:
     if max(ends) <= 0:
         return "pincushion"
     return "mustache"
+
+
+def fit_eq4(points: torch.Tensor, ideal: torch.Tensor, height: int, width: int) -> tuple[float, float, float]:
+    """Eq. 4's (k2, k4) about the frame centre fitted to a lens map by least squares, and its RMS error (px).
+
+    Args:
+        points: (N, 2) float64 distorted pixels.
+        ideal: (N, 2) their ideal pixels under the lens to follow.
+        height: the frame's height (its centre is eq. 4's p0).
+        width: the frame's width.
+
+    Example:
+        >>> p = pixel_grid(8, 10, dtype=torch.float64).reshape(-1, 2)
+        >>> k2, k4, err = fit_eq4(p, undistort_points(p[None], 1e-3, 0.0, distortion_center(8, 10))[0], 8, 10)
+        >>> round(k2, 6), err < 1e-9
+        (0.001, True)
+    """
+    if points.numel() == 0:
+        return math.nan, math.nan, math.nan
+    q = points - points.new_tensor([(width - 1) / 2, (height - 1) / 2])
+    r2 = (q * q).sum(-1, keepdim=True)
+    design = torch.stack([q * r2, q * r2 * r2], -1).reshape(-1, 2)
+    target = (ideal - points).reshape(-1, 1)
+    cols = design.norm(dim=0).clamp_min(1e-300)
+    sol = torch.linalg.lstsq(design / cols, target).solution[:, 0] / cols
+    err = ((design @ sol[:, None] - target) ** 2).reshape(-1, 2).sum(-1).mean().sqrt()
+    return float(sol[0]), float(sol[1]), float(err)

@@ -55,7 +55,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
+from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 from lensdist_torch.geometry.pooling import jackknife_interval
 
@@ -310,16 +310,7 @@ def _eq4_fit(camera, size: tuple[int, int], scale: float, step: int) -> tuple[fl
     k, d = opencv_from_colmap(camera, scale)
     p = grid_points(h, w, step)
     ideal, ok = opencv_ideal_points(p, k, d)
-    if not bool(ok.any()):
-        return float("nan"), float("nan"), float("nan")
-    q = p[ok] - p.new_tensor([(w - 1) / 2, (h - 1) / 2])
-    r2 = (q * q).sum(-1, keepdim=True)
-    a = torch.stack([q * r2, q * r2 * r2], -1).reshape(-1, 2)
-    target = (ideal[ok] - p[ok]).reshape(-1, 1)
-    scale_cols = a.norm(dim=0).clamp_min(1e-300)
-    sol = torch.linalg.lstsq(a / scale_cols, target).solution[:, 0] / scale_cols
-    err = ((a @ sol[:, None] - target) ** 2).reshape(-1, 2).sum(-1).mean().sqrt()
-    return float(sol[0]), float(sol[1]), float(err)
+    return fit_eq4(p[ok], ideal[ok], h, w)
 
 
 def interval_too_wide(half: float, value: float, cfg: MultiViewConfig) -> bool:

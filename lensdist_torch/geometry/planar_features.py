@@ -49,7 +49,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, paper_frame_delta_avg
+from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_camera_from_map
@@ -243,18 +243,8 @@ def _deltas(a: torch.Tensor, size: tuple[int, int], step: int) -> dict:
 
 def _eq4_fit(a: torch.Tensor, size: tuple[int, int], dl: dict) -> tuple[float, float, float]:
     """Eq. 4's (k2, k4) fitted to the lens map where it inverts, and the RMS error (px)."""
-    h, w = size
     p = dl["points"][dl["ok"]]
-    if p.numel() == 0:
-        return math.nan, math.nan, math.nan
-    q = p - p.new_tensor([(w - 1) / 2, (h - 1) / 2])
-    r2 = (q * q).sum(-1, keepdim=True)
-    design = torch.stack([q * r2, q * r2 * r2], -1).reshape(-1, 2)
-    target = (lens_ideal_points(p, a, h, w) - p).reshape(-1, 1)
-    cols = design.norm(dim=0).clamp_min(1e-300)
-    sol = torch.linalg.lstsq(design / cols, target).solution[:, 0] / cols
-    err = ((design @ sol[:, None] - target) ** 2).reshape(-1, 2).sum(-1).mean().sqrt()
-    return float(sol[0]), float(sol[1]), float(err)
+    return fit_eq4(p, lens_ideal_points(p, a, *size), *size)
 
 
 # ------------------------------------------------------------------ the estimator
