@@ -152,18 +152,19 @@ def main() -> None:
         planar = res.get("planar") or {}
         maps = {}
         if planar.get("coefficients"):  # the homography model's own lens map, beside its OpenCV export
-            a = planar["coefficients"]
-            maps["homography model (its lens map)"] = lambda p: lens_ideal_points(p, a, h, w)
+            a, centre = planar["coefficients"], planar["centre"]
+            maps["homography model (its lens map)"] = lambda p: lens_ideal_points(p, a, h, w, centre)
             g = grid_points(h, w, 2)
             _, ok_t = opencv_ideal_points(g, torch.tensor(cal["K"]), torch.tensor(cal["dist"]))
 
-            def there(c):  # Delta_avg of the lens c over the pixels where the calibration inverts
-                return float((lens_ideal_points(g, c, h, w) - g).norm(dim=-1)[ok_t].mean())
+            def there(c, cc):  # Delta_avg of the lens c about cc over the pixels where the calibration inverts
+                return float((lens_ideal_points(g, c, h, w, cc) - g).norm(dim=-1)[ok_t].mean())
 
-            value = there(a)  # the answer's interval, its replicates and models measured there (same rule)
-            table = {m: {**v, "delta_avg_px": there(v["coefficients"])} for m, v in planar["models"].items()}
-            spread = model_spread(table, f"planar-{planar['terms']}", MultiViewConfig())
-            iv = jackknife_interval(value, [there(c) for c in planar["jackknife_coefficients"]], spread,
+            value = there(a, centre)  # the answer's interval, its replicates and models measured there (same rule)
+            table = {m: {**v, "delta_avg_px": there(v["coefficients"], v["centre"])} for m, v in planar["models"].items()}
+            spread = model_spread(table, planar["model"], MultiViewConfig())
+            iv = jackknife_interval(value, [there(c, cc) for c, cc in zip(planar["jackknife_coefficients"],
+                                                                           planar["jackknife_centres"])], spread,
                                     res.get("confidence", 0.95))
             report["planar_on_truth_footprint"] = {"delta_avg_px": value, "interval": iv,
                                                    "covers": iv[0] <= truth["delta_avg_px"] <= iv[1]}

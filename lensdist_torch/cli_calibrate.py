@@ -30,8 +30,11 @@ def _print_calibration(res: dict) -> None:
         print(f"homography model: no answer ({pl['reason']})")
     elif pl is not None:
         print(f"homography model: {pl['pairs']} pairs, {pl['inliers']} of {pl['matches']} matches on one homography per "
-              f"pair, {pl['terms']} radial terms (by BIC), RMS {pl['reprojection_px']:.2f} px, Delta_avg "
-              f"{pl['delta_avg_user_px']:.2f} px ({pl['class'] or 'cannot tell: ' + str(pl['reason'])})")
+              f"pair, {pl['terms']} radial terms about ({pl['centre'][0]:.1f}, {pl['centre'][1]:.1f}) (by BIC), RMS "
+              f"{pl['reprojection_px']:.2f} px, Delta_avg {pl['delta_avg_user_px']:.2f} px "
+              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])}); it straightens lines to "
+              f"+-{pl['bending_halfwidth_px']:.2f} px (95 %, RMS over the {100 * pl['matched_fraction']:.0f} % of the frame "
+              "its matches reach)")
     print(f"answer from: {res['method']}")
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")

@@ -176,6 +176,9 @@ class MultiViewConfig:
         planar_min_inlier_share: under this share of the verified matches on one homography per
             pair: not a plane (nor a turning camera), no class.
         planar_iterations: Levenberg-Marquardt iterations at most per fit.
+        planar_centre_max: the models with a free distortion centre are candidates while it lies
+            within this fraction of the half diagonal from the frame centre (BIC chooses among
+            them and the models centred on the frame); 0: the centre stays at the frame's.
         planar_max_relief_z: the homography model answers only where the direct path's plane +
             parallax test finds no relief beyond this z (``relief_z``): under one homography per
             pair a scene's relief passes for distortion.
@@ -219,6 +222,7 @@ class MultiViewConfig:
     planar_min_pairs: int = 4
     planar_min_inlier_share: float = 0.5
     planar_iterations: int = 100
+    planar_centre_max: float = 0.1
     planar_max_relief_z: float = 2.0
 
     def __post_init__(self) -> None:
@@ -238,6 +242,7 @@ class MultiViewConfig:
         real(self, "planar_inlier_px", lo=0, lo_open=True)
         real(self, "planar_min_inlier_share", lo=0, hi=1)
         real(self, "planar_max_relief_z", lo=0)
+        real(self, "planar_centre_max", lo=0, hi=1)
         real(self, "min_registered", lo=0, hi=1, lo_open=True)
         real(self, "bic_margin", lo=0)
         real(self, "rms_margin", lo=0)

@@ -169,17 +169,19 @@ def opencv_camera(
 
 
 def opencv_camera_from_map(
-    ideal, height: int, width: int, focal: float | None = None, model: str = "standard", step: int = 4
+    ideal, height: int, width: int, focal: float | None = None, model: str = "standard", step: int = 4,
+    centre: tuple[float, float] | None = None,
 ) -> OpenCVCamera:
-    """Fit OpenCV's K and dist_coeffs to any radial lens map about the frame centre (module docstring, steps 1-4).
+    """Fit OpenCV's K and dist_coeffs to any radial lens map about its centre (module docstring, steps 1-4).
 
     Args:
         ideal: a function from (N, 2) float64 distorted pixels to their (N, 2) ideal pixels.
-        height: the frame's height; its centre is K's (cx, cy).
+        height: the frame's height.
         width: the frame's width.
         focal: fx = fy in pixels; the half diagonal when None.
         model: "standard" or "rational", as :func:`opencv_camera`.
         step: spacing in pixels of the fitting and verification grid.
+        centre: the map's centre (x, y) in pixels, K's (cx, cy); the frame centre when None.
 
     Returns:
         :class:`OpenCVCamera`.
@@ -198,7 +200,9 @@ def opencv_camera_from_map(
     f = 0.5 * math.hypot(width - 1, height - 1) if focal is None else float(focal)
     if not (math.isfinite(f) and f > 0):
         raise ValueError(f"focal must be a positive number of pixels, got {focal!r}")
-    centre = distortion_center(height, width)
+    centre = distortion_center(height, width) if centre is None else tuple(float(v) for v in centre)
+    if len(centre) != 2 or not all(math.isfinite(v) for v in centre):
+        raise ValueError(f"centre must be two finite pixel coordinates (x, y), got {centre!r}")
     xs = torch.cat([torch.arange(0, width - 1, step, dtype=torch.float64), torch.tensor([width - 1.0], dtype=torch.float64)])
     ys = torch.cat([torch.arange(0, height - 1, step, dtype=torch.float64), torch.tensor([height - 1.0], dtype=torch.float64)])
     pd = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)

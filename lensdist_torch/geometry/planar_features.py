@@ -11,7 +11,8 @@ The lens: the ideal point of a pixel p is
 
     p_ideal = c + (p - c) (1 + a_1 r^2 + a_2 r^4 + ... + a_n r^(2n)),   r = |p - c| / R,
 
-c the frame centre, R its half diagonal; with n = 2 this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
+c the distortion centre (the frame centre, or free: step 4), R the frame's half diagonal; with
+n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 
 1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.geometry.multiview.reconstruct`
    computes them once for the mappings too), pairs with at least ``planar_min_matches``.
@@ -23,11 +24,15 @@ c the frame centre, R its half diagonal; with n = 2 this is eq. 4 (a_1 = k2 R^2,
 3. **Fit**: Levenberg-Marquardt on the lens and every pair's homography together (the pairs'
    8 x 8 blocks eliminated by the Schur complement), on the symmetric transfer error divided by
    the lens's local scale (so, about, in the image's pixels); twice: the matches within
-   ``planar_inlier_px`` of the first fit are the inliers of the second.
-4. **The model by evidence**: n = 1 .. ``planar_terms`` on the same inliers, chosen by BIC (the
-   homographies are common to all); models within ``bic_margin``, or whose RMS is within
-   ``rms_margin`` of the best's, join the interval by their spread of Delta_avg
-   (:func:`~lensdist_torch.geometry.multiview.model_spread`).
+   ``planar_inlier_px`` of the first fit are the inliers of the second (the centre at the frame's:
+   a free centre would bend to take parallax in).
+4. **The model by evidence**: n = 1 .. ``planar_terms``, each with the centre at the frame's and
+   free (a candidate while within ``planar_centre_max`` of the half diagonal from the frame
+   centre), on the same inliers, chosen by BIC (the homographies are common to all); models within
+   ``bic_margin``, or whose RMS is within ``rms_margin`` of the best's, join the interval by their
+   spread of Delta_avg (:func:`~lensdist_torch.geometry.multiview.model_spread`). A real wide-angle
+   lens's centre is off the frame's by a few % of the half diagonal: a lens of 100 px then bends
+   the frame-centred model's lines by pixels.
 5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
    frames (every pair with a frame of the block left out, the chosen model fitted again), t on
    blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
@@ -37,7 +42,8 @@ c the frame centre, R its half diagonal; with n = 2 this is eq. 4 (a_1 = k2 R^2,
    the verified matches fit: the scene is not a plane and the camera did not only turn.
 6. **In the user's pixels and OpenCV's terms**: Delta over every pixel of the frame where the
    lens map is monotone; eq. 4's (k2, k4) fitted to the map (``eq4_fit_error_px``); OpenCV's
-   K and dist_coeffs fitted to it (:func:`~lensdist_torch.geometry.opencv_model.opencv_camera_from_map`).
+   K and dist_coeffs fitted to it, K's principal point at the distortion centre
+   (:func:`~lensdist_torch.geometry.opencv_model.opencv_camera_from_map`).
 """
 
 from __future__ import annotations
@@ -52,11 +58,15 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error
-from lensdist_torch.geometry.opencv_model import grid_points, opencv_camera_from_map
+from lensdist_torch.geometry.opencv_model import opencv_camera_from_map
 from lensdist_torch.geometry.planar_model import (
+    bending_halfwidth,
+    centre_px,
     fit_lens_and_homographies,
+    lens_deltas,
     lens_factor,
     lens_ideal_points,
+    split_lens,
     transfer_errors,
     transfer_residuals,
 )
@@ -89,24 +99,31 @@ class PlanarMatches(NamedTuple):
 class PlanarCalibration(NamedTuple):
     """The result of :func:`self_calibrate_planar`, in the user's pixels.
 
-    coefficients: a_1 .. a_n of the chosen model (module docstring); terms: n; k2_user, k4_user:
+    coefficients: a_1 .. a_n of the chosen model (module docstring); terms: n; model: its name
+    ("planar-n", "planar-n-centre" where the centre is free); centre: the distortion centre (x, y)
+    in pixels (the frame centre unless free); k2_user, k4_user:
     eq. 4 fitted to the lens map, ``eq4_fit_error_px`` its RMS error; delta_avg_user_px,
     delta_max_user_px over the pixels where the map is monotone (``invertible_fraction``), with
-    ``confidence`` intervals; class_label or None with ``reason``; pairs: the pairs fitted;
+    ``confidence`` intervals; bending_halfwidth_px: how straight the map makes lines, the
+    jackknife's ``confidence`` half-width of its bending (px, RMS; no homography takes the bending
+    away) over the ``matched_fraction`` of the frame that the inliers reach; class_label or None with ``reason``; pairs: the pairs fitted;
     inliers of ``matches`` verified matches, inlier_share of the counted pairs' matches; reprojection_px: the inliers' RMS transfer error;
     models: per n its BIC, Delta_avg, RMS and coefficients; jackknife: the leave-a-block-out
-    Delta_avg values, jackknife_coefficients their lenses (Delta on another footprint from them);
+    Delta_avg values, jackknife_coefficients and jackknife_centres their lenses (Delta on another
+    footprint from them);
     opencv, opencv_rational: OpenCV's camera fitted to the map, 5 and 8 coefficients
     (``camera_matrix``, ``dist_coeffs`` and the fit's errors, as
     :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
 
     Example:
         >>> PlanarCalibration._fields[:4]
-        ('coefficients', 'terms', 'k2_user', 'k4_user')
+        ('coefficients', 'terms', 'model', 'centre')
     """
 
     coefficients: list
     terms: int
+    model: str
+    centre: list
     k2_user: float
     k4_user: float
     eq4_fit_error_px: float
@@ -115,6 +132,8 @@ class PlanarCalibration(NamedTuple):
     delta_max_user_px: float
     delta_max_user_interval: tuple[float, float]
     invertible_fraction: float
+    bending_halfwidth_px: float
+    matched_fraction: float
     class_label: str | None
     reason: str
     pairs: int
@@ -125,6 +144,7 @@ class PlanarCalibration(NamedTuple):
     models: dict
     jackknife: list
     jackknife_coefficients: list
+    jackknife_centres: list
     opencv: dict
     opencv_rational: dict
 
@@ -221,30 +241,35 @@ def _start(matches: PlanarMatches, size, cfg: MultiViewConfig, terms: int):
 
 
 # ------------------------------------------------------------------ Delta and the exports
-def _monotone_radius(a: torch.Tensor) -> float:
-    """The normalised radius up to which r (1 + a_1 r^2 + ...) grows (the map inverts there), at most 1.5."""
-    r = torch.linspace(0, 1.5, 3001, dtype=torch.float64)[:, None]
-    g = (r * lens_factor(r * r, a))[:, 0]
-    falls = (g[1:] <= g[:-1]).nonzero()
-    return float(r[int(falls[0, 0]), 0]) if len(falls) else math.inf
-
-
-def _deltas(a: torch.Tensor, size: tuple[int, int], step: int) -> dict:
-    h, w = size
-    p = grid_points(h, w, step)
-    c = p.new_tensor([(w - 1) / 2, (h - 1) / 2])
-    ok = ((p - c).norm(dim=-1) / half_diagonal(h, w)) < _monotone_radius(a)
-    off = (lens_ideal_points(p, a, h, w) - p).norm(dim=-1)[ok]
-    if off.numel() == 0:
-        return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok}
-    return {"delta_avg_px": float(off.mean()), "delta_max_px": float(off.max()),
-            "invertible_fraction": float(ok.double().mean()), "points": p, "ok": ok}
-
-
-def _eq4_fit(a: torch.Tensor, size: tuple[int, int], dl: dict) -> tuple[float, float, float]:
-    """Eq. 4's (k2, k4) fitted to the lens map where it inverts, and the RMS error (px)."""
+def _eq4_fit(a: torch.Tensor, centre: list[float], size: tuple[int, int], dl: dict) -> tuple[float, float, float]:
+    """Eq. 4's (k2, k4) (about the frame centre) fitted to the lens map where it inverts, and the RMS error (px)."""
     p = dl["points"][dl["ok"]]
-    return fit_eq4(p, lens_ideal_points(p, a, *size), *size)
+    return fit_eq4(p, lens_ideal_points(p, a, *size, centre), *size)
+
+
+def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiViewConfig, step: int):
+    """Step 4: the models n = 1 .. terms, the centre fixed and free, from ``theta0`` (terms,) on the inliers ``inl``: (table, fits)."""
+    h, w = size
+    big_r = half_diagonal(h, w)
+    table, fits = {}, {}
+    n_obs = 4 * int(inl.sum())
+    n_info = 2 * int(inl.sum())  # BIC's count: a match's two transfer errors measure one misfit (4 residuals, 2 observations)
+    for n in range(1, cfg.planar_terms + 1):
+        for free in (False, True) if cfg.planar_centre_max > 0 else (False,):
+            start = torch.cat([theta0[:n], theta0.new_zeros(2)]) if free else theta0[:n].clone()
+            tn, hn = fit_lens_and_homographies(start, hs.clone(), v1, v2, pair, inl.double(), cfg.planar_iterations, n)
+            d = split_lens(tn, n)[1]
+            if d is not None and not float(d.norm()) <= cfg.planar_centre_max:
+                continue  # a centre that far off is no lens's: not a candidate
+            r = transfer_residuals(tn, hn[pair], v1, v2, n)[inl] * big_r
+            rss = float((r * r).sum())
+            dl = lens_deltas(tn, n, size, step)
+            name = f"planar-{n}" + ("-centre" if free else "")
+            table[name] = {"bic": n_info * math.log(max(rss, 1e-300) / max(n_obs, 1)) + (n + 2 * free) * math.log(max(n_info, 1)),
+                           "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(rss / max(n_obs, 1)),
+                           "coefficients": split_lens(tn, n)[0].tolist(), "centre": centre_px(tn, n, size)}
+            fits[name] = (tn, hn, dl, n)
+    return table, fits
 
 
 # ------------------------------------------------------------------ the estimator
@@ -284,55 +309,50 @@ def self_calibrate_planar(
 
     def fail(reason: str, a=None, inl: int = 0, models=None) -> PlanarCalibration:
         nan = math.nan
-        return PlanarCalibration([] if a is None else a.tolist(), 0 if a is None else a.numel(), nan, nan, nan, nan,
-                                 (nan, nan), nan, (nan, nan), 0.0, None, reason, len(matches.first), inl,
-                                 len(matches.pair), nan, nan, models or {}, [], [], {}, {})
+        return PlanarCalibration([] if a is None else a.tolist(), 0 if a is None else a.numel(), "", [(w - 1) / 2, (h - 1) / 2],
+                                 nan, nan, nan, nan, (nan, nan), nan, (nan, nan), 0.0, nan, 0.0, None, reason, len(matches.first), inl,
+                                 len(matches.pair), nan, nan, models or {}, [], [], [], {}, {})
 
     if len(matches.first) < cfg.planar_min_pairs:
         return fail(f"too few matched pairs: {len(matches.first)} of at least {cfg.planar_min_pairs}")
     terms = cfg.planar_terms
-    a, hs, inl = _start(matches, (h, w), cfg, terms)
-    for _ in range(2):  # fit on the inliers, then again on the matches the fit explains
-        a, hs = fit_lens_and_homographies(a, hs, v1, v2, matches.pair, inl.double(), cfg.planar_iterations)
-        inl = transfer_errors(a, hs, v1, v2, matches.pair, big_r) < cfg.planar_inlier_px
+    theta, hs, inl = _start(matches, (h, w), cfg, terms)
+    for _ in range(2):  # fit on the inliers, then again on the matches the fit explains (the centre fixed: a free one
+        # would bend to take parallax in, and "not a plane" would go unseen)
+        theta, hs = fit_lens_and_homographies(theta, hs, v1, v2, matches.pair, inl.double(), cfg.planar_iterations, terms)
+        inl = transfer_errors(theta, hs, v1, v2, matches.pair, big_r, terms) < cfg.planar_inlier_px
         per_pair = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
         inl &= (per_pair >= cfg.planar_min_matches)[matches.pair]
     kept = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
     good_pairs = int((kept >= cfg.planar_min_matches).sum())
     counted = (kept >= cfg.planar_min_matches)[matches.pair]  # the matches of the pairs that count
     share = float(inl[counted].double().mean()) if bool(counted.any()) else 0.0
-    # the models n = 1 .. terms on the same inliers, from the full fit's homographies
-    table, fits = {}, {}
-    n_obs = 4 * int(inl.sum())
-    for n in range(1, terms + 1):
-        an, hn = fit_lens_and_homographies(a[:n].clone(), hs.clone(), v1, v2, matches.pair, inl.double(), cfg.planar_iterations)
-        r = transfer_residuals(an, hn[matches.pair], v1, v2)[inl] * big_r
-        rss = float((r * r).sum())
-        dl = _deltas(an, (h, w), step)
-        table[f"planar-{n}"] = {"bic": n_obs * math.log(max(rss, 1e-300) / max(n_obs, 1)) + n * math.log(max(n_obs, 1)),
-                                "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(rss / max(n_obs, 1)),
-                                "coefficients": an.tolist()}
-        fits[f"planar-{n}"] = (an, hn, dl)
+    table, fits = _fit_models(theta, hs, v1, v2, matches.pair, inl, (h, w), cfg, step)
     best = min(table, key=lambda m: table[m]["bic"])
-    a, hs, dl = fits[best]
+    theta, hs, dl, n = fits[best]
+    a, centre = split_lens(theta, n)[0], centre_px(theta, n, (h, w))
     if good_pairs < cfg.planar_min_pairs:
         return fail(f"too few pairs fit one homography: {good_pairs} of at least {cfg.planar_min_pairs}", a, int(inl.sum()), table)
     spread = model_spread(table, best, cfg)
     # the jackknife over contiguous blocks of frames
     n_blocks = min(cfg.jackknife_blocks, n_frames)
-    jk_avg, jk_max, jk_a = [], [], []
+    jk_avg, jk_max, jk_a, jk_c, jk_t = [], [], [], [], []
     for g in range(n_blocks):
         block = torch.arange(g * n_frames // n_blocks, (g + 1) * n_frames // n_blocks)
         out = torch.isin(matches.first, block) | torch.isin(matches.second, block)
         wj = inl.double() * (~out[matches.pair]).double()
-        aj, _ = fit_lens_and_homographies(a.clone(), hs.clone(), v1, v2, matches.pair, wj, cfg.planar_iterations)
-        dj = _deltas(aj, (h, w), 2 * step)
+        tj, _ = fit_lens_and_homographies(theta.clone(), hs.clone(), v1, v2, matches.pair, wj, cfg.planar_iterations, n)
+        dj = lens_deltas(tj, n, (h, w), 2 * step)
         jk_avg.append(dj["delta_avg_px"])
-        jk_a.append(aj.tolist())
         jk_max.append(dj["delta_max_px"])
+        jk_a.append(split_lens(tj, n)[0].tolist())
+        jk_c.append(centre_px(tj, n, (h, w)))
+        jk_t.append(tj)
     intervals = [jackknife_interval(value, jk, extra, cfg.confidence)
                  for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0))]
-    k2u, k4u, fit_err = _eq4_fit(a, (h, w), dl)
+    seen = torch.cat([matches.x1[inl], matches.x2[inl]]).unique(dim=0)
+    bending, reach = bending_halfwidth(theta, jk_t, n, (h, w), dl, cfg.confidence, seen)
+    k2u, k4u, fit_err = _eq4_fit(a, centre, (h, w), dl)
     half_avg = (intervals[0][1] - intervals[0][0]) / 2
     label, reason = None, ""
     if share < cfg.planar_min_inlier_share:
@@ -348,9 +368,10 @@ def self_calibrate_planar(
                       f"no-distortion threshold ({st.analysis.no_distortion_px} px): a distortion or none cannot be told")
         else:
             label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
-    cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w), h, w, model=m, step=step) for m in ("standard", "rational")]
+    cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, model=m, step=step, centre=centre)
+            for m in ("standard", "rational")]
     return PlanarCalibration(
-        a.tolist(), a.numel(), k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
-        dl["invertible_fraction"], label, reason, good_pairs, int(inl.sum()), len(matches.pair), share,
-        table[best]["reprojection_px"], table, jk_avg, jk_a,
+        a.tolist(), n, best, centre, k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
+        dl["invertible_fraction"], bending, reach, label, reason, good_pairs, int(inl.sum()), len(matches.pair), share,
+        table[best]["reprojection_px"], table, jk_avg, jk_a, jk_c,
         *({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"} for cam in cams))

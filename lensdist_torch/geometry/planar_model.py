@@ -1,10 +1,18 @@
 """The homography model's lens, residual, Jacobian and Levenberg-Marquardt (docs/method.md, section 12).
 
 The lens maps a pixel p to its ideal point c + (p - c) (1 + a_1 r^2 + ... + a_n r^(2n)),
-r = |p - c| / R (c the frame centre, R its half diagonal); n = 2 is eq. 4. A match between two
-views of a plane is explained by the lens and its pair's homography H (img1's ideal points to
-img2's, normalised frame, H[2, 2] = 1): the residual is the symmetric transfer error, each side
-divided by the lens's factor at the point, so it reads about in the image's pixels (times R).
+r = |p - c| / R (c the distortion centre, the frame centre unless the fit frees it; R the frame's
+half diagonal); n = 2 with c the frame centre is eq. 4. A match between two views of a plane is
+explained by the lens and its pair's homography H (img1's ideal points to img2's, normalised
+frame, H[2, 2] = 1): the residual is the symmetric transfer error, each side divided by the lens's
+factor at the point, so it reads about in the image's pixels (times R).
+
+Its measures: Delta over the frame where the map is monotone, and how well the map's bending is
+known (a jackknife's half-width of what no homography takes away).
+
+The fitted parameter vector ``theta`` is (a_1 .. a_n) with the centre fixed at the frame's, or
+(a_1 .. a_n, d_x, d_y) with the centre free, d its offset from the frame centre over R (``terms``
+= n tells them apart; a translation of the ideal points is the homographies' to absorb).
 :mod:`~lensdist_torch.geometry.planar_features` fits it.
 """
 
@@ -16,21 +24,27 @@ import torch
 from torch.func import vmap
 
 from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.opencv_model import grid_points
+from lensdist_torch.geometry.pooling import t_quantile
 
-__all__ = ["lens_ideal_points", "lens_factor", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
-           "transfer_errors"]
+__all__ = ["lens_ideal_points", "lens_factor", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
+           "transfer_errors", "monotone_radius", "centre_px", "lens_deltas", "bending_halfwidth"]
 
 
 # ------------------------------------------------------------------ the lens and the residual
-def lens_ideal_points(points: torch.Tensor, coefficients, height: int, width: int) -> torch.Tensor:
-    """Ideal pixels of (..., 2) distorted pixels under the lens a_1 .. a_n (module docstring).
+def lens_ideal_points(points: torch.Tensor, coefficients, height: int, width: int, centre=None) -> torch.Tensor:
+    """Ideal pixels of (..., 2) distorted pixels under the lens a_1 .. a_n about ``centre`` (module docstring).
+
+    ``centre``: the distortion centre (x, y) in pixels; the frame centre when None.
 
     Example:
         >>> p = torch.tensor([[0.0, 0.0], [4.5, 3.5]], dtype=torch.float64)  # a corner and the centre of 8 x 10
         >>> lens_ideal_points(p, [0.1], 8, 10).round(decimals=4).tolist()  # r = 1 at the corner: 10 % further out
         [[-0.45, -0.35], [4.5, 3.5]]
+        >>> lens_ideal_points(p, [0.1], 8, 10, centre=(0.0, 0.0))[0].tolist()  # the centre stays put
+        [0.0, 0.0]
     """
-    c = points.new_tensor([(width - 1) / 2, (height - 1) / 2])
+    c = points.new_tensor([(width - 1) / 2, (height - 1) / 2] if centre is None else [float(v) for v in centre])
     big_r = half_diagonal(height, width)
     v = (points - c) / big_r
     return c + big_r * v * lens_factor((v * v).sum(-1, keepdim=True), torch.as_tensor(coefficients, dtype=points.dtype))
@@ -57,11 +71,22 @@ def _adjugate(m: torch.Tensor) -> torch.Tensor:
     return torch.stack([cross(c1, c2), cross(c2, c0), cross(c0, c1)], -2)
 
 
-def transfer_residuals(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor) -> torch.Tensor:
+def split_lens(theta: torch.Tensor, terms: int | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``theta``'s lens coefficients (n,) and its centre offset (2,) over R, or None where the centre is fixed."""
+    n = theta.shape[-1] if terms is None else terms
+    return theta[..., :n], (theta[..., n:n + 2] if theta.shape[-1] > n else None)
+
+
+def transfer_residuals(theta: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
+                       terms: int | None = None) -> torch.Tensor:
     """(N, 4) symmetric transfer errors of N matches (normalised frame, ``v = (p - c) / R``) over the lens's scale.
 
+    ``theta``: the lens (module docstring; ``terms`` its number of coefficients, all when None).
     ``h`` (N, 8): each match's pair's homography (the ninth entry 1) in the normalised frame.
     """
+    a, d = split_lens(theta, terms)
+    if d is not None:  # about the free centre: the offset of the ideal points is the homographies'
+        v1, v2 = v1 - d, v2 - d
     f1, f2 = lens_factor((v1 * v1).sum(-1, keepdim=True), a), lens_factor((v2 * v2).sum(-1, keepdim=True), a)
     u1, u2 = v1 * f1, v2 * f2
     m = torch.cat([h, h.new_ones(len(h), 1)], 1).reshape(-1, 3, 3)
@@ -71,8 +96,9 @@ def transfer_residuals(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: t
     return torch.cat([(q[:, :2] / q[:, 2:] - u2) / f2, (back[:, :2] / back[:, 2:] - u1) / f1], 1)
 
 
-def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(N, 4, n) and (N, 4, 8): the residuals' derivatives by the lens and by each match's homography.
+def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
+                       terms: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N, 4, n) and (N, 4, 8): the residuals' derivatives by the lens ``a`` (``theta``) and by each match's homography.
 
     Forward mode, one tangent per parameter (a match's residual depends on its own row of ``h``
     only, so one tangent gives the derivative by that entry for every match at once).
@@ -82,27 +108,28 @@ def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: t
     th = torch.cat([h.new_zeros(n, rows, 8), torch.eye(8, dtype=h.dtype)[:, None, :].expand(8, rows, 8)])
 
     def along(da, dh):
-        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2), (a, h), (da, dh))[1]
+        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2, terms), (a, h), (da, dh))[1]
 
     j = vmap(along)(ta, th)  # (n + 8, N, 4)
     return j[:n].permute(1, 2, 0), j[n:].permute(1, 2, 0)
 
 
-def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w, iterations: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Levenberg-Marquardt on the lens ``a`` (n,) and the pairs' homographies ``hs`` (P, 8) (step 3).
+def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w, iterations: int,
+                              terms: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Levenberg-Marquardt on the lens ``a`` (``theta``, ``terms``) and the pairs' homographies ``hs`` (P, 8) (step 3).
 
     ``w`` (N,) weights the matches (0: left out). The pairs' blocks are eliminated (Schur complement).
     """
     n_pairs, lam = hs.shape[0], 1e-3
 
     def cost(a_, hs_):
-        r = transfer_residuals(a_, hs_[pair], v1, v2)
+        r = transfer_residuals(a_, hs_[pair], v1, v2, terms)
         return float((w[:, None] * r * r).sum())
 
     c0 = cost(a, hs)
     for _ in range(iterations):
-        r = transfer_residuals(a, hs[pair], v1, v2)
-        ja, jh = transfer_jacobians(a, hs[pair], v1, v2)
+        r = transfer_residuals(a, hs[pair], v1, v2, terms)
+        ja, jh = transfer_jacobians(a, hs[pair], v1, v2, terms)
         wr = w[:, None, None]
         uhh = torch.zeros(n_pairs, 8, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * jh)))
         whd = torch.zeros(n_pairs, 8, a.numel(), dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * ja)))
@@ -131,6 +158,69 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w
     return a, hs
 
 
-def transfer_errors(a, hs, v1, v2, pair, big_r: float) -> torch.Tensor:
+def transfer_errors(a, hs, v1, v2, pair, big_r: float, terms: int | None = None) -> torch.Tensor:
     """(N,) each match's larger transfer error in pixels."""
-    return transfer_residuals(a, hs[pair], v1, v2).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r
+    return transfer_residuals(a, hs[pair], v1, v2, terms).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r
+
+
+# ------------------------------------------------------------------ the lens map's measures
+def monotone_radius(a: torch.Tensor) -> float:
+    """The normalised radius up to which r (1 + a_1 r^2 + ...) grows (the map inverts there), at most 1.5."""
+    r = torch.linspace(0, 1.5, 3001, dtype=torch.float64)[:, None]
+    g = (r * lens_factor(r * r, a))[:, 0]
+    falls = (g[1:] <= g[:-1]).nonzero()
+    return float(r[int(falls[0, 0]), 0]) if len(falls) else math.inf
+
+
+def centre_px(theta: torch.Tensor, terms: int, size: tuple[int, int]) -> list[float]:
+    """The distortion centre (x, y) in pixels of the lens ``theta``."""
+    h, w = size
+    _, d = split_lens(theta, terms)
+    off = [0.0, 0.0] if d is None else (d * half_diagonal(h, w)).tolist()
+    return [(w - 1) / 2 + off[0], (h - 1) / 2 + off[1]]
+
+
+def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: int) -> dict:
+    """Delta (px) of the lens ``theta`` over a ``step``-spaced grid where its map is monotone.
+
+    Returns ``delta_avg_px``, ``delta_max_px``, ``invertible_fraction``, the grid ``points`` and the mask ``ok``.
+    """
+    h, w = size
+    a, centre = split_lens(theta, terms)[0], centre_px(theta, terms, size)
+    p = grid_points(h, w, step)
+    ok = ((p - p.new_tensor(centre)).norm(dim=-1) / half_diagonal(h, w)) < monotone_radius(a)
+    off = (lens_ideal_points(p, a, h, w, centre) - p).norm(dim=-1)[ok]
+    if off.numel() == 0:
+        return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok}
+    return {"delta_avg_px": float(off.mean()), "delta_max_px": float(off.max()),
+            "invertible_fraction": float(ok.double().mean()), "points": p, "ok": ok}
+
+
+def bending_halfwidth(theta, replicates: list, n: int, size: tuple[int, int], dl: dict, confidence: float,
+                       seen: torch.Tensor) -> tuple[float, float]:
+    """The jackknife's half-width (px, RMS) of the lens map's bending where the matches reach, and that share of the frame.
+
+    Each replicate's ideal points are mapped onto the answer's by the best affine map (a change of
+    the lens's scale or centre is about one); what remains is its bending. Half-width: t on
+    replicates - 1 degrees of freedom times sqrt((B - 1) / B sum of the mean squared remainders),
+    over the pixels within 5 % of the half diagonal of a match ``seen`` (M, 2) (beyond, the
+    polynomial extrapolates).
+    """
+    h, w = size
+    big_r = half_diagonal(h, w)
+    p = dl["points"][dl["ok"]]
+    if len(seen):
+        near = torch.cat([torch.cdist(q, seen).amin(1) for q in p.split(4096)]) <= 0.05 * big_r
+        p = p[near]
+    share = len(p) / max(len(dl["points"]), 1)
+    if len(replicates) < 2 or len(p) < 3 or not len(seen):
+        return math.nan, share
+    x = lens_ideal_points(p, split_lens(theta, n)[0], h, w, centre_px(theta, n, size))
+    design = torch.cat([x, torch.ones(len(x), 1, dtype=x.dtype)], 1)
+    msq = []
+    for tj in replicates:
+        y = lens_ideal_points(p, split_lens(tj, n)[0], h, w, centre_px(tj, n, size))
+        fit = design @ torch.linalg.lstsq(design, y).solution
+        msq.append(float(((y - fit) ** 2).sum(-1).mean()))
+    b = len(replicates)
+    return t_quantile(0.5 + confidence / 2, b - 1) * math.sqrt((b - 1) / b * sum(msq)), share

@@ -205,7 +205,8 @@ def combine(direct: dict, mv: dict | None) -> dict:
         {"reason": planar["reason"]} if not planar["ok"] else
         {"class": planar["class_label"], "reason": planar["reason"] or None, "terms": planar["terms"],
          **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife", "jackknife_coefficients",
-                                   "coefficients", "invertible_fraction", "eq4_fit_error_px")}})
+                                   "jackknife_centres", "coefficients", "model", "centre", "bending_halfwidth_px", "matched_fraction",
+                                   "invertible_fraction", "eq4_fit_error_px")}})
     if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
         return out
     z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)
@@ -219,7 +220,7 @@ def combine(direct: dict, mv: dict | None) -> dict:
     if not all(_overlap(iv, o) for o in others):
         return out
     out.update({k: planar[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
-    out.update(method="planar", camera_model=f"planar-{planar['terms']}", opencv=planar["opencv"],
+    out.update(method="planar", camera_model=planar["model"], opencv=planar["opencv"],
                opencv_rational=planar["opencv_rational"],
                **{"class": planar["class_label"], "reason": None})
     return out

@@ -217,6 +217,25 @@ def test_opencv_rational_model_and_focal():
     assert opencv_camera(0.0, 0.0, h, w).fit_error_max_px < 1e-9
 
 
+def test_opencv_camera_from_a_map_about_its_own_centre_is_cv2s():
+    # eq. 4 about a point 15 px right of and 10 px below the frame's centre: K's principal point goes there
+    from lensdist_torch.geometry.opencv_model import opencv_camera_from_map
+
+    h, w, k2, k4 = 320, 424, 1.5e-6, 1.5e-11
+    centre = ((w - 1) / 2 + 15, (h - 1) / 2 + 10)
+    cam = opencv_camera_from_map(lambda q: undistort_points(q[None], [k2], [k4], centre)[0], h, w, centre=centre)
+    k, d = cam.camera_matrix.numpy(), cam.dist_coeffs.numpy()
+    assert (k[0, 2], k[1, 2]) == centre
+    pd = _grid(h, w)
+    got = cv2.undistortPoints(pd.numpy().reshape(-1, 1, 2), k, d, P=k).reshape(-1, 2)
+    ideal = undistort_points(pd[None], [k2], [k4], centre)[0].numpy()
+    assert np.linalg.norm(got - ideal, axis=1).mean() < 0.05 and cam.fit_error_mean_px < 0.05
+    # about the frame's centre instead, the same map cannot be followed
+    assert opencv_camera_from_map(lambda q: undistort_points(q[None], [k2], [k4], centre)[0], h, w).fit_error_mean_px > 1.0
+    with pytest.raises(ValueError, match="centre must be two finite"):
+        opencv_camera_from_map(lambda q: q, h, w, centre=(float("nan"), 1.0))
+
+
 # ------------------------------------------------------------------ bad inputs
 @pytest.mark.bad_input
 @pytest.mark.parametrize(

@@ -204,7 +204,8 @@ def _planar(cls, d, lo, hi):
             "delta_avg_user_px": d, "delta_avg_user_interval": (lo, hi), "delta_max_user_px": 4 * d,
             "delta_max_user_interval": (4 * lo, 4 * hi), "invertible_fraction": 1.0, "eq4_fit_error_px": 2.9,
             "k2_user": 7e-7, "k4_user": 1e-12, "pairs": 41, "inliers": 1133, "matches": 4925, "inlier_share": 0.61, "reprojection_px": 0.83,
-            "models": {}, "jackknife": [], "jackknife_coefficients": [], "coefficients": [0.59, 0.1, 0.33], "opencv_rational": None,
+            "models": {}, "jackknife": [], "jackknife_coefficients": [], "jackknife_centres": [], "coefficients": [0.59, 0.1, 0.33],
+            "model": "planar-3-centre", "centre": [636.0, 509.0], "bending_halfwidth_px": 36.0, "matched_fraction": 0.81, "opencv_rational": None,
             "opencv": {"camera_matrix": [[800.0, 0, 639.5], [0, 800.0, 479.5], [0, 0, 1]], "dist_coeffs": [-0.4, 0.1, 0, 0, 0],
                        "fit_error_mean_px": 9.7, "fit_error_max_px": 30.0}}
 
@@ -214,7 +215,7 @@ def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_re
     mv = {**_mv(None, 116.0, 0.0, 272.4), "planar": _planar("4", 134.2, 105.6, 162.8), "planar_max_relief_z": 2.0}
     out = combine(direct, mv)
     assert out["method"] == "planar" and out["class"] == "4" and out["reason"] is None
-    assert out["delta_avg_user_px"] == 134.2 and out["camera_model"] == "planar-3"
+    assert out["delta_avg_user_px"] == 134.2 and out["camera_model"] == "planar-3-centre"
     assert out["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["terms"] == 3
     # relief found by the direct path's plane + parallax test: one homography per pair would absorb it
     relief = combine({**direct, "relief_z": 5.6}, mv)

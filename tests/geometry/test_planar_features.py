@@ -33,18 +33,18 @@ def _apply(m: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
 
 
 def _plane_matches(k2: float, k4: float, views: int = 8, noise: float = 0.3, outliers: float = 0.2, seed: int = 0,
-                   depth: float = 0.0) -> PlanarMatches:
+                   depth: float = 0.0, offset: tuple[float, float] = (0.0, 0.0)) -> PlanarMatches:
     """Every pair of ``views`` views of a textured plane through eq. 4's lens (k2, k4), as matches.
 
     ``noise`` px of Gaussian noise on every point, ``outliers`` of the matches moved anywhere in the
     frame; ``depth`` > 0 gives the points depths 1 .. 1 + depth and moves the camera sideways
-    instead (parallax: no homography explains a pair).
+    instead (parallax: no homography explains a pair); ``offset`` (px) moves the lens's centre off the frame's.
     """
     h, w = SIZE
     rng = torch.Generator().manual_seed(seed)
     base = torch.rand(400, 2, generator=rng, dtype=torch.float64) * torch.tensor([w * 1.4, h * 1.4]) - torch.tensor([0.2 * w, 0.2 * h])
     z = 1 + depth * torch.rand(400, generator=rng, dtype=torch.float64)
-    centre = ((w - 1) / 2, (h - 1) / 2)
+    centre = ((w - 1) / 2 + offset[0], (h - 1) / 2 + offset[1])
     seen = []
     for i in range(views):
         if depth:  # a camera moving sideways over a scene of varied depth
@@ -85,22 +85,24 @@ def test_adjugate_is_the_inverse_times_the_determinant():
     assert torch.allclose(_adjugate(m), torch.linalg.inv(m) * torch.linalg.det(m), atol=1e-12)
 
 
-def test_jacobian_agrees_with_finite_differences():
-    a = torch.tensor([0.1, -0.02, 0.01], dtype=torch.float64)
+@pytest.mark.parametrize("theta", [[0.1, -0.02, 0.01], [0.1, -0.02, 0.01, 0.03, -0.02]])  # the centre fixed, free
+def test_jacobian_agrees_with_finite_differences(theta):
+    a = torch.tensor(theta, dtype=torch.float64)
     h = torch.tensor([1.01, 0.02, 0.05, -0.01, 0.98, -0.03, 0.02, -0.01], dtype=torch.float64)[None].repeat(5, 1)
     v1 = torch.rand(5, 2, dtype=torch.float64) - 0.5
     v2 = v1 + 0.03
-    ja, jh = transfer_jacobians(a, h, v1, v2)
+    ja, jh = transfer_jacobians(a, h, v1, v2, 3)
+    assert ja.shape == (5, 4, len(theta))
     eps = 1e-7
-    for k in range(3):
-        d = torch.zeros(3, dtype=torch.float64)
+    for k in range(len(theta)):
+        d = torch.zeros(len(theta), dtype=torch.float64)
         d[k] = eps
-        fd = (transfer_residuals(a + d, h, v1, v2) - transfer_residuals(a - d, h, v1, v2)) / (2 * eps)
+        fd = (transfer_residuals(a + d, h, v1, v2, 3) - transfer_residuals(a - d, h, v1, v2, 3)) / (2 * eps)
         assert torch.allclose(ja[..., k], fd, atol=1e-6)
     for k in range(8):
         d = torch.zeros(8, dtype=torch.float64)
         d[k] = eps
-        fd = (transfer_residuals(a, h + d, v1, v2) - transfer_residuals(a, h - d, v1, v2)) / (2 * eps)
+        fd = (transfer_residuals(a, h + d, v1, v2, 3) - transfer_residuals(a, h - d, v1, v2, 3)) / (2 * eps)
         assert torch.allclose(jh[..., k], fd, atol=1e-6)
 
 
@@ -117,6 +119,37 @@ def test_recovers_a_known_lens_from_noisy_matches_with_outliers(k2, k4):
     # 20 % of the matches were moved anywhere: the inliers are the others
     assert 0.7 < res.inliers / res.matches < 0.85
     assert res.opencv["fit_error_mean_px"] < 0.1
+    # the lens's centre is the frame's: BIC keeps it there (a free centre is two parameters the data do not need)
+    assert not res.model.endswith("-centre") and res.centre == [(w - 1) / 2, (h - 1) / 2]
+    assert res.bending_halfwidth_px < 0.5 and res.matched_fraction > 0.9
+
+
+def _bending(p: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> float:
+    """RMS (px) of what remains of y - x after the best affine map from x to y."""
+    design = torch.cat([x, torch.ones(len(x), 1, dtype=x.dtype)], 1)
+    return float((y - design @ torch.linalg.lstsq(design, y).solution).norm(dim=-1).pow(2).mean().sqrt())
+
+
+def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
+    # a strong lens (Delta_avg 9 px at 240 x 320) centred 12 px right of and 8 px above the frame's centre
+    h, w = SIZE
+    k2, off = 6e-6, (12.0, -8.0)
+    res = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, MultiViewConfig(planar_terms=2))
+    centre = ((w - 1) / 2 + off[0], (h - 1) / 2 + off[1])
+    assert res.model.endswith("-centre") and res.class_label is not None
+    assert math.dist(res.centre, centre) < 2.5  # 1.9 px off (0.3 px noise, 8 views)
+    p = torch.stack(torch.meshgrid(torch.arange(0.0, w, 8, dtype=torch.float64), torch.arange(0.0, h, 8, dtype=torch.float64),
+                                   indexing="xy"), -1).reshape(-1, 2)
+    truth = undistort_points(p[None], k2, 0.0, centre)[0]
+    ours = lens_ideal_points(p, res.coefficients, h, w, res.centre)
+    bent = _bending(p, truth, ours)  # 0.26 px: lines as straight as the true lens makes them, to a quarter pixel
+    assert bent < 0.3 and bent < res.bending_halfwidth_px  # and its own half-width (0.49) covers that
+    assert abs(res.delta_avg_user_px - float((truth - p).norm(dim=-1).mean())) < 0.03 * float((truth - p).norm(dim=-1).mean())
+    # the frame-centred model cannot follow it: 2.1 px of bending (BIC prefers the free centre by 589)
+    fixed = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, MultiViewConfig(planar_terms=2, planar_centre_max=0.0))
+    assert _bending(p, truth, lens_ideal_points(p, fixed.coefficients, h, w)) > 5 * _bending(p, truth, ours)
+    # OpenCV's camera about the same centre
+    assert res.opencv["camera_matrix"][0][2] == pytest.approx(res.centre[0]) and res.opencv["fit_error_mean_px"] < 0.1
 
 
 def test_no_distortion_gives_a_small_delta_and_no_class_where_the_interval_spans_the_threshold():
@@ -142,3 +175,24 @@ def test_too_few_pairs_say_so():
     res = self_calibrate_planar(m, SIZE, MultiViewConfig(planar_min_pairs=4))
     assert res.class_label is None and math.isnan(res.delta_avg_user_px)
     assert res.reason == "too few matched pairs: 3 of at least 4"
+
+
+def test_bending_halfwidth_is_the_jackknife_of_what_no_affine_map_takes_away():
+    from lensdist_torch.geometry.planar_model import bending_halfwidth, lens_deltas
+
+    h, w = SIZE
+    theta = torch.tensor([0.2, 0.05], dtype=torch.float64)
+    dl = lens_deltas(theta, 2, SIZE, 8)
+    seen = dl["points"]  # matches everywhere: every monotone pixel counts
+    same, _ = bending_halfwidth(theta, [theta, theta.clone()], 2, SIZE, dl, 0.95, seen)
+    assert same < 1e-9
+    # two replicates, one the answer, one with a_1 0.01 larger: t(1) sqrt(1/2 m), m its mean squared bending
+    other = torch.tensor([0.21, 0.05], dtype=torch.float64)
+    got, share = bending_halfwidth(theta, [theta, other], 2, SIZE, dl, 0.95, seen)
+    p = dl["points"][dl["ok"]]
+    m = _bending(p, lens_ideal_points(p, [0.2, 0.05], h, w), lens_ideal_points(p, [0.21, 0.05], h, w)) ** 2
+    assert got == pytest.approx(12.7062047 * math.sqrt(0.5 * m), rel=1e-6) and share == pytest.approx(float(dl["ok"].double().mean()))
+    # pixels no match comes near do not count
+    corner = torch.tensor([[0.0, 0.0]], dtype=torch.float64)
+    _, few = bending_halfwidth(theta, [theta, other], 2, SIZE, dl, 0.95, corner)
+    assert few < 0.02
