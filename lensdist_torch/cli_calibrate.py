@@ -14,6 +14,14 @@ from lensdist_torch import cli_support as argtypes
 __all__ = ["add_calibrate_commands"]
 
 
+def _straightness(pl: dict) -> str:
+    """How straight the homography model's lens map makes lines, where the jackknife could tell."""
+    b, share = pl.get("bending_halfwidth_px"), pl.get("matched_fraction")
+    if not isinstance(b, float) or b != b or not isinstance(share, float):
+        return ""
+    return f"; it straightens lines to +-{b:.2f} px (95 %, RMS over the {100 * share:.0f} % of the frame its matches reach)"
+
+
 def _print_calibration(res: dict) -> None:
     (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
     unregistered = f" ({res['pairs_unregistered']} not registered)" if res.get("pairs_unregistered") else ""
@@ -32,9 +40,7 @@ def _print_calibration(res: dict) -> None:
         print(f"homography model: {pl['pairs']} pairs, {pl['inliers']} of {pl['matches']} matches on one homography per "
               f"pair, {pl['terms']} radial terms about ({pl['centre'][0]:.1f}, {pl['centre'][1]:.1f}) (by BIC), RMS "
               f"{pl['reprojection_px']:.2f} px, Delta_avg {pl['delta_avg_user_px']:.2f} px "
-              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])}); it straightens lines to "
-              f"+-{pl['bending_halfwidth_px']:.2f} px (95 %, RMS over the {100 * pl['matched_fraction']:.0f} % of the frame "
-              "its matches reach)")
+              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl))
     print(f"answer from: {res['method']}")
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")

@@ -272,3 +272,19 @@ def test_cuda_without_cuda_is_a_one_line_error(sequence, tmp_path, capsys, comma
     assert main([command, str(folder), "--device", "cuda", *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "device 'cuda'" in err and "CUDA is not available" in err
+
+
+@pytest.mark.parametrize("bending,says", [(36.0, "straightens lines to +-36.00 px (95 %, RMS over the 81 % of the frame"),
+                                          (None, None)])
+def test_the_homography_models_line_names_its_centre_and_how_straight_it_makes_lines(capsys, bending, says):
+    from lensdist_torch.cli_calibrate import _print_calibration
+
+    planar = {"pairs": 39, "inliers": 1106, "matches": 4925, "terms": 3, "centre": [635.78, 508.89], "reprojection_px": 0.83,
+              "delta_avg_user_px": 144.5, "class": "4", "reason": None, "bending_halfwidth_px": bending, "matched_fraction": 0.81}
+    res = {"image_size": [960, 1280], "delta_avg_user_interval": [None, None], "delta_max_user_interval": [None, None],
+           "frames": 37, "pairs_used": 3, "pairs_rejected": 0, "planar": planar, "method": "direct", "k2_user": None,
+           "reason": "too few pairs"}
+    _print_calibration(res)
+    line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
+    assert "3 radial terms about (635.8, 508.9) (by BIC)" in line and "Delta_avg 144.50 px (4)" in line
+    assert (says in line) if says else "straightens" not in line
