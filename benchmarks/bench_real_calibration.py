@@ -34,10 +34,9 @@ import torch
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
-from lensdist_torch.geometry.multiview import model_spread
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.planar_features import delta_avg_where
 from lensdist_torch.geometry.planar_model import lens_ideal_points
-from lensdist_torch.geometry.pooling import jackknife_interval
 
 
 def homography_rms(k, dist, corners: dict, ideal=None) -> list[float]:
@@ -156,16 +155,8 @@ def main() -> None:
             maps["homography model (its lens map)"] = lambda p: lens_ideal_points(p, a, h, w, centre)
             g = grid_points(h, w, 2)
             _, ok_t = opencv_ideal_points(g, torch.tensor(cal["K"]), torch.tensor(cal["dist"]))
-
-            def there(c, cc):  # Delta_avg of the lens c about cc over the pixels where the calibration inverts
-                return float((lens_ideal_points(g, c, h, w, cc) - g).norm(dim=-1)[ok_t].mean())
-
-            value = there(a, centre)  # the answer's interval, its replicates and models measured there (same rule)
-            table = {m: {**v, "delta_avg_px": there(v["coefficients"], v["centre"])} for m, v in planar["models"].items()}
-            spread = model_spread(table, planar["model"], MultiViewConfig())
-            iv = jackknife_interval(value, [there(c, cc) for c, cc in zip(planar["jackknife_coefficients"],
-                                                                           planar["jackknife_centres"])], spread,
-                                    res.get("confidence", 0.95))
+            # the answer's interval, its replicates and models measured where the calibration inverts (same rules)
+            value, iv = delta_avg_where(planar, g[ok_t], h, w, MultiViewConfig(confidence=res.get("confidence", 0.95)))
             report["planar_on_truth_footprint"] = {"delta_avg_px": value, "interval": iv,
                                                    "covers": iv[0] <= truth["delta_avg_px"] <= iv[1]}
             print(f"the homography model's Delta_avg over the pixels where the calibration inverts: {value:.2f} px "

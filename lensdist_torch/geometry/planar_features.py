@@ -72,7 +72,7 @@ from lensdist_torch.geometry.planar_model import (
 )
 from lensdist_torch.geometry.pooling import jackknife_interval
 
-__all__ = ["PlanarCalibration", "PlanarMatches", "read_verified_matches", "self_calibrate_planar"]
+__all__ = ["PlanarCalibration", "PlanarMatches", "delta_avg_where", "read_verified_matches", "self_calibrate_planar"]
 
 
 class PlanarMatches(NamedTuple):
@@ -270,6 +270,35 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
                            "coefficients": split_lens(tn, n)[0].tolist(), "centre": centre_px(tn, n, size)}
             fits[name] = (tn, hn, dl, n)
     return table, fits
+
+
+def delta_avg_where(res, points: torch.Tensor, height: int, width: int, config: MultiViewConfig | None = None):
+    """The answer's Delta_avg (px) over other ``points`` (M, 2) (say, where a reference calibration inverts), with its interval.
+
+    The same rules as the answer's own: its jackknife lenses and its models' spread measured on
+    those pixels. ``res``: a :class:`PlanarCalibration` or its dict (the JSON's ``planar`` block).
+
+    Returns:
+        (value, (low, high)).
+
+    Example:
+        >>> r = {"coefficients": [0.1], "centre": [4.5, 3.5], "model": "planar-1", "jackknife_coefficients": [[0.1], [0.1]],
+        ...      "jackknife_centres": [[4.5, 3.5], [4.5, 3.5]], "models": {"planar-1": {"bic": 0.0, "reprojection_px": 0.5,
+        ...      "coefficients": [0.1], "centre": [4.5, 3.5]}}}
+        >>> value, (lo, hi) = delta_avg_where(r, torch.tensor([[0.0, 0.0]], dtype=torch.float64), 8, 10)
+        >>> round(value, 4), lo == hi == value  # a corner at r = 1: 10 % of 5.7 px; replicates alike: no width
+        (0.5701, True)
+    """
+    cfg = or_defaults(config, MultiViewConfig)
+    r = res._asdict() if isinstance(res, PlanarCalibration) else res
+
+    def there(a, centre) -> float:
+        return float((lens_ideal_points(points, a, height, width, centre) - points).norm(dim=-1).mean())
+
+    value = there(r["coefficients"], r["centre"])
+    table = {m: {**v, "delta_avg_px": there(v["coefficients"], v["centre"])} for m, v in r["models"].items()}
+    replicates = [there(a, c) for a, c in zip(r["jackknife_coefficients"], r["jackknife_centres"])]
+    return value, jackknife_interval(value, replicates, model_spread(table, r["model"], cfg), cfg.confidence)
 
 
 # ------------------------------------------------------------------ the estimator

@@ -97,11 +97,9 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     """
     pytest.importorskip("pycolmap")
     from lensdist_torch.config import MultiViewConfig
-    from lensdist_torch.geometry.multiview import extract_and_match, model_spread
+    from lensdist_torch.geometry.multiview import extract_and_match
     from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
-    from lensdist_torch.geometry.planar_features import read_verified_matches, self_calibrate_planar
-    from lensdist_torch.geometry.planar_model import lens_ideal_points
-    from lensdist_torch.geometry.pooling import jackknife_interval
+    from lensdist_torch.geometry.planar_features import delta_avg_where, read_verified_matches, self_calibrate_planar
 
     cal = json.loads((REAL / "calibration.json").read_text())
     names = sorted(cal["frames"])
@@ -113,13 +111,6 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     truth = opencv_delta(k, dist, 240, 320, step=1)["delta_avg_px"]
     g = grid_points(240, 320, 1)
     _, ok = opencv_ideal_points(g, k, dist)
-
-    def there(c, cc):  # Delta_avg over the pixels where the calibration's model inverts (90.6 %)
-        return float((lens_ideal_points(g, c, 240, 320, cc) - g).norm(dim=-1)[ok].mean())
-
-    value = there(res.coefficients, res.centre)
-    table = {m: {**v, "delta_avg_px": there(v["coefficients"], v["centre"])} for m, v in res.models.items()}
-    lo, hi = jackknife_interval(value, [there(c, cc) for c, cc in zip(res.jackknife_coefficients, res.jackknife_centres)],
-                                model_spread(table, res.model, cfg), cfg.confidence)
+    value, (lo, hi) = delta_avg_where(res, g[ok], 240, 320, cfg)  # where the calibration's model inverts (90.6 %)
     assert abs(value - truth) < 0.08 * truth
     assert lo <= truth <= hi
