@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 from pathlib import Path
 
@@ -34,7 +35,7 @@ import torch
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
-from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import grid_points, opencv_camera_from_map, opencv_delta, opencv_ideal_points
 from lensdist_torch.geometry.planar_features import delta_avg_where
 from lensdist_torch.geometry.planar_model import lens_ideal_points
 
@@ -159,6 +160,17 @@ def main() -> None:
             value, iv = delta_avg_where(planar, g[ok_t], h, w, MultiViewConfig(confidence=res.get("confidence", 0.95)))
             report["planar_on_truth_footprint"] = {"delta_avg_px": value, "interval": iv,
                                                    "covers": iv[0] <= truth["delta_avg_px"] <= iv[1]}
+            for name, model in (("opencv", "standard"), ("opencv_rational", "rational")):  # its exports, about its centre
+                cam = planar.get(name)
+                if cam is None:  # an answer saved before the block carried them: the library's same export of its map
+                    fit = opencv_camera_from_map(maps["homography model (its lens map)"], h, w, model=model,
+                                                 step=max(1, round(math.sqrt(h * w / 20000))), centre=centre)
+                    cam = {"camera_matrix": fit.camera_matrix.tolist(), "dist_coeffs": fit.dist_coeffs.tolist()}
+                checks[f"homography model ({name})"] = (cam["camera_matrix"], cam["dist_coeffs"])
+            print(f"the homography model: {planar['model']} about ({planar['centre'][0]:.1f}, {planar['centre'][1]:.1f}), "
+                  f"the calibration's principal point ({cal['K'][0][2]:.1f}, {cal['K'][1][2]:.1f}); its bending half-width "
+                  f"{planar['bending_halfwidth_px']:.2f} px over the {100 * planar['matched_fraction']:.0f} % of the frame its "
+                  "matches reach")
             print(f"the homography model's Delta_avg over the pixels where the calibration inverts: {value:.2f} px "
                   f"({100 * value / truth['delta_avg_px']:.1f} % of the truth) [{iv[0]:.2f}, {iv[1]:.2f}], covers "
                   f"{'yes' if report['planar_on_truth_footprint']['covers'] else 'no'} ({planar['delta_avg_user_px']:.2f} "
