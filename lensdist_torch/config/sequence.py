@@ -176,6 +176,9 @@ class MultiViewConfig:
         planar_min_inlier_share: under this share of the verified matches on one homography per
             pair: not a plane (nor a turning camera), no class.
         planar_iterations: Levenberg-Marquardt iterations at most per fit.
+        planar_pair_matches: a pair's matches beyond this many are thinned to this many, evenly
+            over the pair's list (a homography needs few; the fits' time grows with the matches);
+            0: every match.
         planar_centre_max: the models with a free distortion centre are candidates while it lies
             within this fraction of the half diagonal from the frame centre (BIC chooses among
             them and the models centred on the frame); 0: the centre stays at the frame's.
@@ -215,13 +218,14 @@ class MultiViewConfig:
     planar_terms: int = 3
     planar_scan_range: tuple[float, float] = (-0.3, 1.5)
     planar_scan_steps: int = 19
-    planar_scan_pairs: int = 200
+    planar_scan_pairs: int = 60
     planar_ransac_px: float = 2.0
     planar_inlier_px: float = 3.0
     planar_min_matches: int = 15
     planar_min_pairs: int = 4
     planar_min_inlier_share: float = 0.5
     planar_iterations: int = 100
+    planar_pair_matches: int = 60
     planar_centre_max: float = 0.1
     planar_max_relief_z: float = 2.0
 
@@ -235,7 +239,7 @@ class MultiViewConfig:
                          ("jackknife_blocks", 2), ("reconstructions", 1),
                          ("extra_mappings", 0), ("num_threads", 1), ("seed", 0), ("planar_terms", 0),
                          ("planar_scan_steps", 1), ("planar_scan_pairs", 1), ("planar_min_matches", 8), ("planar_min_pairs", 1),
-                         ("planar_iterations", 1)):
+                         ("planar_iterations", 1), ("planar_pair_matches", 0)):
             integer(self, name, lo=lo)
         pair(self, "planar_scan_range")
         real(self, "planar_ransac_px", lo=0, lo_open=True)

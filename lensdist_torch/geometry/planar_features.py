@@ -15,7 +15,8 @@ c the distortion centre (the frame centre, or free: step 4), R the frame's half 
 n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 
 1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.geometry.multiview.reconstruct`
-   computes them once for the mappings too), pairs with at least ``planar_min_matches``.
+   computes them once for the mappings too), pairs with at least ``planar_min_matches``, each
+   pair's thinned to ``planar_pair_matches`` (:func:`thin_matches`).
 2. **Start**: a_1 over ``planar_scan_range`` (the other terms 0); for each, the homography of
    each of the ``planar_scan_pairs`` pairs with the most matches by COLMAP's LO-RANSAC
    (``pycolmap.estimate_homography_matrix``, ``planar_ransac_px``) on the undistorted points; the
@@ -72,7 +73,8 @@ from lensdist_torch.geometry.planar_model import (
 )
 from lensdist_torch.geometry.pooling import jackknife_interval
 
-__all__ = ["PlanarCalibration", "PlanarMatches", "delta_avg_where", "read_verified_matches", "self_calibrate_planar"]
+__all__ = ["PlanarCalibration", "PlanarMatches", "delta_avg_where", "read_verified_matches", "self_calibrate_planar",
+           "thin_matches"]
 
 
 class PlanarMatches(NamedTuple):
@@ -107,7 +109,7 @@ class PlanarCalibration(NamedTuple):
     ``confidence`` intervals; bending_halfwidth_px: how straight the map makes lines, the
     jackknife's ``confidence`` half-width of its bending (px, RMS; no homography takes the bending
     away) over the ``matched_fraction`` of the frame that the inliers reach; class_label or None with ``reason``; pairs: the pairs fitted;
-    inliers of ``matches`` verified matches, inlier_share of the counted pairs' matches; reprojection_px: the inliers' RMS transfer error;
+    inliers of ``matches`` verified matches (at most ``planar_pair_matches`` a pair), inlier_share of the counted pairs' matches; reprojection_px: the inliers' RMS transfer error;
     models: per n its BIC, Delta_avg, RMS and coefficients; jackknife: the leave-a-block-out
     Delta_avg values, jackknife_coefficients and jackknife_centres their lenses (Delta on another
     footprint from them);
@@ -195,6 +197,28 @@ def read_verified_matches(database, names: list[str], min_matches: int = 15) -> 
                          torch.tensor(first, dtype=torch.long), torch.tensor(second, dtype=torch.long), tuple(names))
 
 
+def thin_matches(matches: PlanarMatches, cap: int) -> PlanarMatches:
+    """Each pair's matches beyond ``cap`` thinned to ``cap``, evenly over the pair's list (0: all kept).
+
+    Example:
+        >>> p = torch.arange(10.0, dtype=torch.float64)[:, None].repeat(1, 2)
+        >>> m = PlanarMatches(p, p, torch.zeros(10, dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b"))
+        >>> thin_matches(m, 4).x1[:, 0].tolist()
+        [2.0, 4.0, 7.0, 9.0]
+    """
+    if cap <= 0 or len(matches.pair) == 0:
+        return matches
+    order = torch.sort(matches.pair, stable=True).indices
+    pair = matches.pair[order]
+    count = torch.bincount(pair, minlength=len(matches.first))
+    start = torch.cumsum(count, 0) - count
+    rank = torch.arange(len(pair)) - start[pair]
+    n = count[pair]
+    keep = (n <= cap) | ((rank + 1) * cap // n > rank * cap // n)  # exactly cap of n, evenly spaced
+    idx = order[keep]
+    return PlanarMatches(matches.x1[idx], matches.x2[idx], matches.pair[idx], matches.first, matches.second, matches.names)
+
+
 # ------------------------------------------------------------------ the start
 def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg: MultiViewConfig, pairs=None):
     """Every pair's homography (normalised frame, (P, 8)) and inliers ((N,) bool) under the lens ``a`` (step 2).
@@ -261,7 +285,7 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
             d = split_lens(tn, n)[1]
             if d is not None and not float(d.norm()) <= cfg.planar_centre_max:
                 continue  # a centre that far off is no lens's: not a candidate
-            r = transfer_residuals(tn, hn[pair], v1, v2, n)[inl] * big_r
+            r = transfer_residuals(tn, hn, v1, v2, n, pair)[inl] * big_r
             rss = float((r * r).sum())
             dl = lens_deltas(tn, n, size, step)
             name = f"planar-{n}" + ("-centre" if free else "")
@@ -329,6 +353,7 @@ def self_calibrate_planar(
         'too few matched pairs: 0 of at least 4'
     """
     cfg, st = or_defaults(config, MultiViewConfig), or_defaults(settings, LensdistConfig, "settings")
+    matches = thin_matches(matches, cfg.planar_pair_matches)
     h, w = (int(v) for v in image_size)
     big_r = half_diagonal(h, w)
     n_frames = len(matches.names)

@@ -78,11 +78,13 @@ def split_lens(theta: torch.Tensor, terms: int | None = None) -> tuple[torch.Ten
 
 
 def transfer_residuals(theta: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
-                       terms: int | None = None) -> torch.Tensor:
+                       terms: int | None = None, pair: torch.Tensor | None = None) -> torch.Tensor:
     """(N, 4) symmetric transfer errors of N matches (normalised frame, ``v = (p - c) / R``) over the lens's scale.
 
     ``theta``: the lens (module docstring; ``terms`` its number of coefficients, all when None).
-    ``h`` (N, 8): each match's pair's homography (the ninth entry 1) in the normalised frame.
+    ``h`` (N, 8): each match's pair's homography (the ninth entry 1) in the normalised frame; or
+    (P, 8), the pairs' homographies, with ``pair`` (N,) each match's pair (the inverses are then
+    formed once per pair, not per match).
     """
     a, d = split_lens(theta, terms)
     if d is not None:  # about the free centre: the offset of the ideal points is the homographies'
@@ -90,25 +92,28 @@ def transfer_residuals(theta: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v
     f1, f2 = lens_factor((v1 * v1).sum(-1, keepdim=True), a), lens_factor((v2 * v2).sum(-1, keepdim=True), a)
     u1, u2 = v1 * f1, v2 * f2
     m = torch.cat([h, h.new_ones(len(h), 1)], 1).reshape(-1, 3, 3)
-    q = m[:, :, 0] * u1[:, :1] + m[:, :, 1] * u1[:, 1:] + m[:, :, 2]  # elementwise: 3 x 3 bmm is slow under AD
     adj = _adjugate(m)
+    if pair is not None:
+        m, adj = m[pair], adj[pair]
+    q = m[:, :, 0] * u1[:, :1] + m[:, :, 1] * u1[:, 1:] + m[:, :, 2]  # elementwise: 3 x 3 bmm is slow under AD
     back = adj[:, :, 0] * u2[:, :1] + adj[:, :, 1] * u2[:, 1:] + adj[:, :, 2]  # H^-1 up to scale
     return torch.cat([(q[:, :2] / q[:, 2:] - u2) / f2, (back[:, :2] / back[:, 2:] - u1) / f1], 1)
 
 
 def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
-                       terms: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                       terms: int | None = None, pair: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, 4, n) and (N, 4, 8): the residuals' derivatives by the lens ``a`` (``theta``) and by each match's homography.
 
-    Forward mode, one tangent per parameter (a match's residual depends on its own row of ``h``
-    only, so one tangent gives the derivative by that entry for every match at once).
+    ``h`` and ``pair`` as :func:`transfer_residuals`. Forward mode, one tangent per parameter (a
+    match's residual depends on its own pair's row of ``h`` only, so one tangent gives the
+    derivative by that entry for every match at once).
     """
     n, rows = a.numel(), len(h)
     ta = torch.cat([torch.eye(n, dtype=a.dtype), a.new_zeros(8, n)])
     th = torch.cat([h.new_zeros(n, rows, 8), torch.eye(8, dtype=h.dtype)[:, None, :].expand(8, rows, 8)])
 
     def along(da, dh):
-        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2, terms), (a, h), (da, dh))[1]
+        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2, terms, pair), (a, h), (da, dh))[1]
 
     j = vmap(along)(ta, th)  # (n + 8, N, 4)
     return j[:n].permute(1, 2, 0), j[n:].permute(1, 2, 0)
@@ -123,13 +128,13 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w
     n_pairs, lam = hs.shape[0], 1e-3
 
     def cost(a_, hs_):
-        r = transfer_residuals(a_, hs_[pair], v1, v2, terms)
+        r = transfer_residuals(a_, hs_, v1, v2, terms, pair)
         return float((w[:, None] * r * r).sum())
 
     c0 = cost(a, hs)
     for _ in range(iterations):
-        r = transfer_residuals(a, hs[pair], v1, v2, terms)
-        ja, jh = transfer_jacobians(a, hs[pair], v1, v2, terms)
+        r = transfer_residuals(a, hs, v1, v2, terms, pair)
+        ja, jh = transfer_jacobians(a, hs, v1, v2, terms, pair)
         wr = w[:, None, None]
         uhh = torch.zeros(n_pairs, 8, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * jh)))
         whd = torch.zeros(n_pairs, 8, a.numel(), dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * ja)))
@@ -160,7 +165,7 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w
 
 def transfer_errors(a, hs, v1, v2, pair, big_r: float, terms: int | None = None) -> torch.Tensor:
     """(N,) each match's larger transfer error in pixels."""
-    return transfer_residuals(a, hs[pair], v1, v2, terms).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r
+    return transfer_residuals(a, hs, v1, v2, terms, pair).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r
 
 
 # ------------------------------------------------------------------ the lens map's measures
