@@ -163,6 +163,10 @@ BAD_VALUES = [
     ("multiview", "max_halfwidth_rel", "3.0"),
     ("multiview", "features_per_megapixel", "0.0"),
     ("multiview", "extra_mappings", "-1"),
+    ("multiview", "planar_centre_max", "1.5"),  # a distortion centre beyond the frame's corner
+    ("multiview", "planar_centre_max", "nan"),
+    ("multiview", "planar_pair_matches", "-1"),
+    ("multiview", "planar_pair_matches", "60.5"),
     ("regression", "confidence_threshold", "nan"),
     ("analysis", "no_distortion_px", "0.0"),
     ("analysis", "min_overlap", "-0.5"),
