@@ -217,6 +217,9 @@ def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_re
     assert out["method"] == "planar" and out["class"] == "4" and out["reason"] is None
     assert out["delta_avg_user_px"] == 134.2 and out["camera_model"] == "planar-3-centre"
     assert out["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["terms"] == 3
+    # the JSON's planar block carries its lens (centre included), how straight it makes lines and its own exports
+    assert out["planar"]["centre"] == [636.0, 509.0] and out["planar"]["bending_halfwidth_px"] == 36.0
+    assert out["planar"]["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["model"] == "planar-3-centre"
     # relief found by the direct path's plane + parallax test: one homography per pair would absorb it
     relief = combine({**direct, "relief_z": 5.6}, mv)
     assert relief["method"] != "planar" and relief["class"] is None
