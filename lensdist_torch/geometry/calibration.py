@@ -51,7 +51,7 @@ import torch.nn.functional as F
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
-from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_max, delta_top, estimated_class
+from lensdist_torch.geometry.distortion import class_or_open, delta_avg, delta_max, delta_top
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pooling import pair_weights, pool_pairs, within_mads
@@ -396,11 +396,8 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
             "frames' contrast, views too far apart or too different)" if failed else "")
     elif not half[2] <= cfg.max_class_halfwidth_px:
         reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
-    elif dc - half[2] < st.analysis.no_distortion_px <= dc + half[2]:  # R's bin is narrower than any interval here
-        reason = (f"the interval [{max(0.0, dc - half[2]):.2f}, {dc + half[2]:.2f}] px at the paper's frame spans the "
-                  f"no-distortion threshold ({st.analysis.no_distortion_px} px): a distortion or none cannot be told")
     else:
-        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
+        label, reason = class_or_open(dc, half[2], st)
     return SequenceCalibration(k2u, k4u, d_avg, iv_avg, d_max, iv_max, label, reason, n_used, len(pairs) - n_used,
                                xa.shape[0], (hh, ww), (h, w), scale, (a, b), pairs, (ab @ fun[0]).abs(), std, keep,
                                found, min(relief_z, 1e6), refitted, misfit)

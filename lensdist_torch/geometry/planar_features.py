@@ -56,17 +56,17 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, fit_eq4, paper_frame_delta_avg
+from lensdist_torch.geometry.distortion import class_or_open, distortion_center, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import opencv_camera_from_map
 from lensdist_torch.geometry.planar_model import (
     bending_halfwidth,
-    centre_px,
     fit_lens_and_homographies,
     lens_deltas,
     lens_factor,
     lens_ideal_points,
+    lens_of,
     split_lens,
     transfer_errors,
     transfer_residuals,
@@ -228,7 +228,7 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
     pc = pycolmap_or_error()
     h, w = size
     big_r = half_diagonal(h, w)
-    c = matches.x1.new_tensor([(w - 1) / 2, (h - 1) / 2])
+    c = matches.x1.new_tensor(distortion_center(h, w))
     u1, u2 = lens_ideal_points(matches.x1, a, h, w), lens_ideal_points(matches.x2, a, h, w)
     s = torch.tensor([[big_r, 0, c[0]], [0, big_r, c[1]], [0, 0, 1]], dtype=torch.float64)
     hs, inliers = torch.zeros(len(matches.first), 8, dtype=torch.float64), torch.zeros(len(u1), dtype=torch.bool)
@@ -291,7 +291,7 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
             name = f"planar-{n}" + ("-centre" if free else "")
             table[name] = {"bic": n_info * math.log(max(rss, 1e-300) / max(n_obs, 1)) + (n + 2 * free) * math.log(max(n_info, 1)),
                            "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(rss / max(n_obs, 1)),
-                           "coefficients": split_lens(tn, n)[0].tolist(), "centre": centre_px(tn, n, size)}
+                           **dict(zip(("coefficients", "centre"), lens_of(tn, n, size)))}
             fits[name] = (tn, hn, dl, n)
     return table, fits
 
@@ -358,12 +358,12 @@ def self_calibrate_planar(
     big_r = half_diagonal(h, w)
     n_frames = len(matches.names)
     step = max(1, round(math.sqrt(h * w / 20000)))
-    c = matches.x1.new_tensor([(w - 1) / 2, (h - 1) / 2])
+    c = matches.x1.new_tensor(distortion_center(h, w))
     v1, v2 = (matches.x1 - c) / big_r, (matches.x2 - c) / big_r
 
     def fail(reason: str, a=None, inl: int = 0, models=None) -> PlanarCalibration:
         nan = math.nan
-        return PlanarCalibration([] if a is None else a.tolist(), 0 if a is None else a.numel(), "", [(w - 1) / 2, (h - 1) / 2],
+        return PlanarCalibration([] if a is None else list(a), 0 if a is None else len(a), "", list(distortion_center(h, w)),
                                  nan, nan, nan, nan, (nan, nan), nan, (nan, nan), 0.0, nan, 0.0, None, reason, len(matches.first), inl,
                                  len(matches.pair), nan, nan, models or {}, [], [], [], {}, {})
 
@@ -384,13 +384,13 @@ def self_calibrate_planar(
     table, fits = _fit_models(theta, hs, v1, v2, matches.pair, inl, (h, w), cfg, step)
     best = min(table, key=lambda m: table[m]["bic"])
     theta, hs, dl, n = fits[best]
-    a, centre = split_lens(theta, n)[0], centre_px(theta, n, (h, w))
+    a, centre = lens_of(theta, n, (h, w))
     if good_pairs < cfg.planar_min_pairs:
         return fail(f"too few pairs fit one homography: {good_pairs} of at least {cfg.planar_min_pairs}", a, int(inl.sum()), table)
     spread = model_spread(table, best, cfg)
     # the jackknife over contiguous blocks of frames
     n_blocks = min(cfg.jackknife_blocks, n_frames)
-    jk_avg, jk_max, jk_a, jk_c, jk_t = [], [], [], [], []
+    jk_avg, jk_max, jk_t = [], [], []
     for g in range(n_blocks):
         block = torch.arange(g * n_frames // n_blocks, (g + 1) * n_frames // n_blocks)
         out = torch.isin(matches.first, block) | torch.isin(matches.second, block)
@@ -399,9 +399,8 @@ def self_calibrate_planar(
         dj = lens_deltas(tj, n, (h, w), 2 * step)
         jk_avg.append(dj["delta_avg_px"])
         jk_max.append(dj["delta_max_px"])
-        jk_a.append(split_lens(tj, n)[0].tolist())
-        jk_c.append(centre_px(tj, n, (h, w)))
         jk_t.append(tj)
+    jk_a, jk_c = ([lens_of(tj, n, (h, w))[k] for tj in jk_t] for k in (0, 1))
     intervals = [jackknife_interval(value, jk, extra, cfg.confidence)
                  for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0))]
     seen = torch.cat([matches.x1[inl], matches.x2[inl]]).unique(dim=0)
@@ -416,16 +415,11 @@ def self_calibrate_planar(
         reason = f"interval too wide: +-{half_avg:.2f} px"
     elif math.isfinite(k2u):
         dc = paper_frame_delta_avg(k2u, k4u, (h, w), st)  # eq. 4 at the paper's frame, same normalised lens
-        half_c = half_avg * dc / max(dl["delta_avg_px"], 1e-12)  # the interval scaled to that frame
-        if dc - half_c < st.analysis.no_distortion_px <= dc + half_c:  # the direct path's rule: R or not is open
-            reason = (f"the interval [{max(0.0, dc - half_c):.2f}, {dc + half_c:.2f}] px at the paper's frame spans the "
-                      f"no-distortion threshold ({st.analysis.no_distortion_px} px): a distortion or none cannot be told")
-        else:
-            label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
+        label, reason = class_or_open(dc, half_avg * dc / max(dl["delta_avg_px"], 1e-12), st)  # the interval scaled there
     cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, model=m, step=step, centre=centre)
             for m in ("standard", "rational")]
     return PlanarCalibration(
-        a.tolist(), n, best, centre, k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
+        a, n, best, centre, k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
         dl["invertible_fraction"], bending, reach, label, reason, good_pairs, int(inl.sum()), len(matches.pair), share,
         table[best]["reprojection_px"], table, jk_avg, jk_a, jk_c,
         *({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"} for cam in cams))

@@ -23,12 +23,13 @@ import math
 import torch
 from torch.func import vmap
 
+from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.pooling import t_quantile
 
 __all__ = ["lens_ideal_points", "lens_factor", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
-           "transfer_errors", "monotone_radius", "centre_px", "lens_deltas", "bending_halfwidth"]
+           "transfer_errors", "monotone_radius", "lens_of", "lens_deltas", "bending_halfwidth"]
 
 
 # ------------------------------------------------------------------ the lens and the residual
@@ -44,7 +45,7 @@ def lens_ideal_points(points: torch.Tensor, coefficients, height: int, width: in
         >>> lens_ideal_points(p, [0.1], 8, 10, centre=(0.0, 0.0))[0].tolist()  # the centre stays put
         [0.0, 0.0]
     """
-    c = points.new_tensor([(width - 1) / 2, (height - 1) / 2] if centre is None else [float(v) for v in centre])
+    c = points.new_tensor(distortion_center(height, width) if centre is None else [float(v) for v in centre])
     big_r = half_diagonal(height, width)
     v = (points - c) / big_r
     return c + big_r * v * lens_factor((v * v).sum(-1, keepdim=True), torch.as_tensor(coefficients, dtype=points.dtype))
@@ -177,12 +178,12 @@ def monotone_radius(a: torch.Tensor) -> float:
     return float(r[int(falls[0, 0]), 0]) if len(falls) else math.inf
 
 
-def centre_px(theta: torch.Tensor, terms: int, size: tuple[int, int]) -> list[float]:
-    """The distortion centre (x, y) in pixels of the lens ``theta``."""
+def lens_of(theta: torch.Tensor, terms: int, size: tuple[int, int]) -> tuple[list[float], list[float]]:
+    """The lens ``theta`` as :func:`lens_ideal_points` takes it: its coefficients and its centre (x, y) in pixels."""
     h, w = size
-    _, d = split_lens(theta, terms)
+    a, d = split_lens(theta, terms)
     off = [0.0, 0.0] if d is None else (d * half_diagonal(h, w)).tolist()
-    return [(w - 1) / 2 + off[0], (h - 1) / 2 + off[1]]
+    return a.tolist(), [c + o for c, o in zip(distortion_center(h, w), off)]
 
 
 def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: int) -> dict:
@@ -191,9 +192,9 @@ def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: in
     Returns ``delta_avg_px``, ``delta_max_px``, ``invertible_fraction``, the grid ``points`` and the mask ``ok``.
     """
     h, w = size
-    a, centre = split_lens(theta, terms)[0], centre_px(theta, terms, size)
+    a, centre = lens_of(theta, terms, size)
     p = grid_points(h, w, step)
-    ok = ((p - p.new_tensor(centre)).norm(dim=-1) / half_diagonal(h, w)) < monotone_radius(a)
+    ok = ((p - p.new_tensor(centre)).norm(dim=-1) / half_diagonal(h, w)) < monotone_radius(torch.tensor(a, dtype=torch.float64))
     off = (lens_ideal_points(p, a, h, w, centre) - p).norm(dim=-1)[ok]
     if off.numel() == 0:
         return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok}
@@ -220,11 +221,13 @@ def bending_halfwidth(theta, replicates: list, n: int, size: tuple[int, int], dl
     share = len(p) / max(len(dl["points"]), 1)
     if len(replicates) < 2 or len(p) < 3 or not len(seen):
         return math.nan, share
-    x = lens_ideal_points(p, split_lens(theta, n)[0], h, w, centre_px(theta, n, size))
+    a, centre = lens_of(theta, n, size)
+    x = lens_ideal_points(p, a, h, w, centre)
     design = torch.cat([x, torch.ones(len(x), 1, dtype=x.dtype)], 1)
     msq = []
     for tj in replicates:
-        y = lens_ideal_points(p, split_lens(tj, n)[0], h, w, centre_px(tj, n, size))
+        a, centre = lens_of(tj, n, size)
+        y = lens_ideal_points(p, a, h, w, centre)
         fit = design @ torch.linalg.lstsq(design, y).solution
         msq.append(float(((y - fit) ** 2).sum(-1).mean()))
     b = len(replicates)
