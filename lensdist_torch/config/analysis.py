@@ -44,10 +44,12 @@ class AnalysisConfig:
             method says "cannot tell": both views carry the same distortion, which cancels
             where the scene did not move. Positive, and applied with or without ``cross_check``.
         interval_confidence: coverage of a pair's Delta_avg interval (self-calibration).
-        relief_z: a pair whose plane + parallax answer was kept (``selfcal.parallax_test``) and
-            whose Hausman statistic (``SelfCalInfo.relief_z``) is at least this is "cannot
-            tell" for relief, both answers given beside it (chosen on validation pairs of three
-            conditions: docs/method.md, section 10).
+        flat_prior: with the plane + parallax model (``selfcal.parallax`` > 0), the weight of the
+            planar model in a pair's confidence: the class's mass under the planar answer times
+            this, plus its mass under the plane + parallax answer times 1 - this (a prior
+            probability that the scene is flat; chosen on validation pairs of three conditions,
+            docs/method.md, section 10). Where the two answers fall in different classes the
+            pair is "cannot tell" for relief, both answers given beside it.
 
     Example:
         >>> from dataclasses import replace
@@ -75,13 +77,13 @@ class AnalysisConfig:
     validation_seed_offset: int = 1
     min_motion_px: float = 1.0
     interval_confidence: float = 0.95
-    relief_z: float = 4.0
+    flat_prior: float = 0.85
 
     def __post_init__(self) -> None:
         real(self, "no_distortion_px", lo=0, lo_open=True)
         real(self, "min_motion_px", lo=0, lo_open=True, why="at 0 every method answers on the same image twice")
         real(self, "interval_confidence", lo=0, hi=1, lo_open=True, hi_open=True)
-        real(self, "relief_z", lo=0)
+        real(self, "flat_prior", lo=0, hi=1)
         real(self, "min_overlap", lo=0, hi=1)
         real(self, "out_of_domain_factor", lo=0, lo_open=True)
         real(self, "min_confidence", lo=0, hi=1)

@@ -91,7 +91,9 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
 
 
 #: Keys an earlier version wrote that this one no longer reads: (section, key) -> what replaced it.
-RETIRED = {("protocol", "parallax_px"): "protocol.relief (a scene's relief; the parallax follows each pair's motion)"}
+RETIRED = {("protocol", "parallax_px"): "protocol.relief (a scene's relief; the parallax follows each pair's motion)",
+           ("analysis", "relief_z"): "analysis.flat_prior (both models of the scene weighed in a pair's confidence; "
+                                     "relief where their classes differ)"}
 
 
 def retired_keys(data: dict[str, Any]) -> list[str]:
@@ -100,6 +102,8 @@ def retired_keys(data: dict[str, Any]) -> list[str]:
     Example:
         >>> retired_keys({"protocol": {"parallax_px": 1.5}}), retired_keys({"protocol": {}})
         (['protocol.parallax_px'], [])
+        >>> retired_keys({"analysis": {"relief_z": 4.0}})
+        ['analysis.relief_z']
     """
     return [f"{s}.{k}" for s, k in RETIRED if isinstance(data.get(s), dict) and k in data[s]]
 
@@ -108,12 +112,16 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
     """The config a checkpoint of an earlier version was saved with.
 
     A retired key is dropped where it had no effect (``protocol.parallax_px`` outside the
-    realistic protocol, or 0); where it had one, the saved object was made under a protocol
-    this version no longer has, and that is a one-line ValueError saying what replaced it.
+    realistic protocol, or 0; ``analysis.relief_z`` always: a decision made at analysis time,
+    never part of a fitted model or a data set); where it had one, the saved object was made
+    under a protocol this version no longer has, and that is a one-line ValueError saying what
+    replaced it.
 
     Example:
         >>> stored_config({"protocol": {"parallax_px": 1.5}}).protocol.relief
         0.0
+        >>> stored_config({"analysis": {"relief_z": 4.0}}).analysis.flat_prior  # the default
+        0.85
     """
     protocol = data.get("protocol")
     if isinstance(protocol, dict) and "parallax_px" in protocol:
@@ -122,6 +130,9 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
             raise ValueError(f"saved under the realistic protocol's former fixed parallax (protocol.parallax_px = {px!r}), "
                              f"which this version replaced by {RETIRED[('protocol', 'parallax_px')]}: fit it again")
         data = {**data, "protocol": {k: v for k, v in protocol.items() if k != "parallax_px"}}
+    analysis = data.get("analysis")
+    if isinstance(analysis, dict) and "relief_z" in analysis:
+        data = {**data, "analysis": {k: v for k, v in analysis.items() if k != "relief_z"}}
     return config_from_dict(data)
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict
+from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict, stored_config
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
 from lensdist_torch.core.outputs import refuse_foreign_folder
 from lensdist_torch.data.locks import DataSetLocked, share_lock
@@ -428,5 +428,5 @@ def load_set(out: str | Path, set_name: str, limit: int | None = None) -> dict:
     check_counts(merged, info, where, set_name)
     if limit is not None:
         merged = {k: v[:limit] for k, v in merged.items()}
-    merged["config"] = config_from_dict(m["config"])
+    merged["config"] = stored_config(m["config"])  # retired keys that never shaped the pairs dropped
     return merged

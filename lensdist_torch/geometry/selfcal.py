@@ -110,7 +110,8 @@ class SelfCalInfo(NamedTuple):
     (the fitted H's mean displacement, px; NaN if not converged), planar_ab and relief_ab (B, 2) the
     planar and plane + parallax models' coefficients whichever was kept (relief_ab NaN without that
     model or where it did not converge), relief_z Hausman's statistic of their Delta_avg difference
-    (what ``parallax_test`` thresholds; NaN without that model).
+    (what ``parallax_test`` thresholds; NaN without that model), planar_std and relief_std the two
+    models' Delta_avg stds whichever was kept (relief_std NaN without that model).
     """
 
     converged: torch.Tensor
@@ -129,6 +130,8 @@ class SelfCalInfo(NamedTuple):
     planar_ab: torch.Tensor
     relief_ab: torch.Tensor
     relief_z: torch.Tensor
+    planar_std: torch.Tensor
+    relief_std: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -246,8 +249,9 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     def per_pair(a, b):  # a where the relief answer is kept, else b
         return torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b)
 
-    info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(from_init=planar[3].from_init, relief=use,
-                                                                  planar_ab=planar[3].ab, relief_ab=relief[3].ab, relief_z=z)
+    info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(
+        from_init=planar[3].from_init, relief=use, planar_ab=planar[3].ab, relief_ab=relief[3].ab, relief_z=z,
+        planar_std=s0, relief_std=torch.where(relief[3].converged, s1, torch.full_like(s1, float("nan"))))
     return (*map(per_pair, relief[:3], planar[:3]), info)
 
 
@@ -446,5 +450,6 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
                        st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan), ab,
-                       torch.full_like(ab, float("nan")), torch.full_like(d_avg, float("nan")))
+                       torch.full_like(ab, float("nan")), torch.full_like(d_avg, float("nan")), std,
+                       torch.full_like(std, float("nan")))
     return theta, k2, k4, H, info

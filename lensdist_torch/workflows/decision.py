@@ -37,8 +37,8 @@ from lensdist_torch.workflows.texture import texture_distance
 __all__ = ["REASONS", "in_user_pixels", "class_distance", "domain_checks", "decide"]
 
 #: The codes of ``cannot_tell_reasons``, in the order they are listed: the registration failed,
-#: the views overlap too little, no estimate, too little motion, relief found (the plane +
-#: parallax test), a low confidence, out of the learned methods' domain, an answer without a
+#: the views overlap too little, no estimate, too little motion, relief found (the planar and
+#: the plane + parallax models put the pair in different classes), a low confidence, out of the learned methods' domain, an answer without a
 #: confidence that the self-calibration does not confirm.
 REASONS = ("registration", "overlap", "no_estimate", "motion", "relief", "low_confidence", "out_of_domain", "unconfirmed")
 
@@ -121,9 +121,9 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
     if aligned and res.get("relief_found"):
         lo, hi = res["relief_delta_avg_interval"] or (float("nan"), float("nan"))
         out.append(
-            f"cannot tell: relief: a plane + parallax model moves Delta_avg from {res['planar_delta_avg']:.2f} px "
-            f"(planar model) to {res['relief_delta_avg']:.2f} px [{lo:.2f}, {hi:.2f}], beyond what either interval "
-            "allows: the scene is not a plane (or the lens is beyond eq. 4's two coefficients)"
+            f"cannot tell: relief: a plane + parallax model puts Delta_avg at {res['relief_delta_avg']:.2f} px "
+            f"[{lo:.2f}, {hi:.2f}], the planar model at {res['planar_delta_avg']:.2f} px, in another class: the class "
+            "depends on whether the scene is flat, which one pair cannot tell"
         )
     elif aligned and res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence:
         out.append("cannot tell from this pair: too little motion or texture to see the distortion (low confidence)")
@@ -152,9 +152,9 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
 
     "Cannot tell" where the confidence is low, there is no estimate, the pair is out of domain, an
     answer without a confidence is not confirmed by the self-calibration (:func:`domain_checks`),
-    the self-calibration found relief (``relief_found``: the plane + parallax answer kept and
-    Hausman's statistic at least ``analysis.relief_z``; both answers stay in the result, as
-    ``planar_delta_avg`` and ``relief_delta_avg`` with its interval), or
+    the self-calibration found relief (``relief_found``: its planar and plane + parallax answers
+    fall in different classes; both stay in the result, as ``planar_delta_avg`` and
+    ``relief_delta_avg`` with their intervals), or
     the views moved by less than ``analysis.min_motion_px`` (``motion_px``: the registration's
     mean displacement; every method, since none can see a distortion that cancels). Then
     ``class``, ``class_max``, ``delta_avg``, ``delta_max`` and ``distortion_type`` are None: no

@@ -34,7 +34,7 @@ from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
 from lensdist_torch.workflows.texture import texture_histogram
 
-__all__ = ["PreparedPairs", "prepare_batch", "resolve_device"]
+__all__ = ["PreparedPairs", "prepare_batch", "resolve_device", "flat_or_relief"]
 
 
 def resolve_device(device=None) -> torch.device:
@@ -181,35 +181,64 @@ def _selfcal_one(p: PreparedPairs, i: int) -> dict:
     off = pixel_offsets(k2, k4, h, w).flatten(1)  # one map for both Deltas
     d_avg, d_max = off.mean(1), off.amax(1)
     label = CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])]
+    std = float(sc.delta_avg_std[0])
     out = {
         "estimated_class": label,
         "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
         "delta_avg": float(d_avg[0]),
         "delta_max": float(d_max[0]),
-        "raw_confidence": _class_mass(float(d_avg[0]), float(sc.delta_avg_std[0]), label, cfg),
         "k2": float(k2[0]),
         "k4": float(k4[0]),
-        "delta_avg_std": float(sc.delta_avg_std[0]),
-        "delta_avg_interval": _interval(float(d_avg[0]), float(sc.delta_avg_std[0]), cfg.analysis.interval_confidence),
+        "delta_avg_std": std,
+        "delta_avg_interval": _interval(float(d_avg[0]), std, cfg.analysis.interval_confidence),
         "relief": bool(sc.relief[0]),  # the plane + parallax model's answer kept (selfcal.parallax_test)
         "relief_z": float(sc.relief_z[0]),  # Hausman's statistic; NaN without that model
         "distortion_type": distortion_type(float(sc.ab[0, 0]), float(sc.ab[0, 1])),
     }
-    return out | _relief_found(out, sc, cfg)
+    return out | _two_models(out, sc, cfg)
 
 
-def _relief_found(out: dict, sc, cfg: LensdistConfig) -> dict:
-    """``relief_found``: the plane + parallax answer kept and Hausman's z at least ``analysis.relief_z``.
+def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
+    """``raw_confidence`` and ``relief_found`` of one pair (:func:`flat_or_relief`), both answers where found.
 
-    Where found, the kept answer (``delta_avg`` and its interval) is the plane + parallax one: it
-    stays beside the "cannot tell" that relief causes (``decision.decide``) as
-    ``relief_delta_avg`` and ``relief_delta_avg_interval``, with the planar model's Delta_avg.
+    Where relief is found, both answers stay beside the "cannot tell" (``decision.decide``) as
+    ``planar_delta_avg``, ``relief_delta_avg`` and their intervals. Without the plane + parallax
+    model (or where it did not converge) the kept answer's class mass alone.
     """
-    if not (out["relief"] and out["relief_z"] >= cfg.analysis.relief_z):
-        return {"relief_found": False}
-    planar = delta_avg(*from_normalized(sc.planar_ab, *cfg.image.size), *cfg.image.size)
-    return {"relief_found": True, "relief_delta_avg": out["delta_avg"], "relief_delta_avg_interval": out["delta_avg_interval"],
-            "planar_delta_avg": float(planar[0])}
+    label, a = out["estimated_class"], cfg.analysis
+    d0, d1 = (float(delta_avg(*from_normalized(ab, *cfg.image.size), *cfg.image.size)[0]) for ab in (sc.planar_ab, sc.relief_ab))
+    s0, s1 = float(sc.planar_std[0]), float(sc.relief_std[0])
+    if not (math.isfinite(d1) and math.isfinite(s1)):
+        return {"raw_confidence": _class_mass(out["delta_avg"], out["delta_avg_std"], label, cfg), "relief_found": False}
+    conf, found = flat_or_relief(label, (d0, s0), (d1, s1), cfg)
+    both = {"planar_delta_avg": d0, "planar_delta_avg_interval": _interval(d0, s0, a.interval_confidence),
+            "relief_delta_avg": d1, "relief_delta_avg_interval": _interval(d1, s1, a.interval_confidence)}
+    return {"raw_confidence": conf, "relief_found": found, **both}
+
+
+def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
+    """The raw confidence of a pair's class over both models of its scene, and whether they part.
+
+    A user does not say whether the scene is flat. With the planar answer (Delta_avg, std) and
+    the plane + parallax one, the confidence of ``label`` is its mass under each
+    (:func:`_class_mass`, the folded normal), weighted ``analysis.flat_prior`` and 1 - that:
+    ``w P(label | planar) + (1 - w) P(label | relief)``. Where the two answers fall in different
+    classes the class depends on whether the scene is flat, which one pair cannot tell: the
+    second value (``relief_found``) is True.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> cfg = LensdistConfig()  # flat_prior 0.85; class 2 spans Delta_avg 3.6 to 7.2 px at 320 x 424
+        >>> conf, found = flat_or_relief("2", (5.0, 0.2), (5.3, 0.4), cfg)
+        >>> round(conf, 3), found
+        (1.0, False)
+        >>> flat_or_relief("2", (7.0, 0.2), (7.6, 0.4), cfg)[1]  # the relief answer is in class 3
+        True
+    """
+    w = cfg.analysis.flat_prior
+    d = torch.tensor([planar[0], relief[0]], dtype=torch.float64)
+    c0, c1 = estimated_class(d, d, "delta_avg", cfg).tolist()
+    return w * _class_mass(*planar, label, cfg) + (1 - w) * _class_mass(*relief, label, cfg), c0 != c1
 
 
 def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:

@@ -174,6 +174,8 @@ BAD_VALUES = [
     ("analysis", "eigenspace_max_class_disagreement", "-1"),
     ("analysis", "min_motion_px", "0.0"),  # every method would answer on the same image twice
     ("analysis", "min_motion_px", "-1.0"),
+    ("analysis", "flat_prior", "1.5"),  # a weight of the planar model, in [0, 1]
+    ("analysis", "flat_prior", "-0.1"),
 ]
 
 

@@ -463,3 +463,9 @@ def test_a_config_saved_with_the_retired_parallax():
     assert "\n" not in str(err.value)
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['parallax_px'\] in config section \[protocol\]"):
         config_from_dict(clean)  # a user's file is not silently reinterpreted
+    # the former relief threshold of the analysis (issue 20) never shaped a model or a data set: dropped
+    old = {"analysis": {"relief_z": 4.0, "min_confidence": 0.6}}
+    assert retired_keys(old) == ["analysis.relief_z"]
+    assert stored_config(old) == config_from_dict({"analysis": {"min_confidence": 0.6}})
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['relief_z'\] in config section \[analysis\]"):
+        config_from_dict(old)

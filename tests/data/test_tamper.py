@@ -112,6 +112,16 @@ def test_edited_shard_digest_in_the_manifest(data):
         load_set(data, "test")
 
 
+def test_a_manifest_saved_with_the_retired_relief_threshold_still_reads(reference, data):
+    """Data made before issue 20 record analysis.relief_z in their config: a decision of the
+    analysis, never part of the pairs, so the data set reads as it was."""
+    _edit_manifest(data, lambda m: m["config"]["analysis"].__setitem__("relief_z", 4.0))
+    assert load_set(data, "test")["class_avg"].tolist() == load_set(reference, "test")["class_avg"].tolist()
+    _edit_manifest(data, lambda m: m["config"]["protocol"].__setitem__("parallax_px", 1.5))
+    with pytest.raises(ShardError, match=r"earlier version of the pair protocol \(protocol\.parallax_px\)"):
+        load_set(data, "test")
+
+
 # ------------------------------------------------------------------ the manifest's counts against the shards
 def _shrink_test_set(m: dict, counts: dict) -> None:
     """The test set recorded as its first 4 pairs, consistently: size, shards, counts, digests."""

@@ -88,6 +88,10 @@ def test_relief_model_leaves_a_planar_scene_nearly_as_it_was():
     assert torch.equal(torch.where(kept, info.relief_ab, info.planar_ab), info.ab)
     assert torch.allclose(info.planar_ab, flat.ab, atol=1e-9) and torch.equal(flat.planar_ab, flat.ab)
     assert bool(flat.relief_ab.isnan().all()) and bool(torch.isfinite(info.relief_ab).all())
+    # and so do both models' stds: the kept one's is delta_avg_std, the planar one the planar model's
+    assert torch.equal(torch.where(info.relief, info.relief_std, info.planar_std), info.delta_avg_std)
+    assert torch.allclose(info.planar_std, flat.delta_avg_std) and torch.equal(flat.planar_std, flat.delta_avg_std)
+    assert bool(flat.relief_std.isnan().all()) and bool((info.relief_std > 0).all())
 
 
 @pytest.mark.usefixtures("one_thread_module")

@@ -20,6 +20,7 @@ from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.workflows.analyze import analyze_batch
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
 from lensdist_torch.workflows.decision import class_distance, decide, domain_checks
+from lensdist_torch.workflows.prepare import flat_or_relief
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -87,8 +88,8 @@ def test_decide_names_each_reason_by_its_code():
 
 
 def test_relief_found_is_the_reason_and_both_answers_stay():
-    """The plane + parallax test found relief: "cannot tell", reason relief (not also low
-    confidence), the planar and the relief estimates in the result and the warning."""
+    """The planar and plane + parallax models answer different classes: "cannot tell", reason
+    relief (not also low confidence), the planar and the relief estimates in the result and the warning."""
     cfg = LensdistConfig()
     r = _res(relief=True, relief_found=True, relief_z=5.0, relief_delta_avg=8.1, relief_delta_avg_interval=[7.5, 8.7], planar_delta_avg=9.0,
              confidence=0.3)
@@ -97,8 +98,29 @@ def test_relief_found_is_the_reason_and_both_answers_stay():
     assert r["cannot_tell_reasons"] == ["relief"]
     assert r["relief_delta_avg"] == 8.1 and r["planar_delta_avg"] == 9.0
     (w,) = r["warnings"]
-    assert w.startswith("cannot tell: relief") and "not a plane" in w
-    assert "9.00 px (planar model)" in w and "8.10 px [7.50, 8.70]" in w
+    assert w.startswith("cannot tell: relief") and "whether the scene is flat" in w
+    assert "planar model at 9.00 px" in w and "8.10 px [7.50, 8.70]" in w
+
+
+def test_flat_or_relief_weighs_both_models_class_masses():
+    """The confidence of a class over both models: w x its folded-normal mass under the planar
+    answer plus (1 - w) x under the plane + parallax one, against the normal CDF written out;
+    relief found exactly where the two answers fall in different classes."""
+    cfg = LensdistConfig()
+    lo, hi = 3.592129565304105, 7.18425913060821  # class 2 at 320 x 424
+
+    def mass(d, s):  # P(lo < |D| < hi), D ~ N(d, s^2)
+        phi = lambda x: 0.5 * (1 + math.erf(x / math.sqrt(2)))  # noqa: E731
+        return phi((hi - d) / s) - phi((lo - d) / s) + phi((-lo - d) / s) - phi((-hi - d) / s)
+
+    for w in (0.0, 0.85, 1.0):
+        c = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, flat_prior=w))
+        conf, found = flat_or_relief("2", (6.9, 0.2), (7.0, 0.5), c)
+        assert conf == pytest.approx(w * mass(6.9, 0.2) + (1 - w) * mass(7.0, 0.5), abs=1e-9) and not found
+    assert flat_or_relief("2", (6.9, 0.2), (7.3, 0.5), cfg)[1]  # 7.3 px is class 3
+    assert flat_or_relief("2", (6.9, 0.2), (7.3, 0.5), cfg)[0] < flat_or_relief("2", (6.9, 0.2), (7.0, 0.5), cfg)[0]
+    with pytest.raises(ValueError, match="flat_prior"):
+        dataclasses.replace(cfg.analysis, flat_prior=1.2)
 
 
 def test_a_pair_of_a_scene_with_relief_says_relief():
