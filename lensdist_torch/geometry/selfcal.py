@@ -72,6 +72,7 @@ from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import mean_pyramid
 from lensdist_torch.geometry.selfcal_model import (
     Level,
+    SelfCalInfo,
     distort_normalized,
     evaluate,
     h_matrix,
@@ -96,42 +97,6 @@ __all__ = [
     "distort_normalized",
     "undistort_normalized",
 ]
-
-
-class SelfCalInfo(NamedTuple):
-    """Per-pair diagnostics of :func:`estimate_distortion`, each (B,) on the images' device.
-
-    converged (bool; False -> k2, k4, H are NaN), confident (bool), confidence in (0, 1],
-    delta_avg (px, NaN if not converged), delta_avg_std (px), residual (RMS of the
-    photometrically corrected residual at full resolution), overlap, ab (B, 2) the normalised
-    coefficients, gain_bias (B, 2) the photometric gain and bias (1, 0 without that model),
-    scale (the robust sigma, 1.4826 MAD, of the final residual), from_init (bool: the start
-    from ``init`` won), relief (bool: the plane + parallax model's answer was kept), motion
-    (the fitted H's mean displacement, px; NaN if not converged), planar_ab and relief_ab (B, 2) the
-    planar and plane + parallax models' coefficients whichever was kept (relief_ab NaN without that
-    model or where it did not converge), relief_z Hausman's statistic of their Delta_avg difference
-    (what ``parallax_test`` thresholds; NaN without that model), planar_std and relief_std the two
-    models' Delta_avg stds whichever was kept (relief_std NaN without that model).
-    """
-
-    converged: torch.Tensor
-    confident: torch.Tensor
-    confidence: torch.Tensor
-    delta_avg: torch.Tensor
-    delta_avg_std: torch.Tensor
-    residual: torch.Tensor
-    overlap: torch.Tensor
-    ab: torch.Tensor
-    gain_bias: torch.Tensor
-    scale: torch.Tensor
-    from_init: torch.Tensor
-    relief: torch.Tensor
-    motion: torch.Tensor
-    planar_ab: torch.Tensor
-    relief_ab: torch.Tensor
-    relief_z: torch.Tensor
-    planar_std: torch.Tensor
-    relief_std: torch.Tensor
 
 
 class _State(NamedTuple):
@@ -251,7 +216,7 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
 
     info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(
         from_init=planar[3].from_init, relief=use, planar_ab=planar[3].ab, relief_ab=relief[3].ab, relief_z=z,
-        planar_std=s0, relief_std=torch.where(relief[3].converged, s1, torch.full_like(s1, float("nan"))))
+        planar_std=s0, relief_std=s1)
     return (*map(per_pair, relief[:3], planar[:3]), info)
 
 

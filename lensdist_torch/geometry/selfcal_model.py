@@ -30,6 +30,7 @@ __all__ = [
     "PHOTOMETRIC",
     "ROBUST",
     "Level",
+    "SelfCalInfo",
     "undistort_normalized",
     "distort_normalized",
     "h_matrix",
@@ -150,6 +151,43 @@ def selfcal_residual(img1, img2, H, k2, k4, newton: int = 5, gain=None, bias=Non
 def with_gradients(g: torch.Tensor) -> torch.Tensor:
     """(B, 1, h, w) -> (B, 3, h, w): image, d/dx, d/dy (central differences)."""
     return torch.cat([g, central_differences(g[:, 0]).transpose(1, 2)], 1)
+
+
+class SelfCalInfo(NamedTuple):
+    """Per-pair diagnostics of :func:`estimate_distortion`, each (B,) on the images' device.
+
+    converged (bool; False -> k2, k4, H are NaN), confident (bool), confidence in (0, 1],
+    delta_avg (px, NaN if not converged), delta_avg_std (px), residual (RMS of the
+    photometrically corrected residual at full resolution), overlap, ab (B, 2) the normalised
+    coefficients, gain_bias (B, 2) the photometric gain and bias (1, 0 without that model),
+    scale (the robust sigma, 1.4826 MAD, of the final residual), from_init (bool: the start
+    from ``init`` won), relief (bool: the plane + parallax model's answer was kept), motion
+    (the fitted H's mean displacement, px; NaN if not converged), planar_ab and relief_ab (B, 2) the
+    planar and plane + parallax models' coefficients whichever was kept (relief_ab NaN without that
+    model or where it did not converge), relief_z Hausman's statistic of their Delta_avg difference
+    (what ``parallax_test`` thresholds; NaN without that model), planar_std and relief_std the two
+    models' Delta_avg stds whichever was kept (relief_std NaN without that model, inf where it did
+    not converge).
+    """
+
+    converged: torch.Tensor
+    confident: torch.Tensor
+    confidence: torch.Tensor
+    delta_avg: torch.Tensor
+    delta_avg_std: torch.Tensor
+    residual: torch.Tensor
+    overlap: torch.Tensor
+    ab: torch.Tensor
+    gain_bias: torch.Tensor
+    scale: torch.Tensor
+    from_init: torch.Tensor
+    relief: torch.Tensor
+    motion: torch.Tensor
+    planar_ab: torch.Tensor
+    relief_ab: torch.Tensor
+    relief_z: torch.Tensor
+    planar_std: torch.Tensor
+    relief_std: torch.Tensor
 
 
 class Level(NamedTuple):
