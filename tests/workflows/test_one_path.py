@@ -180,19 +180,21 @@ def test_analyze_pair_is_one_call_of_analyze_batch(monkeypatch, method):
     assert calls == {"_models_and_config": 1, "prepare_batch": 1}
     batch, maps = analyze_batch(a, b, method=method, return_maps=True)
     assert torch.equal(qmap, maps)
-    # the same answer to 10 significant digits: the batch's buffers may be aligned otherwise, and
-    # the CPU kernels' SIMD paths then round differently (seen: 1e-13 relative, once in ~3 runs)
-    assert _rounded(json_safe(res)) == _rounded(json_safe(batch[0]))
+    # the same answer to 1e-7 relative: the batch's buffers may be aligned otherwise, and the CPU
+    # kernels' SIMD paths then round differently (seen: 1e-13 relative, once in ~3 runs; 1.4e-9 on an
+    # OpenCV coefficient of 7.6e-13 that its least-squares fit leaves at the noise, once in CI)
+    assert _same(json_safe(res), json_safe(batch[0]))
 
 
-def _rounded(value):
-    if isinstance(value, float):
-        return float(f"{value:.10g}")
-    if isinstance(value, dict):
-        return {k: _rounded(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_rounded(v) for v in value]
-    return value
+def _same(a, b) -> bool:
+    """Equal structures, floats within 1e-7 relative (or both NaN), everything else exactly."""
+    if isinstance(a, float) and isinstance(b, float):
+        return (a != a and b != b) or math.isclose(a, b, rel_tol=1e-7, abs_tol=0.0)
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return type(a) is type(b) and a == b
 
 
 def test_each_image_is_checked_once_per_analyze_pair():
