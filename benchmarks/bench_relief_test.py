@@ -78,10 +78,7 @@ def summary(rows: dict, cfg: LensdistConfig, prior: float) -> dict:
             cannot += 1
             continue
         label = int(estimated_class(d, d, "delta_avg", cfg)[0])
-        if math.isfinite(rows["d1"][i]) and math.isfinite(rows["s1"][i]):
-            c, found = flat_or_relief(CLASS_LABELS[label], (rows["d0"][i], rows["s0"][i]), (rows["d1"][i], rows["s1"][i]), cfg)
-        else:
-            c, found = flat_or_relief(CLASS_LABELS[label], (rows["d"][i], rows["s"][i]), (rows["d"][i], rows["s"][i]), cfg)
+        c, found = flat_or_relief(CLASS_LABELS[label], (rows["d0"][i], rows["s0"][i]), (rows["d1"][i], rows["s1"][i]), cfg)
         if not found:
             conf.append(c)
             ok.append(label == true_class)

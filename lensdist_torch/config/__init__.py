@@ -31,6 +31,7 @@ from lensdist_torch.config.analysis import AnalysisConfig
 from lensdist_torch.config.classify import MAX_NEIGHBOURS, ClassifierConfig, RegressionConfig
 from lensdist_torch.config.lensdist import (
     FROM_CLASS_TOLERANCE,
+    INERT,
     RETIRED,
     LensdistConfig,
     config_from_dict,
@@ -63,6 +64,7 @@ __all__ = [
     "MAX_NEIGHBOURS",
     "MULTIVIEW_MODELS",
     "MultiViewConfig",
+    "INERT",
     "RETIRED",
     "ProtocolConfig",
     "QualityConfig",

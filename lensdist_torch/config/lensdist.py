@@ -22,7 +22,7 @@ from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
 from lensdist_torch.config.sequence import CalibrationConfig, MultiViewConfig
 from lensdist_torch.config.toml import check_tables, read_toml
 
-__all__ = ["FROM_CLASS_TOLERANCE", "RETIRED", "LensdistConfig", "config_from_dict", "config_to_dict", "load_config",
+__all__ = ["FROM_CLASS_TOLERANCE", "INERT", "RETIRED", "LensdistConfig", "config_from_dict", "config_to_dict", "load_config",
            "retired_keys", "stored_config"]
 
 
@@ -94,6 +94,9 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
 RETIRED = {("protocol", "parallax_px"): "protocol.relief (a scene's relief; the parallax follows each pair's motion)",
            ("analysis", "relief_z"): "analysis.flat_prior (both models of the scene weighed in a pair's confidence; "
                                      "relief where their classes differ)"}
+#: Retired keys that never shaped a fitted model or a data set (decisions made at analysis time):
+#: dropped wherever a saved config is read.
+INERT = {("analysis", "relief_z")}
 
 
 def retired_keys(data: dict[str, Any]) -> list[str]:
@@ -112,8 +115,7 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
     """The config a checkpoint of an earlier version was saved with.
 
     A retired key is dropped where it had no effect (``protocol.parallax_px`` outside the
-    realistic protocol, or 0; ``analysis.relief_z`` always: a decision made at analysis time,
-    never part of a fitted model or a data set); where it had one, the saved object was made
+    realistic protocol, or 0; those of :data:`INERT` always: ``analysis.relief_z``); where it had one, the saved object was made
     under a protocol this version no longer has, and that is a one-line ValueError saying what
     replaced it.
 
@@ -130,9 +132,9 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
             raise ValueError(f"saved under the realistic protocol's former fixed parallax (protocol.parallax_px = {px!r}), "
                              f"which this version replaced by {RETIRED[('protocol', 'parallax_px')]}: fit it again")
         data = {**data, "protocol": {k: v for k, v in protocol.items() if k != "parallax_px"}}
-    analysis = data.get("analysis")
-    if isinstance(analysis, dict) and "relief_z" in analysis:
-        data = {**data, "analysis": {k: v for k, v in analysis.items() if k != "relief_z"}}
+    for section, key in INERT:
+        if isinstance(data.get(section), dict) and key in data[section]:
+            data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
     return config_from_dict(data)
 
 

@@ -15,7 +15,7 @@ import json
 import re
 from pathlib import Path
 
-from lensdist_torch.config import LensdistConfig, config_to_dict, retired_keys, stored_config
+from lensdist_torch.config import INERT, LensdistConfig, config_to_dict, retired_keys, stored_config
 from lensdist_torch.core.storage import atomic_write_bytes
 from lensdist_torch.data.locks import lock
 from lensdist_torch.data.synthesis import SETS, set_size
@@ -122,11 +122,12 @@ def _manifest_problem(m) -> str | None:
     scenes = m["scenes"]
     if not (isinstance(scenes, list) and scenes and all(isinstance(s, str) for s in scenes)):
         return "scenes must be a non-empty list of names"
-    protocol = [k for k in retired_keys(m["config"]) if k.startswith("protocol.")] if isinstance(m["config"], dict) else []
-    if protocol:
-        return f"made by an earlier version of the pair protocol ({', '.join(protocol)}); generate into another --out"
+    inert = {".".join(k) for k in INERT}
+    shaping = [k for k in retired_keys(m["config"]) if k not in inert] if isinstance(m["config"], dict) else []
+    if shaping:
+        return f"made by an earlier version of the pair protocol ({', '.join(shaping)}); generate into another --out"
     try:
-        config = stored_config(m["config"])  # what else is retired never shaped the pairs: dropped
+        config = stored_config(m["config"])  # the inert retired keys dropped
     except (TypeError, ValueError, AttributeError) as exc:
         return "config: " + " ".join(str(exc).split())
     if m["fingerprint"] != config_fingerprint(config, scenes):

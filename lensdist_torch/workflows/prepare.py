@@ -202,15 +202,15 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     """``raw_confidence`` and ``relief_found`` of one pair (:func:`flat_or_relief`), both answers where found.
 
     Where relief is found, both answers stay beside the "cannot tell" (``decision.decide``) as
-    ``planar_delta_avg``, ``relief_delta_avg`` and their intervals. Without the plane + parallax
-    model (or where it did not converge) the kept answer's class mass alone.
+    ``planar_delta_avg``, ``relief_delta_avg`` and their intervals (given wherever the plane +
+    parallax model converged).
     """
-    label, a = out["estimated_class"], cfg.analysis
-    d0, d1 = (float(delta_avg(*from_normalized(ab, *cfg.image.size), *cfg.image.size)[0]) for ab in (sc.planar_ab, sc.relief_ab))
+    a, size = cfg.analysis, cfg.image.size
+    d0, d1 = delta_avg(*from_normalized(torch.cat([sc.planar_ab, sc.relief_ab]), *size), *size).tolist()
     s0, s1 = float(sc.planar_std[0]), float(sc.relief_std[0])
+    conf, found = flat_or_relief(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):
-        return {"raw_confidence": _class_mass(out["delta_avg"], out["delta_avg_std"], label, cfg), "relief_found": False}
-    conf, found = flat_or_relief(label, (d0, s0), (d1, s1), cfg)
+        return {"raw_confidence": conf, "relief_found": False}
     both = {"planar_delta_avg": d0, "planar_delta_avg_interval": _interval(d0, s0, a.interval_confidence),
             "relief_delta_avg": d1, "relief_delta_avg_interval": _interval(d1, s1, a.interval_confidence)}
     return {"raw_confidence": conf, "relief_found": found, **both}
@@ -224,7 +224,9 @@ def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float,
     (:func:`_class_mass`, the folded normal), weighted ``analysis.flat_prior`` and 1 - that:
     ``w P(label | planar) + (1 - w) P(label | relief)``. Where the two answers fall in different
     classes the class depends on whether the scene is flat, which one pair cannot tell: the
-    second value (``relief_found``) is True.
+    second value (``relief_found``) is True. Without a plane + parallax answer (the model off,
+    or not converged: a non-finite Delta_avg or std; the planar answer is then the kept one) the
+    planar mass alone, and no relief found.
 
     Example:
         >>> from lensdist_torch.config import LensdistConfig
@@ -234,7 +236,11 @@ def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float,
         (1.0, False)
         >>> flat_or_relief("2", (7.0, 0.2), (7.6, 0.4), cfg)[1]  # the relief answer is in class 3
         True
+        >>> flat_or_relief("2", (5.0, 0.2), (float("nan"), float("inf")), cfg)[1]  # no relief answer
+        False
     """
+    if not (math.isfinite(relief[0]) and math.isfinite(relief[1])):
+        return _class_mass(*planar, label, cfg), False
     w = cfg.analysis.flat_prior
     d = torch.tensor([planar[0], relief[0]], dtype=torch.float64)
     c0, c1 = estimated_class(d, d, "delta_avg", cfg).tolist()
