@@ -34,7 +34,7 @@ from lensdist_torch.geometry import delta_avg, estimate_distortion, estimated_cl
 from lensdist_torch.geometry.distortion import CLASS_LABELS, from_normalized
 from lensdist_torch.workflows import prepare_batch
 from lensdist_torch.workflows.confidence import expected_calibration_error
-from lensdist_torch.workflows.evaluate import validation_config
+from lensdist_torch.workflows.decision_fit import validation_config
 from lensdist_torch.workflows.prepare import flat_or_relief
 
 CONDITIONS = {"default": None, "planar_realistic": "configs/realistic.toml", "relief_realistic": "configs/realistic_relief.toml"}

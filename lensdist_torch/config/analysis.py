@@ -26,6 +26,15 @@ class AnalysisConfig:
             self-calibration's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave
             it as it is. Fitted on a validation split by ``fit_confidence``.
         regression_confidence_scale, regression_confidence_shift: the same for the regression.
+        selfcal_std_scale: the factor on a pair's Delta_avg stds (the fit's covariance) in the
+            self-calibration's confidence, its class's mass under each model of the scene; 1
+            leaves them. Fitted on a validation split by ``fit_confidence`` (least log-loss):
+            about 0.5-0.7 on the rendered planar conditions, 1.4 where the scene has relief.
+        interval_std_scale: the factor on a pair's Delta_avg std in its intervals (the kept
+            answer's, the planar and the plane + parallax ones); 1 leaves them. Fitted on a
+            validation split by ``fit_confidence``: the least whose intervals cover the true
+            Delta_avg on ``interval_confidence`` of its pairs. The shipped default is 1 for both:
+            real pairs are not the rendered protocol (docs/method.md, section 10).
         cross_check: the learned methods (regression, eigen-space) also run the
             self-calibration and are out of domain where the two disagree.
         max_class_disagreement: out of domain where the classes differ by more than this;
@@ -69,6 +78,8 @@ class AnalysisConfig:
     # fitted the shipped checkpoints (docs/results/reproduce.md, "Calibration")
     regression_confidence_scale: float = 0.6906
     regression_confidence_shift: float = 1.0013
+    selfcal_std_scale: float = 1.0
+    interval_std_scale: float = 1.0
     cross_check: bool = True
     max_class_disagreement: int = 1
     eigenspace_max_class_disagreement: int = 0
@@ -87,7 +98,8 @@ class AnalysisConfig:
         real(self, "min_overlap", lo=0, hi=1)
         real(self, "out_of_domain_factor", lo=0, lo_open=True)
         real(self, "min_confidence", lo=0, hi=1)
-        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "texture_factor"):
+        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "texture_factor",
+                     "selfcal_std_scale", "interval_std_scale"):
             real(self, name, lo=0, lo_open=True)
         real(self, "max_delta_disagreement", lo=0, hi=1, lo_open=True, why="a share of the Delta_avg range")
         real(self, "selfcal_confidence_shift")

@@ -21,6 +21,7 @@ Example:
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -245,7 +246,13 @@ def delta_top(metric: str, config: LensdistConfig) -> float:
         [79.1, 14.4]
     """
     d = config.distortion
-    return float(delta_metric(metric, [d.k2_max], [d.k4_max], *config.image.size)[0])
+    return _delta_top(metric, float(d.k2_max), float(d.k4_max), *map(int, config.image.size))
+
+
+@functools.lru_cache(maxsize=64)
+def _delta_top(metric: str, k2: float, k4: float, h: int, w: int) -> float:
+    """:func:`delta_top`'s value, once per lens and size: a whole frame's offsets each time it is asked."""
+    return float(delta_metric(metric, [k2], [k4], h, w)[0])
 
 
 def distortion_class(delta: torch.Tensor, top: float, n_classes: int = 4) -> torch.Tensor:

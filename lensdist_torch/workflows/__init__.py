@@ -6,6 +6,7 @@ Modules:
 * :mod:`~lensdist_torch.workflows.analyze`: the methods on a prepared batch (``lensdist analyze``).
 * :mod:`~lensdist_torch.workflows.decision`: the honest answer, the calibrated confidence, the domain checks.
 * :mod:`~lensdist_torch.workflows.confidence`: the confidence's Platt map and its reliability.
+* :mod:`~lensdist_torch.workflows.decision_fit`: the decision fitted on a validation split (R threshold, std scales, Platt map).
 * :mod:`~lensdist_torch.workflows.texture`: the scenes' gradient histograms of the learned methods' domain check.
 * :mod:`~lensdist_torch.workflows.evaluate`: every method on a generated test set, through the analysis path.
 * :mod:`~lensdist_torch.workflows.reports`: an evaluation's figures, Markdown and JSON.

@@ -3,7 +3,7 @@
 The self-calibration and the regression give a raw confidence c = s0 / (s0 + std)
 (docs/method.md, section 10). The reported confidence is its Platt map sigmoid(scale logit(c)
 + shift) (:func:`platt`), fitted on a validation split (:func:`fit_platt`, by
-:func:`~lensdist_torch.workflows.evaluate.fit_confidence`); :func:`reliability` and
+:func:`~lensdist_torch.workflows.decision_fit.fit_confidence`); :func:`reliability` and
 :func:`expected_calibration_error` measure it on the test split.
 
 Example:

@@ -33,7 +33,6 @@ from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
 from lensdist_torch.metric.quality import counts_to_map
 from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
-from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
 from lensdist_torch.workflows.decision import REASONS
 from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions
 from lensdist_torch.workflows.texture import texture_statistics
@@ -51,10 +50,6 @@ __all__ = [
     "evaluate_regressor",
     "evaluate_selfcal",
     "evaluate_checkpoints",
-    "validation_config",
-    "fit_decision",
-    "calibration_table",
-    "fit_confidence",
 ]
 
 TY_BINS = (0.0, 5.0, 10.0, 20.0, 40.0001)
@@ -238,150 +233,6 @@ def evaluate_selfcal(test: dict, config: LensdistConfig | None = None, scenes: l
         out[m] = {**figures_of(res, test, m, cfg), "method": "selfcal",
                   "diverged": sum(bool(r["registration_ok"]) and r["estimated_delta_avg"] is None for r in res)}
     return out
-
-
-# ------------------------------------------------------------------ calibration of the decision
-_PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
-          "regression": ("regression_confidence_scale", "regression_confidence_shift")}
-
-
-def validation_config(config: LensdistConfig) -> LensdistConfig:
-    """The protocol of the validation split: the seed moved by ``analysis.validation_seed_offset``.
-
-    Its test set shares no pair with the test set of ``config`` (every pair's seed hashes the
-    protocol seed, docs/method.md, section 7).
-    """
-    p = config.protocol
-    return dataclasses.replace(config, protocol=dataclasses.replace(p, seed=p.seed + config.analysis.validation_seed_offset))
-
-
-def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
-    """(confidence, right) of the pairs the decision would answer but for their confidence.
-
-    ``right``: the class of the estimated Delta_avg under ``config`` (its R threshold) is the
-    true class; the confidence is the raw one, or its Platt map under ``config``.
-    """
-    from lensdist_torch.geometry.distortion import estimated_class
-
-    keep = [i for i, r in enumerate(results) if r["in_domain"] and r["estimated_delta_avg"] is not None]
-    if not keep:
-        return torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool)
-    d = torch.tensor([results[i]["estimated_delta_avg"] for i in keep], dtype=torch.float64)
-    right = estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
-    raw = torch.tensor([results[i]["raw_confidence"] for i in keep], dtype=torch.float64)
-    if not calibrated:
-        return raw, right
-    scale, shift = (getattr(config.analysis, f) for f in _PLATT[method])
-    return platt(raw, scale, shift), right
-
-
-def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
-    """The [analysis] values fitted on a validation split's analysis results.
-
-    ``no_distortion_px``: the R threshold with the most right self-calibration classes (of a
-    log-spaced grid from 0.02 to 2 px; ties: the one nearest the current value); then the Platt
-    map of the regression's confidence, kept only where it lowers the split's ECE below the
-    config's map (else the config's stays). The self-calibration's confidence is a probability
-    already: its map is the config's, the identity by default.
-    """
-    import math
-
-    grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
-                  | {config.analysis.no_distortion_px})
-    best, best_key = config.analysis.no_distortion_px, None
-    for t in grid:
-        cfg = dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, no_distortion_px=t))
-        _, right = _outcomes(results["selfcal"], data, cfg, "selfcal", False)
-        key = (int(right.sum()), -abs(math.log(t / config.analysis.no_distortion_px)))
-        if best_key is None or key > best_key:
-            best, best_key = t, key
-    fitted = {"no_distortion_px": float(best)}
-    cfg = dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, no_distortion_px=best))
-    for method, (f_scale, f_shift) in _PLATT.items():
-        # the self-calibration's raw confidence is already a probability (its class's mass under
-        # N(estimate, std^2)); a map fitted on the protocol, whose pairs mostly move by tens of
-        # pixels, made pairs that moved by < 2 px claim 0.93 where 0.69 were right (docs/method.md,
-        # section 10): it stays the identity of the config unless the config sets one
-        if method in results and method != "selfcal":
-            raw, right = _outcomes(results[method], data, cfg, method, False)
-            new, old = fit_platt(raw, right), (getattr(config.analysis, f_scale), getattr(config.analysis, f_shift))
-            # a refit must earn its place: on a small split (--quick) it can fall back to the
-            # identity and double the ECE of the map it replaces; then the config's map stays
-            if expected_calibration_error(platt(raw, *new), right) >= expected_calibration_error(platt(raw, *old), right):
-                new = old
-            fitted[f_scale], fitted[f_shift] = new
-    return fitted
-
-
-def calibration_table(results: dict, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
-    """ECE rows (method, split, pairs, before, after) and reliability curves, per method in ``results``."""
-    rows, curves = [], {}
-    for method in _PLATT:
-        if method not in results:
-            continue
-        b = reliability(*_outcomes(results[method], data, before, method, True))
-        a = reliability(*_outcomes(results[method], data, after, method, True))
-        rows.append({"method": method, "split": split, "pairs": a["pairs"], "before": b["ece"], "after": a["ece"]})
-        curves[f"{method}, before"], curves[f"{method}, after"] = b, a
-    return rows, curves
-
-
-def _toml(config: LensdistConfig) -> str:
-    """The whole config as TOML (JSON's numbers, strings, booleans and lists are TOML's too)."""
-    import json
-
-    from lensdist_torch.config import config_to_dict
-
-    lines = ["# written by fit_confidence: load with --config (lensdist analyze / evaluate)"]
-    for section, values in config_to_dict(config).items():
-        lines += ["", f"[{section}]"] + [f"{k} = {json.dumps(v, allow_nan=False)}" for k, v in values.items()]
-    return "\n".join(lines) + "\n"
-
-
-def fit_confidence(config: LensdistConfig, out, regression=None, scenes: list | None = None, workers: int = 1,
-                         batch_size: int = 16, progress: bool = True, device=None, figures: bool = True) -> dict:
-    """Fit the R threshold and the confidence maps on a validation split, and write them.
-
-    The validation split is the test set of :func:`validation_config` (another protocol seed:
-    never the test set), generated under ``out/validation`` (reused when there). Its pairs are
-    analysed with the self-calibration (and ``regression``, a model or checkpoint path, when
-    given) and :func:`fit_decision` fits the [analysis] values.
-
-    Writes ``out/calibration.json`` (the fitted values, the ECE before and after, the
-    reliability bins), ``out/calibration.toml`` (the calibrated config, for ``--config``) and
-    ``out/reliability_validation.png`` (with matplotlib).
-
-    Returns:
-        {"config": the calibrated config, "analysis": the fitted values, "ece": rows,
-        "reliability": curves, "json": path}.
-    """
-    from pathlib import Path
-
-    from lensdist_torch.core.storage import atomic_write_text
-    from lensdist_torch.data.shards import generate, load_set
-    from lensdist_torch.workflows.reports import dumps_strict
-
-    out = Path(out)
-    generate(validation_config(config), out / "validation", sets=["test"], workers=workers, batch_size=batch_size, progress=progress)
-    data = load_set(out / "validation", "test")
-    runs = {"selfcal": {"method": "selfcal"}}
-    if regression is not None:
-        runs["regression"] = {"method": "regression", "checkpoint": regression}
-    results = analyze_test_set(data, runs, scenes, config, batch_size, progress, device)
-    fitted = fit_decision(results, data, config)
-    calibrated = dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, **fitted))
-    rows, curves = calibration_table(results, data, config, calibrated, "validation")
-    summary = {"analysis": fitted, "ece": rows, "reliability": curves, "validation_pairs": int(data["index"].numel()),
-               "validation_seed": validation_config(config).protocol.seed}
-    path = out / "calibration.json"
-    atomic_write_text(path, dumps_strict(summary, indent=2) + "\n")
-    atomic_write_text(out / "calibration.toml", _toml(calibrated))
-    if figures:
-        from lensdist_torch.workflows.figures import have_matplotlib, save_reliability
-
-        if have_matplotlib():
-            save_reliability(curves, out / "reliability_validation.png", "reliability on the validation split")
-    return {**summary, "config": calibrated, "json": str(path)}
 
 
 def evaluate_checkpoints(test: dict, checkpoints=(), regression=None, selfcal: bool = False, progress: bool = False,

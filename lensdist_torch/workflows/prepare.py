@@ -34,7 +34,7 @@ from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
 from lensdist_torch.workflows.texture import texture_histogram
 
-__all__ = ["PreparedPairs", "prepare_batch", "resolve_device", "flat_or_relief"]
+__all__ = ["PreparedPairs", "prepare_batch", "resolve_device", "flat_or_relief", "rescored_confidence"]
 
 
 def resolve_device(device=None) -> torch.device:
@@ -181,7 +181,7 @@ def _selfcal_one(p: PreparedPairs, i: int) -> dict:
     off = pixel_offsets(k2, k4, h, w).flatten(1)  # one map for both Deltas
     d_avg, d_max = off.mean(1), off.amax(1)
     label = CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])]
-    std = float(sc.delta_avg_std[0])
+    std = float(sc.delta_avg_std[0])  # the fit's own; analysis.interval_std_scale widens the interval
     out = {
         "estimated_class": label,
         "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
@@ -190,7 +190,7 @@ def _selfcal_one(p: PreparedPairs, i: int) -> dict:
         "k2": float(k2[0]),
         "k4": float(k4[0]),
         "delta_avg_std": std,
-        "delta_avg_interval": _interval(float(d_avg[0]), std, cfg.analysis.interval_confidence),
+        "delta_avg_interval": _interval(float(d_avg[0]), std, cfg.analysis),
         "relief": bool(sc.relief[0]),  # the plane + parallax model's answer kept (selfcal.parallax_test)
         "relief_z": float(sc.relief_z[0]),  # Hausman's statistic; NaN without that model
         "distortion_type": distortion_type(float(sc.ab[0, 0]), float(sc.ab[0, 1])),
@@ -202,18 +202,43 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     """``raw_confidence`` and ``relief_found`` of one pair (:func:`flat_or_relief`), both answers where found.
 
     Where relief is found, both answers stay beside the "cannot tell" (``decision.decide``) as
-    ``planar_delta_avg``, ``relief_delta_avg`` and their intervals (given wherever the plane +
-    parallax model converged).
+    ``planar_delta_avg``, ``relief_delta_avg``, their intervals and the fit's own stds (given
+    wherever the plane + parallax model converged).
     """
-    a, size = cfg.analysis, cfg.image.size
+    size = cfg.image.size
     d0, d1 = delta_avg(*from_normalized(torch.cat([sc.planar_ab, sc.relief_ab]), *size), *size).tolist()
     s0, s1 = float(sc.planar_std[0]), float(sc.relief_std[0])
     conf, found = flat_or_relief(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):
         return {"raw_confidence": conf, "relief_found": False}
-    both = {"planar_delta_avg": d0, "planar_delta_avg_interval": _interval(d0, s0, a.interval_confidence),
-            "relief_delta_avg": d1, "relief_delta_avg_interval": _interval(d1, s1, a.interval_confidence)}
+    both = {"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": _interval(d0, s0, cfg.analysis),
+            "relief_delta_avg": d1, "relief_delta_avg_std": s1, "relief_delta_avg_interval": _interval(d1, s1, cfg.analysis)}
     return {"raw_confidence": conf, "relief_found": found, **both}
+
+
+def rescored_confidence(res: dict, cfg: LensdistConfig) -> float:
+    """A self-calibration result's raw confidence again, under ``cfg`` (its R threshold, its std scale).
+
+    From the answers the result keeps (``estimated_delta_avg`` and ``delta_avg_std``; with the
+    plane + parallax model, ``planar_delta_avg`` and ``relief_delta_avg`` with their stds), the
+    class of ``estimated_delta_avg`` under ``cfg`` and :func:`flat_or_relief`: what
+    ``analyze`` would have said with ``cfg``. NaN without an estimate. Used to fit
+    ``analysis.selfcal_std_scale`` on a validation split without analysing its pairs again.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> res = {"estimated_delta_avg": 7.0, "delta_avg_std": 0.2}  # class 2 ends at 7.18 px: Phi(0.92)
+        >>> round(rescored_confidence(res, LensdistConfig()), 3)
+        0.822
+    """
+    d = res.get("estimated_delta_avg")
+    if d is None:
+        return float("nan")
+    label = CLASS_LABELS[int(estimated_class(torch.tensor([d]), torch.tensor([d]), "delta_avg", cfg)[0])]
+    if res.get("relief_delta_avg") is None:
+        return flat_or_relief(label, (d, res["delta_avg_std"]), (float("nan"), float("inf")), cfg)[0]
+    planar = (res["planar_delta_avg"], res["planar_delta_avg_std"])
+    return flat_or_relief(label, planar, (res["relief_delta_avg"], res["relief_delta_avg_std"]), cfg)[0]
 
 
 def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
@@ -221,8 +246,8 @@ def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float,
 
     A user does not say whether the scene is flat. With the planar answer (Delta_avg, std) and
     the plane + parallax one, the confidence of ``label`` is its mass under each
-    (:func:`_class_mass`, the folded normal), weighted ``analysis.flat_prior`` and 1 - that:
-    ``w P(label | planar) + (1 - w) P(label | relief)``. Where the two answers fall in different
+    (:func:`_class_mass`, the folded normal, each std times ``analysis.selfcal_std_scale``),
+    weighted ``analysis.flat_prior`` and 1 - that: ``w P(label | planar) + (1 - w) P(label | relief)``. Where the two answers fall in different
     classes the class depends on whether the scene is flat, which one pair cannot tell: the
     second value (``relief_found``) is True. Without a plane + parallax answer (the model off,
     or not converged: a non-finite Delta_avg or std; the planar answer is then the kept one) the
@@ -239,12 +264,14 @@ def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float,
         >>> flat_or_relief("2", (5.0, 0.2), (float("nan"), float("inf")), cfg)[1]  # no relief answer
         False
     """
+    k = cfg.analysis.selfcal_std_scale
     if not (math.isfinite(relief[0]) and math.isfinite(relief[1])):
-        return _class_mass(*planar, label, cfg), False
+        return _class_mass(planar[0], k * planar[1], label, cfg), False
     w = cfg.analysis.flat_prior
     d = torch.tensor([planar[0], relief[0]], dtype=torch.float64)
     c0, c1 = estimated_class(d, d, "delta_avg", cfg).tolist()
-    return w * _class_mass(*planar, label, cfg) + (1 - w) * _class_mass(*relief, label, cfg), c0 != c1
+    mass = w * _class_mass(planar[0], k * planar[1], label, cfg) + (1 - w) * _class_mass(relief[0], k * relief[1], label, cfg)
+    return mass, c0 != c1
 
 
 def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:
@@ -262,9 +289,13 @@ def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:
     return float((cdf[0] - cdf[1] + cdf[2] - cdf[3]).clamp(1e-9, 1 - 1e-9))
 
 
-def _interval(d: float, std: float, coverage: float) -> list[float] | None:
-    """[max(0, d - z std), d + z std], z the normal quantile of ``coverage``; None if std is not finite."""
+def _interval(d: float, std: float, a) -> list[float] | None:
+    """[max(0, d - z k std), d + z k std] with ``a`` the [analysis] settings; None if std is not finite.
+
+    z is the normal quantile of ``a.interval_confidence``, k is ``a.interval_std_scale``.
+    """
     if not math.isfinite(std):
         return None
-    z = float(torch.special.ndtri(torch.tensor(0.5 + coverage / 2, dtype=torch.float64)))
-    return [max(0.0, d - z * std), d + z * std]
+    z = float(torch.special.ndtri(torch.tensor(0.5 + a.interval_confidence / 2, dtype=torch.float64)))
+    half = z * a.interval_std_scale * std
+    return [max(0.0, d - half), d + half]

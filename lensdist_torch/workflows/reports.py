@@ -211,6 +211,11 @@ def _md_calibration(cal: dict) -> list[str]:
     lines += ["| method | split | pairs | ECE before | ECE after |", "|---|---|---|---|---|"]
     for row in cal.get("ece", []):
         lines.append(f"| {row['method']} | {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} |")
+    if cal.get("intervals"):
+        lines += ["", "| self-calibration intervals | pairs | coverage before | coverage after | nominal |", "|---|---|---|---|---|"]
+        for row in cal["intervals"]:
+            lines.append(f"| {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} | "
+                         f"{_pct(100 * row['nominal'])} |")
     return lines + [""] + _terms("ECE")
 
 

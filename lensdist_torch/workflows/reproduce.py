@@ -18,14 +18,13 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.shards import generate, load_scenes, load_set
 from lensdist_torch.metric.quality import counts_to_map
+from lensdist_torch.workflows.decision_fit import calibration_table, coverage_row, fit_confidence
 from lensdist_torch.workflows.evaluate import (
     analyze_test_set,
-    calibration_table,
     evaluate_classifier,
     evaluate_regressor,
     evaluate_selfcal,
     fit_classifier,
-    fit_confidence,
     fit_regressor,
     training_extra,
 )
@@ -138,9 +137,12 @@ def reproduce(
         report["calibration"] = {
             "note": (f"Fitted on a validation split ({cal['validation_pairs']} pairs of the protocol with seed "
                      f"{cal['validation_seed']}, never the test set); ECE of the confidence as an estimate of "
-                     "P(class right), 10 bins, over the pairs answered or withheld for low confidence."),
+                     "P(class right), 10 bins, over the pairs answered or withheld for low confidence (not those "
+                     "withheld for another reason: registration, overlap, motion, relief, domain); the "
+                     "self-calibration's interval coverage over the same pairs."),
             "analysis": cal["analysis"],
             "ece": cal["ece"] + rows,
+            "intervals": cal["intervals"] + [coverage_row(results["selfcal"], test, config, acfg, "test")],
         }
     md, js = write_report(report, out, "reproduce")
     if figures:

@@ -257,20 +257,20 @@ def test_calibration_is_fitted_on_a_validation_split(tiny_run):
 
 
 def _results(raws, deltas):
-    return [{"in_domain": True, "estimated_delta_avg": d, "raw_confidence": c} for c, d in zip(raws, deltas)]
+    return [{"in_domain": True, "estimated_delta_avg": d, "raw_confidence": c, "delta_avg_std": 0.3} for c, d in zip(raws, deltas)]
 
 
 def test_a_refit_that_raises_the_ece_is_not_kept():
     """Issue 19: on a --quick split the regression's refit fell back to the identity and raised the
     ECE from 2.8 % to 8.3 %: the config's map must stay then."""
-    from lensdist_torch.workflows.evaluate import fit_decision
+    from lensdist_torch.workflows.decision_fit import fit_decision
 
     cfg = LensdistConfig()
     # every pair right (class 2 at 5 px): fit_platt has nothing to fit and answers the identity,
     # which maps raw 0.6 to 0.6, while the config's map (0.69, 1.0) maps it near 0.8: closer to 1
     raws = [0.6] * 20
     results = {"selfcal": _results(raws, [5.0] * 20), "regression": _results(raws, [5.0] * 20)}
-    data = {"class_avg": torch.full((20,), 1)}
+    data = {"class_avg": torch.full((20,), 1), "delta_avg": torch.full((20,), 5.0, dtype=torch.float64)}
     fitted = fit_decision(results, data, cfg)
     assert (fitted["regression_confidence_scale"], fitted["regression_confidence_shift"]) == (
         cfg.analysis.regression_confidence_scale, cfg.analysis.regression_confidence_shift)

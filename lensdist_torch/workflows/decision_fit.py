@@ -1,0 +1,275 @@
+"""The decision fitted on a validation split: the R threshold, the confidence, the intervals.
+
+``lensdist reproduce`` (through :func:`fit_confidence`) analyses the pairs of a validation split
+(the protocol with another seed, :func:`validation_config`: never the test set) as ``analyze``
+does, and fits the ``[analysis]`` values that turn the estimators' outputs into answers
+(:func:`fit_decision`):
+
+* ``no_distortion_px``: the R threshold with the most right self-calibration classes.
+* ``selfcal_std_scale``: the factor on a pair's Delta_avg stds in the self-calibration's
+  confidence (its class's mass under both models of the scene,
+  :func:`~lensdist_torch.workflows.prepare.flat_or_relief`), the value of a grid whose
+  confidences score best (least log-loss) as P(class right).
+* ``interval_std_scale``: the factor on the std in a pair's 95 % intervals, the least of the same
+  grid whose intervals cover the true Delta_avg on ``interval_confidence`` of the pairs.
+* the regression's Platt map, kept only where it lowers the split's ECE.
+
+The fit's own covariance is what both scales correct: on the rendered planar conditions it is
+about right for the intervals and a little wide for the classes; on a scene with relief both are
+too narrow, since the relief biases the pair in a way its own residuals cannot show
+(docs/method.md, section 10). Both are scored over the pairs whose answer the confidence decides
+(:func:`scored_pairs`), the pairs the ECE is reported on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import torch
+
+from lensdist_torch.config import LensdistConfig
+from lensdist_torch.geometry.distortion import estimated_class
+from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
+from lensdist_torch.workflows.evaluate import analyze_test_set
+from lensdist_torch.workflows.prepare import rescored_confidence
+
+__all__ = ["validation_config", "scored_pairs", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
+
+_PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
+          "regression": ("regression_confidence_scale", "regression_confidence_shift")}
+
+#: The candidate std scales (both): log-spaced from 0.5 to 4, and the config's own value.
+_SCALES = tuple(torch.logspace(math.log10(0.5), math.log10(4.0), 25, dtype=torch.float64).tolist())
+
+
+def validation_config(config: LensdistConfig) -> LensdistConfig:
+    """The protocol of the validation split: the seed moved by ``analysis.validation_seed_offset``.
+
+    Its test set shares no pair with the test set of ``config`` (every pair's seed hashes the
+    protocol seed, docs/method.md, section 7).
+
+    Example:
+        >>> validation_config(LensdistConfig()).protocol.seed - LensdistConfig().protocol.seed
+        1
+    """
+    p = config.protocol
+    return dataclasses.replace(config, protocol=dataclasses.replace(p, seed=p.seed + config.analysis.validation_seed_offset))
+
+
+def _with(config: LensdistConfig, **analysis) -> LensdistConfig:
+    return dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, **analysis))
+
+
+def scored_pairs(results: list[dict], config: LensdistConfig) -> list[int]:
+    """The pairs whose answer their confidence decides: the others are withheld for another reason.
+
+    Registered, overlapping and in domain, with an estimate, moved by at least
+    ``analysis.min_motion_px``, and no relief found (the two models of the scene in different
+    classes: "cannot tell" whatever the confidence).
+
+    Example:
+        >>> ok = {"in_domain": True, "estimated_delta_avg": 5.0, "motion_px": 12.0, "relief_found": False}
+        >>> scored_pairs([ok, ok | {"relief_found": True}, ok | {"motion_px": 0.4}], LensdistConfig())
+        [0]
+    """
+    a = config.analysis
+    return [i for i, r in enumerate(results)
+            if r["in_domain"] and r["estimated_delta_avg"] is not None and not r.get("relief_found", False)
+            and not (r.get("motion_px") is not None and r["motion_px"] < a.min_motion_px)]
+
+
+def _right(results: list[dict], data: dict, config: LensdistConfig, keep: list[int]) -> torch.Tensor:
+    """Whether the class of each kept pair's estimated Delta_avg under ``config`` (its R threshold) is the true one."""
+    d = torch.tensor([results[i]["estimated_delta_avg"] for i in keep], dtype=torch.float64)
+    return estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
+
+
+def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
+    """(confidence, right) of the :func:`scored_pairs`.
+
+    ``right``: as :func:`_right`. The self-calibration's raw confidence is recomputed under
+    ``config`` (its std scale, its R threshold), the regression's is its own; ``calibrated``:
+    their Platt map.
+    """
+    keep = scored_pairs(results, config)
+    if not keep:
+        return torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool)
+    right = _right(results, data, config, keep)
+    raw = torch.tensor([rescored_confidence(results[i], config) if method == "selfcal" else results[i]["raw_confidence"]
+                        for i in keep], dtype=torch.float64)
+    if not calibrated:
+        return raw, right
+    scale, shift = (getattr(config.analysis, f) for f in _PLATT[method])
+    return platt(raw, scale, shift), right
+
+
+def _log_loss(p: torch.Tensor, right: torch.Tensor) -> float:
+    p = p.clamp(1e-9, 1 - 1e-9)
+    return float(-torch.where(right, p.log(), (-p).log1p()).mean())
+
+
+def interval_coverage(results: list[dict], data: dict, config: LensdistConfig) -> dict:
+    """{"pairs", "coverage"}: the share of the :func:`scored_pairs` whose interval covers the true Delta_avg.
+
+    The interval of the kept answer, ``estimated_delta_avg`` +- z ``interval_std_scale``
+    ``delta_avg_std`` (z the normal quantile of ``interval_confidence``; clipped at 0 as the
+    answer's).
+
+    Example:
+        >>> r = {"in_domain": True, "estimated_delta_avg": 5.0, "delta_avg_std": 0.5, "motion_px": 9.0}
+        >>> interval_coverage([r, r | {"estimated_delta_avg": 7.0}], {"delta_avg": torch.tensor([5.5, 5.5])}, LensdistConfig())
+        {'pairs': 2, 'coverage': 0.5}
+    """
+    a = config.analysis
+    keep = [i for i in scored_pairs(results, config) if math.isfinite(results[i].get("delta_avg_std", math.inf))]
+    if not keep:
+        return {"pairs": 0, "coverage": float("nan")}
+    z = float(torch.special.ndtri(torch.tensor(0.5 + a.interval_confidence / 2, dtype=torch.float64)))
+    covered = [abs(results[i]["estimated_delta_avg"] - float(data["delta_avg"][i]))
+               <= z * a.interval_std_scale * results[i]["delta_avg_std"] for i in keep]
+    return {"pairs": len(keep), "coverage": sum(covered) / len(keep)}
+
+
+def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
+    """The [analysis] values fitted on a validation split's analysis results.
+
+    ``no_distortion_px``: the R threshold with the most right self-calibration classes (of a
+    log-spaced grid from 0.02 to 2 px; ties: the one nearest the current value). Then, on the
+    :func:`scored_pairs` and of a log-spaced grid from 0.5 to 4 (ties: nearest the current
+    value): ``selfcal_std_scale``, the least log-loss of the self-calibration's confidence as
+    P(class right), kept at the config's where the pairs are all right or all wrong (nothing to
+    score); ``interval_std_scale``, the least whose intervals cover the true Delta_avg on
+    ``interval_confidence`` of the pairs (the largest where none does). Then the Platt map of
+    the regression's confidence, kept only where it lowers the split's ECE below the config's
+    map. The self-calibration's Platt map stays the config's (the identity by default): its
+    confidence is a probability already, and its std scale is what is fitted.
+    """
+    a0 = config.analysis
+    grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
+                  | {a0.no_distortion_px})
+    best, best_key = a0.no_distortion_px, None
+    every = [i for i, r in enumerate(results["selfcal"]) if r["in_domain"] and r["estimated_delta_avg"] is not None]
+    for t in grid:
+        right = _right(results["selfcal"], data, _with(config, no_distortion_px=t), every)
+        key = (int(right.sum()), -abs(math.log(t / a0.no_distortion_px)))
+        if best_key is None or key > best_key:
+            best, best_key = t, key
+    fitted = {"no_distortion_px": float(best)}
+    cfg = _with(config, no_distortion_px=best)
+    fitted["selfcal_std_scale"] = _fit_std_scale(results["selfcal"], data, cfg)
+    fitted["interval_std_scale"] = _fit_interval_scale(results["selfcal"], data, cfg)
+    cfg = _with(cfg, selfcal_std_scale=fitted["selfcal_std_scale"])
+    for method, (f_scale, f_shift) in _PLATT.items():
+        # a map fitted on the protocol, whose pairs mostly move by tens of pixels, made pairs that
+        # moved by < 2 px claim 0.93 where 0.69 were right (docs/method.md, section 10): the
+        # self-calibration's std scale keeps each pair's own std, and so its motion, in the confidence
+        if method in results and method != "selfcal":
+            raw, right = _outcomes(results[method], data, cfg, method, False)
+            new, old = fit_platt(raw, right), (getattr(a0, f_scale), getattr(a0, f_shift))
+            # a refit must earn its place: on a small split (--quick) it can fall back to the
+            # identity and double the ECE of the map it replaces; then the config's map stays
+            if expected_calibration_error(platt(raw, *new), right) >= expected_calibration_error(platt(raw, *old), right):
+                new = old
+            fitted[f_scale], fitted[f_shift] = new
+    return fitted
+
+
+def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> float:
+    current = config.analysis.selfcal_std_scale
+    right = _right(results, data, config, scored_pairs(results, config))
+    if right.numel() == 0 or bool(right.all()) or not bool(right.any()):
+        return float(current)  # all right (or all wrong): the sharpest (or widest) scale would always win
+    scores = [(_log_loss(_outcomes(results, data, _with(config, selfcal_std_scale=s), "selfcal", True)[0], right),
+               abs(math.log(s / current)), s) for s in sorted(set(_SCALES) | {current})]
+    return float(min(scores)[2])
+
+
+def _fit_interval_scale(results: list[dict], data: dict, config: LensdistConfig) -> float:
+    want = config.analysis.interval_confidence
+    for s in sorted(set(_SCALES) | {config.analysis.interval_std_scale}):
+        cov = interval_coverage(results, data, _with(config, interval_std_scale=s))
+        if cov["pairs"] == 0:
+            return float(config.analysis.interval_std_scale)
+        if cov["coverage"] >= want:
+            return float(s)
+    return float(max(_SCALES))
+
+
+def calibration_table(results: dict, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
+    """ECE rows (method, split, pairs, before, after) and reliability curves, per method in ``results``."""
+    rows, curves = [], {}
+    for method in _PLATT:
+        if method not in results:
+            continue
+        b = reliability(*_outcomes(results[method], data, before, method, True))
+        a = reliability(*_outcomes(results[method], data, after, method, True))
+        rows.append({"method": method, "split": split, "pairs": a["pairs"], "before": b["ece"], "after": a["ece"]})
+        curves[f"{method}, before"], curves[f"{method}, after"] = b, a
+    return rows, curves
+
+
+def coverage_row(results: list[dict], data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> dict:
+    """The self-calibration's interval coverage before and after the fitted decision, on one split."""
+    b, a = interval_coverage(results, data, before), interval_coverage(results, data, after)
+    return {"split": split, "pairs": a["pairs"], "before": b["coverage"], "after": a["coverage"],
+            "nominal": after.analysis.interval_confidence}
+
+
+def _toml(config: LensdistConfig) -> str:
+    """The whole config as TOML (JSON's numbers, strings, booleans and lists are TOML's too)."""
+    import json
+
+    from lensdist_torch.config import config_to_dict
+
+    lines = ["# written by fit_confidence: load with --config (lensdist analyze / evaluate)"]
+    for section, values in config_to_dict(config).items():
+        lines += ["", f"[{section}]"] + [f"{k} = {json.dumps(v, allow_nan=False)}" for k, v in values.items()]
+    return "\n".join(lines) + "\n"
+
+
+def fit_confidence(config: LensdistConfig, out, regression=None, scenes: list | None = None, workers: int = 1,
+                   batch_size: int = 16, progress: bool = True, device=None, figures: bool = True) -> dict:
+    """Fit the R threshold, the confidence and the intervals on a validation split, and write them.
+
+    The validation split is the test set of :func:`validation_config` (another protocol seed:
+    never the test set), generated under ``out/validation`` (reused when there). Its pairs are
+    analysed with the self-calibration (and ``regression``, a model or checkpoint path, when
+    given) and :func:`fit_decision` fits the [analysis] values.
+
+    Writes ``out/calibration.json`` (the fitted values, the ECE and the interval coverage before
+    and after, the reliability bins), ``out/calibration.toml`` (the calibrated config, for
+    ``--config``) and ``out/reliability_validation.png`` (with matplotlib).
+
+    Returns:
+        {"config": the calibrated config, "analysis": the fitted values, "ece": rows,
+        "intervals": a row, "reliability": curves, "json": path}.
+    """
+    from pathlib import Path
+
+    from lensdist_torch.core.storage import atomic_write_text
+    from lensdist_torch.data.shards import generate, load_set
+    from lensdist_torch.workflows.reports import dumps_strict
+
+    out = Path(out)
+    generate(validation_config(config), out / "validation", sets=["test"], workers=workers, batch_size=batch_size, progress=progress)
+    data = load_set(out / "validation", "test")
+    runs = {"selfcal": {"method": "selfcal"}}
+    if regression is not None:
+        runs["regression"] = {"method": "regression", "checkpoint": regression}
+    results = analyze_test_set(data, runs, scenes, config, batch_size, progress, device)
+    fitted = fit_decision(results, data, config)
+    calibrated = _with(config, **fitted)
+    rows, curves = calibration_table(results, data, config, calibrated, "validation")
+    summary = {"analysis": fitted, "ece": rows, "intervals": [coverage_row(results["selfcal"], data, config, calibrated, "validation")],
+               "reliability": curves, "validation_pairs": int(data["index"].numel()),
+               "validation_seed": validation_config(config).protocol.seed}
+    path = out / "calibration.json"
+    atomic_write_text(path, dumps_strict(summary, indent=2) + "\n")
+    atomic_write_text(out / "calibration.toml", _toml(calibrated))
+    if figures:
+        from lensdist_torch.workflows.figures import have_matplotlib, save_reliability
+
+        if have_matplotlib():
+            save_reliability(curves, out / "reliability_validation.png", "reliability on the validation split")
+    return {**summary, "config": calibrated, "json": str(path)}
