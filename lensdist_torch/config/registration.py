@@ -134,7 +134,8 @@ class SelfCalConfig:
         parallax: plane + parallax model: a relief displacing img2's points along the
             registration's translation, a smooth field of parallax x parallax Gaussian bumps
             (fitted where (a, b) are); 0: a planar scene. On by default: whether a pair's scene is
-            a plane is decided per pair, by Hausman's test (``parallax_test``, ``analysis.relief_z``).
+            a plane is decided per pair: Hausman's test (``parallax_test``) keeps one answer, and both
+            weigh in the confidence (``analysis.flat_prior``).
         parallax_width: the bumps' sigma, in half-diagonals.
         parallax_px: the std (px) of the Gaussian prior on each bump's height: how far a
             relief may move points, as the user expects it (MAP; larger: freer relief).
