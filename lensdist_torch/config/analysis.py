@@ -29,7 +29,7 @@ class AnalysisConfig:
         selfcal_std_scale: the factor on a pair's Delta_avg stds (the fit's covariance) in the
             self-calibration's confidence, its class's mass under each model of the scene; 1
             leaves them. Fitted on a validation split by ``fit_confidence`` (least log-loss):
-            about 0.5-0.7 on the rendered planar conditions, 1.4 where the scene has relief.
+            0.5 on the rendered planar conditions (the grid's end), 1.54 where the scene has relief.
         interval_std_scale: the factor on a pair's Delta_avg std in its intervals (the kept
             answer's, the planar and the plane + parallax ones); 1 leaves them. Fitted on a
             validation split by ``fit_confidence``: the least whose intervals cover the true
