@@ -32,7 +32,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import estimated_class
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
 from lensdist_torch.workflows.evaluate import analyze_test_set
-from lensdist_torch.workflows.prepare import rescored_confidence
+from lensdist_torch.workflows.prepare import delta_interval, rescored_confidence
 
 __all__ = ["validation_config", "scored_pairs", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
 
@@ -85,23 +85,21 @@ def _right(results: list[dict], data: dict, config: LensdistConfig, keep: list[i
     return estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
 
 
-def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
-    """(confidence, right) of the :func:`scored_pairs`.
+def _confidence(results: list[dict], keep: list[int], config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
+    """The kept pairs' confidences (``calibrated``: through their Platt map).
 
-    ``right``: as :func:`_right`. The self-calibration's raw confidence is recomputed under
-    ``config`` (its std scale, its R threshold), the regression's is its own; ``calibrated``:
-    their Platt map.
+    The self-calibration's raw one recomputed under ``config`` (its std scale, its R threshold),
+    the regression's its own.
     """
-    keep = scored_pairs(results, config)
-    if not keep:
-        return torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool)
-    right = _right(results, data, config, keep)
     raw = torch.tensor([rescored_confidence(results[i], config) if method == "selfcal" else results[i]["raw_confidence"]
                         for i in keep], dtype=torch.float64)
-    if not calibrated:
-        return raw, right
-    scale, shift = (getattr(config.analysis, f) for f in _PLATT[method])
-    return platt(raw, scale, shift), right
+    return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method])) if calibrated else raw
+
+
+def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
+    """(confidence, right) of the :func:`scored_pairs` (:func:`_confidence`, :func:`_right`)."""
+    keep = scored_pairs(results, config)
+    return _confidence(results, keep, config, method, calibrated), _right(results, data, config, keep)
 
 
 def _log_loss(p: torch.Tensor, right: torch.Tensor) -> float:
@@ -112,23 +110,21 @@ def _log_loss(p: torch.Tensor, right: torch.Tensor) -> float:
 def interval_coverage(results: list[dict], data: dict, config: LensdistConfig) -> dict:
     """{"pairs", "coverage"}: the share of the :func:`scored_pairs` whose interval covers the true Delta_avg.
 
-    The interval of the kept answer, ``estimated_delta_avg`` +- z ``interval_std_scale``
-    ``delta_avg_std`` (z the normal quantile of ``interval_confidence``; clipped at 0 as the
-    answer's).
+    The interval of the kept answer, as ``analyze`` gives it
+    (:func:`~lensdist_torch.workflows.prepare.delta_interval`).
 
     Example:
         >>> r = {"in_domain": True, "estimated_delta_avg": 5.0, "delta_avg_std": 0.5, "motion_px": 9.0}
         >>> interval_coverage([r, r | {"estimated_delta_avg": 7.0}], {"delta_avg": torch.tensor([5.5, 5.5])}, LensdistConfig())
         {'pairs': 2, 'coverage': 0.5}
     """
-    a = config.analysis
-    keep = [i for i in scored_pairs(results, config) if math.isfinite(results[i].get("delta_avg_std", math.inf))]
-    if not keep:
+    intervals = {i: delta_interval(results[i]["estimated_delta_avg"], results[i].get("delta_avg_std", math.inf), config.analysis)
+                 for i in scored_pairs(results, config)}
+    intervals = {i: iv for i, iv in intervals.items() if iv is not None}
+    if not intervals:
         return {"pairs": 0, "coverage": float("nan")}
-    z = float(torch.special.ndtri(torch.tensor(0.5 + a.interval_confidence / 2, dtype=torch.float64)))
-    covered = [abs(results[i]["estimated_delta_avg"] - float(data["delta_avg"][i]))
-               <= z * a.interval_std_scale * results[i]["delta_avg_std"] for i in keep]
-    return {"pairs": len(keep), "coverage": sum(covered) / len(keep)}
+    covered = [iv[0] <= float(data["delta_avg"][i]) <= iv[1] for i, iv in intervals.items()]
+    return {"pairs": len(covered), "coverage": sum(covered) / len(covered)}
 
 
 def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
@@ -177,10 +173,11 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
 
 def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> float:
     current = config.analysis.selfcal_std_scale
-    right = _right(results, data, config, scored_pairs(results, config))
+    keep = scored_pairs(results, config)  # neither the pairs nor their classes depend on the scale
+    right = _right(results, data, config, keep)
     if right.numel() == 0 or bool(right.all()) or not bool(right.any()):
         return float(current)  # all right (or all wrong): the sharpest (or widest) scale would always win
-    scores = [(_log_loss(_outcomes(results, data, _with(config, selfcal_std_scale=s), "selfcal", True)[0], right),
+    scores = [(_log_loss(_confidence(results, keep, _with(config, selfcal_std_scale=s), "selfcal", True), right),
                abs(math.log(s / current)), s) for s in sorted(set(_SCALES) | {current})]
     return float(min(scores)[2])
 

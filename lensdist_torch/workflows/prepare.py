@@ -34,7 +34,7 @@ from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
 from lensdist_torch.workflows.texture import texture_histogram
 
-__all__ = ["PreparedPairs", "prepare_batch", "resolve_device", "flat_or_relief", "rescored_confidence"]
+__all__ = ["PreparedPairs", "prepare_batch", "resolve_device", "flat_or_relief", "rescored_confidence", "delta_interval"]
 
 
 def resolve_device(device=None) -> torch.device:
@@ -190,7 +190,7 @@ def _selfcal_one(p: PreparedPairs, i: int) -> dict:
         "k2": float(k2[0]),
         "k4": float(k4[0]),
         "delta_avg_std": std,
-        "delta_avg_interval": _interval(float(d_avg[0]), std, cfg.analysis),
+        "delta_avg_interval": delta_interval(float(d_avg[0]), std, cfg.analysis),
         "relief": bool(sc.relief[0]),  # the plane + parallax model's answer kept (selfcal.parallax_test)
         "relief_z": float(sc.relief_z[0]),  # Hausman's statistic; NaN without that model
         "distortion_type": distortion_type(float(sc.ab[0, 0]), float(sc.ab[0, 1])),
@@ -211,8 +211,8 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     conf, found = flat_or_relief(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):
         return {"raw_confidence": conf, "relief_found": False}
-    both = {"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": _interval(d0, s0, cfg.analysis),
-            "relief_delta_avg": d1, "relief_delta_avg_std": s1, "relief_delta_avg_interval": _interval(d1, s1, cfg.analysis)}
+    both = {"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
+            "relief_delta_avg": d1, "relief_delta_avg_std": s1, "relief_delta_avg_interval": delta_interval(d1, s1, cfg.analysis)}
     return {"raw_confidence": conf, "relief_found": found, **both}
 
 
@@ -235,10 +235,13 @@ def rescored_confidence(res: dict, cfg: LensdistConfig) -> float:
     if d is None:
         return float("nan")
     label = CLASS_LABELS[int(estimated_class(torch.tensor([d]), torch.tensor([d]), "delta_avg", cfg)[0])]
-    if res.get("relief_delta_avg") is None:
-        return flat_or_relief(label, (d, res["delta_avg_std"]), (float("nan"), float("inf")), cfg)[0]
-    planar = (res["planar_delta_avg"], res["planar_delta_avg_std"])
-    return flat_or_relief(label, planar, (res["relief_delta_avg"], res["relief_delta_avg_std"]), cfg)[0]
+    def get(key, default):  # a field absent or null (JSON): the default
+        return default if res.get(key) is None else res[key]
+
+    # without a plane + parallax answer the kept one is the planar one (flat_or_relief's own rule)
+    planar = (get("planar_delta_avg", d), get("planar_delta_avg_std", res["delta_avg_std"]))
+    relief = (get("relief_delta_avg", float("nan")), get("relief_delta_avg_std", float("inf")))
+    return flat_or_relief(label, planar, relief, cfg)[0]
 
 
 def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
@@ -289,10 +292,19 @@ def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:
     return float((cdf[0] - cdf[1] + cdf[2] - cdf[3]).clamp(1e-9, 1 - 1e-9))
 
 
-def _interval(d: float, std: float, a) -> list[float] | None:
-    """[max(0, d - z k std), d + z k std] with ``a`` the [analysis] settings; None if std is not finite.
+def delta_interval(d: float, std: float, a) -> list[float] | None:
+    """A pair's Delta_avg interval: [max(0, d - z k std), d + z k std]; None if std is not finite.
 
-    z is the normal quantile of ``a.interval_confidence``, k is ``a.interval_std_scale``.
+    ``a`` is the [analysis] settings: z the normal quantile of ``a.interval_confidence``, k
+    ``a.interval_std_scale``. The one interval of the self-calibration's answers (and of
+    :func:`~lensdist_torch.workflows.decision_fit.interval_coverage`).
+
+    Example:
+        >>> from lensdist_torch.config import AnalysisConfig
+        >>> [round(v, 3) for v in delta_interval(5.0, 0.5, AnalysisConfig())]  # z = 1.96
+        [4.02, 5.98]
+        >>> delta_interval(0.3, 0.5, AnalysisConfig())[0]  # clipped at 0: Delta_avg is a size
+        0.0
     """
     if not math.isfinite(std):
         return None

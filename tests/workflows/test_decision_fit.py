@@ -21,9 +21,12 @@ from lensdist_torch.workflows.prepare import flat_or_relief, rescored_confidence
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
+def _with(cfg, **analysis):
+    return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, **analysis))
+
+
 def _cfg(**analysis) -> LensdistConfig:
-    c = LensdistConfig()
-    return dataclasses.replace(c, analysis=dataclasses.replace(c.analysis, **analysis))
+    return _with(LensdistConfig(), **analysis)
 
 
 # ------------------------------------------------------------------ the std scale in the confidence
@@ -51,10 +54,6 @@ def analysed():
     scenes, _ = load_scenes(cfg)
     img1, img2 = render_pairs(scenes, draw_pairs(cfg, "test", [5], len(scenes)), cfg)
     return img1, img2, cfg
-
-
-def _with(cfg, **analysis):
-    return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, **analysis))
 
 
 @pytest.mark.parametrize("k", [1.0, 1.7])
@@ -103,8 +102,7 @@ def test_fitted_scales_recover_how_far_the_estimates_scatter(inflate):
     fitted = fit_decision({"selfcal": results}, data, cfg)
     assert fitted["selfcal_std_scale"] == pytest.approx(inflate, rel=0.25)
     assert fitted["interval_std_scale"] == pytest.approx(inflate, rel=0.15)
-    cov = interval_coverage(results, data, dataclasses.replace(cfg, analysis=dataclasses.replace(
-        cfg.analysis, interval_std_scale=fitted["interval_std_scale"])))
+    cov = interval_coverage(results, data, _with(cfg, interval_std_scale=fitted["interval_std_scale"]))
     assert cov["pairs"] == 1500 and 0.95 <= cov["coverage"] <= 0.97
 
 
