@@ -5,6 +5,9 @@ self-calibration); the truth is Delta_avg of the calibration (user px, over the 
 model inverts: the `truth` of bench_real_calibration.py's JSON, given here as --truth).
 
     python benchmarks/bench_real_pairs.py /work/shared/real/gopro_hero4_wall/frames --truth 103.15 [--out F.json]
+
+``--config`` analyses under another decision, e.g. a ``calibration.toml`` that ``lensdist
+reproduce`` fitted on a rendered condition (its std scales): do they hold on real frames?
 """
 
 from __future__ import annotations
@@ -25,12 +28,16 @@ def main() -> None:
     ap.add_argument("--truth", type=float, required=True, help="Delta_avg of the published calibration, user px")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--config", default=None, help="TOML config of the analysis (default: the shipped one)")
     args = ap.parse_args()
+    from lensdist_torch.config import load_config
+
+    cfg = load_config(args.config)
     torch.set_num_threads(args.threads)
     frames = sorted(p for p in Path(args.frames).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     rows = []
     for a, b in zip(frames[:-1], frames[1:]):
-        r = analyze_pair(str(a), str(b))
+        r = analyze_pair(str(a), str(b), config=cfg)
         s, iv = r["user_px_per_analysis_px"], r.get("delta_avg_interval")
         rows.append({"pair": [a.name, b.name], "registered": r["registration_ok"], "motion_px": r["motion_px"],
                      "class": r["class"], "confidence": r["confidence"], "reasons": r["cannot_tell_reasons"],
@@ -42,7 +49,7 @@ def main() -> None:
     covers = [x for x in with_iv if x["interval_user_px"][0] <= args.truth <= x["interval_user_px"][1]]
     summary = {"pairs": len(rows), "registered": sum(x["registered"] for x in rows), "answered": len(answered),
                "classes": sorted({x["class"] for x in answered}), "answered_with_interval": len(with_iv),
-               "interval_covers_truth": len(covers), "truth_user_px": args.truth,
+               "interval_covers_truth": len(covers), "truth_user_px": args.truth, "config": args.config,
                "estimates_user_px": [round(x["estimate_user_px"], 1) for x in answered],
                "cannot_tell_reasons": {c: sum(c in x["reasons"] for x in rows) for c in sorted({c for x in rows for c in x["reasons"]})}}
     print(json.dumps(summary, indent=1))
