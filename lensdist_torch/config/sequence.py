@@ -182,6 +182,15 @@ class MultiViewConfig:
         planar_centre_max: the models with a free distortion centre are candidates while it lies
             within this fraction of the half diagonal from the frame centre (BIC chooses among
             them and the models centred on the frame); 0: the centre stays at the frame's.
+        planar_guided_px: the homography model's matches found again within this many ideal
+            pixels of where its first fit sends each keypoint, and fitted again
+            (:mod:`~lensdist_torch.geometry.guided_matching`); 0: the first fit answers.
+        planar_guided_below: guided matching runs where fewer than this share of the verified
+            pairs keep ``planar_min_matches`` homography inliers in the first fit (repetitive
+            texture lost them); where most keep them the matcher did its work, and guided
+            matches would only cost time.
+        planar_guided_ratio: a guided match's descriptor distance at most this share of the
+            next candidate's (the ratio test, among the candidates within ``planar_guided_px``).
         planar_max_relief_z: the homography model answers only where the direct path's plane +
             parallax test finds no relief beyond this z (``relief_z``): under one homography per
             pair a scene's relief passes for distortion.
@@ -227,6 +236,9 @@ class MultiViewConfig:
     planar_iterations: int = 100
     planar_pair_matches: int = 60
     planar_centre_max: float = 0.1
+    planar_guided_px: float = 3.0
+    planar_guided_below: float = 0.5
+    planar_guided_ratio: float = 0.8
     planar_max_relief_z: float = 2.0
 
     def __post_init__(self) -> None:
@@ -247,6 +259,9 @@ class MultiViewConfig:
         real(self, "planar_min_inlier_share", lo=0, hi=1)
         real(self, "planar_max_relief_z", lo=0)
         real(self, "planar_centre_max", lo=0, hi=1)
+        real(self, "planar_guided_px", lo=0)
+        real(self, "planar_guided_ratio", lo=0, hi=1, lo_open=True)
+        real(self, "planar_guided_below", lo=0, hi=1)
         real(self, "min_registered", lo=0, hi=1, lo_open=True)
         real(self, "bic_margin", lo=0)
         real(self, "rms_margin", lo=0)

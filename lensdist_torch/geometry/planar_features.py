@@ -115,7 +115,9 @@ class PlanarCalibration(NamedTuple):
     footprint from them);
     opencv, opencv_rational: OpenCV's camera fitted to the map, 5 and 8 coefficients
     (``camera_matrix``, ``dist_coeffs`` and the fit's errors, as
-    :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
+    :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them); guided: where the
+    fit is on guided matches (:func:`~lensdist_torch.geometry.guided_matching.self_calibrate_guided`),
+    what the guided matching found and the first fit's figures; None otherwise.
 
     Example:
         >>> PlanarCalibration._fields[:4]
@@ -149,6 +151,7 @@ class PlanarCalibration(NamedTuple):
     jackknife_centres: list
     opencv: dict
     opencv_rational: dict
+    guided: dict | None = None
 
 
 def read_verified_matches(database, names: list[str], min_matches: int = 15) -> PlanarMatches:
@@ -331,6 +334,8 @@ def self_calibrate_planar(
     image_size: tuple[int, int],
     config: MultiViewConfig | None = None,
     settings: LensdistConfig | None = None,
+    start=None,
+    plane_share: float | None = None,
 ) -> PlanarCalibration:
     """The camera's distortion from matches between views of a plane (module docstring, steps 2-6).
 
@@ -341,6 +346,10 @@ def self_calibrate_planar(
             interval's ``jackknife_blocks``, ``confidence``, ``bic_margin``, ``rms_margin`` and
             half-width rule).
         settings: the library's config (the class rule and the paper's frame).
+        start: a lens's a_1 .. a_n to start from instead of the scan (step 2), or None.
+        plane_share: the share of verified matches on one homography per pair, where ``matches``
+            cannot tell it (guided matches: :mod:`~lensdist_torch.geometry.guided_matching`);
+            the "not a plane" rule and ``inlier_share`` take it. None: measured on ``matches``.
 
     Returns:
         :class:`PlanarCalibration`.
@@ -370,7 +379,12 @@ def self_calibrate_planar(
     if len(matches.first) < cfg.planar_min_pairs:
         return fail(f"too few matched pairs: {len(matches.first)} of at least {cfg.planar_min_pairs}")
     terms = cfg.planar_terms
-    theta, hs, inl = _start(matches, (h, w), cfg, terms)
+    if start is None:
+        theta, hs, inl = _start(matches, (h, w), cfg, terms)
+    else:
+        theta = torch.zeros(terms, dtype=torch.float64)
+        theta[: min(terms, len(start))] = torch.as_tensor(list(start)[:terms], dtype=torch.float64)
+        hs, inl = _ransac(matches, theta, (h, w), cfg)
     for _ in range(2):  # fit on the inliers, then again on the matches the fit explains (the centre fixed: a free one
         # would bend to take parallax in, and "not a plane" would go unseen)
         theta, hs = fit_lens_and_homographies(theta, hs, v1, v2, matches.pair, inl.double(), cfg.planar_iterations, terms)
@@ -381,6 +395,7 @@ def self_calibrate_planar(
     good_pairs = int((kept >= cfg.planar_min_matches).sum())
     counted = (kept >= cfg.planar_min_matches)[matches.pair]  # the matches of the pairs that count
     share = float(inl[counted].double().mean()) if bool(counted.any()) else 0.0
+    share = share if plane_share is None else plane_share
     table, fits = _fit_models(theta, hs, v1, v2, matches.pair, inl, (h, w), cfg, step)
     best = min(table, key=lambda m: table[m]["bic"])
     theta, hs, dl, n = fits[best]

@@ -35,7 +35,7 @@ from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.geometry.multiview_runs import combine_reconstructions
-from lensdist_torch.geometry.planar_features import read_verified_matches, self_calibrate_planar
+from lensdist_torch.geometry.guided_matching import self_calibrate_guided
 
 __all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "planar_path", "combine"]
 
@@ -156,13 +156,12 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
 
 def planar_path(database: Path, names: list[str], image_size: tuple[int, int], config: MultiViewConfig,
                 settings: LensdistConfig | None) -> dict:
-    """The homography model on a COLMAP database's verified matches, as a strict-JSON-ready dict.
+    """The homography model on a COLMAP database (its verified matches, then guided ones), as a strict-JSON-ready dict.
 
     ``ok`` False with a ``reason`` where it has no answer (too few pairs of matches); otherwise the
     fields of :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration`.
     """
-    matches = read_verified_matches(database, names, config.planar_min_matches)
-    res = self_calibrate_planar(matches, image_size, config, settings)
+    res = self_calibrate_guided(database, names, image_size, config, settings)
     if not math.isfinite(res.delta_avg_user_px):
         return {"ok": False, "reason": res.reason}
     return {"ok": True, **res._asdict()}
@@ -206,7 +205,7 @@ def combine(direct: dict, mv: dict | None) -> dict:
         {"class": planar["class_label"], "reason": planar["reason"] or None, "terms": planar["terms"],
          **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife", "jackknife_coefficients",
                                    "jackknife_centres", "coefficients", "model", "centre", "bending_halfwidth_px", "matched_fraction",
-                                   "invertible_fraction", "eq4_fit_error_px", "opencv", "opencv_rational")}})
+                                   "invertible_fraction", "eq4_fit_error_px", "opencv", "opencv_rational", "guided")}})
     if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
         return out
     z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)

@@ -167,6 +167,10 @@ BAD_VALUES = [
     ("multiview", "planar_centre_max", "nan"),
     ("multiview", "planar_pair_matches", "-1"),
     ("multiview", "planar_pair_matches", "60.5"),
+    ("multiview", "planar_guided_px", "-1"),  # a radius
+    ("multiview", "planar_guided_ratio", "0"),  # a share of the next candidate's distance
+    ("multiview", "planar_guided_ratio", "1.5"),
+    ("multiview", "planar_guided_below", "2"),  # a share of the verified pairs
     ("regression", "confidence_threshold", "nan"),
     ("analysis", "no_distortion_px", "0.0"),
     ("analysis", "min_overlap", "-0.5"),

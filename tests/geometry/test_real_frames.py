@@ -114,3 +114,13 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     value, (lo, hi) = delta_avg_where(res, g[ok], 240, 320, cfg)  # where the calibration's model inverts (90.6 %)
     assert abs(value - truth) < 0.08 * truth
     assert lo <= truth <= hi
+    # guided matching (forced: here 19 of 29 verified pairs count, so by default it does not run), measured
+    # 2026-11-27: 28 pairs count, 23.94 px [17.86, 30.02] where the calibration inverts
+    from lensdist_torch.geometry.guided_matching import self_calibrate_guided
+
+    forced = MultiViewConfig(num_threads=1, planar_guided_below=1.0)
+    guided = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), forced)
+    assert guided.guided["used"] and guided.guided["first_fit"]["pairs"] == res.pairs and guided.pairs > res.pairs
+    value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320, forced)
+    assert abs(value - truth) < 0.1 * truth and lo <= truth <= hi
+    assert self_calibrate_guided(tmp_path / "db.db", names, (240, 320), cfg).guided is None  # the default: the first fit

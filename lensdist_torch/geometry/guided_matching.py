@@ -1,0 +1,255 @@
+"""Guided matching: a sequence's feature matches found again where the homography model predicts them.
+
+On repetitive texture (a chessboard, tiles, a brick wall) a SIFT descriptor has many look-alikes
+in the other view, so the matcher's ratio test discards most true matches and the epipolar
+verification keeps some wrong ones: on the GoPro views of a chessboard 40 of 197 verified pairs
+kept 15 homography inliers, and the lens map's bending was known to +-37 px. Once the
+homography model has a lens, each pair's ideal points are one homography apart, so a feature's
+partner must lie within a few pixels of where that homography sends it; there the look-alikes
+are gone. docs/method.md, section 12, step 8.
+
+1. **Each view on the plane**: every verified pair's homography between the lens's ideal points
+   by LO-RANSAC (``planar_inlier_px``; pairs with ``planar_min_matches`` inliers count); a
+   spanning tree of the counting pairs, the pairs with most inliers first, chains the views onto
+   one plane, so a pair whose own matches failed gets its homography through the others.
+2. **Guided matches**: for every verified pair of two chained views (the pairs COLMAP matched,
+   none added), each keypoint of the first view mapped by the pair's homography (its own where
+   it counts, the chain's otherwise); its partner is the keypoint of the second view within
+   ``planar_guided_px`` (ideal pixels) whose descriptor is closest, kept where the two are each
+   other's closest (a point's several SIFT orientations are one point) and the closest is
+   clearly closer than the next one more than 2 px away (``planar_guided_ratio`` on the
+   descriptors' distances).
+
+The matches are then fitted again (:func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`
+from the first lens). They are chosen near the first fit's prediction, so they cannot say
+whether the scene is a plane: that test stays with the verified matches (the first fit).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.multiview import pycolmap_or_error
+from lensdist_torch.geometry.planar_features import PlanarMatches
+from lensdist_torch.geometry.planar_model import lens_ideal_points
+
+__all__ = ["chain_views", "guided_matches", "read_features", "self_calibrate_guided"]
+
+
+def read_features(database, names: list[str]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Every frame's SIFT keypoints and descriptors from a COLMAP database, in ``names``' order.
+
+    Returns:
+        Per frame (points (K, 2) float64 in pixels with centres at integers, descriptors (K, 128)
+        float32 of unit length); a point with several orientations appears once per orientation.
+    """
+    pc = pycolmap_or_error()
+    import numpy as np
+
+    db = pc.Database.open(str(database))
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        out = []
+        for name in names:
+            if name not in ids:
+                raise ValueError(f"database: no image named {name!r}")
+            points = torch.tensor(np.asarray(db.read_keypoints(ids[name]))[:, :2], dtype=torch.float64) - 0.5
+            desc = torch.tensor(np.asarray(db.read_descriptors(ids[name]).data), dtype=torch.float32)
+            out.append((points, torch.nn.functional.normalize(desc, dim=1)))
+    finally:
+        db.close()
+    return out
+
+
+def _apply(h: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    q = torch.cat([u, u.new_ones(len(u), 1)], 1) @ h.T
+    return q[:, :2] / q[:, 2:]  # a point sent to infinity lands nowhere near a keypoint: no candidate
+
+
+def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, int],
+                config: MultiViewConfig | None = None) -> tuple[dict, dict]:
+    """Step 1: the counting pairs' homographies and each chained view's homography onto one plane.
+
+    Args:
+        matches: the verified matches (:func:`~lensdist_torch.geometry.planar_features.read_verified_matches`).
+        coefficients, centre: the lens (:func:`~lensdist_torch.geometry.planar_model.lens_ideal_points`).
+        size: the frames' (H, W).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_inlier_px``,
+            ``planar_min_matches``, ``seed``).
+
+    Returns:
+        (pairs, views): {(i, j): 3 x 3 homography from view i's ideal pixels to view j's} for the
+        counting pairs, and {view: 3 x 3 homography from its ideal pixels onto the plane of the
+        view with most inliers} for the views the tree reaches.
+
+    Example:
+        >>> p = torch.rand(40, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 300
+        >>> m = PlanarMatches(p, p + torch.tensor([5.0, -3.0], dtype=torch.float64), torch.zeros(40, dtype=torch.long),
+        ...                   torch.tensor([0]), torch.tensor([1]), ("a", "b"))
+        >>> pairs, views = chain_views(m, [0.0], None, (240, 320))
+        >>> [round(float(v), 3) for v in pairs[(0, 1)][:2, 2]], sorted(views)  # a shift of (5, -3) px
+        ([5.0, -3.0], [0, 1])
+    """
+    pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
+    h, w = size
+    options = pc.RANSACOptions()
+    options.max_error, options.random_seed = cfg.planar_inlier_px, cfg.seed
+    pairs, weight = {}, {}
+    u1 = lens_ideal_points(matches.x1, coefficients, h, w, centre)
+    u2 = lens_ideal_points(matches.x2, coefficients, h, w, centre)
+    for p in range(len(matches.first)):
+        idx = (matches.pair == p).nonzero()[:, 0]
+        if len(idx) < cfg.planar_min_matches:
+            continue
+        est = pc.estimate_homography_matrix(u1[idx].numpy(), u2[idx].numpy(), options)
+        if est is not None and int(est["num_inliers"]) >= cfg.planar_min_matches:
+            key = (int(matches.first[p]), int(matches.second[p]))
+            hm = torch.as_tensor(est["H"], dtype=torch.float64)
+            pairs[key], weight[key] = hm / hm[2, 2], int(est["num_inliers"])
+    if not pairs:
+        return pairs, {}
+    strength: dict[int, int] = {}
+    for (i, j), n in weight.items():
+        strength[i], strength[j] = strength.get(i, 0) + n, strength.get(j, 0) + n
+    root = max(sorted(strength), key=lambda v: strength[v])
+    views = {root: torch.eye(3, dtype=torch.float64)}
+    edges = sorted(weight, key=lambda k: -weight[k])
+    grown = True
+    while grown:  # Prim's tree: the strongest pair that reaches a new view, until none does
+        grown = False
+        for i, j in edges:
+            if (i in views) != (j in views):
+                hm = pairs[(i, j)]  # u_j ~ hm u_i
+                if i in views:
+                    views[j] = views[i] @ torch.linalg.inv(hm)
+                else:
+                    views[i] = views[j] @ hm
+                grown = True
+                break
+    return pairs, views
+
+
+def guided_matches(features: list, matches: PlanarMatches, coefficients, centre, size: tuple[int, int],
+                   config: MultiViewConfig | None = None) -> PlanarMatches:
+    """Step 2: the verified pairs matched again where the lens and the pairs' homographies predict.
+
+    Args:
+        features: per frame (points, descriptors), :func:`read_features`.
+        matches: the verified matches (their pairs are the ones matched again).
+        coefficients, centre: the lens of the first fit.
+        size: the frames' (H, W).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_guided_px``,
+            ``planar_guided_ratio``, ``planar_min_matches`` and :func:`chain_views`' fields).
+
+    Returns:
+        :class:`~lensdist_torch.geometry.planar_features.PlanarMatches` (pairs with at least
+        ``planar_min_matches`` guided matches; the pairs' indices renumbered).
+
+    Example:
+        >>> g = torch.Generator().manual_seed(1)
+        >>> pts = torch.rand(60, 2, dtype=torch.float64, generator=g) * 200 + 20
+        >>> desc = torch.nn.functional.normalize(torch.randn(60, 128, generator=g), dim=1)
+        >>> feats = [(pts, desc), (pts + torch.tensor([4.0, 2.0], dtype=torch.float64), desc)]
+        >>> verified = PlanarMatches(pts[:20], feats[1][0][:20], torch.zeros(20, dtype=torch.long),
+        ...                          torch.tensor([0]), torch.tensor([1]), ("a", "b"))
+        >>> len(guided_matches(feats, verified, [0.0], None, (240, 320)).pair)  # 20 verified, all 60 guided
+        60
+    """
+    cfg = or_defaults(config, MultiViewConfig)
+    h, w = size
+    pairs, views = chain_views(matches, coefficients, centre, size, cfg)
+    ideal = {v: lens_ideal_points(features[v][0], coefficients, h, w, centre) for v in views}
+    x1, x2, pair, first, second = [], [], [], [], []
+    for p in range(len(matches.first)):
+        i, j = int(matches.first[p]), int(matches.second[p])
+        if i not in views or j not in views:
+            continue
+        hm = pairs.get((i, j))
+        if hm is None:
+            hm = torch.linalg.inv(views[j]) @ views[i]
+        ok_i, ok_j = _guided_pair(_apply(hm, ideal[i]), ideal[j], features[i][1], features[j][1], cfg)
+        if len(ok_i) < cfg.planar_min_matches:
+            continue
+        both = torch.cat([features[i][0][ok_i], features[j][0][ok_j]], 1).unique(dim=0)
+        x1.append(both[:, :2])
+        x2.append(both[:, 2:])
+        pair.append(torch.full((len(both),), len(first), dtype=torch.long))
+        first.append(i)
+        second.append(j)
+    empty = torch.zeros(0, 2, dtype=torch.float64)
+    return PlanarMatches(torch.cat(x1) if x1 else empty, torch.cat(x2) if x2 else empty,
+                         torch.cat(pair) if pair else torch.zeros(0, dtype=torch.long),
+                         torch.tensor(first, dtype=torch.long), torch.tensor(second, dtype=torch.long), matches.names)
+
+
+def _guided_pair(predicted: torch.Tensor, target: torch.Tensor, d1: torch.Tensor, d2: torch.Tensor,
+                 cfg: MultiViewConfig, chunk: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
+    """Indices (rows of view 1, rows of view 2) of the guided matches of one pair (module docstring, step 2)."""
+    r = cfg.planar_guided_px
+    ci, cj = [], []
+    for s in range(0, len(predicted), chunk):  # the candidates: within r of the prediction
+        near = (torch.cdist(predicted[s:s + chunk], target) < r).nonzero()
+        ci.append(near[:, 0] + s)
+        cj.append(near[:, 1])
+    ci, cj = torch.cat(ci), torch.cat(cj)
+    if len(ci) == 0:
+        return ci, cj
+    sim = (d1[ci] * d2[cj]).sum(1)
+    n1, n2 = len(predicted), len(target)
+    best1 = torch.full((n1,), -2.0, dtype=sim.dtype).scatter_reduce(0, ci, sim, "amax")
+    best2 = torch.full((n2,), -2.0, dtype=sim.dtype).scatter_reduce(0, cj, sim, "amax")
+    top = (sim == best1[ci]) & (sim == best2[cj])  # each the other's closest
+    # the next candidate of the same row more than 2 px from the chosen one (other orientations of a point are one)
+    chosen = torch.full((n1,), -1, dtype=torch.long)
+    chosen[ci[top]] = cj[top]
+    other = (chosen[ci] >= 0) & ((target[cj] - target[chosen[ci].clamp_min(0)]).norm(dim=-1) > 2.0)
+    runner = torch.full((n1,), -2.0, dtype=sim.dtype).scatter_reduce(0, ci[other], sim[other], "amax")
+    dist = lambda s: torch.sqrt((2 - 2 * s).clamp_min(0))  # noqa: E731 - unit vectors' distance from their cosine
+    clear = (runner[ci] < -1.5) | (dist(sim) < cfg.planar_guided_ratio * dist(runner[ci]))
+    keep = top & clear
+    return ci[keep], cj[keep]
+
+
+def self_calibrate_guided(database, names: list[str], size: tuple[int, int], config: MultiViewConfig | None = None,
+                          settings=None):
+    """The homography model on a COLMAP database, fitted again on guided matches (module docstring).
+
+    The first fit is on the verified matches
+    (:func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`); where it has a lens
+    and found a plane, and under ``planar_guided_below`` of the verified pairs kept their
+    homography inliers, the verified pairs are matched again under it (:func:`guided_matches`) and
+    fitted again from its lens, the plane test's share carried over. The second fit answers where
+    it has an estimate; its ``guided`` field says what was found and the first fit's figures.
+    ``planar_guided_px`` 0: the first fit alone.
+
+    Args:
+        database: a COLMAP database after feature extraction and matching.
+        names: the frames' names in recording order.
+        size: the frames' (H, W).
+        config: :class:`~lensdist_torch.config.MultiViewConfig`.
+        settings: the library's config (the class rule and the paper's frame).
+
+    Returns:
+        :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration`.
+    """
+    import math
+
+    from lensdist_torch.geometry.planar_features import read_verified_matches, self_calibrate_planar
+
+    cfg = or_defaults(config, MultiViewConfig)
+    verified = read_verified_matches(database, names, cfg.planar_min_matches)
+    first = self_calibrate_planar(verified, size, cfg, settings)
+    if (cfg.planar_guided_px <= 0 or not math.isfinite(first.delta_avg_user_px)
+            or first.inlier_share < cfg.planar_min_inlier_share or first.pairs >= cfg.planar_guided_below * len(verified.first)):
+        return first
+    found = guided_matches(read_features(database, names), verified, first.coefficients, first.centre, size, cfg)
+    info = {"pairs_verified": len(verified.first), "pairs_matched": len(found.first), "matches": len(found.pair),
+            "radius_px": cfg.planar_guided_px,
+            "first_fit": {k: getattr(first, k) for k in ("model", "delta_avg_user_px", "delta_avg_user_interval", "pairs",
+                                                         "inliers", "matches", "bending_halfwidth_px", "class_label")}}
+    again = self_calibrate_planar(found, size, cfg, settings, start=first.coefficients, plane_share=first.inlier_share)
+    if not math.isfinite(again.delta_avg_user_px):
+        return first._replace(guided={**info, "used": False, "reason": again.reason})
+    return again._replace(guided={**info, "used": True, "reason": ""})
