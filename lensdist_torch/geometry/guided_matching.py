@@ -74,7 +74,8 @@ def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, i
 
     Args:
         matches: the verified matches (:func:`~lensdist_torch.geometry.planar_features.read_verified_matches`).
-        coefficients, centre: the lens (:func:`~lensdist_torch.geometry.planar_model.lens_ideal_points`).
+        coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.geometry.planar_model.lens_ideal_points`).
+        centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_inlier_px``,
             ``planar_min_matches``, ``seed``).
@@ -138,7 +139,8 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
     Args:
         features: per frame (points, descriptors), :func:`read_features`.
         matches: the verified matches (their pairs are the ones matched again).
-        coefficients, centre: the lens of the first fit.
+        coefficients: the first fit's lens, a_1 .. a_n.
+        centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_guided_px``,
             ``planar_guided_ratio``, ``planar_min_matches`` and :func:`chain_views`' fields).

@@ -33,9 +33,9 @@ from tqdm import tqdm
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.guided_matching import self_calibrate_guided
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.geometry.multiview_runs import combine_reconstructions
-from lensdist_torch.geometry.guided_matching import self_calibrate_guided
 
 __all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "planar_path", "combine"]
 
