@@ -1,122 +1,136 @@
 """How a single pair weighs a flat scene against relief, chosen on validation pairs (issue 20).
 
-For each condition (the default protocol, the planar realistic one, the relief realistic one;
-validation split: the protocol seed moved by ``analysis.validation_seed_offset``) every
-distorted pair is prepared as ``analyze`` prepares it (registration, analysis size) and
-self-calibrated as ``analyze`` does (the planar model, then the plane + parallax one, Hausman's
-test ``selfcal.parallax_test`` choosing the kept answer). Then, per candidate
-``analysis.flat_prior`` w, the shipped rule (:func:`~lensdist_torch.workflows.prepare.flat_or_relief`):
-the confidence w P(class | planar) + (1 - w) P(class | relief), "cannot tell" for relief where
-the two answers fall in different classes, for a low confidence below ``analysis.min_confidence``.
-Reported per condition and prior: right or "cannot tell", "cannot tell", right among
-confident answers, confident wrong, and the ECE of the confidence over the pairs not withheld
-for relief; the chosen prior is the one whose largest ECE over the conditions is least.
-(Registration failures and the class-R pairs are left to ``lensdist reproduce``.)
+For each condition (the default protocol, the planar realistic one, the relief realistic one)
+the first ``--n`` distorted pairs of the validation split (the test set of
+:func:`~lensdist_torch.workflows.decision_fit.validation_config`: the protocol seed moved by
+``analysis.validation_seed_offset``) are generated and analysed as ``lensdist reproduce`` does
+(:func:`~lensdist_torch.workflows.decision_fit.fit_confidence`): ``generate`` and ``load_set``,
+then :func:`~lensdist_torch.workflows.evaluate.analyze_test_set`, the user's path
+(``analyze_batch``: registration, self-calibration with Hausman's test choosing the kept answer,
+the decision). Then, per candidate ``analysis.flat_prior`` w, each pair's confidence is what
+``analyze`` would have said under w
+(:func:`~lensdist_torch.workflows.prepare.rescored_confidence`, through the config's Platt map):
+w P(class | planar) + (1 - w) P(class | relief). Neither the class nor relief found depends on
+w, so a pair is "cannot tell" where ``analyze`` withheld it for another reason than a low
+confidence (registration, overlap, no estimate, motion, relief: outside
+:func:`~lensdist_torch.workflows.decision_fit.scored_pairs`) or where its confidence under w is
+below ``analysis.min_confidence``. Reported per condition and prior: right or "cannot tell",
+"cannot tell", right among confident answers, confident wrong, and the ECE of the confidence over
+the scored pairs, the pairs whose answer the confidence decides (as ``lensdist reproduce``
+reports it); the chosen prior is the one whose largest ECE over the conditions is least. Each
+condition also checks itself: at the config's own prior the recomputed confidences and
+"cannot tell"s must be ``analyze``'s (``check``). (The class-R pairs are left to ``lensdist
+reproduce``.)
 
-    python benchmarks/bench_relief_test.py --n 400 --threads 2 --out docs/results/bench_relief_test.json
+    python benchmarks/bench_relief_test.py --n 400 --threads 1 --out docs/results/bench_relief_test.json
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import math
+import tempfile
 import time
 
 import torch
 
 from lensdist_torch.config import LensdistConfig, load_config
-from lensdist_torch.core.images import load_scene
 from lensdist_torch.core.storage import atomic_write_text
-from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-from lensdist_torch.geometry import delta_avg, estimate_distortion, estimated_class
-from lensdist_torch.geometry.distortion import CLASS_LABELS, from_normalized
-from lensdist_torch.workflows import prepare_batch
-from lensdist_torch.workflows.confidence import expected_calibration_error
-from lensdist_torch.workflows.decision_fit import validation_config
-from lensdist_torch.workflows.prepare import flat_or_relief
+from lensdist_torch.data.shards import generate, load_set
+from lensdist_torch.data.synthesis import draw_pairs
+from lensdist_torch.geometry.distortion import CLASS_LABELS
+from lensdist_torch.workflows.confidence import expected_calibration_error, platt
+from lensdist_torch.workflows.decision_fit import outcomes, scored_pairs, validation_config
+from lensdist_torch.workflows.evaluate import analyze_test_set
+from lensdist_torch.workflows.prepare import rescored_confidence
+from lensdist_torch.workflows.reports import dumps_strict
 
 CONDITIONS = {"default": None, "planar_realistic": "configs/realistic.toml", "relief_realistic": "configs/realistic_relief.toml"}
 PRIORS = (0.5, 0.6, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
+#: The analysis result's fields kept per pair (null where the result has none).
+PER_PAIR = ("estimated_class", "estimated_delta_avg", "delta_avg_std", "planar_delta_avg", "planar_delta_avg_std",
+            "relief_delta_avg", "relief_delta_avg_std", "relief_z", "relief_found", "raw_confidence", "confidence",
+            "cannot_tell_reasons")
 
 
-def condition(cfg: LensdistConfig, n: int, batch: int) -> dict:
-    """Per pair: truth, relief fraction, the kept answer, both models' answers (Delta_avg, std) and Hausman's z."""
+def condition(cfg: LensdistConfig, n: int, batch: int) -> tuple[dict, list[dict]]:
+    """The validation split's first ``n`` distorted pairs and their ``analyze`` results, as ``lensdist reproduce`` makes them."""
     val = validation_config(cfg)
-    scenes = [load_scene(s) for s in val.protocol.scenes]
-    idx = list(range(0, val.protocol.n_test_distorted, max(1, val.protocol.n_test_distorted // n)))[:n]
-    params = draw_pairs(val, "test", idx, len(scenes))
-    img1, img2 = render_pairs(scenes, params, val)
-    true = delta_avg(params.k2, params.k4, *val.image.size).double()
-    keys = ("d", "s", "d0", "s0", "d1", "s1", "z")
-    rows = {"true": true.tolist(), **{k: [] for k in keys}}
-    rows["relief"] = params.realism.relief[:, 0].tolist() if params.realism is not None else [0.0] * len(idx)
-    size = val.image.size
-    for s in range(0, len(idx), batch):
-        p = prepare_batch(img1[s : s + batch], img2[s : s + batch], val)
-        for j in range(p.img1.shape[0]):
-            one = slice(j, j + 1)
-            init = p.H[one] if bool(p.registration_ok[j]) else None
-            *_, info = estimate_distortion(p.img1[one], p.img2[one], init=init, config=val.selfcal, validate=False)
-            d0, d1 = (float(delta_avg(*from_normalized(ab, *size), *size)[0]) for ab in (info.planar_ab, info.relief_ab))
-            for k, v in zip(keys, (info.delta_avg[0], info.delta_avg_std[0], d0, info.planar_std[0], d1, info.relief_std[0], info.relief_z[0])):
-                rows[k].append(float(v))
-    return rows
+    with tempfile.TemporaryDirectory() as tmp:  # the test set holds its distorted pairs first
+        generate(val, tmp, sets=["test"], batch_size=batch, limit=min(n, val.protocol.n_test_distorted), progress=False)
+        data = load_set(tmp, "test")
+    return data, analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
 
 
-def summary(rows: dict, cfg: LensdistConfig, prior: float) -> dict:
-    """The shipped rule with ``analysis.flat_prior`` = ``prior`` on one condition's pairs."""
-    cfg = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, flat_prior=prior))
-    t = torch.tensor(rows["true"], dtype=torch.float64)
-    truth = estimated_class(t, t, "delta_avg", cfg).tolist()
-    right = cannot = wrong = 0
-    conf, ok = [], []
-    for i, true_class in enumerate(truth):
-        d = torch.tensor([rows["d"][i]], dtype=torch.float64)
-        if not math.isfinite(rows["d"][i]):
-            cannot += 1
-            continue
-        label = int(estimated_class(d, d, "delta_avg", cfg)[0])
-        c, found = flat_or_relief(CLASS_LABELS[label], (rows["d0"][i], rows["s0"][i]), (rows["d1"][i], rows["s1"][i]), cfg)
-        if not found:
-            conf.append(c)
-            ok.append(label == true_class)
-        if found or c < cfg.analysis.min_confidence:
-            cannot += 1
-        elif label == true_class:
-            right += 1
-        else:
-            wrong += 1
-    n = len(truth)
-    return {"right_or_cannot_tell": round(100 * (right + cannot) / n, 2), "cannot_tell": round(100 * cannot / n, 2),
-            "right_among_confident": round(100 * right / max(1, right + wrong), 2), "confident_wrong": wrong,
-            "ece": round(100 * expected_calibration_error(torch.tensor(conf, dtype=torch.float64), torch.tensor(ok)), 2)}
+def with_prior(cfg: LensdistConfig, prior: float) -> LensdistConfig:
+    """``cfg`` with ``analysis.flat_prior`` = ``prior``."""
+    return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, flat_prior=prior))
+
+
+def summary(results: list[dict], data: dict, cfg: LensdistConfig) -> tuple[dict, set[int]]:
+    """The figures of ``analyze``'s decision under ``cfg`` on one condition's pairs, and the pairs it cannot tell."""
+    keep = scored_pairs(results, cfg)  # the other pairs are "cannot tell" whatever the prior
+    conf, right = outcomes(results, data, cfg, "selfcal", True)
+    sure = conf >= cfg.analysis.min_confidence
+    cannot = set(range(len(results))) - {i for i, s in zip(keep, sure.tolist()) if s}
+    n, r, wrong = len(results), int((right & sure).sum()), int((~right & sure).sum())
+    return {"right_or_cannot_tell": round(100 * (r + len(cannot)) / n, 2), "cannot_tell": round(100 * len(cannot) / n, 2),
+            "right_among_confident": round(100 * r / max(1, r + wrong), 2), "confident_wrong": wrong,
+            "scored_pairs": len(keep), "ece": round(100 * expected_calibration_error(conf, right), 2)}, cannot
+
+
+def self_check(results: list[dict], cfg: LensdistConfig, cannot: set[int]) -> dict:
+    """At the config's own prior: the largest difference between the recomputed and ``analyze``'s confidences
+    (raw and calibrated, over the pairs with an estimate), and the pairs whose "cannot tell" differs."""
+    a, diff = cfg.analysis, 0.0
+    for r in results:
+        if r["estimated_delta_avg"] is not None:
+            raw = rescored_confidence(r, cfg)
+            cal = float(platt(raw, a.selfcal_confidence_scale, a.selfcal_confidence_shift))
+            diff = max(diff, abs(raw - r["raw_confidence"]), abs(cal - r["confidence"]))
+    return {"flat_prior": a.flat_prior, "max_confidence_difference": diff,
+            "cannot_tell_mismatches": sum((i in cannot) != bool(r["cannot_tell"]) for i, r in enumerate(results))}
+
+
+def per_pair(results: list[dict], data: dict) -> dict:
+    """The pairs' truth (index, Delta_avg, class, the relief's largest height) and their analysis results."""
+    params = draw_pairs(data["config"], "test", data["index"].tolist(), len(data["config"].protocol.scenes))
+    height = params.realism.relief[:, 0].tolist() if params.realism is not None else [0.0] * len(results)
+    return {"index": data["index"].tolist(), "true_delta_avg": data["delta_avg"].tolist(),
+            "true_class": [CLASS_LABELS[c] for c in data["class_avg"].tolist()], "relief_height": height,
+            **{k: [r.get(k) for r in results] for k in PER_PAIR}}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--n", type=int, default=96, help="validation pairs per condition (distorted ones)")
-    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--n", type=int, default=96, help="the first N distorted validation pairs per condition")
+    ap.add_argument("--batch", type=int, default=8, help="pairs rendered and registered together")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
+    if a.n < 1 or a.batch < 1 or a.threads < 1:
+        ap.error("--n, --batch and --threads must be positive")
     torch.set_num_threads(a.threads)
     out = {"priors": list(PRIORS), "conditions": {}}
     for name, path in CONDITIONS.items():
         cfg = load_config(path)
         t0 = time.perf_counter()
-        rows = condition(cfg, a.n, a.batch)
-        by_prior = {f"{w:g}": summary(rows, cfg, w) for w in PRIORS}
-        out["conditions"][name] = {"config": path, "seconds": round(time.perf_counter() - t0, 1), "pairs": len(rows["d"]),
-                                   "by_prior": by_prior, "per_pair": rows}
-        print(name, json.dumps(by_prior), flush=True)
+        data, results = condition(cfg, a.n, a.batch)
+        by_prior, cannot = {}, {}
+        for w in PRIORS:
+            by_prior[f"{w:g}"], cannot[w] = summary(results, data, with_prior(cfg, w))
+        w0 = cfg.analysis.flat_prior  # the prior analyze ran with
+        own = cannot[w0] if w0 in cannot else summary(results, data, cfg)[1]
+        check = self_check(results, cfg, own)
+        out["conditions"][name] = {"config": path, "seconds": round(time.perf_counter() - t0, 1), "pairs": len(results),
+                                   "by_prior": by_prior, "check": check, "per_pair": per_pair(results, data)}
+        print(name, dumps_strict(by_prior), "check", dumps_strict(check), flush=True)
     worst = {f"{w:g}": max(c["by_prior"][f"{w:g}"]["ece"] for c in out["conditions"].values()) for w in PRIORS}
     out["largest_ece_by_prior"] = worst
     out["chosen_prior"] = float(min(worst, key=lambda k: (worst[k], -float(k))))
-    print("largest ECE by prior", json.dumps(worst), "chosen", out["chosen_prior"], flush=True)
+    print("largest ECE by prior", dumps_strict(worst), "chosen", out["chosen_prior"], flush=True)
     if a.out:
-        atomic_write_text(a.out, json.dumps(out, indent=1) + "\n")
+        atomic_write_text(a.out, dumps_strict(out, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -22,6 +22,18 @@ def _straightness(pl: dict) -> str:
     return f"; it straightens lines to +-{b:.2f} px (95 %, RMS over the {100 * share:.0f} % of the frame its matches reach)"
 
 
+def _guided(pl: dict) -> str:
+    """What guided matching did for the homography model, where it ran."""
+    g = pl.get("guided")
+    if not isinstance(g, dict):
+        return ""
+    first = g["first_fit"]
+    if not g.get("used"):
+        return f"; guided matching found no answer ({g.get('reason')}): the first fit's"
+    return (f"; on guided matches ({g['matches']} in {g['pairs_matched']} of {g['pairs_verified']} verified pairs; the first "
+            f"fit on the verified matches: {first['pairs']} pairs, Delta_avg {first['delta_avg_user_px']:.2f} px)")
+
+
 def _print_calibration(res: dict) -> None:
     (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
     unregistered = f" ({res['pairs_unregistered']} not registered)" if res.get("pairs_unregistered") else ""
@@ -40,7 +52,7 @@ def _print_calibration(res: dict) -> None:
         print(f"homography model: {pl['pairs']} pairs, {pl['inliers']} of {pl['matches']} matches on one homography per "
               f"pair, {pl['terms']} radial terms about ({pl['centre'][0]:.1f}, {pl['centre'][1]:.1f}) (by BIC), RMS "
               f"{pl['reprojection_px']:.2f} px, Delta_avg {pl['delta_avg_user_px']:.2f} px "
-              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl))
+              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl) + _guided(pl))
     print(f"answer from: {res['method']}")
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")

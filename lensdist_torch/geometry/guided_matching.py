@@ -6,7 +6,10 @@ verification keeps some wrong ones: on the GoPro views of a chessboard 40 of 197
 kept 15 homography inliers, and the lens map's bending was known to +-37 px. Once the
 homography model has a lens, each pair's ideal points are one homography apart, so a feature's
 partner must lie within a few pixels of where that homography sends it; there the look-alikes
-are gone. docs/method.md, section 12, step 8.
+are gone. docs/method.md, section 12, step 10.
+
+It runs where fewer than ``planar_guided_below`` of the verified pairs kept their homography
+inliers in the first fit (:func:`self_calibrate_guided`).
 
 1. **Each view on the plane**: every verified pair's homography between the lens's ideal points
    by LO-RANSAC (``planar_inlier_px``; pairs with ``planar_min_matches`` inliers count); a

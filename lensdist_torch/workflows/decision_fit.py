@@ -34,7 +34,7 @@ from lensdist_torch.workflows.confidence import expected_calibration_error, fit_
 from lensdist_torch.workflows.evaluate import analyze_test_set
 from lensdist_torch.workflows.prepare import delta_interval, rescored_confidence
 
-__all__ = ["validation_config", "scored_pairs", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
+__all__ = ["validation_config", "scored_pairs", "outcomes", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
 
 _PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
           "regression": ("regression_confidence_scale", "regression_confidence_shift")}
@@ -96,8 +96,12 @@ def _confidence(results: list[dict], keep: list[int], config: LensdistConfig, me
     return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method])) if calibrated else raw
 
 
-def _outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
-    """(confidence, right) of the :func:`scored_pairs` (:func:`_confidence`, :func:`_right`)."""
+def outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
+    """(confidence, right) of the :func:`scored_pairs` under ``config``.
+
+    The confidence raw, or through the config's Platt map where ``calibrated``; right: whether the
+    pair's class is (``benchmarks/bench_relief_test.py`` scores candidate priors by it).
+    """
     keep = scored_pairs(results, config)
     return _confidence(results, keep, config, method, calibrated), _right(results, data, config, keep)
 
@@ -161,7 +165,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
         # moved by < 2 px claim 0.93 where 0.69 were right (docs/method.md, section 10): the
         # self-calibration's std scale keeps each pair's own std, and so its motion, in the confidence
         if method in results and method != "selfcal":
-            raw, right = _outcomes(results[method], data, cfg, method, False)
+            raw, right = outcomes(results[method], data, cfg, method, False)
             new, old = fit_platt(raw, right), (getattr(a0, f_scale), getattr(a0, f_shift))
             # a refit must earn its place: on a small split (--quick) it can fall back to the
             # identity and double the ECE of the map it replaces; then the config's map stays
@@ -199,8 +203,8 @@ def calibration_table(results: dict, data: dict, before: LensdistConfig, after: 
     for method in _PLATT:
         if method not in results:
             continue
-        b = reliability(*_outcomes(results[method], data, before, method, True))
-        a = reliability(*_outcomes(results[method], data, after, method, True))
+        b = reliability(*outcomes(results[method], data, before, method, True))
+        a = reliability(*outcomes(results[method], data, after, method, True))
         rows.append({"method": method, "split": split, "pairs": a["pairs"], "before": b["ece"], "after": a["ece"]})
         curves[f"{method}, before"], curves[f"{method}, after"] = b, a
     return rows, curves

@@ -288,3 +288,20 @@ def test_the_homography_models_line_names_its_centre_and_how_straight_it_makes_l
     line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
     assert "3 radial terms about (635.8, 508.9) (by BIC)" in line and "Delta_avg 144.50 px (4)" in line
     assert (says in line) if says else "straightens" not in line
+
+
+def test_the_homography_models_line_says_what_guided_matching_did(capsys):
+    from lensdist_torch.cli_calibrate import _print_calibration
+
+    first = {"pairs": 40, "delta_avg_user_px": 134.91}
+    planar = {"pairs": 131, "inliers": 4995, "matches": 5921, "terms": 3, "centre": [639.0, 495.7], "reprojection_px": 0.9,
+              "delta_avg_user_px": 137.07, "class": "4", "reason": None, "bending_halfwidth_px": 4.87, "matched_fraction": 0.8,
+              "guided": {"used": True, "reason": "", "matches": 6530, "pairs_matched": 144, "pairs_verified": 197,
+                         "first_fit": first}}
+    res = {"image_size": [960, 1280], "delta_avg_user_interval": [None, None], "delta_max_user_interval": [None, None],
+           "frames": 37, "pairs_used": 3, "pairs_rejected": 0, "planar": planar, "method": "direct", "k2_user": None,
+           "reason": "too few pairs"}
+    _print_calibration(res)
+    line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
+    assert line.endswith("; on guided matches (6530 in 144 of 197 verified pairs; the first fit on the verified matches: "
+                         "40 pairs, Delta_avg 134.91 px)")
