@@ -218,10 +218,10 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
     """The answer, its class withheld where undistorting with it does not lower the registration errors.
 
     Adds ``verification`` (:func:`~lensdist_torch.workflows.verify.verify_undistortion`'s dict
-    with a ``verdict``: "lowered", "not lowered" (the class is withheld: a lower share of error
-    blocks, or fewer pairs registered, after the correction) or "not measurable" (no pair
-    registered both times: far-apart views; the class stands, unverified); None where there is
-    no distortion class to verify).
+    with a ``verdict``: "lowered" (more pairs registered after the correction, or the same and a
+    lower share of error blocks), "not lowered" (the class is withheld: no lower share, or fewer
+    pairs registered) or "not measurable" (no pair registered both times: far-apart views; the
+    class stands, unverified); None where there is no distortion class to verify).
     """
     res["verification"] = None
     if cfg.verify_pairs == 0 or res["class"] in (None, "R") or res.get("k2_user") is None:
@@ -234,10 +234,9 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
     check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, st, cfg.verify_pairs)
     before, after = check["error_share_before"], check["error_share_after"]
     check["verdict"] = verdict(check)
-    if before is not None and after is not None:  # pairs registered both times: the shares decided
-        shares = f"{100 * before:.1f} % of the blocks before, {100 * after:.1f} % after"
-    else:  # the correction broke registrations ("not lowered"), or nothing to compare ("not measurable")
-        shares = f"{check['registered_before']} pairs registered before, {check['registered_after']} after"
+    shares = f"{check['registered_before']} pairs registered before, {check['registered_after']} after"
+    if before is not None and after is not None:  # pairs registered both times: their shares
+        shares += f"; of their blocks {100 * before:.1f} % before, {100 * after:.1f} % after"
     res["verification"] = check
     if check["verdict"] == "not lowered":
         res.update({"class": None, "reason": "undistorting the frames with the estimate does not lower their "

@@ -36,10 +36,26 @@ VERDICTS = ("lowered", "not lowered", "not measurable")
 def verdict(check: dict) -> str:
     """The verdict of :func:`verify_undistortion`'s dict (one of ``VERDICTS``).
 
-    Pairs registered both times: the shares decide ("lowered" where the share falls); else
-    "not lowered" where the correction broke registrations, "not measurable" where there was
-    nothing to compare (far-apart views no homography relates).
+    A pair that does not register is all error, so a correction that registers more pairs than
+    before lowered the errors ("lowered"), whatever the shares of the pairs that registered both
+    times. Otherwise, pairs registered both times: the shares decide ("lowered" where the share
+    falls); else "not lowered" where the correction broke registrations, "not measurable" where
+    there was nothing to compare (far-apart views no homography relates).
+
+    Example:
+        >>> counts = {"registered_before": 1, "registered_after": 3, "error_share_before": 0.050, "error_share_after": 0.056}
+        >>> verdict(counts)  # two more pairs register after the correction: the paper's metric says it helped
+        'lowered'
+        >>> verdict({**counts, "registered_after": 1})  # the same pairs: the shares decide
+        'not lowered'
     """
+    if check["registered_after"] > check["registered_before"]:
+        return VERDICTS[0]
+    return _verdict_by_shares(check)
+
+
+def _verdict_by_shares(check: dict) -> str:
+    """The verdict as files written before 2026-11-28 give it: the pairs a correction registers in addition not counted."""
     before, after = check["error_share_before"], check["error_share_after"]
     if before is not None and after is not None:
         return VERDICTS[0] if after < before else VERDICTS[1]

@@ -153,6 +153,23 @@ def test_a_malformed_or_contradictory_verification(tmp_path, capsys, frames, cha
     _refused(tmp_path, capsys, frames, _edit(CALIBRATE, **changes), *words)
 
 
+def test_a_file_with_the_earlier_verdict_still_loads(tmp_path, capsys, frames):
+    """Files written before the verdict counted registrations gained: 'not measurable' for 0 -> 2 pairs stands."""
+    (tmp_path / "not measurable").mkdir()
+    (tmp_path / "lowered").mkdir()
+    data = _edit(CALIBRATE, **{"verification__registered_before": 0, "verification__registered_after": 2,
+                               "verification__error_blocks_before": 0, "verification__blocks_before": 0,
+                               "verification__error_blocks_after": 0, "verification__blocks_after": 0,
+                               "verification__error_share_before": None, "verification__error_share_after": None,
+                               "verification__verdict": "not measurable"})
+    for given in ("not measurable", "lowered"):  # the earlier rule's verdict, and the rule of now's
+        data["verification"]["verdict"] = given
+        code, err, _ = _run(tmp_path / given, capsys, frames, data)
+        assert code == 0, err
+    data["verification"]["verdict"] = "not lowered"  # neither rule's: refused
+    _refused(tmp_path, capsys, frames, data, "'verification.verdict' is 'not lowered', but its shares and counts say 'lowered'")
+
+
 def test_a_verified_class_r(tmp_path, capsys, frames):
     data = _edit(CALIBRATE, **{"class": "R", "k2_user": 1e-7, "k4_user": 0.0})
     _refused(tmp_path, capsys, frames, data, "fields 'class' ('R') and 'verification' contradict", "never verified")

@@ -98,3 +98,20 @@ def test_undistort_from_a_calibration_that_could_not_tell(tmp_path, frames):
     cal["class"] = "1"
     (tmp_path / "cal.json").write_text(json.dumps(cal))
     assert undistort_path(tmp_path / "in", tmp_path / "out", from_json=tmp_path / "cal.json")["frames"] == 2
+
+
+@pytest.mark.parametrize("before,after,shares,says", [
+    (1, 3, (0.050, 0.056), "lowered"),  # the GoPro views' check: two more pairs register once undistorted
+    (0, 2, (None, None), "lowered"),  # nothing registered before, two after
+    (3, 3, (0.05, 0.04), "lowered"),  # the same pairs: the shares decide
+    (3, 3, (0.05, 0.06), "not lowered"),
+    (3, 2, (0.05, 0.04), "lowered"),  # the shares of the pairs registered both times
+    (2, 0, (None, None), "not lowered"),  # the correction broke every registration
+    (0, 0, (None, None), "not measurable"),
+])
+def test_the_verdict_counts_a_registration_gained_as_errors_lowered(before, after, shares, says):
+    from lensdist_torch.workflows.verify import verdict
+
+    check = {"registered_before": before, "registered_after": after, "error_share_before": shares[0],
+             "error_share_after": shares[1]}
+    assert verdict(check) == says
