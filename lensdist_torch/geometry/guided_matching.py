@@ -226,7 +226,9 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     and found a plane, and under ``planar_guided_below`` of the verified pairs kept their
     homography inliers, the verified pairs are matched again under it (:func:`guided_matches`) and
     fitted again from its lens, the plane test's share carried over. The second fit answers where
-    it has an estimate; its ``guided`` field says what was found and the first fit's figures.
+    it has an estimate and counts more pairs than the first (guided matching is there to bring
+    lost pairs back: on the relensed GoPro views at 3 px it counted 4 pairs against the first
+    fit's 12); ``guided`` says what was found, whether it answered and the first fit's figures.
     ``planar_guided_px`` 0: the first fit alone.
 
     Args:
@@ -257,4 +259,7 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     again = self_calibrate_planar(found, size, cfg, settings, start=first.coefficients, plane_share=first.inlier_share)
     if not math.isfinite(again.delta_avg_user_px):
         return first._replace(guided={**info, "used": False, "reason": again.reason})
+    if again.pairs <= first.pairs:  # it was to bring lost pairs back: where it did not, the first fit stands
+        return first._replace(guided={**info, "used": False, "reason": f"the guided matches count {again.pairs} pairs, the "
+                                                                       f"verified ones {first.pairs}"})
     return again._replace(guided={**info, "used": True, "reason": ""})
