@@ -1,5 +1,6 @@
 """Guided matching: the homography model's matches found again where its first fit predicts them."""
 
+import dataclasses
 import math
 
 import pytest
@@ -127,3 +128,50 @@ def test_the_plane_test_can_be_carried_over():
     assert plain.inlier_share > 0.9 and plain.class_label is not None
     assert carried.inlier_share == 0.3 and carried.class_label is None and carried.reason.startswith("not a plane: ")
     assert carried.delta_avg_user_px == pytest.approx(plain.delta_avg_user_px, rel=1e-3)  # from the lens, not the scan: same fit
+
+
+def _stub_database(monkeypatch, verified: PlanarMatches, feats: list, keep_pairs: int | None = None):
+    """``self_calibrate_guided`` reading ``verified`` and ``feats`` instead of a COLMAP database; with
+    ``keep_pairs``, the guided matches cut to that many pairs."""
+    import lensdist_torch.geometry.guided_matching as gm
+    import lensdist_torch.geometry.planar_features as pf
+
+    monkeypatch.setattr(pf, "read_verified_matches", lambda database, names, min_matches=15: verified)
+    monkeypatch.setattr(gm, "read_features", lambda database, names: feats)
+    if keep_pairs is not None:
+        real = gm.guided_matches
+
+        def fewer(*args, **kwargs):
+            m = real(*args, **kwargs)
+            sel = m.pair < keep_pairs
+            return PlanarMatches(m.x1[sel], m.x2[sel], m.pair[sel], m.first[:keep_pairs], m.second[:keep_pairs], m.names)
+
+        monkeypatch.setattr(gm, "guided_matches", fewer)
+
+
+@pytest.mark.slow
+def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
+    """Five views, 10 verified pairs: the 4 of neighbours with 14 right matches among 20 look-alikes, the
+    others with 5 right among 40 (too few for a homography: they do not count in the first fit)."""
+    from lensdist_torch.geometry.guided_matching import self_calibrate_guided
+
+    feats, homs, ids = _views(n_views=5)
+    near = _verified(feats, ids, [(i, i + 1) for i in range(4)], good=14, wrong=20)
+    far = _verified(feats, ids, [(i, j) for i in range(5) for j in range(i + 2, 5)], good=5, wrong=40, seed=2)
+    verified = PlanarMatches(torch.cat([near.x1, far.x1]), torch.cat([near.x2, far.x2]), torch.cat([near.pair, far.pair + 4]),
+                             torch.cat([near.first, far.first]), torch.cat([near.second, far.second]), near.names)
+    cfg = MultiViewConfig(planar_terms=2, planar_centre_max=0.0, planar_min_matches=10, planar_min_inlier_share=0.2)
+    _stub_database(monkeypatch, verified, feats)
+    res = self_calibrate_guided("db", list(verified.names), SIZE, cfg)
+    first = res.guided["first_fit"]
+    assert res.guided["used"] and res.pairs > first["pairs"] and res.guided["pairs_verified"] == 10
+    assert first["pairs"] < 0.5 * 10  # why it ran: under planar_guided_below of the verified pairs counted
+    lo, hi = res.delta_avg_user_interval
+    assert lo <= res.delta_avg_user_px <= hi and (hi - lo) < (first["delta_avg_user_interval"][1] - first["delta_avg_user_interval"][0])
+    # guided matches that count fewer pairs than the first fit: the first fit stands, and says why
+    _stub_database(monkeypatch, verified, feats, keep_pairs=first["pairs"])
+    fewer = self_calibrate_guided("db", list(verified.names), SIZE, cfg)
+    assert not fewer.guided["used"] and fewer.guided["reason"].startswith("the guided matches count ")
+    assert fewer.delta_avg_user_px == pytest.approx(first["delta_avg_user_px"], rel=1e-6)
+    # most verified pairs counted: no guided matching at all
+    assert self_calibrate_guided("db", list(verified.names), SIZE, dataclasses.replace(cfg, planar_guided_below=0.1)).guided is None
