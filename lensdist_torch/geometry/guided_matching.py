@@ -19,9 +19,9 @@ inliers in the first fit (:func:`self_calibrate_guided`).
    none added), each keypoint of the first view mapped by the pair's homography (its own where
    it counts, the chain's otherwise); its partner is the keypoint of the second view within
    ``planar_guided_px`` (ideal pixels) whose descriptor is closest, kept where the two are each
-   other's closest (a point's several SIFT orientations are one point) and the closest is
-   clearly closer than the next one more than 2 px away (``planar_guided_ratio`` on the
-   descriptors' distances).
+   other's closest and the closest is clearly closer than the next candidate more than 2 px away
+   (``planar_guided_ratio`` on the descriptors' distances; nearer ones are the same point's other
+   SIFT orientations). A match found through several orientations is kept once.
 
 The matches are then fitted again (:func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`
 from the first lens). They are chosen near the first fit's prediction, so they cannot say
