@@ -220,6 +220,11 @@ def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_re
     # the JSON's planar block carries its lens (centre included), how straight it makes lines and its own exports
     assert out["planar"]["centre"] == [636.0, 509.0] and out["planar"]["bending_halfwidth_px"] == 36.0
     assert out["planar"]["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["model"] == "planar-3-centre"
+    # what guided matching did, carried into the JSON (None where it did not run)
+    assert out["planar"]["guided"] is None
+    guided = {"used": True, "reason": "", "pairs_verified": 197, "pairs_matched": 143, "matches": 6596, "radius_px": 3.0,
+              "first_fit": {"pairs": 38}}
+    assert combine(direct, {**mv, "planar": {**mv["planar"], "guided": guided}})["planar"]["guided"] == guided
     # relief found by the direct path's plane + parallax test: one homography per pair would absorb it
     relief = combine({**direct, "relief_z": 5.6}, mv)
     assert relief["method"] != "planar" and relief["class"] is None
