@@ -34,7 +34,7 @@ from typing import Any, NamedTuple
 
 from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, paper_frame_delta_avg
-from lensdist_torch.workflows.verify import COUNTS, VERDICTS, _verdict_by_shares, verdict
+from lensdist_torch.workflows.verify import COUNTS, VERDICTS, verdict
 
 __all__ = ["Calibration", "read_calibration"]
 
@@ -132,7 +132,7 @@ def _check_verification(data: dict, label, src: Path) -> None:
     if given not in VERDICTS:
         raise ValueError(f"{src}: field 'verification.verdict' must be one of {', '.join(map(repr, VERDICTS))}, "
                          f"got {given!r:.60}")
-    if given not in (verdict(check), _verdict_by_shares(check)):  # an earlier file: its rule's verdict stands
+    if given not in (verdict(check), verdict(check, count_gained=False)):  # an earlier file: its rule's verdict stands
         raise ValueError(f"{src}: field 'verification.verdict' is {given!r}, but its shares and counts say "
                          f"{verdict(check)!r}")
     if label == CLASS_LABELS[-1] or given == "not lowered":

@@ -33,7 +33,7 @@ COUNTS = ("pairs", "registered_before", "registered_after", "error_blocks_before
 VERDICTS = ("lowered", "not lowered", "not measurable")
 
 
-def verdict(check: dict) -> str:
+def verdict(check: dict, count_gained: bool = True) -> str:
     """The verdict of :func:`verify_undistortion`'s dict (one of ``VERDICTS``).
 
     A pair that does not register is all error, so a correction that registers more pairs than
@@ -42,20 +42,18 @@ def verdict(check: dict) -> str:
     falls); else "not lowered" where the correction broke registrations, "not measurable" where
     there was nothing to compare (far-apart views no homography relates).
 
+    ``count_gained`` False: the rule of files written before 2026-11-28, which did not count the
+    pairs a correction registers in addition (a calibration file with that verdict still loads).
+
     Example:
         >>> counts = {"registered_before": 1, "registered_after": 3, "error_share_before": 0.050, "error_share_after": 0.056}
         >>> verdict(counts)  # two more pairs register after the correction: the paper's metric says it helped
         'lowered'
-        >>> verdict({**counts, "registered_after": 1})  # the same pairs: the shares decide
-        'not lowered'
+        >>> verdict(counts, count_gained=False), verdict({**counts, "registered_after": 1})  # the shares decide
+        ('not lowered', 'not lowered')
     """
-    if check["registered_after"] > check["registered_before"]:
+    if count_gained and check["registered_after"] > check["registered_before"]:
         return VERDICTS[0]
-    return _verdict_by_shares(check)
-
-
-def _verdict_by_shares(check: dict) -> str:
-    """The verdict as files written before 2026-11-28 give it: the pairs a correction registers in addition not counted."""
     before, after = check["error_share_before"], check["error_share_after"]
     if before is not None and after is not None:
         return VERDICTS[0] if after < before else VERDICTS[1]
