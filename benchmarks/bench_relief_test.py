@@ -39,10 +39,9 @@ from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.data.shards import generate, load_set
 from lensdist_torch.data.synthesis import draw_pairs
 from lensdist_torch.geometry.distortion import CLASS_LABELS
-from lensdist_torch.workflows.confidence import expected_calibration_error, platt
-from lensdist_torch.workflows.decision_fit import outcomes, scored_pairs, validation_config
+from lensdist_torch.workflows.confidence import expected_calibration_error
+from lensdist_torch.workflows.decision_fit import confidences, outcomes, scored_pairs, validation_config
 from lensdist_torch.workflows.evaluate import analyze_test_set
-from lensdist_torch.workflows.prepare import rescored_confidence
 from lensdist_torch.workflows.reports import dumps_strict
 
 CONDITIONS = {"default": None, "planar_realistic": "configs/realistic.toml", "relief_realistic": "configs/realistic_relief.toml"}
@@ -82,13 +81,13 @@ def summary(results: list[dict], data: dict, cfg: LensdistConfig) -> tuple[dict,
 def self_check(results: list[dict], cfg: LensdistConfig, cannot: set[int]) -> dict:
     """At the config's own prior: the largest difference between the recomputed and ``analyze``'s confidences
     (raw and calibrated, over the pairs with an estimate), and the pairs whose "cannot tell" differs."""
-    a, diff = cfg.analysis, 0.0
-    for r in results:
-        if r["estimated_delta_avg"] is not None:
-            raw = rescored_confidence(r, cfg)
-            cal = float(platt(raw, a.selfcal_confidence_scale, a.selfcal_confidence_shift))
-            diff = max(diff, abs(raw - r["raw_confidence"]), abs(cal - r["confidence"]))
-    return {"flat_prior": a.flat_prior, "max_confidence_difference": diff,
+    keep = [i for i, r in enumerate(results) if r["estimated_delta_avg"] is not None]
+    diff = 0.0
+    for field, calibrated in (("raw_confidence", False), ("confidence", True)):
+        mine = confidences(results, keep, cfg, "selfcal", calibrated)
+        theirs = torch.tensor([results[i][field] for i in keep], dtype=torch.float64)
+        diff = max([diff, *(mine - theirs).abs().tolist()])
+    return {"flat_prior": cfg.analysis.flat_prior, "max_confidence_difference": diff,
             "cannot_tell_mismatches": sum((i in cannot) != bool(r["cannot_tell"]) for i, r in enumerate(results))}
 
 

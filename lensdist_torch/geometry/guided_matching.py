@@ -30,12 +30,20 @@ whether the scene is a plane: that test stays with the verified matches (the fir
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.multiview import pycolmap_or_error
-from lensdist_torch.geometry.planar_features import PlanarMatches
+from lensdist_torch.geometry.planar_features import (
+    PlanarMatches,
+    pair_homographies,
+    read_verified_matches,
+    self_calibrate_planar,
+)
 from lensdist_torch.geometry.planar_model import lens_ideal_points
 
 __all__ = ["chain_views", "guided_matches", "read_features", "self_calibrate_guided"]
@@ -66,11 +74,6 @@ def read_features(database, names: list[str]) -> list[tuple[torch.Tensor, torch.
     return out
 
 
-def _apply(h: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    q = torch.cat([u, u.new_ones(len(u), 1)], 1) @ h.T
-    return q[:, :2] / q[:, 2:]  # a point sent to infinity lands nowhere near a keypoint: no candidate
-
-
 def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, int],
                 config: MultiViewConfig | None = None) -> tuple[dict, dict]:
     """Step 1: the counting pairs' homographies and each chained view's homography onto one plane.
@@ -96,22 +99,15 @@ def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, i
         >>> [round(float(v), 3) for v in pairs[(0, 1)][:2, 2]], sorted(views)  # a shift of (5, -3) px
         ([5.0, -3.0], [0, 1])
     """
-    pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
+    cfg = or_defaults(config, MultiViewConfig)
     h, w = size
-    options = pc.RANSACOptions()
-    options.max_error, options.random_seed = cfg.planar_inlier_px, cfg.seed
     pairs, weight = {}, {}
     u1 = lens_ideal_points(matches.x1, coefficients, h, w, centre)
     u2 = lens_ideal_points(matches.x2, coefficients, h, w, centre)
-    for p in range(len(matches.first)):
-        idx = (matches.pair == p).nonzero()[:, 0]
-        if len(idx) < cfg.planar_min_matches:
-            continue
-        est = pc.estimate_homography_matrix(u1[idx].numpy(), u2[idx].numpy(), options)
-        if est is not None and int(est["num_inliers"]) >= cfg.planar_min_matches:
+    for p, _, hm, mask in pair_homographies(u1, u2, matches.pair, range(len(matches.first)), cfg.planar_inlier_px, cfg.seed):
+        if hm is not None and int(mask.sum()) >= cfg.planar_min_matches:
             key = (int(matches.first[p]), int(matches.second[p]))
-            hm = torch.as_tensor(est["H"], dtype=torch.float64)
-            pairs[key], weight[key] = hm / hm[2, 2], int(est["num_inliers"])
+            pairs[key], weight[key] = hm, int(mask.sum())
     if not pairs:
         return pairs, {}
     strength: dict[int, int] = {}
@@ -174,7 +170,7 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
         hm = pairs.get((i, j))
         if hm is None:
             hm = torch.linalg.inv(views[j]) @ views[i]
-        ok_i, ok_j = _guided_pair(_apply(hm, ideal[i]), ideal[j], features[i][1], features[j][1], cfg)
+        ok_i, ok_j = _guided_pair(apply_homography(hm[None], ideal[i])[0], ideal[j], features[i][1], features[j][1], cfg)
         if len(ok_i) < cfg.planar_min_matches:
             continue
         both = torch.cat([features[i][0][ok_i], features[j][0][ok_j]], 1).unique(dim=0)
@@ -241,10 +237,6 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     Returns:
         :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration`.
     """
-    import math
-
-    from lensdist_torch.geometry.planar_features import read_verified_matches, self_calibrate_planar
-
     cfg = or_defaults(config, MultiViewConfig)
     verified = read_verified_matches(database, names, cfg.planar_min_matches)
     first = self_calibrate_planar(verified, size, cfg, settings)

@@ -67,6 +67,7 @@ from lensdist_torch.geometry.planar_model import (
     lens_factor,
     lens_ideal_points,
     lens_of,
+    pair_homographies,
     split_lens,
     transfer_errors,
     transfer_residuals,
@@ -228,27 +229,26 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
 
     ``pairs``: only these pairs (indices), the others keep the identity and no inlier.
     """
-    pc = pycolmap_or_error()
     h, w = size
     big_r = half_diagonal(h, w)
     c = matches.x1.new_tensor(distortion_center(h, w))
     u1, u2 = lens_ideal_points(matches.x1, a, h, w), lens_ideal_points(matches.x2, a, h, w)
     s = torch.tensor([[big_r, 0, c[0]], [0, big_r, c[1]], [0, 0, 1]], dtype=torch.float64)
     hs, inliers = torch.zeros(len(matches.first), 8, dtype=torch.float64), torch.zeros(len(u1), dtype=torch.bool)
-    options = pc.RANSACOptions()
-    options.random_seed = cfg.seed
-    for p in range(len(matches.first)) if pairs is None else pairs.tolist():
-        idx = (matches.pair == p).nonzero()[:, 0]
+
+    def threshold(idx: torch.Tensor) -> float:  # planar_ransac_px in the image's pixels, at the lens's mean scale
         scale = float(lens_factor(((matches.x2[idx] - c) / big_r).pow(2).sum(-1, keepdim=True), a).mean())
-        options.max_error = cfg.planar_ransac_px * max(scale, 1e-3)
-        est = pc.estimate_homography_matrix(u1[idx].numpy(), u2[idx].numpy(), options)
-        if est is None:
+        return cfg.planar_ransac_px * max(scale, 1e-3)
+
+    which = range(len(matches.first)) if pairs is None else pairs.tolist()
+    for p, idx, hm, mask in pair_homographies(u1, u2, matches.pair, which, threshold, cfg.seed):
+        if hm is None:
             hs[p] = torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 0], dtype=torch.float64)
             continue
-        m = torch.linalg.solve(s, torch.as_tensor(est["H"], dtype=torch.float64) @ s)  # pixels -> normalised frame
+        m = torch.linalg.solve(s, hm @ s)  # pixels -> normalised frame
         hs[p] = (m / m[2, 2]).reshape(-1)[:8]
-        if int(est["num_inliers"]) >= cfg.planar_min_matches:  # fewer: the pair does not count
-            inliers[idx] = torch.as_tensor(est["inlier_mask"], dtype=torch.bool).reshape(-1)
+        if int(mask.sum()) >= cfg.planar_min_matches:  # fewer: the pair does not count
+            inliers[idx] = mask
     return hs, inliers
 
 

@@ -10,6 +10,9 @@ factor at the point, so it reads about in the image's pixels (times R).
 Its measures: Delta over the frame where the map is monotone, and how well the map's bending is
 known (a jackknife's half-width of what no homography takes away).
 
+Each pair's homography between ideal points by COLMAP's LO-RANSAC (:func:`pair_homographies`): the
+start's scan and the guided matching's chain of views both take it.
+
 The fitted parameter vector ``theta`` is (a_1 .. a_n) with the centre fixed at the frame's, or
 (a_1 .. a_n, d_x, d_y) with the centre free, d its offset from the frame centre over R (``terms``
 = n tells them apart; a translation of the ideal points is the homographies' to absorb).
@@ -25,11 +28,12 @@ from torch.func import vmap
 
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.multiview import pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.pooling import t_quantile
 
 __all__ = ["lens_ideal_points", "lens_factor", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
-           "transfer_errors", "monotone_radius", "lens_of", "lens_deltas", "bending_halfwidth"]
+           "transfer_errors", "monotone_radius", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
 
 
 # ------------------------------------------------------------------ the lens and the residual
@@ -167,6 +171,41 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w
 def transfer_errors(a, hs, v1, v2, pair, big_r: float, terms: int | None = None) -> torch.Tensor:
     """(N,) each match's larger transfer error in pixels."""
     return transfer_residuals(a, hs, v1, v2, terms, pair).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r
+
+
+def pair_homographies(u1: torch.Tensor, u2: torch.Tensor, pair: torch.Tensor, which, max_error, seed: int):
+    """Each listed pair's homography between its matches' ideal points, by COLMAP's LO-RANSAC.
+
+    Args:
+        u1: (N, 2) float64 ideal points (pixels) of the matches in their pairs' first views.
+        u2: (N, 2) their partners in the second views.
+        pair: (N,) each match's pair.
+        which: the pairs' indices to fit.
+        max_error: RANSAC's threshold (px), or a function of a pair's match indices giving it.
+        seed: RANSAC's random seed.
+
+    Yields:
+        (p, idx, H, inliers): the pair, its matches' indices (into ``u1``), H (3, 3) float64 from
+        u1 to u2 with H[2, 2] = 1 (None where RANSAC found none) and its inlier mask over ``idx``.
+
+    Example:
+        >>> u = torch.rand(30, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 100
+        >>> [(p, round(float(h[0, 2]), 3), int(m.sum())) for p, _, h, m in
+        ...  pair_homographies(u, u + 2.0, torch.zeros(30, dtype=torch.long), [0], 1.0, 0)]  # a shift by 2 px
+        [(0, 2.0, 30)]
+    """
+    pc = pycolmap_or_error()
+    options = pc.RANSACOptions()
+    options.random_seed = seed
+    for p in which:
+        idx = (pair == p).nonzero()[:, 0]
+        options.max_error = max_error(idx) if callable(max_error) else max_error
+        est = pc.estimate_homography_matrix(u1[idx].numpy(), u2[idx].numpy(), options)
+        if est is None:
+            yield p, idx, None, None
+            continue
+        hm = torch.as_tensor(est["H"], dtype=torch.float64)
+        yield p, idx, hm / hm[2, 2], torch.as_tensor(est["inlier_mask"], dtype=torch.bool).reshape(-1)
 
 
 # ------------------------------------------------------------------ the lens map's measures

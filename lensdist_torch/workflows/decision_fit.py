@@ -34,7 +34,7 @@ from lensdist_torch.workflows.confidence import expected_calibration_error, fit_
 from lensdist_torch.workflows.evaluate import analyze_test_set
 from lensdist_torch.workflows.prepare import delta_interval, rescored_confidence
 
-__all__ = ["validation_config", "scored_pairs", "outcomes", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
+__all__ = ["validation_config", "scored_pairs", "confidences", "outcomes", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
 
 _PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
           "regression": ("regression_confidence_scale", "regression_confidence_shift")}
@@ -85,8 +85,8 @@ def _right(results: list[dict], data: dict, config: LensdistConfig, keep: list[i
     return estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
 
 
-def _confidence(results: list[dict], keep: list[int], config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
-    """The kept pairs' confidences (``calibrated``: through their Platt map).
+def confidences(results: list[dict], keep: list[int], config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
+    """The pairs ``keep``'s confidences under ``config`` (``calibrated``: through its Platt map).
 
     The self-calibration's raw one recomputed under ``config`` (its std scale, its R threshold),
     the regression's its own.
@@ -103,7 +103,7 @@ def outcomes(results: list[dict], data: dict, config: LensdistConfig, method: st
     pair's class is (``benchmarks/bench_relief_test.py`` scores candidate priors by it).
     """
     keep = scored_pairs(results, config)
-    return _confidence(results, keep, config, method, calibrated), _right(results, data, config, keep)
+    return confidences(results, keep, config, method, calibrated), _right(results, data, config, keep)
 
 
 def _log_loss(p: torch.Tensor, right: torch.Tensor) -> float:
@@ -181,7 +181,7 @@ def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> f
     right = _right(results, data, config, keep)
     if right.numel() == 0 or bool(right.all()) or not bool(right.any()):
         return float(current)  # all right (or all wrong): the sharpest (or widest) scale would always win
-    scores = [(_log_loss(_confidence(results, keep, _with(config, selfcal_std_scale=s), "selfcal", True), right),
+    scores = [(_log_loss(confidences(results, keep, _with(config, selfcal_std_scale=s), "selfcal", True), right),
                abs(math.log(s / current)), s) for s in sorted(set(_SCALES) | {current})]
     return float(min(scores)[2])
 

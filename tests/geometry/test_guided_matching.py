@@ -134,9 +134,8 @@ def _stub_database(monkeypatch, verified: PlanarMatches, feats: list, keep_pairs
     """``self_calibrate_guided`` reading ``verified`` and ``feats`` instead of a COLMAP database; with
     ``keep_pairs``, the guided matches cut to that many pairs."""
     import lensdist_torch.geometry.guided_matching as gm
-    import lensdist_torch.geometry.planar_features as pf
 
-    monkeypatch.setattr(pf, "read_verified_matches", lambda database, names, min_matches=15: verified)
+    monkeypatch.setattr(gm, "read_verified_matches", lambda database, names, min_matches=15: verified)
     monkeypatch.setattr(gm, "read_features", lambda database, names: feats)
     if keep_pairs is not None:
         real = gm.guided_matches
