@@ -1,0 +1,96 @@
+"""Can the homography model's lens follow a real lens? Its family fitted to a calibration's own map.
+
+    python benchmarks/bench_lens_family.py CALIBRATION.json CORNERS.json [--answer BENCH.json]
+        [--out docs/results/bench_lens_family_gopro.json]
+
+The homography model (docs/method.md, section 12) maps a pixel p to c + (p - c)(1 + a_1 r^2 +
+... + a_n r^(2n)), r = |p - c| / R. Here its coefficients are fitted by linear least squares to
+the calibration's own undistortion map (``undistortPoints(p, K, dist, P=K)`` over the pixels
+where it inverts), with the distortion centre c held at one place per row: the calibration's
+principal point, the frame centre, and (``--answer``: the JSON that
+``bench_real_calibration.py --out`` wrote) where lensdist's homography model put it. Each
+fitted map then undistorts every view's chessboard corners, one homography per view is fitted to
+them and the RMS of the fit is reported, the check of ``bench_real_calibration.py``. The board
+is only used for that check.
+
+What it separates: the error of the lens family (the map at the calibration's centre: the best
+the family can do) from the error of the estimate's centre (the same family about the centre
+the estimator found). The calibration's own figures come first, for scale.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_real_calibration import homography_rms
+
+from lensdist_torch.core import atomic_write_text
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.opencv_model import grid_points, opencv_ideal_points
+from lensdist_torch.geometry.planar_model import lens_ideal_points
+
+
+def fit_family(points: torch.Tensor, ideal: torch.Tensor, centre, terms: int, size: tuple[int, int]) -> list[float]:
+    """a_1 .. a_n of the lens about ``centre`` closest (least squares, px) to the map points -> ideal."""
+    big_r = half_diagonal(*size)
+    c = points.new_tensor([float(v) for v in centre])
+    v = (points - c) / big_r
+    r2 = (v * v).sum(-1, keepdim=True)
+    columns = torch.stack([(v * r2 ** (k + 1)).reshape(-1) for k in range(terms)], 1)  # (2N, n)
+    target = ((ideal - c) / big_r - v).reshape(-1, 1)
+    return torch.linalg.lstsq(columns, target).solution[:, 0].tolist()
+
+
+def summary(rms: list[float]) -> dict:
+    r = np.asarray(rms, dtype=np.float64)
+    return {"median_px": float(np.median(r)), "worst_px": float(r.max()), "within_1px": float((r <= 1).mean())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("calibration")
+    ap.add_argument("corners")
+    ap.add_argument("--answer", help="bench_real_calibration.py's JSON: its homography model's centre is one more row")
+    ap.add_argument("--terms", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--step", type=int, default=8, help="the map's grid step in pixels")
+    ap.add_argument("--out")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    cal = json.loads(Path(args.calibration).read_text())["primary"]
+    corners = json.loads(Path(args.corners).read_text())
+    w, h = cal["image_size"]
+    k, dist = torch.tensor(cal["K"], dtype=torch.float64), torch.tensor(cal["dist"], dtype=torch.float64)
+    p = grid_points(h, w, args.step)
+    ideal, ok = opencv_ideal_points(p, k, dist)
+    p, ideal = p[ok], ideal[ok]
+    centres = {"the calibration's principal point": [float(k[0, 2]), float(k[1, 2])],
+               "the frame centre": [(w - 1) / 2, (h - 1) / 2]}
+    if args.answer:
+        planar = json.loads(Path(args.answer).read_text())["answer"]["planar"]
+        centres[f"lensdist's ({planar['model']})"] = planar["centre"]
+    truth_a, truth_c = [0.3, 0.1, 0.05], [w / 2 + 7.0, h / 2 - 5.0]  # self-check: the family's own map is fitted exactly
+    back = fit_family(p, lens_ideal_points(p, truth_a, h, w, truth_c), truth_c, 3, (h, w))
+    if max(abs(x - y) for x, y in zip(back, truth_a)) > 1e-9:
+        raise SystemExit(f"self-check failed: {truth_a} fitted as {back}")
+    report = {"calibration": summary(homography_rms(cal["K"], cal["dist"], corners)), "rows": []}
+    print(f"the calibration's own model: corners median {report['calibration']['median_px']:.3f} px, worst "
+          f"{report['calibration']['worst_px']:.2f} px, within 1 px {100 * report['calibration']['within_1px']:.0f} % of views")
+    for where, centre in centres.items():
+        for n in args.terms:
+            a = fit_family(p, ideal, centre, n, (h, w))
+            fitted = lens_ideal_points(p, a, h, w, centre)
+            map_rms = float((fitted - ideal).norm(dim=-1).pow(2).mean().sqrt())
+            s = summary(homography_rms(None, None, corners, lambda x, a=a, centre=centre: lens_ideal_points(x, a, h, w, centre)))
+            report["rows"].append({"centre": where, "centre_px": centre, "terms": n, "coefficients": a, "map_rms_px": map_rms, **s})
+            print(f"{n} terms about {where} ({centre[0]:.1f}, {centre[1]:.1f}): map RMS {map_rms:.2f} px; corners median "
+                  f"{s['median_px']:.3f} px, worst {s['worst_px']:.2f} px, within 1 px {100 * s['within_1px']:.0f} % of views")
+    if args.out:
+        atomic_write_text(Path(args.out), json.dumps(report, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
