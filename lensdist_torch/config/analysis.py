@@ -88,7 +88,7 @@ class AnalysisConfig:
     validation_seed_offset: int = 1
     min_motion_px: float = 1.0
     interval_confidence: float = 0.95
-    flat_prior: float = 0.85
+    flat_prior: float = 0.8
 
     def __post_init__(self) -> None:
         real(self, "no_distortion_px", lo=0, lo_open=True)
