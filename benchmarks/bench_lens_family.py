@@ -29,20 +29,20 @@ import torch
 from bench_real_calibration import homography_rms
 
 from lensdist_torch.core import atomic_write_text
-from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_ideal_points
 from lensdist_torch.geometry.planar_model import lens_ideal_points
 
 
 def fit_family(points: torch.Tensor, ideal: torch.Tensor, centre, terms: int, size: tuple[int, int]) -> list[float]:
-    """a_1 .. a_n of the lens about ``centre`` closest (least squares, px) to the map points -> ideal."""
-    big_r = half_diagonal(*size)
-    c = points.new_tensor([float(v) for v in centre])
-    v = (points - c) / big_r
-    r2 = (v * v).sum(-1, keepdim=True)
-    columns = torch.stack([(v * r2 ** (k + 1)).reshape(-1) for k in range(terms)], 1)  # (2N, n)
-    target = ((ideal - c) / big_r - v).reshape(-1, 1)
-    return torch.linalg.lstsq(columns, target).solution[:, 0].tolist()
+    """a_1 .. a_n of the lens about ``centre`` closest (least squares, px) to the map points -> ideal.
+
+    The lens map is linear in its coefficients: the column of a_k is what the lens with a_k = 1
+    alone (:func:`lens_ideal_points`) adds to the points.
+    """
+    unit = torch.eye(terms, dtype=points.dtype)
+    columns = torch.stack([(lens_ideal_points(points, unit[k], *size, centre) - points).reshape(-1) for k in range(terms)], 1)
+    return torch.linalg.lstsq(columns, (ideal - points).reshape(-1, 1)).solution[:, 0].tolist()
 
 
 def summary(rms: list[float]) -> dict:
@@ -68,7 +68,7 @@ def main() -> None:
     ideal, ok = opencv_ideal_points(p, k, dist)
     p, ideal = p[ok], ideal[ok]
     centres = {"the calibration's principal point": [float(k[0, 2]), float(k[1, 2])],
-               "the frame centre": [(w - 1) / 2, (h - 1) / 2]}
+               "the frame centre": list(distortion_center(h, w))}
     if args.answer:
         planar = json.loads(Path(args.answer).read_text())["answer"]["planar"]
         centres[f"lensdist's ({planar['model']})"] = planar["centre"]
