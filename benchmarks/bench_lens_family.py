@@ -10,8 +10,8 @@ where it inverts), with the distortion centre c held at one place per row: the c
 principal point, the frame centre, and (``--answer``: the JSON that
 ``bench_real_calibration.py --out`` wrote) where lensdist's homography model put it. Each
 fitted map then undistorts every view's chessboard corners, one homography per view is fitted to
-them and the RMS of the fit is reported, the check of ``bench_real_calibration.py``. The board
-is only used for that check.
+them and the RMS of the fit is reported, the check of ``bench_real_calibration.py``, in the
+undistorted frame's pixels and (``image_*``) in the image's. The board is only used for that check.
 
 What it separates: the error of the lens family (the map at the calibration's centre: the best
 the family can do) from the error of the estimate's centre (the same family about the centre
@@ -45,9 +45,25 @@ def fit_family(points: torch.Tensor, ideal: torch.Tensor, centre, terms: int, si
     return torch.linalg.lstsq(columns, (ideal - points).reshape(-1, 1)).solution[:, 0].tolist()
 
 
-def summary(rms: list[float]) -> dict:
-    r = np.asarray(rms, dtype=np.float64)
-    return {"median_px": float(np.median(r)), "worst_px": float(r.max()), "within_1px": float((r <= 1).mean())}
+def summary(rms: list[float], image: list[float] | None = None) -> dict:
+    """Median, worst and share within 1 px of per-view RMS (undistorted px), and with ``image`` the same in the image's px."""
+    out = {}
+    for prefix, values in (("", rms), ("image_", image)):
+        if values is not None:
+            r = np.asarray(values, dtype=np.float64)
+            out.update({f"{prefix}median_px": float(np.median(r)), f"{prefix}worst_px": float(r.max()),
+                        f"{prefix}within_1px": float((r <= 1).mean())})
+    return out
+
+
+def checked(corners: dict, **lens) -> dict:
+    """:func:`summary` of the corner check in both units, ``lens`` as :func:`homography_rms` takes it."""
+    return summary(*(homography_rms(corners=corners, image_px=px, **lens) for px in (False, True)))
+
+
+def said(s: dict) -> str:
+    return (f"corners median {s['median_px']:.3f} px, worst {s['worst_px']:.2f} px, within 1 px {100 * s['within_1px']:.0f} % "
+            f"of views; in the image's px {s['image_median_px']:.3f}, {s['image_worst_px']:.2f}, {100 * s['image_within_1px']:.0f} %")
 
 
 def main() -> None:
@@ -76,18 +92,16 @@ def main() -> None:
     back = fit_family(p, lens_ideal_points(p, truth_a, h, w, truth_c), truth_c, 3, (h, w))
     if max(abs(x - y) for x, y in zip(back, truth_a)) > 1e-9:
         raise SystemExit(f"self-check failed: {truth_a} fitted as {back}")
-    report = {"calibration": summary(homography_rms(cal["K"], cal["dist"], corners)), "rows": []}
-    print(f"the calibration's own model: corners median {report['calibration']['median_px']:.3f} px, worst "
-          f"{report['calibration']['worst_px']:.2f} px, within 1 px {100 * report['calibration']['within_1px']:.0f} % of views")
+    report = {"calibration": checked(corners, k=cal["K"], dist=cal["dist"]), "rows": []}
+    print(f"the calibration's own model: {said(report['calibration'])}")
     for where, centre in centres.items():
         for n in args.terms:
             a = fit_family(p, ideal, centre, n, (h, w))
             fitted = lens_ideal_points(p, a, h, w, centre)
             map_rms = float((fitted - ideal).norm(dim=-1).pow(2).mean().sqrt())
-            s = summary(homography_rms(None, None, corners, lambda x, a=a, centre=centre: lens_ideal_points(x, a, h, w, centre)))
+            s = checked(corners, k=None, dist=None, ideal=lambda x, a=a, centre=centre: lens_ideal_points(x, a, h, w, centre))
             report["rows"].append({"centre": where, "centre_px": centre, "terms": n, "coefficients": a, "map_rms_px": map_rms, **s})
-            print(f"{n} terms about {where} ({centre[0]:.1f}, {centre[1]:.1f}): map RMS {map_rms:.2f} px; corners median "
-                  f"{s['median_px']:.3f} px, worst {s['worst_px']:.2f} px, within 1 px {100 * s['within_1px']:.0f} % of views")
+            print(f"{n} terms about {where} ({centre[0]:.1f}, {centre[1]:.1f}): map RMS {map_rms:.2f} px; {said(s)}")
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=1) + "\n")
 
