@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 
 import torch
-from torch.func import vmap
 
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
@@ -32,7 +31,7 @@ from lensdist_torch.geometry.multiview import pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.pooling import t_quantile
 
-__all__ = ["lens_ideal_points", "lens_factor", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
+__all__ = ["lens_ideal_points", "lens_factor", "lens_factor_derivative", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
            "transfer_errors", "monotone_radius", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
 
 
@@ -64,7 +63,7 @@ def lens_factor(r2: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
 
 
 def _adjugate(m: torch.Tensor) -> torch.Tensor:
-    """The adjugates of (..., 3, 3) matrices (inverse times determinant) in closed form: exact under forward-mode AD.
+    """The adjugates of (..., 3, 3) matrices (inverse times determinant) in closed form, differentiable and batched.
 
     (``torch.linalg.solve`` under ``vmap(jacfwd)`` gave wrong derivatives here.)
     """
@@ -105,23 +104,62 @@ def transfer_residuals(theta: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v
     return torch.cat([(q[:, :2] / q[:, 2:] - u2) / f2, (back[:, :2] / back[:, 2:] - u1) / f1], 1)
 
 
+def lens_factor_derivative(r2: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+    """d/d(r^2) of :func:`lens_factor`: a_1 + 2 a_2 r^2 + ... + n a_n r^(2n - 2), by Horner's rule."""
+    out = torch.zeros_like(r2)
+    for k in range(a.shape[-1] - 1, 0, -1):
+        out = (out + (k + 1) * a[k]) * r2
+    return out + a[0]
+
+
 def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
                        terms: int | None = None, pair: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, 4, n) and (N, 4, 8): the residuals' derivatives by the lens ``a`` (``theta``) and by each match's homography.
 
-    ``h`` and ``pair`` as :func:`transfer_residuals`. Forward mode, one tangent per parameter (a
-    match's residual depends on its own pair's row of ``h`` only, so one tangent gives the
-    derivative by that entry for every match at once).
+    ``h`` and ``pair`` as :func:`transfer_residuals`. In closed form (tests check it against finite
+    differences and forward-mode AD): with u = v f(|v|^2) an ideal point, F = proj(H [u1; 1]) and
+    B = proj(H^-1 [u2; 1]), the forward residual is (F - u2) / f2 and the backward (B - u1) / f1;
+    proj's derivative at y is [I | -proj(y)] / y_3, and H^-1's by an entry E of H is -H^-1 E H^-1.
     """
-    n, rows = a.numel(), len(h)
-    ta = torch.cat([torch.eye(n, dtype=a.dtype), a.new_zeros(8, n)])
-    th = torch.cat([h.new_zeros(n, rows, 8), torch.eye(8, dtype=h.dtype)[:, None, :].expand(8, rows, 8)])
+    coef, d = split_lens(a, terms)
+    eye2 = torch.eye(2, dtype=a.dtype)
+    if d is not None:
+        v1, v2 = v1 - d, v2 - d
 
-    def along(da, dh):
-        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2, terms, pair), (a, h), (da, dh))[1]
+    def lens(v):  # u, f, du/dtheta (N, 2, n_theta), df/dtheta (N, n_theta)
+        s = (v * v).sum(-1, keepdim=True)
+        f, g = lens_factor(s, coef), lens_factor_derivative(s, coef)
+        powers = s ** torch.arange(1, coef.shape[-1] + 1, dtype=a.dtype)  # df/da_k = s^k
+        du, df = v[:, :, None] * powers[:, None, :], powers
+        if d is not None:  # v = p - c - d: du/dd = -(f I + 2 g v v^T), df/dd = -2 g v
+            du = torch.cat([du, -(f[..., None] * eye2 + 2 * g[..., None] * v[:, :, None] * v[:, None, :])], 2)
+            df = torch.cat([df, -2 * g * v], 1)
+        return v * f, f, du, df
 
-    j = vmap(along)(ta, th)  # (n + 8, N, 4)
-    return j[:n].permute(1, 2, 0), j[n:].permute(1, 2, 0)
+    u1, f1, du1, df1 = lens(v1)
+    u2, f2, du2, df2 = lens(v2)
+    m = torch.cat([h, h.new_ones(len(h), 1)], 1).reshape(-1, 3, 3)
+    adj = _adjugate(m)
+    inv = adj / (adj[:, 0, :] * m[:, :, 0]).sum(-1)[:, None, None]  # adj(M) M = det(M) I
+    if pair is not None:
+        m, inv = m[pair], inv[pair]
+    w1, w2 = torch.cat([u1, torch.ones_like(f1)], 1), torch.cat([u2, torch.ones_like(f2)], 1)
+
+    def projection(y):  # proj(y) and its derivative [I | -proj(y)] / y_3, (N, 2, 3)
+        p = y[:, :2] / y[:, 2:]
+        return p, torch.cat([eye2.expand(len(y), 2, 2), -p[:, :, None]], 2) / y[:, 2:, None]
+
+    y1 = (m @ w1[..., None])[..., 0]
+    fwd, gf = projection(y1)
+    y2 = (inv @ w2[..., None])[..., 0]
+    bwd, gb = projection(y2)
+    gbi = gb @ inv
+    rf, rb = (fwd - u2) / f2, (bwd - u1) / f1
+    ja = torch.cat([((gf @ m)[:, :, :2] @ du1 - du2 - rf[:, :, None] * df2[:, None, :]) / f2[..., None],
+                    (gbi[:, :, :2] @ du2 - du1 - rb[:, :, None] * df1[:, None, :]) / f1[..., None]], 1)
+    jh = torch.cat([(gf[:, :, :, None] * w1[:, None, None, :]).reshape(-1, 2, 9)[..., :8] / f2[..., None],
+                    -(gbi[:, :, :, None] * y2[:, None, None, :]).reshape(-1, 2, 9)[..., :8] / f1[..., None]], 1)
+    return ja, jh
 
 
 def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w, iterations: int,

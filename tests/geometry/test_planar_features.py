@@ -104,6 +104,16 @@ def test_jacobian_agrees_with_finite_differences(theta):
         d[k] = eps
         fd = (transfer_residuals(a, h + d, v1, v2, 3) - transfer_residuals(a, h - d, v1, v2, 3)) / (2 * eps)
         assert torch.allclose(jh[..., k], fd, atol=1e-6)
+    # forward-mode AD of the residual, one tangent per parameter: the closed form to rounding
+    def along(da, dh):
+        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2, 3), (a, h), (da, dh))[1]
+
+    n = len(theta)
+    tangents = (torch.cat([torch.eye(n, dtype=a.dtype), a.new_zeros(8, n)]),
+                torch.cat([h.new_zeros(n, 5, 8), torch.eye(8, dtype=h.dtype)[:, None, :].expand(8, 5, 8)]))
+    ad = torch.func.vmap(along)(*tangents)
+    assert torch.allclose(ja, ad[:n].permute(1, 2, 0), atol=1e-12)
+    assert torch.allclose(jh, ad[n:].permute(1, 2, 0), atol=1e-12)
     # the pairs' homographies once each, indexed by pair: the same residuals and derivatives
     pair = torch.tensor([0, 1, 1, 0, 1])
     hp = torch.stack([h[0], h[0] + 0.01])
