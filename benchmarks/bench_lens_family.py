@@ -31,7 +31,7 @@ from bench_real_calibration import homography_rms
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_ideal_points
-from lensdist_torch.geometry.planar_model import lens_ideal_points
+from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 
 def fit_family(points: torch.Tensor, ideal: torch.Tensor, centre, terms: int, size: tuple[int, int]) -> list[float]:

@@ -38,7 +38,7 @@ from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_camera_from_map, opencv_delta, opencv_ideal_points
 from lensdist_torch.geometry.planar_features import delta_avg_where
-from lensdist_torch.geometry.planar_model import lens_ideal_points
+from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 
 def homography_rms(k, dist, corners: dict, ideal=None, image_px: bool = False) -> list[float]:

@@ -9,6 +9,7 @@ Primitives (layer 1):
 * :mod:`~lensdist_torch.geometry.homography`: homographies on points, the class-R perturbation, corner error, motion.
 * :mod:`~lensdist_torch.geometry.opencv_model`: eq. 4 as OpenCV camera parameters, in pure torch.
 * :mod:`~lensdist_torch.geometry.undistort`: undistorted images, batched and differentiable.
+* :mod:`~lensdist_torch.geometry.radial_lens`: a radial lens about a distortion centre (eq. 4 its special case) and its inverse.
 
 Estimators (layer 2):
 

@@ -44,7 +44,7 @@ from lensdist_torch.geometry.planar_features import (
     read_verified_matches,
     self_calibrate_planar,
 )
-from lensdist_torch.geometry.planar_model import lens_ideal_points
+from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 __all__ = ["chain_views", "guided_matches", "read_features", "self_calibrate_guided"]
 

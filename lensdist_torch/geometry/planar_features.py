@@ -64,8 +64,6 @@ from lensdist_torch.geometry.planar_model import (
     bending_halfwidth,
     fit_lens_and_homographies,
     lens_deltas,
-    lens_factor,
-    lens_ideal_points,
     lens_of,
     pair_homographies,
     split_lens,
@@ -73,6 +71,7 @@ from lensdist_torch.geometry.planar_model import (
     transfer_residuals,
 )
 from lensdist_torch.geometry.pooling import jackknife_interval
+from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points
 
 __all__ = ["PlanarCalibration", "PlanarMatches", "delta_avg_where", "read_verified_matches", "self_calibrate_planar",
            "thin_matches"]

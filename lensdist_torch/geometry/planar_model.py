@@ -1,8 +1,8 @@
 """The homography model's lens, residual, Jacobian and Levenberg-Marquardt (docs/method.md, section 12).
 
-The lens maps a pixel p to its ideal point c + (p - c) (1 + a_1 r^2 + ... + a_n r^(2n)),
-r = |p - c| / R (c the distortion centre, the frame centre unless the fit frees it; R the frame's
-half diagonal); n = 2 with c the frame centre is eq. 4. A match between two views of a plane is
+The lens (:mod:`~lensdist_torch.geometry.radial_lens`) maps a pixel p to its ideal point
+c + (p - c) (1 + a_1 r^2 + ... + a_n r^(2n)), r = |p - c| / R (c the distortion centre, the frame
+centre unless the fit frees it; R the frame's half diagonal); n = 2 with c the frame centre is eq. 4. A match between two views of a plane is
 explained by the lens and its pair's homography H (img1's ideal points to img2's, normalised
 frame, H[2, 2] = 1): the residual is the symmetric transfer error, each side divided by the lens's
 factor at the point, so it reads about in the image's pixels (times R).
@@ -30,38 +30,13 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.multiview import pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.pooling import t_quantile
+from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, monotone_radius
 
-__all__ = ["lens_ideal_points", "lens_factor", "lens_factor_derivative", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
-           "transfer_errors", "monotone_radius", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
+__all__ = ["split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
+           "transfer_errors", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
 
 
 # ------------------------------------------------------------------ the lens and the residual
-def lens_ideal_points(points: torch.Tensor, coefficients, height: int, width: int, centre=None) -> torch.Tensor:
-    """Ideal pixels of (..., 2) distorted pixels under the lens a_1 .. a_n about ``centre`` (module docstring).
-
-    ``centre``: the distortion centre (x, y) in pixels; the frame centre when None.
-
-    Example:
-        >>> p = torch.tensor([[0.0, 0.0], [4.5, 3.5]], dtype=torch.float64)  # a corner and the centre of 8 x 10
-        >>> lens_ideal_points(p, [0.1], 8, 10).round(decimals=4).tolist()  # r = 1 at the corner: 10 % further out
-        [[-0.45, -0.35], [4.5, 3.5]]
-        >>> lens_ideal_points(p, [0.1], 8, 10, centre=(0.0, 0.0))[0].tolist()  # the centre stays put
-        [0.0, 0.0]
-    """
-    c = points.new_tensor(distortion_center(height, width) if centre is None else [float(v) for v in centre])
-    big_r = half_diagonal(height, width)
-    v = (points - c) / big_r
-    return c + big_r * v * lens_factor((v * v).sum(-1, keepdim=True), torch.as_tensor(coefficients, dtype=points.dtype))
-
-
-def lens_factor(r2: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    """1 + a_1 r^2 + ... + a_n r^(2n) by Horner's rule."""
-    out = torch.zeros_like(r2)
-    for k in range(a.shape[-1] - 1, -1, -1):
-        out = (out + a[k]) * r2
-    return 1 + out
-
-
 def _adjugate(m: torch.Tensor) -> torch.Tensor:
     """The adjugates of (..., 3, 3) matrices (inverse times determinant) in closed form, differentiable and batched.
 
@@ -102,14 +77,6 @@ def transfer_residuals(theta: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v
     q = m[:, :, 0] * u1[:, :1] + m[:, :, 1] * u1[:, 1:] + m[:, :, 2]  # elementwise: 3 x 3 bmm is slow under AD
     back = adj[:, :, 0] * u2[:, :1] + adj[:, :, 1] * u2[:, 1:] + adj[:, :, 2]  # H^-1 up to scale
     return torch.cat([(q[:, :2] / q[:, 2:] - u2) / f2, (back[:, :2] / back[:, 2:] - u1) / f1], 1)
-
-
-def lens_factor_derivative(r2: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
-    """d/d(r^2) of :func:`lens_factor`: a_1 + 2 a_2 r^2 + ... + n a_n r^(2n - 2), by Horner's rule."""
-    out = torch.zeros_like(r2)
-    for k in range(a.shape[-1] - 1, 0, -1):
-        out = (out + (k + 1) * a[k]) * r2
-    return out + a[0]
 
 
 def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
@@ -247,14 +214,6 @@ def pair_homographies(u1: torch.Tensor, u2: torch.Tensor, pair: torch.Tensor, wh
 
 
 # ------------------------------------------------------------------ the lens map's measures
-def monotone_radius(a: torch.Tensor) -> float:
-    """The normalised radius up to which r (1 + a_1 r^2 + ...) grows (the map inverts there), at most 1.5."""
-    r = torch.linspace(0, 1.5, 3001, dtype=torch.float64)[:, None]
-    g = (r * lens_factor(r * r, a))[:, 0]
-    falls = (g[1:] <= g[:-1]).nonzero()
-    return float(r[int(falls[0, 0]), 0]) if len(falls) else math.inf
-
-
 def lens_of(theta: torch.Tensor, terms: int, size: tuple[int, int]) -> tuple[list[float], list[float]]:
     """The lens ``theta`` as :func:`lens_ideal_points` takes it: its coefficients and its centre (x, y) in pixels."""
     h, w = size

@@ -24,6 +24,11 @@ round trip is exact all the same); such pixels are marked invalid, never filled 
 sample. Outside the mask the image is 0. Gradients flow to the image and to k2, k4 (as for any bilinear warp, the gradient
 with respect to the coordinates is that of the bilinear interpolant).
 
+A lens that eq. 4 cannot follow (the homography model's: up to three radial terms about its own
+distortion centre, :mod:`~lensdist_torch.geometry.radial_lens`) has its own grid and view,
+:func:`lens_undistortion_grid` and :func:`lens_optimal_view`: the same rules, its inverse by
+Newton's method on the radius, valid on its monotone branch.
+
 Kornia-style: the pure function :func:`undistort_image` and the thin module :class:`Undistort`.
 """
 
@@ -42,9 +47,11 @@ from lensdist_torch.geometry.distortion import (
     sample_at_pixels,
     undistort_points,
 )
-from lensdist_torch.geometry.frame import pixel_grid
+from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
+from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points, monotone_radius
 
-__all__ = ["monotone_branch", "optimal_view", "undistortion_grid", "undistort_image", "Undistort"]
+__all__ = ["monotone_branch", "optimal_view", "lens_optimal_view", "undistortion_grid", "lens_undistortion_grid",
+           "undistort_image", "Undistort"]
 
 _SLACK_PX = 1e-3
 _ROUND_TRIP_PX = 1e-2
@@ -101,6 +108,38 @@ def optimal_view(k2: float, k4: float, height: int, width: int, alpha: float) ->
         >>> optimal_view(0.0, 0.0, 120, 160, 1.0)  # no distortion: the frame itself
         (1.0, 1.0, 0.0, 0.0)
     """
+    def ideal(pts: torch.Tensor) -> torch.Tensor:  # the pixels on eq. 4's monotone branch, at their ideal positions
+        d = pts - pts.new_tensor(centre)
+        keep = monotone_branch((d * d).sum(-1), float(k2), float(k4))
+        return undistort_points(pts[keep][None], float(k2), float(k4), centre)[0]
+
+    centre = distortion_center(height, width) if type(height) is int and type(width) is int else None
+    return _view(ideal, height, width, alpha, f"k2 = {k2:.4g}, k4 = {k4:.4g}", "eq. 4")
+
+
+def lens_optimal_view(coefficients, centre, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
+    """:func:`optimal_view` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
+
+    Example:
+        >>> from lensdist_torch.geometry.frame import half_diagonal
+        >>> big_r = half_diagonal(120, 160)  # eq. 4's k2 = 1e-5 as the lens's a_1 about the frame centre
+        >>> [round(v, 6) for v in lens_optimal_view([1e-5 * big_r**2], None, 120, 160, 0.0)] == [
+        ...     round(v, 6) for v in optimal_view(1e-5, 0.0, 120, 160, 0.0)]
+        True
+    """
+    a = torch.as_tensor(coefficients, dtype=torch.float64)
+    top = monotone_radius(a)
+
+    def ideal(pts: torch.Tensor) -> torch.Tensor:
+        c = pts.new_tensor(distortion_center(height, width) if centre is None else [float(v) for v in centre])
+        keep = (pts - c).norm(dim=-1) / half_diagonal(height, width) < top
+        return lens_ideal_points(pts[keep], a, height, width, centre)
+
+    return _view(ideal, height, width, alpha, f"the lens {[round(float(v), 4) for v in a]}", "the lens")
+
+
+def _view(ideal, height: int, width: int, alpha: float, what: str, model: str) -> tuple[float, float, float, float]:
+    """The view of :func:`optimal_view` from ``ideal``: a frame edge's (N, 2) pixels to those it keeps, at their ideal positions."""
     if not (type(height) is int and type(width) is int and height > 1 and width > 1):
         raise ValueError(f"height and width must be ints above 1, got {height!r} and {width!r}")
     if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= alpha <= 1.0:
@@ -109,20 +148,15 @@ def optimal_view(k2: float, k4: float, height: int, width: int, alpha: float) ->
     ys = torch.arange(height, dtype=torch.float64)
     edges = {"left": torch.stack([torch.zeros_like(ys), ys], -1), "right": torch.stack([torch.full_like(ys, width - 1.0), ys], -1),
              "top": torch.stack([xs, torch.zeros_like(xs)], -1), "bottom": torch.stack([xs, torch.full_like(xs, height - 1.0)], -1)}
-    centre = distortion_center(height, width)
-    ideal = {}
-    for name, pts in edges.items():
-        d = pts - pts.new_tensor(centre)
-        keep = monotone_branch((d * d).sum(-1), float(k2), float(k4))
-        ideal[name] = undistort_points(pts[keep][None], float(k2), float(k4), centre)[0]
+    ideal = {name: ideal(pts) for name, pts in edges.items()}
     if any(len(v) == 0 for v in ideal.values()):
-        raise ValueError(f"k2 = {k2:.4g}, k4 = {k4:.4g} fold eq. 4 before a whole edge of the {height} x {width} frame")
+        raise ValueError(f"{what} fold {model} before a whole edge of the {height} x {width} frame")
     every = torch.cat(list(ideal.values()))
     inner = (float(ideal["left"][:, 0].max()), float(ideal["top"][:, 1].max()),
              float(ideal["right"][:, 0].min()), float(ideal["bottom"][:, 1].min()))
     outer = (float(every[:, 0].min()), float(every[:, 1].min()), float(every[:, 0].max()), float(every[:, 1].max()))
     if not (inner[2] > inner[0] and inner[3] > inner[1]):
-        raise ValueError(f"k2 = {k2:.4g}, k4 = {k4:.4g} leave no valid rectangle in the undistorted {height} x {width} frame")
+        raise ValueError(f"{what} leave no valid rectangle in the undistorted {height} x {width} frame")
 
     def fit(x0: float, y0: float, x1: float, y1: float) -> tuple[float, float, float, float]:
         sx, sy = (width - 1) / (x1 - x0), (height - 1) / (y1 - y0)
@@ -192,6 +226,39 @@ def undistortion_grid(
               & (src.detach()[..., 1] >= -_SLACK_PX) & (src.detach()[..., 1] <= height - 1 + _SLACK_PX))
     valid = (exact & inside).unsqueeze(1).to(dtype)
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6), valid
+
+
+def lens_undistortion_grid(coefficients, centre, height: int, width: int, dtype: torch.dtype = torch.float32, device=None,
+                           view=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`undistortion_grid` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
+
+    ``centre``: (x, y) in pixels, or None for the frame centre. Valid where the inverse is exact
+    and on the lens's monotone branch (:func:`~lensdist_torch.geometry.radial_lens.lens_distorted_points`)
+    and inside the distorted frame.
+
+    Returns:
+        grid: (1, H, W, 2) pixel coordinates of each ideal pixel in the distorted image.
+        valid: (1, 1, H, W) of 0 and 1, ``dtype``.
+
+    Example:
+        >>> from lensdist_torch.geometry.frame import half_diagonal
+        >>> a = [2e-5 * half_diagonal(32, 48) ** 2]  # eq. 4's k2 = 2e-5 as the lens's a_1
+        >>> g1, v1 = lens_undistortion_grid(a, None, 32, 48, torch.float64)
+        >>> g2, v2 = undistortion_grid(2e-5, 0.0, 32, 48, torch.float64)
+        >>> bool((g1 - g2).abs().max() < 1e-6), bool((v1 == v2).all())
+        (True, True)
+    """
+    if not (type(height) is int and type(width) is int and height > 0 and width > 0):
+        raise ValueError(f"height and width must be positive ints, got {height!r} and {width!r}")
+    view = _check_view(view)
+    ideal = pixel_grid(height, width, torch.float64, device)
+    if view is not None:
+        ideal = (ideal - ideal.new_tensor(view[2:])) / ideal.new_tensor(view[:2])
+    src, exact = lens_distorted_points(ideal, coefficients, height, width, centre)
+    inside = ((src[..., 0] >= -_SLACK_PX) & (src[..., 0] <= width - 1 + _SLACK_PX)
+              & (src[..., 1] >= -_SLACK_PX) & (src[..., 1] <= height - 1 + _SLACK_PX))
+    valid = (exact & inside & torch.isfinite(src).all(-1)).reshape(1, 1, height, width).to(dtype)
+    return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6).to(dtype).reshape(1, height, width, 2), valid
 
 
 def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear", view=None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -20,7 +20,12 @@ each problem is one ValueError naming the file and the field:
   (:func:`~lensdist_torch.workflows.verify.verdict`); there is one only for a distortion class,
   and "not lowered" withholds the class;
 - ``opencv``: null or absent, or a ``camera_matrix`` [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] of
-  positive focal lengths with its principal point inside the frame.
+  positive focal lengths with its principal point inside the frame;
+- the homography model's lens, where it gave the answer (calibrate's ``method`` "planar"):
+  ``planar.coefficients``, one to ``MAX_LENS_TERMS`` finite numbers (the normalised radius's,
+  :mod:`~lensdist_torch.geometry.radial_lens`), and ``planar.centre``, (x, y) inside the frame.
+  Undistort applies that lens, not its eq. 4 approximation (``eq4_fit_error_px`` says how far
+  that one is: 12.7 px RMS on the GoPro HERO4's wide lens).
 
 Fields undistort ignores (Deltas, intervals, warnings ...) are not checked.
 """
@@ -36,13 +41,20 @@ from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, paper_frame_delta_avg
 from lensdist_torch.workflows.verify import COUNTS, VERDICTS, verdict
 
-__all__ = ["Calibration", "read_calibration"]
+__all__ = ["Calibration", "MAX_LENS_TERMS", "read_calibration"]
 
 _WHAT = "a calibration written by lensdist calibrate or lensdist analyze --json"
 
+#: The most radial terms a ``--from`` lens may have (the homography model fits up to 3).
+MAX_LENS_TERMS = 3
+
 
 class Calibration(NamedTuple):
-    """What a ``--from`` file gives: coefficients (None: no estimate), the frame, why not, OpenCV's focal."""
+    """What a ``--from`` file gives: coefficients (None: no estimate), the frame, why not, OpenCV's focal, the lens.
+
+    ``lens``: (coefficients, centre) of the radial lens that answered (the homography model's), or
+    None where eq. 4's ``k2``, ``k4`` are the answer.
+    """
 
     k2: float | None
     k4: float | None
@@ -50,6 +62,7 @@ class Calibration(NamedTuple):
     width: int
     reason: str
     focal: float | None
+    lens: tuple[list[float], list[float]] | None = None
 
 
 def _number(x: Any) -> bool:
@@ -154,6 +167,23 @@ def _focal(data: dict, size: tuple[int, int], src: Path) -> float | None:
     return float(m[0][0])
 
 
+def _lens(data: dict, size: tuple[int, int], src: Path) -> tuple[list[float], list[float]] | None:
+    """The homography model's lens where it answered (module docstring), else None."""
+    if data.get("method") != "planar" or data.get("k2_user") is None:
+        return None
+    block = data.get("planar")
+    a = block.get("coefficients") if isinstance(block, dict) else None
+    if not (isinstance(a, list) and 1 <= len(a) <= MAX_LENS_TERMS and all(map(_number, a))):
+        raise ValueError(f"{src}: field 'planar.coefficients' must be 1 to {MAX_LENS_TERMS} finite numbers where the "
+                         f"homography model answered ('method' \"planar\"), got {a!r:.60}")
+    c = block.get("centre")
+    if not (isinstance(c, list) and len(c) == 2 and all(map(_number, c)) and 0 <= c[0] <= size[1] - 1
+            and 0 <= c[1] <= size[0] - 1):
+        raise ValueError(f"{src}: field 'planar.centre' must be (x, y) inside the {size[0]} x {size[1]} frame, "
+                         f"got {c!r:.60}")
+    return [float(v) for v in a], [float(v) for v in c]
+
+
 def read_calibration(src: Path) -> Calibration:
     """The fields ``--from`` uses, each checked with those that could contradict them (module docstring)."""
     if not src.is_file():
@@ -189,4 +219,4 @@ def read_calibration(src: Path) -> Calibration:
     if label is not None:
         _check_class(label, k2, k4, _reference(data, size, src), src)
     _check_verification(data, label, src)
-    return Calibration(k2, k4, size[0], size[1], reason, _focal(data, size, src))
+    return Calibration(k2, k4, size[0], size[1], reason, _focal(data, size, src), _lens(data, size, src))

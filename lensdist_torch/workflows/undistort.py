@@ -15,6 +15,11 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
   coefficients whose radial stretch 1 + k2 r^2 + k4 r^4 exceeds ``MAX_STRETCH`` inside the frame
   (largest at the farthest corner unless k4 < 0): the ideal image would be that many times the
   frame (``--k2=1e-3`` at 320 x 424: 71 times), and the output a silent zoom on its centre.
+- **The lens.** Where the ``--from`` answer is the homography model's (``lensdist calibrate``'s
+  ``method`` "planar": up to three radial terms about its own distortion centre), that lens is
+  applied (:func:`~lensdist_torch.geometry.undistort.lens_undistortion_grid`), not eq. 4's
+  ``k2_user``, ``k4_user``, which only approximate it (``eq4_fit_error_px``); the same checks
+  (folding before the nearest edge, the stretch) and views hold for it.
 - **Names.** Frame ``NAME.EXT`` is written as ``NAME.png`` (a video's frames as
   ``frame_000000.png`` ...). Two inputs with one stem (``frame_01.png`` and ``frame_01.jpg``, or
   names that differ only in letter case) are refused: one would overwrite the other.
@@ -28,7 +33,8 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
   ``getOptimalNewCameraMatrix`` does (:func:`~lensdist_torch.geometry.undistort.optimal_view`):
   0 only valid pixels, 1 every source pixel kept, in between interpolated.
 - **The camera.** ``OUT/undistortion.json`` (written last, atomically) holds what was applied:
-  eq. 4's k2, k4 in the frames' pixels, alpha, the input and output sizes, the view, and the
+  eq. 4's k2, k4 in the frames' pixels (``lens`` and ``applied`` say when the homography model's lens
+  was applied instead: then OpenCV's camera is fitted to that lens, rational), alpha, the input and output sizes, the view, and the
   OpenCV equivalent: ``camera_matrix`` and ``dist_coeffs`` (the standard model fitted to eq. 4,
   :func:`~lensdist_torch.geometry.opencv_model.opencv_export`; the focal length of the
   ``--from`` calibration's, else the half diagonal) and ``new_camera_matrix``, the camera of the
@@ -53,8 +59,16 @@ import torch
 from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
-from lensdist_torch.geometry.opencv_model import opencv_export
-from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.opencv_model import opencv_camera_from_map, opencv_export
+from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points, monotone_radius
+from lensdist_torch.geometry.undistort import (
+    lens_optimal_view,
+    lens_undistortion_grid,
+    monotone_branch,
+    optimal_view,
+    undistortion_grid,
+)
 from lensdist_torch.workflows.calibrate import frames_of_one_size, list_frames
 from lensdist_torch.workflows.calibration_file import Calibration, read_calibration
 
@@ -141,13 +155,45 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration
     if k2 is not None or k4 is not None:
         raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
     src = Path(from_json)
-    k2, k4, hc, wc, reason, _ = read_calibration(src) if cal is None else cal
+    cal = read_calibration(src) if cal is None else cal
+    k2, k4, hc, wc, reason = cal.k2, cal.k4, cal.height, cal.width, cal.reason
     if k2 is None:
         raise ValueError(f"{src} holds no estimate: {' '.join(reason.split())}")
     s = size[1] / wc
     if abs(size[0] / hc - s) > 5e-3 * s:
         raise ValueError(f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling")
     return k2 / s**2, k4 / s**4
+
+
+def _lens_for(size: tuple[int, int], cal: Calibration | None) -> tuple[list[float], list[float]] | None:
+    """The ``--from`` answer's own radial lens for frames of ``size`` (None: eq. 4 is the answer).
+
+    Its coefficients are the normalised radius's (the same at any size); its centre scales with
+    the frame, pixel centres at integers: (c + 0.5) s - 0.5.
+    """
+    if cal is None or cal.lens is None:
+        return None
+    a, centre = cal.lens
+    s = size[1] / cal.width
+    return list(a), [(v + 0.5) * s - 0.5 for v in centre]
+
+
+def _check_lens(lens: tuple[list[float], list[float]], height: int, width: int, from_json) -> None:
+    """The checks of :func:`_check_fold` and :func:`_check_stretch` for the homography model's lens."""
+    a, (cx, cy) = torch.tensor(lens[0], dtype=torch.float64), lens[1]
+    big_r = half_diagonal(height, width)
+    edge = min(cx, cy, width - 1 - cx, height - 1 - cy) / big_r  # the centre to the nearest edge, normalised
+    top = monotone_radius(a)
+    what = f"the lens of {from_json} (planar.coefficients {[round(float(v), 4) for v in a]})"
+    if top <= edge:
+        raise ValueError(f"{what} folds (its radius stops increasing) {top * big_r:.1f} px from its centre, inside the "
+                         f"{height} x {width} frames: no lens does that")
+    far = max(math.hypot(x - cx, y - cy) for x in (0, width - 1) for y in (0, height - 1)) / big_r
+    r = torch.linspace(0.0, far, 1001, dtype=torch.float64)
+    stretch = float(lens_factor(r * r, a).max())
+    if stretch > MAX_STRETCH:
+        raise ValueError(f"{what} stretches the {height} x {width} frames {stretch:.3g}-fold, expected at most "
+                         f"{MAX_STRETCH:g}: no lens that it describes (a fisheye needs another model)")
 
 
 def _focal_for(size: tuple[int, int], cal: Calibration | None) -> float | None:
@@ -233,8 +279,8 @@ def undistort_path(
 ) -> dict:
     """Undistort every frame of a folder or video into ``out_dir`` (PNG), masks in ``out_dir/masks``.
 
-    A mask is 255 where the corrected pixel came from inside the frame on eq. 4's monotone branch,
-    0 elsewhere. What is refused, the names, the output size, ``undistortion.json`` and the bit
+    A mask is 255 where the corrected pixel came from inside the frame on the lens's monotone
+    branch (eq. 4's, or the homography model's lens where the ``from_json`` answer is its), 0 elsewhere. What is refused, the names, the output size, ``undistortion.json`` and the bit
     depth: the module docstring.
 
     Args:
@@ -251,7 +297,8 @@ def undistort_path(
             pixel kept), as OpenCV's ``getOptimalNewCameraMatrix``.
 
     Returns:
-        dict: frames, out_dir, k2, k4 (as applied), valid_fraction (mean of the masks), bits (the
+        dict: frames, out_dir, k2, k4 (as applied, or eq. 4's approximation of ``lens``), lens (the
+        homography model's coefficients and centre where applied, else None), valid_fraction (mean of the masks), bits (the
         sample depths written, e.g. [16]), alpha, camera (what ``undistortion.json`` holds) and
         camera_file (its path).
 
@@ -285,11 +332,18 @@ def undistort_path(
         if grid is None:
             size = tuple(img.shape[-2:])
             k2, k4 = _coefficients_for(size, k2, k4, from_json, cal)
-            _check_fold(k2, k4, *size, from_json)
-            _check_stretch(k2, k4, *size, from_json)
-            view = None if alpha is None else optimal_view(k2, k4, *size, float(alpha))
-            camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view)
-            grid, valid = (x.to(dev) for x in undistortion_grid(k2, k4, *size, view=view))
+            lens = _lens_for(size, cal)
+            if lens is None:
+                _check_fold(k2, k4, *size, from_json)
+                _check_stretch(k2, k4, *size, from_json)
+                view = None if alpha is None else optimal_view(k2, k4, *size, float(alpha))
+                grid, valid = undistortion_grid(k2, k4, *size, view=view)
+            else:
+                _check_lens(lens, *size, from_json)
+                view = None if alpha is None else lens_optimal_view(*lens, *size, float(alpha))
+                grid, valid = lens_undistortion_grid(*lens, *size, view=view)
+            camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view, lens)
+            grid, valid = grid.to(dev), valid.to(dev)
             (out / "masks").mkdir(parents=True, exist_ok=True)
         deep = _deep(files[i] if files is not None else None, img)
         corrected = (sample_at_pixels(img.to(dev), grid) * valid)[0].cpu()
@@ -300,18 +354,32 @@ def undistort_path(
         raise ValueError(f"path {path} holds no frames")
     camera["frames"], camera["valid_fraction"] = n, valid_sum / n
     atomic_write_text(out / CAMERA_FILE, json.dumps(camera, indent=2, allow_nan=False) + "\n")
-    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "valid_fraction": valid_sum / n, "bits": sorted(bits),
-            "alpha": alpha, "camera": camera, "camera_file": str(out / CAMERA_FILE)}
+    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "lens": camera["lens"], "valid_fraction": valid_sum / n,
+            "bits": sorted(bits), "alpha": alpha, "camera": camera, "camera_file": str(out / CAMERA_FILE)}
 
 
-def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, alpha, view) -> dict:
-    """What ``undistortion.json`` holds (module docstring): eq. 4, the view and OpenCV's cameras."""
+def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, alpha, view, lens=None) -> dict:
+    """What ``undistortion.json`` holds (module docstring): eq. 4 or the lens applied, the view and OpenCV's cameras.
+
+    With the homography model's ``lens`` (coefficients, centre): ``lens`` names it (what was
+    applied; ``k2``, ``k4`` are then its eq. 4 approximation, not applied), and OpenCV's camera is
+    fitted to its map about its centre, the rational model (8 coefficients: the 5 of the standard
+    one cannot follow a lens that strong, 12 px mean on the GoPro HERO4's).
+    """
     h, w = size
-    cv = opencv_export(k2, k4, h, w, focal=focal, model="standard")
+    if lens is None:
+        cv, model = opencv_export(k2, k4, h, w, focal=focal, model="standard"), "standard"
+    else:
+        a, centre = lens
+        fit = opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, focal=focal, model="rational",
+                                     step=max(1, round(math.sqrt(h * w / 20000))), centre=centre)
+        cv, model = {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items()}, "rational"
     sx, sy, tx, ty = (1.0, 1.0, 0.0, 0.0) if view is None else view
     (f, _, cx), (_, _, cy) = cv["camera_matrix"][0], cv["camera_matrix"][1]
     new = [[sx * f, 0.0, sx * cx + tx], [0.0, sy * f, sy * cy + ty], [0.0, 0.0, 1.0]]
-    return {"k2": k2, "k4": k4, "alpha": alpha, "input_size": [h, w], "output_size": [h, w],
+    return {"k2": k2, "k4": k4, "lens": None if lens is None else {"coefficients": lens[0], "centre": lens[1]},
+            "applied": "eq. 4" if lens is None else "the homography model's lens", "alpha": alpha,
+            "input_size": [h, w], "output_size": [h, w],
             "view": {"sx": sx, "sy": sy, "tx": tx, "ty": ty}, "camera_matrix": cv["camera_matrix"],
-            "dist_coeffs": cv["dist_coeffs"], "new_camera_matrix": new, "opencv_model": "standard",
+            "dist_coeffs": cv["dist_coeffs"], "new_camera_matrix": new, "opencv_model": model,
             "opencv_fit_error_mean_px": cv["fit_error_mean_px"], "opencv_fit_error_max_px": cv["fit_error_max_px"]}

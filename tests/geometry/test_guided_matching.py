@@ -10,7 +10,7 @@ from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import distort_points
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.planar_features import PlanarMatches, self_calibrate_planar
-from lensdist_torch.geometry.planar_model import lens_ideal_points
+from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 pytest.importorskip("pycolmap")
 from lensdist_torch.geometry.guided_matching import chain_views, guided_matches  # noqa: E402

@@ -9,7 +9,8 @@ from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, distort_points, undistort_points
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.planar_features import PlanarMatches, self_calibrate_planar
-from lensdist_torch.geometry.planar_model import _adjugate, lens_ideal_points, transfer_jacobians, transfer_residuals
+from lensdist_torch.geometry.planar_model import _adjugate, transfer_jacobians, transfer_residuals
+from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 pytest.importorskip("pycolmap")
 
