@@ -125,3 +125,11 @@ def test_a_lens_that_folds_inside_the_frame_is_refused(tmp_path):
     src.write_text(json.dumps(data))
     with pytest.raises(ValueError, match="folds"):
         undistort_path(folder, tmp_path / "out", from_json=src)
+
+
+def test_the_view_of_alpha_follows_the_lens(tmp_path):
+    folder, src, _ = _answer(tmp_path)  # alpha 0: valid pixels only; alpha 1: every source pixel kept
+    res = {a: undistort_path(folder, tmp_path / f"out{a}", from_json=src, alpha=a) for a in (0.0, 1.0)}
+    assert res[0.0]["valid_fraction"] > 0.995 and res[1.0]["valid_fraction"] < 0.98
+    # this barrel lens spreads the ideal frame beyond the frame: both views zoom out, the outer rectangle more
+    assert 1 > res[0.0]["camera"]["view"]["sx"] > res[1.0]["camera"]["view"]["sx"]
