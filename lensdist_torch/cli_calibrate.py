@@ -117,9 +117,13 @@ def _cmd_undistort(args: argparse.Namespace) -> int:
         return 0
     view = "the input's scale" if res["alpha"] is None else f"alpha {res['alpha']:g}"
     lens = res.get("lens")
-    applied = (f"k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}" if lens is None else
-               f"the homography model's lens: {len(lens['coefficients'])} radial terms about ({lens['centre'][0]:.1f}, "
-               f"{lens['centre'][1]:.1f})")
+    if lens is None:
+        applied = f"k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}"
+    elif lens["kind"] == "radial":
+        applied = (f"the homography model's lens: {len(lens['coefficients'])} radial terms about ({lens['centre'][0]:.1f}, "
+                   f"{lens['centre'][1]:.1f})")
+    else:
+        applied = f"the multi-view path's camera: {len(lens['dist_coeffs'])} OpenCV coefficients"
     k = res["camera"]["new_camera_matrix"]
     print(f"{res['frames']} frames undistorted ({applied}, {view}) into {res['out_dir']} "
           f"as {' and '.join(f'{b}-bit' for b in res['bits'])} PNG, masks in {Path(res['out_dir']) / 'masks'} "
@@ -137,9 +141,9 @@ missing). The frames must show one camera moving over a scene; every option is c
 any frame is read."""
 
 _UNDISTORT = """\
-Correct every frame of a folder or video with eq. 4 (with --from an answer of the homography
-model, `method` "planar", its own lens: up to 3 radial terms about its own centre, which eq. 4's
-k2_user, k4_user only approximate): FRAME.EXT becomes OUT/FRAME.png (16-bit PNG
+Correct every frame of a folder or video with eq. 4 (with --from an answer whose lens eq. 4's
+k2_user, k4_user only approximate, that lens: the homography model's, `method` "planar", or the
+multi-view path's OpenCV camera, "multiview"): FRAME.EXT becomes OUT/FRAME.png (16-bit PNG
 for 16-bit input, else 8-bit), its validity mask OUT/masks/FRAME.png (0 where the sample lies
 outside the frame or where eq. 4 folds over), and OUT/undistortion.json the coefficients used,
 the output size and the new camera matrix (OpenCV's). --alpha chooses the view as OpenCV's

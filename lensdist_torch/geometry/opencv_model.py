@@ -43,7 +43,7 @@ import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
-__all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_undistort_points",
+__all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_distort_full", "opencv_undistort_points",
            "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points"]
 
 MODELS = ("standard", "rational")
@@ -260,6 +260,22 @@ def _forward_full(x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch
     j = torch.stack([torch.stack([f + 2 * u * u * df + 2 * p1 * v + 6 * p2 * u, 2 * u * v * df + 2 * p1 * u + 2 * p2 * v], -1),
                      torch.stack([2 * u * v * df + 2 * p1 * u + 2 * p2 * v, f + 2 * v * v * df + 6 * p1 * v + 2 * p2 * u], -1)], -2)
     return xd, j
+
+
+def opencv_distort_full(x: torch.Tensor, dist_coeffs) -> torch.Tensor:
+    """OpenCV's forward model with its tangential terms: ideal normalised points (..., 2) -> distorted.
+
+    What ``cv2.initUndistortRectifyMap`` evaluates (4, 5 or 8 coefficients, OpenCV's order).
+
+    Example:
+        >>> d = torch.tensor([-0.4, 0, 0.01, 0, 0], dtype=torch.float64)  # p1 = 0.01 adds 2 p1 x y and p1 (r^2 + 2 y^2)
+        >>> [round(v, 6) for v in opencv_distort_full(torch.tensor([[0.5, 0.0]], dtype=torch.float64), d)[0].tolist()]
+        [0.45, 0.0025]
+    """
+    d = torch.as_tensor(dist_coeffs, dtype=x.dtype, device=x.device).reshape(-1)
+    if d.numel() not in (4, 5, 8):
+        raise ValueError(f"dist_coeffs must hold 4, 5 or 8 values (OpenCV's order), got {d.numel()}")
+    return _forward_full(x, d)[0]
 
 
 def opencv_ideal_points(

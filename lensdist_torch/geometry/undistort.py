@@ -48,10 +48,11 @@ from lensdist_torch.geometry.distortion import (
     undistort_points,
 )
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
+from lensdist_torch.geometry.opencv_model import opencv_distort_full, opencv_ideal_points, radial_monotone
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points, monotone_radius
 
-__all__ = ["monotone_branch", "optimal_view", "lens_optimal_view", "undistortion_grid", "lens_undistortion_grid",
-           "undistort_image", "Undistort"]
+__all__ = ["monotone_branch", "optimal_view", "lens_optimal_view", "opencv_optimal_view", "undistortion_grid",
+           "lens_undistortion_grid", "opencv_undistortion_grid", "undistort_image", "Undistort"]
 
 _SLACK_PX = 1e-3
 _ROUND_TRIP_PX = 1e-2
@@ -259,6 +260,63 @@ def lens_undistortion_grid(coefficients, centre, height: int, width: int, dtype:
               & (src[..., 1] >= -_SLACK_PX) & (src[..., 1] <= height - 1 + _SLACK_PX))
     valid = (exact & inside & torch.isfinite(src).all(-1)).reshape(1, 1, height, width).to(dtype)
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6).to(dtype).reshape(1, height, width, 2), valid
+
+
+def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int, dtype: torch.dtype = torch.float32,
+                             device=None, view=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`undistortion_grid` for an OpenCV camera (K, dist_coeffs: 4, 5 or 8 of them, tangential terms included).
+
+    Each ideal pixel q goes to K distort(K^-1 q) (OpenCV's forward model,
+    :func:`~lensdist_torch.geometry.opencv_model.opencv_distort_full`: what
+    ``cv2.initUndistortRectifyMap`` with ``newCameraMatrix`` = K computes); valid where the model's
+    radial part does not fold between the centre and q's radius
+    (:func:`~lensdist_torch.geometry.opencv_model.radial_monotone`) and the sample lies inside the frame.
+
+    Returns:
+        grid: (1, H, W, 2) pixel coordinates of each ideal pixel in the distorted image.
+        valid: (1, 1, H, W) of 0 and 1, ``dtype``.
+
+    Example:
+        >>> K = [[60.0, 0.0, 23.5], [0.0, 60.0, 15.5], [0.0, 0.0, 1.0]]
+        >>> grid, valid = opencv_undistortion_grid(K, [0.0] * 5, 32, 48, torch.float64)  # no distortion: every pixel itself
+        >>> bool((grid[0] - pixel_grid(32, 48, torch.float64)).abs().max() < 1e-12), float(valid.mean())
+        (True, 1.0)
+    """
+    if not (type(height) is int and type(width) is int and height > 0 and width > 0):
+        raise ValueError(f"height and width must be positive ints, got {height!r} and {width!r}")
+    view = _check_view(view)
+    k = torch.as_tensor(camera_matrix, dtype=torch.float64)
+    d = torch.as_tensor(dist_coeffs, dtype=torch.float64).reshape(-1)
+    ideal = pixel_grid(height, width, torch.float64, device)
+    if view is not None:
+        ideal = (ideal - ideal.new_tensor(view[2:])) / ideal.new_tensor(view[:2])
+    f, c = torch.stack([k[0, 0], k[1, 1]]).to(ideal.device), k[:2, 2].to(ideal.device)
+    x = (ideal - c) / f
+    src = opencv_distort_full(x, d.to(ideal.device)) * f + c
+    inside = ((src[..., 0] >= -_SLACK_PX) & (src[..., 0] <= width - 1 + _SLACK_PX)
+              & (src[..., 1] >= -_SLACK_PX) & (src[..., 1] <= height - 1 + _SLACK_PX))
+    ok = inside & torch.isfinite(src).all(-1) & radial_monotone((x * x).sum(-1), d.to(ideal.device))
+    valid = ok.reshape(1, 1, height, width).to(dtype)
+    return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6).to(dtype).reshape(1, height, width, 2), valid
+
+
+def opencv_optimal_view(camera_matrix, dist_coeffs, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
+    """:func:`optimal_view` for an OpenCV camera: the frame's edges at their converged ideal positions, where they invert.
+
+    Example:
+        >>> K = [[60.0, 0.0, 23.5], [0.0, 60.0, 15.5], [0.0, 0.0, 1.0]]
+        >>> [round(v, 9) + 0.0 for v in opencv_optimal_view(K, [0.0] * 5, 32, 48, 1.0)]  # no distortion: the frame itself
+        [1.0, 1.0, 0.0, 0.0]
+    """
+    k = torch.as_tensor(camera_matrix, dtype=torch.float64)
+    d = torch.as_tensor(dist_coeffs, dtype=torch.float64).reshape(-1)
+
+    def ideal(pts: torch.Tensor) -> torch.Tensor:
+        x, ok = opencv_ideal_points(pts, k, d)
+        return x[ok]
+
+    return _view(ideal, height, width, alpha, f"the OpenCV camera (dist_coeffs {[round(float(v), 4) for v in d]})",
+                 "its model")
 
 
 def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear", view=None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -21,11 +21,13 @@ each problem is one ValueError naming the file and the field:
   and "not lowered" withholds the class;
 - ``opencv``: null or absent, or a ``camera_matrix`` [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] of
   positive focal lengths with its principal point inside the frame;
-- the homography model's lens, where it gave the answer (calibrate's ``method`` "planar"):
-  ``planar.coefficients``, one to ``MAX_LENS_TERMS`` finite numbers (the normalised radius's,
-  :mod:`~lensdist_torch.geometry.radial_lens`), and ``planar.centre``, (x, y) inside the frame.
-  Undistort applies that lens, not its eq. 4 approximation (``eq4_fit_error_px`` says how far
-  that one is: 12.7 px RMS on the GoPro HERO4's wide lens).
+- the answer's own lens, where eq. 4 only approximates it (``eq4_fit_error_px`` says how far:
+  12.7 px RMS on the GoPro HERO4's wide lens). Where the homography model answered (calibrate's
+  ``method`` "planar"): ``planar.coefficients``, one to ``MAX_LENS_TERMS`` finite numbers (the
+  normalised radius's, :mod:`~lensdist_torch.geometry.radial_lens`), and ``planar.centre``, (x,
+  y) inside the frame. Where the multi-view path answered (``method`` "multiview"): its COLMAP
+  camera, ``opencv`` (5 coefficients) or ``opencv_rational`` (8), the one given, its camera
+  matrix as above and its coefficients finite. Undistort applies that lens.
 
 Fields undistort ignores (Deltas, intervals, warnings ...) are not checked.
 """
@@ -52,8 +54,9 @@ MAX_LENS_TERMS = 3
 class Calibration(NamedTuple):
     """What a ``--from`` file gives: coefficients (None: no estimate), the frame, why not, OpenCV's focal, the lens.
 
-    ``lens``: (coefficients, centre) of the radial lens that answered (the homography model's), or
-    None where eq. 4's ``k2``, ``k4`` are the answer.
+    ``lens``: the answer's own lens where eq. 4's ``k2``, ``k4`` only approximate it, else None:
+    {"kind": "radial", "coefficients", "centre"} (the homography model's) or {"kind": "opencv",
+    "camera_matrix", "dist_coeffs"} (the multi-view path's COLMAP camera).
     """
 
     k2: float | None
@@ -62,7 +65,7 @@ class Calibration(NamedTuple):
     width: int
     reason: str
     focal: float | None
-    lens: tuple[list[float], list[float]] | None = None
+    lens: dict | None = None
 
 
 def _number(x: Any) -> bool:
@@ -153,24 +156,37 @@ def _check_verification(data: dict, label, src: Path) -> None:
         raise ValueError(f"{src}: fields 'class' ({label!r}) and 'verification' contradict each other: {why}")
 
 
-def _focal(data: dict, size: tuple[int, int], src: Path) -> float | None:
-    cv = data.get("opencv")
-    if cv is None:
-        return None
+def _camera_matrix(cv: Any, size: tuple[int, int], src: Path, name: str = "opencv") -> list:
+    """``name``'s camera matrix, checked (module docstring)."""
     m = cv.get("camera_matrix") if isinstance(cv, dict) else None
     ok = (isinstance(m, list) and len(m) == 3 and all(isinstance(r, list) and len(r) == 3 and all(map(_number, r)) for r in m)
           and m[0][0] > 0 and m[1][1] > 0 and m[0][1] == m[1][0] == m[2][0] == m[2][1] == 0 and m[2][2] == 1
           and 0 <= m[0][2] <= size[1] - 1 and 0 <= m[1][2] <= size[0] - 1)
     if not ok:
-        raise ValueError(f"{src}: field 'opencv.camera_matrix' must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, "
+        raise ValueError(f"{src}: field '{name}.camera_matrix' must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, "
                          f"fy > 0 and (cx, cy) inside the {size[0]} x {size[1]} frame, got {m!r:.80}")
-    return float(m[0][0])
+    return m
 
 
-def _lens(data: dict, size: tuple[int, int], src: Path) -> tuple[list[float], list[float]] | None:
-    """The homography model's lens where it answered (module docstring), else None."""
-    if data.get("method") != "planar" or data.get("k2_user") is None:
+def _focal(data: dict, size: tuple[int, int], src: Path) -> float | None:
+    cv = data.get("opencv")
+    return None if cv is None else float(_camera_matrix(cv, size, src)[0][0])
+
+
+def _lens(data: dict, size: tuple[int, int], src: Path) -> dict | None:
+    """The answer's own lens where eq. 4 approximates it (module docstring), else None."""
+    method = data.get("method")
+    if method not in ("planar", "multiview") or data.get("k2_user") is None:
         return None
+    if method == "multiview":
+        name = "opencv" if data.get("opencv") is not None else "opencv_rational"
+        cam = data.get(name)
+        d = cam.get("dist_coeffs") if isinstance(cam, dict) else None
+        if not (isinstance(d, list) and len(d) in (4, 5, 8) and all(map(_number, d))):
+            raise ValueError(f"{src}: field '{name}.dist_coeffs' must be 4, 5 or 8 finite numbers (OpenCV's order) where "
+                             f"the multi-view path answered ('method' \"multiview\"), got {d!r:.60}")
+        k = _camera_matrix(cam, size, src, name)
+        return {"kind": "opencv", "camera_matrix": [list(map(float, row)) for row in k], "dist_coeffs": [float(v) for v in d]}
     block = data.get("planar")
     a = block.get("coefficients") if isinstance(block, dict) else None
     if not (isinstance(a, list) and 1 <= len(a) <= MAX_LENS_TERMS and all(map(_number, a))):
@@ -181,7 +197,7 @@ def _lens(data: dict, size: tuple[int, int], src: Path) -> tuple[list[float], li
             and 0 <= c[1] <= size[0] - 1):
         raise ValueError(f"{src}: field 'planar.centre' must be (x, y) inside the {size[0]} x {size[1]} frame, "
                          f"got {c!r:.60}")
-    return [float(v) for v in a], [float(v) for v in c]
+    return {"kind": "radial", "coefficients": [float(v) for v in a], "centre": [float(v) for v in c]}
 
 
 def read_calibration(src: Path) -> Calibration:

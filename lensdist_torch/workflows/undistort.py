@@ -15,11 +15,13 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
   coefficients whose radial stretch 1 + k2 r^2 + k4 r^4 exceeds ``MAX_STRETCH`` inside the frame
   (largest at the farthest corner unless k4 < 0): the ideal image would be that many times the
   frame (``--k2=1e-3`` at 320 x 424: 71 times), and the output a silent zoom on its centre.
-- **The lens.** Where the ``--from`` answer is the homography model's (``lensdist calibrate``'s
-  ``method`` "planar": up to three radial terms about its own distortion centre), that lens is
-  applied (:func:`~lensdist_torch.geometry.undistort.lens_undistortion_grid`), not eq. 4's
+- **The lens.** Where the ``--from`` answer's lens is not eq. 4 (``lensdist calibrate``'s
+  ``method`` "planar": the homography model's, up to three radial terms about its own
+  distortion centre; "multiview": COLMAP's OpenCV camera), that lens is applied
+  (:func:`~lensdist_torch.geometry.undistort.lens_undistortion_grid`,
+  :func:`~lensdist_torch.geometry.undistort.opencv_undistortion_grid`), not eq. 4's
   ``k2_user``, ``k4_user``, which only approximate it (``eq4_fit_error_px``); the same checks
-  (folding before the nearest edge, the stretch) and views hold for it.
+  (folding before the nearest edge, the stretch at the corners) and views hold for it.
 - **Names.** Frame ``NAME.EXT`` is written as ``NAME.png`` (a video's frames as
   ``frame_000000.png`` ...). Two inputs with one stem (``frame_01.png`` and ``frame_01.jpg``, or
   names that differ only in letter case) are refused: one would overwrite the other.
@@ -60,12 +62,19 @@ from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.opencv_model import opencv_camera_from_map, opencv_export
-from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points, monotone_radius
+from lensdist_torch.geometry.opencv_model import (
+    opencv_camera_from_map,
+    opencv_export,
+    opencv_ideal_points,
+    radial_monotone,
+)
+from lensdist_torch.geometry.radial_lens import lens_ideal_points, monotone_radius
 from lensdist_torch.geometry.undistort import (
     lens_optimal_view,
     lens_undistortion_grid,
     monotone_branch,
+    opencv_optimal_view,
+    opencv_undistortion_grid,
     optimal_view,
     undistortion_grid,
 )
@@ -165,34 +174,50 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration
     return k2 / s**2, k4 / s**4
 
 
-def _lens_for(size: tuple[int, int], cal: Calibration | None) -> tuple[list[float], list[float]] | None:
-    """The ``--from`` answer's own radial lens for frames of ``size`` (None: eq. 4 is the answer).
+def _lens_for(size: tuple[int, int], cal: Calibration | None) -> dict | None:
+    """The ``--from`` answer's own lens for frames of ``size`` (None: eq. 4 is the answer).
 
-    Its coefficients are the normalised radius's (the same at any size); its centre scales with
-    the frame, pixel centres at integers: (c + 0.5) s - 0.5.
+    A radial lens's coefficients are the normalised radius's (the same at any size), an OpenCV
+    camera's coefficients the normalised point's; a centre, principal point and focal length scale
+    with the frame, pixel centres at integers: (c + 0.5) s - 0.5.
     """
     if cal is None or cal.lens is None:
         return None
-    a, centre = cal.lens
     s = size[1] / cal.width
-    return list(a), [(v + 0.5) * s - 0.5 for v in centre]
+    if cal.lens["kind"] == "radial":
+        return {**cal.lens, "centre": [(v + 0.5) * s - 0.5 for v in cal.lens["centre"]]}
+    (fx, _, cx), (_, fy, cy), _ = cal.lens["camera_matrix"]
+    k = [[fx * s, 0.0, (cx + 0.5) * s - 0.5], [0.0, fy * s, (cy + 0.5) * s - 0.5], [0.0, 0.0, 1.0]]
+    return {**cal.lens, "camera_matrix": k}
 
 
-def _check_lens(lens: tuple[list[float], list[float]], height: int, width: int, from_json) -> None:
-    """The checks of :func:`_check_fold` and :func:`_check_stretch` for the homography model's lens."""
-    a, (cx, cy) = torch.tensor(lens[0], dtype=torch.float64), lens[1]
+def _check_lens(lens: dict, height: int, width: int, from_json) -> None:
+    """The checks of :func:`_check_fold` and :func:`_check_stretch` for the answer's own lens."""
     big_r = half_diagonal(height, width)
-    edge = min(cx, cy, width - 1 - cx, height - 1 - cy) / big_r  # the centre to the nearest edge, normalised
-    top = monotone_radius(a)
-    what = f"the lens of {from_json} (planar.coefficients {[round(float(v), 4) for v in a]})"
+    if lens["kind"] == "radial":
+        a, (cx, cy) = torch.tensor(lens["coefficients"], dtype=torch.float64), lens["centre"]
+        what = f"the lens of {from_json} (planar.coefficients {[round(float(v), 4) for v in a]})"
+        top = monotone_radius(a) * big_r  # px from the centre where the radius stops increasing
+    else:
+        k, d = torch.tensor(lens["camera_matrix"], dtype=torch.float64), torch.tensor(lens["dist_coeffs"], dtype=torch.float64)
+        (cx, cy), f = k[:2, 2].tolist(), float(k[0, 0] + k[1, 1]) / 2
+        what = f"the camera of {from_json} (dist_coeffs {[round(float(v), 4) for v in d]})"
+        r = torch.linspace(0.0, 2 * big_r / f, 2001, dtype=torch.float64)  # ideal radii, normalised by f
+        folds = (~radial_monotone(r * r, d)).nonzero()
+        top = math.inf if not len(folds) else float(r[int(folds[0, 0])]) * f
+    edge = min(cx, cy, width - 1 - cx, height - 1 - cy)
     if top <= edge:
-        raise ValueError(f"{what} folds (its radius stops increasing) {top * big_r:.1f} px from its centre, inside the "
+        raise ValueError(f"{what} folds (its radius stops increasing) {top:.1f} px from its centre, inside the "
                          f"{height} x {width} frames: no lens does that")
-    far = max(math.hypot(x - cx, y - cy) for x in (0, width - 1) for y in (0, height - 1)) / big_r
-    r = torch.linspace(0.0, far, 1001, dtype=torch.float64)
-    stretch = float(lens_factor(r * r, a).max())
+    corners = torch.tensor([[x, y] for x in (0.0, width - 1.0) for y in (0.0, height - 1.0)], dtype=torch.float64)
+    if lens["kind"] == "radial":
+        ideal, ok = lens_ideal_points(corners, a, height, width, lens["centre"]), torch.ones(4, dtype=torch.bool)
+    else:
+        ideal, ok = opencv_ideal_points(corners, k, d)
+    c = torch.tensor([cx, cy], dtype=torch.float64)
+    stretch = float(((ideal - c).norm(dim=-1) / (corners - c).norm(dim=-1))[ok].max()) if bool(ok.any()) else 1.0
     if stretch > MAX_STRETCH:
-        raise ValueError(f"{what} stretches the {height} x {width} frames {stretch:.3g}-fold, expected at most "
+        raise ValueError(f"{what} stretches the {height} x {width} frames {stretch:.3g}-fold at a corner, expected at most "
                          f"{MAX_STRETCH:g}: no lens that it describes (a fisheye needs another model)")
 
 
@@ -280,8 +305,8 @@ def undistort_path(
     """Undistort every frame of a folder or video into ``out_dir`` (PNG), masks in ``out_dir/masks``.
 
     A mask is 255 where the corrected pixel came from inside the frame on the lens's monotone
-    branch (eq. 4's, or the homography model's lens where the ``from_json`` answer is its), 0 elsewhere. What is refused, the names, the output size, ``undistortion.json`` and the bit
-    depth: the module docstring.
+    branch (eq. 4's, or the ``from_json`` answer's own lens), 0 elsewhere. What is refused, the
+    names, the output size, ``undistortion.json`` and the bit depth: the module docstring.
 
     Args:
         path: a folder of images or a video.
@@ -298,7 +323,7 @@ def undistort_path(
 
     Returns:
         dict: frames, out_dir, k2, k4 (as applied, or eq. 4's approximation of ``lens``), lens (the
-        homography model's coefficients and centre where applied, else None), valid_fraction (mean of the masks), bits (the
+        answer's own lens where applied, its ``kind`` "radial" or "opencv", else None), valid_fraction (mean of the masks), bits (the
         sample depths written, e.g. [16]), alpha, camera (what ``undistortion.json`` holds) and
         camera_file (its path).
 
@@ -340,8 +365,12 @@ def undistort_path(
                 grid, valid = undistortion_grid(k2, k4, *size, view=view)
             else:
                 _check_lens(lens, *size, from_json)
-                view = None if alpha is None else lens_optimal_view(*lens, *size, float(alpha))
-                grid, valid = lens_undistortion_grid(*lens, *size, view=view)
+                args = (lens["coefficients"], lens["centre"]) if lens["kind"] == "radial" else (lens["camera_matrix"],
+                                                                                             lens["dist_coeffs"])
+                views, grids = ((lens_optimal_view, lens_undistortion_grid) if lens["kind"] == "radial" else
+                                (opencv_optimal_view, opencv_undistortion_grid))
+                view = None if alpha is None else views(*args, *size, float(alpha))
+                grid, valid = grids(*args, *size, view=view)
             camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view, lens)
             grid, valid = grid.to(dev), valid.to(dev)
             (out / "masks").mkdir(parents=True, exist_ok=True)
@@ -361,24 +390,30 @@ def undistort_path(
 def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, alpha, view, lens=None) -> dict:
     """What ``undistortion.json`` holds (module docstring): eq. 4 or the lens applied, the view and OpenCV's cameras.
 
-    With the homography model's ``lens`` (coefficients, centre): ``lens`` names it (what was
-    applied; ``k2``, ``k4`` are then its eq. 4 approximation, not applied), and OpenCV's camera is
-    fitted to its map about its centre, the rational model (8 coefficients: the 5 of the standard
-    one cannot follow a lens that strong, 12 px mean on the GoPro HERO4's).
+    With the answer's own ``lens`` (:func:`_lens_for`): ``lens`` and ``applied`` name it (``k2``,
+    ``k4`` are then its eq. 4 approximation, not applied); OpenCV's camera is the multi-view
+    path's own, or fitted to the homography model's map about its centre, the rational model (8
+    coefficients: the 5 of the standard one cannot follow a lens that strong, 12 px mean on the
+    GoPro HERO4's).
     """
     h, w = size
     if lens is None:
         cv, model = opencv_export(k2, k4, h, w, focal=focal, model="standard"), "standard"
-    else:
-        a, centre = lens
+    elif lens["kind"] == "radial":
+        a, centre = lens["coefficients"], lens["centre"]
         fit = opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, focal=focal, model="rational",
                                      step=max(1, round(math.sqrt(h * w / 20000))), centre=centre)
         cv, model = {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items()}, "rational"
+    else:  # the camera itself: exact
+        cv = {"camera_matrix": lens["camera_matrix"], "dist_coeffs": lens["dist_coeffs"], "fit_error_mean_px": 0.0,
+              "fit_error_max_px": 0.0}
+        model = "rational" if len(lens["dist_coeffs"]) == 8 else "standard"
     sx, sy, tx, ty = (1.0, 1.0, 0.0, 0.0) if view is None else view
     (f, _, cx), (_, _, cy) = cv["camera_matrix"][0], cv["camera_matrix"][1]
     new = [[sx * f, 0.0, sx * cx + tx], [0.0, sy * f, sy * cy + ty], [0.0, 0.0, 1.0]]
-    return {"k2": k2, "k4": k4, "lens": None if lens is None else {"coefficients": lens[0], "centre": lens[1]},
-            "applied": "eq. 4" if lens is None else "the homography model's lens", "alpha": alpha,
+    applied = ("eq. 4" if lens is None else "the homography model's lens" if lens["kind"] == "radial" else
+               "the multi-view path's camera")
+    return {"k2": k2, "k4": k4, "lens": lens, "applied": applied, "alpha": alpha,
             "input_size": [h, w], "output_size": [h, w],
             "view": {"sx": sx, "sy": sy, "tx": tx, "ty": ty}, "camera_matrix": cv["camera_matrix"],
             "dist_coeffs": cv["dist_coeffs"], "new_camera_matrix": new, "opencv_model": model,

@@ -1,4 +1,4 @@
-"""``lensdist undistort --from`` applies the homography model's own lens where it answered, not eq. 4's fit.
+"""``lensdist undistort --from`` applies the answer's own lens, not eq. 4's fit of it.
 
 A scene is distorted through a radial lens of three terms about a centre off the frame's (eq. 4's
 two terms about the frame centre follow it to about a pixel), written as frames, and given with a
@@ -25,8 +25,9 @@ from lensdist_torch.geometry.distortion import (
     sample_at_pixels,
 )
 from lensdist_torch.geometry.frame import pixel_grid
+from lensdist_torch.geometry.opencv_model import opencv_ideal_points
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
-from lensdist_torch.geometry.undistort import lens_undistortion_grid
+from lensdist_torch.geometry.undistort import lens_undistortion_grid, opencv_undistortion_grid
 from lensdist_torch.workflows.undistort import encode_png, undistort_path
 
 H, W = 96, 128
@@ -73,7 +74,8 @@ def test_the_lens_inverse_round_trips_and_matches_eq4_as_its_special_case():
 def test_undistort_from_a_planar_answer_applies_its_lens(tmp_path):
     folder, src, scene = _answer(tmp_path)
     res = undistort_path(folder, tmp_path / "out", from_json=src)
-    assert res["lens"] == {"coefficients": LENS[0], "centre": LENS[1]} and res["camera"]["applied"] == "the homography model's lens"
+    assert res["lens"] == {"kind": "radial", "coefficients": LENS[0], "centre": LENS[1]}
+    assert res["camera"]["applied"] == "the homography model's lens"
     saved = json.loads((tmp_path / "out" / "undistortion.json").read_text())
     assert saved["lens"]["centre"] == LENS[1] and saved["opencv_model"] == "rational"
     from lensdist_torch.core import load_image
@@ -133,3 +135,54 @@ def test_the_view_of_alpha_follows_the_lens(tmp_path):
     assert res[0.0]["valid_fraction"] > 0.995 and res[1.0]["valid_fraction"] < 0.98
     # this barrel lens spreads the ideal frame beyond the frame: both views zoom out, the outer rectangle more
     assert 1 > res[0.0]["camera"]["view"]["sx"] > res[1.0]["camera"]["view"]["sx"]
+
+
+# ------------------------------------------------------------------ the multi-view path's OpenCV camera
+CAM = ([[90.0, 0.0, 70.0], [0.0, 92.0, 41.0], [0.0, 0.0, 1.0]], [-0.3, 0.1, 3e-3, -4e-3, -0.01])  # off-centre, tangential
+
+
+@pytest.mark.parametrize("dist", [CAM[1], CAM[1] + [0.05, 0.01, 0.0]])
+def test_the_opencv_grid_is_cv2s_initundistortrectifymap(dist):
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+
+    grid, valid = opencv_undistortion_grid(CAM[0], dist, H, W, torch.float64)
+    mx, my = cv2.initUndistortRectifyMap(np.array(CAM[0]), np.array(dist), None, np.array(CAM[0]), (W, H), cv2.CV_32FC1)
+    theirs = torch.from_numpy(np.stack([mx, my], -1)).double()
+    ok = valid[0, 0] > 0
+    assert float(ok.double().mean()) > 0.9 and float((grid[0] - theirs).abs()[ok].max()) < 1e-3
+
+
+def test_undistort_from_a_multiview_answer_applies_its_camera(tmp_path):
+    scene = _scene()
+    k, d = torch.tensor(CAM[0], dtype=torch.float64), torch.tensor(CAM[1], dtype=torch.float64)
+    p = pixel_grid(H, W, torch.float64).reshape(-1, 2)
+    ideal, ok = opencv_ideal_points(p, k, d)
+    distorted = sample_at_pixels(scene.double(), ideal.reshape(1, H, W, 2)).float()
+    k2, k4, _ = fit_eq4(p[ok], ideal[ok], H, W)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    (folder / "a.png").write_bytes(encode_png((distorted[0].clamp(0, 1) * 255).round().to(torch.uint8)))
+    cfg = LensdistConfig()
+    dc = paper_frame_delta_avg(k2, k4, (H, W), cfg)
+    label = next(c for c in CLASS_LABELS if class_bounds(c, "delta_avg", cfg)[0] <= dc < class_bounds(c, "delta_avg", cfg)[1])
+    answer = {"k2_user": k2, "k4_user": k4, "image_size": [H, W], "class": label, "reason": None, "method": "multiview",
+              "opencv": {"camera_matrix": CAM[0], "dist_coeffs": CAM[1]}, "opencv_rational": None}
+    src = tmp_path / "calibration.json"
+    src.write_text(json.dumps(answer))
+    res = undistort_path(folder, tmp_path / "out", from_json=src)
+    assert res["lens"]["kind"] == "opencv" and res["camera"]["dist_coeffs"] == CAM[1]
+    from lensdist_torch.core import load_image
+
+    inner = torch.zeros(1, H, W, dtype=torch.bool)
+    inner[..., 8:-8, 8:-8] = True
+    errs = {}
+    for name, kwargs in (("camera", {"from_json": src}), ("eq4", {"k2": k2, "k4": k4})):
+        undistort_path(folder, tmp_path / name, **kwargs)
+        out, mask = load_image(tmp_path / name / "a.png"), load_image(tmp_path / name / "masks" / "a.png") > 0.5
+        errs[name] = float((out - scene[0]).abs()[mask & inner].mean())
+    assert errs["camera"] < 0.005 and errs["eq4"] > 2 * errs["camera"], errs
+    answer["opencv"]["dist_coeffs"] = [0.1, 0.2, 0.3]
+    src.write_text(json.dumps(answer))
+    with pytest.raises(ValueError, match=r"opencv\.dist_coeffs"):
+        undistort_path(folder, tmp_path / "bad", from_json=src)
