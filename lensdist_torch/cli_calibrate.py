@@ -67,11 +67,22 @@ def _print_calibration(res: dict) -> None:
     if res.get("eq4_fit_error_px") is not None:
         print(f"Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where the lens model inverts; eq. 4 "
               f"follows it to {res['eq4_fit_error_px']:.2f} px RMS")
-    cv = res["opencv"] or res["opencv_rational"]
-    k = cv["camera_matrix"]
-    print(f"{tag}OpenCV: fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, dist_coeffs = "
-          f"[{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error {cv['fit_error_mean_px']:.3f} px "
-          f"mean, {cv['fit_error_max_px']:.3f} px max)")
+    from lensdist_torch.geometry.opencv_model import FOLLOWS_PX
+
+    standard, rational = res["opencv"], res.get("opencv_rational")
+    shown = [standard or rational]
+    if standard and rational and max(standard["fit_error_mean_px"], standard.get("forward_error_mean_px", 0.0)) > FOLLOWS_PX:
+        shown.append(rational)  # the 5 coefficients cannot follow this lens: the 8 rational ones beside them
+    for cv in shown:
+        k, n = cv["camera_matrix"], len(cv["dist_coeffs"])
+        forward = cv.get("forward_error_mean_px")
+        print(f"{tag}OpenCV ({n} coefficients): fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, "
+              f"dist_coeffs = [{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error "
+              f"{cv['fit_error_mean_px']:.3f} px mean, {cv['fit_error_max_px']:.3f} px max"
+              + ("" if forward is None else f"; cv2.undistort's map {forward:.3f} px mean") + ")")
+    if len(shown) == 2:
+        print(f"OpenCV's 5 coefficients do not follow this lens (over {FOLLOWS_PX:g} px mean): use the 8 rational ones "
+              "(cv2.CALIB_RATIONAL_MODEL's order); `lensdist undistort --from` applies the answer's own lens")
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:

@@ -43,10 +43,15 @@ import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
-__all__ = ["OpenCVCamera", "MODELS", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_distort_full", "opencv_undistort_points",
+__all__ = ["OpenCVCamera", "MODELS", "FOLLOWS_PX", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_distort_full", "opencv_undistort_points",
            "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points"]
 
 MODELS = ("standard", "rational")
+
+#: An export whose mean error against the lens it was fitted to exceeds this (px) does not follow
+#: it: ``lensdist calibrate`` then names the other export (the 8 rational coefficients follow the
+#: GoPro HERO4's 103 px lens to 0.003 px in ``cv2.undistort``, the standard 5 to 6.7 px).
+FOLLOWS_PX = 1.0
 
 
 class OpenCVCamera(NamedTuple):

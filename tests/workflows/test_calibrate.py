@@ -305,3 +305,27 @@ def test_the_homography_models_line_says_what_guided_matching_did(capsys):
     line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
     assert line.endswith("; on guided matches (6530 in 144 of 197 verified pairs; the first fit on the verified matches: "
                          "40 pairs, Delta_avg 134.91 px)")
+
+
+@pytest.mark.parametrize("standard_error,lines", [(12.38, 2), (0.05, 1)])
+def test_the_rational_export_is_named_where_the_standard_one_cannot_follow(capsys, standard_error, lines):
+    from lensdist_torch.cli_calibrate import _print_calibration
+    from lensdist_torch.geometry.opencv_model import opencv_camera_from_map
+    from lensdist_torch.geometry.radial_lens import lens_ideal_points
+
+    # the GoPro answer's lens (3 terms about its own centre): OpenCV's exports fitted to it as calibrate does
+    a, centre = [0.4207, 0.8161, -0.2777], [636.7, 494.9]
+    cams = {m: opencv_camera_from_map(lambda p: lens_ideal_points(p, a, 960, 1280, centre), 960, 1280, model=m, step=16,
+                                      centre=centre) for m in ("standard", "rational")}
+    assert cams["standard"].forward_error_mean_px > 1 > 0.1 > cams["rational"].forward_error_mean_px
+    export = {m: {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in c._asdict().items()} for m, c in cams.items()}
+    export["standard"]["fit_error_mean_px"] = standard_error  # the rule reads the larger of the two errors
+    export["standard"]["forward_error_mean_px"] = min(standard_error, export["standard"]["forward_error_mean_px"])
+    res = {"image_size": [960, 1280], "delta_avg_user_interval": [120.0, 160.0], "delta_max_user_interval": [900.0, 950.0],
+           "frames": 37, "pairs_used": 3, "pairs_rejected": 0, "method": "planar", "class": "4", "reason": None,
+           "k2_user": 7.47e-07, "k4_user": 1.48e-12, "delta_avg_user_px": 143.8, "delta_max_user_px": 934.7,
+           "opencv": export["standard"], "opencv_rational": export["rational"]}
+    _print_calibration(res)
+    out = capsys.readouterr().out.splitlines()
+    assert sum(t.startswith("OpenCV (") for t in out) == lines
+    assert any("do not follow this lens" in t for t in out) == (lines == 2)
