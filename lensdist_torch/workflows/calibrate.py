@@ -39,6 +39,7 @@ from lensdist_torch.geometry.calibration import (
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.sequence_fits import unregistered
+from lensdist_torch.workflows.answer_lens import answer_lens, scale_lens
 from lensdist_torch.workflows.multiview import MIN_FRAMES, combine, multiview_path
 from lensdist_torch.workflows.verify import verdict, verify_undistortion
 
@@ -230,8 +231,9 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
     if len(pairs) == 0:  # the direct path chose none (the multi-view path answered): far-apart frames
         n = len(frames)
         pairs = torch.stack([torch.arange(n - n // 2), torch.arange(n // 2, n)], 1)
-    s = res["scale"]
-    check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, st, cfg.verify_pairs)
+    s = res["scale"]  # user px per analysis px; the answer's own lens where eq. 4 only approximates it
+    check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, st, cfg.verify_pairs,
+                                lens=scale_lens(answer_lens(res), 1 / s))
     before, after = check["error_share_before"], check["error_share_after"]
     check["verdict"] = verdict(check)
     shares = f"{check['registered_before']} pairs registered before, {check['registered_after']} after"

@@ -41,6 +41,7 @@ from typing import Any, NamedTuple
 
 from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, paper_frame_delta_avg
+from lensdist_torch.workflows.answer_lens import answer_lens
 from lensdist_torch.workflows.verify import COUNTS, VERDICTS, verdict
 
 __all__ = ["Calibration", "MAX_LENS_TERMS", "read_calibration"]
@@ -185,8 +186,8 @@ def _lens(data: dict, size: tuple[int, int], src: Path) -> dict | None:
         if not (isinstance(d, list) and len(d) in (4, 5, 8) and all(map(_number, d))):
             raise ValueError(f"{src}: field '{name}.dist_coeffs' must be 4, 5 or 8 finite numbers (OpenCV's order) where "
                              f"the multi-view path answered ('method' \"multiview\"), got {d!r:.60}")
-        k = _camera_matrix(cam, size, src, name)
-        return {"kind": "opencv", "camera_matrix": [list(map(float, row)) for row in k], "dist_coeffs": [float(v) for v in d]}
+        _camera_matrix(cam, size, src, name)
+        return answer_lens(data)
     block = data.get("planar")
     a = block.get("coefficients") if isinstance(block, dict) else None
     if not (isinstance(a, list) and 1 <= len(a) <= MAX_LENS_TERMS and all(map(_number, a))):
@@ -197,7 +198,7 @@ def _lens(data: dict, size: tuple[int, int], src: Path) -> dict | None:
             and 0 <= c[1] <= size[0] - 1):
         raise ValueError(f"{src}: field 'planar.centre' must be (x, y) inside the {size[0]} x {size[1]} frame, "
                          f"got {c!r:.60}")
-    return {"kind": "radial", "coefficients": [float(v) for v in a], "centre": [float(v) for v in c]}
+    return answer_lens(data)
 
 
 def read_calibration(src: Path) -> Calibration:

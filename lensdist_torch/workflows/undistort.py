@@ -69,15 +69,8 @@ from lensdist_torch.geometry.opencv_model import (
     radial_monotone,
 )
 from lensdist_torch.geometry.radial_lens import lens_ideal_points, monotone_radius
-from lensdist_torch.geometry.undistort import (
-    lens_optimal_view,
-    lens_undistortion_grid,
-    monotone_branch,
-    opencv_optimal_view,
-    opencv_undistortion_grid,
-    optimal_view,
-    undistortion_grid,
-)
+from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
+from lensdist_torch.workflows.answer_lens import lens_grid, lens_view, scale_lens
 from lensdist_torch.workflows.calibrate import frames_of_one_size, list_frames
 from lensdist_torch.workflows.calibration_file import Calibration, read_calibration
 
@@ -175,20 +168,8 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration
 
 
 def _lens_for(size: tuple[int, int], cal: Calibration | None) -> dict | None:
-    """The ``--from`` answer's own lens for frames of ``size`` (None: eq. 4 is the answer).
-
-    A radial lens's coefficients are the normalised radius's (the same at any size), an OpenCV
-    camera's coefficients the normalised point's; a centre, principal point and focal length scale
-    with the frame, pixel centres at integers: (c + 0.5) s - 0.5.
-    """
-    if cal is None or cal.lens is None:
-        return None
-    s = size[1] / cal.width
-    if cal.lens["kind"] == "radial":
-        return {**cal.lens, "centre": [(v + 0.5) * s - 0.5 for v in cal.lens["centre"]]}
-    (fx, _, cx), (_, fy, cy), _ = cal.lens["camera_matrix"]
-    k = [[fx * s, 0.0, (cx + 0.5) * s - 0.5], [0.0, fy * s, (cy + 0.5) * s - 0.5], [0.0, 0.0, 1.0]]
-    return {**cal.lens, "camera_matrix": k}
+    """The ``--from`` answer's own lens for frames of ``size`` (None: eq. 4 is the answer)."""
+    return None if cal is None or cal.lens is None else scale_lens(cal.lens, size[1] / cal.width)
 
 
 def _check_lens(lens: dict, height: int, width: int, from_json) -> None:
@@ -365,12 +346,8 @@ def undistort_path(
                 grid, valid = undistortion_grid(k2, k4, *size, view=view)
             else:
                 _check_lens(lens, *size, from_json)
-                args = (lens["coefficients"], lens["centre"]) if lens["kind"] == "radial" else (lens["camera_matrix"],
-                                                                                             lens["dist_coeffs"])
-                views, grids = ((lens_optimal_view, lens_undistortion_grid) if lens["kind"] == "radial" else
-                                (opencv_optimal_view, opencv_undistortion_grid))
-                view = None if alpha is None else views(*args, *size, float(alpha))
-                grid, valid = grids(*args, *size, view=view)
+                view = None if alpha is None else lens_view(lens, *size, float(alpha))
+                grid, valid = lens_grid(lens, *size, view=view)
             camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view, lens)
             grid, valid = grid.to(dev), valid.to(dev)
             (out / "masks").mkdir(parents=True, exist_ok=True)

@@ -18,10 +18,12 @@ import torch.nn.functional as F
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.distortion import sample_at_pixels
 from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.undistort import undistort_image
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
+from lensdist_torch.workflows.answer_lens import lens_grid
 
 __all__ = ["COUNTS", "VERDICTS", "error_blocks", "verdict", "verify_undistortion"]
 
@@ -84,8 +86,8 @@ def error_blocks(img1: torch.Tensor, img2: torch.Tensor, mask1: torch.Tensor, ma
 
 
 def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4: float,
-                        settings: LensdistConfig | None = None, max_pairs: int = 6) -> dict:
-    """Registration-error blocks of up to ``max_pairs`` pairs before and after undistorting with (k2, k4).
+                        settings: LensdistConfig | None = None, max_pairs: int = 6, lens: dict | None = None) -> dict:
+    """Registration-error blocks of up to ``max_pairs`` pairs before and after undistorting with (k2, k4), or ``lens``.
 
     Args:
         frames: (N, 1, H, W) grey frames at the analysis size, in [0, 1].
@@ -95,6 +97,9 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
         k4: eq. 4's k4, likewise.
         settings: registration and quality settings (the defaults when None).
         max_pairs: how many pairs to check.
+        lens: the answer's own lens at the frames' size
+            (:func:`~lensdist_torch.workflows.answer_lens.answer_lens`, scaled), applied instead
+            of (k2, k4), which then only approximate it; None: eq. 4.
 
     Returns:
         {"pairs": checked, "registered_before", "registered_after", "error_share_before",
@@ -116,7 +121,12 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
     ones = torch.ones_like(frames[:1])
     used = sorted(set(pairs.flatten().tolist()))  # only the frames checked are corrected
     row = {f: r for r, f in enumerate(used)}
-    fixed, masks = undistort_image(frames[used], k2, k4)
+    if lens is None:
+        fixed, masks = undistort_image(frames[used], k2, k4)
+    else:
+        grid, valid = lens_grid(lens, *frames.shape[-2:], frames.dtype, frames.device)
+        masks = valid.expand(len(used), -1, -1, -1)
+        fixed = sample_at_pixels(frames[used], grid.expand(len(used), -1, -1, -1)) * masks
     totals = dict.fromkeys(("error_blocks_before", "blocks_before", "error_blocks_after", "blocks_after",
                             "registered_before", "registered_after"), 0)
     for i, j in pairs.tolist():

@@ -115,3 +115,15 @@ def test_the_verdict_counts_a_registration_gained_as_errors_lowered(before, afte
     check = {"registered_before": before, "registered_after": after, "error_share_before": shares[0],
              "error_share_after": shares[1]}
     assert verdict(check) == says
+
+
+def test_an_answers_own_lens_verifies_as_eq4_where_it_is_eq4(frames):
+    from lensdist_torch.geometry.distortion import distortion_center
+    from lensdist_torch.geometry.frame import half_diagonal
+
+    h, w = frames.shape[-2:]
+    lens = {"kind": "radial", "coefficients": [K2 * half_diagonal(h, w) ** 2], "centre": list(distortion_center(h, w))}
+    eq4 = verify_undistortion(frames, PAIRS, K2, 0.0)
+    assert verify_undistortion(frames, PAIRS, 0.0, 0.0, lens=lens) == eq4  # (k2, k4) unused: the lens is applied
+    off = {**lens, "centre": [c + 12.0 for c in lens["centre"]]}  # the same lens about another centre: worse
+    assert verify_undistortion(frames, PAIRS, K2, 0.0, lens=off)["error_share_after"] > eq4["error_share_after"]
