@@ -27,7 +27,9 @@ each problem is one ValueError naming the file and the field:
   normalised radius's, :mod:`~lensdist_torch.geometry.radial_lens`), and ``planar.centre``, (x,
   y) inside the frame. Where the multi-view path answered (``method`` "multiview"): its COLMAP
   camera, ``opencv`` (5 coefficients) or ``opencv_rational`` (8), the one given, its camera
-  matrix as above and its coefficients finite. Undistort applies that lens.
+  matrix as above and its coefficients finite. Undistort applies that lens, so its class must be
+  the file's: eq. 4 fitted to it over the frame where it inverts (as calibrate fits
+  ``k2_user``, ``k4_user``) is checked as the coefficients are.
 
 Fields undistort ignores (Deltas, intervals, warnings ...) are not checked.
 """
@@ -40,7 +42,10 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
-from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, paper_frame_delta_avg
+from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, fit_eq4, paper_frame_delta_avg
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.opencv_model import grid_points, opencv_ideal_points
+from lensdist_torch.geometry.radial_lens import lens_ideal_points, monotone_radius
 from lensdist_torch.workflows.answer_lens import answer_lens
 from lensdist_torch.workflows.verify import COUNTS, VERDICTS, verdict
 
@@ -112,8 +117,8 @@ def _reference(data: dict, size: tuple[int, int], src: Path) -> tuple[int, int]:
     return box[2], box[3]
 
 
-def _check_class(label, k2, k4, ref: tuple[int, int], src: Path) -> None:
-    """Refuse a class that its coefficients do not give (module docstring)."""
+def _check_class(label, k2, k4, ref: tuple[int, int], src: Path, what: str | None = None) -> None:
+    """Refuse a class that its coefficients do not give (module docstring); ``what`` names them where not the file's."""
     cfg = LensdistConfig()
     dc = paper_frame_delta_avg(k2, k4, ref, cfg)
     lo, hi = class_bounds(label, "delta_avg", cfg)
@@ -121,7 +126,8 @@ def _check_class(label, k2, k4, ref: tuple[int, int], src: Path) -> None:
         return
     bounds = f"below {hi:g} px" if lo == 0 else f"above {lo:.2f} px" if math.isinf(hi) else f"{lo:.2f}-{hi:.2f} px"
     h, w = cfg.image.size
-    raise ValueError(f"{src}: field 'class' is {label!r}, but 'k2_user' = {k2:.4g}, 'k4_user' = {k4:.4g} give "
+    what = what or f"'k2_user' = {k2:.4g}, 'k4_user' = {k4:.4g}"
+    raise ValueError(f"{src}: field 'class' is {label!r}, but {what} give "
                      f"Delta_avg {dc:.2f} px at the paper's {h} x {w} frame (class {label!r}: {bounds}): the file "
                      "contradicts itself")
 
@@ -172,6 +178,27 @@ def _camera_matrix(cv: Any, size: tuple[int, int], src: Path, name: str = "openc
 def _focal(data: dict, size: tuple[int, int], src: Path) -> float | None:
     cv = data.get("opencv")
     return None if cv is None else float(_camera_matrix(cv, size, src)[0][0])
+
+
+def _check_lens_class(label, lens: dict, size: tuple[int, int], src: Path) -> None:
+    """Refuse a lens whose own class is not the file's: eq. 4 fitted to it (as calibrate did) must give ``label``."""
+    import torch
+
+    h, w = size
+    p = grid_points(h, w, max(1, round(math.sqrt(h * w / 20000))))
+    if lens["kind"] == "radial":
+        a = torch.tensor(lens["coefficients"], dtype=torch.float64)
+        ok = (p - p.new_tensor(lens["centre"])).norm(dim=-1) / half_diagonal(h, w) < monotone_radius(a)
+        ideal = lens_ideal_points(p, a, h, w, lens["centre"])
+        field = "planar.coefficients"
+    else:
+        ideal, ok = opencv_ideal_points(p, torch.tensor(lens["camera_matrix"]), torch.tensor(lens["dist_coeffs"]))
+        field = "opencv.dist_coeffs"
+    if int(ok.sum()) < 3:
+        raise ValueError(f"{src}: field {field!r} gives a lens that inverts nowhere in the {h} x {w} frame")
+    k2, k4, _ = fit_eq4(p[ok], ideal[ok], h, w)
+    _check_class(label, k2, k4, size, src, f"field {field!r} (the lens applied; eq. 4 fitted to it: k2 = {k2:.4g}, "
+                                           f"k4 = {k4:.4g})")
 
 
 def _lens(data: dict, size: tuple[int, int], src: Path) -> dict | None:
@@ -236,4 +263,7 @@ def read_calibration(src: Path) -> Calibration:
     if label is not None:
         _check_class(label, k2, k4, _reference(data, size, src), src)
     _check_verification(data, label, src)
-    return Calibration(k2, k4, size[0], size[1], reason, _focal(data, size, src), _lens(data, size, src))
+    lens = _lens(data, size, src)
+    if lens is not None and label is not None:
+        _check_lens_class(label, lens, size, src)
+    return Calibration(k2, k4, size[0], size[1], reason, _focal(data, size, src), lens)

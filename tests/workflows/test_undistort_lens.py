@@ -186,3 +186,22 @@ def test_undistort_from_a_multiview_answer_applies_its_camera(tmp_path):
     src.write_text(json.dumps(answer))
     with pytest.raises(ValueError, match=r"opencv\.dist_coeffs"):
         undistort_path(folder, tmp_path / "bad", from_json=src)
+
+
+def test_a_lens_that_stretches_the_frame_tenfold_is_refused(tmp_path):
+    folder, src, _ = _answer(tmp_path)
+    data = json.loads(src.read_text())
+    data["planar"]["coefficients"] = [12.0]  # 1 + 12 r^2 at the far corner (r about 1.08): 15-fold
+    src.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="stretches"):
+        undistort_path(folder, tmp_path / "out", from_json=src)
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_lens_whose_class_is_not_the_files_is_refused(tmp_path):
+    folder, src, _ = _answer(tmp_path)  # class 4, from eq. 4's fit to the lens
+    data = json.loads(src.read_text())
+    data["planar"]["coefficients"] = [0.002]  # a lens of a fraction of a pixel: not class 4
+    src.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"'class' is '4', but field 'planar\.coefficients' \(the lens applied.*contradicts itself"):
+        undistort_path(folder, tmp_path / "out", from_json=src)
