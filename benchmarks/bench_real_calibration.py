@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import time
 from pathlib import Path
 
@@ -36,7 +35,13 @@ import torch
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
-from lensdist_torch.geometry.opencv_model import grid_points, opencv_camera_from_map, opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import (
+    grid_points,
+    map_grid_step,
+    opencv_camera_from_map,
+    opencv_delta,
+    opencv_ideal_points,
+)
 from lensdist_torch.geometry.planar_features import delta_avg_where
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
@@ -185,7 +190,7 @@ def main() -> None:
                 cam = planar.get(name)
                 if cam is None:  # an answer saved before the block carried them: the library's same export of its map
                     fit = opencv_camera_from_map(maps["homography model (its lens map)"], h, w, model=model,
-                                                 step=max(1, round(math.sqrt(h * w / 20000))), centre=centre)
+                                                 step=map_grid_step(h, w), centre=centre)
                     cam = {"camera_matrix": fit.camera_matrix.tolist(), "dist_coeffs": fit.dist_coeffs.tolist()}
                 checks[f"homography model ({name})"] = (cam["camera_matrix"], cam["dist_coeffs"])
             print(f"the homography model: {planar['model']} about ({planar['centre'][0]:.1f}, {planar['centre'][1]:.1f}), "

@@ -56,7 +56,7 @@ import torch
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, fit_eq4, paper_frame_delta_avg
-from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_delta, opencv_ideal_points
 from lensdist_torch.geometry.pooling import jackknife_interval
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
@@ -380,7 +380,7 @@ def self_calibrate_reconstruction(
         raise ValueError(f"rec must hold 3-D points, got none ({rec.num_reg_images()} frames registered)")
     cam0 = _camera(rec)
     size = image_size or (round(cam0.height * scale), round(cam0.width * scale))
-    step = max(1, round(math.sqrt(size[0] * size[1] / 20000)))
+    step = map_grid_step(*size)
     fitted, table, deltas = {}, {}, {}
     for model in cfg.models:
         r = _with_model(rec, model)

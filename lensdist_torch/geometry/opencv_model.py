@@ -44,7 +44,7 @@ import torch
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
 __all__ = ["OpenCVCamera", "MODELS", "FOLLOWS_PX", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_distort_full", "opencv_undistort_points",
-           "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points"]
+           "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points", "map_grid_step"]
 
 MODELS = ("standard", "rational")
 
@@ -337,6 +337,16 @@ def radial_monotone(r2: torch.Tensor, dist_coeffs: torch.Tensor) -> torch.Tensor
     s2 = r2[..., None] * t * t  # squared radii along the ray
     fr, dfr = _radial(s2, torch.cat([d, d.new_zeros(5 - d.numel())]) if d.numel() < 5 else d)
     return ((fr + 2 * s2 * dfr) > 0).all(-1)
+
+
+def map_grid_step(height: int, width: int) -> int:
+    """The step (px) of the grid of about 20,000 pixels a lens map is measured, fitted and exported on.
+
+    Example:
+        >>> map_grid_step(960, 1280), map_grid_step(120, 160)
+        (8, 1)
+    """
+    return max(1, round(math.sqrt(height * width / 20000)))
 
 
 def grid_points(height: int, width: int, step: int) -> torch.Tensor:

@@ -59,7 +59,7 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import class_or_open, distortion_center, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error
-from lensdist_torch.geometry.opencv_model import opencv_camera_from_map
+from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.planar_model import (
     bending_halfwidth,
     fit_lens_and_homographies,
@@ -365,7 +365,7 @@ def self_calibrate_planar(
     h, w = (int(v) for v in image_size)
     big_r = half_diagonal(h, w)
     n_frames = len(matches.names)
-    step = max(1, round(math.sqrt(h * w / 20000)))
+    step = map_grid_step(h, w)
     c = matches.x1.new_tensor(distortion_center(h, w))
     v1, v2 = (matches.x1 - c) / big_r, (matches.x2 - c) / big_r
 

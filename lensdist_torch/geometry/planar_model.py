@@ -30,7 +30,7 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.multiview import pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.pooling import t_quantile
-from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, monotone_radius
+from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, lens_inverts
 
 __all__ = ["split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
            "transfer_errors", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
@@ -230,7 +230,7 @@ def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: in
     h, w = size
     a, centre = lens_of(theta, terms, size)
     p = grid_points(h, w, step)
-    ok = ((p - p.new_tensor(centre)).norm(dim=-1) / half_diagonal(h, w)) < monotone_radius(torch.tensor(a, dtype=torch.float64))
+    ok = lens_inverts(p, a, h, w, centre)
     off = (lens_ideal_points(p, a, h, w, centre) - p).norm(dim=-1)[ok]
     if off.numel() == 0:
         return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok}

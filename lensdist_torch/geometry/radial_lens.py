@@ -23,7 +23,8 @@ import torch
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
 
-__all__ = ["lens_factor", "lens_factor_derivative", "lens_ideal_points", "lens_distorted_points", "monotone_radius"]
+__all__ = ["lens_factor", "lens_factor_derivative", "lens_ideal_points", "lens_distorted_points", "lens_inverts",
+           "monotone_radius"]
 
 #: The normalised radius :func:`monotone_radius` searches up to (the frame's corners lie at 1 about its centre).
 MAX_RADIUS = 1.5
@@ -80,6 +81,19 @@ def monotone_radius(a: torch.Tensor) -> float:
     g = (r * lens_factor(r * r, torch.as_tensor(a, dtype=torch.float64)))[:, 0]
     falls = (g[1:] <= g[:-1]).nonzero()
     return float(r[int(falls[0, 0]), 0]) if len(falls) else math.inf
+
+
+def lens_inverts(points: torch.Tensor, coefficients, height: int, width: int, centre=None) -> torch.Tensor:
+    """(...,) bool: where the lens's map inverts, the pixels (..., 2) closer to its centre than :func:`monotone_radius`.
+
+    Example:
+        >>> p = torch.tensor([[4.5, 3.5], [0.0, 0.0]], dtype=torch.float64)  # the centre and a corner of 8 x 10 (r = 1)
+        >>> lens_inverts(p, [-0.5], 8, 10).tolist()  # it folds at r = 0.816
+        [True, False]
+    """
+    a = torch.as_tensor(coefficients, dtype=torch.float64)
+    c = _centre(points, height, width, centre)
+    return (points - c).norm(dim=-1) / half_diagonal(height, width) < monotone_radius(a)
 
 
 def lens_distorted_points(ideal: torch.Tensor, coefficients, height: int, width: int, centre=None,

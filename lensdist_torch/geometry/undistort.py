@@ -47,9 +47,9 @@ from lensdist_torch.geometry.distortion import (
     sample_at_pixels,
     undistort_points,
 )
-from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
+from lensdist_torch.geometry.frame import pixel_grid
 from lensdist_torch.geometry.opencv_model import opencv_distort_full, opencv_ideal_points, radial_monotone
-from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points, monotone_radius
+from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points, lens_inverts
 
 __all__ = ["monotone_branch", "optimal_view", "lens_optimal_view", "opencv_optimal_view", "undistortion_grid",
            "lens_undistortion_grid", "opencv_undistortion_grid", "undistort_image", "Undistort"]
@@ -129,12 +129,9 @@ def lens_optimal_view(coefficients, centre, height: int, width: int, alpha: floa
         True
     """
     a = torch.as_tensor(coefficients, dtype=torch.float64)
-    top = monotone_radius(a)
 
     def ideal(pts: torch.Tensor) -> torch.Tensor:
-        c = pts.new_tensor(distortion_center(height, width) if centre is None else [float(v) for v in centre])
-        keep = (pts - c).norm(dim=-1) / half_diagonal(height, width) < top
-        return lens_ideal_points(pts[keep], a, height, width, centre)
+        return lens_ideal_points(pts[lens_inverts(pts, a, height, width, centre)], a, height, width, centre)
 
     return _view(ideal, height, width, alpha, f"the lens {[round(float(v), 4) for v in a]}", "the lens")
 

@@ -10,7 +10,8 @@ lens), and the answer's own lens is what undistorting and verifying must use:
 - ``method`` "multiview" (COLMAP): {"kind": "opencv", "camera_matrix", "dist_coeffs"}, its
   OpenCV camera (tangential terms included).
 
-Pixels here are those of the answer's ``image_size``; :func:`scale_lens` moves a lens to frames
+Eq. 4 itself is a lens too, {"kind": "eq4", "k2", "k4"} (:func:`eq4_lens`), so undistorting and
+verifying take one path whichever answered. Pixels here are those of the answer's ``image_size``; :func:`scale_lens` moves a lens to frames
 scaled by a factor (the normalised coefficients stay, the centre, principal point and focal
 length scale about pixel centres at integers: (c + 0.5) s - 0.5).
 """
@@ -19,14 +20,20 @@ from __future__ import annotations
 
 import torch
 
+from lensdist_torch.geometry.distortion import distortion_center, undistort_points
+from lensdist_torch.geometry.opencv_model import opencv_ideal_points
+from lensdist_torch.geometry.radial_lens import lens_ideal_points, lens_inverts
 from lensdist_torch.geometry.undistort import (
     lens_optimal_view,
     lens_undistortion_grid,
+    monotone_branch,
     opencv_optimal_view,
     opencv_undistortion_grid,
+    optimal_view,
+    undistortion_grid,
 )
 
-__all__ = ["answer_lens", "scale_lens", "lens_grid", "lens_view"]
+__all__ = ["answer_lens", "eq4_lens", "scale_lens", "lens_ideal", "lens_grid", "lens_view"]
 
 
 def answer_lens(res: dict) -> dict | None:
@@ -48,6 +55,16 @@ def answer_lens(res: dict) -> dict | None:
     return None
 
 
+def eq4_lens(k2: float, k4: float) -> dict:
+    """Eq. 4's (k2, k4) (pixels) as a lens of this module.
+
+    Example:
+        >>> eq4_lens(1e-6, 0.0)
+        {'kind': 'eq4', 'k2': 1e-06, 'k4': 0.0}
+    """
+    return {"kind": "eq4", "k2": float(k2), "k4": float(k4)}
+
+
 def scale_lens(lens: dict | None, s: float) -> dict | None:
     """``lens`` for frames ``s`` times the size (module docstring).
 
@@ -57,23 +74,55 @@ def scale_lens(lens: dict | None, s: float) -> dict | None:
     """
     if lens is None:
         return None
+    if lens["kind"] == "eq4":
+        return eq4_lens(lens["k2"] / s**2, lens["k4"] / s**4)
     if lens["kind"] == "radial":
         return {**lens, "centre": [(v + 0.5) * s - 0.5 for v in lens["centre"]]}
     (fx, _, cx), (_, fy, cy), _ = lens["camera_matrix"]
     return {**lens, "camera_matrix": [[fx * s, 0.0, (cx + 0.5) * s - 0.5], [0.0, fy * s, (cy + 0.5) * s - 0.5], [0.0, 0.0, 1.0]]}
 
 
+#: Each kind's parameters, in the order its grid and view functions take them.
+_PARAMETERS = {"eq4": ("k2", "k4"), "radial": ("coefficients", "centre"), "opencv": ("camera_matrix", "dist_coeffs")}
+_GRIDS = {"eq4": undistortion_grid, "radial": lens_undistortion_grid, "opencv": opencv_undistortion_grid}
+_VIEWS = {"eq4": optimal_view, "radial": lens_optimal_view, "opencv": opencv_optimal_view}
+
+
 def _args(lens: dict) -> tuple:
-    return (lens["coefficients"], lens["centre"]) if lens["kind"] == "radial" else (lens["camera_matrix"], lens["dist_coeffs"])
+    return tuple(lens[k] for k in _PARAMETERS[lens["kind"]])
+
+
+def lens_ideal(lens: dict, points: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ideal (..., 2), ok (...,)): the ideal pixels of distorted ``points`` (float64) under ``lens``, and where it inverts.
+
+    Example:
+        >>> lens = {"kind": "opencv", "camera_matrix": [[100.0, 0, 50], [0, 100, 40], [0, 0, 1]], "dist_coeffs": [-0.4, 0, 0, 0]}
+        >>> ideal, ok = lens_ideal(lens, torch.tensor([[95.0, 40.0]], dtype=torch.float64), 80, 100)
+        >>> [round(v, 6) for v in ideal[0].tolist()], ok.tolist()
+        ([100.0, 40.0], [True])
+        >>> from lensdist_torch.geometry.frame import half_diagonal  # eq. 4 and the radial lens it is, alike
+        >>> p = torch.tensor([[0.0, 0.0], [30.0, 5.0]], dtype=torch.float64)
+        >>> radial = {"kind": "radial", "coefficients": [1e-4 * half_diagonal(48, 64) ** 2], "centre": [31.5, 23.5]}
+        >>> bool((lens_ideal(eq4_lens(1e-4, 0.0), p, 48, 64)[0] - lens_ideal(radial, p, 48, 64)[0]).abs().max() < 1e-9)
+        True
+    """
+    if lens["kind"] == "eq4":
+        c = distortion_center(height, width)
+        d = points - points.new_tensor(c)
+        ideal = undistort_points(points.reshape(1, -1, 2), lens["k2"], lens["k4"], c).reshape(points.shape)
+        return ideal, monotone_branch((d * d).sum(-1), lens["k2"], lens["k4"])
+    if lens["kind"] == "radial":
+        a, c = lens["coefficients"], lens["centre"]
+        return lens_ideal_points(points, a, height, width, c), lens_inverts(points, a, height, width, c)
+    return opencv_ideal_points(points, torch.tensor(lens["camera_matrix"], dtype=torch.float64),
+                               torch.tensor(lens["dist_coeffs"], dtype=torch.float64))
 
 
 def lens_grid(lens: dict, height: int, width: int, dtype: torch.dtype = torch.float32, device=None, view=None):
     """(grid (1, H, W, 2), valid (1, 1, H, W)): where each ideal pixel lies in the distorted frame, under ``lens``."""
-    grid = lens_undistortion_grid if lens["kind"] == "radial" else opencv_undistortion_grid
-    return grid(*_args(lens), height, width, dtype, device, view)
+    return _GRIDS[lens["kind"]](*_args(lens), height, width, dtype, device, view)
 
 
 def lens_view(lens: dict, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
     """The view of OpenCV's ``getOptimalNewCameraMatrix(..., alpha)`` under ``lens``."""
-    view = lens_optimal_view if lens["kind"] == "radial" else opencv_optimal_view
-    return view(*_args(lens), height, width, alpha)
+    return _VIEWS[lens["kind"]](*_args(lens), height, width, alpha)

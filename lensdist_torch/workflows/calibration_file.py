@@ -43,10 +43,8 @@ from typing import Any, NamedTuple
 
 from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, fit_eq4, paper_frame_delta_avg
-from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.opencv_model import grid_points, opencv_ideal_points
-from lensdist_torch.geometry.radial_lens import lens_ideal_points, monotone_radius
-from lensdist_torch.workflows.answer_lens import answer_lens
+from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step
+from lensdist_torch.workflows.answer_lens import answer_lens, lens_ideal
 from lensdist_torch.workflows.verify import COUNTS, VERDICTS, verdict
 
 __all__ = ["Calibration", "MAX_LENS_TERMS", "read_calibration"]
@@ -182,18 +180,10 @@ def _focal(data: dict, size: tuple[int, int], src: Path) -> float | None:
 
 def _check_lens_class(label, lens: dict, size: tuple[int, int], src: Path) -> None:
     """Refuse a lens whose own class is not the file's: eq. 4 fitted to it (as calibrate did) must give ``label``."""
-    import torch
-
     h, w = size
-    p = grid_points(h, w, max(1, round(math.sqrt(h * w / 20000))))
-    if lens["kind"] == "radial":
-        a = torch.tensor(lens["coefficients"], dtype=torch.float64)
-        ok = (p - p.new_tensor(lens["centre"])).norm(dim=-1) / half_diagonal(h, w) < monotone_radius(a)
-        ideal = lens_ideal_points(p, a, h, w, lens["centre"])
-        field = "planar.coefficients"
-    else:
-        ideal, ok = opencv_ideal_points(p, torch.tensor(lens["camera_matrix"]), torch.tensor(lens["dist_coeffs"]))
-        field = "opencv.dist_coeffs"
+    p = grid_points(h, w, map_grid_step(h, w))
+    ideal, ok = lens_ideal(lens, p, h, w)
+    field = "planar.coefficients" if lens["kind"] == "radial" else "opencv.dist_coeffs"
     if int(ok.sum()) < 3:
         raise ValueError(f"{src}: field {field!r} gives a lens that inverts nowhere in the {h} x {w} frame")
     k2, k4, _ = fit_eq4(p[ok], ideal[ok], h, w)

@@ -35,8 +35,9 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
   ``getOptimalNewCameraMatrix`` does (:func:`~lensdist_torch.geometry.undistort.optimal_view`):
   0 only valid pixels, 1 every source pixel kept, in between interpolated.
 - **The camera.** ``OUT/undistortion.json`` (written last, atomically) holds what was applied:
-  eq. 4's k2, k4 in the frames' pixels (``lens`` and ``applied`` say when the homography model's lens
-  was applied instead: then OpenCV's camera is fitted to that lens, rational), alpha, the input and output sizes, the view, and the
+  eq. 4's k2, k4 in the frames' pixels (``lens`` and ``applied`` say when the answer's own lens was
+  applied instead: then OpenCV's camera is the multi-view path's, or the rational fit to the
+  homography model's lens), alpha, the input and output sizes, the view, and the
   OpenCV equivalent: ``camera_matrix`` and ``dist_coeffs`` (the standard model fitted to eq. 4,
   :func:`~lensdist_torch.geometry.opencv_model.opencv_export`; the focal length of the
   ``--from`` calibration's, else the half diagonal) and ``new_camera_matrix``, the camera of the
@@ -62,15 +63,10 @@ from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.opencv_model import (
-    opencv_camera_from_map,
-    opencv_export,
-    opencv_ideal_points,
-    radial_monotone,
-)
-from lensdist_torch.geometry.radial_lens import lens_ideal_points, monotone_radius
-from lensdist_torch.geometry.undistort import monotone_branch, optimal_view, undistortion_grid
-from lensdist_torch.workflows.answer_lens import lens_grid, lens_view, scale_lens
+from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_export, radial_monotone
+from lensdist_torch.geometry.radial_lens import monotone_radius
+from lensdist_torch.geometry.undistort import monotone_branch
+from lensdist_torch.workflows.answer_lens import eq4_lens, lens_grid, lens_ideal, lens_view, scale_lens
 from lensdist_torch.workflows.calibrate import frames_of_one_size, list_frames
 from lensdist_torch.workflows.calibration_file import Calibration, read_calibration
 
@@ -173,7 +169,14 @@ def _lens_for(size: tuple[int, int], cal: Calibration | None) -> dict | None:
 
 
 def _check_lens(lens: dict, height: int, width: int, from_json) -> None:
-    """The checks of :func:`_check_fold` and :func:`_check_stretch` for the answer's own lens."""
+    """Refuse a lens that folds before the frame's nearest edge or stretches it past ``MAX_STRETCH`` (module docstring).
+
+    Eq. 4 by :func:`_check_fold` and :func:`_check_stretch`; the answer's own lens the same way.
+    """
+    if lens["kind"] == "eq4":
+        _check_fold(lens["k2"], lens["k4"], height, width, from_json)
+        _check_stretch(lens["k2"], lens["k4"], height, width, from_json)
+        return
     big_r = half_diagonal(height, width)
     if lens["kind"] == "radial":
         a, (cx, cy) = torch.tensor(lens["coefficients"], dtype=torch.float64), lens["centre"]
@@ -191,10 +194,7 @@ def _check_lens(lens: dict, height: int, width: int, from_json) -> None:
         raise ValueError(f"{what} folds (its radius stops increasing) {top:.1f} px from its centre, inside the "
                          f"{height} x {width} frames: no lens does that")
     corners = torch.tensor([[x, y] for x in (0.0, width - 1.0) for y in (0.0, height - 1.0)], dtype=torch.float64)
-    if lens["kind"] == "radial":
-        ideal, ok = lens_ideal_points(corners, a, height, width, lens["centre"]), torch.ones(4, dtype=torch.bool)
-    else:
-        ideal, ok = opencv_ideal_points(corners, k, d)
+    ideal, ok = lens_ideal(lens, corners, height, width)
     c = torch.tensor([cx, cy], dtype=torch.float64)
     stretch = float(((ideal - c).norm(dim=-1) / (corners - c).norm(dim=-1))[ok].max()) if bool(ok.any()) else 1.0
     if stretch > MAX_STRETCH:
@@ -338,16 +338,11 @@ def undistort_path(
         if grid is None:
             size = tuple(img.shape[-2:])
             k2, k4 = _coefficients_for(size, k2, k4, from_json, cal)
-            lens = _lens_for(size, cal)
-            if lens is None:
-                _check_fold(k2, k4, *size, from_json)
-                _check_stretch(k2, k4, *size, from_json)
-                view = None if alpha is None else optimal_view(k2, k4, *size, float(alpha))
-                grid, valid = undistortion_grid(k2, k4, *size, view=view)
-            else:
-                _check_lens(lens, *size, from_json)
-                view = None if alpha is None else lens_view(lens, *size, float(alpha))
-                grid, valid = lens_grid(lens, *size, view=view)
+            lens = _lens_for(size, cal)  # None: eq. 4 is the answer
+            applied = lens or eq4_lens(k2, k4)
+            _check_lens(applied, *size, from_json)
+            view = None if alpha is None else lens_view(applied, *size, float(alpha))
+            grid, valid = lens_grid(applied, *size, view=view)
             camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view, lens)
             grid, valid = grid.to(dev), valid.to(dev)
             (out / "masks").mkdir(parents=True, exist_ok=True)
@@ -377,9 +372,8 @@ def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, al
     if lens is None:
         cv, model = opencv_export(k2, k4, h, w, focal=focal, model="standard"), "standard"
     elif lens["kind"] == "radial":
-        a, centre = lens["coefficients"], lens["centre"]
-        fit = opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, focal=focal, model="rational",
-                                     step=max(1, round(math.sqrt(h * w / 20000))), centre=centre)
+        fit = opencv_camera_from_map(lambda p: lens_ideal(lens, p, h, w)[0], h, w, focal=focal, model="rational",
+                                     step=map_grid_step(h, w), centre=lens["centre"])
         cv, model = {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items()}, "rational"
     else:  # the camera itself: exact
         cv = {"camera_matrix": lens["camera_matrix"], "dist_coeffs": lens["dist_coeffs"], "fit_error_mean_px": 0.0,

@@ -20,10 +20,9 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import sample_at_pixels
 from lensdist_torch.geometry.registration import warp_to_reference
-from lensdist_torch.geometry.undistort import undistort_image
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
-from lensdist_torch.workflows.answer_lens import lens_grid
+from lensdist_torch.workflows.answer_lens import eq4_lens, lens_grid
 
 __all__ = ["COUNTS", "VERDICTS", "error_blocks", "verdict", "verify_undistortion"]
 
@@ -121,12 +120,9 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
     ones = torch.ones_like(frames[:1])
     used = sorted(set(pairs.flatten().tolist()))  # only the frames checked are corrected
     row = {f: r for r, f in enumerate(used)}
-    if lens is None:
-        fixed, masks = undistort_image(frames[used], k2, k4)
-    else:
-        grid, valid = lens_grid(lens, *frames.shape[-2:], frames.dtype, frames.device)
-        masks = valid.expand(len(used), -1, -1, -1)
-        fixed = sample_at_pixels(frames[used], grid.expand(len(used), -1, -1, -1)) * masks
+    grid, valid = lens_grid(lens or eq4_lens(k2, k4), *frames.shape[-2:], frames.dtype, frames.device)
+    masks = valid.expand(len(used), -1, -1, -1)
+    fixed = sample_at_pixels(frames[used], grid.expand(len(used), -1, -1, -1)) * masks
     totals = dict.fromkeys(("error_blocks_before", "blocks_before", "error_blocks_after", "blocks_after",
                             "registered_before", "registered_after"), 0)
     for i, j in pairs.tolist():
