@@ -5,9 +5,10 @@ sequence, of a folder (as they are) or of a video (written once as lossless grey
 temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`;
 ``multiview.reconstructions`` mappings, each self-calibrated, combined by
 :mod:`~lensdist_torch.geometry.multiview_runs`) and returns a strict-JSON-ready dict, or the
-reason it has no answer (no mapping registered enough frames). When the first mapping registers
-every frame and shows degenerate motion with room to spare (the camera turned by less than
-``multiview.degenerate_share`` of ``multiview.min_rotation_deg``), the other mappings are skipped: how far
+reason it has no answer (no mapping registered enough frames). When every mapping that succeeded so
+far (most often the first) registers every frame and shows degenerate motion with room to spare (the
+camera turned by less than ``multiview.degenerate_share`` of ``multiview.min_rotation_deg``), the
+other mappings are skipped: how far
 the camera turned is a property of its path, which another seed of the mapping does not change
 (seeds 0-2 on 22 rendered frames: 2.3-2.4 degrees; where it turned, 5.97 each), so they could
 only widen the interval of an answer that gets no class anyway; each costs as much as the first
@@ -132,7 +133,10 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
                 runs.append((cfg.seed + i, self_calibrate_reconstruction(rec, cfg, settings, frames=len(names),
                                                                          image_size=tuple(image_size))))
             done = sum(not isinstance(r, str) for _, r in runs)
-            if _degenerate_for_sure(runs[-1][1], len(names), cfg):
+            successes = [r for _, r in runs if not isinstance(r, str)]
+            # skipped only while every mapping that succeeded agrees: one that turned enough (a failed mapping
+            # retried, then one of 5.7 degrees beside one under 2) leaves the motion unsettled, and all run
+            if successes and all(_degenerate_for_sure(r, len(names), cfg) for r in successes):
                 skipped.extend(cfg.seed + i + 1 + j for j in range(cfg.reconstructions - done))
                 return True
             return done >= cfg.reconstructions  # failed mappings are retried with further seeds
