@@ -191,6 +191,11 @@ class MultiViewConfig:
             matches would only cost time.
         planar_guided_ratio: a guided match's descriptor distance at most this share of the
             next candidate's (the ratio test, among the candidates within ``planar_guided_px``).
+        planar_refine_px: the half size (px) of the patches that move each match of the
+            homography model's answer to where the two views align, before it is fitted again
+            (:mod:`~lensdist_torch.geometry.match_refinement`); 0: no refinement.
+        planar_refine_blur: the Gaussian's standard deviation (px) that smooths the frames for it.
+        planar_refine_ncc: a refined match is kept where its aligned patches correlate at least this much.
         planar_max_relief_z: the homography model answers only where the direct path's plane +
             parallax test finds no relief beyond this z (``relief_z``): under one homography per
             pair a scene's relief passes for distortion.
@@ -239,6 +244,9 @@ class MultiViewConfig:
     planar_guided_px: float = 3.0
     planar_guided_below: float = 0.5
     planar_guided_ratio: float = 0.8
+    planar_refine_px: int = 7
+    planar_refine_blur: float = 1.0
+    planar_refine_ncc: float = 0.9
     planar_max_relief_z: float = 2.0
 
     def __post_init__(self) -> None:
@@ -251,7 +259,8 @@ class MultiViewConfig:
                          ("jackknife_blocks", 2), ("reconstructions", 1),
                          ("extra_mappings", 0), ("num_threads", 1), ("seed", 0), ("planar_terms", 0),
                          ("planar_scan_steps", 1), ("planar_scan_pairs", 1), ("planar_min_matches", 8), ("planar_min_pairs", 1),
-                         ("planar_iterations", 1), ("planar_pair_matches", 0)):
+                         ("planar_iterations", 1), ("planar_pair_matches", 0),
+                         ("planar_refine_px", 0)):
             integer(self, name, lo=lo)
         pair(self, "planar_scan_range")
         real(self, "planar_ransac_px", lo=0, lo_open=True)
@@ -262,6 +271,8 @@ class MultiViewConfig:
         real(self, "planar_guided_px", lo=0)
         real(self, "planar_guided_ratio", lo=0, hi=1, lo_open=True)
         real(self, "planar_guided_below", lo=0, hi=1)
+        real(self, "planar_refine_blur", lo=0)
+        real(self, "planar_refine_ncc", lo=-1, hi=1)
         real(self, "min_registered", lo=0, hi=1, lo_open=True)
         real(self, "bic_margin", lo=0)
         real(self, "rms_margin", lo=0)

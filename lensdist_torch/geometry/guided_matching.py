@@ -31,22 +31,25 @@ whether the scene is a plane: that test stays with the verified matches (the fir
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
+from lensdist_torch.geometry.match_refinement import refine_matches
 from lensdist_torch.geometry.multiview import pycolmap_or_error
 from lensdist_torch.geometry.planar_features import (
     PlanarMatches,
     pair_homographies,
     read_verified_matches,
     self_calibrate_planar,
+    thin_matches,
 )
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
-__all__ = ["chain_views", "guided_matches", "read_features", "self_calibrate_guided"]
+__all__ = ["chain_views", "guided_matches", "pair_homography", "read_features", "self_calibrate_guided"]
 
 
 def read_features(database, names: list[str]) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -131,6 +134,14 @@ def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, i
     return pairs, views
 
 
+def pair_homography(pairs: dict, views: dict, i: int, j: int) -> torch.Tensor | None:
+    """View i's ideal pixels to view j's: the pair's own homography where it counts, the chain's otherwise (None: unchained)."""
+    hm = pairs.get((i, j))
+    if hm is None and i in views and j in views:
+        hm = torch.linalg.inv(views[j]) @ views[i]
+    return hm
+
+
 def guided_matches(features: list, matches: PlanarMatches, coefficients, centre, size: tuple[int, int],
                    config: MultiViewConfig | None = None) -> PlanarMatches:
     """Step 2: the verified pairs matched again where the lens and the pairs' homographies predict.
@@ -167,9 +178,7 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
         i, j = int(matches.first[p]), int(matches.second[p])
         if i not in views or j not in views:
             continue
-        hm = pairs.get((i, j))
-        if hm is None:
-            hm = torch.linalg.inv(views[j]) @ views[i]
+        hm = pair_homography(pairs, views, i, j)
         ok_i, ok_j = _guided_pair(apply_homography(hm[None], ideal[i])[0], ideal[j], features[i][1], features[j][1], cfg)
         if len(ok_i) < cfg.planar_min_matches:
             continue
@@ -214,8 +223,8 @@ def _guided_pair(predicted: torch.Tensor, target: torch.Tensor, d1: torch.Tensor
 
 
 def self_calibrate_guided(database, names: list[str], size: tuple[int, int], config: MultiViewConfig | None = None,
-                          settings=None):
-    """The homography model on a COLMAP database, fitted again on guided matches (module docstring).
+                          settings=None, images: Callable[[int], torch.Tensor] | None = None):
+    """The homography model on a COLMAP database, fitted again on guided matches, then on refined ones (module docstring).
 
     The first fit is on the verified matches
     (:func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`); where it has a lens
@@ -227,12 +236,18 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     fit's 12); ``guided`` says what was found, whether it answered and the first fit's figures.
     ``planar_guided_px`` 0: the first fit alone.
 
+    With ``images``, the matches of the fit that answers are then moved to sub-pixel agreement
+    under its lens (:func:`~lensdist_torch.geometry.match_refinement.refine_matches`, each pair's
+    homography its own or the chain's) and fitted again from its lens; that fit answers where it
+    has an estimate (``refined`` says what was kept and the figures before).
+
     Args:
         database: a COLMAP database after feature extraction and matching.
         names: the frames' names in recording order.
         size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig`.
         settings: the library's config (the class rule and the paper's frame).
+        images: view index (into ``names``) -> its (H, W) grey image in [0, 1]; None: no refinement.
 
     Returns:
         :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration`.
@@ -240,18 +255,39 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     cfg = or_defaults(config, MultiViewConfig)
     verified = read_verified_matches(database, names, cfg.planar_min_matches)
     first = self_calibrate_planar(verified, size, cfg, settings)
-    if (cfg.planar_guided_px <= 0 or not math.isfinite(first.delta_avg_user_px)
-            or first.inlier_share < cfg.planar_min_inlier_share or first.pairs >= cfg.planar_guided_below * len(verified.first)):
-        return first
-    found = guided_matches(read_features(database, names), verified, first.coefficients, first.centre, size, cfg)
-    info = {"pairs_verified": len(verified.first), "pairs_matched": len(found.first), "matches": len(found.pair),
-            "radius_px": cfg.planar_guided_px,
-            "first_fit": {k: getattr(first, k) for k in ("model", "delta_avg_user_px", "delta_avg_user_interval", "pairs",
-                                                         "inliers", "matches", "bending_halfwidth_px", "class_label")}}
-    again = self_calibrate_planar(found, size, cfg, settings, start=first.coefficients, plane_share=first.inlier_share)
+    res, used = first, verified
+    if (cfg.planar_guided_px > 0 and math.isfinite(first.delta_avg_user_px)
+            and first.inlier_share >= cfg.planar_min_inlier_share and first.pairs < cfg.planar_guided_below * len(verified.first)):
+        found = guided_matches(read_features(database, names), verified, first.coefficients, first.centre, size, cfg)
+        info = {"pairs_verified": len(verified.first), "pairs_matched": len(found.first), "matches": len(found.pair),
+                "radius_px": cfg.planar_guided_px, "first_fit": _figures(first)}
+        again = self_calibrate_planar(found, size, cfg, settings, start=first.coefficients, plane_share=first.inlier_share)
+        if not math.isfinite(again.delta_avg_user_px):
+            res = first._replace(guided={**info, "used": False, "reason": again.reason})
+        elif again.pairs <= first.pairs:  # it was to bring lost pairs back: where it did not, the first fit stands
+            res = first._replace(guided={**info, "used": False, "reason": f"the guided matches count {again.pairs} pairs, "
+                                                                         f"the verified ones {first.pairs}"})
+        else:
+            res, used = again._replace(guided={**info, "used": True, "reason": ""}), found
+    if (images is None or cfg.planar_refine_px <= 0 or not math.isfinite(res.delta_avg_user_px)
+            or res.inlier_share < cfg.planar_min_inlier_share):
+        return res
+    pairs, views = chain_views(used, res.coefficients, res.centre, size, cfg)
+    hs = {}
+    for i, j in zip(used.first.tolist(), used.second.tolist()):
+        hm = pair_homography(pairs, views, i, j)
+        if hm is not None:
+            hs[(i, j)] = hm
+    refined, info = refine_matches(thin_matches(used, 2 * cfg.planar_pair_matches), images, hs, res.coefficients,
+                                   res.centre, size, cfg)
+    info = {**info, "half_px": cfg.planar_refine_px, "before": _figures(res)}
+    again = self_calibrate_planar(refined, size, cfg, settings, start=res.coefficients, plane_share=first.inlier_share)
     if not math.isfinite(again.delta_avg_user_px):
-        return first._replace(guided={**info, "used": False, "reason": again.reason})
-    if again.pairs <= first.pairs:  # it was to bring lost pairs back: where it did not, the first fit stands
-        return first._replace(guided={**info, "used": False, "reason": f"the guided matches count {again.pairs} pairs, the "
-                                                                       f"verified ones {first.pairs}"})
-    return again._replace(guided={**info, "used": True, "reason": ""})
+        return res._replace(refined={**info, "used": False, "reason": again.reason})
+    return again._replace(guided=res.guided, refined={**info, "used": True, "reason": ""})
+
+
+def _figures(res) -> dict:
+    """A fit's figures kept beside the one that replaced it."""
+    return {k: getattr(res, k) for k in ("model", "delta_avg_user_px", "delta_avg_user_interval", "pairs", "inliers",
+                                         "matches", "reprojection_px", "bending_halfwidth_px", "class_label")}

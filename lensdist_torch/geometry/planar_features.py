@@ -117,7 +117,9 @@ class PlanarCalibration(NamedTuple):
     (``camera_matrix``, ``dist_coeffs`` and the fit's errors, as
     :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them); guided: where the
     fit is on guided matches (:func:`~lensdist_torch.geometry.guided_matching.self_calibrate_guided`),
-    what the guided matching found and the first fit's figures; None otherwise.
+    what the guided matching found and the first fit's figures; None otherwise; refined: where
+    the matches were refined (:mod:`~lensdist_torch.geometry.match_refinement`), what the
+    refinement kept and the fit's figures before it; None otherwise.
 
     Example:
         >>> PlanarCalibration._fields[:4]
@@ -152,6 +154,7 @@ class PlanarCalibration(NamedTuple):
     opencv: dict
     opencv_rational: dict
     guided: dict | None = None
+    refined: dict | None = None
 
 
 def read_verified_matches(database, names: list[str], min_matches: int = 15) -> PlanarMatches:

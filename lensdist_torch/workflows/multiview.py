@@ -34,6 +34,7 @@ from tqdm import tqdm
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.core.images import load_image
 from lensdist_torch.geometry.guided_matching import self_calibrate_guided
 from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.geometry.multiview_runs import combine_reconstructions
@@ -119,7 +120,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
 
         def homography_model(database: Path) -> None:  # the same matches, before any mapping
             if cfg.planar_terms:
-                planar["answer"] = planar_path(database, names, image_size, cfg, settings)
+                planar["answer"] = planar_path(database, names, image_size, cfg, settings, folder=folder)
 
         def take(i: int, rec) -> bool:  # one mapping's answer; True: the remaining mappings are skipped
             nonlocal got
@@ -159,13 +160,15 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
 
 
 def planar_path(database: Path, names: list[str], image_size: tuple[int, int], config: MultiViewConfig,
-                settings: LensdistConfig | None) -> dict:
-    """The homography model on a COLMAP database (its verified matches, then guided ones), as a strict-JSON-ready dict.
+                settings: LensdistConfig | None, folder: Path | None = None) -> dict:
+    """The homography model on a COLMAP database (its verified matches, then guided and refined ones), as a dict.
 
+    ``folder`` holds the frames ``names`` (the refinement reads them; None: no refinement).
     ``ok`` False with a ``reason`` where it has no answer (too few pairs of matches); otherwise the
-    fields of :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration`.
+    fields of :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration` (strict-JSON-ready).
     """
-    res = self_calibrate_guided(database, names, image_size, config, settings)
+    images = None if folder is None else (lambda v: load_image(Path(folder) / names[v], max_pixels=None)[0, 0])
+    res = self_calibrate_guided(database, names, image_size, config, settings, images=images)
     if not math.isfinite(res.delta_avg_user_px):
         return {"ok": False, "reason": res.reason}
     return {"ok": True, **res._asdict()}

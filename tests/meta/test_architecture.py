@@ -29,6 +29,7 @@ LAYERS = [
     ("geometry.planar_features", 2),
     ("geometry.planar_model", 2),
     ("geometry.guided_matching", 2),
+    ("geometry.match_refinement", 2),
     ("geometry.", 1),
     ("classify.", 2),
     ("data.", 3),
