@@ -34,6 +34,19 @@ def _guided(pl: dict) -> str:
             f"fit on the verified matches: {first['pairs']} pairs, Delta_avg {first['delta_avg_user_px']:.2f} px)")
 
 
+def _refined(pl: dict) -> str:
+    """What the sub-pixel refinement of its matches did for the homography model, where it ran."""
+    r = pl.get("refined")
+    if not isinstance(r, dict):
+        return ""
+    if not r.get("used"):
+        return f"; its matches refined found no answer ({r.get('reason')}): the fit before"
+    before = r["before"]
+    return (f"; on sub-pixel matches ({r['kept']} of {r['matches']} kept, moved {r['median_shift_px']:.2f} px median; "
+            f"before: {before['pairs']} pairs, RMS {before['reprojection_px']:.2f} px, Delta_avg "
+            f"{before['delta_avg_user_px']:.2f} px)")
+
+
 def _print_calibration(res: dict) -> None:
     (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
     unregistered = f" ({res['pairs_unregistered']} not registered)" if res.get("pairs_unregistered") else ""
@@ -52,7 +65,7 @@ def _print_calibration(res: dict) -> None:
         print(f"homography model: {pl['pairs']} pairs, {pl['inliers']} of {pl['matches']} matches on one homography per "
               f"pair, {pl['terms']} radial terms about ({pl['centre'][0]:.1f}, {pl['centre'][1]:.1f}) (by BIC), RMS "
               f"{pl['reprojection_px']:.2f} px, Delta_avg {pl['delta_avg_user_px']:.2f} px "
-              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl) + _guided(pl))
+              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl) + _guided(pl) + _refined(pl))
     print(f"answer from: {res['method']}")
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")

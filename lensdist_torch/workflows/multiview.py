@@ -213,7 +213,7 @@ def combine(direct: dict, mv: dict | None) -> dict:
          **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife", "jackknife_coefficients",
                                    "jackknife_centres", "coefficients", "model", "centre", "bending_halfwidth_px", "matched_fraction",
                                    "invertible_fraction", "eq4_fit_error_px", "opencv", "opencv_rational")},
-         "guided": planar.get("guided")})  # None where guided matching did not run
+         "guided": planar.get("guided"), "refined": planar.get("refined")})  # None where they did not run
     if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
         return out
     z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)

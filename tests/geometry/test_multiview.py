@@ -225,6 +225,9 @@ def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_re
     guided = {"used": True, "reason": "", "pairs_verified": 197, "pairs_matched": 143, "matches": 6596, "radius_px": 3.0,
               "first_fit": {"pairs": 38}}
     assert combine(direct, {**mv, "planar": {**mv["planar"], "guided": guided}})["planar"]["guided"] == guided
+    assert out["planar"]["refined"] is None  # and what the sub-pixel refinement did
+    refined = {"used": True, "reason": "", "kept": 2845, "matches": 6594, "median_shift_px": 0.92, "before": {"pairs": 131}}
+    assert combine(direct, {**mv, "planar": {**mv["planar"], "refined": refined}})["planar"]["refined"] == refined
     # relief found by the direct path's plane + parallax test: one homography per pair would absorb it
     relief = combine({**direct, "relief_z": 5.6}, mv)
     assert relief["method"] != "planar" and relief["class"] is None

@@ -305,6 +305,16 @@ def test_the_homography_models_line_says_what_guided_matching_did(capsys):
     line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
     assert line.endswith("; on guided matches (6530 in 144 of 197 verified pairs; the first fit on the verified matches: "
                          "40 pairs, Delta_avg 134.91 px)")
+    # and what the sub-pixel refinement did after it, where it answered and where it did not
+    before = {"pairs": 131, "reprojection_px": 0.948, "delta_avg_user_px": 143.94}
+    for refined, tail in (({"used": True, "reason": "", "kept": 2845, "matches": 6594, "median_shift_px": 0.917, "before": before},
+                           "; on sub-pixel matches (2845 of 6594 kept, moved 0.92 px median; before: 131 pairs, RMS 0.95 px, "
+                           "Delta_avg 143.94 px)"),
+                          ({"used": False, "reason": "too few pairs", "kept": 10, "matches": 6594, "median_shift_px": 0.9,
+                            "before": before}, "; its matches refined found no answer (too few pairs): the fit before")):
+        _print_calibration({**res, "planar": {**planar, "refined": refined}})
+        line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
+        assert line.endswith(tail) and "on guided matches (6530" in line
 
 
 @pytest.mark.parametrize("standard_error,lines", [(12.38, 2), (0.05, 1)])
