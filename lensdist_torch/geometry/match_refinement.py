@@ -188,6 +188,9 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
         ready.move_to_end(v)
         return ready[v]
 
+    def inside(x):  # the whole patch within the frame
+        return (x[:, 0] >= half) & (x[:, 1] >= half) & (x[:, 0] <= w - 1 - half) & (x[:, 1] <= h - 1 - half)
+
     x1s, x2s, pairs, first, second, shifts = [], [], [], [], [], []
     order = sorted(range(len(matches.first)), key=lambda p: (int(matches.first[p]), int(matches.second[p])))
     for p in order:
@@ -198,7 +201,6 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
         sel = (matches.pair == p).nonzero()[:, 0]
         x1, x2 = matches.x1[sel], matches.x2[sel]
         moved, ncc, ok = align_patches(view(i), view(j), x1, x2, local_affines(x1, hm, coefficients, centre, size), half)
-        inside = lambda x: (x[:, 0] >= half) & (x[:, 1] >= half) & (x[:, 0] <= w - 1 - half) & (x[:, 1] <= h - 1 - half)  # noqa: E731
         shift = (moved - x2).norm(dim=1)
         keep = ok & (ncc >= cfg.planar_refine_ncc) & (shift <= cfg.planar_inlier_px) & inside(x1) & inside(moved)
         if int(keep.sum()) < cfg.planar_min_matches:
