@@ -49,7 +49,8 @@ from lensdist_torch.geometry.planar_features import (
 )
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
-__all__ = ["chain_views", "guided_matches", "pair_homography", "read_features", "self_calibrate_guided"]
+__all__ = ["chain_views", "guided_matches", "pair_homography", "read_features", "refined_matches",
+           "self_calibrate_guided"]
 
 
 def read_features(database, names: list[str]) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -272,19 +273,40 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     if (images is None or cfg.planar_refine_px <= 0 or not math.isfinite(res.delta_avg_user_px)
             or res.inlier_share < cfg.planar_min_inlier_share):
         return res
-    pairs, views = chain_views(used, res.coefficients, res.centre, size, cfg)
-    hs = {}
-    for i, j in zip(used.first.tolist(), used.second.tolist()):
-        hm = pair_homography(pairs, views, i, j)
-        if hm is not None:
-            hs[(i, j)] = hm
-    refined, info = refine_matches(thin_matches(used, 2 * cfg.planar_pair_matches), images, hs, res.coefficients,
-                                   res.centre, size, cfg)
+    refined, info = refined_matches(used, images, res.coefficients, res.centre, size, cfg)
     info = {**info, "half_px": cfg.planar_refine_px, "before": _figures(res)}
     again = self_calibrate_planar(refined, size, cfg, settings, start=res.coefficients, plane_share=first.inlier_share)
     if not math.isfinite(again.delta_avg_user_px):
         return res._replace(refined={**info, "used": False, "reason": again.reason})
     return again._replace(guided=res.guided, refined={**info, "used": True, "reason": ""})
+
+
+def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor], coefficients, centre,
+                    size: tuple[int, int], config: MultiViewConfig | None = None):
+    """A sequence's matches moved to sub-pixel agreement under a lens (the refinement of :func:`self_calibrate_guided`).
+
+    Each pair's homography is its own where it counts, the chain's otherwise (:func:`chain_views`);
+    each pair's matches are thinned to twice ``planar_pair_matches`` first.
+
+    Args:
+        matches: :class:`~lensdist_torch.geometry.planar_features.PlanarMatches` (verified or guided).
+        images: view index (into ``matches.names``) -> its (H, W) grey image in [0, 1].
+        coefficients: the lens's a_1 .. a_n.
+        centre: its distortion centre (x, y) in pixels; None: the frame centre.
+        size: the frames' (H, W).
+        config: :class:`~lensdist_torch.config.MultiViewConfig`.
+
+    Returns:
+        (matches, info) as :func:`~lensdist_torch.geometry.match_refinement.refine_matches` gives them.
+    """
+    cfg = or_defaults(config, MultiViewConfig)
+    pairs, views = chain_views(matches, coefficients, centre, size, cfg)
+    hs = {}
+    for i, j in zip(matches.first.tolist(), matches.second.tolist()):
+        hm = pair_homography(pairs, views, i, j)
+        if hm is not None:
+            hs[(i, j)] = hm
+    return refine_matches(thin_matches(matches, 2 * cfg.planar_pair_matches), images, hs, coefficients, centre, size, cfg)
 
 
 def _figures(res) -> dict:
