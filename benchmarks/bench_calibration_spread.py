@@ -9,7 +9,8 @@ change of the coefficients moves Delta by a lot. This benchmark calibrates again
 corners (CORNERS.json: per view ``image_points`` and the board's ``object_points_xy``) with
 ``cv2.calibrateCamera`` under the choices a careful user could make (OpenCV's 5 coefficients as
 published; the 8 of its rational model; each on the even and on the odd views), and reports for
-each its reprojection RMS, Delta_avg where it inverts, where the published calibration inverts
+each its reprojection RMS, its held-out RMS (fitted on one half of the views, each view of the
+other half posed under those intrinsics; the all-views row: both halves pooled), Delta_avg where it inverts, where the published calibration inverts
 (and it too), and over the board's region (the pixels inside some view's board, where the corners
 measure the lens). ANSWER.json: the JSON of
 ``lensdist calibrate FRAMES --json`` (or ``bench_real_calibration.py``'s report); its homography
@@ -45,8 +46,30 @@ def board_region(corners: dict, size: tuple[int, int], points: torch.Tensor) -> 
     return torch.from_numpy(mask.astype(bool))[points[:, 1].round().long(), points[:, 0].round().long()]
 
 
+def held_out_rms(obj, img: list, k, dist) -> tuple[float, int]:
+    """Sum of squared reprojection errors (px^2) of views ``img`` under fixed intrinsics (k, dist), and the corners counted.
+
+    Each view's pose by ``cv2.solvePnP`` refined by ``cv2.solvePnPRefineLM``; the intrinsics stay as fitted on other views.
+    """
+    import cv2
+
+    se, n = 0.0, 0
+    for pts in img:
+        _, rv, tv = cv2.solvePnP(obj, pts, k, dist)
+        rv, tv = cv2.solvePnPRefineLM(obj, pts, k, dist, rv, tv)
+        proj, _ = cv2.projectPoints(obj, rv, tv, k, dist)
+        se += float(((proj - pts) ** 2).sum())
+        n += len(obj)
+    return se, n
+
+
 def calibrations(corners: dict, size: tuple[int, int]) -> list[dict]:
-    """The board calibrated again from ``corners``: OpenCV's standard and rational models, all, even and odd views."""
+    """The board calibrated again from ``corners``: OpenCV's standard and rational models, all, even and odd views.
+
+    Each half's row carries ``held_out_rms_px``: its intrinsics' reprojection RMS on the other half's
+    views (poses fitted there, the intrinsics held); the all-views row the two halves' pooled, the
+    cross-validated error by which a careful user would choose the model.
+    """
     import cv2
 
     h, w = size
@@ -61,8 +84,16 @@ def calibrations(corners: dict, size: tuple[int, int]) -> list[dict]:
             sel = list(sel)
             rms, k, dist, _, _ = cv2.calibrateCamera([obj] * len(sel), [img[i] for i in sel], (w, h), None, None, flags=flags)
             dist = dist.ravel()[: 8 if flags else 5]
-            out.append({"model": model, "views": part, "n_views": len(sel), "rms_px": float(rms), "K": k.tolist(),
-                        "dist": dist.tolist()})
+            row = {"model": model, "views": part, "n_views": len(sel), "rms_px": float(rms), "K": k.tolist(),
+                   "dist": dist.tolist()}
+            if part != "all views":
+                row["held_out_sse"], row["held_out_n"] = held_out_rms(obj, [img[i] for i in range(len(views)) if i not in sel],
+                                                                      k, dist)
+                row["held_out_rms_px"] = float(np.sqrt(row["held_out_sse"] / row["held_out_n"]))
+            out.append(row)
+        halves = out[-2:]
+        out[-3]["held_out_rms_px"] = float(np.sqrt(sum(r.pop("held_out_sse") for r in halves) /
+                                                   sum(r.pop("held_out_n") for r in halves)))
     return out
 
 
@@ -85,16 +116,17 @@ def main() -> None:
     rows = []
     print(f"the board's region: {100 * float(board.double().mean()):.1f} % of the frame; the published calibration "
           f"inverts on {100 * float(published.double().mean()):.1f} %")
-    print("| calibration | views | RMS (px) | inverts | Delta_avg where it inverts | where the published one inverts | "
-          "over the board's region |")
-    print("|---|---|---|---|---|---|---|")
+    print("| calibration | views | RMS (px) | held out (px) | inverts | Delta_avg where it inverts | where the published one "
+          "inverts | over the board's region |")
+    print("|---|---|---|---|---|---|---|---|")
     for c in calibrations(corners, (h, w)):
         ideal, ok = opencv_ideal_points(g, torch.tensor(c["K"], dtype=torch.float64), torch.tensor(c["dist"], dtype=torch.float64))
         off = (ideal - g).norm(dim=-1)
         c.update(invertible_fraction=float(ok.double().mean()), delta_avg_own_px=float(off[ok].mean()),
                  delta_avg_inverts_px=float(off[published & ok].mean()), delta_avg_board_px=float(off[board & ok].mean()))
         rows.append(c)
-        print(f"| {c['model']} | {c['views']} ({c['n_views']}) | {c['rms_px']:.3f} | {100 * c['invertible_fraction']:.1f} % | "
+        print(f"| {c['model']} | {c['views']} ({c['n_views']}) | {c['rms_px']:.3f} | {c['held_out_rms_px']:.3f} | "
+              f"{100 * c['invertible_fraction']:.1f} % | "
               f"{c['delta_avg_own_px']:.2f} | {c['delta_avg_inverts_px']:.2f} | {c['delta_avg_board_px']:.2f} |")
     report = {"calibrations": rows, "board_fraction": float(board.double().mean())}
     planar = res.get("planar") or {}

@@ -14,7 +14,9 @@ homography apart. This benchmark finds the frames' matches as ``lensdist calibra
 refinement under ANSWER's lens: :func:`~lensdist_torch.geometry.guided_matching.guided_matches`,
 :func:`~lensdist_torch.geometry.guided_matching.refined_matches`) and judges each lens on them:
 the published calibration, the board calibrated again (``bench_calibration_spread.calibrations``:
-OpenCV's standard and rational models on all, even and odd views), and ANSWER's homography model,
+OpenCV's standard and rational models on all, even and odd views), COLMAP's camera where ANSWER
+carries one (``multiview``: its self-calibration by bundle adjustment on the same frames, an
+OpenCV model), and ANSWER's homography model,
 both as answered (fitted on these matches: in-sample) and held out (fitted on every other pair,
 judged on the rest, and the other way round; :func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`).
 
@@ -153,6 +155,9 @@ def main() -> None:
     lenses = [("published", "standard (5)", "all views", opencv_lens(cal["K"], cal["dist"]), None)]
     lenses += [("refit", c["model"], c["views"], opencv_lens(c["K"], c["dist"]), None) for c in calibrations(corners, size)]
     lenses.append(("answer", "homography model", "in-sample", radial_lens(planar["coefficients"], planar["centre"], size), None))
+    mv = res.get("multiview") or {}
+    if mv.get("camera_matrix") and mv.get("dist_coeffs"):  # COLMAP's self-calibration on the same frames
+        lenses.append(("COLMAP", mv.get("model", ""), "its reconstruction", opencv_lens(mv["camera_matrix"], mv["dist_coeffs"]), None))
     g = grid_points(*size, 2)
     g = g[opencv_lens(cal["K"], cal["dist"])[0](g)[1]]  # where the published calibration inverts
     rows = []

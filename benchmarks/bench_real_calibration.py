@@ -9,7 +9,9 @@ coefficients}} (its chessboard calibration). What runs is the user's path, ``cal
 multi-view answer from ``multiview.reconstructions`` mappings, each listed). Beside it:
 every COLMAP camera model fitted by bundle adjustment on the same tracks (what COLMAP gives with
 that model fixed), the homography model (``multiview.planar_*``: one lens and one homography per
-pair on the same matches) and the direct path alone. ``--answer`` checks a saved answer (the JSON
+pair on the same matches) and the direct path alone, each over the pixels where the calibration
+inverts (the truth's; the direct path, and an answer saved before the models carried their
+cameras, over their own). ``--answer`` checks a saved answer (the JSON
 of ``lensdist calibrate FRAMES --json``) instead of running it again. The truth is Delta = |p - undistortPoints(p, K, dist,
 P=K)| run to convergence, over the pixels where the calibration's model inverts.
 
@@ -120,16 +122,30 @@ def main() -> None:
     seconds = float("nan") if args.answer else time.perf_counter() - t0
     h, w = res["image_size"]
     truth = opencv_delta(torch.tensor(cal["K"]), torch.tensor(cal["dist"]), h, w, step=2)
-    rows = [("lensdist calibrate (answer)", res.get("method"), res["delta_avg_user_px"], res["delta_avg_user_interval"],
-             res["class"], res.get("reason"))]
+    pl = res.get("planar") or {}
+    on_truth = None  # the homography model where the calibration inverts (its interval from its replicates, same rules)
+    if pl.get("coefficients"):
+        g = grid_points(h, w, 2)
+        _, ok_t = opencv_ideal_points(g, torch.tensor(cal["K"]), torch.tensor(cal["dist"]))
+        on_truth = delta_avg_where(pl, g[ok_t], h, w, MultiViewConfig(confidence=res.get("confidence", 0.95)))
+    own = f"{res['delta_avg_user_px']:.2f} px over its own footprint"
+    if res.get("method") == "planar" and on_truth is not None:
+        rows = [("lensdist calibrate (answer)", "planar", on_truth[0], on_truth[1], res["class"], own)]
+    else:
+        rows = [("lensdist calibrate (answer)", res.get("method"), res["delta_avg_user_px"], res["delta_avg_user_interval"],
+                 res["class"], (res.get("reason") or "") + " (over its own footprint)")]
     mv = res.get("multiview") or {}
     for model, v in (mv.get("models") or {}).items():
-        rows.append((f"COLMAP, {model} fixed (same tracks)", f"BIC {v['bic']:.0f}", v["delta_avg_px"], None, None,
-                     f"reprojection {v['reprojection_px']:.3f} px"))
-    pl = res.get("planar") or {}
+        if "camera_matrix" in v:  # its Delta where the calibration inverts, as the truth's (an answer saved before: its own footprint)
+            value = on_footprint(v["camera_matrix"], v["dist_coeffs"], cal["K"], cal["dist"], (h, w), step=2)
+            note = f"reprojection {v['reprojection_px']:.3f} px; {v['delta_avg_px']:.2f} px where it inverts"
+        else:
+            value, note = v["delta_avg_px"], f"reprojection {v['reprojection_px']:.3f} px; where it inverts, not the truth's pixels"
+        rows.append((f"COLMAP, {model} fixed (same tracks)", f"BIC {v['bic']:.0f}", value, None, None, note))
     if "terms" in pl:
-        rows.append(("lensdist, homography model", f"{pl['terms']} terms, {pl['pairs']} pairs", pl["delta_avg_user_px"],
-                     pl["delta_avg_user_interval"], pl["class"], pl.get("reason")))
+        value, iv = on_truth if on_truth is not None else (pl["delta_avg_user_px"], pl["delta_avg_user_interval"])
+        rows.append(("lensdist, homography model", f"{pl['terms']} terms, {pl['pairs']} pairs", value, iv, pl["class"],
+                     pl.get("reason") or f"{pl['delta_avg_user_px']:.2f} px over its own footprint"))
     d = res["direct"]
     rows.append(("lensdist, direct path alone", "pairs", d["delta_avg_user_px"], d["delta_avg_user_interval"], d["class"],
                  d.get("reason")))
@@ -180,10 +196,7 @@ def main() -> None:
         if planar.get("coefficients"):  # the homography model's own lens map, beside its OpenCV export
             a, centre = planar["coefficients"], planar["centre"]
             maps["homography model (its lens map)"] = lambda p: lens_ideal_points(p, a, h, w, centre)
-            g = grid_points(h, w, 2)
-            _, ok_t = opencv_ideal_points(g, torch.tensor(cal["K"]), torch.tensor(cal["dist"]))
-            # the answer's interval, its replicates and models measured where the calibration inverts (same rules)
-            value, iv = delta_avg_where(planar, g[ok_t], h, w, MultiViewConfig(confidence=res.get("confidence", 0.95)))
+            value, iv = on_truth
             report["planar_on_truth_footprint"] = {"delta_avg_px": value, "interval": iv,
                                                    "covers": iv[0] <= truth["delta_avg_px"] <= iv[1]}
             for name, model in (("opencv", "standard"), ("opencv_rational", "rational")):  # its exports, about its centre

@@ -74,7 +74,9 @@ class MultiViewCalibration(NamedTuple):
     the model inverts (``invertible_fraction`` of them), with ``confidence`` intervals;
     k2_user, k4_user: eq. 4 fitted to the camera, ``eq4_fit_error_px`` its RMS error;
     class_label or None with ``reason``; registered of ``frames``; points3D; reprojection_px
-    (RMS of the chosen model); models: per fitted model its BIC, Delta_avg and RMS;
+    (RMS of the chosen model); models: per fitted model its BIC, Delta_avg (over where it
+    inverts), RMS, rotation spread and OpenCV camera (``camera_matrix``, ``dist_coeffs``: Delta on
+    another footprint from it);
     jackknife: the leave-a-block-out Delta_avg values; rotation_spread_deg: the largest
     rotation between two frames (below ``min_rotation_deg``: degenerate, no class);
     reconstructions: per seed of the mapping its numbers (set by
@@ -389,8 +391,9 @@ def self_calibrate_reconstruction(
         dl = _deltas(_camera(r), size, scale, step)
         bic = 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n)
         fitted[model], deltas[model] = r, dl
+        km, dm = opencv_from_colmap(_camera(r), scale)
         table[model] = {"bic": bic, "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(ss / max(n, 1)),
-                        "rotation_deg": rotation_spread_deg(r)}
+                        "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist()}
     best = min(table, key=lambda m: table[m]["bic"])
     chosen, cam, dl = fitted[best], _camera(fitted[best]), deltas[best]
     spread = model_spread(table, best, cfg)
