@@ -96,8 +96,9 @@ def on_footprint(k, dist, truth_k, truth_dist, size: tuple[int, int], step: int 
     """Delta_avg (px) of (k, dist) over the pixels where both it and the truth's model invert."""
     h, w = size
     p = grid_points(h, w, step)
-    _, ok_t = opencv_ideal_points(p, torch.tensor(truth_k), torch.tensor(truth_dist))
-    ideal, ok = opencv_ideal_points(p, torch.tensor(k), torch.tensor(dist))
+    f64 = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    _, ok_t = opencv_ideal_points(p, f64(truth_k), f64(truth_dist))
+    ideal, ok = opencv_ideal_points(p, f64(k), f64(dist))
     both = ok & ok_t
     return float((ideal - p).norm(dim=-1)[both].mean()) if bool(both.any()) else float("nan")
 
