@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from lensdist_torch.config import MultiViewConfig
-from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_delta, opencv_ideal_points
 from lensdist_torch.workflows.multiview import combine
 
 cv2 = pytest.importorskip("cv2")
@@ -119,6 +119,13 @@ def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_t
     rotations = [v["rotation_deg"] for v in res.models.values()]
     assert res.rotation_spread_deg == min([rotation_spread_deg(rec), *rotations])
     assert all(r > 0 for r in rotations)
+    # every model keeps its OpenCV camera: its Delta from it is the table's, and the chosen one's is the answer's
+    for v in res.models.values():
+        f64 = {"dtype": torch.float64}
+        own = opencv_delta(torch.tensor(v["camera_matrix"], **f64), torch.tensor(v["dist_coeffs"], **f64), 480, 640,
+                           step=map_grid_step(480, 640))
+        assert own["delta_avg_px"] == pytest.approx(v["delta_avg_px"], rel=1e-9)
+    assert res.models[res.model]["camera_matrix"] == res.camera_matrix
 
 
 def test_models_within_the_rms_margin_join_the_spread():
