@@ -23,6 +23,7 @@ condition also checks itself: at the config's own prior the recomputed confidenc
 reproduce``.)
 
     python benchmarks/bench_relief_test.py --n 400 --threads 1 --out docs/results/bench_relief_test.json
+        [--set selfcal.parallax_px=0.2]
 """
 
 from __future__ import annotations
@@ -100,19 +101,35 @@ def per_pair(results: list[dict], data: dict) -> dict:
             **{k: [r.get(k) for r in results] for k in PER_PAIR}}
 
 
+def with_settings(cfg: LensdistConfig, settings: list[str]) -> LensdistConfig:
+    """``cfg`` with each SECTION.FIELD=VALUE of ``settings`` (the value typed as the field's default)."""
+    for item in settings:
+        key, _, value = item.partition("=")
+        section, _, field = key.partition(".")
+        sub = getattr(cfg, section, None)
+        if sub is None or not dataclasses.is_dataclass(sub) or not hasattr(sub, field) or not value:
+            raise SystemExit(f"error: --set must be SECTION.FIELD=VALUE of the config, got {item!r}")
+        old = getattr(sub, field)
+        new = value.lower() == "true" if isinstance(old, bool) else type(old)(value)
+        cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(sub, **{field: new})})
+    return cfg
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=96, help="the first N distorted validation pairs per condition")
     ap.add_argument("--batch", type=int, default=8, help="pairs rendered and registered together")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                    help="a setting changed in every condition's config (e.g. selfcal.parallax_px=0.2)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     if a.n < 1 or a.batch < 1 or a.threads < 1:
         ap.error("--n, --batch and --threads must be positive")
     torch.set_num_threads(a.threads)
-    out = {"priors": list(PRIORS), "conditions": {}}
+    out = {"priors": list(PRIORS), "settings": list(a.set), "conditions": {}}
     for name, path in CONDITIONS.items():
-        cfg = load_config(path)
+        cfg = with_settings(load_config(path), a.set)
         t0 = time.perf_counter()
         data, results = condition(cfg, a.n, a.batch)
         by_prior, cannot = {}, {}

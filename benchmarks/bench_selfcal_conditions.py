@@ -9,8 +9,8 @@ median |error| / std and the share within 2 std (is the std honest?), pairs belo
 realistic effect alone.
 
     python benchmarks/bench_selfcal_conditions.py --scene brick --variant iterations=12,6,3
-    python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --set parallax_px=1.5 \
-        --only parallax_px --variant clusters=0
+    python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --set relief=0.03 \
+        --only relief --variant parallax=0
     python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --effects \
         [--registration match_intensity=false]
 """
@@ -33,10 +33,10 @@ from lensdist_torch.geometry.selfcal import estimate_distortion
 #: Each realistic effect's "off" values (configs/realistic.toml turns them all on).
 EFFECTS_OFF = {
     "gain_range": (1.0, 1.0), "offset_range": (0.0, 0.0), "gamma_range": (1.0, 1.0), "illumination": 0.0,
-    "noise_range": (0.0, 0.0), "jpeg_quality": (100, 100), "parallax_px": 0.0, "occluder_rate": 0.0,
+    "noise_range": (0.0, 0.0), "jpeg_quality": (100, 100), "relief": 0.0, "occluder_rate": 0.0,
 }
 EFFECTS = {"gain+offset": ("gain_range", "offset_range"), "gamma": ("gamma_range",), "illumination": ("illumination",),
-           "noise+jpeg": ("noise_range", "jpeg_quality"), "parallax": ("parallax_px",), "occluder": ("occluder_rate",)}
+           "noise+jpeg": ("noise_range", "jpeg_quality"), "relief": ("relief",), "occluder": ("occluder_rate",)}
 
 
 def _value(text: str):
@@ -89,7 +89,7 @@ def main() -> None:
     ap.add_argument("--config", default=None, help="TOML config (default: the defaults)")
     ap.add_argument("--scene", default="gravel", help="embedded scene")
     ap.add_argument("--n", type=int, default=96, help="test pairs")
-    ap.add_argument("--only", default="", help="comma-separated realistic fields to keep on (e.g. parallax_px)")
+    ap.add_argument("--only", default="", help="comma-separated realistic fields to keep on (e.g. relief)")
     ap.add_argument("--set", action="append", default=[], help="protocol FIELD=VALUE (commas for pairs)")
     ap.add_argument("--registration", action="append", default=[], help="registration FIELD=VALUE")
     ap.add_argument("--variant", action="append", default=[], help="selfcal FIELD=VALUE[,VALUE...][;FIELD=...] beside the default")
