@@ -50,6 +50,7 @@ from lensdist_torch.geometry.multiview import extract_and_match
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_distort_full, opencv_ideal_points
 from lensdist_torch.geometry.planar_features import PlanarMatches, read_verified_matches, self_calibrate_planar
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
+from lensdist_torch.workflows.calibrate import list_frames
 
 
 def opencv_lens(k, dist):
@@ -133,7 +134,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     frames = Path(args.frames)
-    names = sorted(p.name for p in frames.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    names = [p.name for p in list_frames(frames)]  # as `lensdist calibrate` orders them
     cal = json.loads(Path(args.calibration).read_text())["primary"]
     corners = json.loads(Path(args.corners).read_text())
     res = json.loads(Path(args.answer).read_text())

@@ -17,13 +17,14 @@ confidence (registration, overlap, no estimate, motion, relief: outside
 below ``analysis.min_confidence``. Reported per condition and prior: right or "cannot tell",
 "cannot tell", right among confident answers, confident wrong, and the ECE of the confidence over
 the scored pairs, the pairs whose answer the confidence decides (as ``lensdist reproduce``
-reports it); the chosen prior is the one whose largest ECE over the conditions is least. Each
+reports it; with ``--undistorted`` also each condition's class-R validation pairs: the share
+answered R); the chosen prior is the one whose largest ECE over the conditions is least. Each
 condition also checks itself: at the config's own prior the recomputed confidences and
 "cannot tell"s must be ``analyze``'s (``check``). (The class-R pairs are left to ``lensdist
 reproduce``.)
 
     python benchmarks/bench_relief_test.py --n 400 --threads 1 --out docs/results/bench_relief_test.json
-        [--set selfcal.parallax_px=0.2]
+        [--set selfcal.parallax_px=0.2] [--undistorted]
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.data.shards import generate, load_set
 from lensdist_torch.data.synthesis import draw_pairs
-from lensdist_torch.geometry.distortion import CLASS_LABELS
+from lensdist_torch.geometry.distortion import CLASS_LABELS, REJECT
 from lensdist_torch.workflows.confidence import expected_calibration_error
 from lensdist_torch.workflows.decision_fit import confidences, outcomes, scored_pairs, validation_config
 from lensdist_torch.workflows.evaluate import analyze_test_set
@@ -60,6 +61,30 @@ def condition(cfg: LensdistConfig, n: int, batch: int) -> tuple[dict, list[dict]
         generate(val, tmp, sets=["test"], batch_size=batch, limit=min(n, val.protocol.n_test_distorted), progress=False)
         data = load_set(tmp, "test")
     return data, analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
+
+
+def undistorted(cfg: LensdistConfig, batch: int) -> dict:
+    """The validation split's class-R pairs (no lens, the protocol's perturbed registration) as ``analyze`` answers them.
+
+    Returns the pairs, the share answered R (right), "cannot tell" by reason, and other classes.
+    """
+    val = validation_config(cfg)
+    with tempfile.TemporaryDirectory() as tmp:  # the class-R pairs follow the distorted ones
+        generate(val, tmp, sets=["test"], batch_size=batch, progress=False)
+        data = load_set(tmp, "test")
+    n = data["index"].numel()
+    keep = torch.arange(val.protocol.n_test_distorted, n)
+    data = {k: (v[keep] if torch.is_tensor(v) and v.ndim and v.shape[0] == n else v) for k, v in data.items()}
+    results = analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
+    reasons: dict = {}
+    for r in results:
+        for why in r["cannot_tell_reasons"] if r["cannot_tell"] else []:
+            reasons[why] = reasons.get(why, 0) + 1
+    m = max(1, len(results))
+    called = [r["estimated_class"] for r in results if not r["cannot_tell"]]
+    return {"pairs": len(results), "called_r": round(100 * called.count(CLASS_LABELS[REJECT]) / m, 2),
+            "cannot_tell": round(100 * sum(bool(r["cannot_tell"]) for r in results) / m, 2), "cannot_tell_by_reason": reasons,
+            "other_class": len(called) - called.count(CLASS_LABELS[REJECT])}
 
 
 def with_prior(cfg: LensdistConfig, prior: float) -> LensdistConfig:
@@ -122,6 +147,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                     help="a setting changed in every condition's config (e.g. selfcal.parallax_px=0.2)")
+    ap.add_argument("--undistorted", action="store_true",
+                    help="also analyse each condition's class-R validation pairs (share answered R)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     if a.n < 1 or a.batch < 1 or a.threads < 1:
@@ -141,6 +168,9 @@ def main() -> None:
         out["conditions"][name] = {"config": path, "seconds": round(time.perf_counter() - t0, 1), "pairs": len(results),
                                    "by_prior": by_prior, "check": check, "per_pair": per_pair(results, data)}
         print(name, dumps_strict(by_prior), "check", dumps_strict(check), flush=True)
+        if a.undistorted:
+            out["conditions"][name]["undistorted"] = undistorted(cfg, a.batch)
+            print(name, "class-R pairs", dumps_strict(out["conditions"][name]["undistorted"]), flush=True)
     worst = {f"{w:g}": max(c["by_prior"][f"{w:g}"]["ece"] for c in out["conditions"].values()) for w in PRIORS}
     out["largest_ece_by_prior"] = worst
     out["chosen_prior"] = float(min(worst, key=lambda k: (worst[k], -float(k))))
