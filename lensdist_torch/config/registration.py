@@ -138,7 +138,10 @@ class SelfCalConfig:
             weigh in the confidence (``analysis.flat_prior``).
         parallax_width: the bumps' sigma, in half-diagonals.
         parallax_px: the std (px) of the Gaussian prior on each bump's height: how far a
-            relief may move points, as the user expects it (MAP; larger: freer relief).
+            relief may move points (MAP; larger: freer relief). 0.2 since 2026-11-28 (1 before),
+            chosen on validation pairs: on the realistic protocol the model's freedom mostly fits
+            noise and JPEG (docs/method.md, section 10); the sequence path keeps its own
+            (``calibration.parallax_px``).
         parallax_iterations: LM iterations of the plane + parallax model at full size, started
             from the planar fit.
         parallax_block: its samples: the strongest-gradient pixel of every block x block cell.
@@ -184,7 +187,7 @@ class SelfCalConfig:
     clusters: int = 6
     parallax: int = 5
     parallax_width: float = 0.3
-    parallax_px: float = 1.0
+    parallax_px: float = 0.2
     parallax_iterations: int = 6
     parallax_test: float = 2.0
     parallax_block: int = 2

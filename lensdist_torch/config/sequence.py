@@ -52,6 +52,9 @@ class CalibrationConfig:
             the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
+        parallax_px: the prior std (px) of each bump's height in those pairs (``selfcal.parallax_px``
+            for the sequence path): 1 px, with which its relief figures and ``relief_rel`` were
+            measured (the single pair's default became 0.2 px on 2026-11-28).
         registered_start: the pairs the pooling would not count (unregistered ones included), or
             that lie more than 3 of their own sigma from its value, are fitted again from their own registration
             (``estimate_homography_robust``: direct, then features + RANSAC; its homography even
@@ -89,6 +92,7 @@ class CalibrationConfig:
     max_class_halfwidth_px: float = 1.0
     verify_pairs: int = 6
     parallax: int = 5
+    parallax_px: float = 1.0
     registered_start: bool = True
 
     def __post_init__(self) -> None:
@@ -104,7 +108,7 @@ class CalibrationConfig:
             raise ValueError(f"calibration.motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, "
                              f"got {show(steps)}")
         object.__setattr__(self, "motion_steps", tuple(float(v) for v in steps))
-        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_misfit", "max_class_halfwidth_px"):
+        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_misfit", "max_class_halfwidth_px", "parallax_px"):
             real(self, name, lo=0, lo_open=True)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "systematic_rel", lo=0, hi=1, hi_open=True)

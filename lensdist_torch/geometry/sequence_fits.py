@@ -84,7 +84,7 @@ def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
 
 def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
     """Step 3 per pair, from the phase correlation's translations: [(a, b) (P, 2), std (P,), residual (P,), planar, relief, misfit (P,)]."""
-    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)  # the sequence path's relief model
+    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px)  # the sequence path's relief model
     parts = []
     for s in range(0, len(pairs), cfg.batch_size):
         sl = slice(s, s + cfg.batch_size)
@@ -109,7 +109,7 @@ def refit_from_registration(frames, pairs, shifts, fits, retry, settings: Lensdi
     better of that start and the phase correlation's and replaces the first fit where its
     residual is lower. Returns the refitted pairs (P,) bool.
     """
-    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax)
+    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     idx = retry.nonzero()[:, 0]
     for s in range(0, len(idx), cfg.batch_size):
