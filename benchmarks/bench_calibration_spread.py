@@ -77,23 +77,20 @@ def calibrations(corners: dict, size: tuple[int, int]) -> list[dict]:
     obj = np.asarray(corners["object_points_xy"], np.float32)
     obj = np.concatenate([obj, np.zeros((len(obj), 1), np.float32)], 1)
     img = [np.asarray(corners["image_points"][v], np.float32).reshape(-1, 1, 2) for v in views]
+    even, odd = list(range(0, len(views), 2)), list(range(1, len(views), 2))
     out = []
     for model, flags in (("standard (5)", 0), ("rational (8)", cv2.CALIB_RATIONAL_MODEL)):
-        for part, sel in (("all views", range(len(views))), ("even views", range(0, len(views), 2)),
-                          ("odd views", range(1, len(views), 2))):
-            sel = list(sel)
+        rows, held = [], []
+        for part, sel, other in (("all views", even + odd, []), ("even views", even, odd), ("odd views", odd, even)):
             rms, k, dist, _, _ = cv2.calibrateCamera([obj] * len(sel), [img[i] for i in sel], (w, h), None, None, flags=flags)
             dist = dist.ravel()[: 8 if flags else 5]
-            row = {"model": model, "views": part, "n_views": len(sel), "rms_px": float(rms), "K": k.tolist(),
-                   "dist": dist.tolist()}
-            if part != "all views":
-                row["held_out_sse"], row["held_out_n"] = held_out_rms(obj, [img[i] for i in range(len(views)) if i not in sel],
-                                                                      k, dist)
-                row["held_out_rms_px"] = float(np.sqrt(row["held_out_sse"] / row["held_out_n"]))
-            out.append(row)
-        halves = out[-2:]
-        out[-3]["held_out_rms_px"] = float(np.sqrt(sum(r.pop("held_out_sse") for r in halves) /
-                                                   sum(r.pop("held_out_n") for r in halves)))
+            rows.append({"model": model, "views": part, "n_views": len(sel), "rms_px": float(rms), "K": k.tolist(),
+                         "dist": dist.tolist()})
+            if other:  # this half's intrinsics on the other half's views
+                held.append(held_out_rms(obj, [img[i] for i in other], k, dist))
+                rows[-1]["held_out_rms_px"] = float(np.sqrt(held[-1][0] / held[-1][1]))
+        rows[0]["held_out_rms_px"] = float(np.sqrt(sum(se for se, _ in held) / sum(n for _, n in held)))  # both halves pooled
+        out += rows
     return out
 
 

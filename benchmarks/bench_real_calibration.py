@@ -92,15 +92,16 @@ def homography_rms(k, dist, corners: dict, ideal=None, image_px: bool = False) -
     return out
 
 
-def on_footprint(k, dist, truth_k, truth_dist, size: tuple[int, int], step: int = 4) -> float:
-    """Delta_avg (px) of (k, dist) over the pixels where both it and the truth's model invert."""
-    h, w = size
-    p = grid_points(h, w, step)
-    f64 = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
-    _, ok_t = opencv_ideal_points(p, f64(truth_k), f64(truth_dist))
-    ideal, ok = opencv_ideal_points(p, f64(k), f64(dist))
-    both = ok & ok_t
-    return float((ideal - p).norm(dim=-1)[both].mean()) if bool(both.any()) else float("nan")
+def truth_footprint(truth_k, truth_dist, size: tuple[int, int], step: int) -> torch.Tensor:
+    """The ``step``-spaced grid pixels (N, 2) where the truth's model inverts."""
+    p = grid_points(*size, step)
+    return p[opencv_ideal_points(p, torch.tensor(truth_k, dtype=torch.float64), torch.tensor(truth_dist, dtype=torch.float64))[1]]
+
+
+def on_footprint(k, dist, points: torch.Tensor) -> float:
+    """Delta_avg (px) of (k, dist) over ``points`` (the truth's footprint) where it inverts too."""
+    ideal, ok = opencv_ideal_points(points, torch.tensor(k, dtype=torch.float64), torch.tensor(dist, dtype=torch.float64))
+    return float((ideal - points).norm(dim=-1)[ok].mean()) if bool(ok.any()) else float("nan")
 
 
 def main() -> None:
@@ -124,11 +125,10 @@ def main() -> None:
     h, w = res["image_size"]
     truth = opencv_delta(torch.tensor(cal["K"]), torch.tensor(cal["dist"]), h, w, step=2)
     pl = res.get("planar") or {}
+    footprint = {step: truth_footprint(cal["K"], cal["dist"], (h, w), step) for step in (2, 4)}
     on_truth = None  # the homography model where the calibration inverts (its interval from its replicates, same rules)
     if pl.get("coefficients"):
-        g = grid_points(h, w, 2)
-        _, ok_t = opencv_ideal_points(g, torch.tensor(cal["K"]), torch.tensor(cal["dist"]))
-        on_truth = delta_avg_where(pl, g[ok_t], h, w, MultiViewConfig(confidence=res.get("confidence", 0.95)))
+        on_truth = delta_avg_where(pl, footprint[2], h, w, MultiViewConfig(confidence=res.get("confidence", 0.95)))
     own = f"{res['delta_avg_user_px']:.2f} px over its own footprint"
     if res.get("method") == "planar" and on_truth is not None:
         rows = [("lensdist calibrate (answer)", "planar", on_truth[0], on_truth[1], res["class"], own)]
@@ -138,7 +138,7 @@ def main() -> None:
     mv = res.get("multiview") or {}
     for model, v in (mv.get("models") or {}).items():
         if "camera_matrix" in v:  # its Delta where the calibration inverts, as the truth's (an answer saved before: its own footprint)
-            value = on_footprint(v["camera_matrix"], v["dist_coeffs"], cal["K"], cal["dist"], (h, w), step=2)
+            value = on_footprint(v["camera_matrix"], v["dist_coeffs"], footprint[2])
             note = f"reprojection {v['reprojection_px']:.3f} px; {v['delta_avg_px']:.2f} px where it inverts"
         else:
             value, note = v["delta_avg_px"], f"reprojection {v['reprojection_px']:.3f} px; where it inverts, not the truth's pixels"
@@ -183,14 +183,12 @@ def main() -> None:
         cam = res["opencv"] or res["opencv_rational"]
         if cam is not None:
             checks["lensdist answer"] = (cam["camera_matrix"], cam["dist_coeffs"])
-            report["answer_on_truth_footprint_px"] = on_footprint(cam["camera_matrix"], cam["dist_coeffs"], cal["K"],
-                                                                  cal["dist"], (h, w))
+            report["answer_on_truth_footprint_px"] = on_footprint(cam["camera_matrix"], cam["dist_coeffs"], footprint[4])
             print(f"the answer's Delta_avg over the pixels where the calibration inverts too: "
                   f"{report['answer_on_truth_footprint_px']:.2f} px")
         if "model" in mv:
             checks["multi-view estimate"] = (mv["camera_matrix"], mv["dist_coeffs"])
-            report["multiview_on_truth_footprint_px"] = on_footprint(mv["camera_matrix"], mv["dist_coeffs"], cal["K"],
-                                                                     cal["dist"], (h, w))
+            report["multiview_on_truth_footprint_px"] = on_footprint(mv["camera_matrix"], mv["dist_coeffs"], footprint[4])
             print(f"the multi-view estimate's Delta_avg there: {report['multiview_on_truth_footprint_px']:.2f} px")
         planar = res.get("planar") or {}
         maps = {}

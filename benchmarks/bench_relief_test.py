@@ -36,7 +36,7 @@ import time
 
 import torch
 
-from lensdist_torch.config import LensdistConfig, load_config
+from lensdist_torch.config import LensdistConfig, apply_overrides, config_from_dict, parse_overrides, read_toml
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.data.shards import generate, load_set
 from lensdist_torch.data.synthesis import draw_pairs
@@ -54,28 +54,28 @@ PER_PAIR = ("estimated_class", "estimated_delta_avg", "delta_avg_std", "planar_d
             "cannot_tell_reasons")
 
 
-def condition(cfg: LensdistConfig, n: int, batch: int) -> tuple[dict, list[dict]]:
-    """The validation split's first ``n`` distorted pairs and their ``analyze`` results, as ``lensdist reproduce`` makes them."""
+def validation_set(cfg: LensdistConfig, batch: int, limit: int | None) -> dict:
+    """The validation split's test set (its first ``limit`` pairs; all when None), as ``lensdist reproduce`` makes it."""
     val = validation_config(cfg)
-    with tempfile.TemporaryDirectory() as tmp:  # the test set holds its distorted pairs first
-        generate(val, tmp, sets=["test"], batch_size=batch, limit=min(n, val.protocol.n_test_distorted), progress=False)
-        data = load_set(tmp, "test")
-    return data, analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
+    with tempfile.TemporaryDirectory() as tmp:
+        generate(val, tmp, sets=["test"], batch_size=batch, limit=limit, progress=False)
+        return load_set(tmp, "test")
 
 
-def undistorted(cfg: LensdistConfig, batch: int) -> dict:
-    """The validation split's class-R pairs (no lens, the protocol's perturbed registration) as ``analyze`` answers them.
-
-    Returns the pairs, the share answered R (right), "cannot tell" by reason, and other classes.
-    """
-    val = validation_config(cfg)
-    with tempfile.TemporaryDirectory() as tmp:  # the class-R pairs follow the distorted ones
-        generate(val, tmp, sets=["test"], batch_size=batch, progress=False)
-        data = load_set(tmp, "test")
+def pairs_of(data: dict, keep: torch.Tensor) -> dict:
+    """The loaded set restricted to the pairs ``keep`` (positions)."""
     n = data["index"].numel()
-    keep = torch.arange(val.protocol.n_test_distorted, n)
-    data = {k: (v[keep] if torch.is_tensor(v) and v.ndim and v.shape[0] == n else v) for k, v in data.items()}
-    results = analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
+    return {k: (v[keep] if torch.is_tensor(v) and v.ndim and v.shape[0] == n else v) for k, v in data.items()}
+
+
+def analysed(data: dict, cfg: LensdistConfig, batch: int) -> list[dict]:
+    """Every pair of ``data`` as ``analyze`` (the self-calibration) answers it."""
+    return analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
+
+
+def undistorted(results: list[dict]) -> dict:
+    """The class-R pairs' answers (no lens, the protocol's perturbed registration): the share answered R (right),
+    "cannot tell" by reason, and other classes."""
     reasons: dict = {}
     for r in results:
         for why in r["cannot_tell_reasons"] if r["cannot_tell"] else []:
@@ -126,18 +126,12 @@ def per_pair(results: list[dict], data: dict) -> dict:
             **{k: [r.get(k) for r in results] for k in PER_PAIR}}
 
 
-def with_settings(cfg: LensdistConfig, settings: list[str]) -> LensdistConfig:
-    """``cfg`` with each SECTION.FIELD=VALUE of ``settings`` (the value typed as the field's default)."""
-    for item in settings:
-        key, _, value = item.partition("=")
-        section, _, field = key.partition(".")
-        sub = getattr(cfg, section, None)
-        if sub is None or not dataclasses.is_dataclass(sub) or not hasattr(sub, field) or not value:
-            raise SystemExit(f"error: --set must be SECTION.FIELD=VALUE of the config, got {item!r}")
-        old = getattr(sub, field)
-        new = value.lower() == "true" if isinstance(old, bool) else type(old)(value)
-        cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(sub, **{field: new})})
-    return cfg
+def condition_config(path: str | None, overrides: list[str]) -> LensdistConfig:
+    """The condition's config with ``--set`` SECTION.FIELD=VALUE items applied (the config layer's own parsing and checks)."""
+    try:
+        return config_from_dict(apply_overrides(read_toml(path) if path else {}, parse_overrides(overrides)))
+    except ValueError as exc:
+        raise SystemExit(f"error: {exc}" if str(exc).startswith("--set") else f"error: --set: {exc}") from exc
 
 
 def main() -> None:
@@ -156,9 +150,12 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     out = {"priors": list(PRIORS), "settings": list(a.set), "conditions": {}}
     for name, path in CONDITIONS.items():
-        cfg = with_settings(load_config(path), a.set)
+        cfg = condition_config(path, a.set)
         t0 = time.perf_counter()
-        data, results = condition(cfg, a.n, a.batch)
+        n_distorted = validation_config(cfg).protocol.n_test_distorted  # the test set holds its distorted pairs first
+        every = validation_set(cfg, a.batch, None if a.undistorted else min(a.n, n_distorted))
+        data = pairs_of(every, torch.arange(min(a.n, n_distorted)))
+        results = analysed(data, cfg, a.batch)
         by_prior, cannot = {}, {}
         for w in PRIORS:
             by_prior[f"{w:g}"], cannot[w] = summary(results, data, with_prior(cfg, w))
@@ -169,7 +166,8 @@ def main() -> None:
                                    "by_prior": by_prior, "check": check, "per_pair": per_pair(results, data)}
         print(name, dumps_strict(by_prior), "check", dumps_strict(check), flush=True)
         if a.undistorted:
-            out["conditions"][name]["undistorted"] = undistorted(cfg, a.batch)
+            rest = pairs_of(every, torch.arange(n_distorted, every["index"].numel()))
+            out["conditions"][name]["undistorted"] = undistorted(analysed(rest, cfg, a.batch))
             print(name, "class-R pairs", dumps_strict(out["conditions"][name]["undistorted"]), flush=True)
     worst = {f"{w:g}": max(c["by_prior"][f"{w:g}"]["ece"] for c in out["conditions"].values()) for w in PRIORS}
     out["largest_ece_by_prior"] = worst

@@ -388,10 +388,10 @@ def self_calibrate_reconstruction(
         r = _with_model(rec, model)
         ss, n = _rss(r)
         k = len(_camera(r).params) - 2  # the principal point is held
-        dl = _deltas(_camera(r), size, scale, step)
+        km, dm = opencv_from_colmap(_camera(r), scale)
+        dl = opencv_delta(km, dm, *size, step=step)
         bic = 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n)
         fitted[model], deltas[model] = r, dl
-        km, dm = opencv_from_colmap(_camera(r), scale)
         table[model] = {"bic": bic, "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(ss / max(n, 1)),
                         "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist()}
     best = min(table, key=lambda m: table[m]["bic"])

@@ -26,7 +26,7 @@ from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 
-__all__ = ["fit_pairs", "pair_misfit", "unregistered", "refit_from_registration", "reject_residuals"]
+__all__ = ["sequence_selfcal", "fit_pairs", "pair_misfit", "unregistered", "refit_from_registration", "reject_residuals"]
 
 
 def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
@@ -82,9 +82,14 @@ def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
             torch.where(ok[:, None], planar, nan), torch.where(ok[:, None], relief, nan), torch.where(ok, misfit, inf))
 
 
+def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
+    """The self-calibration settings of the sequence path: the user's, with the sequence's own relief model."""
+    return dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px)
+
+
 def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
     """Step 3 per pair, from the phase correlation's translations: [(a, b) (P, 2), std (P,), residual (P,), planar, relief, misfit (P,)]."""
-    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px)  # the sequence path's relief model
+    selfcal = sequence_selfcal(settings, cfg)
     parts = []
     for s in range(0, len(pairs), cfg.batch_size):
         sl = slice(s, s + cfg.batch_size)
@@ -109,7 +114,7 @@ def refit_from_registration(frames, pairs, shifts, fits, retry, settings: Lensdi
     better of that start and the phase correlation's and replaces the first fit where its
     residual is lower. Returns the refitted pairs (P,) bool.
     """
-    selfcal = dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px)
+    selfcal = sequence_selfcal(settings, cfg)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     idx = retry.nonzero()[:, 0]
     for s in range(0, len(idx), cfg.batch_size):
