@@ -7,6 +7,7 @@ Modules:
 * :mod:`~lensdist_torch.core.video`: a video's frames, through PyAV or OpenCV.
 * :mod:`~lensdist_torch.core.outputs`: output paths checked before the work.
 * :mod:`~lensdist_torch.core.storage`: atomic writes and versioned checkpoints.
+* :mod:`~lensdist_torch.core.chunks`: how a batch is cut into chunks, by device.
 
 The names users need are exported here and imported on first use (PEP 562), so importing one
 module of the package loads no other.

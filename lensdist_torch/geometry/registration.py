@@ -45,6 +45,7 @@ from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.core.chunks import chunk_slices
 from lensdist_torch.core.images import check_image, check_image_pair, to_grey
 from lensdist_torch.geometry.frame import (
     grid_sample_matrix,
@@ -214,8 +215,7 @@ def estimate_homography(
     to_u = normalizer(h0, w0, device=img1.device)  # pixel -> u: centred, in half-diagonals
     hn0 = None if init is None else to_u @ check_homography(init, "init", bsz).to(to_u) @ torch.linalg.inv(to_u)
     parts = []
-    for i in range(0, bsz, cfg.chunk_size):  # a chunk's planes stay in the CPU cache
-        sl = slice(i, i + cfg.chunk_size)
+    for sl in chunk_slices(bsz, cfg.chunk_size, img1.device, h0 * w0):  # on the CPU a chunk's planes stay in cache
         g1, g2 = (to_grey(x[sl])[:, 0].float() for x in (img1, img2))
         if cfg.match_intensity:
             g2 = match_intensity(g1, g2)

@@ -64,6 +64,7 @@ import torch
 
 from lensdist_torch.config import SelfCalConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.core.chunks import chunk_slices
 from lensdist_torch.core.images import check_image_pair, to_grey
 from lensdist_torch.geometry.distortion import from_normalized, pixel_offsets
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid, normalizer
@@ -157,8 +158,7 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
         if init.shape != (bsz, 3, 3):
             raise ValueError(f"init must be ({bsz}, 3, 3), got {tuple(init.shape)}")
     parts = []
-    for i in range(0, bsz, cfg.chunk_size):
-        sl = slice(i, i + cfg.chunk_size)
+    for sl in chunk_slices(bsz, cfg.chunk_size, img1.device, h * w):
         parts.append(_fit(to_grey(img1[sl]).float(), to_grey(img2[sl]).float(), None if init is None else init[sl], cfg))
     k2, k4, H = (torch.cat([p[j] for p in parts]) for j in range(3))
     info = SelfCalInfo(*(torch.cat(f) for f in zip(*[p[3] for p in parts])))

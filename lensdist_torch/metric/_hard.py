@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.config import QualityConfig
+from lensdist_torch.core.chunks import chunk_slices
 from lensdist_torch.metric._inputs import ONLY_AT_RISK
 from lensdist_torch.metric.criteria import HALF_PI, sobel8
 
@@ -141,23 +142,12 @@ def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool, measured: bool 
         with ``measured``, a third element: the (B,) codes of :func:`measure_codes`.
     """
     t = tan_threshold(cfg)
-    n, step = g1.shape[0], cfg.chunk_size
-    if n <= step:
+    spans = chunk_slices(g1.shape[0], cfg.chunk_size, g1.device, g1.shape[-2] * g1.shape[-1])
+    if len(spans) == 1:
         out = _hard_counts_chunk(g1, g2, valid, cfg, t, visual, measured)
         return out if measured else out[:2]
     # Chunks keep the ~20 intermediates of a chunk in cache; the maps do not depend on it.
-    parts = [
-        _hard_counts_chunk(
-            g1[i : i + step],
-            g2[i : i + step],
-            None if valid is None else valid[i : i + step],
-            cfg,
-            t,
-            visual,
-            measured,
-        )
-        for i in range(0, n, step)
-    ]
+    parts = [_hard_counts_chunk(g1[sl], g2[sl], None if valid is None else valid[sl], cfg, t, visual, measured) for sl in spans]
     reg = torch.cat([p[0] for p in parts])
     vis = torch.cat([p[1] for p in parts]) if visual else None
     if not measured:

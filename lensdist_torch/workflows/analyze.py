@@ -12,9 +12,12 @@ paper's eigen-space classifiers; then the decision of :mod:`~lensdist_torch.work
 (class or "cannot tell", calibrated confidence, domain checks). Offsets are reported in analysis
 pixels and in the user's pixels. Every threshold is in ``config.analysis``.
 
-The estimators (registration, self-calibration, classifiers) run pair by pair: their batched
-float32 kernels round differently with the batch's size, and a pair's answer must not depend on
-the pairs it was analysed with. Resampling, warps and quality maps are batched.
+On the CPU the estimators (registration, self-calibration, classifiers) run pair by pair: their
+batched float32 kernels round differently with the batch's size, and a pair's answer must not
+depend on the pairs it was analysed with. On a GPU, whose kernels round differently from the
+CPU's anyway, the registration and the self-calibration take the batch in one call (about 10 x
+faster; the answers agree with the CPU's to ~1e-3 px). Resampling, warps and quality maps are
+batched.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ from lensdist_torch.geometry.distortion import (
 )
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.registration import warp_to_reference
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.geometry.selfcal import SelfCalInfo, estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
 from lensdist_torch.workflows.texture import texture_histogram
@@ -106,7 +106,7 @@ class PreparedPairs:
     def selfcal(self) -> list[dict]:
         """The self-calibration of every pair (started from the registration's H where it worked)."""
         if self._selfcal is None:
-            self._selfcal = [_selfcal_one(self, i) for i in range(self.img1.shape[0])]
+            self._selfcal = _selfcal_all(self)
         return self._selfcal
 
     def texture(self) -> torch.Tensor:
@@ -152,7 +152,7 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
     a, b = torch.cat(a), torch.cat(b)
     n = a.shape[0]
     if homography is None:
-        regs = [estimate_homography_robust(a[i : i + 1], b[i : i + 1], config=cfg.registration, validate=False) for i in range(n)]
+        regs = [estimate_homography_robust(a[g], b[g], config=cfg.registration, validate=False) for g in _groups(dev, n)]
         H = torch.cat([r[0] for r in regs]).double()
         ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
         residual = torch.cat([r[1].residual for r in regs]).float().cpu()
@@ -169,11 +169,50 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
     return PreparedPairs(cfg, a, b, H, ok, residual, overlap, motion, qmap, scale, sizes)
 
 
-def _selfcal_one(p: PreparedPairs, i: int) -> dict:
-    """Self-calibration of pair i, started from the registration's H when it worked."""
-    cfg, sl = p.config, slice(i, i + 1)
-    init = p.H[sl] if bool(p.registration_ok[i]) else None
-    k2, k4, _, sc = estimate_distortion(p.img1[sl], p.img2[sl], init=init, config=cfg.selfcal, validate=False)
+def _batched(dev: torch.device) -> bool:
+    """Whether the estimators take the batch together (:func:`_groups`): on a GPU."""
+    return dev.type != "cpu"
+
+
+def _groups(dev: torch.device, n: int, same=None) -> list:
+    """How the estimators take a batch of ``n``: pair by pair on the CPU, together on a GPU.
+
+    On the CPU, batched kernels round differently with the batch size: pair by pair, a pair's
+    answer is the same to the bit alone or in a batch (``reproduce`` reports what ``analyze_pair``
+    answers). A GPU's kernels round differently from the CPU's anyway (the answers agree to
+    ~1e-3 px, ``benchmarks/bench_gpu.py``) and one call for the batch keeps it busy.
+
+    Args:
+        dev: the batch's device.
+        n: the batch size.
+        same: optional (n,) bool; on a GPU, the pairs where it is True and those where it is
+            False go in separate calls (the self-calibration with and without a start).
+
+    Returns:
+        Slices (one pair each) on the CPU; index tensors on ``dev`` otherwise.
+    """
+    if not _batched(dev):
+        return [slice(i, i + 1) for i in range(n)]
+    keys = torch.ones(n, dtype=torch.bool) if same is None else torch.as_tensor(same, dtype=torch.bool).cpu()
+    return [idx.to(dev) for idx in (keys.nonzero()[:, 0], (~keys).nonzero()[:, 0]) if idx.numel()]
+
+
+def _selfcal_all(p: PreparedPairs) -> list[dict]:
+    """Self-calibration of every pair, started from the registration's H where it worked."""
+    cfg, n = p.config, p.img1.shape[0]
+    out: list = [None] * n
+    for g in _groups(p.img1.device, n, p.registration_ok):
+        pairs = range(n)[g] if isinstance(g, slice) else g.tolist()
+        init = p.H[g] if bool(p.registration_ok[pairs[0]]) else None
+        k2, k4, _, sc = estimate_distortion(p.img1[g], p.img2[g], init=init, config=cfg.selfcal, validate=False)
+        k2, k4, sc = k2.cpu(), k4.cpu(), SelfCalInfo(*(f.cpu() for f in sc))  # one copy, not one per number
+        for j, i in enumerate(pairs):
+            out[i] = _selfcal_answer(k2[j : j + 1], k4[j : j + 1], SelfCalInfo(*(f[j : j + 1] for f in sc)), cfg)
+    return out
+
+
+def _selfcal_answer(k2: torch.Tensor, k4: torch.Tensor, sc: SelfCalInfo, cfg: LensdistConfig) -> dict:
+    """One pair's answer from its self-calibration (k2, k4 and ``sc`` of a batch of one)."""
     if not bool(sc.converged[0]):  # flagged, never a number and never "R"
         return {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None,
                 "raw_confidence": 0.0, "_diverged": True}

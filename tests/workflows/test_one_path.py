@@ -15,6 +15,7 @@ from lensdist_torch.config import load_config
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import load_scenes, load_set
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.workflows import prepare
 from lensdist_torch.workflows.analyze import analyze_batch, analyze_pair, prepare_batch, resolve_device
 from lensdist_torch.workflows.evaluate import figures_of
 from lensdist_torch.workflows.reports import json_safe
@@ -126,6 +127,24 @@ def test_inputs_and_shared_preparation(tmp_path):
         analyze_batch(a, b, config=cfg, homography=torch.eye(3)[None])
     with pytest.raises(ValueError, match="analyze_batch"):
         analyze_pair(a, b, config=cfg)
+
+
+def test_batched_estimators_answer_as_pair_by_pair(monkeypatch):
+    """A GPU's way (one estimator call for the batch, the pairs without a registration in a call
+    of their own), run on the CPU: the answers of the pair-by-pair way, up to rounding."""
+    cfg, a, b = _rendered(4)
+    g = torch.Generator().manual_seed(5)
+    b[2] = torch.rand(b[2].shape, generator=g)  # unrelated: no registration, no start
+    alone = analyze_batch(a, b, config=cfg)
+    monkeypatch.setattr(prepare, "_batched", lambda dev: True)
+    together = analyze_batch(a, b, config=cfg)
+    assert [r["registration_ok"] for r in alone] == [True, True, False, True]
+    for x, y in zip(alone, together, strict=True):
+        assert (x["class"], x["registration_ok"], x["estimated_class"]) == (y["class"], y["registration_ok"], y["estimated_class"])
+        for key in ("delta_avg", "delta_avg_std", "relief_delta_avg"):
+            assert (x.get(key) is None and y.get(key) is None) or math.isclose(x[key], y[key], abs_tol=1e-3), key
+        if x["registration_ok"]:
+            torch.testing.assert_close(torch.tensor(x["homography"]), torch.tensor(y["homography"]), atol=1e-3, rtol=0)
 
 
 def test_device():
