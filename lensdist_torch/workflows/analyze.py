@@ -251,8 +251,10 @@ def analyze_batch(
         ``warnings``), ``estimated_class`` (the estimator's own answer, even when unsure),
         ``delta_avg``, ``delta_max`` (analysis px; None without an estimate), the same in the
         user's pixels, ``confidence`` (calibrated P(class right); None for eigenspace),
-        ``registration_ok``, ``in_domain``, ``overlap``, ``fitted_on``, ``warnings`` and more.
-        With ``return_maps``, (that list, the quality maps).
+        ``registration_ok`` (and ``registered_by``: "homography", or with ``selfcal``
+        "self-calibration" where only its fit, which models the lens and the photometry,
+        aligned the pair: ``selfcal.max_scale``), ``in_domain``, ``overlap``, ``fitted_on``,
+        ``warnings`` and more. With ``return_maps``, (that list, the quality maps).
 
     Example:
         >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
@@ -277,8 +279,11 @@ def analyze_batch(
     for i in range(p.img1.shape[0]):
         res = {"method": method, "distances": [], "reject_threshold": None, "confidence": None}
         res.update(_RUN[method](p, i, models))
-        motion = float(p.motion[i])
-        res.update(registration_ok=bool(p.registration_ok[i]), overlap=float(p.overlap[i]),
+        motion, by = float(p.motion[i]), "homography" if bool(p.registration_ok[i]) else None
+        aligned, aligned_motion = res.pop("_aligned", False), res.pop("_aligned_motion_px", math.nan)
+        if by is None and aligned:  # the self-calibration's own test (selfcal.max_scale): lens and photometry modelled
+            motion, by = aligned_motion, "self-calibration"
+        res.update(registration_ok=by is not None, registered_by=by, overlap=float(p.overlap[i]),
                    motion_px=motion if math.isfinite(motion) else None)
         if method != "selfcal":
             domain_checks(res, p.selfcal()[i] if cfg.analysis.cross_check else None,

@@ -198,16 +198,26 @@ def _groups(dev: torch.device, n: int, same=None) -> list:
 
 
 def _selfcal_all(p: PreparedPairs) -> list[dict]:
-    """Self-calibration of every pair, started from the registration's H where it worked."""
+    """Self-calibration of every pair, started from the registration's H wherever it is finite.
+
+    Also where the registration failed its own test: its H is still the nearest start on most
+    such pairs, and beside it the phase-correlation start is fitted (``selfcal.both_starts``).
+    Whether the fit aligned the pair is its own test (``selfcal.max_scale``).
+    """
     cfg, n = p.config, p.img1.shape[0]
+    start = torch.isfinite(p.H).all(dim=(1, 2)).cpu()
+    contrast = (math.sqrt(2) * p.img1.flatten(1).double().std(1)).cpu()
     out: list = [None] * n
-    for g in _groups(p.img1.device, n, p.registration_ok):
+    for g in _groups(p.img1.device, n, start):
         pairs = range(n)[g] if isinstance(g, slice) else g.tolist()
-        init = p.H[g] if bool(p.registration_ok[pairs[0]]) else None
+        init = p.H[g] if bool(start[pairs[0]]) else None
         k2, k4, _, sc = estimate_distortion(p.img1[g], p.img2[g], init=init, config=cfg.selfcal, validate=False)
         k2, k4, sc = k2.cpu(), k4.cpu(), SelfCalInfo(*(f.cpu() for f in sc))  # one copy, not one per number
         for j, i in enumerate(pairs):
-            out[i] = _selfcal_answer(k2[j : j + 1], k4[j : j + 1], SelfCalInfo(*(f[j : j + 1] for f in sc)), cfg)
+            one = SelfCalInfo(*(f[j : j + 1] for f in sc))
+            out[i] = _selfcal_answer(k2[j : j + 1], k4[j : j + 1], one, cfg)
+            out[i]["_aligned"] = bool(one.converged[0]) and float(one.scale[0]) <= cfg.selfcal.max_scale * float(contrast[i])
+            out[i]["_aligned_motion_px"] = float(one.motion[0])
     return out
 
 

@@ -11,7 +11,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import pytest
 import torch
@@ -23,6 +22,7 @@ from lensdist_torch import cli
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.config import ClassifierConfig, LensdistConfig
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.geometry.selfcal import SelfCalInfo
 from lensdist_torch.workflows.reports import dumps_strict, write_report
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
@@ -332,7 +332,8 @@ def test_cached_model_follows_its_file(tmp_path):
 def test_analyze_json_is_strict_when_selfcal_diverges(capsys, pair, monkeypatch):
     def diverged(a, b, init=None, config=None, validate=True):
         z = torch.zeros(1, dtype=torch.float64)
-        return z, z, None, SimpleNamespace(converged=torch.tensor([False]))
+        info = SelfCalInfo(*(torch.full((1,), float("nan"), dtype=torch.float64) for _ in SelfCalInfo._fields))
+        return z, z, None, info._replace(converged=torch.tensor([False]))
 
     monkeypatch.setattr(prepare_mod, "estimate_distortion", diverged)
     rc, out, err = run(capsys, "analyze", *pair, "--json")
