@@ -153,13 +153,6 @@ class SelfCalConfig:
             (Hausman's test: under a planar scene both are right and the planar one is the
             more precise).
         interpolation: img2's sampling kernel: "bilinear", "bicubic" or "blend" (their mean).
-        max_scale: the fit aligned the pair where it converged and its robust residual scale
-            (1.4826 MAD, after the lens and the photometric model) is at most this times
-            sqrt(2) x img1's standard deviation; ``analyze`` then counts a pair the homography
-            alone did not register (its RMS criterion, ``registration.max_residual``, fails on
-            occluders, JPEG and the lens itself) as registered. 0.35: on realistic validation
-            pairs the registered ones reach 0.20 and the homography's failures 0.30 (one 0.63,
-            its answer wrong), unrelated scenes 0.50-0.69 (docs/method.md, section 10).
 
     Example:
         >>> from dataclasses import replace
@@ -200,11 +193,9 @@ class SelfCalConfig:
     parallax_block: int = 2
     small_motion_error: float = 1.5e-5
     interpolation: str = "blend"
-    max_scale: float = 0.35
 
     def __post_init__(self) -> None:
         real(self, "small_motion_error", lo=0)
-        real(self, "max_scale", lo=0, lo_open=True)
         integer(self, "distortion_levels")
         integer(self, "clusters", lo=0)
         integer(self, "parallax", lo=0)

@@ -252,8 +252,8 @@ def analyze_batch(
         ``delta_avg``, ``delta_max`` (analysis px; None without an estimate), the same in the
         user's pixels, ``confidence`` (calibrated P(class right); None for eigenspace),
         ``registration_ok`` (and ``registered_by``: "homography", or with ``selfcal``
-        "self-calibration" where only its fit, which models the lens and the photometry,
-        aligned the pair: ``selfcal.max_scale``), ``in_domain``, ``overlap``, ``fitted_on``,
+        "self-calibration" where only its fit, which models the lens and the photometry, passed
+        the registration's residual test), ``in_domain``, ``overlap``, ``fitted_on``,
         ``warnings`` and more. With ``return_maps``, (that list, the quality maps).
 
     Example:
@@ -281,7 +281,7 @@ def analyze_batch(
         res.update(_RUN[method](p, i, models))
         motion, by = float(p.motion[i]), "homography" if bool(p.registration_ok[i]) else None
         aligned, aligned_motion = res.pop("_aligned", False), res.pop("_aligned_motion_px", math.nan)
-        if by is None and aligned:  # the self-calibration's own test (selfcal.max_scale): lens and photometry modelled
+        if by is None and aligned:  # the registration's residual test, passed with the lens and photometry modelled
             motion, by = aligned_motion, "self-calibration"
         res.update(registration_ok=by is not None, registered_by=by, overlap=float(p.overlap[i]),
                    motion_px=motion if math.isfinite(motion) else None)

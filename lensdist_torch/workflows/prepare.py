@@ -202,7 +202,8 @@ def _selfcal_all(p: PreparedPairs) -> list[dict]:
 
     Also where the registration failed its own test: its H is still the nearest start on most
     such pairs, and beside it the phase-correlation start is fitted (``selfcal.both_starts``).
-    Whether the fit aligned the pair is its own test (``selfcal.max_scale``).
+    The fit aligned the pair where it converged and its RMS residual (the lens and the photometry
+    modelled) passes the registration's own test, ``registration.max_residual`` x sqrt(2) std(img1).
     """
     cfg, n = p.config, p.img1.shape[0]
     start = torch.isfinite(p.H).all(dim=(1, 2)).cpu()
@@ -216,7 +217,8 @@ def _selfcal_all(p: PreparedPairs) -> list[dict]:
         for j, i in enumerate(pairs):
             one = SelfCalInfo(*(f[j : j + 1] for f in sc))
             out[i] = _selfcal_answer(k2[j : j + 1], k4[j : j + 1], one, cfg)
-            out[i]["_aligned"] = bool(one.converged[0]) and float(one.scale[0]) <= cfg.selfcal.max_scale * float(contrast[i])
+            # the registration's own residual test, passed with the lens and the photometry modelled
+            out[i]["_aligned"] = bool(one.converged[0]) and float(one.residual[0]) <= cfg.registration.max_residual * float(contrast[i])
             out[i]["_aligned_motion_px"] = float(one.motion[0])
     return out
 
