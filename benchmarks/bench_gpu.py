@@ -12,7 +12,8 @@ the self-calibration started from it (``estimate_distortion``), the eigen-space 
 quality maps, and ``analyze_batch``, the path ``lensdist analyze`` runs. Device rows carry the
 peak memory the case allocated (``torch.cuda.max_memory_allocated`` above what was allocated
 before it), divided by the batch. Agreement rows compare what the device and the CPU answered
-on the same pairs (the estimators' float32 work runs in another order on the GPU).
+on the same pairs (the estimators' float32 work runs in another order on the GPU). ``--device cpu``
+is a smoke run (both passes on the CPU, every ratio 1).
 """
 
 from __future__ import annotations
