@@ -159,6 +159,9 @@ def agreement(cpu: dict, dev: dict) -> dict:
         "selfcal_delta_avg_max_abs_diff_px": float(d_err.nan_to_num(float("inf")).max()),
         "selfcal_delta_avg_median_abs_diff_px": float(d_err.nan_to_num(float("inf")).median()),
         "analyze_same_class": sum(x == y for x, y in zip(ca, da, strict=True)),
+        "analyze_same_registered_by": sum(x.get("registered_by") == y.get("registered_by")
+                                          for x, y in zip(cpu["answers"], dev["answers"], strict=True)),
+        "analyze_registered_by_self_calibration": sum(r.get("registered_by") == "self-calibration" for r in dev["answers"]),
         "analyze_pairs": len(ca),
         "analyze_delta_avg_max_abs_diff_px": max(dd) if dd else None,
     }
