@@ -104,7 +104,7 @@ def metric_cases(device: torch.device, size: tuple[int, int], batches, seconds: 
 
 def protocol_pairs(config_path: str | None, n: int) -> tuple[torch.Tensor, torch.Tensor, object]:
     """``n`` rendered test pairs of the protocol in ``config_path`` (default settings without one)."""
-    cfg = load_config(config_path) if config_path else load_config(None)
+    cfg = load_config(config_path)
     scenes = [load_scene(s) for s in scene_names()]
     params = draw_pairs(cfg, "test", list(range(n)), len(scenes))
     img1, img2 = render_pairs(scenes, params, cfg)
@@ -125,14 +125,12 @@ def estimator_cases(device: torch.device, img1, img2, cfg, seconds: float) -> tu
         k2, k4, _, _ = estimate_distortion(a, b, init=out["H"], config=cfg.selfcal)
         out["delta"] = delta_avg(k2, k4, h, w)
 
-    maps = quality_map(a, b)
-    clf = EigenSpaceClassifier.load(default_checkpoint("delta_avg"))
     rows = []
     for name, fn, batch in (("registration", register, n), ("self-calibration", selfcal, n)):
         pps, peak = rate(fn, batch, device, seconds, min_runs=2)
         rows.append({"case": name, "size": f"{h}x{w}", "batch": batch, "pairs_per_s": pps, "peak_mb_per_pair": peak})
-    clf = clf.to(device)
-    feats = maps.flatten(1).repeat(max(1, 256 // n), 1)
+    clf = EigenSpaceClassifier.load(default_checkpoint("delta_avg")).to(device)
+    feats = quality_map(a, b).flatten(1).repeat(max(1, 256 // n), 1)
     pps, peak = rate(lambda: clf(feats), feats.shape[0], device, seconds)
     rows.append({"case": "eigen-space classifier", "size": "features", "batch": feats.shape[0], "pairs_per_s": pps,
                  "peak_mb_per_pair": peak})
@@ -200,6 +198,7 @@ def main(argv=None) -> int:
     print(f"device: {result['device']}; CPU: {args.threads} threads; torch {torch.__version__}")
     print("| case | size | batch | device pairs/s | CPU pairs/s | device / CPU | x SSIM (device) | device peak MB / pair |")
     print("|---|---|---|---|---|---|---|---|")
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for r in result["rows"]:
         if r["on"] != device.type:
             continue
@@ -207,7 +206,6 @@ def main(argv=None) -> int:
         peer = key.get(("kornia SSIM (peer)", r["size"], r["batch"], device.type))
         r["device_over_cpu"] = r["pairs_per_s"] / c["pairs_per_s"] if c else None
         r["over_ssim"] = r["pairs_per_s"] / peer["pairs_per_s"] if peer else None
-        fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
         print(f"| {r['case']} | {r['size']} | {r['batch']} | {r['pairs_per_s']:.1f} | {fmt(c and c['pairs_per_s'], '.1f')} | "
               f"{fmt(r['device_over_cpu'], '.1f')} | {fmt(r['over_ssim'], '.2f')} | {fmt(r['peak_mb_per_pair'], '.1f')} |")
     print(json.dumps(result["agreement"]))

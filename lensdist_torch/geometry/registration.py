@@ -65,6 +65,7 @@ __all__ = [
     "estimate_homography",
     "match_intensity",
     "perturb_homography",
+    "residual_limit",
     "warp_to_reference",
 ]
 
@@ -225,6 +226,25 @@ def estimate_homography(
     return h / h[:, 2:, 2:], RegistrationInfo(conv, res, its, ov, tex)
 
 
+def residual_limit(template: torch.Tensor, config: RegistrationConfig) -> torch.Tensor:
+    """(B,) float64: the largest RMS residual a registration of these templates may leave.
+
+    ``config.max_residual`` times sqrt(2) x each template's standard deviation (the residual of
+    two unrelated images of that contrast): the registration's own test, and the one ``analyze``
+    puts to the self-calibration's residual where the homography alone failed it.
+
+    Args:
+        template: (B, ...) the first images (any shape after the batch dimension).
+        config: :class:`RegistrationConfig`.
+
+    Example:
+        >>> x = torch.tensor([[0.0, 1.0, 0.0, 1.0]])  # std 0.577
+        >>> round(float(residual_limit(x, RegistrationConfig())[0]), 3)  # 0.5 x sqrt(2) x 0.577
+        0.408
+    """
+    return config.max_residual * (math.sqrt(2) * template.flatten(1).double().std(1))
+
+
 def match_intensity(ref: torch.Tensor, img: torch.Tensor) -> torch.Tensor:
     """``img`` (B, H, W) mapped affinely to ``ref``'s per-image mean and standard deviation.
 
@@ -354,9 +374,8 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
                 active, sub = idx[~done], None
 
     overlap = (frames[run[0][0]].grid(hn, "grid_top").abs() <= 1 + 1e-6).all(-1).flatten(1).double().mean(1)
-    contrast = math.sqrt(2) * lev.t1.flatten(1).double().std(1)
     converged = lev.ok & ~diverged & (last_step < cfg.step_tol) & ~(residual > first_res * 1.01 + 1e-4)
-    converged &= (overlap >= cfg.min_overlap) & (residual <= cfg.max_residual * contrast)
+    converged &= (overlap >= cfg.min_overlap) & (residual <= residual_limit(lev.t1, cfg))
     converged &= torch.isfinite(hn).all(dim=(1, 2))
     return hn, converged, residual.float(), iterations, overlap.float(), lev.ok.clone()
 

@@ -28,7 +28,7 @@ from lensdist_torch.geometry.distortion import (
     pixel_offsets,
 )
 from lensdist_torch.geometry.homography import mean_displacement
-from lensdist_torch.geometry.registration import warp_to_reference
+from lensdist_torch.geometry.registration import residual_limit, warp_to_reference
 from lensdist_torch.geometry.selfcal import SelfCalInfo, estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
@@ -203,11 +203,11 @@ def _selfcal_all(p: PreparedPairs) -> list[dict]:
     Also where the registration failed its own test: its H is still the nearest start on most
     such pairs, and beside it the phase-correlation start is fitted (``selfcal.both_starts``).
     The fit aligned the pair where it converged and its RMS residual (the lens and the photometry
-    modelled) passes the registration's own test, ``registration.max_residual`` x sqrt(2) std(img1).
+    modelled) passes the registration's own test (:func:`~lensdist_torch.geometry.registration.residual_limit`).
     """
     cfg, n = p.config, p.img1.shape[0]
     start = torch.isfinite(p.H).all(dim=(1, 2)).cpu()
-    contrast = (math.sqrt(2) * p.img1.flatten(1).double().std(1)).cpu()
+    limit = residual_limit(p.img1, cfg.registration).cpu()
     out: list = [None] * n
     for g in _groups(p.img1.device, n, start):
         pairs = range(n)[g] if isinstance(g, slice) else g.tolist()
@@ -218,7 +218,7 @@ def _selfcal_all(p: PreparedPairs) -> list[dict]:
             one = SelfCalInfo(*(f[j : j + 1] for f in sc))
             out[i] = _selfcal_answer(k2[j : j + 1], k4[j : j + 1], one, cfg)
             # the registration's own residual test, passed with the lens and the photometry modelled
-            out[i]["_aligned"] = bool(one.converged[0]) and float(one.residual[0]) <= cfg.registration.max_residual * float(contrast[i])
+            out[i]["_aligned"] = bool(one.converged[0]) and float(one.residual[0]) <= float(limit[i])
             out[i]["_aligned_motion_px"] = float(one.motion[0])
     return out
 
