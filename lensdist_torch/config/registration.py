@@ -131,6 +131,9 @@ class SelfCalConfig:
         clusters: the full-size samples are grouped in clusters x clusters rectangles of the
             frame for the cluster-robust (sandwich) covariance of the fit; 0: the Gauss-Newton
             covariance alone (docs/method.md, section 10).
+        occluded_share: the share of those rectangles that an occluder or a moving object may
+            spoil: ``aligned_residual``, the RMS that ``analyze`` puts to the registration's test,
+            leaves out the worst of them (0, or ``clusters`` < 2: the RMS of every sample).
         parallax: plane + parallax model: a relief displacing img2's points along the
             registration's translation, a smooth field of parallax x parallax Gaussian bumps
             (fitted where (a, b) are); 0: a planar scene. On by default: whether a pair's scene is
@@ -185,6 +188,7 @@ class SelfCalConfig:
     both_starts: bool = True
     distortion_levels: int = 2
     clusters: int = 6
+    occluded_share: float = 0.15
     parallax: int = 5
     parallax_width: float = 0.3
     parallax_px: float = 0.2
@@ -198,6 +202,7 @@ class SelfCalConfig:
         real(self, "small_motion_error", lo=0)
         integer(self, "distortion_levels")
         integer(self, "clusters", lo=0)
+        real(self, "occluded_share", lo=0, hi=1, hi_open=True)
         integer(self, "parallax", lo=0)
         integer(self, "parallax_iterations")
         integer(self, "parallax_block")

@@ -89,6 +89,7 @@ from lensdist_torch.geometry.selfcal_model import (
     undistort_normalized,
     with_gradients,
 )
+from lensdist_torch.geometry.selfcal_regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
     "SelfCalConfig",
@@ -325,7 +326,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: 
     """Std (px) of Delta_avg from the covariance of the final fit; inf where not finite.
 
     The weighted Gauss-Newton covariance, or (``clusters`` > 1) the cluster-robust one where it
-    is larger (:func:`_sandwich`).
+    is larger (:func:`~lensdist_torch.geometry.selfcal_regions.cluster_robust_covariance`).
     """
     w = robust_weights(st.res, st.sigma, cfg.robust, _robust_constant(cfg))
     w = st.valid.float() if w is None else w * st.valid
@@ -341,7 +342,8 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: 
     inv = torch.linalg.inv(jtj + cfg.ridge * eye)
     cov = s2[:, None, None] * inv
     if cfg.clusters > 1:  # cluster-robust: the larger of the two
-        cov = torch.maximum(cov, _sandwich(inv, st, w, h0, w0, cfg, block))
+        score = (st.J * (w * st.res)[:, None]).double()  # (B, P, N)
+        cov = torch.maximum(cov, cluster_robust_covariance(inv, score, region_ids(h0, w0, block, cfg.clusters, ab.device), cfg.clusters**2))
     # Delta_avg and its gradient in (a, b): R * mean |a u^3 + b u^5|, the mean over the centres
     # of 4 x 4 blocks (the gradient is smooth; 16 times fewer terms)
     u2 = (normalized_grid(2, h0 // 4, w0 // 4, h0, w0, torch.float64, ab.device).view(1, -1, 2) ** 2).sum(-1)
@@ -351,25 +353,6 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: 
     grad = half_diagonal(h0, w0) * torch.stack([(sgn * m3).mean(1), (sgn * m5).mean(1)], -1)
     std = torch.einsum("bi,bij,bj->b", grad, cov[:, 8:10, 8:10], grad).clamp_min(0).sqrt()
     return torch.where(torch.isfinite(std), std, torch.full_like(std, float("inf")))
-
-
-def _sandwich(inv: torch.Tensor, st: _State, w: torch.Tensor, h0: int, w0: int, cfg: SelfCalConfig, block: int) -> torch.Tensor:
-    """Cluster-robust covariance A^-1 (sum_c g_c g_c^T) A^-1 C / (C - 1), g_c = sum_{i in c} J_i w_i r_i.
-
-    The full-size samples (one per ``block`` x ``block`` cell, row-major) are grouped in
-    ``clusters`` x ``clusters`` rectangles of the frame. Residuals that a smooth misfit (parallax,
-    a non-planar scene) makes alike within a region pull together and widen it; for independent
-    noise it matches the Gauss-Newton covariance (it is the linearised delete-one-cluster jackknife).
-    """
-    hb, wb = (h0 // block, w0 // block) if block > 1 else (h0, w0)  # select_samples' grid
-    rows = torch.arange(hb, device=inv.device) * cfg.clusters // hb
-    cols = torch.arange(wb, device=inv.device) * cfg.clusters // wb
-    cid = (rows[:, None] * cfg.clusters + cols[None, :]).flatten()
-    score = (st.J * (w * st.res)[:, None]).double()  # (B, P, N)
-    g = torch.zeros(*score.shape[:2], cfg.clusters**2, dtype=torch.float64, device=inv.device).index_add_(2, cid, score)
-    c = cfg.clusters**2
-    meat = g @ g.transpose(1, 2) * (c / (c - 1))
-    return inv @ meat @ inv
 
 
 def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> torch.Tensor:
@@ -411,10 +394,13 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     std = torch.where(ok, torch.sqrt(std**2 + floor**2), torch.full_like(std, float("inf")))
     conf = cfg.cannot_tell_std_px / (cfg.cannot_tell_std_px + std)
     gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)
-    rms = torch.sqrt((st.res.double() ** 2).sum(1) / st.valid.sum(1).clamp_min(1)).float()
+    rms = aligned_residual(st.res, st.valid, None, 1, 0)
+    c = cfg.clusters**2 if cfg.clusters >= 2 else 1  # the aligned residual: the worst rectangles out
+    aligned = aligned_residual(st.res, st.valid, region_ids(h0, w0, block, cfg.clusters, dev) if c > 1 else None, c,
+                               int(cfg.occluded_share * c) if c > 1 else 0)
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
                        st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan), ab,
                        torch.full_like(ab, float("nan")), torch.full_like(d_avg, float("nan")), std,
-                       torch.full_like(std, float("nan")))
+                       torch.full_like(std, float("nan")), aligned)
     return theta, k2, k4, H, info

@@ -167,7 +167,9 @@ class SelfCalInfo(NamedTuple):
     model or where it did not converge), relief_z Hausman's statistic of their Delta_avg difference
     (what ``parallax_test`` thresholds; NaN without that model), planar_std and relief_std the two
     models' Delta_avg stds whichever was kept (relief_std NaN without that model, inf where it did
-    not converge).
+    not converge), aligned_residual the RMS of the same residual over the frame's ``clusters`` x
+    ``clusters`` rectangles but the worst ``occluded_share`` of them (what ``analyze`` tests: an
+    occluder spoils a few rectangles, a model that cannot follow the lens most of the border).
     """
 
     converged: torch.Tensor
@@ -188,6 +190,7 @@ class SelfCalInfo(NamedTuple):
     relief_z: torch.Tensor
     planar_std: torch.Tensor
     relief_std: torch.Tensor
+    aligned_residual: torch.Tensor
 
 
 class Level(NamedTuple):

@@ -203,7 +203,9 @@ def _selfcal_all(p: PreparedPairs) -> list[dict]:
     Also where the registration failed its own test: its H is still the nearest start on most
     such pairs, and beside it the phase-correlation start is fitted (``selfcal.both_starts``).
     The fit aligned the pair where it converged and its RMS residual (the lens and the photometry
-    modelled) passes the registration's own test (:func:`~lensdist_torch.geometry.registration.residual_limit`).
+    modelled; the worst ``selfcal.occluded_share`` of the frame's rectangles left out, where an
+    occluder may be: ``aligned_residual``) passes the registration's own test
+    (:func:`~lensdist_torch.geometry.registration.residual_limit`).
     """
     cfg, n = p.config, p.img1.shape[0]
     start = torch.isfinite(p.H).all(dim=(1, 2)).cpu()
@@ -218,7 +220,7 @@ def _selfcal_all(p: PreparedPairs) -> list[dict]:
             one = SelfCalInfo(*(f[j : j + 1] for f in sc))
             out[i] = _selfcal_answer(k2[j : j + 1], k4[j : j + 1], one, cfg)
             # the registration's own residual test, passed with the lens and the photometry modelled
-            out[i]["_aligned"] = bool(one.converged[0]) and float(one.residual[0]) <= float(limit[i])
+            out[i]["_aligned"] = bool(one.converged[0]) and float(one.aligned_residual[0]) <= float(limit[i])
             out[i]["_aligned_motion_px"] = float(one.motion[0])
     return out
 

@@ -309,32 +309,23 @@ def test_robust_settings_are_checked(field, value):
 
 
 # ------------------------------------------------------------------ the cluster-robust covariance
-def _state(res, J):
-    from lensdist_torch.geometry.selfcal import _State
-
-    return _State(res, torch.ones_like(res, dtype=torch.bool), J, torch.ones(res.shape[0]), torch.zeros(1), torch.zeros(1))
-
-
 def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clustered_residuals():
-    from lensdist_torch.geometry.selfcal import _normal_equations, _sandwich
+    from lensdist_torch.geometry.selfcal_regions import cluster_robust_covariance, region_ids
 
-    cfg = SelfCalConfig(clusters=6, robust="none")
-    h0, w0 = 96, 128  # full-size samples: 24 x 32 blocks of 4 px
+    h0, w0 = 96, 128  # full-size samples: 24 x 32 blocks of 4 px, in 6 x 6 rectangles
     g = torch.Generator().manual_seed(0)
     n = (h0 // 4) * (w0 // 4)
-    J = torch.randn(1, 3, n, generator=g)
-    w = torch.ones(1, n)
-    inv = torch.linalg.inv(_normal_equations(J, torch.zeros(1, n), w)[0])
-    noise = 0.1 * torch.randn(1, n, generator=g)
+    J = torch.randn(1, 3, n, generator=g).double()
+    inv = torch.linalg.inv(J @ J.transpose(1, 2))
+    noise = 0.1 * torch.randn(1, n, generator=g).double()
     gn = 0.01 * inv.diagonal(dim1=1, dim2=2)
-    sw = _sandwich(inv, _state(noise, J), w, h0, w0, cfg, cfg.sample_block[-1]).diagonal(dim1=1, dim2=2)
+    cid = region_ids(h0, w0, 4, 6)
+    assert cid.bincount().tolist() == [4 * c for c in (6, 5, 5, 6, 5, 5)] * 6  # 24 / 6 rows; 32 columns as 6, 5, 5, 6, 5, 5
+    sw = cluster_robust_covariance(inv, J * noise[:, None], cid, 36).diagonal(dim1=1, dim2=2)
     assert torch.allclose(sw, gn, rtol=0.6)  # 36 clusters: a noisy but unbiased estimate
     # a residual shared within each cluster, correlated with the Jacobian there: much wider
-    rows = torch.arange(h0 // 4) * 6 // (h0 // 4)
-    cols = torch.arange(w0 // 4) * 6 // (w0 // 4)
-    cid = (rows[:, None] * 6 + cols[None, :]).flatten()
-    shared = torch.randn(36, generator=g)[cid] * 0.1 * torch.sign(J[0, 0])
-    wide = _sandwich(inv, _state(noise + shared[None], J), w, h0, w0, cfg, cfg.sample_block[-1]).diagonal(dim1=1, dim2=2)
+    shared = torch.randn(36, generator=g).double()[cid] * 0.1 * torch.sign(J[0, 0])
+    wide = cluster_robust_covariance(inv, J * (noise + shared[None])[:, None], cid, 36).diagonal(dim1=1, dim2=2)
     assert float(wide[0, 0] / gn[0, 0]) > 10
 
 

@@ -88,3 +88,45 @@ def test_saturated_patch_needs_the_redescending_loss(pairs):
     assert _worst(i1, i2, true) < BOUND_PX
     assert _worst(i1, i2, true, SelfCalConfig(robust="huber")) > BOUND_PX
     assert _worst(i1, i2, true, LEAST_SQUARES) > BOUND_PX
+
+
+
+def _offset_pair(rects: int):
+    """A pure 5 px translation of gravel (192 x 288: 6 x 6 rectangles of 8 x 12 samples at block 4),
+    with img1 raised by 0.3 over ``rects`` x ``rects`` rectangles (32 x 48 px each) from the second
+    row and column: inside the overlap, every one of their samples valid."""
+    scene = load_scene("gravel")
+    i1, i2 = scene[..., 100:292, 100:388].clone(), scene[..., 105:297, 100:388].clone()
+    i1[..., 32 : 32 * (rects + 1), 48 : 48 * (rects + 1)] += 0.3
+    return i1, i2
+
+
+@pytest.mark.parametrize("rects", [1, 3])
+def test_aligned_residual_leaves_out_the_worst_rectangles(rects):
+    """Hand-worked: Tukey's weights drop the raised patch, whose k = rects^2 rectangles (96 samples
+    each) keep a residual of 0.3, the others ~0. Over the n valid samples (the overlap times the
+    48 x 72 samples) the RMS is 0.3 sqrt(96 k / n); occluded_share 0.15 leaves out the worst 5
+    rectangles (int(0.15 x 36)): one spoiled rectangle vanishes (RMS ~ 0), of nine four stay,
+    0.3 sqrt(96 x 4 / (n - 96 x 5)). With occluded_share 0 it is the plain RMS."""
+    i1, i2 = _offset_pair(rects)
+    _, _, _, info = estimate_distortion(i1, i2)
+    _, _, _, plain = estimate_distortion(i1, i2, config=SelfCalConfig(occluded_share=0.0))
+    assert bool(info.converged.all()) and bool(plain.converged.all())
+    k, n = rects * rects, float(info.overlap[0]) * 48 * 72
+    assert float(info.residual[0]) == pytest.approx(0.3 * (96 * k / n) ** 0.5, rel=1e-4)
+    aligned = 0.3 * (96 * (k - 5) / (n - 96 * 5)) ** 0.5 if k > 5 else 0.0
+    assert float(info.aligned_residual[0]) == pytest.approx(aligned, abs=1e-4)
+    assert float(plain.aligned_residual[0]) == pytest.approx(float(plain.residual[0]), rel=1e-6)
+    assert float(info.aligned_residual[0]) <= float(info.residual[0])
+
+
+def test_unrelated_views_fail_the_test_even_so():
+    """Two unrelated scenes: the misfit is everywhere, leaving out 5 of 36 rectangles cannot hide
+    it: the RMS stays above the registration's own limit (0.5 sqrt 2 std(img1))."""
+    from lensdist_torch.config import RegistrationConfig
+    from lensdist_torch.geometry.registration import residual_limit
+
+    i1, i2 = load_scene("gravel")[..., :192, :288], load_scene("grass")[..., :192, :288]
+    _, _, _, info = estimate_distortion(i1, i2)
+    limit = float(residual_limit(i1, RegistrationConfig())[0])
+    assert float(info.aligned_residual[0]) > limit

@@ -137,6 +137,25 @@ def test_a_pair_of_a_scene_with_relief_says_relief():
     assert lo < 11.18 < hi and abs(r["planar_delta_avg"] - 11.18) > 1.5
 
 
+
+def test_an_occluded_pair_is_registered_by_the_self_calibration():
+    """Planar realistic validation pair 5 (truth 12.93 px, class 4): an occluder in I1 only fails
+    the homography's residual test (RMS <= 0.5 sqrt 2 std(img1)). The self-calibration leaves the
+    worst selfcal.occluded_share of the frame's rectangles out of the same test and registers it,
+    with the right class; counting every rectangle (occluded_share 0) it is "cannot tell:
+    registration", as with the homography alone."""
+    from lensdist_torch.workflows.decision_fit import validation_config
+
+    cfg = validation_config(load_config(ROOT / "configs" / "realistic.toml"))
+    p = draw_pairs(cfg, "test", [5], len(cfg.protocol.scenes))
+    img1, img2 = render_pairs([load_scene(s) for s in cfg.protocol.scenes], p, cfg)
+    assert bool(p.realism.occluded[0]) and float(p.realism.relief[0, 0]) == 0.0
+    (r,) = analyze_batch(img1, img2, config=cfg)
+    assert r["registered_by"] == "self-calibration" and r["class"] == "4"
+    strict = dataclasses.replace(cfg, selfcal=dataclasses.replace(cfg.selfcal, occluded_share=0.0))
+    (s,) = analyze_batch(img1, img2, config=strict)
+    assert s["registered_by"] is None and s["cannot_tell_reasons"] == ["registration"]
+
 def test_class_distance():
     assert class_distance("R", "1") == 1 and class_distance("R", "4") == 4 and class_distance("2", "2") == 0
     assert class_distance(None, "1") is None
