@@ -322,11 +322,11 @@ def _cost(theta, res, valid, sigma, lv: Level, cfg: SelfCalConfig):
     return cost + prec * (theta[:, rel].double() ** 2).sum(1) / valid.sum(1).clamp_min(1).double()
 
 
-def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: int) -> torch.Tensor:
+def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region: torch.Tensor | None) -> torch.Tensor:
     """Std (px) of Delta_avg from the covariance of the final fit; inf where not finite.
 
-    The weighted Gauss-Newton covariance, or (``clusters`` > 1) the cluster-robust one where it
-    is larger (:func:`~lensdist_torch.geometry.selfcal_regions.cluster_robust_covariance`).
+    The weighted Gauss-Newton covariance, or (with the samples' ``region``, ``clusters`` > 1) the
+    cluster-robust one where it is larger (:func:`~lensdist_torch.geometry.selfcal_regions.cluster_robust_covariance`).
     """
     w = robust_weights(st.res, st.sigma, cfg.robust, _robust_constant(cfg))
     w = st.valid.float() if w is None else w * st.valid
@@ -341,9 +341,9 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, block: 
         torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
     inv = torch.linalg.inv(jtj + cfg.ridge * eye)
     cov = s2[:, None, None] * inv
-    if cfg.clusters > 1:  # cluster-robust: the larger of the two
+    if region is not None:  # cluster-robust: the larger of the two
         score = (st.J * (w * st.res)[:, None]).double()  # (B, P, N)
-        cov = torch.maximum(cov, cluster_robust_covariance(inv, score, region_ids(h0, w0, block, cfg.clusters, ab.device), cfg.clusters**2))
+        cov = torch.maximum(cov, cluster_robust_covariance(inv, score, region, cfg.clusters**2))
     # Delta_avg and its gradient in (a, b): R * mean |a u^3 + b u^5|, the mean over the centres
     # of 4 x 4 blocks (the gradient is smooth; 16 times fewer terms)
     u2 = (normalized_grid(2, h0 // 4, w0 // 4, h0, w0, torch.float64, ab.device).view(1, -1, 2) ** 2).sum(-1)
@@ -378,7 +378,9 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
     st = _State(*(x[keep] for x in st))
     r0 = half_diagonal(h0, w0)
-    std = _delta_avg_std(ab, st, h0, w0, cfg, block)
+    # the frame's rectangles of the samples: the cluster-robust covariance and the aligned residual
+    region = region_ids(h0, w0, block, cfg.clusters, dev) if cfg.clusters > 1 else None
+    std = _delta_avg_std(ab, st, h0, w0, cfg, region)
     nan = torch.tensor(float("nan"), dtype=torch.float64, device=dev)
     k2, k4 = (torch.where(ok, k, nan) for k in from_normalized(ab, h0, w0))
     nrm = normalizer(h0, w0, device=dev)
@@ -394,10 +396,8 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     std = torch.where(ok, torch.sqrt(std**2 + floor**2), torch.full_like(std, float("inf")))
     conf = cfg.cannot_tell_std_px / (cfg.cannot_tell_std_px + std)
     gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)
-    rms = aligned_residual(st.res, st.valid, None, 1, 0)
-    c = cfg.clusters**2 if cfg.clusters >= 2 else 1  # the aligned residual: the worst rectangles out
-    aligned = aligned_residual(st.res, st.valid, region_ids(h0, w0, block, cfg.clusters, dev) if c > 1 else None, c,
-                               int(cfg.occluded_share * c) if c > 1 else 0)
+    rms = aligned_residual(st.res, st.valid)
+    aligned = aligned_residual(st.res, st.valid, region, cfg.clusters**2, int(cfg.occluded_share * cfg.clusters**2))
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
                        st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan), ab,

@@ -54,7 +54,9 @@ def cluster_robust_covariance(inv: torch.Tensor, score: torch.Tensor, region: to
     return inv @ (g @ g.transpose(1, 2) * (n_regions / (n_regions - 1))) @ inv
 
 
-def aligned_residual(res: torch.Tensor, valid: torch.Tensor, region: torch.Tensor | None, n_regions: int, drop: int) -> torch.Tensor:
+def aligned_residual(
+    res: torch.Tensor, valid: torch.Tensor, region: torch.Tensor | None = None, n_regions: int = 0, drop: int = 0
+) -> torch.Tensor:
     """(B,) float32: the RMS of ``res`` over its valid samples, the worst ``drop`` rectangles left out.
 
     The rectangles are ranked by their mean squared residual (one without a valid sample counts
@@ -64,8 +66,8 @@ def aligned_residual(res: torch.Tensor, valid: torch.Tensor, region: torch.Tenso
     Args:
         res: (B, N) residuals, 0 where not valid.
         valid: (B, N) bool.
-        region: (N,) each sample's rectangle (:func:`region_ids`), or None.
-        n_regions: the number of rectangles.
+        region: (N,) each sample's rectangle (:func:`region_ids`), or None (the plain RMS).
+        n_regions: the number of rectangles (with ``region``).
         drop: how many to leave out, < n_regions.
 
     Example:
