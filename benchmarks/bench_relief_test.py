@@ -9,7 +9,7 @@ then :func:`~lensdist_torch.workflows.evaluate.analyze_test_set`, the user's pat
 (``analyze_batch``: registration, self-calibration with Hausman's test choosing the kept answer,
 the decision). Then, per candidate ``analysis.flat_prior`` w, each pair's confidence is what
 ``analyze`` would have said under w
-(:func:`~lensdist_torch.workflows.prepare.rescored_confidence`, through the config's Platt map):
+(:func:`~lensdist_torch.workflows.class_mass.rescored_confidence`, through the config's Platt map):
 w P(class | planar) + (1 - w) P(class | relief). Neither the class nor relief found depends on
 w, so a pair is "cannot tell" where ``analyze`` withheld it for another reason than a low
 confidence (registration, overlap, no estimate, motion, relief: outside

@@ -57,8 +57,20 @@ class AnalysisConfig:
             planar model in a pair's confidence: the class's mass under the planar answer times
             this, plus its mass under the plane + parallax answer times 1 - this (a prior
             probability that the scene is flat; chosen on validation pairs of three conditions,
-            docs/method.md, section 10). Where the two answers fall in different classes the
-            pair is "cannot tell" for relief, both answers given beside it.
+            docs/method.md, section 10). Fitted on a validation split with ``selfcal_std_scale``
+            (least log-loss).
+        relief_mass: "cannot tell" for relief where the planar and the plane + parallax
+            answers fall in different classes and the plane + parallax answer gives the planar
+            answer's class less probability than this (its class mass, the std times
+            ``selfcal_std_scale``): the class then depends on whether the scene is flat, which one
+            pair cannot tell; both answers are given beside it. 0: never; 1 (the default):
+            wherever the classes differ. Fitted on a validation split (``fit_confidence``): the
+            least whose confident answers reach ``target_precision``, within ``max_cannot_tell``.
+        target_precision: the share of confident answers that should be right, what fitting
+            ``relief_mass`` aims for on a validation split.
+        max_cannot_tell: the largest share of a validation split's pairs that may be "cannot
+            tell" when ``relief_mass`` is fitted (for every reason): a decision that withholds
+            more to be right more often is not chosen.
 
     Example:
         >>> from dataclasses import replace
@@ -89,12 +101,18 @@ class AnalysisConfig:
     min_motion_px: float = 1.0
     interval_confidence: float = 0.95
     flat_prior: float = 0.8
+    relief_mass: float = 1.0
+    target_precision: float = 0.97
+    max_cannot_tell: float = 0.25
 
     def __post_init__(self) -> None:
         real(self, "no_distortion_px", lo=0, lo_open=True)
         real(self, "min_motion_px", lo=0, lo_open=True, why="at 0 every method answers on the same image twice")
         real(self, "interval_confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "flat_prior", lo=0, hi=1)
+        real(self, "relief_mass", lo=0, hi=1)
+        real(self, "target_precision", lo=0, hi=1)
+        real(self, "max_cannot_tell", lo=0, hi=1)
         real(self, "min_overlap", lo=0, hi=1)
         real(self, "out_of_domain_factor", lo=0, lo_open=True)
         real(self, "min_confidence", lo=0, hi=1)

@@ -6,10 +6,14 @@ does, and fits the ``[analysis]`` values that turn the estimators' outputs into 
 (:func:`fit_decision`):
 
 * ``no_distortion_px``: the R threshold with the most right self-calibration classes.
-* ``selfcal_std_scale``: the factor on a pair's Delta_avg stds in the self-calibration's
-  confidence (its class's mass under both models of the scene,
-  :func:`~lensdist_torch.workflows.prepare.flat_or_relief`), the value of a grid whose
-  confidences score best (least log-loss) as P(class right).
+* ``selfcal_std_scale`` and ``flat_prior``: the factor on a pair's Delta_avg stds in the
+  self-calibration's confidence and the weight of the planar model in it (its class's mass
+  under both models of the scene, :func:`~lensdist_torch.workflows.class_mass.flat_or_relief`),
+  the values of a grid whose confidences score best (least log-loss) as P(class right).
+* ``relief_mass``: how little probability the plane + parallax answer may give the planar
+  answer's class before the pair is "cannot tell" for relief: the least whose confident
+  answers reach ``target_precision`` while at most ``max_cannot_tell`` of the pairs are "cannot
+  tell" (on a flat condition, 0: relief is never the reason).
 * ``interval_std_scale``: the factor on the std in a pair's 95 % intervals, the least of the same
   grid whose intervals cover the true Delta_avg on ``interval_confidence`` of the pairs.
 * the regression's Platt map, kept only where it lowers the split's ECE.
@@ -30,17 +34,21 @@ import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import estimated_class
+from lensdist_torch.workflows.class_mass import delta_interval, rescored
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
 from lensdist_torch.workflows.evaluate import analyze_test_set
-from lensdist_torch.workflows.prepare import delta_interval, rescored_confidence
 
-__all__ = ["validation_config", "scored_pairs", "confidences", "outcomes", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
+__all__ = ["validation_config", "scored_pairs", "confidences", "outcomes", "answers", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
 
 _PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
           "regression": ("regression_confidence_scale", "regression_confidence_shift")}
 
 #: The candidate std scales (both): log-spaced from 0.5 to 4, and the config's own value.
 _SCALES = tuple(torch.logspace(math.log10(0.5), math.log10(4.0), 25, dtype=torch.float64).tolist())
+#: The candidate flat priors (with the std scale, where the pairs have a plane + parallax answer).
+_PRIORS = tuple(i / 10 for i in range(1, 11))
+#: The candidate relief masses: 0 (relief never named) to 0.5 and 1 (wherever the classes differ).
+_RELIEF_MASSES = tuple(i / 20 for i in range(11)) + (1.0,)
 
 
 def validation_config(config: LensdistConfig) -> LensdistConfig:
@@ -65,8 +73,9 @@ def scored_pairs(results: list[dict], config: LensdistConfig) -> list[int]:
     """The pairs whose answer their confidence decides: the others are withheld for another reason.
 
     Registered, overlapping and in domain, with an estimate, moved by at least
-    ``analysis.min_motion_px``, and no relief found (the two models of the scene in different
-    classes: "cannot tell" whatever the confidence).
+    ``analysis.min_motion_px``, and no relief found under ``config``
+    (:func:`~lensdist_torch.workflows.class_mass.rescored`: "cannot tell" whatever
+    the confidence).
 
     Example:
         >>> ok = {"in_domain": True, "estimated_delta_avg": 5.0, "motion_px": 12.0, "relief_found": False}
@@ -74,8 +83,9 @@ def scored_pairs(results: list[dict], config: LensdistConfig) -> list[int]:
         [0]
     """
     a = config.analysis
+    relief = rescored(results, config)[1].tolist() if results else []
     return [i for i, r in enumerate(results)
-            if r["in_domain"] and r["estimated_delta_avg"] is not None and not r.get("relief_found", False)
+            if r["in_domain"] and r["estimated_delta_avg"] is not None and not relief[i]
             and not (r.get("motion_px") is not None and r["motion_px"] < a.min_motion_px)]
 
 
@@ -91,8 +101,10 @@ def confidences(results: list[dict], keep: list[int], config: LensdistConfig, me
     The self-calibration's raw one recomputed under ``config`` (its std scale, its R threshold),
     the regression's its own.
     """
-    raw = torch.tensor([rescored_confidence(results[i], config) if method == "selfcal" else results[i]["raw_confidence"]
-                        for i in keep], dtype=torch.float64)
+    if method == "selfcal":
+        raw = rescored([results[i] for i in keep], config)[0] if keep else torch.zeros(0, dtype=torch.float64)
+    else:
+        raw = torch.tensor([results[i]["raw_confidence"] for i in keep], dtype=torch.float64)
     return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method])) if calibrated else raw
 
 
@@ -115,7 +127,7 @@ def interval_coverage(results: list[dict], data: dict, config: LensdistConfig) -
     """{"pairs", "coverage"}: the share of the :func:`scored_pairs` whose interval covers the true Delta_avg.
 
     The interval of the kept answer, as ``analyze`` gives it
-    (:func:`~lensdist_torch.workflows.prepare.delta_interval`).
+    (:func:`~lensdist_torch.workflows.class_mass.delta_interval`).
 
     Example:
         >>> r = {"in_domain": True, "estimated_delta_avg": 5.0, "delta_avg_std": 0.5, "motion_px": 9.0}
@@ -137,10 +149,15 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     ``no_distortion_px``: the R threshold with the most right self-calibration classes (of a
     log-spaced grid from 0.02 to 2 px; ties: the one nearest the current value). Then, on the
     :func:`scored_pairs` and of a log-spaced grid from 0.5 to 4 (ties: nearest the current
-    value): ``selfcal_std_scale``, the least log-loss of the self-calibration's confidence as
+    value): ``selfcal_std_scale`` with ``flat_prior`` (0.1 to 1; only where the pairs have a
+    plane + parallax answer), the least log-loss of the self-calibration's confidence as
     P(class right), kept at the config's where the pairs are all right or all wrong (nothing to
-    score); ``interval_std_scale``, the least whose intervals cover the true Delta_avg on
-    ``interval_confidence`` of the pairs (the largest where none does). Then the Platt map of
+    score), for each candidate ``relief_mass`` (of 0 to 0.5, and 1) on the pairs it leaves to
+    the confidence; of those the least ``relief_mass`` whose confident answers are right on
+    ``target_precision`` of them with at most ``max_cannot_tell`` of the pairs "cannot tell"
+    (:func:`_fit_relief_mass`); then ``interval_std_scale``, the least
+    whose intervals cover the true Delta_avg on ``interval_confidence`` of the scored pairs
+    (the largest where none does). Then the Platt map of
     the regression's confidence, kept only where it lowers the split's ECE below the config's
     map. The self-calibration's Platt map stays the config's (the identity by default): its
     confidence is a probability already, and its std scale is what is fitted.
@@ -157,9 +174,9 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
             best, best_key = t, key
     fitted = {"no_distortion_px": float(best)}
     cfg = _with(config, no_distortion_px=best)
-    fitted["selfcal_std_scale"] = _fit_std_scale(results["selfcal"], data, cfg)
+    fitted |= _fit_relief_mass(results["selfcal"], data, cfg)
+    cfg = _with(cfg, **fitted)
     fitted["interval_std_scale"] = _fit_interval_scale(results["selfcal"], data, cfg)
-    cfg = _with(cfg, selfcal_std_scale=fitted["selfcal_std_scale"])
     for method, (f_scale, f_shift) in _PLATT.items():
         # a map fitted on the protocol, whose pairs mostly move by tens of pixels, made pairs that
         # moved by < 2 px claim 0.93 where 0.69 were right (docs/method.md, section 10): the
@@ -175,15 +192,68 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     return fitted
 
 
-def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> float:
-    current = config.analysis.selfcal_std_scale
-    keep = scored_pairs(results, config)  # neither the pairs nor their classes depend on the scale
+def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> tuple[float, float]:
+    """(selfcal_std_scale, flat_prior) of the least log-loss over the config's scored pairs."""
+    a = config.analysis
+    keep = scored_pairs(results, config)  # fixed: the scores compare one set of pairs
     right = _right(results, data, config, keep)
     if right.numel() == 0 or bool(right.all()) or not bool(right.any()):
-        return float(current)  # all right (or all wrong): the sharpest (or widest) scale would always win
-    scores = [(_log_loss(confidences(results, keep, _with(config, selfcal_std_scale=s), "selfcal", True), right),
-               abs(math.log(s / current)), s) for s in sorted(set(_SCALES) | {current})]
-    return float(min(scores)[2])
+        return a.selfcal_std_scale, a.flat_prior  # all right (or all wrong): the sharpest (or widest) scale would always win
+    has_relief = any(results[i].get("relief_delta_avg") is not None for i in keep)
+    priors = sorted(set(_PRIORS) | {a.flat_prior}) if has_relief else [a.flat_prior]  # no second model: no weight
+    scores = [(_log_loss(confidences(results, keep, _with(config, selfcal_std_scale=s, flat_prior=w), "selfcal", True), right),
+               abs(math.log(s / a.selfcal_std_scale)) + abs(w - a.flat_prior), s, w)
+              for s in sorted(set(_SCALES) | {a.selfcal_std_scale}) for w in priors]
+    return tuple(float(v) for v in min(scores)[2:])
+
+
+def _fit_relief_mass(results: list[dict], data: dict, config: LensdistConfig) -> dict:
+    """``relief_mass`` with its confidence: the least whose confident answers reach ``target_precision`` within ``max_cannot_tell``.
+
+    For each of :data:`_RELIEF_MASSES` and the config's value, the std scale and the flat prior
+    of the pairs it leaves to the confidence (:func:`_fit_std_scale`), then the split's
+    self-calibration answers as ``analyze`` would give them under all three (:func:`answers`).
+    Where none reaches the target within the limit, the most precise within it (ties: the
+    least); where none is within it, the config's value.
+
+    Returns:
+        {"relief_mass", "selfcal_std_scale", "flat_prior"}.
+    """
+    a = config.analysis
+    rows = []
+    for q in sorted(set(_RELIEF_MASSES) | {a.relief_mass}):
+        cfg = _with(config, relief_mass=q)
+        k, w = _fit_std_scale(results, data, cfg)
+        got = answers(results, data, _with(cfg, selfcal_std_scale=k, flat_prior=w))
+        rows.append({"ok": got["cannot_tell"] <= a.max_cannot_tell, "precision": got["precision"],
+                     "fit": {"relief_mass": float(q), "selfcal_std_scale": k, "flat_prior": w}})
+    within = [r for r in rows if r["ok"]]
+    if not within:
+        return next(r["fit"] for r in rows if r["fit"]["relief_mass"] == a.relief_mass)
+    reached = [r for r in within if r["precision"] >= a.target_precision]
+    return (reached[0] if reached else max(within, key=lambda r: (r["precision"], -r["fit"]["relief_mass"])))["fit"]
+
+
+def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
+    """{"pairs", "answered", "cannot_tell", "precision"} of the self-calibration's answers under ``config``.
+
+    A pair is answered where it is scored (:func:`scored_pairs`) and its calibrated confidence
+    reaches ``analysis.min_confidence``; "cannot tell" is the share of all pairs not answered
+    (every reason), precision the share of the answers whose class is right (NaN without one).
+
+    Example:
+        >>> r = {"in_domain": True, "estimated_delta_avg": 5.0, "delta_avg_std": 0.2, "motion_px": 9.0}
+        >>> got = answers([r, r | {"estimated_delta_avg": 8.0}, r | {"in_domain": False}],
+        ...               {"class_avg": torch.tensor([1, 1, 1])}, LensdistConfig())  # 5 and 8 px: classes 2 and 3
+        >>> got["answered"], round(got["cannot_tell"], 3), got["precision"]
+        (2, 0.333, 0.5)
+    """
+    keep = scored_pairs(results, config)
+    conf = confidences(results, keep, config, "selfcal", True)
+    right = _right(results, data, config, keep)[conf >= config.analysis.min_confidence]
+    n = len(results)
+    return {"pairs": n, "answered": int(right.numel()), "cannot_tell": (n - right.numel()) / n if n else float("nan"),
+            "precision": float(right.double().mean()) if right.numel() else float("nan")}
 
 
 def _fit_interval_scale(results: list[dict], data: dict, config: LensdistConfig) -> float:

@@ -20,7 +20,6 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
-    class_bounds,
     delta_avg,
     distortion_type,
     estimated_class,
@@ -32,9 +31,10 @@ from lensdist_torch.geometry.registration import residual_limit, warp_to_referen
 from lensdist_torch.geometry.selfcal import SelfCalInfo, estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
+from lensdist_torch.workflows.class_mass import delta_interval, flat_or_relief, relief_agreement
 from lensdist_torch.workflows.texture import texture_histogram
 
-__all__ = ["PreparedPairs", "prepare_batch", "resolve_device", "flat_or_relief", "rescored_confidence", "delta_interval"]
+__all__ = ["PreparedPairs", "prepare_batch", "resolve_device"]
 
 
 def resolve_device(device=None) -> torch.device:
@@ -264,103 +264,6 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     conf, found = flat_or_relief(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):
         return {"raw_confidence": conf, "relief_found": False}
-    both = {"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
+    both = {"relief_agreement": relief_agreement(d0, (d1, s1), cfg),"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
             "relief_delta_avg": d1, "relief_delta_avg_std": s1, "relief_delta_avg_interval": delta_interval(d1, s1, cfg.analysis)}
     return {"raw_confidence": conf, "relief_found": found, **both}
-
-
-def rescored_confidence(res: dict, cfg: LensdistConfig) -> float:
-    """A self-calibration result's raw confidence again, under ``cfg`` (its R threshold, its std scale).
-
-    From the answers the result keeps (``estimated_delta_avg`` and ``delta_avg_std``; with the
-    plane + parallax model, ``planar_delta_avg`` and ``relief_delta_avg`` with their stds), the
-    class of ``estimated_delta_avg`` under ``cfg`` and :func:`flat_or_relief`: what
-    ``analyze`` would have said with ``cfg``. NaN without an estimate. Used to fit
-    ``analysis.selfcal_std_scale`` on a validation split without analysing its pairs again.
-
-    Example:
-        >>> from lensdist_torch.config import LensdistConfig
-        >>> res = {"estimated_delta_avg": 7.0, "delta_avg_std": 0.2}  # class 2 ends at 7.18 px: Phi(0.92)
-        >>> round(rescored_confidence(res, LensdistConfig()), 3)
-        0.822
-    """
-    d = res.get("estimated_delta_avg")
-    if d is None:
-        return float("nan")
-    label = CLASS_LABELS[int(estimated_class(torch.tensor([d]), torch.tensor([d]), "delta_avg", cfg)[0])]
-    def get(key, default):  # a field absent or null (JSON): the default
-        return default if res.get(key) is None else res[key]
-
-    # without a plane + parallax answer the kept one is the planar one (flat_or_relief's own rule)
-    planar = (get("planar_delta_avg", d), get("planar_delta_avg_std", res["delta_avg_std"]))
-    relief = (get("relief_delta_avg", float("nan")), get("relief_delta_avg_std", float("inf")))
-    return flat_or_relief(label, planar, relief, cfg)[0]
-
-
-def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
-    """The raw confidence of a pair's class over both models of its scene, and whether they part.
-
-    A user does not say whether the scene is flat. With the planar answer (Delta_avg, std) and
-    the plane + parallax one, the confidence of ``label`` is its mass under each
-    (:func:`_class_mass`, the folded normal, each std times ``analysis.selfcal_std_scale``),
-    weighted ``analysis.flat_prior`` and 1 - that: ``w P(label | planar) + (1 - w) P(label | relief)``. Where the two answers fall in different
-    classes the class depends on whether the scene is flat, which one pair cannot tell: the
-    second value (``relief_found``) is True. Without a plane + parallax answer (the model off,
-    or not converged: a non-finite Delta_avg or std; the planar answer is then the kept one) the
-    planar mass alone, and no relief found.
-
-    Example:
-        >>> from lensdist_torch.config import LensdistConfig
-        >>> cfg = LensdistConfig()  # flat_prior 0.8; class 2 spans Delta_avg 3.6 to 7.2 px at 320 x 424
-        >>> conf, found = flat_or_relief("2", (5.0, 0.2), (5.3, 0.4), cfg)
-        >>> round(conf, 3), found
-        (1.0, False)
-        >>> flat_or_relief("2", (7.0, 0.2), (7.6, 0.4), cfg)[1]  # the relief answer is in class 3
-        True
-        >>> flat_or_relief("2", (5.0, 0.2), (float("nan"), float("inf")), cfg)[1]  # no relief answer
-        False
-    """
-    k = cfg.analysis.selfcal_std_scale
-    if not (math.isfinite(relief[0]) and math.isfinite(relief[1])):
-        return _class_mass(planar[0], k * planar[1], label, cfg), False
-    w = cfg.analysis.flat_prior
-    d = torch.tensor([planar[0], relief[0]], dtype=torch.float64)
-    c0, c1 = estimated_class(d, d, "delta_avg", cfg).tolist()
-    mass = w * _class_mass(planar[0], k * planar[1], label, cfg) + (1 - w) * _class_mass(relief[0], k * relief[1], label, cfg)
-    return mass, c0 != c1
-
-
-def _class_mass(d: float, std: float, label: str, cfg: LensdistConfig) -> float:
-    """P(|D| in the class ``label``'s bin) for D ~ N(d, std^2): the raw confidence of a class.
-
-    Delta_avg is the size of a signed offset (barrel or pincushion), so its distribution is the
-    folded normal: an estimate near 0 with a std of 0.2 px is R (|D| < 0.25 px) on both sides.
-    Near a class boundary the class is a coin toss however small the std.
-    """
-    if not math.isfinite(std) or std <= 0:
-        return 0.0 if not math.isfinite(std) else 1.0
-    lo, hi = class_bounds(label, "delta_avg", cfg)
-    z = torch.tensor([hi - d, lo - d, -lo - d, -hi - d], dtype=torch.float64) / std
-    cdf = torch.special.ndtr(z)
-    return float((cdf[0] - cdf[1] + cdf[2] - cdf[3]).clamp(1e-9, 1 - 1e-9))
-
-
-def delta_interval(d: float, std: float, a) -> list[float] | None:
-    """A pair's Delta_avg interval: [max(0, d - z k std), d + z k std]; None if std is not finite.
-
-    ``a`` is the [analysis] settings: z the normal quantile of ``a.interval_confidence``, k
-    ``a.interval_std_scale``. The one interval of the self-calibration's answers (and of
-    :func:`~lensdist_torch.workflows.decision_fit.interval_coverage`).
-
-    Example:
-        >>> from lensdist_torch.config import AnalysisConfig
-        >>> [round(v, 3) for v in delta_interval(5.0, 0.5, AnalysisConfig())]  # z = 1.96
-        [4.02, 5.98]
-        >>> delta_interval(0.3, 0.5, AnalysisConfig())[0]  # clipped at 0: Delta_avg is a size
-        0.0
-    """
-    if not math.isfinite(std):
-        return None
-    z = float(torch.special.ndtri(torch.tensor(0.5 + a.interval_confidence / 2, dtype=torch.float64)))
-    half = z * a.interval_std_scale * std
-    return [max(0.0, d - half), d + half]

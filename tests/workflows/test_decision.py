@@ -18,9 +18,9 @@ from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import load_scenes, read_manifest
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.workflows.analyze import analyze_batch
+from lensdist_torch.workflows.class_mass import flat_or_relief
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
 from lensdist_torch.workflows.decision import class_distance, decide, domain_checks
-from lensdist_torch.workflows.prepare import flat_or_relief
 
 ROOT = Path(__file__).resolve().parents[2]
 

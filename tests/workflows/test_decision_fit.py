@@ -15,8 +15,13 @@ from lensdist_torch.data.shards import load_scenes
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import estimated_class
 from lensdist_torch.workflows.analyze import analyze_pair
+from lensdist_torch.workflows.class_mass import (
+    flat_or_relief,
+    relief_agreement,
+    rescored_confidence,
+    rescored_relief_found,
+)
 from lensdist_torch.workflows.decision_fit import fit_decision, interval_coverage, scored_pairs
-from lensdist_torch.workflows.prepare import flat_or_relief, rescored_confidence
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")
 
@@ -56,14 +61,16 @@ def analysed():
     return img1, img2, cfg
 
 
-@pytest.mark.parametrize("k", [1.0, 1.7])
-def test_rescored_confidence_is_what_analyze_says(analysed, k):
-    """The raw confidence recomputed from a result's kept answers is analyze's own, under the same config."""
+@pytest.mark.parametrize("k, w, q", [(1.0, 0.8, 1.0), (1.7, 0.3, 0.2)])
+def test_rescored_confidence_is_what_analyze_says(analysed, k, w, q):
+    """The raw confidence and the relief flag recomputed from a result's kept answers are analyze's own, under the same config."""
     img1, img2, base = analysed
-    cfg = _with(base, selfcal_std_scale=k)
+    cfg = _with(base, selfcal_std_scale=k, flat_prior=w, relief_mass=q)
     res = analyze_pair(img1, img2, method="selfcal", config=cfg)
-    assert res["estimated_delta_avg"] is not None
+    assert res["estimated_delta_avg"] is not None and res["relief_delta_avg"] is not None
     assert rescored_confidence(res, cfg) == pytest.approx(res["raw_confidence"], abs=1e-9)
+    assert rescored_relief_found(res, cfg) == res["relief_found"]
+    assert res["relief_agreement"] == pytest.approx(relief_agreement(res["planar_delta_avg"], (res["relief_delta_avg"], res["relief_delta_avg_std"]), cfg))
     assert rescored_confidence({"estimated_delta_avg": None}, cfg) != rescored_confidence({"estimated_delta_avg": None}, cfg)  # NaN
 
 

@@ -1,0 +1,185 @@
+"""The self-calibration's confidence: a class's probability mass under a pair's two models of its scene.
+
+A pair's Delta_avg answer (planar, and plane + parallax where that model converged) is a normal
+of the fit's std; a class's confidence is its mass under the folded normal (Delta_avg is the size
+of a signed offset), the two models weighed by ``analysis.flat_prior`` (:func:`flat_or_relief`).
+Where the two answers fall in different classes and the plane + parallax answer gives the planar
+answer's class little probability (:func:`relief_agreement` below ``analysis.relief_mass``) the
+pair is "cannot tell" for relief.
+:func:`rescored` (batched; one result: :func:`rescored_confidence`, :func:`rescored_relief_found`)
+recomputes both from saved results under another decision (the fit on a validation split, ``workflows.decision_fit``);
+:func:`delta_interval` is the one interval of the self-calibration's answers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from lensdist_torch.config import LensdistConfig
+from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
+
+__all__ = ["flat_or_relief", "relief_agreement", "rescored", "rescored_confidence", "rescored_relief_found", "delta_interval"]
+
+
+def rescored(results: list[dict], cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """(confidence, relief_found) of saved self-calibration results again, under ``cfg``, batched.
+
+    From the answers each result keeps (``estimated_delta_avg`` and ``delta_avg_std``; with the
+    plane + parallax model, ``planar_delta_avg`` and ``relief_delta_avg`` with their stds), the
+    class of ``estimated_delta_avg`` under ``cfg`` and :func:`flat_or_relief`'s rule: what
+    ``analyze`` would have said with ``cfg``. Confidence NaN without an estimate; relief_found the
+    result's own flag where it keeps no plane + parallax answer. Used to fit the decision on a
+    validation split without analysing its pairs again.
+
+    Returns:
+        (N,) float64 confidences, (N,) bool.
+    """
+    nan = float("nan")
+
+    def get(r, key, default):  # a field absent or null (JSON): the default
+        return default if r.get(key) is None else r[key]
+
+    d = [get(r, "estimated_delta_avg", nan) for r in results]
+    # without a plane + parallax answer the kept one is the planar one
+    p = torch.tensor([[get(r, "planar_delta_avg", x), get(r, "planar_delta_avg_std", get(r, "delta_avg_std", nan))]
+                      for r, x in zip(results, d)], dtype=torch.float64).view(-1, 2)
+    q = torch.tensor([[get(r, "relief_delta_avg", nan), get(r, "relief_delta_avg_std", math.inf)] for r in results],
+                     dtype=torch.float64).view(-1, 2)
+    d = torch.tensor(d, dtype=torch.float64)
+    conf, found = _flat_or_relief(_classes(d, cfg), p[:, 0], p[:, 1], q[:, 0], q[:, 1], cfg)
+    stored = torch.tensor([bool(r.get("relief_found", False)) for r in results], dtype=torch.bool)
+    kept = torch.isfinite(q[:, 0]) & torch.isfinite(d)
+    return torch.where(torch.isfinite(d), conf, nan), torch.where(kept, found, stored)
+
+
+def rescored_confidence(res: dict, cfg: LensdistConfig) -> float:
+    """One result's raw confidence again, under ``cfg`` (:func:`rescored`).
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> res = {"estimated_delta_avg": 7.0, "delta_avg_std": 0.2}  # class 2 ends at 7.18 px: Phi(0.92)
+        >>> round(rescored_confidence(res, LensdistConfig()), 3)
+        0.822
+    """
+    return float(rescored([res], cfg)[0][0])
+
+
+def rescored_relief_found(res: dict, cfg: LensdistConfig) -> bool:
+    """Whether one result finds relief under ``cfg`` (:func:`rescored`).
+
+    Example:
+        >>> import dataclasses
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> res = {"estimated_delta_avg": 7.0, "delta_avg_std": 0.2, "planar_delta_avg": 7.0, "planar_delta_avg_std": 0.2,
+        ...        "relief_delta_avg": 7.6, "relief_delta_avg_std": 0.4}  # class 2: mass 0.15 under 7.6 +- 0.4
+        >>> strict = LensdistConfig(analysis=dataclasses.replace(LensdistConfig().analysis, relief_mass=0.1))  # below 0.1 only
+        >>> rescored_relief_found(res, LensdistConfig()), rescored_relief_found(res, strict)
+        (True, False)
+    """
+    return bool(rescored([res], cfg)[1][0])
+
+
+def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
+    """The raw confidence of a pair's class over both models of its scene, and whether they part.
+
+    A user does not say whether the scene is flat. With the planar answer (Delta_avg, std) and
+    the plane + parallax one, the confidence of ``label`` is its mass under each (the folded
+    normal, each std times ``analysis.selfcal_std_scale``), weighted ``analysis.flat_prior`` and
+    1 - that: ``w P(label | planar) + (1 - w) P(label | relief)``. Where the two answers fall in
+    different classes and the plane + parallax answer gives the planar answer's class less
+    probability than ``analysis.relief_mass`` (:func:`relief_agreement`; 1, the default: in
+    different classes is enough) the class depends on whether the scene is flat, which one pair
+    cannot tell: the second value (``relief_found``) is True. Without a plane + parallax answer
+    (the model off, or not converged: a non-finite Delta_avg or std; the planar answer is then
+    the kept one) the planar mass alone, and no relief found.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> cfg = LensdistConfig()  # flat_prior 0.8; class 2 spans Delta_avg 3.6 to 7.2 px at 320 x 424
+        >>> conf, found = flat_or_relief("2", (5.0, 0.2), (5.3, 0.4), cfg)
+        >>> round(conf, 3), found
+        (1.0, False)
+        >>> flat_or_relief("2", (7.0, 0.2), (7.6, 0.4), cfg)[1]  # class 2 has mass 0.15 under 7.6 +- 0.4
+        True
+        >>> flat_or_relief("2", (5.0, 0.2), (float("nan"), float("inf")), cfg)[1]  # no relief answer
+        False
+    """
+    t = [torch.tensor([v], dtype=torch.float64) for v in (*planar, *relief)]
+    conf, found = _flat_or_relief(torch.tensor([CLASS_LABELS.index(label)]), *t, cfg)
+    return float(conf[0]), bool(found[0])
+
+
+def relief_agreement(planar_delta: float, relief: tuple[float, float], cfg: LensdistConfig) -> float:
+    """The probability the plane + parallax answer (Delta_avg, std) gives the planar answer's class.
+
+    The class of ``planar_delta`` under ``cfg`` and its mass under the folded normal of the
+    plane + parallax answer, the std times ``analysis.selfcal_std_scale``: near 1 where both
+    models of the scene agree, near 0 where the relief moves the class. NaN without a finite
+    plane + parallax answer.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> round(relief_agreement(7.0, (7.6, 0.4), LensdistConfig()), 3)  # class 2 ends near 7.18 px: Phi(-1.04)
+        0.149
+    """
+    d, s = (torch.tensor([v], dtype=torch.float64) for v in relief)
+    return float(_agreement(torch.tensor([planar_delta], dtype=torch.float64), d, s, cfg)[0])
+
+
+def _flat_or_relief(label, d0, s0, d1, s1, cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`flat_or_relief` on (N,) tensors: label class indices, the two answers and their stds."""
+    k, w = cfg.analysis.selfcal_std_scale, cfg.analysis.flat_prior
+    two = torch.isfinite(d1) & torch.isfinite(s1)
+    planar = _mass(d0, k * s0, label, cfg)
+    conf = torch.where(two, w * planar + (1 - w) * _mass(d1, k * s1, label, cfg), planar)
+    parted = _classes(d0, cfg) != _classes(d1, cfg)
+    return conf, two & parted & (_agreement(d0, d1, s1, cfg) < cfg.analysis.relief_mass)
+
+
+def _agreement(d0, d1, s1, cfg: LensdistConfig) -> torch.Tensor:
+    finite = torch.isfinite(d1) & torch.isfinite(s1)
+    return torch.where(finite, _mass(d1, cfg.analysis.selfcal_std_scale * s1, _classes(d0, cfg), cfg), float("nan"))
+
+
+def _classes(d: torch.Tensor, cfg: LensdistConfig) -> torch.Tensor:
+    """The class indices (:data:`CLASS_LABELS`) of Delta_avg values (analysis px) under ``cfg``."""
+    return estimated_class(d, d, "delta_avg", cfg)
+
+
+def _mass(d: torch.Tensor, std: torch.Tensor, label: torch.Tensor, cfg: LensdistConfig) -> torch.Tensor:
+    """P(|D| in the bin of class ``label``) for D ~ N(d, std^2): the raw confidence of a class.
+
+    Delta_avg is the size of a signed offset (barrel or pincushion), so its distribution is the
+    folded normal: an estimate near 0 with a std of 0.2 px is R (|D| < 0.25 px) on both sides.
+    Near a class boundary the class is a coin toss however small the std. A std that is not
+    finite gives 0, one of 0 gives 1.
+    """
+    bounds = torch.tensor([class_bounds(c, "delta_avg", cfg) for c in CLASS_LABELS], dtype=torch.float64)[label]
+    lo, hi = bounds.unbind(-1)
+    safe = torch.where(torch.isfinite(std) & (std > 0), std, 1.0)
+    cdf = torch.special.ndtr(torch.stack([hi - d, lo - d, -lo - d, -hi - d]) / safe)
+    m = (cdf[0] - cdf[1] + cdf[2] - cdf[3]).clamp(1e-9, 1 - 1e-9)
+    return torch.where(torch.isfinite(std), torch.where(std > 0, m, 1.0), 0.0)
+
+
+def delta_interval(d: float, std: float, a) -> list[float] | None:
+    """A pair's Delta_avg interval: [max(0, d - z k std), d + z k std]; None if std is not finite.
+
+    ``a`` is the [analysis] settings: z the normal quantile of ``a.interval_confidence``, k
+    ``a.interval_std_scale``. The one interval of the self-calibration's answers (and of
+    :func:`~lensdist_torch.workflows.decision_fit.interval_coverage`).
+
+    Example:
+        >>> from lensdist_torch.config import AnalysisConfig
+        >>> [round(v, 3) for v in delta_interval(5.0, 0.5, AnalysisConfig())]  # z = 1.96
+        [4.02, 5.98]
+        >>> delta_interval(0.3, 0.5, AnalysisConfig())[0]  # clipped at 0: Delta_avg is a size
+        0.0
+    """
+    if not math.isfinite(std):
+        return None
+    z = float(torch.special.ndtri(torch.tensor(0.5 + a.interval_confidence / 2, dtype=torch.float64)))
+    half = z * a.interval_std_scale * std
+    return [max(0.0, d - half), d + half]
