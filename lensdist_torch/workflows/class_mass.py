@@ -20,7 +20,7 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
 
-__all__ = ["flat_or_relief", "relief_agreement", "rescored", "rescored_confidence", "rescored_relief_found", "delta_interval"]
+__all__ = ["flat_or_relief", "relief_agreement", "classes_differ", "rescored", "rescored_confidence", "rescored_relief_found", "delta_interval"]
 
 
 def rescored(results: list[dict], cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -126,6 +126,23 @@ def relief_agreement(planar_delta: float, relief: tuple[float, float], cfg: Lens
     """
     d, s = (torch.tensor([v], dtype=torch.float64) for v in relief)
     return float(_agreement(torch.tensor([planar_delta], dtype=torch.float64), d, s, cfg)[0])
+
+
+def classes_differ(planar_delta: float, relief_delta: float, cfg: LensdistConfig) -> bool:
+    """Whether the planar and the plane + parallax answers (Delta_avg, analysis px) fall in different classes under ``cfg``.
+
+    Where they do, a low confidence is the relief's doing: the reason ``decide`` gives for it.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> classes_differ(7.0, 7.6, LensdistConfig()), classes_differ(5.0, 5.3, LensdistConfig())  # class 2 ends at 7.18 px
+        (True, False)
+    """
+    if not (math.isfinite(planar_delta) and math.isfinite(relief_delta)):
+        return False
+    d = torch.tensor([planar_delta, relief_delta], dtype=torch.float64)
+    c = _classes(d, cfg)
+    return bool(c[0] != c[1])
 
 
 def _flat_or_relief(label, d0, s0, d1, s1, cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:

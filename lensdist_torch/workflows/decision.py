@@ -118,7 +118,7 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
             f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): too little to judge"
         )
     aligned = res["registration_ok"] and res["overlap"] >= cfg.analysis.min_overlap  # else that is the reason given
-    if aligned and res.get("relief_found"):
+    if aligned and _relief(res, cfg):
         lo, hi = res["relief_delta_avg_interval"] or (float("nan"), float("nan"))
         out.append(
             f"cannot tell: relief: a plane + parallax model puts Delta_avg at {res['relief_delta_avg']:.2f} px "
@@ -139,12 +139,23 @@ def _reasons(res: dict, cfg: LensdistConfig, still: bool, low: bool, no_number: 
         "overlap": res["registration_ok"] and res["overlap"] < a.min_overlap,
         "no_estimate": aligned and no_number,
         "motion": still,
-        "relief": aligned and bool(res.get("relief_found")),
-        "low_confidence": aligned and low and not res.get("relief_found"),
+        "relief": aligned and _relief(res, cfg),
+        "low_confidence": aligned and low and not _relief(res, cfg),
         "out_of_domain": aligned and not res["in_domain"],
         "unconfirmed": aligned and unconfirmed,
     }
     return [code for code in REASONS if found[code]]
+
+
+def _relief(res: dict, cfg: LensdistConfig) -> bool:
+    """Whether relief is the reason of a "cannot tell".
+
+    Relief found (``relief_found``), or a low confidence where the planar and the plane +
+    parallax answers fall in different classes (``relief_parted``: the confidence weighs both,
+    and their disagreement is what lowered it).
+    """
+    low = res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence
+    return bool(res.get("relief_found")) or (low and bool(res.get("relief_parted")))
 
 
 def decide(res: dict, cfg: LensdistConfig) -> None:

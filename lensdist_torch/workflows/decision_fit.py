@@ -10,10 +10,11 @@ does, and fits the ``[analysis]`` values that turn the estimators' outputs into 
   self-calibration's confidence and the weight of the planar model in it (its class's mass
   under both models of the scene, :func:`~lensdist_torch.workflows.class_mass.flat_or_relief`),
   the values of a grid whose confidences score best (least log-loss) as P(class right).
-* ``relief_mass``: how little probability the plane + parallax answer may give the planar
-  answer's class before the pair is "cannot tell" for relief: the least whose confident
-  answers reach ``target_precision`` while at most ``max_cannot_tell`` of the pairs are "cannot
-  tell" (on a flat condition, 0: relief is never the reason).
+* ``relief_mass`` and ``min_confidence``: what the decision withholds (a pair whose plane +
+  parallax answer gives the planar answer's class too little probability; an answer whose
+  confidence is too low): the pair of values that answers most while the share of its answers
+  that are right reaches ``target_precision`` at the lower end of its 95 % interval, with at
+  most ``max_cannot_tell`` of the pairs "cannot tell".
 * ``interval_std_scale``: the factor on the std in a pair's 95 % intervals, the least of the same
   grid whose intervals cover the true Delta_avg on ``interval_confidence`` of the pairs.
 * the regression's Platt map, kept only where it lowers the split's ECE.
@@ -35,7 +36,13 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import estimated_class
 from lensdist_torch.workflows.class_mass import delta_interval, rescored
-from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
+from lensdist_torch.workflows.confidence import (
+    expected_calibration_error,
+    fit_platt,
+    platt,
+    precision_bound,
+    reliability,
+)
 from lensdist_torch.workflows.evaluate import analyze_test_set
 
 __all__ = ["validation_config", "scored_pairs", "confidences", "outcomes", "answers", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
@@ -49,6 +56,8 @@ _SCALES = tuple(torch.logspace(math.log10(0.5), math.log10(4.0), 25, dtype=torch
 _PRIORS = tuple(i / 10 for i in range(1, 11))
 #: The candidate relief masses: 0 (relief never named) to 0.5 and 1 (wherever the classes differ).
 _RELIEF_MASSES = tuple(i / 20 for i in range(11)) + (1.0,)
+#: The candidate least confidences of an answer.
+_MIN_CONFIDENCES = (0.5, 0.6, 0.7, 0.8, 0.9)
 
 
 def validation_config(config: LensdistConfig) -> LensdistConfig:
@@ -153,9 +162,10 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     plane + parallax answer), the least log-loss of the self-calibration's confidence as
     P(class right), kept at the config's where the pairs are all right or all wrong (nothing to
     score), for each candidate ``relief_mass`` (of 0 to 0.5, and 1) on the pairs it leaves to
-    the confidence; of those the least ``relief_mass`` whose confident answers are right on
-    ``target_precision`` of them with at most ``max_cannot_tell`` of the pairs "cannot tell"
-    (:func:`_fit_relief_mass`); then ``interval_std_scale``, the least
+    the confidence; with each, ``min_confidence`` of 0.5 to 0.9: of those the most answers whose
+    share right reaches ``target_precision`` at the lower end of its 95 % interval, with at most
+    ``max_cannot_tell`` of the pairs "cannot tell" (:func:`_fit_withholding`); then
+    ``interval_std_scale``, the least
     whose intervals cover the true Delta_avg on ``interval_confidence`` of the scored pairs
     (the largest where none does). Then the Platt map of
     the regression's confidence, kept only where it lowers the split's ECE below the config's
@@ -174,7 +184,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
             best, best_key = t, key
     fitted = {"no_distortion_px": float(best)}
     cfg = _with(config, no_distortion_px=best)
-    fitted |= _fit_relief_mass(results["selfcal"], data, cfg)
+    fitted |= _fit_withholding(results["selfcal"], data, cfg)
     cfg = _with(cfg, **fitted)
     fitted["interval_std_scale"] = _fit_interval_scale(results["selfcal"], data, cfg)
     for method, (f_scale, f_shift) in _PLATT.items():
@@ -207,39 +217,48 @@ def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> t
     return tuple(float(v) for v in min(scores)[2:])
 
 
-def _fit_relief_mass(results: list[dict], data: dict, config: LensdistConfig) -> dict:
-    """``relief_mass`` with its confidence: the least whose confident answers reach ``target_precision`` within ``max_cannot_tell``.
+def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig) -> dict:
+    """What the decision withholds, with the confidence it withholds by, fitted on a split.
 
-    For each of :data:`_RELIEF_MASSES` and the config's value, the std scale and the flat prior
-    of the pairs it leaves to the confidence (:func:`_fit_std_scale`), then the split's
-    self-calibration answers as ``analyze`` would give them under all three (:func:`answers`).
-    Where none reaches the target within the limit, the most precise within it (ties: the
-    least); where none is within it, the config's value.
+    For each ``relief_mass`` of :data:`_RELIEF_MASSES` (and the config's), the std scale and the
+    flat prior of the pairs it leaves to the confidence (:func:`_fit_std_scale`); then, for each
+    ``min_confidence`` of :data:`_MIN_CONFIDENCES` (and the config's), the split's
+    self-calibration answers as ``analyze`` would give them (:func:`answers`). Of the candidates
+    with at most ``max_cannot_tell`` of the pairs "cannot tell", the one with the most answers
+    whose share right is at least ``target_precision`` at the lower end of its 95 % interval
+    (:func:`~lensdist_torch.workflows.confidence.precision_bound`: the split's own chance
+    allowed for); where none is, the one with the highest such bound; where none is within the
+    limit, the config's values. Ties: the least ``relief_mass``, then the least
+    ``min_confidence``.
 
     Returns:
-        {"relief_mass", "selfcal_std_scale", "flat_prior"}.
+        {"relief_mass", "min_confidence", "selfcal_std_scale", "flat_prior"}.
     """
     a = config.analysis
     rows = []
     for q in sorted(set(_RELIEF_MASSES) | {a.relief_mass}):
-        cfg = _with(config, relief_mass=q)
-        k, w = _fit_std_scale(results, data, cfg)
-        got = answers(results, data, _with(cfg, selfcal_std_scale=k, flat_prior=w))
-        rows.append({"ok": got["cannot_tell"] <= a.max_cannot_tell, "precision": got["precision"],
-                     "fit": {"relief_mass": float(q), "selfcal_std_scale": k, "flat_prior": w}})
-    within = [r for r in rows if r["ok"]]
-    if not within:
-        return next(r["fit"] for r in rows if r["fit"]["relief_mass"] == a.relief_mass)
-    reached = [r for r in within if r["precision"] >= a.target_precision]
-    return (reached[0] if reached else max(within, key=lambda r: (r["precision"], -r["fit"]["relief_mass"])))["fit"]
+        k, w = _fit_std_scale(results, data, _with(config, relief_mass=q))
+        for m in sorted(set(_MIN_CONFIDENCES) | {a.min_confidence}):
+            fit = {"relief_mass": float(q), "min_confidence": float(m), "selfcal_std_scale": k, "flat_prior": w}
+            got = answers(results, data, _with(config, **fit))
+            if got["cannot_tell"] <= a.max_cannot_tell and math.isfinite(got["precision_bound"]):
+                rows.append((got["precision_bound"] >= a.target_precision, got["answered"], got["precision_bound"], -q, -m, fit))
+    if not rows:
+        return {"relief_mass": a.relief_mass, "min_confidence": a.min_confidence,
+                "selfcal_std_scale": a.selfcal_std_scale, "flat_prior": a.flat_prior}
+    reached = [r for r in rows if r[0]]
+    best = max(reached, key=lambda r: r[1:5]) if reached else max(rows, key=lambda r: (r[2], -r[1], r[3], r[4]))
+    return best[5]
 
 
 def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
-    """{"pairs", "answered", "cannot_tell", "precision"} of the self-calibration's answers under ``config``.
+    """{"pairs", "answered", "cannot_tell", "precision", "precision_bound"} of the self-calibration's answers under ``config``.
 
     A pair is answered where it is scored (:func:`scored_pairs`) and its calibrated confidence
     reaches ``analysis.min_confidence``; "cannot tell" is the share of all pairs not answered
-    (every reason), precision the share of the answers whose class is right (NaN without one).
+    (every reason), precision the share of the answers whose class is right (NaN without one),
+    precision_bound the lower end of its 95 % interval
+    (:func:`~lensdist_torch.workflows.confidence.precision_bound`).
 
     Example:
         >>> r = {"in_domain": True, "estimated_delta_avg": 5.0, "delta_avg_std": 0.2, "motion_px": 9.0}
@@ -253,7 +272,8 @@ def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
     right = _right(results, data, config, keep)[conf >= config.analysis.min_confidence]
     n = len(results)
     return {"pairs": n, "answered": int(right.numel()), "cannot_tell": (n - right.numel()) / n if n else float("nan"),
-            "precision": float(right.double().mean()) if right.numel() else float("nan")}
+            "precision": float(right.double().mean()) if right.numel() else float("nan"),
+            "precision_bound": precision_bound(int(right.sum()), int(right.numel()))}
 
 
 def _fit_interval_scale(results: list[dict], data: dict, config: LensdistConfig) -> float:

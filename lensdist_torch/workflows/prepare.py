@@ -31,7 +31,7 @@ from lensdist_torch.geometry.registration import residual_limit, warp_to_referen
 from lensdist_torch.geometry.selfcal import SelfCalInfo, estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
-from lensdist_torch.workflows.class_mass import delta_interval, flat_or_relief, relief_agreement
+from lensdist_torch.workflows.class_mass import classes_differ, delta_interval, flat_or_relief, relief_agreement
 from lensdist_torch.workflows.texture import texture_histogram
 
 __all__ = ["PreparedPairs", "prepare_batch", "resolve_device"]
@@ -264,6 +264,6 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     conf, found = flat_or_relief(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):
         return {"raw_confidence": conf, "relief_found": False}
-    both = {"relief_agreement": relief_agreement(d0, (d1, s1), cfg),"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
+    both = {"relief_agreement": relief_agreement(d0, (d1, s1), cfg), "relief_parted": classes_differ(d0, d1, cfg),"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
             "relief_delta_avg": d1, "relief_delta_avg_std": s1, "relief_delta_avg_interval": delta_interval(d1, s1, cfg.analysis)}
     return {"raw_confidence": conf, "relief_found": found, **both}

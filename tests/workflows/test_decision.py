@@ -102,6 +102,24 @@ def test_relief_found_is_the_reason_and_both_answers_stay():
     assert "planar model at 9.00 px" in w and "8.10 px [7.50, 8.70]" in w
 
 
+def test_a_low_confidence_where_the_two_models_part_is_relief():
+    """Not found by the rule (relief_mass 0), but the confidence is low and the two answers are
+    in different classes: the reason is relief, with both answers; the same pair with the
+    answers in one class is low confidence; a confident pair whose answers part is answered."""
+    cfg = LensdistConfig()
+    cfg = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, relief_mass=0.0, min_confidence=0.8))
+    both = {"relief_delta_avg": 8.1, "relief_delta_avg_interval": [7.5, 8.7], "planar_delta_avg": 9.0, "relief_found": False}
+    r = _res(**both, relief_parted=True, confidence=0.7)
+    decide(r, cfg)
+    assert r["cannot_tell_reasons"] == ["relief"] and r["warnings"][0].startswith("cannot tell: relief")
+    r = _res(**both, relief_parted=False, confidence=0.7)
+    decide(r, cfg)
+    assert r["cannot_tell_reasons"] == ["low_confidence"]
+    r = _res(**both, relief_parted=True, confidence=0.85)
+    decide(r, cfg)
+    assert not r["cannot_tell"] and r["class"] == "3"
+
+
 def test_flat_or_relief_weighs_both_models_class_masses():
     """The confidence of a class over both models: w x its folded-normal mass under the planar
     answer plus (1 - w) x under the plane + parallax one, against the normal CDF written out;

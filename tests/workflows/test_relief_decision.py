@@ -14,6 +14,7 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
 from lensdist_torch.workflows.class_mass import flat_or_relief, relief_agreement, rescored_relief_found
+from lensdist_torch.workflows.confidence import precision_bound
 from lensdist_torch.workflows.decision_fit import answers, fit_decision
 
 
@@ -72,6 +73,20 @@ def test_rescored_relief_keeps_the_stored_flag_without_two_answers():
     assert rescored_relief_found(both, _cfg()) and not rescored_relief_found(both, _cfg(relief_mass=0.1))
 
 
+# ------------------------------------------------------------------ what a split can promise
+def test_precision_bound_by_hand_and_its_coverage():
+    """Wilson's lower end: n / (n + z^2) where every answer is right; below the true share in
+    about 97.5 % of binomial draws (the lower end of a two-sided 95 % interval)."""
+    z = 1.959964
+    assert precision_bound(400, 400) == pytest.approx(400 / (400 + z * z), abs=1e-6)
+    assert math.isnan(precision_bound(0, 0))
+    g = torch.Generator().manual_seed(5)
+    p, n = 0.97, 450
+    draws = (torch.rand(4000, n, generator=g, dtype=torch.float64) < p).sum(1).tolist()
+    below = sum(precision_bound(int(k), n) <= p for k in draws) / len(draws)
+    assert 0.96 <= below <= 0.99
+
+
 # ------------------------------------------------------------------ fitted on a validation split
 def _split(n: int, planar_bias: float, planar_noise: float, relief_noise: float, seed: int = 0):
     """n pairs with both answers: the planar one biased by +-planar_bias, scattered and stated
@@ -98,36 +113,38 @@ def test_a_flat_split_fits_relief_never_named_and_trusts_the_plane():
     """Planar answers right to their std (0.05 px), the relief answers 8x noisier: naming relief only withholds right answers."""
     results, data, cfg = _split(600, 0.0, 0.05, 0.4)
     fitted, after = _fitted(results, data, cfg)
-    assert fitted["relief_mass"] == 0.0
+    assert fitted["relief_mass"] == 0.0 and fitted["min_confidence"] == 0.5
     assert fitted["flat_prior"] >= 0.8
     got, withheld = answers(results, data, after), answers(results, data, _with_mass(after, 1.0))
-    assert got["precision"] >= cfg.analysis.target_precision
+    assert got["precision_bound"] >= cfg.analysis.target_precision
     assert got["cannot_tell"] < withheld["cannot_tell"]  # the default rule withholds more, for nothing
 
 
-def _with_mass(cfg: LensdistConfig, q: float) -> LensdistConfig:
-    return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, relief_mass=q))
+def _with_mass(cfg: LensdistConfig, q: float, **more) -> LensdistConfig:
+    return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, relief_mass=q, **more))
 
 
-def test_a_split_with_relief_fits_relief_named_and_trusts_the_relief_model():
+def test_a_split_with_relief_trusts_the_relief_model_and_withholds_what_it_must():
     """Planar answers biased by 0.4 px (8 times their std), the plane + parallax ones right: the
-    prior leans on the relief model, and naming relief is what brings the answers to the target."""
+    prior leans on the relief model, and what the decision withholds brings the answers to the
+    target with the split's chance allowed for, where answering every scored pair does not."""
     results, data, cfg = _split(1200, 0.4, 0.05, 0.3)
     fitted, after = _fitted(results, data, cfg)
-    assert fitted["relief_mass"] > 0.0
     assert fitted["flat_prior"] <= 0.5
-    got, never = answers(results, data, after), answers(results, data, _with_mass(after, 0.0))
-    assert never["precision"] < cfg.analysis.target_precision <= got["precision"]
+    got = answers(results, data, after)
+    every = answers(results, data, _with_mass(after, 0.0, min_confidence=0.5))
+    assert every["precision_bound"] < cfg.analysis.target_precision <= got["precision_bound"]
     assert got["cannot_tell"] <= cfg.analysis.max_cannot_tell
 
 
-def test_the_fitted_rule_stays_within_the_cannot_tell_limit():
-    """The split above names relief at some "cannot tell" cost; a tighter limit fits a rule within it."""
+def test_the_fitted_decision_stays_within_the_cannot_tell_limit():
+    """The split above withholds at some "cannot tell" cost; a tighter limit fits a decision within it."""
     results, data, _ = _split(1200, 0.4, 0.05, 0.3)
     free, after = _fitted(results, data, _cfg())
     cost = answers(results, data, after)["cannot_tell"]
     limit = cost - 0.004  # five pairs fewer
     fitted, tight = _fitted(results, data, _cfg(max_cannot_tell=limit))
-    assert fitted["relief_mass"] < free["relief_mass"]
     assert answers(results, data, tight)["cannot_tell"] <= limit
-    assert fit_decision({"selfcal": results}, data, _cfg(max_cannot_tell=0.0))["relief_mass"] == 1.0  # none within: the config's
+    assert (fitted["relief_mass"], fitted["min_confidence"]) != (free["relief_mass"], free["min_confidence"])
+    none_within = fit_decision({"selfcal": results}, data, _cfg(max_cannot_tell=0.0))  # none: the config's
+    assert (none_within["relief_mass"], none_within["min_confidence"]) == (1.0, 0.5)
