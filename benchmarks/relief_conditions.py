@@ -81,9 +81,10 @@ def table(planar: dict, relief: dict, bound: dict) -> str:
     """The Markdown page."""
     lines = ["# Planar and relief realistic conditions, side by side", "",
              "The self-calibration (`lensdist analyze`'s default) on the realistic protocol's 500 test pairs "
-             "and on the same pairs drawn on brick (unseen); each condition's R threshold fitted on its own "
-             "validation split, the confidence the class's mass over the planar and the plane + parallax answers "
-             "(`analysis.flat_prior`, chosen on validation pairs). Written by `benchmarks/relief_conditions.py` from the two `lensdist reproduce` "
+             "and on the same pairs drawn on brick (unseen); each condition's decision fitted on its own "
+             "validation split: the R threshold, the confidence (the class's mass over the planar and the plane + parallax "
+             "answers, weighed by `analysis.flat_prior`, the stds by `analysis.selfcal_std_scale`) and what it withholds "
+             "(`analysis.relief_mass`, `analysis.min_confidence`). Written by `benchmarks/relief_conditions.py` from the two `lensdist reproduce` "
              "reports and `benchmarks/bench_parallax_bound.py`.", "",
              "| measure | planar realistic | relief realistic | planar, brick | relief, brick | goal |",
              "|---|---|---|---|---|---|"]

@@ -152,7 +152,7 @@ def interval_coverage(results: list[dict], data: dict, config: LensdistConfig) -
     return {"pairs": len(covered), "coverage": sum(covered) / len(covered)}
 
 
-def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
+def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list | None = None) -> dict:
     """The [analysis] values fitted on a validation split's analysis results.
 
     ``no_distortion_px``: the R threshold with the most right self-calibration classes (of a
@@ -170,7 +170,8 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
     (the largest where none does). Then the Platt map of
     the regression's confidence, kept only where it lowers the split's ECE below the config's
     map. The self-calibration's Platt map stays the config's (the identity by default): its
-    confidence is a probability already, and its std scale is what is fitted.
+    confidence is a probability already, and its std scale is what is fitted. ``trace``, where
+    given, receives the withholding's candidates with their answers on the split.
     """
     a0 = config.analysis
     grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
@@ -184,7 +185,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig) -> dict:
             best, best_key = t, key
     fitted = {"no_distortion_px": float(best)}
     cfg = _with(config, no_distortion_px=best)
-    fitted |= _fit_withholding(results["selfcal"], data, cfg)
+    fitted |= _fit_withholding(results["selfcal"], data, cfg, trace)
     cfg = _with(cfg, **fitted)
     fitted["interval_std_scale"] = _fit_interval_scale(results["selfcal"], data, cfg)
     for method, (f_scale, f_shift) in _PLATT.items():
@@ -217,7 +218,7 @@ def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> t
     return tuple(float(v) for v in min(scores)[2:])
 
 
-def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig) -> dict:
+def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig, trace: list | None = None) -> dict:
     """What the decision withholds, with the confidence it withholds by, fitted on a split.
 
     For each ``relief_mass`` of :data:`_RELIEF_MASSES` (and the config's), the std scale and the
@@ -232,7 +233,8 @@ def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig) ->
     ``min_confidence``.
 
     Returns:
-        {"relief_mass", "min_confidence", "selfcal_std_scale", "flat_prior"}.
+        {"relief_mass", "min_confidence", "selfcal_std_scale", "flat_prior"}; every candidate
+        with its :func:`answers` appended to ``trace`` where given.
     """
     a = config.analysis
     rows = []
@@ -241,6 +243,8 @@ def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig) ->
         for m in sorted(set(_MIN_CONFIDENCES) | {a.min_confidence}):
             fit = {"relief_mass": float(q), "min_confidence": float(m), "selfcal_std_scale": k, "flat_prior": w}
             got = answers(results, data, _with(config, **fit))
+            if trace is not None:  # JSON: no NaN (no answer, no precision)
+                trace.append({key: v if not (isinstance(v, float) and math.isnan(v)) else None for key, v in (fit | got).items()})
             if got["cannot_tell"] <= a.max_cannot_tell and math.isfinite(got["precision_bound"]):
                 rows.append((got["precision_bound"] >= a.target_precision, got["answered"], got["precision_bound"], -q, -m, fit))
     if not rows:
@@ -328,7 +332,8 @@ def fit_confidence(config: LensdistConfig, out, regression=None, scenes: list | 
     analysed with the self-calibration (and ``regression``, a model or checkpoint path, when
     given) and :func:`fit_decision` fits the [analysis] values.
 
-    Writes ``out/calibration.json`` (the fitted values, the ECE and the interval coverage before
+    Writes ``out/calibration.json`` (the fitted values, the withholding's candidates with their
+    answers on the split (``withholding``), the ECE and the interval coverage before
     and after, the reliability bins), ``out/calibration.toml`` (the calibrated config, for
     ``--config``) and ``out/reliability_validation.png`` (with matplotlib).
 
@@ -349,10 +354,11 @@ def fit_confidence(config: LensdistConfig, out, regression=None, scenes: list | 
     if regression is not None:
         runs["regression"] = {"method": "regression", "checkpoint": regression}
     results = analyze_test_set(data, runs, scenes, config, batch_size, progress, device)
-    fitted = fit_decision(results, data, config)
+    candidates: list = []
+    fitted = fit_decision(results, data, config, candidates)
     calibrated = _with(config, **fitted)
     rows, curves = calibration_table(results, data, config, calibrated, "validation")
-    summary = {"analysis": fitted, "ece": rows, "intervals": [coverage_row(results["selfcal"], data, config, calibrated, "validation")],
+    summary = {"analysis": fitted, "withholding": candidates, "ece": rows, "intervals": [coverage_row(results["selfcal"], data, config, calibrated, "validation")],
                "reliability": curves, "validation_pairs": int(data["index"].numel()),
                "validation_seed": validation_config(config).protocol.seed}
     path = out / "calibration.json"
