@@ -22,7 +22,9 @@ class AnalysisConfig:
             multiple of the reject threshold is unlike every training map.
         min_confidence: below this calibrated confidence (an estimate of P(class right)) the
             answer is "cannot tell" (self-calibration and regression). Fitted on a validation
-            split with ``relief_mass`` (``fit_confidence``).
+            split (``fit_confidence``): the value that answers most while the answers' share
+            right reaches ``target_precision`` (at the lower end of its 95 % interval), within
+            ``max_cannot_tell``.
         selfcal_confidence_scale, selfcal_confidence_shift: the Platt map of the
             self-calibration's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave
             it as it is. Fitted on a validation split by ``fit_confidence``.
@@ -65,15 +67,14 @@ class AnalysisConfig:
             answer's class less probability than this (its class mass, the std times
             ``selfcal_std_scale``): the class then depends on whether the scene is flat, which one
             pair cannot tell; both answers are given beside it. 0: never; 1 (the default):
-            wherever the classes differ. Fitted on a validation split with ``min_confidence``
-            (``fit_confidence``): the pair of the two that answers most while its answers'
-            share right reaches ``target_precision`` (at the lower end of its 95 % interval),
-            within ``max_cannot_tell``.
+            wherever the classes differ. Not fitted: on rendered flat pairs 0 answers more
+            and as well, but on real frames the rule withheld a pair both models got wrong
+            (docs/method.md, section 10); 0 is for scenes known to be flat.
         target_precision: the share of confident answers that should be right, what fitting
-            ``relief_mass`` and ``min_confidence`` aims for on a validation split.
+            ``min_confidence`` aims for on a validation split.
         max_cannot_tell: the largest share of a validation split's pairs that may be "cannot
-            tell" (for every reason) when ``relief_mass`` and ``min_confidence`` are fitted: a
-            decision that withholds more to be right more often is not chosen.
+            tell" (for every reason) when ``min_confidence`` is fitted: a decision that
+            withholds more to be right more often is not chosen.
 
     Example:
         >>> from dataclasses import replace

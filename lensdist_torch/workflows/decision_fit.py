@@ -10,11 +10,11 @@ does, and fits the ``[analysis]`` values that turn the estimators' outputs into 
   self-calibration's confidence and the weight of the planar model in it (its class's mass
   under both models of the scene, :func:`~lensdist_torch.workflows.class_mass.flat_or_relief`),
   the values of a grid whose confidences score best (least log-loss) as P(class right).
-* ``relief_mass`` and ``min_confidence``: what the decision withholds (a pair whose plane +
-  parallax answer gives the planar answer's class too little probability; an answer whose
-  confidence is too low): the pair of values that answers most while the share of its answers
-  that are right reaches ``target_precision`` at the lower end of its 95 % interval, with at
-  most ``max_cannot_tell`` of the pairs "cannot tell".
+* ``min_confidence``: the least confidence of an answer, the value that answers most while the
+  share of its answers that are right reaches ``target_precision`` at the lower end of its 95 %
+  interval, with at most ``max_cannot_tell`` of the pairs "cannot tell". ``relief_mass`` is not
+  fitted: on rendered flat pairs naming relief only withholds right answers, on real frames it
+  withheld a pair both models got wrong (docs/method.md, section 10).
 * ``interval_std_scale``: the factor on the std in a pair's 95 % intervals, the least of the same
   grid whose intervals cover the true Delta_avg on ``interval_confidence`` of the pairs.
 * the regression's Platt map, kept only where it lowers the split's ECE.
@@ -54,8 +54,6 @@ _PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
 _SCALES = tuple(torch.logspace(math.log10(0.5), math.log10(4.0), 25, dtype=torch.float64).tolist())
 #: The candidate flat priors (with the std scale, where the pairs have a plane + parallax answer).
 _PRIORS = tuple(i / 10 for i in range(1, 11))
-#: The candidate relief masses: 0 (relief never named) to 0.5 and 1 (wherever the classes differ).
-_RELIEF_MASSES = tuple(i / 20 for i in range(11)) + (1.0,)
 #: The candidate least confidences of an answer.
 _MIN_CONFIDENCES = (0.5, 0.6, 0.7, 0.8, 0.9)
 
@@ -161,9 +159,8 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
     value): ``selfcal_std_scale`` with ``flat_prior`` (0.1 to 1; only where the pairs have a
     plane + parallax answer), the least log-loss of the self-calibration's confidence as
     P(class right), kept at the config's where the pairs are all right or all wrong (nothing to
-    score), for each candidate ``relief_mass`` (of 0 to 0.5, and 1) on the pairs it leaves to
-    the confidence; with each, ``min_confidence`` of 0.5 to 0.9: of those the most answers whose
-    share right reaches ``target_precision`` at the lower end of its 95 % interval, with at most
+    score); then ``min_confidence`` of 0.5 to 0.9, the one with the most answers whose share
+    right reaches ``target_precision`` at the lower end of its 95 % interval, with at most
     ``max_cannot_tell`` of the pairs "cannot tell" (:func:`_fit_withholding`); then
     ``interval_std_scale``, the least
     whose intervals cover the true Delta_avg on ``interval_confidence`` of the scored pairs
@@ -219,40 +216,37 @@ def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> t
 
 
 def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig, trace: list | None = None) -> dict:
-    """What the decision withholds, with the confidence it withholds by, fitted on a split.
+    """The confidence, and the least confidence of an answer, fitted on a split.
 
-    For each ``relief_mass`` of :data:`_RELIEF_MASSES` (and the config's), the std scale and the
-    flat prior of the pairs it leaves to the confidence (:func:`_fit_std_scale`); then, for each
-    ``min_confidence`` of :data:`_MIN_CONFIDENCES` (and the config's), the split's
-    self-calibration answers as ``analyze`` would give them (:func:`answers`). Of the candidates
-    with at most ``max_cannot_tell`` of the pairs "cannot tell", the one with the most answers
-    whose share right is at least ``target_precision`` at the lower end of its 95 % interval
-    (:func:`~lensdist_torch.workflows.confidence.precision_bound`: the split's own chance
-    allowed for); where none is, the one with the highest such bound; where none is within the
-    limit, the config's values. Ties: the least ``relief_mass``, then the least
-    ``min_confidence``.
+    The std scale and the flat prior (:func:`_fit_std_scale`); then, for each ``min_confidence``
+    of :data:`_MIN_CONFIDENCES` (and the config's), the split's self-calibration answers as
+    ``analyze`` would give them (:func:`answers`). Of the candidates with at most
+    ``max_cannot_tell`` of the pairs "cannot tell", the one with the most answers whose share
+    right is at least ``target_precision`` at the lower end of its 95 % interval
+    (:func:`~lensdist_torch.workflows.confidence.precision_bound`: the split's own chance allowed
+    for); where none is, the one with the highest such bound; where none is within the limit,
+    the config's. ``relief_mass`` stays the config's: a rendered split cannot price what naming
+    relief guards against on real frames (docs/method.md, section 10).
 
     Returns:
-        {"relief_mass", "min_confidence", "selfcal_std_scale", "flat_prior"}; every candidate
-        with its :func:`answers` appended to ``trace`` where given.
+        {"min_confidence", "selfcal_std_scale", "flat_prior"}; every candidate with its
+        :func:`answers` appended to ``trace`` where given.
     """
     a = config.analysis
+    k, w = _fit_std_scale(results, data, config)
     rows = []
-    for q in sorted(set(_RELIEF_MASSES) | {a.relief_mass}):
-        k, w = _fit_std_scale(results, data, _with(config, relief_mass=q))
-        for m in sorted(set(_MIN_CONFIDENCES) | {a.min_confidence}):
-            fit = {"relief_mass": float(q), "min_confidence": float(m), "selfcal_std_scale": k, "flat_prior": w}
-            got = answers(results, data, _with(config, **fit))
-            if trace is not None:  # JSON: no NaN (no answer, no precision)
-                trace.append({key: v if not (isinstance(v, float) and math.isnan(v)) else None for key, v in (fit | got).items()})
-            if got["cannot_tell"] <= a.max_cannot_tell and math.isfinite(got["precision_bound"]):
-                rows.append((got["precision_bound"] >= a.target_precision, got["answered"], got["precision_bound"], -q, -m, fit))
+    for m in sorted(set(_MIN_CONFIDENCES) | {a.min_confidence}):
+        fit = {"min_confidence": float(m), "selfcal_std_scale": k, "flat_prior": w}
+        got = answers(results, data, _with(config, **fit))
+        if trace is not None:  # JSON: no NaN (no answer, no precision)
+            trace.append({key: v if not (isinstance(v, float) and math.isnan(v)) else None for key, v in (fit | got).items()})
+        if got["cannot_tell"] <= a.max_cannot_tell and math.isfinite(got["precision_bound"]):
+            rows.append((got["precision_bound"] >= a.target_precision, got["answered"], got["precision_bound"], -m, fit))
     if not rows:
-        return {"relief_mass": a.relief_mass, "min_confidence": a.min_confidence,
-                "selfcal_std_scale": a.selfcal_std_scale, "flat_prior": a.flat_prior}
+        return {"min_confidence": a.min_confidence, "selfcal_std_scale": k, "flat_prior": w}
     reached = [r for r in rows if r[0]]
-    best = max(reached, key=lambda r: r[1:5]) if reached else max(rows, key=lambda r: (r[2], -r[1], r[3], r[4]))
-    return best[5]
+    best = max(reached, key=lambda r: r[1:4]) if reached else max(rows, key=lambda r: (r[2], -r[1], r[3]))
+    return best[4]
 
 
 def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
