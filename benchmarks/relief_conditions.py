@@ -84,7 +84,7 @@ def table(planar: dict, relief: dict, bound: dict) -> str:
              "and on the same pairs drawn on brick (unseen); each condition's decision fitted on its own "
              "validation split: the R threshold, the confidence (the class's mass over the planar and the plane + parallax "
              "answers, weighed by `analysis.flat_prior`, the stds by `analysis.selfcal_std_scale`) and what it withholds "
-             "(`analysis.relief_mass`, `analysis.min_confidence`). Written by `benchmarks/relief_conditions.py` from the two `lensdist reproduce` "
+             "(`analysis.min_confidence`). Written by `benchmarks/relief_conditions.py` from the two `lensdist reproduce` "
              "reports and `benchmarks/bench_parallax_bound.py`.", "",
              "| measure | planar realistic | relief realistic | planar, brick | relief, brick | goal |",
              "|---|---|---|---|---|---|"]
