@@ -25,7 +25,7 @@ STUB = ROOT / "lensdist_torch" / "__init__.pyi"
 
 #: Identifiers of the README that are not Python names of the package although a module exports
 #: one so called: a command (`lensdist evaluate`), a JSON field, a constant shown with its module.
-NOT_PYTHON_NAMES = {"evaluate", "distortion_type", "MAX_STRETCH"}
+NOT_PYTHON_NAMES = {"evaluate", "distortion_type", "relief_agreement", "MAX_STRETCH"}
 
 
 def _exports() -> dict[str, tuple[str, ...]]:
