@@ -14,13 +14,14 @@ recomputes both from saved results under another decision (the fit on a validati
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
 
-__all__ = ["flat_or_relief", "relief_agreement", "classes_differ", "rescored", "rescored_confidence", "rescored_relief_found", "delta_interval"]
+__all__ = ["SceneModels", "scene_models", "flat_or_relief", "relief_agreement", "rescored", "rescored_confidence", "rescored_relief_found", "delta_interval"]
 
 
 def rescored(results: list[dict], cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -48,7 +49,7 @@ def rescored(results: list[dict], cfg: LensdistConfig) -> tuple[torch.Tensor, to
     q = torch.tensor([[get(r, "relief_delta_avg", nan), get(r, "relief_delta_avg_std", math.inf)] for r in results],
                      dtype=torch.float64).view(-1, 2)
     d = torch.tensor(d, dtype=torch.float64)
-    conf, found = _flat_or_relief(_classes(d, cfg), p[:, 0], p[:, 1], q[:, 0], q[:, 1], cfg)
+    conf, found, _, _ = _scene_models(_classes(d, cfg), p[:, 0], p[:, 1], q[:, 0], q[:, 1], cfg)
     stored = torch.tensor([bool(r.get("relief_found", False)) for r in results], dtype=torch.bool)
     kept = torch.isfinite(q[:, 0]) & torch.isfinite(d)
     return torch.where(torch.isfinite(d), conf, nan), torch.where(kept, found, stored)
@@ -81,6 +82,36 @@ def rescored_relief_found(res: dict, cfg: LensdistConfig) -> bool:
     return bool(rescored([res], cfg)[1][0])
 
 
+class SceneModels(NamedTuple):
+    """A pair's class over both models of its scene (:func:`scene_models`): tensors, or one pair's values.
+
+    confidence: the class's mass, weighed over the planar and the plane + parallax answers.
+    relief_found: "cannot tell" for relief (:func:`flat_or_relief`'s rule).
+    agreement: the probability the plane + parallax answer gives the planar answer's class
+        (:func:`relief_agreement`); NaN without a plane + parallax answer.
+    parted: the two answers fall in different classes (False without a plane + parallax answer).
+    """
+
+    confidence: torch.Tensor | float
+    relief_found: torch.Tensor | bool
+    agreement: torch.Tensor | float
+    parted: torch.Tensor | bool
+
+
+def scene_models(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> SceneModels:
+    """One pair's :class:`SceneModels`: what :func:`flat_or_relief` weighs, and what it finds, in one pass.
+
+    Example:
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> m = scene_models("2", (7.0, 0.2), (7.6, 0.4), LensdistConfig())  # class 2 ends near 7.18 px
+        >>> m.relief_found, m.parted, round(m.agreement, 3)
+        (True, True, 0.149)
+    """
+    t = [torch.tensor([v], dtype=torch.float64) for v in (*planar, *relief)]
+    m = _scene_models(torch.tensor([CLASS_LABELS.index(label)]), *t, cfg)
+    return SceneModels(float(m.confidence[0]), bool(m.relief_found[0]), float(m.agreement[0]), bool(m.parted[0]))
+
+
 def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
     """The raw confidence of a pair's class over both models of its scene, and whether they part.
 
@@ -106,9 +137,8 @@ def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float,
         >>> flat_or_relief("2", (5.0, 0.2), (float("nan"), float("inf")), cfg)[1]  # no relief answer
         False
     """
-    t = [torch.tensor([v], dtype=torch.float64) for v in (*planar, *relief)]
-    conf, found = _flat_or_relief(torch.tensor([CLASS_LABELS.index(label)]), *t, cfg)
-    return float(conf[0]), bool(found[0])
+    m = scene_models(label, planar, relief, cfg)
+    return m.confidence, m.relief_found
 
 
 def relief_agreement(planar_delta: float, relief: tuple[float, float], cfg: LensdistConfig) -> float:
@@ -124,40 +154,23 @@ def relief_agreement(planar_delta: float, relief: tuple[float, float], cfg: Lens
         >>> round(relief_agreement(7.0, (7.6, 0.4), LensdistConfig()), 3)  # class 2 ends near 7.18 px: Phi(-1.04)
         0.149
     """
-    d, s = (torch.tensor([v], dtype=torch.float64) for v in relief)
-    return float(_agreement(torch.tensor([planar_delta], dtype=torch.float64), d, s, cfg)[0])
+    d0 = torch.tensor([planar_delta], dtype=torch.float64)
+    # the planar answer's own std and class weigh in the confidence only, not in the agreement
+    return scene_models(CLASS_LABELS[int(_classes(d0, cfg)[0])], (planar_delta, 1.0), relief, cfg).agreement
 
 
-def classes_differ(planar_delta: float, relief_delta: float, cfg: LensdistConfig) -> bool:
-    """Whether the planar and the plane + parallax answers (Delta_avg, analysis px) fall in different classes under ``cfg``.
-
-    Where they do, a low confidence is the relief's doing: the reason ``decide`` gives for it.
-
-    Example:
-        >>> from lensdist_torch.config import LensdistConfig
-        >>> classes_differ(7.0, 7.6, LensdistConfig()), classes_differ(5.0, 5.3, LensdistConfig())  # class 2 ends at 7.18 px
-        (True, False)
-    """
-    if not (math.isfinite(planar_delta) and math.isfinite(relief_delta)):
-        return False
-    d = torch.tensor([planar_delta, relief_delta], dtype=torch.float64)
-    c = _classes(d, cfg)
-    return bool(c[0] != c[1])
-
-
-def _flat_or_relief(label, d0, s0, d1, s1, cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`flat_or_relief` on (N,) tensors: label class indices, the two answers and their stds."""
-    k, w = cfg.analysis.selfcal_std_scale, cfg.analysis.flat_prior
+def _scene_models(label, d0, s0, d1, s1, cfg: LensdistConfig) -> SceneModels:
+    """:class:`SceneModels` of (N,) tensors: label class indices, the two answers and their stds."""
+    a = cfg.analysis
+    k, w = a.selfcal_std_scale, a.flat_prior
+    bounds = torch.tensor([class_bounds(c, "delta_avg", cfg) for c in CLASS_LABELS], dtype=torch.float64)
     two = torch.isfinite(d1) & torch.isfinite(s1)
-    planar = _mass(d0, k * s0, label, cfg)
-    conf = torch.where(two, w * planar + (1 - w) * _mass(d1, k * s1, label, cfg), planar)
-    parted = _classes(d0, cfg) != _classes(d1, cfg)
-    return conf, two & parted & (_agreement(d0, d1, s1, cfg) < cfg.analysis.relief_mass)
-
-
-def _agreement(d0, d1, s1, cfg: LensdistConfig) -> torch.Tensor:
-    finite = torch.isfinite(d1) & torch.isfinite(s1)
-    return torch.where(finite, _mass(d1, cfg.analysis.selfcal_std_scale * s1, _classes(d0, cfg), cfg), float("nan"))
+    planar = _mass(d0, k * s0, bounds[label])
+    conf = torch.where(two, w * planar + (1 - w) * _mass(d1, k * s1, bounds[label]), planar)
+    c0 = _classes(d0, cfg)
+    agreement = torch.where(two, _mass(d1, k * s1, bounds[c0]), float("nan"))
+    parted = two & (c0 != _classes(d1, cfg))
+    return SceneModels(conf, parted & (agreement < a.relief_mass), agreement, parted)
 
 
 def _classes(d: torch.Tensor, cfg: LensdistConfig) -> torch.Tensor:
@@ -165,15 +178,14 @@ def _classes(d: torch.Tensor, cfg: LensdistConfig) -> torch.Tensor:
     return estimated_class(d, d, "delta_avg", cfg)
 
 
-def _mass(d: torch.Tensor, std: torch.Tensor, label: torch.Tensor, cfg: LensdistConfig) -> torch.Tensor:
-    """P(|D| in the bin of class ``label``) for D ~ N(d, std^2): the raw confidence of a class.
+def _mass(d: torch.Tensor, std: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:
+    """P(|D| in ]lo, hi]) for D ~ N(d, std^2), ``bounds`` (N, 2) each pair's class bin: the raw confidence of a class.
 
     Delta_avg is the size of a signed offset (barrel or pincushion), so its distribution is the
     folded normal: an estimate near 0 with a std of 0.2 px is R (|D| < 0.25 px) on both sides.
     Near a class boundary the class is a coin toss however small the std. A std that is not
     finite gives 0, one of 0 gives 1.
     """
-    bounds = torch.tensor([class_bounds(c, "delta_avg", cfg) for c in CLASS_LABELS], dtype=torch.float64)[label]
     lo, hi = bounds.unbind(-1)
     safe = torch.where(torch.isfinite(std) & (std > 0), std, 1.0)
     cdf = torch.special.ndtr(torch.stack([hi - d, lo - d, -lo - d, -hi - d]) / safe)

@@ -118,14 +118,15 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
             f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): too little to judge"
         )
     aligned = res["registration_ok"] and res["overlap"] >= cfg.analysis.min_overlap  # else that is the reason given
-    if aligned and _relief(res, cfg):
+    low = _low_confidence(res, cfg)
+    if aligned and _relief(res, low):
         lo, hi = res["relief_delta_avg_interval"] or (float("nan"), float("nan"))
         out.append(
             f"cannot tell: relief: a plane + parallax model puts Delta_avg at {res['relief_delta_avg']:.2f} px "
             f"[{lo:.2f}, {hi:.2f}], the planar model at {res['planar_delta_avg']:.2f} px, in another class: the class "
             "depends on whether the scene is flat, which one pair cannot tell"
         )
-    elif aligned and res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence:
+    elif aligned and low:
         out.append("cannot tell from this pair: too little motion or texture to see the distortion (low confidence)")
     return out
 
@@ -139,22 +140,26 @@ def _reasons(res: dict, cfg: LensdistConfig, still: bool, low: bool, no_number: 
         "overlap": res["registration_ok"] and res["overlap"] < a.min_overlap,
         "no_estimate": aligned and no_number,
         "motion": still,
-        "relief": aligned and _relief(res, cfg),
-        "low_confidence": aligned and low and not _relief(res, cfg),
+        "relief": aligned and _relief(res, low),
+        "low_confidence": aligned and low and not _relief(res, low),
         "out_of_domain": aligned and not res["in_domain"],
         "unconfirmed": aligned and unconfirmed,
     }
     return [code for code in REASONS if found[code]]
 
 
-def _relief(res: dict, cfg: LensdistConfig) -> bool:
+def _low_confidence(res: dict, cfg: LensdistConfig) -> bool:
+    """A confidence below ``analysis.min_confidence`` (none, for the eigen-space, is not low)."""
+    return res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence
+
+
+def _relief(res: dict, low: bool) -> bool:
     """Whether relief is the reason of a "cannot tell".
 
-    Relief found (``relief_found``), or a low confidence where the planar and the plane +
-    parallax answers fall in different classes (``relief_parted``: the confidence weighs both,
+    Relief found (``relief_found``), or a low confidence (``low``) where the planar and the plane
+    + parallax answers fall in different classes (``relief_parted``: the confidence weighs both,
     and their disagreement is what lowered it).
     """
-    low = res["confidence"] is not None and res["confidence"] < cfg.analysis.min_confidence
     return bool(res.get("relief_found")) or (low and bool(res.get("relief_parted")))
 
 
@@ -193,7 +198,7 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
             f"cannot tell from this pair: the views moved by {motion:.2f} px only (< {a.min_motion_px:g}); both carry "
             "the same distortion, which cancels where the scene did not move"
         )
-    low = res["confidence"] is not None and res["confidence"] < a.min_confidence
+    low = _low_confidence(res, cfg)
     no_number = res["delta_avg"] is None and res["delta_max"] is None
     unconfirmed = bool(check) and check.get("confirms") is False  # an answer without confidence (domain_checks)
     unsure = low or no_number or still or not res["in_domain"] or unconfirmed or bool(res.get("relief_found"))

@@ -265,9 +265,8 @@ def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
         >>> got["answered"], round(got["cannot_tell"], 3), got["precision"]
         (2, 0.333, 0.5)
     """
-    keep = scored_pairs(results, config)
-    conf = confidences(results, keep, config, "selfcal", True)
-    right = _right(results, data, config, keep)[conf >= config.analysis.min_confidence]
+    conf, right = outcomes(results, data, config, "selfcal", True)
+    right = right[conf >= config.analysis.min_confidence]
     n = len(results)
     return {"pairs": n, "answered": int(right.numel()), "cannot_tell": (n - right.numel()) / n if n else float("nan"),
             "precision": float(right.double().mean()) if right.numel() else float("nan"),

@@ -31,7 +31,7 @@ from lensdist_torch.geometry.registration import residual_limit, warp_to_referen
 from lensdist_torch.geometry.selfcal import SelfCalInfo, estimate_distortion
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
-from lensdist_torch.workflows.class_mass import classes_differ, delta_interval, flat_or_relief, relief_agreement
+from lensdist_torch.workflows.class_mass import delta_interval, scene_models
 from lensdist_torch.workflows.texture import texture_histogram
 
 __all__ = ["PreparedPairs", "prepare_batch", "resolve_device"]
@@ -252,7 +252,7 @@ def _selfcal_answer(k2: torch.Tensor, k4: torch.Tensor, sc: SelfCalInfo, cfg: Le
 
 
 def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
-    """``raw_confidence`` and ``relief_found`` of one pair (:func:`flat_or_relief`), both answers where found.
+    """``raw_confidence``, ``relief_found``, ``relief_agreement`` and ``relief_parted`` of one pair (:func:`~lensdist_torch.workflows.class_mass.scene_models`), both answers where found.
 
     Where relief is found, both answers stay beside the "cannot tell" (``decision.decide``) as
     ``planar_delta_avg``, ``relief_delta_avg``, their intervals and the fit's own stds (given
@@ -261,9 +261,10 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     size = cfg.image.size
     d0, d1 = delta_avg(*from_normalized(torch.cat([sc.planar_ab, sc.relief_ab]), *size), *size).tolist()
     s0, s1 = float(sc.planar_std[0]), float(sc.relief_std[0])
-    conf, found = flat_or_relief(out["estimated_class"], (d0, s0), (d1, s1), cfg)
+    m = scene_models(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):
-        return {"raw_confidence": conf, "relief_found": False}
-    both = {"relief_agreement": relief_agreement(d0, (d1, s1), cfg), "relief_parted": classes_differ(d0, d1, cfg),"planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
+        return {"raw_confidence": m.confidence, "relief_found": False}
+    both = {"relief_agreement": m.agreement, "relief_parted": m.parted,
+            "planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
             "relief_delta_avg": d1, "relief_delta_avg_std": s1, "relief_delta_avg_interval": delta_interval(d1, s1, cfg.analysis)}
-    return {"raw_confidence": conf, "relief_found": found, **both}
+    return {"raw_confidence": m.confidence, "relief_found": m.relief_found, **both}
