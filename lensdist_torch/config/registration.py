@@ -144,7 +144,13 @@ class SelfCalConfig:
             relief may move points (MAP; larger: freer relief). 0.2 since 2026-11-28 (1 before),
             chosen on validation pairs: on the realistic protocol the model's freedom mostly fits
             noise and JPEG (docs/method.md, section 10); the sequence path keeps its own
-            (``calibration.parallax_px``).
+            (``calibration.parallax_px``). With ``parallax_evidence`` the std each pair starts from.
+        parallax_evidence: re-estimate that std per pair from the evidence (MacKay's type-II
+            maximum likelihood, after every LM step of the relief): a flat pair drives it down,
+            a relief the data pin drives it up, so a flat scene's answer stays by the planar one
+            while a relief is not shrunk (docs/method.md, section 10; on since 2026-11-28). The
+            sequence path keeps its fixed prior.
+        parallax_px_range: (low, high) px, the range the evidence may move that std in.
         parallax_iterations: LM iterations of the plane + parallax model at full size, started
             from the planar fit.
         parallax_block: its samples: the strongest-gradient pixel of every block x block cell.
@@ -192,6 +198,8 @@ class SelfCalConfig:
     parallax: int = 5
     parallax_width: float = 0.3
     parallax_px: float = 0.2
+    parallax_evidence: bool = True
+    parallax_px_range: tuple[float, float] = (0.02, 2.0)
     parallax_iterations: int = 6
     parallax_test: float = 2.0
     parallax_block: int = 2
@@ -209,6 +217,8 @@ class SelfCalConfig:
         real(self, "parallax_test", lo=0)
         real(self, "parallax_width", lo=0, lo_open=True)
         real(self, "parallax_px", lo=0, lo_open=True)
+        flag(self, "parallax_evidence")
+        pair(self, "parallax_px_range", positive=True)
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
         choice(self, "interpolation", ("bilinear", "bicubic", "blend"))

@@ -89,6 +89,7 @@ from lensdist_torch.geometry.selfcal_model import (
     undistort_normalized,
     with_gradients,
 )
+from lensdist_torch.geometry.selfcal_prior import evidence_tau2, relief_precision
 from lensdist_torch.geometry.selfcal_regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
@@ -102,7 +103,11 @@ __all__ = [
 
 
 class _State(NamedTuple):
-    """The final full-resolution fit of each row: residual, mask, Jacobian, sigma, cost, start cost."""
+    """The final full-resolution fit of each row.
+
+    Residual, mask, Jacobian, sigma, cost, start cost, and the relief prior's variance tau^2
+    (normalised units; None without the relief).
+    """
 
     res: torch.Tensor
     valid: torch.Tensor
@@ -110,6 +115,7 @@ class _State(NamedTuple):
     sigma: torch.Tensor
     cost: torch.Tensor
     start_cost: torch.Tensor
+    tau2: torch.Tensor | None = None
 
 
 #: the plane + parallax stage samples bilinearly: with the blended kernel its relief was kept on 4
@@ -266,20 +272,23 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     """``iterations`` robust Levenberg-Marquardt (IRLS) steps on one level.
 
     A pair's step is accepted where the robust cost at the current sigma falls, the model stays
-    plausible and some overlap remains; sigma is then re-estimated. Returns theta, lambda and
-    the :class:`_State` at theta.
+    plausible and some overlap remains; sigma is then re-estimated, and with the relief the
+    prior's variance where it is estimated per pair (:func:`~lensdist_torch.geometry.selfcal_prior.evidence_tau2`). Returns theta,
+    lambda and the :class:`_State` at theta.
     """
     loss, k = cfg.robust, _robust_constant(cfg)
     res, valid, J = evaluate(theta, lv)
     sigma = robust_scale(res, valid, cfg.noise_floor)
-    cost = _cost(theta, res, valid, sigma, lv, cfg)
+    tau2 = None if lv.basis is None else theta.new_full((len(theta),), (cfg.parallax_px / lv.px) ** 2, dtype=torch.float64)
+    cost = _cost(theta, res, valid, sigma, cfg, tau2)
     theta0, res0, valid0 = theta, res, valid
+    normal = None  # the evidence's normal equations at theta, reused by the next step
     for _ in range(iterations):
-        jtj, jtr = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
+        jtj, jtr = _normal_equations(J, res, robust_weights(res, sigma, loss, k)) if normal is None else normal
         if not free_ab:  # (a, b) held: their rows and columns out of the system (step 0)
             jtj[:, 8:10], jtj[:, :, 8:10], jtr[:, 8:10] = 0, 0, 0
-        if lv.basis is not None:  # the relief's Gaussian prior
-            prec, rel = _prior(sigma.double() ** 2, lv.px, cfg)
+        if tau2 is not None:  # the relief's Gaussian prior
+            prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
             torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
             jtr[:, rel] += prec[:, None] * theta[:, rel]
         diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
@@ -287,7 +296,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
         step = -torch.linalg.solve(A, jtr)
         cand = theta + torch.nan_to_num(step, nan=0.0)
         res_c, valid_c, J_c = evaluate(cand, lv)
-        cost_c = _cost(cand, res_c, valid_c, sigma, lv, cfg)
+        cost_c = _cost(cand, res_c, valid_c, sigma, cfg, tau2)
         acc = (cost_c < cost) & torch.isfinite(cost_c) & _plausible(cand, cfg) & (valid_c.float().mean(1) > 0.05)
         m = acc[:, None]
         theta = torch.where(m, cand, theta)
@@ -296,29 +305,19 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
         lam = torch.where(acc, lam / 3, lam * 4).clamp(1e-7, 1e7)
         if loss != "none":  # sigma re-estimated: the cost moves with it
             sigma = torch.where(acc, robust_scale(res, valid, cfg.noise_floor), sigma)
-            cost = _cost(theta, res, valid, sigma, lv, cfg)
-        else:
-            cost = torch.where(acc, cost_c, cost)
-    return theta, lam, _State(res, valid, J, sigma, cost, _cost(theta0, res0, valid0, sigma, lv, cfg))
+        if tau2 is not None and cfg.parallax_evidence:
+            normal = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
+            tau2 = evidence_tau2(theta, normal[0], sigma, tau2, lv.px, cfg)
+        cost = _cost(theta, res, valid, sigma, cfg, tau2) if loss != "none" or tau2 is not None else torch.where(acc, cost_c, cost)
+    return theta, lam, _State(res, valid, J, sigma, cost, _cost(theta0, res0, valid0, sigma, cfg, tau2), tau2)
 
 
-def _prior(variance: torch.Tensor, px: float, cfg: SelfCalConfig):
-    """(precision (B,) float64, columns) of the relief coefficients' Gaussian prior.
-
-    Std ``parallax_px`` (px) per coefficient, i.e. tau = parallax_px / px in normalised units
-    (``px`` the level's pixels per unit), in the units of the normal equations: the residual
-    ``variance`` over tau^2. MAP, not a hard constraint.
-    """
-    start = planar_parameters(cfg.photometric)
-    return variance * (px / cfg.parallax_px) ** 2, slice(start, start + cfg.parallax**2)
-
-
-def _cost(theta, res, valid, sigma, lv: Level, cfg: SelfCalConfig):
+def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | None = None):
     """The robust cost, plus the relief prior's term (on the same per-sample scale) where fitted."""
     cost = robust_cost(res, valid, sigma, cfg.robust, _robust_constant(cfg))
-    if lv.basis is None:
+    if tau2 is None:
         return cost
-    prec, rel = _prior(sigma.double() ** 2, lv.px, cfg)
+    prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
     return cost + prec * (theta[:, rel].double() ** 2).sum(1) / valid.sum(1).clamp_min(1).double()
 
 
@@ -337,7 +336,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(cfg.noise_floor**2)
     eye = torch.eye(n_par, dtype=torch.float64, device=ab.device)
     if n_par > planar_parameters(cfg.photometric):  # the relief: posterior precision J W J^T / s^2 + I / tau^2
-        prec, rel = _prior(s2, half_diagonal(h0, w0), cfg)
+        prec, rel = relief_precision(s2, st.tau2, cfg)
         torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
     inv = torch.linalg.inv(jtj + cfg.ridge * eye)
     cov = s2[:, None, None] * inv
@@ -376,7 +375,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
           & (overlap >= cfg.min_overlap) & (st.cost <= st.start_cost * (1 + 1e-6)))
     keep = _choose(st, ok, n_starts, cfg)
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
-    st = _State(*(x[keep] for x in st))
+    st = _State(*(None if x is None else x[keep] for x in st))
     r0 = half_diagonal(h0, w0)
     # the frame's rectangles of the samples: the cluster-robust covariance and the aligned residual
     region = region_ids(h0, w0, block, cfg.clusters, dev) if cfg.clusters > 1 else None

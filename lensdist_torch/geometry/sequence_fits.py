@@ -83,8 +83,18 @@ def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
 
 
 def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
-    """The self-calibration settings of the sequence path: the user's, with the sequence's own relief model."""
-    return dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px)
+    """The self-calibration settings of the sequence path: the user's, with the sequence's own relief model.
+
+    Its relief prior is fixed (``calibration.parallax_px``; the pairs' evidence-based one is
+    not used here: the sequence's figures were measured with the fixed one).
+
+    Example:
+        >>> from lensdist_torch.config import CalibrationConfig, LensdistConfig
+        >>> s = sequence_selfcal(LensdistConfig(), CalibrationConfig())
+        >>> s.parallax_px, s.parallax_evidence, LensdistConfig().selfcal.parallax_evidence
+        (1.0, False, True)
+    """
+    return dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px, parallax_evidence=False)
 
 
 def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):

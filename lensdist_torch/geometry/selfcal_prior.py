@@ -1,0 +1,72 @@
+"""The Gaussian prior on the relief of the self-calibration's plane + parallax model.
+
+Each bump's height c_k has the prior N(0, tau^2) (normalised units). In the robust normal
+equations J W J^T, which carry no 1 / sigma^2, it adds sigma^2 / tau^2 to the relief's diagonal
+(:func:`relief_precision`), the same in the posterior covariance. tau is ``selfcal.parallax_px``
+over the level's pixels per unit, or, with ``selfcal.parallax_evidence``, re-estimated per pair
+from the evidence after every Levenberg-Marquardt step (:func:`evidence_tau2`, MacKay's update
+:func:`evidence_variance`): a flat pair drives it down to the floor of ``parallax_px_range``, a
+relief the data pin up (docs/method.md, section 10).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from lensdist_torch.config import SelfCalConfig
+from lensdist_torch.geometry.selfcal_model import planar_parameters
+
+__all__ = ["evidence_variance", "relief_precision", "evidence_tau2"]
+
+
+def evidence_variance(coef: torch.Tensor, posterior_trace: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
+    """MacKay's re-estimate of a Gaussian prior's variance from the evidence (type-II ML).
+
+    For coefficients ``coef`` (B, K) at the posterior mode under the prior N(0, ``variance`` I)
+    (B,), whose posterior covariance has trace ``posterior_trace`` (B,): gamma = K - trace /
+    variance coefficients are pinned by the data, and the new variance is |coef|^2 / gamma
+    (gamma floored at 0.5). Its fixed point maximises the marginal likelihood of a linear model.
+
+    Example:
+        >>> c = torch.tensor([[0.3, -0.4]])
+        >>> evidence_variance(c, torch.tensor([0.5]), torch.tensor([1.0]))  # gamma = 1.5
+        tensor([0.1667])
+    """
+    gamma = coef.shape[-1] - posterior_trace / variance
+    return (coef * coef).sum(-1) / gamma.clamp_min(0.5)
+
+
+def relief_precision(variance: torch.Tensor, tau2: torch.Tensor, cfg: SelfCalConfig):
+    """(precision (B,) float64, columns of theta) of the relief coefficients' Gaussian prior.
+
+    ``tau2`` (B,): the prior's variance per coefficient in normalised units; in the units of the
+    normal equations the precision is the residual ``variance`` over it. MAP, not a hard
+    constraint.
+
+    Example:
+        >>> cfg = SelfCalConfig(parallax=2)
+        >>> relief_precision(torch.tensor([4.0]), torch.tensor([0.5]), cfg)
+        (tensor([8.]), slice(12, 16, None))
+    """
+    start = planar_parameters(cfg.photometric)
+    return variance / tau2, slice(start, start + cfg.parallax**2)
+
+
+def evidence_tau2(theta, jtj, sigma, tau2, px: float, cfg: SelfCalConfig) -> torch.Tensor:
+    """(B,) the relief prior's variance re-estimated per pair at ``theta`` (B, P).
+
+    ``jtj`` (B, P, P): the fit's robust normal matrix J W J^T there, without the prior (left as
+    it is); ``sigma`` (B,) the residual scale, ``tau2`` (B,) the current variance, ``px`` the
+    level's pixels per unit. The posterior's trace over the relief gives
+    :func:`evidence_variance`, kept within ``parallax_px_range`` (px); a row whose update is not
+    finite keeps its variance.
+    """
+    prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
+    post = jtj.clone()
+    torch.diagonal(post, dim1=1, dim2=2)[:, rel] += prec[:, None]
+    eye = torch.eye(post.shape[1], dtype=torch.float64, device=post.device)
+    inv = torch.linalg.inv(post + cfg.ridge * eye)  # the posterior covariance over sigma^2
+    trace = sigma.double() ** 2 * torch.diagonal(inv, dim1=1, dim2=2)[:, rel].sum(1)
+    new = evidence_variance(theta[:, rel].double(), trace, tau2)
+    lo, hi = ((v / px) ** 2 for v in cfg.parallax_px_range)
+    return torch.where(torch.isfinite(new), new.clamp(lo, hi), tau2)
