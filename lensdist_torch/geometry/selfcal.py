@@ -89,7 +89,7 @@ from lensdist_torch.geometry.selfcal_model import (
     undistort_normalized,
     with_gradients,
 )
-from lensdist_torch.geometry.selfcal_prior import evidence_tau2, relief_precision
+from lensdist_torch.geometry.selfcal_prior import evidence_tau2, relief_precision, start_tau2
 from lensdist_torch.geometry.selfcal_regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
@@ -279,7 +279,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     loss, k = cfg.robust, _robust_constant(cfg)
     res, valid, J = evaluate(theta, lv)
     sigma = robust_scale(res, valid, cfg.noise_floor)
-    tau2 = None if lv.basis is None else theta.new_full((len(theta),), (cfg.parallax_px / lv.px) ** 2, dtype=torch.float64)
+    tau2 = None if lv.basis is None else start_tau2(len(theta), lv.px, cfg, theta.device)
     cost = _cost(theta, res, valid, sigma, cfg, tau2)
     theta0, res0, valid0 = theta, res, valid
     normal = None  # the evidence's normal equations at theta, reused by the next step
@@ -303,12 +303,12 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
         res, valid = torch.where(m, res_c, res), torch.where(m, valid_c, valid)
         J = torch.where(m[..., None], J_c, J)
         lam = torch.where(acc, lam / 3, lam * 4).clamp(1e-7, 1e7)
-        if loss != "none":  # sigma re-estimated: the cost moves with it
+        if loss != "none":  # sigma re-estimated
             sigma = torch.where(acc, robust_scale(res, valid, cfg.noise_floor), sigma)
-        if tau2 is not None and cfg.parallax_evidence:
+        if tau2 is not None and cfg.parallax_evidence:  # and the relief prior's variance
             normal = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
             tau2 = evidence_tau2(theta, normal[0], sigma, tau2, lv.px, cfg)
-        cost = _cost(theta, res, valid, sigma, cfg, tau2) if loss != "none" or tau2 is not None else torch.where(acc, cost_c, cost)
+        cost = _cost(theta, res, valid, sigma, cfg, tau2)  # the cost moves with them
     return theta, lam, _State(res, valid, J, sigma, cost, _cost(theta0, res0, valid0, sigma, cfg, tau2), tau2)
 
 

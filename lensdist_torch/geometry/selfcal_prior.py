@@ -16,7 +16,7 @@ import torch
 from lensdist_torch.config import SelfCalConfig
 from lensdist_torch.geometry.selfcal_model import planar_parameters
 
-__all__ = ["evidence_variance", "relief_precision", "evidence_tau2"]
+__all__ = ["evidence_variance", "relief_precision", "start_tau2", "evidence_tau2"]
 
 
 def evidence_variance(coef: torch.Tensor, posterior_trace: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -52,6 +52,21 @@ def relief_precision(variance: torch.Tensor, tau2: torch.Tensor, cfg: SelfCalCon
     return variance / tau2, slice(start, start + cfg.parallax**2)
 
 
+def _normalised(px_std: float, px: float) -> float:
+    """A prior std in pixels as a variance in normalised units (``px`` the level's pixels per unit)."""
+    return (px_std / px) ** 2
+
+
+def start_tau2(n: int, px: float, cfg: SelfCalConfig, device=None) -> torch.Tensor:
+    """(n,) float64 the relief prior's variance a fit starts from: ``parallax_px`` at ``px`` pixels per unit.
+
+    Example:
+        >>> start_tau2(2, 100.0, SelfCalConfig(parallax_px=0.5))  # (0.5 / 100)^2
+        tensor([2.5000e-05, 2.5000e-05], dtype=torch.float64)
+    """
+    return torch.full((n,), _normalised(cfg.parallax_px, px), dtype=torch.float64, device=device)
+
+
 def evidence_tau2(theta, jtj, sigma, tau2, px: float, cfg: SelfCalConfig) -> torch.Tensor:
     """(B,) the relief prior's variance re-estimated per pair at ``theta`` (B, P).
 
@@ -68,5 +83,5 @@ def evidence_tau2(theta, jtj, sigma, tau2, px: float, cfg: SelfCalConfig) -> tor
     inv = torch.linalg.inv(post + cfg.ridge * eye)  # the posterior covariance over sigma^2
     trace = sigma.double() ** 2 * torch.diagonal(inv, dim1=1, dim2=2)[:, rel].sum(1)
     new = evidence_variance(theta[:, rel].double(), trace, tau2)
-    lo, hi = ((v / px) ** 2 for v in cfg.parallax_px_range)
+    lo, hi = (_normalised(v, px) for v in cfg.parallax_px_range)
     return torch.where(torch.isfinite(new), new.clamp(lo, hi), tau2)

@@ -89,11 +89,18 @@ def scored_pairs(results: list[dict], config: LensdistConfig) -> list[int]:
         >>> scored_pairs([ok, ok | {"relief_found": True}, ok | {"motion_px": 0.4}], LensdistConfig())
         [0]
     """
+    return _scored(results, config)[0]
+
+
+def _scored(results: list[dict], config: LensdistConfig) -> tuple[list[int], torch.Tensor]:
+    """(:func:`scored_pairs`, every result's raw self-calibration confidence under ``config``): one rescoring."""
     a = config.analysis
-    relief = rescored(results, config)[1].tolist() if results else []
-    return [i for i, r in enumerate(results)
+    conf, relief = rescored(results, config) if results else (torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool))
+    relief = relief.tolist()
+    keep = [i for i, r in enumerate(results)
             if r["in_domain"] and r["estimated_delta_avg"] is not None and not relief[i]
             and not (r.get("motion_px") is not None and r["motion_px"] < a.min_motion_px)]
+    return keep, conf
 
 
 def _right(results: list[dict], data: dict, config: LensdistConfig, keep: list[int]) -> torch.Tensor:
@@ -112,7 +119,12 @@ def confidences(results: list[dict], keep: list[int], config: LensdistConfig, me
         raw = rescored([results[i] for i in keep], config)[0] if keep else torch.zeros(0, dtype=torch.float64)
     else:
         raw = torch.tensor([results[i]["raw_confidence"] for i in keep], dtype=torch.float64)
-    return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method])) if calibrated else raw
+    return _calibrated(raw, config, method) if calibrated else raw
+
+
+def _calibrated(raw: torch.Tensor, config: LensdistConfig, method: str) -> torch.Tensor:
+    """Raw confidences through ``method``'s Platt map of ``config``."""
+    return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method]))
 
 
 def outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
@@ -121,8 +133,10 @@ def outcomes(results: list[dict], data: dict, config: LensdistConfig, method: st
     The confidence raw, or through the config's Platt map where ``calibrated``; right: whether the
     pair's class is (``benchmarks/bench_relief_test.py`` scores candidate priors by it).
     """
-    keep = scored_pairs(results, config)
-    return confidences(results, keep, config, method, calibrated), _right(results, data, config, keep)
+    keep, raw = _scored(results, config)
+    # the self-calibration's: from the rescoring that chose the pairs
+    raw = raw[keep] if method == "selfcal" else confidences(results, keep, config, method, False)
+    return (_calibrated(raw, config, method) if calibrated else raw), _right(results, data, config, keep)
 
 
 def _log_loss(p: torch.Tensor, right: torch.Tensor) -> float:
