@@ -60,8 +60,9 @@ class AnalysisConfig:
             planar model in a pair's confidence: the class's mass under the planar answer times
             this, plus its mass under the plane + parallax answer times 1 - this (a prior
             probability that the scene is flat; chosen on validation pairs of three conditions,
-            docs/method.md, section 10). Fitted on a validation split with ``selfcal_std_scale``
-            (least log-loss).
+            docs/method.md, section 10: 0.5 since 2026-11-28, the least largest ECE with each
+            pair's relief prior from its evidence; 0.8 before). Fitted on a validation split with
+            ``selfcal_std_scale`` (least log-loss).
         relief_mass: "cannot tell" for relief where the planar and the plane + parallax
             answers fall in different classes and the plane + parallax answer gives the planar
             answer's class less probability than this (its class mass, the std times
@@ -104,7 +105,7 @@ class AnalysisConfig:
     validation_seed_offset: int = 1
     min_motion_px: float = 1.0
     interval_confidence: float = 0.95
-    flat_prior: float = 0.8
+    flat_prior: float = 0.5
     relief_mass: float = 1.0
     target_precision: float = 0.97
     max_cannot_tell: float = 0.25

@@ -123,7 +123,7 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
         >>> stored_config({"protocol": {"parallax_px": 1.5}}).protocol.relief
         0.0
         >>> stored_config({"analysis": {"relief_z": 4.0}}).analysis.flat_prior  # the default
-        0.8
+        0.5
     """
     protocol = data.get("protocol")
     if isinstance(protocol, dict) and "parallax_px" in protocol:

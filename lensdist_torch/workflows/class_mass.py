@@ -128,7 +128,7 @@ def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float,
 
     Example:
         >>> from lensdist_torch.config import LensdistConfig
-        >>> cfg = LensdistConfig()  # flat_prior 0.8; class 2 spans Delta_avg 3.6 to 7.2 px at 320 x 424
+        >>> cfg = LensdistConfig()  # flat_prior 0.5; class 2 spans Delta_avg 3.6 to 7.2 px at 320 x 424
         >>> conf, found = flat_or_relief("2", (5.0, 0.2), (5.3, 0.4), cfg)
         >>> round(conf, 3), found
         (1.0, False)

@@ -60,7 +60,7 @@ def test_relief_mass_one_is_the_classes_differ_rule_and_zero_never():
 
 def test_the_rule_does_not_change_the_confidence():
     for q in (0.0, 0.3, 1.0):
-        conf = flat_or_relief("2", (7.0, 0.2), (7.6, 0.4), _cfg(relief_mass=q))[0]
+        conf = flat_or_relief("2", (7.0, 0.2), (7.6, 0.4), _cfg(relief_mass=q, flat_prior=0.8))[0]
         # 0.8 * Phi((7.18 - 7.0) / 0.2) + 0.2 * Phi((7.18 - 7.6) / 0.4), the lower bound 3.59 px far below both
         hi = class_bounds("2", "delta_avg", _cfg())[1]
         assert conf == pytest.approx(0.8 * _phi((hi - 7.0) / 0.2) + 0.2 * _phi((hi - 7.6) / 0.4), abs=1e-6)
