@@ -23,8 +23,15 @@ condition also checks itself: at the config's own prior the recomputed confidenc
 "cannot tell"s must be ``analyze``'s (``check``). (The class-R pairs are left to ``lensdist
 reproduce``.)
 
+With ``--thresholds`` (and ``--undistorted``) the shipped R threshold is chosen the same way, at
+the config's prior: per condition and candidate ``analysis.no_distortion_px``, the same figures
+over every analysed pair, distorted and class-R together (the class of each estimate under that
+threshold; ``called_r``: class-R pairs answered R), the threshold whose largest ECE over the
+conditions is least chosen (``chosen_threshold``), and the self-check over every pair
+(``check_all``).
+
     python benchmarks/bench_relief_test.py --n 400 --threads 1 --out docs/results/bench_relief_test.json
-        [--set selfcal.parallax_px=0.2] [--undistorted]
+        [--set selfcal.parallax_px=0.2] [--undistorted [--thresholds 0.25 0.5 0.75 1.0]]
 """
 
 from __future__ import annotations
@@ -92,6 +99,19 @@ def with_prior(cfg: LensdistConfig, prior: float) -> LensdistConfig:
     return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, flat_prior=prior))
 
 
+def with_threshold(cfg: LensdistConfig, threshold: float) -> LensdistConfig:
+    """``cfg`` with ``analysis.no_distortion_px`` = ``threshold``."""
+    return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, no_distortion_px=threshold))
+
+
+def called_r(results: list[dict], data: dict, cfg: LensdistConfig) -> int:
+    """How many class-R pairs ``analyze``'s decision under ``cfg`` answers R (right, confident)."""
+    keep = scored_pairs(results, cfg)
+    conf, right = outcomes(results, data, cfg, "selfcal", True)
+    is_r = (data["class_avg"][keep] == REJECT) if keep else torch.zeros(0, dtype=torch.bool)
+    return int((is_r & right & (conf >= cfg.analysis.min_confidence)).sum())
+
+
 def summary(results: list[dict], data: dict, cfg: LensdistConfig) -> tuple[dict, set[int]]:
     """The figures of ``analyze``'s decision under ``cfg`` on one condition's pairs, and the pairs it cannot tell."""
     keep = scored_pairs(results, cfg)  # the other pairs are "cannot tell" whatever the prior
@@ -143,10 +163,14 @@ def main() -> None:
                     help="a setting changed in every condition's config (e.g. selfcal.parallax_px=0.2)")
     ap.add_argument("--undistorted", action="store_true",
                     help="also analyse each condition's class-R validation pairs (share answered R)")
+    ap.add_argument("--thresholds", type=float, nargs="+", default=None, metavar="PX",
+                    help="candidate analysis.no_distortion_px, scored over every pair (needs --undistorted)")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     if a.n < 1 or a.batch < 1 or a.threads < 1:
         ap.error("--n, --batch and --threads must be positive")
+    if a.thresholds and (not a.undistorted or min(a.thresholds) <= 0):
+        ap.error("--thresholds needs --undistorted and positive thresholds (px)")
     torch.set_num_threads(a.threads)
     out = {"priors": list(PRIORS), "settings": list(a.set), "conditions": {}}
     for name, path in CONDITIONS.items():
@@ -167,12 +191,29 @@ def main() -> None:
         print(name, dumps_strict(by_prior), "check", dumps_strict(check), flush=True)
         if a.undistorted:
             rest = pairs_of(every, torch.arange(n_distorted, every["index"].numel()))
-            out["conditions"][name]["undistorted"] = undistorted(analysed(rest, cfg, a.batch))
+            rest_results = analysed(rest, cfg, a.batch)
+            out["conditions"][name]["undistorted"] = undistorted(rest_results)
             print(name, "class-R pairs", dumps_strict(out["conditions"][name]["undistorted"]), flush=True)
+            if a.thresholds:  # every pair, distorted and class-R, under each R threshold at the config's prior
+                both = pairs_of(every, torch.cat([torch.arange(min(a.n, n_distorted)),
+                                                  torch.arange(n_distorted, every["index"].numel())]))
+                everything = results + rest_results
+                by_t = {}
+                for t in a.thresholds:
+                    got, _ = summary(everything, both, with_threshold(cfg, t))
+                    by_t[f"{t:g}"] = got | {"called_r": called_r(everything, both, with_threshold(cfg, t))}
+                out["conditions"][name]["by_threshold"] = by_t
+                out["conditions"][name]["check_all"] = self_check(everything, cfg, summary(everything, both, cfg)[1])
+                print(name, "by R threshold", dumps_strict(by_t), flush=True)
     worst = {f"{w:g}": max(c["by_prior"][f"{w:g}"]["ece"] for c in out["conditions"].values()) for w in PRIORS}
     out["largest_ece_by_prior"] = worst
     out["chosen_prior"] = float(min(worst, key=lambda k: (worst[k], -float(k))))
     print("largest ECE by prior", dumps_strict(worst), "chosen", out["chosen_prior"], flush=True)
+    if a.thresholds:
+        worst_t = {f"{t:g}": max(c["by_threshold"][f"{t:g}"]["ece"] for c in out["conditions"].values()) for t in a.thresholds}
+        out["thresholds"], out["largest_ece_by_threshold"] = list(a.thresholds), worst_t
+        out["chosen_threshold"] = float(min(worst_t, key=lambda k: (worst_t[k], float(k))))
+        print("largest ECE by R threshold", dumps_strict(worst_t), "chosen", out["chosen_threshold"], flush=True)
     if a.out:
         atomic_write_text(a.out, dumps_strict(out, indent=1) + "\n")
 
