@@ -52,7 +52,7 @@ from lensdist_torch.geometry.selfcal_model import relief_basis
 
 
 def correspondences(cfg, params, i: int, step: int):
-    """I2's pixels (N, 2) and their exact matches in I1 (N, 2), both inside the frame."""
+    """I2's pixels (N, 2) and their exact matches in I1 (N, 2), both inside the frame, the centre and the centred motion."""
     h, w = cfg.image.size
     x0, y0 = distortion_center(h, w)
     c = torch.tensor([x0, y0], dtype=torch.float64)
@@ -67,7 +67,7 @@ def correspondences(cfg, params, i: int, step: int):
     qx, qy = homography_view_points(a, u[:, 0], u[:, 1], height_field(params.realism, i, h, w))
     p1 = distort_points(torch.stack([qx, qy], -1)[None] + c, k2, k4, (x0, y0))[0]
     inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
-    return p2[inside], p1[inside], c
+    return p2[inside], p1[inside], c, a
 
 
 def fit(src, dst, c, r, basis, direction, iterations: int = 25, epipole=None):
@@ -132,17 +132,14 @@ def main() -> None:
     t0 = time.perf_counter()
     est = {"relief": []} if a.only_relief else {"planar": [], "relief": []}
     for i in range(a.n):
-        src, dst, c = correspondences(cfg, params, i, a.step)
+        src, dst, c, motion = correspondences(cfg, params, i, a.step)
         t = torch.stack([params.motion[i, 1], params.motion[i, 0]])
         direction = t / t.norm().clamp_min(1e-12)
         un = (src - c) / r
         basis = relief_basis(un[None, :, 0], un[None, :, 1], a.bumps, a.width, h, w)[0].T.double()
         epipole = None
         if a.direction == "epipole":
-            to_c = torch.eye(3, dtype=torch.float64)
-            to_c[:2, 2] = c
-            m = torch.linalg.inv(to_c) @ params.M[i] @ to_c
-            m = m / m[2, 2]
+            m = motion / motion[2, 2]
             epipole = (m[:2, 2] / r, torch.linalg.det(m[:2, :2]).abs().sqrt())
         for name, b in (("planar", None), ("relief", basis))[1 if a.only_relief else 0:]:
             th = fit(src, dst, c, r, b, direction, epipole=epipole)

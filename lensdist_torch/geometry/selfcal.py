@@ -89,7 +89,13 @@ from lensdist_torch.geometry.selfcal_model import (
     undistort_normalized,
     with_gradients,
 )
-from lensdist_torch.geometry.selfcal_prior import evidence_tau2, relief_precision, start_tau2
+from lensdist_torch.geometry.selfcal_prior import (
+    add_relief_prior,
+    evidence_tau2,
+    posterior_inverse,
+    relief_precision,
+    start_tau2,
+)
 from lensdist_torch.geometry.selfcal_regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
@@ -288,8 +294,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
         if not free_ab:  # (a, b) held: their rows and columns out of the system (step 0)
             jtj[:, 8:10], jtj[:, :, 8:10], jtr[:, 8:10] = 0, 0, 0
         if tau2 is not None:  # the relief's Gaussian prior
-            prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
-            torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
+            prec, rel = add_relief_prior(jtj, sigma.double() ** 2, tau2, cfg)
             jtr[:, rel] += prec[:, None] * theta[:, rel]
         diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
         A = jtj + torch.diag_embed(lam[:, None] * diag + 1e-9 * diag.amax(1, keepdim=True))
@@ -334,11 +339,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     # weighted residual variance, floored at the quantisation noise of 8-bit images, so that a
     # textureless or identical pair cannot claim certainty
     s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(cfg.noise_floor**2)
-    eye = torch.eye(n_par, dtype=torch.float64, device=ab.device)
-    if n_par > planar_parameters(cfg.photometric):  # the relief: posterior precision J W J^T / s^2 + I / tau^2
-        prec, rel = relief_precision(s2, st.tau2, cfg)
-        torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
-    inv = torch.linalg.inv(jtj + cfg.ridge * eye)
+    inv = posterior_inverse(jtj, s2, st.tau2, cfg)  # with the relief: precision J W J^T / s^2 + I / tau^2
     cov = s2[:, None, None] * inv
     if region is not None:  # cluster-robust: the larger of the two
         score = (st.J * (w * st.res)[:, None]).double()  # (B, P, N)

@@ -2,7 +2,8 @@
 
 Each bump's height c_k has the prior N(0, tau^2) (normalised units). In the robust normal
 equations J W J^T, which carry no 1 / sigma^2, it adds sigma^2 / tau^2 to the relief's diagonal
-(:func:`relief_precision`), the same in the posterior covariance. tau is ``selfcal.parallax_px``
+(:func:`relief_precision`, added by :func:`add_relief_prior`), the same in the posterior
+covariance (:func:`posterior_inverse`). tau is ``selfcal.parallax_px``
 over the level's pixels per unit, or, with ``selfcal.parallax_evidence``, re-estimated per pair
 from the evidence after every Levenberg-Marquardt step (:func:`evidence_tau2`, MacKay's update
 :func:`evidence_variance`): a flat pair drives it down to the floor of ``parallax_px_range``, a
@@ -16,7 +17,7 @@ import torch
 from lensdist_torch.config import SelfCalConfig
 from lensdist_torch.geometry.selfcal_model import planar_parameters
 
-__all__ = ["evidence_variance", "relief_precision", "start_tau2", "evidence_tau2"]
+__all__ = ["evidence_variance", "relief_precision", "add_relief_prior", "posterior_inverse", "start_tau2", "evidence_tau2"]
 
 
 def evidence_variance(coef: torch.Tensor, posterior_trace: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -52,6 +53,36 @@ def relief_precision(variance: torch.Tensor, tau2: torch.Tensor, cfg: SelfCalCon
     return variance / tau2, slice(start, start + cfg.parallax**2)
 
 
+def add_relief_prior(jtj: torch.Tensor, variance: torch.Tensor, tau2: torch.Tensor, cfg: SelfCalConfig):
+    """Add the prior's precision (:func:`relief_precision`) to the relief's diagonal of ``jtj`` (B, P, P), in place.
+
+    Returns:
+        (precision (B,), columns of theta), for the right-hand side's term.
+    """
+    prec, rel = relief_precision(variance, tau2, cfg)
+    torch.diagonal(jtj, dim1=1, dim2=2)[:, rel] += prec[:, None]
+    return prec, rel
+
+
+def posterior_inverse(jtj: torch.Tensor, variance: torch.Tensor, tau2: torch.Tensor | None, cfg: SelfCalConfig) -> torch.Tensor:
+    """(B, P, P) float64 (J W J^T + the relief prior + ``ridge`` I)^-1: the posterior covariance over ``variance``.
+
+    ``jtj`` (B, P, P) the robust normal matrix without the prior (not changed); ``tau2`` (B,) the
+    prior's variance, or None without the relief (no prior term).
+
+    Example:
+        >>> cfg = SelfCalConfig(parallax=1, photometric="none", ridge=1e-9)  # 10 planar parameters, 1 bump
+        >>> inv = posterior_inverse(torch.eye(11, dtype=torch.float64)[None], torch.tensor([1.0]), torch.tensor([0.5]), cfg)
+        >>> round(float(inv[0, 10, 10]), 6), round(float(inv[0, 0, 0]), 6)  # 1 / (1 + 1 / 0.5) on the bump
+        (0.333333, 1.0)
+    """
+    post = jtj.clone()
+    if tau2 is not None:
+        add_relief_prior(post, variance, tau2, cfg)
+    eye = torch.eye(post.shape[1], dtype=torch.float64, device=post.device)
+    return torch.linalg.inv(post + cfg.ridge * eye)
+
+
 def _normalised(px_std: float, px: float) -> float:
     """A prior std in pixels as a variance in normalised units (``px`` the level's pixels per unit)."""
     return (px_std / px) ** 2
@@ -76,12 +107,9 @@ def evidence_tau2(theta, jtj, sigma, tau2, px: float, cfg: SelfCalConfig) -> tor
     :func:`evidence_variance`, kept within ``parallax_px_range`` (px); a row whose update is not
     finite keeps its variance.
     """
-    prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
-    post = jtj.clone()
-    torch.diagonal(post, dim1=1, dim2=2)[:, rel] += prec[:, None]
-    eye = torch.eye(post.shape[1], dtype=torch.float64, device=post.device)
-    inv = torch.linalg.inv(post + cfg.ridge * eye)  # the posterior covariance over sigma^2
-    trace = sigma.double() ** 2 * torch.diagonal(inv, dim1=1, dim2=2)[:, rel].sum(1)
+    variance = sigma.double() ** 2
+    rel = relief_precision(variance, tau2, cfg)[1]
+    trace = variance * torch.diagonal(posterior_inverse(jtj, variance, tau2, cfg), dim1=1, dim2=2)[:, rel].sum(1)
     new = evidence_variance(theta[:, rel].double(), trace, tau2)
     lo, hi = (_normalised(v, px) for v in cfg.parallax_px_range)
     return torch.where(torch.isfinite(new), new.clamp(lo, hi), tau2)
