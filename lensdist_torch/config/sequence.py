@@ -48,6 +48,10 @@ class CalibrationConfig:
         min_pairs: fewer usable pairs give no class ("cannot tell").
         max_class_halfwidth_px: a half-width of Delta_avg above this at the paper's 320 x 424 frame
             gives no class (a class bin is 3.6 px wide there).
+        no_distortion_px: a sequence's Delta_avg (px at 320 x 424) below this is class R, of
+            both sequence paths (``calibrate``); an interval that spans it gives no class. A
+            sequence's intervals are hundredths of a pixel on rendered planes, so its threshold is
+            finer than one pair's (``analysis.no_distortion_px``).
         verify_pairs: a class is verified on this many pairs, registered again after undistorting:
             the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
@@ -90,6 +94,7 @@ class CalibrationConfig:
     confidence: float = 0.95
     min_pairs: int = 4
     max_class_halfwidth_px: float = 1.0
+    no_distortion_px: float = 0.25
     verify_pairs: int = 6
     parallax: int = 5
     parallax_px: float = 1.0
@@ -108,7 +113,8 @@ class CalibrationConfig:
             raise ValueError(f"calibration.motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, "
                              f"got {show(steps)}")
         object.__setattr__(self, "motion_steps", tuple(float(v) for v in steps))
-        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_misfit", "max_class_halfwidth_px", "parallax_px"):
+        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_misfit", "max_class_halfwidth_px", "parallax_px",
+                     "no_distortion_px"):
             real(self, name, lo=0, lo_open=True)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "systematic_rel", lo=0, hi=1, hi_open=True)

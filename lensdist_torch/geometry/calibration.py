@@ -34,8 +34,8 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    both models alike; no jackknife sees it: docs/method.md, 7). t on blocks - 1 dof; [max(0, D - t sd), D + t sd].
 6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame, or None with a
    reason: under ``min_pairs`` usable pairs, a half-width there over ``max_class_halfwidth_px``,
-   or an interval there that spans ``analysis.no_distortion_px`` (R or class 1 cannot be told:
-   R's bin, 0.25 px, is narrower than the intervals of scenes with relief).
+   or an interval there that spans ``no_distortion_px``, a sequence's R threshold (R or class 1
+   cannot be told: R's bin, 0.25 px, is narrower than the intervals of scenes with relief).
 
 Why this combination (the figures measured when it was built): docs/method.md, section 10.
 """

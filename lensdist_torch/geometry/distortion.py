@@ -276,22 +276,32 @@ def distortion_class(delta: torch.Tensor, top: float, n_classes: int = 4) -> tor
 
 
 def estimated_class(
-    delta: torch.Tensor, delta_avg_estimate: torch.Tensor, metric: str, config: LensdistConfig
+    delta: torch.Tensor, delta_avg_estimate: torch.Tensor, metric: str, config: LensdistConfig,
+    threshold: float | None = None,
 ) -> torch.Tensor:
     """The class of an *estimated* Delta.
 
     The bin of ``delta`` (of ``metric``), and ``REJECT`` ("no visible distortion") where the
-    estimated Delta_avg is below ``config.analysis.no_distortion_px`` or not finite. The one
-    labelling rule of every estimator (self-calibration, regression) and of ``analyze``.
+    estimated Delta_avg is below ``threshold`` or not finite. The one labelling rule of every
+    estimator (self-calibration, regression, the sequence paths) and of ``analyze``.
+
+    Args:
+        delta: (B,) estimates of ``metric`` (px at the analysis size).
+        delta_avg_estimate: (B,) the same pairs' estimated Delta_avg, which decides R.
+        metric: ``"delta_avg"`` or ``"delta_max"`` (the bins' range).
+        config: the classes (``distortion.n_classes``) and the default threshold.
+        threshold: the R threshold (px at 320 x 424); default one pair's,
+            ``config.analysis.no_distortion_px`` (a sequence's is ``config.calibration``'s).
 
     Example:
         >>> d = torch.tensor([0.1, 5.0, 5.0])  # Delta_avg estimates (px at 320 x 424), the last one not finite:
         >>> estimated_class(d, torch.tensor([0.1, 5.0, float("nan")]), "delta_avg", LensdistConfig()).tolist()
         [4, 1, 4]
     """
+    t = config.analysis.no_distortion_px if threshold is None else threshold
     delta = torch.as_tensor(delta, dtype=torch.float64)
     d_avg = torch.as_tensor(delta_avg_estimate, dtype=torch.float64)
-    none = ~torch.isfinite(d_avg) | ~torch.isfinite(delta) | (d_avg < config.analysis.no_distortion_px)
+    none = ~torch.isfinite(d_avg) | ~torch.isfinite(delta) | (d_avg < t)
     top = delta_top(metric, config)
     label = distortion_class(torch.where(none, top, delta).clamp_min(1e-12), top, config.distortion.n_classes)
     return torch.where(none, torch.full_like(label, REJECT), label)
@@ -308,23 +318,24 @@ def paper_frame_delta_avg(k2: float, k4: float, size: tuple[int, int], config: L
     return float(delta_avg([k2 / ratio**2], [k4 / ratio**4], hc, wc)[0])
 
 
-def class_bounds(label: str, metric: str, config: LensdistConfig) -> tuple[float, float]:
+def class_bounds(label: str, metric: str, config: LensdistConfig, threshold: float | None = None) -> tuple[float, float]:
     """The Delta (of ``metric``) interval ]lo, hi] that :func:`estimated_class` labels ``label``.
 
-    R is [0, ``analysis.no_distortion_px``[ (of Delta_avg); class i of n is ](i - 1) w, i w] with
-    w = top / n, class 1 starting at the R threshold and the last class open above (a Delta
-    beyond the range is the last class).
+    R is [0, ``threshold``[ (of Delta_avg; default ``analysis.no_distortion_px``); class i of n
+    is ](i - 1) w, i w] with w = top / n, class 1 starting at the R threshold and the last class
+    open above (a Delta beyond the range is the last class).
 
     Example:
         >>> from lensdist_torch.config import LensdistConfig
         >>> [round(x, 2) for x in class_bounds("2", "delta_avg", LensdistConfig())]
         [3.59, 7.18]
     """
+    t = config.analysis.no_distortion_px if threshold is None else threshold
     if label == CLASS_LABELS[REJECT]:
-        return 0.0, config.analysis.no_distortion_px
+        return 0.0, t
     n, w = config.distortion.n_classes, delta_top(metric, config) / config.distortion.n_classes
     i = CLASS_LABELS.index(label) + 1
-    lo = max((i - 1) * w, config.analysis.no_distortion_px) if i == 1 else (i - 1) * w
+    lo = max((i - 1) * w, t) if i == 1 else (i - 1) * w
     return lo, (math.inf if i == n else i * w)
 
 
@@ -404,15 +415,15 @@ def fit_eq4(points: torch.Tensor, ideal: torch.Tensor, height: int, width: int) 
 def class_or_open(dc: float, half: float, settings: LensdistConfig) -> tuple[str | None, str]:
     """A sequence's class from Delta_avg ``dc`` +- ``half`` (px) at the paper's frame, or None and why.
 
-    R's bin is narrower than any such interval: where the interval spans the no-distortion
-    threshold, a distortion or none cannot be told.
+    R is below a sequence's threshold, ``calibration.no_distortion_px``; where the interval spans
+    it, a distortion or none cannot be told.
 
     Example:
         >>> class_or_open(3.0, 0.5, LensdistConfig())[0], class_or_open(0.3, 0.2, LensdistConfig())[0]
         ('1', None)
     """
-    t = settings.analysis.no_distortion_px
+    t = settings.calibration.no_distortion_px
     if dc - half < t <= dc + half:
         return None, (f"the interval [{max(0.0, dc - half):.2f}, {dc + half:.2f}] px at the paper's frame spans the "
                       f"no-distortion threshold ({t} px): a distortion or none cannot be told")
-    return CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", settings)[0])], ""
+    return CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", settings, t)[0])], ""

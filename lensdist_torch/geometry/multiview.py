@@ -421,7 +421,8 @@ def self_calibrate_reconstruction(
         reason = f"interval too wide: +-{half_avg:.2f} px"
     else:
         dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
-        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st)[0])]
+        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st,
+                                                 st.calibration.no_distortion_px)[0])]
     k, d = opencv_from_colmap(cam, scale)
     return MultiViewCalibration(
         best, k.tolist(), (d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),

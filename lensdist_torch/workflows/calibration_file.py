@@ -14,7 +14,9 @@ each problem is one ValueError naming the file and the field:
   numbers is "could not tell": refused, with the ``--k2 --k4`` that use them anyway. A class
   must be the one its coefficients give: Delta_avg at the paper's frame of the same normalised
   lens (:func:`~lensdist_torch.geometry.distortion.paper_frame_delta_avg`) within
-  ``FROM_CLASS_TOLERANCE`` of the class's bounds (the default classes);
+  ``FROM_CLASS_TOLERANCE`` of the class's bounds (the default classes; R's bound is the
+  producer's default, a sequence's ``calibration.no_distortion_px`` or one pair's
+  ``analysis.no_distortion_px``: either is accepted);
 - ``verification`` (calibrate): null, or :func:`~lensdist_torch.workflows.verify.verify_undistortion`'s
   counts with their shares and the verdict that follows from them
   (:func:`~lensdist_torch.workflows.verify.verdict`); there is one only for a distortion class,
@@ -119,7 +121,8 @@ def _check_class(label, k2, k4, ref: tuple[int, int], src: Path, what: str | Non
     """Refuse a class that its coefficients do not give (module docstring); ``what`` names them where not the file's."""
     cfg = LensdistConfig()
     dc = paper_frame_delta_avg(k2, k4, ref, cfg)
-    lo, hi = class_bounds(label, "delta_avg", cfg)
+    ts = sorted({cfg.calibration.no_distortion_px, cfg.analysis.no_distortion_px})  # calibrate's, analyze's R
+    lo, hi = class_bounds(label, "delta_avg", cfg, ts[0])[0], class_bounds(label, "delta_avg", cfg, ts[-1])[1]
     if lo * (1 - FROM_CLASS_TOLERANCE) <= dc <= hi * (1 + FROM_CLASS_TOLERANCE):
         return
     bounds = f"below {hi:g} px" if lo == 0 else f"above {lo:.2f} px" if math.isinf(hi) else f"{lo:.2f}-{hi:.2f} px"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -135,7 +136,7 @@ def test_realistic_sequence_recovers_the_camera(one_thread_module, level, seed, 
     assert cal.delta_avg_user_px == pytest.approx(true, abs=0.1) and lo <= true <= hi and hi - lo < 0.7
     cfg = LensdistConfig()
     paper = delta_avg([k2 / S**2], [k4 / S**4], *cfg.image.size)  # the same lens at the paper's frame
-    want = CLASS_LABELS[int(estimated_class(paper, paper, "delta_avg", cfg)[0])]
+    want = CLASS_LABELS[int(estimated_class(paper, paper, "delta_avg", cfg, cfg.calibration.no_distortion_px)[0])]
     assert (want == "R") == (level == 0)
     assert cal.class_label == want
 
@@ -392,7 +393,7 @@ def test_the_relief_effect_widens_the_interval_as_documented():
 
 def test_an_interval_across_the_no_distortion_threshold_gives_no_class():
     """Undistorted scenes with relief came out at 0.3-0.6 px, intervals reaching 0, and were
-    called class 1: where the interval at the paper's frame spans analysis.no_distortion_px
+    called class 1: where the interval at the paper's frame spans calibration.no_distortion_px
     (0.25 px) R and 1 cannot be told. Hand-built pairs at Delta_avg ~0.4 px at the paper's frame."""
     from lensdist_torch.geometry.calibration import _result
     from lensdist_torch.geometry.frame import half_diagonal
@@ -413,3 +414,7 @@ def test_an_interval_across_the_no_distortion_threshold_gives_no_class():
     lo, hi = wide.delta_avg_user_interval
     assert lo < 0.25 < hi and hi - lo < 2.0  # not too wide: the threshold is the reason
     assert wide.class_label is None and "no-distortion threshold (0.25 px)" in wide.reason
+    # a sequence's threshold is calibration.no_distortion_px, not one pair's (analysis, 0.75 px by default)
+    assert st.analysis.no_distortion_px > 0.4 > st.calibration.no_distortion_px
+    moved = dataclasses.replace(st, calibration=dataclasses.replace(st.calibration, no_distortion_px=0.6))
+    assert _result(ab, std, pairs, xa, (h, w), 1.0, cfg, moved, (ab, ab)).class_label == "R"

@@ -6,6 +6,7 @@ helper with a literal transcription of eq. 4, the Newton inverse, and the class 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -13,7 +14,10 @@ import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import (
+    CLASS_LABELS,
     REJECT,
+    class_bounds,
+    class_or_open,
     delta_avg,
     delta_max,
     delta_metric,
@@ -22,6 +26,7 @@ from lensdist_torch.geometry.distortion import (
     distortion_center,
     distortion_class,
     distortion_grid,
+    estimated_class,
     pixel_grid,
     pixel_offsets,
     render_distorted,
@@ -275,3 +280,23 @@ class TestRender:
     def test_one_coefficient_pair_per_image(self):
         with pytest.raises(ValueError, match="one value per image"):
             render_distorted(torch.rand(2, 1, 8, 8), [K2], [K4])
+
+
+def test_one_pair_and_a_sequence_have_their_own_r_threshold():
+    """R below analysis.no_distortion_px (one pair, 0.75 px) or calibration.no_distortion_px (a sequence, 0.25 px).
+
+    Class 1 is ]0, 14.4 / 4] px at 320 x 424 (Delta_top = 14.39 px, section 6), starting at the threshold.
+    """
+    cfg = LensdistConfig()
+    d = torch.tensor([0.2, 0.5, 0.8, 3.0], dtype=torch.float64)
+    pair = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, "delta_avg", cfg)]
+    seq = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, "delta_avg", cfg, cfg.calibration.no_distortion_px)]
+    assert pair == ["R", "R", "1", "1"] and seq == ["R", "1", "1", "1"]
+    assert class_bounds("R", "delta_avg", cfg) == (0.0, 0.75)
+    assert class_bounds("1", "delta_avg", cfg, 0.25) == pytest.approx((0.25, delta_top("delta_avg", cfg) / 4))
+    # the sequence rule: class 1 at 0.5 +- 0.1 px, none where the interval spans 0.25 px, whatever the pair's threshold
+    assert class_or_open(0.5, 0.1, cfg)[0] == "1"
+    label, reason = class_or_open(0.3, 0.1, cfg)
+    assert label is None and "no-distortion threshold (0.25 px)" in reason
+    moved = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, no_distortion_px=0.1))
+    assert class_or_open(0.5, 0.1, moved)[0] == "1" and class_or_open(0.3, 0.1, moved)[0] is None

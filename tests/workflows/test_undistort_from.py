@@ -104,13 +104,21 @@ def test_a_missing_class(tmp_path, capsys, frames):
     ("R", 3e-6, [320, 424], "Delta_avg 12.58 px"),  # the audit's case: class R, Delta_avg 12.6 px
     ("1", 4e-6, [240, 320], "Delta_avg 9.49 px"),  # a class-3 lens
     ("4", 1e-6, [240, 320], "Delta_avg 2.37 px"),  # a class-1 lens
-    ("R", 1e-6, [120, 160], "Delta_avg 0.59 px"),
+    ("R", 1.6e-6, [120, 160], "Delta_avg 0.94 px"),  # above both producers' R thresholds (0.25, 0.75 px)
 ])
 def test_a_class_its_coefficients_contradict(tmp_path, capsys, frames, label, k2, size, delta):
     """Before: every one undistorted the frames, exit 0."""
     data = _edit(CALIBRATE, **{"class": label, "k2_user": k2, "k4_user": 0.0, "image_size": size,
                                "verification": None, "opencv": None})
     _refused(tmp_path, capsys, frames, data, f"field 'class' is {label!r}", delta, "contradicts itself")
+
+
+@pytest.mark.parametrize("label", ["R", "1"])
+def test_between_the_two_r_thresholds_either_class_is_read(tmp_path, capsys, frames, label):
+    """Delta_avg 0.59 px: R for one pair (analysis.no_distortion_px 0.75), class 1 for a sequence (0.25)."""
+    data = _edit(CALIBRATE, **{"class": label, "k2_user": 1e-6, "k4_user": 0.0, "image_size": [120, 160],
+                               "verification": None, "opencv": None})
+    assert _run(tmp_path, capsys, frames, data)[0] == 0
 
 
 def test_a_class_at_its_bound_is_read(tmp_path, capsys, frames):
