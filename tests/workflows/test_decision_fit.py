@@ -113,6 +113,22 @@ def test_fitted_scales_recover_how_far_the_estimates_scatter(inflate):
     assert cov["pairs"] == 1500 and 0.95 <= cov["coverage"] <= 0.97
 
 
+def test_a_plateau_of_r_thresholds_is_decided_by_the_confidence_not_the_shipped_value():
+    """Undistorted pairs estimated at 0.02-0.2 px, distorted ones at 1.0 px and more: every threshold
+    between them is as right. Before, the one nearest the config's value won (0.233 px from 0.25,
+    0.632 from 0.75 on the default protocol's validation split); now the confidence decides."""
+    results, data, cfg = _validation(400, 1.5, seed=3)
+    g = torch.Generator().manual_seed(4)
+    for r in results[:80]:  # class R: true 0, estimates a little above it
+        r["estimated_delta_avg"] = float(0.02 + 0.18 * torch.rand(1, generator=g, dtype=torch.float64))
+    data["delta_avg"][:80] = 0.0
+    data["class_avg"] = estimated_class(data["delta_avg"], data["delta_avg"], "delta_avg", cfg)
+    for r in results[80:]:
+        r["estimated_delta_avg"] = max(r["estimated_delta_avg"], 1.0)
+    fits = [fit_decision({"selfcal": results}, data, _cfg(no_distortion_px=t))["no_distortion_px"] for t in (0.25, 0.5, 0.9)]
+    assert fits[0] == fits[1] == fits[2] and 0.2 < fits[0] <= 1.0
+
+
 def test_scales_stay_where_there_is_nothing_to_score():
     results, data, cfg = _validation(50, 1.0)
     data["class_avg"] = estimated_class(torch.tensor([r["estimated_delta_avg"] for r in results]),
