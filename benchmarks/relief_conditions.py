@@ -24,7 +24,7 @@ import torch
 
 from lensdist_torch import load_config
 from lensdist_torch.core import atomic_write_text
-from lensdist_torch.geometry import CLASS_LABELS, estimated_class
+from lensdist_torch.geometry import CLASS_LABELS, delta_top, distortion_class, estimated_class
 
 SETTING = "selfcal, delta_avg"
 ROWS = (("right or cannot tell", "right_or_cannot_tell_share", "%"), ("cannot tell", "cannot_tell_share", "%"),
@@ -58,7 +58,7 @@ def bound_outcomes(relief: dict, bound: dict) -> dict:
     cfg = load_config(bound["config"])  # the config the bound's pairs were drawn with
     true = torch.tensor(bound["per_pair"]["true_px"], dtype=torch.float64)
     planar = torch.tensor(bound["per_pair"]["planar_px"], dtype=torch.float64)
-    truth = estimated_class(true, true, "delta_avg", cfg)
+    truth = distortion_class(true, delta_top("delta_avg", cfg), cfg.distortion.n_classes)  # R only at 0, as the bound scores
     hard = (estimated_class(planar, planar, "delta_avg", cfg) != truth).tolist()
     per = relief["settings"][SETTING]["per_pair"]
     out = {"hard": sum(hard), "right": 0, "wrong": 0, "cannot_tell": {}}

@@ -96,8 +96,8 @@ class AnalysisConfig:
     selfcal_confidence_shift: float = 0.0
     # fitted by `lensdist reproduce` (configs/paper.toml) on its validation split, the run that
     # fitted the shipped checkpoints (docs/results/reproduce.md, "Calibration")
-    regression_confidence_scale: float = 0.6906
-    regression_confidence_shift: float = 1.0013
+    regression_confidence_scale: float = 0.5684
+    regression_confidence_shift: float = 1.0797
     selfcal_std_scale: float = 1.0
     interval_std_scale: float = 1.0
     cross_check: bool = True

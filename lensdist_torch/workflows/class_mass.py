@@ -182,7 +182,7 @@ def _mass(d: torch.Tensor, std: torch.Tensor, bounds: torch.Tensor) -> torch.Ten
     """P(|D| in ]lo, hi]) for D ~ N(d, std^2), ``bounds`` (N, 2) each pair's class bin: the raw confidence of a class.
 
     Delta_avg is the size of a signed offset (barrel or pincushion), so its distribution is the
-    folded normal: an estimate near 0 with a std of 0.2 px is R (|D| < 0.25 px) on both sides.
+    folded normal: an estimate near 0 with a std of 0.2 px is R (|D| below the threshold) on both sides.
     Near a class boundary the class is a coin toss however small the std. A std that is not
     finite gives 0, one of 0 gives 1.
     """
