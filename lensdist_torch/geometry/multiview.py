@@ -55,7 +55,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class, fit_eq4, paper_frame_delta_avg
+from lensdist_torch.geometry.distortion import class_or_open, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_delta, opencv_ideal_points
 from lensdist_torch.geometry.pooling import jackknife_interval
 
@@ -421,8 +421,7 @@ def self_calibrate_reconstruction(
         reason = f"interval too wide: +-{half_avg:.2f} px"
     else:
         dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
-        label = CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", st,
-                                                 st.calibration.no_distortion_px)[0])]
+        label = class_or_open(dc, 0.0, st)[0]  # a sequence's class (its interval is judged above, in user px)
     k, d = opencv_from_colmap(cam, scale)
     return MultiViewCalibration(
         best, k.tolist(), (d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),

@@ -194,12 +194,12 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
                   | {a0.no_distortion_px})
     every = [i for i, r in enumerate(results["selfcal"]) if r["in_domain"] and r["estimated_delta_avg"] is not None]
     counts = {t: int(_right(results["selfcal"], data, _with(config, no_distortion_px=t), every).sum()) for t in grid}
-    tied = [t for t, n in counts.items() if n == max(counts.values())]
-    best = min(tied, key=lambda t: (_std_fit(results["selfcal"], data, _with(config, no_distortion_px=t))[0]
-                                    if len(tied) > 1 else 0.0, abs(math.log(t / a0.no_distortion_px))))
+    most = max(counts.values())
+    std_fits = {t: _std_fit(results["selfcal"], data, _with(config, no_distortion_px=t)) for t, n in counts.items() if n == most}
+    best = min(std_fits, key=lambda t: (std_fits[t][0], abs(math.log(t / a0.no_distortion_px))))
     fitted = {"no_distortion_px": float(best)}
     cfg = _with(config, no_distortion_px=best)
-    fitted |= _fit_withholding(results["selfcal"], data, cfg, trace)
+    fitted |= _fit_withholding(results["selfcal"], data, cfg, std_fits[best][1:], trace)
     cfg = _with(cfg, **fitted)
     fitted["interval_std_scale"] = _fit_interval_scale(results["selfcal"], data, cfg)
     for method, (f_scale, f_shift) in _PLATT.items():
@@ -217,13 +217,8 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
     return fitted
 
 
-def _fit_std_scale(results: list[dict], data: dict, config: LensdistConfig) -> tuple[float, float]:
-    """(selfcal_std_scale, flat_prior) of the least log-loss over the config's scored pairs."""
-    return _std_fit(results, data, config)[1:]
-
-
 def _std_fit(results: list[dict], data: dict, config: LensdistConfig) -> tuple[float, float, float]:
-    """(its log-loss, selfcal_std_scale, flat_prior) of :func:`_fit_std_scale`; the loss inf where nothing is scored."""
+    """(log-loss, selfcal_std_scale, flat_prior) of the least log-loss over the config's scored pairs; inf where nothing is scored."""
     a = config.analysis
     keep = scored_pairs(results, config)  # fixed: the scores compare one set of pairs
     right = _right(results, data, config, keep)
@@ -239,10 +234,12 @@ def _std_fit(results: list[dict], data: dict, config: LensdistConfig) -> tuple[f
     return float(best[0]), float(best[2]), float(best[3])
 
 
-def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig, trace: list | None = None) -> dict:
+def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig, scale_prior: tuple[float, float],
+                     trace: list | None = None) -> dict:
     """The confidence, and the least confidence of an answer, fitted on a split.
 
-    The std scale and the flat prior (:func:`_fit_std_scale`); then, for each ``min_confidence``
+    ``scale_prior``: the std scale and the flat prior fitted at the config's threshold
+    (:func:`_std_fit`); then, for each ``min_confidence``
     of :data:`_MIN_CONFIDENCES` (and the config's), the split's self-calibration answers as
     ``analyze`` would give them (:func:`answers`). Of the candidates with at most
     ``max_cannot_tell`` of the pairs "cannot tell", the one with the most answers whose share
@@ -257,7 +254,7 @@ def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig, tr
         :func:`answers` appended to ``trace`` where given.
     """
     a = config.analysis
-    k, w = _fit_std_scale(results, data, config)
+    k, w = scale_prior
     rows = []
     for m in sorted(set(_MIN_CONFIDENCES) | {a.min_confidence}):
         fit = {"min_confidence": float(m), "selfcal_std_scale": k, "flat_prior": w}
