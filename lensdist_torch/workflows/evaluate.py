@@ -130,7 +130,9 @@ def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config:
 
     Args:
         test: a set from ``load_set``.
-        runs: {name: keyword arguments of analyze_batch} (``method``, ``checkpoint``, ...).
+        runs: {name: keyword arguments of analyze_batch} (``method``, ``checkpoint``, ...); a run's
+            ``decision``, where given, is its own ``[analysis]`` section, answered from the same
+            fits (:meth:`~lensdist_torch.workflows.prepare.PreparedPairs.with_decision`).
         scenes: the scenes the set was rendered from (default: the embedded scenes of its config).
         config: the analysis settings (default: the set's config).
         batch_size: pairs rendered and registered together.
@@ -156,7 +158,7 @@ def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config:
             if bool(sel.any()):
                 rows = sel.nonzero().flatten()
                 prep = prepare_batch(img1[rows], img2[rows], cfg, hom, device)
-                parts.append((rows, {name: analyze_batch(None, None, config=cfg, prepared=prep, **kw) for name, kw in runs.items()}))
+                parts.append((rows, {name: _run(prep, **kw) for name, kw in runs.items()}))
         for name in runs:
             batch = [None] * len(idx)
             for rows, res in parts:
@@ -164,6 +166,12 @@ def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config:
                     batch[r] = one
             out[name] += batch
     return out
+
+
+def _run(prep, decision=None, **kw) -> list[dict]:
+    """One run of :func:`analyze_test_set` on a prepared batch, under its own decision where it has one."""
+    prep = prep if decision is None else prep.with_decision(decision)
+    return analyze_batch(None, None, config=prep.config, prepared=prep, **kw)
 
 
 def figures_of(results: list[dict], test: dict, metric: str, config: LensdistConfig) -> dict:

@@ -79,7 +79,8 @@ class PreparedPairs:
     registration_ok, residual, overlap: (B,); motion: (B,) the registration's mean displacement
     (analysis px, NaN without one); qmap: (B, 1, h/8, w/8); scale: user px per analysis px;
     input_size: per pair (H, W). The self-calibration and the texture histograms are
-    computed once, on first use, and shared by every method run on this batch.
+    computed once, on first use, and shared by every method run on this batch, and by its
+    copies under another decision (:meth:`with_decision`).
 
     Example:
         >>> from lensdist_torch.core.images import load_scene
@@ -102,12 +103,36 @@ class PreparedPairs:
     input_size: list
     _selfcal: list | None = None
     _texture: torch.Tensor | None = None
+    # the estimators' outputs, shared with the copies of with_decision: {"selfcal": per-pair fits}
+    _shared: dict = dataclasses.field(default_factory=dict)
 
     def selfcal(self) -> list[dict]:
-        """The self-calibration of every pair (started from the registration's H where it worked)."""
+        """The self-calibration of every pair (started from the registration's H where it worked), answered under ``config``."""
         if self._selfcal is None:
-            self._selfcal = _selfcal_all(self)
+            if "selfcal" not in self._shared:
+                self._shared["selfcal"] = _selfcal_fits(self)
+            self._selfcal = [_answer(fit, self.config) for fit in self._shared["selfcal"]]
         return self._selfcal
+
+    def with_decision(self, analysis) -> PreparedPairs:
+        """This batch answered under another decision: ``analysis``, an ``[analysis]`` section (:class:`~lensdist_torch.config.AnalysisConfig`).
+
+        The registration, the quality maps and the self-calibration's fit are this batch's (fitted
+        once, whichever copy asks first); only the answers (class, confidence, relief found,
+        interval) follow the new section. ``reproduce`` reports the shipped decision beside the
+        fitted one this way: the same fits, answered as ``analyze`` answers under each.
+
+        Example:
+            >>> import dataclasses
+            >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
+            >>> frames, _ = synthetic_sequence(2, 3e-7, 0.0)  # a pan through a lens of Delta_avg ~1.2 px
+            >>> p = prepare_batch(frames[0], frames[1])
+            >>> strict = p.with_decision(dataclasses.replace(p.config.analysis, no_distortion_px=2.0))
+            >>> a, b = p.selfcal()[0], strict.selfcal()[0]  # one fit, two R thresholds (0.75 and 2 px)
+            >>> a["estimated_class"], b["estimated_class"], a["delta_avg"] == b["delta_avg"]
+            ('1', 'R', True)
+        """
+        return dataclasses.replace(self, config=dataclasses.replace(self.config, analysis=analysis), _selfcal=None)
 
     def texture(self) -> torch.Tensor:
         """(B, n) gradient-magnitude histograms of both images together."""
@@ -197,8 +222,8 @@ def _groups(dev: torch.device, n: int, same=None) -> list:
     return [idx.to(dev) for idx in (keys.nonzero()[:, 0], (~keys).nonzero()[:, 0]) if idx.numel()]
 
 
-def _selfcal_all(p: PreparedPairs) -> list[dict]:
-    """Self-calibration of every pair, started from the registration's H wherever it is finite.
+def _selfcal_fits(p: PreparedPairs) -> list[tuple]:
+    """Self-calibration of every pair, started from the registration's H wherever it is finite: (k2, k4, info, aligned, motion) each.
 
     Also where the registration failed its own test: its H is still the nearest start on most
     such pairs, and beside it the phase-correlation start is fitted (``selfcal.both_starts``).
@@ -218,11 +243,16 @@ def _selfcal_all(p: PreparedPairs) -> list[dict]:
         k2, k4, sc = k2.cpu(), k4.cpu(), SelfCalInfo(*(f.cpu() for f in sc))  # one copy, not one per number
         for j, i in enumerate(pairs):
             one = SelfCalInfo(*(f[j : j + 1] for f in sc))
-            out[i] = _selfcal_answer(k2[j : j + 1], k4[j : j + 1], one, cfg)
             # the registration's own residual test, passed with the lens and the photometry modelled
-            out[i]["_aligned"] = bool(one.converged[0]) and float(one.aligned_residual[0]) <= float(limit[i])
-            out[i]["_aligned_motion_px"] = float(one.motion[0])
+            aligned = bool(one.converged[0]) and float(one.aligned_residual[0]) <= float(limit[i])
+            out[i] = (k2[j : j + 1], k4[j : j + 1], one, aligned, float(one.motion[0]))
     return out
+
+
+def _answer(fit: tuple, cfg: LensdistConfig) -> dict:
+    """One pair's self-calibration answer under ``cfg`` from its fit (:func:`_selfcal_fits`)."""
+    k2, k4, one, aligned, motion = fit
+    return _selfcal_answer(k2, k4, one, cfg) | {"_aligned": aligned, "_aligned_motion_px": motion}
 
 
 def _selfcal_answer(k2: torch.Tensor, k4: torch.Tensor, sc: SelfCalInfo, cfg: LensdistConfig) -> dict:

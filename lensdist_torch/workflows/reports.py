@@ -65,6 +65,9 @@ TERMS = {
     "RMSE on confident": "root-mean-square error of the estimated Delta over the distorted pairs answered with a "
                          "class, as % of the class range",
     "undistorted called R": "share of the class-R pairs answered R (R rejected, as a share)",
+    "shipped decision": "the self-calibration's answers under the config's own [analysis] values (what analyze "
+                        "answers without --config), from the same fits as the row without it, whose decision was "
+                        "fitted on the validation split",
     "ECE": "expected calibration error of the confidence as an estimate of P(class right): the pair-weighted "
            "mean gap between confidence and share right in 10 bins; before: under the default decision, "
            "after: under the decision fitted on the validation split; lower is better",
@@ -281,7 +284,8 @@ def report_markdown(report: dict) -> str:
     lines += ["## Can the answers be trusted?", "",
               "Right or cannot tell: right answers plus \"cannot tell\", of all pairs; RMSE over the distorted pairs "
               "answered with a class; undistorted called R: of the class-R pairs.", ""] + md_goals(settings)
-    lines += _terms("right or cannot tell", "RMSE on confident", "undistorted called R", "registration failed")
+    lines += _terms("right or cannot tell", "RMSE on confident", "undistorted called R", "registration failed",
+                    *(["shipped decision"] if any(n.endswith(", shipped decision") for n in settings) else []))
     unseen = report.get("unseen")
     if unseen:
         lines += [f"## On a scene no method was fitted on: {', '.join(unseen['scenes'])}", "", str(unseen.get("note", "")), ""]

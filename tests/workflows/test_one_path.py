@@ -9,9 +9,10 @@ import math
 
 import pytest
 import torch
+from workflow_helpers import TINY
 
 from lensdist_torch.cli import main
-from lensdist_torch.config import load_config
+from lensdist_torch.config import config_from_dict, load_config
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import load_scenes, load_set
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
@@ -56,6 +57,19 @@ def _same_figures(mine: dict, theirs: dict) -> None:
         assert (a is None and b is None) or a == pytest.approx(b, abs=1e-9)
 
 
+def _same_answers(fig: dict, name: str, test: dict, results: list, cfg) -> None:
+    """A report's row ``name`` holds what ``results`` (analyze_pair's, pair by pair) answer."""
+    metric = "delta_max" if "delta_max" in name else "delta_avg"
+    key = "class" if metric == "delta_avg" else "class_max"
+    assert fig["per_pair"]["index"] == test["index"].tolist()
+    assert [r[key] for r in results] == fig["per_pair"]["class"], name
+    assert [r["confidence"] for r in results] == pytest.approx(fig["per_pair"]["confidence"], abs=1e-12), name
+    for r, d in zip(results, fig["per_pair"]["delta"]):
+        est = r[f"estimated_{metric}"]  # reported for every pair, as the estimator gave it
+        assert (est is None and d is None) or est == pytest.approx(d, abs=1e-9), name
+    _same_figures(figures_of(results, test, metric, cfg), fig)
+
+
 @pytest.mark.parametrize("method", list(RUNS))
 def test_reproduce_reports_what_analyze_pair_answers(tiny_run, method):
     out, _ = tiny_run
@@ -64,15 +78,46 @@ def test_reproduce_reports_what_analyze_pair_answers(tiny_run, method):
     assert cfg.analysis.no_distortion_px == report["calibration"]["analysis"]["no_distortion_px"]
     test, results = _one_by_one(out, method, cfg)
     for name in RUNS[method][1]:
-        fig = report["settings"][name]
-        metric = "delta_avg" if name.endswith("delta_avg") else "delta_max"
-        key = "class" if metric == "delta_avg" else "class_max"
-        assert fig["per_pair"]["index"] == test["index"].tolist()
-        assert [r[key] for r in results] == fig["per_pair"]["class"], name
-        for r, d in zip(results, fig["per_pair"]["delta"]):
-            est = r[f"estimated_{metric}"]  # reported for every pair, as the estimator gave it
-            assert (est is None and d is None) or est == pytest.approx(d, abs=1e-9), name
-        _same_figures(figures_of(results, test, metric, cfg), fig)
+        _same_answers(report["settings"][name], name, test, results, cfg)
+
+
+def test_reproduce_reports_the_shipped_decision_as_analyze_pair_answers_it(tiny_run):
+    """The rows "selfcal, ..., shipped decision": analyze_pair under the config reproduce was given (no --config)."""
+    out, _ = tiny_run
+    report = json.loads((out / "reproduce.json").read_text())
+    cfg = config_from_dict(TINY)
+    fitted = load_config(out / "calibration.toml")
+    assert fitted.analysis != cfg.analysis  # two decisions: the rows could differ
+    test, results = _one_by_one(out, "selfcal", cfg)
+    for metric in ("delta_avg", "delta_max"):
+        name = f"selfcal, {metric}, shipped decision"
+        _same_answers(report["settings"][name], name, test, results, cfg)
+        assert name in report["unseen"]["settings"]
+    assert "**shipped decision**" in (out / "reproduce.md").read_text()
+
+
+def test_a_prepared_batch_under_another_decision_is_one_fit(monkeypatch):
+    """with_decision: the answers of a batch prepared under that decision, bit for bit, from one self-calibration."""
+    import dataclasses
+
+    cfg, a, b = _rendered(2)
+    low = min(r["estimated_delta_avg"] for r in analyze_batch(a, b, config=cfg))  # both R at 0.75 px (0.11, 0.19)
+    other = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, no_distortion_px=low / 2))
+    fresh = analyze_batch(a, b, config=other)
+    calls = []
+    real = prepare.estimate_distortion
+    monkeypatch.setattr(prepare, "estimate_distortion", lambda *x, **k: calls.append(1) or real(*x, **k))
+    prep = prepare_batch(a, b, cfg)
+    mine = analyze_batch(None, None, config=cfg, prepared=prep)
+    theirs = analyze_batch(None, None, config=other, prepared=prep.with_decision(other.analysis))
+    assert len(calls) == 2  # one fit per pair, shared by both decisions
+    for x, y in zip(fresh, theirs, strict=True):
+        # the OpenCV export's least squares rounds differently from call to call (1e-18): compared apart
+        cx, cy = json_safe(x.pop("opencv")), json_safe(y.pop("opencv"))
+        assert json_safe(x) == json_safe(y)
+        assert cx["dist_coeffs"] == pytest.approx(cy["dist_coeffs"], rel=1e-9, abs=1e-15)
+    assert [r["delta_avg"] for r in mine] == [r["estimated_delta_avg"] for r in theirs]
+    assert [r["estimated_class"] for r in mine] == ["R", "R"] and "R" not in [r["estimated_class"] for r in theirs]
 
 
 def test_evaluate_reports_what_reproduce_reports(tiny_run, tmp_path, capsys):
