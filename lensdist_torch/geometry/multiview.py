@@ -60,7 +60,7 @@ from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, ope
 from lensdist_torch.geometry.pooling import jackknife_interval
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
-           "rotation_spread_deg", "model_spread", "interval_too_wide", "BA_FUNCTION_TOLERANCE"]
+           "rotation_spread_deg", "model_spread", "interval_too_wide", "sequence_class", "BA_FUNCTION_TOLERANCE"]
 
 #: Relative cost decrease below which a bundle adjustment stops (module docstring, step 2).
 BA_FUNCTION_TOLERANCE = 1e-6
@@ -81,7 +81,9 @@ class MultiViewCalibration(NamedTuple):
     rotation between two frames (below ``min_rotation_deg``: degenerate, no class);
     reconstructions: per seed of the mapping its numbers (set by
     :func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`), and
-    reconstruction_spread_px the largest |Delta_avg - this one's| among them.
+    reconstruction_spread_px the largest |Delta_avg - this one's| among them;
+    paper_delta_avg_px: the Delta_avg of eq. 4's fit at the paper's frame, whose class is given
+    (:func:`sequence_class`).
     """
 
     model: str
@@ -106,6 +108,7 @@ class MultiViewCalibration(NamedTuple):
     rotation_spread_deg: float
     reconstructions: tuple = ()
     reconstruction_spread_px: float = 0.0
+    paper_delta_avg_px: float = math.nan
 
 
 def pycolmap_or_error():
@@ -320,6 +323,26 @@ def interval_too_wide(half: float, value: float, cfg: MultiViewConfig) -> bool:
     return not math.isfinite(half) or half > max(cfg.max_halfwidth_px, cfg.max_halfwidth_rel * value)
 
 
+def sequence_class(paper_delta: float, delta: float, half: float, settings: LensdistConfig) -> tuple[str | None, str]:
+    """A sequence's class, or None and why, from Delta_avg ``delta`` +- ``half`` in the user's pixels.
+
+    The class is of ``paper_delta``, the same lens's Delta_avg at the paper's frame
+    (:func:`~lensdist_torch.geometry.distortion.paper_frame_delta_avg`), its interval scaled there
+    by ``paper_delta / delta``; where that interval spans a sequence's R threshold,
+    "cannot tell" (:func:`~lensdist_torch.geometry.distortion.class_or_open`). The multi-view
+    and the homography-model paths of ``lensdist calibrate`` both decide this way.
+
+    Example:
+        >>> sequence_class(0.3, 0.6, 0.08, LensdistConfig())  # a frame twice the paper's: [0.26, 0.34] px there
+        ('1', '')
+        >>> sequence_class(0.3, 0.6, 0.2, LensdistConfig())[0] is None  # [0.2, 0.4] px spans 0.25 px
+        True
+    """
+    if not (math.isfinite(paper_delta) and math.isfinite(delta) and math.isfinite(half)):
+        return None, f"no Delta_avg at the paper's frame (eq. 4's fit gave {paper_delta:.3g} px for {delta:.3g} +- {half:.3g} px)"
+    return class_or_open(paper_delta, half * paper_delta / max(delta, 1e-12), settings)
+
+
 def rotation_spread_deg(rec) -> float:
     """The largest rotation (degrees) between two registered frames' orientations.
 
@@ -414,20 +437,20 @@ def self_calibrate_reconstruction(
     # the least rotation of the mapping and every model's adjustment: in the valley of a pan they drift by degrees
     label, reason = None, ""
     spread_deg = min([rotation_spread_deg(rec)] + [v["rotation_deg"] for v in table.values()])
+    dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
     if spread_deg < cfg.min_rotation_deg:
         reason = (f"degenerate motion: the camera turned by at most {spread_deg:.1f} degrees (at least "
                   f"{cfg.min_rotation_deg:g} needed), so relief and distortion cannot be told apart")
     elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
         reason = f"interval too wide: +-{half_avg:.2f} px"
     else:
-        dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
-        label = class_or_open(dc, 0.0, st)[0]  # a sequence's class (its interval is judged above, in user px)
+        label, reason = sequence_class(dc, dl["delta_avg_px"], half_avg, st)
     k, d = opencv_from_colmap(cam, scale)
     return MultiViewCalibration(
         best, k.tolist(), (d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),
         dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1], dl["invertible_fraction"], k2u, k4u,
         fit_err, label, reason, chosen.num_reg_images(), frames or chosen.num_reg_images(), chosen.num_points3D(),
-        table[best]["reprojection_px"], table, jk_avg, spread_deg)
+        table[best]["reprojection_px"], table, jk_avg, spread_deg, paper_delta_avg_px=dc)
 
 
 def _pycolmap_copy(rec):

@@ -20,8 +20,9 @@ tried until ``reconstructions`` succeed; the failures are listed. :func:`combine
   t sqrt(var_jackknife + model_spread^2 + reconstruction_spread^2), t as the jackknife's;
 * withholds the class ("cannot tell", the reason naming the spread) when fewer than
   ``reconstructions`` reconstructions succeeded, when two of them disagree beyond their own
-  intervals, or when the widened interval is too wide (degenerate motion, the answer's own
-  reason, comes first).
+  intervals, when the widened interval is too wide, or when it spans a sequence's R threshold
+  at the paper's frame (:func:`~lensdist_torch.geometry.multiview.sequence_class`; degenerate
+  motion, the answer's own reason, comes first).
 
 Where the first mapping already showed degenerate motion the caller may skip the others
 (:func:`~lensdist_torch.workflows.multiview.multiview_path`): their seeds are passed as ``skipped``,
@@ -33,9 +34,9 @@ from __future__ import annotations
 
 import math
 
-from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide
+from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide, sequence_class
 from lensdist_torch.geometry.pooling import t_quantile
 
 __all__ = ["reconstruction_spread", "widened_half_width", "combine_reconstructions"]
@@ -84,7 +85,8 @@ def _disagreement(runs: list[tuple[int, MultiViewCalibration]]) -> str:
 
 
 def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
-                            config: MultiViewConfig | None = None, skipped: list[int] = ()) -> MultiViewCalibration:
+                            config: MultiViewConfig | None = None, skipped: list[int] = (),
+                            settings: LensdistConfig | None = None) -> MultiViewCalibration:
     """One answer from several reconstructions' self-calibrations (module docstring).
 
     Args:
@@ -94,6 +96,8 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
             successes a class needs, the width limits).
         skipped: the seeds of mappings not run because the answer's motion is degenerate (for any
             other answer: ValueError, as the interval would lack their spread unsaid).
+        settings: the classes and a sequence's R threshold (``calibration.no_distortion_px``;
+            default: :class:`~lensdist_torch.config.LensdistConfig`'s).
 
     Returns:
         The median reconstruction's calibration with the widened intervals, the class (or None and
@@ -132,6 +136,8 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     elif interval_too_wide(half, best.delta_avg_user_px, cfg):
         among = f" (the {len(ok)} reconstructions differ by up to {spread:.2f} px)" if len(ok) > 1 else ""
         label, reason = None, f"interval too wide: +-{half:.2f} px{among}"
+    elif label is not None:  # the class of the widened interval, which may now span the R threshold
+        label, reason = sequence_class(best.paper_delta_avg_px, best.delta_avg_user_px, half, or_defaults(settings, LensdistConfig))
     return best._replace(delta_avg_user_interval=intervals[0], delta_max_user_interval=intervals[1], class_label=label,
                          reason=reason, reconstructions=tuple(_summary(s, r) for s, r in [*runs, *((s, None) for s in skipped)]),
                          reconstruction_spread_px=spread)

@@ -56,9 +56,9 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import class_or_open, distortion_center, fit_eq4, paper_frame_delta_avg
+from lensdist_torch.geometry.distortion import distortion_center, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error
+from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error, sequence_class
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.planar_model import (
     bending_halfwidth,
@@ -431,8 +431,7 @@ def self_calibrate_planar(
     elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
         reason = f"interval too wide: +-{half_avg:.2f} px"
     elif math.isfinite(k2u):
-        dc = paper_frame_delta_avg(k2u, k4u, (h, w), st)  # eq. 4 at the paper's frame, same normalised lens
-        label, reason = class_or_open(dc, half_avg * dc / max(dl["delta_avg_px"], 1e-12), st)  # the interval scaled there
+        label, reason = sequence_class(paper_frame_delta_avg(k2u, k4u, (h, w), st), dl["delta_avg_px"], half_avg, st)
     cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, model=m, step=step, centre=centre)
             for m in ("standard", "rational")]
     return PlanarCalibration(

@@ -155,7 +155,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
                                            f"registered at most{tries} (at least {least} needed)",
                     "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
-        res = combine_reconstructions(runs, cfg, skipped=skipped)
+        res = combine_reconstructions(runs, cfg, skipped=skipped, settings=settings)
     return {"ok": True, **res._asdict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
 
 

@@ -5,8 +5,8 @@ import math
 
 import pytest
 
-from lensdist_torch.config import MultiViewConfig
-from lensdist_torch.geometry.multiview import MultiViewCalibration
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.geometry.multiview import MultiViewCalibration, sequence_class
 from lensdist_torch.geometry.multiview_runs import (
     combine_reconstructions,
     reconstruction_spread,
@@ -16,10 +16,12 @@ from lensdist_torch.geometry.multiview_runs import (
 T5 = 2.5705818356596932  # t at 97.5 % on 5 degrees of freedom (6 jackknife blocks)
 
 
-def _cal(d, lo, hi, label="4", reason="", registered=28, rms=1.3):
+def _cal(d, lo, hi, label="4", reason="", registered=28, rms=1.3, paper=None):
+    """A reconstruction's answer; ``paper``: its Delta_avg at the paper's frame (default d: a frame of the paper's size)."""
     return MultiViewCalibration(
         "RADIAL", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], [-0.2, 0.05, 0, 0, 0], d, (lo, hi), 2 * d, (2 * lo, 2 * hi), 0.9,
-        -1e-7, 0.0, 0.5, label, reason, registered, 37, 1000, rms, {}, [d] * 6, 40.0)
+        -1e-7, 0.0, 0.5, label, reason, registered, 37, 1000, rms, {}, [d] * 6, 40.0,
+        paper_delta_avg_px=d if paper is None else paper)
 
 
 def test_spread_joins_the_interval_in_quadrature_by_hand():
@@ -87,6 +89,36 @@ def test_degenerate_motion_stays_the_reason():
     res = combine_reconstructions([(0, _cal(10.0, 9.8, 10.2, label=None, reason=degenerate)),
                                    (1, _cal(10.1, 9.9, 10.3, label=None, reason=degenerate))], MultiViewConfig(reconstructions=2))
     assert res.class_label is None and res.reason == degenerate
+
+
+def test_a_sequence_class_scales_its_interval_to_the_papers_frame_by_hand():
+    """R below calibration.no_distortion_px (0.25 px at the paper's frame); an interval spanning it cannot tell.
+
+    A frame twice the paper's (640 x 848) with the lens of Delta_avg 0.3 px at the paper's: 0.6 px here,
+    so +-0.2 px here is +-0.1 px there, [0.2, 0.4] spanning 0.25; +-0.08 px is [0.26, 0.34]: class 1.
+    """
+    st = LensdistConfig()
+    assert sequence_class(0.3, 0.6, 0.08, st) == ("1", "")
+    label, reason = sequence_class(0.3, 0.6, 0.2, st)
+    assert label is None and reason == ("the interval [0.20, 0.40] px at the paper's frame spans the no-distortion "
+                                        "threshold (0.25 px): a distortion or none cannot be told")
+    assert sequence_class(0.1, 0.2, 0.02, st) == ("R", "")  # [0.09, 0.11]: below it
+    label, reason = sequence_class(math.nan, 0.6, 0.08, st)
+    assert label is None and "no Delta_avg at the paper's frame" in reason
+
+
+def test_the_widened_interval_that_spans_the_r_threshold_cannot_tell():
+    """Three reconstructions each confidently class 1 (0.40 px at the paper's frame, +-0.1 px of 0.5 px here, the
+    intervals overlapping); their spread widens the interval until it spans 0.25 px there: "cannot tell"."""
+    def runs(*deltas):
+        return [(s, _cal(d, d - 0.1, d + 0.1, label="1", paper=0.8 * d)) for s, d in enumerate(deltas)]
+
+    res = combine_reconstructions(runs(0.5, 0.62, 0.45))
+    half = res.delta_avg_user_interval[1] - 0.5  # sqrt(0.1^2 + (t 0.12)^2) = 0.324 px here, 0.259 px there
+    assert half == pytest.approx(math.hypot(0.1, T5 * 0.12), abs=1e-9)
+    assert res.class_label is None and res.reason.startswith("the interval [0.14, 0.66] px at the paper's frame spans")
+    tight = combine_reconstructions(runs(0.5, 0.52, 0.49))  # sqrt(0.1^2 + (t 0.02)^2) = 0.112 px: [0.31, 0.49] there
+    assert tight.class_label == "1" and tight.reason == ""
 
 
 @pytest.mark.bad_input

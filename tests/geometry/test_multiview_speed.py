@@ -18,7 +18,8 @@ DEGENERATE = "degenerate motion: the camera turned by at most 2.4 degrees"
 def _cal(d, rotation, registered=22, label=None, reason=DEGENERATE):
     return MultiViewCalibration(
         "FULL_OPENCV", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], [-0.2, 0.05, 0, 0, 0], d, (0.0, d + 12.0), 5 * d,
-        (0.0, 5 * d + 40), 1.0, 2e-6, 0.0, 0.1, label, reason, registered, 22, 6052, 0.33, {}, [d] * 6, rotation)
+        (0.0, 5 * d + 40), 1.0, 2e-6, 0.0, 0.1, label, reason, registered, 22, 6052, 0.33, {}, [d] * 6, rotation,
+        paper_delta_avg_px=d)
 
 
 def _fake_colmap(monkeypatch, tmp_path, answers):
