@@ -5,7 +5,9 @@ Reads what the user's commands wrote (no second evaluation path): the reports of
 configs/realistic_relief.toml`` and the JSON of ``benchmarks/bench_parallax_bound.py`` on the
 relief condition's 400 distorted test pairs (the same pairs: test indices 0-399). Writes one
 Markdown table: the self-calibration's trust figures per condition (test pairs and the unseen
-scene), the ECE of its confidence (on each condition's validation and test splits),
+scene), under the decision fitted on the condition's validation split and under the shipped one
+(the reports' "shipped decision" rows: what ``analyze`` answers without ``--config``), the ECE
+of its confidence (on each condition's validation and test splits),
 the "cannot tell" reasons, and, on the relief condition, what the pairs a planar model cannot
 tell (the bound: its class wrong on the exact points) were answered.
 
@@ -27,16 +29,18 @@ from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry import CLASS_LABELS, delta_top, distortion_class, estimated_class
 
 SETTING = "selfcal, delta_avg"
+#: The same pairs answered under the shipped decision (``lensdist reproduce``'s row beside the fitted one).
+SHIPPED = f"{SETTING}, shipped decision"
 ROWS = (("right or cannot tell", "right_or_cannot_tell_share", "%"), ("cannot tell", "cannot_tell_share", "%"),
         ("right among confident answers", "confident_rate", "%"), ("confidently wrong (of 500)", "confident_wrong", "n"),
         ("RMSE on confident (% of range)", "confident_rmse_pct", "%"),
         ("undistorted called R", None, "R"))
 
 
-def _fig(report: dict, part: str) -> dict:
+def _fig(report: dict, part: str, setting: str = SETTING) -> dict:
     """The self-calibration's figures on the test pairs (``settings``) or the unseen scene (``unseen``)."""
     root = report if part == "settings" else report.get("unseen", {})
-    return root.get("settings", {}).get(SETTING, {})
+    return root.get("settings", {}).get(setting, {})
 
 
 def _cell(fig: dict, key: str | None, kind: str) -> str:
@@ -48,9 +52,10 @@ def _cell(fig: dict, key: str | None, kind: str) -> str:
     return "-" if v is None else f"{v:d}" if kind == "n" else f"{v:.1f} %"
 
 
-def _ece(report: dict) -> str:
+def _ece(report: dict, column: str = "after") -> str:
+    """The self-calibration's ECE on (validation; test): ``after`` the fitted decision, ``before`` the shipped one."""
     rows = {r["split"]: r for r in report.get("calibration", {}).get("ece", []) if r["method"] == "selfcal"}
-    return "; ".join(f"{100 * rows[s]['after']:.1f} %" if s in rows else "-" for s in ("validation", "test"))
+    return "; ".join(f"{100 * rows[s][column]:.1f} %" if s in rows else "-" for s in ("validation", "test"))
 
 
 def bound_outcomes(relief: dict, bound: dict) -> dict:
@@ -85,20 +90,26 @@ def table(planar: dict, relief: dict, bound: dict) -> str:
              "validation split: the R threshold, the confidence (the class's mass over the planar and the plane + parallax "
              "answers, weighed by `analysis.flat_prior`, the stds by `analysis.selfcal_std_scale`) and what it withholds "
              "(`analysis.min_confidence`). Written by `benchmarks/relief_conditions.py` from the two `lensdist reproduce` "
-             "reports and `benchmarks/bench_parallax_bound.py`.", "",
-             "| measure | planar realistic | relief realistic | planar, brick | relief, brick | goal |",
-             "|---|---|---|---|---|---|"]
+             "reports and `benchmarks/bench_parallax_bound.py`. Each column twice: under the fitted decision, "
+             "then (shipped) under the shipped one, the same fits answered as `analyze` answers without `--config`.", "",
+             "| measure | planar realistic | (shipped) | relief realistic | (shipped) | planar, brick | (shipped) "
+             "| relief, brick | (shipped) | goal |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     goals = {"right or cannot tell": ">= 97 %", "cannot tell": "planar <= 10 %; relief <= bound + 10 points",
              "right among confident answers": ">= 97 %", "confidently wrong (of 500)": "", "RMSE on confident (% of range)": "<= 3 %",
              "undistorted called R": ">= 95 % (planar)"}
     for label, key, kind in ROWS:
-        cells = [_cell(_fig(r, part), key, kind) for part in ("settings", "unseen") for r in (planar, relief)]
-        lines.append(f"| {label} | {cells[0]} | {cells[1]} | {cells[2]} | {cells[3]} | {goals[label]} |")
-    lines.append(f"| ECE of the confidence (validation; test) | {_ece(planar)} | {_ece(relief)} | - | - | <= 3 % |")
+        cells = [_cell(_fig(r, part, setting), key, kind) for part in ("settings", "unseen") for r in (planar, relief)
+                 for setting in (SETTING, SHIPPED)]
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {goals[label]} |")
+    lines.append(f"| ECE of the confidence (validation; test) | {_ece(planar)} | {_ece(planar, 'before')} | {_ece(relief)} | "
+                 f"{_ece(relief, 'before')} | - | - | - | - | <= 3 % |")
     for name, rep in (("planar realistic", planar), ("relief realistic", relief)):
-        reasons = rep["settings"][SETTING].get("cannot_tell_reasons", {})
-        lines.append("")
-        lines.append(f"\"Cannot tell\" by reason, {name} (test pairs): " + (", ".join(f"{c} {n}" for c, n in reasons.items()) or "none"))
+        for setting, which in ((SETTING, ""), (SHIPPED, ", shipped decision")):
+            reasons = rep["settings"].get(setting, {}).get("cannot_tell_reasons", {})
+            lines.append("")
+            lines.append(f"\"Cannot tell\" by reason, {name}{which} (test pairs): "
+                         + (", ".join(f"{c} {n}" for c, n in reasons.items()) or "none"))
     o = bound_outcomes(relief, bound)
     share = 100 * bound["cannot_tell_share"]
     lines += ["", f"**What one pair can tell** (relief realistic, the 400 distorted test pairs): a planar model fitted "

@@ -51,10 +51,11 @@ import torch.nn.functional as F
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
-from lensdist_torch.geometry.distortion import class_or_open, delta_avg, delta_max, delta_top
+from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pooling import pair_weights, pool_pairs, within_mads
+from lensdist_torch.geometry.sequence_class import class_or_open
 from lensdist_torch.geometry.sequence_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",

@@ -57,7 +57,6 @@ __all__ = [
     "sample_at_pixels",
     "render_distorted",
     "fit_eq4",
-    "class_or_open",
 ]
 
 #: Class labels; index 4 is the reject class R (no visible distortion).
@@ -410,20 +409,3 @@ def fit_eq4(points: torch.Tensor, ideal: torch.Tensor, height: int, width: int) 
     sol = torch.linalg.lstsq(design / cols, target).solution[:, 0] / cols
     err = ((design @ sol[:, None] - target) ** 2).reshape(-1, 2).sum(-1).mean().sqrt()
     return float(sol[0]), float(sol[1]), float(err)
-
-
-def class_or_open(dc: float, half: float, settings: LensdistConfig) -> tuple[str | None, str]:
-    """A sequence's class from Delta_avg ``dc`` +- ``half`` (px) at the paper's frame, or None and why.
-
-    R is below a sequence's threshold, ``calibration.no_distortion_px``; where the interval spans
-    it, a distortion or none cannot be told.
-
-    Example:
-        >>> class_or_open(3.0, 0.5, LensdistConfig())[0], class_or_open(0.3, 0.2, LensdistConfig())[0]
-        ('1', None)
-    """
-    t = settings.calibration.no_distortion_px
-    if dc - half < t <= dc + half:
-        return None, (f"the interval [{max(0.0, dc - half):.2f}, {dc + half:.2f}] px at the paper's frame spans the "
-                      f"no-distortion threshold ({t} px): a distortion or none cannot be told")
-    return CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", settings, t)[0])], ""

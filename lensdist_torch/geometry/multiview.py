@@ -55,12 +55,13 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import class_or_open, fit_eq4, paper_frame_delta_avg
+from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_delta, opencv_ideal_points
 from lensdist_torch.geometry.pooling import jackknife_interval
+from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
-           "rotation_spread_deg", "model_spread", "interval_too_wide", "sequence_class", "BA_FUNCTION_TOLERANCE"]
+           "rotation_spread_deg", "model_spread", "BA_FUNCTION_TOLERANCE"]
 
 #: Relative cost decrease below which a bundle adjustment stops (module docstring, step 2).
 BA_FUNCTION_TOLERANCE = 1e-6
@@ -83,7 +84,7 @@ class MultiViewCalibration(NamedTuple):
     :func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`), and
     reconstruction_spread_px the largest |Delta_avg - this one's| among them;
     paper_delta_avg_px: the Delta_avg of eq. 4's fit at the paper's frame, whose class is given
-    (:func:`sequence_class`).
+    (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`).
     """
 
     model: str
@@ -316,31 +317,6 @@ def _eq4_fit(camera, size: tuple[int, int], scale: float, step: int) -> tuple[fl
     p = grid_points(h, w, step)
     ideal, ok = opencv_ideal_points(p, k, d)
     return fit_eq4(p[ok], ideal[ok], h, w)
-
-
-def interval_too_wide(half: float, value: float, cfg: MultiViewConfig) -> bool:
-    """Whether a Delta_avg of ``value`` px with 95 % half-width ``half`` is too uncertain for a class."""
-    return not math.isfinite(half) or half > max(cfg.max_halfwidth_px, cfg.max_halfwidth_rel * value)
-
-
-def sequence_class(paper_delta: float, delta: float, half: float, settings: LensdistConfig) -> tuple[str | None, str]:
-    """A sequence's class, or None and why, from Delta_avg ``delta`` +- ``half`` in the user's pixels.
-
-    The class is of ``paper_delta``, the same lens's Delta_avg at the paper's frame
-    (:func:`~lensdist_torch.geometry.distortion.paper_frame_delta_avg`), its interval scaled there
-    by ``paper_delta / delta``; where that interval spans a sequence's R threshold,
-    "cannot tell" (:func:`~lensdist_torch.geometry.distortion.class_or_open`). The multi-view
-    and the homography-model paths of ``lensdist calibrate`` both decide this way.
-
-    Example:
-        >>> sequence_class(0.3, 0.6, 0.08, LensdistConfig())  # a frame twice the paper's: [0.26, 0.34] px there
-        ('1', '')
-        >>> sequence_class(0.3, 0.6, 0.2, LensdistConfig())[0] is None  # [0.2, 0.4] px spans 0.25 px
-        True
-    """
-    if not (math.isfinite(paper_delta) and math.isfinite(delta) and math.isfinite(half)):
-        return None, f"no Delta_avg at the paper's frame (eq. 4's fit gave {paper_delta:.3g} px for {delta:.3g} +- {half:.3g} px)"
-    return class_or_open(paper_delta, half * paper_delta / max(delta, 1e-12), settings)
 
 
 def rotation_spread_deg(rec) -> float:

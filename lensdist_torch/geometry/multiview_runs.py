@@ -21,7 +21,7 @@ tried until ``reconstructions`` succeed; the failures are listed. :func:`combine
 * withholds the class ("cannot tell", the reason naming the spread) when fewer than
   ``reconstructions`` reconstructions succeeded, when two of them disagree beyond their own
   intervals, when the widened interval is too wide, or when it spans a sequence's R threshold
-  at the paper's frame (:func:`~lensdist_torch.geometry.multiview.sequence_class`; degenerate
+  at the paper's frame (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`; degenerate
   motion, the answer's own reason, comes first).
 
 Where the first mapping already showed degenerate motion the caller may skip the others
@@ -36,8 +36,9 @@ import math
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.multiview import MultiViewCalibration, interval_too_wide, sequence_class
+from lensdist_torch.geometry.multiview import MultiViewCalibration
 from lensdist_torch.geometry.pooling import t_quantile
+from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["reconstruction_spread", "widened_half_width", "combine_reconstructions"]
 

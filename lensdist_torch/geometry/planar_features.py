@@ -37,7 +37,7 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
    frames (every pair with a frame of the block left out, the chosen model fitted again), t on
    blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
-   is too wide (:func:`~lensdist_torch.geometry.multiview.interval_too_wide`), when it spans the
+   is too wide (:func:`~lensdist_torch.geometry.sequence_class.interval_too_wide`), when it spans the
    no-distortion threshold at the paper's frame (the direct path's rule), when fewer than
    ``planar_min_pairs`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
    the verified matches fit: the scene is not a plane and the camera did not only turn.
@@ -58,7 +58,7 @@ from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import distortion_center, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.multiview import interval_too_wide, model_spread, pycolmap_or_error, sequence_class
+from lensdist_torch.geometry.multiview import model_spread, pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.planar_model import (
     bending_halfwidth,
@@ -72,6 +72,7 @@ from lensdist_torch.geometry.planar_model import (
 )
 from lensdist_torch.geometry.pooling import jackknife_interval
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points
+from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["PlanarCalibration", "PlanarMatches", "delta_avg_where", "read_verified_matches", "self_calibrate_planar",
            "thin_matches"]

@@ -17,7 +17,6 @@ from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     REJECT,
     class_bounds,
-    class_or_open,
     delta_avg,
     delta_max,
     delta_metric,
@@ -32,6 +31,7 @@ from lensdist_torch.geometry.distortion import (
     render_distorted,
     undistort_points,
 )
+from lensdist_torch.geometry.sequence_class import class_or_open
 
 H, W = 320, 424
 K2, K4 = 2.5e-6, 2.5e-11

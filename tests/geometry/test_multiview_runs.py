@@ -6,12 +6,13 @@ import math
 import pytest
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
-from lensdist_torch.geometry.multiview import MultiViewCalibration, sequence_class
+from lensdist_torch.geometry.multiview import MultiViewCalibration
 from lensdist_torch.geometry.multiview_runs import (
     combine_reconstructions,
     reconstruction_spread,
     widened_half_width,
 )
+from lensdist_torch.geometry.sequence_class import sequence_class
 
 T5 = 2.5705818356596932  # t at 97.5 % on 5 degrees of freedom (6 jackknife blocks)
 
