@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config import AnalysisConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
 from lensdist_torch.geometry.distortion import (
@@ -114,7 +114,7 @@ class PreparedPairs:
             self._selfcal = [_answer(fit, self.config) for fit in self._shared["selfcal"]]
         return self._selfcal
 
-    def with_decision(self, analysis) -> PreparedPairs:
+    def with_decision(self, analysis: AnalysisConfig) -> PreparedPairs:
         """This batch answered under another decision: ``analysis``, an ``[analysis]`` section (:class:`~lensdist_torch.config.AnalysisConfig`).
 
         The registration, the quality maps and the self-calibration's fit are this batch's (fitted
@@ -131,7 +131,13 @@ class PreparedPairs:
             >>> a, b = p.selfcal()[0], strict.selfcal()[0]  # one fit, two R thresholds (0.75 and 2 px)
             >>> a["estimated_class"], b["estimated_class"], a["delta_avg"] == b["delta_avg"]
             ('1', 'R', True)
+
+        Raises:
+            TypeError: ``analysis`` is not an ``AnalysisConfig`` (a whole config is refused: only
+                the decision may differ from the batch's).
         """
+        if not isinstance(analysis, AnalysisConfig):
+            raise TypeError(f"analysis (with_decision) must be an AnalysisConfig (a config's [analysis]), got {type(analysis).__name__}")
         return dataclasses.replace(self, config=dataclasses.replace(self.config, analysis=analysis), _selfcal=None)
 
     def texture(self) -> torch.Tensor:

@@ -118,6 +118,8 @@ def test_a_prepared_batch_under_another_decision_is_one_fit(monkeypatch):
         assert cx["dist_coeffs"] == pytest.approx(cy["dist_coeffs"], rel=1e-9, abs=1e-15)
     assert [r["delta_avg"] for r in mine] == [r["estimated_delta_avg"] for r in theirs]
     assert [r["estimated_class"] for r in mine] == ["R", "R"] and "R" not in [r["estimated_class"] for r in theirs]
+    with pytest.raises(TypeError, match=r"^analysis \(with_decision\) must be an AnalysisConfig .*got LensdistConfig$"):
+        prep.with_decision(other)  # a whole config: only the decision may differ
 
 
 def test_evaluate_reports_what_reproduce_reports(tiny_run, tmp_path, capsys):
