@@ -27,10 +27,11 @@ import torch
 from lensdist_torch import load_config
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry import CLASS_LABELS, delta_top, distortion_class, estimated_class
+from lensdist_torch.workflows.reports import SHIPPED_SUFFIX
 
 SETTING = "selfcal, delta_avg"
 #: The same pairs answered under the shipped decision (``lensdist reproduce``'s row beside the fitted one).
-SHIPPED = f"{SETTING}, shipped decision"
+SHIPPED = f"{SETTING}{SHIPPED_SUFFIX}"
 ROWS = (("right or cannot tell", "right_or_cannot_tell_share", "%"), ("cannot tell", "cannot_tell_share", "%"),
         ("right among confident answers", "confident_rate", "%"), ("confidently wrong (of 500)", "confident_wrong", "n"),
         ("RMSE on confident (% of range)", "confident_rmse_pct", "%"),
@@ -105,7 +106,7 @@ def table(planar: dict, relief: dict, bound: dict) -> str:
     lines.append(f"| ECE of the confidence (validation; test) | {_ece(planar)} | {_ece(planar, 'before')} | {_ece(relief)} | "
                  f"{_ece(relief, 'before')} | - | - | - | - | <= 3 % |")
     for name, rep in (("planar realistic", planar), ("relief realistic", relief)):
-        for setting, which in ((SETTING, ""), (SHIPPED, ", shipped decision")):
+        for setting, which in ((SETTING, ""), (SHIPPED, SHIPPED_SUFFIX)):
             reasons = rep["settings"].get(setting, {}).get("cannot_tell_reasons", {})
             lines.append("")
             lines.append(f"\"Cannot tell\" by reason, {name}{which} (test pairs): "

@@ -102,8 +102,8 @@ class PreparedPairs:
     scale: list
     input_size: list
     _selfcal: list | None = None
-    _texture: torch.Tensor | None = None
-    # the estimators' outputs, shared with the copies of with_decision: {"selfcal": per-pair fits}
+    # what does not depend on the decision, shared with the copies of with_decision:
+    # {"selfcal": per-pair fits, "texture": the histograms}
     _shared: dict = dataclasses.field(default_factory=dict)
 
     def selfcal(self) -> list[dict]:
@@ -142,9 +142,9 @@ class PreparedPairs:
 
     def texture(self) -> torch.Tensor:
         """(B, n) gradient-magnitude histograms of both images together."""
-        if self._texture is None:
-            self._texture = 0.5 * (texture_histogram(self.img1) + texture_histogram(self.img2))
-        return self._texture
+        if "texture" not in self._shared:
+            self._shared["texture"] = 0.5 * (texture_histogram(self.img1) + texture_histogram(self.img2))
+        return self._shared["texture"]
 
 
 def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=None, device=None) -> PreparedPairs:

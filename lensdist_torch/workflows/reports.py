@@ -46,6 +46,9 @@ PAPER = {
 }
 
 
+#: The ending of a setting's name answered under the config's own [analysis] (``reproduce``'s second decision).
+SHIPPED_SUFFIX = ", shipped decision"
+
 #: What each term of the reports means, shown where the term appears.
 TERMS = {
     "EV": "the eigen-space classifier with 5 or 10 eigenvectors per class (the paper's settings); delta_max or "
@@ -285,7 +288,7 @@ def report_markdown(report: dict) -> str:
               "Right or cannot tell: right answers plus \"cannot tell\", of all pairs; RMSE over the distorted pairs "
               "answered with a class; undistorted called R: of the class-R pairs.", ""] + md_goals(settings)
     lines += _terms("right or cannot tell", "RMSE on confident", "undistorted called R", "registration failed",
-                    *(["shipped decision"] if any(n.endswith(", shipped decision") for n in settings) else []))
+                    *(["shipped decision"] if any(n.endswith(SHIPPED_SUFFIX) for n in settings) else []))
     unseen = report.get("unseen")
     if unseen:
         lines += [f"## On a scene no method was fitted on: {', '.join(unseen['scenes'])}", "", str(unseen.get("note", "")), ""]

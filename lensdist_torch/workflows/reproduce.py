@@ -28,14 +28,14 @@ from lensdist_torch.workflows.evaluate import (
     fit_regressor,
     training_extra,
 )
-from lensdist_torch.workflows.reports import write_report
+from lensdist_torch.workflows.reports import SHIPPED_SUFFIX, write_report
 
 __all__ = ["reproduce", "SETTINGS", "quick_config"]
 
 #: The paper's four settings: (eigenvectors, metric), as in its Table 1 (docs/method.md, section 9).
 SETTINGS = [(5, "delta_max"), (10, "delta_max"), (5, "delta_avg"), (10, "delta_avg")]
 #: The run of the self-calibration under the config's own decision, beside the one fitted on the validation split.
-SHIPPED = "selfcal, shipped decision"
+SHIPPED = f"selfcal{SHIPPED_SUFFIX}"
 
 
 def quick_config(config: LensdistConfig, fraction: float = 0.1) -> LensdistConfig:
@@ -164,12 +164,10 @@ def _settings(models: dict, reg, test: dict, results: dict, config: LensdistConf
     if "regression" in results:
         for metric, fig in evaluate_regressor(reg, test, results=results["regression"], config=config).items():
             settings[f"regression, {metric}"] = fig
-    if "selfcal" in results:
-        for metric, fig in evaluate_selfcal(test, config, results=results["selfcal"]).items():
-            settings[f"selfcal, {metric}"] = fig
-    if SHIPPED in results:
-        for metric, fig in evaluate_selfcal(test, config, results=results[SHIPPED]).items():
-            settings[f"selfcal, {metric}, shipped decision"] = fig
+    for run, suffix in (("selfcal", ""), (SHIPPED, SHIPPED_SUFFIX)):
+        if run in results:
+            for metric, fig in evaluate_selfcal(test, config, results=results[run]).items():
+                settings[f"selfcal, {metric}{suffix}"] = fig
     return settings
 
 

@@ -111,6 +111,7 @@ def test_a_prepared_batch_under_another_decision_is_one_fit(monkeypatch):
     mine = analyze_batch(None, None, config=cfg, prepared=prep)
     theirs = analyze_batch(None, None, config=other, prepared=prep.with_decision(other.analysis))
     assert len(calls) == 2  # one fit per pair, shared by both decisions
+    assert prep.with_decision(other.analysis).texture() is prep.texture()  # the histograms too
     for x, y in zip(fresh, theirs, strict=True):
         # the OpenCV export's least squares rounds differently from call to call (1e-18): compared apart
         cx, cy = json_safe(x.pop("opencv")), json_safe(y.pop("opencv"))
