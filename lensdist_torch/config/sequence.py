@@ -131,8 +131,9 @@ class MultiViewConfig:
     """Settings of :mod:`~lensdist_torch.geometry.multiview` (``[multiview]``): bundle adjustment on COLMAP.
 
     Attributes:
-        models: the camera models to fit on the reconstruction's tracks; the one of lowest BIC
-            is the answer (COLMAP names, all with an exact OpenCV equivalent).
+        models: the camera models fitted on the reconstruction's tracks, each weighed by how well it
+            predicts held-out frames (COLMAP names, all with an exact OpenCV equivalent;
+            :mod:`~lensdist_torch.geometry.multiview_evidence`).
         max_image_side: frames are read by COLMAP's SIFT at most this long (px).
         max_features: SIFT features per frame at most.
         features_per_megapixel: and at most this many per megapixel of the frame as SIFT reads it
@@ -148,22 +149,19 @@ class MultiViewConfig:
             mapping grow with the frames): of 300 frames every 5th.
         min_registered: fewer registered frames than this share of the frames (or than 3):
             "cannot tell" (the engine could not reconstruct the sequence).
-        jackknife_blocks: contiguous blocks of frames left out in turn for the interval.
-        bic_margin: models within this BIC of the best fit equally well: their spread of Delta
-            joins the interval.
-        rms_margin: so do models whose reprojection RMS is within this share of the best's: on
-            thousands of tracks BIC prefers the richest model for a few % of RMS, less than two
-            reconstructions of the same frames differ by (the GoPro views: 1.32-1.55 px), while
-            the models' Delta differ by 20 % (docs/method.md, section 11).
+        jackknife_blocks: the folds: contiguous blocks of frames held out in turn; each model is
+            adjusted without a block and scored on predicting it (its evidence), and the spread of
+            those fits is the jackknife that checks each model's posterior.
+        evidence_draws: Bayesian-bootstrap draws over the folds for the models' evidence weights.
+        bic_margin: the homography model's models within this BIC of its best fit equally well:
+            their spread of Delta joins its interval.
+        rms_margin: so do its models whose reprojection RMS is within this share of the best's: on
+            thousands of matches BIC prefers the richest model for a few % of RMS
+            (docs/method.md, section 12).
         confidence: coverage of the intervals.
         max_halfwidth_rel: an interval half-width over this share of Delta_avg (and over
             ``max_halfwidth_px``) gives no class.
         max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
-        min_rotation_deg: frames whose orientations differ by less than this (degrees) at most
-            give no class: under translation alone relief imitates distortion.
-        degenerate_share: where the first mapping registers every frame and turned by less than
-            this share of ``min_rotation_deg``, the other mappings are skipped (degenerate motion
-            is the camera path's; their spread could only widen an answer without a class).
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); their
             spread of Delta_avg joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`);
             a class needs this many mappings that registered enough frames.
@@ -228,13 +226,12 @@ class MultiViewConfig:
     mapped_frames: int = 60
     min_registered: float = 0.5
     jackknife_blocks: int = 6
+    evidence_draws: int = 1000
     bic_margin: float = 10.0
     rms_margin: float = 0.05
     confidence: float = 0.95
     max_halfwidth_rel: float = 0.25
     max_halfwidth_px: float = 1.0
-    min_rotation_deg: float = 5.0
-    degenerate_share: float = 0.9
     reconstructions: int = 3
     extra_mappings: int = 3
     num_threads: int = 2
@@ -266,7 +263,7 @@ class MultiViewConfig:
                 raise ValueError(f"multiview.models must hold names from {', '.join(MULTIVIEW_MODELS)}, got {m!r}")
         for name, lo in (("max_image_side", 64), ("max_features", 64), ("exhaustive_below", 2), ("sequential_overlap", 1),
                          ("mapped_frames", 3),
-                         ("jackknife_blocks", 2), ("reconstructions", 1),
+                         ("jackknife_blocks", 2), ("evidence_draws", 1), ("reconstructions", 1),
                          ("extra_mappings", 0), ("num_threads", 1), ("seed", 0), ("planar_terms", 0),
                          ("planar_scan_steps", 1), ("planar_scan_pairs", 1), ("planar_min_matches", 8), ("planar_min_pairs", 1),
                          ("planar_iterations", 1), ("planar_pair_matches", 0),
@@ -290,6 +287,4 @@ class MultiViewConfig:
         real(self, "max_halfwidth_rel", lo=0, hi=1, lo_open=True, why="a share of Delta_avg")
         real(self, "max_halfwidth_px", lo=0, lo_open=True)
         real(self, "features_per_megapixel", lo=0, lo_open=True)
-        real(self, "min_rotation_deg", lo=0)
-        real(self, "degenerate_share", lo=0, hi=1, why="a share of min_rotation_deg")
 

@@ -7,31 +7,21 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
 ``pycolmap`` (an optional dependency: ``pip install pycolmap``).
 
 1. :func:`reconstruct`: COLMAP's SIFT on every frame (at most ``max_image_side`` px and
-   :func:`feature_cap` features), exhaustive
-   matching (or sequential for long videos), geometric verification, incremental mapping with one
-   shared RADIAL camera whose principal point stays at the frame centre (it is not refined: the
-   data rarely pin it, and refining it was measured to go wrong); the mapping is run
-   ``reconstructions`` times with other seeds on the same matches; with a caller's ``stop``, up to
-   ``extra_mappings`` more, and ``stop`` ends the series
-   (:func:`~lensdist_torch.workflows.multiview.multiview_path` ends it once ``reconstructions``
-   mappings registered enough frames, or when the first shows degenerate motion).
+   :func:`feature_cap` features), exhaustive matching (or sequential for long videos), geometric
+   verification, incremental mapping with one shared RADIAL camera whose principal point stays at
+   the frame centre (the data rarely pin it, and refining it was measured to go wrong); the
+   mapping runs ``reconstructions`` times with other seeds on the same matches (with a caller's
+   ``stop``, up to ``extra_mappings`` more where some register too few frames).
 2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
    adjustment on the same tracks (structure, poses, focal length and the model's distortion
-   free); the **model is chosen by BIC**, n ln(RSS / n) + k ln n over the n reprojection
-   coordinates, k the camera's free parameters (the tracks and poses are common to all). Every
-   adjustment stops when an iteration lowers the cost by less than ``BA_FUNCTION_TOLERANCE`` of
-   it (Ceres' default; COLMAP's 0 made 100 iterations crawl along the valley of a poorly conditioned
-   camera, 0.1 s each, for 1e-5 of the cost), and so do the mapping's own adjustments.
-3. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of frames
-   (each left out in turn and the chosen model re-adjusted; Delta on every second row and column
-   of the answer's grid, as only the replicates' spread enters), t on blocks - 1 degrees of freedom,
-   with the spread of the models within ``bic_margin`` of the best, or whose reprojection RMS is
-   within ``rms_margin`` of the best's, in quadrature (models that fit equally well but disagree
-   on Delta: on thousands of tracks BIC prefers the richest model for a few % of RMS). No class when the camera turned by less than
-   ``min_rotation_deg`` (translation alone: relief imitates distortion, :func:`rotation_spread_deg`;
-   the least over the mapping and every model's adjustment, which drift by degrees along that valley).
-   The spread between reconstructions joins in quadrature too
-   (:func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`).
+   free), stopping when an iteration lowers the cost by less than ``BA_FUNCTION_TOLERANCE`` of it
+   (Ceres' default; COLMAP's 0 crawled along the valley of a poorly conditioned camera).
+3. **Which model, and how sure** (:mod:`~lensdist_torch.geometry.multiview_evidence`): each
+   model's posterior of Delta from the adjustment's covariance, its evidence from predicting
+   frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+); the
+   model of most weight answers, the interval is the weighted mixture of their posteriors.
+   Degenerate motion (translation over relief) shows as a wide posterior. The spread between
+   reconstructions joins in quadrature (:mod:`~lensdist_torch.geometry.multiview_runs`).
 4. **In the user's pixels and OpenCV's terms**: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV and
    FULL_OPENCV are OpenCV's model with some coefficients 0, so the OpenCV camera is exact (the
    principal point moves by -0.5 px: COLMAP's pixel centres lie at +0.5). Delta is
@@ -43,6 +33,7 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import os
 import sys
@@ -56,12 +47,19 @@ import torch
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
+from lensdist_torch.geometry.multiview_evidence import (
+    camera_covariance,
+    evidence_weights,
+    heldout_squared_errors,
+    mixture_interval,
+    posterior_std,
+    unit_log_evidence,
+)
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_delta, opencv_ideal_points
-from lensdist_torch.geometry.pooling import jackknife_interval
 from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
-           "rotation_spread_deg", "model_spread", "BA_FUNCTION_TOLERANCE"]
+           "rotation_spread_deg", "BA_FUNCTION_TOLERANCE"]
 
 #: Relative cost decrease below which a bundle adjustment stops (module docstring, step 2).
 BA_FUNCTION_TOLERANCE = 1e-6
@@ -70,16 +68,18 @@ BA_FUNCTION_TOLERANCE = 1e-6
 class MultiViewCalibration(NamedTuple):
     """The result of :func:`self_calibrate_reconstruction`, in the user's pixels; NaN where unknown.
 
-    model: the COLMAP model chosen by BIC; camera_matrix (3, 3) and dist_coeffs (5 or 8, OpenCV's
+    model: the COLMAP model of most evidence; camera_matrix (3, 3) and dist_coeffs (5 or 8, OpenCV's
     order) its exact OpenCV camera; delta_avg_user_px, delta_max_user_px over the pixels where
     the model inverts (``invertible_fraction`` of them), with ``confidence`` intervals;
     k2_user, k4_user: eq. 4 fitted to the camera, ``eq4_fit_error_px`` its RMS error;
     class_label or None with ``reason``; registered of ``frames``; points3D; reprojection_px
-    (RMS of the chosen model); models: per fitted model its BIC, Delta_avg (over where it
-    inverts), RMS, rotation spread and OpenCV camera (``camera_matrix``, ``dist_coeffs``: Delta on
-    another footprint from it);
-    jackknife: the leave-a-block-out Delta_avg values; rotation_spread_deg: the largest
-    rotation between two frames (below ``min_rotation_deg``: degenerate, no class);
+    (RMS of the chosen model); models: per fitted model its evidence ``weight``, Delta_avg and
+    Delta_max (over where it inverts) with their posterior stds, the jackknife's std
+    (``jackknife_std_px``, the check), RMS on its tracks and on held-out frames
+    (``heldout_rms_px``), BIC, rotation spread and OpenCV camera (``camera_matrix``,
+    ``dist_coeffs``: Delta on another footprint from it);
+    jackknife: the chosen model's leave-a-block-out Delta_avg values; rotation_spread_deg: the
+    largest rotation between two frames of the mapping (a diagnostic);
     reconstructions: per seed of the mapping its numbers (set by
     :func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`), and
     reconstruction_spread_px the largest |Delta_avg - this one's| among them;
@@ -341,15 +341,44 @@ def _blocks(rec, n_blocks: int) -> list[list[int]]:
     return [[im.frame_id for im in images[g * n // n_blocks:(g + 1) * n // n_blocks]] for g in range(n_blocks)]
 
 
-def model_spread(table: dict, best: str, cfg: MultiViewConfig) -> float:
-    """The largest |Delta_avg - the best's| over the models that fit as well as ``best``.
+def _fit_model(rec, model: str, size: tuple[int, int], scale: float, step: int, n_blocks: int) -> dict:
+    """One model on ``rec``'s tracks: its adjustment, posterior, delete-a-block fits and held-out errors."""
+    import numpy as np
 
-    ``table``: per model {"bic", "delta_avg_px", "reprojection_px"}. As well: within
-    ``cfg.bic_margin`` of its BIC, or a reprojection RMS at most (1 + ``cfg.rms_margin``) times its.
-    """
-    b = table[best]
-    return max(abs(v["delta_avg_px"] - b["delta_avg_px"]) for v in table.values()
-               if v["bic"] - b["bic"] <= cfg.bic_margin or v["reprojection_px"] <= (1 + cfg.rms_margin) * b["reprojection_px"])
+    r = _with_model(rec, model)
+    ss, n = _rss(r)
+    cam = _camera(r)
+    km, dm = opencv_from_colmap(cam, scale)
+    dl = opencv_delta(km, dm, *size, step=step)
+
+    def measure(params):  # Delta_avg and Delta_max of the camera with other intrinsics, on a grid 16 times coarser
+        c = copy.copy(cam)  # (their gradient and the folds' spread need no finer one)
+        c.params = params
+        d = _deltas(c, size, scale, 4 * step)
+        return d["delta_avg_px"], d["delta_max_px"]
+
+    with _quiet():
+        cov = camera_covariance(r, cam.camera_id, ss, n)
+    fixed = set(cam.principal_point_idxs())
+    std_avg, std_max = posterior_std(list(cam.params), [i for i in range(len(cam.params)) if i not in fixed], cov, measure)
+    jk_avg, jk_max, errors = [], [], []
+    for block in _blocks(r, n_blocks):
+        train = _pycolmap_copy(r)
+        for frame_id in block:
+            train.deregister_frame(frame_id)
+        _adjust(train)
+        d = measure(np.asarray(_camera(train).params, dtype=float))
+        jk_avg.append(d[0])
+        jk_max.append(d[1])
+        errors.append(heldout_squared_errors(train, _camera(train), r, block))
+    jk_std = math.sqrt((len(jk_avg) - 1) / len(jk_avg) * float(np.sum((np.asarray(jk_avg) - np.mean(jk_avg)) ** 2)))
+    k = len(cam.params) - 2  # the principal point is held
+    return {"rec": r, "delta": dl, "errors": errors, "jackknife": jk_avg, "row": {
+        "bic": 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n), "delta_avg_px": dl["delta_avg_px"],
+        "delta_avg_std_px": std_avg, "delta_max_px": dl["delta_max_px"], "delta_max_std_px": std_max,
+        "jackknife_std_px": jk_std, "reprojection_px": math.sqrt(ss / max(n, 1)),
+        "heldout_rms_px": math.sqrt(float(np.mean(np.concatenate(held)))) if (held := [e for fold in errors for e in fold]) else math.nan,
+        "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist()}}
 
 
 def self_calibrate_reconstruction(
@@ -382,51 +411,38 @@ def self_calibrate_reconstruction(
     cam0 = _camera(rec)
     size = image_size or (round(cam0.height * scale), round(cam0.width * scale))
     step = map_grid_step(*size)
-    fitted, table, deltas = {}, {}, {}
-    for model in cfg.models:
-        r = _with_model(rec, model)
-        ss, n = _rss(r)
-        k = len(_camera(r).params) - 2  # the principal point is held
-        km, dm = opencv_from_colmap(_camera(r), scale)
-        dl = opencv_delta(km, dm, *size, step=step)
-        bic = 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n)
-        fitted[model], deltas[model] = r, dl
-        table[model] = {"bic": bic, "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(ss / max(n, 1)),
-                        "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist()}
-    best = min(table, key=lambda m: table[m]["bic"])
-    chosen, cam, dl = fitted[best], _camera(fitted[best]), deltas[best]
-    spread = model_spread(table, best, cfg)
-    n_blocks = min(cfg.jackknife_blocks, chosen.num_reg_images())  # each replicate keeps >= 2 frames
-    jk_avg, jk_max = [], []
-    for block in _blocks(chosen, n_blocks):
-        r = _pycolmap_copy(chosen)
-        for frame_id in block:
-            r.deregister_frame(frame_id)
-        _adjust(r)
-        d = _deltas(_camera(r), size, scale, 2 * step)  # a quarter of the points: 4-5 times faster
-        jk_avg.append(d["delta_avg_px"])
-        jk_max.append(d["delta_max_px"])
-    intervals = [jackknife_interval(value, jk, extra, cfg.confidence)
-                 for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0))]
+    n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
+    fits = {model: _fit_model(rec, model, size, scale, step, n_blocks) for model in cfg.models}
+    weights = evidence_weights(unit_log_evidence([f["errors"] for f in fits.values()]), cfg.evidence_draws, cfg.seed)
+    table = {m: {**f["row"], "weight": float(w)} for (m, f), w in zip(fits.items(), weights)}
+    best = max(table, key=lambda m: table[m]["weight"])
+    chosen, dl = fits[best]["rec"], fits[best]["delta"]
+    cam = _camera(chosen)
+    rows = list(table.values())
+    intervals = [tuple(max(0.0, v) for v in mixture_interval([r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] for r in rows],
+                                                             [r["weight"] for r in rows], cfg.confidence))
+                 for fig in ("delta_avg", "delta_max")]
     k2u, k4u, fit_err = _eq4_fit(cam, size, scale, step)
-    half_avg = (intervals[0][1] - intervals[0][0]) / 2
-    # the least rotation of the mapping and every model's adjustment: in the valley of a pan they drift by degrees
+    half_avg = max(intervals[0][1] - dl["delta_avg_px"], dl["delta_avg_px"] - intervals[0][0])
     label, reason = None, ""
-    spread_deg = min([rotation_spread_deg(rec)] + [v["rotation_deg"] for v in table.values()])
     dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
-    if spread_deg < cfg.min_rotation_deg:
-        reason = (f"degenerate motion: the camera turned by at most {spread_deg:.1f} degrees (at least "
-                  f"{cfg.min_rotation_deg:g} needed), so relief and distortion cannot be told apart")
-    elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
-        reason = f"interval too wide: +-{half_avg:.2f} px"
+    if interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
+        shared = ", ".join(f"{m} {v['delta_avg_px']:.2f} px at {v['weight']:.2f}" for m, v in
+                           sorted(table.items(), key=lambda kv: -kv[1]["weight"]) if v["weight"] >= 0.01)
+        reason = f"interval too wide: +-{half_avg:.2f} px" + (f" (the models' evidence is shared: {shared})" if
+                                                               table[best]["weight"] <= 0.95 else "")
     else:
         label, reason = sequence_class(dc, dl["delta_avg_px"], half_avg, st)
     k, d = opencv_from_colmap(cam, scale)
     return MultiViewCalibration(
-        best, k.tolist(), (d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),
-        dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1], dl["invertible_fraction"], k2u, k4u,
-        fit_err, label, reason, chosen.num_reg_images(), frames or chosen.num_reg_images(), chosen.num_points3D(),
-        table[best]["reprojection_px"], table, jk_avg, spread_deg, paper_delta_avg_px=dc)
+        model=best, camera_matrix=k.tolist(),
+        dist_coeffs=(d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),
+        delta_avg_user_px=dl["delta_avg_px"], delta_avg_user_interval=intervals[0], delta_max_user_px=dl["delta_max_px"],
+        delta_max_user_interval=intervals[1], invertible_fraction=dl["invertible_fraction"], k2_user=k2u, k4_user=k4u,
+        eq4_fit_error_px=fit_err, class_label=label, reason=reason, registered=chosen.num_reg_images(),
+        frames=frames or chosen.num_reg_images(), points3D=chosen.num_points3D(),
+        reprojection_px=table[best]["reprojection_px"], models=table, jackknife=fits[best]["jackknife"],
+        rotation_spread_deg=rotation_spread_deg(rec), paper_delta_avg_px=dc)
 
 
 def _pycolmap_copy(rec):

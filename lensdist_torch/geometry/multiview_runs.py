@@ -16,28 +16,23 @@ tried until ``reconstructions`` succeed; the failures are listed. :func:`combine
 * answers with the median reconstruction by Delta_avg (of two in the middle, the one with more
   registered frames, then the lower reprojection RMS);
 * adds the largest |Delta_avg - the answer's| over the reconstructions (``reconstruction_spread``)
-  to the interval in quadrature with the jackknife variance and the model spread: half-width
-  t sqrt(var_jackknife + model_spread^2 + reconstruction_spread^2), t as the jackknife's;
+  to the interval in quadrature with its own half-width h (the models' posteriors mixed by their
+  evidence, :mod:`~lensdist_torch.geometry.multiview_evidence`): sqrt(h^2 + (z spread)^2), z the
+  normal quantile of ``confidence``;
 * withholds the class ("cannot tell", the reason naming the spread) when fewer than
   ``reconstructions`` reconstructions succeeded, when two of them disagree beyond their own
   intervals, when the widened interval is too wide, or when it spans a sequence's R threshold
-  at the paper's frame (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`; degenerate
-  motion, the answer's own reason, comes first).
-
-Where the first mapping already showed degenerate motion the caller may skip the others
-(:func:`~lensdist_torch.workflows.multiview.multiview_path`): their seeds are passed as ``skipped``,
-listed in ``reconstructions`` and named in the reason, since the interval then lacks the spread
-between reconstructions (the answer gets no class either way).
+  at the paper's frame (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`).
 """
 
 from __future__ import annotations
 
 import math
+from statistics import NormalDist
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.multiview import MultiViewCalibration
-from lensdist_torch.geometry.pooling import t_quantile
 from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["reconstruction_spread", "widened_half_width", "combine_reconstructions"]
@@ -51,16 +46,14 @@ def reconstruction_spread(values: list[float], answer: float) -> float:
 def widened_half_width(value: float, interval: tuple[float, float], spread: float, t: float) -> float:
     """The half-width of ``interval`` (about ``value``) with ``spread`` added in quadrature under ``t``.
 
-    The interval's half-width h = t sqrt(var + model_spread^2) is read from its upper end (the lower
-    one may be clipped at 0); the result is sqrt(h^2 + (t spread)^2).
+    The interval's half-width h is read from its upper end (the lower one may be clipped at 0); the
+    result is sqrt(h^2 + (t spread)^2), ``t`` the quantile of the interval's coverage.
     """
     h = interval[1] - value
     return math.sqrt(h * h + (t * spread) ** 2)
 
 
 def _summary(seed: int, run) -> dict:
-    if run is None:
-        return {"seed": seed, "skipped": "degenerate motion in the first mapping"}
     if isinstance(run, str):
         return {"seed": seed, "failed": run}
     return {"seed": seed, "registered": run.registered, "points3D": run.points3D, "model": run.model,
@@ -86,7 +79,7 @@ def _disagreement(runs: list[tuple[int, MultiViewCalibration]]) -> str:
 
 
 def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
-                            config: MultiViewConfig | None = None, skipped: list[int] = (),
+                            config: MultiViewConfig | None = None,
                             settings: LensdistConfig | None = None) -> MultiViewCalibration:
     """One answer from several reconstructions' self-calibrations (module docstring).
 
@@ -95,8 +88,6 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
             or a string saying why that reconstruction failed; at least one must have succeeded.
         config: :class:`~lensdist_torch.config.MultiViewConfig` (``confidence``, ``reconstructions``: the
             successes a class needs, the width limits).
-        skipped: the seeds of mappings not run because the answer's motion is degenerate (for any
-            other answer: ValueError, as the interval would lack their spread unsaid).
         settings: the classes and a sequence's R threshold (``calibration.no_distortion_px``;
             default: :class:`~lensdist_torch.config.LensdistConfig`'s).
 
@@ -109,7 +100,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     if not ok:
         raise ValueError(f"runs must hold at least one successful reconstruction, got {len(runs)} failed")
     best = _median([r for _, r in ok])
-    t = t_quantile(0.5 + cfg.confidence / 2, max(1, len(best.jackknife) - 1))
+    t = NormalDist().inv_cdf(0.5 + cfg.confidence / 2)
     spread = reconstruction_spread([r.delta_avg_user_px for _, r in ok], best.delta_avg_user_px)
     spread_max = reconstruction_spread([r.delta_max_user_px for _, r in ok], best.delta_max_user_px)
     intervals = []
@@ -120,15 +111,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     half = intervals[0][1] - best.delta_avg_user_px
     need, label, reason = cfg.reconstructions, best.class_label, best.reason
     apart = _disagreement(ok)
-    if skipped and best.rotation_spread_deg >= cfg.min_rotation_deg:
-        raise ValueError(f"skipped must be empty unless the motion is degenerate, got {len(skipped)} seeds skipped "
-                         f"at {best.rotation_spread_deg:.1f} degrees")
-    if best.rotation_spread_deg < cfg.min_rotation_deg:
-        label = None  # degenerate motion: the answer's own reason stands
-        if skipped:
-            reason += (f" ({len(runs)} of {len(runs) + len(skipped)} mappings run, the others skipped: the motion is "
-                       "the camera path's, so the interval lacks the spread between reconstructions)")
-    elif len(ok) < need:
+    if len(ok) < need:
         failed = "; ".join(f"seed {s}: {r}" for s, r in runs if isinstance(r, str))
         label, reason = None, (f"only {len(ok)} of {len(runs)} reconstructions succeeded ({need} needed), so the "
                                f"engine's own variation is not known" + (f" ({failed})" if failed else ""))
@@ -140,5 +123,5 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     elif label is not None:  # the class of the widened interval, which may now span the R threshold
         label, reason = sequence_class(best.paper_delta_avg_px, best.delta_avg_user_px, half, or_defaults(settings, LensdistConfig))
     return best._replace(delta_avg_user_interval=intervals[0], delta_max_user_interval=intervals[1], class_label=label,
-                         reason=reason, reconstructions=tuple(_summary(s, r) for s, r in [*runs, *((s, None) for s in skipped)]),
+                         reason=reason, reconstructions=tuple(_summary(s, r) for s, r in runs),
                          reconstruction_spread_px=spread)

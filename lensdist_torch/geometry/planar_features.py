@@ -31,7 +31,7 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
    free (a candidate while within ``planar_centre_max`` of the half diagonal from the frame
    centre), on the same inliers, chosen by BIC (the homographies are common to all); models within
    ``bic_margin``, or whose RMS is within ``rms_margin`` of the best's, join the interval by their
-   spread of Delta_avg (:func:`~lensdist_torch.geometry.multiview.model_spread`). A real wide-angle
+   spread of Delta_avg (:func:`~lensdist_torch.geometry.planar_model.model_spread`). A real wide-angle
    lens's centre is off the frame's by a few % of the half diagonal: a lens of 100 px then bends
    the frame-centred model's lines by pixels.
 5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
@@ -58,13 +58,14 @@ from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import distortion_center, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.multiview import model_spread, pycolmap_or_error
+from lensdist_torch.geometry.multiview import pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.planar_model import (
     bending_halfwidth,
     fit_lens_and_homographies,
     lens_deltas,
     lens_of,
+    model_spread,
     pair_homographies,
     split_lens,
     transfer_errors,

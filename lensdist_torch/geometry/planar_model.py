@@ -25,6 +25,7 @@ import math
 
 import torch
 
+from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.multiview import pycolmap_or_error
@@ -32,7 +33,7 @@ from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.pooling import t_quantile
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, lens_inverts
 
-__all__ = ["split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
+__all__ = ["model_spread", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
            "transfer_errors", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
 
 
@@ -268,3 +269,15 @@ def bending_halfwidth(theta, replicates: list, n: int, size: tuple[int, int], dl
         msq.append(float(((y - fit) ** 2).sum(-1).mean()))
     b = len(replicates)
     return t_quantile(0.5 + confidence / 2, b - 1) * math.sqrt((b - 1) / b * sum(msq)), share
+
+
+def model_spread(table: dict, best: str, cfg: MultiViewConfig) -> float:
+    """The largest |Delta_avg - the best's| over the models that fit as well as ``best`` (the homography model's).
+
+    ``table``: per model {"bic", "delta_avg_px", "reprojection_px"}. As well: within
+    ``cfg.bic_margin`` of its BIC, or a reprojection RMS at most (1 + ``cfg.rms_margin``) times its.
+    (The 3-D models weigh themselves by held-out frames instead: :mod:`~lensdist_torch.geometry.multiview_evidence`.)
+    """
+    b = table[best]
+    return max(abs(v["delta_avg_px"] - b["delta_avg_px"]) for v in table.values()
+               if v["bic"] - b["bic"] <= cfg.bic_margin or v["reprojection_px"] <= (1 + cfg.rms_margin) * b["reprojection_px"])

@@ -5,21 +5,12 @@ sequence, of a folder (as they are) or of a video (written once as lossless grey
 temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`;
 ``multiview.reconstructions`` mappings, each self-calibrated, combined by
 :mod:`~lensdist_torch.geometry.multiview_runs`) and returns a strict-JSON-ready dict, or the
-reason it has no answer (no mapping registered enough frames). When every mapping that succeeded so
-far (most often the first) registers every frame and shows degenerate motion with room to spare (the
-camera turned by less than ``multiview.degenerate_share`` of ``multiview.min_rotation_deg``), the
-other mappings are skipped: how far
-the camera turned is a property of its path, which another seed of the mapping does not change
-(seeds 0-2 on 22 rendered frames: 2.3-2.4 degrees; where it turned, 5.97 each), so they could
-only widen the interval of an answer that gets no class anyway; each costs as much as the first
-(on 22 frames of 384 x 288: a mapping 43-45 s and its self-calibration 141-150 s of a 10 min run
-on a busy 2-core machine). The answer says so in its reason and lists the skipped seeds in
-``reconstructions``. :func:`combine` makes the
+reason it has no answer (no mapping registered enough frames). :func:`combine` makes the
 one answer of :func:`~lensdist_torch.workflows.calibrate.calibrate_path` from the two paths:
 
 * the multi-view answer when it has one and the direct path's interval does not contradict it;
 * the direct answer (confident or "cannot tell") where the multi-view path has none: pycolmap
-  missing, the engine could not reconstruct the sequence, degenerate motion, an interval too wide;
+  missing, the engine could not reconstruct the sequence, an interval too wide;
 * "cannot tell" with both numbers when both are confident and their intervals do not overlap.
 """
 
@@ -45,12 +36,6 @@ __all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "planar_path", 
 COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: the fewest frames a multi-view calibration takes
 MIN_FRAMES = 3
-
-
-def _degenerate_for_sure(run, frames: int, cfg: MultiViewConfig) -> bool:
-    """Whether one mapping's answer settles 'degenerate motion' for every seed (module docstring)."""
-    return (not isinstance(run, str) and run.registered == frames
-            and run.rotation_spread_deg < cfg.degenerate_share * cfg.min_rotation_deg)
 
 
 def _encode(frame: torch.Tensor) -> bytes:
@@ -116,13 +101,13 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         if len(names) < MIN_FRAMES:
             return {"ok": False, "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}"}
         least = max(MIN_FRAMES, math.ceil(cfg.min_registered * len(names)))
-        runs, got, skipped, planar = [], 0, [], {}
+        runs, got, planar = [], 0, {}
 
         def homography_model(database: Path) -> None:  # the same matches, before any mapping
             if cfg.planar_terms:
                 planar["answer"] = planar_path(database, names, image_size, cfg, settings, folder=folder)
 
-        def take(i: int, rec) -> bool:  # one mapping's answer; True: the remaining mappings are skipped
+        def take(i: int, rec) -> bool:  # one mapping's answer; True: enough mappings succeeded
             nonlocal got
             n = 0 if rec is None else rec.num_reg_images()
             got = max(got, n)
@@ -134,12 +119,6 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
                 runs.append((cfg.seed + i, self_calibrate_reconstruction(rec, cfg, settings, frames=len(names),
                                                                          image_size=tuple(image_size))))
             done = sum(not isinstance(r, str) for _, r in runs)
-            successes = [r for _, r in runs if not isinstance(r, str)]
-            # skipped only while every mapping that succeeded agrees: one that turned enough (a failed mapping
-            # retried, then one of 5.7 degrees beside one under 2) leaves the motion unsettled, and all run
-            if successes and all(_degenerate_for_sure(r, len(names), cfg) for r in successes):
-                skipped.extend(cfg.seed + i + 1 + j for j in range(cfg.reconstructions - done))
-                return True
             return done >= cfg.reconstructions  # failed mappings are retried with further seeds
 
         with tqdm(total=cfg.reconstructions, disable=quiet, desc="mappings", unit="mapping", leave=False) as bar:
@@ -155,7 +134,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
                                            f"registered at most{tries} (at least {least} needed)",
                     "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
-        res = combine_reconstructions(runs, cfg, skipped=skipped, settings=settings)
+        res = combine_reconstructions(runs, cfg, settings=settings)
     return {"ok": True, **res._asdict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
 
 
@@ -259,9 +238,7 @@ def _combine_two(direct: dict, mv: dict | None) -> dict:
         both = (f"multi-view {mv['delta_avg_user_px']:.2f} px [{m_iv[0]:.2f}, {m_iv[1]:.2f}], direct "
                 f"{direct['delta_avg_user_px']:.2f} px [{d_iv[0]:.2f}, {d_iv[1]:.2f}]")
         apart = "" if _overlap(tuple(d_iv), m_iv) else ", and their intervals do not overlap"
-        cut_short = any("skipped" in r for r in mv.get("reconstructions", ()))  # its interval lacks the runs' spread
-        if not cut_short and (_relative_halfwidth(m_iv, mv["delta_avg_user_px"])
-                              < _relative_halfwidth(tuple(d_iv), direct["delta_avg_user_px"])):
+        if _relative_halfwidth(m_iv, mv["delta_avg_user_px"]) < _relative_halfwidth(tuple(d_iv), direct["delta_avg_user_px"]):
             # the numbers of the less uncertain estimate (relative half-width), still no class
             _take_multiview(out, mv)
         out["reason"] = f"neither path can tell ({both}{apart}); the numbers are the {out['method']} path's"

@@ -65,7 +65,6 @@ def test_ideal_points_refuse_a_wrong_number_of_coefficients():
 # ------------------------------------------------------------------ COLMAP
 pycolmap = pytest.importorskip("pycolmap")
 from lensdist_torch.geometry.multiview import (  # noqa: E402
-    model_spread,
     opencv_from_colmap,
     rotation_spread_deg,
     self_calibrate_reconstruction,
@@ -112,13 +111,12 @@ def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_t
     lo, hi = res.delta_avg_user_interval
     assert lo <= truth["delta_avg_px"] <= hi
     assert set(res.models) == set(MultiViewConfig().models) and len(res.jackknife) == 4
-    assert res.model == min(res.models, key=lambda m: res.models[m]["bic"])
+    weights = {m: v["weight"] for m, v in res.models.items()}
+    assert res.model == max(weights, key=weights.get) and sum(weights.values()) == pytest.approx(1.0)
     assert res.reprojection_px == pytest.approx(0.5 * math.sqrt(2), rel=0.15)  # the noise, both coordinates
     assert rec.num_reg_images() == 8  # the input is left as it was
-    # the degenerate-motion guard takes the least rotation of the mapping and of every model's adjustment
-    rotations = [v["rotation_deg"] for v in res.models.values()]
-    assert res.rotation_spread_deg == min([rotation_spread_deg(rec), *rotations])
-    assert all(r > 0 for r in rotations)
+    assert res.rotation_spread_deg == rotation_spread_deg(rec) > 0  # a diagnostic: no rule on it
+    assert all(v["rotation_deg"] > 0 for v in res.models.values())
     # every model keeps its OpenCV camera: its Delta from it is the table's, and the chosen one's is the answer's
     for v in res.models.values():
         f64 = {"dtype": torch.float64}
@@ -129,8 +127,11 @@ def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_t
 
 
 def test_models_within_the_rms_margin_join_the_spread():
-    """The GoPro views' table (run of 2026-11-24): BIC prefers FULL_OPENCV by hundreds for 3-5 % of
-    RMS; its 122.4 px missed the chessboard's 103.2 while RADIAL and OPENCV said 100.6 and 99.8."""
+    from lensdist_torch.geometry.planar_model import model_spread
+
+    """The homography model's rule (the 3-D models weigh themselves by held-out frames instead). The
+    GoPro views' table: BIC prefers FULL_OPENCV by hundreds for 3-5 % of RMS; its 122.4 px missed the
+    chessboard's 103.2 while RADIAL and OPENCV said 100.6 and 99.8."""
     table = {"SIMPLE_RADIAL": {"bic": 12607.0, "delta_avg_px": 51.39, "reprojection_px": 3.560},
              "RADIAL": {"bic": -277.0, "delta_avg_px": 100.56, "reprojection_px": 1.383},
              "OPENCV": {"bic": -456.0, "delta_avg_px": 99.84, "reprojection_px": 1.362},
@@ -141,6 +142,45 @@ def test_models_within_the_rms_margin_join_the_spread():
     assert model_spread(table, "FULL_OPENCV", MultiViewConfig(bic_margin=1e6)) == pytest.approx(122.42 - 51.39)
     # a richer model that reprojects better than the chosen one always counts
     assert model_spread(table, "RADIAL", MultiViewConfig(rms_margin=0.0, bic_margin=0.0)) == pytest.approx(122.42 - 100.56)
+
+
+def _spread_synthetic(seed, frames=8, noise=0.5):
+    """A RADIAL camera (f 1500 px, k1 -2, k2 4: Delta_avg 14.97 px) whose tracks (length >= 3) reach the frame's
+    edges, the scene fixed and the noise drawn from ``seed``."""
+    pycolmap.set_random_seed(0)
+    o = pycolmap.SyntheticDatasetOptions()
+    o.num_rigs, o.num_frames_per_rig, o.num_points3D = 1, frames, 600
+    o.camera_model_id, o.camera_params = pycolmap.CameraModelId.RADIAL, [1500.0, 320.0, 240.0, -2.0, 4.0]
+    o.camera_width, o.camera_height = 640, 480
+    rec = pycolmap.synthesize_dataset(o)
+    for point_id in list(rec.point3D_ids()):
+        if rec.point3D(point_id).track.length() < 3:
+            rec.delete_point3D(point_id)
+    truth = opencv_delta(*opencv_from_colmap(next(iter(rec.cameras.values()))), 480, 640, step=map_grid_step(480, 640))
+    pycolmap.set_random_seed(seed)
+    n = pycolmap.SyntheticNoiseOptions()
+    n.point2D_stddev = noise
+    pycolmap.synthesize_noise(n, rec)
+    return rec, truth["delta_avg_px"]
+
+
+def test_the_posterior_std_of_delta_is_the_spread_of_the_estimates_over_noise_draws():
+    # an independent check of the bundle adjustment's covariance carried to Delta_avg: the same scene, eight
+    # draws of 0.5 px noise; the std over the draws against the mean posterior std, and the 95 % intervals
+    est, std, covered = [], [], 0
+    for seed in range(1, 9):
+        rec, truth = _spread_synthetic(seed)
+        res = self_calibrate_reconstruction(rec, MultiViewConfig(models=("RADIAL",), jackknife_blocks=4))
+        est.append(res.delta_avg_user_px)
+        std.append(res.models["RADIAL"]["delta_avg_std_px"])
+        covered += res.delta_avg_user_interval[0] <= truth <= res.delta_avg_user_interval[1]
+    assert truth == pytest.approx(14.97, abs=0.01)
+    ratio = float(np.mean(std)) / float(np.std(est, ddof=1))  # a sample std of 8 is within 0.6-1.5 of sigma at 90 %
+    assert 0.6 < ratio < 1.8 and covered >= 7
+    assert res.class_label == "3" and res.reason == ""
+
+
+
 
 
 def test_too_few_frames_is_a_one_line_error():

@@ -14,34 +14,37 @@ from lensdist_torch.geometry.multiview_runs import (
 )
 from lensdist_torch.geometry.sequence_class import sequence_class
 
-T5 = 2.5705818356596932  # t at 97.5 % on 5 degrees of freedom (6 jackknife blocks)
+Z = 1.959963984540054  # the normal quantile at 97.5 %: the models' posteriors are normal
 
 
 def _cal(d, lo, hi, label="4", reason="", registered=28, rms=1.3, paper=None):
     """A reconstruction's answer; ``paper``: its Delta_avg at the paper's frame (default d: a frame of the paper's size)."""
     return MultiViewCalibration(
-        "RADIAL", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], [-0.2, 0.05, 0, 0, 0], d, (lo, hi), 2 * d, (2 * lo, 2 * hi), 0.9,
-        -1e-7, 0.0, 0.5, label, reason, registered, 37, 1000, rms, {}, [d] * 6, 40.0,
+        model="RADIAL", camera_matrix=[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], dist_coeffs=[-0.2, 0.05, 0, 0, 0],
+        delta_avg_user_px=d, delta_avg_user_interval=(lo, hi), delta_max_user_px=2 * d,
+        delta_max_user_interval=(2 * lo, 2 * hi), invertible_fraction=0.9, k2_user=-1e-7, k4_user=0.0,
+        eq4_fit_error_px=0.5, class_label=label, reason=reason, registered=registered, frames=37, points3D=1000,
+        reprojection_px=rms, models={}, jackknife=[d] * 6, rotation_spread_deg=40.0,
         paper_delta_avg_px=d if paper is None else paper)
 
 
 def test_spread_joins_the_interval_in_quadrature_by_hand():
-    # answer 100 +- 10 (t sqrt(var + model^2) = 10); the others 104 and 97: spread 4,
-    # half-width sqrt(10^2 + (2.5706 * 4)^2) = sqrt(100 + 105.73) = 14.343
+    # answer 100 +- 10 (its models' mixture); the others 104 and 97: spread 4,
+    # half-width sqrt(10^2 + (1.96 * 4)^2) = sqrt(100 + 61.466) = 12.707
     runs = [(0, _cal(104.0, 95.0, 113.0)), (1, _cal(100.0, 90.0, 110.0)), (2, _cal(97.0, 88.0, 106.0))]
     assert reconstruction_spread([104.0, 100.0, 97.0], 100.0) == 4.0
-    assert widened_half_width(100.0, (90.0, 110.0), 4.0, T5) == pytest.approx(14.343, abs=1e-3)
+    assert widened_half_width(100.0, (90.0, 110.0), 4.0, Z) == pytest.approx(12.707, abs=1e-3)
     res = combine_reconstructions(runs)
     assert res.delta_avg_user_px == 100.0 and res.reconstruction_spread_px == 4.0  # the median answers
-    assert res.delta_avg_user_interval == pytest.approx((85.657, 114.343), abs=1e-3)
-    # Delta_max: 200 +- 20, spread 8: sqrt(400 + (2.5706 * 8)^2) = 28.687
-    assert res.delta_max_user_interval == pytest.approx((171.313, 228.687), abs=1e-3)
-    assert res.class_label == "4" and res.reason == ""  # 14.3 px is within 25 % of 100
+    assert res.delta_avg_user_interval == pytest.approx((87.293, 112.707), abs=1e-3)
+    # Delta_max: 200 +- 20, spread 8: sqrt(400 + (1.96 * 8)^2) = 25.414
+    assert res.delta_max_user_interval == pytest.approx((174.586, 225.414), abs=1e-3)
+    assert res.class_label == "4" and res.reason == ""  # 12.7 px is within 25 % of 100
     assert [r["seed"] for r in res.reconstructions] == [0, 1, 2] and res.reconstructions[2]["delta_avg_user_px"] == 97.0
-    # spread 10 (others 110 and 96): sqrt(225 + (2.5706 * 10)^2) = 29.762 > 25 % of 100: no class, the spread named
-    wide = combine_reconstructions([(0, _cal(110.0, 95.0, 125.0)), (1, _cal(100.0, 85.0, 115.0)), (2, _cal(96.0, 81.0, 111.0))])
-    assert wide.class_label is None and wide.delta_avg_user_interval[1] == pytest.approx(129.762, abs=1e-3)
-    assert wide.reason == "interval too wide: +-29.76 px (the 3 reconstructions differ by up to 10.00 px)"
+    # spread 12 (others 112 and 96): sqrt(225 + (1.96 * 12)^2) = 27.896 > 25 % of 100: no class, the spread named
+    wide = combine_reconstructions([(0, _cal(112.0, 97.0, 127.0)), (1, _cal(100.0, 85.0, 115.0)), (2, _cal(96.0, 81.0, 111.0))])
+    assert wide.class_label is None and wide.delta_avg_user_interval[1] == pytest.approx(127.896, abs=1e-3)
+    assert wide.reason == "interval too wide: +-27.90 px (the 3 reconstructions differ by up to 12.00 px)"
 
 
 def test_one_reconstruction_keeps_its_interval():
@@ -59,7 +62,7 @@ def test_reconstructions_that_disagree_beyond_their_intervals_cannot_tell():
     assert res.reason.startswith("the reconstructions disagree beyond their intervals (seed 0 122.40 px [107.30, 137.50]")
     lo, hi = res.delta_avg_user_interval
     assert lo <= 103.2 <= hi and res.reconstruction_spread_px == pytest.approx(66.2)
-    assert hi - 119.2 == pytest.approx(math.hypot(58.1, T5 * 66.2), abs=1e-9)
+    assert hi - 119.2 == pytest.approx(math.hypot(58.1, Z * 66.2), abs=1e-9)
 
 
 def test_too_few_reconstructions_cannot_tell_and_a_median_of_two_prefers_more_views():
@@ -85,11 +88,11 @@ def test_failed_starts_beside_enough_successes_keep_the_class_and_are_listed():
     assert short.class_label is None and short.reason.startswith("only 2 of 4 reconstructions succeeded (3 needed)")
 
 
-def test_degenerate_motion_stays_the_reason():
-    degenerate = "degenerate motion: the camera turned by at most 3.3 degrees"
-    res = combine_reconstructions([(0, _cal(10.0, 9.8, 10.2, label=None, reason=degenerate)),
-                                   (1, _cal(10.1, 9.9, 10.3, label=None, reason=degenerate))], MultiViewConfig(reconstructions=2))
-    assert res.class_label is None and res.reason == degenerate
+def test_the_answers_own_reason_stays():
+    own = "the interval [0.20, 0.31] px at the paper's frame spans the no-distortion threshold (0.25 px)"
+    res = combine_reconstructions([(0, _cal(10.0, 9.8, 10.2, label=None, reason=own)),
+                                   (1, _cal(10.1, 9.9, 10.3, label=None, reason=own))], MultiViewConfig(reconstructions=2))
+    assert res.class_label is None and res.reason == own
 
 
 def test_a_sequence_class_scales_its_interval_to_the_papers_frame_by_hand():
@@ -115,10 +118,10 @@ def test_the_widened_interval_that_spans_the_r_threshold_cannot_tell():
         return [(s, _cal(d, d - 0.1, d + 0.1, label="1", paper=0.8 * d)) for s, d in enumerate(deltas)]
 
     res = combine_reconstructions(runs(0.5, 0.62, 0.45))
-    half = res.delta_avg_user_interval[1] - 0.5  # sqrt(0.1^2 + (t 0.12)^2) = 0.324 px here, 0.259 px there
-    assert half == pytest.approx(math.hypot(0.1, T5 * 0.12), abs=1e-9)
-    assert res.class_label is None and res.reason.startswith("the interval [0.14, 0.66] px at the paper's frame spans")
-    tight = combine_reconstructions(runs(0.5, 0.52, 0.49))  # sqrt(0.1^2 + (t 0.02)^2) = 0.112 px: [0.31, 0.49] there
+    half = res.delta_avg_user_interval[1] - 0.5  # sqrt(0.1^2 + (z 0.12)^2) = 0.256 px here, 0.204 px there
+    assert half == pytest.approx(math.hypot(0.1, Z * 0.12), abs=1e-9)
+    assert res.class_label is None and res.reason.startswith("the interval [0.20, 0.60] px at the paper's frame spans")
+    tight = combine_reconstructions(runs(0.5, 0.52, 0.49))  # sqrt(0.1^2 + (z 0.02)^2) = 0.107 px: [0.31, 0.49] there
     assert tight.class_label == "1" and tight.reason == ""
 
 

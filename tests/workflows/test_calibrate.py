@@ -60,9 +60,12 @@ def test_round_trip_distort_calibrate_undistort(sequence, tmp_path):
     assert res["delta_avg_user_px"] == pytest.approx(true, abs=0.1)
     lo, hi = res["delta_avg_user_interval"]
     assert lo <= true <= hi and res["pairs_used"] >= 6
-    # a plane under translation: COLMAP reconstructs it, but relief and distortion trade (10.9 px, interval
-    # +-0.4 px, from the same frames): the multi-view path must say why it has no answer, the direct one answers
-    assert res["method"] == "direct" and "degenerate motion" in res["multiview"]["reason"]
+    # a plane under translation: COLMAP reconstructs it, but relief and distortion trade (mappings of the same
+    # matches end at 5 and at 11.3 px, each sure of itself): the multi-view path gives no class, and its
+    # interval, widened by that spread, holds the truth; the direct one answers
+    mv = res["multiview"]
+    assert res["method"] == "direct" and mv["class"] is None and mv["reason"]
+    assert mv["delta_avg_user_interval"][0] <= true <= mv["delta_avg_user_interval"][1]
     assert res["opencv"]["fit_error_mean_px"] < 0.1 and len(res["opencv"]["dist_coeffs"]) == 5
     assert len(res["opencv_rational"]["dist_coeffs"]) == 8
     out = undistort_path(folder, tmp_path / "out", k2=res["k2_user"], k4=res["k4_user"])
