@@ -142,6 +142,9 @@ def main() -> None:
             note = f"reprojection {v['reprojection_px']:.3f} px; {v['delta_avg_px']:.2f} px where it inverts"
         else:
             value, note = v["delta_avg_px"], f"reprojection {v['reprojection_px']:.3f} px; where it inverts, not the truth's pixels"
+        if "weight" in v:  # the held-out evidence and the posterior (answers since the models were weighed)
+            note += (f"; weight {v['weight']:.3f}, posterior std {v['delta_avg_std_px']:.3f} px, jackknife "
+                     f"{v['jackknife_std_px']:.3f} px, held-out RMS {v['heldout_rms_px']:.3f} px")
         rows.append((f"COLMAP, {model} fixed (same tracks)", f"BIC {v['bic']:.0f}", value, None, None, note))
     if "terms" in pl:
         value, iv = on_truth if on_truth is not None else (pl["delta_avg_user_px"], pl["delta_avg_user_interval"])

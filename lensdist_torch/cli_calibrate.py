@@ -56,8 +56,12 @@ def _print_calibration(res: dict) -> None:
     if mv is not None and "model" not in mv:
         print(f"multi-view path: no answer ({mv['reason']})")
     elif mv is not None:
-        print(f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, camera model {mv['model']} "
-              f"(by BIC), reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px")
+        weight = (mv.get("models") or {}).get(mv["model"], {}).get("weight")
+        by = "" if weight is None else f" (weight {weight:.2f} on held-out frames)"
+        iv = mv["delta_avg_user_interval"]
+        print(f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, camera model {mv['model']}"
+              f"{by}, reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px"
+              + ("" if iv is None or None in iv else f" [{iv[0]:.2f}, {iv[1]:.2f}]"))
     pl = res.get("planar")
     if pl is not None and "terms" not in pl:
         print(f"homography model: no answer ({pl['reason']})")

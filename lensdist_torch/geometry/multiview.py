@@ -50,6 +50,7 @@ from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.multiview_evidence import (
     camera_covariance,
     evidence_weights,
+    heldout_rms,
     heldout_squared_errors,
     mixture_interval,
     posterior_std,
@@ -377,7 +378,7 @@ def _fit_model(rec, model: str, size: tuple[int, int], scale: float, step: int, 
         "bic": 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n), "delta_avg_px": dl["delta_avg_px"],
         "delta_avg_std_px": std_avg, "delta_max_px": dl["delta_max_px"], "delta_max_std_px": std_max,
         "jackknife_std_px": jk_std, "reprojection_px": math.sqrt(ss / max(n, 1)),
-        "heldout_rms_px": math.sqrt(float(np.mean(np.concatenate(held)))) if (held := [e for fold in errors for e in fold]) else math.nan,
+        "heldout_rms_px": heldout_rms([e for fold in errors for e in fold]),
         "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist()}}
 
 

@@ -44,7 +44,7 @@ from statistics import NormalDist
 
 import numpy as np
 
-__all__ = ["CAP", "camera_covariance", "posterior_std", "heldout_squared_errors", "unit_log_evidence",
+__all__ = ["CAP", "camera_covariance", "posterior_std", "heldout_squared_errors", "heldout_rms", "unit_log_evidence",
            "evidence_weights", "mixture_interval"]
 
 #: A held-out squared error counts at most this many times its fold's median (over every model).
@@ -131,6 +131,19 @@ def heldout_squared_errors(train, camera, full, frame_ids: Sequence[int]) -> lis
         err = np.sum((camera.img_from_cam(pose * xyz) - xy) ** 2, axis=1)
         out.append(np.where(np.isfinite(err), err, np.inf))
     return out
+
+
+def heldout_rms(errors: Sequence[np.ndarray]) -> float:
+    """RMS (px) of the finite squared errors of held-out frames (a point behind a frame's camera has none); NaN for none.
+
+    Example:
+        >>> import numpy as np
+        >>> heldout_rms([np.array([1.0, 3.0]), np.array([np.inf])]), heldout_rms([])
+        (1.4142135623730951, nan)
+    """
+    e = np.concatenate(errors) if len(errors) else np.zeros(0)
+    e = e[np.isfinite(e)]
+    return math.sqrt(float(e.mean())) if e.size else math.nan
 
 
 def unit_log_evidence(errors: Sequence[Sequence[Sequence[np.ndarray]]]) -> np.ndarray:

@@ -16,9 +16,9 @@ tried until ``reconstructions`` succeed; the failures are listed. :func:`combine
 * answers with the median reconstruction by Delta_avg (of two in the middle, the one with more
   registered frames, then the lower reprojection RMS);
 * adds the largest |Delta_avg - the answer's| over the reconstructions (``reconstruction_spread``)
-  to the interval in quadrature with its own half-width h (the models' posteriors mixed by their
-  evidence, :mod:`~lensdist_torch.geometry.multiview_evidence`): sqrt(h^2 + (z spread)^2), z the
-  normal quantile of ``confidence``;
+  to the interval in quadrature with each side's own half-width h (the models' posteriors mixed by
+  their evidence, :mod:`~lensdist_torch.geometry.multiview_evidence`): sqrt(h^2 + (z spread)^2), z
+  the normal quantile of ``confidence``;
 * withholds the class ("cannot tell", the reason naming the spread) when fewer than
   ``reconstructions`` reconstructions succeeded, when two of them disagree beyond their own
   intervals, when the widened interval is too wide, or when it spans a sequence's R threshold
@@ -35,7 +35,7 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.multiview import MultiViewCalibration
 from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
-__all__ = ["reconstruction_spread", "widened_half_width", "combine_reconstructions"]
+__all__ = ["reconstruction_spread", "widened_interval", "combine_reconstructions"]
 
 
 def reconstruction_spread(values: list[float], answer: float) -> float:
@@ -43,14 +43,18 @@ def reconstruction_spread(values: list[float], answer: float) -> float:
     return max((abs(v - answer) for v in values), default=0.0)
 
 
-def widened_half_width(value: float, interval: tuple[float, float], spread: float, t: float) -> float:
-    """The half-width of ``interval`` (about ``value``) with ``spread`` added in quadrature under ``t``.
+def widened_interval(value: float, interval: tuple[float, float], spread: float, t: float) -> tuple[float, float]:
+    """``interval`` about ``value`` with ``spread`` added in quadrature under ``t`` on each side, the lower end >= 0.
 
-    The interval's half-width h is read from its upper end (the lower one may be clipped at 0); the
-    result is sqrt(h^2 + (t spread)^2), ``t`` the quantile of the interval's coverage.
+    Each side's half-width h (the models' mixture may be lopsided) becomes sqrt(h^2 + (t spread)^2).
+
+    Example:
+        >>> [round(v, 3) for v in widened_interval(10.0, (9.0, 14.0), 1.0, 2.0)]  # sqrt(1 + 4), sqrt(16 + 4)
+        [7.764, 14.472]
     """
-    h = interval[1] - value
-    return math.sqrt(h * h + (t * spread) ** 2)
+    lo, hi = interval
+    ts = t * spread
+    return max(0.0, value - math.hypot(value - lo, ts)), value + math.hypot(hi - value, ts)
 
 
 def _summary(seed: int, run) -> dict:
@@ -103,12 +107,9 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     t = NormalDist().inv_cdf(0.5 + cfg.confidence / 2)
     spread = reconstruction_spread([r.delta_avg_user_px for _, r in ok], best.delta_avg_user_px)
     spread_max = reconstruction_spread([r.delta_max_user_px for _, r in ok], best.delta_max_user_px)
-    intervals = []
-    for value, iv, s in ((best.delta_avg_user_px, best.delta_avg_user_interval, spread),
-                         (best.delta_max_user_px, best.delta_max_user_interval, spread_max)):
-        half = widened_half_width(value, iv, s, t)
-        intervals.append((max(0.0, value - half), value + half))
-    half = intervals[0][1] - best.delta_avg_user_px
+    intervals = [widened_interval(best.delta_avg_user_px, best.delta_avg_user_interval, spread, t),
+                 widened_interval(best.delta_max_user_px, best.delta_max_user_interval, spread_max, t)]
+    half = max(intervals[0][1] - best.delta_avg_user_px, best.delta_avg_user_px - intervals[0][0])
     need, label, reason = cfg.reconstructions, best.class_label, best.reason
     apart = _disagreement(ok)
     if len(ok) < need:

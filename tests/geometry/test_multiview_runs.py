@@ -10,7 +10,7 @@ from lensdist_torch.geometry.multiview import MultiViewCalibration
 from lensdist_torch.geometry.multiview_runs import (
     combine_reconstructions,
     reconstruction_spread,
-    widened_half_width,
+    widened_interval,
 )
 from lensdist_torch.geometry.sequence_class import sequence_class
 
@@ -33,7 +33,9 @@ def test_spread_joins_the_interval_in_quadrature_by_hand():
     # half-width sqrt(10^2 + (1.96 * 4)^2) = sqrt(100 + 61.466) = 12.707
     runs = [(0, _cal(104.0, 95.0, 113.0)), (1, _cal(100.0, 90.0, 110.0)), (2, _cal(97.0, 88.0, 106.0))]
     assert reconstruction_spread([104.0, 100.0, 97.0], 100.0) == 4.0
-    assert widened_half_width(100.0, (90.0, 110.0), 4.0, Z) == pytest.approx(12.707, abs=1e-3)
+    assert widened_interval(100.0, (90.0, 110.0), 4.0, Z) == pytest.approx((87.293, 112.707), abs=1e-3)
+    # a lopsided mixture keeps its sides: 100 (-12, +3), spread 4: sqrt(144 + 61.466), sqrt(9 + 61.466)
+    assert widened_interval(100.0, (88.0, 103.0), 4.0, Z) == pytest.approx((85.666, 108.394), abs=1e-3)
     res = combine_reconstructions(runs)
     assert res.delta_avg_user_px == 100.0 and res.reconstruction_spread_px == 4.0  # the median answers
     assert res.delta_avg_user_interval == pytest.approx((87.293, 112.707), abs=1e-3)
