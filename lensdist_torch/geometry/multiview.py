@@ -49,6 +49,7 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.multiview_evidence import (
     camera_covariance,
+    dispersion,
     evidence_weights,
     heldout_rms,
     heldout_squared_errors,
@@ -85,7 +86,7 @@ class MultiViewCalibration(NamedTuple):
     :func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`), and
     reconstruction_spread_px the largest |Delta_avg - this one's| among them;
     paper_delta_avg_px: the Delta_avg of eq. 4's fit at the paper's frame, whose class is given
-    (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`).
+    (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`); dispersion: the jackknife's scale (>= 1).
     """
 
     model: str
@@ -111,6 +112,7 @@ class MultiViewCalibration(NamedTuple):
     reconstructions: tuple = ()
     reconstruction_spread_px: float = 0.0
     paper_delta_avg_px: float = math.nan
+    dispersion: float = 1.0
 
 
 def pycolmap_or_error():
@@ -409,20 +411,18 @@ def self_calibrate_reconstruction(
         raise ValueError(f"rec must hold at least 3 registered frames, got {rec.num_reg_images()}")
     if rec.num_points3D() == 0:  # a mapping can register frames and keep no point (tiny frames)
         raise ValueError(f"rec must hold 3-D points, got none ({rec.num_reg_images()} frames registered)")
-    cam0 = _camera(rec)
-    size = image_size or (round(cam0.height * scale), round(cam0.width * scale))
+    size = image_size or (round(_camera(rec).height * scale), round(_camera(rec).width * scale))
     step = map_grid_step(*size)
     n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
     fits = {model: _fit_model(rec, model, size, scale, step, n_blocks) for model in cfg.models}
-    weights = evidence_weights(unit_log_evidence([f["errors"] for f in fits.values()]), cfg.evidence_draws, cfg.seed)
-    table = {m: {**f["row"], "weight": float(w)} for (m, f), w in zip(fits.items(), weights)}
+    rows = [f["row"] for f in fits.values()]
+    spread = dispersion([r["delta_avg_std_px"] for r in rows], [r["jackknife_std_px"] for r in rows])
+    weights = evidence_weights(unit_log_evidence([f["errors"] for f in fits.values()]) / spread, cfg.evidence_draws, cfg.seed)
+    table = {m: {**r, "weight": float(w)} for m, r, w in zip(fits, rows, weights)}
     best = max(table, key=lambda m: table[m]["weight"])
-    chosen, dl = fits[best]["rec"], fits[best]["delta"]
-    cam = _camera(chosen)
-    rows = list(table.values())
-    intervals = [tuple(max(0.0, v) for v in mixture_interval([r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] for r in rows],
-                                                             [r["weight"] for r in rows], cfg.confidence))
-                 for fig in ("delta_avg", "delta_max")]
+    chosen, dl, cam = fits[best]["rec"], fits[best]["delta"], _camera(fits[best]["rec"])
+    intervals = [tuple(max(0.0, v) for v in mixture_interval([r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] * math.sqrt(spread)
+                 for r in rows], weights, cfg.confidence)) for fig in ("delta_avg", "delta_max")]
     k2u, k4u, fit_err = _eq4_fit(cam, size, scale, step)
     half_avg = max(intervals[0][1] - dl["delta_avg_px"], dl["delta_avg_px"] - intervals[0][0])
     label, reason = None, ""
@@ -443,7 +443,7 @@ def self_calibrate_reconstruction(
         eq4_fit_error_px=fit_err, class_label=label, reason=reason, registered=chosen.num_reg_images(),
         frames=frames or chosen.num_reg_images(), points3D=chosen.num_points3D(),
         reprojection_px=table[best]["reprojection_px"], models=table, jackknife=fits[best]["jackknife"],
-        rotation_spread_deg=rotation_spread_deg(rec), paper_delta_avg_px=dc)
+        rotation_spread_deg=rotation_spread_deg(rec), paper_delta_avg_px=dc, dispersion=spread)
 
 
 def _pycolmap_copy(rec):

@@ -146,7 +146,8 @@ class TestPhaseCorrelation:
         b = torch.stack([torch.roll(a, 3, dims=1), torch.roll(a, -4, dims=0)])
         est = phase_correlation(torch.stack([a, a]), b)
         assert est.shape == (2, 2) and est.dtype == torch.float32
-        assert torch.equal(est[1:], phase_correlation(a[None], b[1:]))
+        # alone or in a batch, the same shift to float32 rounding (a batched FFT may take another kernel: AVX-512)
+        torch.testing.assert_close(est[1:], phase_correlation(a[None], b[1:]), atol=1e-6, rtol=0)
         assert phase_correlation(a[None].double(), b[:1].double()).dtype == torch.float64
 
 
