@@ -228,7 +228,7 @@ def _combine_two(direct: dict, mv: dict | None) -> dict:
                "reprojection_px": mv["reprojection_px"], "rotation_spread_deg": mv["rotation_spread_deg"],
                "camera_matrix": mv["camera_matrix"], "dist_coeffs": mv["dist_coeffs"],
                "models": mv["models"], "reconstructions": list(mv.get("reconstructions", ())),
-               "reconstruction_spread_px": mv.get("reconstruction_spread_px", 0.0)}
+               "reconstruction_spread_px": mv.get("reconstruction_spread_px", 0.0), "dispersion": mv.get("dispersion", 1.0)}
     out["multiview"] = mv_view
     if mv["class_label"] is None:  # no multi-view class: the direct answer stands, unless neither can tell
         out["method"] = "direct"

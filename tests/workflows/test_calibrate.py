@@ -60,11 +60,12 @@ def test_round_trip_distort_calibrate_undistort(sequence, tmp_path):
     assert res["delta_avg_user_px"] == pytest.approx(true, abs=0.1)
     lo, hi = res["delta_avg_user_interval"]
     assert lo <= true <= hi and res["pairs_used"] >= 6
-    # a plane under translation: COLMAP reconstructs it, but relief and distortion trade (mappings of the same
-    # matches end at 5 and at 11.3 px, each sure of itself): the multi-view path gives no class, and its
-    # interval, widened by that spread, holds the truth; the direct one answers
+    # a plane under translation: COLMAP reconstructs it, but relief and distortion trade (each mapping's RADIAL
+    # says 11-12 px, sure of itself): the blocks of frames scatter far more than its posterior allows (the
+    # dispersion, 7-9 here), the models share the evidence, and the multi-view path gives no class with an
+    # interval that holds the truth; the direct one answers
     mv = res["multiview"]
-    assert res["method"] == "direct" and mv["class"] is None and mv["reason"]
+    assert res["method"] == "direct" and mv["class"] is None and mv["reason"] and mv["dispersion"] > 2
     assert mv["delta_avg_user_interval"][0] <= true <= mv["delta_avg_user_interval"][1]
     assert res["opencv"]["fit_error_mean_px"] < 0.1 and len(res["opencv"]["dist_coeffs"]) == 5
     assert len(res["opencv_rational"]["dist_coeffs"]) == 8
