@@ -63,8 +63,8 @@ class AnalysisConfig:
             planar model in a pair's confidence: the class's mass under the planar answer times
             this, plus its mass under the plane + parallax answer times 1 - this (a prior
             probability that the scene is flat; chosen on validation pairs of three conditions,
-            docs/method.md, section 10: 0.5 since 2026-11-28, the least largest ECE with each
-            pair's relief prior from its evidence; 0.8 before). Fitted on a validation split with
+            docs/method.md, section 10: the least largest ECE with each pair's relief prior
+            from its evidence). Fitted on a validation split with
             ``selfcal_std_scale`` (least log-loss).
         relief_mass: "cannot tell" for relief where the planar and the plane + parallax
             answers fall in different classes and the plane + parallax answer gives the planar

@@ -58,7 +58,7 @@ class CalibrationConfig:
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
         parallax_px: the prior std (px) of each bump's height in those pairs (``selfcal.parallax_px``
             for the sequence path): 1 px, with which its relief figures and ``relief_rel`` were
-            measured (the single pair's default became 0.2 px on 2026-11-28).
+            measured (the single pair's default is smaller: ``selfcal.parallax_px``).
         registered_start: the pairs the pooling would not count (unregistered ones included), or
             that lie more than 3 of their own sigma from its value, are fitted again from their own registration
             (``estimate_homography_robust``: direct, then features + RANSAC; its homography even

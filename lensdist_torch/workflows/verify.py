@@ -43,7 +43,7 @@ def verdict(check: dict, count_gained: bool = True) -> str:
     falls); else "not lowered" where the correction broke registrations, "not measurable" where
     there was nothing to compare (far-apart views no homography relates).
 
-    ``count_gained`` False: the rule of files written before 2026-11-28, which did not count the
+    ``count_gained`` False: the rule of older calibration files, which did not count the
     pairs a correction registers in addition (a calibration file with that verdict still loads).
 
     Example:
