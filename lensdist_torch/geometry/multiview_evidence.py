@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from statistics import NormalDist
+from statistics import NormalDist, median
 
 import numpy as np
 
@@ -130,12 +130,8 @@ def dispersion(posterior_stds: Sequence[float], jackknife_stds: Sequence[float])
         >>> dispersion([0.04, float("inf")], [0.03, 0.3])  # a scene the posterior describes: no adjustment
         1.0
     """
-    r = sorted((j / p) ** 2 for p, j in zip(posterior_stds, jackknife_stds) if math.isfinite(p) and p > 0 and math.isfinite(j))
-    if not r:
-        return 1.0
-    mid = len(r) // 2
-    median = r[mid] if len(r) % 2 else (r[mid - 1] + r[mid]) / 2
-    return round(max(1.0, median), 12)
+    r = [(j / p) ** 2 for p, j in zip(posterior_stds, jackknife_stds) if math.isfinite(p) and p > 0 and math.isfinite(j)]
+    return round(max(1.0, median(r)), 12) if r else 1.0
 
 
 def heldout_squared_errors(train, camera, full, frame_ids: Sequence[int]) -> list[np.ndarray]:
