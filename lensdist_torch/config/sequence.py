@@ -162,12 +162,12 @@ class MultiViewConfig:
         max_halfwidth_rel: an interval half-width over this share of Delta_avg (and over
             ``max_halfwidth_px``) gives no class.
         max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
-        reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); their
-            spread of Delta_avg joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`);
-            a class needs this many mappings that registered enough frames.
-        extra_mappings: mappings tried with further seeds where some register too few frames
-            (the GoPro views: 3 of 8 seeds register 3 of 37 frames, their focal length run off
-            from a wrong initial pair, and end in about a second; the others register 28-29).
+        reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); one
+            answers, its posterior checked by its own jackknife; more: their spread of Delta_avg
+            joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`) and a class needs
+            this many mappings that registered enough frames.
+        extra_mappings: mappings tried with further seeds where one registers too few frames (a
+            wrong initial pair: the focal length runs off and the mapping ends in about a second).
         num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
             and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
         seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
@@ -232,7 +232,7 @@ class MultiViewConfig:
     confidence: float = 0.95
     max_halfwidth_rel: float = 0.25
     max_halfwidth_px: float = 1.0
-    reconstructions: int = 3
+    reconstructions: int = 1
     extra_mappings: int = 3
     num_threads: int = 2
     seed: int = 0

@@ -9,9 +9,11 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
 1. :func:`reconstruct`: COLMAP's SIFT on every frame (at most ``max_image_side`` px and
    :func:`feature_cap` features), exhaustive matching (or sequential for long videos), geometric
    verification, incremental mapping with one shared RADIAL camera whose principal point stays at
-   the frame centre (the data rarely pin it, and refining it was measured to go wrong); the
-   mapping runs ``reconstructions`` times with other seeds on the same matches (with a caller's
-   ``stop``, up to ``extra_mappings`` more where some register too few frames).
+   the frame centre (the data rarely pin it, and refining it was measured to go wrong). A frame
+   that sees too few of the 3-D points to be posed is left out: COLMAP's structure-less fallback,
+   which poses it from its 2-D matches alone, takes seconds per frame. One mapping answers
+   (``reconstructions``); with a caller's ``stop`` up to ``extra_mappings`` further seeds are
+   tried where a mapping registers too few frames (a wrong initial pair).
 2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
    adjustment on the same tracks (structure, poses, focal length and the model's distortion
    free), stopping when an iteration lowers the cost by less than ``BA_FUNCTION_TOLERANCE`` of it
@@ -20,8 +22,11 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    model's posterior of Delta from the adjustment's covariance, its evidence from predicting
    frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+); the
    model of most weight answers, the interval is the weighted mixture of their posteriors.
-   Degenerate motion (translation over relief) shows as a wide posterior. The spread between
-   reconstructions joins in quadrature (:mod:`~lensdist_torch.geometry.multiview_runs`).
+   Degenerate motion (translation over relief) shows as a wide posterior. The same folds' fits
+   are each model's jackknife, the check of its posterior: where they scatter more, the
+   posterior is widened to them (:func:`~lensdist_torch.geometry.multiview_evidence.checked_scale`).
+   With several ``reconstructions`` their spread joins in quadrature
+   (:mod:`~lensdist_torch.geometry.multiview_runs`).
 4. **In the user's pixels and OpenCV's terms**: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV and
    FULL_OPENCV are OpenCV's model with some coefficients 0, so the OpenCV camera is exact (the
    principal point moves by -0.5 px: COLMAP's pixel centres lie at +0.5). Delta is
@@ -49,6 +54,7 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.multiview_evidence import (
     camera_covariance,
+    checked_scale,
     dispersion,
     evidence_weights,
     heldout_rms,
@@ -57,7 +63,7 @@ from lensdist_torch.geometry.multiview_evidence import (
     posterior_std,
     unit_log_evidence,
 )
-from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_delta, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_delta, opencv_from_colmap, opencv_ideal_points
 from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
@@ -200,6 +206,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
             mapping = pc.IncrementalPipelineOptions()
             mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed + i, False
             mapping.ba_global_function_tolerance = mapping.ba_local_function_tolerance = BA_FUNCTION_TOLERANCE
+            mapping.structure_less_registration_fallback = False  # seconds per frame; such frames add little
             with _quiet():
                 recs = pc.incremental_mapping(db, image_dir, Path(tmp) / f"sparse{i}", options=mapping)
             out.append(max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None)
@@ -287,27 +294,6 @@ def _with_model(rec, model: str):
     return out
 
 
-def opencv_from_colmap(camera, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """COLMAP camera -> OpenCV's K (3, 3) and dist_coeffs (5 or 8), float64, in pixels scaled by ``scale``.
-
-    Exact for SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV (OpenCV's model with some
-    coefficients 0); the principal point moves by -0.5 px (COLMAP's pixel centres lie at +0.5).
-    """
-    p, name = [float(v) for v in camera.params], camera.model_name
-    if name in ("SIMPLE_RADIAL", "RADIAL"):
-        fx = fy = p[0]
-        cx, cy, extra = p[1], p[2], p[3:]
-        dist = [extra[0], extra[1] if len(extra) > 1 else 0.0, 0.0, 0.0, 0.0]
-    elif name in ("OPENCV", "FULL_OPENCV"):
-        fx, fy, cx, cy, extra = p[0], p[1], p[2], p[3], p[4:]
-        dist = extra + [0.0] if name == "OPENCV" else extra
-    else:
-        raise ValueError(f"camera model must be one of SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, got {name}")
-    k = torch.tensor([[scale * fx, 0.0, scale * cx - 0.5], [0.0, scale * fy, scale * cy - 0.5], [0.0, 0.0, 1.0]],
-                     dtype=torch.float64)
-    return k, torch.tensor(dist, dtype=torch.float64)
-
-
 def _deltas(camera, size: tuple[int, int], scale: float, step: int) -> dict:
     k, d = opencv_from_colmap(camera, scale)
     return opencv_delta(k, d, *size, step=step)
@@ -392,6 +378,7 @@ def self_calibrate_reconstruction(
     frames: int | None = None,
     image_size: tuple[int, int] | None = None,
     scale: float = 1.0,
+    on_model: Callable[[str], None] | None = None,
 ) -> MultiViewCalibration:
     """The camera's distortion from a reconstruction's tracks (module docstring, steps 2-4).
 
@@ -402,6 +389,7 @@ def self_calibrate_reconstruction(
         frames: the sequence's number of frames (default: the registered ones).
         image_size: the user's (H, W) (default: the camera's, times ``scale``).
         scale: user px per reconstruction px.
+        on_model: called with each model's name once it is fitted with its folds (a progress bar).
 
     Returns:
         :class:`MultiViewCalibration`.
@@ -414,15 +402,20 @@ def self_calibrate_reconstruction(
     size = image_size or (round(_camera(rec).height * scale), round(_camera(rec).width * scale))
     step = map_grid_step(*size)
     n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
-    fits = {model: _fit_model(rec, model, size, scale, step, n_blocks) for model in cfg.models}
+    fits = {}
+    for model in cfg.models:
+        fits[model] = _fit_model(rec, model, size, scale, step, n_blocks)
+        if on_model is not None:
+            on_model(model)
     rows = [f["row"] for f in fits.values()]
     spread = dispersion([r["delta_avg_std_px"] for r in rows], [r["jackknife_std_px"] for r in rows])
     weights = evidence_weights(unit_log_evidence([f["errors"] for f in fits.values()]) / spread, cfg.evidence_draws, cfg.seed)
     table = {m: {**r, "weight": float(w)} for m, r, w in zip(fits, rows, weights)}
     best = max(table, key=lambda m: table[m]["weight"])
     chosen, dl, cam = fits[best]["rec"], fits[best]["delta"], _camera(fits[best]["rec"])
-    intervals = [tuple(max(0.0, v) for v in mixture_interval([r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] * math.sqrt(spread)
-                 for r in rows], weights, cfg.confidence)) for fig in ("delta_avg", "delta_max")]
+    widen = [checked_scale(spread, r["delta_avg_std_px"], r["jackknife_std_px"]) for r in rows]
+    intervals = [tuple(max(0.0, v) for v in mixture_interval([r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] * math.sqrt(w)
+                 for r, w in zip(rows, widen)], weights, cfg.confidence)) for fig in ("delta_avg", "delta_max")]
     k2u, k4u, fit_err = _eq4_fit(cam, size, scale, step)
     half_avg = max(intervals[0][1] - dl["delta_avg_px"], dl["delta_avg_px"] - intervals[0][0])
     label, reason = None, ""

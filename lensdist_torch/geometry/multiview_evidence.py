@@ -51,7 +51,7 @@ from statistics import NormalDist, median
 
 import numpy as np
 
-__all__ = ["CAP", "camera_covariance", "posterior_std", "dispersion", "heldout_squared_errors", "heldout_rms", "unit_log_evidence",
+__all__ = ["checked_scale", "CAP", "camera_covariance", "posterior_std", "dispersion", "heldout_squared_errors", "heldout_rms", "unit_log_evidence",
            "evidence_weights", "mixture_interval"]
 
 #: A held-out squared error counts at most this many times its fold's median (over every model).
@@ -132,6 +132,23 @@ def dispersion(posterior_stds: Sequence[float], jackknife_stds: Sequence[float])
     """
     r = [(j / p) ** 2 for p, j in zip(posterior_stds, jackknife_stds) if math.isfinite(p) and p > 0 and math.isfinite(j)]
     return round(max(1.0, median(r)), 12) if r else 1.0
+
+
+def checked_scale(dispersion: float, posterior_std: float, jackknife_std: float) -> float:
+    """The factor on one model's posterior variance: ``dispersion``, or more where its own jackknife scatters more.
+
+    The jackknife is the check of the posterior, not the interval; where the check fails for a
+    model (its folds' fits scatter beyond the dispersion-scaled posterior: a camera whose Delta the
+    tracks leave to extrapolation), that model's variance becomes the jackknife's. A posterior
+    that is not finite or not positive stays as it is.
+
+    Example:
+        >>> round(checked_scale(2.0, 1.0, 1.2), 2), round(checked_scale(2.0, 1.0, 3.0), 2)
+        (2.0, 9.0)
+    """
+    if not (math.isfinite(posterior_std) and posterior_std > 0 and math.isfinite(jackknife_std)):
+        return dispersion
+    return max(dispersion, (jackknife_std / posterior_std) ** 2)
 
 
 def heldout_squared_errors(train, camera, full, frame_ids: Sequence[int]) -> list[np.ndarray]:

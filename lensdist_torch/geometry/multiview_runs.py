@@ -2,16 +2,14 @@
 
 COLMAP's incremental mapping is a chain of random choices (the initial pair, RANSAC for every new
 view's pose, the triangulation); on hard footage another seed registers other views and ends in
-another camera. Five runs on the same 37 GoPro views of a chessboard gave 127.4, 122.4, 119.2 px,
-nothing, and 53.0 px (truth 103.2), while each run's own jackknife interval was +-15-35 px: a
-jackknife over one reconstruction's frames cannot see that variation, and it was the largest
-error. So the mapping runs ``multiview.reconstructions`` times on the same features and matches
-(seeds ``seed``, ``seed`` + 1, ...; :func:`~lensdist_torch.geometry.multiview.reconstruct`), each
-reconstruction is self-calibrated, and :func:`combine_reconstructions`. A mapping that registers
-too few frames is no answer but a failed start (on the GoPro views seeds 1, 2 and 6 of 0-7 register
-3 frames in about a second, the focal length run off to 1600-4400 px from a wrong initial pair;
-the others 28-29 frames at 546-698 px), so up to ``multiview.extra_mappings`` further seeds are
-tried until ``reconstructions`` succeed; the failures are listed. :func:`combine_reconstructions`
+another camera. By default one mapping answers and its models' jackknife checks their posteriors
+(:mod:`~lensdist_torch.geometry.multiview_evidence`); with ``multiview.reconstructions`` above one
+the mapping runs that many times on the same features and matches (seeds ``seed``, ``seed`` + 1,
+...; :func:`~lensdist_torch.geometry.multiview.reconstruct`), each reconstruction is
+self-calibrated, and :func:`combine_reconstructions` measures the engine's variation. A mapping
+that registers too few frames is no answer but a failed start (a wrong initial pair: the focal
+length runs off and the mapping ends in about a second), so up to ``multiview.extra_mappings``
+further seeds are tried until ``reconstructions`` succeed; the failures are listed. :func:`combine_reconstructions`
 
 * answers with the median reconstruction by Delta_avg (of two in the middle, the one with more
   registered frames, then the lower reprojection RMS);

@@ -44,7 +44,8 @@ import torch
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
 __all__ = ["OpenCVCamera", "MODELS", "FOLLOWS_PX", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_distort_full", "opencv_undistort_points",
-           "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points", "map_grid_step"]
+           "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points", "map_grid_step",
+           "opencv_from_colmap"]
 
 MODELS = ("standard", "rational")
 
@@ -375,3 +376,31 @@ def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, step: int 
     if off.numel() == 0:
         return {"delta_avg_px": float("nan"), "delta_max_px": float("nan"), "invertible_fraction": 0.0}
     return {"delta_avg_px": float(off.mean()), "delta_max_px": float(off.max()), "invertible_fraction": float(ok.double().mean())}
+
+
+def opencv_from_colmap(camera, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """COLMAP camera -> OpenCV's K (3, 3) and dist_coeffs (5 or 8), float64, in pixels scaled by ``scale``.
+
+    Exact for SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV (OpenCV's model with some
+    coefficients 0); the principal point moves by -0.5 px (COLMAP's pixel centres lie at +0.5).
+    ``camera`` needs ``params`` and ``model_name`` (a ``pycolmap.Camera``).
+
+    Example:
+        >>> from types import SimpleNamespace
+        >>> k, d = opencv_from_colmap(SimpleNamespace(model_name="RADIAL", params=[500.0, 320.0, 240.0, -0.1, 0.02]))
+        >>> k[0].tolist(), d.tolist()
+        ([500.0, 0.0, 319.5], [-0.1, 0.02, 0.0, 0.0, 0.0])
+    """
+    p, name = [float(v) for v in camera.params], camera.model_name
+    if name in ("SIMPLE_RADIAL", "RADIAL"):
+        fx = fy = p[0]
+        cx, cy, extra = p[1], p[2], p[3:]
+        dist = [extra[0], extra[1] if len(extra) > 1 else 0.0, 0.0, 0.0, 0.0]
+    elif name in ("OPENCV", "FULL_OPENCV"):
+        fx, fy, cx, cy, extra = p[0], p[1], p[2], p[3], p[4:]
+        dist = extra + [0.0] if name == "OPENCV" else extra
+    else:
+        raise ValueError(f"camera model must be one of SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, got {name}")
+    k = torch.tensor([[scale * fx, 0.0, scale * cx - 0.5], [0.0, scale * fy, scale * cy - 0.5], [0.0, 0.0, 1.0]],
+                     dtype=torch.float64)
+    return k, torch.tensor(dist, dtype=torch.float64)

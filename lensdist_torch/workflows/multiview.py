@@ -67,7 +67,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         settings: the library's config (the class rule).
         max_frames: at most this many frames (None: all), of which ``multiview.mapped_frames`` evenly
             spaced (:func:`evenly_spaced`) go to COLMAP.
-        quiet: no progress bar (one step per mapping).
+        quiet: no progress bar (its stages: features and matches, each mapping, each model).
 
     Returns:
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
@@ -104,8 +104,11 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         runs, got, planar = [], 0, {}
 
         def homography_model(database: Path) -> None:  # the same matches, before any mapping
+            bar.update(1)
             if cfg.planar_terms:
+                bar.set_postfix_str("homography model")
                 planar["answer"] = planar_path(database, names, image_size, cfg, settings, folder=folder)
+            bar.set_postfix_str("mapping")
 
         def take(i: int, rec) -> bool:  # one mapping's answer; True: enough mappings succeeded
             nonlocal got
@@ -116,19 +119,23 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
             elif rec.num_points3D() == 0:
                 runs.append((cfg.seed + i, f"{n} of {len(names)} frames registered, but no 3-D point kept"))
             else:
-                runs.append((cfg.seed + i, self_calibrate_reconstruction(rec, cfg, settings, frames=len(names),
-                                                                         image_size=tuple(image_size))))
-            done = sum(not isinstance(r, str) for _, r in runs)
-            return done >= cfg.reconstructions  # failed mappings are retried with further seeds
-
-        with tqdm(total=cfg.reconstructions, disable=quiet, desc="mappings", unit="mapping", leave=False) as bar:
-            def step(i: int, rec) -> bool:  # features and matches come first, within the first step
-                done = take(i, rec)
-                bar.total = max(bar.total, len(runs) + (0 if done else 1))
                 bar.update(1)
-                return done
+                bar.set_postfix_str(f"{n} of {len(names)} frames registered, models")
+                runs.append((cfg.seed + i, self_calibrate_reconstruction(
+                    rec, cfg, settings, frames=len(names), image_size=tuple(image_size), on_model=model_done)))
+                return sum(not isinstance(r, str) for _, r in runs) >= cfg.reconstructions
+            bar.total += 1  # a failed mapping: another seed (reconstruct's extra_mappings)
+            bar.update(1)
+            return False
 
-            reconstruct(folder, names, cfg, stop=step, image_size=tuple(image_size), on_matches=homography_model)
+        def model_done(model: str) -> None:
+            bar.update(1)
+            bar.set_postfix_str(f"{model} fitted")
+
+        stages = 1 + cfg.reconstructions * (1 + len(cfg.models))  # features and matches, then per mapping
+        with tqdm(total=stages, disable=quiet, desc=f"multi-view, {len(names)} frames", unit="stage", leave=False) as bar:
+            bar.set_postfix_str("features and matches")
+            reconstruct(folder, names, cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model)
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "

@@ -36,7 +36,7 @@ def test_spread_joins_the_interval_in_quadrature_by_hand():
     assert widened_interval(100.0, (90.0, 110.0), 4.0, Z) == pytest.approx((87.293, 112.707), abs=1e-3)
     # a lopsided mixture keeps its sides: 100 (-12, +3), spread 4: sqrt(144 + 61.466), sqrt(9 + 61.466)
     assert widened_interval(100.0, (88.0, 103.0), 4.0, Z) == pytest.approx((85.666, 108.394), abs=1e-3)
-    res = combine_reconstructions(runs)
+    res = combine_reconstructions(runs, THREE)
     assert res.delta_avg_user_px == 100.0 and res.reconstruction_spread_px == 4.0  # the median answers
     assert res.delta_avg_user_interval == pytest.approx((87.293, 112.707), abs=1e-3)
     # Delta_max: 200 +- 20, spread 8: sqrt(400 + (1.96 * 8)^2) = 25.414
@@ -59,7 +59,7 @@ def test_reconstructions_that_disagree_beyond_their_intervals_cannot_tell():
     """The GoPro views' runs of 2026-11-24 (truth 103.2 px): 122.4 [107.3, 137.5] alone was confidently wrong."""
     runs = [(0, _cal(122.4, 107.3, 137.5)), (1, _cal(53.0, 17.9, 88.2, label=None, reason="interval too wide: +-35.15 px")),
             (2, _cal(119.2, 61.2, 177.3, label=None, reason="interval too wide: +-58.05 px"))]
-    res = combine_reconstructions(runs)
+    res = combine_reconstructions(runs, THREE)
     assert res.class_label is None and res.delta_avg_user_px == 119.2
     assert res.reason.startswith("the reconstructions disagree beyond their intervals (seed 0 122.40 px [107.30, 137.50]")
     lo, hi = res.delta_avg_user_interval
@@ -67,26 +67,29 @@ def test_reconstructions_that_disagree_beyond_their_intervals_cannot_tell():
     assert hi - 119.2 == pytest.approx(math.hypot(58.1, Z * 66.2), abs=1e-9)
 
 
+THREE = MultiViewConfig(reconstructions=3)  # the engine's variation measured over three mappings
+
+
 def test_too_few_reconstructions_cannot_tell_and_a_median_of_two_prefers_more_views():
     res = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0)), (1, "5 of 37 frames registered"),
-                                   (2, "0 of 37 frames registered")])
+                                   (2, "0 of 37 frames registered")], THREE)
     assert res.class_label is None and res.reason.startswith("only 1 of 3 reconstructions succeeded (3 needed)")
     assert "seed 1: 5 of 37 frames registered" in res.reason and res.reconstructions[1] == {"seed": 1, "failed": "5 of 37 frames registered"}
-    two = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0, registered=20)), (1, _cal(102.0, 97.0, 107.0, registered=30))])
+    two = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0, registered=20)), (1, _cal(102.0, 97.0, 107.0, registered=30))], THREE)
     assert two.delta_avg_user_px == 102.0 and two.reconstruction_spread_px == 2.0
     with pytest.raises(ValueError, match="at least one successful reconstruction"):
-        combine_reconstructions([(0, "0 of 37 frames registered")])
+        combine_reconstructions([(0, "0 of 37 frames registered")], THREE)
 
 
 def test_failed_starts_beside_enough_successes_keep_the_class_and_are_listed():
     # the GoPro views' seeds 0-4: 1 and 2 register 3 of 37 frames; 0, 3 and 4 answer
     runs = [(0, _cal(100.0, 90.0, 110.0)), (1, "3 of 37 frames registered"), (2, "3 of 37 frames registered"),
             (3, _cal(98.0, 88.0, 108.0)), (4, _cal(103.0, 93.0, 113.0))]
-    res = combine_reconstructions(runs)
+    res = combine_reconstructions(runs, THREE)
     assert res.class_label == "4" and res.delta_avg_user_px == 100.0 and res.reconstruction_spread_px == 3.0
     assert [r.get("failed") for r in res.reconstructions] == [None, "3 of 37 frames registered",
                                                               "3 of 37 frames registered", None, None]
-    short = combine_reconstructions(runs[:4])  # two successes of three needed
+    short = combine_reconstructions(runs[:4], THREE)  # two successes of three needed
     assert short.class_label is None and short.reason.startswith("only 2 of 4 reconstructions succeeded (3 needed)")
 
 

@@ -65,21 +65,26 @@ def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
     # the GoPro views: seeds 1 and 2 stop at 3 views in about a second; 0, 3 and 4 answer, seed 5 never runs
     ok = [_cal(d, 30.0, label="3", reason="")._replace(delta_avg_user_interval=(d - 1, d + 1)) for d in (8.0, 8.4, 7.8, 99.0)]
     calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 0, ok[1], ok[2], ok[3]])
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 5 and res["ok"] and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.0
     assert [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3, 4]
     assert res["reconstructions"][1] == {"seed": 1, "failed": "3 of 22 frames registered"}
     assert res["reconstructions"][2] == {"seed": 2, "failed": "0 of 22 frames registered"}
     # all six tries run, two succeed: no class, the failures named
     calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 3, 3, 3, ok[1]])
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 6 and res["class_label"] is None
     assert res["reason"].startswith("only 2 of 6 reconstructions succeeded (3 needed)") and "seed 4: 3 of 22" in res["reason"]
     # a slow pan after a failed start: the three successes run (no mapping is skipped for the motion)
     calls = _fake_colmap(monkeypatch, tmp_path, [3, _cal(12.3, 2.4), _cal(12.2, 2.4), _cal(13.0, 2.3)])
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 4 and [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3]
     assert res["class_label"] is None and res["reason"].startswith("interval too wide")
+    # the default: one mapping answers, after failed starts
+    calls = _fake_colmap(monkeypatch, tmp_path, [3, 0, ok[1], ok[0]])
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    assert calls["mappings"] == 3 and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.4
+    assert res["reconstruction_spread_px"] == 0.0 and tuple(res["delta_avg_user_interval"]) == (7.4, 9.4)
 
 
 def test_evenly_spaced_frames_by_hand_and_their_properties():
@@ -121,7 +126,7 @@ def test_every_mapping_runs_whatever_the_camera_turned(monkeypatch, tmp_path, ro
     runs = [_cal(d, r, label="3", reason="")._replace(delta_avg_user_interval=(d - 0.5, d + 0.5))
             for d, r in zip((12.3, 12.24, 13.02), rotations)]
     calls = _fake_colmap(monkeypatch, tmp_path, runs)
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 3 and [r["seed"] for r in res["reconstructions"]] == [0, 1, 2]
     assert res["delta_avg_user_px"] == 12.3 and res["reconstruction_spread_px"] == pytest.approx(0.72)
     half = res["delta_avg_user_interval"][1] - 12.3  # sqrt(0.5^2 + (1.96 0.72)^2): the spread widens it
