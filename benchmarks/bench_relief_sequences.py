@@ -90,7 +90,8 @@ def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = 
     if est is None:
         est = res.get("estimated_delta_avg_user_px", res.get("estimated_delta_avg"))
     interval = res.get("delta_avg_user_interval")
-    covered = None if not interval or interval[0] is None else bool(interval[0] <= truth <= interval[1])
+    covered = None if not interval or interval[0] is None else bool(  # an upper end of None: unbounded (strict JSON)
+        interval[0] <= truth <= (math.inf if interval[1] is None else interval[1]))
     cls = res.get("class")
     return {**spec, "truth_delta_avg": truth, "true_class": true_class, "estimate": est, "interval": interval,
             "covered": covered, "class": cls, "reason": res.get("reason"), "method": res.get("method"),
@@ -104,8 +105,12 @@ def _path_summary(part: dict | None) -> dict | None:
     """One path's own answer (class, Delta_avg, interval, reason) as calibrate_path reports it."""
     if not part:
         return None
-    return {k: part.get(k) for k in ("class", "delta_avg_user_px", "delta_avg_user_interval", "reason", "model",
-                                      "rotation_spread_deg", "registered") if k in part}
+    out = {k: part.get(k) for k in ("class", "delta_avg_user_px", "delta_avg_user_interval", "reason", "model",
+                                     "rotation_spread_deg", "registered", "dispersion") if k in part}
+    if part.get("models"):  # the multi-view comparison: each candidate's Delta_avg, weight and held-out RMS
+        out["models"] = {m: {k: v.get(k) for k in ("delta_avg_px", "delta_avg_std_px", "weight", "elpd", "heldout_rms_px")}
+                         for m, v in part["models"].items()}
+    return out
 
 
 def summary(rows: list[dict]) -> dict:

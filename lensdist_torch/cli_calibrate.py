@@ -80,7 +80,9 @@ def _print_calibration(res: dict) -> None:
     tag = "" if res["class"] is not None else "estimate, not an answer: "
     print(f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}")
     for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
-        print(f"{tag}Delta_{name} = {d:.2f} px" + ("" if a is None else f" (95 % interval {a:.2f} to {b:.2f})"))
+        bound = "" if a is None else (f" (95 % interval {a:.2f} to {b:.2f})" if b is not None else
+                                      f" (95 % interval from {a:.2f}, no upper bound: a model the tracks do not determine)")
+        print(f"{tag}Delta_{name} = {d:.2f} px" + bound)
     if res.get("eq4_fit_error_px") is not None:
         print(f"Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where the lens model inverts; eq. 4 "
               f"follows it to {res['eq4_fit_error_px']:.2f} px RMS")

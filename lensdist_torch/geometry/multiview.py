@@ -20,12 +20,17 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    (Ceres' default; COLMAP's 0 crawled along the valley of a poorly conditioned camera).
 3. **Which model, and how sure** (:mod:`~lensdist_torch.geometry.multiview_evidence`): each
    model's posterior of Delta from the adjustment's covariance, its evidence from predicting
-   frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+); the
-   model of most weight answers, the interval is the weighted mixture of their posteriors.
-   Degenerate motion (translation over relief) shows as a wide posterior. The same folds' fits
-   are each model's jackknife, the check of its posterior: where they scatter more, the
-   posterior is widened to them (:func:`~lensdist_torch.geometry.multiview_evidence.checked_scale`).
-   With several ``reconstructions`` their spread joins in quadrature
+   frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+). Other
+   cameras (``others``, e.g. another path's answer) can be held on the same tracks and scored on
+   the same folds (:func:`~lensdist_torch.geometry.multiview_fits.fit_held_camera`); ``lensdist
+   calibrate`` does not pass them (docs/method.md, section 11, says what that gave). The
+   candidate of the highest expected log predictive density answers, the interval is the
+   weighted mixture of all their posteriors; a model whose posterior is unbounded (one the
+   tracks do not determine) gets no weight. Degenerate motion
+   (translation over relief) shows as a wide posterior. The same folds' fits are each model's
+   jackknife, the check of its posterior: where they scatter more, the posterior is widened to
+   them (:func:`~lensdist_torch.geometry.multiview_evidence.checked_scale`). With several
+   ``reconstructions`` their spread joins in quadrature
    (:mod:`~lensdist_torch.geometry.multiview_runs`).
 4. **In the user's pixels and OpenCV's terms**: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV and
    FULL_OPENCV are OpenCV's model with some coefficients 0, so the OpenCV camera is exact (the
@@ -37,47 +42,43 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
 
 from __future__ import annotations
 
-import contextlib
-import copy
 import math
-import os
-import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
+from statistics import NormalDist
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
-from lensdist_torch.geometry.multiview_evidence import (
-    camera_covariance,
-    checked_scale,
-    dispersion,
-    evidence_weights,
-    heldout_rms,
-    heldout_squared_errors,
-    mixture_interval,
-    posterior_std,
-    unit_log_evidence,
+from lensdist_torch.geometry.multiview_evidence import checked_scale, dispersion, evidence_weights, mixture_interval, unit_log_evidence
+from lensdist_torch.geometry.multiview_fits import (
+    BA_FUNCTION_TOLERANCE,
+    camera_of,
+    fit_held_camera,
+    fit_model,
+    held_camera,
+    pycolmap_or_error,
+    quiet_log,
+    rotation_spread_deg,
 )
-from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_delta, opencv_from_colmap, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_from_colmap, opencv_ideal_points
 from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
            "rotation_spread_deg", "BA_FUNCTION_TOLERANCE"]
 
-#: Relative cost decrease below which a bundle adjustment stops (module docstring, step 2).
-BA_FUNCTION_TOLERANCE = 1e-6
-
 
 class MultiViewCalibration(NamedTuple):
     """The result of :func:`self_calibrate_reconstruction`, in the user's pixels; NaN where unknown.
 
-    model: the COLMAP model of most evidence; camera_matrix (3, 3) and dist_coeffs (5 or 8, OpenCV's
-    order) its exact OpenCV camera; delta_avg_user_px, delta_max_user_px over the pixels where
+    model: the COLMAP model of most evidence, or the other path that predicts the held-out frames
+    best (a name of ``others``); camera_matrix (3, 3) and dist_coeffs (5 or 8, OpenCV's
+    order) its OpenCV camera (a COLMAP model's exactly); delta_avg_user_px, delta_max_user_px over the pixels where
     the model inverts (``invertible_fraction`` of them), with ``confidence`` intervals;
     k2_user, k4_user: eq. 4 fitted to the camera, ``eq4_fit_error_px`` its RMS error;
     class_label or None with ``reason``; registered of ``frames``; points3D; reprojection_px
@@ -119,34 +120,6 @@ class MultiViewCalibration(NamedTuple):
     reconstruction_spread_px: float = 0.0
     paper_delta_avg_px: float = math.nan
     dispersion: float = 1.0
-
-
-def pycolmap_or_error():
-    """The ``pycolmap`` module, or a one-line ``ValueError`` saying how to install it."""
-    try:
-        import pycolmap
-    except ImportError:
-        raise ValueError("the multi-view calibration needs pycolmap (COLMAP's Python bindings): pip install pycolmap, "
-                         "or --method direct") from None
-    return pycolmap
-
-
-@contextlib.contextmanager
-def _quiet():
-    """COLMAP's log (glog, written to file descriptor 2 from C++) sent to the null device meanwhile.
-
-    Its progress and its solver's warnings (thousands of lines on ill-conditioned models) would
-    bury the answer; what fails reaches the caller as a missing reconstruction or a reason.
-    """
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
 
 
 # ------------------------------------------------------------------ the reconstruction
@@ -207,7 +180,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
             mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed + i, False
             mapping.ba_global_function_tolerance = mapping.ba_local_function_tolerance = BA_FUNCTION_TOLERANCE
             mapping.structure_less_registration_fallback = False  # seconds per frame; such frames add little
-            with _quiet():
+            with quiet_log():
                 recs = pc.incremental_mapping(db, image_dir, Path(tmp) / f"sparse{i}", options=mapping)
             out.append(max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None)
             if stop is not None and stop(i, out[-1]):
@@ -234,7 +207,7 @@ def extract_and_match(database: str | Path, image_dir: str | Path, names: list[s
     matching.num_threads, matching.use_gpu = cfg.num_threads, False
     verification = pc.TwoViewGeometryOptions()
     verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
-    with _quiet():
+    with quiet_log():
         pc.extract_features(database, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
                             reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
         if len(names) <= cfg.exhaustive_below:
@@ -246,128 +219,39 @@ def extract_and_match(database: str | Path, image_dir: str | Path, names: list[s
                                 verification_options=verification, device=pc.Device.cpu)
 
 
-# ------------------------------------------------------------------ models on the tracks
-def _camera(rec):
-    cams = list(rec.cameras.values())
-    if len(cams) != 1:
-        raise ValueError(f"reconstruction must hold one shared camera, got {len(cams)}")
-    return cams[0]
-
-
-def _rss(rec) -> tuple[float, int]:
-    """Sum of squared reprojection errors (px^2) and the number of observations."""
-    import numpy as np
-
-    cam, ss, n = _camera(rec), 0.0, 0
-    for image_id in rec.reg_image_ids():
-        image = rec.image(image_id)
-        obs = [(p.xy, rec.point3D(p.point3D_id).xyz) for p in image.points2D if p.has_point3D()]
-        if not obs:
-            continue
-        xy, xyz = np.array([o[0] for o in obs]), np.array([o[1] for o in obs])
-        proj = cam.img_from_cam(image.cam_from_world() * xyz)
-        ss, n = ss + float(np.nansum((proj - xy) ** 2)), n + len(obs)
-    return ss, n
-
-
-def _adjust(rec) -> None:
-    pc = pycolmap_or_error()
-    options = pc.BundleAdjustmentOptions()
-    options.refine_principal_point, options.print_summary = False, False
-    options.ceres.solver_options.function_tolerance = BA_FUNCTION_TOLERANCE
-    with _quiet():
-        pc.bundle_adjustment(rec, options)
-
-
-def _with_model(rec, model: str):
-    """A copy of ``rec`` whose camera is ``model`` (focal and the first radial terms carried over), adjusted."""
-    pc = pycolmap_or_error()
-    out, cam = _pycolmap_copy(rec), _camera(rec)
-    new = pc.Camera.create_from_model_name(cam.camera_id, model, cam.mean_focal_length(), cam.width, cam.height)
-    params = new.params.copy()
-    old_extra, new_extra = list(cam.extra_params_idxs()), list(new.extra_params_idxs())
-    for i, j in zip(old_extra[:2], new_extra[:2]):  # k1 (and k2) mean the same in every model here
-        params[j] = cam.params[i]
-    new.params = params
-    out.cameras[cam.camera_id] = new
-    _adjust(out)
-    return out
-
-
-def _deltas(camera, size: tuple[int, int], scale: float, step: int) -> dict:
-    k, d = opencv_from_colmap(camera, scale)
-    return opencv_delta(k, d, *size, step=step)
-
-
-def _eq4_fit(camera, size: tuple[int, int], scale: float, step: int) -> tuple[float, float, float]:
-    """Eq. 4's (k2, k4) about the frame centre fitted to the camera's ideal points, and the RMS error (px)."""
+def _eq4_fit(k: torch.Tensor, d: torch.Tensor, size: tuple[int, int], step: int) -> tuple[float, float, float]:
+    """Eq. 4's (k2, k4) about the frame centre fitted to an OpenCV camera's ideal points, and the RMS error (px)."""
     h, w = size
-    k, d = opencv_from_colmap(camera, scale)
     p = grid_points(h, w, step)
     ideal, ok = opencv_ideal_points(p, k, d)
     return fit_eq4(p[ok], ideal[ok], h, w)
 
 
-def rotation_spread_deg(rec) -> float:
-    """The largest rotation (degrees) between two registered frames' orientations.
+def _other_rows(rec, others: dict, fits: dict, scale: float, n_blocks: int, confidence: float) -> dict:
+    """Other paths' cameras held on the tracks (:func:`~lensdist_torch.geometry.multiview_fits.fit_held_camera`).
 
-    Under translation alone a relief of the scene imitates radial distortion however many
-    frames there are (docs/method.md, section 11): the bundle adjustment then has a valley, not
-    a minimum, and every jackknife replicate stops at the same point of it.
+    At the focal length of the COLMAP model that predicts the held-out frames best; each path's
+    own Delta with its own interval as a normal std. A path without a finite answer is left out.
     """
-    import numpy as np
-
-    rots = np.stack([rec.image(i).cam_from_world().rotation.matrix() for i in rec.reg_image_ids()])
-    rel = np.einsum("aij,bkj->abik", rots, rots)  # R_a R_b^T
-    cos = np.clip((np.trace(rel, axis1=2, axis2=3) - 1) / 2, -1.0, 1.0)
-    return float(np.degrees(np.arccos(cos.min())))
-
-
-def _blocks(rec, n_blocks: int) -> list[list[int]]:
-    """Registered frame ids in contiguous blocks by image name (recording order)."""
-    images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
-    n = len(images)
-    return [[im.frame_id for im in images[g * n // n_blocks:(g + 1) * n // n_blocks]] for g in range(n_blocks)]
-
-
-def _fit_model(rec, model: str, size: tuple[int, int], scale: float, step: int, n_blocks: int) -> dict:
-    """One model on ``rec``'s tracks: its adjustment, posterior, delete-a-block fits and held-out errors."""
-    import numpy as np
-
-    r = _with_model(rec, model)
-    ss, n = _rss(r)
-    cam = _camera(r)
-    km, dm = opencv_from_colmap(cam, scale)
-    dl = opencv_delta(km, dm, *size, step=step)
-
-    def measure(params):  # Delta_avg and Delta_max of the camera with other intrinsics, on a grid 16 times coarser
-        c = copy.copy(cam)  # (their gradient and the folds' spread need no finer one)
-        c.params = params
-        d = _deltas(c, size, scale, 4 * step)
-        return d["delta_avg_px"], d["delta_max_px"]
-
-    with _quiet():
-        cov = camera_covariance(r, cam.camera_id, ss, n)
-    fixed = set(cam.principal_point_idxs())
-    std_avg, std_max = posterior_std(list(cam.params), [i for i in range(len(cam.params)) if i not in fixed], cov, measure)
-    jk_avg, jk_max, errors = [], [], []
-    for block in _blocks(r, n_blocks):
-        train = _pycolmap_copy(r)
-        for frame_id in block:
-            train.deregister_frame(frame_id)
-        _adjust(train)
-        d = measure(np.asarray(_camera(train).params, dtype=float))
-        jk_avg.append(d[0])
-        jk_max.append(d[1])
-        errors.append(heldout_squared_errors(train, _camera(train), r, block))
-    jk_std = math.sqrt((len(jk_avg) - 1) / len(jk_avg) * float(np.sum((np.asarray(jk_avg) - np.mean(jk_avg)) ** 2)))
-    k = len(cam.params) - 2  # the principal point is held
-    return {"rec": r, "delta": dl, "errors": errors, "jackknife": jk_avg, "row": {
-        "bic": 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n), "delta_avg_px": dl["delta_avg_px"],
-        "delta_avg_std_px": std_avg, "delta_max_px": dl["delta_max_px"], "delta_max_std_px": std_max,
-        "jackknife_std_px": jk_std, "reprojection_px": math.sqrt(ss / max(n, 1)),
-        "heldout_rms_px": heldout_rms([e for fold in errors for e in fold]),
-        "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist()}}
+    z = NormalDist().inv_cdf(0.5 + confidence / 2)
+    ranked = min(fits, key=lambda m: fits[m]["row"]["heldout_rms_px"])
+    base = camera_of(fits[ranked]["rec"])
+    out = {}
+    for name, o in others.items():
+        values = [o.get(k) for k in ("delta_avg_user_px", "delta_max_user_px")]
+        ivs = [o.get(k) for k in ("delta_avg_user_interval", "delta_max_user_interval")]
+        if not all(v is not None and math.isfinite(v) for v in values) or any(iv is None or None in iv for iv in ivs):
+            continue
+        cam = held_camera(o["camera_matrix"], o["dist_coeffs"], base.mean_focal_length(), base.camera_id, base.width,
+                          base.height, scale)
+        fit = fit_held_camera(rec, cam, n_blocks)
+        stds = [max(hi - v, v - lo) / z for v, (lo, hi) in zip(values, ivs)]
+        out[name] = {**fit, "row": {"path": name, "delta_avg_px": values[0], "delta_avg_std_px": stds[0],
+                                    "delta_max_px": values[1], "delta_max_std_px": stds[1],
+                                    "reprojection_px": fit["reprojection_px"], "heldout_rms_px": fit["heldout_rms_px"],
+                                    "invertible_fraction": o.get("invertible_fraction", 1.0),
+                                    "camera_matrix": [list(r) for r in o["camera_matrix"]], "dist_coeffs": list(o["dist_coeffs"])}}
+    return out
 
 
 def self_calibrate_reconstruction(
@@ -378,6 +262,7 @@ def self_calibrate_reconstruction(
     frames: int | None = None,
     image_size: tuple[int, int] | None = None,
     scale: float = 1.0,
+    others: dict[str, dict] | None = None,
     on_model: Callable[[str], None] | None = None,
 ) -> MultiViewCalibration:
     """The camera's distortion from a reconstruction's tracks (module docstring, steps 2-4).
@@ -389,6 +274,11 @@ def self_calibrate_reconstruction(
         frames: the sequence's number of frames (default: the registered ones).
         image_size: the user's (H, W) (default: the camera's, times ``scale``).
         scale: user px per reconstruction px.
+        others: other cameras' answers (another path's), weighed on the same held-out frames with
+            their cameras held (step 3): per name a dict with ``camera_matrix`` (3, 3) and ``dist_coeffs`` (OpenCV's 5
+            or 8, in the user's pixels), ``delta_avg_user_px``, ``delta_max_user_px`` and their
+            ``_interval``s (read as normal at ``confidence``); a path that wins answers with its own
+            numbers and camera.
         on_model: called with each model's name once it is fitted with its folds (a progress bar).
 
     Returns:
@@ -399,24 +289,38 @@ def self_calibrate_reconstruction(
         raise ValueError(f"rec must hold at least 3 registered frames, got {rec.num_reg_images()}")
     if rec.num_points3D() == 0:  # a mapping can register frames and keep no point (tiny frames)
         raise ValueError(f"rec must hold 3-D points, got none ({rec.num_reg_images()} frames registered)")
-    size = image_size or (round(_camera(rec).height * scale), round(_camera(rec).width * scale))
+    size = image_size or (round(camera_of(rec).height * scale), round(camera_of(rec).width * scale))
     step = map_grid_step(*size)
     n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
     fits = {}
     for model in cfg.models:
-        fits[model] = _fit_model(rec, model, size, scale, step, n_blocks)
+        fits[model] = fit_model(rec, model, size, scale, step, n_blocks)
         if on_model is not None:
             on_model(model)
     rows = [f["row"] for f in fits.values()]
     spread = dispersion([r["delta_avg_std_px"] for r in rows], [r["jackknife_std_px"] for r in rows])
-    weights = evidence_weights(unit_log_evidence([f["errors"] for f in fits.values()]) / spread, cfg.evidence_draws, cfg.seed)
-    table = {m: {**r, "weight": float(w)} for m, r, w in zip(fits, rows, weights)}
-    best = max(table, key=lambda m: table[m]["weight"])
-    chosen, dl, cam = fits[best]["rec"], fits[best]["delta"], _camera(fits[best]["rec"])
     widen = [checked_scale(spread, r["delta_avg_std_px"], r["jackknife_std_px"]) for r in rows]
+    held = _other_rows(rec, others or {}, fits, scale, n_blocks, cfg.confidence)
+    fits, rows, widen = {**fits, **held}, rows + [h["row"] for h in held.values()], widen + [1.0] * len(held)
+    lpd = unit_log_evidence([f["errors"] for f in fits.values()]) / spread
+    # a model the tracks do not determine (a posterior without bound) is one the data cannot carry: no weight
+    carried = np.array([math.isfinite(r["delta_avg_std_px"]) for r in rows]) if any(
+        math.isfinite(r["delta_avg_std_px"]) for r in rows) else np.ones(len(rows), dtype=bool)
+    weights = np.zeros(len(rows))
+    weights[carried] = evidence_weights(lpd[carried], cfg.evidence_draws, cfg.seed)
+    table = {m: {**r, "weight": float(w), "elpd": float(e)} for m, r, w, e in zip(fits, rows, weights, lpd.sum(axis=1))}
+    best = max((m for m, c in zip(table, carried) if c), key=lambda m: table[m]["elpd"])  # near-twins split weight, not elpd
     intervals = [tuple(max(0.0, v) for v in mixture_interval([r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] * math.sqrt(w)
                  for r, w in zip(rows, widen)], weights, cfg.confidence)) for fig in ("delta_avg", "delta_max")]
-    k2u, k4u, fit_err = _eq4_fit(cam, size, scale, step)
+    if best in held:
+        row = table[best]
+        k, d = torch.tensor(row["camera_matrix"], dtype=torch.float64), torch.tensor(row["dist_coeffs"], dtype=torch.float64)
+        dl = {"delta_avg_px": row["delta_avg_px"], "delta_max_px": row["delta_max_px"],
+              "invertible_fraction": row["invertible_fraction"]}
+    else:
+        k, d = opencv_from_colmap(camera_of(fits[best]["rec"]), scale)
+        dl = fits[best]["delta"]
+    k2u, k4u, fit_err = _eq4_fit(k, d, size, step)
     half_avg = max(intervals[0][1] - dl["delta_avg_px"], dl["delta_avg_px"] - intervals[0][0])
     label, reason = None, ""
     dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
@@ -427,7 +331,7 @@ def self_calibrate_reconstruction(
                                                                table[best]["weight"] <= 0.95 else "")
     else:
         label, reason = sequence_class(dc, dl["delta_avg_px"], half_avg, st)
-    k, d = opencv_from_colmap(cam, scale)
+    chosen = fits[next(iter(cfg.models))]["rec"]
     return MultiViewCalibration(
         model=best, camera_matrix=k.tolist(),
         dist_coeffs=(d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),
@@ -435,9 +339,5 @@ def self_calibrate_reconstruction(
         delta_max_user_interval=intervals[1], invertible_fraction=dl["invertible_fraction"], k2_user=k2u, k4_user=k4u,
         eq4_fit_error_px=fit_err, class_label=label, reason=reason, registered=chosen.num_reg_images(),
         frames=frames or chosen.num_reg_images(), points3D=chosen.num_points3D(),
-        reprojection_px=table[best]["reprojection_px"], models=table, jackknife=fits[best]["jackknife"],
+        reprojection_px=table[best]["reprojection_px"], models=table, jackknife=fits[best].get("jackknife", []),
         rotation_spread_deg=rotation_spread_deg(rec), paper_delta_avg_px=dc, dispersion=spread)
-
-
-def _pycolmap_copy(rec):
-    return pycolmap_or_error().Reconstruction(rec)

@@ -164,6 +164,47 @@ def _spread_synthetic(seed, frames=8, noise=0.5):
     return rec, truth["delta_avg_px"]
 
 
+def test_a_held_camera_keeps_the_paths_lens_map_at_any_focal_length():
+    from lensdist_torch.geometry.multiview_fits import held_camera
+    from lensdist_torch.geometry.opencv_model import opencv_ideal_points
+
+    k = torch.tensor([[400.0, 0, 319.5], [0, 404.0, 239.5], [0, 0, 1]], dtype=torch.float64)
+    d = torch.tensor([-0.3, 0.1, 1e-3, -2e-3, -0.02, 0.05, 0.01, 0.002], dtype=torch.float64)
+    p = torch.rand(400, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * torch.tensor([639.0, 479.0])
+    want, ok = opencv_ideal_points(p, k, d)
+    for focal in (250.0, 600.0, 1500.0):  # COLMAP's focal differs from the path's convention: the map stays
+        cam = held_camera(k.tolist(), d.tolist(), focal, 1, 640, 480)
+        got, ok2 = opencv_ideal_points(p, *opencv_from_colmap(cam))
+        assert cam.model_name == "FULL_OPENCV" and cam.params[0] == focal and bool((ok == ok2).all())
+        assert float((got - want)[ok].abs().max()) < 1e-9
+    half = held_camera(k.tolist(), d.tolist(), 300.0, 1, 320, 240, scale=2.0)  # a reconstruction at half the size
+    assert float((opencv_ideal_points(p, *opencv_from_colmap(half, 2.0))[0] - want)[ok].abs().max()) < 1e-9
+
+
+def test_other_paths_cameras_are_weighed_on_the_same_held_out_frames():
+    # the synthetic RADIAL scene with two other paths' answers: its own lens and one with k1 doubled. Held on the
+    # tracks, the true lens predicts the held-out frames as well as the free models; the wrong one takes no weight
+    rec, _ = _spread_synthetic(1)
+    cam = next(iter(rec.cameras.values()))
+    k, d = opencv_from_colmap(cam)
+    wrong = d.clone()
+    wrong[0] *= 2
+    def other(dist):
+        delta = opencv_delta(k, dist, 480, 640, step=map_grid_step(480, 640))
+        return {"camera_matrix": k.tolist(), "dist_coeffs": dist.tolist(), "delta_avg_user_px": delta["delta_avg_px"],
+                "delta_avg_user_interval": (delta["delta_avg_px"] - 0.5, delta["delta_avg_px"] + 0.5),
+                "delta_max_user_px": delta["delta_max_px"],
+                "delta_max_user_interval": (delta["delta_max_px"] - 1, delta["delta_max_px"] + 1)}
+    res = self_calibrate_reconstruction(rec, MultiViewConfig(models=("RADIAL",), jackknife_blocks=4),
+                                        others={"own lens": other(d), "k1 doubled": other(wrong)})
+    rows = res.models
+    assert rows["k1 doubled"]["weight"] < 0.01 and rows["k1 doubled"]["heldout_rms_px"] > 3 * rows["RADIAL"]["heldout_rms_px"]
+    assert rows["own lens"]["heldout_rms_px"] == pytest.approx(rows["RADIAL"]["heldout_rms_px"], rel=0.1)
+    assert rows["own lens"]["path"] == "own lens" and sum(v["weight"] for v in rows.values()) == pytest.approx(1.0)
+    if res.model == "own lens":  # the winner answers with its own numbers and camera
+        assert res.delta_avg_user_px == rows["own lens"]["delta_avg_px"] and res.dist_coeffs == d.tolist()
+
+
 def test_the_posterior_std_of_delta_is_the_spread_of_the_estimates_over_noise_draws():
     # an independent check of the bundle adjustment's covariance carried to Delta_avg: the same scene, eight
     # draws of 0.5 px noise; the std over the draws against the mean posterior std, and the 95 % intervals

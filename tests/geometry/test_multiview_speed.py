@@ -135,10 +135,11 @@ def test_every_mapping_runs_whatever_the_camera_turned(monkeypatch, tmp_path, ro
 
 def test_bundle_adjustments_stop_at_ceres_default_tolerance(monkeypatch):
     pycolmap = pytest.importorskip("pycolmap")
-    from lensdist_torch.geometry import multiview
+    from lensdist_torch.geometry.multiview_fits import adjust
 
     seen = []
-    monkeypatch.setattr(pycolmap, "bundle_adjustment",
-                        lambda rec, options: seen.append(options.ceres.solver_options.function_tolerance))
-    multiview._adjust(object())
-    assert seen == [BA_FUNCTION_TOLERANCE] == [1e-6]
+    monkeypatch.setattr(pycolmap, "bundle_adjustment", lambda rec, options: seen.append(
+        (options.ceres.solver_options.function_tolerance, options.refine_focal_length, options.refine_extra_params)))
+    adjust(object())
+    adjust(object(), held=True)  # another path's camera held: only the structure and the poses move
+    assert seen == [(BA_FUNCTION_TOLERANCE, True, True), (BA_FUNCTION_TOLERANCE, False, False)] and BA_FUNCTION_TOLERANCE == 1e-6
