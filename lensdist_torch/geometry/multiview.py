@@ -55,7 +55,13 @@ import torch
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
-from lensdist_torch.geometry.multiview_evidence import checked_scale, dispersion, evidence_weights, mixture_interval, unit_log_evidence
+from lensdist_torch.geometry.multiview_evidence import (
+    checked_scale,
+    dispersion,
+    evidence_weights,
+    mixture_interval,
+    unit_log_evidence,
+)
 from lensdist_torch.geometry.multiview_fits import (
     BA_FUNCTION_TOLERANCE,
     camera_of,

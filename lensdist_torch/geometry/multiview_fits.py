@@ -28,7 +28,12 @@ import sys
 import numpy as np
 import torch
 
-from lensdist_torch.geometry.multiview_evidence import camera_covariance, heldout_rms, heldout_squared_errors, posterior_std
+from lensdist_torch.geometry.multiview_evidence import (
+    camera_covariance,
+    heldout_rms,
+    heldout_squared_errors,
+    posterior_std,
+)
 from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_from_colmap
 
 __all__ = ["pycolmap_or_error", "quiet_log", "camera_of", "rss", "adjust", "with_model", "deltas", "rotation_spread_deg",
