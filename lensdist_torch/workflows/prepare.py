@@ -295,7 +295,9 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     wherever the plane + parallax model converged).
     """
     size = cfg.image.size
-    d0, d1 = delta_avg(*from_normalized(torch.cat([sc.planar_ab, sc.relief_ab]), *size), *size).tolist()
+    # the plane + parallax model is not fitted where selfcal.parallax = 0: its coefficients are NaN
+    d0, d1 = (float(delta_avg(*from_normalized(ab, *size), *size)[0]) if bool(torch.isfinite(ab).all()) else math.nan
+              for ab in (sc.planar_ab, sc.relief_ab))
     s0, s1 = float(sc.planar_std[0]), float(sc.relief_std[0])
     m = scene_models(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):

@@ -136,3 +136,24 @@ def test_an_estimate_beyond_the_class_range_says_so_on_the_class_line(capsys):
     assert "distortion class: 4 or beyond (Delta_avg lies past the classes' range), barrel" in out
     assert "warning: Delta_avg 40.0 px is beyond the classes' range" in out
     assert not _res()["delta_avg"] > 20 and "or beyond" not in _text(capsys, _res())
+
+
+def test_the_planar_setting_the_readme_gives_answers(tmp_path, capsys):
+    """Issue 51: ``[selfcal] parallax = 0`` (the README's advice for flat scenes) made every pair exit 2 with
+    "k2 and k4 must be finite": the plane + parallax model is not fitted then, and its NaN coefficients were
+    turned into a Delta. The planar answer stands, against the truth at the analysis frame."""
+    import json
+
+    from lensdist_torch.geometry.distortion import paper_frame_delta_avg
+    from lensdist_torch.workflows.calibrate import synthetic_sequence
+    from lensdist_torch.workflows.undistort import encode_png, to_uint8
+
+    frames, _ = synthetic_sequence(2, 2e-6, 0.0, size=(240, 320), step_px=(12.0, 12.0))
+    for name, f in zip("ab", frames):
+        (tmp_path / f"{name}.png").write_bytes(encode_png(to_uint8(f)))
+    (tmp_path / "flat.toml").write_text("[selfcal]\nparallax = 0\n")
+    argv = ["analyze", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--config", str(tmp_path / "flat.toml"), "--json"]
+    assert cli.main(argv) == 0
+    res = json.loads(capsys.readouterr().out)
+    truth = paper_frame_delta_avg(2e-6, 0.0, (240, 320), LensdistConfig())  # the same lens at the analysis frame
+    assert res["relief_found"] is False and res["estimated_delta_avg"] == pytest.approx(truth, rel=0.1)
