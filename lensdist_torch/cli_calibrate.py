@@ -212,8 +212,8 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
         epilog="examples:\n  lensdist undistort frames/ --from calib/calibration.json --out corrected/\n"
                "  lensdist undistort dive.mp4 --k2 2e-7 --k4 0 --alpha 1 --out corrected/")
     p.add_argument("path", help="folder of frames or a video file")
-    p.add_argument("--k2", type=argtypes.finite_float, default=None, help="eq. 4's k2 in the frames' pixels")
-    p.add_argument("--k4", type=argtypes.finite_float, default=None, help="eq. 4's k4 in the frames' pixels")
+    p.add_argument("--k2", type=argtypes.finite_float, default=None, help="eq. 4's k2 in the frames' pixels (0 if only --k4 is given)")
+    p.add_argument("--k4", type=argtypes.finite_float, default=None, help="eq. 4's k4 in the frames' pixels (0 if only --k2 is given)")
     p.add_argument("--from", dest="from_json", default=None,
                    help="the JSON of lensdist calibrate (--out or --json) or of lensdist analyze --json")
     p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks, undistortion.json)")

@@ -144,8 +144,9 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration
     ``cal``: ``from_json`` already read (:func:`read_calibration`), so that it is read once.
     """
     if from_json is None:
-        if k2 is None or k4 is None:
-            raise ValueError("give both k2 and k4 (--k2, --k4), or from_json (--from CALIBRATION.json)")
+        if k2 is None and k4 is None:
+            raise ValueError("give k2 or k4 (--k2, --k4; the other is 0), or from_json (--from CALIBRATION.json)")
+        k2, k4 = 0.0 if k2 is None else k2, 0.0 if k4 is None else k4
         for name, value in (("k2", k2), ("k4", k4)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"{name} (--{name}) must be a finite number, got {value!r}")
@@ -292,8 +293,8 @@ def undistort_path(
     Args:
         path: a folder of images or a video.
         out_dir: the output folder (created; not the input folder).
-        k2: eq. 4's k2 in the frames' pixels (with k4; or from_json).
-        k4: eq. 4's k4 in the frames' pixels.
+        k2: eq. 4's k2 in the frames' pixels (0 where only k4 is given; or from_json).
+        k4: eq. 4's k4 in the frames' pixels (0 where only k2 is given).
         from_json: instead of k2, k4: the JSON of ``lensdist calibrate`` or ``analyze --json``.
         max_frames: at most this many frames (None: all).
         quiet: no progress bar.

@@ -236,7 +236,7 @@ def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
                                                     "class": None, "reason": "too little motion"}))
     cases = [
         ({"from_json": tmp_path / "none.json"}, "holds no estimate: too little motion"),
-        ({"k2": 1e-6}, "give both k2 and k4"),
+        ({}, "give k2 or k4"),
         ({"k2": 1e-6, "k4": 0.0, "from_json": tmp_path / "x.json"}, "not both"),
         ({"from_json": tmp_path / "bad.json"}, "not a calibration"),
         ({"k2": float("nan"), "k4": 0.0}, "finite"),
@@ -251,6 +251,12 @@ def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
         undistort_path(folder, folder, k2=0.0, k4=0.0)
     with pytest.raises(SystemExit):  # argparse: --out is required
         _parser().parse_args(["undistort", str(folder), "--k2", "0", "--k4", "0"])
+    # issue 51: --k2 alone was refused; the other coefficient is 0, the frames as with both given
+    args = _parser().parse_args(["undistort", str(folder), "--k2", "1e-6", "--out", str(tmp_path / "k2"), "--quiet",
+                                 "--max-frames", "1"])
+    assert args.func(args) == 0
+    undistort_path(folder, tmp_path / "both", k2=1e-6, k4=0.0, max_frames=1)
+    assert (tmp_path / "k2" / "frame_0.png").read_bytes() == (tmp_path / "both" / "frame_0.png").read_bytes()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
