@@ -147,6 +147,16 @@ def fold_blocks(rec, n_blocks: int) -> list[list[int]]:
     return [[im.frame_id for im in images[g * n // n_blocks:(g + 1) * n // n_blocks]] for g in range(n_blocks)]
 
 
+def _folds(rec, n_blocks: int, held: bool = False):
+    """Per fold (:func:`fold_blocks`): ``rec`` adjusted without the block, and the block's held-out squared errors."""
+    for block in fold_blocks(rec, n_blocks):
+        train = copy_reconstruction(rec)
+        for frame_id in block:
+            train.deregister_frame(frame_id)
+        adjust(train, held=held)
+        yield train, heldout_squared_errors(train, camera_of(train), rec, block)
+
+
 def fit_model(rec, model: str, size: tuple[int, int], scale: float, step: int, n_blocks: int) -> dict:
     """One model on ``rec``'s tracks: its adjustment, posterior, delete-a-block fits and held-out errors."""
     r = with_model(rec, model)
@@ -166,15 +176,11 @@ def fit_model(rec, model: str, size: tuple[int, int], scale: float, step: int, n
     fixed = set(cam.principal_point_idxs())
     std_avg, std_max = posterior_std(list(cam.params), [i for i in range(len(cam.params)) if i not in fixed], cov, measure)
     jk_avg, jk_max, errors = [], [], []
-    for block in fold_blocks(r, n_blocks):
-        train = copy_reconstruction(r)
-        for frame_id in block:
-            train.deregister_frame(frame_id)
-        adjust(train)
+    for train, fold_errors in _folds(r, n_blocks):
         d = measure(np.asarray(camera_of(train).params, dtype=float))
         jk_avg.append(d[0])
         jk_max.append(d[1])
-        errors.append(heldout_squared_errors(train, camera_of(train), r, block))
+        errors.append(fold_errors)
     jk_std = math.sqrt((len(jk_avg) - 1) / len(jk_avg) * float(np.sum((np.asarray(jk_avg) - np.mean(jk_avg)) ** 2)))
     k = len(cam.params) - 2  # the principal point is held
     return {"rec": r, "delta": dl, "errors": errors, "jackknife": jk_avg, "row": {
@@ -220,12 +226,6 @@ def fit_held_camera(rec, camera, n_blocks: int) -> dict:
     r.cameras[camera.camera_id] = camera
     adjust(r, held=True)
     ss, n = rss(r)
-    errors = []
-    for block in fold_blocks(r, n_blocks):
-        train = copy_reconstruction(r)
-        for frame_id in block:
-            train.deregister_frame(frame_id)
-        adjust(train, held=True)
-        errors.append(heldout_squared_errors(train, camera_of(train), r, block))
+    errors = [fold_errors for _, fold_errors in _folds(r, n_blocks, held=True)]
     return {"errors": errors, "reprojection_px": math.sqrt(ss / max(n, 1)),
             "heldout_rms_px": heldout_rms([e for fold in errors for e in fold])}
