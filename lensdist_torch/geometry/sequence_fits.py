@@ -24,7 +24,7 @@ import torch
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.geometry.selfcal import estimate_distortion
-from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
+from lensdist_torch.geometry.wide_baseline import SiftMemo, estimate_homography_robust
 
 __all__ = ["sequence_selfcal", "fit_pairs", "pair_misfit", "unregistered", "refit_from_registration", "reject_residuals"]
 
@@ -122,15 +122,16 @@ def refit_from_registration(frames, pairs, shifts, fits, retry, settings: Lensdi
     answer) is finite and its corners lie more than one pixel of the fit's coarsest level from
     the translation start (that start could not reach the right minimum); the refit keeps the
     better of that start and the phase correlation's and replaces the first fit where its
-    residual is lower. Returns the refitted pairs (P,) bool.
+    residual is lower. Each frame's features are computed once (:class:`SiftMemo`). Returns the
+    refitted pairs (P,) bool.
     """
-    selfcal = sequence_selfcal(settings, cfg)
+    selfcal, memo = sequence_selfcal(settings, cfg), SiftMemo()
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     idx = retry.nonzero()[:, 0]
     for s in range(0, len(idx), cfg.batch_size):
         rows = idx[s : s + cfg.batch_size]
         a, b = frames[pairs[rows, 0]], frames[pairs[rows, 1]]
-        h = estimate_homography_robust(a, b, config=settings.registration, validate=False)[0].double().cpu()
+        h = estimate_homography_robust(a, b, config=settings.registration, validate=False, memo=memo)[0].double().cpu()
         # a registration that did not pass its own checks is still a start: the refit keeps the better one
         # and the misfit gate judges the result (real views far apart: docs/method.md, section 10)
         finite = torch.isfinite(h).flatten(1).all(1)

@@ -21,13 +21,15 @@ for the others:
    ``iterations`` both runs'. A pair that fails again keeps the first run's H and diagnostics
    (``converged=False``: could not register).
 
-The fallback loops over its pairs (~1 s each at 320 x 424 on one core, mostly the descriptors);
-pairs that the first run registers cost nothing more.
+The fallback loops over its pairs (mostly the descriptors); pairs that the first run registers
+cost nothing more. A :class:`SiftMemo` passed as ``memo`` describes each distinct image once: a
+sequence's frames recur in several pairs.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 
 import torch
 from kornia.feature import SIFTFeature, get_laf_center, match_smnn
@@ -38,7 +40,7 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
 from lensdist_torch.geometry.registration import RegistrationInfo, estimate_homography, warp_to_reference
 
-__all__ = ["estimate_homography_robust", "feature_homography"]
+__all__ = ["SiftMemo", "estimate_homography_robust", "feature_homography"]
 
 _GRID = 4  # px: the grid on which the overlap and the refinement rectangle are measured
 
@@ -47,6 +49,45 @@ _GRID = 4  # px: the grid on which the overlap and the refinement rectangle are 
 def _sift(max_keypoints: int, device: torch.device) -> SIFTFeature:
     """The detector and descriptor (pure computation, no weights), built once per setting."""
     return SIFTFeature(num_features=max_keypoints, upright=False, rootsift=True, device=device).eval()
+
+
+def _describe(img: torch.Tensor, max_keypoints: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """One image (1, C, H, W) -> its keypoints' centres (K, 2) and RootSIFT descriptors (K, 128), flat patches dropped."""
+    lafs, resp, d = _sift(max_keypoints, img.device)(to_grey(img).float())
+    keep = (resp[0] > 0) & torch.isfinite(d[0]).all(1)  # a flat patch has no response
+    return get_laf_center(lafs)[0][keep], d[0][keep]
+
+
+class SiftMemo:
+    """Each distinct image's SIFT keypoints and descriptors, computed once.
+
+    Keyed by a digest of the image's values, shape, dtype and device and the keypoint budget, so
+    a frame gathered into several pair batches (a sequence's pairs share frames) is described
+    once. Kept for the life of the object: make one per sequence.
+
+    Example:
+        >>> from lensdist_torch.core.images import load_scene
+        >>> s = load_scene("gravel")
+        >>> a, b, c = s[..., 100:300, 100:400], s[..., 80:280, 130:430], s[..., 60:260, 160:460]
+        >>> memo = SiftMemo()
+        >>> H, ok, _ = feature_homography(torch.cat([a, b]), torch.cat([b, c]), memo=memo)
+        >>> ok.tolist(), len(memo)  # three distinct images in two pairs
+        ([True, True], 3)
+    """
+
+    def __init__(self) -> None:
+        self._store: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    def __len__(self) -> int:
+        return len(self._store)
+
+    def __call__(self, img: torch.Tensor, max_keypoints: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """:func:`_describe` of ``img`` (1, C, H, W), from the memo where these values were described before."""
+        digest = hashlib.blake2b(img.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes(), digest_size=16).hexdigest()
+        key = (digest, tuple(img.shape), str(img.dtype), str(img.device), max_keypoints)
+        if key not in self._store:
+            self._store[key] = _describe(img, max_keypoints)
+        return self._store[key]
 
 
 def _config(config: object) -> RegistrationConfig:
@@ -65,7 +106,8 @@ def _in_front(m: torch.Tensor, h: int, w: int) -> torch.Tensor:
 
 @torch.no_grad()
 def feature_homography(
-    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None, validate: bool = True
+    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None, validate: bool = True, *,
+    memo: SiftMemo | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per pair, a homography from SIFT matches and RANSAC, img1(p) = img2(H p).
 
@@ -79,6 +121,8 @@ def feature_homography(
         config: :class:`~lensdist_torch.config.RegistrationConfig` (``max_keypoints``,
             ``match_ratio``, ``ransac_threshold``, ``min_inliers``); defaults when None.
         validate: check the images' values (one host sync); False for images already checked.
+        memo: a :class:`SiftMemo` that describes each distinct image once (None: every image
+            of every pair is described).
 
     Returns:
         H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's; the identity
@@ -101,15 +145,10 @@ def feature_homography(
     out = torch.eye(3, dtype=torch.float64, device=dev).repeat(bsz, 1, 1)
     ok = torch.zeros(bsz, dtype=torch.bool, device=dev)
     n_inl = torch.zeros(bsz, dtype=torch.int64, device=dev)
-    sift = _sift(cfg.max_keypoints, dev)
+    describe = memo if memo is not None else _describe
     ransac = RANSAC("homography", inl_th=cfg.ransac_threshold, seed=0)
     for i in range(bsz):
-        pts, desc = [], []
-        for img in (img1, img2):
-            lafs, resp, d = sift(to_grey(img[i : i + 1]).float())
-            keep = (resp[0] > 0) & torch.isfinite(d[0]).all(1)  # a flat patch has no response
-            pts.append(get_laf_center(lafs)[0][keep])
-            desc.append(d[0][keep])
+        pts, desc = zip(*(describe(img[i : i + 1], cfg.max_keypoints) for img in (img1, img2)))
         if min(len(d) for d in desc) < 4:
             continue
         _, idx = match_smnn(desc[0], desc[1], cfg.match_ratio)
@@ -197,7 +236,8 @@ def _refine(g1: torch.Tensor, g2: torch.Tensor, hf: torch.Tensor, cfg: Registrat
 
 @torch.no_grad()
 def estimate_homography_robust(
-    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None, validate: bool = True
+    img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None, validate: bool = True, *,
+    memo: SiftMemo | None = None,
 ) -> tuple[torch.Tensor, RegistrationInfo]:
     """:func:`~lensdist_torch.geometry.registration.estimate_homography`, with a feature fallback.
 
@@ -212,6 +252,7 @@ def estimate_homography_robust(
         img2: the same shape and dtype as img1.
         config: :class:`~lensdist_torch.config.RegistrationConfig`; defaults when None.
         validate: check the images' values (one host sync); False for images already checked.
+        memo: a :class:`SiftMemo` for the feature fallback (each distinct image described once).
 
     Returns:
         H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's.
@@ -240,7 +281,7 @@ def estimate_homography_robust(
     h, fields = h.clone(), [x.clone() for x in info]
     h0, w0 = img1.shape[-2:]
     idx = torch.tensor(failed, device=img1.device)
-    hf, ok, _ = feature_homography(img1[idx], img2[idx], cfg, validate=False)  # checked above
+    hf, ok, _ = feature_homography(img1[idx], img2[idx], cfg, validate=False, memo=memo)  # checked above
     for j, i in enumerate(failed):
         if not bool(ok[j]):
             continue

@@ -13,7 +13,8 @@ from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.geometry.registration import estimate_homography
-from lensdist_torch.geometry.wide_baseline import estimate_homography_robust, feature_homography
+from lensdist_torch.geometry import wide_baseline
+from lensdist_torch.geometry.wide_baseline import SiftMemo, estimate_homography_robust, feature_homography
 
 H0, W0 = 320, 424  # the analysis size (docs/method.md, section 1)
 
@@ -74,6 +75,21 @@ def test_feature_homography(wide):
     assert h.shape == (1, 3, 3) and h.dtype == torch.float64 and n.dtype == torch.int64
     assert bool(ok[0]) and int(n[0]) >= RegistrationConfig().min_inliers
     assert float(corner_error(h, h_true[:1], H0, W0)[0]) < 2.0  # the coarse estimate: < 1 px measured
+
+
+def test_memo_describes_each_image_once_and_changes_nothing(wide, monkeypatch):
+    """The same homographies bit for bit; img1 repeated in every pair is described once."""
+    img1, img2, _ = wide
+    plain = estimate_homography_robust(img1, img2)
+    calls = []
+    describe = wide_baseline._describe
+    monkeypatch.setattr(wide_baseline, "_describe", lambda img, k: calls.append(1) or describe(img, k))
+    memo = SiftMemo()
+    got = estimate_homography_robust(img1, img2, memo=memo)
+    assert len(calls) == len(memo) == 1 + len(WIDE)  # one img1 (the four pairs share it), four img2
+    assert torch.equal(got[0], plain[0]) and all(torch.equal(x, y) for x, y in zip(got[1], plain[1]))
+    again = estimate_homography_robust(img1, img2, memo=memo)  # a second call describes nothing
+    assert len(calls) == 1 + len(WIDE) and torch.equal(again[0], plain[0])
 
 
 def test_converged_pairs_keep_the_first_answer(wide):
