@@ -11,9 +11,9 @@ from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.geometry import wide_baseline
 from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.geometry.registration import estimate_homography
-from lensdist_torch.geometry import wide_baseline
 from lensdist_torch.geometry.wide_baseline import SiftMemo, estimate_homography_robust, feature_homography
 
 H0, W0 = 320, 424  # the analysis size (docs/method.md, section 1)
