@@ -1,6 +1,6 @@
-"""Benchmark of the sequence calibration (lensdist_torch.geometry.calibration.calibrate_sequence).
+"""Benchmark of the sequence calibration (lensdist_torch.calibration.direct.calibrate_sequence).
 
-M synthetic sequences of 20 frames (workflows.calibrate.synthetic_sequence: a camera panning down
+M synthetic sequences of 20 frames (calibration.controllers.calibrate.synthetic_sequence: a camera panning down
 an embedded scene 5-10 px a frame, +-1 px of horizontal jitter, +-0.2 degree of rotation) at each
 of 4 distortion levels and undistorted, at the paper's 320 x 424: (c k2_max, (2 - c) k4_max) times
 1/8, 3/8, 5/8 and 7/8, c ~ U[0.75, 1.25] per sequence (about the centres of classes 1-4; the
@@ -32,11 +32,10 @@ import time
 
 import torch
 
+from lensdist_torch.calibration import calibrate_sequence, synthetic_sequence
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.geometry import calibrate_sequence
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top, distortion_center, undistort_points
 from lensdist_torch.geometry.opencv_model import opencv_camera, opencv_undistort_points
-from lensdist_torch.workflows import synthetic_sequence
 
 LEVELS = (0.0, 0.125, 0.375, 0.625, 0.875)
 SIZE = (320, 424)

@@ -37,10 +37,10 @@ from pathlib import Path
 
 import torch
 
+from lensdist_torch.calibration import calibrate_path, synthetic_sequence
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry import delta_avg
-from lensdist_torch.workflows import calibrate_path, synthetic_sequence
 from lensdist_torch.workflows.undistort import encode_png
 
 SIZE = (288, 384)

@@ -15,7 +15,7 @@ other half posed under those intrinsics; the all-views row: both halves pooled),
 measure the lens). ANSWER.json: the JSON of
 ``lensdist calibrate FRAMES --json`` (or ``bench_real_calibration.py``'s report); its homography
 model's Delta_avg and interval over the same two regions, from its own replicates
-(:func:`~lensdist_torch.geometry.planar_features.delta_avg_where`). The answer never saw the
+(:func:`~lensdist_torch.calibration.planar_features.delta_avg_where`). The answer never saw the
 board.
 """
 
@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lensdist_torch.calibration.planar_features import delta_avg_where
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_ideal_points
-from lensdist_torch.geometry.planar_features import delta_avg_where
 
 
 def board_region(corners: dict, size: tuple[int, int], points: torch.Tensor) -> torch.Tensor:

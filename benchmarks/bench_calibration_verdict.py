@@ -11,14 +11,14 @@ corners cannot referee between them (each model was fitted to them), but the fra
 the scene is a plane (the GoPro views: a flat wall), the right lens makes every pair's matches one
 homography apart. This benchmark finds the frames' matches as ``lensdist calibrate`` does
 (COLMAP's SIFT and verified matches into a temporary database, guided matching and sub-pixel
-refinement under ANSWER's lens: :func:`~lensdist_torch.geometry.guided_matching.guided_matches`,
-:func:`~lensdist_torch.geometry.guided_matching.refined_matches`) and judges each lens on them:
+refinement under ANSWER's lens: :func:`~lensdist_torch.calibration.guided_matching.guided_matches`,
+:func:`~lensdist_torch.calibration.guided_matching.refined_matches`) and judges each lens on them:
 the published calibration, the board calibrated again (``bench_calibration_spread.calibrations``:
 OpenCV's standard and rational models on all, even and odd views), COLMAP's camera where ANSWER
 carries one (``multiview``: its self-calibration by bundle adjustment on the same frames, an
 OpenCV model), and ANSWER's homography model,
 both as answered (fitted on these matches: in-sample) and held out (fitted on every other pair,
-judged on the rest, and the other way round; :func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`).
+judged on the rest, and the other way round; :func:`~lensdist_torch.calibration.planar_features.self_calibrate_planar`).
 
 Per pair and lens: the matches' ideal points, one homography between them (``cv2.findHomography``,
 RANSAC at 3 px, the same for every lens), each match's transfer error taken back through the lens
@@ -41,16 +41,16 @@ from pathlib import Path
 import torch
 from bench_calibration_spread import board_region, calibrations
 
+from lensdist_torch.calibration.controllers.calibrate import list_frames
+from lensdist_torch.calibration.guided_matching import guided_matches, read_features, refined_matches
+from lensdist_torch.calibration.multiview import extract_and_match
+from lensdist_torch.calibration.planar_features import PlanarMatches, read_verified_matches, self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.core.images import load_image
-from lensdist_torch.geometry.guided_matching import guided_matches, read_features, refined_matches
 from lensdist_torch.geometry.homography import apply_homography
-from lensdist_torch.geometry.multiview import extract_and_match
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_distort_full, opencv_ideal_points
-from lensdist_torch.geometry.planar_features import PlanarMatches, read_verified_matches, self_calibrate_planar
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
-from lensdist_torch.workflows.calibrate import list_frames
 
 
 def opencv_lens(k, dist):

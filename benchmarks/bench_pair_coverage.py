@@ -30,11 +30,11 @@ import time
 
 import torch
 
+from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
 from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_top, distortion_class
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
-from lensdist_torch.workflows.calibrate import synthetic_sequence
 
 STEPS = (0.0, 0.3, 0.5, 1, 1.5, 2, 3, 4, 6, 8, 12, 16, 24, 32, 40)
 BINS = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 64.0)

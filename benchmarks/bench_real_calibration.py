@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lensdist_torch.calibration.planar_features import delta_avg_where
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry.opencv_model import (
@@ -44,7 +45,6 @@ from lensdist_torch.geometry.opencv_model import (
     opencv_delta,
     opencv_ideal_points,
 )
-from lensdist_torch.geometry.planar_features import delta_avg_where
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 
@@ -105,7 +105,7 @@ def on_footprint(k, dist, points: torch.Tensor) -> float:
 
 
 def main() -> None:
-    from lensdist_torch.workflows import calibrate_path
+    from lensdist_torch.calibration import calibrate_path
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("frames")

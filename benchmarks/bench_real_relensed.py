@@ -57,7 +57,7 @@ def calibration_spread(cal: dict, alt: dict, hw: tuple[int, int], size: tuple[in
 
 
 def main() -> None:
-    from lensdist_torch.workflows import calibrate_path
+    from lensdist_torch.calibration import calibrate_path
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("frames")

@@ -15,7 +15,7 @@ the levels of bench_calibrate.py (about the centres of classes R, 1-4). Four mot
 - ``mixed``: both.
 
 Each sequence is written as PNG frames and calibrated through the user's path,
-``workflows.calibrate.calibrate_path(folder, method="auto")`` (the direct path and, with
+``calibration.controllers.calibrate.calibrate_path(folder, method="auto")`` (the direct path and, with
 pycolmap, the multi-view path, combined). Figures: Delta_avg error as % of the range (14.4 px)
 over every sequence's estimate, coverage of the 95 % interval, confidently wrong (a class given
 and wrong), "cannot tell", per motion and overall. Results are appended to ``--out`` after each
@@ -40,10 +40,10 @@ from pathlib import Path
 
 import torch
 
+from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
 from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.geometry.distortion import delta_avg, delta_top, distortion_class
-from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
 from lensdist_torch.workflows.undistort import encode_png
 
 LEVELS = (0.0, 0.125, 0.375, 0.625, 0.875)

@@ -63,12 +63,12 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.geometry.undistort": ("Undistort", "undistort_image"),
     "lensdist_torch.geometry.registration": ("estimate_homography", "warp_to_reference"),
     "lensdist_torch.geometry.selfcal": ("estimate_distortion",),
-    "lensdist_torch.geometry.calibration": ("calibrate_sequence",),
+    "lensdist_torch.calibration.direct": ("calibrate_sequence",),
     "lensdist_torch.classify.eigenspace": ("EigenSpaceClassifier",),
     "lensdist_torch.classify.regression": ("DeltaRegressor",),
     "lensdist_torch.data.shards": ("generate", "load_set"),
     "lensdist_torch.workflows.analyze": ("analyze_batch", "analyze_pair"),
-    "lensdist_torch.workflows.calibrate": ("synthetic_sequence",),
+    "lensdist_torch.calibration.controllers.calibrate": ("synthetic_sequence",),
     "lensdist_torch.workflows.reproduce": ("reproduce",),
 }
 

@@ -1,6 +1,8 @@
 # Generated from _EXPORTS in __init__.py by `python tests/meta/test_public_names.py --write`:
 # do not edit. Type checkers and IDEs read this file; the package loads each name on first use.
 
+from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence as synthetic_sequence
+from lensdist_torch.calibration.direct import calibrate_sequence as calibrate_sequence
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier as EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor as DeltaRegressor
 from lensdist_torch.config import AnalysisConfig as AnalysisConfig
@@ -22,7 +24,6 @@ from lensdist_torch.core.images import scene_names as scene_names
 from lensdist_torch.core.images import to_grey as to_grey
 from lensdist_torch.data.shards import generate as generate
 from lensdist_torch.data.shards import load_set as load_set
-from lensdist_torch.geometry.calibration import calibrate_sequence as calibrate_sequence
 from lensdist_torch.geometry.distortion import CLASS_LABELS as CLASS_LABELS
 from lensdist_torch.geometry.distortion import delta_avg as delta_avg
 from lensdist_torch.geometry.distortion import delta_max as delta_max
@@ -50,7 +51,6 @@ from lensdist_torch.metric.quality import registration_quality_loss as registrat
 from lensdist_torch.metric.stateful import RegistrationQualityMetric as RegistrationQualityMetric
 from lensdist_torch.workflows.analyze import analyze_batch as analyze_batch
 from lensdist_torch.workflows.analyze import analyze_pair as analyze_pair
-from lensdist_torch.workflows.calibrate import synthetic_sequence as synthetic_sequence
 from lensdist_torch.workflows.reproduce import reproduce as reproduce
 
 __version__: str

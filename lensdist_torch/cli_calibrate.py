@@ -110,9 +110,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     if args.out:
         check_output_dir(args.out, "--out", {"path": args.path, "--config": args.config}, writes=["calibration.json"])
+    from lensdist_torch.calibration.controllers.calibrate import calibrate_path
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.analyze import resolve_device
-    from lensdist_torch.workflows.calibrate import calibrate_path
 
     settings = None if args.config is None else load_config(args.config)  # checked before any frame is read
     res = calibrate_path(args.path, config=None if settings is None else settings.calibration, settings=settings,

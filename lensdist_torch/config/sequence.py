@@ -15,7 +15,7 @@ __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """Settings of :func:`~lensdist_torch.geometry.calibration.calibrate_sequence` (``[calibration]``).
+    """Settings of :func:`~lensdist_torch.calibration.direct.calibrate_sequence` (``[calibration]``).
 
     Attributes:
         analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
@@ -26,7 +26,7 @@ class CalibrationConfig:
         outlier_mads: rejection threshold in robust deviations of the signed Delta_avg.
         outlier_range: a failed pair's signed Delta_avg is taken to fall anywhere within +- this many
             times the classes' range (``delta_top``), evenly: the bad half of the good-and-bad mixture
-            that decides which pairs count (``geometry/pooling.py``).
+            that decides which pairs count (``calibration/pooling.py``).
         max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
             pairs' lower quartile are rejected (a broken or foreign frame).
         max_misfit: a pair counts only where its registration explains its frames: the RMS of its
@@ -53,7 +53,7 @@ class CalibrationConfig:
             sequence's intervals are hundredths of a pixel on rendered planes, so its threshold is
             finer than one pair's (``analysis.no_distortion_px``).
         verify_pairs: a class is verified on this many pairs, registered again after undistorting:
-            the share of error blocks must fall, else no class (``workflows/verify.py``); 0: none.
+            the share of error blocks must fall, else no class (``calibration/controllers/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
         parallax_px: the prior std (px) of each bump's height in those pairs (``selfcal.parallax_px``
@@ -128,12 +128,12 @@ MULTIVIEW_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 
 @dataclass(frozen=True)
 class MultiViewConfig:
-    """Settings of :mod:`~lensdist_torch.geometry.multiview` (``[multiview]``): bundle adjustment on COLMAP.
+    """Settings of :mod:`~lensdist_torch.calibration.multiview` (``[multiview]``): bundle adjustment on COLMAP.
 
     Attributes:
         models: the camera models fitted on the reconstruction's tracks, each weighed by how well it
             predicts held-out frames (COLMAP names, all with an exact OpenCV equivalent;
-            :mod:`~lensdist_torch.geometry.multiview_evidence`).
+            :mod:`~lensdist_torch.calibration.multiview_evidence`).
         max_image_side: frames are read by COLMAP's SIFT at most this long (px).
         max_features: SIFT features per frame at most.
         features_per_megapixel: and at most this many per megapixel of the frame as SIFT reads it
@@ -164,7 +164,7 @@ class MultiViewConfig:
         max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); one
             answers, its posterior checked by its own jackknife; more: their spread of Delta_avg
-            joins the interval (:mod:`~lensdist_torch.geometry.multiview_runs`) and a class needs
+            joins the interval (:mod:`~lensdist_torch.calibration.multiview_runs`) and a class needs
             this many mappings that registered enough frames.
         extra_mappings: mappings tried with further seeds where one registers too few frames (a
             wrong initial pair: the focal length runs off and the mapping ends in about a second).
@@ -172,7 +172,7 @@ class MultiViewConfig:
             and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
         seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
         planar_terms: the homography model's radial terms at most (1 .. this many fitted, BIC
-            chooses; :mod:`~lensdist_torch.geometry.planar_features`); 0: no homography model.
+            chooses; :mod:`~lensdist_torch.calibration.planar_features`); 0: no homography model.
         planar_scan_range: the first radial term's start values, from and to (normalised frame).
         planar_scan_steps: start values tried, evenly spaced over ``planar_scan_range``.
         planar_scan_pairs: the scan looks at this many pairs at most, those with the most matches
@@ -192,7 +192,7 @@ class MultiViewConfig:
             them and the models centred on the frame); 0: the centre stays at the frame's.
         planar_guided_px: the homography model's matches found again within this many ideal
             pixels of where its first fit sends each keypoint, and fitted again
-            (:mod:`~lensdist_torch.geometry.guided_matching`); 0: the first fit answers.
+            (:mod:`~lensdist_torch.calibration.guided_matching`); 0: the first fit answers.
         planar_guided_below: guided matching runs where fewer than this share of the verified
             pairs keep ``planar_min_matches`` homography inliers in the first fit (repetitive
             texture lost them); where most keep them the matcher did its work, and guided
@@ -201,7 +201,7 @@ class MultiViewConfig:
             next candidate's (the ratio test, among the candidates within ``planar_guided_px``).
         planar_refine_px: the half size (px) of the patches that move each match of the
             homography model's answer to where the two views align, before it is fitted again
-            (:mod:`~lensdist_torch.geometry.match_refinement`); 0: no refinement.
+            (:mod:`~lensdist_torch.calibration.match_refinement`); 0: no refinement.
         planar_refine_blur: the Gaussian's standard deviation (px) that smooths the frames for it.
         planar_refine_ncc: a refined match is kept where its aligned patches correlate at least this much.
         planar_max_relief_z: the homography model answers only where the direct path's plane +

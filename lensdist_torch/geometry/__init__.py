@@ -16,11 +16,8 @@ Estimators (layer 2):
 * :mod:`~lensdist_torch.geometry.registration`: batched homography registration.
 * :mod:`~lensdist_torch.geometry.wide_baseline`: far-apart pairs: features and RANSAC, then the direct refinement.
 * :mod:`~lensdist_torch.geometry.selfcal`: a pair's distortion and homography together (model in ``selfcal_model``).
-* :mod:`~lensdist_torch.geometry.calibration`: a camera's distortion from a whole sequence, the direct path.
-* :mod:`~lensdist_torch.geometry.sequence_fits`: a sequence's pairs fitted, failures refitted from their registration.
-* :mod:`~lensdist_torch.geometry.pooling`: a sequence's pairs pooled: which count (the good-and-bad mixture), mean, interval.
-* :mod:`~lensdist_torch.geometry.multiview`: the same by bundle adjustment on COLMAP (runs combined in ``multiview_runs``).
-* :mod:`~lensdist_torch.geometry.planar_features`: the same from COLMAP's matches between views of a plane: a lens and a homography per pair.
+
+A whole sequence's calibration, built on these: :mod:`lensdist_torch.calibration`.
 
 The names users need are exported here and imported on first use (PEP 562): importing
 :mod:`~lensdist_torch.geometry.distortion` loads neither OpenCV, pycolmap nor the estimators.
@@ -57,9 +54,6 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.geometry.registration": ("estimate_homography", "warp_to_reference"),
     "lensdist_torch.geometry.wide_baseline": ("estimate_homography_robust",),
     "lensdist_torch.geometry.selfcal": ("estimate_distortion",),
-    "lensdist_torch.geometry.calibration": ("SequenceCalibration", "calibrate_sequence"),
-    "lensdist_torch.geometry.pooling": ("GoodBadFit", "good_and_bad"),
-    "lensdist_torch.geometry.planar_features": ("PlanarCalibration", "PlanarMatches", "self_calibrate_planar"),
 }
 
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -155,7 +155,7 @@ def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = No
 
     Example:
         >>> from lensdist_torch.geometry.distortion import delta_avg
-        >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
+        >>> from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
         >>> frames, _ = synthetic_sequence(2, 4e-6, 0.0, size=(160, 212), seed=1)  # truth: Delta_avg 2.10 px
         >>> k2, k4, H, info = estimate_distortion(frames[:1], frames[1:])
         >>> abs(float(delta_avg(k2, k4, 160, 212)[0]) - 2.10) < 0.1

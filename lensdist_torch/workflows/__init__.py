@@ -1,4 +1,6 @@
-"""What the commands do: evaluation, reports, reproduction, analysis of a pair, figures.
+"""What the commands do: evaluation, reports, reproduction, analysis of a pair, undistortion, figures.
+
+A camera's calibration from a sequence runs in :mod:`lensdist_torch.calibration.controllers`.
 
 Modules:
 
@@ -12,11 +14,7 @@ Modules:
 * :mod:`~lensdist_torch.workflows.reports`: an evaluation's figures, Markdown and JSON.
 * :mod:`~lensdist_torch.workflows.reproduce`: the paper's Tables 1 and 2 beside ours (``lensdist reproduce``).
 * :mod:`~lensdist_torch.workflows.demo`: ``lensdist demo``.
-* :mod:`~lensdist_torch.workflows.calibrate`: a camera from a folder of frames or a video (``lensdist calibrate``).
-* :mod:`~lensdist_torch.workflows.multiview`: calibrate's multi-view path, and how its answer and the direct one combine.
-* :mod:`~lensdist_torch.workflows.calibration_file`: the checks of a saved calibration read by ``undistort --from``.
 * :mod:`~lensdist_torch.workflows.undistort`: corrected frames of a folder or a video (``lensdist undistort``).
-* :mod:`~lensdist_torch.workflows.verify`: the paper's metric as the verifier of a calibration.
 * :mod:`~lensdist_torch.workflows.figures`: figures, the only module that imports matplotlib.
 
 The names users need are exported here and imported on first use (PEP 562). ``reproduce`` is
@@ -25,7 +23,7 @@ the function here): import it from the top level, ``from lensdist_torch import r
 
 Example:
     >>> import lensdist_torch.workflows as wf
-    >>> wf.calibrate_path is wf.calibrate.calibrate_path  # its module is imported on first use
+    >>> wf.undistort_path is wf.undistort.undistort_path  # its module is imported on first use
     True
 """
 
@@ -35,8 +33,6 @@ from lensdist_torch._lazy import lazy_exports
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.workflows.prepare": ("PreparedPairs", "prepare_batch"),
     "lensdist_torch.workflows.analyze": ("analyze_batch", "analyze_pair"),
-    "lensdist_torch.workflows.calibrate": ("calibrate_path", "synthetic_sequence"),
-    "lensdist_torch.workflows.verify": ("verify_undistortion",),
     "lensdist_torch.workflows.undistort": ("undistort_path",),
 }
 

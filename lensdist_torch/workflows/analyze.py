@@ -257,7 +257,7 @@ def analyze_batch(
         ``warnings`` and more. With ``return_maps``, (that list, the quality maps).
 
     Example:
-        >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
+        >>> from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
         >>> frames, ideal = synthetic_sequence(2, 1e-6, 0.0)  # a pan through a lens of Delta_avg 4.19 px, and without
         >>> res = analyze_batch(torch.stack([frames[0], ideal[0]]), torch.stack([frames[1], ideal[1]]))
         >>> [r["class"] for r in res], abs(res[0]["delta_avg"] - 4.19) < 0.25  # px at 320 x 424

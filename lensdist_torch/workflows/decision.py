@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import torch
 
+from lensdist_torch.calibration.direct import user_coefficients
 from lensdist_torch.config import LensdistConfig
-from lensdist_torch.geometry.calibration import user_coefficients
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top, pixel_offsets
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.workflows.confidence import platt

@@ -124,7 +124,7 @@ class PreparedPairs:
 
         Example:
             >>> import dataclasses
-            >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
+            >>> from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
             >>> frames, _ = synthetic_sequence(2, 3e-7, 0.0)  # a pan through a lens of Delta_avg ~1.2 px
             >>> p = prepare_batch(frames[0], frames[1])
             >>> strict = p.with_decision(dataclasses.replace(p.config.analysis, no_distortion_px=2.0))

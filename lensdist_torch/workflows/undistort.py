@@ -7,7 +7,7 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
 - **Coefficients.** Given as numbers (finite; a bool is not a number) or read from the JSON of
   ``lensdist calibrate`` or ``lensdist analyze --json``: ``k2_user``, ``k4_user``, the frame size
   and every field that could contradict them (the class, the verification, OpenCV's camera) are
-  checked by :mod:`~lensdist_torch.workflows.calibration_file`; each bad field is a one-line
+  checked by :mod:`~lensdist_torch.calibration.controllers.answer_file`; each bad field is a one-line
   error naming the file and the field. Pixels that eq. 4 folds over
   (past the monotone branch of its radius, :func:`~lensdist_torch.geometry.undistort.monotone_branch`)
   are 0 in the mask and in the image. Coefficients that fold before the nearest edge of the frame
@@ -59,6 +59,9 @@ from pathlib import Path
 
 import torch
 
+from lensdist_torch.calibration.controllers.answer_file import Calibration, read_calibration
+from lensdist_torch.calibration.controllers.answer_lens import eq4_lens, lens_grid, lens_ideal, lens_view, scale_lens
+from lensdist_torch.calibration.controllers.calibrate import frames_of_one_size, list_frames
 from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
@@ -66,9 +69,6 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_export, radial_monotone
 from lensdist_torch.geometry.radial_lens import monotone_radius
 from lensdist_torch.geometry.undistort import monotone_branch
-from lensdist_torch.workflows.answer_lens import eq4_lens, lens_grid, lens_ideal, lens_view, scale_lens
-from lensdist_torch.workflows.calibrate import frames_of_one_size, list_frames
-from lensdist_torch.workflows.calibration_file import Calibration, read_calibration
 
 __all__ = ["MAX_STRETCH", "encode_png", "undistort_path"]
 

@@ -126,7 +126,7 @@ def test_evaluate_out_inside_the_data_folder_is_refused(data, capsys):
 @pytest.mark.parametrize("where", ["train", "train/sub", "."])
 def test_outputs_inside_a_data_set_are_refused(data, tmp_path, capsys, where):
     """Issue 19 audit: `--save-map data/train/map.png` and `undistort --out data/train` wrote into a data set."""
-    from lensdist_torch.workflows.calibrate import synthetic_sequence
+    from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
     from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
     pair = []

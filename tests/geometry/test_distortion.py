@@ -12,6 +12,7 @@ import math
 import pytest
 import torch
 
+from lensdist_torch.calibration.sequence_class import class_or_open
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
@@ -31,7 +32,6 @@ from lensdist_torch.geometry.distortion import (
     render_distorted,
     undistort_points,
 )
-from lensdist_torch.geometry.sequence_class import class_or_open
 
 H, W = 320, 424
 K2, K4 = 2.5e-6, 2.5e-11

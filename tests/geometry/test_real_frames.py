@@ -15,14 +15,14 @@ from pathlib import Path
 import pytest
 import torch
 
+from lensdist_torch.calibration import calibrate_sequence
+from lensdist_torch.calibration.direct_fits import pair_misfit
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.core import load_image
 from lensdist_torch.core.images import load_scene, to_grey
 from lensdist_torch.data.relens import relens_frames
-from lensdist_torch.geometry import calibrate_sequence
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, estimated_class, paper_frame_delta_avg
 from lensdist_torch.geometry.selfcal import estimate_distortion
-from lensdist_torch.geometry.sequence_fits import pair_misfit
 
 REAL = Path(__file__).parents[1] / "data" / "real" / "gopro_hero4_wall"
 
@@ -97,10 +97,10 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     inverts, whose Delta_avg there is 25.79 px (95.6 %); 33.67 px over every pixel (the model's own).
     """
     pytest.importorskip("pycolmap")
+    from lensdist_torch.calibration.multiview import extract_and_match
+    from lensdist_torch.calibration.planar_features import delta_avg_where, read_verified_matches, self_calibrate_planar
     from lensdist_torch.config import MultiViewConfig
-    from lensdist_torch.geometry.multiview import extract_and_match
     from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
-    from lensdist_torch.geometry.planar_features import delta_avg_where, read_verified_matches, self_calibrate_planar
 
     cal = json.loads((REAL / "calibration.json").read_text())
     names = sorted(cal["frames"])
@@ -117,7 +117,7 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     assert lo <= truth <= hi
     # guided matching (forced: here 19 of 29 verified pairs count, so by default it does not run), measured
     # 2026-11-27: 28 pairs count, 23.94 px [17.86, 30.02] where the calibration inverts
-    from lensdist_torch.geometry.guided_matching import self_calibrate_guided
+    from lensdist_torch.calibration.guided_matching import self_calibrate_guided
 
     forced = MultiViewConfig(num_threads=1, planar_guided_below=1.0)
     guided = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), forced)

@@ -1,4 +1,4 @@
-"""Calibrate and undistort from folders and videos (lensdist_torch.workflows.calibrate), and the
+"""Calibrate and undistort from folders and videos (lensdist_torch.calibration.controllers.calibrate), and the
 `lensdist calibrate` / `lensdist undistort` commands."""
 
 from __future__ import annotations
@@ -13,15 +13,15 @@ import numpy as np
 import pytest
 import torch
 
-from lensdist_torch.cli_calibrate import add_calibrate_commands
-from lensdist_torch.core.images import load_image, to_grey
-from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.workflows.calibrate import (
+from lensdist_torch.calibration.controllers.calibrate import (
     calibrate_path,
     list_frames,
     read_frames,
     synthetic_sequence,
 )
+from lensdist_torch.cli_calibrate import add_calibrate_commands
+from lensdist_torch.core.images import load_image, to_grey
+from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.workflows.undistort import _coefficients_for, encode_png, to_uint8, undistort_path
 
 SIZE = (240, 320)
@@ -118,7 +118,7 @@ def test_too_little_motion_is_said_before_any_mapping(tmp_path, capsys, monkeypa
     """Issue 19 audit: --method multiview on a static sequence ran COLMAP (24 s for 12 frames of
     480 x 640, minutes on a long video), then exited 2 with "the engine could not reconstruct the
     sequence"; the direct path says "too little motion: ..." with status 0 and no estimate."""
-    import lensdist_torch.workflows.calibrate as calibrate_mod
+    import lensdist_torch.calibration.controllers.calibrate as calibrate_mod
 
     scene = synthetic_sequence(1, K2, K4, size=(112, 144))[0][0]
     frames = [scene[..., 8:104, 8:136] if moved == "identical" else scene[..., 8:104, 8 + i : 136 + i] for i in range(6)]

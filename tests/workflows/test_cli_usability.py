@@ -64,7 +64,7 @@ def test_a_mistyped_option_gets_a_suggestion(capsys, argv, prog, wanted):
     ["undistort", "{d}", "--from", "{d}/missing.json", "--out", "{d}/o"],
 ])
 def test_options_are_refused_before_any_frame_is_read(tmp_path, capsys, monkeypatch, argv):
-    import lensdist_torch.workflows.calibrate as calibrate
+    import lensdist_torch.calibration.controllers.calibrate as calibrate
 
     def never(*args, **kwargs):
         raise AssertionError("a frame was read before the options were checked")
@@ -82,7 +82,7 @@ def test_options_are_refused_before_any_frame_is_read(tmp_path, capsys, monkeypa
 
 @pytest.mark.parametrize("where", ["before", "after"])
 def test_debug_shows_the_traceback_of_an_internal_error(capsys, monkeypatch, tmp_path, where):
-    import lensdist_torch.workflows.calibrate as calibrate
+    import lensdist_torch.calibration.controllers.calibrate as calibrate
 
     def broken(*args, **kwargs):
         raise RuntimeError("boom")
@@ -144,8 +144,8 @@ def test_the_planar_setting_the_readme_gives_answers(tmp_path, capsys):
     turned into a Delta. The planar answer stands, against the truth at the analysis frame."""
     import json
 
+    from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
     from lensdist_torch.geometry.distortion import paper_frame_delta_avg
-    from lensdist_torch.workflows.calibrate import synthetic_sequence
     from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(2, 2e-6, 0.0, size=(240, 320), step_px=(12.0, 12.0))

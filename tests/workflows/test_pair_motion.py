@@ -13,6 +13,7 @@ import math
 import pytest
 import torch
 
+from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
 from lensdist_torch.cli import main
 from lensdist_torch.config import LensdistConfig, SelfCalConfig
 from lensdist_torch.core.images import centre_crop_box, load_scene
@@ -21,7 +22,6 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.selfcal import estimate_distortion
 from lensdist_torch.workflows.analyze import analyze_pair
-from lensdist_torch.workflows.calibrate import synthetic_sequence
 
 K2 = 1.5e-6  # Delta_avg 6.29 px at 320 x 424 (class 2)
 TRUTH = float(delta_avg(torch.tensor([K2], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), 320, 424)[0])

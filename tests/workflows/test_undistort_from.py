@@ -1,6 +1,6 @@
 """``lensdist undistort --from FILE`` against hostile files (issue 19): the class, the verification
 and OpenCV's camera are checked with the coefficients they could contradict
-(lensdist_torch/workflows/calibration_file.py); fields undistort ignores are not."""
+(lensdist_torch/calibration/controllers/answer_file.py); fields undistort ignores are not."""
 
 from __future__ import annotations
 

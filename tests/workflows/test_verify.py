@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from lensdist_torch.calibration.controllers.calibrate import _verified, synthetic_sequence
+from lensdist_torch.calibration.controllers.verify import error_blocks, verify_undistortion
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
-from lensdist_torch.workflows.calibrate import _verified, synthetic_sequence
-from lensdist_torch.workflows.verify import error_blocks, verify_undistortion
 
 K2 = 2e-6  # at 160 x 212: Delta_avg ~ 2 px
 
@@ -110,7 +110,7 @@ def test_undistort_from_a_calibration_that_could_not_tell(tmp_path, frames):
     (0, 0, (None, None), "not measurable"),
 ])
 def test_the_verdict_counts_a_registration_gained_as_errors_lowered(before, after, shares, says):
-    from lensdist_torch.workflows.verify import verdict
+    from lensdist_torch.calibration.controllers.verify import verdict
 
     check = {"registered_before": before, "registered_after": after, "error_share_before": shares[0],
              "error_share_after": shares[1]}

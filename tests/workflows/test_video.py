@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from lensdist_torch import cli
+from lensdist_torch.calibration.controllers.calibrate import read_frames, synthetic_sequence
 from lensdist_torch.core.video import video_frames, video_reader
 from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.workflows.calibrate import read_frames, synthetic_sequence
 
 K2, SIZE, N = 1e-5, (120, 160), 8
 

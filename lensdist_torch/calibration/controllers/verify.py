@@ -16,13 +16,13 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from lensdist_torch.calibration.controllers.answer_lens import eq4_lens, lens_grid
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import sample_at_pixels
 from lensdist_torch.geometry.registration import warp_to_reference
 from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
-from lensdist_torch.workflows.answer_lens import eq4_lens, lens_grid
 
 __all__ = ["COUNTS", "VERDICTS", "error_blocks", "verdict", "verify_undistortion"]
 
@@ -97,7 +97,7 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
         settings: registration and quality settings (the defaults when None).
         max_pairs: how many pairs to check.
         lens: the answer's own lens at the frames' size
-            (:func:`~lensdist_torch.workflows.answer_lens.answer_lens`, scaled), applied instead
+            (:func:`~lensdist_torch.calibration.controllers.answer_lens.answer_lens`, scaled), applied instead
             of (k2, k4), which then only approximate it; None: eq. 4.
 
     Returns:
@@ -107,7 +107,7 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
         "blocks_after"}.
 
     Example:
-        >>> from lensdist_torch.workflows.calibrate import synthetic_sequence
+        >>> from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
         >>> frames, _ = synthetic_sequence(6, 2e-6, 0.0, size=(160, 212), step_px=(20, 24))
         >>> out = verify_undistortion(frames, torch.tensor([[0, 3], [1, 4], [2, 5]]), 2e-6, 0.0)
         >>> out["error_share_after"] < out["error_share_before"]

@@ -17,9 +17,9 @@ each problem is one ValueError naming the file and the field:
   ``FROM_CLASS_TOLERANCE`` of the class's bounds (the default classes; R's bound is the
   producer's default, a sequence's ``calibration.no_distortion_px`` or one pair's
   ``analysis.no_distortion_px``: either is accepted);
-- ``verification`` (calibrate): null, or :func:`~lensdist_torch.workflows.verify.verify_undistortion`'s
+- ``verification`` (calibrate): null, or :func:`~lensdist_torch.calibration.controllers.verify.verify_undistortion`'s
   counts with their shares and the verdict that follows from them
-  (:func:`~lensdist_torch.workflows.verify.verdict`); there is one only for a distortion class,
+  (:func:`~lensdist_torch.calibration.controllers.verify.verdict`); there is one only for a distortion class,
   and "not lowered" withholds the class;
 - ``opencv``: null or absent, or a ``camera_matrix`` [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] of
   positive focal lengths with its principal point inside the frame;
@@ -43,11 +43,11 @@ import math
 from pathlib import Path
 from typing import Any, NamedTuple
 
+from lensdist_torch.calibration.controllers.answer_lens import answer_lens, lens_ideal
+from lensdist_torch.calibration.controllers.verify import COUNTS, VERDICTS, verdict
 from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step
-from lensdist_torch.workflows.answer_lens import answer_lens, lens_ideal
-from lensdist_torch.workflows.verify import COUNTS, VERDICTS, verdict
 
 __all__ = ["Calibration", "MAX_LENS_TERMS", "read_calibration"]
 

@@ -5,11 +5,11 @@ import math
 import pytest
 import torch
 
+from lensdist_torch.calibration.planar_features import PlanarMatches, self_calibrate_planar
+from lensdist_torch.calibration.planar_model import _adjugate, transfer_jacobians, transfer_residuals
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, distort_points, undistort_points
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.planar_features import PlanarMatches, self_calibrate_planar
-from lensdist_torch.geometry.planar_model import _adjugate, transfer_jacobians, transfer_residuals
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 pytest.importorskip("pycolmap")
@@ -195,7 +195,7 @@ def test_too_few_pairs_say_so():
 
 
 def test_bending_halfwidth_is_the_jackknife_of_what_no_affine_map_takes_away():
-    from lensdist_torch.geometry.planar_model import bending_halfwidth, lens_deltas
+    from lensdist_torch.calibration.planar_model import bending_halfwidth, lens_deltas
 
     h, w = SIZE
     theta = torch.tensor([0.2, 0.05], dtype=torch.float64)
@@ -216,7 +216,7 @@ def test_bending_halfwidth_is_the_jackknife_of_what_no_affine_map_takes_away():
 
 
 def test_thinning_keeps_every_pair_evenly_and_the_answer():
-    from lensdist_torch.geometry.planar_features import thin_matches
+    from lensdist_torch.calibration.planar_features import thin_matches
 
     m = _plane_matches(4e-6, 2e-11)
     counts = torch.bincount(m.pair)

@@ -2,11 +2,11 @@
 
 :func:`multiview_path` hands at most ``multiview.mapped_frames`` frames, evenly spaced over the
 sequence, of a folder (as they are) or of a video (written once as lossless grey PNG into a
-temporary folder) to COLMAP (:mod:`~lensdist_torch.geometry.multiview`;
+temporary folder) to COLMAP (:mod:`~lensdist_torch.calibration.multiview`;
 ``multiview.reconstructions`` mappings, each self-calibrated, combined by
-:mod:`~lensdist_torch.geometry.multiview_runs`) and returns a strict-JSON-ready dict, or the
+:mod:`~lensdist_torch.calibration.multiview_runs`) and returns a strict-JSON-ready dict, or the
 reason it has no answer (no mapping registered enough frames). :func:`combine` makes the
-one answer of :func:`~lensdist_torch.workflows.calibrate.calibrate_path` from the two paths:
+one answer of :func:`~lensdist_torch.calibration.controllers.calibrate.calibrate_path` from the two paths:
 
 * the multi-view answer when it has one and the direct path's interval does not contradict it;
 * the direct answer (confident or "cannot tell") where the multi-view path has none: pycolmap
@@ -23,12 +23,12 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from lensdist_torch.calibration.guided_matching import self_calibrate_guided
+from lensdist_torch.calibration.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
+from lensdist_torch.calibration.multiview_runs import combine_reconstructions
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import load_image
-from lensdist_torch.geometry.guided_matching import self_calibrate_guided
-from lensdist_torch.geometry.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
-from lensdist_torch.geometry.multiview_runs import combine_reconstructions
 
 __all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "planar_path", "combine"]
 
@@ -71,9 +71,9 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
 
     Returns:
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
-        fields of :class:`~lensdist_torch.geometry.multiview.MultiViewCalibration`.
+        fields of :class:`~lensdist_torch.calibration.multiview.MultiViewCalibration`.
     """
-    from lensdist_torch.workflows.calibrate import list_frames, read_frames
+    from lensdist_torch.calibration.controllers.calibrate import list_frames, read_frames
 
     cfg = or_defaults(config, MultiViewConfig)
     try:
@@ -151,7 +151,7 @@ def planar_path(database: Path, names: list[str], image_size: tuple[int, int], c
 
     ``folder`` holds the frames ``names`` (the refinement reads them; None: no refinement).
     ``ok`` False with a ``reason`` where it has no answer (too few pairs of matches); otherwise the
-    fields of :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration` (strict-JSON-ready).
+    fields of :class:`~lensdist_torch.calibration.planar_features.PlanarCalibration` (strict-JSON-ready).
     """
     images = None if folder is None else (lambda v: load_image(Path(folder) / names[v], max_pixels=None)[0, 0])
     res = self_calibrate_guided(database, names, image_size, config, settings, images=images)

@@ -1,7 +1,7 @@
 """The lens models of one reconstruction: each one's posterior, their evidence on held-out frames, one answer.
 
 Every camera model of ``multiview.models`` is fitted by bundle adjustment on the same tracks
-(:mod:`~lensdist_torch.geometry.multiview`). What the data say about each, and which to believe:
+(:mod:`~lensdist_torch.calibration.multiview`). What the data say about each, and which to believe:
 
 * **Its posterior.** The covariance of the camera's intrinsics from the adjustment's normal
   equations, the 3-D points and the poses marginalised (COLMAP's Schur complement,

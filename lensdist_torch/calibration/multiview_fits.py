@@ -1,12 +1,12 @@
 """A camera fitted on a COLMAP reconstruction's tracks, free or held, with its folds and its posterior.
 
-The fits that :func:`~lensdist_torch.geometry.multiview.self_calibrate_reconstruction` weighs:
+The fits that :func:`~lensdist_torch.calibration.multiview.self_calibrate_reconstruction` weighs:
 
 * :func:`fit_model`: one COLMAP camera model adjusted with the structure and the poses (focal
   length and distortion free, the principal point held at the frame centre), its posterior of
   Delta from the adjustment's covariance, and per fold (a contiguous block of frames held out)
   the model adjusted without the block, its Delta (the jackknife) and the held-out frames'
-  squared errors (its evidence, :mod:`~lensdist_torch.geometry.multiview_evidence`);
+  squared errors (its evidence, :mod:`~lensdist_torch.calibration.multiview_evidence`);
 * :func:`fit_held_camera`: another path's camera (the direct path's or the homography model's
   OpenCV camera) held fixed while the structure and the poses adjust, scored on the same folds,
   so that every path's lens is weighed on the same held-out frames. Its lens map is kept exactly
@@ -28,7 +28,7 @@ import sys
 import numpy as np
 import torch
 
-from lensdist_torch.geometry.multiview_evidence import (
+from lensdist_torch.calibration.multiview_evidence import (
     camera_covariance,
     heldout_rms,
     heldout_squared_errors,

@@ -3,9 +3,9 @@
 COLMAP's incremental mapping is a chain of random choices (the initial pair, RANSAC for every new
 view's pose, the triangulation); on hard footage another seed registers other views and ends in
 another camera. By default one mapping answers and its models' jackknife checks their posteriors
-(:mod:`~lensdist_torch.geometry.multiview_evidence`); with ``multiview.reconstructions`` above one
+(:mod:`~lensdist_torch.calibration.multiview_evidence`); with ``multiview.reconstructions`` above one
 the mapping runs that many times on the same features and matches (seeds ``seed``, ``seed`` + 1,
-...; :func:`~lensdist_torch.geometry.multiview.reconstruct`), each reconstruction is
+...; :func:`~lensdist_torch.calibration.multiview.reconstruct`), each reconstruction is
 self-calibrated, and :func:`combine_reconstructions` measures the engine's variation. A mapping
 that registers too few frames is no answer but a failed start (a wrong initial pair: the focal
 length runs off and the mapping ends in about a second), so up to ``multiview.extra_mappings``
@@ -15,12 +15,12 @@ further seeds are tried until ``reconstructions`` succeed; the failures are list
   registered frames, then the lower reprojection RMS);
 * adds the largest |Delta_avg - the answer's| over the reconstructions (``reconstruction_spread``)
   to the interval in quadrature with each side's own half-width h (the models' posteriors mixed by
-  their evidence, :mod:`~lensdist_torch.geometry.multiview_evidence`): sqrt(h^2 + (z spread)^2), z
+  their evidence, :mod:`~lensdist_torch.calibration.multiview_evidence`): sqrt(h^2 + (z spread)^2), z
   the normal quantile of ``confidence``;
 * withholds the class ("cannot tell", the reason naming the spread) when fewer than
   ``reconstructions`` reconstructions succeeded, when two of them disagree beyond their own
   intervals, when the widened interval is too wide, or when it spans a sequence's R threshold
-  at the paper's frame (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`).
+  at the paper's frame (:func:`~lensdist_torch.calibration.sequence_class.sequence_class`).
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ from __future__ import annotations
 import math
 from statistics import NormalDist
 
+from lensdist_torch.calibration.multiview import MultiViewCalibration
+from lensdist_torch.calibration.sequence_class import interval_too_wide, sequence_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.multiview import MultiViewCalibration
-from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["reconstruction_spread", "widened_interval", "combine_reconstructions"]
 
@@ -86,7 +86,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     """One answer from several reconstructions' self-calibrations (module docstring).
 
     Args:
-        runs: per mapping seed its :class:`~lensdist_torch.geometry.multiview.MultiViewCalibration`,
+        runs: per mapping seed its :class:`~lensdist_torch.calibration.multiview.MultiViewCalibration`,
             or a string saying why that reconstruction failed; at least one must have succeeded.
         config: :class:`~lensdist_torch.config.MultiViewConfig` (``confidence``, ``reconstructions``: the
             successes a class needs, the width limits).

@@ -1,4 +1,4 @@
-"""Sequence calibration (lensdist_torch.geometry.calibration) and the OpenCV export (opencv_model)."""
+"""Sequence calibration (lensdist_torch.calibration.direct) and the OpenCV export (opencv_model)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from lensdist_torch.config import LensdistConfig
-from lensdist_torch.geometry.calibration import (
+from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
+from lensdist_torch.calibration.direct import (
     CalibrationConfig,
     analysis_scale,
     analysis_size,
@@ -20,6 +20,8 @@ from lensdist_torch.geometry.calibration import (
     to_analysis,
     user_coefficients,
 )
+from lensdist_torch.calibration.pooling import t_quantile
+from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     delta_avg,
@@ -29,8 +31,6 @@ from lensdist_torch.geometry.distortion import (
     undistort_points,
 )
 from lensdist_torch.geometry.opencv_model import opencv_camera, opencv_undistort_points
-from lensdist_torch.geometry.pooling import t_quantile
-from lensdist_torch.workflows.calibrate import synthetic_sequence
 
 SIZE = (240, 320)
 # 0.6 of the largest coefficients of docs/method.md, section 6 (at 320 x 424), scaled to 240 x 320
@@ -309,7 +309,7 @@ def test_no_pairs_says_whether_the_frames_did_not_move_or_did_not_register():
 @pytest.mark.bad_input
 def test_frames_that_move_a_little_say_so_and_by_how_much():
     """Issue 19 audit: a pan of 1.2-2 px a frame said 'phase correlation finds no consistent motion'."""
-    from lensdist_torch.workflows.calibrate import synthetic_sequence
+    from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
 
     frames, _ = synthetic_sequence(15, 1.5e-6, 0.0, size=(320, 424), step_px=(1.2, 2.0), seed=3)
     cal = calibrate_sequence(frames)
@@ -326,7 +326,7 @@ def test_the_relief_model_of_the_sequence_path():
     with the plane + parallax model in every pair (calibration.parallax = 5, the default) 0.18 px,
     the interval covering. Where Hausman's test finds no relief in any pair the answer is exactly
     the planar one."""
-    from lensdist_torch.workflows.calibrate import synthetic_sequence
+    from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
 
     size = (240, 320)
     k2 = 2.5e-6 * (424 / 320) ** 2
@@ -354,9 +354,9 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     independent sum here), and relief_rel adds
     (t relief_rel relief_effect)^2 to the squared half-width; where the models part by noise alone,
     (t relief_rel relief_test sd)^2, sd the std of their difference; models that agree, nothing."""
-    from lensdist_torch.geometry.calibration import _result, _signed_mean
+    from lensdist_torch.calibration.direct import _result, _signed_mean
+    from lensdist_torch.calibration.pooling import pool_pairs, within_mads
     from lensdist_torch.geometry.frame import half_diagonal
-    from lensdist_torch.geometry.pooling import pool_pairs, within_mads
 
     g = torch.Generator().manual_seed(0)
     n, (h, w) = 16, (96, 128)
@@ -399,7 +399,7 @@ def test_an_interval_across_the_no_distortion_threshold_gives_no_class():
     """Undistorted scenes with relief came out at 0.3-0.6 px, intervals reaching 0, and were
     called class 1: where the interval at the paper's frame spans calibration.no_distortion_px
     (0.25 px) R and 1 cannot be told. Hand-built pairs at Delta_avg ~0.4 px at the paper's frame."""
-    from lensdist_torch.geometry.calibration import _result
+    from lensdist_torch.calibration.direct import _result
     from lensdist_torch.geometry.frame import half_diagonal
 
     n, (h, w), st = 16, (320, 424), LensdistConfig()

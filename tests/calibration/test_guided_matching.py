@@ -6,14 +6,14 @@ import math
 import pytest
 import torch
 
+from lensdist_torch.calibration.planar_features import PlanarMatches, self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import distort_points
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.planar_features import PlanarMatches, self_calibrate_planar
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 pytest.importorskip("pycolmap")
-from lensdist_torch.geometry.guided_matching import chain_views, guided_matches  # noqa: E402
+from lensdist_torch.calibration.guided_matching import chain_views, guided_matches  # noqa: E402
 
 SIZE = (240, 320)
 K2 = 4e-6  # eq. 4's k2 (about 13 px of Delta at the corners of 320 x 240)
@@ -133,7 +133,7 @@ def test_the_plane_test_can_be_carried_over():
 def _stub_database(monkeypatch, verified: PlanarMatches, feats: list, keep_pairs: int | None = None):
     """``self_calibrate_guided`` reading ``verified`` and ``feats`` instead of a COLMAP database; with
     ``keep_pairs``, the guided matches cut to that many pairs."""
-    import lensdist_torch.geometry.guided_matching as gm
+    import lensdist_torch.calibration.guided_matching as gm
 
     monkeypatch.setattr(gm, "read_verified_matches", lambda database, names, min_matches=15: verified)
     monkeypatch.setattr(gm, "read_features", lambda database, names: feats)
@@ -152,7 +152,7 @@ def _stub_database(monkeypatch, verified: PlanarMatches, feats: list, keep_pairs
 def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
     """Five views, 10 verified pairs: the 4 of neighbours with 14 right matches among 20 look-alikes, the
     others with 5 right among 40 (too few for a homography: they do not count in the first fit)."""
-    from lensdist_torch.geometry.guided_matching import self_calibrate_guided
+    from lensdist_torch.calibration.guided_matching import self_calibrate_guided
 
     feats, homs, ids = _views(n_views=5)
     near = _verified(feats, ids, [(i, i + 1) for i in range(4)], good=14, wrong=20)

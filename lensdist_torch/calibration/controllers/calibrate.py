@@ -4,7 +4,7 @@
 their natural order, or a video through PyAV, the ``video`` extra, or OpenCV:
 :mod:`lensdist_torch.core.video`), brings each to the analysis size as
 it is read (a long video stays small), and runs
-:func:`~lensdist_torch.geometry.calibration.calibrate_sequence`; it returns a strict-JSON-ready
+:func:`~lensdist_torch.calibration.direct.calibrate_sequence`; it returns a strict-JSON-ready
 dict (None for unknown numbers, never NaN) with the coefficients of eq. 4 in the frames' own
 pixels, Delta_avg and Delta_max with their 95 % intervals, the class, and OpenCV's camera
 matrix and distortion coefficients (:mod:`~lensdist_torch.geometry.opencv_model`).
@@ -23,25 +23,25 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from lensdist_torch.config import LensdistConfig
-from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
-from lensdist_torch.core.video import VIDEO_SUFFIXES, video_frames
-from lensdist_torch.data.realism import degrade, draw_realism
-from lensdist_torch.data.relief import draw_height_field, relief_samples
-from lensdist_torch.geometry.calibration import (
+from lensdist_torch.calibration.controllers.answer_lens import answer_lens, scale_lens
+from lensdist_torch.calibration.controllers.multiview_path import MIN_FRAMES, combine, multiview_path
+from lensdist_torch.calibration.controllers.verify import verdict, verify_undistortion
+from lensdist_torch.calibration.direct import (
     TOO_LITTLE_MOTION,
     CalibrationConfig,
     analysis_scale,
     calibrate_sequence,
     to_analysis,
 )
+from lensdist_torch.calibration.direct_fits import unregistered
+from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
+from lensdist_torch.core.video import VIDEO_SUFFIXES, video_frames
+from lensdist_torch.data.realism import degrade, draw_realism
+from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
 from lensdist_torch.geometry.opencv_model import opencv_export
-from lensdist_torch.geometry.sequence_fits import unregistered
-from lensdist_torch.workflows.answer_lens import answer_lens, scale_lens
-from lensdist_torch.workflows.multiview import MIN_FRAMES, combine, multiview_path
-from lensdist_torch.workflows.verify import verdict, verify_undistortion
 
 METHODS = ("auto", "multiview", "direct")
 
@@ -134,7 +134,7 @@ def calibrate_path(
 
     Args:
         path: a folder of images (one camera, one size, in recording order by name) or a video.
-        config: :class:`~lensdist_torch.geometry.calibration.CalibrationConfig`.
+        config: :class:`~lensdist_torch.calibration.direct.CalibrationConfig`.
         settings: the library's :class:`~lensdist_torch.config.LensdistConfig`.
         max_frames: read at most this many frames (None: all).
         focal: OpenCV's fx = fy in pixels; the half diagonal when None.
@@ -143,7 +143,7 @@ def calibrate_path(
             frames are read and brought to the analysis size on the CPU.
         method: "direct" (the photometric self-calibration of pairs), "multiview" (bundle
             adjustment on COLMAP's tracks, needs pycolmap) or "auto" (both, combined by
-            :func:`~lensdist_torch.workflows.multiview.combine`; the direct path alone where
+            :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`; the direct path alone where
             pycolmap is missing). Frames that moved too little for the direct path (its
             ``too little motion`` reason) get that answer from every method, before any mapping.
 
@@ -218,7 +218,7 @@ def calibrate_path(
 def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: LensdistConfig) -> dict:
     """The answer, its class withheld where undistorting with it does not lower the registration errors.
 
-    Adds ``verification`` (:func:`~lensdist_torch.workflows.verify.verify_undistortion`'s dict
+    Adds ``verification`` (:func:`~lensdist_torch.calibration.controllers.verify.verify_undistortion`'s dict
     with a ``verdict``: "lowered" (more pairs registered after the correction, or the same and a
     lower share of error blocks), "not lowered" (the class is withheld: no lower share, or fewer
     pairs registered) or "not measurable" (no pair registered both times: far-apart views; the

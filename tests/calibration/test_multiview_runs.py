@@ -1,18 +1,18 @@
 """Several reconstructions of one sequence: the spread between them in the interval, and one-thread runs
-that repeat exactly (lensdist_torch.geometry.multiview_runs, geometry.multiview.reconstruct)."""
+that repeat exactly (lensdist_torch.calibration.multiview_runs, calibration.multiview.reconstruct)."""
 
 import math
 
 import pytest
 
-from lensdist_torch.config import LensdistConfig, MultiViewConfig
-from lensdist_torch.geometry.multiview import MultiViewCalibration
-from lensdist_torch.geometry.multiview_runs import (
+from lensdist_torch.calibration.multiview import MultiViewCalibration
+from lensdist_torch.calibration.multiview_runs import (
     combine_reconstructions,
     reconstruction_spread,
     widened_interval,
 )
-from lensdist_torch.geometry.sequence_class import sequence_class
+from lensdist_torch.calibration.sequence_class import sequence_class
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
 
 Z = 1.959963984540054  # the normal quantile at 97.5 %: the models' posteriors are normal
 
@@ -140,8 +140,8 @@ def test_reconstructions_must_be_a_positive_int(value):
 # ------------------------------------------------------------------ one thread: the same numbers
 def test_one_thread_reconstructions_repeat_exactly(tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
-    from lensdist_torch.geometry.multiview import reconstruct
-    from lensdist_torch.workflows.calibrate import synthetic_sequence
+    from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
+    from lensdist_torch.calibration.multiview import reconstruct
     from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(5, 1.5e-6, 0.0, size=(120, 160), seed=4)

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
+from lensdist_torch.calibration.controllers.multiview_path import combine
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_delta, opencv_ideal_points
-from lensdist_torch.workflows.multiview import combine
 
 cv2 = pytest.importorskip("cv2")
 
@@ -64,7 +64,7 @@ def test_ideal_points_refuse_a_wrong_number_of_coefficients():
 
 # ------------------------------------------------------------------ COLMAP
 pycolmap = pytest.importorskip("pycolmap")
-from lensdist_torch.geometry.multiview import (  # noqa: E402
+from lensdist_torch.calibration.multiview import (  # noqa: E402
     opencv_from_colmap,
     rotation_spread_deg,
     self_calibrate_reconstruction,
@@ -127,7 +127,7 @@ def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_t
 
 
 def test_models_within_the_rms_margin_join_the_spread():
-    from lensdist_torch.geometry.planar_model import model_spread
+    from lensdist_torch.calibration.planar_model import model_spread
 
     """The homography model's rule (the 3-D models weigh themselves by held-out frames instead). The
     GoPro views' table: BIC prefers FULL_OPENCV by hundreds for 3-5 % of RMS; its 122.4 px missed the
@@ -165,7 +165,7 @@ def _spread_synthetic(seed, frames=8, noise=0.5):
 
 
 def test_a_held_camera_keeps_the_paths_lens_map_at_any_focal_length():
-    from lensdist_torch.geometry.multiview_fits import held_camera
+    from lensdist_torch.calibration.multiview_fits import held_camera
     from lensdist_torch.geometry.opencv_model import opencv_ideal_points
 
     k = torch.tensor([[400.0, 0, 319.5], [0, 404.0, 239.5], [0, 0, 1]], dtype=torch.float64)
@@ -332,7 +332,7 @@ def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_re
 
 
 def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
-    from lensdist_torch.workflows.multiview import multiview_path
+    from lensdist_torch.calibration.controllers.multiview_path import multiview_path
 
     monkeypatch.setitem(sys.modules, "pycolmap", None)
     res = multiview_path(tmp_path, (10, 10))
@@ -340,7 +340,7 @@ def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
 
 
 def test_feature_cap_follows_the_area_sift_reads_by_hand():
-    from lensdist_torch.geometry.multiview import feature_cap
+    from lensdist_torch.calibration.multiview import feature_cap
 
     cfg = MultiViewConfig(features_per_megapixel=1000.0, max_image_side=1000, max_features=800)
     assert feature_cap(cfg) == 800  # no size: the fixed cap
@@ -351,7 +351,7 @@ def test_feature_cap_follows_the_area_sift_reads_by_hand():
 
 
 def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
-    from lensdist_torch.workflows.calibrate import calibrate_path, synthetic_sequence
+    from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
     from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(2, 1e-6, 0.0, size=(96, 128))

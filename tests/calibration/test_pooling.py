@@ -1,4 +1,4 @@
-"""How a sequence's pairs pool (lensdist_torch.geometry.pooling): the good-and-bad mixture by hand.
+"""How a sequence's pairs pool (lensdist_torch.calibration.pooling): the good-and-bad mixture by hand.
 
 With every pair good and consistent, the mixture's mean is the inverse-variance mean and kappa is
 1; a failure, however tight, gets no weight; the good pairs' scatter beyond their stds is the
@@ -13,7 +13,7 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.geometry.pooling import good_and_bad
+from lensdist_torch.calibration.pooling import good_and_bad
 
 F64 = torch.float64
 

@@ -1,15 +1,15 @@
 """The multi-view path's series of mappings and its speed-ups keep its answers: failed mappings retried,
-every mapping run whatever the camera's motion (lensdist_torch.workflows.multiview), the bundle
-adjustments' tolerance (geometry.multiview)."""
+every mapping run whatever the camera's motion (lensdist_torch.calibration.controllers.multiview_path), the bundle
+adjustments' tolerance (calibration.multiview)."""
 
 from pathlib import Path
 
 import pytest
 import torch
 
+from lensdist_torch.calibration.controllers import multiview_path as wmv
+from lensdist_torch.calibration.multiview import BA_FUNCTION_TOLERANCE, MultiViewCalibration
 from lensdist_torch.config import MultiViewConfig
-from lensdist_torch.geometry.multiview import BA_FUNCTION_TOLERANCE, MultiViewCalibration
-from lensdist_torch.workflows import multiview as wmv
 
 WIDE = "interval too wide: +-12.00 px"
 
@@ -105,7 +105,7 @@ def test_at_most_mapped_frames_go_to_colmap(monkeypatch, tmp_path):
 
 
 def test_a_long_video_is_written_with_a_doubling_stride(monkeypatch, tmp_path):
-    from lensdist_torch.workflows import calibrate
+    from lensdist_torch.calibration.controllers import calibrate
 
     clip = tmp_path / "clip.mp4"
     clip.write_bytes(b"")
@@ -135,7 +135,7 @@ def test_every_mapping_runs_whatever_the_camera_turned(monkeypatch, tmp_path, ro
 
 def test_bundle_adjustments_stop_at_ceres_default_tolerance(monkeypatch):
     pycolmap = pytest.importorskip("pycolmap")
-    from lensdist_torch.geometry.multiview_fits import adjust
+    from lensdist_torch.calibration.multiview_fits import adjust
 
     seen = []
     monkeypatch.setattr(pycolmap, "bundle_adjustment", lambda rec, options: seen.append(

@@ -37,10 +37,10 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d, spatial_gradient
 
+from lensdist_torch.calibration.planar_features import PlanarMatches
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
-from lensdist_torch.geometry.planar_features import PlanarMatches
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
 
 __all__ = ["align_patches", "local_affines", "refine_matches"]
@@ -157,7 +157,7 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
     """Every match of a pair with a homography moved to sub-pixel agreement (module docstring); the others dropped.
 
     Args:
-        matches: :class:`~lensdist_torch.geometry.planar_features.PlanarMatches`.
+        matches: :class:`~lensdist_torch.calibration.planar_features.PlanarMatches`.
         images: view index -> its (H, W) grey image in [0, 1] (called again for a view only once it has left
             the cache).
         homographies: {(i, j): 3 x 3 homography from view i's ideal pixels to view j's}; a pair

@@ -23,7 +23,7 @@ inliers in the first fit (:func:`self_calibrate_guided`).
    (``planar_guided_ratio`` on the descriptors' distances; nearer ones are the same point's other
    SIFT orientations). A match found through several orientations is kept once.
 
-The matches are then fitted again (:func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`
+The matches are then fitted again (:func:`~lensdist_torch.calibration.planar_features.self_calibrate_planar`
 from the first lens). They are chosen near the first fit's prediction, so they cannot say
 whether the scene is a plane: that test stays with the verified matches (the first fit).
 """
@@ -35,18 +35,18 @@ from collections.abc import Callable
 
 import torch
 
-from lensdist_torch.config import MultiViewConfig
-from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.homography import apply_homography
-from lensdist_torch.geometry.match_refinement import refine_matches
-from lensdist_torch.geometry.multiview import pycolmap_or_error
-from lensdist_torch.geometry.planar_features import (
+from lensdist_torch.calibration.match_refinement import refine_matches
+from lensdist_torch.calibration.multiview import pycolmap_or_error
+from lensdist_torch.calibration.planar_features import (
     PlanarMatches,
     pair_homographies,
     read_verified_matches,
     self_calibrate_planar,
     thin_matches,
 )
+from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
 __all__ = ["chain_views", "guided_matches", "pair_homography", "read_features", "refined_matches",
@@ -83,8 +83,8 @@ def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, i
     """Step 1: the counting pairs' homographies and each chained view's homography onto one plane.
 
     Args:
-        matches: the verified matches (:func:`~lensdist_torch.geometry.planar_features.read_verified_matches`).
-        coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.geometry.planar_model.lens_ideal_points`).
+        matches: the verified matches (:func:`~lensdist_torch.calibration.planar_features.read_verified_matches`).
+        coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.calibration.planar_model.lens_ideal_points`).
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_inlier_px``,
@@ -157,7 +157,7 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
             ``planar_guided_ratio``, ``planar_min_matches`` and :func:`chain_views`' fields).
 
     Returns:
-        :class:`~lensdist_torch.geometry.planar_features.PlanarMatches` (pairs with at least
+        :class:`~lensdist_torch.calibration.planar_features.PlanarMatches` (pairs with at least
         ``planar_min_matches`` guided matches; the pairs' indices renumbered).
 
     Example:
@@ -228,7 +228,7 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     """The homography model on a COLMAP database, fitted again on guided matches, then on refined ones (module docstring).
 
     The first fit is on the verified matches
-    (:func:`~lensdist_torch.geometry.planar_features.self_calibrate_planar`); where it has a lens
+    (:func:`~lensdist_torch.calibration.planar_features.self_calibrate_planar`); where it has a lens
     and found a plane, and under ``planar_guided_below`` of the verified pairs kept their
     homography inliers, the verified pairs are matched again under it (:func:`guided_matches`) and
     fitted again from its lens, the plane test's share carried over. The second fit answers where
@@ -238,7 +238,7 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     ``planar_guided_px`` 0: the first fit alone.
 
     With ``images``, the matches of the fit that answers are then moved to sub-pixel agreement
-    under its lens (:func:`~lensdist_torch.geometry.match_refinement.refine_matches`, each pair's
+    under its lens (:func:`~lensdist_torch.calibration.match_refinement.refine_matches`, each pair's
     homography its own or the chain's) and fitted again from its lens; that fit answers where it
     has an estimate (``refined`` says what was kept and the figures before).
 
@@ -251,7 +251,7 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
         images: view index (into ``names``) -> its (H, W) grey image in [0, 1]; None: no refinement.
 
     Returns:
-        :class:`~lensdist_torch.geometry.planar_features.PlanarCalibration`.
+        :class:`~lensdist_torch.calibration.planar_features.PlanarCalibration`.
     """
     cfg = or_defaults(config, MultiViewConfig)
     verified = read_verified_matches(database, names, cfg.planar_min_matches)
@@ -289,7 +289,7 @@ def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor
     each pair's matches are thinned to twice ``planar_pair_matches`` first.
 
     Args:
-        matches: :class:`~lensdist_torch.geometry.planar_features.PlanarMatches` (verified or guided).
+        matches: :class:`~lensdist_torch.calibration.planar_features.PlanarMatches` (verified or guided).
         images: view index (into ``matches.names``) -> its (H, W) grey image in [0, 1].
         coefficients: the lens's a_1 .. a_n.
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
@@ -297,7 +297,7 @@ def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor
         config: :class:`~lensdist_torch.config.MultiViewConfig`.
 
     Returns:
-        (matches, info) as :func:`~lensdist_torch.geometry.match_refinement.refine_matches` gives them.
+        (matches, info) as :func:`~lensdist_torch.calibration.match_refinement.refine_matches` gives them.
     """
     cfg = or_defaults(config, MultiViewConfig)
     pairs, views = chain_views(matches, coefficients, centre, size, cfg)

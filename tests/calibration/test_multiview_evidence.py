@@ -1,4 +1,4 @@
-"""The multi-view path's lens models weighed by held-out frames (lensdist_torch.geometry.multiview_evidence):
+"""The multi-view path's lens models weighed by held-out frames (lensdist_torch.calibration.multiview_evidence):
 the mixture interval against sampling, the weights' properties, the held-out density by hand."""
 
 import math
@@ -7,7 +7,7 @@ from statistics import NormalDist
 import numpy as np
 import pytest
 
-from lensdist_torch.geometry.multiview_evidence import (
+from lensdist_torch.calibration.multiview_evidence import (
     CAP,
     evidence_weights,
     mixture_interval,

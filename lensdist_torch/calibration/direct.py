@@ -18,12 +18,12 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    frames' contrast (real views far apart stop in a wrong minimum and say anything there).
    With ``registered_start``, the pairs step 4 would not count, or that lie more than 3 of their
    own sigma_i from its value, are fitted again from their own registration where it lies far
-   from the translation (:mod:`~lensdist_torch.geometry.sequence_fits`).
+   from the translation (:mod:`~lensdist_torch.calibration.direct_fits`).
 4. **Combination: the inverse-variance mean** of (a_i, b_i) (weights 1 / sigma_i^2) of the pairs
    that count: those whose signed Delta_avg R (a m3 + b m5) (m_k: the frame's mean |u|^k) lies
    within ``outlier_mads`` robust deviations (1.4826 MAD, at least the median sigma_i) of the
    median and that the good-and-bad mixture finds more likely good than failed (failures spread
-   over +-``outlier_range`` class ranges: :func:`~lensdist_torch.geometry.pooling.good_and_bad`).
+   over +-``outlier_range`` class ranges: :func:`~lensdist_torch.calibration.pooling.good_and_bad`).
 5. **Intervals**: pairs sharing frames have correlated errors, so the variance is a
    delete-a-block jackknife (``jackknife_blocks`` contiguous blocks), or the Birge-scaled
    max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger, plus ``systematic_rel`` D in
@@ -48,15 +48,15 @@ from typing import Callable, NamedTuple
 import torch
 import torch.nn.functional as F
 
+from lensdist_torch.calibration.direct_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
+from lensdist_torch.calibration.pooling import pair_weights, pool_pairs, within_mads
+from lensdist_torch.calibration.sequence_class import class_or_open
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 from lensdist_torch.geometry.phase import phase_correlation
-from lensdist_torch.geometry.pooling import pair_weights, pool_pairs, within_mads
-from lensdist_torch.geometry.sequence_class import class_or_open
-from lensdist_torch.geometry.sequence_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
            "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION"]
@@ -75,7 +75,7 @@ class SequenceCalibration(NamedTuple):
     its jackknife std, at least ``relief_test``), else 0; pair_refitted (P,) bool: the pair was fitted
     again from its own registration (``registered_start``) and that fit replaced the first;
     pair_misfit (P,): what the pair's registration leaves unexplained
-    (:func:`~lensdist_torch.geometry.sequence_fits.pair_misfit`; over ``max_misfit``: not registered, not used).
+    (:func:`~lensdist_torch.calibration.direct_fits.pair_misfit`; over ``max_misfit``: not registered, not used).
 
     Example:
         >>> cal = calibrate_sequence(torch.full((2, 1, 64, 64), 0.5))  # a still camera: no pair to use

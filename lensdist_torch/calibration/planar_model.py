@@ -16,7 +16,7 @@ start's scan and the guided matching's chain of views both take it.
 The fitted parameter vector ``theta`` is (a_1 .. a_n) with the centre fixed at the frame's, or
 (a_1 .. a_n, d_x, d_y) with the centre free, d its offset from the frame centre over R (``terms``
 = n tells them apart; a translation of the ideal points is the homographies' to absorb).
-:mod:`~lensdist_torch.geometry.planar_features` fits it.
+:mod:`~lensdist_torch.calibration.planar_features` fits it.
 """
 
 from __future__ import annotations
@@ -25,12 +25,12 @@ import math
 
 import torch
 
+from lensdist_torch.calibration.multiview import pycolmap_or_error
+from lensdist_torch.calibration.pooling import t_quantile
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.multiview import pycolmap_or_error
 from lensdist_torch.geometry.opencv_model import grid_points
-from lensdist_torch.geometry.pooling import t_quantile
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, lens_inverts
 
 __all__ = ["model_spread", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
@@ -276,7 +276,7 @@ def model_spread(table: dict, best: str, cfg: MultiViewConfig) -> float:
 
     ``table``: per model {"bic", "delta_avg_px", "reprojection_px"}. As well: within
     ``cfg.bic_margin`` of its BIC, or a reprojection RMS at most (1 + ``cfg.rms_margin``) times its.
-    (The 3-D models weigh themselves by held-out frames instead: :mod:`~lensdist_torch.geometry.multiview_evidence`.)
+    (The 3-D models weigh themselves by held-out frames instead: :mod:`~lensdist_torch.calibration.multiview_evidence`.)
     """
     b = table[best]
     return max(abs(v["delta_avg_px"] - b["delta_avg_px"]) for v in table.values()

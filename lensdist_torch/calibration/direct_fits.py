@@ -1,4 +1,4 @@
-"""A sequence's pairs fitted one by one (step 3 of :mod:`~lensdist_torch.geometry.calibration`).
+"""A sequence's pairs fitted one by one (step 3 of :mod:`~lensdist_torch.calibration.direct`).
 
 :func:`fit_pairs` self-calibrates every chosen pair from the phase correlation's translation
 (:func:`~lensdist_torch.geometry.selfcal.estimate_distortion` with the sequence's plane + parallax

@@ -3,7 +3,7 @@
 Where the scene is a plane (a wall, a floor, a document, a seabed seen from high up) or the
 camera only turns, two undistorted views are one homography apart, so a shared radial lens and
 one homography per pair explain every correct match. This is the direct path's model
-(:mod:`~lensdist_torch.geometry.calibration`) fitted to COLMAP's feature matches instead of
+(:mod:`~lensdist_torch.calibration.direct`) fitted to COLMAP's feature matches instead of
 intensities: it registers views that are far apart (the direct path's start, a translation, does
 not reach them) and follows lenses beyond eq. 4's two terms. docs/method.md, section 12.
 
@@ -14,7 +14,7 @@ The lens: the ideal point of a pixel p is
 c the distortion centre (the frame centre, or free: step 4), R the frame's half diagonal; with
 n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 
-1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.geometry.multiview.reconstruct`
+1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.calibration.multiview.reconstruct`
    computes them once for the mappings too), pairs with at least ``planar_min_matches``, each
    pair's thinned to ``planar_pair_matches`` (:func:`thin_matches`).
 2. **Start**: a_1 over ``planar_scan_range`` (the other terms 0); for each, the homography of
@@ -31,13 +31,13 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
    free (a candidate while within ``planar_centre_max`` of the half diagonal from the frame
    centre), on the same inliers, chosen by BIC (the homographies are common to all); models within
    ``bic_margin``, or whose RMS is within ``rms_margin`` of the best's, join the interval by their
-   spread of Delta_avg (:func:`~lensdist_torch.geometry.planar_model.model_spread`). A real wide-angle
+   spread of Delta_avg (:func:`~lensdist_torch.calibration.planar_model.model_spread`). A real wide-angle
    lens's centre is off the frame's by a few % of the half diagonal: a lens of 100 px then bends
    the frame-centred model's lines by pixels.
 5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
    frames (every pair with a frame of the block left out, the chosen model fitted again), t on
    blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
-   is too wide (:func:`~lensdist_torch.geometry.sequence_class.interval_too_wide`), when it spans the
+   is too wide (:func:`~lensdist_torch.calibration.sequence_class.interval_too_wide`), when it spans the
    no-distortion threshold at the paper's frame (the direct path's rule), when fewer than
    ``planar_min_pairs`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
    the verified matches fit: the scene is not a plane and the camera did not only turn.
@@ -54,13 +54,8 @@ from typing import NamedTuple
 
 import torch
 
-from lensdist_torch.config import LensdistConfig, MultiViewConfig
-from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import distortion_center, fit_eq4, paper_frame_delta_avg
-from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.multiview import pycolmap_or_error
-from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
-from lensdist_torch.geometry.planar_model import (
+from lensdist_torch.calibration.multiview import pycolmap_or_error
+from lensdist_torch.calibration.planar_model import (
     bending_halfwidth,
     fit_lens_and_homographies,
     lens_deltas,
@@ -71,9 +66,14 @@ from lensdist_torch.geometry.planar_model import (
     transfer_errors,
     transfer_residuals,
 )
-from lensdist_torch.geometry.pooling import jackknife_interval
+from lensdist_torch.calibration.pooling import jackknife_interval
+from lensdist_torch.calibration.sequence_class import interval_too_wide, sequence_class
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.distortion import distortion_center, fit_eq4, paper_frame_delta_avg
+from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points
-from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["PlanarCalibration", "PlanarMatches", "delta_avg_where", "read_verified_matches", "self_calibrate_planar",
            "thin_matches"]
@@ -118,9 +118,9 @@ class PlanarCalibration(NamedTuple):
     opencv, opencv_rational: OpenCV's camera fitted to the map, 5 and 8 coefficients
     (``camera_matrix``, ``dist_coeffs`` and the fit's errors, as
     :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them); guided: where the
-    fit is on guided matches (:func:`~lensdist_torch.geometry.guided_matching.self_calibrate_guided`),
+    fit is on guided matches (:func:`~lensdist_torch.calibration.guided_matching.self_calibrate_guided`),
     what the guided matching found and the first fit's figures; None otherwise; refined: where
-    the matches were refined (:mod:`~lensdist_torch.geometry.match_refinement`), what the
+    the matches were refined (:mod:`~lensdist_torch.calibration.match_refinement`), what the
     refinement kept and the fit's figures before it; None otherwise.
 
     Example:
@@ -352,7 +352,7 @@ def self_calibrate_planar(
         settings: the library's config (the class rule and the paper's frame).
         start: a lens's a_1 .. a_n to start from instead of the scan (step 2), or None.
         plane_share: the share of verified matches on one homography per pair, where ``matches``
-            cannot tell it (guided matches: :mod:`~lensdist_torch.geometry.guided_matching`);
+            cannot tell it (guided matches: :mod:`~lensdist_torch.calibration.guided_matching`);
             the "not a plane" rule and ``inlier_share`` take it. None: measured on ``matches``.
 
     Returns:
@@ -362,7 +362,7 @@ def self_calibrate_planar(
         >>> none = torch.zeros(0, 2, dtype=torch.float64)
         >>> m = PlanarMatches(none, none, torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long),
         ...                   torch.zeros(0, dtype=torch.long), ("a.png", "b.png"))
-        >>> self_calibrate_planar(m, (240, 320)).reason  # fitted figures: tests/geometry/test_planar_features.py
+        >>> self_calibrate_planar(m, (240, 320)).reason  # fitted figures: tests/calibration/test_planar_features.py
         'too few matched pairs: 0 of at least 4'
     """
     cfg, st = or_defaults(config, MultiViewConfig), or_defaults(settings, LensdistConfig, "settings")

@@ -18,20 +18,20 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    adjustment on the same tracks (structure, poses, focal length and the model's distortion
    free), stopping when an iteration lowers the cost by less than ``BA_FUNCTION_TOLERANCE`` of it
    (Ceres' default; COLMAP's 0 crawled along the valley of a poorly conditioned camera).
-3. **Which model, and how sure** (:mod:`~lensdist_torch.geometry.multiview_evidence`): each
+3. **Which model, and how sure** (:mod:`~lensdist_torch.calibration.multiview_evidence`): each
    model's posterior of Delta from the adjustment's covariance, its evidence from predicting
    frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+). Other
    cameras (``others``, e.g. another path's answer) can be held on the same tracks and scored on
-   the same folds (:func:`~lensdist_torch.geometry.multiview_fits.fit_held_camera`); ``lensdist
+   the same folds (:func:`~lensdist_torch.calibration.multiview_fits.fit_held_camera`); ``lensdist
    calibrate`` does not pass them (docs/method.md, section 11, says what that gave). The
    candidate of the highest expected log predictive density answers, the interval is the
    weighted mixture of all their posteriors; a model whose posterior is unbounded (one the
    tracks do not determine) gets no weight. Degenerate motion
    (translation over relief) shows as a wide posterior. The same folds' fits are each model's
    jackknife, the check of its posterior: where they scatter more, the posterior is widened to
-   them (:func:`~lensdist_torch.geometry.multiview_evidence.checked_scale`). With several
+   them (:func:`~lensdist_torch.calibration.multiview_evidence.checked_scale`). With several
    ``reconstructions`` their spread joins in quadrature
-   (:mod:`~lensdist_torch.geometry.multiview_runs`).
+   (:mod:`~lensdist_torch.calibration.multiview_runs`).
 4. **In the user's pixels and OpenCV's terms**: COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV and
    FULL_OPENCV are OpenCV's model with some coefficients 0, so the OpenCV camera is exact (the
    principal point moves by -0.5 px: COLMAP's pixel centres lie at +0.5). Delta is
@@ -52,17 +52,14 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from lensdist_torch.config import LensdistConfig, MultiViewConfig
-from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
-from lensdist_torch.geometry.multiview_evidence import (
+from lensdist_torch.calibration.multiview_evidence import (
     checked_scale,
     dispersion,
     evidence_weights,
     mixture_interval,
     unit_log_evidence,
 )
-from lensdist_torch.geometry.multiview_fits import (
+from lensdist_torch.calibration.multiview_fits import (
     BA_FUNCTION_TOLERANCE,
     camera_of,
     fit_held_camera,
@@ -72,8 +69,11 @@ from lensdist_torch.geometry.multiview_fits import (
     quiet_log,
     rotation_spread_deg,
 )
+from lensdist_torch.calibration.sequence_class import interval_too_wide, sequence_class
+from lensdist_torch.config import LensdistConfig, MultiViewConfig
+from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_from_colmap, opencv_ideal_points
-from lensdist_torch.geometry.sequence_class import interval_too_wide, sequence_class
 
 __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
            "rotation_spread_deg", "BA_FUNCTION_TOLERANCE"]
@@ -96,10 +96,10 @@ class MultiViewCalibration(NamedTuple):
     jackknife: the chosen model's leave-a-block-out Delta_avg values; rotation_spread_deg: the
     largest rotation between two frames of the mapping (a diagnostic);
     reconstructions: per seed of the mapping its numbers (set by
-    :func:`~lensdist_torch.geometry.multiview_runs.combine_reconstructions`), and
+    :func:`~lensdist_torch.calibration.multiview_runs.combine_reconstructions`), and
     reconstruction_spread_px the largest |Delta_avg - this one's| among them;
     paper_delta_avg_px: the Delta_avg of eq. 4's fit at the paper's frame, whose class is given
-    (:func:`~lensdist_torch.geometry.sequence_class.sequence_class`); dispersion: the jackknife's scale (>= 1).
+    (:func:`~lensdist_torch.calibration.sequence_class.sequence_class`); dispersion: the jackknife's scale (>= 1).
     """
 
     model: str
@@ -154,7 +154,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
     The features and the verified matches are computed once (geometric verification seeded by
     ``seed``); the incremental mapping runs ``reconstructions`` times on them, with the seeds
     ``seed``, ``seed`` + 1, ... (the engine's run-to-run variation, which the interval takes in:
-    :mod:`~lensdist_torch.geometry.multiview_runs`).
+    :mod:`~lensdist_torch.calibration.multiview_runs`).
 
     Args:
         image_dir: the folder of the frames.
@@ -167,7 +167,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
         image_size: the frames' (H, W), for the features' cap (:func:`feature_cap`); None: ``max_features``.
         on_matches: called with the database's path once the features and verified matches are in
             it, before the first mapping (the homography model reads them:
-            :func:`~lensdist_torch.geometry.planar_features.read_verified_matches`).
+            :func:`~lensdist_torch.calibration.planar_features.read_verified_matches`).
 
     Returns:
         Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
@@ -200,7 +200,7 @@ def extract_and_match(database: str | Path, image_dir: str | Path, names: list[s
 
     Exhaustive matching up to ``exhaustive_below`` frames, sequential beyond; one shared RADIAL
     camera; the geometric verification's RANSAC seeded by ``seed``. :func:`reconstruct` maps on it;
-    :func:`~lensdist_torch.geometry.planar_features.read_verified_matches` reads its matches.
+    :func:`~lensdist_torch.calibration.planar_features.read_verified_matches` reads its matches.
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
     pc.set_random_seed(cfg.seed)
@@ -234,7 +234,7 @@ def _eq4_fit(k: torch.Tensor, d: torch.Tensor, size: tuple[int, int], step: int)
 
 
 def _other_rows(rec, others: dict, fits: dict, scale: float, n_blocks: int, confidence: float) -> dict:
-    """Other paths' cameras held on the tracks (:func:`~lensdist_torch.geometry.multiview_fits.fit_held_camera`).
+    """Other paths' cameras held on the tracks (:func:`~lensdist_torch.calibration.multiview_fits.fit_held_camera`).
 
     At the focal length of the COLMAP model that predicts the held-out frames best; each path's
     own Delta with its own interval as a normal std. A path without a finite answer is left out.
