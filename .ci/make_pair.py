@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from lensdist_torch import load_scene
-from lensdist_torch.workflows.calibrate import synthetic_sequence
+from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
 from lensdist_torch.workflows.undistort import encode_png
 
 out = Path(sys.argv[1])
