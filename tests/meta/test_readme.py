@@ -1,4 +1,4 @@
-"""Every Python block of the README runs as written (a user copies them)."""
+"""Every Python block of the README and of the guides (docs/guide/) runs as written (a user copies them)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,12 @@ from pathlib import Path
 
 import pytest
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+ROOT = Path(__file__).resolve().parents[2]
+README = ROOT / "README.md"
 BLOCKS = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+GUIDE_BLOCKS = [(p.name, i, block) for p in sorted((ROOT / "docs" / "guide").glob("*.md"))
+                for i, block in enumerate(re.findall(r"```python\n(.*?)```", p.read_text(), flags=re.S))]
+MAX_README_LINES = 300
 
 
 def test_readme_has_python_blocks():
@@ -18,6 +22,16 @@ def test_readme_has_python_blocks():
 @pytest.mark.parametrize("index", range(len(BLOCKS)))
 def test_readme_block_runs(index, capsys):
     exec(compile(BLOCKS[index], f"README block {index}", "exec"), {"__name__": "__readme__"})
+
+
+def test_readme_is_short():
+    """The README says how to use; the guides, the method and the results hold the rest."""
+    assert len(README.read_text().splitlines()) <= MAX_README_LINES
+
+
+@pytest.mark.parametrize("guide, index, block", GUIDE_BLOCKS, ids=[f"{g}-{i}" for g, i, _ in GUIDE_BLOCKS])
+def test_guide_block_runs(guide, index, block, capsys):
+    exec(compile(block, f"{guide} block {index}", "exec"), {"__name__": "__guide__"})
 
 
 def test_loss_snippet_prints_what_the_readme_says(capsys):
