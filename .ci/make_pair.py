@@ -9,7 +9,7 @@ from pathlib import Path
 
 from lensdist_torch import load_scene
 from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
-from lensdist_torch.workflows.undistort import encode_png
+from lensdist_torch.core.png import encode_png
 
 out = Path(sys.argv[1])
 scene = (load_scene("gravel")[0] * 255).round().byte()  # (1, H, W) uint8

@@ -40,8 +40,8 @@ import torch
 from lensdist_torch.calibration import calibrate_path, synthetic_sequence
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core import atomic_write_text
+from lensdist_torch.core.png import encode_png
 from lensdist_torch.geometry import delta_avg
-from lensdist_torch.workflows.undistort import encode_png
 
 SIZE = (288, 384)
 GOAL_S = 60.0

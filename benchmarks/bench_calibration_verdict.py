@@ -41,12 +41,12 @@ from pathlib import Path
 import torch
 from bench_calibration_spread import board_region, calibrations
 
-from lensdist_torch.calibration.controllers.calibrate import list_frames
 from lensdist_torch.calibration.guided_matching import guided_matches, read_features, refined_matches
 from lensdist_torch.calibration.multiview import extract_and_match
 from lensdist_torch.calibration.planar_features import PlanarMatches, read_verified_matches, self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
+from lensdist_torch.core.frames import list_frames
 from lensdist_torch.core.images import load_image
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_distort_full, opencv_ideal_points

@@ -48,7 +48,7 @@ from lensdist_torch.geometry.distortion import (
 )
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.homography import apply_homography
-from lensdist_torch.geometry.selfcal_model import relief_basis
+from lensdist_torch.selfcal.model import relief_basis
 
 
 def correspondences(cfg, params, i: int, step: int):

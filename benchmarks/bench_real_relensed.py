@@ -34,9 +34,9 @@ import numpy as np
 import torch
 
 from lensdist_torch.core import atomic_write_text, load_image
+from lensdist_torch.core.png import encode_png, to_uint8
 from lensdist_torch.data.relens import relens_frames, relens_map
 from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
 
 def k2_for(level: float, size: tuple[int, int]) -> float:

@@ -42,9 +42,9 @@ import torch
 
 from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
 from lensdist_torch.config import LensdistConfig, load_config
+from lensdist_torch.core.png import encode_png
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.geometry.distortion import delta_avg, delta_top, distortion_class
-from lensdist_torch.workflows.undistort import encode_png
 
 LEVELS = (0.0, 0.125, 0.375, 0.625, 0.875)
 SIZE = (320, 424)

@@ -1,6 +1,6 @@
 """Benchmark of the beyond-the-paper estimators on the test pairs (docs/method.md, section 10).
 
-Self-calibration (lensdist_torch.geometry.selfcal.estimate_distortion) on N distorted test
+Self-calibration (lensdist_torch.selfcal.fit.estimate_distortion) on N distorted test
 pairs (indices < 400 of the 'test' set), drawn and rendered as the data sets are
 (draw_pairs + render_pairs). Figures: class rate via distortion_class(delta_avg_hat,
 delta_top('delta_avg')), RMSE of Delta_avg per class (px and % of the 14.4 px range), bias,
@@ -79,8 +79,8 @@ def _case(args) -> dict:
     from lensdist_torch.data.shards import load_scenes
     from lensdist_torch.data.synthesis import draw_pairs, render_pairs
     from lensdist_torch.geometry.distortion import delta_avg, delta_top
-    from lensdist_torch.geometry.registration import estimate_homography
-    from lensdist_torch.geometry.selfcal import estimate_distortion
+    from lensdist_torch.registration.direct import estimate_homography
+    from lensdist_torch.selfcal.fit import estimate_distortion
 
     config = LensdistConfig()
     if realistic:

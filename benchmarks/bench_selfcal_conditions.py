@@ -28,7 +28,7 @@ from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import make_pairs
 from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.selfcal.fit import estimate_distortion
 
 #: Each realistic effect's "off" values (configs/realistic.toml turns them all on).
 EFFECTS_OFF = {

@@ -22,7 +22,8 @@ from pathlib import Path
 from lensdist_torch import delta_avg, synthetic_sequence
 from lensdist_torch.calibration import calibrate_path
 from lensdist_torch.core import atomic_write_text
-from lensdist_torch.workflows.undistort import encode_png, to_uint8, undistort_path
+from lensdist_torch.core.png import encode_png, to_uint8
+from lensdist_torch.workflows.undistort import undistort_path
 
 DEMO_K2, DEMO_SIZE = 1e-6, (240, 320)
 

@@ -36,9 +36,6 @@ from lensdist_torch.geometry.distortion import render_distorted as render_distor
 from lensdist_torch.geometry.distortion import undistort_points as undistort_points
 from lensdist_torch.geometry.homography import corner_error as corner_error
 from lensdist_torch.geometry.homography import perturb_homography as perturb_homography
-from lensdist_torch.geometry.registration import estimate_homography as estimate_homography
-from lensdist_torch.geometry.registration import warp_to_reference as warp_to_reference
-from lensdist_torch.geometry.selfcal import estimate_distortion as estimate_distortion
 from lensdist_torch.geometry.undistort import Undistort as Undistort
 from lensdist_torch.geometry.undistort import undistort_image as undistort_image
 from lensdist_torch.metric.classification import ClassRMSE as ClassRMSE
@@ -49,6 +46,9 @@ from lensdist_torch.metric.quality import quality_map as quality_map
 from lensdist_torch.metric.quality import registration_quality as registration_quality
 from lensdist_torch.metric.quality import registration_quality_loss as registration_quality_loss
 from lensdist_torch.metric.stateful import RegistrationQualityMetric as RegistrationQualityMetric
+from lensdist_torch.registration.direct import estimate_homography as estimate_homography
+from lensdist_torch.registration.direct import warp_to_reference as warp_to_reference
+from lensdist_torch.selfcal.fit import estimate_distortion as estimate_distortion
 from lensdist_torch.workflows.analyze import analyze_batch as analyze_batch
 from lensdist_torch.workflows.analyze import analyze_pair as analyze_pair
 from lensdist_torch.workflows.reproduce import reproduce as reproduce

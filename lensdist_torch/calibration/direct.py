@@ -10,7 +10,7 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    a broken frame); each frame is paired with the first later frame that moved by each fraction
    ``motion_steps`` of the half diagonal R (little motion cancels the distortion), at most
    ``max_motion`` R.
-3. **Per pair**, :func:`~lensdist_torch.geometry.selfcal.estimate_distortion` (batched, from the
+3. **Per pair**, :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (batched, from the
    pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
    where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
    diverged or whose residual exceeds ``max_residual_ratio`` times the lower quartile's drop, or
@@ -37,7 +37,7 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    or an interval there that spans ``no_distortion_px``, a sequence's R threshold (R or class 1
    cannot be told: R's bin, 0.25 px, is narrower than the intervals of scenes with relief).
 
-Why this combination (the figures measured when it was built): docs/method.md, section 10.
+Why this combination: docs/method.md, section 10.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """A sequence's pairs fitted one by one (step 3 of :mod:`~lensdist_torch.calibration.direct`).
 
 :func:`fit_pairs` self-calibrates every chosen pair from the phase correlation's translation
-(:func:`~lensdist_torch.geometry.selfcal.estimate_distortion` with the sequence's plane + parallax
+(:func:`~lensdist_torch.selfcal.fit.estimate_distortion` with the sequence's plane + parallax
 model); :func:`refit_from_registration` gives the pairs the pooling would not count a second start,
 their own registration (direct, then features + RANSAC: views far apart, turned or seen obliquely
 hold a translation start in a wrong minimum, docs/method.md section 10), only where that
@@ -23,8 +23,8 @@ import torch
 
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.geometry.homography import corner_error
-from lensdist_torch.geometry.selfcal import estimate_distortion
-from lensdist_torch.geometry.wide_baseline import SiftMemo, estimate_homography_robust
+from lensdist_torch.registration.wide_baseline import SiftMemo, estimate_homography_robust
+from lensdist_torch.selfcal.fit import estimate_distortion
 
 __all__ = ["sequence_selfcal", "fit_pairs", "pair_misfit", "unregistered", "refit_from_registration", "reject_residuals"]
 
@@ -86,7 +86,7 @@ def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
     """The self-calibration settings of the sequence path: the user's, with the sequence's own relief model.
 
     Its relief prior is fixed (``calibration.parallax_px``; the pairs' evidence-based one is
-    not used here: the sequence's figures were measured with the fixed one).
+    not used here: the sequence path's tests and benchmarks hold it fixed).
 
     Example:
         >>> from lensdist_torch.config import CalibrationConfig, LensdistConfig

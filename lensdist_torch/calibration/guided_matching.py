@@ -2,8 +2,8 @@
 
 On repetitive texture (a chessboard, tiles, a brick wall) a SIFT descriptor has many look-alikes
 in the other view, so the matcher's ratio test discards most true matches and the epipolar
-verification keeps some wrong ones: on the GoPro views of a chessboard 40 of 197 verified pairs
-kept 15 homography inliers, and the lens map's bending was known to +-37 px. Once the
+verification keeps some wrong ones, so few pairs keep enough homography inliers and the lens
+map's bending is poorly known (docs/method.md, section 12). Once the
 homography model has a lens, each pair's ideal points are one homography apart, so a feature's
 partner must lie within a few pixels of where that homography sends it; there the look-alikes
 are gone. docs/method.md, section 12, step 10.
@@ -233,8 +233,8 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     homography inliers, the verified pairs are matched again under it (:func:`guided_matches`) and
     fitted again from its lens, the plane test's share carried over. The second fit answers where
     it has an estimate and counts more pairs than the first (guided matching is there to bring
-    lost pairs back: on the relensed GoPro views at 3 px it counted 4 pairs against the first
-    fit's 12); ``guided`` says what was found, whether it answered and the first fit's figures.
+    lost pairs back, and a second fit on fewer pairs than the first has lost them instead);
+    ``guided`` says what was found, whether it answered and the first fit's figures.
     ``planar_guided_px`` 0: the first fit alone.
 
     With ``images``, the matches of the fit that answers are then moved to sub-pixel agreement

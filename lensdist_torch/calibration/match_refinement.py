@@ -2,8 +2,8 @@
 
 A SIFT keypoint sits where a blob of some scale peaks; under the perspective and the lens between
 two views the same blob peaks at a slightly different place, so a match's two points are not the
-same point of the scene to well under a pixel (on the GoPro views of a chessboard the refinement
-below moves them by 0.8 px median). Once a fit has the lens and each pair's homography, the
+same point of the scene to well under a pixel (on real views of a chessboard the refinement
+below moves them by most of a pixel: docs/method.md, section 12). Once a fit has the lens and each pair's homography, the
 second view's neighbourhood of a match is the first view's under a known local map; aligning the
 two patches pins the partner of the first view's point to a few hundredths of a pixel on
 texture (the idea of feature-metric refinement in structure from motion).
@@ -169,8 +169,7 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
             ``planar_refine_blur``, ``planar_refine_ncc``, ``planar_inlier_px``, ``planar_min_matches``).
         cache_mb: the prepared views (the smoothed frame and its gradients, 12 bytes a pixel) kept at once,
             in MB, at least two; the least recently used leaves first (pairs in order of their first view).
-            On the GoPro views (1280 x 960, 23 views in the refined pairs) eight views at once read the
-            frames 138 times, 256 MB (17 views) 32 times: 14.4 -> 10.1 s for the guided and refined fits.
+            A cache too small for the views a pair sequence revisits reads the frames again and again.
 
     Returns:
         (matches, info): the refined matches (pairs keeping ``planar_min_matches``, renumbered),

@@ -35,7 +35,7 @@ class RegistrationConfig:
         match_intensity: img2's grey levels mapped affinely to img1's mean and standard deviation
             first (per pair): a change of exposure (gain, offset) is not read as misregistration.
         chunk_size: pairs registered together (cache locality); results do not depend on it.
-        feature_fallback: :func:`~lensdist_torch.geometry.wide_baseline.estimate_homography_robust`
+        feature_fallback: :func:`~lensdist_torch.registration.wide_baseline.estimate_homography_robust`
             retries the pairs that did not converge from SIFT matches (docs/method.md, section 10).
         max_keypoints: SIFT keypoints kept per image by the fallback.
         match_ratio: second-nearest-neighbour ratio of the fallback's mutual matches, in ]0, 1].
@@ -98,7 +98,7 @@ class RegistrationConfig:
 
 @dataclass(frozen=True)
 class SelfCalConfig:
-    """Settings of :func:`~lensdist_torch.geometry.selfcal.estimate_distortion`.
+    """Settings of :func:`~lensdist_torch.selfcal.fit.estimate_distortion`.
 
     Attributes:
         levels: pyramid levels (2 x 2 means), coarsest first in ``iterations``.

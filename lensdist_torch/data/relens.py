@@ -16,8 +16,7 @@ lens of the output is (k2, k4) exactly, up to the calibration's own error (a che
 of 0.5 px RMS). A wide-angle source seen through a milder lens fills every output pixel: no empty
 borders, no guessed content.
 
-Real footage with a published calibration of a lens far outside the classes' range (a GoPro's
-103 px) thus becomes real footage of any lens within it: the benchmark that checks ``lensdist
+Real footage with a published calibration of a lens far outside the classes' range thus becomes real footage of any lens within it: the benchmark that checks ``lensdist
 calibrate`` against a known truth on real images (``benchmarks/bench_real_relensed.py``).
 
 Example:

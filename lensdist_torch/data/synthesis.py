@@ -30,7 +30,7 @@ from lensdist_torch.geometry.distortion import METRICS, REJECT, delta_metric, de
 from lensdist_torch.geometry.distortion import distortion_class, distortion_grid
 from lensdist_torch.geometry.frame import pixel_grid
 from lensdist_torch.geometry.homography import apply_homography
-from lensdist_torch.geometry.registration import estimate_homography, perturb_homography, warp_to_reference
+from lensdist_torch.registration.direct import estimate_homography, perturb_homography, warp_to_reference
 from lensdist_torch.metric.quality import registration_error_counts
 
 __all__ = [

@@ -1,6 +1,4 @@
-"""Geometry: one home per primitive, and the estimators built on them.
-
-Primitives (layer 1):
+"""Geometry: one home per primitive (layer 1): the lens models, homographies, grids and pyramids.
 
 * :mod:`~lensdist_torch.geometry.frame`: pixel grids, grid_sample coordinates, the centred normalised frame.
 * :mod:`~lensdist_torch.geometry.phase`: phase correlation, the translation between two images.
@@ -11,13 +9,8 @@ Primitives (layer 1):
 * :mod:`~lensdist_torch.geometry.undistort`: undistorted images, batched and differentiable.
 * :mod:`~lensdist_torch.geometry.radial_lens`: a radial lens about a distortion centre (eq. 4 its special case) and its inverse.
 
-Estimators (layer 2):
-
-* :mod:`~lensdist_torch.geometry.registration`: batched homography registration.
-* :mod:`~lensdist_torch.geometry.wide_baseline`: far-apart pairs: features and RANSAC, then the direct refinement.
-* :mod:`~lensdist_torch.geometry.selfcal`: a pair's distortion and homography together (model in ``selfcal_model``).
-
-A whole sequence's calibration, built on these: :mod:`lensdist_torch.calibration`.
+Built on them: one pair's registration (:mod:`lensdist_torch.registration`) and self-calibration
+(:mod:`lensdist_torch.selfcal`), a whole sequence's calibration (:mod:`lensdist_torch.calibration`).
 
 The names users need are exported here and imported on first use (PEP 562): importing
 :mod:`~lensdist_torch.geometry.distortion` loads neither OpenCV, pycolmap nor the estimators.
@@ -51,9 +44,6 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.geometry.phase": ("phase_correlation",),
     "lensdist_torch.geometry.opencv_model": ("OpenCVCamera", "opencv_camera"),
     "lensdist_torch.geometry.undistort": ("Undistort", "undistort_image"),
-    "lensdist_torch.geometry.registration": ("estimate_homography", "warp_to_reference"),
-    "lensdist_torch.geometry.wide_baseline": ("estimate_homography_robust",),
-    "lensdist_torch.geometry.selfcal": ("estimate_distortion",),
 }
 
 __all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

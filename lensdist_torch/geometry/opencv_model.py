@@ -50,8 +50,8 @@ __all__ = ["OpenCVCamera", "MODELS", "FOLLOWS_PX", "opencv_camera", "opencv_came
 MODELS = ("standard", "rational")
 
 #: An export whose mean error against the lens it was fitted to exceeds this (px) does not follow
-#: it: ``lensdist calibrate`` then names the other export (the 8 rational coefficients follow the
-#: GoPro HERO4's 103 px lens to 0.003 px in ``cv2.undistort``, the standard 5 to 6.7 px).
+#: it: ``lensdist calibrate`` then names the other export (a wide lens of about 100 px is followed
+#: by the 8 rational coefficients, not by the standard 5: docs/guide/calibrate.md).
 FOLLOWS_PX = 1.0
 
 

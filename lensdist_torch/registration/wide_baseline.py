@@ -1,6 +1,6 @@
 """Registration of far-apart pairs: hand-crafted features, then the direct refinement (docs/method.md, section 10).
 
-:func:`~lensdist_torch.geometry.registration.estimate_homography` starts from a translation (phase
+:func:`~lensdist_torch.registration.direct.estimate_homography` starts from a translation (phase
 correlation) and its inverse-compositional Gauss-Newton only reaches homographies near it; its pixel
 rectangle, inscribed in the overlap corner by corner, also empties past ~35 degrees of rotation even
 from the true H. :func:`estimate_homography_robust` keeps its answer for every pair it registers and,
@@ -38,7 +38,7 @@ from kornia.geometry import RANSAC
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
-from lensdist_torch.geometry.registration import RegistrationInfo, estimate_homography, warp_to_reference
+from lensdist_torch.registration.direct import RegistrationInfo, estimate_homography, warp_to_reference
 
 __all__ = ["SiftMemo", "estimate_homography_robust", "feature_homography"]
 
@@ -239,7 +239,7 @@ def estimate_homography_robust(
     img1: torch.Tensor, img2: torch.Tensor, config: RegistrationConfig | None = None, validate: bool = True, *,
     memo: SiftMemo | None = None,
 ) -> tuple[torch.Tensor, RegistrationInfo]:
-    """:func:`~lensdist_torch.geometry.registration.estimate_homography`, with a feature fallback.
+    """:func:`~lensdist_torch.registration.direct.estimate_homography`, with a feature fallback.
 
     The batch is registered as usual; each pair it does not register (``converged`` False) gets a
     feature homography (:func:`feature_homography`) and a direct refinement from it (module
@@ -256,7 +256,7 @@ def estimate_homography_robust(
 
     Returns:
         H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's.
-        info: :class:`~lensdist_torch.geometry.registration.RegistrationInfo` of (B,) tensors.
+        info: :class:`~lensdist_torch.registration.direct.RegistrationInfo` of (B,) tensors.
 
     Example:
         >>> import math

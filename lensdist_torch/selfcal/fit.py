@@ -71,7 +71,7 @@ from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normaliz
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import mean_pyramid
-from lensdist_torch.geometry.selfcal_model import (
+from lensdist_torch.selfcal.model import (
     Level,
     SelfCalInfo,
     distort_normalized,
@@ -89,14 +89,14 @@ from lensdist_torch.geometry.selfcal_model import (
     undistort_normalized,
     with_gradients,
 )
-from lensdist_torch.geometry.selfcal_prior import (
+from lensdist_torch.selfcal.prior import (
     add_relief_prior,
     evidence_tau2,
     posterior_inverse,
     relief_precision,
     start_tau2,
 )
-from lensdist_torch.geometry.selfcal_regions import aligned_residual, cluster_robust_covariance, region_ids
+from lensdist_torch.selfcal.regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
     "SelfCalConfig",
@@ -125,7 +125,7 @@ class _State(NamedTuple):
 
 
 #: the plane + parallax stage samples bilinearly: with the blended kernel its relief was kept on 4
-#: of 24 flat pairs (errors up to 1.5 px), with bilinear on none (tests/geometry/test_selfcal_parallax.py)
+#: of 24 flat pairs (errors up to 1.5 px), with bilinear on none (tests/selfcal/test_parallax.py)
 _RELIEF_INTERPOLATION = "bilinear"
 
 #: floor (px) of the std of the difference in Hausman's test (the relief's std can fall below the planar one)
@@ -279,7 +279,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
 
     A pair's step is accepted where the robust cost at the current sigma falls, the model stays
     plausible and some overlap remains; sigma is then re-estimated, and with the relief the
-    prior's variance where it is estimated per pair (:func:`~lensdist_torch.geometry.selfcal_prior.evidence_tau2`). Returns theta,
+    prior's variance where it is estimated per pair (:func:`~lensdist_torch.selfcal.prior.evidence_tau2`). Returns theta,
     lambda and the :class:`_State` at theta.
     """
     loss, k = cfg.robust, _robust_constant(cfg)
@@ -330,7 +330,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     """Std (px) of Delta_avg from the covariance of the final fit; inf where not finite.
 
     The weighted Gauss-Newton covariance, or (with the samples' ``region``, ``clusters`` > 1) the
-    cluster-robust one where it is larger (:func:`~lensdist_torch.geometry.selfcal_regions.cluster_robust_covariance`).
+    cluster-robust one where it is larger (:func:`~lensdist_torch.selfcal.regions.cluster_robust_covariance`).
     """
     w = robust_weights(st.res, st.sigma, cfg.robust, _robust_constant(cfg))
     w = st.valid.float() if w is None else w * st.valid

@@ -1,7 +1,7 @@
 """Self-calibration's model: eq. 4, the photometric model, the residual and its Jacobian.
 
 Also the samples and the M-estimator (docs/method.md, section 10). Used by
-:mod:`lensdist_torch.geometry.selfcal`, which holds the fit; see its docstring. Per pair, theta holds 8 homography entries (H_n - I, H_n[2, 2] = 1), the normalised
+:mod:`lensdist_torch.selfcal.fit`, which holds the fit; see its docstring. Per pair, theta holds 8 homography entries (H_n - I, H_n[2, 2] = 1), the normalised
 coefficients (a, b) and, with the ``gain_bias`` photometric model, a gain g and a bias c:
 
     r = img1(p_d) - (g img2(p0 + R v_d) + c)                       ("gain_bias")

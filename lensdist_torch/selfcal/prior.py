@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 
 from lensdist_torch.config import SelfCalConfig
-from lensdist_torch.geometry.selfcal_model import planar_parameters
+from lensdist_torch.selfcal.model import planar_parameters
 
 __all__ = ["evidence_variance", "relief_precision", "add_relief_prior", "posterior_inverse", "start_tau2", "evidence_tau2"]
 

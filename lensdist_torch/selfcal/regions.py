@@ -1,6 +1,6 @@
 """The frame's rectangles of the self-calibration's samples: its cluster-robust covariance and its aligned residual.
 
-The full-size samples of :func:`~lensdist_torch.geometry.selfcal.estimate_distortion` (one per
+The full-size samples of :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (one per
 ``block`` x ``block`` cell, row-major) are grouped in ``clusters`` x ``clusters`` rectangles of
 the frame (``selfcal.clusters``). Two statistics read them (docs/method.md, section 10):
 

@@ -4,7 +4,7 @@
 (a batch of one) and the evaluation behind every reported figure
 (:mod:`~lensdist_torch.workflows.evaluate`) all call it. Per pair it brings both images to the
 analysis size (centre crop to the aspect ratio, then area resampling), registers them with an
-estimated homography (:func:`~lensdist_torch.geometry.wide_baseline.estimate_homography_robust`:
+estimated homography (:func:`~lensdist_torch.registration.wide_baseline.estimate_homography_robust`:
 the direct registration, with a feature fallback for far-apart pairs; :mod:`.prepare`),
 computes the quality map and asks one estimator for the distortion: the
 self-calibration (default; started from the registration's H), the Delta regression, or the

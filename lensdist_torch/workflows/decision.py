@@ -215,8 +215,8 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
     res["beyond_class_range"] = bool(not unsure and res["delta_avg"] is not None
                                      and res["delta_avg"] > delta_top("delta_avg", cfg))
     if res["beyond_class_range"]:
-        # the interval was validated within the range only: on real wide-angle pairs (a GoPro,
-        # 103 px) 5 of 6 intervals beyond it missed the truth (eq. 4 cannot follow such a lens)
+        # the interval was validated within the range only: beyond it, on real wide-angle pairs, eq. 4
+        # cannot follow the lens and the intervals missed the truth (docs/method.md, section 10)
         res["delta_avg_interval"] = None
         res["warnings"].append(
             f"Delta_avg {res['delta_avg']:.1f} px is beyond the classes' range (class 4 ends at "

@@ -27,10 +27,10 @@ from lensdist_torch.geometry.distortion import (
     pixel_offsets,
 )
 from lensdist_torch.geometry.homography import mean_displacement
-from lensdist_torch.geometry.registration import residual_limit, warp_to_reference
-from lensdist_torch.geometry.selfcal import SelfCalInfo, estimate_distortion
-from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
+from lensdist_torch.registration.direct import residual_limit, warp_to_reference
+from lensdist_torch.registration.wide_baseline import estimate_homography_robust
+from lensdist_torch.selfcal.fit import SelfCalInfo, estimate_distortion
 from lensdist_torch.workflows.class_mass import delta_interval, scene_models
 from lensdist_torch.workflows.texture import texture_histogram
 
@@ -236,7 +236,7 @@ def _selfcal_fits(p: PreparedPairs) -> list[tuple]:
     The fit aligned the pair where it converged and its RMS residual (the lens and the photometry
     modelled; the worst ``selfcal.occluded_share`` of the frame's rectangles left out, where an
     occluder may be: ``aligned_residual``) passes the registration's own test
-    (:func:`~lensdist_torch.geometry.registration.residual_limit`).
+    (:func:`~lensdist_torch.registration.direct.residual_limit`).
     """
     cfg, n = p.config, p.img1.shape[0]
     start = torch.isfinite(p.H).all(dim=(1, 2)).cpu()

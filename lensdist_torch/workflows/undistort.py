@@ -53,16 +53,15 @@ from __future__ import annotations
 import json
 import math
 import re
-import struct
-import zlib
 from pathlib import Path
 
 import torch
 
 from lensdist_torch.calibration.controllers.answer_file import Calibration, read_calibration
 from lensdist_torch.calibration.controllers.answer_lens import eq4_lens, lens_grid, lens_ideal, lens_view, scale_lens
-from lensdist_torch.calibration.controllers.calibrate import frames_of_one_size, list_frames
+from lensdist_torch.core.frames import frames_of_one_size, list_frames
 from lensdist_torch.core.outputs import refuse_data_sets
+from lensdist_torch.core.png import deep_samples, encode_png, to_uint8, to_uint16
 from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
 from lensdist_torch.geometry.frame import half_diagonal
@@ -70,7 +69,7 @@ from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_fr
 from lensdist_torch.geometry.radial_lens import monotone_radius
 from lensdist_torch.geometry.undistort import monotone_branch
 
-__all__ = ["MAX_STRETCH", "encode_png", "undistort_path"]
+__all__ = ["MAX_STRETCH", "undistort_path"]
 
 _VIDEO_NAME = re.compile(r"frame_\d{6}\.png")
 CAMERA_FILE = "undistortion.json"
@@ -79,62 +78,8 @@ CAMERA_FILE = "undistortion.json"
 #: accepts inside the frame. An equidistant fisheye of half field theta stretches its corner by
 #: tan(theta) / theta: 10 is theta = 86 degrees, a 172-degree diagonal field, which eq. 4's two
 #: terms cannot describe (a fisheye needs another model). The protocol's strongest lens stretches
-#: by 1.30 at 320 x 424, and eq. 4 fitted to the GoPro HERO4's wide calibration by 2.1 at 1280 x 960.
+#: by 1.30 at 320 x 424; a wide action-camera lens fitted by eq. 4, about twice.
 MAX_STRETCH = 10.0
-
-
-# ------------------------------------------------------------------ PNG
-def encode_png(img: torch.Tensor) -> bytes:
-    r"""A (C, H, W) uint8 or uint16 tensor (C = 1 grey, 3 RGB) as PNG bytes (8 or 16 bits a sample).
-
-    stdlib zlib, the 'Sub' filter on every row.
-
-    Example:
-        >>> encode_png(torch.zeros(1, 2, 3, dtype=torch.uint8))[:8]
-        b'\x89PNG\r\n\x1a\n'
-        >>> encode_png(torch.zeros(3, 2, 3, dtype=torch.uint16))[24]  # the IHDR's bit depth
-        16
-    """
-    if not (isinstance(img, torch.Tensor) and img.dtype in (torch.uint8, torch.uint16) and img.dim() == 3
-            and img.shape[0] in (1, 3)):
-        raise ValueError("img must be a (C, H, W) uint8 or uint16 tensor with C = 1 or 3")
-    c, h, w = img.shape
-    rows = img.permute(1, 2, 0).contiguous()
-    depth, bpp = (8, c) if img.dtype == torch.uint8 else (16, 2 * c)
-    if depth == 16:  # big-endian bytes
-        wide = rows.to(torch.int32)
-        rows = torch.stack([(wide >> 8).to(torch.uint8), (wide & 255).to(torch.uint8)], -1)
-    rows = rows.reshape(h, w * bpp)
-    sub = rows.clone()
-    sub[:, bpp:] = rows[:, bpp:] - rows[:, :-bpp]  # uint8 arithmetic wraps modulo 256, as PNG's filter
-    raw = torch.cat([torch.ones(h, 1, dtype=torch.uint8), sub], 1).numpy().tobytes()
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-
-    header = struct.pack(">IIBBBBB", w, h, depth, 0 if c == 1 else 2, 0, 0, 0)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b"")
-
-
-def to_uint8(x: torch.Tensor) -> torch.Tensor:
-    return (x.clamp(0, 1) * 255).round().to(torch.uint8)
-
-
-def _to_uint16(x: torch.Tensor) -> torch.Tensor:
-    return (x.clamp(0, 1) * 65535).round().to(torch.uint16)
-
-
-def _deep(source: Path | None, img: torch.Tensor) -> bool:
-    """Whether a frame read from ``source`` (None: a video) has more than 8 bits a sample."""
-    if source is None:
-        return False
-    suffix = source.suffix.lower()
-    if suffix == ".png":
-        with source.open("rb") as f:
-            return f.read(25)[24:25] == b"\x10"  # the IHDR's bit depth (load_image checked the header)
-    if suffix in (".tif", ".tiff"):  # 16-bit or float samples: off the 8-bit grid somewhere
-        return bool(((img * 255 - (img * 255).round()).abs() > 1e-3).any())
-    return False  # JPEG, WebP: 8 bits
 
 
 # ------------------------------------------------------------------ coefficients
@@ -347,9 +292,9 @@ def undistort_path(
             camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view, lens)
             grid, valid = grid.to(dev), valid.to(dev)
             (out / "masks").mkdir(parents=True, exist_ok=True)
-        deep = _deep(files[i] if files is not None else None, img)
+        deep = deep_samples(files[i] if files is not None else None, img)
         corrected = (sample_at_pixels(img.to(dev), grid) * valid)[0].cpu()
-        atomic_write_bytes(out / f"{name}.png", encode_png(_to_uint16(corrected) if deep else to_uint8(corrected)))
+        atomic_write_bytes(out / f"{name}.png", encode_png(to_uint16(corrected) if deep else to_uint8(corrected)))
         atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(to_uint8(valid[0]).cpu()))
         n, valid_sum, bits = n + 1, valid_sum + float(valid.mean()), bits | {16 if deep else 8}
     if n == 0:
@@ -366,8 +311,7 @@ def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, al
     With the answer's own ``lens`` (:func:`_lens_for`): ``lens`` and ``applied`` name it (``k2``,
     ``k4`` are then its eq. 4 approximation, not applied); OpenCV's camera is the multi-view
     path's own, or fitted to the homography model's map about its centre, the rational model (8
-    coefficients: the 5 of the standard one cannot follow a lens that strong, 12 px mean on the
-    GoPro HERO4's).
+    coefficients: the 5 of the standard one cannot follow a lens that strong).
     """
     h, w = size
     if lens is None:

@@ -352,7 +352,7 @@ def test_feature_cap_follows_the_area_sift_reads_by_hand():
 
 def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
     from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
-    from lensdist_torch.workflows.undistort import encode_png, to_uint8
+    from lensdist_torch.core.png import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(2, 1e-6, 0.0, size=(96, 128))
     for i, f in enumerate(frames):

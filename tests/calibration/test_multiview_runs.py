@@ -142,7 +142,7 @@ def test_one_thread_reconstructions_repeat_exactly(tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
     from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
     from lensdist_torch.calibration.multiview import reconstruct
-    from lensdist_torch.workflows.undistort import encode_png, to_uint8
+    from lensdist_torch.core.png import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(5, 1.5e-6, 0.0, size=(120, 160), seed=4)
     for i, f in enumerate(frames):

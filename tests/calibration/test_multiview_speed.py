@@ -105,11 +105,9 @@ def test_at_most_mapped_frames_go_to_colmap(monkeypatch, tmp_path):
 
 
 def test_a_long_video_is_written_with_a_doubling_stride(monkeypatch, tmp_path):
-    from lensdist_torch.calibration.controllers import calibrate
-
     clip = tmp_path / "clip.mp4"
     clip.write_bytes(b"")
-    monkeypatch.setattr(calibrate, "read_frames", lambda path, grey, most: ((str(i), torch.full((1, 1, 8, 8), i / 100))
+    monkeypatch.setattr(wmv, "read_frames", lambda path, grey, most: ((str(i), torch.full((1, 1, 8, 8), i / 100))
                                                                           for i in range(min(most, 100))))
     (tmp_path / "frames").mkdir()
     calls = _fake_colmap(monkeypatch, tmp_path / "frames", [_cal(7.6, 30.0, label="3", reason="")] * 3)

@@ -127,7 +127,7 @@ def test_evaluate_out_inside_the_data_folder_is_refused(data, capsys):
 def test_outputs_inside_a_data_set_are_refused(data, tmp_path, capsys, where):
     """Issue 19 audit: `--save-map data/train/map.png` and `undistort --out data/train` wrote into a data set."""
     from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
-    from lensdist_torch.workflows.undistort import encode_png, to_uint8
+    from lensdist_torch.core.png import encode_png, to_uint8
 
     pair = []
     for i, f in enumerate(synthetic_sequence(2, 0.0, 0.0, size=(64, 96))[0]):

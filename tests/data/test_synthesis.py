@@ -354,7 +354,7 @@ class TestMakePairs:
 
         I2(p) = I1(M p) while H is img1(p) = img2(H p): H estimates M^-1.
         """
-        from lensdist_torch.geometry.registration import corner_error
+        from lensdist_torch.registration.direct import corner_error
 
         out = make_pairs(scenes, CFG, "train", [0, 1, 2])
         ok = out.converged

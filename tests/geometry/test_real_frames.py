@@ -22,7 +22,7 @@ from lensdist_torch.core import load_image
 from lensdist_torch.core.images import load_scene, to_grey
 from lensdist_torch.data.relens import relens_frames
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, estimated_class, paper_frame_delta_avg
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.selfcal.fit import estimate_distortion
 
 REAL = Path(__file__).parents[1] / "data" / "real" / "gopro_hero4_wall"
 

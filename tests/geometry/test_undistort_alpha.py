@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from lensdist_torch import cli
+from lensdist_torch.core.png import encode_png, to_uint8
 from lensdist_torch.geometry.distortion import render_distorted
 from lensdist_torch.geometry.opencv_model import opencv_export
 from lensdist_torch.geometry.undistort import optimal_view, undistort_image, undistortion_grid
-from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
 cv2 = pytest.importorskip("cv2")
 

@@ -2,7 +2,7 @@
 which the doctests (``pytest --doctest-modules``, as CI runs them) execute.
 
 Public names are those of ``lensdist_torch.__all__`` and of its subpackages' ``__all__`` (core,
-classify, data, geometry, calibration, workflows: :data:`PACKAGES`). Each example must also be one that the
+classify, data, geometry, registration, selfcal, calibration, workflows: :data:`PACKAGES`). Each example must also be one that the
 doctests run: in the object's own docstring, found by :mod:`doctest` in the module that defines it
 (an inherited docstring, or a ``>>>`` that does not start a line, would pass the first check only).
 
@@ -29,6 +29,8 @@ PACKAGES = (
     "lensdist_torch.classify",
     "lensdist_torch.data",
     "lensdist_torch.geometry",
+    "lensdist_torch.registration",
+    "lensdist_torch.selfcal",
     "lensdist_torch.calibration",
     "lensdist_torch.workflows",
 )

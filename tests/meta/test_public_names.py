@@ -162,7 +162,7 @@ def test_all_is_built_from_the_one_table():
         assert set(names) <= set(exported), module
 
 
-SUBPACKAGES = ("core", "classify", "data", "geometry", "calibration", "workflows")
+SUBPACKAGES = ("core", "classify", "data", "geometry", "registration", "selfcal", "calibration", "workflows")
 
 
 def _sub_exports(sub: str) -> dict[str, tuple[str, ...]]:

@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.core.images import load_scene
-from lensdist_torch.geometry.registration import (
+from lensdist_torch.registration.direct import (
     RegistrationConfig,
     corner_error,
     estimate_homography,

@@ -1,4 +1,4 @@
-"""Tests of lensdist_torch.geometry.wide_baseline: the feature fallback of registration (docs/method.md,
+"""Tests of lensdist_torch.registration.wide_baseline: the feature fallback of registration (docs/method.md,
 section 10) on planar pairs far apart (rotation, zoom, strong perspective), unrelated and flat pairs."""
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.core.images import load_scene
-from lensdist_torch.geometry import wide_baseline
 from lensdist_torch.geometry.homography import corner_error
-from lensdist_torch.geometry.registration import estimate_homography
-from lensdist_torch.geometry.wide_baseline import SiftMemo, estimate_homography_robust, feature_homography
+from lensdist_torch.registration import wide_baseline
+from lensdist_torch.registration.direct import estimate_homography
+from lensdist_torch.registration.wide_baseline import SiftMemo, estimate_homography_robust, feature_homography
 
 H0, W0 = 320, 424  # the analysis size (docs/method.md, section 1)
 

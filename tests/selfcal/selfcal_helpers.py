@@ -8,8 +8,8 @@ import torch
 from lensdist_torch.config import LensdistConfig, ProtocolConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-from lensdist_torch.geometry import selfcal_model
 from lensdist_torch.geometry.distortion import delta_avg
+from lensdist_torch.selfcal import model as selfcal_model
 
 
 def smooth(h: int, w: int, dx: float, dy: float) -> torch.Tensor:

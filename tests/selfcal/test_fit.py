@@ -1,4 +1,4 @@
-"""Self-calibration (lensdist_torch.geometry.selfcal): eq. 4 inverse, recovery, confidence, flags,
+"""Self-calibration (lensdist_torch.selfcal.fit): eq. 4 inverse, recovery, confidence, flags,
 gradients, the analytic Jacobian, the M-estimator, the two starts, devices, settings and input
 checks (docs/method.md, section 10). Robustness to photometric change, occluders and noise:
 test_selfcal_robust.py."""
@@ -17,7 +17,6 @@ from selfcal_helpers import assert_columns_match_finite_differences, relief_only
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
-from lensdist_torch.geometry import selfcal_model
 from lensdist_torch.geometry.distortion import (
     delta_avg,
     distort_points,
@@ -26,8 +25,9 @@ from lensdist_torch.geometry.distortion import (
     undistort_points,
 )
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid
-from lensdist_torch.geometry.registration import estimate_homography
-from lensdist_torch.geometry.selfcal import (
+from lensdist_torch.registration.direct import estimate_homography
+from lensdist_torch.selfcal import model as selfcal_model
+from lensdist_torch.selfcal.fit import (
     SelfCalConfig,
     distort_normalized,
     estimate_distortion,
@@ -262,7 +262,7 @@ _FACTORIES = {"zeros", "ones", "full", "empty", "arange", "linspace", "eye", "te
 _HELPERS = {"normalizer": 3, "normalized_grid": 6, "pixel_offsets": 5, "pixel_grid": 3}  # positional index of device
 
 
-@pytest.mark.parametrize("module", ["selfcal.py", "selfcal_model.py"])
+@pytest.mark.parametrize("module", ["fit.py", "model.py"])
 def test_every_tensor_is_made_on_a_named_device(module):
     """No tensor of the self-calibration is created on the default device: every torch factory
     (and frame / distortion helper) call names a device (the *_like / new_* forms inherit one)."""
@@ -310,7 +310,7 @@ def test_robust_settings_are_checked(field, value):
 
 # ------------------------------------------------------------------ the cluster-robust covariance
 def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clustered_residuals():
-    from lensdist_torch.geometry.selfcal_regions import cluster_robust_covariance, region_ids
+    from lensdist_torch.selfcal.regions import cluster_robust_covariance, region_ids
 
     h0, w0 = 96, 128  # full-size samples: 24 x 32 blocks of 4 px, in 6 x 6 rectangles
     g = torch.Generator().manual_seed(0)
@@ -361,7 +361,7 @@ def test_the_blended_kernel_removes_most_of_the_small_motion_bias():
 
 
 def test_sample_image_kernels_agree_at_pixels_and_blend_is_their_mean():
-    from lensdist_torch.geometry.selfcal_model import sample_image
+    from lensdist_torch.selfcal.model import sample_image
 
     img = torch.rand(2, 3, 9, 11, generator=torch.Generator().manual_seed(0))
     xs, ys = torch.meshgrid(torch.arange(2.0, 9.0), torch.arange(2.0, 7.0), indexing="xy")

@@ -10,10 +10,11 @@ import pytest
 import torch
 from selfcal_helpers import assert_columns_match_finite_differences, relief_only_pairs, smooth
 
-from lensdist_torch.geometry import selfcal_model, selfcal_prior
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid
-from lensdist_torch.geometry.selfcal import SelfCalConfig, estimate_distortion
+from lensdist_torch.selfcal import model as selfcal_model
+from lensdist_torch.selfcal import prior as selfcal_prior
+from lensdist_torch.selfcal.fit import SelfCalConfig, estimate_distortion
 
 RELIEF = SelfCalConfig(parallax=5)
 PLANAR = SelfCalConfig(parallax=0)

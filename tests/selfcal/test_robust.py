@@ -20,7 +20,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.geometry.selfcal import SelfCalConfig, estimate_distortion
+from lensdist_torch.selfcal.fit import SelfCalConfig, estimate_distortion
 
 PAIRS = [0, 1, 2, 3, 5, 6, 7, 8, 10, 11, 13, 14]  # the test set's first pairs with t_y >= 10 px
 BOUND_PX = 0.15
@@ -124,7 +124,7 @@ def test_unrelated_views_fail_the_test_even_so():
     """Two unrelated scenes: the misfit is everywhere, leaving out 5 of 36 rectangles cannot hide
     it: the RMS stays above the registration's own limit (0.5 sqrt 2 std(img1))."""
     from lensdist_torch.config import RegistrationConfig
-    from lensdist_torch.geometry.registration import residual_limit
+    from lensdist_torch.registration.direct import residual_limit
 
     i1, i2 = load_scene("gravel")[..., :192, :288], load_scene("grass")[..., :192, :288]
     _, _, _, info = estimate_distortion(i1, i2)

@@ -13,16 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-from lensdist_torch.calibration.controllers.calibrate import (
-    calibrate_path,
-    list_frames,
-    read_frames,
-    synthetic_sequence,
-)
+from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
 from lensdist_torch.cli_calibrate import add_calibrate_commands
+from lensdist_torch.core.frames import list_frames, read_frames
 from lensdist_torch.core.images import load_image, to_grey
+from lensdist_torch.core.png import encode_png, to_uint8
 from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.workflows.undistort import _coefficients_for, encode_png, to_uint8, undistort_path
+from lensdist_torch.workflows.undistort import _coefficients_for, undistort_path
 
 SIZE = (240, 320)
 S = 424 / 320

@@ -22,7 +22,7 @@ from lensdist_torch import cli
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.config import ClassifierConfig, LensdistConfig
 from lensdist_torch.core.images import load_scene
-from lensdist_torch.geometry.selfcal import SelfCalInfo
+from lensdist_torch.selfcal.fit import SelfCalInfo
 from lensdist_torch.workflows.reports import dumps_strict, write_report
 
 pytestmark = pytest.mark.usefixtures("one_thread_module")

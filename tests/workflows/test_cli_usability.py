@@ -69,7 +69,9 @@ def test_options_are_refused_before_any_frame_is_read(tmp_path, capsys, monkeypa
     def never(*args, **kwargs):
         raise AssertionError("a frame was read before the options were checked")
 
-    monkeypatch.setattr(calibrate, "read_frames", never)
+    import lensdist_torch.calibration.controllers.multiview_path as multiview_path
+
+    monkeypatch.setattr(multiview_path, "read_frames", never)
     monkeypatch.setattr(calibrate, "frames_of_one_size", never)
     import lensdist_torch.workflows.undistort as undistort
 
@@ -145,8 +147,8 @@ def test_the_planar_setting_the_readme_gives_answers(tmp_path, capsys):
     import json
 
     from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
+    from lensdist_torch.core.png import encode_png, to_uint8
     from lensdist_torch.geometry.distortion import paper_frame_delta_avg
-    from lensdist_torch.workflows.undistort import encode_png, to_uint8
 
     frames, _ = synthetic_sequence(2, 2e-6, 0.0, size=(240, 320), step_px=(12.0, 12.0))
     for name, f in zip("ab", frames):

@@ -20,7 +20,7 @@ from lensdist_torch.core.images import centre_crop_box, load_scene
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, distortion_type
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.homography import mean_displacement
-from lensdist_torch.geometry.selfcal import estimate_distortion
+from lensdist_torch.selfcal.fit import estimate_distortion
 from lensdist_torch.workflows.analyze import analyze_pair
 
 K2 = 1.5e-6  # Delta_avg 6.29 px at 320 x 424 (class 2)

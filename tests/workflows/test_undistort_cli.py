@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from lensdist_torch.cli import main
-from lensdist_torch.workflows.undistort import encode_png, undistort_path
+from lensdist_torch.core.png import encode_png
+from lensdist_torch.workflows.undistort import undistort_path
 
 SIZE = (240, 320)
 

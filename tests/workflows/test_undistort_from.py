@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from lensdist_torch.cli import main
-from lensdist_torch.workflows.undistort import encode_png, to_uint8
+from lensdist_torch.core.png import encode_png, to_uint8
 
 pytestmark = pytest.mark.bad_input
 

@@ -17,6 +17,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.core.png import encode_png
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     class_bounds,
@@ -28,7 +29,7 @@ from lensdist_torch.geometry.frame import pixel_grid
 from lensdist_torch.geometry.opencv_model import opencv_ideal_points
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
 from lensdist_torch.geometry.undistort import lens_undistortion_grid, opencv_undistortion_grid
-from lensdist_torch.workflows.undistort import encode_png, undistort_path
+from lensdist_torch.workflows.undistort import undistort_path
 
 H, W = 96, 128
 LENS = ([0.22, 0.06, 0.03], [70.0, 41.0])  # barrel about a centre 6.5 px right of and 6.5 px above the frame's

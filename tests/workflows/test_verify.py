@@ -85,7 +85,8 @@ def test_undistort_from_a_calibration_that_could_not_tell(tmp_path, frames):
     """Issue 19 audit: `undistort --from` used the numbers of a 'cannot tell' calibration without a word."""
     import json
 
-    from lensdist_torch.workflows.undistort import encode_png, to_uint8, undistort_path
+    from lensdist_torch.core.png import encode_png, to_uint8
+    from lensdist_torch.workflows.undistort import undistort_path
 
     (tmp_path / "in").mkdir()
     for i, f in enumerate(frames[:2]):

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from lensdist_torch import cli
-from lensdist_torch.calibration.controllers.calibrate import read_frames, synthetic_sequence
+from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
+from lensdist_torch.core.frames import read_frames
 from lensdist_torch.core.video import video_frames, video_reader
 from lensdist_torch.geometry.distortion import delta_avg
 

@@ -23,8 +23,8 @@ each problem is one ValueError naming the file and the field:
   and "not lowered" withholds the class;
 - ``opencv``: null or absent, or a ``camera_matrix`` [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] of
   positive focal lengths with its principal point inside the frame;
-- the answer's own lens, where eq. 4 only approximates it (``eq4_fit_error_px`` says how far:
-  12.7 px RMS on the GoPro HERO4's wide lens). Where the homography model answered (calibrate's
+- the answer's own lens, where eq. 4 only approximates it (``eq4_fit_error_px`` says how far,
+  in px RMS over the frame). Where the homography model answered (calibrate's
   ``method`` "planar"): ``planar.coefficients``, one to ``MAX_LENS_TERMS`` finite numbers (the
   normalised radius's, :mod:`~lensdist_torch.geometry.radial_lens`), and ``planar.centre``, (x,
   y) inside the frame. Where the multi-view path answered (``method`` "multiview"): its COLMAP

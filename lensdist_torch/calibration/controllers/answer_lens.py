@@ -1,8 +1,8 @@
 """The lens an answer of ``lensdist calibrate`` stands for: what ``undistort --from`` applies and the verifier checks.
 
 An answer's ``k2_user``, ``k4_user`` are eq. 4 about the frame centre. Where another model
-answered, eq. 4 only approximates it (``eq4_fit_error_px``: 12.7 px RMS on the GoPro HERO4's wide
-lens), and the answer's own lens is what undistorting and verifying must use:
+answered, eq. 4 only approximates it (``eq4_fit_error_px``, px RMS over the frame),
+and the answer's own lens is what undistorting and verifying must use:
 
 - ``method`` "planar" (the homography model): {"kind": "radial", "coefficients", "centre"}, up
   to three radial terms of the normalised radius about its own distortion centre

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from pathlib import Path
 
 import torch
@@ -36,8 +35,8 @@ from lensdist_torch.calibration.direct import (
 from lensdist_torch.calibration.direct_fits import unregistered
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config.checks import or_defaults
-from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
-from lensdist_torch.core.video import VIDEO_SUFFIXES, video_frames
+from lensdist_torch.core.frames import frames_of_one_size
+from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
@@ -45,62 +44,8 @@ from lensdist_torch.geometry.opencv_model import opencv_export
 
 METHODS = ("auto", "multiview", "direct")
 
-__all__ = ["METHODS", "IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "list_frames", "read_frames", "calibrate_path",
+__all__ = ["METHODS", "calibrate_path",
            "synthetic_sequence"]
-
-# ------------------------------------------------------------------ reading
-def _natural(name: str) -> list:
-    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
-
-
-def list_frames(folder: str | Path) -> list[Path]:
-    """The image files of a folder (``IMAGE_SUFFIXES``), by name, numbers in order (2 before 10)."""
-    folder = Path(folder)
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
-    if not files:
-        raise ValueError(f"path {folder} holds no image files ({', '.join(sorted(IMAGE_SUFFIXES))})")
-    return sorted(files, key=lambda p: _natural(p.name))
-
-
-def read_frames(path: str | Path, grey: bool = True, max_frames: int | None = None):
-    """Yield (name, (1, C, H, W) float frame in [0, 1]) from a folder of images or a video.
-
-    Raises:
-        FileNotFoundError: ``path`` does not exist.
-        ValueError: an empty folder, an unknown file type, or a video with neither PyAV nor OpenCV installed.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"path not found: {path}")
-    if max_frames is not None and (type(max_frames) is not int or max_frames < 1):
-        raise ValueError(f"max_frames must be a positive int or None, got {max_frames!r}")
-    if path.is_dir():
-        source = ((p.stem, load_image(p, grey=grey)) for p in list_frames(path))
-    elif path.suffix.lower() in VIDEO_SUFFIXES:
-        source = video_frames(path, grey)
-    else:
-        raise ValueError(f"path must be a folder of frames or a video ({', '.join(VIDEO_SUFFIXES)}), got {path.name}")
-    for i, item in enumerate(source):
-        if max_frames is not None and i >= max_frames:
-            return
-        yield item
-
-
-def frames_of_one_size(path: str | Path, grey: bool, max_frames: int | None, quiet: bool, desc: str):
-    """:func:`read_frames` with a progress bar, checking that every frame has the first's size."""
-    from tqdm import tqdm
-
-    path, size = Path(path), None
-    total = min(len(list_frames(path)), max_frames or 1 << 62) if path.is_dir() else None
-    with tqdm(total=total, disable=quiet, desc=desc, unit="frame", leave=False) as bar:
-        for name, img in read_frames(path, grey, max_frames):
-            size = size or tuple(img.shape[-2:])
-            if tuple(img.shape[-2:]) != size:
-                raise ValueError(f"frames must all have one size: the first is {size[0]} x {size[1]}, {name} is "
-                                 f"{img.shape[-2]} x {img.shape[-1]}")
-            yield name, img
-            bar.update(1)
-
 
 # ------------------------------------------------------------------ calibration
 def _finite(value):
@@ -160,7 +105,8 @@ def calibrate_path(
 
     Example:
         >>> import tempfile
-        >>> from lensdist_torch.workflows.undistort import to_uint8, encode_png, undistort_path
+        >>> from lensdist_torch.core.png import encode_png, to_uint8
+        >>> from lensdist_torch.workflows.undistort import undistort_path
         >>> tmp = tempfile.TemporaryDirectory()
         >>> folder = Path(tmp.name)
         >>> for i, frame in enumerate(synthetic_sequence(10, 1e-5, 0.0, size=(120, 160))[0]):

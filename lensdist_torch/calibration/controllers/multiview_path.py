@@ -28,7 +28,9 @@ from lensdist_torch.calibration.multiview import pycolmap_or_error, reconstruct,
 from lensdist_torch.calibration.multiview_runs import combine_reconstructions
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.core.frames import list_frames, read_frames
 from lensdist_torch.core.images import load_image
+from lensdist_torch.core.png import encode_png, to_uint8
 
 __all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "planar_path", "combine"]
 
@@ -39,8 +41,6 @@ MIN_FRAMES = 3
 
 
 def _encode(frame: torch.Tensor) -> bytes:
-    from lensdist_torch.workflows.undistort import encode_png, to_uint8  # one PNG writer
-
     return encode_png(to_uint8(frame[0]))
 
 
@@ -73,8 +73,6 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
         fields of :class:`~lensdist_torch.calibration.multiview.MultiViewCalibration`.
     """
-    from lensdist_torch.calibration.controllers.calibrate import list_frames, read_frames
-
     cfg = or_defaults(config, MultiViewConfig)
     try:
         pycolmap_or_error()

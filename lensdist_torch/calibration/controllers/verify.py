@@ -20,9 +20,9 @@ from lensdist_torch.calibration.controllers.answer_lens import eq4_lens, lens_gr
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import sample_at_pixels
-from lensdist_torch.geometry.registration import warp_to_reference
-from lensdist_torch.geometry.wide_baseline import estimate_homography_robust
 from lensdist_torch.metric.quality import counts_to_map, registration_error_counts
+from lensdist_torch.registration.direct import warp_to_reference
+from lensdist_torch.registration.wide_baseline import estimate_homography_robust
 
 __all__ = ["COUNTS", "VERDICTS", "error_blocks", "verdict", "verify_undistortion"]
 
