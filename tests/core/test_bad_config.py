@@ -8,6 +8,7 @@ import math
 from pathlib import Path
 
 import pytest
+from one_line import one_line
 
 from lensdist_torch.config import (
     AnalysisConfig,
@@ -28,12 +29,6 @@ from lensdist_torch.config import (
 PAPER = Path(__file__).resolve().parents[2] / "configs" / "paper.toml"
 
 
-def _one_line_error(exc_info, *words: str) -> str:
-    msg = str(exc_info.value)
-    assert "\n" not in msg, msg
-    for w in words:
-        assert w in msg, (w, msg)
-    return msg
 
 
 # ----------------------------------------------------------------------------- the good ones
@@ -190,7 +185,7 @@ def test_bad_value_in_toml(tmp_path, section, key, value):
     path.write_text(f"[{section}]\n{key} = {value}\n")
     with pytest.raises(ValueError) as info:
         load_config(path)
-    _one_line_error(info, f"{section}.{key}", str(path))
+    one_line(info, f"{section}.{key}", str(path))
 
 
 @pytest.mark.bad_input
@@ -218,7 +213,7 @@ def test_bad_value_in_toml(tmp_path, section, key, value):
 def test_bad_value_in_python(cls, kwargs, field):
     with pytest.raises(ValueError) as info:
         cls(**kwargs)
-    _one_line_error(info, field)
+    one_line(info, field)
 
 
 # ----------------------------------------------------------------------------- bad structure
@@ -240,7 +235,7 @@ def test_bad_structure_in_toml(tmp_path, text, words):
     path.write_text(text)
     with pytest.raises(ValueError) as info:
         load_config(path)
-    _one_line_error(info, str(path), *words)
+    one_line(info, str(path), *words)
 
 
 @pytest.mark.bad_input
@@ -256,14 +251,14 @@ def test_bad_structure_in_toml(tmp_path, text, words):
 def test_bad_structure_in_dict(data, words):
     with pytest.raises(ValueError) as info:
         config_from_dict(data)
-    _one_line_error(info, *words)
+    one_line(info, *words)
 
 
 @pytest.mark.bad_input
 def test_section_of_the_wrong_type():
     with pytest.raises(ValueError) as info:
         LensdistConfig(quality={"sigma": 0.8})  # type: ignore[arg-type]
-    _one_line_error(info, "quality", "QualityConfig")
+    one_line(info, "quality", "QualityConfig")
 
 
 @pytest.mark.bad_input
@@ -272,7 +267,7 @@ def test_config_file_not_utf8(tmp_path):
     path.write_bytes("# caf\xe9\n[quality]\nsigma = 0.8\n".encode("latin-1"))
     with pytest.raises(ValueError) as info:
         load_config(path)
-    _one_line_error(info, str(path), "UTF-8")
+    one_line(info, str(path), "UTF-8")
 
 
 @pytest.mark.bad_input
@@ -295,14 +290,14 @@ def test_config_file_utf16_says_byte_order_mark(tmp_path, encoding):
     path.write_bytes(data if encoding == "utf-16" else b"\xfe\xff" + data)
     with pytest.raises(ValueError) as info:
         load_config(path)
-    _one_line_error(info, str(path), "UTF-16 byte-order mark", "UTF-8")
+    one_line(info, str(path), "UTF-16 byte-order mark", "UTF-8")
 
 
 @pytest.mark.bad_input
 def test_config_path_is_a_directory(tmp_path):
     with pytest.raises(ValueError) as info:
         load_config(tmp_path)
-    _one_line_error(info, str(tmp_path), "not a file")
+    one_line(info, str(tmp_path), "not a file")
 
 
 @pytest.mark.bad_input

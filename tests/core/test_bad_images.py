@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from kornia.io import write_image
+from one_line import one_line
 
 from lensdist_torch import quality_map
 from lensdist_torch.core import images
@@ -61,12 +62,6 @@ def _tensor(arr: np.ndarray) -> torch.Tensor:
     return t.permute(2, 0, 1)[None]
 
 
-def _one_line(info, *words: str) -> str:
-    msg = str(info.value)
-    assert "\n" not in msg, msg
-    for w in words:
-        assert w in msg, (w, msg)
-    return msg
 
 
 @pytest.fixture
@@ -129,7 +124,7 @@ class TestFormats:
                 kornia.io.load_image(path, kornia.io.ImageLoadType.UNCHANGED)
             with pytest.raises(ValueError) as info:
                 load_image(path)
-            _one_line(info, str(path), suffix, ".png")
+            one_line(info, str(path), suffix, ".png")
 
     def test_grey_rgb_rgba_png(self, tmp_path):
         grey = _rand_u8(6, 10)
@@ -229,7 +224,7 @@ def test_unsupported_suffix(tmp_path, rgb_png, suffix):
     path.write_bytes(rgb_png.read_bytes())
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "suffix")
+    one_line(info, str(path), "suffix")
 
 
 @pytest.mark.bad_input
@@ -238,7 +233,7 @@ def test_directory(tmp_path):
     folder.mkdir()
     with pytest.raises(ValueError) as info:
         load_image(folder)
-    _one_line(info, str(folder), "directory")
+    one_line(info, str(folder), "directory")
 
 
 @pytest.mark.bad_input
@@ -249,14 +244,14 @@ def test_not_a_regular_file(tmp_path):
     os.mkfifo(path)
     with pytest.raises(ValueError) as info:
         load_image(path)  # must not block on opening it
-    _one_line(info, str(path), "not a regular file")
+    one_line(info, str(path), "not a regular file")
 
 
 @pytest.mark.bad_input
 def test_missing_file_keeps_its_type(tmp_path):
     with pytest.raises(FileNotFoundError) as info:
         load_image(tmp_path / "missing.png")
-    _one_line(info, "missing.png")
+    one_line(info, "missing.png")
 
 
 @pytest.mark.bad_input
@@ -267,7 +262,7 @@ def test_unreadable_file(tmp_path, rgb_png):
     try:
         with pytest.raises(ValueError) as info:
             load_image(rgb_png)
-        _one_line(info, str(rgb_png))
+        one_line(info, str(rgb_png))
     finally:
         rgb_png.chmod(0o644)
 
@@ -279,7 +274,7 @@ def test_empty_file(tmp_path, suffix):
     path.write_bytes(b"")
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "empty")
+    one_line(info, str(path), "empty")
 
 
 @pytest.mark.bad_input
@@ -288,7 +283,7 @@ def test_text_file_named_png(tmp_path):
     path.write_text("this is not an image\n")
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "not a PNG")
+    one_line(info, str(path), "not a PNG")
 
 
 @pytest.mark.bad_input
@@ -297,7 +292,7 @@ def test_png_named_jpg(tmp_path, rgb_png):
     path.write_bytes(rgb_png.read_bytes())
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "PNG data", ".png")
+    one_line(info, str(path), "PNG data", ".png")
 
 
 @pytest.mark.bad_input
@@ -307,7 +302,7 @@ def test_jpeg_named_tif(tmp_path):
     path.write_bytes((tmp_path / "a.jpg").read_bytes())
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "JPEG data")
+    one_line(info, str(path), "JPEG data")
 
 
 @pytest.mark.bad_input
@@ -321,7 +316,7 @@ def test_truncated_file(tmp_path, suffix, keep):
     path.write_bytes(data[: int(len(data) * keep)])
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path))
+    one_line(info, str(path))
 
 
 @pytest.mark.bad_input
@@ -330,7 +325,7 @@ def test_png_signature_only(tmp_path):
     path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "truncated")
+    one_line(info, str(path), "truncated")
 
 
 @pytest.mark.bad_input
@@ -341,7 +336,7 @@ def test_corrupt_png_data(tmp_path, rgb_png):
     path.write_bytes(bytes(data))
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path))
+    one_line(info, str(path))
 
 
 @pytest.mark.bad_input
@@ -352,14 +347,14 @@ def test_png_pixel_bomb_is_refused_before_decoding(tmp_path, no_decoder):
     assert path.stat().st_size < 1000
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "100000 x 100000", "max_pixels=100000000")
+    one_line(info, str(path), "100000 x 100000", "max_pixels=100000000")
 
 
 @pytest.mark.bad_input
 def test_png_over_a_custom_limit(rgb_png, no_decoder):
     with pytest.raises(ValueError) as info:
         load_image(rgb_png, max_pixels=100)
-    _one_line(info, str(rgb_png), "16 x 12", "max_pixels=100")
+    one_line(info, str(rgb_png), "16 x 12", "max_pixels=100")
 
 
 @pytest.mark.bad_input
@@ -370,7 +365,7 @@ def test_jpeg_over_the_limit_from_its_frame_header(tmp_path, no_decoder):
     path.write_bytes(b"\xff\xd8" + exif + sof + b"\xff\xda" + b"\x00" * 20)
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "30000 x 20000")
+    one_line(info, str(path), "30000 x 20000")
 
 
 @pytest.mark.bad_input
@@ -381,7 +376,7 @@ def test_tiff_over_a_custom_limit(tmp_path, no_decoder):
     kio.write_image(path, torch.from_numpy(_rand_u8(3, 40, 50)))
     with pytest.raises(ValueError) as info:
         load_image(path, max_pixels=1999)
-    _one_line(info, str(path), "50 x 40")
+    one_line(info, str(path), "50 x 40")
 
 
 @pytest.mark.bad_input
@@ -392,7 +387,7 @@ def test_webp_over_the_limit_from_its_header(tmp_path, no_decoder):
     path.write_bytes(b"RIFF" + struct.pack("<I", 4 + len(body)) + b"WEBP" + body)
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "16384 x 16384")
+    one_line(info, str(path), "16384 x 16384")
 
 
 @pytest.mark.bad_input
@@ -401,7 +396,7 @@ def test_webp_with_an_unknown_chunk(tmp_path):
     path.write_bytes(b"RIFF" + struct.pack("<I", 30) + b"WEBP" + b"ABCD" + b"\x00" * 22)
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "WebP")
+    one_line(info, str(path), "WebP")
 
 
 @pytest.mark.bad_input
@@ -410,7 +405,7 @@ def test_grey_alpha_png(tmp_path):
     path.write_bytes(_png_bytes(_rand_u8(6, 10, 2), 4, 8))
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "grey + alpha")
+    one_line(info, str(path), "grey + alpha")
 
 
 @pytest.mark.bad_input
@@ -420,7 +415,7 @@ def test_png_with_fewer_than_8_bits(tmp_path, depth):
     path.write_bytes(_png_bytes(_rand_u8(6, 2), 0, depth, size=(6, 16 // depth)))
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), f"{depth}-bit")
+    one_line(info, str(path), f"{depth}-bit")
 
 
 @pytest.mark.bad_input
@@ -429,7 +424,7 @@ def test_png_of_zero_width(tmp_path):
     path.write_bytes(_png_bytes(np.zeros((1, 1), np.uint8), 0, 8, size=(1, 0)))
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "0 x 1")
+    one_line(info, str(path), "0 x 1")
 
 
 @pytest.mark.bad_input
@@ -438,7 +433,7 @@ def test_palette_png_without_a_palette(tmp_path):
     path.write_bytes(_png_bytes(_rand_u8(6, 10), 3, 8))
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "palette")
+    one_line(info, str(path), "palette")
 
 
 @pytest.mark.bad_input
@@ -448,7 +443,7 @@ def test_palette_index_beyond_the_palette(tmp_path):
     path.write_bytes(_png_bytes(idx, 3, 8, extra=_chunk(b"PLTE", _rand_u8(4, 3).tobytes())))
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "palette entry 9")
+    one_line(info, str(path), "palette entry 9")
 
 
 @pytest.mark.bad_input
@@ -458,7 +453,7 @@ def test_cmyk_jpeg(tmp_path):
     pil.fromarray(_rand_u8(8, 8, 3)).convert("CMYK").save(path)
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "4 colour components")
+    one_line(info, str(path), "4 colour components")
 
 
 @pytest.mark.bad_input
@@ -467,7 +462,7 @@ def test_jpeg_without_a_frame_header(tmp_path):
     path.write_bytes(b"\xff\xd8\xff\xe0" + struct.pack(">H", 4) + b"JF" + b"\xff\xda" + b"\x00" * 16)
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "frame header")
+    one_line(info, str(path), "frame header")
 
 
 @pytest.mark.bad_input
@@ -476,7 +471,7 @@ def test_float_tiff_outside_0_1(tmp_path):
     write_image(path, torch.linspace(-3.0, 250.0, 60).view(1, 6, 10))
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "[-3, 250]", "[0, 1]")
+    one_line(info, str(path), "[-3, 250]", "[0, 1]")
 
 
 @pytest.mark.bad_input
@@ -487,7 +482,7 @@ def test_float_tiff_with_nan(tmp_path):
     write_image(path, x)
     with pytest.raises(ValueError) as info:
         load_image(path)
-    _one_line(info, str(path), "NaN")
+    one_line(info, str(path), "NaN")
 
 
 @pytest.mark.bad_input
@@ -495,7 +490,7 @@ def test_float_tiff_with_nan(tmp_path):
 def test_bad_max_pixels(rgb_png, limit):
     with pytest.raises(ValueError) as info:
         load_image(rgb_png, max_pixels=limit)
-    _one_line(info, "max_pixels")
+    one_line(info, "max_pixels")
 
 
 # ----------------------------------------------------------------------------- bad tensors
@@ -510,7 +505,7 @@ def test_valid_mask_not_finite(bad):
     valid[1, 0, 3, 4] = bad
     with pytest.raises(ValueError) as info:
         quality_map(like, like, valid=valid)
-    _one_line(info, "valid", "NaN or Inf")
+    one_line(info, "valid", "NaN or Inf")
 
 
 @pytest.mark.bad_input
@@ -521,14 +516,14 @@ def test_valid_mask_out_of_range(bad):
     valid[0, 0, 0, 0] = bad
     with pytest.raises(ValueError) as info:
         quality_map(like, like, valid=valid)
-    _one_line(info, "valid", "[0, 1]")
+    one_line(info, "valid", "[0, 1]")
 
 
 @pytest.mark.bad_input
 def test_valid_mask_complex():
     with pytest.raises(TypeError) as info:
         quality_map(torch.rand(1, 1, 16, 16), torch.rand(1, 1, 16, 16), valid=torch.ones(1, 1, 16, 16, dtype=torch.complex64))
-    _one_line(info, "valid")
+    one_line(info, "valid")
 
 
 def test_valid_masks_that_are_fine():
@@ -544,11 +539,11 @@ def test_image_with_inf_through_as_batch():
     x[1, 2, 2] = math.inf
     with pytest.raises(ValueError) as info:
         check_image(as_batch(x, "photo"), "photo")
-    _one_line(info, "photo", "NaN or Inf")
+    one_line(info, "photo", "NaN or Inf")
 
 
 @pytest.mark.bad_input
 def test_as_batch_of_a_1d_tensor():
     with pytest.raises(ValueError) as info:
         as_batch(torch.rand(8), "photo")
-    _one_line(info, "photo", "(H, W)")
+    one_line(info, "photo", "(H, W)")

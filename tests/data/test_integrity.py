@@ -36,6 +36,7 @@ from lensdist_torch.data.shards import (
     shard_path,
     write_shard,
 )
+from one_line import one_line
 
 TINY = {
     "image": {"height": 96, "width": 128},
@@ -75,10 +76,6 @@ def flip(path: Path, offset: int, mask: int = 0xFF) -> None:
     path.write_bytes(bytes(data))
 
 
-def one_line(exc: pytest.ExceptionInfo) -> str:
-    msg = str(exc.value)
-    assert "\n" not in msg, msg
-    return msg
 
 
 # ---------------------------------------------------------------------------------- shard bytes

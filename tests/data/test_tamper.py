@@ -25,6 +25,7 @@ from lensdist_torch.data.shards import (
     shard_path,
     write_shard,
 )
+from one_line import one_line
 
 pytestmark = pytest.mark.bad_input
 
@@ -53,10 +54,6 @@ def files(out: Path) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
 
 
-def one_line(info: pytest.ExceptionInfo) -> str:
-    msg = str(info.value)
-    assert "\n" not in msg, msg
-    return msg
 
 
 def _edit_manifest(out: Path, fn) -> None:

@@ -7,6 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from metric_helpers import textured
+from one_line import one_line_error
 
 from lensdist_torch import (
     RegistrationQuality,
@@ -35,14 +36,6 @@ def _entry_points(img1, img2, valid=None, **kw):
     ]
 
 
-def _one_line_error(call, words) -> None:
-    """``call()`` raises a one-line ValueError that holds every one of ``words``."""
-    with pytest.raises(ValueError) as info:
-        call()
-    msg = str(info.value)
-    assert "\n" not in msg
-    for w in words:
-        assert w in msg, (w, msg)
 
 
 # ----------------------------------------------------------------------------- any image size
@@ -151,7 +144,7 @@ class TestDataRange:
         bad = scale * img + shift
         good = torch.zeros(1, 1, 16, 16)
         for call in _entry_points(bad, good, data_range=data_range):
-            _one_line_error(call, words)
+            one_line_error(ValueError, call, *words)
         with pytest.raises(ValueError, match="img1"):
             local_criteria(bad, good, data_range=data_range)
 
@@ -196,7 +189,7 @@ class TestMaskValues:
         valid[1, 0, 3, 4] = value
         calls = _entry_points(img, img, valid) + [lambda: error_images(local_criteria(img, img), valid)]
         for call in calls:
-            _one_line_error(call, words)
+            one_line_error(ValueError, call, *words)
         assert quality_map(img, img, valid, validate=False).shape == (2, 1, 2, 2)
 
     @pytest.mark.bad_input

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from one_line import one_line_error
 
 from lensdist_torch import (
     RegistrationQuality,
@@ -41,14 +42,6 @@ def inputs():
     return torch.rand(SHAPE, generator=g), torch.rand(SHAPE, generator=g), torch.ones(SHAPE)
 
 
-def one_line_error(exc, call, *words):
-    with pytest.raises(exc) as info:
-        call()
-    message = str(info.value)
-    assert "\n" not in message, message
-    for w in words:
-        assert w in message, (w, message)
-    return message
 
 
 @pytest.mark.bad_input
