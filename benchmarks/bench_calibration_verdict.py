@@ -42,8 +42,9 @@ import torch
 from bench_calibration_spread import board_region, calibrations
 
 from lensdist_torch.calibration.guided_matching import guided_matches, read_features, refined_matches
+from lensdist_torch.calibration.matches import PlanarMatches, read_verified_matches
 from lensdist_torch.calibration.multiview import extract_and_match
-from lensdist_torch.calibration.planar_features import PlanarMatches, read_verified_matches, self_calibrate_planar
+from lensdist_torch.calibration.planar_features import self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.core.frames import list_frames

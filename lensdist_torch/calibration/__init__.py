@@ -13,6 +13,7 @@ print or read files):
 * :mod:`~lensdist_torch.calibration.multiview_runs`: several mappings' run-to-run spread.
 * :mod:`~lensdist_torch.calibration.planar_features`: a plane or a turning camera: one lens, one homography per pair.
 * :mod:`~lensdist_torch.calibration.planar_model`: its residual, Jacobian and Levenberg-Marquardt.
+* :mod:`~lensdist_torch.calibration.matches`: the verified matches read from COLMAP's database, and their thinning.
 * :mod:`~lensdist_torch.calibration.guided_matching`: its matches found again where its first fit predicts them.
 * :mod:`~lensdist_torch.calibration.match_refinement`: its matches moved to where the views' patches align.
 
@@ -34,7 +35,8 @@ from lensdist_torch._lazy import lazy_exports
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.calibration.direct": ("SequenceCalibration", "calibrate_sequence"),
     "lensdist_torch.calibration.pooling": ("GoodBadFit", "good_and_bad"),
-    "lensdist_torch.calibration.planar_features": ("PlanarCalibration", "PlanarMatches", "self_calibrate_planar"),
+    "lensdist_torch.calibration.matches": ("PlanarMatches",),
+    "lensdist_torch.calibration.planar_features": ("PlanarCalibration", "self_calibrate_planar"),
     "lensdist_torch.calibration.controllers.calibrate": ("calibrate_path", "synthetic_sequence"),
     "lensdist_torch.calibration.controllers.verify": ("verify_undistortion",),
 }

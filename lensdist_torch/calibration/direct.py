@@ -399,6 +399,10 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
         reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
     else:
         label, reason = class_or_open(dc, half[2], st)
-    return SequenceCalibration(k2u, k4u, d_avg, iv_avg, d_max, iv_max, label, reason, n_used, len(pairs) - n_used,
-                               xa.shape[0], (hh, ww), (h, w), scale, (a, b), pairs, (ab @ fun[0]).abs(), std, keep,
-                               found, min(relief_z, 1e6), refitted, misfit)
+    return SequenceCalibration(
+        k2_user=k2u, k4_user=k4u, delta_avg_user_px=d_avg, delta_avg_user_interval=iv_avg, delta_max_user_px=d_max,
+        delta_max_user_interval=iv_max, class_label=label, reason=reason, pairs_used=n_used,
+        pairs_rejected=len(pairs) - n_used, frames=xa.shape[0], image_size=(hh, ww), analysis_size=(h, w),
+        scale=scale, ab=(a, b), pairs=pairs, pair_delta_avg=(ab @ fun[0]).abs(), pair_delta_avg_std=std,
+        pair_used=keep, relief_effect_px=found, relief_z=min(relief_z, 1e6), pair_refitted=refitted,
+        pair_misfit=misfit)

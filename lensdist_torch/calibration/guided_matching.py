@@ -36,14 +36,9 @@ from collections.abc import Callable
 import torch
 
 from lensdist_torch.calibration.match_refinement import refine_matches
+from lensdist_torch.calibration.matches import PlanarMatches, read_verified_matches, thin_matches
 from lensdist_torch.calibration.multiview import pycolmap_or_error
-from lensdist_torch.calibration.planar_features import (
-    PlanarMatches,
-    pair_homographies,
-    read_verified_matches,
-    self_calibrate_planar,
-    thin_matches,
-)
+from lensdist_torch.calibration.planar_features import pair_homographies, self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
@@ -83,7 +78,7 @@ def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, i
     """Step 1: the counting pairs' homographies and each chained view's homography onto one plane.
 
     Args:
-        matches: the verified matches (:func:`~lensdist_torch.calibration.planar_features.read_verified_matches`).
+        matches: the verified matches (:func:`~lensdist_torch.calibration.matches.read_verified_matches`).
         coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.calibration.planar_model.lens_ideal_points`).
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
@@ -157,7 +152,7 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
             ``planar_guided_ratio``, ``planar_min_matches`` and :func:`chain_views`' fields).
 
     Returns:
-        :class:`~lensdist_torch.calibration.planar_features.PlanarMatches` (pairs with at least
+        :class:`~lensdist_torch.calibration.matches.PlanarMatches` (pairs with at least
         ``planar_min_matches`` guided matches; the pairs' indices renumbered).
 
     Example:
@@ -190,9 +185,11 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
         first.append(i)
         second.append(j)
     empty = torch.zeros(0, 2, dtype=torch.float64)
-    return PlanarMatches(torch.cat(x1) if x1 else empty, torch.cat(x2) if x2 else empty,
-                         torch.cat(pair) if pair else torch.zeros(0, dtype=torch.long),
-                         torch.tensor(first, dtype=torch.long), torch.tensor(second, dtype=torch.long), matches.names)
+    return PlanarMatches(
+        x1=torch.cat(x1) if x1 else empty, x2=torch.cat(x2) if x2 else empty,
+        pair=torch.cat(pair) if pair else torch.zeros(0, dtype=torch.long),
+        first=torch.tensor(first, dtype=torch.long), second=torch.tensor(second, dtype=torch.long),
+        names=matches.names)
 
 
 def _guided_pair(predicted: torch.Tensor, target: torch.Tensor, d1: torch.Tensor, d2: torch.Tensor,
@@ -289,7 +286,7 @@ def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor
     each pair's matches are thinned to twice ``planar_pair_matches`` first.
 
     Args:
-        matches: :class:`~lensdist_torch.calibration.planar_features.PlanarMatches` (verified or guided).
+        matches: :class:`~lensdist_torch.calibration.matches.PlanarMatches` (verified or guided).
         images: view index (into ``matches.names``) -> its (H, W) grey image in [0, 1].
         coefficients: the lens's a_1 .. a_n.
         centre: its distortion centre (x, y) in pixels; None: the frame centre.

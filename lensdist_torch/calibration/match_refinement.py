@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d, spatial_gradient
 
-from lensdist_torch.calibration.planar_features import PlanarMatches
+from lensdist_torch.calibration.matches import PlanarMatches
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
@@ -157,7 +157,7 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
     """Every match of a pair with a homography moved to sub-pixel agreement (module docstring); the others dropped.
 
     Args:
-        matches: :class:`~lensdist_torch.calibration.planar_features.PlanarMatches`.
+        matches: :class:`~lensdist_torch.calibration.matches.PlanarMatches`.
         images: view index -> its (H, W) grey image in [0, 1] (called again for a view only once it has left
             the cache).
         homographies: {(i, j): 3 x 3 homography from view i's ideal pixels to view j's}; a pair
@@ -216,9 +216,11 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
         first.append(i)
         second.append(j)
     empty = torch.zeros(0, 2, dtype=torch.float64)
-    out = PlanarMatches(torch.cat(x1s) if x1s else empty, torch.cat(x2s) if x2s else empty,
-                        torch.cat(pairs) if pairs else torch.zeros(0, dtype=torch.long),
-                        torch.tensor(first, dtype=torch.long), torch.tensor(second, dtype=torch.long), matches.names)
+    out = PlanarMatches(
+        x1=torch.cat(x1s) if x1s else empty, x2=torch.cat(x2s) if x2s else empty,
+        pair=torch.cat(pairs) if pairs else torch.zeros(0, dtype=torch.long),
+        first=torch.tensor(first, dtype=torch.long), second=torch.tensor(second, dtype=torch.long),
+        names=matches.names)
     info = {"matches": len(matches.pair), "kept": len(out.pair),
             "median_shift_px": float(torch.cat(shifts).median()) if shifts else float("nan")}
     return out, info

@@ -167,7 +167,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
         image_size: the frames' (H, W), for the features' cap (:func:`feature_cap`); None: ``max_features``.
         on_matches: called with the database's path once the features and verified matches are in
             it, before the first mapping (the homography model reads them:
-            :func:`~lensdist_torch.calibration.planar_features.read_verified_matches`).
+            :func:`~lensdist_torch.calibration.matches.read_verified_matches`).
 
     Returns:
         Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
@@ -200,7 +200,7 @@ def extract_and_match(database: str | Path, image_dir: str | Path, names: list[s
 
     Exhaustive matching up to ``exhaustive_below`` frames, sequential beyond; one shared RADIAL
     camera; the geometric verification's RANSAC seeded by ``seed``. :func:`reconstruct` maps on it;
-    :func:`~lensdist_torch.calibration.planar_features.read_verified_matches` reads its matches.
+    :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads its matches.
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
     pc.set_random_seed(cfg.seed)

@@ -54,7 +54,7 @@ from typing import NamedTuple
 
 import torch
 
-from lensdist_torch.calibration.multiview import pycolmap_or_error
+from lensdist_torch.calibration.matches import PlanarMatches, thin_matches
 from lensdist_torch.calibration.planar_model import (
     bending_halfwidth,
     fit_lens_and_homographies,
@@ -75,29 +75,7 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points
 
-__all__ = ["PlanarCalibration", "PlanarMatches", "delta_avg_where", "read_verified_matches", "self_calibrate_planar",
-           "thin_matches"]
-
-
-class PlanarMatches(NamedTuple):
-    """Feature matches of a sequence, flat, in pixels with centres at integers.
-
-    x1, x2 (N, 2) float64: the matched points in frames first[pair] and second[pair]; pair (N,)
-    the pair of each match; first, second (P,) the frames' indices in ``names`` (recording order).
-
-    Example:
-        >>> p = torch.tensor([[10.0, 20.0]], dtype=torch.float64)
-        >>> m = PlanarMatches(p, p + 1, torch.tensor([0]), torch.tensor([0]), torch.tensor([1]), ("a.png", "b.png"))
-        >>> len(m.first), m.names[int(m.second[0])]
-        (1, 'b.png')
-    """
-
-    x1: torch.Tensor
-    x2: torch.Tensor
-    pair: torch.Tensor
-    first: torch.Tensor
-    second: torch.Tensor
-    names: tuple
+__all__ = ["PlanarCalibration", "delta_avg_where", "self_calibrate_planar"]
 
 
 class PlanarCalibration(NamedTuple):
@@ -157,74 +135,6 @@ class PlanarCalibration(NamedTuple):
     opencv_rational: dict
     guided: dict | None = None
     refined: dict | None = None
-
-
-def read_verified_matches(database, names: list[str], min_matches: int = 15) -> PlanarMatches:
-    """Every verified pair's inlier matches from a COLMAP database, in pixels with centres at integers.
-
-    Args:
-        database: the path of a COLMAP database after feature extraction and matching.
-        names: the frames' names in recording order (the jackknife's blocks follow it).
-        min_matches: pairs with fewer verified matches are left out.
-
-    Returns:
-        :class:`PlanarMatches` (float64; COLMAP's pixel centres lie at +0.5, taken off).
-    """
-    pc = pycolmap_or_error()
-    order = {n: i for i, n in enumerate(names)}
-    x1, x2, pair, first, second = [], [], [], [], []
-    db = pc.Database.open(str(database))
-    try:
-        ids = {im.image_id: im.name for im in db.read_all_images()}
-        keypoints = {}
-        pair_ids, geometries = db.read_two_view_geometries()
-        for pid, m in zip(pair_ids, (g.inlier_matches for g in geometries)):
-            a, b = pc.pair_id_to_image_pair(pid)
-            if len(m) < min_matches or ids.get(a) not in order or ids.get(b) not in order:
-                continue
-            for i in (a, b):
-                if i not in keypoints:
-                    keypoints[i] = torch.as_tensor(db.read_keypoints(i)[:, :2], dtype=torch.float64) - 0.5
-            # SIFT gives a point several orientations, so a match can repeat: keep each once
-            both = torch.cat([keypoints[a][torch.as_tensor(m[:, 0], dtype=torch.long)],
-                              keypoints[b][torch.as_tensor(m[:, 1], dtype=torch.long)]], 1).unique(dim=0)
-            if len(both) < min_matches:
-                continue
-            x1.append(both[:, :2])
-            x2.append(both[:, 2:])
-            m = both
-            pair.append(torch.full((len(m),), len(first), dtype=torch.long))
-            first.append(order[ids[a]])
-            second.append(order[ids[b]])
-    finally:
-        db.close()
-    def cat(t: list, empty: tuple) -> torch.Tensor:
-        return torch.cat(t) if t else torch.zeros(empty, dtype=torch.float64)
-
-    return PlanarMatches(cat(x1, (0, 2)), cat(x2, (0, 2)), torch.cat(pair) if pair else torch.zeros(0, dtype=torch.long),
-                         torch.tensor(first, dtype=torch.long), torch.tensor(second, dtype=torch.long), tuple(names))
-
-
-def thin_matches(matches: PlanarMatches, cap: int) -> PlanarMatches:
-    """Each pair's matches beyond ``cap`` thinned to ``cap``, evenly over the pair's list (0: all kept).
-
-    Example:
-        >>> p = torch.arange(10.0, dtype=torch.float64)[:, None].repeat(1, 2)
-        >>> m = PlanarMatches(p, p, torch.zeros(10, dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b"))
-        >>> thin_matches(m, 4).x1[:, 0].tolist()
-        [2.0, 4.0, 7.0, 9.0]
-    """
-    if cap <= 0 or len(matches.pair) == 0:
-        return matches
-    order = torch.sort(matches.pair, stable=True).indices
-    pair = matches.pair[order]
-    count = torch.bincount(pair, minlength=len(matches.first))
-    start = torch.cumsum(count, 0) - count
-    rank = torch.arange(len(pair)) - start[pair]
-    n = count[pair]
-    keep = (n <= cap) | ((rank + 1) * cap // n > rank * cap // n)  # exactly cap of n, evenly spaced
-    idx = order[keep]
-    return PlanarMatches(matches.x1[idx], matches.x2[idx], matches.pair[idx], matches.first, matches.second, matches.names)
 
 
 # ------------------------------------------------------------------ the start
@@ -376,9 +286,14 @@ def self_calibrate_planar(
 
     def fail(reason: str, a=None, inl: int = 0, models=None) -> PlanarCalibration:
         nan = math.nan
-        return PlanarCalibration([] if a is None else list(a), 0 if a is None else len(a), "", list(distortion_center(h, w)),
-                                 nan, nan, nan, nan, (nan, nan), nan, (nan, nan), 0.0, nan, 0.0, None, reason, len(matches.first), inl,
-                                 len(matches.pair), nan, nan, models or {}, [], [], [], {}, {})
+        return PlanarCalibration(
+            coefficients=[] if a is None else list(a), terms=0 if a is None else len(a), model="",
+            centre=list(distortion_center(h, w)), k2_user=nan, k4_user=nan, eq4_fit_error_px=nan,
+            delta_avg_user_px=nan, delta_avg_user_interval=(nan, nan), delta_max_user_px=nan,
+            delta_max_user_interval=(nan, nan), invertible_fraction=0.0, bending_halfwidth_px=nan,
+            matched_fraction=0.0, class_label=None, reason=reason, pairs=len(matches.first), inliers=inl,
+            matches=len(matches.pair), inlier_share=nan, reprojection_px=nan, models=models or {}, jackknife=[],
+            jackknife_coefficients=[], jackknife_centres=[], opencv={}, opencv_rational={})
 
     if len(matches.first) < cfg.planar_min_pairs:
         return fail(f"too few matched pairs: {len(matches.first)} of at least {cfg.planar_min_pairs}")
@@ -436,8 +351,12 @@ def self_calibrate_planar(
         label, reason = sequence_class(paper_frame_delta_avg(k2u, k4u, (h, w), st), dl["delta_avg_px"], half_avg, st)
     cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, model=m, step=step, centre=centre)
             for m in ("standard", "rational")]
+    standard, rational = ({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in c._asdict().items() if k != "model"}
+                          for c in cams)
     return PlanarCalibration(
-        a, n, best, centre, k2u, k4u, fit_err, dl["delta_avg_px"], intervals[0], dl["delta_max_px"], intervals[1],
-        dl["invertible_fraction"], bending, reach, label, reason, good_pairs, int(inl.sum()), len(matches.pair), share,
-        table[best]["reprojection_px"], table, jk_avg, jk_a, jk_c,
-        *({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in cam._asdict().items() if k != "model"} for cam in cams))
+        coefficients=a, terms=n, model=best, centre=centre, k2_user=k2u, k4_user=k4u, eq4_fit_error_px=fit_err,
+        delta_avg_user_px=dl["delta_avg_px"], delta_avg_user_interval=intervals[0], delta_max_user_px=dl["delta_max_px"],
+        delta_max_user_interval=intervals[1], invertible_fraction=dl["invertible_fraction"], bending_halfwidth_px=bending,
+        matched_fraction=reach, class_label=label, reason=reason, pairs=good_pairs, inliers=int(inl.sum()),
+        matches=len(matches.pair), inlier_share=share, reprojection_px=table[best]["reprojection_px"], models=table,
+        jackknife=jk_avg, jackknife_coefficients=jk_a, jackknife_centres=jk_c, opencv=standard, opencv_rational=rational)

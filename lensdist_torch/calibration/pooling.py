@@ -135,7 +135,7 @@ def good_and_bad(values: torch.Tensor, std: torch.Tensor, width: float) -> GoodB
         if done:
             break
     p = _posterior(d, s2, mu, k2, pi, log_bad)
-    return GoodBadFit(mu, math.sqrt(k2), pi, p, p / (s2 * k2))
+    return GoodBadFit(mean=mu, kappa=math.sqrt(k2), good_share=pi, p_good=p, weights=p / (s2 * k2))
 
 
 # ------------------------------------------------------------------ a sequence's pairs

@@ -210,7 +210,8 @@ class EigenSpaceClassifier(nn.Module):
             delta[rows] = (w * self.train_delta[members][ik]).sum(1)
             neigh[rows, :k] = members[ik]
             ndist[rows, :k] = dk
-        return ClassifierResult(label, delta, dist, nearest, neigh, ndist)
+        return ClassifierResult(
+            label=label, delta=delta, distances=dist, nearest=nearest, neighbours=neigh, neighbour_distances=ndist)
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path, extra: dict | None = None) -> None:

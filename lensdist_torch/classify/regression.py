@@ -176,7 +176,9 @@ class DeltaRegressor(nn.Module):
         s0 = cfg.regression.cannot_tell_fraction * delta_top("delta_avg", cfg)
         conf = s0 / (s0 + std[:, 0])
         confident = conf >= cfg.regression.confidence_threshold
-        return RegressionResult(pred[:, 0], pred[:, 1], classes[0], classes[1], std[:, 0], std[:, 1], conf, confident)
+        return RegressionResult(
+            delta_avg=pred[:, 0], delta_max=pred[:, 1], class_avg=classes[0], class_max=classes[1], std_avg=std[:, 0],
+            std_max=std[:, 1], confidence=conf, confident=confident)
 
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path, extra: dict | None = None) -> None:

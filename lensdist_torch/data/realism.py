@@ -199,7 +199,8 @@ def height_field(real: Realism, i: int, height: int, width: int) -> HeightField 
     x0, y0 = distortion_center(height, width)
     bumps = real.relief[i, 1:].reshape(N_BUMPS, 4)
     centres = torch.stack([bumps[:, 0] * (width - 1) / 2, bumps[:, 1] * (height - 1) / 2], 1)
-    field = HeightField(centres, bumps[:, 2] * half_diagonal(height, width), bumps[:, 3])
+    field = HeightField(
+        centres=centres, sigmas=bumps[:, 2] * half_diagonal(height, width), weights=bumps[:, 3])
     return scaled_field(field, (-x0, width - 1 - x0, -y0, height - 1 - y0), rho)
 
 

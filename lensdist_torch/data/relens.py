@@ -158,5 +158,5 @@ def relens_frames(
     out = sample_at_pixels(frames.double(), src[None].expand(frames.shape[0], -1, -1, -1)) * ok
     valid = resize_to(ok.double()[None, None], h, w)
     return RelensedFrames(
-        resize_to(out, h, w).clamp(0, 1).to(frames.dtype), float(k2), float(k4), float((valid > 0.999).double().mean())
-    )
+        frames=resize_to(out, h, w).clamp(0, 1).to(frames.dtype), k2=float(k2), k4=float(k4),
+        valid_fraction=float((valid > 0.999).double().mean()))

@@ -97,7 +97,7 @@ def draw_height_field(
     centres = torch.stack([x_lo + (x_hi - x_lo) * u[:, 0], y_lo + (y_hi - y_lo) * u[:, 1]], 1)
     half_diag = 0.5 * math.hypot(x_hi - x_lo, y_hi - y_lo)
     sigmas = (SIGMA_RANGE[0] + (SIGMA_RANGE[1] - SIGMA_RANGE[0]) * u[:, 2]) * half_diag
-    return scaled_field(HeightField(centres, sigmas, 2 * u[:, 3] - 1), region, relief)
+    return scaled_field(HeightField(centres=centres, sigmas=sigmas, weights=2 * u[:, 3] - 1), region, relief)
 
 
 def scaled_field(field: HeightField, region: tuple[float, float, float, float], relief: float) -> HeightField:

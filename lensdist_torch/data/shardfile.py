@@ -179,7 +179,7 @@ def verify_set(
     shard size); a shard that differs from it is bad (regenerated: a shard's bytes are a pure
     function of the config and its pairs).
     """
-    state = SetState(set_name, n_pairs, shard_size)
+    state = SetState(name=set_name, n_pairs=n_pairs, shard_size=shard_size)
     for k, (a, b) in enumerate(state.ranges):
         path = shard_path(out, set_name, k)
         if not path.exists():

@@ -254,7 +254,7 @@ def _plan(config, out: Path, fingerprint: str, sets, shard, limit) -> _Plan:
         for k, (a, b) in enumerate(st.ranges)
         if k % shard[1] == shard[0] and k not in st.stats
     ]
-    return _Plan(old, states, tasks)
+    return _Plan(old=old, states=states, tasks=tasks)
 
 
 def _cap_workers(workers: int, n_tasks: int) -> tuple[int, str | None]:

@@ -225,7 +225,9 @@ def opencv_camera_from_map(
     cam = torch.tensor([[f, 0.0, c[0]], [0.0, f, c[1]], [0.0, 0.0, 1.0]], dtype=torch.float64)
     err = torch.nan_to_num((opencv_undistort_points(pd, cam, dist) - p).norm(dim=-1), nan=float("inf"))
     fwd = torch.nan_to_num((opencv_distort_normalized(x, dist) - xd).norm(dim=-1) * f, nan=float("inf"))
-    return OpenCVCamera(cam, dist, float(err.mean()), float(err.max()), float(fwd.mean()), float(fwd.max()), model)
+    return OpenCVCamera(
+        camera_matrix=cam, dist_coeffs=dist, fit_error_mean_px=float(err.mean()), fit_error_max_px=float(err.max()),
+        forward_error_mean_px=float(fwd.mean()), forward_error_max_px=float(fwd.max()), model=model)
 
 
 def opencv_export(k2: float, k4: float, height: int, width: int, focal: float | None = None, model: str = "standard"):

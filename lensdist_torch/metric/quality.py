@@ -287,7 +287,8 @@ def registration_quality(
         if should_validate(validate):  # the value checks and the flags: one host sync
             check_pair_values(img1, img2, valid, data_range, flags)
         reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
-        return QualityResult(reg_map, vis_map, _index(reg_map, flags))
+        return QualityResult(
+            registration_map=reg_map, visual_map=vis_map, quality_index=_index(reg_map, flags))
     eroded = None if v is None else erode_valid(v)
     crit = criteria_from_grey(g1, g2, cfg, smooth)
     flags = criteria_codes(eroded, crit)
@@ -298,11 +299,12 @@ def registration_quality(
     vis_map = block_pool(errs.e_vis, cfg, smooth)
     q = _index(reg_map, flags)
     if not return_pixels:
-        return QualityResult(reg_map, vis_map, q)
+        return QualityResult(registration_map=reg_map, visual_map=vis_map, quality_index=q)
     if g1.shape[-2:] != (h, w):  # padded: per-pixel maps at the input size
         crit = LocalCriteria(*(t[..., :h, :w] for t in crit))
         errs = ErrorImages(*(t[..., :h, :w] for t in errs))
-    return QualityResult(reg_map, vis_map, q, crit, errs)
+    return QualityResult(
+        registration_map=reg_map, visual_map=vis_map, quality_index=q, criteria=crit, errors=errs)
 
 
 class RegistrationQuality(nn.Module):

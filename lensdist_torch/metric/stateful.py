@@ -98,7 +98,9 @@ def _result(quality_sum, map_sum, num_pairs, num_skipped) -> QualityMetricResult
                 "(no pixel of the mask valid after its 3 x 3 erosion, or flat images: every valid pixel in the risk map)"
             )
         raise RuntimeError("compute() needs at least one update() with a pair (or call it after reset + update)")
-    return QualityMetricResult(quality_sum / n, map_sum / n, num_pairs.clone(), num_skipped.clone())
+    return QualityMetricResult(
+        quality_index=quality_sum / n, registration_map=map_sum / n, num_pairs=num_pairs.clone(),
+        num_skipped=num_skipped.clone())
 
 
 def _keeping_dtypes(fn):

@@ -223,7 +223,8 @@ def estimate_homography(
         parts.append(_register(g1, g2, None if hn0 is None else hn0[sl], cfg))
     hn, conv, res, its, ov, tex = (torch.cat(p) for p in zip(*parts))
     h = torch.linalg.inv(to_u) @ hn @ to_u
-    return h / h[:, 2:, 2:], RegistrationInfo(conv, res, its, ov, tex)
+    return h / h[:, 2:, 2:], RegistrationInfo(
+        converged=conv, residual=res, iterations=its, overlap=ov, textured=tex)
 
 
 def residual_limit(template: torch.Tensor, config: RegistrationConfig) -> torch.Tensor:

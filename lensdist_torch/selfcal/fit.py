@@ -241,10 +241,12 @@ def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relie
     ud = normalized_grid(lev, h, w, h0, w0, device=i1.device).view(-1, 2)
     ux_d, uy_d = ud[idx, 0], ud[idx, 1]
     lv = [torch.gather(i1.flatten(1), 1, idx), with_gradients(pyr2[lev]), ux_d, uy_d, ux_d * ux_d + uy_d * uy_d]
-    lv = [x.repeat(n_starts, *(1,) * (x.dim() - 1)) if n_starts > 1 else x for x in lv]
-    extra = _relief(theta, lv[2], lv[3], cfg, h0, w0) if relief else (None, None)
-    return Level(*lv, half_diagonal(h0, w0) / 2**lev, level_to_grid(lev, h, w, h0, w0), cfg.newton, cfg.margin,
-                 cfg.photometric, cfg.noise_floor, *extra, _RELIEF_INTERPOLATION if relief else cfg.interpolation)
+    i1s, stack2, ux_d, uy_d, rho = (x.repeat(n_starts, *(1,) * (x.dim() - 1)) if n_starts > 1 else x for x in lv)
+    basis, direction = _relief(theta, ux_d, uy_d, cfg, h0, w0) if relief else (None, None)
+    return Level(i1=i1s, stack2=stack2, ux_d=ux_d, uy_d=uy_d, rho=rho, px=half_diagonal(h0, w0) / 2**lev,
+                 to_grid=level_to_grid(lev, h, w, h0, w0), newton=cfg.newton, margin=cfg.margin,
+                 photometric=cfg.photometric, floor=cfg.noise_floor, basis=basis, direction=direction,
+                 interpolation=_RELIEF_INTERPOLATION if relief else cfg.interpolation)
 
 
 def _relief(theta, ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
@@ -314,7 +316,9 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
             normal = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
             tau2 = evidence_tau2(theta, normal[0], sigma, tau2, lv.px, cfg)
         cost = _cost(theta, res, valid, sigma, cfg, tau2)  # the cost moves with them
-    return theta, lam, _State(res, valid, J, sigma, cost, _cost(theta0, res0, valid0, sigma, cfg, tau2), tau2)
+    return theta, lam, _State(
+        res=res, valid=valid, J=J, sigma=sigma, cost=cost, start_cost=_cost(theta0, res0, valid0, sigma, cfg, tau2),
+        tau2=tau2)
 
 
 def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | None = None):
@@ -399,8 +403,10 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     rms = aligned_residual(st.res, st.valid)
     aligned = aligned_residual(st.res, st.valid, region, cfg.clusters**2, int(cfg.occluded_share * cfg.clusters**2))
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
-    info = SelfCalInfo(ok, ok & (conf >= cfg.confidence_threshold), conf, d_avg, std, rms, overlap, ab, gb.double(),
-                       st.sigma.double(), from_init, torch.zeros_like(ok), torch.where(ok, motion, nan), ab,
-                       torch.full_like(ab, float("nan")), torch.full_like(d_avg, float("nan")), std,
-                       torch.full_like(std, float("nan")), aligned)
+    info = SelfCalInfo(
+        converged=ok, confident=ok & (conf >= cfg.confidence_threshold), confidence=conf, delta_avg=d_avg,
+        delta_avg_std=std, residual=rms, overlap=overlap, ab=ab, gain_bias=gb.double(), scale=st.sigma.double(),
+        from_init=from_init, relief=torch.zeros_like(ok), motion=torch.where(ok, motion, nan), planar_ab=ab,
+        relief_ab=torch.full_like(ab, float("nan")), relief_z=torch.full_like(d_avg, float("nan")), planar_std=std,
+        relief_std=torch.full_like(std, float("nan")), aligned_residual=aligned)
     return theta, k2, k4, H, info

@@ -109,7 +109,9 @@ def scene_models(label: str, planar: tuple[float, float], relief: tuple[float, f
     """
     t = [torch.tensor([v], dtype=torch.float64) for v in (*planar, *relief)]
     m = _scene_models(torch.tensor([CLASS_LABELS.index(label)]), *t, cfg)
-    return SceneModels(float(m.confidence[0]), bool(m.relief_found[0]), float(m.agreement[0]), bool(m.parted[0]))
+    return SceneModels(
+        confidence=float(m.confidence[0]), relief_found=bool(m.relief_found[0]), agreement=float(m.agreement[0]),
+        parted=bool(m.parted[0]))
 
 
 def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
@@ -170,7 +172,8 @@ def _scene_models(label, d0, s0, d1, s1, cfg: LensdistConfig) -> SceneModels:
     c0 = _classes(d0, cfg)
     agreement = torch.where(two, _mass(d1, k * s1, bounds[c0]), float("nan"))
     parted = two & (c0 != _classes(d1, cfg))
-    return SceneModels(conf, parted & (agreement < a.relief_mass), agreement, parted)
+    return SceneModels(
+        confidence=conf, relief_found=parted & (agreement < a.relief_mass), agreement=agreement, parted=parted)
 
 
 def _classes(d: torch.Tensor, cfg: LensdistConfig) -> torch.Tensor:

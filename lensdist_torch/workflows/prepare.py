@@ -197,7 +197,9 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
     qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality, validate=False), cfg.quality)
     overlap = valid.flatten(1).float().mean(1).cpu()
     motion = mean_displacement(H, h, w).cpu()
-    return PreparedPairs(cfg, a, b, H, ok, residual, overlap, motion, qmap, scale, sizes)
+    return PreparedPairs(
+        config=cfg, img1=a, img2=b, H=H, registration_ok=ok, residual=residual, overlap=overlap, motion=motion,
+        qmap=qmap, scale=scale, input_size=sizes)
 
 
 def _batched(dev: torch.device) -> bool:

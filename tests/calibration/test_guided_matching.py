@@ -6,7 +6,8 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.calibration.planar_features import PlanarMatches, self_calibrate_planar
+from lensdist_torch.calibration.matches import PlanarMatches
+from lensdist_torch.calibration.planar_features import self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import distort_points
 from lensdist_torch.geometry.frame import half_diagonal

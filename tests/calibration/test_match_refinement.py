@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from lensdist_torch.calibration.match_refinement import _prepared, align_patches, local_affines, refine_matches
-from lensdist_torch.calibration.planar_features import PlanarMatches
+from lensdist_torch.calibration.matches import PlanarMatches
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points

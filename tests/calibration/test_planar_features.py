@@ -5,7 +5,8 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.calibration.planar_features import PlanarMatches, self_calibrate_planar
+from lensdist_torch.calibration.matches import PlanarMatches
+from lensdist_torch.calibration.planar_features import self_calibrate_planar
 from lensdist_torch.calibration.planar_model import _adjugate, transfer_jacobians, transfer_residuals
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, distort_points, undistort_points
@@ -216,7 +217,7 @@ def test_bending_halfwidth_is_the_jackknife_of_what_no_affine_map_takes_away():
 
 
 def test_thinning_keeps_every_pair_evenly_and_the_answer():
-    from lensdist_torch.calibration.planar_features import thin_matches
+    from lensdist_torch.calibration.matches import thin_matches
 
     m = _plane_matches(4e-6, 2e-11)
     counts = torch.bincount(m.pair)

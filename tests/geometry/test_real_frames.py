@@ -97,8 +97,9 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     inverts, whose Delta_avg there is 25.79 px (95.6 %); 33.67 px over every pixel (the model's own).
     """
     pytest.importorskip("pycolmap")
+    from lensdist_torch.calibration.matches import read_verified_matches
     from lensdist_torch.calibration.multiview import extract_and_match
-    from lensdist_torch.calibration.planar_features import delta_avg_where, read_verified_matches, self_calibrate_planar
+    from lensdist_torch.calibration.planar_features import delta_avg_where, self_calibrate_planar
     from lensdist_torch.config import MultiViewConfig
     from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta, opencv_ideal_points
 

@@ -237,3 +237,44 @@ def test_no_import_circle():
 
 def test_circle_check_can_fail():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def _record_fields() -> dict[str, int]:
+    """The package's result records (NamedTuples and dataclasses) -> their number of fields."""
+    out = {}
+    for path in PKG.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef) and (
+                any(getattr(b, "id", None) == "NamedTuple" for b in node.bases)
+                or any("dataclass" in ast.unparse(d) for d in node.decorator_list)
+            ):
+                out[node.name] = sum(isinstance(s, ast.AnnAssign) for s in node.body)
+    return out
+
+
+def positional_records(path: Path, records: dict[str, int], root: Path = ROOT) -> list[str]:
+    """Calls in ``path`` that build one of ``records`` of more than two fields from two or more positional values.
+
+    ``Record(*fields)`` of one starred value (a record rebuilt field by field, as ``torch.cat``
+    over a batch's records) is allowed: its order is the record's own.
+    """
+    bad = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call):
+            f = node.func
+            name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+            if records.get(name, 0) > 2 and len(node.args) >= 2:
+                bad.append(f"{path.relative_to(root)}:{node.lineno} {name}")
+    return bad
+
+
+def test_no_record_is_built_by_position():
+    """Insert a field and every value after it would shift silently: records are built by keyword."""
+    records = _record_fields()
+    assert [b for path in sorted(PKG.rglob("*.py")) for b in positional_records(path, records)] == []
+
+
+def test_record_check_can_fail(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("R(1, 2, 3)\nR(*xs)\nR(a=1, b=2, c=3)\n")
+    assert positional_records(f, {"R": 3}, tmp_path) == ["m.py:1 R"]

@@ -259,4 +259,5 @@ def read_calibration(src: Path) -> Calibration:
     lens = _lens(data, size, src)
     if lens is not None and label is not None:
         _check_lens_class(label, lens, size, src)
-    return Calibration(k2, k4, size[0], size[1], reason, _focal(data, size, src), lens)
+    return Calibration(
+        k2=k2, k4=k4, height=size[0], width=size[1], reason=reason, focal=_focal(data, size, src), lens=lens)
