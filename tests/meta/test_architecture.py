@@ -27,7 +27,7 @@ LAYERS = [
     ("calibration.", 2),
     ("data.", 3),
     ("workflows.", 4),
-    ("cli", 5),
+    ("cli.", 5),
 ]
 MAX_LINES = 450
 

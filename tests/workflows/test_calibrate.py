@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
-from lensdist_torch.cli_calibrate import add_calibrate_commands
+from lensdist_torch.cli.calibrate import add_calibrate_commands
 from lensdist_torch.core.frames import list_frames, read_frames
 from lensdist_torch.core.images import load_image, to_grey
 from lensdist_torch.core.png import encode_png, to_uint8
@@ -284,7 +284,7 @@ def test_cuda_without_cuda_is_a_one_line_error(sequence, tmp_path, capsys, comma
 @pytest.mark.parametrize("bending,says", [(36.0, "straightens lines to +-36.00 px (95 %, RMS over the 81 % of the frame"),
                                           (None, None)])
 def test_the_homography_models_line_names_its_centre_and_how_straight_it_makes_lines(capsys, bending, says):
-    from lensdist_torch.cli_calibrate import _print_calibration
+    from lensdist_torch.cli.calibrate import _print_calibration
 
     planar = {"pairs": 39, "inliers": 1106, "matches": 4925, "terms": 3, "centre": [635.78, 508.89], "reprojection_px": 0.83,
               "delta_avg_user_px": 144.5, "class": "4", "reason": None, "bending_halfwidth_px": bending, "matched_fraction": 0.81}
@@ -298,7 +298,7 @@ def test_the_homography_models_line_names_its_centre_and_how_straight_it_makes_l
 
 
 def test_the_homography_models_line_says_what_guided_matching_did(capsys):
-    from lensdist_torch.cli_calibrate import _print_calibration
+    from lensdist_torch.cli.calibrate import _print_calibration
 
     first = {"pairs": 40, "delta_avg_user_px": 134.91}
     planar = {"pairs": 131, "inliers": 4995, "matches": 5921, "terms": 3, "centre": [639.0, 495.7], "reprojection_px": 0.9,
@@ -326,7 +326,7 @@ def test_the_homography_models_line_says_what_guided_matching_did(capsys):
 
 @pytest.mark.parametrize("standard_error,lines", [(12.38, 2), (0.05, 1)])
 def test_the_rational_export_is_named_where_the_standard_one_cannot_follow(capsys, standard_error, lines):
-    from lensdist_torch.cli_calibrate import _print_calibration
+    from lensdist_torch.cli.calibrate import _print_calibration
     from lensdist_torch.geometry.opencv_model import opencv_camera_from_map
     from lensdist_torch.geometry.radial_lens import lens_ideal_points
 

@@ -20,6 +20,7 @@ import lensdist_torch.workflows.analyze as analyze_mod
 import lensdist_torch.workflows.prepare as prepare_mod
 from lensdist_torch import cli
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
+from lensdist_torch.cli import commands
 from lensdist_torch.config import ClassifierConfig, LensdistConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.selfcal.fit import SelfCalInfo
@@ -123,7 +124,7 @@ def test_help_shows_defaults_example_json_debug(capsys, command):
 
 
 def test_cli_module_does_not_import_torch():
-    """`lensdist --help` must not pay for torch: cli.py imports it inside the commands only (the
+    """`lensdist --help` must not pay for torch: cli/commands.py imports it inside the commands only (the
     package's own __init__ is stubbed out here to measure the CLI module alone)."""
     code = (
         "import sys, types\n"
@@ -223,7 +224,7 @@ def test_keyboard_interrupt(capsys, monkeypatch):
     def interrupted(args):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_cmd_demo", interrupted)
+    monkeypatch.setattr(commands, "_cmd_demo", interrupted)
     rc, out, err = run(capsys, "demo")
     assert rc == 130 and err == "lensdist demo: interrupted\n" and out == ""
 
@@ -242,7 +243,7 @@ def test_every_exception_is_one_line(capsys, monkeypatch, exc, code, match):
     def fail(args):
         raise exc
 
-    monkeypatch.setattr(cli, "_cmd_demo", fail)
+    monkeypatch.setattr(commands, "_cmd_demo", fail)
     one_error(capsys, "demo", match=match, code=code)
     rc, _, err = run(capsys, "--debug", "demo")
     assert rc == code and "Traceback" in err and err.rstrip().splitlines()[-1].startswith("lensdist demo: error:")
@@ -368,7 +369,7 @@ def test_generate_reports_reused_shards(capsys, tmp_path):
     assert first["written"] == 2 and err == ""
     rc, out, _ = run(capsys, *argv, "--quiet")
     assert rc == 0 and "0 shards written" in out and "2 reused" in out
-    assert cli._shards(first) == (2, 0)
+    assert commands._shards(first) == (2, 0)
 
 
 def test_json_only_on_stdout(capsys, tmp_path):

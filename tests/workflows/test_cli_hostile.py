@@ -15,7 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from lensdist_torch import cli, cli_support
+from lensdist_torch import cli
+from lensdist_torch.cli import support as cli_support
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.workflows.demo import MAX_SCALE_ERROR, scale_error_demo
 

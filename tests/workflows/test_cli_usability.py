@@ -9,7 +9,7 @@ import re
 import pytest
 
 from lensdist_torch import cli
-from lensdist_torch.cli_analyze import print_analysis
+from lensdist_torch.cli.analyze import print_analysis
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.workflows.decision import decide
 

@@ -8,7 +8,7 @@ it is read (a long video stays small), and runs
 dict (None for unknown numbers, never NaN) with the coefficients of eq. 4 in the frames' own
 pixels, Delta_avg and Delta_max with their 95 % intervals, the class, and OpenCV's camera
 matrix and distortion coefficients (:mod:`~lensdist_torch.geometry.opencv_model`).
-Undistorting the frames: :mod:`lensdist_torch.workflows.undistort`. ``lensdist_torch.cli_calibrate``
+Undistorting the frames: :mod:`lensdist_torch.workflows.undistort`. ``lensdist_torch.cli.calibrate``
 registers ``lensdist calibrate`` and ``lensdist undistort``. ``synthetic_sequence`` renders the
 test sequences of a panning camera.
 """

@@ -1,6 +1,6 @@
 """The ``lensdist analyze`` command, a user's pair: its parser, running it and its text answer.
 
-Like ``cli.py`` it imports torch only inside the command. The text answer gives one reason per
+Like ``commands.py`` it imports torch only inside the command. The text answer gives one reason per
 "cannot tell" (a failed registration is not also "too little motion or texture"), names barrel
 or pincushion on the class line, and says there when the estimate lies beyond the classes'
 range.
@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import argparse
 
-from lensdist_torch import cli_support as argtypes
-from lensdist_torch.cli_support import fmt as _fmt
-from lensdist_torch.cli_support import note as _note
-from lensdist_torch.cli_support import print_json as _print_json
+from lensdist_torch.cli import support as argtypes
+from lensdist_torch.cli.support import fmt as _fmt
+from lensdist_torch.cli.support import note as _note
+from lensdist_torch.cli.support import print_json as _print_json
 from lensdist_torch.core.outputs import check_output_file
 
 __all__ = ["add_analyze_command", "print_analysis"]

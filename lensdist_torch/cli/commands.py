@@ -5,10 +5,10 @@ figure is null). Progress bars and notes go to stderr. Every failure is one line
 ``lensdist CMD: error: ...`` on stderr with exit status 2 (1 for an internal error, 130 after
 Ctrl-C); the global ``--debug`` adds the traceback. A result that cannot be written to stdout
 (closed, disk full) is such an error too; a broken pipe (``| head``) ends quietly with status 1.
-Argument types, the parser class and the output helpers live in ``cli_support.py``. The commands
+Argument types, the parser class and the output helpers live in ``support.py``. The commands
 go by concept: the protocol's (demo, generate, train, evaluate, reproduce) here, a user's pair
-(``analyze``) in ``cli_analyze.py``, a user's camera (``calibrate``, ``undistort``) in
-``cli_calibrate.py``, each module with its parsers; output paths are checked (and
+(``analyze``) in ``cli/analyze.py``, a user's camera (``calibrate``, ``undistort``) in
+``cli/calibrate.py``, each module with its parsers; output paths are checked (and
 refused where they name an input) by ``core/outputs.py``. torch is imported inside the commands
 only, so ``lensdist --help`` stays fast.
 """
@@ -21,11 +21,11 @@ import sys
 import traceback
 from pathlib import Path
 
-from lensdist_torch import cli_support as argtypes
-from lensdist_torch.cli_analyze import add_analyze_command
-from lensdist_torch.cli_support import StdoutError, guarded_stdout, silence_stdout
-from lensdist_torch.cli_support import note as _note
-from lensdist_torch.cli_support import print_json as _print_json
+from lensdist_torch.cli import support as argtypes
+from lensdist_torch.cli.analyze import add_analyze_command
+from lensdist_torch.cli.support import StdoutError, guarded_stdout, silence_stdout
+from lensdist_torch.cli.support import note as _note
+from lensdist_torch.cli.support import print_json as _print_json
 from lensdist_torch.config.checks import one_line
 from lensdist_torch.core.outputs import check_output_dir, check_output_file, refuse_inputs, refuse_inside
 
@@ -209,7 +209,7 @@ def _scale_error(text: str) -> float:
 def build_parser() -> argparse.ArgumentParser:
     """The ``lensdist`` parser: one subcommand per workflow."""
     from lensdist_torch import __version__
-    from lensdist_torch.cli_calibrate import add_calibrate_commands
+    from lensdist_torch.cli.calibrate import add_calibrate_commands
 
     parser = argtypes.Parser(
         prog="lensdist",
@@ -346,6 +346,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{prog}: error: internal error: {type(exc).__name__}: {_one_line(exc)}{hint}", file=sys.stderr)
         return 1
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,6 +1,6 @@
 """The ``lensdist calibrate`` and ``lensdist undistort`` commands, a user's camera (parsers and printing).
 
-Like ``cli.py`` it imports torch only inside the commands, so ``lensdist --help`` stays fast.
+Like ``commands.py`` it imports torch only inside the commands, so ``lensdist --help`` stays fast.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import argparse
 import json
 from pathlib import Path
 
-from lensdist_torch import cli_support as argtypes
+from lensdist_torch.cli import support as argtypes
 
 __all__ = ["add_calibrate_commands"]
 
