@@ -38,6 +38,12 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    |p - ideal(p)| of the converged inverse over the pixels where the model inverts
    (:func:`~lensdist_torch.geometry.opencv_model.opencv_delta`); eq. 4's (k2, k4) are fitted to
    that map by least squares and ``eq4_fit_error_px`` says how well eq. 4 can follow the lens.
+
+References:
+    J. L. Schönberger, J.-M. Frahm, "Structure-from-Motion Revisited", CVPR 2016 (COLMAP: features,
+    matching, incremental mapping, bundle adjustment).
+    B. Triggs, P. McLauchlan, R. Hartley, A. Fitzgibbon, "Bundle adjustment: a modern synthesis",
+    Vision Algorithms: Theory and Practice, 2000.
 """
 
 from __future__ import annotations

@@ -11,6 +11,11 @@ winning class, by distance between eigen-space coefficients y = U_c (x - mu_c), 
 1 / (d + 1e-6). A pair classed R still gets the Delta of its nearest class (its best guess).
 
 Everything fitted is a buffer, so ``state_dict`` carries it and ``.to("cuda")`` moves it.
+
+References:
+    B. Möller, S. Posch, "Automatic Analysis of Lens Distortions in Image Registration", Institute
+    of Computer Science, Martin Luther University Halle-Wittenberg (venue and year not in the text
+    the project worked from; docs/method.md): the per-class eigen-spaces, section 4.2.
 """
 
 from __future__ import annotations

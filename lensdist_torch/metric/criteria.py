@@ -5,6 +5,13 @@ Sobel gradients, the orientation agreement A, the edge preservation E, the gradi
 and the dilated risk map R, then the registration and visual error images. Block pooling is in
 :mod:`lensdist_torch.metric.pooling`; the fast hard kernels in ``_hard``. See
 :mod:`lensdist_torch.metric.quality` for the formulas and the reasoning.
+
+References:
+    B. Möller, S. Posch, "Automatic Analysis of Lens Distortions in Image Registration", Institute
+    of Computer Science, Martin Luther University Halle-Wittenberg (venue and year not in the text
+    the project worked from; docs/method.md): eq. 1-3.
+    C. S. Xydeas, V. Petrović, "Objective image fusion performance measure", Electronics Letters
+    36(4), 308-309, 2000 (the orientation agreement).
 """
 
 from __future__ import annotations

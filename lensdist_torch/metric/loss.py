@@ -25,6 +25,11 @@ frame.
 Reductions. ``"per_sample"`` gives (B,): each sample's own masked mean (what piq's losses call
 ``reduction="none"``), for weighting samples or logging them. ``"none"`` keeps the meaning it has
 in ``torch.nn`` and kornia's losses: nothing reduced, the (B, 1, h, w) map of blocks.
+
+References:
+    B. Möller, S. Posch, "Automatic Analysis of Lens Distortions in Image Registration", Institute
+    of Computer Science, Martin Luther University Halle-Wittenberg (venue and year not in the text
+    the project worked from; docs/method.md): the metric this smooths, section 3.
 """
 
 from __future__ import annotations

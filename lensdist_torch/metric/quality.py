@@ -33,6 +33,13 @@ images, no edge to compare) has no quality index: ``registration_quality`` raise
 A vanishing gradient has no orientation: against a non-vanishing one it agrees with nothing
 (A = 0); two vanishing gradients agree (A = 1, and they lie in the risk map anyway).
 The loss lives in :mod:`lensdist_torch.metric.loss` and is re-exported here.
+
+References:
+    B. Möller, S. Posch, "Automatic Analysis of Lens Distortions in Image Registration", Institute
+    of Computer Science, Martin Luther University Halle-Wittenberg (venue and year not in the text
+    the project worked from; docs/method.md): the metric, section 3.
+    C. S. Xydeas, V. Petrović, "Objective image fusion performance measure", Electronics Letters
+    36(4), 308-309, 2000 (the orientation agreement).
 """
 
 from __future__ import annotations

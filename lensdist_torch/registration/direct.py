@@ -30,6 +30,12 @@ Gauss-Newton Hessian at full resolution is below ``min_texture`` (constant or on
 texture), an update is non-finite or moves a corner by more than ``max_step`` of the diagonal, the
 overlap is below ``min_overlap``, the full-resolution residual grew or exceeds ``max_residual`` of
 that of two unrelated images of img1's contrast, or the last update was not below ``step_tol``.
+
+References:
+    S. Baker, I. Matthews, "Lucas-Kanade 20 years on: a unifying framework", IJCV 56(3), 2004
+    (the inverse-compositional algorithm).
+    C. D. Kuglin, D. C. Hines, "The phase correlation image alignment method", IEEE Conference on
+    Cybernetics and Society, 1975 (the start).
 """
 
 from __future__ import annotations

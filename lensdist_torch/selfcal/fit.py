@@ -54,6 +54,14 @@ Divergence. A pair whose fit goes non-finite, leaves the plausible range (|a|, |
 ``converged`` False and k2 = k4 = NaN, H = NaN: flagged, never returned as a number.
 
 Device: the images' (CUDA included); the model in float32, the normal equations in float64.
+
+References:
+    B. Möller, S. Posch, "Automatic Analysis of Lens Distortions in Image Registration", Institute
+    of Computer Science, Martin Luther University Halle-Wittenberg (venue and year not in the text
+    the project worked from; docs/method.md): eq. 4, the distortion model fitted here.
+    S. Baker, I. Matthews, "Lucas-Kanade 20 years on: a unifying framework", IJCV 56(3), 2004
+    (image alignment by Gauss-Newton on the photometric residual).
+    P. J. Huber, "Robust Statistics", Wiley, 1981 (the M-estimator weights).
 """
 
 from __future__ import annotations
