@@ -45,7 +45,7 @@ def stages(pairs: int, batch: int, threads: int) -> dict:
         t3 = time.perf_counter()
         w, v = warp_to_reference(i2, H)
         t4 = time.perf_counter()
-        registration_error_counts(i1, w, v, cfg.quality, validate=False)
+        registration_error_counts(i1, w, v, config=cfg.quality, validate=False)
         t5 = time.perf_counter()
         for k, a, b in (("draw", t0, t1), ("render", t1, t2), ("registration", t2, t3), ("warp", t3, t4), ("metric", t4, t5)):
             t[k] += b - a

@@ -420,7 +420,7 @@ def make_pairs(
         size = (config.image.height, config.image.width)
         H[sel] = perturb_homography(H[sel], gens, config.protocol.perturbation, size=size).double()
     warped, valid = warp_to_reference(img2, H.float())
-    counts = registration_error_counts(img1, warped, valid, config.quality, validate=False)
+    counts = registration_error_counts(img1, warped, valid, config=config.quality, validate=False)
     h, w = config.image.height, config.image.width
     delta, classes = {}, {}
     for metric in METRICS:

@@ -176,6 +176,7 @@ def _dilate3(x: torch.Tensor) -> torch.Tensor:
 def local_criteria(
     img1: torch.Tensor,
     img2: torch.Tensor,
+    *,
     config: QualityConfig | None = None,
     smooth: bool = False,
     data_range: float = 1.0,

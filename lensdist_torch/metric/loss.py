@@ -75,6 +75,7 @@ def registration_quality_loss(
     img1: torch.Tensor,
     img2: torch.Tensor,
     valid: torch.Tensor | None = None,
+    *,
     config: QualityConfig | None = None,
     reduction: str = "masked_mean",
     data_range: float = 1.0,
@@ -184,7 +185,8 @@ class RegistrationQualityLoss(nn.Module):
     def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
         """See :func:`registration_quality_loss`."""
         return registration_quality_loss(
-            img1, img2, valid, self.config, self.reduction, self.data_range, self.validate, self.pad
+            img1, img2, valid, config=self.config, reduction=self.reduction, data_range=self.data_range,
+            validate=self.validate, pad=self.pad
         )
 
     def extra_repr(self) -> str:

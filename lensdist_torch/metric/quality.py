@@ -145,6 +145,7 @@ def registration_error_counts(
     img1: torch.Tensor,
     img2: torch.Tensor,
     valid: torch.Tensor | None = None,
+    *,
     config: QualityConfig | None = None,
     data_range: float = 1.0,
     validate: bool = True,
@@ -183,6 +184,7 @@ def quality_map(
     img1: torch.Tensor,
     img2: torch.Tensor,
     valid: torch.Tensor | None = None,
+    *,
     config: QualityConfig | None = None,
     data_range: float = 1.0,
     validate: bool = True,
@@ -246,6 +248,7 @@ def registration_quality(
     img1: torch.Tensor,
     img2: torch.Tensor,
     valid: torch.Tensor | None = None,
+    *,
     config: QualityConfig | None = None,
     smooth: bool = False,
     return_pixels: bool = False,
@@ -356,7 +359,8 @@ class RegistrationQuality(nn.Module):
     def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> QualityResult:
         """See :func:`registration_quality`."""
         return registration_quality(
-            img1, img2, valid, self.config, self.smooth, self.return_pixels, self.data_range, self.validate, self.pad
+            img1, img2, valid, config=self.config, smooth=self.smooth, return_pixels=self.return_pixels,
+            data_range=self.data_range, validate=self.validate, pad=self.pad
         )
 
     def extra_repr(self) -> str:

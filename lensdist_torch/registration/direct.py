@@ -6,9 +6,8 @@ integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with the motion 
 
 :func:`estimate_homography`, batched over pairs (no Python loop over pairs):
 
-1. Grey images, img2's mapped affinely to img1's mean and standard deviation
-   (``match_intensity``: an exposure change is not misregistration), both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px: it cuts the corner
-   error of rendered pairs about 2.5 x), and a pyramid of 2 x 2 means.
+1. Grey images, img2's mapped affinely to img1's mean and std (``match_intensity``: an exposure change is
+   not misregistration), both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px), a pyramid of 2 x 2 means.
 2. Initial translation by phase correlation (Hann window, sub-pixel parabola) at 1/8, unless
    ``init`` is given.
 3. Inverse-compositional Gauss-Newton (Baker-Matthews) on the 8 homography parameters at 1/4, then
@@ -32,10 +31,8 @@ overlap is below ``min_overlap``, the full-resolution residual grew or exceeds `
 that of two unrelated images of img1's contrast, or the last update was not below ``step_tol``.
 
 References:
-    S. Baker, I. Matthews, "Lucas-Kanade 20 years on: a unifying framework", IJCV 56(3), 2004
-    (the inverse-compositional algorithm).
-    C. D. Kuglin, D. C. Hines, "The phase correlation image alignment method", IEEE Conference on
-    Cybernetics and Society, 1975 (the start).
+    S. Baker, I. Matthews, "Lucas-Kanade 20 years on: a unifying framework", IJCV 56(3), 2004.
+    C. D. Kuglin, D. C. Hines, "The phase correlation image alignment method", IEEE Cybernetics and Society, 1975.
 """
 
 from __future__ import annotations

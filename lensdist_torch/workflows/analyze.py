@@ -213,6 +213,7 @@ def _models_and_config(method, checkpoint, checkpoint_max, config):
 def analyze_batch(
     img1,
     img2,
+    *,
     method: str = "selfcal",
     config: LensdistConfig | None = None,
     checkpoint=None,
@@ -314,7 +315,7 @@ def analyze_batch(
     return (out, p.qmap) if return_maps else out
 
 
-def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str = "selfcal",
+def analyze_pair(img1, img2, *, checkpoint=None, checkpoint_max=None, method: str = "selfcal",
                  config: LensdistConfig | None = None, return_map: bool = False, device=None, homography=None):
     """Analyse one overlapping pair: :func:`analyze_batch` of a batch of one.
 
@@ -353,5 +354,6 @@ def analyze_pair(img1, img2, checkpoint=None, checkpoint_max=None, method: str =
         if hom.shape not in ((3, 3), (1, 3, 3)):
             raise ValueError(f"homography must have shape (3, 3) or (1, 3, 3), got {tuple(hom.shape)}")
         hom = check_homography(hom.reshape(1, 3, 3), "homography")
-    out, qmap = analyze_batch(img1, img2, method, config, checkpoint, checkpoint_max, device, hom, return_maps=True)
+    out, qmap = analyze_batch(img1, img2, method=method, config=config, checkpoint=checkpoint,
+                              checkpoint_max=checkpoint_max, device=device, homography=hom, return_maps=True)
     return (out[0], qmap) if return_map else out[0]

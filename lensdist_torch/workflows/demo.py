@@ -51,7 +51,7 @@ def scale_error_demo(config: LensdistConfig, scene: str = "gravel", scale_error:
     err = torch.tensor([[[s, 0.0, (1 - s) * cx], [0.0, s, (1 - s) * cy], [0.0, 0.0, 1.0]]])
     img2 = warp_perspective(img1, err, (h, w), align_corners=True)
     valid = warp_perspective(torch.ones_like(img1), err, (h, w), align_corners=True) > 0.999
-    res = registration_quality(img1, img2, valid.float(), config.quality)
+    res = registration_quality(img1, img2, valid.float(), config=config.quality)
     qmap = res.registration_map
     hb, wb = qmap.shape[-2:]
     yy, xx = torch.meshgrid(torch.arange(hb), torch.arange(wb), indexing="ij")

@@ -194,7 +194,7 @@ def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=N
         ok, residual = torch.isfinite(H).all(dim=(1, 2)).cpu(), torch.full((n,), float("nan"))
     finite = torch.isfinite(H).all(dim=(1, 2))[:, None, None]  # a missing registration warps by the identity
     warped, valid = warp_to_reference(b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)), validate=False)
-    qmap = counts_to_map(registration_error_counts(a, warped, valid, cfg.quality, validate=False), cfg.quality)
+    qmap = counts_to_map(registration_error_counts(a, warped, valid, config=cfg.quality, validate=False), cfg.quality)
     overlap = valid.flatten(1).float().mean(1).cpu()
     motion = mean_displacement(H, h, w).cpu()
     return PreparedPairs(

@@ -220,6 +220,7 @@ def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: b
 def undistort_path(
     path: str | Path,
     out_dir: str | Path,
+    *,
     k2: float | None = None,
     k4: float | None = None,
     from_json: str | Path | None = None,

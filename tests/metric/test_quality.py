@@ -207,7 +207,7 @@ class TestHandWorked:
         assert registration_error_counts(img1, img2, config=at).flatten().tolist() == [16, 16, 24, 24]
         want = torch.tensor([[[[16 / 64, 16 / 64], [24 / 64, 24 / 64]]]], dtype=dtype)
         assert torch.equal(quality_map(img1, img2, config=at), want)
-        e_reg = error_images(local_criteria(img1, img2, at), config=at).e_reg
+        e_reg = error_images(local_criteria(img1, img2, config=at), config=at).e_reg
         cols = torch.ones(16, dtype=dtype)
         assert torch.equal(e_reg[0, 0], indicator(range(6, 11), dtype=dtype)[:, None] * cols[None, :])
         assert torch.equal(registration_quality(img1, img2, config=at, return_pixels=True).registration_map, want)

@@ -36,7 +36,7 @@ def _rand(shape, seed, dtype=F64):
 
 
 def _loss_sum(cfg=None, valid=None):
-    return lambda a, b: registration_quality_loss(a, b, valid, cfg, reduction="sum")
+    return lambda a, b: registration_quality_loss(a, b, valid, config=cfg, reduction="sum")
 
 
 def _check(img1, img2, fn=None, fast=False):

@@ -41,14 +41,14 @@ class TestModules:
         for smooth in (False, True):
             for pixels in (False, True):
                 mod = RegistrationQuality(cfg, smooth=smooth, return_pixels=pixels)(img1, img2, valid)
-                fun = registration_quality(img1, img2, valid, cfg, smooth=smooth, return_pixels=pixels)
+                fun = registration_quality(img1, img2, valid, config=cfg, smooth=smooth, return_pixels=pixels)
                 assert torch.equal(mod.registration_map, fun.registration_map)
                 assert torch.equal(mod.visual_map, fun.visual_map)
                 assert torch.equal(mod.quality_index, fun.quality_index)
                 assert (mod.criteria is None) == (not pixels)
         for reduction in ("mean", "sum", "none"):
             mod = RegistrationQualityLoss(cfg, reduction=reduction)(img1, img2, valid)
-            fun = registration_quality_loss(img1, img2, valid, cfg, reduction=reduction)
+            fun = registration_quality_loss(img1, img2, valid, config=cfg, reduction=reduction)
             assert torch.equal(mod, fun)
         assert torch.equal(RegistrationQualityLoss()(img1, img2), registration_quality_loss(img1, img2))
 

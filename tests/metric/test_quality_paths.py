@@ -104,7 +104,7 @@ class TestBlockFloor:
         want = torch.tensor([[[[0.1, 0.0], [0.0, 0.0]]]], dtype=dtype)
         assert torch.equal(quality_map(img1, img2, valid, config=cfg), want)
         for pixels in (False, True):
-            res = registration_quality(img1, img2, valid, cfg, return_pixels=pixels)
+            res = registration_quality(img1, img2, valid, config=cfg, return_pixels=pixels)
             assert torch.equal(res.registration_map, want)
 
     def test_default_floor_between_6_and_7_pixels(self):
@@ -174,18 +174,18 @@ def rotated_with_mask(img: torch.Tensor, degrees: float):
 
 class TestFastPath:
     def _check(self, img1, img2, valid=None, cfg=CFG):
-        fast = quality_map(img1, img2, valid, cfg)
+        fast = quality_map(img1, img2, valid, config=cfg)
         reg, vis, errs = hard_from_pieces(img1, img2, valid, cfg)
         assert torch.equal(fast, reg)
-        res = registration_quality(img1, img2, valid, cfg)
+        res = registration_quality(img1, img2, valid, config=cfg)
         assert torch.equal(res.registration_map, fast)
         assert torch.equal(res.visual_map, vis)
         torch.testing.assert_close(res.quality_index, 1 - fast.mean(dim=(1, 2, 3)))
-        full = registration_quality(img1, img2, valid, cfg, return_pixels=True)
+        full = registration_quality(img1, img2, valid, config=cfg, return_pixels=True)
         assert torch.equal(full.registration_map, fast)
         assert torch.equal(full.visual_map, vis)
         assert torch.equal(full.errors.e_reg, errs.e_reg)
-        counts = registration_error_counts(img1, img2, valid, cfg)
+        counts = registration_error_counts(img1, img2, valid, config=cfg)
         assert torch.equal(counts, block_counts(errs.e_reg, cfg.block_size).to(torch.uint8))
         return fast
 
@@ -245,7 +245,7 @@ class TestFastPath:
         ref = spec_reference(img1, img2, None, cfg)
         assert torch.equal(m, ref["reg"])
         if cfg.theta_e == 0.98:  # E <= 0.976 < theta_E: e_reg = 1 - R
-            want = blocks(1 - local_criteria(img1, img2, cfg).r, 8) / 64
+            want = blocks(1 - local_criteria(img1, img2, config=cfg).r, 8) / 64
             assert torch.equal(m, torch.where(want < 0.1, 0.0, want))
         if cfg.theta_e == 1e-9:
             assert bool((m == 0).all())
@@ -283,7 +283,7 @@ class TestSmoothConvergence:
     def test_smooth_criteria_converge(self):
         img1, img2 = textured_pair(1, 32, 32, seed=14)
         hard = local_criteria(img1, img2)
-        smooth = local_criteria(img1, img2, CFG.with_temperature_scale(1e-6), smooth=True)
+        smooth = local_criteria(img1, img2, config=CFG.with_temperature_scale(1e-6), smooth=True)
         torch.testing.assert_close(smooth.a, hard.a, atol=1e-12, rtol=0)
         torch.testing.assert_close(smooth.e, hard.e, atol=1e-12, rtol=0)
         assert float((smooth.r - hard.r).abs().max()) < 1e-3
@@ -318,9 +318,9 @@ class TestConsistency:
         )
         for chunk in (1, 2, 3, 5, 8):
             cfg = QualityConfig(chunk_size=chunk)
-            assert torch.equal(quality_map(img1, img2, valid, cfg), alone)
-            assert torch.equal(registration_quality(img1, img2, valid, cfg).visual_map, alone_vis)
-            assert torch.equal(registration_error_counts(img1, img2, valid, cfg), alone_counts)
+            assert torch.equal(quality_map(img1, img2, valid, config=cfg), alone)
+            assert torch.equal(registration_quality(img1, img2, valid, config=cfg).visual_map, alone_vis)
+            assert torch.equal(registration_error_counts(img1, img2, valid, config=cfg), alone_counts)
         smooth_alone = torch.cat(
             [
                 registration_quality_loss(img1[i : i + 1], img2[i : i + 1], valid[i : i + 1], reduction="none")

@@ -117,7 +117,7 @@ class TestRegistrationQualityMetric:
         cfg = QualityConfig(theta_g=0.05)
         res = feed(RegistrationQualityMetric(cfg, validate=False), img1, img2, valid, [3])
         torch.testing.assert_close(
-            res.registration_map, quality_map(img1, img2, valid, cfg).double().mean(0), atol=1e-7, rtol=0
+            res.registration_map, quality_map(img1, img2, valid, config=cfg).double().mean(0), atol=1e-7, rtol=0
         )
 
     @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")

@@ -67,6 +67,7 @@ def _opencv(k2: float, k4: float, size: tuple[int, int], focal: float | None, mo
 
 def calibrate_path(
     path: str | Path,
+    *,
     config: CalibrationConfig | None = None,
     settings: LensdistConfig | None = None,
     max_frames: int | None = 300,
@@ -178,7 +179,8 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
         n = len(frames)
         pairs = torch.stack([torch.arange(n - n // 2), torch.arange(n // 2, n)], 1)
     s = res["scale"]  # user px per analysis px; the answer's own lens where eq. 4 only approximates it
-    check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, st, cfg.verify_pairs,
+    check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, settings=st,
+                                max_pairs=cfg.verify_pairs,
                                 lens=scale_lens(answer_lens(res), 1 / s))
     before, after = check["error_share_before"], check["error_share_after"]
     check["verdict"] = verdict(check)
@@ -197,6 +199,7 @@ def synthetic_sequence(
     n_frames: int = 20,
     k2: float = 0.0,
     k4: float = 0.0,
+    *,
     size: tuple[int, int] = (320, 424),
     scene: str = "gravel",
     step_px: tuple[float, float] = (5.0, 10.0),

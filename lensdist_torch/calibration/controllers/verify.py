@@ -76,7 +76,7 @@ def error_blocks(img1: torch.Tensor, img2: torch.Tensor, mask1: torch.Tensor, ma
     warped, inside = warp_to_reference(img2, H)
     content, _ = warp_to_reference(mask2.to(img2.dtype), H)
     valid = (inside > 0) & (content > 0.999) & (mask1 > 0)
-    qmap = counts_to_map(registration_error_counts(img1, warped, valid, settings.quality), settings.quality)
+    qmap = counts_to_map(registration_error_counts(img1, warped, valid, config=settings.quality), settings.quality)
     b = settings.quality.block_size
     v = valid.float()
     v = F.pad(v, (0, qmap.shape[-1] * b - v.shape[-1], 0, qmap.shape[-2] * b - v.shape[-2]))  # the map's padded blocks
@@ -85,6 +85,7 @@ def error_blocks(img1: torch.Tensor, img2: torch.Tensor, mask1: torch.Tensor, ma
 
 
 def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4: float,
+                        *,
                         settings: LensdistConfig | None = None, max_pairs: int = 6, lens: dict | None = None) -> dict:
     """Registration-error blocks of up to ``max_pairs`` pairs before and after undistorting with (k2, k4), or ``lens``.
 
