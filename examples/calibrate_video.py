@@ -16,12 +16,11 @@ answer.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from lensdist_torch import delta_avg, synthetic_sequence
 from lensdist_torch.calibration import calibrate_path
-from lensdist_torch.core import atomic_write_text
+from lensdist_torch.calibration.controllers.answer_file import write_answer
 from lensdist_torch.core.png import encode_png, to_uint8
 from lensdist_torch.workflows.undistort import undistort_path
 
@@ -51,8 +50,7 @@ def main(argv: list[str] | None = None) -> dict:
     path, truth = (out / "frames", render_demo(out / "frames")) if args.demo else (Path(args.path), None)
 
     answer = calibrate_path(path, method=args.method)          # the dict `lensdist calibrate --json` prints
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "calibration.json", json.dumps(answer, allow_nan=False, indent=1) + "\n")
+    saved = write_answer(answer, out)                            # what `lensdist calibrate --out OUT` writes
     interval = ", ".join("no bound" if v is None else f"{v:.2f}" for v in answer["delta_avg_user_interval"] or (None, None))
     value = answer["delta_avg_user_px"]
     print(f"Delta_avg {'unknown' if value is None else f'{value:.2f}'} px [{interval}] (95 %), class {answer['class']}, "
@@ -60,7 +58,7 @@ def main(argv: list[str] | None = None) -> dict:
     if answer["class"] is None:
         print(f"cannot tell: {answer['reason']}")
         return answer
-    done = undistort_path(path, out / "undistorted", from_json=out / "calibration.json", overwrite=True)
+    done = undistort_path(path, out / "undistorted", from_json=saved, overwrite=True)
     print(f"{done['frames']} frames undistorted into {out / 'undistorted'} (masks in masks/)")
     return answer
 

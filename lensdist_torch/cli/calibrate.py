@@ -118,15 +118,12 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     res = calibrate_path(args.path, config=None if settings is None else settings.calibration, settings=settings,
                          max_frames=args.max_frames, focal=args.focal, quiet=args.quiet,
                          device=resolve_device(args.device), method=args.method)
-    text = json.dumps(res, indent=2, allow_nan=False)
-    if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        from lensdist_torch.core.storage import atomic_write_text
+    from lensdist_torch.calibration.controllers.answer_file import answer_text, write_answer
 
-        atomic_write_text(out / "calibration.json", text + "\n")
+    if args.out:
+        write_answer(res, args.out)
     if args.json:
-        print(text)
+        print(answer_text(res))
     else:
         _print_calibration(res)
         if args.out:

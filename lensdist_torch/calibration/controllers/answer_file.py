@@ -1,4 +1,7 @@
-"""What ``lensdist undistort --from FILE`` reads from a saved answer, every field checked.
+"""A calibration's answer file: how ``lensdist calibrate`` writes it, what ``undistort --from`` reads back.
+
+:func:`answer_text` is the answer as JSON (what ``--json`` prints) and :func:`write_answer` writes
+it as ``calibration.json``, atomically; :func:`read_calibration` reads and checks it.
 
 FILE is the JSON of ``lensdist calibrate`` (``--out``'s calibration.json, or ``--json``) or of
 ``lensdist analyze --json`` (the self-calibration's answer). Undistorting needs eq. 4's
@@ -46,10 +49,40 @@ from typing import Any, NamedTuple
 from lensdist_torch.calibration.controllers.answer_lens import answer_lens, lens_ideal
 from lensdist_torch.calibration.controllers.verify import COUNTS, VERDICTS, verdict
 from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
+from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step
 
-__all__ = ["Calibration", "MAX_LENS_TERMS", "read_calibration"]
+__all__ = ["ANSWER_FILE", "Calibration", "MAX_LENS_TERMS", "answer_text", "read_calibration", "write_answer"]
+
+#: the file name of a calibration's answer in ``lensdist calibrate --out DIR``
+ANSWER_FILE = "calibration.json"
+
+
+def answer_text(answer: dict) -> str:
+    r"""The answer of :func:`~lensdist_torch.calibration.controllers.calibrate.calibrate_path` as strict JSON.
+
+    Example:
+        >>> answer_text({"class": None, "delta_avg_user_px": 1.5})
+        '{\n  "class": null,\n  "delta_avg_user_px": 1.5\n}'
+    """
+    return json.dumps(answer, indent=2, allow_nan=False)
+
+
+def write_answer(answer: dict, folder: str | Path) -> Path:
+    r"""Write ``answer`` as ``folder/calibration.json`` (the folder made where missing), atomically; its path.
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     write_answer({"class": "2"}, Path(tmp) / "calib").read_text()
+        '{\n  "class": "2"\n}\n'
+    """
+    path = Path(folder) / ANSWER_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, answer_text(answer) + "\n")
+    return path
+
 
 _WHAT = "a calibration written by lensdist calibrate or lensdist analyze --json"
 
