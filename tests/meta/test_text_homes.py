@@ -51,3 +51,25 @@ def test_the_check_can_fail(tmp_path, text):
     f = tmp_path / "m.py"
     f.write_text(text)
     assert len(stale_text(f, tmp_path)) == 1
+
+
+#: a Markdown link that climbs out of its file's folder or starts at the root: users of a copied
+#: folder (a wheel's docs, a checkout's subfolder) would meet a dead link
+CLIMBING = re.compile(r"\]\((\.\./|/)")
+
+
+def climbing_links(path: Path, root: Path = ROOT) -> list[str]:
+    """``path:line`` of each Markdown link in ``path`` that climbs out of its folder."""
+    return [f"{path.relative_to(root)}:{i + 1}" for i, line in enumerate(path.read_text().splitlines()) if CLIMBING.search(line)]
+
+
+def test_no_markdown_link_climbs_out_of_its_folder():
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")), *sorted((ROOT / "train").rglob("*.md")),
+             *sorted((ROOT / "checkpoints").rglob("*.md"))]
+    assert [bad for f in files for bad in climbing_links(f)] == []
+
+
+def test_climbing_link_check_can_fail(tmp_path):
+    f = tmp_path / "a.md"
+    f.write_text("[ok](b.md)\n[up](../b.md)\n[root](/x)\n`../b.md` as text\n")
+    assert climbing_links(f, tmp_path) == ["a.md:2", "a.md:3"]
