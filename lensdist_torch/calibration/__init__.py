@@ -3,6 +3,7 @@
 Estimators (layer 2: tensors and COLMAP reconstructions in, typed records out; they never
 print or read files):
 
+* :mod:`~lensdist_torch.calibration.lens_answer`: the lens answer every path gives; each path's record derives from it.
 * :mod:`~lensdist_torch.calibration.direct`: the direct photometric path, the pairs' self-calibrations pooled.
 * :mod:`~lensdist_torch.calibration.direct_fits`: its pairs fitted one by one, the failures refitted from their registration.
 * :mod:`~lensdist_torch.calibration.pooling`: how its pairs pool: which count (the good-and-bad mixture), mean, interval.
@@ -33,6 +34,7 @@ from lensdist_torch._lazy import lazy_exports
 
 #: The public names of the package: module -> the names taken from it.
 _EXPORTS: dict[str, tuple[str, ...]] = {
+    "lensdist_torch.calibration.lens_answer": ("LensAnswer",),
     "lensdist_torch.calibration.direct": ("SequenceCalibration", "calibrate_sequence"),
     "lensdist_torch.calibration.pooling": ("GoodBadFit", "good_and_bad"),
     "lensdist_torch.calibration.matches": ("PlanarMatches",),

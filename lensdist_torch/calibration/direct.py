@@ -43,12 +43,14 @@ Why this combination: docs/method.md, section 10.
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple
+from dataclasses import dataclass
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
 
 from lensdist_torch.calibration.direct_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
+from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.pooling import pair_weights, pool_pairs, within_mads
 from lensdist_torch.calibration.sequence_class import class_or_open
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
@@ -62,20 +64,33 @@ __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analys
            "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION"]
 
 
-class SequenceCalibration(NamedTuple):
-    """The result of :func:`calibrate_sequence`, in the frames' own pixels; NaN where unknown.
+@dataclass(frozen=True, kw_only=True)
+class SequenceCalibration(LensAnswer):
+    """The result of :func:`calibrate_sequence`: the lens answer and the direct path's diagnostics.
 
-    k2_user, k4_user: eq. 4 about the frame centre; Delta_avg, Delta_max and their
-    ``confidence`` intervals (low, high; NaN below 2 usable pairs); class_label "1".."4", "R" or
-    None ("cannot tell", ``reason`` says why); pairs_rejected: diverged or outliers; scale: user
-    px per analysis px; ab: the combined normalised (a, b). Per pair: pairs (P, 2) frame
-    indices, pair_delta_avg and its std (P,) in analysis px, pair_used (P,) bool;
-    relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
-    answers| (user px), combined as the answers are, where significant (relief_z, its ratio to
-    its jackknife std, at least ``relief_test``), else 0; pair_refitted (P,) bool: the pair was fitted
-    again from its own registration (``registered_start``) and that fit replaced the first;
-    pair_misfit (P,): what the pair's registration leaves unexplained
-    (:func:`~lensdist_torch.calibration.direct_fits.pair_misfit`; over ``max_misfit``: not registered, not used).
+    The core fields are :class:`~lensdist_torch.calibration.lens_answer.LensAnswer`'s (user px,
+    intervals at ``confidence``, NaN below 2 usable pairs; the class or None with the reason).
+
+    Attributes:
+        pairs_used: pairs that count in the combination.
+        pairs_rejected: pairs that diverged, failed the residual test or the registration, or were outliers.
+        frames: frames in the sequence.
+        image_size: the frames' (H, W) in the user's pixels.
+        analysis_size: the analysis frames' (H, W).
+        scale: user px per analysis px.
+        ab: the combined normalised (a, b) = (k2 R^2, k4 R^4) at the analysis size.
+        pairs: (P, 2) frame indices of the pairs fitted.
+        pair_delta_avg: (P,) each pair's signed Delta_avg (analysis px).
+        pair_delta_avg_std: (P,) its std.
+        pair_used: (P,) bool, the pair counts.
+        relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
+            answers| (user px), combined as the answers are, where significant, else 0.
+        relief_z: that effect over its jackknife std (significant at ``relief_test`` or more).
+        pair_refitted: (P,) bool, the pair was fitted again from its own registration
+            (``registered_start``) and that fit replaced the first; None where none ran.
+        pair_misfit: (P,) what each pair's registration leaves unexplained
+            (:func:`~lensdist_torch.calibration.direct_fits.pair_misfit`; over ``max_misfit``:
+            not registered, not used); None where none ran.
 
     Example:
         >>> cal = calibrate_sequence(torch.full((2, 1, 64, 64), 0.5))  # a still camera: no pair to use
@@ -83,14 +98,6 @@ class SequenceCalibration(NamedTuple):
         (None, 'too little motion: no two frames moved enough apart', 0, True, (64, 64))
     """
 
-    k2_user: float
-    k4_user: float
-    delta_avg_user_px: float
-    delta_avg_user_interval: tuple[float, float]
-    delta_max_user_px: float
-    delta_max_user_interval: tuple[float, float]
-    class_label: str | None
-    reason: str
     pairs_used: int
     pairs_rejected: int
     frames: int

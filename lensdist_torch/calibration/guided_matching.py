@@ -30,6 +30,7 @@ whether the scene is a plane: that test stays with the verified matches (the fir
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -261,12 +262,12 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
                 "radius_px": cfg.planar_guided_px, "first_fit": _figures(first)}
         again = self_calibrate_planar(found, size, cfg, settings, start=first.coefficients, plane_share=first.inlier_share)
         if not math.isfinite(again.delta_avg_user_px):
-            res = first._replace(guided={**info, "used": False, "reason": again.reason})
+            res = dataclasses.replace(first, guided={**info, "used": False, "reason": again.reason})
         elif again.pairs <= first.pairs:  # it was to bring lost pairs back: where it did not, the first fit stands
-            res = first._replace(guided={**info, "used": False, "reason": f"the guided matches count {again.pairs} pairs, "
+            res = dataclasses.replace(first, guided={**info, "used": False, "reason": f"the guided matches count {again.pairs} pairs, "
                                                                          f"the verified ones {first.pairs}"})
         else:
-            res, used = again._replace(guided={**info, "used": True, "reason": ""}), found
+            res, used = dataclasses.replace(again, guided={**info, "used": True, "reason": ""}), found
     if (images is None or cfg.planar_refine_px <= 0 or not math.isfinite(res.delta_avg_user_px)
             or res.inlier_share < cfg.planar_min_inlier_share):
         return res
@@ -274,8 +275,8 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     info = {**info, "half_px": cfg.planar_refine_px, "before": _figures(res)}
     again = self_calibrate_planar(refined, size, cfg, settings, start=res.coefficients, plane_share=first.inlier_share)
     if not math.isfinite(again.delta_avg_user_px):
-        return res._replace(refined={**info, "used": False, "reason": again.reason})
-    return again._replace(guided=res.guided, refined={**info, "used": True, "reason": ""})
+        return dataclasses.replace(res, refined={**info, "used": False, "reason": again.reason})
+    return dataclasses.replace(again, guided=res.guided, refined={**info, "used": True, "reason": ""})
 
 
 def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor], coefficients, centre,

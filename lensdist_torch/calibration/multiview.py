@@ -51,13 +51,14 @@ from __future__ import annotations
 import math
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from statistics import NormalDist
-from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.multiview_evidence import (
     checked_scale,
     dispersion,
@@ -85,42 +86,43 @@ __all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_
            "rotation_spread_deg", "BA_FUNCTION_TOLERANCE"]
 
 
-class MultiViewCalibration(NamedTuple):
-    """The result of :func:`self_calibrate_reconstruction`, in the user's pixels; NaN where unknown.
+@dataclass(frozen=True, kw_only=True)
+class MultiViewCalibration(LensAnswer):
+    """The result of :func:`self_calibrate_reconstruction`: the lens answer and the multi-view diagnostics.
 
-    model: the COLMAP model of most evidence, or the other path that predicts the held-out frames
-    best (a name of ``others``); camera_matrix (3, 3) and dist_coeffs (5 or 8, OpenCV's
-    order) its OpenCV camera (a COLMAP model's exactly); delta_avg_user_px, delta_max_user_px over the pixels where
-    the model inverts (``invertible_fraction`` of them), with ``confidence`` intervals;
-    k2_user, k4_user: eq. 4 fitted to the camera, ``eq4_fit_error_px`` its RMS error;
-    class_label or None with ``reason``; registered of ``frames``; points3D; reprojection_px
-    (RMS of the chosen model); models: per fitted model its evidence ``weight``, Delta_avg and
-    Delta_max (over where it inverts) with their posterior stds, the jackknife's std
-    (``jackknife_std_px``, the check), RMS on its tracks and on held-out frames
-    (``heldout_rms_px``), BIC, rotation spread and OpenCV camera (``camera_matrix``,
-    ``dist_coeffs``: Delta on another footprint from it);
-    jackknife: the chosen model's leave-a-block-out Delta_avg values; rotation_spread_deg: the
-    largest rotation between two frames of the mapping (a diagnostic);
-    reconstructions: per seed of the mapping its numbers (set by
-    :func:`~lensdist_torch.calibration.multiview_runs.combine_reconstructions`), and
-    reconstruction_spread_px the largest |Delta_avg - this one's| among them;
-    paper_delta_avg_px: the Delta_avg of eq. 4's fit at the paper's frame, whose class is given
-    (:func:`~lensdist_torch.calibration.sequence_class.sequence_class`); dispersion: the jackknife's scale (>= 1).
+    The core fields are :class:`~lensdist_torch.calibration.lens_answer.LensAnswer`'s: Delta_avg
+    and Delta_max over the pixels where the model inverts, with ``confidence`` intervals; (k2,
+    k4) eq. 4 fitted to the camera.
+
+    Attributes:
+        model: the COLMAP camera model of most evidence.
+        camera_matrix: (3, 3) its OpenCV camera matrix (a COLMAP model's exactly).
+        dist_coeffs: its OpenCV distortion coefficients (5 or 8, OpenCV's order).
+        invertible_fraction: the share of the frame's pixels where the model inverts.
+        eq4_fit_error_px: RMS error (px) of eq. 4's fit to the camera.
+        registered: frames the mapping registered.
+        frames: frames handed to the mapping.
+        points3D: 3-D points of the reconstruction.
+        reprojection_px: RMS reprojection error (px) of the chosen model.
+        models: per fitted model its evidence ``weight``, Delta_avg and Delta_max (over where it
+            inverts) with their posterior stds, the jackknife's std (``jackknife_std_px``, the
+            check), RMS on its tracks and on held-out frames (``heldout_rms_px``), BIC, rotation
+            spread and OpenCV camera (``camera_matrix``, ``dist_coeffs``).
+        jackknife: the chosen model's leave-a-block-out Delta_avg values (px).
+        rotation_spread_deg: the largest rotation between two frames of the mapping (a diagnostic).
+        reconstructions: per seed of the mapping its numbers (set by
+            :func:`~lensdist_torch.calibration.multiview_runs.combine_reconstructions`).
+        reconstruction_spread_px: the largest |Delta_avg - this one's| among them.
+        paper_delta_avg_px: the Delta_avg of eq. 4's fit at the paper's frame, whose class is given
+            (:func:`~lensdist_torch.calibration.sequence_class.sequence_class`).
+        dispersion: the jackknife's scale of the posteriors (>= 1).
     """
 
     model: str
     camera_matrix: list
     dist_coeffs: list
-    delta_avg_user_px: float
-    delta_avg_user_interval: tuple[float, float]
-    delta_max_user_px: float
-    delta_max_user_interval: tuple[float, float]
     invertible_fraction: float
-    k2_user: float
-    k4_user: float
     eq4_fit_error_px: float
-    class_label: str | None
-    reason: str
     registered: int
     frames: int
     points3D: int

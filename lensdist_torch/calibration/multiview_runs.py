@@ -25,6 +25,7 @@ further seeds are tried until ``reconstructions`` succeed; the failures are list
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from statistics import NormalDist
 
@@ -121,6 +122,6 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
         label, reason = None, f"interval too wide: +-{half:.2f} px{among}"
     elif label is not None:  # the class of the widened interval, which may now span the R threshold
         label, reason = sequence_class(best.paper_delta_avg_px, best.delta_avg_user_px, half, or_defaults(settings, LensdistConfig))
-    return best._replace(delta_avg_user_interval=intervals[0], delta_max_user_interval=intervals[1], class_label=label,
+    return dataclasses.replace(best, delta_avg_user_interval=intervals[0], delta_max_user_interval=intervals[1], class_label=label,
                          reason=reason, reconstructions=tuple(_summary(s, r) for s, r in runs),
                          reconstruction_spread_px=spread)

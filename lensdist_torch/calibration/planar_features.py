@@ -50,10 +50,11 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from dataclasses import dataclass
 
 import torch
 
+from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.matches import PlanarMatches, thin_matches
 from lensdist_torch.calibration.planar_model import (
     bending_halfwidth,
@@ -78,50 +79,57 @@ from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points
 __all__ = ["PlanarCalibration", "delta_avg_where", "self_calibrate_planar"]
 
 
-class PlanarCalibration(NamedTuple):
-    """The result of :func:`self_calibrate_planar`, in the user's pixels.
+@dataclass(frozen=True, kw_only=True)
+class PlanarCalibration(LensAnswer):
+    """The result of :func:`self_calibrate_planar`: the lens answer and the homography model's diagnostics.
 
-    coefficients: a_1 .. a_n of the chosen model (module docstring); terms: n; model: its name
-    ("planar-n", "planar-n-centre" where the centre is free); centre: the distortion centre (x, y)
-    in pixels (the frame centre unless free); k2_user, k4_user:
-    eq. 4 fitted to the lens map, ``eq4_fit_error_px`` its RMS error; delta_avg_user_px,
-    delta_max_user_px over the pixels where the map is monotone (``invertible_fraction``), with
-    ``confidence`` intervals; bending_halfwidth_px: how straight the map makes lines, the
-    jackknife's ``confidence`` half-width of its bending (px, RMS; no homography takes the bending
-    away) over the ``matched_fraction`` of the frame that the inliers reach; class_label or None with ``reason``; pairs: the pairs fitted;
-    inliers of ``matches`` verified matches (at most ``planar_pair_matches`` a pair), inlier_share of the counted pairs' matches; reprojection_px: the inliers' RMS transfer error;
-    models: per n its BIC, Delta_avg, RMS and coefficients; jackknife: the leave-a-block-out
-    Delta_avg values, jackknife_coefficients and jackknife_centres their lenses (Delta on another
-    footprint from them);
-    opencv, opencv_rational: OpenCV's camera fitted to the map, 5 and 8 coefficients
-    (``camera_matrix``, ``dist_coeffs`` and the fit's errors, as
-    :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them); guided: where the
-    fit is on guided matches (:func:`~lensdist_torch.calibration.guided_matching.self_calibrate_guided`),
-    what the guided matching found and the first fit's figures; None otherwise; refined: where
-    the matches were refined (:mod:`~lensdist_torch.calibration.match_refinement`), what the
-    refinement kept and the fit's figures before it; None otherwise.
+    The core fields are :class:`~lensdist_torch.calibration.lens_answer.LensAnswer`'s: Delta_avg
+    and Delta_max over the pixels where the lens map is monotone, with ``confidence`` intervals;
+    (k2, k4) eq. 4 fitted to the lens map.
+
+    Attributes:
+        coefficients: a_1 .. a_n of the chosen radial model (module docstring).
+        terms: n.
+        model: its name ("planar-n", "planar-n-centre" where the centre is free).
+        centre: the distortion centre (x, y) in pixels (the frame centre unless free).
+        eq4_fit_error_px: RMS error (px) of eq. 4's fit to the lens map.
+        invertible_fraction: the share of the frame's pixels where the map is monotone.
+        bending_halfwidth_px: how straight the map makes lines: the jackknife's ``confidence``
+            half-width of its bending (px, RMS; no homography takes the bending away).
+        matched_fraction: the share of the frame that the inliers reach.
+        pairs: the pairs fitted.
+        inliers: the inlier matches.
+        matches: the verified matches (at most ``planar_pair_matches`` a pair).
+        inlier_share: inliers over the counted pairs' matches.
+        reprojection_px: the inliers' RMS transfer error (px).
+        models: per n its BIC, Delta_avg, RMS and coefficients.
+        jackknife: the leave-a-block-out Delta_avg values (px).
+        jackknife_coefficients: their lenses' coefficients.
+        jackknife_centres: their lenses' centres.
+        opencv: OpenCV's camera fitted to the map, 5 coefficients (``camera_matrix``,
+            ``dist_coeffs`` and the fit's errors, as
+            :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
+        opencv_rational: the same with 8 coefficients.
+        guided: where the fit is on guided matches
+            (:func:`~lensdist_torch.calibration.guided_matching.self_calibrate_guided`), what the
+            guided matching found and the first fit's figures; None otherwise.
+        refined: where the matches were refined (:mod:`~lensdist_torch.calibration.match_refinement`),
+            what the refinement kept and the fit's figures before it; None otherwise.
 
     Example:
-        >>> PlanarCalibration._fields[:4]
-        ('coefficients', 'terms', 'model', 'centre')
+        >>> import dataclasses
+        >>> [f.name for f in dataclasses.fields(PlanarCalibration)][8:12]
+        ['coefficients', 'terms', 'model', 'centre']
     """
 
     coefficients: list
     terms: int
     model: str
     centre: list
-    k2_user: float
-    k4_user: float
     eq4_fit_error_px: float
-    delta_avg_user_px: float
-    delta_avg_user_interval: tuple[float, float]
-    delta_max_user_px: float
-    delta_max_user_interval: tuple[float, float]
     invertible_fraction: float
     bending_halfwidth_px: float
     matched_fraction: float
-    class_label: str | None
-    reason: str
     pairs: int
     inliers: int
     matches: int
@@ -231,7 +239,7 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, config: 
         (0.5701, True)
     """
     cfg = or_defaults(config, MultiViewConfig)
-    r = res._asdict() if isinstance(res, PlanarCalibration) else res
+    r = res.to_dict() if isinstance(res, PlanarCalibration) else res
 
     def there(a, centre) -> float:
         return float((lens_ideal_points(points, a, height, width, centre) - points).norm(dim=-1).mean())

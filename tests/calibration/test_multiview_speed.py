@@ -2,6 +2,7 @@
 every mapping run whatever the camera's motion (lensdist_torch.calibration.controllers.multiview_path), the bundle
 adjustments' tolerance (calibration.multiview)."""
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -63,7 +64,7 @@ def _fake_colmap(monkeypatch, tmp_path, answers):
 
 def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
     # the GoPro views: seeds 1 and 2 stop at 3 views in about a second; 0, 3 and 4 answer, seed 5 never runs
-    ok = [_cal(d, 30.0, label="3", reason="")._replace(delta_avg_user_interval=(d - 1, d + 1)) for d in (8.0, 8.4, 7.8, 99.0)]
+    ok = [dataclasses.replace(_cal(d, 30.0, label="3", reason=""), delta_avg_user_interval=(d - 1, d + 1)) for d in (8.0, 8.4, 7.8, 99.0)]
     calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 0, ok[1], ok[2], ok[3]])
     res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 5 and res["ok"] and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.0
@@ -121,7 +122,7 @@ def test_a_long_video_is_written_with_a_doubling_stride(monkeypatch, tmp_path):
 def test_every_mapping_runs_whatever_the_camera_turned(monkeypatch, tmp_path, rotations):
     # 22 rendered frames of 384 x 288 panning over relief (seeds 0-2 turned 2.4, 2.4, 2.3 degrees), and the same
     # frames with +-3 degrees of yaw: the motion is no rule; each mapping's answer, and their spread, speaks
-    runs = [_cal(d, r, label="3", reason="")._replace(delta_avg_user_interval=(d - 0.5, d + 0.5))
+    runs = [dataclasses.replace(_cal(d, r, label="3", reason=""), delta_avg_user_interval=(d - 0.5, d + 0.5))
             for d, r in zip((12.3, 12.24, 13.02), rotations)]
     calls = _fake_colmap(monkeypatch, tmp_path, runs)
     res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))

@@ -140,7 +140,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
                                            f"registered at most{tries} (at least {least} needed)",
                     "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
         res = combine_reconstructions(runs, cfg, settings=settings)
-    return {"ok": True, **res._asdict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
+    return {"ok": True, **res.to_dict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
 
 
 def planar_path(database: Path, names: list[str], image_size: tuple[int, int], config: MultiViewConfig,
@@ -155,7 +155,7 @@ def planar_path(database: Path, names: list[str], image_size: tuple[int, int], c
     res = self_calibrate_guided(database, names, image_size, config, settings, images=images)
     if not math.isfinite(res.delta_avg_user_px):
         return {"ok": False, "reason": res.reason}
-    return {"ok": True, **res._asdict()}
+    return {"ok": True, **res.to_dict()}
 
 
 def _overlap(a: tuple, b: tuple) -> bool:
