@@ -9,9 +9,11 @@ CheckpointError on load; a file that must carry the digest and does not is refus
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import os
+import shutil
 import struct
 import tempfile
 from pathlib import Path
@@ -22,6 +24,7 @@ __all__ = [
     "CheckpointError",
     "atomic_write_bytes",
     "atomic_write_text",
+    "staged_folder",
     "DIGEST_KEY",
     "content_digest",
     "check_replaceable",
@@ -101,6 +104,46 @@ def atomic_write_text(path: str | Path, text: str) -> None:
 
 #: The entry of a versioned file that holds its content digest.
 DIGEST_KEY = "content_sha256"
+
+
+@contextlib.contextmanager
+def staged_folder(out: str | Path):
+    """Files written into a staging folder beside ``out`` land in ``out`` only when the block ends without error.
+
+    Yields the staging folder (a hidden one beside ``out``, on its file system); at the end of
+    the block each file under it moves into ``out`` (its subfolders too) by ``os.replace``, and
+    the staging folder is removed. Where the block raises, nothing reaches ``out`` and the
+    staging folder is removed: a run that fails half way leaves ``out`` as it was.
+
+    Example:
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     out = Path(tmp) / "out"
+        ...     try:
+        ...         with staged_folder(out) as stage:
+        ...             _ = (stage / "a.txt").write_text("a")
+        ...             raise ValueError("frame 2 is broken")
+        ...     except ValueError:
+        ...         pass
+        ...     failed = out.exists(), os.listdir(tmp)
+        ...     with staged_folder(out) as stage:
+        ...         (stage / "sub").mkdir()
+        ...         _ = (stage / "sub" / "b.txt").write_text("b")
+        ...     done = sorted(str(q.relative_to(out)) for q in out.rglob("*")), os.listdir(tmp)
+        >>> failed, done
+        ((False, []), (['sub', 'sub/b.txt'], ['out']))
+    """
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.staged-", dir=out.parent))
+    try:
+        yield stage
+        for f in sorted(stage.rglob("*")):
+            if f.is_file():
+                target = out / f.relative_to(stage)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(f, target)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
 
 
 def _encode(value, h, storages: dict, error: type[Exception]) -> None:

@@ -29,6 +29,10 @@ corrected frame as a PNG (grey or colour, as the input) and its validity mask in
   of the inputs (a frame, the video, the calibration file), even with ``overwrite``. An existing
   file of a name it would write (for a video: any ``frame_NNNNNN.png``) is refused unless
   ``overwrite=True`` (``--overwrite``).
+- **Nothing half-written.** The frames and masks are written into a staging folder beside
+  ``out_dir`` (:func:`~lensdist_torch.core.storage.staged_folder`) and move into it only once
+  every frame is written; a frame that cannot be read leaves ``out_dir`` as it was, and the rerun
+  after fixing it needs no ``overwrite``.
 - **Output size.** The frames keep their size. ``alpha`` None (the default, as before) keeps the
   input's scale and centre (``cv2.undistort``'s default: barrel distortion loses the frame's
   edges, pincushion leaves its corners empty); 0 to 1 chooses the view as OpenCV's
@@ -62,7 +66,7 @@ from lensdist_torch.calibration.controllers.answer_lens import eq4_lens, lens_gr
 from lensdist_torch.core.frames import frames_of_one_size, list_frames
 from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.png import deep_samples, encode_png, to_uint8, to_uint16
-from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
+from lensdist_torch.core.storage import atomic_write_text, staged_folder
 from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_export, radial_monotone
@@ -281,25 +285,26 @@ def undistort_path(
     _coefficients_for((1, 1) if cal is None else (cal.height, cal.width), k2, k4, from_json, cal)
     files = _plan(path, out, max_frames, from_json, overwrite)
     grid, n, valid_sum, dev, bits = None, 0, 0.0, torch.device(device or "cpu"), set()
-    for i, (name, img) in enumerate(frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
-        if grid is None:
-            size = tuple(img.shape[-2:])
-            k2, k4 = _coefficients_for(size, k2, k4, from_json, cal)
-            lens = _lens_for(size, cal)  # None: eq. 4 is the answer
-            applied = lens or eq4_lens(k2, k4)
-            _check_lens(applied, *size, from_json)
-            view = None if alpha is None else lens_view(applied, *size, float(alpha))
-            grid, valid = lens_grid(applied, *size, view=view)
-            camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view, lens)
-            grid, valid = grid.to(dev), valid.to(dev)
-            (out / "masks").mkdir(parents=True, exist_ok=True)
-        deep = deep_samples(files[i] if files is not None else None, img)
-        corrected = (sample_at_pixels(img.to(dev), grid) * valid)[0].cpu()
-        atomic_write_bytes(out / f"{name}.png", encode_png(to_uint16(corrected) if deep else to_uint8(corrected)))
-        atomic_write_bytes(out / "masks" / f"{name}.png", encode_png(to_uint8(valid[0]).cpu()))
-        n, valid_sum, bits = n + 1, valid_sum + float(valid.mean()), bits | {16 if deep else 8}
-    if n == 0:
-        raise ValueError(f"path {path} holds no frames")
+    with staged_folder(out) as stage:  # a frame that fails to read or write: nothing reaches out_dir
+        for i, (name, img) in enumerate(frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
+            if grid is None:
+                size = tuple(img.shape[-2:])
+                k2, k4 = _coefficients_for(size, k2, k4, from_json, cal)
+                lens = _lens_for(size, cal)  # None: eq. 4 is the answer
+                applied = lens or eq4_lens(k2, k4)
+                _check_lens(applied, *size, from_json)
+                view = None if alpha is None else lens_view(applied, *size, float(alpha))
+                grid, valid = lens_grid(applied, *size, view=view)
+                camera = _camera(k2, k4, size, _focal_for(size, cal), alpha, view, lens)
+                grid, valid = grid.to(dev), valid.to(dev)
+                (stage / "masks").mkdir()
+            deep = deep_samples(files[i] if files is not None else None, img)
+            corrected = (sample_at_pixels(img.to(dev), grid) * valid)[0].cpu()
+            (stage / f"{name}.png").write_bytes(encode_png(to_uint16(corrected) if deep else to_uint8(corrected)))
+            (stage / "masks" / f"{name}.png").write_bytes(encode_png(to_uint8(valid[0]).cpu()))
+            n, valid_sum, bits = n + 1, valid_sum + float(valid.mean()), bits | {16 if deep else 8}
+        if n == 0:
+            raise ValueError(f"path {path} holds no frames")
     camera["frames"], camera["valid_fraction"] = n, valid_sum / n
     atomic_write_text(out / CAMERA_FILE, json.dumps(camera, indent=2, allow_nan=False) + "\n")
     return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "lens": camera["lens"], "valid_fraction": valid_sum / n,
