@@ -8,6 +8,7 @@ import math
 import os
 import struct
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
 from kornia.io import write_image
-from one_line import one_line
+from one_line import one_line_error
 
 from lensdist_torch import quality_map
 from lensdist_torch.core import images
@@ -122,9 +123,7 @@ class TestFormats:
             pil.fromarray(arr).save(path)
             with pytest.raises(ValueError):
                 kornia.io.load_image(path, kornia.io.ImageLoadType.UNCHANGED)
-            with pytest.raises(ValueError) as info:
-                load_image(path)
-            one_line(info, str(path), suffix, ".png")
+            one_line_error(ValueError, lambda p=path: load_image(p), str(path), suffix, ".png")
 
     def test_grey_rgb_rgba_png(self, tmp_path):
         grey = _rand_u8(6, 10)
@@ -217,41 +216,159 @@ class TestResize:
 # ----------------------------------------------------------------------------- bad files
 
 
-@pytest.mark.bad_input
-@pytest.mark.parametrize("suffix", [".bmp", ".gif", ".pgm", ".heic", ""])
-def test_unsupported_suffix(tmp_path, rgb_png, suffix):
-    path = tmp_path / f"photo{suffix}"
-    path.write_bytes(rgb_png.read_bytes())
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "suffix")
+def bad_file(
+    case_id: str, make, *words: str, exc=ValueError, names_path: bool = True, header_only: bool = False, **kwargs
+):
+    """One case of BAD_FILES: ``make(tmp_path, rgb_png)`` writes the bad file and gives its path;
+    ``load_image(path, **kwargs)`` must raise ``exc`` with one line holding the path (unless not
+    ``names_path``) and every one of ``words``. ``header_only``: refused from the header, before
+    decoding (kornia's decoder fails loudly)."""
+    return pytest.param(make, kwargs, exc, words, names_path, header_only, id=case_id)
 
 
-@pytest.mark.bad_input
-def test_directory(tmp_path):
+def _write(path: Path, data: bytes) -> Path:
+    path.write_bytes(data)
+    return path
+
+
+def _kornia(path: Path, img: torch.Tensor, **kwargs) -> Path:
+    write_image(path, img, **kwargs)
+    return path
+
+
+def _directory(tmp_path, _):
     folder = tmp_path / "shots.png"
     folder.mkdir()
-    with pytest.raises(ValueError) as info:
-        load_image(folder)
-    one_line(info, str(folder), "directory")
+    return folder
 
 
-@pytest.mark.bad_input
-def test_not_a_regular_file(tmp_path):
+def _fifo(tmp_path, _):
     if not hasattr(os, "mkfifo"):
         pytest.skip("no FIFOs here")
     path = tmp_path / "pipe.png"
     os.mkfifo(path)
-    with pytest.raises(ValueError) as info:
-        load_image(path)  # must not block on opening it
-    one_line(info, str(path), "not a regular file")
+    return path  # loading it must not block on opening it
+
+
+def _jpeg_named_tif(tmp_path, _):
+    jpeg = _kornia(tmp_path / "a.jpg", torch.from_numpy(_rand_u8(3, 8, 8)))
+    return _write(tmp_path / "a.tif", jpeg.read_bytes())
+
+
+def _truncated(suffix: str, keep: float):
+    def make(tmp_path, _):
+        full = _kornia(tmp_path / f"full{suffix}", torch.from_numpy(_rand_u8(3, 64, 80, seed=8)), quality=90)
+        data = full.read_bytes()
+        return _write(tmp_path / f"cut{suffix}", data[: int(len(data) * keep)])
+
+    return make
+
+
+def _corrupt_png(tmp_path, rgb_png):
+    data = bytearray(rgb_png.read_bytes())
+    data[60] ^= 0xFF  # inside the compressed image data: its CRC no longer matches
+    return _write(tmp_path / "corrupt.png", bytes(data))
+
+
+def _png_bomb(tmp_path, _):
+    """A few hundred bytes whose header asks for 100000 x 100000 pixels (40 GB as float)."""
+    path = _write(tmp_path / "bomb.png", _png_bytes(np.zeros((1, 1), np.uint8), 0, 8, size=(100_000, 100_000)))
+    assert path.stat().st_size < 1000
+    return path
+
+
+def _huge_jpeg(tmp_path, _):
+    exif = b"\xff\xe1" + struct.pack(">H", 2 + 3000) + b"\x00" * 3000  # a big segment before the frame
+    sof = b"\xff\xc0" + struct.pack(">HBHHB", 17, 8, 20000, 30000, 3) + b"\x01\x22\x00\x02\x11\x01\x03\x11\x01"
+    return _write(tmp_path / "huge.jpg", b"\xff\xd8" + exif + sof + b"\xff\xda" + b"\x00" * 20)
+
+
+def _huge_webp(tmp_path, _):
+    bits = (16384 - 1) | ((16384 - 1) << 14)  # lossless: 14-bit width - 1 and height - 1
+    body = b"VP8L" + struct.pack("<I", 5) + b"\x2f" + struct.pack("<I", bits) + b"\x00" * 8
+    return _write(tmp_path / "huge.webp", b"RIFF" + struct.pack("<I", 4 + len(body)) + b"WEBP" + body)
+
+
+def _cmyk_jpeg(tmp_path, _):
+    pil = pytest.importorskip("PIL.Image")
+    path = tmp_path / "cmyk.jpg"
+    pil.fromarray(_rand_u8(8, 8, 3)).convert("CMYK").save(path)
+    return path
+
+
+def _float_tiff_with_nan(tmp_path, _):
+    x = torch.rand(1, 6, 10)
+    x[0, 2, 3] = math.nan
+    return _kornia(tmp_path / "nan.tif", x)
+
+
+BAD_FILES = [
+    *(
+        bad_file(f"unsupported_suffix-{s or 'none'}", lambda t, rgb, s=s: _write(t / f"photo{s}", rgb.read_bytes()),
+                 "suffix")
+        for s in (".bmp", ".gif", ".pgm", ".heic", "")
+    ),
+    bad_file("directory", _directory, "directory"),
+    bad_file("not_a_regular_file", _fifo, "not a regular file"),
+    bad_file("missing_file_keeps_its_type", lambda t, _: t / "missing.png", "missing.png", exc=FileNotFoundError,
+             names_path=False),
+    *(bad_file(f"empty_file-{s}", lambda t, _, s=s: _write(t / f"empty{s}", b""), "empty")
+      for s in (".png", ".jpg", ".tif", ".webp")),
+    bad_file("text_file_named_png", lambda t, _: _write(t / "notes.png", b"this is not an image\n"), "not a PNG"),
+    bad_file("png_named_jpg", lambda t, rgb: _write(t / "photo.jpg", rgb.read_bytes()), "PNG data", ".png"),
+    bad_file("jpeg_named_tif", _jpeg_named_tif, "JPEG data"),
+    *(bad_file(f"truncated_file-{s}-{keep}", _truncated(s, keep))
+      for keep in (0.5, 0.9) for s in (".png", ".jpg", ".tif")),
+    bad_file("png_signature_only", lambda t, _: _write(t / "sig.png", b"\x89PNG\r\n\x1a\n\x00\x00"), "truncated"),
+    bad_file("corrupt_png_data", _corrupt_png),
+    # pixel bombs and limits: refused from the header
+    bad_file("png_pixel_bomb", _png_bomb, "100000 x 100000", "max_pixels=100000000", header_only=True),
+    bad_file("png_over_a_custom_limit", lambda t, rgb: rgb, "16 x 12", "max_pixels=100", header_only=True,
+             max_pixels=100),
+    bad_file("jpeg_over_the_limit_from_its_frame_header", _huge_jpeg, "30000 x 20000", header_only=True),
+    bad_file("tiff_over_a_custom_limit", lambda t, _: _kornia(t / "a.tif", torch.from_numpy(_rand_u8(3, 40, 50))),
+             "50 x 40", header_only=True, max_pixels=1999),
+    bad_file("webp_over_the_limit_from_its_header", _huge_webp, "16384 x 16384", header_only=True),
+    bad_file("webp_with_an_unknown_chunk",
+             lambda t, _: _write(t / "odd.webp", b"RIFF" + struct.pack("<I", 30) + b"WEBP" + b"ABCD" + b"\x00" * 22),
+             "WebP"),
+    # pixel formats that are not loaded
+    bad_file("grey_alpha_png", lambda t, _: _write(t / "la.png", _png_bytes(_rand_u8(6, 10, 2), 4, 8)), "grey + alpha"),
+    *(
+        bad_file(f"png_with_fewer_than_8_bits-{d}",
+                 lambda t, _, d=d: _write(t / f"g{d}.png", _png_bytes(_rand_u8(6, 2), 0, d, size=(6, 16 // d))),
+                 f"{d}-bit")
+        for d in (1, 2, 4)
+    ),
+    bad_file("png_of_zero_width",
+             lambda t, _: _write(t / "zero.png", _png_bytes(np.zeros((1, 1), np.uint8), 0, 8, size=(1, 0))), "0 x 1"),
+    bad_file("palette_png_without_a_palette", lambda t, _: _write(t / "nopal.png", _png_bytes(_rand_u8(6, 10), 3, 8)),
+             "palette"),
+    bad_file("palette_index_beyond_the_palette",  # index 9; the palette has 4 entries
+             lambda t, _: _write(t / "badidx.png", _png_bytes(np.full((6, 10), 9, np.uint8), 3, 8,
+                                                               extra=_chunk(b"PLTE", _rand_u8(4, 3).tobytes()))),
+             "palette entry 9"),
+    bad_file("cmyk_jpeg", _cmyk_jpeg, "4 colour components"),
+    bad_file("jpeg_without_a_frame_header",
+             lambda t, _: _write(t / "noframe.jpg",
+                                 b"\xff\xd8\xff\xe0" + struct.pack(">H", 4) + b"JF" + b"\xff\xda" + b"\x00" * 16),
+             "frame header"),
+    bad_file("float_tiff_outside_0_1",
+             lambda t, _: _kornia(t / "hdr.tif", torch.linspace(-3.0, 250.0, 60).view(1, 6, 10)),
+             "[-3, 250]", "[0, 1]"),
+    bad_file("float_tiff_with_nan", _float_tiff_with_nan, "NaN"),
+    *(bad_file(f"bad_max_pixels-{limit}", lambda t, rgb: rgb, "max_pixels", names_path=False, max_pixels=limit)
+      for limit in (0, -5, 2.5, True)),
+]
 
 
 @pytest.mark.bad_input
-def test_missing_file_keeps_its_type(tmp_path):
-    with pytest.raises(FileNotFoundError) as info:
-        load_image(tmp_path / "missing.png")
-    one_line(info, "missing.png")
+@pytest.mark.parametrize(("make", "kwargs", "exc", "words", "names_path", "header_only"), BAD_FILES)
+def test_bad_file(tmp_path, rgb_png, request, make, kwargs, exc, words, names_path, header_only):
+    if header_only:
+        request.getfixturevalue("no_decoder")
+    path = make(tmp_path, rgb_png)
+    one_line_error(exc, lambda: load_image(path, **kwargs), *((str(path),) if names_path else ()), *words)
 
 
 @pytest.mark.bad_input
@@ -260,270 +377,56 @@ def test_unreadable_file(tmp_path, rgb_png):
         pytest.skip("root reads files without read permission")
     rgb_png.chmod(0)
     try:
-        with pytest.raises(ValueError) as info:
-            load_image(rgb_png)
-        one_line(info, str(rgb_png))
+        one_line_error(ValueError, lambda: load_image(rgb_png), str(rgb_png))
     finally:
         rgb_png.chmod(0o644)
-
-
-@pytest.mark.bad_input
-@pytest.mark.parametrize("suffix", [".png", ".jpg", ".tif", ".webp"])
-def test_empty_file(tmp_path, suffix):
-    path = tmp_path / f"empty{suffix}"
-    path.write_bytes(b"")
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "empty")
-
-
-@pytest.mark.bad_input
-def test_text_file_named_png(tmp_path):
-    path = tmp_path / "notes.png"
-    path.write_text("this is not an image\n")
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "not a PNG")
-
-
-@pytest.mark.bad_input
-def test_png_named_jpg(tmp_path, rgb_png):
-    path = tmp_path / "photo.jpg"
-    path.write_bytes(rgb_png.read_bytes())
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "PNG data", ".png")
-
-
-@pytest.mark.bad_input
-def test_jpeg_named_tif(tmp_path):
-    write_image(tmp_path / "a.jpg", torch.from_numpy(_rand_u8(3, 8, 8)))
-    path = tmp_path / "a.tif"
-    path.write_bytes((tmp_path / "a.jpg").read_bytes())
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "JPEG data")
-
-
-@pytest.mark.bad_input
-@pytest.mark.parametrize("suffix", [".png", ".jpg", ".tif"])
-@pytest.mark.parametrize("keep", [0.5, 0.9])
-def test_truncated_file(tmp_path, suffix, keep):
-    full = tmp_path / f"full{suffix}"
-    write_image(full, torch.from_numpy(_rand_u8(3, 64, 80, seed=8)), quality=90)
-    data = full.read_bytes()
-    path = tmp_path / f"cut{suffix}"
-    path.write_bytes(data[: int(len(data) * keep)])
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path))
-
-
-@pytest.mark.bad_input
-def test_png_signature_only(tmp_path):
-    path = tmp_path / "sig.png"
-    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "truncated")
-
-
-@pytest.mark.bad_input
-def test_corrupt_png_data(tmp_path, rgb_png):
-    data = bytearray(rgb_png.read_bytes())
-    data[60] ^= 0xFF  # inside the compressed image data: its CRC no longer matches
-    path = tmp_path / "corrupt.png"
-    path.write_bytes(bytes(data))
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path))
-
-
-@pytest.mark.bad_input
-def test_png_pixel_bomb_is_refused_before_decoding(tmp_path, no_decoder):
-    """A few hundred bytes whose header asks for 100000 x 100000 pixels (40 GB as float)."""
-    path = tmp_path / "bomb.png"
-    path.write_bytes(_png_bytes(np.zeros((1, 1), np.uint8), 0, 8, size=(100_000, 100_000)))
-    assert path.stat().st_size < 1000
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "100000 x 100000", "max_pixels=100000000")
-
-
-@pytest.mark.bad_input
-def test_png_over_a_custom_limit(rgb_png, no_decoder):
-    with pytest.raises(ValueError) as info:
-        load_image(rgb_png, max_pixels=100)
-    one_line(info, str(rgb_png), "16 x 12", "max_pixels=100")
-
-
-@pytest.mark.bad_input
-def test_jpeg_over_the_limit_from_its_frame_header(tmp_path, no_decoder):
-    exif = b"\xff\xe1" + struct.pack(">H", 2 + 3000) + b"\x00" * 3000  # a big segment before the frame
-    sof = b"\xff\xc0" + struct.pack(">HBHHB", 17, 8, 20000, 30000, 3) + b"\x01\x22\x00\x02\x11\x01\x03\x11\x01"
-    path = tmp_path / "huge.jpg"
-    path.write_bytes(b"\xff\xd8" + exif + sof + b"\xff\xda" + b"\x00" * 20)
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "30000 x 20000")
-
-
-@pytest.mark.bad_input
-def test_tiff_over_a_custom_limit(tmp_path, no_decoder):
-    path = tmp_path / "a.tif"
-    import kornia.io as kio  # the real writer (the fixture only replaced the loader)
-
-    kio.write_image(path, torch.from_numpy(_rand_u8(3, 40, 50)))
-    with pytest.raises(ValueError) as info:
-        load_image(path, max_pixels=1999)
-    one_line(info, str(path), "50 x 40")
-
-
-@pytest.mark.bad_input
-def test_webp_over_the_limit_from_its_header(tmp_path, no_decoder):
-    bits = (16384 - 1) | ((16384 - 1) << 14)  # lossless: 14-bit width - 1 and height - 1
-    body = b"VP8L" + struct.pack("<I", 5) + b"\x2f" + struct.pack("<I", bits) + b"\x00" * 8
-    path = tmp_path / "huge.webp"
-    path.write_bytes(b"RIFF" + struct.pack("<I", 4 + len(body)) + b"WEBP" + body)
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "16384 x 16384")
-
-
-@pytest.mark.bad_input
-def test_webp_with_an_unknown_chunk(tmp_path):
-    path = tmp_path / "odd.webp"
-    path.write_bytes(b"RIFF" + struct.pack("<I", 30) + b"WEBP" + b"ABCD" + b"\x00" * 22)
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "WebP")
-
-
-@pytest.mark.bad_input
-def test_grey_alpha_png(tmp_path):
-    path = tmp_path / "la.png"
-    path.write_bytes(_png_bytes(_rand_u8(6, 10, 2), 4, 8))
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "grey + alpha")
-
-
-@pytest.mark.bad_input
-@pytest.mark.parametrize("depth", [1, 2, 4])
-def test_png_with_fewer_than_8_bits(tmp_path, depth):
-    path = tmp_path / f"g{depth}.png"
-    path.write_bytes(_png_bytes(_rand_u8(6, 2), 0, depth, size=(6, 16 // depth)))
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), f"{depth}-bit")
-
-
-@pytest.mark.bad_input
-def test_png_of_zero_width(tmp_path):
-    path = tmp_path / "zero.png"
-    path.write_bytes(_png_bytes(np.zeros((1, 1), np.uint8), 0, 8, size=(1, 0)))
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "0 x 1")
-
-
-@pytest.mark.bad_input
-def test_palette_png_without_a_palette(tmp_path):
-    path = tmp_path / "nopal.png"
-    path.write_bytes(_png_bytes(_rand_u8(6, 10), 3, 8))
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "palette")
-
-
-@pytest.mark.bad_input
-def test_palette_index_beyond_the_palette(tmp_path):
-    idx = np.full((6, 10), 9, np.uint8)  # the palette has 4 entries
-    path = tmp_path / "badidx.png"
-    path.write_bytes(_png_bytes(idx, 3, 8, extra=_chunk(b"PLTE", _rand_u8(4, 3).tobytes())))
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "palette entry 9")
-
-
-@pytest.mark.bad_input
-def test_cmyk_jpeg(tmp_path):
-    pil = pytest.importorskip("PIL.Image")
-    path = tmp_path / "cmyk.jpg"
-    pil.fromarray(_rand_u8(8, 8, 3)).convert("CMYK").save(path)
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "4 colour components")
-
-
-@pytest.mark.bad_input
-def test_jpeg_without_a_frame_header(tmp_path):
-    path = tmp_path / "noframe.jpg"
-    path.write_bytes(b"\xff\xd8\xff\xe0" + struct.pack(">H", 4) + b"JF" + b"\xff\xda" + b"\x00" * 16)
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "frame header")
-
-
-@pytest.mark.bad_input
-def test_float_tiff_outside_0_1(tmp_path):
-    path = tmp_path / "hdr.tif"
-    write_image(path, torch.linspace(-3.0, 250.0, 60).view(1, 6, 10))
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "[-3, 250]", "[0, 1]")
-
-
-@pytest.mark.bad_input
-def test_float_tiff_with_nan(tmp_path):
-    x = torch.rand(1, 6, 10)
-    x[0, 2, 3] = math.nan
-    path = tmp_path / "nan.tif"
-    write_image(path, x)
-    with pytest.raises(ValueError) as info:
-        load_image(path)
-    one_line(info, str(path), "NaN")
-
-
-@pytest.mark.bad_input
-@pytest.mark.parametrize("limit", [0, -5, 2.5, True])
-def test_bad_max_pixels(rgb_png, limit):
-    with pytest.raises(ValueError) as info:
-        load_image(rgb_png, max_pixels=limit)
-    one_line(info, "max_pixels")
 
 
 # ----------------------------------------------------------------------------- bad tensors
 
 
-# the validity mask is checked where it is used: by the metric's entry points (metric/_inputs.py)
-@pytest.mark.bad_input
-@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
-def test_valid_mask_not_finite(bad):
-    like = torch.rand(2, 1, 16, 16)
-    valid = torch.ones(2, 1, 16, 16)
-    valid[1, 0, 3, 4] = bad
-    with pytest.raises(ValueError) as info:
-        quality_map(like, like, valid=valid)
-    one_line(info, "valid", "NaN or Inf")
+def _quality_map_with_valid(shape, dtype, at, value):
+    """quality_map of a random image with itself, under a mask of ones holding ``value`` at ``at``."""
+    like = torch.rand(shape, dtype=dtype)
+    valid = torch.ones(shape, dtype=dtype)
+    valid[at] = value
+    return quality_map(like, like, valid=valid)
+
+
+def _photo_with_inf():
+    x = torch.rand(3, 8, 8)
+    x[1, 2, 2] = math.inf
+    return check_image(as_batch(x, "photo"), "photo")
+
+
+# (case id, the call, its error, the words of its one line); the validity mask is checked where it
+# is used: by the metric's entry points (metric/_inputs.py)
+BAD_TENSORS = [
+    *(
+        pytest.param(lambda b=bad: _quality_map_with_valid((2, 1, 16, 16), torch.float32, (1, 0, 3, 4), b),
+                     ValueError, ("valid", "NaN or Inf"), id=f"valid_mask_not_finite-{bad}")
+        for bad in (math.nan, math.inf, -math.inf)
+    ),
+    *(
+        pytest.param(lambda b=bad: _quality_map_with_valid((1, 1, 16, 16), torch.float64, (0, 0, 0, 0), b),
+                     ValueError, ("valid", "[0, 1]"), id=f"valid_mask_out_of_range-{bad}")
+        for bad in (-0.5, 2.0)
+    ),
+    pytest.param(
+        lambda: quality_map(torch.rand(1, 1, 16, 16), torch.rand(1, 1, 16, 16),
+                            valid=torch.ones(1, 1, 16, 16, dtype=torch.complex64)),
+        TypeError, ("valid",), id="valid_mask_complex",
+    ),
+    pytest.param(_photo_with_inf, ValueError, ("photo", "NaN or Inf"), id="image_with_inf_through_as_batch"),
+    pytest.param(lambda: as_batch(torch.rand(8), "photo"), ValueError, ("photo", "(H, W)"),
+                 id="as_batch_of_a_1d_tensor"),
+]
 
 
 @pytest.mark.bad_input
-@pytest.mark.parametrize("bad", [-0.5, 2.0])
-def test_valid_mask_out_of_range(bad):
-    like = torch.rand(1, 1, 16, 16, dtype=torch.float64)
-    valid = torch.ones(1, 1, 16, 16, dtype=torch.float64)
-    valid[0, 0, 0, 0] = bad
-    with pytest.raises(ValueError) as info:
-        quality_map(like, like, valid=valid)
-    one_line(info, "valid", "[0, 1]")
-
-
-@pytest.mark.bad_input
-def test_valid_mask_complex():
-    with pytest.raises(TypeError) as info:
-        quality_map(torch.rand(1, 1, 16, 16), torch.rand(1, 1, 16, 16), valid=torch.ones(1, 1, 16, 16, dtype=torch.complex64))
-    one_line(info, "valid")
+@pytest.mark.parametrize(("call", "exc", "words"), BAD_TENSORS)
+def test_bad_tensor(call, exc, words):
+    one_line_error(exc, call, *words)
 
 
 def test_valid_masks_that_are_fine():
@@ -531,19 +434,3 @@ def test_valid_masks_that_are_fine():
     ones = quality_map(like, like, valid=torch.ones(1, 1, 16, 16, dtype=torch.uint8))
     assert torch.equal(ones, quality_map(like, like, valid=torch.ones(1, 1, 16, 16, dtype=torch.bool)))
     assert torch.equal(ones, quality_map(like, like))  # all valid = no mask
-
-
-@pytest.mark.bad_input
-def test_image_with_inf_through_as_batch():
-    x = torch.rand(3, 8, 8)
-    x[1, 2, 2] = math.inf
-    with pytest.raises(ValueError) as info:
-        check_image(as_batch(x, "photo"), "photo")
-    one_line(info, "photo", "NaN or Inf")
-
-
-@pytest.mark.bad_input
-def test_as_batch_of_a_1d_tensor():
-    with pytest.raises(ValueError) as info:
-        as_batch(torch.rand(8), "photo")
-    one_line(info, "photo", "(H, W)")
