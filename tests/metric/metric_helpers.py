@@ -9,11 +9,26 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import spatial_gradient
 
-from lensdist_torch import QualityConfig
+from lensdist_torch import QualityConfig, metric
 from lensdist_torch.metric import block_pool, error_images, local_criteria
 
 CFG = QualityConfig()
 HALF_PI = math.pi / 2
+
+#: Every public entry point of the metric (lensdist_torch.metric) that takes a pair, by name, as
+#: ``call(img1, img2, valid, **settings)`` (``local_criteria`` takes no mask: it ignores ``valid``).
+ENTRY_POINTS = {
+    "quality_map": lambda a, b, v, **k: metric.quality_map(a, b, v, **k),
+    "registration_error_counts": lambda a, b, v, **k: metric.registration_error_counts(a, b, v, **k),
+    "registration_quality": lambda a, b, v, **k: metric.registration_quality(a, b, v, **k),
+    "registration_quality smooth": lambda a, b, v, **k: metric.registration_quality(a, b, v, smooth=True, **k),
+    "registration_quality pixels": lambda a, b, v, **k: metric.registration_quality(a, b, v, return_pixels=True, **k),
+    "RegistrationQuality": lambda a, b, v, **k: metric.RegistrationQuality(**k)(a, b, v),
+    "registration_quality_loss": lambda a, b, v, **k: metric.registration_quality_loss(a, b, v, **k),
+    "RegistrationQualityLoss": lambda a, b, v, **k: metric.RegistrationQualityLoss(**k)(a, b, v),
+    "RegistrationQualityMetric": lambda a, b, v, **k: metric.RegistrationQualityMetric(**k).update(a, b, v),
+    "local_criteria": lambda a, b, v, **k: metric.local_criteria(a, b, **k),
+}
 
 
 def textured(b: int, h: int, w: int, seed: int, dtype=torch.float64) -> torch.Tensor:

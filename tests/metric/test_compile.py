@@ -5,20 +5,11 @@ from __future__ import annotations
 
 import pytest
 import torch
-from metric_helpers import textured
+from metric_helpers import ENTRY_POINTS, textured
 
 import lensdist_torch.metric._inputs as inputs
-from lensdist_torch import (
-    RegistrationQuality,
-    RegistrationQualityLoss,
-    quality_map,
-    registration_quality,
-    registration_quality_loss,
-)
-from lensdist_torch.metric import local_criteria, registration_error_counts
+from lensdist_torch import RegistrationQualityLoss, quality_map, registration_quality, registration_quality_loss
 from lensdist_torch.metric.stateful import RegistrationQualityMetric
-
-pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
 def _compiled_vs_eager(backend: str) -> None:
@@ -71,16 +62,10 @@ def test_validate_false_skips_the_value_checks(monkeypatch):
     calls = _counting(monkeypatch)
     img = torch.rand(2, 1, 16, 24)
     valid = torch.ones(2, 1, 16, 24)
-    entry_points = [
-        lambda v: quality_map(img, img, valid, validate=v),
-        lambda v: registration_error_counts(img, img, valid, validate=v),
-        lambda v: registration_quality(img, img, valid, validate=v),
-        lambda v: registration_quality(img, img, valid, smooth=True, validate=v),
-        lambda v: registration_quality_loss(img, img, valid, validate=v),
-        lambda v: local_criteria(img, img, validate=v),
-        lambda v: RegistrationQuality(validate=v)(img, img, valid),
-        lambda v: RegistrationQualityLoss(validate=v)(img, img, valid),
-        lambda v: RegistrationQualityMetric(validate=v).update(img, img, valid),
+    entry_points = [  # every entry point but the per-pixel variant
+        lambda v, call=call: call(img, img, valid, validate=v)
+        for name, call in ENTRY_POINTS.items()
+        if name != "registration_quality pixels"
     ]
     for call in entry_points:
         call(False)

@@ -15,8 +15,6 @@ from lensdist_torch import (
     registration_quality_loss,
 )
 
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
 
 def pairs(n: int = 5, h: int = 32, w: int = 40):
     img1 = textured(n, h, w, seed=3, dtype=torch.float32)

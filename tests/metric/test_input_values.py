@@ -6,33 +6,20 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
-from metric_helpers import textured
+from metric_helpers import ENTRY_POINTS, textured
 from one_line import one_line_error
 
-from lensdist_torch import (
-    RegistrationQuality,
-    RegistrationQualityLoss,
-    quality_map,
-    registration_quality,
-    registration_quality_loss,
-)
+from lensdist_torch import quality_map, registration_quality, registration_quality_loss
 from lensdist_torch.metric import error_images, local_criteria, registration_error_counts
 from lensdist_torch.metric.stateful import RegistrationQualityMetric
 
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
 
 def _entry_points(img1, img2, valid=None, **kw):
-    """Every entry point that takes a pair, as zero-argument calls."""
+    """Every entry point that takes a pair and a mask, but the per-pixel variant, as zero-argument calls."""
     return [
-        lambda: quality_map(img1, img2, valid, **kw),
-        lambda: registration_error_counts(img1, img2, valid, **kw),
-        lambda: registration_quality(img1, img2, valid, **kw),
-        lambda: registration_quality(img1, img2, valid, smooth=True, **kw),
-        lambda: registration_quality_loss(img1, img2, valid, **kw),
-        lambda: RegistrationQuality(**kw)(img1, img2, valid),
-        lambda: RegistrationQualityLoss(**kw)(img1, img2, valid),
-        lambda: RegistrationQualityMetric(**kw).update(img1, img2, valid),
+        lambda call=call: call(img1, img2, valid, **kw)
+        for name, call in ENTRY_POINTS.items()
+        if name not in ("local_criteria", "registration_quality pixels")
     ]
 
 

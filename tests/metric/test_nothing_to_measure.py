@@ -16,8 +16,6 @@ from metric_helpers import textured
 from lensdist_torch import RegistrationQuality, registration_quality, registration_quality_loss
 from lensdist_torch.metric.stateful import RegistrationQualityMetric
 
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
 
 def misregistered(b: int = 3, h: int = 32, w: int = 40, seed: int = 0):
     """b pairs shifted by 1-2 px: quality indices well below 1."""

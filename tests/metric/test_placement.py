@@ -7,34 +7,13 @@ from __future__ import annotations
 
 import pytest
 import torch
+from metric_helpers import ENTRY_POINTS
 from one_line import one_line_error
 
-from lensdist_torch import (
-    RegistrationQuality,
-    RegistrationQualityLoss,
-    quality_map,
-    registration_quality,
-    registration_quality_loss,
-)
-from lensdist_torch.metric import error_images, local_criteria, registration_error_counts
-from lensdist_torch.metric.stateful import RegistrationQualityMetric
-
-pytestmark = pytest.mark.usefixtures("one_thread_module")
+from lensdist_torch import quality_map
+from lensdist_torch.metric import error_images, local_criteria
 
 SHAPE = (2, 1, 16, 24)
-
-ENTRY_POINTS = {
-    "quality_map": lambda a, b, v, **k: quality_map(a, b, v, **k),
-    "registration_error_counts": lambda a, b, v, **k: registration_error_counts(a, b, v, **k),
-    "registration_quality": lambda a, b, v, **k: registration_quality(a, b, v, **k),
-    "registration_quality smooth": lambda a, b, v, **k: registration_quality(a, b, v, smooth=True, **k),
-    "registration_quality pixels": lambda a, b, v, **k: registration_quality(a, b, v, return_pixels=True, **k),
-    "RegistrationQuality": lambda a, b, v, **k: RegistrationQuality(**k)(a, b, v),
-    "registration_quality_loss": lambda a, b, v, **k: registration_quality_loss(a, b, v, **k),
-    "RegistrationQualityLoss": lambda a, b, v, **k: RegistrationQualityLoss(**k)(a, b, v),
-    "RegistrationQualityMetric": lambda a, b, v, **k: RegistrationQualityMetric(**k).update(a, b, v),
-    "local_criteria": lambda a, b, v, **k: local_criteria(a, b, **k),
-}
 
 
 def inputs():

@@ -32,9 +32,6 @@ from lensdist_torch import (
 )
 from lensdist_torch.metric import error_images, local_criteria, registration_error_counts
 
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
-
 # ----------------------------------------------------------------------------- smoke, cardinality
 
 

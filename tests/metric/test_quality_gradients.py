@@ -28,9 +28,6 @@ from lensdist_torch.metric import local_criteria
 F64 = torch.float64
 
 
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
-
 def _rand(shape, seed, dtype=F64):
     return torch.rand(*shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64).to(dtype)
 

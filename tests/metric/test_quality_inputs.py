@@ -15,19 +15,20 @@ from metric_helpers import (
     textured,
     textured_pair,
 )
+from one_line import one_line_error
 
-from lensdist_torch import (
+from lensdist_torch.metric import (
     QualityConfig,
     RegistrationQuality,
     RegistrationQualityLoss,
+    block_counts,
+    error_images,
+    local_criteria,
     quality_map,
+    registration_error_counts,
     registration_quality,
     registration_quality_loss,
 )
-from lensdist_torch.metric import block_counts, error_images, local_criteria, registration_error_counts
-
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
 
 # ----------------------------------------------------------------------------- modules and the loss
 
@@ -189,19 +190,14 @@ class TestInputs:
     @pytest.mark.bad_input
     def test_bad_settings(self):
         img = torch.rand(1, 1, 16, 16)
-        with pytest.raises(ValueError, match="reduction"):
-            registration_quality_loss(img, img, reduction="max")
-        with pytest.raises(ValueError, match="reduction"):
-            RegistrationQualityLoss(reduction="avg")
-        with pytest.raises(TypeError, match="config"):
-            quality_map(img, img, config={"theta_g": 0.02})
+        one_line_error(ValueError, lambda: registration_quality_loss(img, img, reduction="max"), "reduction")
+        one_line_error(ValueError, lambda: RegistrationQualityLoss(reduction="avg"), "reduction")
+        one_line_error(TypeError, lambda: quality_map(img, img, config={"theta_g": 0.02}), "config")
         for dr in (0, -1.0, "1"):
-            with pytest.raises(ValueError, match="data_range"):
-                quality_map(img, img, data_range=dr)
-        with pytest.raises(ValueError, match="block_size"):
-            block_counts(torch.zeros(1, 1, 12, 16), 8)
-        with pytest.raises(ValueError, match="block_size"):
-            registration_error_counts(img, img, config=QualityConfig(block_size=16))
+            one_line_error(ValueError, lambda dr=dr: quality_map(img, img, data_range=dr), "data_range")
+        one_line_error(ValueError, lambda: block_counts(torch.zeros(1, 1, 12, 16), 8), "block_size")
+        cfg16 = QualityConfig(block_size=16)
+        one_line_error(ValueError, lambda: registration_error_counts(img, img, config=cfg16), "block_size")
 
     @pytest.mark.bad_input
     def test_validate_false_skips_only_the_finite_check(self):

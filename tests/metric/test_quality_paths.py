@@ -29,8 +29,6 @@ from lensdist_torch.metric import (
     registration_error_counts,
 )
 
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
 
 class TestValidity:
     def _all_errors(self):

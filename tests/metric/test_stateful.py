@@ -14,8 +14,6 @@ import lensdist_torch.metric.stateful as stateful
 from lensdist_torch import ClassRMSE, ConfusionMatrix, QualityConfig, quality_map, registration_quality
 from lensdist_torch.metric.stateful import QualityMetricResult, RegistrationQualityMetric
 
-pytestmark = pytest.mark.usefixtures("one_thread_module")
-
 
 def pairs(n: int = 11, h: int = 37, w: int = 45, seed: int = 0):
     """n pairs of different misregistrations, and masks (one pair fully invalid on one side)."""
