@@ -11,12 +11,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from generated_sets import generate_once
 
 from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
 from lensdist_torch.classify.regression import DeltaRegressor
 from lensdist_torch.cli import main
 from lensdist_torch.config import config_from_dict, config_to_dict
-from lensdist_torch.data.shards import generate, shard_path
+from lensdist_torch.data.shards import shard_path
 from lensdist_torch.workflows.evaluate import fit_classifier
 
 pytestmark = pytest.mark.bad_input
@@ -31,9 +32,7 @@ CFG = config_from_dict(SMALL)
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("train") / "mid"
-    generate(CFG, out, progress=False)
-    return out
+    return generate_once(tmp_path_factory, "train", CFG, folder="mid")[0]
 
 
 def _digest(path: Path) -> str:

@@ -3,7 +3,8 @@ corrupted shards are never used, the manifest is validated and never shrinks, on
 time writes a share, the worker count is capped, and a rerun with nothing to do writes nothing.
 
 One tiny reference data set (the one of test_shards.py: 96 x 128 views, 8 training and 4 + 2
-test pairs, shards of 4) is generated once per module and copied for each test that changes it.
+test pairs, shards of 4; tests/generated_sets.py) is generated once per module and copied for each
+test that changes it (tests/data/conftest.py).
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import hashlib
 import json
 import os
 import random
-import shutil
 import socket
 import stat
 import subprocess
@@ -20,9 +20,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from generated_sets import TINY_CFG as CFG
+from one_line import one_line
 
 from lensdist_torch.cli import main as cli_main
-from lensdist_torch.config import config_from_dict
 from lensdist_torch.data import locks, manifest, shardfile, shards
 from lensdist_torch.data.shards import (
     FORMAT_VERSION,
@@ -36,29 +37,8 @@ from lensdist_torch.data.shards import (
     shard_path,
     write_shard,
 )
-from one_line import one_line
 
-TINY = {
-    "image": {"height": 96, "width": 128},
-    "protocol": {"n_train": 8, "n_test_distorted": 4, "n_test_undistorted": 2, "shard_size": 4},
-}
-CFG = config_from_dict(TINY)
 ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("integrity") / "ref"
-    generate(CFG, out, progress=False)
-    return out
-
-
-@pytest.fixture
-def data(reference, tmp_path) -> Path:
-    """A fresh copy of the reference data set."""
-    out = tmp_path / "d"
-    shutil.copytree(reference, out)
-    return out
 
 
 def snapshot(out: Path) -> dict[str, tuple[str, int]]:

@@ -67,6 +67,14 @@ def clean_of(scenes, params, config):
     return render_pairs(scenes, dataclasses.replace(params, realism=None), config)
 
 
+def rendered(scenes, n: int, **effects):
+    """The first ``n`` training pairs of ``only(**effects)``: their draws, their renders (r1, r2)
+    and the clean renders of the same pairs (c1, c2)."""
+    cfg = only(**effects)
+    p = draw_pairs(cfg, "train", range(n), 2)
+    return p, render_pairs(scenes, p, cfg), clean_of(scenes, p, cfg)
+
+
 # ------------------------------------------------------------------------ the default protocol
 
 
@@ -192,10 +200,7 @@ def _fit(clean: torch.Tensor, real: torch.Tensor) -> tuple[float, float, float]:
 
 class TestEffects:
     def test_gain_and_offset_recovered(self, scenes):
-        cfg = only(gain_range=[0.7, 1.3], offset_range=[-0.1, 0.1])
-        p = draw_pairs(cfg, "train", range(8), 2)
-        r1, r2 = render_pairs(scenes, p, cfg)
-        c1, c2 = clean_of(scenes, p, cfg)
+        p, (r1, r2), (c1, c2) = rendered(scenes, 8, gain_range=[0.7, 1.3], offset_range=[-0.1, 0.1])
         for j in range(8):
             for v, (c, r) in enumerate(((c1, r1), (c2, r2))):
                 gain, offset, res = _fit(c[j], r[j])
@@ -204,10 +209,7 @@ class TestEffects:
                 assert res < 0.004  # 8 bits and JPEG at quality 100 only
 
     def test_gamma(self, scenes):
-        cfg = only(gamma_range=[0.8, 1.25])
-        p = draw_pairs(cfg, "train", range(6), 2)
-        r1, _ = render_pairs(scenes, p, cfg)
-        c1, _ = clean_of(scenes, p, cfg)
+        p, (r1, _), (c1, _) = rendered(scenes, 6, gamma_range=[0.8, 1.25])
         for j in range(6):
             g = float(p.realism.photometric[j, 0, 2])
             assert 0.8 <= g <= 1.25
@@ -215,10 +217,7 @@ class TestEffects:
             assert err < 0.003 and err < 0.2 * (r1[j] - c1[j]).abs().mean() + 1e-3
 
     def test_illumination_ramp_and_vignetting(self, scenes):
-        cfg = only(illumination=0.25)
-        p = draw_pairs(cfg, "train", range(8), 2)
-        r1, r2 = render_pairs(scenes, p, cfg)
-        c1, c2 = clean_of(scenes, p, cfg)
+        p, (r1, r2), (c1, c2) = rendered(scenes, 8, illumination=0.25)
         for v, (c, r) in enumerate(((c1, r1), (c2, r2))):
             light = illumination_field(p.realism.photometric[:, v], HS, WS)
             s = p.realism.photometric[:, v, 3].float()[:, None, None, None]
@@ -229,10 +228,7 @@ class TestEffects:
         assert not torch.equal(*views)
 
     def test_noise_std(self, scenes):
-        cfg = only(noise_range=[0.005, 0.02])
-        p = draw_pairs(cfg, "train", range(8), 2)
-        r1, r2 = render_pairs(scenes, p, cfg)
-        c1, c2 = clean_of(scenes, p, cfg)
+        p, (r1, r2), (c1, c2) = rendered(scenes, 8, noise_range=[0.005, 0.02])
         for j in range(8):
             d1, d2 = r1[j] - c1[j], r2[j] - c2[j]
             for v, d in enumerate((d1, d2)):
@@ -340,10 +336,7 @@ class TestEffects:
         assert height_field(draw_pairs(REAL, "train", [0], 2).realism, 0, HS, WS) is None
 
     def test_occluders(self, scenes):
-        cfg = only(occluder_rate=1.0)
-        p = draw_pairs(cfg, "train", range(12), 2)
-        r1, r2 = render_pairs(scenes, p, cfg)
-        c1, c2 = clean_of(scenes, p, cfg)
+        p, (r1, r2), (c1, c2) = rendered(scenes, 12, occluder_rate=1.0)
         assert bool(p.realism.occluded.all())
         for j in range(12):
             patch = occluder_patch(p.realism, j)

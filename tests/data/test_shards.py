@@ -18,6 +18,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from generated_sets import TINY, generate_once
+from generated_sets import TINY_CFG as CFG
 
 from lensdist_torch.cli import main as cli_main
 from lensdist_torch.config import config_from_dict, config_to_dict
@@ -38,10 +40,6 @@ from lensdist_torch.data.shards import (
 from lensdist_torch.data.synthesis import make_pairs
 from lensdist_torch.geometry.distortion import REJECT
 
-TINY = {
-    "image": {"height": 96, "width": 128},
-    "protocol": {"n_train": 8, "n_test_distorted": 4, "n_test_undistorted": 2, "shard_size": 4},
-}
 TINY_TOML = """\
 [image]
 height = 96
@@ -53,7 +51,6 @@ n_test_distorted = 4
 n_test_undistorted = 2
 shard_size = 4
 """
-CFG = config_from_dict(TINY)
 SHARDS = [("train", 0), ("train", 1), ("test", 0), ("test", 1)]
 
 
@@ -71,9 +68,8 @@ def assert_same_shards(a: Path, b: Path, shards=SHARDS) -> None:
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory) -> tuple[Path, dict]:
-    out = tmp_path_factory.mktemp("data") / "ref"
-    summary = generate(CFG, out, progress=False)
-    return out, summary
+    """The tiny data set and generate's summary of it."""
+    return generate_once(tmp_path_factory, "data")
 
 
 def png(path: Path, img: torch.Tensor) -> Path:

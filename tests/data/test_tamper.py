@@ -1,20 +1,21 @@
 """Data sets changed consistently by hand (issue 19): a shard changed together with its
 checksum file, a manifest whose counts were edited, arguments that would silently drop pairs.
 
-The tiny data set of test_integrity.py (8 training and 6 test pairs, shards of 4).
+The tiny data set of tests/generated_sets.py (8 training and 6 test pairs, shards of 4), from
+tests/data/conftest.py.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 from pathlib import Path
 
 import pytest
 import torch
+from generated_sets import TINY_CFG as CFG
+from one_line import one_line
 
-from lensdist_torch.config import config_from_dict
 from lensdist_torch.data.shards import (
     ShardError,
     checksum_path,
@@ -25,35 +26,13 @@ from lensdist_torch.data.shards import (
     shard_path,
     write_shard,
 )
-from one_line import one_line
 
 pytestmark = pytest.mark.bad_input
 
-TINY = {
-    "image": {"height": 96, "width": 128},
-    "protocol": {"n_train": 8, "n_test_distorted": 4, "n_test_undistorted": 2, "shard_size": 4},
-}
-CFG = config_from_dict(TINY)
-
-
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("tamper") / "ref"
-    generate(CFG, out, progress=False)
-    return out
-
-
-@pytest.fixture
-def data(reference, tmp_path) -> Path:
-    out = tmp_path / "d"
-    shutil.copytree(reference, out)
-    return out
 
 
 def files(out: Path) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
-
-
 
 
 def _edit_manifest(out: Path, fn) -> None:
