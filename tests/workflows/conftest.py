@@ -1,6 +1,9 @@
-"""Shared fixtures of the workflow tests: one tiny protocol run (small images, few pairs)."""
+"""Shared fixtures of the workflow tests: one tiny protocol run (small images, few pairs), a stand-in for PyAV."""
 
 from __future__ import annotations
+
+import sys
+import types
 
 import pytest
 import torch
@@ -22,3 +25,28 @@ def tiny_run(tmp_path_factory):
     finally:
         torch.set_num_threads(n)
     return out, res
+
+
+@pytest.fixture
+def fake_pyav(monkeypatch):
+    """``fake_pyav(frames)`` makes ``import av`` a stand-in for PyAV's open / decode whose one video
+    stream yields a frame for each of ``frames``: functions ``format -> array``, the frame's
+    ``to_ndarray(format=...)``."""
+
+    def install(frames) -> None:
+        class Container:
+            streams = types.SimpleNamespace(video=[0])
+
+            def __enter__(self):
+                return self
+
+            def __exit__(self, *exc):
+                return False
+
+            def decode(self, video):
+                assert video == 0
+                yield from (types.SimpleNamespace(to_ndarray=f) for f in frames)
+
+        monkeypatch.setitem(sys.modules, "av", types.SimpleNamespace(open=lambda path: Container()))
+
+    return install

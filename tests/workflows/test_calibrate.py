@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import types
 
 import cv2
 import numpy as np
@@ -139,37 +138,20 @@ def test_too_little_motion_is_said_before_any_mapping(tmp_path, capsys, monkeypa
         assert code == rc and res["reason"] == want and res["class"] is None and res["multiview"] == {"reason": want}
 
 
-def _fake_pyav(frames):
-    """A stand-in for PyAV's open / decode / to_ndarray over (N, 3, H, W) frames in [0, 1]."""
+def _pyav_frame(img):
+    """PyAV's ``to_ndarray`` of one (3, H, W) frame in [0, 1]: (H, W) grey or (H, W, 3) colour, uint8."""
 
-    class Frame:
-        def __init__(self, img):
-            self.img = img
+    def to_ndarray(format):  # noqa: A002 (PyAV's keyword)
+        x = to_uint8(to_grey(img[None])[0] if format == "gray" else img)
+        return x[0].numpy() if format == "gray" else x.permute(1, 2, 0).numpy()
 
-        def to_ndarray(self, format):  # noqa: A002 (PyAV's keyword)
-            x = to_uint8(to_grey(self.img[None])[0] if format == "gray" else self.img)
-            return x[0].numpy() if format == "gray" else x.permute(1, 2, 0).numpy()
-
-    class Container:
-        streams = types.SimpleNamespace(video=[0])
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def decode(self, video):
-            assert video == 0
-            yield from (Frame(f) for f in frames)
-
-    return types.SimpleNamespace(open=lambda path: Container())
+    return to_ndarray
 
 
-def test_video_through_pyav(sequence, tmp_path, monkeypatch):
+def test_video_through_pyav(sequence, tmp_path, fake_pyav):
     folder, _ = sequence
     frames = torch.cat([load_image(p, grey=False) for p in list_frames(folder)])
-    monkeypatch.setitem(sys.modules, "av", _fake_pyav(frames))
+    fake_pyav([_pyav_frame(f) for f in frames])
     (tmp_path / "clip.mp4").write_bytes(b"")
     res = calibrate_path(tmp_path / "clip.mp4", max_frames=8, method="direct")  # the reading is tested, not COLMAP (CI time)
     assert res["frames"] == 8 and res["class"] == "3"

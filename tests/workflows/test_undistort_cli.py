@@ -5,14 +5,12 @@ outputs that would destroy a file."""
 from __future__ import annotations
 
 import json
-import sys
-import types
 
 import cv2
 import numpy as np
 import pytest
 import torch
-from one_line import one_line_usage
+from one_line import one_line_error, one_line_usage
 
 from lensdist_torch.cli import main
 from lensdist_torch.core.png import encode_png
@@ -305,31 +303,15 @@ def test_an_input_is_never_overwritten_even_with_overwrite(tmp_path, capsys):
 
 
 @pytest.mark.bad_input
-def test_a_video_does_not_overwrite_earlier_frames(tmp_path, monkeypatch):
-    class Frame:
-        def to_ndarray(self, format):  # noqa: A002 (PyAV's keyword)
-            return np.zeros((*SIZE, 3), np.uint8)
-
-    class Container:
-        streams = types.SimpleNamespace(video=[0])
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def decode(self, video):
-            yield from (Frame(), Frame())
-
-    monkeypatch.setitem(sys.modules, "av", types.SimpleNamespace(open=lambda path: Container()))
+def test_a_video_does_not_overwrite_earlier_frames(tmp_path, fake_pyav):
+    fake_pyav([lambda format: np.zeros((*SIZE, 3), np.uint8)] * 2)  # two frames, whatever the format
     (tmp_path / "clip.mp4").write_bytes(b"")
     out = tmp_path / "out"
     (out / "masks").mkdir(parents=True)
     (out / "masks" / "frame_000001.png").write_bytes(b"earlier")
-    with pytest.raises(ValueError, match="frame_000001.png exists") as err:
-        undistort_path(tmp_path / "clip.mp4", out, k2=1e-6, k4=0.0)
-    assert "\n" not in str(err.value) and (out / "masks" / "frame_000001.png").read_bytes() == b"earlier"
+    video = tmp_path / "clip.mp4"
+    one_line_error(ValueError, lambda: undistort_path(video, out, k2=1e-6, k4=0.0), "frame_000001.png exists")
+    assert (out / "masks" / "frame_000001.png").read_bytes() == b"earlier"
     assert sorted(p.name for p in out.rglob("*")) == ["frame_000001.png", "masks"]
     assert undistort_path(tmp_path / "clip.mp4", out, k2=1e-6, k4=0.0, overwrite=True)["frames"] == 2
 
