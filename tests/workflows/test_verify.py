@@ -128,3 +128,19 @@ def test_an_answers_own_lens_verifies_as_eq4_where_it_is_eq4(frames):
     assert verify_undistortion(frames, PAIRS, 0.0, 0.0, lens=lens) == eq4  # (k2, k4) unused: the lens is applied
     off = {**lens, "centre": [c + 12.0 for c in lens["centre"]]}  # the same lens about another centre: worse
     assert verify_undistortion(frames, PAIRS, K2, 0.0, lens=off)["error_share_after"] > eq4["error_share_after"]
+
+
+@pytest.fixture(scope="module")
+def pincushion_frames():
+    return synthetic_sequence(6, -K2, 0.0, size=(160, 212), step_px=(20, 24))[0]
+
+
+def test_a_pincushion_lens_is_verified_inside_its_corrected_frame(pincushion_frames):
+    """Its correction leaves the corners empty: registered inside the valid box, the truth lowers the errors."""
+    cal = SimpleNamespace(pairs=PAIRS, pair_used=torch.ones(3, dtype=torch.bool))
+    right = _verified(_answer(-K2), pincushion_frames, cal, CalibrationConfig(), LensdistConfig())
+    check = right["verification"]
+    assert check["registered_after"] == 3 and check["verdict"] == "lowered" and right["class"] == "1"
+    assert check["error_share_after"] < 0.5 * check["error_share_before"]
+    wrong = _verified(_answer(K2), pincushion_frames, cal, CalibrationConfig(), LensdistConfig())  # barrel's sign
+    assert wrong["class"] is None and wrong["verification"]["verdict"] == "not lowered"

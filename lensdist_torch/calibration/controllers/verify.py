@@ -7,7 +7,10 @@ criteria, the 8 x 8 block map). :func:`verify_undistortion` registers a few of t
 pairs as they are and again after :func:`~lensdist_torch.geometry.undistort.undistort_image`
 with the estimate, and counts the error blocks among the blocks that are valid in both views
 (the undistorted frames lose their outer pixels: only fully valid blocks count, each time as a
-share of the blocks counted). ``lensdist calibrate`` withholds the class of an estimate whose
+share of the blocks counted). The undistorted frames are registered inside the largest centred
+rectangle of the frame's shape where every corrected pixel is valid (:func:`valid_box`): a
+pincushion correction leaves the corners empty, and empty corners that stay in place in both
+views would hold the registration at the identity. ``lensdist calibrate`` withholds the class of an estimate whose
 correction does not lower that share (``calibration.verify_margin``).
 """
 
@@ -24,7 +27,7 @@ from lensdist_torch.metric.quality import counts_to_map, registration_error_coun
 from lensdist_torch.registration.direct import warp_to_reference
 from lensdist_torch.registration.wide_baseline import estimate_homography_robust
 
-__all__ = ["COUNTS", "VERDICTS", "error_blocks", "verdict", "verify_undistortion"]
+__all__ = ["COUNTS", "VERDICTS", "error_blocks", "valid_box", "verdict", "verify_undistortion"]
 
 #: The counts of :func:`verify_undistortion`'s dict.
 COUNTS = ("pairs", "registered_before", "registered_after", "error_blocks_before", "error_blocks_after",
@@ -32,6 +35,8 @@ COUNTS = ("pairs", "registered_before", "registered_after", "error_blocks_before
 #: What a verification says of an estimate: its correction lowered the registration errors, did
 #: not (the class is withheld), or nothing could be compared (the class stands, unverified).
 VERDICTS = ("lowered", "not lowered", "not measurable")
+#: The undistorted frames are registered inside :func:`valid_box` where both its sides are this long (px).
+MIN_BOX = 32
 
 
 def verdict(check: dict, count_gained: bool = True) -> str:
@@ -84,6 +89,28 @@ def error_blocks(img1: torch.Tensor, img2: torch.Tensor, mask1: torch.Tensor, ma
     return int(((qmap > 0) & full).sum()), int(full.sum()), True
 
 
+def valid_box(valid: torch.Tensor) -> tuple[int, int, int, int]:
+    """(top, left, bottom, right): the largest centred rectangle of the frame's shape inside ``valid`` (1, 1, H, W).
+
+    Shrunk in steps of 1 % of the frame's sides until every pixel in it is valid; the whole
+    frame where it is valid, an empty box where not even the centre pixel is.
+
+    Example:
+        >>> valid = torch.ones(1, 1, 40, 60, dtype=torch.bool)
+        >>> valid[..., :4, :6] = False  # an empty corner
+        >>> valid_box(valid), valid_box(torch.ones(1, 1, 40, 60))
+        ((4, 5, 36, 54), (0, 0, 40, 60))
+    """
+    h, w = valid.shape[-2:]
+    v = valid.reshape(h, w) > 0
+    for pct in range(100, 0, -1):
+        bh, bw = max(1, round(h * pct / 100)), max(1, round(w * pct / 100))
+        top, left = (h - bh) // 2, (w - bw) // 2
+        if bool(v[top : top + bh, left : left + bw].all()):
+            return top, left, top + bh, left + bw
+    return h // 2, w // 2, h // 2, w // 2
+
+
 def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4: float,
                         *,
                         settings: LensdistConfig | None = None, max_pairs: int = 6, lens: dict | None = None) -> dict:
@@ -124,6 +151,9 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
     grid, valid = lens_grid(lens or eq4_lens(k2, k4), *frames.shape[-2:], frames.dtype, frames.device)
     masks = valid.expand(len(used), -1, -1, -1)
     fixed = sample_at_pixels(frames[used], grid.expand(len(used), -1, -1, -1)) * masks
+    top, left, bottom, right = valid_box(valid)
+    if min(bottom - top, right - left) >= MIN_BOX:  # registered inside the valid box (module docstring)
+        fixed, masks = fixed[..., top:bottom, left:right], masks[..., top:bottom, left:right]
     totals = dict.fromkeys(("error_blocks_before", "blocks_before", "error_blocks_after", "blocks_after",
                             "registered_before", "registered_after"), 0)
     for i, j in pairs.tolist():
