@@ -47,8 +47,9 @@ def _refined(pl: dict) -> str:
             f"{before['delta_avg_user_px']:.2f} px)")
 
 
-def _print_calibration(res: dict) -> None:
-    (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
+def _paths(res: dict) -> None:
+    """Each path's own numbers, after the answer: the frames and the direct path, the multi-view path, the homography model."""
+    (h, w) = res["image_size"]
     unregistered = f" ({res['pairs_unregistered']} not registered)" if res.get("pairs_unregistered") else ""
     print(f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected"
           + unregistered)
@@ -70,22 +71,45 @@ def _print_calibration(res: dict) -> None:
               f"pair, {pl['terms']} radial terms about ({pl['centre'][0]:.1f}, {pl['centre'][1]:.1f}) (by BIC), RMS "
               f"{pl['reprojection_px']:.2f} px, Delta_avg {pl['delta_avg_user_px']:.2f} px "
               f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl) + _guided(pl) + _refined(pl))
-    print(f"answer from: {res['method']}")
+
+
+#: Which path an answer's ``method`` names, in words.
+_FROM = {"direct": "the direct path (eq. 4)", "multiview": "the multi-view path (COLMAP)",
+         "planar": "the homography model", "both": "the direct and multi-view paths"}
+#: What the OpenCV camera's fx = fy is, per ``focal_source``.
+_FOCAL = {"colmap": "COLMAP's estimate from the bundle adjustment",
+          "given": "yours (--focal)",
+          "half diagonal": "the half diagonal, a convention (the lens model has no focal length; --focal F sets yours)"}
+
+
+def _kind(res: dict) -> str:
+    """", barrel" / ", pincushion" / ", mustache" of the answer's eq. 4, or ""."""
+    from lensdist_torch.geometry.distortion import distortion_type
+    from lensdist_torch.geometry.frame import half_diagonal
+
+    r = half_diagonal(*res["image_size"])
+    kind = distortion_type(res["k2_user"] * r**2, res["k4_user"] * r**4)
+    return f", {kind}" if kind else ""
+
+
+def _print_calibration(res: dict, out: str | Path | None = None) -> None:
+    """The text answer: the answer first (class, Delta, OpenCV's camera, the next command), then each path's numbers."""
+    (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
     if res["k2_user"] is None:
-        print(f"no estimate: {res['reason']}")
+        print(f"answer: none ({res['reason']})")
+        _paths(res)
         return
-    print(f"distortion class: {res['class'] or 'cannot tell (' + res['reason'] + ')'}  (1 = small ... 4 = very strong, "
-          "R = none visible)")
+    print(f"distortion class: {(res['class'] + _kind(res)) if res['class'] else 'cannot tell (' + res['reason'] + ')'}  "
+          "(1 = small ... 4 = very strong, R = none visible)")
     # where it cannot tell, the numbers are the estimate that could not be trusted, and say so
     tag = "" if res["class"] is not None else "estimate, not an answer: "
-    print(f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}")
     for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
         bound = "" if a is None else (f" (95 % interval {a:.2f} to {b:.2f})" if b is not None else
                                       f" (95 % interval from {a:.2f}, no upper bound: a model the tracks do not determine)")
-        print(f"{tag}Delta_{name} = {d:.2f} px" + bound)
-    if res.get("eq4_fit_error_px") is not None:
-        print(f"Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where the lens model inverts; eq. 4 "
-              f"follows it to {res['eq4_fit_error_px']:.2f} px RMS")
+        print(f"{tag}Delta_{name} = {d:.2f} px" + bound + f" over your {w} x {h} frames")
+    print(f"from {_FROM.get(res.get('method'), res.get('method'))}" + (
+        "" if res.get("eq4_fit_error_px") is None else
+        f"; Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where its lens inverts"))
     from lensdist_torch.geometry.opencv_model import FOLLOWS_PX
 
     standard, rational = res["opencv"], res.get("opencv_rational")
@@ -99,9 +123,21 @@ def _print_calibration(res: dict) -> None:
               f"dist_coeffs = [{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error "
               f"{cv['fit_error_mean_px']:.3f} px mean, {cv['fit_error_max_px']:.3f} px max"
               + ("" if forward is None else f"; cv2.undistort's map {forward:.3f} px mean") + ")")
+    if res.get("focal_source") in _FOCAL:
+        print(f"fx, fy: {_FOCAL[res['focal_source']]}")
     if len(shown) == 2:
         print(f"OpenCV's 5 coefficients do not follow this lens (over {FOLLOWS_PX:g} px mean): use the 8 rational ones "
               "(cv2.CALIB_RATIONAL_MODEL's order); `lensdist undistort --from` applies the answer's own lens")
+    print(f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}" + (
+        "" if res.get("eq4_fit_error_px") is None else f" (follows the answer's lens to {res['eq4_fit_error_px']:.2f} px RMS)"))
+    if res["class"] is not None and res["class"] != "R":
+        src = res.get("path", "PATH")
+        cal = Path(out) / "calibration.json" if out else None
+        print("next: " + (f"lensdist undistort {src} --from {cal} --out {Path(out) / 'undistorted'}" if cal else
+                          f"lensdist calibrate {src} --out DIR, then lensdist undistort {src} --from DIR/calibration.json "
+                          "--out DIR/undistorted"))
+    print("each path:")
+    _paths(res)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
@@ -125,7 +161,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if args.json:
         print(answer_text(res))
     else:
-        _print_calibration(res)
+        _print_calibration(res, args.out)
         if args.out:
             print(f"written: {Path(args.out) / 'calibration.json'}")
     return 0

@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from lensdist_torch.calibration.controllers.answer_lens import answer_lens, scale_lens
+from lensdist_torch.calibration.controllers.answer_lens import answer_lens, lens_ideal, scale_lens
 from lensdist_torch.calibration.controllers.multiview_path import MIN_FRAMES, combine, multiview_path
 from lensdist_torch.calibration.controllers.verify import verdict, verify_undistortion
 from lensdist_torch.calibration.direct import (
@@ -40,12 +40,14 @@ from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
-from lensdist_torch.geometry.opencv_model import opencv_export
+from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_export
 
 METHODS = ("auto", "multiview", "direct")
+#: Where the OpenCV camera's fx = fy comes from (the answer's ``focal_source``): COLMAP's bundle
+#: adjustment (the multi-view camera), the caller's ``focal``, or the half diagonal (a convention).
+FOCAL_SOURCES = ("colmap", "given", "half diagonal")
 
-__all__ = ["METHODS", "calibrate_path",
-           "synthetic_sequence"]
+__all__ = ["METHODS", "FOCAL_SOURCES", "calibrate_path", "synthetic_sequence"]
 
 # ------------------------------------------------------------------ calibration
 def _finite(value):
@@ -101,6 +103,7 @@ def calibrate_path(
         pairs_unregistered (pairs whose fit did not register them, ``calibration.max_misfit``; among the rejected),
         relief_effect_px and relief_z (the direct path's: how far its plane +
         parallax and planar answers part, and in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors),
+        focal_source (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``),
         method (which path answered: "direct", "multiview", "both", "planar"), direct, multiview and planar
         (each path's own numbers; planar: the homography model of the multi-view path).
 
@@ -159,7 +162,28 @@ def calibrate_path(
         mv = multiview_path(path, size, st.multiview, st, max_frames, quiet)
         if method == "multiview" and not mv["ok"]:
             raise ValueError(mv["reason"])
-    return _finite(_verified(combine(out, mv), torch.cat(frames), cal, cfg, st))
+    return _finite(_verified(_with_focal(combine(out, mv), focal, size), torch.cat(frames), cal, cfg, st))
+
+
+def _with_focal(res: dict, focal: float | None, size: tuple[int, int]) -> dict:
+    """``focal_source`` (one of ``FOCAL_SOURCES``) added; the homography model's OpenCV camera fitted at a given focal.
+
+    Eq. 4 and the homography model's lens have no focal length: their OpenCV camera takes
+    ``focal`` where given, else the half diagonal, a convention. The multi-view camera's focal is
+    COLMAP's estimate from the bundle adjustment, whatever ``focal`` says.
+    """
+    if res.get("method") == "multiview":
+        res["focal_source"] = FOCAL_SOURCES[0]
+        return res
+    res["focal_source"] = FOCAL_SOURCES[1] if focal is not None else FOCAL_SOURCES[2]
+    lens = answer_lens(res)
+    if focal is not None and lens is not None and lens["kind"] == "radial":
+        h, w = size
+        for key, model in (("opencv", "standard"), ("opencv_rational", "rational")):
+            fit = opencv_camera_from_map(lambda p: lens_ideal(lens, p, h, w)[0], h, w, focal=focal, model=model,
+                                         step=map_grid_step(h, w), centre=lens["centre"])
+            res[key] = {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items() if k != "model"}
+    return res
 
 
 def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: LensdistConfig) -> dict:
