@@ -65,8 +65,8 @@ def opencv_lens(k, dist):
 def radial_lens(coefficients, centre, size):
     """(ideal, distort) of the homography model's lens a_1 .. a_n about ``centre``."""
     h, w = size
-    return (lambda p: (lens_ideal_points(p, coefficients, h, w, centre), torch.ones(len(p), dtype=torch.bool)),
-            lambda u: lens_distorted_points(u, coefficients, h, w, centre))
+    return (lambda p: (lens_ideal_points(p, coefficients, h, w, centre=centre), torch.ones(len(p), dtype=torch.bool)),
+            lambda u: lens_distorted_points(u, coefficients, h, w, centre=centre))
 
 
 def transfer_errors(lens, m: PlanarMatches, pairs) -> torch.Tensor:

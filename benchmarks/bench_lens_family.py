@@ -41,7 +41,7 @@ def fit_family(points: torch.Tensor, ideal: torch.Tensor, centre, terms: int, si
     alone (:func:`lens_ideal_points`) adds to the points.
     """
     unit = torch.eye(terms, dtype=points.dtype)
-    columns = torch.stack([(lens_ideal_points(points, unit[k], *size, centre) - points).reshape(-1) for k in range(terms)], 1)
+    columns = torch.stack([(lens_ideal_points(points, unit[k], *size, centre=centre) - points).reshape(-1) for k in range(terms)], 1)
     return torch.linalg.lstsq(columns, (ideal - points).reshape(-1, 1)).solution[:, 0].tolist()
 
 
@@ -89,7 +89,7 @@ def main() -> None:
         planar = json.loads(Path(args.answer).read_text())["answer"]["planar"]
         centres[f"lensdist's ({planar['model']})"] = planar["centre"]
     truth_a, truth_c = [0.3, 0.1, 0.05], [w / 2 + 7.0, h / 2 - 5.0]  # self-check: the family's own map is fitted exactly
-    back = fit_family(p, lens_ideal_points(p, truth_a, h, w, truth_c), truth_c, 3, (h, w))
+    back = fit_family(p, lens_ideal_points(p, truth_a, h, w, centre=truth_c), truth_c, 3, (h, w))
     if max(abs(x - y) for x, y in zip(back, truth_a)) > 1e-9:
         raise SystemExit(f"self-check failed: {truth_a} fitted as {back}")
     report = {"calibration": checked(corners, k=cal["K"], dist=cal["dist"]), "rows": []}
@@ -97,9 +97,9 @@ def main() -> None:
     for where, centre in centres.items():
         for n in args.terms:
             a = fit_family(p, ideal, centre, n, (h, w))
-            fitted = lens_ideal_points(p, a, h, w, centre)
+            fitted = lens_ideal_points(p, a, h, w, centre=centre)
             map_rms = float((fitted - ideal).norm(dim=-1).pow(2).mean().sqrt())
-            s = checked(corners, k=None, dist=None, ideal=lambda x, a=a, centre=centre: lens_ideal_points(x, a, h, w, centre))
+            s = checked(corners, k=None, dist=None, ideal=lambda x, a=a, centre=centre: lens_ideal_points(x, a, h, w, centre=centre))
             report["rows"].append({"centre": where, "centre_px": centre, "terms": n, "coefficients": a, "map_rms_px": map_rms, **s})
             print(f"{n} terms about {where} ({centre[0]:.1f}, {centre[1]:.1f}): map RMS {map_rms:.2f} px; {said(s)}")
     if args.out:

@@ -197,7 +197,7 @@ def main() -> None:
         maps = {}
         if planar.get("coefficients"):  # the homography model's own lens map, beside its OpenCV export
             a, centre = planar["coefficients"], planar["centre"]
-            maps["homography model (its lens map)"] = lambda p: lens_ideal_points(p, a, h, w, centre)
+            maps["homography model (its lens map)"] = lambda p: lens_ideal_points(p, a, h, w, centre=centre)
             value, iv = on_truth
             report["planar_on_truth_footprint"] = {"delta_avg_px": value, "interval": iv,
                                                    "covers": iv[0] <= truth["delta_avg_px"] <= iv[1]}

@@ -102,9 +102,10 @@ def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, i
     cfg = or_defaults(config, MultiViewConfig)
     h, w = size
     pairs, weight = {}, {}
-    u1 = lens_ideal_points(matches.x1, coefficients, h, w, centre)
-    u2 = lens_ideal_points(matches.x2, coefficients, h, w, centre)
-    for p, _, hm, mask in pair_homographies(u1, u2, matches.pair, range(len(matches.first)), cfg.planar_inlier_px, cfg.seed):
+    u1 = lens_ideal_points(matches.x1, coefficients, h, w, centre=centre)
+    u2 = lens_ideal_points(matches.x2, coefficients, h, w, centre=centre)
+    for p, _, hm, mask in pair_homographies(u1, u2, matches.pair, which=range(len(matches.first)),
+                                            max_error=cfg.planar_inlier_px, seed=cfg.seed):
         if hm is not None and int(mask.sum()) >= cfg.planar_min_matches:
             key = (int(matches.first[p]), int(matches.second[p]))
             pairs[key], weight[key] = hm, int(mask.sum())
@@ -168,8 +169,8 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
     """
     cfg = or_defaults(config, MultiViewConfig)
     h, w = size
-    pairs, views = chain_views(matches, coefficients, centre, size, cfg)
-    ideal = {v: lens_ideal_points(features[v][0], coefficients, h, w, centre) for v in views}
+    pairs, views = chain_views(matches, coefficients, centre=centre, size=size, config=cfg)
+    ideal = {v: lens_ideal_points(features[v][0], coefficients, h, w, centre=centre) for v in views}
     x1, x2, pair, first, second = [], [], [], [], []
     for p in range(len(matches.first)):
         i, j = int(matches.first[p]), int(matches.second[p])

@@ -91,7 +91,7 @@ def align_patches(image1: torch.Tensor, image2: torch.Tensor, x1: torch.Tensor, 
         >>> a, b = _prepared(scene(xx, yy), 0.0), _prepared(0.8 * scene(xx - 2.3, yy + 1.6) + 0.1, 0.0)
         >>> x1 = torch.tensor([[30.0, 25.0], [40.0, 30.0]], dtype=torch.float64)
         >>> out, ncc, ok = align_patches(a, b, x1, x1 + torch.tensor([3.0, -1.0], dtype=torch.float64),
-        ...                              torch.eye(2, dtype=torch.float64).expand(2, 2, 2))
+        ...                              affine=torch.eye(2, dtype=torch.float64).expand(2, 2, 2))
         >>> [[round(v, 2) for v in p] for p in (out - x1).tolist()], ok.tolist()  # the shift (2.3, -1.6) under gain 0.8
         ([[2.3, -1.6], [2.3, -1.6]], [True, True])
     """
@@ -143,8 +143,8 @@ def local_affines(x1: torch.Tensor, homography: torch.Tensor, coefficients, cent
     h, w = size
 
     def f(x):
-        ideal = lens_ideal_points(x, coefficients, h, w, centre)
-        return lens_distorted_points(apply_homography(homography[None], ideal)[0], coefficients, h, w, centre)[0]
+        ideal = lens_ideal_points(x, coefficients, h, w, centre=centre)
+        return lens_distorted_points(apply_homography(homography[None], ideal)[0], coefficients, h, w, centre=centre)[0]
 
     cols = []
     for e in torch.eye(2, dtype=x1.dtype):

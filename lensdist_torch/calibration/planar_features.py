@@ -193,7 +193,7 @@ def _start(matches: PlanarMatches, size, cfg: MultiViewConfig, terms: int):
 def _eq4_fit(a: torch.Tensor, centre: list[float], size: tuple[int, int], dl: dict) -> tuple[float, float, float]:
     """Eq. 4's (k2, k4) (about the frame centre) fitted to the lens map where it inverts, and the RMS error (px)."""
     p = dl["points"][dl["ok"]]
-    return fit_eq4(p, lens_ideal_points(p, a, *size, centre), *size)
+    return fit_eq4(p, lens_ideal_points(p, a, *size, centre=centre), *size)
 
 
 def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiViewConfig, step: int):
@@ -242,7 +242,7 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, config: 
     r = res.to_dict() if isinstance(res, PlanarCalibration) else res
 
     def there(a, centre) -> float:
-        return float((lens_ideal_points(points, a, height, width, centre) - points).norm(dim=-1).mean())
+        return float((lens_ideal_points(points, a, height, width, centre=centre) - points).norm(dim=-1).mean())
 
     value = there(r["coefficients"], r["centre"])
     table = {m: {**v, "delta_avg_px": there(v["coefficients"], v["centre"])} for m, v in r["models"].items()}
@@ -357,7 +357,7 @@ def self_calibrate_planar(
         reason = f"interval too wide: +-{half_avg:.2f} px"
     elif math.isfinite(k2u):
         label, reason = sequence_class(paper_frame_delta_avg(k2u, k4u, (h, w), st), dl["delta_avg_px"], half_avg, st)
-    cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre), h, w, model=m, step=step, centre=centre)
+    cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre=centre), h, w, model=m, step=step, centre=centre)
             for m in ("standard", "rational")]
     standard, rational = ({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in c._asdict().items() if k != "model"}
                           for c in cams)

@@ -231,8 +231,8 @@ def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: in
     h, w = size
     a, centre = lens_of(theta, terms, size)
     p = grid_points(h, w, step)
-    ok = lens_inverts(p, a, h, w, centre)
-    off = (lens_ideal_points(p, a, h, w, centre) - p).norm(dim=-1)[ok]
+    ok = lens_inverts(p, a, h, w, centre=centre)
+    off = (lens_ideal_points(p, a, h, w, centre=centre) - p).norm(dim=-1)[ok]
     if off.numel() == 0:
         return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok}
     return {"delta_avg_px": float(off.mean()), "delta_max_px": float(off.max()),
@@ -259,12 +259,12 @@ def bending_halfwidth(theta, replicates: list, n: int, size: tuple[int, int], dl
     if len(replicates) < 2 or len(p) < 3 or not len(seen):
         return math.nan, share
     a, centre = lens_of(theta, n, size)
-    x = lens_ideal_points(p, a, h, w, centre)
+    x = lens_ideal_points(p, a, h, w, centre=centre)
     design = torch.cat([x, torch.ones(len(x), 1, dtype=x.dtype)], 1)
     msq = []
     for tj in replicates:
         a, centre = lens_of(tj, n, size)
-        y = lens_ideal_points(p, a, h, w, centre)
+        y = lens_ideal_points(p, a, h, w, centre=centre)
         fit = design @ torch.linalg.lstsq(design, y).solution
         msq.append(float(((y - fit) ** 2).sum(-1).mean()))
     b = len(replicates)

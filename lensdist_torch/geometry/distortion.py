@@ -139,7 +139,7 @@ def undistort_points(points: torch.Tensor, k2, k4, center: tuple[float, float]) 
     return c + radial_factor(r2, k2.view(shape), k4.view(shape)) * d
 
 
-def distort_points(points: torch.Tensor, k2, k4, center: tuple[float, float], iterations: int = 8) -> torch.Tensor:
+def distort_points(points: torch.Tensor, k2, k4, center: tuple[float, float], *, iterations: int = 8) -> torch.Tensor:
     """Inverse of eq. 4 by Newton on the radius: ideal points p (B, ..., 2) -> distorted p_d.
 
     :func:`radial_inverse` on the radius; differentiable. Accurate to well below 1e-6 px over
@@ -190,7 +190,7 @@ def from_normalized(ab: torch.Tensor, height: int, width: int) -> tuple[torch.Te
     return ab[..., 0] / r**2, ab[..., 1] / r**4
 
 
-def pixel_offsets(k2, k4, height: int, width: int, dtype=torch.float64, device=None) -> torch.Tensor:
+def pixel_offsets(k2, k4, height: int, width: int, *, dtype=torch.float64, device=None) -> torch.Tensor:
     """delta(p_d) = ||p - p_d|| = |k2 r^3 + k4 r^5| at every pixel centre: (B, H, W).
 
     Example:

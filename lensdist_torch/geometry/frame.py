@@ -43,7 +43,7 @@ def normalizer(height: int, width: int, dtype=torch.float64, device=None) -> tor
 
 
 def level_coordinates(
-    level: int, height: int, width: int, full_height: int, full_width: int, stride: int = 1, device=None
+    level: int, height: int, width: int, *, full_height: int, full_width: int, stride: int = 1, device=None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Normalised coordinates of the pixel columns and rows of a pyramid level, float64.
 
@@ -59,15 +59,15 @@ def level_coordinates(
 
 
 def normalized_grid(
-    level: int, height: int, width: int, full_height: int, full_width: int, dtype=torch.float32, device=None
+    level: int, height: int, width: int, *, full_height: int, full_width: int, dtype=torch.float32, device=None
 ) -> torch.Tensor:
     """(h, w, 2) normalised coordinates (u, v) of every pixel of a pyramid level."""
-    u, v = level_coordinates(level, height, width, full_height, full_width, device=device)
+    u, v = level_coordinates(level, height, width, full_height=full_height, full_width=full_width, device=device)
     gv, gu = torch.meshgrid(v, u, indexing="ij")
     return torch.stack([gu, gv], -1).to(dtype)
 
 
-def level_to_grid(level: int, height: int, width: int, full_height: int, full_width: int) -> tuple[float, ...]:
+def level_to_grid(level: int, height: int, width: int, *, full_height: int, full_width: int) -> tuple[float, ...]:
     """(sx, ox, sy, oy): grid_sample coordinates on a level image, x = sx u + ox, y = sy v + oy."""
     f, scale = 2.0**level, half_diagonal(full_height, full_width)
     off = (f - 1) / 2

@@ -147,7 +147,7 @@ def _design(x: torch.Tensor, xd: torch.Tensor, model: str) -> torch.Tensor:
 
 
 def opencv_camera(
-    k2, k4, height: int, width: int, focal: float | None = None, model: str = "standard", step: int = 4
+    k2, k4, height: int, width: int, *, focal: float | None = None, model: str = "standard", step: int = 4
 ) -> OpenCVCamera:
     """Fit OpenCV's K and dist_coeffs to eq. 4's (k2, k4) of a (height, width) frame.
 
@@ -171,11 +171,12 @@ def opencv_camera(
     k2 = torch.as_tensor(k2, dtype=torch.float64).reshape(-1)[:1]
     k4 = torch.as_tensor(k4, dtype=torch.float64).reshape(-1)[:1]
     centre = distortion_center(height, width) if type(height) is int and type(width) is int else (0.0, 0.0)
-    return opencv_camera_from_map(lambda pd: undistort_points(pd[None], k2, k4, centre)[0], height, width, focal, model, step)
+    return opencv_camera_from_map(lambda pd: undistort_points(pd[None], k2, k4, centre)[0], height, width, focal=focal,
+                                  model=model, step=step)
 
 
 def opencv_camera_from_map(
-    ideal, height: int, width: int, focal: float | None = None, model: str = "standard", step: int = 4,
+    ideal, height: int, width: int, *, focal: float | None = None, model: str = "standard", step: int = 4,
     centre: tuple[float, float] | None = None,
 ) -> OpenCVCamera:
     """Fit OpenCV's K and dist_coeffs to any radial lens map about its centre (module docstring, steps 1-4).
@@ -230,7 +231,7 @@ def opencv_camera_from_map(
         forward_error_mean_px=float(fwd.mean()), forward_error_max_px=float(fwd.max()), model=model)
 
 
-def opencv_export(k2: float, k4: float, height: int, width: int, focal: float | None = None, model: str = "standard"):
+def opencv_export(k2: float, k4: float, height: int, width: int, *, focal: float | None = None, model: str = "standard"):
     """:func:`opencv_camera` as plain JSON-ready values, or None where (k2, k4) is not finite.
 
     Args:
@@ -359,7 +360,7 @@ def grid_points(height: int, width: int, step: int) -> torch.Tensor:
     return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
 
 
-def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, step: int = 4) -> dict:
+def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, *, step: int = 4) -> dict:
     """Delta over a (height, width) frame of an OpenCV camera: |p - ideal(p)| in pixels.
 
     The mean and the largest offset over every ``step``-th pixel where the model inverts

@@ -50,7 +50,7 @@ def _centre(points: torch.Tensor, height: int, width: int, centre) -> torch.Tens
     return points.new_tensor(distortion_center(height, width) if centre is None else [float(v) for v in centre])
 
 
-def lens_ideal_points(points: torch.Tensor, coefficients, height: int, width: int, centre=None) -> torch.Tensor:
+def lens_ideal_points(points: torch.Tensor, coefficients, height: int, width: int, *, centre=None) -> torch.Tensor:
     """Ideal pixels of (..., 2) distorted pixels under the lens a_1 .. a_n about ``centre`` (module docstring).
 
     ``centre``: the distortion centre (x, y) in pixels; the frame centre when None.
@@ -83,7 +83,7 @@ def monotone_radius(a: torch.Tensor) -> float:
     return float(r[int(falls[0, 0]), 0]) if len(falls) else math.inf
 
 
-def lens_inverts(points: torch.Tensor, coefficients, height: int, width: int, centre=None) -> torch.Tensor:
+def lens_inverts(points: torch.Tensor, coefficients, height: int, width: int, *, centre=None) -> torch.Tensor:
     """(...,) bool: where the lens's map inverts, the pixels (..., 2) closer to its centre than :func:`monotone_radius`.
 
     Example:
@@ -96,7 +96,7 @@ def lens_inverts(points: torch.Tensor, coefficients, height: int, width: int, ce
     return (points - c).norm(dim=-1) / half_diagonal(height, width) < monotone_radius(a)
 
 
-def lens_distorted_points(ideal: torch.Tensor, coefficients, height: int, width: int, centre=None,
+def lens_distorted_points(ideal: torch.Tensor, coefficients, height: int, width: int, *, centre=None,
                           iterations: int = 12) -> tuple[torch.Tensor, torch.Tensor]:
     """The distorted pixels of (..., 2) ideal pixels: :func:`lens_ideal_points` inverted on its monotone branch.
 
@@ -128,5 +128,5 @@ def lens_distorted_points(ideal: torch.Tensor, coefficients, height: int, width:
         r = (r - g / torch.where(dg.abs() > 1e-12, dg, torch.ones_like(dg))).clamp(0.0, top)
     scale = torch.where(rho > 0, r / torch.where(rho > 0, rho, torch.ones_like(rho)), torch.ones_like(rho))
     out = c + big_r * d * scale[..., None]
-    ok = ((lens_ideal_points(out, a, height, width, c.tolist()) - ideal).abs().amax(-1) <= 1e-2) & (r < top)
+    ok = ((lens_ideal_points(out, a, height, width, centre=c.tolist()) - ideal).abs().amax(-1) <= 1e-2) & (r < top)
     return out, ok

@@ -90,7 +90,7 @@ def monotone_branch(r2: torch.Tensor, k2, k4) -> torch.Tensor:
     return (radial_derivative(r2, k2, k4) > 0) & (radial_derivative(low, k2, k4) > 0)
 
 
-def optimal_view(k2: float, k4: float, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
+def optimal_view(k2: float, k4: float, height: int, width: int, *, alpha: float) -> tuple[float, float, float, float]:
     """The view (sx, sy, tx, ty) of OpenCV's ``getOptimalNewCameraMatrix(..., alpha)`` for eq. 4.
 
     The frame's border pixels are brought to their ideal positions by eq. 4 (those on its
@@ -103,10 +103,10 @@ def optimal_view(k2: float, k4: float, height: int, width: int, alpha: float) ->
     matrix is [[sx f, 0, sx cx + tx], [0, sy f, sy cy + ty], [0, 0, 1]].
 
     Example:
-        >>> sx, sy, tx, ty = optimal_view(1e-5, 0.0, 120, 160, 0.0)  # barrel: zoom out to the valid rectangle
+        >>> sx, sy, tx, ty = optimal_view(1e-5, 0.0, 120, 160, alpha=0.0)  # barrel: zoom out to the valid rectangle
         >>> round(sx, 3), round(sy, 3)
         (0.941, 0.966)
-        >>> optimal_view(0.0, 0.0, 120, 160, 1.0)  # no distortion: the frame itself
+        >>> optimal_view(0.0, 0.0, 120, 160, alpha=1.0)  # no distortion: the frame itself
         (1.0, 1.0, 0.0, 0.0)
     """
     def ideal(pts: torch.Tensor) -> torch.Tensor:  # the pixels on eq. 4's monotone branch, at their ideal positions
@@ -118,20 +118,20 @@ def optimal_view(k2: float, k4: float, height: int, width: int, alpha: float) ->
     return _view(ideal, height, width, alpha, f"k2 = {k2:.4g}, k4 = {k4:.4g}", "eq. 4")
 
 
-def lens_optimal_view(coefficients, centre, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
+def lens_optimal_view(coefficients, centre, height: int, width: int, *, alpha: float) -> tuple[float, float, float, float]:
     """:func:`optimal_view` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
 
     Example:
         >>> from lensdist_torch.geometry.frame import half_diagonal
         >>> big_r = half_diagonal(120, 160)  # eq. 4's k2 = 1e-5 as the lens's a_1 about the frame centre
-        >>> [round(v, 6) for v in lens_optimal_view([1e-5 * big_r**2], None, 120, 160, 0.0)] == [
-        ...     round(v, 6) for v in optimal_view(1e-5, 0.0, 120, 160, 0.0)]
+        >>> [round(v, 6) for v in lens_optimal_view([1e-5 * big_r**2], None, 120, 160, alpha=0.0)] == [
+        ...     round(v, 6) for v in optimal_view(1e-5, 0.0, 120, 160, alpha=0.0)]
         True
     """
     a = torch.as_tensor(coefficients, dtype=torch.float64)
 
     def ideal(pts: torch.Tensor) -> torch.Tensor:
-        return lens_ideal_points(pts[lens_inverts(pts, a, height, width, centre)], a, height, width, centre)
+        return lens_ideal_points(pts[lens_inverts(pts, a, height, width, centre=centre)], a, height, width, centre=centre)
 
     return _view(ideal, height, width, alpha, f"the lens {[round(float(v), 4) for v in a]}", "the lens")
 
@@ -177,7 +177,7 @@ def _check_view(view) -> tuple[float, float, float, float] | None:
 
 
 def undistortion_grid(
-    k2, k4, height: int, width: int, dtype: torch.dtype = torch.float32, device=None, view=None
+    k2, k4, height: int, width: int, *, dtype: torch.dtype = torch.float32, device=None, view=None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """For every ideal pixel of a (height, width) frame, its position in the distorted image.
 
@@ -226,7 +226,7 @@ def undistortion_grid(
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6), valid
 
 
-def lens_undistortion_grid(coefficients, centre, height: int, width: int, dtype: torch.dtype = torch.float32, device=None,
+def lens_undistortion_grid(coefficients, centre, height: int, width: int, *, dtype: torch.dtype = torch.float32, device=None,
                            view=None) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`undistortion_grid` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
 
@@ -241,8 +241,8 @@ def lens_undistortion_grid(coefficients, centre, height: int, width: int, dtype:
     Example:
         >>> from lensdist_torch.geometry.frame import half_diagonal
         >>> a = [2e-5 * half_diagonal(32, 48) ** 2]  # eq. 4's k2 = 2e-5 as the lens's a_1
-        >>> g1, v1 = lens_undistortion_grid(a, None, 32, 48, torch.float64)
-        >>> g2, v2 = undistortion_grid(2e-5, 0.0, 32, 48, torch.float64)
+        >>> g1, v1 = lens_undistortion_grid(a, None, 32, 48, dtype=torch.float64)
+        >>> g2, v2 = undistortion_grid(2e-5, 0.0, 32, 48, dtype=torch.float64)
         >>> bool((g1 - g2).abs().max() < 1e-6), bool((v1 == v2).all())
         (True, True)
     """
@@ -252,14 +252,14 @@ def lens_undistortion_grid(coefficients, centre, height: int, width: int, dtype:
     ideal = pixel_grid(height, width, torch.float64, device)
     if view is not None:
         ideal = (ideal - ideal.new_tensor(view[2:])) / ideal.new_tensor(view[:2])
-    src, exact = lens_distorted_points(ideal, coefficients, height, width, centre)
+    src, exact = lens_distorted_points(ideal, coefficients, height, width, centre=centre)
     inside = ((src[..., 0] >= -_SLACK_PX) & (src[..., 0] <= width - 1 + _SLACK_PX)
               & (src[..., 1] >= -_SLACK_PX) & (src[..., 1] <= height - 1 + _SLACK_PX))
     valid = (exact & inside & torch.isfinite(src).all(-1)).reshape(1, 1, height, width).to(dtype)
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6).to(dtype).reshape(1, height, width, 2), valid
 
 
-def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int, dtype: torch.dtype = torch.float32,
+def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int, *, dtype: torch.dtype = torch.float32,
                              device=None, view=None) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`undistortion_grid` for an OpenCV camera (K, dist_coeffs: 4, 5 or 8 of them, tangential terms included).
 
@@ -275,7 +275,7 @@ def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int
 
     Example:
         >>> K = [[60.0, 0.0, 23.5], [0.0, 60.0, 15.5], [0.0, 0.0, 1.0]]
-        >>> grid, valid = opencv_undistortion_grid(K, [0.0] * 5, 32, 48, torch.float64)  # no distortion: every pixel itself
+        >>> grid, valid = opencv_undistortion_grid(K, [0.0] * 5, 32, 48, dtype=torch.float64)  # no distortion: every pixel itself
         >>> bool((grid[0] - pixel_grid(32, 48, torch.float64)).abs().max() < 1e-12), float(valid.mean())
         (True, 1.0)
     """
@@ -297,12 +297,12 @@ def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6).to(dtype).reshape(1, height, width, 2), valid
 
 
-def opencv_optimal_view(camera_matrix, dist_coeffs, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
+def opencv_optimal_view(camera_matrix, dist_coeffs, height: int, width: int, *, alpha: float) -> tuple[float, float, float, float]:
     """:func:`optimal_view` for an OpenCV camera: the frame's edges at their converged ideal positions, where they invert.
 
     Example:
         >>> K = [[60.0, 0.0, 23.5], [0.0, 60.0, 15.5], [0.0, 0.0, 1.0]]
-        >>> [round(v, 9) + 0.0 for v in opencv_optimal_view(K, [0.0] * 5, 32, 48, 1.0)]  # no distortion: the frame itself
+        >>> [round(v, 9) + 0.0 for v in opencv_optimal_view(K, [0.0] * 5, 32, 48, alpha=1.0)]  # no distortion: the frame itself
         [1.0, 1.0, 0.0, 0.0]
     """
     k = torch.as_tensor(camera_matrix, dtype=torch.float64)
@@ -316,7 +316,7 @@ def opencv_optimal_view(camera_matrix, dist_coeffs, height: int, width: int, alp
                  "its model")
 
 
-def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear", view=None) -> tuple[torch.Tensor, torch.Tensor]:
+def undistort_image(img: torch.Tensor, k2, k4, *, mode: str = "bilinear", view=None) -> tuple[torch.Tensor, torch.Tensor]:
     """Undistort images: I(p) = I_d(distort(p)) for every ideal pixel p (module docstring).
 
     Args:
@@ -346,7 +346,7 @@ def undistort_image(img: torch.Tensor, k2, k4, mode: str = "bilinear", view=None
     b, _, h, w = x.shape
     if mode not in ("bilinear", "nearest", "bicubic"):
         raise ValueError(f"mode must be 'bilinear', 'nearest' or 'bicubic', got {mode!r}")
-    grid, valid = undistortion_grid(k2, k4, h, w, x.dtype, x.device, view)
+    grid, valid = undistortion_grid(k2, k4, h, w, dtype=x.dtype, device=x.device, view=view)
     if grid.shape[0] not in (1, b):
         raise ValueError(f"k2/k4 must hold 1 value or one per image ({b}), got {grid.shape[0]}")
     grid, valid = grid.expand(b, -1, -1, -1), valid.expand(b, -1, -1, -1)
@@ -380,7 +380,7 @@ class Undistort(nn.Module):
 
     def forward(self, img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, C, H, W) distorted -> (undistorted (B, C, H, W), valid (B, 1, H, W))."""
-        return undistort_image(img, self.k2, self.k4, self.mode)
+        return undistort_image(img, self.k2, self.k4, mode=self.mode)
 
     def extra_repr(self) -> str:
         """The coefficients and the mode."""

@@ -148,10 +148,10 @@ class _Frame:
     def __init__(self, level: int, h: int, w: int, h0: int, w0: int, device, stride: int = 1):
         f, self.stride, self.scale = 2.0**level, stride, half_diagonal(h0, w0)
         cx, cy, off = (w0 - 1) / 2, (h0 - 1) / 2, (f - 1) / 2
-        self.u, self.v = level_coordinates(level, h, w, h0, w0, stride, device)
+        self.u, self.v = level_coordinates(level, h, w, full_height=h0, full_width=w0, stride=stride, device=device)
         self.h, self.w, self.px = len(self.v), len(self.u), self.scale / f  # px: level px per unit
         self.box = [(f * t + off - c) / self.scale for t, c in ((0, cx), (w - 1, cx), (0, cy), (h - 1, cy))]
-        sx, ox, sy, oy = level_to_grid(level, h, w, h0, w0)  # u -> grid_sample coordinates
+        sx, ox, sy, oy = level_to_grid(level, h, w, full_height=h0, full_width=w0)  # u -> grid_sample coordinates
         self.out = torch.tensor([[sx, 0, ox], [0, sy, oy], [0, 0, 1]], dtype=torch.float64, device=device)
         self.uf, self.vf = self.u.float(), self.v.float()
         self.pow_u = torch.stack([self.uf**i for i in range(5)], 1)  # (w, 5)

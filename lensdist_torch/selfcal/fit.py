@@ -246,13 +246,13 @@ def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relie
     i1, h, w = pyr1[lev], *pyr1[lev].shape[-2:]
     h0, w0 = pyr1[0].shape[-2:]
     idx = select_samples(i1, cfg.parallax_block if relief else cfg.sample_block[cfg.levels - 1 - lev], cfg.margin)
-    ud = normalized_grid(lev, h, w, h0, w0, device=i1.device).view(-1, 2)
+    ud = normalized_grid(lev, h, w, full_height=h0, full_width=w0, device=i1.device).view(-1, 2)
     ux_d, uy_d = ud[idx, 0], ud[idx, 1]
     lv = [torch.gather(i1.flatten(1), 1, idx), with_gradients(pyr2[lev]), ux_d, uy_d, ux_d * ux_d + uy_d * uy_d]
     i1s, stack2, ux_d, uy_d, rho = (x.repeat(n_starts, *(1,) * (x.dim() - 1)) if n_starts > 1 else x for x in lv)
     basis, direction = _relief(theta, ux_d, uy_d, cfg, h0, w0) if relief else (None, None)
     return Level(i1=i1s, stack2=stack2, ux_d=ux_d, uy_d=uy_d, rho=rho, px=half_diagonal(h0, w0) / 2**lev,
-                 to_grid=level_to_grid(lev, h, w, h0, w0), newton=cfg.newton, margin=cfg.margin,
+                 to_grid=level_to_grid(lev, h, w, full_height=h0, full_width=w0), newton=cfg.newton, margin=cfg.margin,
                  photometric=cfg.photometric, floor=cfg.noise_floor, basis=basis, direction=direction,
                  interpolation=_RELIEF_INTERPOLATION if relief else cfg.interpolation)
 
@@ -358,7 +358,8 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
         cov = torch.maximum(cov, cluster_robust_covariance(inv, score, region, cfg.clusters**2))
     # Delta_avg and its gradient in (a, b): R * mean |a u^3 + b u^5|, the mean over the centres
     # of 4 x 4 blocks (the gradient is smooth; 16 times fewer terms)
-    u2 = (normalized_grid(2, h0 // 4, w0 // 4, h0, w0, torch.float64, ab.device).view(1, -1, 2) ** 2).sum(-1)
+    grid = normalized_grid(2, h0 // 4, w0 // 4, full_height=h0, full_width=w0, dtype=torch.float64, device=ab.device)
+    u2 = (grid.view(1, -1, 2) ** 2).sum(-1)
     m3, m5 = u2**1.5, u2**2.5
     sgn = torch.sign(ab[:, :1] * m3 + ab[:, 1:] * m5)
     sgn = torch.where(sgn == 0, torch.ones_like(sgn), sgn)  # the kink of |.| at 0: one side

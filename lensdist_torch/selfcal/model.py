@@ -131,12 +131,12 @@ def selfcal_residual(img1, img2, H, k2, k4, newton: int = 5, gain=None, bias=Non
     b_, _, h, w = img1.shape
     r, nrm = half_diagonal(h, w), normalizer(h, w, H.dtype, H.device)
     hn = nrm @ H @ torch.linalg.inv(nrm)
-    ud = normalized_grid(0, h, w, h, w, H.dtype, H.device).view(1, -1, 2).expand(b_, -1, -1)
+    ud = normalized_grid(0, h, w, full_height=h, full_width=w, dtype=H.dtype, device=H.device).view(1, -1, 2).expand(b_, -1, -1)
     u = undistort_normalized(ud, k2 * r**2, k4 * r**4)
     wv = torch.cat([u, torch.ones_like(u[..., :1])], -1) @ hn.transpose(1, 2)
     v = wv[..., :2] / wv[..., 2:]
     vd = distort_normalized(v, k2 * r**2, k4 * r**4, newton)
-    sx, ox, sy, oy = level_to_grid(0, h, w, h, w)
+    sx, ox, sy, oy = level_to_grid(0, h, w, full_height=h, full_width=w)
     grid = vd * vd.new_tensor([sx, sy]) + vd.new_tensor([ox, oy])
     s = sample_image(img2.to(grid.dtype), grid.view(b_, h, w, 2), interpolation).flatten(1)
     if gain is not None:

@@ -33,13 +33,13 @@ def _render(plane_to_ideal: torch.Tensor) -> torch.Tensor:
     h, w = SIZE
     yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     pix = torch.stack([xx, yy], -1).reshape(-1, 2)
-    plane = apply_homography(torch.linalg.inv(plane_to_ideal)[None], lens_ideal_points(pix, LENS, h, w, CENTRE))[0]
+    plane = apply_homography(torch.linalg.inv(plane_to_ideal)[None], lens_ideal_points(pix, LENS, h, w, centre=CENTRE))[0]
     return _texture(plane).reshape(h, w).float()
 
 
 def _true_partner(x1: torch.Tensor, h01: torch.Tensor) -> torch.Tensor:
     h, w = SIZE
-    return lens_distorted_points(apply_homography(h01[None], lens_ideal_points(x1, LENS, h, w, CENTRE))[0], LENS, h, w, CENTRE)[0]
+    return lens_distorted_points(apply_homography(h01[None], lens_ideal_points(x1, LENS, h, w, centre=CENTRE))[0], LENS, h, w, centre=CENTRE)[0]
 
 
 def test_align_patches_recovers_a_shift_under_a_change_of_exposure():
@@ -68,8 +68,8 @@ def test_local_affines_are_the_derivative_of_the_lens_homography_lens_map():
     x = torch.tensor([[20.0, 30.0], [160.0, 120.0], [300.0, 220.0]], dtype=torch.float64)
 
     def f(p):
-        u = lens_ideal_points(p[None], LENS, h, w, CENTRE)
-        return lens_distorted_points(apply_homography(hm[None], u)[0], LENS, h, w, CENTRE)[0][0]
+        u = lens_ideal_points(p[None], LENS, h, w, centre=CENTRE)
+        return lens_distorted_points(apply_homography(hm[None], u)[0], LENS, h, w, centre=CENTRE)[0][0]
 
     exact = torch.stack([torch.func.jacfwd(f)(p) for p in x])  # forward-mode AD through the Newton inverse
     assert (local_affines(x, hm, LENS, CENTRE, SIZE) - exact).abs().max() < 1e-4

@@ -159,7 +159,7 @@ def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
     p = torch.stack(torch.meshgrid(torch.arange(0.0, w, 8, dtype=torch.float64), torch.arange(0.0, h, 8, dtype=torch.float64),
                                    indexing="xy"), -1).reshape(-1, 2)
     truth = undistort_points(p[None], k2, 0.0, centre)[0]
-    ours = lens_ideal_points(p, res.coefficients, h, w, res.centre)
+    ours = lens_ideal_points(p, res.coefficients, h, w, centre=res.centre)
     bent = _bending(p, truth, ours)  # 0.26 px: lines as straight as the true lens makes them, to a quarter pixel
     assert bent < 0.3 and bent < res.bending_halfwidth_px  # and its own half-width (0.49) covers that
     assert abs(res.delta_avg_user_px - float((truth - p).norm(dim=-1).mean())) < 0.03 * float((truth - p).norm(dim=-1).mean())

@@ -56,12 +56,12 @@ class TestFrame:
 
     def test_level_coordinates_at_full_resolution(self):
         h, w = 41, 67
-        u, v = level_coordinates(0, h, w, h, w)
+        u, v = level_coordinates(0, h, w, full_height=h, full_width=w)
         g = pixel_grid(h, w, torch.float64)
         ref = _apply(normalizer(h, w), g.reshape(-1, 2)).reshape(h, w, 2)
         torch.testing.assert_close(u, ref[0, :, 0], atol=1e-15, rtol=0)
         torch.testing.assert_close(v, ref[:, 0, 1], atol=1e-15, rtol=0)
-        us, vs = level_coordinates(0, h, w, h, w, stride=2)
+        us, vs = level_coordinates(0, h, w, full_height=h, full_width=w, stride=2)
         assert torch.equal(us, u[::2]) and torch.equal(vs, v[::2]) and len(us) == 34 and len(vs) == 21
 
     @pytest.mark.parametrize("level", [1, 2])
@@ -69,7 +69,7 @@ class TestFrame:
         """A level-l pixel x_l is the mean of full-resolution pixels 2^l x_l .. 2^l x_l + 2^l - 1."""
         h0, w0 = 41, 67  # odd: the pyramid drops the last row / column
         h, w = h0 >> level, w0 >> level
-        u, v = level_coordinates(level, h, w, h0, w0)
+        u, v = level_coordinates(level, h, w, full_height=h0, full_width=w0)
         f = 2**level
         n = normalizer(h0, w0)
         xs = f * torch.arange(w, dtype=torch.float64) + (f - 1) / 2
@@ -79,20 +79,20 @@ class TestFrame:
 
     def test_normalized_grid(self):
         h, w = 5, 7
-        g = normalized_grid(0, h, w, h, w, torch.float64)
+        g = normalized_grid(0, h, w, full_height=h, full_width=w, dtype=torch.float64)
         assert g.shape == (h, w, 2) and g.dtype == torch.float64
         r = half_diagonal(h, w)
         assert g[0, 0].tolist() == pytest.approx([-3 / r, -2 / r], abs=1e-15)
         assert g[-1, -1].tolist() == pytest.approx([3 / r, 2 / r], abs=1e-15)
         assert g[2, 3].tolist() == [0.0, 0.0]
-        assert normalized_grid(1, 2, 3, h, w).dtype == torch.float32
+        assert normalized_grid(1, 2, 3, full_height=h, full_width=w).dtype == torch.float32
 
     @pytest.mark.parametrize("level", [0, 1, 2])
     def test_level_to_grid_is_grid_sample_of_the_level_pixels(self, level):
         h0, w0 = 41, 67
         h, w = h0 >> level, w0 >> level
-        u, v = level_coordinates(level, h, w, h0, w0)
-        sx, ox, sy, oy = level_to_grid(level, h, w, h0, w0)
+        u, v = level_coordinates(level, h, w, full_height=h0, full_width=w0)
+        sx, ox, sy, oy = level_to_grid(level, h, w, full_height=h0, full_width=w0)
         torch.testing.assert_close(sx * u + ox, torch.linspace(-1, 1, w, dtype=torch.float64), atol=1e-14, rtol=0)
         torch.testing.assert_close(sy * v + oy, torch.linspace(-1, 1, h, dtype=torch.float64), atol=1e-14, rtol=0)
 

@@ -58,7 +58,7 @@ def test_zero_coefficients_are_the_identity():
 def test_mask_is_where_the_source_lies_inside():
     k2 = torch.tensor([K2_MAX, -0.5 * K2_MAX], dtype=torch.float64)
     k4 = torch.tensor([K4_MAX, 0.0], dtype=torch.float64)
-    grid, valid = undistortion_grid(k2, k4, H, W, torch.float64)
+    grid, valid = undistortion_grid(k2, k4, H, W, dtype=torch.float64)
     ideal = pixel_grid(H, W, torch.float64).expand(2, H, W, 2)
     src = distort_points(ideal, k2, k4, distortion_center(H, W))
     assert torch.allclose(grid, src)
@@ -173,7 +173,7 @@ def test_folded_coefficients_never_give_a_mirrored_or_folded_sample(k2, k4):
     # the audit's coefficients at 320 x 424: before the fix 17-20 k pixels were sampled from
     # mirrored positions (the negative Newton root, whose round trip is exact) and marked valid
     h, w = 320, 424
-    grid, valid = undistortion_grid(k2, k4, h, w, torch.float64)
+    grid, valid = undistortion_grid(k2, k4, h, w, dtype=torch.float64)
     c = np.array(distortion_center(h, w))
     src = grid[0].numpy() - c
     ideal = pixel_grid(h, w, torch.float64).numpy() - c

@@ -25,7 +25,7 @@ LENSES = [(2e-6, 0.0), (-2e-6, 0.0), (1e-6, 1e-11), (-1e-6, -5e-12)]  # barrel, 
 def _new_matrix(k2, k4, alpha):
     cv = opencv_export(k2, k4, H, W)
     f, cx, cy = cv["camera_matrix"][0][0], cv["camera_matrix"][0][2], cv["camera_matrix"][1][2]
-    sx, sy, tx, ty = optimal_view(k2, k4, H, W, alpha)
+    sx, sy, tx, ty = optimal_view(k2, k4, H, W, alpha=alpha)
     return np.array(cv["camera_matrix"]), np.array(cv["dist_coeffs"]), np.array(
         [[sx * f, 0, sx * cx + tx], [0, sy * f, sy * cy + ty], [0, 0, 1]])
 
@@ -43,10 +43,10 @@ def test_the_new_camera_matrix_is_opencvs(k2, k4, alpha):
 
 @pytest.mark.parametrize("k2, k4", LENSES)
 def test_alpha_0_only_valid_pixels_alpha_1_every_source_pixel(k2, k4):
-    _, valid0 = undistortion_grid(k2, k4, H, W, torch.float64, view=optimal_view(k2, k4, H, W, 0.0))
+    _, valid0 = undistortion_grid(k2, k4, H, W, dtype=torch.float64, view=optimal_view(k2, k4, H, W, alpha=0.0))
     assert valid0[0, 0, 1:-1, 1:-1].all()  # every pixel valid (the outermost ring within rounding)
-    sx, sy, tx, ty = optimal_view(k2, k4, H, W, 1.0)
-    _, valid1 = undistortion_grid(k2, k4, H, W, torch.float64, view=(sx, sy, tx, ty))
+    sx, sy, tx, ty = optimal_view(k2, k4, H, W, alpha=1.0)
+    _, valid1 = undistortion_grid(k2, k4, H, W, dtype=torch.float64, view=(sx, sy, tx, ty))
     rows, cols = valid1[0, 0].any(1).nonzero(), valid1[0, 0].any(0).nonzero()
     # the undistorted frame spans the output: its valid region touches all four edges
     assert int(rows.min()) <= 1 and int(rows.max()) >= H - 2 and int(cols.min()) <= 1 and int(cols.max()) >= W - 2
@@ -61,7 +61,7 @@ def test_the_frames_are_cv2_undistorts(k2, k4, alpha):
     ideal = torch.nn.functional.interpolate(torch.rand(1, 1, H // 8, W // 8, generator=g), (H, W), mode="bicubic",
                                             align_corners=True).clamp(0, 1)
     frame = render_distorted(ideal, torch.tensor([k2]), torch.tensor([k4]))
-    ours, valid = undistort_image(frame, k2, k4, view=optimal_view(k2, k4, H, W, alpha))
+    ours, valid = undistort_image(frame, k2, k4, view=optimal_view(k2, k4, H, W, alpha=alpha))
     K, dist, new = _new_matrix(k2, k4, alpha)
     theirs = cv2.undistort(frame[0, 0].numpy().astype(np.float32), K, dist, newCameraMatrix=new)
     inner = valid[0, 0].numpy() > 0
@@ -82,7 +82,7 @@ def test_undistort_writes_the_new_camera_beside_the_frames(tmp_path, capsys):
     assert "alpha 1" in out and "new camera matrix: fx = " in out and "undistortion.json" in out
     cam = json.loads((tmp_path / "o" / "undistortion.json").read_text())
     assert cam["alpha"] == 1 and cam["output_size"] == [64, 80] and cam["input_size"] == [64, 80] and cam["frames"] == 2
-    sx, sy, tx, ty = optimal_view(k2, k4, 64, 80, 1.0)
+    sx, sy, tx, ty = optimal_view(k2, k4, 64, 80, alpha=1.0)
     assert cam["view"] == pytest.approx({"sx": sx, "sy": sy, "tx": tx, "ty": ty})
     assert cam["new_camera_matrix"][0][0] == pytest.approx(sx * cam["camera_matrix"][0][0])
     assert len(cam["dist_coeffs"]) == 5 and cam["k2"] == k2
@@ -102,4 +102,4 @@ def test_undistort_writes_the_new_camera_beside_the_frames(tmp_path, capsys):
 @pytest.mark.parametrize("alpha", [-0.1, 1.5, "nan", True])
 def test_alpha_outside_0_1_is_refused(alpha):
     with pytest.raises(ValueError, match="alpha must be a number from 0 to 1"):
-        optimal_view(1e-6, 0.0, H, W, float(alpha) if isinstance(alpha, str) else alpha)
+        optimal_view(1e-6, 0.0, H, W, alpha=float(alpha) if isinstance(alpha, str) else alpha)

@@ -181,11 +181,11 @@ def test_jacobian_matches_finite_differences(photometric):
     to a few per cent on a smooth image."""
     h, w = 60, 80
     i1, i2 = smooth(h, w, 0, 0), smooth(h, w, 1.5, 2.0)
-    ud = normalized_grid(0, h, w, h, w).view(-1, 2)
+    ud = normalized_grid(0, h, w, full_height=h, full_width=w).view(-1, 2)
     idx = torch.nonzero(ud.norm(dim=-1) < 0.4).flatten()[None]
     ux, uy = ud[idx, 0], ud[idx, 1]
     lv = selfcal_model.Level(torch.gather(i1.flatten(1), 1, idx), selfcal_model.with_gradients(i2), ux, uy,
-                             ux * ux + uy * uy, half_diagonal(h, w), level_to_grid(0, h, w, h, w), 8, 4.0, photometric, 1e-6)
+                             ux * ux + uy * uy, half_diagonal(h, w), level_to_grid(0, h, w, full_height=h, full_width=w), 8, 4.0, photometric, 1e-6)
     n_par = 12 if photometric == "gain_bias" else 10
     theta = torch.zeros(1, n_par, dtype=torch.float64)
     theta[0, :10] = torch.tensor([0.01, -0.005, 0.02, 0.004, -0.01, 0.03, 0.002, -0.001, 0.05, 0.02])

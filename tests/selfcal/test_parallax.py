@@ -37,13 +37,13 @@ def test_relief_columns_of_the_jacobian_match_finite_differences():
     differences of the residual, on a smooth pair (as test_selfcal's check of the others)."""
     h, w = 60, 80
     i1, i2 = smooth(h, w, 0, 0), smooth(h, w, 1.5, 2.0)
-    ud = normalized_grid(0, h, w, h, w).view(-1, 2)
+    ud = normalized_grid(0, h, w, full_height=h, full_width=w).view(-1, 2)
     idx = torch.nonzero(ud.norm(dim=-1) < 0.4).flatten()[None]
     ux, uy = ud[idx, 0], ud[idx, 1]
     direction = torch.tensor([[0.6, 0.8]])
     lv = selfcal_model.Level(torch.gather(i1.flatten(1), 1, idx), selfcal_model.with_gradients(i2), ux, uy,
-                             ux * ux + uy * uy, half_diagonal(h, w), level_to_grid(0, h, w, h, w), 8, 4.0, "gain_bias",
-                             1e-6, selfcal_model.relief_basis(ux, uy, 3, 0.3, h, w), direction)
+                             ux * ux + uy * uy, half_diagonal(h, w), level_to_grid(0, h, w, full_height=h, full_width=w), 8, 4.0, "gain_bias",
+                             1e-6, selfcal_model.relief_basis(ux, uy, n=3, width=0.3, h0=h, w0=w), direction)
     theta = torch.zeros(1, 12 + 9, dtype=torch.float64)
     theta[0, :12] = torch.tensor([0.01, -0.005, 0.02, 0.004, -0.01, 0.03, 0.002, -0.001, 0.05, 0.02, 1.1, -0.05])
     theta[0, 12:] = 0.002 * torch.arange(9) - 0.008

@@ -314,7 +314,7 @@ def test_the_rational_export_is_named_where_the_standard_one_cannot_follow(capsy
 
     # the GoPro answer's lens (3 terms about its own centre): OpenCV's exports fitted to it as calibrate does
     a, centre = [0.4207, 0.8161, -0.2777], [636.7, 494.9]
-    cams = {m: opencv_camera_from_map(lambda p: lens_ideal_points(p, a, 960, 1280, centre), 960, 1280, model=m, step=16,
+    cams = {m: opencv_camera_from_map(lambda p: lens_ideal_points(p, a, 960, 1280, centre=centre), 960, 1280, model=m, step=16,
                                       centre=centre) for m in ("standard", "rational")}
     assert cams["standard"].forward_error_mean_px > 1 > 0.1 > cams["rational"].forward_error_mean_px
     export = {m: {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in c._asdict().items()} for m, c in cams.items()}

@@ -45,7 +45,7 @@ def _answer(tmp_path, lens=LENS, **changes) -> tuple:
     """Frames of the scene through ``lens`` and a planar answer for them: (folder, json path, scene)."""
     scene = _scene()
     p = pixel_grid(H, W, torch.float64).reshape(-1, 2)
-    ideal = lens_ideal_points(p, lens[0], H, W, lens[1])
+    ideal = lens_ideal_points(p, lens[0], H, W, centre=lens[1])
     distorted = sample_at_pixels(scene.double(), ideal.reshape(1, H, W, 2)).float()
     k2, k4, _ = fit_eq4(p, ideal, H, W)
     cfg = LensdistConfig()
@@ -64,10 +64,10 @@ def _answer(tmp_path, lens=LENS, **changes) -> tuple:
 
 def test_the_lens_inverse_round_trips_and_matches_eq4_as_its_special_case():
     p = torch.rand(500, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * torch.tensor([W - 1.0, H - 1.0])
-    back, ok = lens_distorted_points(lens_ideal_points(p, LENS[0], H, W, LENS[1]), LENS[0], H, W, LENS[1])
+    back, ok = lens_distorted_points(lens_ideal_points(p, LENS[0], H, W, centre=LENS[1]), LENS[0], H, W, centre=LENS[1])
     assert bool(ok.all()) and float((back - p).abs().max()) < 1e-8
-    grid, valid = lens_undistortion_grid(*LENS, H, W, torch.float64)
-    mapped = lens_ideal_points(grid[0].reshape(-1, 2), LENS[0], H, W, LENS[1]).reshape(H, W, 2)
+    grid, valid = lens_undistortion_grid(*LENS, H, W, dtype=torch.float64)
+    mapped = lens_ideal_points(grid[0].reshape(-1, 2), LENS[0], H, W, centre=LENS[1]).reshape(H, W, 2)
     err = (mapped - pixel_grid(H, W, torch.float64)).norm(dim=-1)[valid[0, 0] > 0]
     assert float(err.max()) < 1e-6 and float(valid.mean()) > 0.8
 
@@ -147,7 +147,7 @@ def test_the_opencv_grid_is_cv2s_initundistortrectifymap(dist):
     cv2 = pytest.importorskip("cv2")
     import numpy as np
 
-    grid, valid = opencv_undistortion_grid(CAM[0], dist, H, W, torch.float64)
+    grid, valid = opencv_undistortion_grid(CAM[0], dist, H, W, dtype=torch.float64)
     mx, my = cv2.initUndistortRectifyMap(np.array(CAM[0]), np.array(dist), None, np.array(CAM[0]), (W, H), cv2.CV_32FC1)
     theirs = torch.from_numpy(np.stack([mx, my], -1)).double()
     ok = valid[0, 0] > 0

@@ -113,16 +113,16 @@ def lens_ideal(lens: dict, points: torch.Tensor, height: int, width: int) -> tup
         return ideal, monotone_branch((d * d).sum(-1), lens["k2"], lens["k4"])
     if lens["kind"] == "radial":
         a, c = lens["coefficients"], lens["centre"]
-        return lens_ideal_points(points, a, height, width, c), lens_inverts(points, a, height, width, c)
+        return lens_ideal_points(points, a, height, width, centre=c), lens_inverts(points, a, height, width, centre=c)
     return opencv_ideal_points(points, torch.tensor(lens["camera_matrix"], dtype=torch.float64),
                                torch.tensor(lens["dist_coeffs"], dtype=torch.float64))
 
 
 def lens_grid(lens: dict, height: int, width: int, dtype: torch.dtype = torch.float32, device=None, view=None):
     """(grid (1, H, W, 2), valid (1, 1, H, W)): where each ideal pixel lies in the distorted frame, under ``lens``."""
-    return _GRIDS[lens["kind"]](*_args(lens), height, width, dtype, device, view)
+    return _GRIDS[lens["kind"]](*_args(lens), height, width, dtype=dtype, device=device, view=view)
 
 
 def lens_view(lens: dict, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
     """The view of OpenCV's ``getOptimalNewCameraMatrix(..., alpha)`` under ``lens``."""
-    return _VIEWS[lens["kind"]](*_args(lens), height, width, alpha)
+    return _VIEWS[lens["kind"]](*_args(lens), height, width, alpha=alpha)
