@@ -136,7 +136,7 @@ def main() -> None:
         t = torch.stack([params.motion[i, 1], params.motion[i, 0]])
         direction = t / t.norm().clamp_min(1e-12)
         un = (src - c) / r
-        basis = relief_basis(un[None, :, 0], un[None, :, 1], a.bumps, a.width, h, w)[0].T.double()
+        basis = relief_basis(un[None, :, 0], un[None, :, 1], n=a.bumps, width=a.width, h0=h, w0=w)[0].T.double()
         epipole = None
         if a.direction == "epipole":
             m = motion / motion[2, 2]

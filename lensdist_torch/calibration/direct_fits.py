@@ -70,7 +70,7 @@ def _translations(shifts: torch.Tensor) -> torch.Tensor:
 
 def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
     """One batch of pairs from the starts ``init``: (a, b), std, residual, planar and relief (a, b), misfit on the CPU, NaN / inf where dropped."""
-    info = estimate_distortion(a, b, init, selfcal, validate=False)[3]
+    info = estimate_distortion(a, b, init=init, config=selfcal, validate=False)[3]
     # the fit runs on the frames' device; its few numbers per pair come back to the CPU
     ab, std, res, planar, relief = (x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual,
                                                                 info.planar_ab, info.relief_ab))

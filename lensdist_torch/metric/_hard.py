@@ -125,7 +125,7 @@ def _hard_counts_chunk(g1, g2, valid, cfg: QualityConfig, t: float | None, visua
     return reg, _block_sum(vis, cfg.block_size), flags
 
 
-def hard_counts(g1, g2, valid, cfg: QualityConfig, visual: bool, measured: bool = False):
+def hard_counts(g1, g2, valid, *, cfg: QualityConfig, visual: bool, measured: bool = False):
     """Error pixels per block of the hard path.
 
     Args:

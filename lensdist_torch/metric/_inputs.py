@@ -126,6 +126,7 @@ def measured(codes: torch.Tensor) -> torch.Tensor:
 def check_values(
     images: list[tuple[str, torch.Tensor]],
     valid: torch.Tensor | None,
+    *,
     data_range: float,
     measurable: torch.Tensor | None = None,
     measurable_name: str = "valid",
@@ -244,7 +245,7 @@ def pad_to_blocks(g1, g2, valid, block: int):
     return g1, g2, F.pad(valid, (0, pw, 0, ph), value=0.0)
 
 
-def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None):
+def prepare_pair(img1, img2, valid, *, config, data_range, validate=True, pad=None):
     """Check and convert a pair: grey images in [0, 1] of one dtype, the binarised mask, config.
 
     Args:
@@ -260,13 +261,13 @@ def prepare_pair(img1, img2, valid, config, data_range, validate=True, pad=None)
     Returns:
         g1, g2 (B, 1, H', W'), valid ({0, 1} (B, 1, H', W') or None), the config.
     """
-    prepared = prepare_unchecked(img1, img2, valid, config, data_range, pad)
+    prepared = prepare_unchecked(img1, img2, valid, config=config, data_range=data_range, pad=pad)
     if should_validate(validate):
-        check_values([("img1", img1), ("img2", img2)], valid, data_range)
+        check_values([("img1", img1), ("img2", img2)], valid, data_range=data_range)
     return prepared
 
 
-def prepare_unchecked(img1, img2, valid, config, data_range, pad=None):
+def prepare_unchecked(img1, img2, valid, *, config, data_range, pad=None):
     """:func:`prepare_pair` without the value checks (types, shapes and placement are checked).
 
     For entry points that learn which samples have a pixel to measure while computing and then
@@ -293,7 +294,7 @@ def prepare_unchecked(img1, img2, valid, config, data_range, pad=None):
     return g1, g2, valid, cfg
 
 
-def check_pair_values(img1, img2, valid, data_range, measurable=None) -> None:
+def check_pair_values(img1, img2, valid, *, data_range, measurable=None) -> None:
     """The value checks of :func:`prepare_pair`, and that every sample has a pixel to measure.
 
     Args:
@@ -309,4 +310,4 @@ def check_pair_values(img1, img2, valid, data_range, measurable=None) -> None:
             ``valid`` (or ``img1`` when no mask was given and the image is too small).
     """
     name = "valid" if valid is not None else "img1"
-    check_values([("img1", img1), ("img2", img2)], valid, data_range, measurable, name)
+    check_values([("img1", img1), ("img2", img2)], valid, data_range=data_range, measurable=measurable, measurable_name=name)

@@ -204,7 +204,7 @@ def local_criteria(
         >>> bool((c.a == 1).all()), bool((c.d == 0).all())
         (True, True)
     """
-    g1, g2, _, cfg = prepare_pair(img1, img2, None, config, data_range, validate, pad=None)
+    g1, g2, _, cfg = prepare_pair(img1, img2, None, config=config, data_range=data_range, validate=validate, pad=None)
     return criteria_from_grey(g1, g2, cfg, smooth)
 
 
@@ -233,6 +233,7 @@ def criteria_from_grey(g1, g2, cfg: QualityConfig, smooth: bool) -> LocalCriteri
 def error_images(
     criteria: LocalCriteria,
     valid: torch.Tensor | None = None,
+    *,
     config: QualityConfig | None = None,
     smooth: bool = False,
     validate: bool = True,
@@ -266,7 +267,7 @@ def error_images(
         check_mask_shape(valid, criteria.r)
         check_placement([("valid", valid)], criteria.r.device)
         if should_validate(validate):
-            check_values([], valid, 1.0)
+            check_values([], valid, data_range=1.0)
         v = erode_valid(binarise_valid(valid, criteria.r))
     return error_images_unchecked(criteria, v, cfg, smooth)
 

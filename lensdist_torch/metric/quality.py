@@ -172,11 +172,11 @@ def registration_error_counts(
         >>> registration_error_counts(x, x).dtype
         torch.uint8
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
+    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad)
     if cfg.block_size > 15:
         raise ValueError(f"uint8 counts need block_size <= 15, got {cfg.block_size}")
     with torch.no_grad():
-        reg, _ = hard_counts(g1, g2, valid, cfg, visual=False)
+        reg, _ = hard_counts(g1, g2, valid, cfg=cfg, visual=False)
     return reg.to(torch.uint8)
 
 
@@ -219,9 +219,9 @@ def quality_map(
         >>> quality_map(torch.rand(1, 1, 37, 61), torch.rand(1, 1, 37, 61)).shape
         torch.Size([1, 1, 5, 8])
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config, data_range, validate, pad)
+    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad)
     with torch.no_grad():
-        reg, _ = hard_counts(g1, g2, valid, cfg, visual=False)
+        reg, _ = hard_counts(g1, g2, valid, cfg=cfg, visual=False)
     return _floor(reg, cfg)
 
 
@@ -230,11 +230,11 @@ def measured_map(img1, img2, valid, config, data_range, validate, pad):
 
     Never raises for a sample with nothing to measure (the stateful metrics skip those).
     """
-    g1, g2, v, cfg = prepare_unchecked(img1, img2, valid, config, data_range, pad)
+    g1, g2, v, cfg = prepare_unchecked(img1, img2, valid, config=config, data_range=data_range, pad=pad)
     with torch.no_grad():
-        reg, _, flags = hard_counts(g1, g2, v, cfg, visual=False, measured=True)
+        reg, _, flags = hard_counts(g1, g2, v, cfg=cfg, visual=False, measured=True)
     if should_validate(validate):
-        check_pair_values(img1, img2, valid, data_range)
+        check_pair_values(img1, img2, valid, data_range=data_range)
     return _floor(reg, cfg), flags
 
 
@@ -289,13 +289,13 @@ def registration_quality(
         >>> bool(res.quality_index < 1)
         True
     """
-    g1, g2, v, cfg = prepare_unchecked(img1, img2, valid, config, data_range, pad)
+    g1, g2, v, cfg = prepare_unchecked(img1, img2, valid, config=config, data_range=data_range, pad=pad)
     h, w = img1.shape[-2:]
     if not smooth and not return_pixels:
         with torch.no_grad():
-            reg, vis, flags = hard_counts(g1, g2, v, cfg, visual=True, measured=True)
+            reg, vis, flags = hard_counts(g1, g2, v, cfg=cfg, visual=True, measured=True)
         if should_validate(validate):  # the value checks and the flags: one host sync
-            check_pair_values(img1, img2, valid, data_range, flags)
+            check_pair_values(img1, img2, valid, data_range=data_range, measurable=flags)
         reg_map, vis_map = _floor(reg, cfg), _floor(vis, cfg)
         return QualityResult(
             registration_map=reg_map, visual_map=vis_map, quality_index=_index(reg_map, flags))
@@ -303,7 +303,7 @@ def registration_quality(
     crit = criteria_from_grey(g1, g2, cfg, smooth)
     flags = criteria_codes(eroded, crit)
     if should_validate(validate):
-        check_pair_values(img1, img2, valid, data_range, flags)
+        check_pair_values(img1, img2, valid, data_range=data_range, measurable=flags)
     errs = error_images_unchecked(crit, eroded, cfg, smooth)
     reg_map = block_pool(errs.e_reg, cfg, smooth)
     vis_map = block_pool(errs.e_vis, cfg, smooth)

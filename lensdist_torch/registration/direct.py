@@ -189,7 +189,7 @@ _frame = functools.lru_cache(maxsize=16)(_Frame)  # frames depend on sizes only
 
 @torch.no_grad()
 def estimate_homography(
-    img1: torch.Tensor, img2: torch.Tensor, init: torch.Tensor | None = None, config: RegistrationConfig | None = None,
+    img1: torch.Tensor, img2: torch.Tensor, *, init: torch.Tensor | None = None, config: RegistrationConfig | None = None,
     validate: bool = True,
 ) -> tuple[torch.Tensor, RegistrationInfo]:
     """Estimate, per pair, the homography H with img1(p) = img2(H p).
@@ -385,7 +385,7 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
 
 
 def warp_to_reference(
-    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None, backend: str = "kornia",
+    img2: torch.Tensor, H: torch.Tensor, dsize: tuple[int, int] | None = None, *, backend: str = "kornia",
     validate: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Warp img2 into img1's frame, warped(p) = img2(H p), with the validity of each pixel.

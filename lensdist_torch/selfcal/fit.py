@@ -145,7 +145,7 @@ def _robust_constant(cfg: SelfCalConfig) -> float:
 
 
 @torch.no_grad()
-def estimate_distortion(img1, img2, init=None, config: SelfCalConfig | None = None, validate: bool = True):
+def estimate_distortion(img1, img2, *, init=None, config: SelfCalConfig | None = None, validate: bool = True):
     """Estimate (k2, k4) and H together, per pair of a batch (see the module docstring).
 
     Args:
@@ -267,7 +267,8 @@ def _relief(theta, ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
     t = theta[:, [2, 5]].float()
     n = t.norm(dim=1, keepdim=True)
     down = torch.tensor([0.0, 1.0], device=t.device).expand_as(t)
-    return relief_basis(ux_d, uy_d, cfg.parallax, cfg.parallax_width, h0, w0), torch.where(n > 0, t / n.clamp_min(1e-12), down)
+    basis = relief_basis(ux_d, uy_d, n=cfg.parallax, width=cfg.parallax_width, h0=h0, w0=w0)
+    return basis, torch.where(n > 0, t / n.clamp_min(1e-12), down)
 
 
 def _plausible(theta: torch.Tensor, cfg: SelfCalConfig) -> torch.Tensor:
@@ -322,7 +323,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
             sigma = torch.where(acc, robust_scale(res, valid, cfg.noise_floor), sigma)
         if tau2 is not None and cfg.parallax_evidence:  # and the relief prior's variance
             normal = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
-            tau2 = evidence_tau2(theta, normal[0], sigma, tau2, lv.px, cfg)
+            tau2 = evidence_tau2(theta, normal[0], sigma, tau2, px=lv.px, cfg=cfg)
         cost = _cost(theta, res, valid, sigma, cfg, tau2)  # the cost moves with them
     return theta, lam, _State(
         res=res, valid=valid, J=J, sigma=sigma, cost=cost, start_cost=_cost(theta0, res0, valid0, sigma, cfg, tau2),
@@ -331,7 +332,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
 
 def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | None = None):
     """The robust cost, plus the relief prior's term (on the same per-sample scale) where fitted."""
-    cost = robust_cost(res, valid, sigma, cfg.robust, _robust_constant(cfg))
+    cost = robust_cost(res, valid, sigma, loss=cfg.robust, k=_robust_constant(cfg))
     if tau2 is None:
         return cost
     prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
@@ -375,7 +376,7 @@ def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> 
     if n_starts == 1:
         return rows
     sigma = st.sigma.view(n_starts, bsz).amin(0).repeat(n_starts)
-    cost = robust_cost(st.res, st.valid, sigma, cfg.robust, _robust_constant(cfg))
+    cost = robust_cost(st.res, st.valid, sigma, loss=cfg.robust, k=_robust_constant(cfg))
     cost = torch.where(ok & torch.isfinite(cost), cost, torch.full_like(cost, float("inf"))).view(n_starts, bsz)
     return rows + bsz * cost.argmin(0)  # ties: the first start (init)
 
@@ -392,7 +393,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     st = _State(*(None if x is None else x[keep] for x in st))
     r0 = half_diagonal(h0, w0)
     # the frame's rectangles of the samples: the cluster-robust covariance and the aligned residual
-    region = region_ids(h0, w0, block, cfg.clusters, dev) if cfg.clusters > 1 else None
+    region = region_ids(h0, w0, block=block, clusters=cfg.clusters, device=dev) if cfg.clusters > 1 else None
     std = _delta_avg_std(ab, st, h0, w0, cfg, region)
     nan = torch.tensor(float("nan"), dtype=torch.float64, device=dev)
     k2, k4 = (torch.where(ok, k, nan) for k in from_normalized(ab, h0, w0))
@@ -410,7 +411,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     conf = cfg.cannot_tell_std_px / (cfg.cannot_tell_std_px + std)
     gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)
     rms = aligned_residual(st.res, st.valid)
-    aligned = aligned_residual(st.res, st.valid, region, cfg.clusters**2, int(cfg.occluded_share * cfg.clusters**2))
+    aligned = aligned_residual(st.res, st.valid, region, n_regions=cfg.clusters**2, drop=int(cfg.occluded_share * cfg.clusters**2))
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(
         converged=ok, confident=ok & (conf >= cfg.confidence_threshold), confidence=conf, delta_avg=d_avg,

@@ -111,7 +111,7 @@ def sample_image(img: torch.Tensor, grid: torch.Tensor, interpolation: str = "bl
     return cub if interpolation == "bicubic" else (lin + cub).mul_(0.5)
 
 
-def selfcal_residual(img1, img2, H, k2, k4, newton: int = 5, gain=None, bias=None, interpolation: str = "blend"):
+def selfcal_residual(img1, img2, H, *, k2, k4, newton: int = 5, gain=None, bias=None, interpolation: str = "blend"):
     """The differentiable model in pixel units: img1(p_d) - (g img2(distort(H undistort(p_d))) + c).
 
     Args:
@@ -299,7 +299,7 @@ def evaluate(theta: torch.Tensor, lv: Level, jac: bool = True):
     return res, valid, J
 
 
-def relief_basis(ux_d: torch.Tensor, uy_d: torch.Tensor, n: int, width: float, h0: int, w0: int) -> torch.Tensor:
+def relief_basis(ux_d: torch.Tensor, uy_d: torch.Tensor, *, n: int, width: float, h0: int, w0: int) -> torch.Tensor:
     """Gaussian bumps of sigma ``width`` (half-diagonals) on an n x n grid spanning the frame.
 
     ``ux_d``, ``uy_d`` (B, N): normalised points -> (B, n^2, N). The relief of the plane + parallax model is
@@ -363,7 +363,7 @@ def robust_weights(res: torch.Tensor, sigma: torch.Tensor, loss: str, k: float) 
     return (1 - (z / k) ** 2).clamp_min(0) ** 2  # tukey
 
 
-def robust_cost(res: torch.Tensor, valid: torch.Tensor, sigma: torch.Tensor, loss: str, k: float) -> torch.Tensor:
+def robust_cost(res: torch.Tensor, valid: torch.Tensor, sigma: torch.Tensor, *, loss: str, k: float) -> torch.Tensor:
     """(B,) float64: 2 sigma^2 mean rho(r / sigma) over the valid samples (mean r^2 for "none").
 
     ``res`` is zero where not valid; the terms are float32, their sums float64.

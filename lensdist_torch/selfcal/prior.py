@@ -98,7 +98,7 @@ def start_tau2(n: int, px: float, cfg: SelfCalConfig, device=None) -> torch.Tens
     return torch.full((n,), _normalised(cfg.parallax_px, px), dtype=torch.float64, device=device)
 
 
-def evidence_tau2(theta, jtj, sigma, tau2, px: float, cfg: SelfCalConfig) -> torch.Tensor:
+def evidence_tau2(theta, jtj, sigma, tau2, *, px: float, cfg: SelfCalConfig) -> torch.Tensor:
     """(B,) the relief prior's variance re-estimated per pair at ``theta`` (B, P).
 
     ``jtj`` (B, P, P): the fit's robust normal matrix J W J^T there, without the prior (left as

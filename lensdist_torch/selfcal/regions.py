@@ -18,7 +18,7 @@ import torch
 __all__ = ["region_ids", "cluster_robust_covariance", "aligned_residual"]
 
 
-def region_ids(h0: int, w0: int, block: int, clusters: int, device=None) -> torch.Tensor:
+def region_ids(h0: int, w0: int, *, block: int, clusters: int, device=None) -> torch.Tensor:
     """(N,) int64: the rectangle (row-major, of ``clusters`` x ``clusters``) of each full-size sample.
 
     Args:
@@ -29,7 +29,7 @@ def region_ids(h0: int, w0: int, block: int, clusters: int, device=None) -> torc
         device: of the result (None: the CPU).
 
     Example:
-        >>> region_ids(4, 6, 2, 2).tolist()  # 2 x 3 samples in 2 x 2 rectangles
+        >>> region_ids(4, 6, block=2, clusters=2).tolist()  # 2 x 3 samples in 2 x 2 rectangles
         [0, 0, 1, 2, 2, 3]
     """
     hb, wb = (h0 // block, w0 // block) if block > 1 else (h0, w0)
@@ -55,7 +55,7 @@ def cluster_robust_covariance(inv: torch.Tensor, score: torch.Tensor, region: to
 
 
 def aligned_residual(
-    res: torch.Tensor, valid: torch.Tensor, region: torch.Tensor | None = None, n_regions: int = 0, drop: int = 0
+    res: torch.Tensor, valid: torch.Tensor, region: torch.Tensor | None = None, *, n_regions: int = 0, drop: int = 0
 ) -> torch.Tensor:
     """(B,) float32: the RMS of ``res`` over its valid samples, the worst ``drop`` rectangles left out.
 
@@ -73,7 +73,7 @@ def aligned_residual(
     Example:
         >>> res = torch.tensor([[0.0, 0.0, 3.0, 3.0]])  # rectangle 1 spoiled
         >>> valid, region = torch.ones(1, 4, dtype=torch.bool), torch.tensor([0, 0, 1, 1])
-        >>> float(aligned_residual(res, valid, region, 2, 0)[0]), float(aligned_residual(res, valid, region, 2, 1)[0])
+        >>> tuple(float(aligned_residual(res, valid, region, n_regions=2, drop=d)[0]) for d in (0, 1))
         (2.1213202476501465, 0.0)
     """
     sq, n = res.double() ** 2, valid.double()

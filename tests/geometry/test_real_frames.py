@@ -72,7 +72,7 @@ def test_a_registered_real_pair_has_a_low_misfit_and_an_unrelated_one_a_high(vie
     other = to_grey(load_scene("gravel")).float()[..., : a.shape[-2], : a.shape[-1]]
     init = torch.eye(3, dtype=torch.float64).repeat(2, 1, 1)
     init[0, 0, 2] = 12.0
-    info = estimate_distortion(torch.cat([a, a]), torch.cat([b, other]), init)[3]
+    info = estimate_distortion(torch.cat([a, a]), torch.cat([b, other]), init=init)[3]
     misfit = pair_misfit(torch.cat([a, a]), torch.cat([b, other]), info.residual)
     cfg = CalibrationConfig()
     assert float(misfit[0]) < 0.1 < cfg.max_misfit < 0.55 < float(misfit[1]) < 1.0

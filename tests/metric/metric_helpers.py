@@ -106,7 +106,7 @@ def spec_reference(img1, img2, valid=None, cfg: QualityConfig = CFG):
 
 def hard_from_pieces(img1, img2, valid=None, cfg: QualityConfig = CFG):
     crit = local_criteria(img1, img2, config=cfg)
-    errs = error_images(crit, valid, cfg)
+    errs = error_images(crit, valid, config=cfg)
     return block_pool(errs.e_reg, cfg), block_pool(errs.e_vis, cfg), errs
 
 

@@ -139,7 +139,7 @@ def test_gradients_through_the_model_are_finite():
     H = H[None].clone().requires_grad_(True)
     k2 = torch.tensor([1e-5], dtype=torch.float64, requires_grad=True)
     k4 = torch.tensor([1e-10], dtype=torch.float64, requires_grad=True)
-    res, valid = selfcal_residual(i1, i2, H, k2, k4)
+    res, valid = selfcal_residual(i1, i2, H, k2=k2, k4=k4)
     loss = (res**2).sum() / valid.sum()
     loss.backward()
     for g in (H.grad, k2.grad, k4.grad):
@@ -208,13 +208,13 @@ def test_robust_scale_weights_and_cost():
     assert torch.allclose(hub[:5], torch.tensor([1.0, 1.0, 1.0, 1.345 / 2, 1.345 / 2]))
     tuk = selfcal_model.robust_weights(res, sigma, "tukey", 4.685)[0]
     assert float(tuk[5]) == 0.0 and float(tuk[0]) == 1.0 and 0 < float(tuk[3]) < 1
-    ls = selfcal_model.robust_cost(res * valid, valid, sigma, "none", 1.0)
+    ls = selfcal_model.robust_cost(res * valid, valid, sigma, loss="none", k=1.0)
     assert math.isclose(float(ls[0]), (1 + 1 + 4 + 4 + 1e4 + 9) / 7)
     # the robust costs grow at most linearly (Huber) or not at all (Tukey) with the outlier
     big = res.clone()
     big[0, 5] = 1e4  # 100 times the outlier
     def cost(x, loss, k):
-        return float(selfcal_model.robust_cost(x * valid, valid, sigma, loss, k)[0])
+        return float(selfcal_model.robust_cost(x * valid, valid, sigma, loss=loss, k=k)[0])
 
     assert cost(res, "huber", 1.345) < cost(big, "huber", 1.345) < 100 * cost(res, "huber", 1.345)
     assert cost(res, "tukey", 4.685) == cost(big, "tukey", 4.685)
@@ -319,7 +319,7 @@ def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clus
     inv = torch.linalg.inv(J @ J.transpose(1, 2))
     noise = 0.1 * torch.randn(1, n, generator=g).double()
     gn = 0.01 * inv.diagonal(dim1=1, dim2=2)
-    cid = region_ids(h0, w0, 4, 6)
+    cid = region_ids(h0, w0, block=4, clusters=6)
     assert cid.bincount().tolist() == [4 * c for c in (6, 5, 5, 6, 5, 5)] * 6  # 24 / 6 rows; 32 columns as 6, 5, 5, 6, 5, 5
     sw = cluster_robust_covariance(inv, J * noise[:, None], cid, 36).diagonal(dim1=1, dim2=2)
     assert torch.allclose(sw, gn, rtol=0.6)  # 36 clusters: a noisy but unbiased estimate

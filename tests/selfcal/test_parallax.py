@@ -25,7 +25,7 @@ def test_relief_basis_is_gaussian_bumps_on_a_grid_over_the_frame():
     r = half_diagonal(h, w)
     ux = torch.tensor([[-(w - 1) / (2 * r), 0.0, 0.1]])
     uy = torch.tensor([[-(h - 1) / (2 * r), 0.0, 0.2]])
-    b = selfcal_model.relief_basis(ux, uy, 3, 0.3, h, w)
+    b = selfcal_model.relief_basis(ux, uy, n=3, width=0.3, h0=h, w0=w)
     assert b.shape == (1, 9, 3)
     assert float(b[0, 0, 0]) == pytest.approx(1.0)  # the first bump sits on the top-left corner
     assert float(b[0, 4, 1]) == pytest.approx(1.0)  # the middle one on the centre
