@@ -130,7 +130,7 @@ def main() -> None:
     if planar.get("coefficients"):
         cfg = MultiViewConfig(confidence=res.get("confidence", 0.95))
         for key, where in (("inverts", published), ("board", board)):
-            value, iv = delta_avg_where(planar, g[where], h, w, cfg)
+            value, iv = delta_avg_where(planar, g[where], h, w, config=cfg)
             report[f"answer_{key}"] = {"delta_avg_px": value, "interval": list(iv),
                                        "covers": [r["model"] + ", " + r["views"] for r in rows
                                                   if iv[0] <= r[f"delta_avg_{key}_px"] <= iv[1]]}

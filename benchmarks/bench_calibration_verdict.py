@@ -119,7 +119,7 @@ def halves(m: PlanarMatches, size, cfg: MultiViewConfig, start) -> list:
         index[keep] = torch.arange(len(keep))
         s = index[m.pair] >= 0
         sub = PlanarMatches(m.x1[s], m.x2[s], index[m.pair[s]], m.first[keep], m.second[keep], m.names)
-        fit = self_calibrate_planar(sub, size, cfg, start=start)
+        fit = self_calibrate_planar(sub, size, config=cfg, start=start)
         out.append((fit.coefficients, fit.centre))
     return out
 
@@ -145,11 +145,11 @@ def main() -> None:
     cfg = MultiViewConfig(num_threads=args.threads)
     with tempfile.TemporaryDirectory() as tmp:
         db = str(Path(tmp) / "frames.db")
-        extract_and_match(db, frames, names, cfg, image_size=size)
+        extract_and_match(db, frames, names, config=cfg, image_size=size)
         verified = read_verified_matches(db, names, cfg.planar_min_matches)
-        found = guided_matches(read_features(db, names), verified, planar["coefficients"], planar["centre"], size, cfg)
+        found = guided_matches(read_features(db, names), verified, planar["coefficients"], centre=planar["centre"], size=size, config=cfg)
     m, info = refined_matches(found, lambda v: load_image(frames / names[v])[0, 0], planar["coefficients"],
-                              planar["centre"], size, cfg)
+                              centre=planar["centre"], size=size, config=cfg)
     m = m._replace(x1=m.x1.double(), x2=m.x2.double())
     board = board_region(corners, size, m.x1) & board_region(corners, size, m.x2)
     regions = {"board": board, "outside": ~board, "all": torch.ones_like(board)}

@@ -128,7 +128,7 @@ def main() -> None:
     footprint = {step: truth_footprint(cal["K"], cal["dist"], (h, w), step) for step in (2, 4)}
     on_truth = None  # the homography model where the calibration inverts (its interval from its replicates, same rules)
     if pl.get("coefficients"):
-        on_truth = delta_avg_where(pl, footprint[2], h, w, MultiViewConfig(confidence=res.get("confidence", 0.95)))
+        on_truth = delta_avg_where(pl, footprint[2], h, w, config=MultiViewConfig(confidence=res.get("confidence", 0.95)))
     own = f"{res['delta_avg_user_px']:.2f} px over its own footprint"
     if res.get("method") == "planar" and on_truth is not None:
         rows = [("lensdist calibrate (answer)", "planar", on_truth[0], on_truth[1], res["class"], own)]

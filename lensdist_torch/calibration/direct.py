@@ -331,10 +331,10 @@ def calibrate_sequence(
     if min(xa.shape[-2:]) < least:
         raise ValueError(f"frames must be at least {least} px on each side, got {tuple(xa.shape[-2:])}")
     pairs, shifts = choose_pairs(xa, cfg)
-    fits = fit_pairs(xa, pairs, shifts, st, cfg, progress)
+    fits = fit_pairs(xa, pairs, shifts, settings=st, cfg=cfg, progress=progress)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     if cfg.registered_start and len(pairs):
-        refitted = refit_from_registration(xa, pairs, shifts, fits, _doubtful(fits, xa, cfg, st), st, cfg)
+        refitted = refit_from_registration(xa, pairs, shifts, fits, retry=_doubtful(fits, xa, cfg, st), settings=st, cfg=cfg)
     ab, std, res, planar, relief, misfit = fits
     std = reject_residuals(std, res, cfg, misfit)
     return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief), misfit, refitted)
@@ -363,7 +363,7 @@ def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple
         return (0.0, 0.0, 0.0), 0.0, 0.0
     keep = within_mads(diff @ fun[0], std, cfg)
     w = torch.where(keep, 1.0 / std.clamp_min(1e-12) ** 2, torch.zeros_like(std))
-    theta_d, sd_d, _ = pool_pairs(diff, w, keep, pairs[:, 0], fun, cfg)
+    theta_d, sd_d, _ = pool_pairs(diff, w, keep, pairs[:, 0], fun=fun, cfg=cfg)
     effect, z = (theta_d @ fun.T).abs(), 0.0
     if float(effect[1]) > 0 and bool(torch.isfinite(sd_d[1])):
         z = float(effect[1] / sd_d[1]) if float(sd_d[1]) > 0 else math.inf
@@ -384,7 +384,7 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     fun = torch.stack([_signed_mean(h, w, ra), _signed_mean(hh, ww, ru),
                        torch.tensor([corner**3 / ru**2, corner**5 / ru**4], dtype=torch.float64), _signed_mean(hc, wc, rc)])
     weights, keep = pair_weights(ab @ fun[0], std, cfg, _failure_width((h, w), cfg, st))
-    theta, sd, t = pool_pairs(ab, weights, keep, pairs[:, 0], fun, cfg)
+    theta, sd, t = pool_pairs(ab, weights, keep, pairs[:, 0], fun=fun, cfg=cfg)
     a, b = float(theta[0]), float(theta[1])
     k2u, k4u = user_coefficients(a / ra**2, b / ra**4, scale)
     n_used, nan = int(keep.sum()), float("nan")

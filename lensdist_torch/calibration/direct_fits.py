@@ -97,7 +97,7 @@ def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
     return dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px, parallax_evidence=False)
 
 
-def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationConfig, progress):
+def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: CalibrationConfig, progress):
     """Step 3 per pair, from the phase correlation's translations: [(a, b) (P, 2), std (P,), residual (P,), planar, relief, misfit (P,)]."""
     selfcal = sequence_selfcal(settings, cfg)
     parts = []
@@ -114,7 +114,7 @@ def fit_pairs(frames, pairs, shifts, settings: LensdistConfig, cfg: CalibrationC
     return [torch.cat(x) for x in zip(*parts)]
 
 
-def refit_from_registration(frames, pairs, shifts, fits, retry, settings: LensdistConfig, cfg: CalibrationConfig) -> torch.Tensor:
+def refit_from_registration(frames, pairs, shifts, fits, *, retry, settings: LensdistConfig, cfg: CalibrationConfig) -> torch.Tensor:
     """Step 3's second start: the pairs ``retry`` (P,) bool refitted from their own registration, in place.
 
     A pair is refitted where the homography of ``estimate_homography_robust`` (converged or not:

@@ -74,7 +74,7 @@ def read_features(database, names: list[str]) -> list[tuple[torch.Tensor, torch.
     return out
 
 
-def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, int],
+def chain_views(matches: PlanarMatches, coefficients, *, centre, size: tuple[int, int],
                 config: MultiViewConfig | None = None) -> tuple[dict, dict]:
     """Step 1: the counting pairs' homographies and each chained view's homography onto one plane.
 
@@ -95,7 +95,7 @@ def chain_views(matches: PlanarMatches, coefficients, centre, size: tuple[int, i
         >>> p = torch.rand(40, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 300
         >>> m = PlanarMatches(p, p + torch.tensor([5.0, -3.0], dtype=torch.float64), torch.zeros(40, dtype=torch.long),
         ...                   torch.tensor([0]), torch.tensor([1]), ("a", "b"))
-        >>> pairs, views = chain_views(m, [0.0], None, (240, 320))
+        >>> pairs, views = chain_views(m, [0.0], centre=None, size=(240, 320))
         >>> [round(float(v), 3) for v in pairs[(0, 1)][:2, 2]], sorted(views)  # a shift of (5, -3) px
         ([5.0, -3.0], [0, 1])
     """
@@ -140,7 +140,7 @@ def pair_homography(pairs: dict, views: dict, i: int, j: int) -> torch.Tensor | 
     return hm
 
 
-def guided_matches(features: list, matches: PlanarMatches, coefficients, centre, size: tuple[int, int],
+def guided_matches(features: list, matches: PlanarMatches, coefficients, *, centre, size: tuple[int, int],
                    config: MultiViewConfig | None = None) -> PlanarMatches:
     """Step 2: the verified pairs matched again where the lens and the pairs' homographies predict.
 
@@ -164,7 +164,7 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, centre,
         >>> feats = [(pts, desc), (pts + torch.tensor([4.0, 2.0], dtype=torch.float64), desc)]
         >>> verified = PlanarMatches(pts[:20], feats[1][0][:20], torch.zeros(20, dtype=torch.long),
         ...                          torch.tensor([0]), torch.tensor([1]), ("a", "b"))
-        >>> len(guided_matches(feats, verified, [0.0], None, (240, 320)).pair)  # 20 verified, all 60 guided
+        >>> len(guided_matches(feats, verified, [0.0], centre=None, size=(240, 320)).pair)  # 20 verified, all 60 guided
         60
     """
     cfg = or_defaults(config, MultiViewConfig)
@@ -222,7 +222,7 @@ def _guided_pair(predicted: torch.Tensor, target: torch.Tensor, d1: torch.Tensor
     return ci[keep], cj[keep]
 
 
-def self_calibrate_guided(database, names: list[str], size: tuple[int, int], config: MultiViewConfig | None = None,
+def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, config: MultiViewConfig | None = None,
                           settings=None, images: Callable[[int], torch.Tensor] | None = None):
     """The homography model on a COLMAP database, fitted again on guided matches, then on refined ones (module docstring).
 
@@ -254,14 +254,16 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     """
     cfg = or_defaults(config, MultiViewConfig)
     verified = read_verified_matches(database, names, cfg.planar_min_matches)
-    first = self_calibrate_planar(verified, size, cfg, settings)
+    first = self_calibrate_planar(verified, size, config=cfg, settings=settings)
     res, used = first, verified
     if (cfg.planar_guided_px > 0 and math.isfinite(first.delta_avg_user_px)
             and first.inlier_share >= cfg.planar_min_inlier_share and first.pairs < cfg.planar_guided_below * len(verified.first)):
-        found = guided_matches(read_features(database, names), verified, first.coefficients, first.centre, size, cfg)
+        found = guided_matches(read_features(database, names), verified, first.coefficients, centre=first.centre,
+                               size=size, config=cfg)
         info = {"pairs_verified": len(verified.first), "pairs_matched": len(found.first), "matches": len(found.pair),
                 "radius_px": cfg.planar_guided_px, "first_fit": _figures(first)}
-        again = self_calibrate_planar(found, size, cfg, settings, start=first.coefficients, plane_share=first.inlier_share)
+        again = self_calibrate_planar(found, size, config=cfg, settings=settings, start=first.coefficients,
+                                      plane_share=first.inlier_share)
         if not math.isfinite(again.delta_avg_user_px):
             res = dataclasses.replace(first, guided={**info, "used": False, "reason": again.reason})
         elif again.pairs <= first.pairs:  # it was to bring lost pairs back: where it did not, the first fit stands
@@ -272,15 +274,15 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], con
     if (images is None or cfg.planar_refine_px <= 0 or not math.isfinite(res.delta_avg_user_px)
             or res.inlier_share < cfg.planar_min_inlier_share):
         return res
-    refined, info = refined_matches(used, images, res.coefficients, res.centre, size, cfg)
+    refined, info = refined_matches(used, images, res.coefficients, centre=res.centre, size=size, config=cfg)
     info = {**info, "half_px": cfg.planar_refine_px, "before": _figures(res)}
-    again = self_calibrate_planar(refined, size, cfg, settings, start=res.coefficients, plane_share=first.inlier_share)
+    again = self_calibrate_planar(refined, size, config=cfg, settings=settings, start=res.coefficients, plane_share=first.inlier_share)
     if not math.isfinite(again.delta_avg_user_px):
         return dataclasses.replace(res, refined={**info, "used": False, "reason": again.reason})
     return dataclasses.replace(again, guided=res.guided, refined={**info, "used": True, "reason": ""})
 
 
-def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor], coefficients, centre,
+def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor], coefficients, *, centre,
                     size: tuple[int, int], config: MultiViewConfig | None = None):
     """A sequence's matches moved to sub-pixel agreement under a lens (the refinement of :func:`self_calibrate_guided`).
 
@@ -299,13 +301,14 @@ def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor
         (matches, info) as :func:`~lensdist_torch.calibration.match_refinement.refine_matches` gives them.
     """
     cfg = or_defaults(config, MultiViewConfig)
-    pairs, views = chain_views(matches, coefficients, centre, size, cfg)
+    pairs, views = chain_views(matches, coefficients, centre=centre, size=size, config=cfg)
     hs = {}
     for i, j in zip(matches.first.tolist(), matches.second.tolist()):
         hm = pair_homography(pairs, views, i, j)
         if hm is not None:
             hs[(i, j)] = hm
-    return refine_matches(thin_matches(matches, 2 * cfg.planar_pair_matches), images, hs, coefficients, centre, size, cfg)
+    return refine_matches(thin_matches(matches, 2 * cfg.planar_pair_matches), images, hs, coefficients, centre=centre,
+                          size=size, config=cfg)
 
 
 def _figures(res) -> dict:

@@ -67,7 +67,7 @@ def _prepared(image: torch.Tensor, blur: float) -> torch.Tensor:
     return torch.cat([x[0], spatial_gradient(x, "sobel", normalized=True)[0, 0]], 0)
 
 
-def align_patches(image1: torch.Tensor, image2: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor, affine: torch.Tensor,
+def align_patches(image1: torch.Tensor, image2: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor, *, affine: torch.Tensor,
                   half: int = 7, iterations: int = 15) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Each point of the second view moved to where its patch aligns with the first view's (module docstring, step 2).
 
@@ -130,14 +130,14 @@ def align_patches(image1: torch.Tensor, image2: torch.Tensor, x1: torch.Tensor, 
     return t, ncc, ok
 
 
-def local_affines(x1: torch.Tensor, homography: torch.Tensor, coefficients, centre, size: tuple[int, int],
+def local_affines(x1: torch.Tensor, homography: torch.Tensor, coefficients, *, centre, size: tuple[int, int],
                   eps: float = 0.5) -> torch.Tensor:
     """(K, 2, 2): the derivative at ``x1`` (K, 2) of x -> lens^-1(H lens(x)), H (3, 3) between ideal points (step 1).
 
     Example:
         >>> x = torch.tensor([[100.0, 80.0]], dtype=torch.float64)
         >>> h = torch.tensor([[2.0, 0.0, 5.0], [0.0, 2.0, -3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        >>> local_affines(x, h, [0.0], None, (240, 320)).squeeze(0).tolist()  # no lens: the homography's scale
+        >>> local_affines(x, h, [0.0], centre=None, size=(240, 320)).squeeze(0).tolist()  # no lens: the homography's scale
         [[2.0, 0.0], [0.0, 2.0]]
     """
     h, w = size
@@ -152,7 +152,7 @@ def local_affines(x1: torch.Tensor, homography: torch.Tensor, coefficients, cent
     return torch.stack(cols, -1)
 
 
-def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies: dict, coefficients, centre,
+def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies: dict, coefficients, *, centre,
                    size: tuple[int, int], config: MultiViewConfig | None = None, cache_mb: float = 256.0):
     """Every match of a pair with a homography moved to sub-pixel agreement (module docstring); the others dropped.
 
@@ -204,7 +204,8 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
             continue
         sel = (matches.pair == p).nonzero()[:, 0]
         x1, x2 = matches.x1[sel], matches.x2[sel]
-        moved, ncc, ok = align_patches(view(i), view(j), x1, x2, local_affines(x1, hm, coefficients, centre, size), half)
+        affine = local_affines(x1, hm, coefficients, centre=centre, size=size)
+        moved, ncc, ok = align_patches(view(i), view(j), x1, x2, affine=affine, half=half)
         shift = (moved - x2).norm(dim=1)
         keep = ok & (ncc >= cfg.planar_refine_ncc) & (shift <= cfg.planar_inlier_px) & inside(x1) & inside(moved)
         if int(keep.sum()) < cfg.planar_min_matches:

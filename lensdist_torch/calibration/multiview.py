@@ -154,7 +154,7 @@ def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = No
     return max(64, min(config.max_features, math.ceil(config.features_per_megapixel * h * w * shrink * shrink / 1e6)))
 
 
-def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None,
+def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewConfig | None = None,
                 stop: Callable[[int, object], bool] | None = None, image_size: tuple[int, int] | None = None,
                 on_matches: Callable[[Path], None] | None = None) -> list:
     """COLMAP's sparse reconstructions of frames ``names`` in ``image_dir`` (module docstring, step 1).
@@ -185,7 +185,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
     out = []
     with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
         db = Path(tmp) / "db.db"
-        extract_and_match(db, image_dir, names, cfg, image_size)
+        extract_and_match(db, image_dir, names, config=cfg, image_size=image_size)
         if on_matches is not None:
             on_matches(db)
         for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
@@ -202,7 +202,7 @@ def reconstruct(image_dir: str | Path, names: list[str], config: MultiViewConfig
     return out
 
 
-def extract_and_match(database: str | Path, image_dir: str | Path, names: list[str], config: MultiViewConfig | None = None,
+def extract_and_match(database: str | Path, image_dir: str | Path, names: list[str], *, config: MultiViewConfig | None = None,
                       image_size: tuple[int, int] | None = None) -> None:
     """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
 
@@ -256,8 +256,8 @@ def _other_rows(rec, others: dict, fits: dict, scale: float, n_blocks: int, conf
         ivs = [o.get(k) for k in ("delta_avg_user_interval", "delta_max_user_interval")]
         if not all(v is not None and math.isfinite(v) for v in values) or any(iv is None or None in iv for iv in ivs):
             continue
-        cam = held_camera(o["camera_matrix"], o["dist_coeffs"], base.mean_focal_length(), base.camera_id, base.width,
-                          base.height, scale)
+        cam = held_camera(o["camera_matrix"], o["dist_coeffs"], focal=base.mean_focal_length(), camera_id=base.camera_id,
+                          width=base.width, height=base.height, scale=scale)
         fit = fit_held_camera(rec, cam, n_blocks)
         stds = [max(hi - v, v - lo) / z for v, (lo, hi) in zip(values, ivs)]
         out[name] = {**fit, "row": {"path": name, "delta_avg_px": values[0], "delta_avg_std_px": stds[0],
@@ -308,7 +308,7 @@ def self_calibrate_reconstruction(
     n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
     fits = {}
     for model in cfg.models:
-        fits[model] = fit_model(rec, model, size, scale, step, n_blocks)
+        fits[model] = fit_model(rec, model=model, size=size, scale=scale, step=step, n_blocks=n_blocks)
         if on_model is not None:
             on_model(model)
     rows = [f["row"] for f in fits.values()]

@@ -157,7 +157,7 @@ def _folds(rec, n_blocks: int, held: bool = False):
         yield train, heldout_squared_errors(train, camera_of(train), rec, block)
 
 
-def fit_model(rec, model: str, size: tuple[int, int], scale: float, step: int, n_blocks: int) -> dict:
+def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int, n_blocks: int) -> dict:
     """One model on ``rec``'s tracks: its adjustment, posterior, delete-a-block fits and held-out errors."""
     r = with_model(rec, model)
     ss, n = rss(r)
@@ -196,7 +196,7 @@ def copy_reconstruction(rec):
     return pycolmap_or_error().Reconstruction(rec)
 
 
-def held_camera(camera_matrix, dist_coeffs, focal: float, camera_id: int, width: int, height: int, scale: float = 1.0):
+def held_camera(camera_matrix, dist_coeffs, *, focal: float, camera_id: int, width: int, height: int, scale: float = 1.0):
     """Another path's OpenCV camera (in pixels scaled by ``scale``) as COLMAP's FULL_OPENCV at focal length ``focal``.
 
     The lens map in pixels is kept (module docstring): every pixel goes to the same ideal pixel.

@@ -163,7 +163,7 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
         return cfg.planar_ransac_px * max(scale, 1e-3)
 
     which = range(len(matches.first)) if pairs is None else pairs.tolist()
-    for p, idx, hm, mask in pair_homographies(u1, u2, matches.pair, which, threshold, cfg.seed):
+    for p, idx, hm, mask in pair_homographies(u1, u2, matches.pair, which=which, max_error=threshold, seed=cfg.seed):
         if hm is None:
             hs[p] = torch.tensor([1.0, 0, 0, 0, 1, 0, 0, 0], dtype=torch.float64)
             continue
@@ -206,11 +206,12 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
     for n in range(1, cfg.planar_terms + 1):
         for free in (False, True) if cfg.planar_centre_max > 0 else (False,):
             start = torch.cat([theta0[:n], theta0.new_zeros(2)]) if free else theta0[:n].clone()
-            tn, hn = fit_lens_and_homographies(start, hs.clone(), v1, v2, pair, inl.double(), cfg.planar_iterations, n)
+            tn, hn = fit_lens_and_homographies(start, hs.clone(), v1, v2, pair=pair, w=inl.double(),
+                                               iterations=cfg.planar_iterations, terms=n)
             d = split_lens(tn, n)[1]
             if d is not None and not float(d.norm()) <= cfg.planar_centre_max:
                 continue  # a centre that far off is no lens's: not a candidate
-            r = transfer_residuals(tn, hn, v1, v2, n, pair)[inl] * big_r
+            r = transfer_residuals(tn, hn, v1, v2, terms=n, pair=pair)[inl] * big_r
             rss = float((r * r).sum())
             dl = lens_deltas(tn, n, size, step)
             name = f"planar-{n}" + ("-centre" if free else "")
@@ -221,7 +222,7 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
     return table, fits
 
 
-def delta_avg_where(res, points: torch.Tensor, height: int, width: int, config: MultiViewConfig | None = None):
+def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, config: MultiViewConfig | None = None):
     """The answer's Delta_avg (px) over other ``points`` (M, 2) (say, where a reference calibration inverts), with its interval.
 
     The same rules as the answer's own: its jackknife lenses and its models' spread measured on
@@ -254,6 +255,7 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, config: 
 def self_calibrate_planar(
     matches: PlanarMatches,
     image_size: tuple[int, int],
+    *,
     config: MultiViewConfig | None = None,
     settings: LensdistConfig | None = None,
     start=None,
@@ -314,8 +316,9 @@ def self_calibrate_planar(
         hs, inl = _ransac(matches, theta, (h, w), cfg)
     for _ in range(2):  # fit on the inliers, then again on the matches the fit explains (the centre fixed: a free one
         # would bend to take parallax in, and "not a plane" would go unseen)
-        theta, hs = fit_lens_and_homographies(theta, hs, v1, v2, matches.pair, inl.double(), cfg.planar_iterations, terms)
-        inl = transfer_errors(theta, hs, v1, v2, matches.pair, big_r, terms) < cfg.planar_inlier_px
+        theta, hs = fit_lens_and_homographies(theta, hs, v1, v2, pair=matches.pair, w=inl.double(),
+                                              iterations=cfg.planar_iterations, terms=terms)
+        inl = transfer_errors(theta, hs, v1, v2, pair=matches.pair, big_r=big_r, terms=terms) < cfg.planar_inlier_px
         per_pair = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
         inl &= (per_pair >= cfg.planar_min_matches)[matches.pair]
     kept = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
@@ -337,7 +340,8 @@ def self_calibrate_planar(
         block = torch.arange(g * n_frames // n_blocks, (g + 1) * n_frames // n_blocks)
         out = torch.isin(matches.first, block) | torch.isin(matches.second, block)
         wj = inl.double() * (~out[matches.pair]).double()
-        tj, _ = fit_lens_and_homographies(theta.clone(), hs.clone(), v1, v2, matches.pair, wj, cfg.planar_iterations, n)
+        tj, _ = fit_lens_and_homographies(theta.clone(), hs.clone(), v1, v2, pair=matches.pair, w=wj,
+                                          iterations=cfg.planar_iterations, terms=n)
         dj = lens_deltas(tj, n, (h, w), 2 * step)
         jk_avg.append(dj["delta_avg_px"])
         jk_max.append(dj["delta_max_px"])
@@ -346,7 +350,7 @@ def self_calibrate_planar(
     intervals = [jackknife_interval(value, jk, extra, cfg.confidence)
                  for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0))]
     seen = torch.cat([matches.x1[inl], matches.x2[inl]]).unique(dim=0)
-    bending, reach = bending_halfwidth(theta, jk_t, n, (h, w), dl, cfg.confidence, seen)
+    bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=cfg.confidence, seen=seen)
     k2u, k4u, fit_err = _eq4_fit(a, centre, (h, w), dl)
     half_avg = (intervals[0][1] - intervals[0][0]) / 2
     label, reason = None, ""

@@ -58,6 +58,7 @@ def split_lens(theta: torch.Tensor, terms: int | None = None) -> tuple[torch.Ten
 
 
 def transfer_residuals(theta: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
+                       *,
                        terms: int | None = None, pair: torch.Tensor | None = None) -> torch.Tensor:
     """(N, 4) symmetric transfer errors of N matches (normalised frame, ``v = (p - c) / R``) over the lens's scale.
 
@@ -81,6 +82,7 @@ def transfer_residuals(theta: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v
 
 
 def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
+                       *,
                        terms: int | None = None, pair: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, 4, n) and (N, 4, 8): the residuals' derivatives by the lens ``a`` (``theta``) and by each match's homography.
 
@@ -130,7 +132,7 @@ def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: t
     return ja, jh
 
 
-def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w, iterations: int,
+def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair, w, iterations: int,
                               terms: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Levenberg-Marquardt on the lens ``a`` (``theta``, ``terms``) and the pairs' homographies ``hs`` (P, 8) (step 3).
 
@@ -139,13 +141,13 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w
     n_pairs, lam = hs.shape[0], 1e-3
 
     def cost(a_, hs_):
-        r = transfer_residuals(a_, hs_, v1, v2, terms, pair)
+        r = transfer_residuals(a_, hs_, v1, v2, terms=terms, pair=pair)
         return float((w[:, None] * r * r).sum())
 
     c0 = cost(a, hs)
     for _ in range(iterations):
-        r = transfer_residuals(a, hs, v1, v2, terms, pair)
-        ja, jh = transfer_jacobians(a, hs, v1, v2, terms, pair)
+        r = transfer_residuals(a, hs, v1, v2, terms=terms, pair=pair)
+        ja, jh = transfer_jacobians(a, hs, v1, v2, terms=terms, pair=pair)
         wr = w[:, None, None]
         uhh = torch.zeros(n_pairs, 8, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * jh)))
         whd = torch.zeros(n_pairs, 8, a.numel(), dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * ja)))
@@ -174,12 +176,12 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, pair, w
     return a, hs
 
 
-def transfer_errors(a, hs, v1, v2, pair, big_r: float, terms: int | None = None) -> torch.Tensor:
+def transfer_errors(a, hs, v1, v2, *, pair, big_r: float, terms: int | None = None) -> torch.Tensor:
     """(N,) each match's larger transfer error in pixels."""
-    return transfer_residuals(a, hs, v1, v2, terms, pair).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r
+    return transfer_residuals(a, hs, v1, v2, terms=terms, pair=pair).reshape(-1, 2, 2).norm(dim=-1).amax(-1) * big_r
 
 
-def pair_homographies(u1: torch.Tensor, u2: torch.Tensor, pair: torch.Tensor, which, max_error, seed: int):
+def pair_homographies(u1: torch.Tensor, u2: torch.Tensor, pair: torch.Tensor, *, which, max_error, seed: int):
     """Each listed pair's homography between its matches' ideal points, by COLMAP's LO-RANSAC.
 
     Args:
@@ -197,7 +199,7 @@ def pair_homographies(u1: torch.Tensor, u2: torch.Tensor, pair: torch.Tensor, wh
     Example:
         >>> u = torch.rand(30, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 100
         >>> [(p, round(float(h[0, 2]), 3), int(m.sum())) for p, _, h, m in
-        ...  pair_homographies(u, u + 2.0, torch.zeros(30, dtype=torch.long), [0], 1.0, 0)]  # a shift by 2 px
+        ...  pair_homographies(u, u + 2.0, torch.zeros(30, dtype=torch.long), which=[0], max_error=1.0, seed=0)]  # a shift by 2 px
         [(0, 2.0, 30)]
     """
     pc = pycolmap_or_error()
@@ -239,7 +241,7 @@ def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: in
             "invertible_fraction": float(ok.double().mean()), "points": p, "ok": ok}
 
 
-def bending_halfwidth(theta, replicates: list, n: int, size: tuple[int, int], dl: dict, confidence: float,
+def bending_halfwidth(theta, replicates: list, *, n: int, size: tuple[int, int], dl: dict, confidence: float,
                        seen: torch.Tensor) -> tuple[float, float]:
     """The jackknife's half-width (px, RMS) of the lens map's bending where the matches reach, and that share of the frame.
 

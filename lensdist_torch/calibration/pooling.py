@@ -205,7 +205,7 @@ def pair_weights(lin, std, cfg: CalibrationConfig, width: float) -> tuple[torch.
     return torch.where(keep, 1.0 / std.clamp_min(1e-12) ** 2, torch.zeros_like(std)), keep
 
 
-def pool_pairs(ab, w, keep, first, fun, cfg: CalibrationConfig):
+def pool_pairs(ab, w, keep, first, *, fun, cfg: CalibrationConfig):
     """Step 5: the weighted mean (a, b) (2,), the sd (K,) of the functionals ``fun`` (K, 2) and t.
 
     Row 0 of ``fun`` is the analysis frame's signed Delta_avg; NaN sd below 2 kept pairs.

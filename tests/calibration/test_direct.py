@@ -387,7 +387,7 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     fun = _signed_mean(h, w, ra).expand(2, 2)  # the user frame is the analysis frame here
     cfg = CalibrationConfig()
     keep = within_mads((noisy - ab) @ fun[0], std, cfg)  # the differences pooled by inverse variance
-    sd_d = float(pool_pairs(noisy - ab, torch.where(keep, 1 / std**2, 0.0), keep, pairs[:, 0], fun, cfg)[1][1])
+    sd_d = float(pool_pairs(noisy - ab, torch.where(keep, 1 / std**2, 0.0), keep, pairs[:, 0], fun=fun, cfg=cfg)[1][1])
     assert flat.delta_avg_user_px == base.delta_avg_user_px and sd_d > 0
     h2 = flat.delta_avg_user_interval[1] - flat.delta_avg_user_px
     assert h2**2 - h0**2 == pytest.approx((t * 0.7 * 2.0 * sd_d) ** 2, rel=1e-6)

@@ -89,7 +89,7 @@ def test_chain_views_recovers_a_pair_whose_own_matches_failed():
     both = PlanarMatches(torch.cat([verified.x1, wrong.x1]), torch.cat([verified.x2, wrong.x2]),
                          torch.cat([verified.pair, wrong.pair + 3]), torch.tensor([0, 1, 2, 0]), torch.tensor([1, 2, 3, 3]),
                          verified.names)
-    pairs, views = chain_views(both, _lens(), None, SIZE)
+    pairs, views = chain_views(both, _lens(), centre=None, size=SIZE)
     assert set(pairs) == {(0, 1), (1, 2), (2, 3)} and sorted(views) == [0, 1, 2, 3]
     chained = torch.linalg.inv(views[3]) @ views[0]
     truth = homs[3] @ torch.linalg.inv(homs[0])  # view 0's ideal pixels to view 3's
@@ -102,7 +102,7 @@ def test_guided_matches_find_the_true_partners_among_look_alikes():
     feats, homs, ids = _views()
     pairs = [(0, 1), (1, 2), (2, 3), (0, 2)]
     verified = _verified(feats, ids, pairs)  # a third right, the rest look-alikes
-    out = guided_matches(feats, verified, _lens(), None, SIZE)
+    out = guided_matches(feats, verified, _lens(), centre=None, size=SIZE)
     assert len(out.first) == len(pairs)
     for p, (i, j) in enumerate(pairs):
         sel = out.pair == p
@@ -114,7 +114,7 @@ def test_guided_matches_find_the_true_partners_among_look_alikes():
         common = len(set(ids[i].tolist()) & set(ids[j].tolist()))
         assert int(sel.sum()) >= 0.9 * common  # nearly every shared point, where the matcher kept 20
     # a look-alike at the next tile (14 px) is never within the 3 px radius; a radius over the period admits them
-    wide = guided_matches(feats, verified, _lens(), None, SIZE, MultiViewConfig(planar_guided_px=30.0))
+    wide = guided_matches(feats, verified, _lens(), centre=None, size=SIZE, config=MultiViewConfig(planar_guided_px=30.0))
     assert len(wide.pair) < 0.1 * len(out.pair)  # the ratio test rejects the look-alikes' ties
 
 
@@ -122,10 +122,10 @@ def test_the_plane_test_can_be_carried_over():
     """``plane_share``: guided matches cannot say whether the scene is a plane; the first fit's share decides."""
     feats, homs, ids = _views(n_views=5)
     verified = _verified(feats, ids, [(i, j) for i in range(5) for j in range(i + 1, 5)], good=40, wrong=0)
-    found = guided_matches(feats, verified, _lens(), None, SIZE)
+    found = guided_matches(feats, verified, _lens(), centre=None, size=SIZE)
     cfg = MultiViewConfig(planar_terms=2, planar_centre_max=0.0)
-    plain = self_calibrate_planar(found, SIZE, cfg)
-    carried = self_calibrate_planar(found, SIZE, cfg, start=_lens(), plane_share=0.3)
+    plain = self_calibrate_planar(found, SIZE, config=cfg)
+    carried = self_calibrate_planar(found, SIZE, config=cfg, start=_lens(), plane_share=0.3)
     assert plain.inlier_share > 0.9 and plain.class_label is not None
     assert carried.inlier_share == 0.3 and carried.class_label is None and carried.reason.startswith("not a plane: ")
     assert carried.delta_avg_user_px == pytest.approx(plain.delta_avg_user_px, rel=1e-3)  # from the lens, not the scan: same fit
@@ -162,7 +162,7 @@ def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
                              torch.cat([near.first, far.first]), torch.cat([near.second, far.second]), near.names)
     cfg = MultiViewConfig(planar_terms=2, planar_centre_max=0.0, planar_min_matches=10, planar_min_inlier_share=0.2)
     _stub_database(monkeypatch, verified, feats)
-    res = self_calibrate_guided("db", list(verified.names), SIZE, cfg)
+    res = self_calibrate_guided("db", list(verified.names), SIZE, config=cfg)
     first = res.guided["first_fit"]
     assert res.guided["used"] and res.pairs > first["pairs"] and res.guided["pairs_verified"] == 10
     assert first["pairs"] < 0.5 * 10  # why it ran: under planar_guided_below of the verified pairs counted
@@ -170,8 +170,8 @@ def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
     assert lo <= res.delta_avg_user_px <= hi and (hi - lo) < (first["delta_avg_user_interval"][1] - first["delta_avg_user_interval"][0])
     # guided matches that count fewer pairs than the first fit: the first fit stands, and says why
     _stub_database(monkeypatch, verified, feats, keep_pairs=first["pairs"])
-    fewer = self_calibrate_guided("db", list(verified.names), SIZE, cfg)
+    fewer = self_calibrate_guided("db", list(verified.names), SIZE, config=cfg)
     assert not fewer.guided["used"] and fewer.guided["reason"].startswith("the guided matches count ")
     assert fewer.delta_avg_user_px == pytest.approx(first["delta_avg_user_px"], rel=1e-6)
     # most verified pairs counted: no guided matching at all
-    assert self_calibrate_guided("db", list(verified.names), SIZE, dataclasses.replace(cfg, planar_guided_below=0.1)).guided is None
+    assert self_calibrate_guided("db", list(verified.names), SIZE, config=dataclasses.replace(cfg, planar_guided_below=0.1)).guided is None

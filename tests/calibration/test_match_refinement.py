@@ -49,7 +49,7 @@ def test_align_patches_recovers_a_shift_under_a_change_of_exposure():
     x1 = torch.tensor([[40.0, 30.0], [55.5, 41.25], [30.0, 50.0]], dtype=torch.float64)
     start = x1 + torch.tensor([1.37, -2.21], dtype=torch.float64) + torch.tensor([[0.6, -0.5], [-0.7, 0.4], [0.3, 0.8]],
                                                                                  dtype=torch.float64)
-    out, ncc, ok = align_patches(_prepared(one, 1.0), _prepared(two, 1.0), x1, start, torch.eye(2, dtype=torch.float64).expand(3, 2, 2))
+    out, ncc, ok = align_patches(_prepared(one, 1.0), _prepared(two, 1.0), x1, start, affine=torch.eye(2, dtype=torch.float64).expand(3, 2, 2))
     assert ok.all() and (ncc > 0.999).all()
     # bilinear sampling of the 14 px waves errs by up to 0.008 in intensity: about 0.02 px here (0.8 px before)
     assert (out - x1 - torch.tensor([1.37, -2.21], dtype=torch.float64)).abs().max() < 0.03
@@ -58,7 +58,7 @@ def test_align_patches_recovers_a_shift_under_a_change_of_exposure():
 def test_a_flat_patch_is_not_kept():
     flat = _prepared(torch.full((60, 60), 0.5), 0.0)
     x = torch.tensor([[30.0, 30.0]], dtype=torch.float64)
-    _, _, ok = align_patches(flat, flat, x, x + 0.5, torch.eye(2, dtype=torch.float64)[None])
+    _, _, ok = align_patches(flat, flat, x, x + 0.5, affine=torch.eye(2, dtype=torch.float64)[None])
     assert not ok.any()
 
 
@@ -72,7 +72,7 @@ def test_local_affines_are_the_derivative_of_the_lens_homography_lens_map():
         return lens_distorted_points(apply_homography(hm[None], u)[0], LENS, h, w, centre=CENTRE)[0][0]
 
     exact = torch.stack([torch.func.jacfwd(f)(p) for p in x])  # forward-mode AD through the Newton inverse
-    assert (local_affines(x, hm, LENS, CENTRE, SIZE) - exact).abs().max() < 1e-4
+    assert (local_affines(x, hm, LENS, centre=CENTRE, size=SIZE) - exact).abs().max() < 1e-4
     assert not torch.allclose(exact[0], torch.eye(2, dtype=torch.float64) * 1.08, atol=1e-2)  # the lens bends it
 
 
@@ -90,23 +90,23 @@ def test_refined_matches_are_the_true_partners(scene):
     images, x1, truth, h01, g = scene
     noisy = truth + 0.8 * torch.randn(truth.shape, generator=g, dtype=torch.float64).clamp(-2, 2)  # a keypoint's error
     m = PlanarMatches(x1, noisy, torch.zeros(len(x1), dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b"))
-    out, info = refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, CENTRE, SIZE)
+    out, info = refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE)
     kept = (x1[:, None] == out.x1[None]).all(-1).any(1)
     error = (out.x2 - truth[kept]).norm(dim=1)
     assert info["kept"] == len(out.pair) >= 0.8 * len(x1) and out.first.tolist() == [0] and out.second.tolist() == [1]
     assert float(error.median()) < 0.03 and float(error.max()) < 0.15  # from 0.8 px of noise
     assert float((noisy[kept] - truth[kept]).norm(dim=1).median()) > 0.8
     # with the lens left out of the local map the patches still align near the centre, but less well at the edges
-    plain, _ = refine_matches(m, lambda v: images[v], {(0, 1): h01}, [0.0], CENTRE, SIZE)
+    plain, _ = refine_matches(m, lambda v: images[v], {(0, 1): h01}, [0.0], centre=CENTRE, size=SIZE)
     assert len(plain.pair) <= len(out.pair)
 
 
 def test_pairs_without_a_homography_are_dropped_and_a_wrong_size_refused(scene):
     images, x1, truth, h01, _ = scene
     m = PlanarMatches(x1, truth, torch.zeros(len(x1), dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b"))
-    out, info = refine_matches(m, lambda v: images[v], {}, LENS, CENTRE, SIZE)
+    out, info = refine_matches(m, lambda v: images[v], {}, LENS, centre=CENTRE, size=SIZE)
     assert len(out.pair) == 0 and len(out.first) == 0 and info["kept"] == 0 and math.isnan(info["median_shift_px"])
     few = MultiViewConfig(planar_min_matches=200)  # more than the pair has: dropped
-    assert len(refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, CENTRE, SIZE, few)[0].first) == 0
+    assert len(refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE, config=few)[0].first) == 0
     with pytest.raises(ValueError, match=r"^images: view 0 is \(120, 160\), expected"):
-        refine_matches(m, lambda v: images[v][::2, ::2], {(0, 1): h01}, LENS, CENTRE, SIZE)
+        refine_matches(m, lambda v: images[v][::2, ::2], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE)

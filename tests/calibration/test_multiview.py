@@ -173,11 +173,11 @@ def test_a_held_camera_keeps_the_paths_lens_map_at_any_focal_length():
     p = torch.rand(400, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * torch.tensor([639.0, 479.0])
     want, ok = opencv_ideal_points(p, k, d)
     for focal in (250.0, 600.0, 1500.0):  # COLMAP's focal differs from the path's convention: the map stays
-        cam = held_camera(k.tolist(), d.tolist(), focal, 1, 640, 480)
+        cam = held_camera(k.tolist(), d.tolist(), focal=focal, camera_id=1, width=640, height=480)
         got, ok2 = opencv_ideal_points(p, *opencv_from_colmap(cam))
         assert cam.model_name == "FULL_OPENCV" and cam.params[0] == focal and bool((ok == ok2).all())
         assert float((got - want)[ok].abs().max()) < 1e-9
-    half = held_camera(k.tolist(), d.tolist(), 300.0, 1, 320, 240, scale=2.0)  # a reconstruction at half the size
+    half = held_camera(k.tolist(), d.tolist(), focal=300.0, camera_id=1, width=320, height=240, scale=2.0)  # a reconstruction at half the size
     assert float((opencv_ideal_points(p, *opencv_from_colmap(half, 2.0))[0] - want)[ok].abs().max()) < 1e-9
 
 

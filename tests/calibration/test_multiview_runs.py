@@ -151,7 +151,7 @@ def test_one_thread_reconstructions_repeat_exactly(tmp_path):
     cfg = MultiViewConfig(num_threads=1, reconstructions=2)
 
     def numbers():
-        recs = reconstruct(tmp_path, names, cfg)
+        recs = reconstruct(tmp_path, names, config=cfg)
         assert len(recs) == 2 and all(isinstance(r, pycolmap.Reconstruction) for r in recs)
         return [(r.num_reg_images(), r.num_points3D(), [float(v) for v in next(iter(r.cameras.values())).params])
                 for r in recs]

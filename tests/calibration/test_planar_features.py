@@ -93,22 +93,22 @@ def test_jacobian_agrees_with_finite_differences(theta):
     h = torch.tensor([1.01, 0.02, 0.05, -0.01, 0.98, -0.03, 0.02, -0.01], dtype=torch.float64)[None].repeat(5, 1)
     v1 = torch.rand(5, 2, dtype=torch.float64) - 0.5
     v2 = v1 + 0.03
-    ja, jh = transfer_jacobians(a, h, v1, v2, 3)
+    ja, jh = transfer_jacobians(a, h, v1, v2, terms=3)
     assert ja.shape == (5, 4, len(theta))
     eps = 1e-7
     for k in range(len(theta)):
         d = torch.zeros(len(theta), dtype=torch.float64)
         d[k] = eps
-        fd = (transfer_residuals(a + d, h, v1, v2, 3) - transfer_residuals(a - d, h, v1, v2, 3)) / (2 * eps)
+        fd = (transfer_residuals(a + d, h, v1, v2, terms=3) - transfer_residuals(a - d, h, v1, v2, terms=3)) / (2 * eps)
         assert torch.allclose(ja[..., k], fd, atol=1e-6)
     for k in range(8):
         d = torch.zeros(8, dtype=torch.float64)
         d[k] = eps
-        fd = (transfer_residuals(a, h + d, v1, v2, 3) - transfer_residuals(a, h - d, v1, v2, 3)) / (2 * eps)
+        fd = (transfer_residuals(a, h + d, v1, v2, terms=3) - transfer_residuals(a, h - d, v1, v2, terms=3)) / (2 * eps)
         assert torch.allclose(jh[..., k], fd, atol=1e-6)
     # forward-mode AD of the residual, one tangent per parameter: the closed form to rounding
     def along(da, dh):
-        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2, 3), (a, h), (da, dh))[1]
+        return torch.func.jvp(lambda a_, h_: transfer_residuals(a_, h_, v1, v2, terms=3), (a, h), (da, dh))[1]
 
     n = len(theta)
     tangents = (torch.cat([torch.eye(n, dtype=a.dtype), a.new_zeros(8, n)]),
@@ -119,15 +119,15 @@ def test_jacobian_agrees_with_finite_differences(theta):
     # the pairs' homographies once each, indexed by pair: the same residuals and derivatives
     pair = torch.tensor([0, 1, 1, 0, 1])
     hp = torch.stack([h[0], h[0] + 0.01])
-    assert torch.allclose(transfer_residuals(a, hp, v1, v2, 3, pair), transfer_residuals(a, hp[pair], v1, v2, 3), atol=1e-14)
-    for got, want in zip(transfer_jacobians(a, hp, v1, v2, 3, pair), transfer_jacobians(a, hp[pair], v1, v2, 3)):
+    assert torch.allclose(transfer_residuals(a, hp, v1, v2, terms=3, pair=pair), transfer_residuals(a, hp[pair], v1, v2, terms=3), atol=1e-14)
+    for got, want in zip(transfer_jacobians(a, hp, v1, v2, terms=3, pair=pair), transfer_jacobians(a, hp[pair], v1, v2, terms=3)):
         assert torch.allclose(got, want, atol=1e-12)
 
 
 @pytest.mark.parametrize("k2,k4", [(2.5e-6, 0.0), (-2e-6, 0.0), (4e-6, 2e-11)])
 def test_recovers_a_known_lens_from_noisy_matches_with_outliers(k2, k4):
     h, w = SIZE
-    res = self_calibrate_planar(_plane_matches(k2, k4), SIZE, MultiViewConfig(planar_terms=2))
+    res = self_calibrate_planar(_plane_matches(k2, k4), SIZE, config=MultiViewConfig(planar_terms=2))
     truth = float(delta_avg([k2], [k4], h, w)[0])
     lo, hi = res.delta_avg_user_interval
     assert abs(res.delta_avg_user_px - truth) < 0.03 * truth
@@ -152,7 +152,7 @@ def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
     # a strong lens (Delta_avg 9 px at 240 x 320) centred 12 px right of and 8 px above the frame's centre
     h, w = SIZE
     k2, off = 6e-6, (12.0, -8.0)
-    res = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, MultiViewConfig(planar_terms=2))
+    res = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, config=MultiViewConfig(planar_terms=2))
     centre = ((w - 1) / 2 + off[0], (h - 1) / 2 + off[1])
     assert res.model.endswith("-centre") and res.class_label is not None
     assert math.dist(res.centre, centre) < 2.5  # 1.9 px off (0.3 px noise, 8 views)
@@ -164,14 +164,14 @@ def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
     assert bent < 0.3 and bent < res.bending_halfwidth_px  # and its own half-width (0.49) covers that
     assert abs(res.delta_avg_user_px - float((truth - p).norm(dim=-1).mean())) < 0.03 * float((truth - p).norm(dim=-1).mean())
     # the frame-centred model cannot follow it: 2.1 px of bending (BIC prefers the free centre by 589)
-    fixed = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, MultiViewConfig(planar_terms=2, planar_centre_max=0.0))
+    fixed = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, config=MultiViewConfig(planar_terms=2, planar_centre_max=0.0))
     assert _bending(p, truth, lens_ideal_points(p, fixed.coefficients, h, w)) > 5 * _bending(p, truth, ours)
     # OpenCV's camera about the same centre
     assert res.opencv["camera_matrix"][0][2] == pytest.approx(res.centre[0]) and res.opencv["fit_error_mean_px"] < 0.1
 
 
 def test_no_distortion_gives_a_small_delta_and_no_class_where_the_interval_spans_the_threshold():
-    res = self_calibrate_planar(_plane_matches(0.0, 0.0), SIZE, MultiViewConfig(planar_terms=2))
+    res = self_calibrate_planar(_plane_matches(0.0, 0.0), SIZE, config=MultiViewConfig(planar_terms=2))
     assert res.delta_avg_user_px < 0.2 and res.delta_avg_user_interval[0] == 0.0  # 0.17 (60 matches a pair kept of ~300)
     # the interval starts at 0 and reaches past 0.25 px at the paper's frame: R or class 1 cannot be told
     assert res.class_label is None and "spans the no-distortion threshold (0.25 px)" in res.reason
@@ -181,16 +181,16 @@ def test_a_scene_with_depth_is_not_a_plane():
     # depths 1 .. 2 (or 1 .. 3) under a camera moving sideways: a homography fits a band of depths, about 30 %
     # of a pair's matches, where a plane keeps all but its outliers (80 % here, 61 % on the GoPro's chessboard)
     for depth in (1.0, 2.0):
-        res = self_calibrate_planar(_plane_matches(2e-6, 0.0, depth=depth, outliers=0.0), SIZE, MultiViewConfig(planar_terms=2))
+        res = self_calibrate_planar(_plane_matches(2e-6, 0.0, depth=depth, outliers=0.0), SIZE, config=MultiViewConfig(planar_terms=2))
         assert res.class_label is None and res.inlier_share < 0.4
         assert res.reason.startswith("not a plane: one homography per pair explains"), res.reason
-    plane = self_calibrate_planar(_plane_matches(2e-6, 0.0), SIZE, MultiViewConfig(planar_terms=2))
+    plane = self_calibrate_planar(_plane_matches(2e-6, 0.0), SIZE, config=MultiViewConfig(planar_terms=2))
     assert plane.inlier_share > 0.75
 
 
 def test_too_few_pairs_say_so():
     m = _plane_matches(2e-6, 0.0, views=3)
-    res = self_calibrate_planar(m, SIZE, MultiViewConfig(planar_min_pairs=4))
+    res = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_min_pairs=4))
     assert res.class_label is None and math.isnan(res.delta_avg_user_px)
     assert res.reason == "too few matched pairs: 3 of at least 4"
 
@@ -202,17 +202,17 @@ def test_bending_halfwidth_is_the_jackknife_of_what_no_affine_map_takes_away():
     theta = torch.tensor([0.2, 0.05], dtype=torch.float64)
     dl = lens_deltas(theta, 2, SIZE, 8)
     seen = dl["points"]  # matches everywhere: every monotone pixel counts
-    same, _ = bending_halfwidth(theta, [theta, theta.clone()], 2, SIZE, dl, 0.95, seen)
+    same, _ = bending_halfwidth(theta, [theta, theta.clone()], n=2, size=SIZE, dl=dl, confidence=0.95, seen=seen)
     assert same < 1e-9
     # two replicates, one the answer, one with a_1 0.01 larger: t(1) sqrt(1/2 m), m its mean squared bending
     other = torch.tensor([0.21, 0.05], dtype=torch.float64)
-    got, share = bending_halfwidth(theta, [theta, other], 2, SIZE, dl, 0.95, seen)
+    got, share = bending_halfwidth(theta, [theta, other], n=2, size=SIZE, dl=dl, confidence=0.95, seen=seen)
     p = dl["points"][dl["ok"]]
     m = _bending(p, lens_ideal_points(p, [0.2, 0.05], h, w), lens_ideal_points(p, [0.21, 0.05], h, w)) ** 2
     assert got == pytest.approx(12.7062047 * math.sqrt(0.5 * m), rel=1e-6) and share == pytest.approx(float(dl["ok"].double().mean()))
     # pixels no match comes near do not count
     corner = torch.tensor([[0.0, 0.0]], dtype=torch.float64)
-    _, few = bending_halfwidth(theta, [theta, other], 2, SIZE, dl, 0.95, corner)
+    _, few = bending_halfwidth(theta, [theta, other], n=2, size=SIZE, dl=dl, confidence=0.95, seen=corner)
     assert few < 0.02
 
 
@@ -226,7 +226,7 @@ def test_thinning_keeps_every_pair_evenly_and_the_answer():
     assert torch.equal(got, counts.clamp(max=40)) and thin_matches(m, 0) is m
     # every kept match is one of the pair's own, and none twice
     assert len(torch.cat([thin.x1, thin.x2], 1).unique(dim=0)) == len(thin.pair)
-    full = self_calibrate_planar(m, SIZE, MultiViewConfig(planar_terms=2, planar_pair_matches=0))
-    fewer = self_calibrate_planar(m, SIZE, MultiViewConfig(planar_terms=2, planar_pair_matches=40))
+    full = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_terms=2, planar_pair_matches=0))
+    fewer = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_terms=2, planar_pair_matches=40))
     lo, hi = fewer.delta_avg_user_interval
     assert lo <= full.delta_avg_user_px <= hi and fewer.matches == int(got.sum()) < full.matches

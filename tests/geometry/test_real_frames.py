@@ -106,14 +106,14 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     cal = json.loads((REAL / "calibration.json").read_text())
     names = sorted(cal["frames"])
     cfg = MultiViewConfig(num_threads=1)
-    extract_and_match(tmp_path / "db.db", REAL, names, cfg, (240, 320))
-    res = self_calibrate_planar(read_verified_matches(tmp_path / "db.db", names), (240, 320), cfg)
+    extract_and_match(tmp_path / "db.db", REAL, names, config=cfg, image_size=(240, 320))
+    res = self_calibrate_planar(read_verified_matches(tmp_path / "db.db", names), (240, 320), config=cfg)
     assert res.class_label == "4" and res.inlier_share > 0.5
     k, dist = torch.tensor(cal["K"], dtype=torch.float64), torch.tensor(cal["dist"], dtype=torch.float64)
     truth = opencv_delta(k, dist, 240, 320, step=1)["delta_avg_px"]
     g = grid_points(240, 320, 1)
     _, ok = opencv_ideal_points(g, k, dist)
-    value, (lo, hi) = delta_avg_where(res, g[ok], 240, 320, cfg)  # where the calibration's model inverts (90.6 %)
+    value, (lo, hi) = delta_avg_where(res, g[ok], 240, 320, config=cfg)  # where the calibration's model inverts (90.6 %)
     assert abs(value - truth) < 0.08 * truth
     assert lo <= truth <= hi
     # guided matching (forced: here 19 of 29 verified pairs count, so by default it does not run), measured
@@ -121,17 +121,17 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     from lensdist_torch.calibration.guided_matching import self_calibrate_guided
 
     forced = MultiViewConfig(num_threads=1, planar_guided_below=1.0)
-    guided = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), forced)
+    guided = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=forced)
     assert guided.guided["used"] and guided.guided["first_fit"]["pairs"] == res.pairs and guided.pairs > res.pairs
-    value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320, forced)
+    value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320, config=forced)
     assert abs(value - truth) < 0.1 * truth and lo <= truth <= hi
-    assert self_calibrate_guided(tmp_path / "db.db", names, (240, 320), cfg).guided is None  # the default: the first fit
+    assert self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg).guided is None  # the default: the first fit
     # the matches refined against the frames (sub-pixel patch alignment), measured 2026-11-28: the first fit's
     # 0.55 px RMS transfer error -> 0.19, 26.15 px [22.58, 29.72]; after guided matching 0.81 -> 0.24, 26.31 [25.66, 26.95]
     for c, before in ((cfg, res), (forced, guided)):
-        refined = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), c,
+        refined = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=c,
                                         images=lambda v: load_image(REAL / names[v])[0, 0])
         assert refined.refined["used"] and refined.refined["before"]["reprojection_px"] == pytest.approx(before.reprojection_px)
         assert refined.reprojection_px < 0.5 * before.reprojection_px and refined.class_label == "4"
-        value, (lo, hi) = delta_avg_where(refined, g[ok], 240, 320, c)
+        value, (lo, hi) = delta_avg_where(refined, g[ok], 240, 320, config=c)
         assert abs(value - truth) < 0.05 * truth and lo <= truth <= hi

@@ -118,7 +118,7 @@ def lens_ideal(lens: dict, points: torch.Tensor, height: int, width: int) -> tup
                                torch.tensor(lens["dist_coeffs"], dtype=torch.float64))
 
 
-def lens_grid(lens: dict, height: int, width: int, dtype: torch.dtype = torch.float32, device=None, view=None):
+def lens_grid(lens: dict, height: int, width: int, *, dtype: torch.dtype = torch.float32, device=None, view=None):
     """(grid (1, H, W, 2), valid (1, 1, H, W)): where each ideal pixel lies in the distorted frame, under ``lens``."""
     return _GRIDS[lens["kind"]](*_args(lens), height, width, dtype=dtype, device=device, view=view)
 

@@ -105,7 +105,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
             bar.update(1)
             if cfg.planar_terms:
                 bar.set_postfix_str("homography model")
-                planar["answer"] = planar_path(database, names, image_size, cfg, settings, folder=folder)
+                planar["answer"] = planar_path(database, names, image_size, config=cfg, settings=settings, folder=folder)
             bar.set_postfix_str("mapping")
 
         def take(i: int, rec) -> bool:  # one mapping's answer; True: enough mappings succeeded
@@ -133,7 +133,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
         stages = 1 + cfg.reconstructions * (1 + len(cfg.models))  # features and matches, then per mapping
         with tqdm(total=stages, disable=quiet, desc=f"multi-view, {len(names)} frames", unit="stage", leave=False) as bar:
             bar.set_postfix_str("features and matches")
-            reconstruct(folder, names, cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model)
+            reconstruct(folder, names, config=cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model)
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
@@ -143,7 +143,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiV
     return {"ok": True, **res.to_dict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
 
 
-def planar_path(database: Path, names: list[str], image_size: tuple[int, int], config: MultiViewConfig,
+def planar_path(database: Path, names: list[str], image_size: tuple[int, int], *, config: MultiViewConfig,
                 settings: LensdistConfig | None, folder: Path | None = None) -> dict:
     """The homography model on a COLMAP database (its verified matches, then guided and refined ones), as a dict.
 
@@ -152,7 +152,7 @@ def planar_path(database: Path, names: list[str], image_size: tuple[int, int], c
     fields of :class:`~lensdist_torch.calibration.planar_features.PlanarCalibration` (strict-JSON-ready).
     """
     images = None if folder is None else (lambda v: load_image(Path(folder) / names[v], max_pixels=None)[0, 0])
-    res = self_calibrate_guided(database, names, image_size, config, settings, images=images)
+    res = self_calibrate_guided(database, names, image_size, config=config, settings=settings, images=images)
     if not math.isfinite(res.delta_avg_user_px):
         return {"ok": False, "reason": res.reason}
     return {"ok": True, **res.to_dict()}

@@ -67,6 +67,7 @@ def verdict(check: dict, count_gained: bool = True) -> str:
 
 
 def error_blocks(img1: torch.Tensor, img2: torch.Tensor, mask1: torch.Tensor, mask2: torch.Tensor,
+                 *,
                  settings: LensdistConfig) -> tuple[int, int, bool]:
     """(error blocks, blocks counted, registered) of one pair registered by a homography.
 
@@ -148,7 +149,7 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
     ones = torch.ones_like(frames[:1])
     used = sorted(set(pairs.flatten().tolist()))  # only the frames checked are corrected
     row = {f: r for r, f in enumerate(used)}
-    grid, valid = lens_grid(lens or eq4_lens(k2, k4), *frames.shape[-2:], frames.dtype, frames.device)
+    grid, valid = lens_grid(lens or eq4_lens(k2, k4), *frames.shape[-2:], dtype=frames.dtype, device=frames.device)
     masks = valid.expand(len(used), -1, -1, -1)
     fixed = sample_at_pixels(frames[used], grid.expand(len(used), -1, -1, -1)) * masks
     top, left, bottom, right = valid_box(valid)
@@ -157,9 +158,9 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
     totals = dict.fromkeys(("error_blocks_before", "blocks_before", "error_blocks_after", "blocks_after",
                             "registered_before", "registered_after"), 0)
     for i, j in pairs.tolist():
-        e0, n0, ok0 = error_blocks(frames[i : i + 1], frames[j : j + 1], ones, ones, st)
+        e0, n0, ok0 = error_blocks(frames[i : i + 1], frames[j : j + 1], ones, ones, settings=st)
         fi, fj = row[i], row[j]
-        e1, n1, ok1 = error_blocks(fixed[fi : fi + 1], fixed[fj : fj + 1], masks[fi : fi + 1], masks[fj : fj + 1], st)
+        e1, n1, ok1 = error_blocks(fixed[fi : fi + 1], fixed[fj : fj + 1], masks[fi : fi + 1], masks[fj : fj + 1], settings=st)
         totals["registered_before"] += ok0
         totals["registered_after"] += ok1
         if ok0 and ok1:
