@@ -140,8 +140,67 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
     _paths(res)
 
 
+def _archive_mode(args: argparse.Namespace) -> bool:
+    """Several inputs, a glob, a manifest or an archive option: the archive run; one PATH alone: as ever."""
+    return (len(args.paths) != 1 or args.manifest is not None or args.shard is not None or args.engine is not None
+            or args.ray_address is not None or (any(c in args.paths[0] for c in "*?[") and not Path(args.paths[0]).exists()))
+
+
+def _print_archive(run) -> None:
+    """The archive run in words: its counts, each failed input's reason, each camera's pooled answer, its files."""
+    share = "" if run.selected == run.inputs else f" ({run.selected} in this share)"
+    print(f"{run.inputs} inputs{share}: {run.computed} calibrated, {run.reused} reused from an earlier run; "
+          f"{len(run.rows)} rows in the table, {run.failed} without an answer")
+    for row in run.rows:
+        if not row.ok:
+            print(f"  failed: {row.path}: {row.reason}")
+    for cam in run.cameras:
+        name = f"camera {cam.camera} ({cam.size})" if cam.camera else f"frames of {cam.size}"
+        if cam.delta_avg_px is None:
+            print(f"{name}: {cam.inputs} inputs, none answered")
+            continue
+        off = "none" if not cam.disagreeing else ", ".join(cam.disagreeing)
+        print(f"{name}: {cam.inputs} inputs, {cam.answered} answered: Delta_avg {cam.delta_avg_px:.2f} px pooled over "
+              f"{cam.pooled} (95 % interval {cam.delta_avg_low_px:.2f} to {cam.delta_avg_high_px:.2f}); disagreeing: {off}")
+    print("written: " + ", ".join(run.files) + f", {Path(run.out) / 'answers'}/")
+
+
+def _cmd_archive(args: argparse.Namespace) -> int:
+    """``lensdist calibrate PATH... | --manifest FILE --out DIR [--shard I/N] [--engine local|ray]``: exit 0 once it ran."""
+    from lensdist_torch.calibration.controllers import archive
+
+    if args.engine == "ray":
+        archive.require_ray()  # one line naming the extra, before any work
+    if not args.out:
+        raise ValueError("--out DIR is needed with several inputs, a glob or --manifest (answers, rows, answers.csv)")
+    from lensdist_torch.core.outputs import check_output_dir
+
+    check_output_dir(args.out, "--out", {"path": args.paths, "--manifest": args.manifest, "--config": args.config})
+    inputs = archive.archive_inputs(args.paths, manifest=args.manifest)
+    from lensdist_torch.config import load_config
+    from lensdist_torch.workflows.analyze import resolve_device
+
+    settings = None if args.config is None else load_config(args.config)
+    run = archive.run_archive(inputs, args.out, method=args.method, max_frames=args.max_frames, focal=args.focal,
+                              device=resolve_device(args.device), settings=settings, shard=args.shard or (0, 1),
+                              engine=args.engine or "local", ray_address=args.ray_address, quiet=args.quiet)
+    if args.json:
+        print(json.dumps({"inputs": run.inputs, "selected": run.selected, "computed": run.computed, "reused": run.reused,
+                          "failed": run.failed, "rows": [r.columns() for r in run.rows],
+                          "cameras": [c.columns() for c in run.cameras], "files": list(run.files)},
+                         indent=2, allow_nan=False))
+    else:
+        _print_archive(run)
+    return 0
+
+
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    """``lensdist calibrate PATH [--json] [--out DIR] [--config TOML] [--quiet]``."""
+    """``lensdist calibrate PATH [--json] [--out DIR] [--config TOML] [--quiet]``, or an archive (several inputs)."""
+    if not args.paths and args.manifest is None:
+        raise ValueError("the following arguments are required: path (or --manifest FILE)")
+    if _archive_mode(args):
+        return _cmd_archive(args)
+    args.path = args.paths[0]
     from lensdist_torch.core.outputs import check_output_dir
 
     if args.out:
@@ -201,7 +260,13 @@ Estimate the lens distortion of one camera (eq. 4's k2, k4, Delta_avg and Delta_
 intervals, the class, OpenCV's camera matrix and coefficients) from a folder of frames or a
 video (.mp4, .mov, .avi, .mkv, ...: PyAV from the 'video' extra, or OpenCV where PyAV is
 missing). The frames must show one camera moving over a scene; every option is checked before
-any frame is read."""
+any frame is read.
+
+Several inputs, a quoted glob or --manifest make an archive run (docs/guide/archive.md): each
+input's answer in OUT/answers/NAME-KEY.json (what --json prints for it), one row per input in
+OUT/answers.csv (answers.parquet where pyarrow imports), the pooled answer per camera in
+OUT/cameras.csv; a rerun skips the inputs already answered, an input that fails is a row with
+its reason, and the exit status is 0 once the run completed, failed rows or not."""
 
 _UNDISTORT = """\
 Correct every frame of a folder or video with eq. 4 (with --from an answer whose lens eq. 4's
@@ -221,11 +286,24 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
     """Register ``calibrate`` and ``undistort`` on the ``lensdist`` parser's subparsers (``parents``: --debug)."""
     p = subparsers.add_parser(
         "calibrate", help="the distortion of one camera from a folder of frames or a video", description=_CALIBRATE,
-        epilog="examples:\n  lensdist calibrate frames/ --out calib/\n  lensdist calibrate dive.mp4 --json --method direct",
+        epilog="examples:\n  lensdist calibrate frames/ --out calib/\n  lensdist calibrate dive.mp4 --json --method direct\n"
+               "  lensdist calibrate 'archive/*.mp4' --out archive_answers/\n"
+               "  lensdist calibrate --manifest dives.csv --out answers/ --shard 0/8",
         parents=parents or [], formatter_class=argtypes.Formatter)
-    p.add_argument("path", help="folder of frames (sorted by name) or a video file")
+    p.add_argument("paths", nargs="*", metavar="path",
+                   help="folder of frames (sorted by name) or a video file; several, or a quoted glob, for an archive")
     p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("--out", default=None, help="folder for calibration.json")
+    p.add_argument("--out", default=None, help="folder for calibration.json (an archive: answers/, answers.csv, "
+                   "cameras.csv)")
+    p.add_argument("--manifest", default=None, help="an archive's inputs: one path per line, or CSV with a path and "
+                   "an optional camera column (relative paths from the manifest's folder)")
+    p.add_argument("--shard", type=argtypes.shard, default=None,
+                   help="I/N: this job's share of an archive's inputs, k %% N == I (array jobs; default: all)")
+    p.add_argument("--engine", default=None, choices=("local", "ray"),
+                   help="an archive's engine: local (one input after another) or ray (a task per input, "
+                        'pip install "lensdist_torch[ray]")')
+    p.add_argument("--ray-address", default=None, help="the Ray cluster for --engine ray (auto: this machine's; "
+                   "default: a local Ray)")
     p.add_argument("--config", default=None, help="TOML config ([calibration] and [multiview]; the defaults of "
                    "docs/method.md when omitted)")
     p.add_argument("--max-frames", type=argtypes.positive_int, default=300, help="read at most this many frames")
