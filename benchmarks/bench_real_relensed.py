@@ -49,8 +49,8 @@ def calibration_spread(cal: dict, alt: dict, hw: tuple[int, int], size: tuple[in
     import cv2
 
     h, w = hw
-    a = relens_map(h, w, cal["K"], cal["dist"], 0.0, 0.0)[0][::8, ::8].reshape(-1, 2).numpy()
-    b = relens_map(h, w, alt["K"], alt["dist"], 0.0, 0.0)[0][::8, ::8].reshape(-1, 2).numpy()
+    a = relens_map(h, w, cal["K"], cal["dist"], k2=0.0, k4=0.0)[0][::8, ::8].reshape(-1, 2).numpy()
+    b = relens_map(h, w, alt["K"], alt["dist"], k2=0.0, k4=0.0)[0][::8, ::8].reshape(-1, 2).numpy()
     hom, _ = cv2.findHomography(b, a, 0)
     moved = cv2.perspectiveTransform(b[:, None], hom)[:, 0]
     return float(np.linalg.norm(moved - a, axis=1).mean()) * size[0] / h
@@ -81,7 +81,7 @@ def main() -> None:
     rows = []
     for level in args.levels:
         k2 = k2_for(level, size)
-        out = relens_frames(frames, cal["K"], cal["dist"], k2, 0.0, size=size)
+        out = relens_frames(frames, cal["K"], cal["dist"], k2=k2, k4=0.0, size=size)
         with tempfile.TemporaryDirectory(prefix="lensdist-relensed-") as tmp:
             for f, img in zip(files, out.frames):
                 (Path(tmp) / f"{f.stem}.png").write_bytes(encode_png(to_uint8(img)))

@@ -55,7 +55,7 @@ def with_only(cfg: LensdistConfig, keep: tuple[str, ...]) -> LensdistConfig:
 
 def figures(cfg: LensdistConfig, scene: str, n: int, variants: dict) -> dict:
     cfg = dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, scenes=(scene,), unseen_scenes=()))
-    pb = make_pairs([load_scene(scene)], cfg, "test", list(range(n)), keep_images=True)
+    pb = make_pairs([load_scene(scene)], config=cfg, set_name="test", indices=list(range(n)), keep_images=True)
     true = pb.delta["delta_avg"].double()
     out = {"pairs": n, "registration_failed": int((~pb.converged).sum())}
     for name, sc in variants.items():
@@ -79,7 +79,7 @@ def effects(cfg: LensdistConfig, n: int = 96) -> dict:
     scenes = [load_scene(s) for s in cfg.protocol.scenes]
     out = {}
     for name, keys in {**EFFECTS, "all": tuple(EFFECTS_OFF)}.items():
-        pb = make_pairs(scenes, with_only(cfg, keys), "train", list(range(n)))
+        pb = make_pairs(scenes, config=with_only(cfg, keys), set_name="train", indices=list(range(n)))
         out[name] = int((~pb.converged).sum())
     return {"pairs": n, "registration_failed": out}
 

@@ -75,7 +75,7 @@ def analyse(scenes: list, config, indices: list[int], batch_size: int = 8) -> di
 
     out = {"eigenspace": [], "regression": [], "selfcal": []}
     for s in range(0, len(indices), batch_size):
-        batch = make_pairs(scenes, config, "test", indices[s : s + batch_size], keep_images=True)
+        batch = make_pairs(scenes, config=config, set_name="test", indices=indices[s : s + batch_size], keep_images=True)
         truth = [CLASS_LABELS[int(c)] for c in batch.classes["delta_avg"]]
         r_pairs = batch.params.perturbed
         for sel, hom in ((~r_pairs, None), (r_pairs, batch.H[r_pairs])):

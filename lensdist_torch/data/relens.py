@@ -79,7 +79,7 @@ def _calibration(camera_matrix, dist_coeffs) -> tuple[torch.Tensor, torch.Tensor
 
 
 def relens_map(
-    height: int, width: int, camera_matrix, dist_coeffs, k2: float, k4: float
+    height: int, width: int, camera_matrix, dist_coeffs, *, k2: float, k4: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Where the real camera recorded each pixel of the relensed frame, at the source's size.
 
@@ -98,7 +98,7 @@ def relens_map(
     Example:
         >>> K = torch.tensor([[100.0, 0, 63.5], [0, 100.0, 47.5], [0, 0, 1]], dtype=torch.float64)
         >>> from lensdist_torch.geometry.frame import pixel_grid
-        >>> src, ok = relens_map(96, 128, K, torch.zeros(5), 0.0, 0.0)
+        >>> src, ok = relens_map(96, 128, K, torch.zeros(5), k2=0.0, k4=0.0)
         >>> bool(torch.allclose(src, pixel_grid(96, 128, torch.float64))), bool(ok.all())
         (True, True)
     """
@@ -114,6 +114,7 @@ def relens_frames(
     frames: torch.Tensor,
     camera_matrix,
     dist_coeffs,
+    *,
     k2: float,
     k4: float,
     size: tuple[int, int] | None = None,
@@ -154,7 +155,7 @@ def relens_frames(
         raise ValueError(f"k2 and k4 must be finite numbers, got {k2!r}, {k4!r}")
     # the output's pixels are the source's scaled by s (after resize_to's centre crop to the aspect)
     s = max(h / h_src, w / w_src)
-    src, ok = relens_map(h_src, w_src, camera_matrix, dist_coeffs, k2 * s**2, k4 * s**4)
+    src, ok = relens_map(h_src, w_src, camera_matrix, dist_coeffs, k2=k2 * s**2, k4=k4 * s**4)
     out = sample_at_pixels(frames.double(), src[None].expand(frames.shape[0], -1, -1, -1)) * ok
     valid = resize_to(ok.double()[None, None], h, w)
     return RelensedFrames(

@@ -155,7 +155,7 @@ def relief_samples(
 
 
 def second_view_points(
-    x: torch.Tensor, y: torch.Tensor, nadir: tuple[float, float] | torch.Tensor, altitude: float, field: HeightField | None
+    x: torch.Tensor, y: torch.Tensor, nadir: tuple[float, float] | torch.Tensor, *, altitude: float, field: HeightField | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Where camera 1 sees the scene points that camera 2 sees where it would see a flat scene at (x, y).
 
@@ -179,10 +179,10 @@ def second_view_points(
     Example:
         >>> f = HeightField(torch.tensor([[0.0, 0.0]]), torch.tensor([1e6]), torch.tensor([0.02]))
         >>> x, y = torch.tensor([30.0], dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
-        >>> x1, _ = second_view_points(x, y, (10.0, 0.0), 1.0, f)
+        >>> x1, _ = second_view_points(x, y, (10.0, 0.0), altitude=1.0, field=f)
         >>> round(float(x1 - 30.0), 4)  # rho / (1 - rho) times the nadir's 10 px
         0.2041
-        >>> x1, _ = second_view_points(x, y, (0.0, 0.0), 1.0, f)
+        >>> x1, _ = second_view_points(x, y, (0.0, 0.0), altitude=1.0, field=f)
         >>> round(float(x1 - 30.0), 6)  # the same nadir: a rotation, no parallax
         0.0
     """
@@ -224,4 +224,4 @@ def homography_view_points(
     nadir = (float(a[0, 2] / a[2, 2]), float(a[1, 2] / a[2, 2]))
     altitude = abs(float(torch.linalg.det(a[:2, :2] / a[2, 2]))) ** 0.5
     return second_view_points((a[0, 0] * x + a[0, 1] * y + a[0, 2]) / den, (a[1, 0] * x + a[1, 1] * y + a[1, 2]) / den,
-                              nadir, altitude, field)
+                              nadir, altitude=altitude, field=field)

@@ -171,7 +171,7 @@ class SetState:
 
 
 def verify_set(
-    out: Path, set_name: str, n_pairs: int, shard_size: int, fingerprint: str, recorded: list[str] | None = None
+    out: Path, set_name: str, *, n_pairs: int, shard_size: int, fingerprint: str, recorded: list[str] | None = None
 ) -> SetState:
     """Verify every shard of a set of ``n_pairs`` (checksum, config, pairs held).
 

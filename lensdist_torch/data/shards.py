@@ -154,12 +154,12 @@ def _record(batches, set_name: str, start: int, end: int, fingerprint: str) -> d
     }
 
 
-def generate_shard(scenes, config, set_name, start, end, fingerprint, batch_size=16, on_batch=None, sequence=False) -> dict:
+def generate_shard(scenes, *, config, set_name, start, end, fingerprint, batch_size=16, on_batch=None, sequence=False) -> dict:
     """Generate pairs [start, end) of a set as one shard record."""
     batches = []
     for s in range(start, end, batch_size):
         idx = list(range(s, min(s + batch_size, end)))
-        batches.append(make_pairs(scenes, config, set_name, idx, sequence=sequence))
+        batches.append(make_pairs(scenes, config=config, set_name=set_name, indices=idx, sequence=sequence))
         if on_batch is not None:
             on_batch(len(idx))
     return _record(batches, set_name, start, end, fingerprint)
@@ -170,7 +170,8 @@ def _worker(task):
     torch.set_num_threads(1)
     config = config_from_dict(cfg_dict)
     scenes, _ = load_scenes(config, scenes_dir, sequence)
-    rec = generate_shard(scenes, config, set_name, start, end, fingerprint, batch_size, sequence=sequence)
+    rec = generate_shard(scenes, config=config, set_name=set_name, start=start, end=end, fingerprint=fingerprint,
+                         batch_size=batch_size, sequence=sequence)
     if not parent_alive():
         os._exit(0)  # orphaned: no shard written on behalf of a run that is gone, and no broken pipe
     write_shard(shard_path(out, set_name, k), rec)
@@ -245,7 +246,8 @@ def _plan(config, out: Path, fingerprint: str, sets, shard, limit) -> _Plan:
     check_same_data(out, old, fingerprint)
     sizes = _set_sizes(config, out, old, sets, limit)
     states = {
-        s: verify_set(out, s, n, config.protocol.shard_size, fingerprint, _recorded(old, s, n, config.protocol.shard_size))
+        s: verify_set(out, s, n_pairs=n, shard_size=config.protocol.shard_size, fingerprint=fingerprint,
+                      recorded=_recorded(old, s, n, config.protocol.shard_size))
         for s, n in sizes.items()
     }
     tasks = [
@@ -277,7 +279,8 @@ def _run_tasks(tasks, out: Path, config, scenes, scenes_dir, sequence, fingerpri
         torch.set_num_threads(1)
         try:
             for s, k, a, b in tasks:
-                rec = generate_shard(scenes, config, s, a, b, fingerprint, batch_size, on_batch=bar.update, sequence=sequence)
+                rec = generate_shard(scenes, config=config, set_name=s, start=a, end=b, fingerprint=fingerprint,
+                                     batch_size=batch_size, on_batch=bar.update, sequence=sequence)
                 write_shard(shard_path(out, s, k), rec)
         finally:
             torch.set_num_threads(threads)
@@ -294,6 +297,7 @@ def _run_tasks(tasks, out: Path, config, scenes, scenes_dir, sequence, fingerpri
 def generate(
     config: LensdistConfig,
     out: str | Path,
+    *,
     sets=SETS,
     shard: tuple[int, int] = (0, 1),
     workers: int = 1,
@@ -349,7 +353,8 @@ def generate(
         with stop_on_sigterm():  # SIGTERM: one line, the workers stopped, exit 143 (data/workers.py)
             pairs = _run_tasks(plan.tasks, out, config, scenes, scenes_dir, sequence, fp, batch_size, used, progress)
         sizes = {s: st.n_pairs for s, st in plan.states.items()}
-        done = {s: verify_set(out, s, n, config.protocol.shard_size, fp).record() for s, n in sizes.items()}
+        done = {s: verify_set(out, s, n_pairs=n, shard_size=config.protocol.shard_size, fingerprint=fp).record()
+                for s, n in sizes.items()}
         written = save_manifest(out, header, done) or written
     return _summary(out, sets, read_manifest(out), plan, pairs=pairs, workers=used, capped=capped, written=written)
 

@@ -79,7 +79,7 @@ class PairBatch:
     Example:
         >>> from lensdist_torch import ImageConfig, LensdistConfig, load_scene
         >>> cfg = LensdistConfig(image=ImageConfig(64, 96))
-        >>> batch = make_pairs([load_scene("gravel")], cfg, "train", [0])
+        >>> batch = make_pairs([load_scene("gravel")], config=cfg, set_name="train", indices=[0])
         >>> tuple(batch.counts.shape), batch.img1 is None, sorted(batch.delta)
         ((1, 1, 8, 12), True, ['delta_avg', 'delta_max'])
     """
@@ -386,6 +386,7 @@ def render_sequence_pairs(frames: list[torch.Tensor], params: PairParams, config
 
 def make_pairs(
     scenes: list[torch.Tensor],
+    *,
     config: LensdistConfig,
     set_name: str,
     indices,
@@ -400,7 +401,7 @@ def make_pairs(
     Example:
         >>> from lensdist_torch import ImageConfig, LensdistConfig, load_scene
         >>> cfg = LensdistConfig(image=ImageConfig(64, 96))
-        >>> batch = make_pairs([load_scene("gravel")], cfg, "test", [0], keep_images=True)
+        >>> batch = make_pairs([load_scene("gravel")], config=cfg, set_name="test", indices=[0], keep_images=True)
         >>> tuple(batch.img2.shape), batch.classes["delta_avg"].tolist() != [-1]
         ((1, 1, 64, 96), True)
     """

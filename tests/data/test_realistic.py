@@ -97,8 +97,8 @@ class TestDefaultUnchanged:
         other.update(gain_range=[0.5, 0.6], noise_range=[0.1, 0.2], relief=0.3, occluder_rate=1.0)
         off = config_from_dict({**BASE, "protocol": {**BASE["protocol"], **other}})
         for s, idx in (("train", [0, 1, 2]), ("test", [5, 6, 7])):
-            a = make_pairs(scenes, CFG, s, idx, keep_images=True)
-            b = make_pairs(scenes, off, s, idx, keep_images=True)
+            a = make_pairs(scenes, config=CFG, set_name=s, indices=idx, keep_images=True)
+            b = make_pairs(scenes, config=off, set_name=s, indices=idx, keep_images=True)
             for x, y in ((a.img1, b.img1), (a.img2, b.img2), (a.H, b.H), (a.counts, b.counts), (a.residual, b.residual)):
                 assert torch.equal(x, y)
         assert synthesis.footprint(CFG) == synthesis.footprint(off)
@@ -363,9 +363,9 @@ class TestDeterminism:
         the clean protocol (tests/data/test_synthesis.py), agrees to 1e-5 across batches."""
         relief = config_from_dict({**BASE, "protocol": {**BASE["protocol"], "realistic": True, "relief": 0.03}})
         for cfg, set_name, i, idx in ((REAL, "train", 9, [7, 8, 9, 10, 11]), (relief, "test", 7, [4, 5, 6, 7, 8])):
-            alone = make_pairs(scenes, cfg, set_name, [i], keep_images=True)
-            batch = make_pairs(scenes, cfg, set_name, idx, keep_images=True)
-            again = make_pairs(scenes, cfg, set_name, [i], keep_images=True)
+            alone = make_pairs(scenes, config=cfg, set_name=set_name, indices=[i], keep_images=True)
+            batch = make_pairs(scenes, config=cfg, set_name=set_name, indices=idx, keep_images=True)
+            again = make_pairs(scenes, config=cfg, set_name=set_name, indices=[i], keep_images=True)
             k = idx.index(i)
             ra, rb, rc = (x.params.realism for x in (alone, batch, again))
             pairs = [(alone.img1, batch.img1[k : k + 1], again.img1), (alone.img2, batch.img2[k : k + 1], again.img2)]
@@ -388,7 +388,7 @@ class TestDeterminism:
         assert torch.equal(c1, clean_of(scenes, p, REAL)[0])
 
     def test_realistic_pairs_generate(self, scenes):
-        out = make_pairs(scenes, REAL, "test", [0, 1, 6, 8])
+        out = make_pairs(scenes, config=REAL, set_name="test", indices=[0, 1, 6, 8])
         assert out.params.realism.occluded.dtype == torch.bool and out.converged.dtype == torch.bool
         assert out.counts.shape == (4, 1, HS // 8, WS // 8)
         assert bool(out.params.perturbed[2:].all())
@@ -437,7 +437,7 @@ def test_bad_realistic_values(field, value):
 @pytest.mark.bad_input
 def test_realistic_sequence_is_refused(scenes):
     with pytest.raises(ValueError) as exc:
-        make_pairs(scenes, REAL, "train", [0], sequence=True)
+        make_pairs(scenes, config=REAL, set_name="train", indices=[0], sequence=True)
     assert "\n" not in str(exc.value) and "protocol.realistic" in str(exc.value)
 
 

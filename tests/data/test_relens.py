@@ -37,12 +37,12 @@ def test_no_new_lens_is_opencvs_undistorted_view():
     new_k = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]])
     mx, my = cv2.initUndistortRectifyMap(K, DIST, None, new_k, (W, H), cv2.CV_32FC1)
     ref = cv2.remap(src[0, 0].numpy().astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-    out = relens_frames(src.float(), K, DIST, 0.0, 0.0)
+    out = relens_frames(src.float(), K, DIST, k2=0.0, k4=0.0)
     got = out.frames[0, 0].numpy()
     inside = (mx >= 1) & (mx <= W - 2) & (my >= 1) & (my <= H - 2)
     assert inside.mean() > 0.95 and out.valid_fraction > 0.95
     assert np.abs(got - ref)[inside].mean() < 1e-5 and np.abs(got - ref)[inside].max() < 1e-4  # seen: 1e-7, 1.2e-6
-    src_pts, ok = relens_map(H, W, K, DIST, 0.0, 0.0)
+    src_pts, ok = relens_map(H, W, K, DIST, k2=0.0, k4=0.0)
     # the maps agree to float32 (seen: 8e-6 px; 1 % more k1 moves OpenCV's by 0.37 px)
     assert np.abs(src_pts[..., 0].numpy() - mx)[inside].max() < 1e-4 and np.abs(src_pts[..., 1].numpy() - my)[inside].max() < 1e-4
 
@@ -50,21 +50,21 @@ def test_no_new_lens_is_opencvs_undistorted_view():
 def test_a_new_lens_by_hand():
     # no source lens, the principal point at the centre: the map is eq. 4 itself
     centred = np.array([[100.0, 0, (W - 1) / 2], [0, 100.0, (H - 1) / 2], [0, 0, 1]])
-    src, ok = relens_map(H, W, centred, np.zeros(5), 1e-5, 0.0)
+    src, ok = relens_map(H, W, centred, np.zeros(5), k2=1e-5, k4=0.0)
     cx, cy = (W - 1) / 2, (H - 1) / 2
     # pixel x = 129, y = 59 is (49.5, -0.5) from the centre (79.5, 59.5)
     r2 = 49.5**2 + 0.5**2
     want = (cx + 49.5 * (1 + 1e-5 * r2), cy - 0.5 * (1 + 1e-5 * r2))
     assert src[59, 129].tolist() == pytest.approx(want, abs=1e-9)
     assert bool(ok[59, 129]) and not bool(ok[0, 0])  # the corner sees 9.9 % past the frame (1e-5 r^2 = 0.099)
-    src4, _ = relens_map(H, W, centred, np.zeros(5), 0.0, 2e-9)
+    src4, _ = relens_map(H, W, centred, np.zeros(5), k2=0.0, k4=2e-9)
     assert src4[59, 129].tolist() == pytest.approx((cx + 49.5 * (1 + 2e-9 * r2**2), cy - 0.5 * (1 + 2e-9 * r2**2)), abs=1e-9)
 
 
 def test_undistorting_a_relensed_frame_gives_the_undistorted_view():
     src = _texture(1)
-    plain = relens_frames(src.float(), K, DIST, 0.0, 0.0).frames
-    lensed = relens_frames(src.float(), K, DIST, 4e-5, 0.0).frames  # barrel, ~4 px at the corners of 160 x 120
+    plain = relens_frames(src.float(), K, DIST, k2=0.0, k4=0.0).frames
+    lensed = relens_frames(src.float(), K, DIST, k2=4e-5, k4=0.0).frames  # barrel, ~4 px at the corners of 160 x 120
     back, valid = undistort_image(lensed, [4e-5], [0.0])
     m = valid[0, 0].bool()
     m[:4], m[-4:], m[:, :4], m[:, -4:] = False, False, False, False
@@ -75,8 +75,8 @@ def test_undistorting_a_relensed_frame_gives_the_undistorted_view():
 
 def test_output_size_carries_the_lens_in_its_own_pixels():
     src = _texture(2).float()
-    full = relens_frames(src, K, DIST, 4e-5, 0.0).frames
-    half = relens_frames(src, K, DIST, 4 * 4e-5, 0.0, size=(H // 2, W // 2))  # k2 scales by 1 / s^2, s = 1/2
+    full = relens_frames(src, K, DIST, k2=4e-5, k4=0.0).frames
+    half = relens_frames(src, K, DIST, k2=4 * 4e-5, k4=0.0, size=(H // 2, W // 2))  # k2 scales by 1 / s^2, s = 1/2
     area = torch.nn.functional.avg_pool2d(full, 2)
     assert half.frames.shape == (1, 1, H // 2, W // 2) and half.k2 == pytest.approx(1.6e-4)
     assert float((half.frames - area)[..., 4:-4, 4:-4].abs().mean()) < 5e-3
@@ -105,4 +105,4 @@ def test_bad_arguments_are_named(kwargs, match):
 @pytest.mark.bad_input
 def test_integer_frames_are_refused():
     with pytest.raises(TypeError, match="frames"):
-        relens_frames(torch.zeros(1, 1, H, W, dtype=torch.uint8), K, DIST, 0.0, 0.0)
+        relens_frames(torch.zeros(1, 1, H, W, dtype=torch.uint8), K, DIST, k2=0.0, k4=0.0)

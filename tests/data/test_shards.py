@@ -158,7 +158,7 @@ class TestLoadSet:
         n = torch.get_num_threads()
         torch.set_num_threads(1)  # speed only (two shared cores)
         try:
-            direct = make_pairs(scenes, CFG, "test", [3, 4])
+            direct = make_pairs(scenes, config=CFG, set_name="test", indices=[3, 4])
         finally:
             torch.set_num_threads(n)
         for j, i in enumerate((3, 4)):

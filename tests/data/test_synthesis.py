@@ -315,23 +315,23 @@ def assert_same_pair(a, i, b, j):
 class TestMakePairs:
     def test_alone_and_in_a_batch(self, scenes):
         i = 5
-        alone = make_pairs(scenes, CFG, "train", [i], keep_images=True)
-        batch = make_pairs(scenes, CFG, "train", list(range(i - 2, i + 4)), keep_images=True)
+        alone = make_pairs(scenes, config=CFG, set_name="train", indices=[i], keep_images=True)
+        batch = make_pairs(scenes, config=CFG, set_name="train", indices=list(range(i - 2, i + 4)), keep_images=True)
         assert_same_pair(alone, 0, batch, 2)
         assert torch.equal(alone.img1[0], batch.img1[2]) and torch.equal(alone.img2[0], batch.img2[2])
 
     def test_class_r_pair_alone_and_in_a_batch(self, scenes):
         """A perturbed pair draws its perturbation from its own generator, not the batch's."""
-        alone = make_pairs(scenes, CFG, "test", [7])
-        batch = make_pairs(scenes, CFG, "test", [4, 5, 6, 7, 8])
+        alone = make_pairs(scenes, config=CFG, set_name="test", indices=[7])
+        batch = make_pairs(scenes, config=CFG, set_name="test", indices=[4, 5, 6, 7, 8])
         assert_same_pair(alone, 0, batch, 3)
         assert bool(batch.params.perturbed[2:].all()) and not bool(batch.params.perturbed[:2].any())
 
     def test_same_pair_in_another_shard_layout(self, scenes):
         """Pair 6 inside a shard [4, 8) with batches of 3, and as pair 0 of its own shard."""
-        ref = make_pairs(scenes, CFG, "train", [6])
-        a = generate_shard(scenes, CFG, "train", 4, 8, "fp", batch_size=3)
-        b = generate_shard(scenes, CFG, "train", 6, 7, "fp", batch_size=16)
+        ref = make_pairs(scenes, config=CFG, set_name="train", indices=[6])
+        a = generate_shard(scenes, config=CFG, set_name="train", start=4, end=8, fingerprint="fp", batch_size=3)
+        b = generate_shard(scenes, config=CFG, set_name="train", start=6, end=7, fingerprint="fp", batch_size=16)
         for rec, j in ((a, 2), (b, 0)):
             assert int(rec["index"][j]) == 6
             assert torch.equal(rec["counts"][j], ref.counts[0])
@@ -339,7 +339,7 @@ class TestMakePairs:
             torch.testing.assert_close(rec["H"][j], ref.H[0], atol=1e-5, rtol=0)
 
     def test_ground_truth_and_classes(self, scenes):
-        out = make_pairs(scenes, CFG, "test", [0, 1, 6, 8])
+        out = make_pairs(scenes, config=CFG, set_name="test", indices=[0, 1, 6, 8])
         assert out.counts.shape == (4, 1, HS // 8, WS // 8) and out.counts.dtype == torch.uint8
         assert out.H.shape == (4, 3, 3) and out.H.dtype == torch.float64
         assert out.img1 is None and out.img2 is None
@@ -356,7 +356,7 @@ class TestMakePairs:
         """
         from lensdist_torch.registration.direct import corner_error
 
-        out = make_pairs(scenes, CFG, "train", [0, 1, 2])
+        out = make_pairs(scenes, config=CFG, set_name="train", indices=[0, 1, 2])
         ok = out.converged
         assert bool(ok.any())
         err = corner_error(out.H[ok], torch.linalg.inv(out.params.M[ok]), HS, WS)

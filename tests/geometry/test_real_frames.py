@@ -40,7 +40,7 @@ def views(one_thread_module):
 @pytest.mark.parametrize("k2", [0.0, 2e-6, 8e-6])
 def test_real_views_through_a_known_lens(views, k2):
     frames, cal = views
-    out = relens_frames(frames, cal["K"], cal["dist"], k2, 0.0)
+    out = relens_frames(frames, cal["K"], cal["dist"], k2=k2, k4=0.0)
     assert out.valid_fraction == 1.0  # the wide source covers the milder lens's view: no guessed pixels
     res = calibrate_sequence(out.frames)
     truth = float(delta_avg([k2], [0.0], 240, 320)[0])
@@ -82,7 +82,7 @@ def test_a_registered_real_pair_has_a_low_misfit_and_an_unrelated_one_a_high(vie
 def test_unregistered_pairs_do_not_count_and_the_reason_says_so(views):
     # with a misfit limit no pair meets, none counts, and the answer names the registration as the cause
     frames, cal = views
-    out = relens_frames(frames, cal["K"], cal["dist"], 2e-6, 0.0)
+    out = relens_frames(frames, cal["K"], cal["dist"], k2=2e-6, k4=0.0)
     res = calibrate_sequence(out.frames, CalibrationConfig(max_misfit=0.02, registered_start=False))
     assert res.pairs_used == 0 and not bool(res.pair_used.any()) and bool((res.pair_misfit > 0.02).all())
     assert res.class_label is None and "not registered" in res.reason and f"{len(res.pairs)} of {len(res.pairs)}" in res.reason
