@@ -107,7 +107,7 @@ def with_threshold(cfg: LensdistConfig, threshold: float) -> LensdistConfig:
 def called_r(results: list[dict], data: dict, cfg: LensdistConfig) -> int:
     """How many class-R pairs ``analyze``'s decision under ``cfg`` answers R (right, confident)."""
     keep = scored_pairs(results, cfg)
-    conf, right = outcomes(results, data, cfg, "selfcal", True)
+    conf, right = outcomes(results, data, config=cfg, method="selfcal", calibrated=True)
     is_r = (data["class_avg"][keep] == REJECT) if keep else torch.zeros(0, dtype=torch.bool)
     return int((is_r & right & (conf >= cfg.analysis.min_confidence)).sum())
 
@@ -115,7 +115,7 @@ def called_r(results: list[dict], data: dict, cfg: LensdistConfig) -> int:
 def summary(results: list[dict], data: dict, cfg: LensdistConfig) -> tuple[dict, set[int]]:
     """The figures of ``analyze``'s decision under ``cfg`` on one condition's pairs, and the pairs it cannot tell."""
     keep = scored_pairs(results, cfg)  # the other pairs are "cannot tell" whatever the prior
-    conf, right = outcomes(results, data, cfg, "selfcal", True)
+    conf, right = outcomes(results, data, config=cfg, method="selfcal", calibrated=True)
     sure = conf >= cfg.analysis.min_confidence
     cannot = set(range(len(results))) - {i for i, s in zip(keep, sure.tolist()) if s}
     n, r, wrong = len(results), int((right & sure).sum()), int((~right & sure).sum())
@@ -130,7 +130,7 @@ def self_check(results: list[dict], cfg: LensdistConfig, cannot: set[int]) -> di
     keep = [i for i, r in enumerate(results) if r["estimated_delta_avg"] is not None]
     diff = 0.0
     for field, calibrated in (("raw_confidence", False), ("confidence", True)):
-        mine = confidences(results, keep, cfg, "selfcal", calibrated)
+        mine = confidences(results, keep, config=cfg, method="selfcal", calibrated=calibrated)
         theirs = torch.tensor([results[i][field] for i in keep], dtype=torch.float64)
         diff = max([diff, *(mine - theirs).abs().tolist()])
     return {"flat_prior": cfg.analysis.flat_prior, "max_confidence_difference": diff,

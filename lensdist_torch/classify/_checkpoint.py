@@ -37,7 +37,7 @@ from lensdist_torch.core.storage import CheckpointError, check_compatible, load_
 Spec = dict[str, tuple[torch.dtype, tuple[Any, ...]]]
 
 
-def save_model(model: torch.nn.Module, path: str | Path, kind: str, version: int, sizes: dict, extra: dict) -> None:
+def save_model(model: torch.nn.Module, path: str | Path, *, kind: str, version: int, sizes: dict, extra: dict) -> None:
     """A fitted model's checkpoint, atomically: its sizes, its config, its buffers (on the CPU) and ``extra``.
 
     An existing file at ``path`` is replaced only if it is a checkpoint of ``kind``.
@@ -50,10 +50,10 @@ def save_model(model: torch.nn.Module, path: str | Path, kind: str, version: int
     }, replace_same_kind_only=True)
 
 
-def load_payload(path: str | Path, kind: str, version: int, what: str, map_location, sizes: tuple[str, ...],
+def load_payload(path: str | Path, *, kind: str, version: int, what: str, map_location, sizes: tuple[str, ...],
                  expected: LensdistConfig | None) -> tuple[dict, LensdistConfig]:
     """A checkpoint's payload (digest verified) and its config, checked against ``expected``; ``sizes`` present."""
-    payload = load_versioned(path, kind, version, what, map_location, digest=True)
+    payload = load_versioned(path, kind=kind, version=version, what=what, map_location=map_location, digest=True)
     require_keys(payload, (*sizes, "config", "state_dict"), path)
     config = config_of(payload, path)
     if expected is not None:
@@ -160,7 +160,7 @@ def max_coefficient_norm(d: int) -> float:
     return 1.01 * (FEATURE_RANGE[1] - FEATURE_RANGE[0]) * math.sqrt(d)
 
 
-def in_range(sd: dict, name: str, lo: float, hi: float, path: str | Path, why: str) -> None:
+def in_range(sd: dict, name: str, *, lo: float, hi: float, path: str | Path, why: str) -> None:
     """CheckpointError naming ``name`` unless every value of ``sd[name]`` lies in [lo, hi]."""
     t = sd[name].float()
     if t.numel() and not bool(((t >= lo) & (t <= hi)).all()):

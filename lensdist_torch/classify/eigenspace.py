@@ -227,7 +227,8 @@ class EigenSpaceClassifier(nn.Module):
         An existing file at ``path`` is replaced only if it is a checkpoint of this kind
         (FileExistsError otherwise: never an image, a data shard or another file).
         """
-        save_model(self, path, _KIND, CHECKPOINT_VERSION, {"n_features": self.n_features}, self.extra if extra is None else extra)
+        save_model(self, path, kind=_KIND, version=CHECKPOINT_VERSION, sizes={"n_features": self.n_features},
+                   extra=self.extra if extra is None else extra)
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":
@@ -249,7 +250,8 @@ class EigenSpaceClassifier(nn.Module):
                 thresholds; a content that does not match its digest; missing entries, wrong
                 shapes or dtypes, non-finite or implausible values (the message names the field).
         """
-        payload, config = load_payload(path, _KIND, CHECKPOINT_VERSION, "eigen-space", map_location, ("n_features",), expected)
+        payload, config = load_payload(path, kind=_KIND, version=CHECKPOINT_VERSION, what="eigen-space",
+                                       map_location=map_location, sizes=("n_features",), expected=expected)
         d = positive_int(payload, "n_features", path)
         k, n = config.distortion.n_classes, config.classifier.n_eigenvectors
         if d <= n:
@@ -286,10 +288,10 @@ class EigenSpaceClassifier(nn.Module):
 
 def _check_plausible(sd: dict, config: LensdistConfig, d: int, path) -> None:
     """The fitted values are ones a fit on quality maps can produce (bounds: classify/_checkpoint.py)."""
-    in_range(sd, "means", *FEATURE_RANGE, path, "a mean of quality maps")
+    in_range(sd, "means", lo=FEATURE_RANGE[0], hi=FEATURE_RANGE[1], path=path, why="a mean of quality maps")
     orthonormal_rows(sd, "bases", 1e-3, path)
-    in_range(sd, "explained", 0.0, 1.0 + 1e-5, path, "a share of the variance")
+    in_range(sd, "explained", lo=0.0, hi=1.0 + 1e-5, path=path, why="a share of the variance")
     top = max_coefficient_norm(d)
     row_norms_below(sd, "train_coeffs", top, path)
-    in_range(sd, "reject_threshold", 0.0, top, path, "a distance between quality maps")
-    in_range(sd, "train_delta", 0.0, max_delta(config), path, "a Delta in px, at most the image diagonal")
+    in_range(sd, "reject_threshold", lo=0.0, hi=top, path=path, why="a distance between quality maps")
+    in_range(sd, "train_delta", lo=0.0, hi=max_delta(config), path=path, why="a Delta in px, at most the image diagonal")

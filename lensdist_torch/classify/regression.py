@@ -190,7 +190,7 @@ class DeltaRegressor(nn.Module):
         (FileExistsError otherwise: never an image, a data shard or another file).
         """
         sizes = {"n_features": self.n_features, "n_components": self.n_components, "k": self.k}
-        save_model(self, path, _KIND, CHECKPOINT_VERSION, sizes, self.extra if extra is None else extra)
+        save_model(self, path, kind=_KIND, version=CHECKPOINT_VERSION, sizes=sizes, extra=self.extra if extra is None else extra)
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "DeltaRegressor":
@@ -213,7 +213,8 @@ class DeltaRegressor(nn.Module):
                 dtypes, non-finite or implausible values (the message names the field).
         """
         sizes = ("n_features", "n_components", "k")
-        payload, config = load_payload(path, _KIND, CHECKPOINT_VERSION, "Delta-regression", map_location, sizes, expected)
+        payload, config = load_payload(path, kind=_KIND, version=CHECKPOINT_VERSION, what="Delta-regression",
+                                       map_location=map_location, sizes=sizes, expected=expected)
         d, nc, k = (positive_int(payload, key, path) for key in ("n_features", "n_components", "k"))
         spec = {
             "mean": (torch.float32, ("D",)),
@@ -241,10 +242,10 @@ class DeltaRegressor(nn.Module):
                 f"checkpoint {path}: k={k} neighbours of {dims['N']} training pairs, expected at most {MAX_NEIGHBOURS} "
                 "(a local median, as for regression.k)"
             )
-        in_range(sd, "mean", *FEATURE_RANGE, path, "a mean of quality maps")
+        in_range(sd, "mean", lo=FEATURE_RANGE[0], hi=FEATURE_RANGE[1], path=path, why="a mean of quality maps")
         orthonormal_rows(sd, "components", 2e-2, path)
         row_norms_below(sd, "train_coeffs", max_coefficient_norm(d), path)
-        in_range(sd, "train_delta", 0.0, max_delta(config), path, "a Delta in px, at most the image diagonal")
+        in_range(sd, "train_delta", lo=0.0, hi=max_delta(config), path=path, why="a Delta in px, at most the image diagonal")
         if bool((sd["train_coeffs"][:, -1] < 0).any()):
             raise CheckpointError(f"checkpoint {path}: train_coeffs holds a negative residual norm (its last column)")
         extra = check_extra(payload, path)

@@ -48,7 +48,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     summary["figure"] = None
     if have_matplotlib():
         title = f"{args.scene}: {100 * args.scale_error:.1f} % scale error"
-        summary["figure"] = str(save_demo_figure(img1, img2, qmap, out / "demo.png", title, valid=valid))
+        summary["figure"] = str(save_demo_figure(img1, img2, qmap, out / "demo.png", title=title, valid=valid))
     else:
         _note(args, "(install the 'plots' extra for a PNG of the images and the map)")
     if args.json:

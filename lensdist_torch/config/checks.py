@@ -86,7 +86,7 @@ def _interval(lo, hi, lo_open, hi_open, hi_name=None) -> str:
     return "a finite number"
 
 
-def real(obj, name, lo=None, hi=None, lo_open=False, hi_open=False, hi_name=None, why=None) -> None:
+def real(obj, name, *, lo=None, hi=None, lo_open=False, hi_open=False, hi_name=None, why=None) -> None:
     """A finite number in the interval given by ``lo``/``hi`` (open ends with ``*_open``)."""
     value = getattr(obj, name)
     what = _interval(lo, hi, lo_open, hi_open, hi_name) + (f" ({why})" if why else "")
@@ -106,7 +106,7 @@ def positive(name: str, value: Any) -> None:
         raise ValueError(f"{name} must be a positive finite number, got {show(value)}")
 
 
-def integer(obj, name, lo: int | None = 1, hi: int | None = None, why: str | None = None) -> None:
+def integer(obj, name, *, lo: int | None = 1, hi: int | None = None, why: str | None = None) -> None:
     """An int >= ``lo`` (positive by default; ``lo=None``: any int), and <= ``hi`` if given."""
     value = getattr(obj, name)
     what = "an int" if lo is None else "a positive int" if lo == 1 else f"an int >= {lo}"
@@ -138,7 +138,7 @@ def _sequence(obj, name, what: str) -> tuple:
     return tuple(value)
 
 
-def pair(obj, name, positive: bool = False, within: tuple[float, float] | None = None, integral: bool = False) -> None:
+def pair(obj, name, *, positive: bool = False, within: tuple[float, float] | None = None, integral: bool = False) -> None:
     """(low, high): two finite (or positive) numbers with low <= high.
 
     ``within`` = (a, b) also asks a <= low and high <= b; ``integral`` asks for ints (stored as
@@ -160,7 +160,7 @@ def pair(obj, name, positive: bool = False, within: tuple[float, float] | None =
     object.__setattr__(obj, name, (lo, hi))
 
 
-def integers(obj, name, lo: int = 1, n: int | None = None, per: str = "") -> None:
+def integers(obj, name, *, lo: int = 1, n: int | None = None, per: str = "") -> None:
     """A non-empty tuple of ints >= ``lo``; of length ``n`` (one per ``per``) if given."""
     kind = "positive ints" if lo == 1 else f"ints >= {lo}"
     what = f"a tuple of {n} {kind} (one per {per})" if n is not None else f"a non-empty tuple of {kind}"

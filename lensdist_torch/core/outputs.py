@@ -46,7 +46,7 @@ def check_output_file(
     return p
 
 
-def check_output_dir(path: str | Path, option: str, inputs: Inputs | None = None, writes: Iterable[str] = (),
+def check_output_dir(path: str | Path, option: str, inputs: Inputs | None = None, *, writes: Iterable[str] = (),
                      data_set: bool = False) -> Path:
     """Validate an output folder: a folder or nothing at ``path``, below a folder that can be written.
 

@@ -41,7 +41,7 @@ class CheckpointError(ValueError):
         >>> with tempfile.TemporaryDirectory() as tmp:
         ...     _ = save_versioned(Path(tmp) / "old.pt", "demo", 1, {})
         ...     try:
-        ...         load_versioned(Path(tmp) / "old.pt", "demo", 2, "demo")
+        ...         load_versioned(Path(tmp) / "old.pt", kind="demo", version=2, what="demo")
         ...     except CheckpointError as err:
         ...         reason = str(err).split(" has ")[-1]
         >>> reason, issubclass(CheckpointError, ValueError)
@@ -262,7 +262,7 @@ def save_versioned(
 
 
 def load_versioned(
-    path: str | Path, kind: str, version: int, what: str, map_location="cpu", *,
+    path: str | Path, *, kind: str, version: int, what: str, map_location="cpu",
     sha256: str | None = None, error: type[Exception] = CheckpointError, noun: str = "checkpoint",
     digest: bool = False,
 ) -> dict:
@@ -281,7 +281,7 @@ def load_versioned(
     Example:
         >>> with tempfile.TemporaryDirectory() as tmp:
         ...     sha = save_versioned(Path(tmp) / "m.pt", "demo", 1, {"w": torch.arange(3)})
-        ...     payload = load_versioned(Path(tmp) / "m.pt", "demo", 1, "demo", sha256=sha, digest=True)
+        ...     payload = load_versioned(Path(tmp) / "m.pt", kind="demo", version=1, what="demo", sha256=sha, digest=True)
         >>> sorted(payload), payload["w"].tolist()  # the digest checked and removed
         (['format_version', 'kind', 'w'], [0, 1, 2])
     """

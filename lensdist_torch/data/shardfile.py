@@ -108,7 +108,7 @@ def load_shard(
     if not path.is_file():
         raise FileNotFoundError(f"shard not found: {path}")
     digest = _read_checksum(path)
-    rec = load_versioned(path, KIND, FORMAT_VERSION, "data-set", sha256=digest, error=ShardError, noun="shard")
+    rec = load_versioned(path, kind=KIND, version=FORMAT_VERSION, what="data-set", sha256=digest, error=ShardError, noun="shard")
     if fingerprint is not None and rec.get("fingerprint") != fingerprint:
         raise ShardError(
             f"shard {path} was generated with another config or scenes (fingerprint "

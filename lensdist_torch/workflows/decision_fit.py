@@ -111,7 +111,7 @@ def _right(results: list[dict], data: dict, config: LensdistConfig, keep: list[i
     return estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
 
 
-def confidences(results: list[dict], keep: list[int], config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
+def confidences(results: list[dict], keep: list[int], *, config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
     """The pairs ``keep``'s confidences under ``config`` (``calibrated``: through its Platt map).
 
     The self-calibration's raw one recomputed under ``config`` (its std scale, its R threshold),
@@ -129,7 +129,7 @@ def _calibrated(raw: torch.Tensor, config: LensdistConfig, method: str) -> torch
     return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method]))
 
 
-def outcomes(results: list[dict], data: dict, config: LensdistConfig, method: str, calibrated: bool):
+def outcomes(results: list[dict], data: dict, *, config: LensdistConfig, method: str, calibrated: bool):
     """(confidence, right) of the :func:`scored_pairs` under ``config``.
 
     The confidence raw, or through the config's Platt map where ``calibrated``; right: whether the
@@ -137,7 +137,7 @@ def outcomes(results: list[dict], data: dict, config: LensdistConfig, method: st
     """
     keep, raw = _scored(results, config)
     # the self-calibration's: from the rescoring that chose the pairs
-    raw = raw[keep] if method == "selfcal" else confidences(results, keep, config, method, False)
+    raw = raw[keep] if method == "selfcal" else confidences(results, keep, config=config, method=method, calibrated=False)
     return (_calibrated(raw, config, method) if calibrated else raw), _right(results, data, config, keep)
 
 
@@ -207,7 +207,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
         # moved by < 2 px claim 0.93 where 0.69 were right (docs/method.md, section 10): the
         # self-calibration's std scale keeps each pair's own std, and so its motion, in the confidence
         if method in results and method != "selfcal":
-            raw, right = outcomes(results[method], data, cfg, method, False)
+            raw, right = outcomes(results[method], data, config=cfg, method=method, calibrated=False)
             new, old = fit_platt(raw, right), (getattr(a0, f_scale), getattr(a0, f_shift))
             # a refit must earn its place: on a small split (--quick) it can fall back to the
             # identity and double the ECE of the map it replaces; then the config's map stays
@@ -227,7 +227,8 @@ def _std_fit(results: list[dict], data: dict, config: LensdistConfig) -> tuple[f
         return math.inf, a.selfcal_std_scale, a.flat_prior
     has_relief = any(results[i].get("relief_delta_avg") is not None for i in keep)
     priors = sorted(set(_PRIORS) | {a.flat_prior}) if has_relief else [a.flat_prior]  # no second model: no weight
-    scores = [(_log_loss(confidences(results, keep, _with(config, selfcal_std_scale=s, flat_prior=w), "selfcal", True), right),
+    scores = [(_log_loss(confidences(results, keep, config=_with(config, selfcal_std_scale=s, flat_prior=w),
+                                     method="selfcal", calibrated=True), right),
                abs(math.log(s / a.selfcal_std_scale)) + abs(w - a.flat_prior), s, w)
               for s in sorted(set(_SCALES) | {a.selfcal_std_scale}) for w in priors]
     best = min(scores)
@@ -286,7 +287,7 @@ def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
         >>> got["answered"], round(got["cannot_tell"], 3), got["precision"]
         (2, 0.333, 0.5)
     """
-    conf, right = outcomes(results, data, config, "selfcal", True)
+    conf, right = outcomes(results, data, config=config, method="selfcal", calibrated=True)
     right = right[conf >= config.analysis.min_confidence]
     n = len(results)
     return {"pairs": n, "answered": int(right.numel()), "cannot_tell": (n - right.numel()) / n if n else float("nan"),
@@ -311,8 +312,8 @@ def calibration_table(results: dict, data: dict, before: LensdistConfig, after: 
     for method in _PLATT:
         if method not in results:
             continue
-        b = reliability(*outcomes(results[method], data, before, method, True))
-        a = reliability(*outcomes(results[method], data, after, method, True))
+        b = reliability(*outcomes(results[method], data, config=before, method=method, calibrated=True))
+        a = reliability(*outcomes(results[method], data, config=after, method=method, calibrated=True))
         rows.append({"method": method, "split": split, "pairs": a["pairs"], "before": b["ece"], "after": a["ece"]})
         curves[f"{method}, before"], curves[f"{method}, after"] = b, a
     return rows, curves
@@ -337,7 +338,7 @@ def _toml(config: LensdistConfig) -> str:
     return "\n".join(lines) + "\n"
 
 
-def fit_confidence(config: LensdistConfig, out, regression=None, scenes: list | None = None, workers: int = 1,
+def fit_confidence(config: LensdistConfig, out, *, regression=None, scenes: list | None = None, workers: int = 1,
                    batch_size: int = 16, progress: bool = True, device=None, figures: bool = True) -> dict:
     """Fit the R threshold, the confidence and the intervals on a validation split, and write them.
 

@@ -102,7 +102,7 @@ def _map_colorbar(fig, im, axes, ok) -> None:
 
 
 def save_demo_figure(
-    img1: torch.Tensor, img2: torch.Tensor, qmap: torch.Tensor, path, title: str = "", valid: torch.Tensor | None = None
+    img1: torch.Tensor, img2: torch.Tensor, qmap: torch.Tensor, path, *, title: str = "", valid: torch.Tensor | None = None
 ) -> Path:
     """Two (1, 1, H, W) images and their (1, 1, h, w) quality map side by side.
 
@@ -217,7 +217,7 @@ def save_eigenvectors(vectors: dict[str, torch.Tensor], shape: tuple[int, int], 
     return _save(fig, path)
 
 
-def save_curves(curves: dict[str, list[float]], path, xlabel: str = "step", ylabel: str = "loss", title: str = "") -> Path:
+def save_curves(curves: dict[str, list[float]], path, *, xlabel: str = "step", ylabel: str = "loss", title: str = "") -> Path:
     """Line plot of named series."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 3.6))

@@ -170,18 +170,18 @@ def test_load_versioned_verifies_the_digest(tmp_path):
 
     path = tmp_path / "m.pt"
     save_versioned(path, "k", 3, {"w": torch.ones(4), "name": "n"})
-    back = load_versioned(path, "k", 3, "test", digest=True)
+    back = load_versioned(path, kind="k", version=3, what="test", digest=True)
     assert DIGEST_KEY not in back and torch.equal(back["w"], torch.ones(4))
     raw = torch.load(path, weights_only=True)
     raw["w"][2] = 1.5
     torch.save(raw, tmp_path / "edited.pt")
     for digest in (False, True):  # a stored digest is always verified
         with pytest.raises(CheckpointError, match=r"edited\.pt is corrupted or edited"):
-            load_versioned(tmp_path / "edited.pt", "k", 3, "test", digest=digest)
+            load_versioned(tmp_path / "edited.pt", kind="k", version=3, what="test", digest=digest)
     del raw[DIGEST_KEY]
     torch.save(raw, tmp_path / "bare.pt")
     with pytest.raises(CheckpointError, match=r"bare\.pt carries no content digest"):
-        load_versioned(tmp_path / "bare.pt", "k", 3, "test", digest=True)
-    assert load_versioned(tmp_path / "bare.pt", "k", 3, "test")["w"][2] == 1.5  # not required: as before
+        load_versioned(tmp_path / "bare.pt", kind="k", version=3, what="test", digest=True)
+    assert load_versioned(tmp_path / "bare.pt", kind="k", version=3, what="test")["w"][2] == 1.5  # not required: as before
     save_versioned(tmp_path / "plain.pt", "k", 3, {"w": torch.ones(1)}, digest=False)
     assert DIGEST_KEY not in torch.load(tmp_path / "plain.pt", weights_only=True)
