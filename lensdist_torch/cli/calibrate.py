@@ -96,7 +96,7 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
     """The text answer: the answer first (class, Delta, OpenCV's camera, the next command), then each path's numbers."""
     (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
     if res["k2_user"] is None:
-        print(f"answer: none ({res['reason']})")
+        print(f"no estimate: {res['reason']}")
         _paths(res)
         return
     print(f"distortion class: {(res['class'] + _kind(res)) if res['class'] else 'cannot tell (' + res['reason'] + ')'}  "
