@@ -54,7 +54,7 @@ def main() -> None:
             second = analyze_batch(None, None, prepared=p.with_decision(other))
             t2 = time.perf_counter()
             t_whole, t_again = t_whole + t1 - t0, t_again + t2 - t1
-            same &= [r["estimated_delta_avg"] for r in first] == [r["estimated_delta_avg"] for r in second]
+            same &= [r.estimated_delta_avg for r in first] == [r.estimated_delta_avg for r in second]
         whole.append(t_whole / a.n)
         again.append(t_again / a.n)
     out = {"pairs": a.n, "threads": a.threads, "repeats": a.repeats, "self_calibration_s_per_pair": min(whole),

@@ -148,18 +148,18 @@ def agreement(cpu: dict, dev: dict) -> dict:
     """How far the device's answers are from the CPU's on the same pairs."""
     h_err = (cpu["H"].cpu() - dev["H"].cpu()).abs().amax(dim=(1, 2))
     d_err = (cpu["delta"].cpu() - dev["delta"].cpu()).abs()
-    ca = [r.get("class") for r in cpu["answers"]]
-    da = [r.get("class") for r in dev["answers"]]
-    dd = [abs(x["delta_avg"] - y["delta_avg"]) for x, y in zip(cpu["answers"], dev["answers"], strict=True)
-          if x.get("delta_avg") is not None and y.get("delta_avg") is not None]
+    ca = [r.class_label for r in cpu["answers"]]
+    da = [r.class_label for r in dev["answers"]]
+    dd = [abs(x.delta_avg - y.delta_avg) for x, y in zip(cpu["answers"], dev["answers"], strict=True)
+          if x.delta_avg is not None and y.delta_avg is not None]
     return {
         "registration_max_abs_H_diff": float(h_err.nan_to_num(float("inf")).max()),
         "selfcal_delta_avg_max_abs_diff_px": float(d_err.nan_to_num(float("inf")).max()),
         "selfcal_delta_avg_median_abs_diff_px": float(d_err.nan_to_num(float("inf")).median()),
         "analyze_same_class": sum(x == y for x, y in zip(ca, da, strict=True)),
-        "analyze_same_registered_by": sum(x.get("registered_by") == y.get("registered_by")
+        "analyze_same_registered_by": sum(x.registered_by == y.registered_by
                                           for x, y in zip(cpu["answers"], dev["answers"], strict=True)),
-        "analyze_registered_by_self_calibration": sum(r.get("registered_by") == "self-calibration" for r in dev["answers"]),
+        "analyze_registered_by_self_calibration": sum(r.registered_by == "self-calibration" for r in dev["answers"]),
         "analyze_pairs": len(ca),
         "analyze_delta_avg_max_abs_diff_px": max(dd) if dd else None,
     }

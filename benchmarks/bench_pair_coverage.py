@@ -75,10 +75,10 @@ def run(seed: int, n: int, cfg: LensdistConfig, methods: tuple[str, ...], design
         prep = prepare_batch(frames[:1], frames[1:], cfg)
         for method in methods:
             r = analyze_batch(None, None, method=method, config=cfg, prepared=prep)[0]
-            rows.append({**d, "method": method, "motion": r["motion_px"], "class": r["class"],
-                         "estimate": r["estimated_delta_avg"], "std": r.get("delta_avg_std"),
-                         "interval": r.get("delta_avg_interval"), "confidence": r["confidence"],
-                         "raw_confidence": r.get("raw_confidence"), "estimated_class": r["estimated_class"]})
+            rows.append({**d, "method": method, "motion": r.motion_px, "class": r.class_label,
+                         "estimate": r.estimated_delta_avg, "std": r.delta_avg_std,
+                         "interval": r.delta_avg_interval, "confidence": r.confidence,
+                         "raw_confidence": r.raw_confidence, "estimated_class": r.estimated_class})
     return rows
 
 

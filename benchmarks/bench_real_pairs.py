@@ -38,11 +38,11 @@ def main() -> None:
     rows = []
     for a, b in zip(frames[:-1], frames[1:]):
         r = analyze_pair(str(a), str(b), config=cfg)
-        s, iv = r["user_px_per_analysis_px"], r.get("delta_avg_interval")
-        rows.append({"pair": [a.name, b.name], "registered": r["registration_ok"], "motion_px": r["motion_px"],
-                     "class": r["class"], "confidence": r["confidence"], "reasons": r["cannot_tell_reasons"],
-                     "relief_z": r.get("relief_z"),
-                     "estimate_user_px": None if r["estimated_delta_avg"] is None else r["estimated_delta_avg"] * s,
+        s, iv = r.user_px_per_analysis_px, r.delta_avg_interval
+        rows.append({"pair": [a.name, b.name], "registered": r.registration_ok, "motion_px": r.motion_px,
+                     "class": r.class_label, "confidence": r.confidence, "reasons": r.cannot_tell_reasons,
+                     "relief_z": r.relief_z,
+                     "estimate_user_px": None if r.estimated_delta_avg is None else r.estimated_delta_avg * s,
                      "interval_user_px": None if iv is None else [iv[0] * s, iv[1] * s]})
     answered = [x for x in rows if x["class"] is not None]
     with_iv = [x for x in answered if x["interval_user_px"]]

@@ -49,8 +49,8 @@ def main() -> None:
             answers[name] = res
     out = {"config": a.config, "pairs": len(idx), "threads": a.threads}
     for name, res in answers.items():
-        reasons = [code for r in res for code in r["cannot_tell_reasons"]]
-        out[name] = {"ms_per_pair": round(1000 * best[name] / len(idx), 1), "cannot_tell": sum(r["cannot_tell"] for r in res),
+        reasons = [code for r in res for code in r.cannot_tell_reasons]
+        out[name] = {"ms_per_pair": round(1000 * best[name] / len(idx), 1), "cannot_tell": sum(r.cannot_tell for r in res),
                      "reasons": {c: reasons.count(c) for c in sorted(set(reasons))}}
     out["ratio"] = round(best["default"] / best[a.against], 2)  # default / against
     print(json.dumps(out, indent=1))

@@ -80,17 +80,17 @@ def analysed(data: dict, cfg: LensdistConfig, batch: int) -> list[dict]:
     return analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
 
 
-def undistorted(results: list[dict]) -> dict:
+def undistorted(results: list) -> dict:
     """The class-R pairs' answers (no lens, the protocol's perturbed registration): the share answered R (right),
     "cannot tell" by reason, and other classes."""
     reasons: dict = {}
     for r in results:
-        for why in r["cannot_tell_reasons"] if r["cannot_tell"] else []:
+        for why in r.cannot_tell_reasons if r.cannot_tell else []:
             reasons[why] = reasons.get(why, 0) + 1
     m = max(1, len(results))
-    called = [r["estimated_class"] for r in results if not r["cannot_tell"]]
+    called = [r.estimated_class for r in results if not r.cannot_tell]
     return {"pairs": len(results), "called_r": round(100 * called.count(CLASS_LABELS[REJECT]) / m, 2),
-            "cannot_tell": round(100 * sum(bool(r["cannot_tell"]) for r in results) / m, 2), "cannot_tell_by_reason": reasons,
+            "cannot_tell": round(100 * sum(bool(r.cannot_tell) for r in results) / m, 2), "cannot_tell_by_reason": reasons,
             "other_class": len(called) - called.count(CLASS_LABELS[REJECT])}
 
 
@@ -104,7 +104,7 @@ def with_threshold(cfg: LensdistConfig, threshold: float) -> LensdistConfig:
     return dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, no_distortion_px=threshold))
 
 
-def called_r(results: list[dict], data: dict, cfg: LensdistConfig) -> int:
+def called_r(results: list, data: dict, cfg: LensdistConfig) -> int:
     """How many class-R pairs ``analyze``'s decision under ``cfg`` answers R (right, confident)."""
     keep = scored_pairs(results, cfg)
     conf, right = outcomes(results, data, config=cfg, method="selfcal", calibrated=True)
@@ -112,7 +112,7 @@ def called_r(results: list[dict], data: dict, cfg: LensdistConfig) -> int:
     return int((is_r & right & (conf >= cfg.analysis.min_confidence)).sum())
 
 
-def summary(results: list[dict], data: dict, cfg: LensdistConfig) -> tuple[dict, set[int]]:
+def summary(results: list, data: dict, cfg: LensdistConfig) -> tuple[dict, set[int]]:
     """The figures of ``analyze``'s decision under ``cfg`` on one condition's pairs, and the pairs it cannot tell."""
     keep = scored_pairs(results, cfg)  # the other pairs are "cannot tell" whatever the prior
     conf, right = outcomes(results, data, config=cfg, method="selfcal", calibrated=True)
@@ -124,26 +124,26 @@ def summary(results: list[dict], data: dict, cfg: LensdistConfig) -> tuple[dict,
             "scored_pairs": len(keep), "ece": round(100 * expected_calibration_error(conf, right), 2)}, cannot
 
 
-def self_check(results: list[dict], cfg: LensdistConfig, cannot: set[int]) -> dict:
+def self_check(results: list, cfg: LensdistConfig, cannot: set[int]) -> dict:
     """At the config's own prior: the largest difference between the recomputed and ``analyze``'s confidences
     (raw and calibrated, over the pairs with an estimate), and the pairs whose "cannot tell" differs."""
-    keep = [i for i, r in enumerate(results) if r["estimated_delta_avg"] is not None]
+    keep = [i for i, r in enumerate(results) if r.estimated_delta_avg is not None]
     diff = 0.0
     for field, calibrated in (("raw_confidence", False), ("confidence", True)):
         mine = confidences(results, keep, config=cfg, method="selfcal", calibrated=calibrated)
-        theirs = torch.tensor([results[i][field] for i in keep], dtype=torch.float64)
+        theirs = torch.tensor([getattr(results[i], field) for i in keep], dtype=torch.float64)
         diff = max([diff, *(mine - theirs).abs().tolist()])
     return {"flat_prior": cfg.analysis.flat_prior, "max_confidence_difference": diff,
-            "cannot_tell_mismatches": sum((i in cannot) != bool(r["cannot_tell"]) for i, r in enumerate(results))}
+            "cannot_tell_mismatches": sum((i in cannot) != bool(r.cannot_tell) for i, r in enumerate(results))}
 
 
-def per_pair(results: list[dict], data: dict) -> dict:
+def per_pair(results: list, data: dict) -> dict:
     """The pairs' truth (index, Delta_avg, class, the relief's largest height) and their analysis results."""
     params = draw_pairs(data["config"], "test", data["index"].tolist(), len(data["config"].protocol.scenes))
     height = params.realism.relief[:, 0].tolist() if params.realism is not None else [0.0] * len(results)
     return {"index": data["index"].tolist(), "true_delta_avg": data["delta_avg"].tolist(),
             "true_class": [CLASS_LABELS[c] for c in data["class_avg"].tolist()], "relief_height": height,
-            **{k: [r.get(k) for r in results] for k in PER_PAIR}}
+            **{k: [getattr(r, k) for r in results] for k in PER_PAIR}}
 
 
 def condition_config(path: str | None, overrides: list[str]) -> LensdistConfig:

@@ -85,7 +85,7 @@ def analyse(scenes: list, config, indices: list[int], batch_size: int = 8) -> di
             prep = prepare_batch(batch.img1[rows], batch.img2[rows], config, hom)
             for method in out:
                 res = analyze_batch(None, None, method=method, config=config, prepared=prep)
-                out[method] += [(truth[i], r["class"]) for i, r in zip(rows.tolist(), res)]
+                out[method] += [(truth[i], r.class_label) for i, r in zip(rows.tolist(), res)]
     return out
 
 

@@ -68,6 +68,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.classify.regression": ("DeltaRegressor",),
     "lensdist_torch.data.shards": ("generate", "load_set"),
     "lensdist_torch.workflows.analyze": ("analyze_batch", "analyze_pair"),
+    "lensdist_torch.workflows.pair_analysis": ("PairAnalysis",),
     "lensdist_torch.calibration.controllers.calibrate": ("synthetic_sequence",),
     "lensdist_torch.workflows.reproduce": ("reproduce",),
 }

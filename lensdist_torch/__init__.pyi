@@ -51,6 +51,7 @@ from lensdist_torch.registration.direct import warp_to_reference as warp_to_refe
 from lensdist_torch.selfcal.fit import estimate_distortion as estimate_distortion
 from lensdist_torch.workflows.analyze import analyze_batch as analyze_batch
 from lensdist_torch.workflows.analyze import analyze_pair as analyze_pair
+from lensdist_torch.workflows.pair_analysis import PairAnalysis as PairAnalysis
 from lensdist_torch.workflows.reproduce import reproduce as reproduce
 
 __version__: str
@@ -67,6 +68,7 @@ __all__ = [
     "ImageConfig",
     "LensdistConfig",
     "MultiViewConfig",
+    "PairAnalysis",
     "ProtocolConfig",
     "QualityConfig",
     "RegistrationConfig",

@@ -1,9 +1,10 @@
-"""The ``lensdist analyze`` command, a user's pair: its parser, running it and its text answer.
+"""The ``lensdist analyze`` command, a user's pair: its parser and running it.
 
-Like ``commands.py`` it imports torch only inside the command. The text answer gives one reason per
-"cannot tell" (a failed registration is not also "too little motion or texture"), names barrel
-or pincushion on the class line, and says there when the estimate lies beyond the classes'
-range.
+Like ``commands.py`` it imports torch only inside the command. It prints the pair's
+:class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`: its ``to_json()`` with ``--json``,
+else its ``summary()``, the text answer (one reason per "cannot tell": a failed registration is
+not also "too little motion or texture"; barrel or pincushion on the class line; the estimate
+said to lie beyond the classes' range where it does).
 """
 
 from __future__ import annotations
@@ -36,47 +37,24 @@ def cmd_analyze(args: argparse.Namespace) -> int:
                              method=args.method, config=cfg, return_map=True, device=device)
     # the result first: a failure to write the map must not lose the analysis
     if args.json:
-        _print_json(res)
+        _print_json(res.to_json())
     else:
-        _print_analysis(res)
+        print_analysis(res)
     if args.save_map:
         from lensdist_torch.workflows.figures import save_map_grid
 
-        label = f"{res['method']}: Delta_avg {_fmt(res['delta_avg'])}"
-        save_map_grid(qmap.cpu(), [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res["class"] or "?"])
+        label = f"{res.method}: Delta_avg {_fmt(res.delta_avg)}"
+        save_map_grid(qmap.cpu(), [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res.class_label or "?"])
         _note(args, f"map: {args.save_map}")
-    return 3 if args.strict and res["cannot_tell"] else 0
+    return 3 if args.strict and res.cannot_tell else 0
 
 
-def _print_analysis(res: dict) -> None:
-    print(f"registration: {'ok' if res['registration_ok'] else 'FAILED'} (overlap {100 * res['overlap']:.0f} %)")
-    conf = "" if res["confidence"] is None or res["class"] is None else f", confidence {res['confidence']:.2f}"
-    print(f"method: {res['method']}{conf}" + (f"; fitted on: {', '.join(res['fitted_on'])}" if res.get("fitted_on") else ""))
-    if res["class"] is None:
-        print("distortion class: cannot tell (see the warnings)")
-    else:
-        kind = f", {res['distortion_type']}" if res.get("distortion_type") else ""
-        beyond = " or beyond (Delta_avg lies past the classes' range)" if res.get("beyond_class_range") else ""
-        print(f"distortion class: {res['class']}{beyond}{kind}  (1 = small ... 4 = very strong, R = none visible)")
-    (h, w), (ih, iw) = res["analysis_size"], res["input_size"]
-    if res["class"] is None:  # no number that reads as an answer (the JSON keeps estimated_*)
-        why = f"the views moved by {_fmt(res.get('motion_px'), '.2f')}" if res["registration_ok"] else "registration failed"
-        reasons = ", ".join(res.get("cannot_tell_reasons") or []) if res["registration_ok"] else ""
-        print(f"Delta: none given ({'reason: ' + reasons + '; ' if reasons else ''}{why})")
-    else:
-        interval = res.get("delta_avg_interval")
-        print(f"Delta_avg ~ {_fmt(res['delta_avg'], '.2f')}" + (f" [{interval[0]:.2f}, {interval[1]:.2f}] (95 %)" if interval else "")
-              + f", Delta_max ~ {_fmt(res['delta_max'])} at {w} x {h}")
-        print(f"in your {iw} x {ih} pixels: Delta_avg {_fmt(res['delta_avg_user_px'])}, Delta_max "
-              f"{_fmt(res['delta_max_user_px'])} over the whole frame; {_fmt(res['delta_avg_region_user_px'])} and "
-              f"{_fmt(res['delta_max_region_user_px'])} over the analysed centre crop")
-    if res["distances"]:
-        print("eigen-space distances: " + ", ".join(f"{d:.3f}" for d in res["distances"]) + f" (reject above {res['reject_threshold']:.3f})")
-    for w in res["warnings"]:
-        print(f"warning: {w}")
+def print_analysis(res) -> None:
+    """Print a pair's text answer: its :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`'s ``summary()``."""
+    print(res.summary())
 
 
-def _valid_blocks(res: dict, qmap):
+def _valid_blocks(res, qmap):
     """(1, 1, h, w): blocks of the analysis frame with a valid pixel after the registration.
 
     The metric's eroded validity, so that the map shows blocks without a valid pixel in grey.
@@ -86,14 +64,11 @@ def _valid_blocks(res: dict, qmap):
     from lensdist_torch import warp_to_reference
     from lensdist_torch.metric import erode_valid
 
-    h, w = res["analysis_size"]
-    _, valid = warp_to_reference(torch.ones(1, 1, h, w), torch.tensor([res["homography"]]))
+    h, w = res.analysis_size
+    _, valid = warp_to_reference(torch.ones(1, 1, h, w), torch.tensor([res.homography]))
     b = h // qmap.shape[-2]
     v = erode_valid(valid.float())[..., : qmap.shape[-2] * b, : qmap.shape[-1] * b]
     return torch.nn.functional.max_pool2d(v, b) > 0
-
-
-print_analysis = _print_analysis
 
 
 def add_analyze_command(command) -> None:

@@ -6,6 +6,7 @@ Modules:
 
 * :mod:`~lensdist_torch.workflows.prepare`: a user's pairs at the analysis size, registered, with their quality maps.
 * :mod:`~lensdist_torch.workflows.analyze`: the methods on a prepared batch (``lensdist analyze``).
+* :mod:`~lensdist_torch.workflows.pair_analysis`: a pair's analysis as one record, with the CLI's JSON and text.
 * :mod:`~lensdist_torch.workflows.decision`: the honest answer, the calibrated confidence, the domain checks.
 * :mod:`~lensdist_torch.workflows.confidence`: the confidence's Platt map and its reliability.
 * :mod:`~lensdist_torch.workflows.decision_fit`: the decision fitted on a validation split (R threshold, std scales, Platt map).
@@ -33,6 +34,7 @@ from lensdist_torch._lazy import lazy_exports
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "lensdist_torch.workflows.prepare": ("PreparedPairs", "prepare_batch"),
     "lensdist_torch.workflows.analyze": ("analyze_batch", "analyze_pair"),
+    "lensdist_torch.workflows.pair_analysis": ("PairAnalysis",),
     "lensdist_torch.workflows.undistort": ("undistort_path",),
 }
 

@@ -9,8 +9,9 @@ the direct registration, with a feature fallback for far-apart pairs; :mod:`.pre
 computes the quality map and asks one estimator for the distortion: the
 self-calibration (default; started from the registration's H), the Delta regression, or the
 paper's eigen-space classifiers; then the decision of :mod:`~lensdist_torch.workflows.decision`
-(class or "cannot tell", calibrated confidence, domain checks). Offsets are reported in analysis
-pixels and in the user's pixels. Every threshold is in ``config.analysis``.
+(class or "cannot tell", calibrated confidence, domain checks). Each pair's answer is a
+:class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`, offsets in analysis pixels and in
+the user's pixels. Every threshold is in ``config.analysis``.
 
 On the CPU the estimators (registration, self-calibration, classifiers) run pair by pair: their
 batched float32 kernels round differently with the batch's size, and a pair's answer must not
@@ -41,12 +42,14 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, estimated_
 from lensdist_torch.geometry.homography import check_homography
 from lensdist_torch.workflows.confidence import platt
 from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels
+from lensdist_torch.workflows.pair_analysis import JSON_KEYS, PairAnalysis
 from lensdist_torch.workflows.prepare import PreparedPairs, prepare_batch, resolve_device
 
 __all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "PreparedPairs", "default_checkpoint", "resolve_device", "METHODS"]
 
 METHODS = ("selfcal", "regression", "eigenspace")
 _CKPT_DIR = Path(str(resources.files("lensdist_torch") / "checkpoints"))  # package data: in the wheel too
+_ATTRIBUTES = {key: name for name, key in JSON_KEYS.items()}  # the working dict's keys -> PairAnalysis's names
 _SHIPPED = {"delta_avg": "eigenspace_delta_avg_10ev.pt", "delta_max": "eigenspace_delta_max_10ev.pt", "regression": "regression.pt"}
 
 
@@ -222,7 +225,7 @@ def analyze_batch(
     homography=None,
     prepared: PreparedPairs | None = None,
     return_maps: bool = False,
-) -> list[dict] | tuple[list[dict], torch.Tensor]:
+) -> list[PairAnalysis] | tuple[list[PairAnalysis], torch.Tensor]:
     """Analyse a batch of overlapping pairs of photographs of roughly planar scenes.
 
     Args:
@@ -247,7 +250,8 @@ def analyze_batch(
         return_maps: also return the (B, 1, H/8, W/8) quality maps of the registered pairs.
 
     Returns:
-        One dict per pair: ``class`` and ``class_max`` ("1"-"4" or "R"; None with
+        One :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis` per pair (every field
+        documented there): ``class_label`` and ``class_max_label`` ("1"-"4" or "R"; None with
         ``cannot_tell`` True when the pair cannot support an answer, the reasons in
         ``warnings``), ``estimated_class`` (the estimator's own answer, even when unsure),
         ``delta_avg``, ``delta_max`` (analysis px; None without an estimate), the same in the
@@ -255,13 +259,14 @@ def analyze_batch(
         ``registration_ok`` (and ``registered_by``: "homography", or with ``selfcal``
         "self-calibration" where only its fit, which models the lens and the photometry, passed
         the registration's residual test), ``in_domain``, ``overlap``, ``fitted_on``,
-        ``warnings`` and more. With ``return_maps``, (that list, the quality maps).
+        ``warnings`` and more; ``to_json()`` is ``lensdist analyze --json``'s object and
+        ``summary()`` its text. With ``return_maps``, (that list, the quality maps).
 
     Example:
         >>> from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
         >>> frames, ideal = synthetic_sequence(2, 1e-6, 0.0)  # a pan through a lens of Delta_avg 4.19 px, and without
         >>> res = analyze_batch(torch.stack([frames[0], ideal[0]]), torch.stack([frames[1], ideal[1]]))
-        >>> [r["class"] for r in res], abs(res[0]["delta_avg"] - 4.19) < 0.25  # px at 320 x 424
+        >>> [r.class_label for r in res], abs(res[0].delta_avg - 4.19) < 0.25  # px at 320 x 424
         (['2', 'R'], True)
     """
     models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
@@ -311,12 +316,14 @@ def analyze_batch(
         )
         if method == "selfcal":
             res.update(in_user_pixels(res, s, p.input_size[i]))
-        out.append(res)
+        # by keyword: a key that is no field, or a field without its key, is a TypeError here
+        out.append(PairAnalysis(**{_ATTRIBUTES.get(key, key): value for key, value in res.items()}))
     return (out, p.qmap) if return_maps else out
 
 
 def analyze_pair(img1, img2, *, checkpoint=None, checkpoint_max=None, method: str = "selfcal",
-                 config: LensdistConfig | None = None, return_map: bool = False, device=None, homography=None):
+                 config: LensdistConfig | None = None, return_map: bool = False, device=None,
+                 homography=None) -> PairAnalysis | tuple[PairAnalysis, torch.Tensor]:
     """Analyse one overlapping pair: :func:`analyze_batch` of a batch of one.
 
     Args:
@@ -331,14 +338,15 @@ def analyze_pair(img1, img2, *, checkpoint=None, checkpoint_max=None, method: st
         homography: optional (3, 3) or (1, 3, 3) registration img1 -> img2 at the analysis size.
 
     Returns:
-        The pair's dict (see :func:`analyze_batch`); with ``return_map``, (dict, quality map).
+        The pair's :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis` (see
+        :func:`analyze_batch`); with ``return_map``, (that record, the quality map).
 
     Example:
         >>> from lensdist_torch import load_scene
         >>> scene = load_scene("gravel")
         >>> res = analyze_pair(scene[..., :320, :424], scene[..., 8:328, :424])
-        >>> res["registration_ok"], res["method"]
-        (True, 'selfcal')
+        >>> res.registration_ok, res.method, res.class_label
+        (True, 'selfcal', 'R')
     """
     for img, name in ((img1, "img1"), (img2, "img2")):
         if isinstance(img, (list, tuple)) or (isinstance(img, torch.Tensor) and img.dim() == 4 and img.shape[0] != 1):

@@ -8,23 +8,44 @@ answer's class little probability (:func:`relief_agreement` below ``analysis.rel
 pair is "cannot tell" for relief.
 :func:`rescored` (batched; one result: :func:`rescored_confidence`, :func:`rescored_relief_found`)
 recomputes both from saved results under another decision (the fit on a validation split, ``workflows.decision_fit``);
+a result is a :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`, or a mapping of its
+JSON's keys (a saved ``to_json()``, or the few a synthetic split gives), read by :func:`result_field`.
 :func:`delta_interval` is the one interval of the self-calibration's answers.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
+from lensdist_torch.workflows.pair_analysis import JSON_KEYS
 
-__all__ = ["SceneModels", "scene_models", "flat_or_relief", "relief_agreement", "rescored", "rescored_confidence", "rescored_relief_found", "delta_interval"]
+__all__ = ["SceneModels", "scene_models", "flat_or_relief", "relief_agreement", "rescored", "rescored_confidence", "rescored_relief_found",
+           "delta_interval", "result_field"]
 
 
-def rescored(results: list[dict], cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def result_field(result, key: str, default=None):
+    """One field of an analysis result, ``default`` where it is absent or None (null in JSON).
+
+    ``result`` is a :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis` (``key``
+    read as its attribute; ``class`` as ``class_label``, ...) or a mapping of the JSON's keys:
+    a saved ``to_json()``, or the few keys a synthetic validation split gives.
+
+    Example:
+        >>> result_field({"delta_avg_std": None}, "delta_avg_std", math.inf), result_field({"in_domain": True}, "in_domain")
+        (inf, True)
+    """
+    attribute = {json_key: name for name, json_key in JSON_KEYS.items()}.get(key, key)
+    value = result.get(key) if isinstance(result, Mapping) else getattr(result, attribute, None)
+    return default if value is None else value
+
+
+def rescored(results: list, cfg: LensdistConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """(confidence, relief_found) of saved self-calibration results again, under ``cfg``, batched.
 
     From the answers each result keeps (``estimated_delta_avg`` and ``delta_avg_std``; with the
@@ -38,10 +59,7 @@ def rescored(results: list[dict], cfg: LensdistConfig) -> tuple[torch.Tensor, to
         (N,) float64 confidences, (N,) bool.
     """
     nan = float("nan")
-
-    def get(r, key, default):  # a field absent or null (JSON): the default
-        return default if r.get(key) is None else r[key]
-
+    get = result_field  # a field absent or null (JSON): the default
     d = [get(r, "estimated_delta_avg", nan) for r in results]
     # without a plane + parallax answer the kept one is the planar one
     p = torch.tensor([[get(r, "planar_delta_avg", x), get(r, "planar_delta_avg_std", get(r, "delta_avg_std", nan))]
@@ -50,12 +68,12 @@ def rescored(results: list[dict], cfg: LensdistConfig) -> tuple[torch.Tensor, to
                      dtype=torch.float64).view(-1, 2)
     d = torch.tensor(d, dtype=torch.float64)
     conf, found, _, _ = _scene_models(_classes(d, cfg), p[:, 0], p[:, 1], q[:, 0], q[:, 1], cfg)
-    stored = torch.tensor([bool(r.get("relief_found", False)) for r in results], dtype=torch.bool)
+    stored = torch.tensor([bool(get(r, "relief_found", False)) for r in results], dtype=torch.bool)
     kept = torch.isfinite(q[:, 0]) & torch.isfinite(d)
     return torch.where(torch.isfinite(d), conf, nan), torch.where(kept, found, stored)
 
 
-def rescored_confidence(res: dict, cfg: LensdistConfig) -> float:
+def rescored_confidence(res, cfg: LensdistConfig) -> float:
     """One result's raw confidence again, under ``cfg`` (:func:`rescored`).
 
     Example:
@@ -67,7 +85,7 @@ def rescored_confidence(res: dict, cfg: LensdistConfig) -> float:
     return float(rescored([res], cfg)[0][0])
 
 
-def rescored_relief_found(res: dict, cfg: LensdistConfig) -> bool:
+def rescored_relief_found(res, cfg: LensdistConfig) -> bool:
     """Whether one result finds relief under ``cfg`` (:func:`rescored`).
 
     Example:

@@ -26,6 +26,10 @@ about right for the intervals and a little wide for the classes; on a scene with
 too narrow, since the relief biases the pair in a way its own residuals cannot show
 (docs/method.md, section 10). Both are scored over the pairs whose answer the confidence decides
 (:func:`scored_pairs`), the pairs the ECE is reported on.
+
+The results are the analysis's :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`
+records, or mappings of their JSON's keys (a synthetic split's few), each field read by
+:func:`~lensdist_torch.workflows.class_mass.result_field`.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import estimated_class
-from lensdist_torch.workflows.class_mass import delta_interval, rescored
+from lensdist_torch.workflows.class_mass import delta_interval, rescored, result_field
 from lensdist_torch.workflows.confidence import (
     expected_calibration_error,
     fit_platt,
@@ -78,7 +82,7 @@ def _with(config: LensdistConfig, **analysis) -> LensdistConfig:
     return dataclasses.replace(config, analysis=dataclasses.replace(config.analysis, **analysis))
 
 
-def scored_pairs(results: list[dict], config: LensdistConfig) -> list[int]:
+def scored_pairs(results: list, config: LensdistConfig) -> list[int]:
     """The pairs whose answer their confidence decides: the others are withheld for another reason.
 
     Registered, overlapping and in domain, with an estimate, moved by at least
@@ -94,24 +98,24 @@ def scored_pairs(results: list[dict], config: LensdistConfig) -> list[int]:
     return _scored(results, config)[0]
 
 
-def _scored(results: list[dict], config: LensdistConfig) -> tuple[list[int], torch.Tensor]:
+def _scored(results: list, config: LensdistConfig) -> tuple[list[int], torch.Tensor]:
     """(:func:`scored_pairs`, every result's raw self-calibration confidence under ``config``): one rescoring."""
     a = config.analysis
     conf, relief = rescored(results, config) if results else (torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool))
     relief = relief.tolist()
     keep = [i for i, r in enumerate(results)
-            if r["in_domain"] and r["estimated_delta_avg"] is not None and not relief[i]
-            and not (r.get("motion_px") is not None and r["motion_px"] < a.min_motion_px)]
+            if result_field(r, "in_domain") and result_field(r, "estimated_delta_avg") is not None and not relief[i]
+            and not result_field(r, "motion_px", math.inf) < a.min_motion_px]
     return keep, conf
 
 
-def _right(results: list[dict], data: dict, config: LensdistConfig, keep: list[int]) -> torch.Tensor:
+def _right(results: list, data: dict, config: LensdistConfig, keep: list[int]) -> torch.Tensor:
     """Whether the class of each kept pair's estimated Delta_avg under ``config`` (its R threshold) is the true one."""
-    d = torch.tensor([results[i]["estimated_delta_avg"] for i in keep], dtype=torch.float64)
+    d = torch.tensor([result_field(results[i], "estimated_delta_avg") for i in keep], dtype=torch.float64)
     return estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
 
 
-def confidences(results: list[dict], keep: list[int], *, config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
+def confidences(results: list, keep: list[int], *, config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
     """The pairs ``keep``'s confidences under ``config`` (``calibrated``: through its Platt map).
 
     The self-calibration's raw one recomputed under ``config`` (its std scale, its R threshold),
@@ -120,7 +124,7 @@ def confidences(results: list[dict], keep: list[int], *, config: LensdistConfig,
     if method == "selfcal":
         raw = rescored([results[i] for i in keep], config)[0] if keep else torch.zeros(0, dtype=torch.float64)
     else:
-        raw = torch.tensor([results[i]["raw_confidence"] for i in keep], dtype=torch.float64)
+        raw = torch.tensor([result_field(results[i], "raw_confidence") for i in keep], dtype=torch.float64)
     return _calibrated(raw, config, method) if calibrated else raw
 
 
@@ -129,7 +133,7 @@ def _calibrated(raw: torch.Tensor, config: LensdistConfig, method: str) -> torch
     return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method]))
 
 
-def outcomes(results: list[dict], data: dict, *, config: LensdistConfig, method: str, calibrated: bool):
+def outcomes(results: list, data: dict, *, config: LensdistConfig, method: str, calibrated: bool):
     """(confidence, right) of the :func:`scored_pairs` under ``config``.
 
     The confidence raw, or through the config's Platt map where ``calibrated``; right: whether the
@@ -146,7 +150,7 @@ def _log_loss(p: torch.Tensor, right: torch.Tensor) -> float:
     return float(-torch.where(right, p.log(), (-p).log1p()).mean())
 
 
-def interval_coverage(results: list[dict], data: dict, config: LensdistConfig) -> dict:
+def interval_coverage(results: list, data: dict, config: LensdistConfig) -> dict:
     """{"pairs", "coverage"}: the share of the :func:`scored_pairs` whose interval covers the true Delta_avg.
 
     The interval of the kept answer, as ``analyze`` gives it
@@ -157,8 +161,8 @@ def interval_coverage(results: list[dict], data: dict, config: LensdistConfig) -
         >>> interval_coverage([r, r | {"estimated_delta_avg": 7.0}], {"delta_avg": torch.tensor([5.5, 5.5])}, LensdistConfig())
         {'pairs': 2, 'coverage': 0.5}
     """
-    intervals = {i: delta_interval(results[i]["estimated_delta_avg"], results[i].get("delta_avg_std", math.inf), config.analysis)
-                 for i in scored_pairs(results, config)}
+    intervals = {i: delta_interval(result_field(results[i], "estimated_delta_avg"), result_field(results[i], "delta_avg_std", math.inf),
+                                   config.analysis) for i in scored_pairs(results, config)}
     intervals = {i: iv for i, iv in intervals.items() if iv is not None}
     if not intervals:
         return {"pairs": 0, "coverage": float("nan")}
@@ -192,7 +196,8 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
     a0 = config.analysis
     grid = sorted(set(torch.logspace(math.log10(0.02), math.log10(2.0), 61, dtype=torch.float64).tolist())
                   | {a0.no_distortion_px})
-    every = [i for i, r in enumerate(results["selfcal"]) if r["in_domain"] and r["estimated_delta_avg"] is not None]
+    every = [i for i, r in enumerate(results["selfcal"])
+             if result_field(r, "in_domain") and result_field(r, "estimated_delta_avg") is not None]
     counts = {t: int(_right(results["selfcal"], data, _with(config, no_distortion_px=t), every).sum()) for t in grid}
     most = max(counts.values())
     std_fits = {t: _std_fit(results["selfcal"], data, _with(config, no_distortion_px=t)) for t, n in counts.items() if n == most}
@@ -217,7 +222,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
     return fitted
 
 
-def _std_fit(results: list[dict], data: dict, config: LensdistConfig) -> tuple[float, float, float]:
+def _std_fit(results: list, data: dict, config: LensdistConfig) -> tuple[float, float, float]:
     """(log-loss, selfcal_std_scale, flat_prior) of the least log-loss over the config's scored pairs; inf where nothing is scored."""
     a = config.analysis
     keep = scored_pairs(results, config)  # fixed: the scores compare one set of pairs
@@ -225,7 +230,7 @@ def _std_fit(results: list[dict], data: dict, config: LensdistConfig) -> tuple[f
     if right.numel() == 0 or bool(right.all()) or not bool(right.any()):
         # all right (or all wrong): the sharpest (or widest) scale would always win
         return math.inf, a.selfcal_std_scale, a.flat_prior
-    has_relief = any(results[i].get("relief_delta_avg") is not None for i in keep)
+    has_relief = any(result_field(results[i], "relief_delta_avg") is not None for i in keep)
     priors = sorted(set(_PRIORS) | {a.flat_prior}) if has_relief else [a.flat_prior]  # no second model: no weight
     scores = [(_log_loss(confidences(results, keep, config=_with(config, selfcal_std_scale=s, flat_prior=w),
                                      method="selfcal", calibrated=True), right),
@@ -235,7 +240,7 @@ def _std_fit(results: list[dict], data: dict, config: LensdistConfig) -> tuple[f
     return float(best[0]), float(best[2]), float(best[3])
 
 
-def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig, scale_prior: tuple[float, float],
+def _fit_withholding(results: list, data: dict, config: LensdistConfig, scale_prior: tuple[float, float],
                      trace: list | None = None) -> dict:
     """The confidence, and the least confidence of an answer, fitted on a split.
 
@@ -271,7 +276,7 @@ def _fit_withholding(results: list[dict], data: dict, config: LensdistConfig, sc
     return best[4]
 
 
-def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
+def answers(results: list, data: dict, config: LensdistConfig) -> dict:
     """{"pairs", "answered", "cannot_tell", "precision", "precision_bound"} of the self-calibration's answers under ``config``.
 
     A pair is answered where it is scored (:func:`scored_pairs`) and its calibrated confidence
@@ -295,7 +300,7 @@ def answers(results: list[dict], data: dict, config: LensdistConfig) -> dict:
             "precision_bound": precision_bound(int(right.sum()), int(right.numel()))}
 
 
-def _fit_interval_scale(results: list[dict], data: dict, config: LensdistConfig) -> float:
+def _fit_interval_scale(results: list, data: dict, config: LensdistConfig) -> float:
     want = config.analysis.interval_confidence
     for s in sorted(set(_SCALES) | {config.analysis.interval_std_scale}):
         cov = interval_coverage(results, data, _with(config, interval_std_scale=s))
@@ -319,7 +324,7 @@ def calibration_table(results: dict, data: dict, before: LensdistConfig, after: 
     return rows, curves
 
 
-def coverage_row(results: list[dict], data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> dict:
+def coverage_row(results: list, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> dict:
     """The self-calibration's interval coverage before and after the fitted decision, on one split."""
     b, a = interval_coverage(results, data, before), interval_coverage(results, data, after)
     return {"split": split, "pairs": a["pairs"], "before": b["coverage"], "after": a["coverage"],

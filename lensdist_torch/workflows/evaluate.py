@@ -34,6 +34,7 @@ from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_top
 from lensdist_torch.metric.quality import counts_to_map
 from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
 from lensdist_torch.workflows.decision import REASONS
+from lensdist_torch.workflows.pair_analysis import PairAnalysis
 from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions
 from lensdist_torch.workflows.texture import texture_statistics
 
@@ -141,8 +142,8 @@ def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config:
         set_name: the protocol set the pairs belong to (``test``).
 
     Returns:
-        {name: one result dict per pair, in the set's order}. Every run of a batch shares one
-        rendering, registration and self-calibration.
+        {name: one :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis` per pair, in the
+        set's order}. Every run of a batch shares one rendering, registration and self-calibration.
     """
     cfg = config if config is not None else test["config"]
     scenes = _scenes_of(test, scenes)
@@ -168,30 +169,31 @@ def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config:
     return out
 
 
-def _run(prep, decision=None, **kw) -> list[dict]:
+def _run(prep, decision=None, **kw) -> list[PairAnalysis]:
     """One run of :func:`analyze_test_set` on a prepared batch, under its own decision where it has one."""
     prep = prep if decision is None else prep.with_decision(decision)
     return analyze_batch(None, None, config=prep.config, prepared=prep, **kw)
 
 
-def figures_of(results: list[dict], test: dict, metric: str, config: LensdistConfig) -> dict:
+def figures_of(results: list[PairAnalysis], test: dict, metric: str, config: LensdistConfig) -> dict:
     """One metric's figures from analysis results of a test set's pairs (``cannot tell`` its own outcome)."""
-    key = "class" if metric == "delta_avg" else "class_max"
-    pred = torch.tensor([CANNOT_TELL if r[key] is None else CLASS_LABELS.index(r[key]) for r in results])
-    est = f"estimated_{metric}"  # the estimator's own number, also where the answer is "cannot tell"
-    delta = torch.tensor([float("nan") if r[est] is None else r[est] for r in results], dtype=torch.float64)
+    labels = [r.class_label if metric == "delta_avg" else r.class_max_label for r in results]
+    pred = torch.tensor([CANNOT_TELL if lab is None else CLASS_LABELS.index(lab) for lab in labels])
+    # the estimator's own number, also where the answer is "cannot tell"
+    own = [r.estimated_delta_avg if metric == "delta_avg" else r.estimated_delta_max for r in results]
+    delta = torch.tensor([float("nan") if d is None else d for d in own], dtype=torch.float64)
     truth = test[CLASS_KEYS[metric]]
-    ok = torch.tensor([r["registration_ok"] for r in results])
+    ok = torch.tensor([r.registration_ok for r in results])
     fig = evaluate_predictions(pred, delta, truth, test[metric], delta_top(metric, config), ok, motion_groups(test))
     fig["metric"] = metric
-    reasons = [code for r in results for code in r.get("cannot_tell_reasons", [])]
+    reasons = [code for r in results for code in r.cannot_tell_reasons]
     fig["cannot_tell_reasons"] = {code: reasons.count(code) for code in REASONS if code in reasons}
     fig["per_pair"] = {
         "index": test["index"].tolist(),
-        "class": [r[key] for r in results],
-        "delta": [r[est] for r in results],
-        "confidence": [r["confidence"] for r in results],
-        "cannot_tell_reasons": [r.get("cannot_tell_reasons", []) for r in results],
+        "class": labels,
+        "delta": own,
+        "confidence": [r.confidence for r in results],
+        "cannot_tell_reasons": [r.cannot_tell_reasons for r in results],
     }
     return fig
 
@@ -239,7 +241,7 @@ def evaluate_selfcal(test: dict, config: LensdistConfig | None = None, scenes: l
     out = {}
     for m in ("delta_avg", "delta_max"):
         out[m] = {**figures_of(res, test, m, cfg), "method": "selfcal",
-                  "diverged": sum(bool(r["registration_ok"]) and r["estimated_delta_avg"] is None for r in res)}
+                  "diverged": sum(bool(r.registration_ok) and r.estimated_delta_avg is None for r in res)}
     return out
 
 

@@ -22,16 +22,16 @@ def _unrelated():
 def test_unrelated_images_cannot_tell(method):
     a, b = _unrelated()
     r = analyze_pair(a, b, method=method)
-    assert r["registration_ok"] is False
-    assert r["class"] is None and r["cannot_tell"] is True
-    assert r["delta_avg"] is None and r["delta_avg_user_px"] is None
-    assert any("registration failed" in w for w in r["warnings"])
+    assert r.registration_ok is False
+    assert r.class_label is None and r.cannot_tell is True
+    assert r.delta_avg is None and r.delta_avg_user_px is None
+    assert any("registration failed" in w for w in r.warnings)
 
 
 def test_a_good_pair_still_answers():
     scene = load_scene("gravel")
     r = analyze_pair(scene[..., :320, :424], scene[..., 8:328, :424])
-    assert r["registration_ok"] and not r["cannot_tell"] and r["class"] == "R"
+    assert r.registration_ok and not r.cannot_tell and r.class_label == "R"
 
 
 @pytest.mark.bad_input
@@ -72,14 +72,14 @@ def test_selfcal_answer_in_user_pixels_and_opencv_terms():
     a, b = render_pairs([load_scene("gravel"), load_scene("grass")], params, cfg)
     big_a, big_b = (F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False) for x in (a, b))
     r = analyze_pair(big_a, big_b)
-    s = r["user_px_per_analysis_px"]
+    s = r.user_px_per_analysis_px
     assert s == pytest.approx(2.0)
-    assert r["k2_user"] == pytest.approx(r["k2"] / s**2) and r["k4_user"] == pytest.approx(r["k4"] / s**4)
-    cv = r["opencv"]
+    assert r.k2_user == pytest.approx(r.k2 / s**2) and r.k4_user == pytest.approx(r.k4 / s**4)
+    cv = r.opencv
     assert len(cv["camera_matrix"]) == 3 and len(cv["dist_coeffs"]) == 5
     assert cv["camera_matrix"][0][2] == pytest.approx((848 - 1) / 2) and cv["camera_matrix"][1][2] == pytest.approx((640 - 1) / 2)
     assert cv["fit_error_mean_px"] < 0.1
-    json.dumps(r, allow_nan=False)
+    json.dumps(r.to_json(), allow_nan=False)
 
 
 def test_the_answer_says_which_model_gave_it():
@@ -93,6 +93,6 @@ def test_the_answer_says_which_model_gave_it():
     a, b = scene[..., :320, :424], scene[..., 8:328, 4:428]
     base = LensdistConfig()
     relief = dataclasses.replace(base, selfcal=dataclasses.replace(base.selfcal, parallax=5, parallax_test=0.0))
-    assert analyze_pair(a, b)["relief"] is False
+    assert analyze_pair(a, b).relief is False
     r = analyze_pair(a, b, config=relief)
-    assert r["relief"] is True and r["estimated_class"] == "R"  # the wider relief interval may not support "R"
+    assert r.relief is True and r.estimated_class == "R"  # the wider relief interval may not support "R"

@@ -12,6 +12,7 @@ from lensdist_torch import cli
 from lensdist_torch.cli.analyze import print_analysis
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.workflows.decision import decide
+from lensdist_torch.workflows.pair_analysis import JSON_KEYS, PairAnalysis
 
 COMMANDS = ["demo", "generate", "train", "evaluate", "reproduce", "analyze", "calibrate", "undistort"]
 
@@ -105,13 +106,16 @@ def _res(**kw):
             "registration_ok": True, "overlap": 0.9, "method": "selfcal", "analysis_size": [320, 424],
             "input_size": [320, 424], "delta_avg_user_px": 9.0, "delta_max_user_px": 50.0, "delta_avg_region_user_px": 9.0,
             "delta_max_region_user_px": 50.0, "distances": None, "motion_px": 12.0, "distortion_type": "barrel",
-            "delta_avg_interval": [8.5, 9.5]}
+            "delta_avg_interval": [8.5, 9.5], "reject_threshold": None, "registered_by": "homography",
+            "analysed_region_user_px": [0, 0, 320, 424], "registration_residual": 0.01, "error_blocks": 0,
+            "user_px_per_analysis_px": 1.0, "homography": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}
     return {**base, **kw}
 
 
 def _text(capsys, res) -> str:
     decide(res, LensdistConfig())
-    print_analysis(res)
+    attribute = {key: name for name, key in JSON_KEYS.items()}
+    print_analysis(PairAnalysis(**{attribute.get(key, key): value for key, value in res.items()}))
     return capsys.readouterr().out
 
 

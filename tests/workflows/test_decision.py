@@ -150,9 +150,9 @@ def test_a_pair_of_a_scene_with_relief_says_relief():
     img1, img2 = render_pairs([load_scene(s) for s in cfg.protocol.scenes], p, cfg)
     (r,) = analyze_batch(img1, img2, config=cfg)
     assert float(p.realism.relief[0, 0]) == pytest.approx(0.0274, abs=1e-4)
-    assert r["cannot_tell"] and r["cannot_tell_reasons"] == ["relief"]
-    lo, hi = r["relief_delta_avg_interval"]
-    assert lo < 11.18 < hi and abs(r["planar_delta_avg"] - 11.18) > 1.5
+    assert r.cannot_tell and r.cannot_tell_reasons == ["relief"]
+    lo, hi = r.relief_delta_avg_interval
+    assert lo < 11.18 < hi and abs(r.planar_delta_avg - 11.18) > 1.5
 
 
 
@@ -169,10 +169,10 @@ def test_an_occluded_pair_is_registered_by_the_self_calibration():
     img1, img2 = render_pairs([load_scene(s) for s in cfg.protocol.scenes], p, cfg)
     assert bool(p.realism.occluded[0]) and float(p.realism.relief[0, 0]) == 0.0
     (r,) = analyze_batch(img1, img2, config=cfg)
-    assert r["registered_by"] == "self-calibration" and r["class"] == "4"
+    assert r.registered_by == "self-calibration" and r.class_label == "4"
     strict = dataclasses.replace(cfg, selfcal=dataclasses.replace(cfg.selfcal, occluded_share=0.0))
     (s,) = analyze_batch(img1, img2, config=strict)
-    assert s["registered_by"] is None and s["cannot_tell_reasons"] == ["registration"]
+    assert s.registered_by is None and s.cannot_tell_reasons == ["registration"]
 
 def test_class_distance():
     assert class_distance("R", "1") == 1 and class_distance("R", "4") == 4 and class_distance("2", "2") == 0
@@ -250,13 +250,13 @@ def test_shipped_checkpoints_flag_an_unseen_texture(method):
     cfg = LensdistConfig()
     a, b = _unseen_pairs(cfg)
     for r in analyze_batch(a, b, method=method):
-        assert r["fitted_on"] == ["gravel", "grass"]
-        assert r["texture_distance"] > r["texture_limit"] and not r["in_domain"]
-        assert r["class"] is None and r["cannot_tell"] and any("texture is unlike" in w for w in r["warnings"])
+        assert r.fitted_on == ["gravel", "grass"]
+        assert r.texture_distance > r.texture_limit and not r.in_domain
+        assert r.class_label is None and r.cannot_tell and any("texture is unlike" in w for w in r.warnings)
     scenes, _ = load_scenes(cfg)  # the training scenes stay in domain
     a, b = render_pairs(scenes, draw_pairs(cfg, "test", [1, 2, 3], len(scenes)), cfg)
     for r in analyze_batch(a, b, method=method):
-        assert r["texture_distance"] <= r["texture_limit"]
+        assert r.texture_distance <= r.texture_limit
 
 
 def test_cli_says_what_the_checkpoint_was_fitted_on(tmp_path, capsys):

@@ -67,10 +67,10 @@ def test_rescored_confidence_is_what_analyze_says(analysed, k, w, q):
     img1, img2, base = analysed
     cfg = _with(base, selfcal_std_scale=k, flat_prior=w, relief_mass=q)
     res = analyze_pair(img1, img2, method="selfcal", config=cfg)
-    assert res["estimated_delta_avg"] is not None and res["relief_delta_avg"] is not None
-    assert rescored_confidence(res, cfg) == pytest.approx(res["raw_confidence"], abs=1e-9)
-    assert rescored_relief_found(res, cfg) == res["relief_found"]
-    assert res["relief_agreement"] == pytest.approx(relief_agreement(res["planar_delta_avg"], (res["relief_delta_avg"], res["relief_delta_avg_std"]), cfg))
+    assert res.estimated_delta_avg is not None and res.relief_delta_avg is not None
+    assert rescored_confidence(res, cfg) == pytest.approx(res.raw_confidence, abs=1e-9)
+    assert rescored_relief_found(res, cfg) == res.relief_found
+    assert res.relief_agreement == pytest.approx(relief_agreement(res.planar_delta_avg, (res.relief_delta_avg, res.relief_delta_avg_std), cfg))
     assert rescored_confidence({"estimated_delta_avg": None}, cfg) != rescored_confidence({"estimated_delta_avg": None}, cfg)  # NaN
 
 
@@ -78,14 +78,15 @@ def test_interval_scale_widens_the_answers_interval(analysed):
     img1, img2, cfg = analysed
     one = analyze_pair(img1, img2, method="selfcal", config=cfg)
     two = analyze_pair(img1, img2, method="selfcal", config=_with(cfg, interval_std_scale=2.0))
-    assert one["delta_avg_interval"] is not None
-    assert two["delta_avg_std"] == pytest.approx(one["delta_avg_std"])  # the fit's own std is reported as it is
+    assert one.delta_avg_interval is not None
+    assert two.delta_avg_std == pytest.approx(one.delta_avg_std)  # the fit's own std is reported as it is
     for key in ("delta_avg_interval", "planar_delta_avg_interval", "relief_delta_avg_interval"):
-        if one.get(key) is None:
+        mine, wider = getattr(one, key), getattr(two, key)
+        if mine is None:
             continue
-        mid = one["estimated_delta_avg"] if key == "delta_avg_interval" else one[key.replace("_interval", "")]
-        if one[key][0] > 0 and two[key][0] > 0:  # not clipped at 0
-            assert two[key][1] - mid == pytest.approx(2 * (one[key][1] - mid), rel=1e-9)
+        mid = one.estimated_delta_avg if key == "delta_avg_interval" else getattr(one, key.replace("_interval", ""))
+        if mine[0] > 0 and wider[0] > 0:  # not clipped at 0
+            assert wider[1] - mid == pytest.approx(2 * (mine[1] - mid), rel=1e-9)
 
 
 # ------------------------------------------------------------------ fitted on a validation split

@@ -60,12 +60,12 @@ def _same_figures(mine: dict, theirs: dict) -> None:
 def _same_answers(fig: dict, name: str, test: dict, results: list, cfg) -> None:
     """A report's row ``name`` holds what ``results`` (analyze_pair's, pair by pair) answer."""
     metric = "delta_max" if "delta_max" in name else "delta_avg"
-    key = "class" if metric == "delta_avg" else "class_max"
+    key = "class_label" if metric == "delta_avg" else "class_max_label"
     assert fig["per_pair"]["index"] == test["index"].tolist()
-    assert [r[key] for r in results] == fig["per_pair"]["class"], name
-    assert [r["confidence"] for r in results] == pytest.approx(fig["per_pair"]["confidence"], abs=1e-12), name
+    assert [getattr(r, key) for r in results] == fig["per_pair"]["class"], name
+    assert [r.confidence for r in results] == pytest.approx(fig["per_pair"]["confidence"], abs=1e-12), name
     for r, d in zip(results, fig["per_pair"]["delta"]):
-        est = r[f"estimated_{metric}"]  # reported for every pair, as the estimator gave it
+        est = getattr(r, f"estimated_{metric}")  # reported for every pair, as the estimator gave it
         assert (est is None and d is None) or est == pytest.approx(d, abs=1e-9), name
     _same_figures(figures_of(results, test, metric, cfg), fig)
 
@@ -101,7 +101,7 @@ def test_a_prepared_batch_under_another_decision_is_one_fit(monkeypatch):
     import dataclasses
 
     cfg, a, b = _rendered(2)
-    low = min(r["estimated_delta_avg"] for r in analyze_batch(a, b, config=cfg))  # both R at 0.75 px (0.11, 0.19)
+    low = min(r.estimated_delta_avg for r in analyze_batch(a, b, config=cfg))  # both R at 0.75 px (0.11, 0.19)
     other = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, no_distortion_px=low / 2))
     fresh = analyze_batch(a, b, config=other)
     calls = []
@@ -114,11 +114,12 @@ def test_a_prepared_batch_under_another_decision_is_one_fit(monkeypatch):
     assert prep.with_decision(other.analysis).texture() is prep.texture()  # the histograms too
     for x, y in zip(fresh, theirs, strict=True):
         # the OpenCV export's least squares rounds differently from call to call (1e-18): compared apart
-        cx, cy = json_safe(x.pop("opencv")), json_safe(y.pop("opencv"))
-        assert json_safe(x) == json_safe(y)
+        x, y = x.to_json(), y.to_json()
+        cx, cy = x.pop("opencv"), y.pop("opencv")
+        assert x == y
         assert cx["dist_coeffs"] == pytest.approx(cy["dist_coeffs"], rel=1e-9, abs=1e-15)
-    assert [r["delta_avg"] for r in mine] == [r["estimated_delta_avg"] for r in theirs]
-    assert [r["estimated_class"] for r in mine] == ["R", "R"] and "R" not in [r["estimated_class"] for r in theirs]
+    assert [r.delta_avg for r in mine] == [r.estimated_delta_avg for r in theirs]
+    assert [r.estimated_class for r in mine] == ["R", "R"] and "R" not in [r.estimated_class for r in theirs]
     with pytest.raises(TypeError, match=r"^analysis \(with_decision\) must be an AnalysisConfig .*got LensdistConfig$"):
         prep.with_decision(other)  # a whole config: only the decision may differ
 
@@ -153,8 +154,8 @@ def test_a_pair_is_answered_as_in_a_batch():
     batch = analyze_batch(a, b, config=cfg)
     for i in range(3):
         one = analyze_pair(a[i], b[i], config=cfg)
-        assert one["homography"] == batch[i]["homography"]
-        assert one["delta_avg"] == batch[i]["delta_avg"] and one["class"] == batch[i]["class"]
+        assert one.homography == batch[i].homography
+        assert one.delta_avg == batch[i].delta_avg and one.class_label == batch[i].class_label
 
 
 def test_inputs_and_shared_preparation(tmp_path):
@@ -162,13 +163,13 @@ def test_inputs_and_shared_preparation(tmp_path):
     cfg, a, b = _rendered(2)
     as_list = analyze_batch([a[0], a[1]], [b[0], b[1]], config=cfg)
     as_tensor = analyze_batch(a, b, config=cfg)
-    assert [r["delta_avg"] for r in as_list] == [r["delta_avg"] for r in as_tensor]
+    assert [r.delta_avg for r in as_list] == [r.delta_avg for r in as_tensor]
     prep = prepare_batch(a, b, cfg)
     again = analyze_batch(None, None, config=cfg, prepared=prep)
-    assert [r["delta_avg"] for r in again] == [r["delta_avg"] for r in as_tensor]
+    assert [r.delta_avg for r in again] == [r.delta_avg for r in as_tensor]
     given = analyze_batch(a, b, config=cfg, homography=prep.H)
-    assert [r["homography"] for r in given] == [r["homography"] for r in as_tensor]
-    assert all(r["registration_ok"] for r in given)
+    assert [r.homography for r in given] == [r.homography for r in as_tensor]
+    assert all(r.registration_ok for r in given)
     with pytest.raises(ValueError, match="as many images"):
         analyze_batch(a, b[:1], config=cfg)
     with pytest.raises(ValueError, match="homography must be"):
@@ -186,22 +187,23 @@ def test_batched_estimators_answer_as_pair_by_pair(monkeypatch):
     alone = analyze_batch(a, b, config=cfg)
     monkeypatch.setattr(prepare, "_batched", lambda dev: True)
     together = analyze_batch(a, b, config=cfg)
-    assert [r["registration_ok"] for r in alone] == [True, True, False, True]
+    assert [r.registration_ok for r in alone] == [True, True, False, True]
     for x, y in zip(alone, together, strict=True):
-        assert (x["class"], x["registration_ok"]) == (y["class"], y["registration_ok"])
-        if not x["registration_ok"]:  # a fit of unrelated images: rounding moves it anywhere
+        assert (x.class_label, x.registration_ok) == (y.class_label, y.registration_ok)
+        if not x.registration_ok:  # a fit of unrelated images: rounding moves it anywhere
             continue
-        assert x["estimated_class"] == y["estimated_class"]
+        assert x.estimated_class == y.estimated_class
         for key in ("delta_avg", "delta_avg_std", "relief_delta_avg"):
-            assert (x.get(key) is None and y.get(key) is None) or math.isclose(x[key], y[key], abs_tol=1e-3), key
-        torch.testing.assert_close(torch.tensor(x["homography"]), torch.tensor(y["homography"]), atol=1e-3, rtol=0)
+            a, b = getattr(x, key), getattr(y, key)
+            assert (a is None and b is None) or math.isclose(a, b, abs_tol=1e-3), key
+        torch.testing.assert_close(torch.tensor(x.homography), torch.tensor(y.homography), atol=1e-3, rtol=0)
 
 
 def test_device():
     cfg, a, b = _rendered(1)
     assert resolve_device(None) == torch.device("cpu")
     r = analyze_pair(a[0], b[0], config=cfg, device="cpu")
-    assert r["registration_ok"]
+    assert r.registration_ok
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="CUDA is not available"):
             resolve_device("cuda")
@@ -209,7 +211,7 @@ def test_device():
             analyze_pair(a[0], b[0], config=cfg, device="cuda")
     else:  # the same answer on the GPU, up to the float32 kernels
         g = analyze_pair(a[0], b[0], config=cfg, device="cuda")
-        assert g["class"] == r["class"] and math.isclose(g["delta_avg"], r["delta_avg"], abs_tol=0.05)
+        assert g.class_label == r.class_label and math.isclose(g.delta_avg, r.delta_avg, abs_tol=0.05)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA present")
@@ -252,7 +254,7 @@ def test_analyze_pair_is_one_call_of_analyze_batch(monkeypatch, method):
     # the same answer to 1e-7 relative: the batch's buffers may be aligned otherwise, and the CPU
     # kernels' SIMD paths then round differently (seen: 1e-13 relative, once in ~3 runs; 1.4e-9 on an
     # OpenCV coefficient of 7.6e-13 that its least-squares fit leaves at the noise, once in CI)
-    assert _same(json_safe(res), json_safe(batch[0]))
+    assert _same(res.to_json(), batch[0].to_json())
 
 
 def _same(a, b) -> bool:

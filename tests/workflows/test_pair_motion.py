@@ -65,12 +65,12 @@ def test_issue_small_motion_is_not_confidently_wrong(step):
     blended sampling kernel: 1 px "cannot tell" (0.94 px of motion, below min_motion_px), 6.53 px;
     2 px class 2 at 0.88, 6.56 px [5.51, 7.60]."""
     r = analyze_pair(*_pan(step))
-    if r["class"] is None:
-        assert r["cannot_tell"] and r["delta_avg"] is None
+    if r.class_label is None:
+        assert r.cannot_tell and r.delta_avg is None
     else:  # an answer: the right class, its interval covers the truth
-        lo, hi = r["delta_avg_interval"]
-        assert lo <= TRUTH <= hi and r["class"] == "2"
-    assert r["estimated_delta_avg"] == pytest.approx(TRUTH, abs=0.6)
+        lo, hi = r.delta_avg_interval
+        assert lo <= TRUTH <= hi and r.class_label == "2"
+    assert r.estimated_delta_avg == pytest.approx(TRUTH, abs=0.6)
 
 
 def _shifted(shift: float):
@@ -90,15 +90,15 @@ def _shifted(shift: float):
 def test_no_motion_cannot_tell_for_every_method(method, shift):
     """Before: the same image twice gave class 1 with the learned methods (confidence 0.87)."""
     r = analyze_pair(*_shifted(shift), method=method)
-    assert r["registration_ok"] and r["motion_px"] == pytest.approx(shift, abs=0.1)
-    assert r["class"] is None and r["cannot_tell"]
-    assert any("moved by" in w and "cancels" in w for w in r["warnings"])
+    assert r.registration_ok and r.motion_px == pytest.approx(shift, abs=0.1)
+    assert r.class_label is None and r.cannot_tell
+    assert any("moved by" in w and "cancels" in w for w in r.warnings)
     # no number that reads as an answer; the estimator's own stays, named as such
     for key in ("delta_avg", "delta_max", "delta_avg_user_px", "delta_max_user_px", "distortion_type"):
-        assert r[key] is None
+        assert getattr(r, key) is None
     if method == "selfcal":
-        assert r["k2_user"] is None and r["opencv"] is None and r["delta_avg_interval"] is None
-    assert "estimated_delta_avg" in r
+        assert r.k2_user is None and r.opencv is None and r.delta_avg_interval is None
+    assert "estimated_delta_avg" in r.to_json()
 
 
 @pytest.fixture(scope="module")
@@ -148,14 +148,14 @@ def test_user_frame_delta_over_the_whole_portrait_frame():
     """Before: a 389 x 517 portrait pair reported Delta over the analysed 294 rows (7.9 px, not 30.5)."""
     a, b = _pan(12, k2=1.5e-6, size=(517, 389))
     r = analyze_pair(a, b)
-    assert r["class"] is not None
-    assert r["analysed_region_user_px"] == list(centre_crop_box(517, 389, 320, 424)) == [111, 0, 294, 389]
-    k2, k4 = (torch.tensor([r[k]], dtype=torch.float64) for k in ("k2_user", "k4_user"))
+    assert r.class_label is not None
+    assert r.analysed_region_user_px == list(centre_crop_box(517, 389, 320, 424)) == [111, 0, 294, 389]
+    k2, k4 = (torch.tensor([v], dtype=torch.float64) for v in (r.k2_user, r.k4_user))
     whole = float(delta_avg(k2, k4, 517, 389)[0])  # at the user's own resolution, every pixel
-    assert r["delta_avg_user_px"] == pytest.approx(whole, rel=0.01)
-    assert r["delta_max_user_px"] == pytest.approx(float(delta_max(k2, k4, 517, 389)[0]), rel=0.01)
-    assert r["delta_avg_region_user_px"] == pytest.approx(r["delta_avg"] * r["user_px_per_analysis_px"])
-    assert r["delta_avg_user_px"] > 1.5 * r["delta_avg_region_user_px"]  # the corners the crop left out
+    assert r.delta_avg_user_px == pytest.approx(whole, rel=0.01)
+    assert r.delta_max_user_px == pytest.approx(float(delta_max(k2, k4, 517, 389)[0]), rel=0.01)
+    assert r.delta_avg_region_user_px == pytest.approx(r.delta_avg * r.user_px_per_analysis_px)
+    assert r.delta_avg_user_px > 1.5 * r.delta_avg_region_user_px  # the corners the crop left out
 
 
 def test_distortion_type_by_sign():
@@ -164,15 +164,15 @@ def test_distortion_type_by_sign():
     assert distortion_type(0.0, 0.0) is None and distortion_type(float("nan"), 0.0) is None
     barrel = analyze_pair(*_pan(12))
     pincushion = analyze_pair(*_pan(12, k2=-1.5e-6))
-    assert barrel["distortion_type"] == "barrel" and barrel["k2"] > 0
-    assert pincushion["distortion_type"] == "pincushion" and pincushion["k2"] < 0
+    assert barrel.distortion_type == "barrel" and barrel.k2 > 0
+    assert pincushion.distortion_type == "pincushion" and pincushion.k2 < 0
 
 
 def test_beyond_the_classes_range_says_so():
     r = analyze_pair(*_pan(12, k2=6e-6))  # Delta_avg ~ 25 px at 320 x 424: beyond class 4's 14.4
-    assert r["class"] == "4" and r["delta_avg"] > 20
-    assert any("beyond the classes' range" in w and "no interval" in w for w in r["warnings"])
-    assert r["delta_avg_interval"] is None  # validated within the range only (real GoPro pairs: 5 of 6 missed)
+    assert r.class_label == "4" and r.delta_avg > 20
+    assert any("beyond the classes' range" in w and "no interval" in w for w in r.warnings)
+    assert r.delta_avg_interval is None  # validated within the range only (real GoPro pairs: 5 of 6 missed)
 
 
 @pytest.mark.bad_input
@@ -188,7 +188,7 @@ def test_min_motion_is_a_setting():
     cfg = LensdistConfig()
     strict = type(cfg)(**{**cfg.__dict__, "analysis": type(cfg.analysis)(**{**cfg.analysis.__dict__, "min_motion_px": 5.0})})
     r = analyze_pair(a, b, config=strict)
-    assert r["class"] is None and any("(< 5)" in w for w in r["warnings"])
+    assert r.class_label is None and any("(< 5)" in w for w in r.warnings)
 
 
 @pytest.mark.bad_input

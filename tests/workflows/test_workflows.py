@@ -42,51 +42,51 @@ class TestAnalyze:
         r, qmap = analyze_pair(a, b, method=method, return_map=True)
         # an undistorted pair: R, or (learned methods) "cannot tell" where they find distortion
         # that the self-calibration does not see
-        assert r["class"] == "R" or (method != "selfcal" and r["class"] is None and r["estimated_class"] != "R")
-        disagrees = r["class"] is None
-        assert disagrees == any("self-calibration disagrees" in w for w in r["warnings"]) == (not r["in_domain"])
+        assert r.class_label == "R" or (method != "selfcal" and r.class_label is None and r.estimated_class != "R")
+        disagrees = r.class_label is None
+        assert disagrees == any("self-calibration disagrees" in w for w in r.warnings) == (not r.in_domain)
         # the numbers of an answer; "cannot tell" keeps only the estimator's own (estimated_*)
         for key in ("estimated_delta_avg", "estimated_delta_max", "overlap", "motion_px"):
-            assert isinstance(r[key], float)
+            assert isinstance(getattr(r, key), float)
         for key in ("delta_avg", "delta_max", "delta_avg_user_px"):
-            assert isinstance(r[key], float) if r["class"] is not None else r[key] is None
+            assert isinstance(getattr(r, key), float) if r.class_label is not None else getattr(r, key) is None
         # eigen-space distances, per class, come with the eigen-space method only
         n_dist = 4 if method == "eigenspace" else 0
-        assert len(r["distances"]) == n_dist and all(d >= 0 for d in r["distances"])
-        assert r["registration_ok"] is True
+        assert len(r.distances) == n_dist and all(d >= 0 for d in r.distances)
+        assert r.registration_ok is True
         assert qmap.shape == (1, 1, 40, 53)
         # same size as the analysis size: user pixels are analysis pixels
-        assert r["user_px_per_analysis_px"] == pytest.approx(1.0)
+        assert r.user_px_per_analysis_px == pytest.approx(1.0)
 
     def test_selfcal_sees_no_distortion_in_an_undistorted_pair(self):
         a, b = _views()
         r = analyze_pair(a, b)  # default: selfcal
-        assert r["method"] == "selfcal"
-        assert r["class"] == "R" and r["delta_avg"] < 0.25 and not r["cannot_tell"]
+        assert r.method == "selfcal"
+        assert r.class_label == "R" and r.delta_avg < 0.25 and not r.cannot_tell
 
     def test_tensor_shapes_and_colour(self):
         a, b = _views()
         r1 = analyze_pair(a, b, method="eigenspace")
         r2 = analyze_pair(a[None].expand(3, -1, -1), b[None, None], method="eigenspace")
-        assert r1["class"] == r2["class"]
-        assert r1["estimated_delta_avg"] == pytest.approx(r2["estimated_delta_avg"], rel=1e-4)
+        assert r1.class_label == r2.class_label
+        assert r1.estimated_delta_avg == pytest.approx(r2.estimated_delta_avg, rel=1e-4)
 
     def test_user_pixels_scale(self):
         s = load_scene("gravel")
         a = torch.nn.functional.interpolate(s[..., 0:320, 0:424], scale_factor=2.0, mode="bilinear")[0]
         b = torch.nn.functional.interpolate(s[..., 16:336, 2:426], scale_factor=2.0, mode="bilinear")[0]
         r = analyze_pair(a, b)
-        assert r["input_size"] == [640, 848] and r["class"] is not None
-        assert r["analysed_region_user_px"] == [0, 0, 640, 848]  # the same aspect: the whole frame
-        assert r["delta_avg_region_user_px"] == pytest.approx(2.0 * r["delta_avg"])
+        assert r.input_size == [640, 848] and r.class_label is not None
+        assert r.analysed_region_user_px == [0, 0, 640, 848]  # the same aspect: the whole frame
+        assert r.delta_avg_region_user_px == pytest.approx(2.0 * r.delta_avg)
         # over the whole frame from the coefficients, sampled at the analysis resolution
-        assert r["delta_avg_user_px"] == pytest.approx(2.0 * r["delta_avg"], rel=1e-6)
+        assert r.delta_avg_user_px == pytest.approx(2.0 * r.delta_avg, rel=1e-6)
 
     def test_textureless_pair_warns(self):
         flat = torch.full((320, 424), 0.5)
         r = analyze_pair(flat, flat.clone(), method="eigenspace")
-        assert r["registration_ok"] is False and r["in_domain"] is False
-        assert any("registration failed" in w for w in r["warnings"])
+        assert r.registration_ok is False and r.in_domain is False
+        assert any("registration failed" in w for w in r.warnings)
 
     def test_bad_input(self):
         a, b = _views()
