@@ -21,6 +21,8 @@ __all__ = ["add_analyze_command", "print_analysis"]
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
+    for name in ("img1", "img2"):  # before the imports below: a missing input's error at once
+        argtypes.existing(getattr(args, name), "image file")
     if args.save_map:
         from lensdist_torch.workflows.figures import figure_formats, have_matplotlib
 

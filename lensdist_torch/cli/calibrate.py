@@ -201,6 +201,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if _archive_mode(args):
         return _cmd_archive(args)
     args.path = args.paths[0]
+    argtypes.existing(args.path, "path")  # before the imports below: a missing input's error at once
     from lensdist_torch.core.outputs import check_output_dir
 
     if args.out:
@@ -228,6 +229,8 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_undistort(args: argparse.Namespace) -> int:
     """``lensdist undistort PATH (--k2 K2 --k4 K4 | --from CALIBRATION.json) --out DIR [--alpha A] [--overwrite]``."""
+    argtypes.existing(args.path, "path")  # before the imports below: a missing input's error at once
+    argtypes.existing(args.from_json, "calibration file")
     from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.undistort import undistort_path
 

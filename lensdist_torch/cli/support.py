@@ -28,6 +28,7 @@ import re
 import sys
 
 __all__ = [
+    "existing",
     "CONFIG_HELP",
     "DEVICE_HELP",
     "Formatter",
@@ -131,6 +132,23 @@ class Parser(argparse.ArgumentParser):
 
 
 # ----------------------------------------------------------------------------- argument types
+def existing(path, what: str) -> None:
+    """A missing input as the library words it (``WHAT not found: PATH``), before a command imports torch.
+
+    The library checks the same and raises the same error; checked here, a missing file costs a
+    user no import time before its one-line error. None (an option not given) passes.
+
+    Example:
+        >>> existing(None, "image file")
+        >>> existing("/no/such/frame.png", "image file")
+        Traceback (most recent call last):
+        ...
+        FileNotFoundError: image file not found: /no/such/frame.png
+    """
+    if path is not None and not os.path.exists(path):
+        raise FileNotFoundError(f"{what} not found: {path}")
+
+
 def device(text: str) -> str:
     """``--device``: cpu, cuda or cuda:N with N below the number of CUDA devices here."""
     if text == "cpu":
