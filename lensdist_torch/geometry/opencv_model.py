@@ -218,7 +218,7 @@ def opencv_camera_from_map(
     x, xd = (p - c) / f, (pd - c) / f
     a = _design(x, xd, model) * f
     scale = a.norm(dim=0).clamp_min(1e-300)
-    sol = torch.linalg.lstsq(a / scale, ((xd - x).reshape(-1, 1)) * f).solution[:, 0] / scale
+    sol = torch.linalg.lstsq(a / scale, ((xd - x).reshape(-1, 1)) * f, driver="gelsd").solution[:, 0] / scale
     dist = torch.zeros(8 if model == "rational" else 5, dtype=torch.float64)
     dist[[0, 1, 4]] = sol[:3]
     if model == "rational":
