@@ -54,9 +54,9 @@ def _number(x: float) -> str:
     return repr(float(f"{x:.6g}"))
 
 
-def _range_error(name: str, lo: float, hi: float, data_range: float) -> str | None:
-    """The one-line error for a float image with values outside [0, data_range], or None."""
-    eps = RANGE_TOLERANCE * data_range
+def _range_error(name: str, lo: float, hi: float, data_range: float, tolerance: float = RANGE_TOLERANCE) -> str | None:
+    """The one-line error for a float image with values outside [0, data_range] by more than ``tolerance`` of it, or None."""
+    eps = tolerance * data_range
     if data_range == 1.0:
         if hi > 1.0 + eps:
             if hi <= 255.0 * (1 + RANGE_TOLERANCE) and hi > 2.0:
@@ -130,6 +130,7 @@ def check_values(
     data_range: float,
     measurable: torch.Tensor | None = None,
     measurable_name: str = "valid",
+    tolerance: float = RANGE_TOLERANCE,
 ) -> None:
     """NaN/Inf and range of float images, NaN and range of the mask: one host sync in all.
 
@@ -142,6 +143,7 @@ def check_values(
             must have something (checked in the same host sync).
         measurable_name: the argument to blame when a sample has nothing to measure (``valid``,
             or ``img1`` when the images are too small to keep a pixel after padding).
+        tolerance: how far outside [0, data_range] a float image may reach, in units of data_range.
 
     Raises:
         ValueError: one line naming the tensor (and ``data_range`` where it would help).
@@ -174,7 +176,7 @@ def check_values(
                     "(bool, or float binarised at 0.5)"
                 )
             continue
-        message = _range_error(name, lo, hi, data_range)
+        message = _range_error(name, lo, hi, data_range, tolerance)
         if message is not None:
             raise ValueError(message)
     if measurable is not None and stats[-2] != MEASURABLE:
@@ -245,7 +247,7 @@ def pad_to_blocks(g1, g2, valid, block: int):
     return g1, g2, F.pad(valid, (0, pw, 0, ph), value=0.0)
 
 
-def prepare_pair(img1, img2, valid, *, config, data_range, validate=True, pad=None):
+def prepare_pair(img1, img2, valid, *, config, data_range, validate=True, pad=None, overshoot=None):
     """Check and convert a pair: grey images in [0, 1] of one dtype, the binarised mask, config.
 
     Args:
@@ -257,14 +259,18 @@ def prepare_pair(img1, img2, valid, *, config, data_range, validate=True, pad=No
         validate: run the value checks (skipped while compiling).
         pad: None: no block structure (per-pixel maps, any size); True: pad to whole blocks;
             False: H and W must be multiples of the block size.
+        overshoot: None (values within ``RANGE_TOLERANCE`` of [0, data_range]), or how far
+            outside it, in units of data_range, float images may reach (an interpolation's
+            overshoot), taken as they are.
 
     Returns:
         g1, g2 (B, 1, H', W'), valid ({0, 1} (B, 1, H', W') or None), the config.
     """
-    prepared = prepare_unchecked(img1, img2, valid, config=config, data_range=data_range, pad=pad)
-    if should_validate(validate):
-        check_values([("img1", img1), ("img2", img2)], valid, data_range=data_range)
-    return prepared
+    g1, g2, mask, cfg = prepare_unchecked(img1, img2, valid, config=config, data_range=data_range, pad=pad)
+    if should_validate(validate):  # the mask as given, not as binarised
+        check_values([("img1", img1), ("img2", img2)], valid, data_range=data_range,
+                     tolerance=RANGE_TOLERANCE if overshoot is None else overshoot)
+    return g1, g2, mask, cfg
 
 
 def prepare_unchecked(img1, img2, valid, *, config, data_range, pad=None):

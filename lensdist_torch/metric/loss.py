@@ -44,10 +44,15 @@ from lensdist_torch.metric._inputs import get_config, measured, prepare_pair
 from lensdist_torch.metric.criteria import criteria_from_grey, erode_valid, error_images_unchecked
 from lensdist_torch.metric.pooling import block_pool
 
-__all__ = ["REDUCTIONS", "registration_quality_loss", "RegistrationQualityLoss"]
+__all__ = ["REDUCTIONS", "OVERSHOOT", "registration_quality_loss", "RegistrationQualityLoss"]
 
 #: The reductions of the loss; the first is the default.
 REDUCTIONS = ("masked_mean", "mean", "sum", "per_sample", "none")
+#: How far outside [0, data_range], in units of data_range, the loss takes an image as it is:
+#: a bicubic warp (PyTorch's, a = -0.75) of an image in [0, 1] stays within [-0.4453, 1.4453] (the
+#: sums of its 4 x 4 kernel's negative and positive weights at half-pixel shifts), and no more: a
+#: mean-subtracted [0, 1] image (down to -0.5) is still refused.
+OVERSHOOT = 0.45
 
 
 def _check_reduction(reduction: str) -> None:
@@ -88,7 +93,9 @@ def registration_quality_loss(
 
     Args:
         img1: (B, C, H, W) float image in [0, data_range] (e.g. the warped one); gradients
-            flow to it.
+            flow to it. What an interpolating warp puts outside the range (a bicubic warp's
+            overshoot, up to ``OVERSHOOT`` times data_range beyond it) is measured as it is,
+            gradients included; farther out is an error (0-255 images without ``data_range=255``).
         img2: (B, C, H, W) the other image, on img1's device; gradients flow to it too.
         valid: (B, 1, H, W) validity (e.g. the warp's in-bounds mask) on img1's device, bool or
             in [0, 1], binarised at 0.5 and detached; or None (everything valid).
@@ -133,7 +140,8 @@ def registration_quality_loss(
         torch.Size([2, 1, 4, 4])
     """
     _check_reduction(reduction)
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad)
+    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad,
+                                      overshoot=OVERSHOOT)
     v = None if valid is None else erode_valid(valid)
     crit = criteria_from_grey(g1, g2, cfg, smooth=True)
     reg_map = block_pool(error_images_unchecked(crit, v, cfg, smooth=True).e_reg, cfg, smooth=True)

@@ -11,15 +11,21 @@ from one_line import one_line_error
 
 from lensdist_torch import quality_map, registration_quality, registration_quality_loss
 from lensdist_torch.metric import error_images, local_criteria, registration_error_counts
+from lensdist_torch.metric.loss import OVERSHOOT
 from lensdist_torch.metric.stateful import RegistrationQualityMetric
 
+#: The loss's entry points: they take an interpolating warp's overshoot (``metric.loss.OVERSHOOT``).
+LOSSES = ("registration_quality_loss", "RegistrationQualityLoss")
 
-def _entry_points(img1, img2, valid=None, **kw):
-    """Every entry point that takes a pair and a mask, but the per-pixel variant, as zero-argument calls."""
+
+def _entry_points(img1, img2, valid=None, *, losses=True, **kw):
+    """Every entry point that takes a pair and a mask, but the per-pixel variant, as zero-argument calls.
+
+    ``losses`` False: the loss's entry points left out (values within their overshoot)."""
     return [
         lambda call=call: call(img1, img2, valid, **kw)
         for name, call in ENTRY_POINTS.items()
-        if name not in ("local_criteria", "registration_quality pixels")
+        if name not in ("local_criteria", "registration_quality pixels") and (losses or name not in LOSSES)
     ]
 
 
@@ -130,7 +136,8 @@ class TestDataRange:
         img[..., 0, 0] = 1.0
         bad = scale * img + shift
         good = torch.zeros(1, 1, 16, 16)
-        for call in _entry_points(bad, good, data_range=data_range):
+        beyond = float(bad.max()) > (1 + OVERSHOOT) * data_range or float(bad.min()) < -OVERSHOOT * data_range
+        for call in _entry_points(bad, good, data_range=data_range, losses=beyond):
             one_line_error(ValueError, call, *words)
         with pytest.raises(ValueError, match="img1"):
             local_criteria(bad, good, data_range=data_range)
