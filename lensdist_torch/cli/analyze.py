@@ -4,12 +4,14 @@ Like ``commands.py`` it imports torch only inside the command. It prints the pai
 :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`: its ``to_json()`` with ``--json``,
 else its ``summary()``, the text answer (one reason per "cannot tell": a failed registration is
 not also "too little motion or texture"; barrel or pincushion on the class line; the estimate
-said to lie beyond the classes' range where it does).
+said to lie beyond the classes' range where it does). With ``--pairs FILE --out DIR`` it runs
+every pair of a list (:mod:`~lensdist_torch.workflows.pair_archive`) and prints the run's counts.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from lensdist_torch.cli import support as argtypes
 from lensdist_torch.cli.support import fmt as _fmt
@@ -21,6 +23,14 @@ __all__ = ["add_analyze_command", "print_analysis"]
 
 
 def cmd_analyze(args: argparse.Namespace) -> int:
+    if args.pairs is not None:
+        return _cmd_pairs(args)
+    for option, given in (("--out", args.out), ("--shard", args.shard)):
+        if given is not None:
+            raise ValueError(f"{option} is for --pairs FILE (many pairs); one pair's answer is printed")
+    missing = [name for name in ("img1", "img2") if getattr(args, name) is None]
+    if missing:
+        raise ValueError(f"the following arguments are required: {', '.join(missing)} (or --pairs FILE)")
     for name in ("img1", "img2"):  # before the imports below: a missing input's error at once
         argtypes.existing(getattr(args, name), "image file")
     if args.save_map:
@@ -51,6 +61,43 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     return 3 if args.strict and res.cannot_tell else 0
 
 
+def _cmd_pairs(args: argparse.Namespace) -> int:
+    """``lensdist analyze --pairs FILE --out DIR [--shard I/N]``: every pair's answer and one table; exit 0 once it ran."""
+    if args.img1 is not None:
+        raise ValueError("--pairs FILE lists the pairs: give no IMG1 IMG2 with it")
+    for option, given in (("--save-map", args.save_map), ("--strict", args.strict)):
+        if given:
+            raise ValueError(f"{option} is for one pair, not --pairs (each pair's answer is in --out/answers/)")
+    if not args.out:
+        raise ValueError("--out DIR is needed with --pairs (answers/, rows/, answers.csv)")
+    argtypes.existing(args.pairs, "pairs file")  # before the imports below: a missing file's error at once
+    from lensdist_torch.core.outputs import check_output_dir
+
+    check_output_dir(args.out, "--out", {"--pairs": args.pairs, "--config": args.config, "--checkpoint": args.checkpoint,
+                                         "--checkpoint-max": args.checkpoint_max})
+    from lensdist_torch.config import load_config
+    from lensdist_torch.workflows.analyze import resolve_device
+    from lensdist_torch.workflows.pair_archive import pair_inputs, run_pair_archive
+
+    pairs = pair_inputs(args.pairs)
+    cfg = None if args.config is None else load_config(args.config)
+    run = run_pair_archive(pairs, args.out, method=args.method, checkpoint=args.checkpoint,
+                           checkpoint_max=args.checkpoint_max, settings=cfg, device=resolve_device(args.device),
+                           shard=args.shard or (0, 1), quiet=args.quiet)
+    if args.json:
+        _print_json({"pairs": run.pairs, "selected": run.selected, "computed": run.computed, "reused": run.reused,
+                     "failed": run.failed, "rows": [r.columns() for r in run.rows], "files": list(run.files)})
+        return 0
+    share = "" if run.selected == run.pairs else f" ({run.selected} in this share)"
+    print(f"{run.pairs} pairs{share}: {run.computed} analysed, {run.reused} reused from an earlier run; "
+          f"{len(run.rows)} rows in the table, {run.failed} without an answer")
+    for row in run.rows:
+        if not row.ok:
+            print(f"  failed: {row.img1} {row.img2}: {row.reason}")
+    print("written: " + ", ".join(run.files) + f", {Path(run.out) / 'answers'}/")
+    return 0
+
+
 def print_analysis(res) -> None:
     """Print a pair's text answer: its :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`'s ``summary()``."""
     print(res.summary())
@@ -77,9 +124,15 @@ def add_analyze_command(command) -> None:
     """Register ``analyze`` through ``command`` (``cli.build_parser``'s helper: name, help, example, function)."""
     p = command("analyze", "analyse your own pair of overlapping photographs",
                 "lensdist analyze left.jpg right.jpg --method regression --save-map map.png", cmd_analyze,
-                "print the result as one JSON object", "no notes on stderr")
-    p.add_argument("img1", help="first image")
-    p.add_argument("img2", help="second image, overlapping the first")
+                "print the result as one JSON object", "no notes on stderr (with --pairs, no progress bar)")
+    p.add_argument("img1", nargs="?", help="first image")
+    p.add_argument("img2", nargs="?", help="second image, overlapping the first")
+    p.add_argument("--pairs", default=None, help="many pairs instead of IMG1 IMG2: CSV with img1, img2 and an optional "
+                   "camera column, or two paths per line (relative to the file's folder); needs --out")
+    p.add_argument("--out", default=None, help="with --pairs: folder for answers/, rows/ and answers.csv "
+                   "(docs/guide/archive.md)")
+    p.add_argument("--shard", type=argtypes.shard, default=None,
+                   help="with --pairs: I/N, this job's share of the pairs, k %% N == I (array jobs; default: all)")
     p.add_argument("--method", choices=["selfcal", "regression", "eigenspace"], default="selfcal",
                    help="selfcal (most accurate), regression, or the paper's eigenspace")
     p.add_argument("--checkpoint", default=None,

@@ -45,7 +45,8 @@ from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pix
 from lensdist_torch.workflows.pair_analysis import JSON_KEYS, PairAnalysis
 from lensdist_torch.workflows.prepare import PreparedPairs, prepare_batch, resolve_device
 
-__all__ = ["analyze_batch", "analyze_pair", "prepare_batch", "PreparedPairs", "default_checkpoint", "resolve_device", "METHODS"]
+__all__ = ["analyze_batch", "analyze_pair", "analysis_config", "prepare_batch", "PreparedPairs", "default_checkpoint",
+           "resolve_device", "METHODS"]
 
 METHODS = ("selfcal", "regression", "eigenspace")
 _CKPT_DIR = Path(str(resources.files("lensdist_torch") / "checkpoints"))  # package data: in the wheel too
@@ -211,6 +212,25 @@ def _models_and_config(method, checkpoint, checkpoint_max, config):
     where = checkpoint if checkpoint not in (None, False) else checkpoint_max
     check_compatible(first.config, config, where if isinstance(where, (str, Path)) else "(the given model)")
     return models, config
+
+
+def analysis_config(*, method: str = "selfcal", checkpoint=None, checkpoint_max=None,
+                    config: LensdistConfig | None = None) -> LensdistConfig:
+    """The settings an analysis runs under, its options checked before any image is read.
+
+    The checks of :func:`analyze_batch`: an option the method does not use is refused, the
+    checkpoints load (a missing or corrupt one is a one-line error), and a checkpoint's image
+    size and quality thresholds are adopted without a ``config``.
+
+    Example:
+        >>> analysis_config().image.size
+        (320, 424)
+        >>> analysis_config(checkpoint="m.pt")
+        Traceback (most recent call last):
+        ...
+        ValueError: checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'
+    """
+    return _models_and_config(method, checkpoint, checkpoint_max, config)[1]
 
 
 def analyze_batch(

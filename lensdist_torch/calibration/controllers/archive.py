@@ -12,7 +12,8 @@ NAME is the input's file or folder name; KEY the first 8 hex digits of the SHA-2
 as given, the input's digest (:func:`input_digest`) and the settings' (:func:`settings_digest`).
 Every file is written atomically, an input's files as soon as it finishes, so an interrupted
 run (Ctrl-C, a killed job) loses at most the inputs in flight, and a rerun skips every input
-whose row exists for the same key: same path, same bytes, same settings and library version.
+whose row exists for the same key: same path, same bytes, same settings and library version
+(the books, shared with ``lensdist analyze --pairs``: :mod:`~lensdist_torch.calibration.controllers.archive_book`).
 An input that fails (unreadable, fewer than 2 frames, ...) is a row with its reason; that
 reason is final for its key too, except where the engine failed (a Ray worker lost) or the
 input could not be read to a digest (a missing path): those rows are tried again by a rerun.
@@ -31,13 +32,13 @@ import dataclasses
 import glob
 import hashlib
 import json
-import re
 import struct
 import time
 from pathlib import Path
 
 from lensdist_torch import __version__
 from lensdist_torch.calibration.controllers.answer_file import answer_text
+from lensdist_torch.calibration.controllers.archive_book import ArchiveBook, check_shard, share_of
 from lensdist_torch.calibration.controllers.archive_table import (
     ArchiveRow,
     CameraSummary,
@@ -50,8 +51,7 @@ from lensdist_torch.calibration.controllers.calibrate import METHODS, calibrate_
 from lensdist_torch.config import LensdistConfig, config_to_dict
 from lensdist_torch.config.checks import one_line, or_defaults
 from lensdist_torch.core.frames import list_frames
-from lensdist_torch.core.storage import atomic_write_text
-from lensdist_torch.data.locks import DataSetLocked, lock, share_lock
+from lensdist_torch.data.locks import lock
 
 __all__ = ["ENGINES", "RAY_EXTRA", "ArchiveInput", "ArchiveRun", "archive_inputs", "input_digest", "settings_digest",
            "require_ray", "run_archive"]
@@ -215,25 +215,6 @@ def require_ray():
     return ray
 
 
-def _safe(path: str) -> str:
-    """The input's file or folder name, with characters other than letters, digits, ``._-`` as ``_``."""
-    return re.sub(r"[^A-Za-z0-9._-]+", "_", Path(path).name)[:80] or "input"
-
-
-def _name(path: str, key: str) -> str:
-    """NAME-KEY8, the stem of an input's answer and row files."""
-    return f"{_safe(path)}-{key[:8]}"
-
-
-def _read_row(file: Path) -> tuple[dict, ArchiveRow] | None:
-    """A row file's (bookkeeping, row), None where it is missing or unreadable (the input runs again)."""
-    try:
-        data = json.loads(file.read_text())
-        return data, ArchiveRow.from_columns(data["row"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-
-
 def _calibrate_one(path: str, kwargs: dict, threads: int | None = None) -> tuple[dict | None, str | None, float, bool]:
     """(answer or None, reason or None, seconds, final) of one input; what a Ray task runs."""
     if threads:
@@ -248,72 +229,37 @@ def _calibrate_one(path: str, kwargs: dict, threads: int | None = None) -> tuple
     return answer, None, time.perf_counter() - t0, True
 
 
-class _Archive:
-    """One run's bookkeeping: which inputs need a calibration, and each finished input's files."""
+class _Calibrations(ArchiveBook):
+    """The books of a calibrate archive: an item is an :class:`ArchiveInput`, its row an :class:`ArchiveRow`."""
 
-    def __init__(self, out: Path, sdigest: str, bar):
-        self.out, self.settings, self.bar = out, sdigest, bar
-        self.rows: dict[str, ArchiveRow] = {}
-        self.computed = self.reused = 0
+    row_type = ArchiveRow
 
-    def pending(self, selected: list[ArchiveInput]):
-        """Yield (input, key, digest) of the inputs to calibrate; the others reused or recorded as failed."""
-        for inp in selected:
-            self.bar.set_postfix_str(Path(inp.path).name, refresh=False)
-            try:
-                digest = input_digest(inp.path)
-            except (OSError, ValueError) as exc:
-                self.record(inp, hashlib.sha256(f"{inp.path}\0\0{self.settings}".encode()).hexdigest(), None,
-                            (None, one_line(exc, 500), None, False))
-                continue
-            key = hashlib.sha256(f"{inp.path}\0{digest}\0{self.settings}".encode()).hexdigest()
-            found = _read_row(self.out / "rows" / f"{_name(inp.path, key)}.json")
-            if found is not None and found[0].get("key") == key and found[0].get("final") and (
-                    found[1].answer is None or (self.out / found[1].answer).is_file()):
-                self.rows[inp.path] = dataclasses.replace(found[1], camera=inp.camera)
-                self.reused += 1
-                self.bar.update(1)
-                continue
-            yield inp, key, digest
+    def digest(self, item: ArchiveInput) -> str:
+        return input_digest(item.path)
 
-    def record(self, inp: ArchiveInput, key: str, digest: str | None, result: tuple) -> None:
-        """Write one input's answer file (if any) and then its row file; the row in this run's table."""
+    def failed_row(self, item: ArchiveInput, reason: str, *, seconds: float | None = None,
+                   digest: str | None = None) -> ArchiveRow:
+        return failed_row(path=item.path, camera=item.camera, reason=reason, version=__version__, seconds=seconds,
+                          digest=digest, settings=self.settings)
+
+    def finish(self, inp: ArchiveInput, key: str, digest: str | None, result: tuple) -> None:
+        """Record one input's calibration: (answer or None, reason or None, seconds, final) of :func:`_calibrate_one`."""
         answer, reason, seconds, final = result
-        stem = _name(inp.path, key)
-        if answer is not None:
-            atomic_write_text(self.out / "answers" / f"{stem}.json", answer_text(answer) + "\n")
-            row = answer_row(answer, camera=inp.camera, seconds=seconds, digest=digest, settings=self.settings,
-                             answer_file=f"answers/{stem}.json", version=__version__)
-        else:
-            row = failed_row(path=inp.path, camera=inp.camera, reason=reason, version=__version__, seconds=seconds,
-                             digest=digest, settings=self.settings)
-        atomic_write_text(self.out / "rows" / f"{stem}.json",
-                          json.dumps({"key": key, "final": final, "row": row.columns()}, indent=1, allow_nan=False) + "\n")
-        self.rows[inp.path] = row
-        self.computed += digest is not None
-        self.bar.update(1)
-
-    def table(self, inputs: list[ArchiveInput]) -> list[ArchiveRow]:
-        """Every input's row, in order: this run's, else the newest row file of its path under these settings."""
-        out = []
-        for inp in inputs:
-            row = self.rows.get(inp.path)
-            if row is None:
-                files = sorted(self.out.glob(f"rows/{glob.escape(_safe(inp.path))}-*.json"),
-                               key=lambda f: f.stat().st_mtime, reverse=True)
-                rows = (_read_row(f) for f in files)
-                row = next((r for _, r in filter(None, rows) if r.path == inp.path and r.settings == self.settings), None)
-            if row is not None:
-                out.append(dataclasses.replace(row, camera=inp.camera))
-        return out
+        if answer is None:
+            self.record(inp, key, digest, self.failed_row(inp, reason, seconds=seconds, digest=digest), final=final)
+            return
+        answer_file = f"answers/{self.stem(inp, key)}.json"
+        row = answer_row(answer, camera=inp.camera, seconds=seconds, digest=digest, settings=self.settings,
+                         answer_file=answer_file, version=__version__)
+        self.record(inp, key, digest, row, final=final, answer=answer_text(answer) + "\n")
 
 
-def _local(archive: _Archive, selected: list[ArchiveInput], kwargs: dict) -> None:
+def _local(archive: _Calibrations, selected: list[ArchiveInput], kwargs: dict) -> None:
     for inp, key, digest in archive.pending(selected):
-        archive.record(inp, key, digest, _calibrate_one(inp.path, kwargs))
+        archive.finish(inp, key, digest, _calibrate_one(inp.path, kwargs))
 
 
-def _ray(archive: _Archive, selected: list[ArchiveInput], kwargs: dict, address: str | None, cpus: int) -> None:
+def _ray(archive: _Calibrations, selected: list[ArchiveInput], kwargs: dict, address: str | None, cpus: int) -> None:
     """One Ray task per input (``cpus`` CPUs, a GPU where the device is one), gathered with ``ray.wait`` as they finish."""
     ray = require_ray()
     started = not ray.is_initialized()
@@ -330,7 +276,7 @@ def _ray(archive: _Archive, selected: list[ArchiveInput], kwargs: dict, address:
                 result = ray.get(ref)
             except ray.exceptions.RayError as exc:  # the worker, not the input: tried again by a rerun
                 result = (None, f"the Ray task failed: {one_line(exc, 300)}", None, False)
-            archive.record(inp, key, digest, result)
+            archive.finish(inp, key, digest, result)
 
     try:
         for inp, key, digest in archive.pending(selected):
@@ -399,9 +345,7 @@ def run_archive(
         require_ray()  # before any work
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    if not (isinstance(shard, (tuple, list)) and len(shard) == 2 and all(type(v) is int for v in shard)
-            and 0 <= shard[0] < shard[1]):
-        raise ValueError(f"shard must be (I, N), two ints with 0 <= I < N, got {shard!r}")
+    shard = check_shard(shard)
     items = [i if isinstance(i, ArchiveInput) else ArchiveInput(path=str(i)) for i in inputs]
     if not items:
         raise ValueError("an archive needs at least one input")
@@ -412,22 +356,18 @@ def run_archive(
     selected = [inp for k, inp in enumerate(items) if k % shard[1] == shard[0]]
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    try:
-        with share_lock(out, tuple(shard)), tqdm(total=len(selected), disable=quiet, desc="inputs", unit="input") as bar:
-            archive = _Archive(out, sdigest, bar)
-            try:
-                if engine == "ray":
-                    _ray(archive, selected, kwargs, ray_address, cpus_per_input or st.multiview.num_threads)
-                else:
-                    _local(archive, selected, kwargs)
-            finally:  # also on Ctrl-C: the table of every finished input
-                with lock(out / ".table.lock", wait_s=120.0):
-                    rows = archive.table(items)
-                    cameras = camera_summaries(rows)
-                    files = write_tables(out, rows, cameras)
-    except DataSetLocked:
-        raise ValueError(f"another run is writing share {shard[0]}/{shard[1]} of {out} (its lock file is "
-                         f"{out}/.lock-{shard[0]}-of-{shard[1]}): wait for it, or delete the lock if no such run is going") from None
+    with share_of(out, shard), tqdm(total=len(selected), disable=quiet, desc="inputs", unit="input") as bar:
+        archive = _Calibrations(out, sdigest, bar)
+        try:
+            if engine == "ray":
+                _ray(archive, selected, kwargs, ray_address, cpus_per_input or st.multiview.num_threads)
+            else:
+                _local(archive, selected, kwargs)
+        finally:  # also on Ctrl-C: the table of every finished input
+            with lock(out / ".table.lock", wait_s=120.0):
+                rows = archive.table(items)
+                cameras = camera_summaries(rows)
+                files = write_tables(out, rows, cameras)
     return ArchiveRun(out=str(out), inputs=len(items), selected=len(selected), computed=archive.computed,
                       reused=archive.reused, failed=sum(not r.ok for r in rows), rows=tuple(rows),
                       cameras=tuple(cameras), files=tuple(str(f) for f in files))

@@ -26,7 +26,7 @@ from pathlib import Path
 from lensdist_torch.core.storage import atomic_write_bytes, atomic_write_text
 
 __all__ = ["ArchiveRow", "ROW_COLUMNS", "CameraSummary", "CAMERA_COLUMNS", "answer_row", "failed_row",
-           "pool_delta_avg", "camera_summaries", "write_tables"]
+           "pool_delta_avg", "camera_summaries", "row_columns", "write_rows", "write_tables"]
 
 #: The normal quantile of a 95 % interval: an interval's half-width / Z is its std.
 Z95 = 1.959963984540054
@@ -92,8 +92,18 @@ class ArchiveRow:
         return cls(**{f.name: values["class" if f.name == "class_label" else f.name] for f in dataclasses.fields(cls)})
 
 
+def row_columns(row_type) -> tuple[str, ...]:
+    """A table's columns, in order: the fields of the dataclass ``row_type``, ``class_label`` as ``class``.
+
+    Example:
+        >>> row_columns(ArchiveRow) == ROW_COLUMNS
+        True
+    """
+    return tuple("class" if f.name == "class_label" else f.name for f in dataclasses.fields(row_type))
+
+
 #: The columns of ``answers.csv``, in order (:class:`ArchiveRow`'s fields, ``class_label`` as ``class``).
-ROW_COLUMNS = tuple("class" if f.name == "class_label" else f.name for f in dataclasses.fields(ArchiveRow))
+ROW_COLUMNS = row_columns(ArchiveRow)
 
 
 def _interval(answer: dict, key: str) -> tuple:
@@ -254,6 +264,39 @@ def _csv(columns: tuple[str, ...], records: list[dict]) -> str:
     return buf.getvalue()
 
 
+def write_rows(out: str | Path, rows, row_type=ArchiveRow) -> list[Path]:
+    """Write a table of ``rows`` (``row_type``'s, with ``columns()``) as ``answers.csv`` in ``out``, atomically.
+
+    Also as ``answers.parquet`` where pyarrow imports. The columns are ``row_type``'s fields in
+    order (``class_label`` as ``class``), the table's header even without a row. Returns the
+    files written.
+
+    Example:
+        >>> import tempfile
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     files = write_rows(tmp, [failed_row(path="a", camera=None, reason="path not found: a", version="0")])
+        ...     lines = (Path(tmp) / "answers.csv").read_text().splitlines()
+        >>> [f.name for f in files][0], lines[1][:9]
+        ('answers.csv', 'a,,False,')
+    """
+    out = Path(out)
+    columns = row_columns(row_type)
+    records = [r.columns() for r in rows]
+    atomic_write_text(out / "answers.csv", _csv(columns, records))
+    written = [out / "answers.csv"]
+    try:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+    except ImportError:
+        pa = None
+    if pa is not None:
+        buf = io.BytesIO()
+        pq.write_table(pa.Table.from_pylist(records, schema=_schema(pa, row_type)), buf)
+        atomic_write_bytes(out / "answers.parquet", buf.getvalue())
+        written.append(out / "answers.parquet")
+    return written
+
+
 def write_tables(out: str | Path, rows, cameras) -> list[Path]:
     """Write ``answers.csv``, ``answers.parquet`` (where pyarrow imports) and ``cameras.csv`` in ``out``, atomically.
 
@@ -268,25 +311,12 @@ def write_tables(out: str | Path, rows, cameras) -> list[Path]:
         >>> header.startswith("path,camera,ok,class,delta_avg_user_px"), [f.name for f in files][-1]
         (True, 'cameras.csv')
     """
-    out = Path(out)
-    records = [r.columns() for r in rows]
-    atomic_write_text(out / "answers.csv", _csv(ROW_COLUMNS, records))
-    written = [out / "answers.csv"]
-    try:
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-    except ImportError:
-        pa = None
-    if pa is not None:
-        buf = io.BytesIO()
-        pq.write_table(pa.Table.from_pylist(records, schema=_schema(pa)), buf)
-        atomic_write_bytes(out / "answers.parquet", buf.getvalue())
-        written.append(out / "answers.parquet")
-    atomic_write_text(out / "cameras.csv", _csv(CAMERA_COLUMNS, [c.columns() for c in cameras]))
-    return written + [out / "cameras.csv"]
+    written = write_rows(out, rows)
+    atomic_write_text(Path(out) / "cameras.csv", _csv(CAMERA_COLUMNS, [c.columns() for c in cameras]))
+    return written + [Path(out) / "cameras.csv"]
 
 
-def _schema(pa):
-    """The Parquet columns' types, from :class:`ArchiveRow`'s annotations (a column of nulls keeps its type)."""
+def _schema(pa, row_type):
+    """The Parquet columns' types, from ``row_type``'s annotations (a column of nulls keeps its type)."""
     kinds = {"str": pa.string(), "bool": pa.bool_(), "float": pa.float64(), "int": pa.int64()}
-    return pa.schema([(c, kinds[str(f.type).split(" ")[0]]) for c, f in zip(ROW_COLUMNS, dataclasses.fields(ArchiveRow))])
+    return pa.schema([(c, kinds[str(f.type).split(" ")[0]]) for c, f in zip(row_columns(row_type), dataclasses.fields(row_type))])
