@@ -47,7 +47,7 @@ def main() -> None:
     for _ in range(a.repeats):
         t_whole = t_again = 0.0
         for img1, img2 in batches:
-            p = prepare_batch(img1, img2, cfg)  # the registration: in neither time
+            p = prepare_batch(img1, img2, config=cfg)  # the registration: in neither time
             t0 = time.perf_counter()
             first = analyze_batch(None, None, config=cfg, prepared=p)
             t1 = time.perf_counter()

@@ -72,7 +72,7 @@ def run(seed: int, n: int, cfg: LensdistConfig, methods: tuple[str, ...], design
         steps, jitter, rot = ((d["step"],) * 2, 1.0, 0.5) if design == "pans" else ((d["step"], 1.1 * d["step"]), 0.5, 0.1)
         frames, _ = synthetic_sequence(2, d["k2"], 0.0, size=SIZE, scene=d["scene"], seed=d["seed"], step_px=steps,
                                        jitter_px=jitter, rotation_deg=rot, realistic=d["realistic"], config=cfg)
-        prep = prepare_batch(frames[:1], frames[1:], cfg)
+        prep = prepare_batch(frames[:1], frames[1:], config=cfg)
         for method in methods:
             r = analyze_batch(None, None, method=method, config=cfg, prepared=prep)[0]
             rows.append({**d, "method": method, "motion": r.motion_px, "class": r.class_label,

@@ -152,7 +152,7 @@ def main() -> None:
         e = torch.tensor(values, dtype=torch.float64)
         ok = torch.isfinite(e)
         err = (e - true)[ok]
-        right = estimated_class(e[ok], e[ok], "delta_avg", cfg) == truth[ok]
+        right = estimated_class(e[ok], e[ok], metric="delta_avg", config=cfg) == truth[ok]
         out[name] = {"right": float(right.double().mean()), "over_1px": int((err.abs() > 1).sum()),
                      "median_abs_px": float(err.abs().median()), "rmse_px": float(err.pow(2).mean().sqrt()),
                      "diverged": int((~ok).sum())}
@@ -160,7 +160,7 @@ def main() -> None:
         out["per_pair"] = {"index": list(range(a.n)), "relief_px": [round(v, 4) for v in est["relief"]],
                            "true_px": [round(float(v), 4) for v in true]}
         return _write(out, a.out)
-    wrong = estimated_class(torch.tensor(est["planar"]), torch.tensor(est["planar"]), "delta_avg", cfg) != truth
+    wrong = estimated_class(torch.tensor(est["planar"]), torch.tensor(est["planar"]), metric="delta_avg", config=cfg) != truth
     out["cannot_tell_share"] = float(wrong.double().mean())  # planar model wrong on exact points (NaN counts)
     out["per_pair"] = {"index": list(range(a.n)), "relief": [round(float(v), 5) for v in params.realism.relief[:, 0]],
                        "planar_px": [round(v, 4) for v in est["planar"]], "true_px": [round(float(v), 4) for v in true]}

@@ -77,7 +77,7 @@ def pairs_of(data: dict, keep: torch.Tensor) -> dict:
 
 def analysed(data: dict, cfg: LensdistConfig, batch: int) -> list[dict]:
     """Every pair of ``data`` as ``analyze`` (the self-calibration) answers it."""
-    return analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, cfg, batch)["selfcal"]
+    return analyze_test_set(data, {"selfcal": {"method": "selfcal"}}, None, config=cfg, batch_size=batch)["selfcal"]
 
 
 def undistorted(results: list) -> dict:

@@ -82,7 +82,7 @@ def analyse(scenes: list, config, indices: list[int], batch_size: int = 8) -> di
             rows = sel.nonzero().flatten()
             if rows.numel() == 0:
                 continue
-            prep = prepare_batch(batch.img1[rows], batch.img2[rows], config, hom)
+            prep = prepare_batch(batch.img1[rows], batch.img2[rows], config=config, homography=hom)
             for method in out:
                 res = analyze_batch(None, None, method=method, config=config, prepared=prep)
                 out[method] += [(truth[i], r.class_label) for i, r in zip(rows.tolist(), res)]

@@ -65,7 +65,7 @@ def bound_outcomes(relief: dict, bound: dict) -> dict:
     true = torch.tensor(bound["per_pair"]["true_px"], dtype=torch.float64)
     planar = torch.tensor(bound["per_pair"]["planar_px"], dtype=torch.float64)
     truth = distortion_class(true, delta_top("delta_avg", cfg), cfg.distortion.n_classes)  # R only at 0, as the bound scores
-    hard = (estimated_class(planar, planar, "delta_avg", cfg) != truth).tolist()
+    hard = (estimated_class(planar, planar, metric="delta_avg", config=cfg) != truth).tolist()
     per = relief["settings"][SETTING]["per_pair"]
     out = {"hard": sum(hard), "right": 0, "wrong": 0, "cannot_tell": {}}
     for i, is_hard in zip(bound["per_pair"]["index"], hard):

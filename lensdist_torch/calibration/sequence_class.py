@@ -35,7 +35,8 @@ def class_or_open(dc: float, half: float, settings: LensdistConfig) -> tuple[str
     if dc - half < t <= dc + half:
         return None, (f"the interval [{max(0.0, dc - half):.2f}, {dc + half:.2f}] px at the paper's frame spans the "
                       f"no-distortion threshold ({t} px): a distortion or none cannot be told")
-    return CLASS_LABELS[int(estimated_class(torch.tensor([dc]), torch.tensor([dc]), "delta_avg", settings, t)[0])], ""
+    label = estimated_class(torch.tensor([dc]), torch.tensor([dc]), metric="delta_avg", config=settings, threshold=t)
+    return CLASS_LABELS[int(label[0])], ""
 
 
 def sequence_class(paper_delta: float, delta: float, half: float, settings: LensdistConfig) -> tuple[str | None, str]:

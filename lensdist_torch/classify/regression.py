@@ -172,7 +172,7 @@ class DeltaRegressor(nn.Module):
         pred = nd.median(dim=1).values  # (B, 2)
         std = _MAD_TO_STD * (nd - pred[:, None, :]).abs().median(dim=1).values
         cfg = self.config
-        classes = [estimated_class(pred[:, i], pred[:, 0], m, cfg) for i, m in enumerate(METRICS)]
+        classes = [estimated_class(pred[:, i], pred[:, 0], metric=m, config=cfg) for i, m in enumerate(METRICS)]
         s0 = cfg.regression.cannot_tell_fraction * delta_top("delta_avg", cfg)
         conf = s0 / (s0 + std[:, 0])
         confident = conf >= cfg.regression.confidence_threshold

@@ -38,8 +38,9 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
         if not have_matplotlib():
             raise ValueError("--save-map needs matplotlib: pip install 'lensdist_torch[plots]'")
-        check_output_file(args.save_map, "--save-map", tuple(figure_formats()), ".png, .pdf, .svg or .jpg (any format matplotlib writes)",
-                          {"img1": args.img1, "img2": args.img2, "--checkpoint": args.checkpoint,
+        check_output_file(args.save_map, "--save-map", suffixes=tuple(figure_formats()),
+                          shown=".png, .pdf, .svg or .jpg (any format matplotlib writes)",
+                          inputs={"img1": args.img1, "img2": args.img2, "--checkpoint": args.checkpoint,
                            "--checkpoint-max": args.checkpoint_max, "--config": args.config})
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.analyze import analyze_pair, resolve_device

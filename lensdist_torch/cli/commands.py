@@ -113,7 +113,7 @@ def _cmd_generate(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    out = check_output_file(args.out, "--out", (".pt",), inputs={"--config": args.config, "--data": args.data})
+    out = check_output_file(args.out, "--out", suffixes=(".pt",), inputs={"--config": args.config, "--data": args.data})
     refuse_inside(out, "--out", args.data, "--data")
     from lensdist_torch.config import load_config
     from lensdist_torch.data.shards import load_set
@@ -121,7 +121,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     train = load_set(args.data, "train")
     cfg = train["config"] if args.config is None else load_config(args.config)
-    model = fit_classifier(train, cfg, args.eigenvectors, args.metric)
+    model = fit_classifier(train, cfg, n_eigenvectors=args.eigenvectors, metric=args.metric)
     model.save(out)
     summary = {
         "checkpoint": str(out),
@@ -162,7 +162,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise ValueError("evaluate re-renders the test pairs for the analysis and needs a data set of the embedded scenes")
     test = load_set(args.data, "test")
     cfg = None if args.config is None else load_config(args.config)
-    settings = evaluate_checkpoints(test, args.checkpoint or [], args.regression, args.selfcal, not args.quiet, device, cfg)
+    settings = evaluate_checkpoints(test, args.checkpoint or [], regression=args.regression, selfcal=args.selfcal,
+                                    progress=not args.quiet, device=device, config=cfg)
     report = {"title": f"lensdist evaluate: {args.data}", "settings": settings}
     md, js = write_report(report, args.out, "evaluate")
     if args.json:

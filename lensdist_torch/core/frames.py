@@ -65,7 +65,7 @@ def read_frames(path: str | Path, grey: bool = True, max_frames: int | None = No
         yield item
 
 
-def frames_of_one_size(path: str | Path, grey: bool, max_frames: int | None, quiet: bool, desc: str):
+def frames_of_one_size(path: str | Path, *, grey: bool, max_frames: int | None, quiet: bool, desc: str):
     """:func:`read_frames` with a progress bar, checking that every frame has the first's size."""
     from tqdm import tqdm
 

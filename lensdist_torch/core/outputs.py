@@ -23,7 +23,7 @@ __all__ = ["check_output_file", "check_output_dir", "refuse_inputs", "refuse_ins
 
 
 def check_output_file(
-    path: str | Path, option: str, suffixes: tuple[str, ...], shown: str | None = None, inputs: Inputs | None = None
+    path: str | Path, option: str, *, suffixes: tuple[str, ...], shown: str | None = None, inputs: Inputs | None = None
 ) -> Path:
     """Validate an output file before any long computation.
 

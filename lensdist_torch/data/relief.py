@@ -121,6 +121,7 @@ def scaled_field(field: HeightField, region: tuple[float, float, float, float], 
 
 def relief_samples(
     x: torch.Tensor, y: torch.Tensor, nadir: tuple[float, float] | torch.Tensor, field: HeightField | None,
+    *,
     altitude: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The ground points seen where a flat scene would be seen at (x, y) (module docstring).
@@ -190,7 +191,7 @@ def second_view_points(
         return x, y
     if not (math.isfinite(altitude) and altitude > 0):
         raise ValueError(f"altitude must be a positive finite ratio of heights, got {altitude}")
-    gx, gy = relief_samples(x, y, nadir, field, altitude)
+    gx, gy = relief_samples(x, y, nadir, field, altitude=altitude)
     keep = 1.0 - relief_fraction(field, gx, gy)
     return gx / keep, gy / keep
 

@@ -202,7 +202,7 @@ def motion_matrix(motion: torch.Tensor, height: int, width: int) -> torch.Tensor
 def _ideal_box(config: LensdistConfig) -> tuple[float, float, float, float]:
     """Box (x_lo, x_hi, y_lo, y_hi), in pixels, of the ideal points at the largest coefficients."""
     d = config.distortion
-    ideal = distortion_grid([d.k2_max], [d.k4_max], config.image.height, config.image.width, torch.float64)[0]
+    ideal = distortion_grid([d.k2_max], [d.k4_max], config.image.height, config.image.width, dtype=torch.float64)[0]
     lo, hi = ideal.reshape(-1, 2).amin(0), ideal.reshape(-1, 2).amax(0)
     return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
@@ -425,7 +425,7 @@ def make_pairs(
     h, w = config.image.height, config.image.width
     delta, classes = {}, {}
     for metric in METRICS:
-        delta[metric] = delta_metric(metric, params.k2, params.k4, h, w)
+        delta[metric] = delta_metric(params.k2, params.k4, h, w, metric=metric)
         classes[metric] = distortion_class(delta[metric], delta_top(metric, config))
         classes[metric] = torch.where(params.perturbed, torch.full_like(classes[metric], REJECT), classes[metric])
     return PairBatch(

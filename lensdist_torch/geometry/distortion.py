@@ -161,7 +161,7 @@ def distort_points(points: torch.Tensor, k2, k4, center: tuple[float, float], *,
     return c + d * (r / rho)
 
 
-def distortion_grid(k2, k4, height: int, width: int, dtype=torch.float32, device=None) -> torch.Tensor:
+def distortion_grid(k2, k4, height: int, width: int, *, dtype=torch.float32, device=None) -> torch.Tensor:
     """Ideal coordinates of every distorted pixel: (B, H, W, 2) in pixels (x, y).
 
     Example:
@@ -226,8 +226,8 @@ def delta_avg(k2, k4, height: int, width: int) -> torch.Tensor:
     return pixel_offsets(k2, k4, height, width).flatten(1).mean(1)
 
 
-def delta_metric(metric: str, k2, k4, height: int, width: int) -> torch.Tensor:
-    """``delta_avg`` or ``delta_max`` by name."""
+def delta_metric(k2, k4, height: int, width: int, *, metric: str) -> torch.Tensor:
+    """``delta_avg`` or ``delta_max`` (``metric``, by name) of the lenses ``k2``, ``k4`` at ``height`` x ``width``."""
     if metric == "delta_avg":
         return delta_avg(k2, k4, height, width)
     if metric == "delta_max":
@@ -251,7 +251,7 @@ def delta_top(metric: str, config: LensdistConfig) -> float:
 @functools.lru_cache(maxsize=64)
 def _delta_top(metric: str, k2: float, k4: float, h: int, w: int) -> float:
     """:func:`delta_top`'s value, once per lens and size: a whole frame's offsets each time it is asked."""
-    return float(delta_metric(metric, [k2], [k4], h, w)[0])
+    return float(delta_metric([k2], [k4], h, w, metric=metric)[0])
 
 
 def distortion_class(delta: torch.Tensor, top: float, n_classes: int = 4) -> torch.Tensor:
@@ -275,7 +275,7 @@ def distortion_class(delta: torch.Tensor, top: float, n_classes: int = 4) -> tor
 
 
 def estimated_class(
-    delta: torch.Tensor, delta_avg_estimate: torch.Tensor, metric: str, config: LensdistConfig,
+    delta: torch.Tensor, delta_avg_estimate: torch.Tensor, *, metric: str, config: LensdistConfig,
     threshold: float | None = None,
 ) -> torch.Tensor:
     """The class of an *estimated* Delta.
@@ -294,7 +294,7 @@ def estimated_class(
 
     Example:
         >>> d = torch.tensor([0.1, 5.0, 5.0])  # Delta_avg estimates (px at 320 x 424), the last one not finite:
-        >>> estimated_class(d, torch.tensor([0.1, 5.0, float("nan")]), "delta_avg", LensdistConfig()).tolist()
+        >>> estimated_class(d, torch.tensor([0.1, 5.0, float("nan")]), metric="delta_avg", config=LensdistConfig()).tolist()
         [4, 1, 4]
     """
     t = config.analysis.no_distortion_px if threshold is None else threshold

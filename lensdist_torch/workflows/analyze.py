@@ -152,8 +152,8 @@ def _regression(p: PreparedPairs, i: int, reg: DeltaRegressor) -> dict:
     d_avg, d_max = r.delta_avg.double().cpu(), r.delta_max.double().cpu()
     raw = float(r.confidence[0])
     return {
-        "estimated_class": CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])],
-        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
+        "estimated_class": CLASS_LABELS[int(estimated_class(d_avg, d_avg, metric="delta_avg", config=cfg)[0])],
+        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, metric="delta_max", config=cfg)[0])],
         "delta_avg": float(d_avg[0]),
         "delta_max": float(d_max[0]),
         "raw_confidence": raw,
@@ -290,7 +290,7 @@ def analyze_batch(
         (['2', 'R'], True)
     """
     models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
-    p = prepared if prepared is not None else prepare_batch(img1, img2, cfg, homography, device)
+    p = prepared if prepared is not None else prepare_batch(img1, img2, config=cfg, homography=homography, device=device)
     if prepared is not None and (p.config.image != cfg.image or p.config.quality != cfg.quality):
         raise CheckpointError("the prepared batch was made under another image size or quality thresholds than the checkpoint's")
     cfg = p.config
@@ -313,7 +313,7 @@ def analyze_batch(
                    motion_px=motion if math.isfinite(motion) else None)
         if method != "selfcal":
             domain_checks(res, p.selfcal()[i] if cfg.analysis.cross_check else None,
-                          p.texture()[i : i + 1] if extra.get("texture") else None, extra, cfg)
+                          p.texture()[i : i + 1] if extra.get("texture") else None, extra, cfg=cfg)
         decide(res, cfg)
         s, (ih, iw) = p.scale[i], p.input_size[i]
         box = centre_crop_box(ih, iw, h, w)

@@ -196,7 +196,7 @@ def _scene_models(label, d0, s0, d1, s1, cfg: LensdistConfig) -> SceneModels:
 
 def _classes(d: torch.Tensor, cfg: LensdistConfig) -> torch.Tensor:
     """The class indices (:data:`CLASS_LABELS`) of Delta_avg values (analysis px) under ``cfg``."""
-    return estimated_class(d, d, "delta_avg", cfg)
+    return estimated_class(d, d, metric="delta_avg", config=cfg)
 
 
 def _mass(d: torch.Tensor, std: torch.Tensor, bounds: torch.Tensor) -> torch.Tensor:

@@ -52,7 +52,7 @@ def class_distance(a: str | None, b: str | None) -> int | None:
     return abs(rank[a] - rank[b])
 
 
-def domain_checks(res: dict, selfcal: dict | None, texture: torch.Tensor | None, extra: dict, cfg: LensdistConfig) -> None:
+def domain_checks(res: dict, selfcal: dict | None, texture: torch.Tensor | None, extra: dict, *, cfg: LensdistConfig) -> None:
     """The learned methods' domain checks on one result, in place (read by :func:`decide`).
 
     Args:

@@ -112,7 +112,7 @@ def _scored(results: list, config: LensdistConfig) -> tuple[list[int], torch.Ten
 def _right(results: list, data: dict, config: LensdistConfig, keep: list[int]) -> torch.Tensor:
     """Whether the class of each kept pair's estimated Delta_avg under ``config`` (its R threshold) is the true one."""
     d = torch.tensor([result_field(results[i], "estimated_delta_avg") for i in keep], dtype=torch.float64)
-    return estimated_class(d, d, "delta_avg", config) == data["class_avg"][keep]
+    return estimated_class(d, d, metric="delta_avg", config=config) == data["class_avg"][keep]
 
 
 def confidences(results: list, keep: list[int], *, config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
@@ -311,7 +311,7 @@ def _fit_interval_scale(results: list, data: dict, config: LensdistConfig) -> fl
     return float(max(_SCALES))
 
 
-def calibration_table(results: dict, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
+def calibration_table(results: dict, data: dict, *, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
     """ECE rows (method, split, pairs, before, after) and reliability curves, per method in ``results``."""
     rows, curves = [], {}
     for method in _PLATT:
@@ -324,7 +324,7 @@ def calibration_table(results: dict, data: dict, before: LensdistConfig, after: 
     return rows, curves
 
 
-def coverage_row(results: list, data: dict, before: LensdistConfig, after: LensdistConfig, split: str) -> dict:
+def coverage_row(results: list, data: dict, *, before: LensdistConfig, after: LensdistConfig, split: str) -> dict:
     """The self-calibration's interval coverage before and after the fitted decision, on one split."""
     b, a = interval_coverage(results, data, before), interval_coverage(results, data, after)
     return {"split": split, "pairs": a["pairs"], "before": b["coverage"], "after": a["coverage"],
@@ -373,12 +373,13 @@ def fit_confidence(config: LensdistConfig, out, *, regression=None, scenes: list
     runs = {"selfcal": {"method": "selfcal"}}
     if regression is not None:
         runs["regression"] = {"method": "regression", "checkpoint": regression}
-    results = analyze_test_set(data, runs, scenes, config, batch_size, progress, device)
+    results = analyze_test_set(data, runs, scenes, config=config, batch_size=batch_size, progress=progress, device=device)
     candidates: list = []
     fitted = fit_decision(results, data, config, candidates)
     calibrated = _with(config, **fitted)
-    rows, curves = calibration_table(results, data, config, calibrated, "validation")
-    summary = {"analysis": fitted, "withholding": candidates, "ece": rows, "intervals": [coverage_row(results["selfcal"], data, config, calibrated, "validation")],
+    rows, curves = calibration_table(results, data, before=config, after=calibrated, split="validation")
+    intervals = [coverage_row(results["selfcal"], data, before=config, after=calibrated, split="validation")]
+    summary = {"analysis": fitted, "withholding": candidates, "ece": rows, "intervals": intervals,
                "reliability": curves, "validation_pairs": int(data["index"].numel()),
                "validation_seed": validation_config(config).protocol.seed}
     path = out / "calibration.json"

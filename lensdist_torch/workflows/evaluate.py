@@ -77,7 +77,7 @@ def training_extra(config: LensdistConfig, scenes: list | None = None, names: li
     return {"scenes": list(names), "texture": texture_statistics(config, scenes, names)}
 
 
-def fit_classifier(train: dict, config: LensdistConfig, n_eigenvectors: int | None = None, metric: str | None = None,
+def fit_classifier(train: dict, config: LensdistConfig, *, n_eigenvectors: int | None = None, metric: str | None = None,
                    extra: dict | None = None) -> EigenSpaceClassifier:
     """Fit on a loaded training set. Pairs whose registration failed are left out of the fit.
 
@@ -125,7 +125,7 @@ def _scenes_of(test: dict, scenes):
     return scenes if scenes is not None else load_scenes(test["config"])[0]
 
 
-def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config: LensdistConfig | None = None,
+def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, *, config: LensdistConfig | None = None,
                      batch_size: int = 16, progress: bool = False, device=None, set_name: str = "test") -> dict:
     """Analyse every pair of a loaded test set with :func:`analyze_batch`, once per run.
 
@@ -158,7 +158,7 @@ def analyze_test_set(test: dict, runs: dict, scenes: list | None = None, config:
         for sel, hom in ((~perturbed, None), (perturbed, test["H"][s : s + batch_size][perturbed])):
             if bool(sel.any()):
                 rows = sel.nonzero().flatten()
-                prep = prepare_batch(img1[rows], img2[rows], cfg, hom, device)
+                prep = prepare_batch(img1[rows], img2[rows], config=cfg, homography=hom, device=device)
                 parts.append((rows, {name: _run(prep, **kw) for name, kw in runs.items()}))
         for name in runs:
             batch = [None] * len(idx)
@@ -184,7 +184,8 @@ def figures_of(results: list[PairAnalysis], test: dict, metric: str, config: Len
     delta = torch.tensor([float("nan") if d is None else d for d in own], dtype=torch.float64)
     truth = test[CLASS_KEYS[metric]]
     ok = torch.tensor([r.registration_ok for r in results])
-    fig = evaluate_predictions(pred, delta, truth, test[metric], delta_top(metric, config), ok, motion_groups(test))
+    fig = evaluate_predictions(pred, delta, truth, test[metric], delta_range=delta_top(metric, config), registration_ok=ok,
+                               extra_groups=motion_groups(test))
     fig["metric"] = metric
     reasons = [code for r in results for code in r.cannot_tell_reasons]
     fig["cannot_tell_reasons"] = {code: reasons.count(code) for code in REASONS if code in reasons}
@@ -201,7 +202,8 @@ def figures_of(results: list[PairAnalysis], test: dict, metric: str, config: Len
 def _run_or_use(results, test, scenes, run, config, progress, device, batch_size=16):
     if results is not None:
         return results
-    return analyze_test_set(test, {"run": run}, scenes, config, batch_size, progress, device)["run"]
+    return analyze_test_set(test, {"run": run}, scenes, config=config, batch_size=batch_size, progress=progress,
+                            device=device)["run"]
 
 
 def evaluate_classifier(model: EigenSpaceClassifier, test: dict, scenes: list | None = None, *,
@@ -233,8 +235,8 @@ def evaluate_regressor(model: DeltaRegressor, test: dict, scenes: list | None = 
     return {m: {**figures_of(res, test, m, cfg), "method": "regression"} for m in ("delta_avg", "delta_max")}
 
 
-def evaluate_selfcal(test: dict, config: LensdistConfig | None = None, scenes: list | None = None, batch_size: int = 16,
-                     progress: bool = True, *, results: list | None = None, device=None) -> dict:
+def evaluate_selfcal(test: dict, *, config: LensdistConfig | None = None, scenes: list | None = None, batch_size: int = 16,
+                     progress: bool = True, results: list | None = None, device=None) -> dict:
     """{metric: figures} of the self-calibration of every test pair (re-rendered, analysed)."""
     cfg = config if config is not None else test["config"]
     res = _run_or_use(results, test, scenes, {"method": "selfcal"}, cfg, progress, device, batch_size)
@@ -245,7 +247,7 @@ def evaluate_selfcal(test: dict, config: LensdistConfig | None = None, scenes: l
     return out
 
 
-def evaluate_checkpoints(test: dict, checkpoints=(), regression=None, selfcal: bool = False, progress: bool = False,
+def evaluate_checkpoints(test: dict, checkpoints=(), *, regression=None, selfcal: bool = False, progress: bool = False,
                          device=None, config: LensdistConfig | None = None) -> dict:
     """``lensdist evaluate``: {setting: figures} of checkpoints (paths) on a loaded test set.
 
@@ -274,7 +276,7 @@ def evaluate_checkpoints(test: dict, checkpoints=(), regression=None, selfcal: b
         runs["regression"] = {"method": "regression", "checkpoint": reg}
     if selfcal:
         runs["selfcal"] = {"method": "selfcal"}
-    results = analyze_test_set(test, runs, None, cfg, progress=progress, device=device)
+    results = analyze_test_set(test, runs, None, config=cfg, progress=progress, device=device)
     settings = {}
     for i, g in enumerate(groups):
         for metric in ("delta_max", "delta_avg"):
@@ -285,5 +287,5 @@ def evaluate_checkpoints(test: dict, checkpoints=(), regression=None, selfcal: b
     if reg is not None:
         settings.update({f"regression, {m}": f for m, f in evaluate_regressor(reg, test, results=results["regression"], config=cfg).items()})
     if selfcal:
-        settings.update({f"selfcal, {m}": f for m, f in evaluate_selfcal(test, cfg, results=results["selfcal"]).items()})
+        settings.update({f"selfcal, {m}": f for m, f in evaluate_selfcal(test, config=cfg, results=results["selfcal"]).items()})
     return settings

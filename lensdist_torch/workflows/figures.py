@@ -130,6 +130,7 @@ def save_map_grid(
     maps: torch.Tensor,
     labels: list[str],
     path,
+    *,
     title: str = "",
     valid: torch.Tensor | None = None,
     classes: list[str] | None = None,

@@ -147,7 +147,7 @@ class PreparedPairs:
         return self._shared["texture"]
 
 
-def prepare_batch(img1, img2, config: LensdistConfig | None = None, homography=None, device=None) -> PreparedPairs:
+def prepare_batch(img1, img2, *, config: LensdistConfig | None = None, homography=None, device=None) -> PreparedPairs:
     """Bring pairs to the analysis size, register them and compute their quality maps.
 
     Args:
@@ -271,11 +271,11 @@ def _selfcal_answer(k2: torch.Tensor, k4: torch.Tensor, sc: SelfCalInfo, cfg: Le
     h, w = cfg.image.size
     off = pixel_offsets(k2, k4, h, w).flatten(1)  # one map for both Deltas
     d_avg, d_max = off.mean(1), off.amax(1)
-    label = CLASS_LABELS[int(estimated_class(d_avg, d_avg, "delta_avg", cfg)[0])]
+    label = CLASS_LABELS[int(estimated_class(d_avg, d_avg, metric="delta_avg", config=cfg)[0])]
     std = float(sc.delta_avg_std[0])  # the fit's own; analysis.interval_std_scale widens the interval
     out = {
         "estimated_class": label,
-        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, "delta_max", cfg)[0])],
+        "estimated_class_max": CLASS_LABELS[int(estimated_class(d_max, d_avg, metric="delta_max", config=cfg)[0])],
         "delta_avg": float(d_avg[0]),
         "delta_max": float(d_max[0]),
         "k2": float(k2[0]),

@@ -106,6 +106,7 @@ def evaluate_predictions(
     pred_delta: torch.Tensor,
     true_label: torch.Tensor,
     true_delta: torch.Tensor,
+    *,
     delta_range: float,
     registration_ok: torch.Tensor | None = None,
     extra_groups: dict | None = None,

@@ -55,6 +55,7 @@ def quick_config(config: LensdistConfig, fraction: float = 0.1) -> LensdistConfi
 def reproduce(
     config: LensdistConfig,
     out: str | Path,
+    *,
     quick: bool = False,
     workers: int = 1,
     batch_size: int = 16,
@@ -96,7 +97,7 @@ def reproduce(
     extra = training_extra(config, scenes, names)
     models = {}
     for n_ev, metric in SETTINGS:
-        model = fit_classifier(train, config, n_ev, metric, extra=extra)
+        model = fit_classifier(train, config, n_eigenvectors=n_ev, metric=metric, extra=extra)
         models[f"{n_ev} EV, {metric}"] = model
         model.save(out / "checkpoints" / f"eigenspace_{metric}_{n_ev}ev.pt")
     runs = {f"{n} EV": {"method": "eigenspace", "checkpoint": models[f"{n} EV, delta_avg"],
@@ -112,7 +113,7 @@ def reproduce(
             acfg = cal["config"]
             # what analyze answers without --config: the same fits, the config's own [analysis]
             runs[SHIPPED] = {"method": "selfcal", "decision": config.analysis}
-    results = analyze_test_set(test, runs, scenes, acfg, batch_size, progress, device)
+    results = analyze_test_set(test, runs, scenes, config=acfg, batch_size=batch_size, progress=progress, device=device)
     settings = _settings(models, reg, test, results, acfg)
     unseen = _unseen(config, out, runs, models, reg, acfg, workers, batch_size, progress, device)
     p = config.protocol
@@ -137,7 +138,7 @@ def reproduce(
         report["unseen"] = unseen
     curves = {}
     if cal is not None:
-        rows, curves = calibration_table({k: results[k] for k in ("selfcal", "regression")}, test, config, acfg, "test")
+        rows, curves = calibration_table({k: results[k] for k in ("selfcal", "regression")}, test, before=config, after=acfg, split="test")
         report["calibration"] = {
             "note": (f"Fitted on a validation split ({cal['validation_pairs']} pairs of the protocol with seed "
                      f"{cal['validation_seed']}, never the test set); ECE of the confidence as an estimate of "
@@ -146,7 +147,7 @@ def reproduce(
                      "self-calibration's interval coverage over the same pairs."),
             "analysis": cal["analysis"],
             "ece": cal["ece"] + rows,
-            "intervals": cal["intervals"] + [coverage_row(results["selfcal"], test, config, acfg, "test")],
+            "intervals": cal["intervals"] + [coverage_row(results["selfcal"], test, before=config, after=acfg, split="test")],
         }
     md, js = write_report(report, out, "reproduce")
     if figures:
@@ -166,7 +167,7 @@ def _settings(models: dict, reg, test: dict, results: dict, config: LensdistConf
             settings[f"regression, {metric}"] = fig
     for run, suffix in (("selfcal", ""), (SHIPPED, SHIPPED_SUFFIX)):
         if run in results:
-            for metric, fig in evaluate_selfcal(test, config, results=results[run]).items():
+            for metric, fig in evaluate_selfcal(test, config=config, results=results[run]).items():
                 settings[f"selfcal, {metric}{suffix}"] = fig
     return settings
 
@@ -184,8 +185,8 @@ def _unseen(config, out: Path, runs, models, reg, acfg, workers, batch_size, pro
     gen = generate(ucfg, out / "unseen", sets=("test",), workers=workers, batch_size=batch_size, progress=progress)
     test = load_set(out / "unseen", "test")
     scenes, _ = load_scenes(ucfg)
-    results = analyze_test_set(test, runs, scenes, dataclasses.replace(acfg, protocol=ucfg.protocol), batch_size,
-                               progress, device)
+    results = analyze_test_set(test, runs, scenes, config=dataclasses.replace(acfg, protocol=ucfg.protocol),
+                               batch_size=batch_size, progress=progress, device=device)
     failed = gen["sets"]["test"].get("registration_failed", "?")
     return {
         "scenes": list(p.unseen_scenes),
@@ -242,4 +243,4 @@ def _figures(models: dict, settings: dict, test: dict, config: LensdistConfig, o
     labels = [f"Delta_avg {float(test['delta_avg'][i]):.1f} px, vertical motion {float(test['motion'][i, 0]):.0f} px"
               for i in picks]
     classes = [CLASS_LABELS[int(test["class_avg"][i])] for i in picks]
-    save_map_grid(maps[picks], labels, out / "maps_by_distortion.png", "quality maps (Fig. 1)", classes=classes)
+    save_map_grid(maps[picks], labels, out / "maps_by_distortion.png", title="quality maps (Fig. 1)", classes=classes)

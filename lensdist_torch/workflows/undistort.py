@@ -286,7 +286,8 @@ def undistort_path(
     files = _plan(path, out, max_frames, from_json, overwrite)
     grid, n, valid_sum, dev, bits = None, 0, 0.0, torch.device(device or "cpu"), set()
     with staged_folder(out) as stage:  # a frame that fails to read or write: nothing reaches out_dir
-        for i, (name, img) in enumerate(frames_of_one_size(path, False, max_frames, quiet, "undistorting")):
+        frames = frames_of_one_size(path, grey=False, max_frames=max_frames, quiet=quiet, desc="undistorting")
+        for i, (name, img) in enumerate(frames):
             if grid is None:
                 size = tuple(img.shape[-2:])
                 k2, k4 = _coefficients_for(size, k2, k4, from_json, cal)

@@ -140,7 +140,7 @@ def test_realistic_sequence_recovers_the_camera(one_thread_module, level, seed, 
     assert cal.delta_avg_user_px == pytest.approx(true, abs=0.1) and lo <= true <= hi and hi - lo < 1.5
     cfg = LensdistConfig()
     paper = delta_avg([k2 / S**2], [k4 / S**4], *cfg.image.size)  # the same lens at the paper's frame
-    want = CLASS_LABELS[int(estimated_class(paper, paper, "delta_avg", cfg, cfg.calibration.no_distortion_px)[0])]
+    want = CLASS_LABELS[int(estimated_class(paper, paper, metric="delta_avg", config=cfg, threshold=cfg.calibration.no_distortion_px)[0])]
     assert (want == "R") == (level == 0)
     assert cal.class_label == want
 

@@ -66,24 +66,24 @@ def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
     # the GoPro views: seeds 1 and 2 stop at 3 views in about a second; 0, 3 and 4 answer, seed 5 never runs
     ok = [dataclasses.replace(_cal(d, 30.0, label="3", reason=""), delta_avg_user_interval=(d - 1, d + 1)) for d in (8.0, 8.4, 7.8, 99.0)]
     calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 0, ok[1], ok[2], ok[3]])
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
+    res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 5 and res["ok"] and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.0
     assert [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3, 4]
     assert res["reconstructions"][1] == {"seed": 1, "failed": "3 of 22 frames registered"}
     assert res["reconstructions"][2] == {"seed": 2, "failed": "0 of 22 frames registered"}
     # all six tries run, two succeed: no class, the failures named
     calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 3, 3, 3, ok[1]])
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
+    res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 6 and res["class_label"] is None
     assert res["reason"].startswith("only 2 of 6 reconstructions succeeded (3 needed)") and "seed 4: 3 of 22" in res["reason"]
     # a slow pan after a failed start: the three successes run (no mapping is skipped for the motion)
     calls = _fake_colmap(monkeypatch, tmp_path, [3, _cal(12.3, 2.4), _cal(12.2, 2.4), _cal(13.0, 2.3)])
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
+    res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 4 and [r["seed"] for r in res["reconstructions"]] == [0, 1, 2, 3]
     assert res["class_label"] is None and res["reason"].startswith("interval too wide")
     # the default: one mapping answers, after failed starts
     calls = _fake_colmap(monkeypatch, tmp_path, [3, 0, ok[1], ok[0]])
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig())
+    res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig())
     assert calls["mappings"] == 3 and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.4
     assert res["reconstruction_spread_px"] == 0.0 and tuple(res["delta_avg_user_interval"]) == (7.4, 9.4)
 
@@ -101,7 +101,7 @@ def test_evenly_spaced_frames_by_hand_and_their_properties():
 def test_at_most_mapped_frames_go_to_colmap(monkeypatch, tmp_path):
     runs = [_cal(7.6, 30.0, label="3", reason="")] * 3
     calls = _fake_colmap(monkeypatch, tmp_path, runs)
-    wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(mapped_frames=5))
+    wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(mapped_frames=5))
     assert calls["names"] == [f"frame_{i:03d}.png" for i in (0, 5, 10, 16, 21)]  # of 22 frames
 
 
@@ -112,7 +112,7 @@ def test_a_long_video_is_written_with_a_doubling_stride(monkeypatch, tmp_path):
                                                                           for i in range(min(most, 100))))
     (tmp_path / "frames").mkdir()
     calls = _fake_colmap(monkeypatch, tmp_path / "frames", [_cal(7.6, 30.0, label="3", reason="")] * 3)
-    wmv.multiview_path(clip, (288, 384), MultiViewConfig(mapped_frames=10), max_frames=90)
+    wmv.multiview_path(clip, (288, 384), config=MultiViewConfig(mapped_frames=10), max_frames=90)
     # 90 frames: the stride doubled to 4 past 20 files and to 8 past 20 again; kept 0, 8, ..., 88 (12 files)
     assert calls["files"] == [f"{i:06d}.png" for i in range(0, 90, 8)]
     assert calls["names"] == [f"{8 * j:06d}.png" for j in (0, 1, 2, 4, 5, 6, 7, 9, 10, 11)]
@@ -125,7 +125,7 @@ def test_every_mapping_runs_whatever_the_camera_turned(monkeypatch, tmp_path, ro
     runs = [dataclasses.replace(_cal(d, r, label="3", reason=""), delta_avg_user_interval=(d - 0.5, d + 0.5))
             for d, r in zip((12.3, 12.24, 13.02), rotations)]
     calls = _fake_colmap(monkeypatch, tmp_path, runs)
-    res = wmv.multiview_path(tmp_path, (288, 384), MultiViewConfig(reconstructions=3))
+    res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 3 and [r["seed"] for r in res["reconstructions"]] == [0, 1, 2]
     assert res["delta_avg_user_px"] == 12.3 and res["reconstruction_spread_px"] == pytest.approx(0.72)
     half = res["delta_avg_user_interval"][1] - 12.3  # sqrt(0.5^2 + (1.96 0.72)^2): the spread widens it

@@ -207,7 +207,7 @@ class TestEvaluation:
     def test_report(self):
         fig = evaluate_predictions(
             torch.tensor([0, 1, 4, 4]), torch.tensor([1.0, 2.0, 0.0, 0.0]),
-            torch.tensor([0, 1, 1, 4]), torch.tensor([1.5, 2.0, 4.0, 0.0]), 14.4,
+            torch.tensor([0, 1, 1, 4]), torch.tensor([1.5, 2.0, 4.0, 0.0]), delta_range=14.4,
             registration_ok=torch.tensor([True, True, False, True]),
         )
         assert fig["rate"] == pytest.approx(75.0)
@@ -223,7 +223,7 @@ class TestEvaluation:
         t = CANNOT_TELL
         fig = evaluate_predictions(
             torch.tensor([0, t, 2, t, 4]), torch.tensor([1.0, float("nan"), 9.0, 3.0, 0.0]),
-            torch.tensor([0, 1, 1, 2, 4]), torch.tensor([1.5, 4.0, 4.0, 8.0, 0.0]), 14.4,
+            torch.tensor([0, 1, 1, 2, 4]), torch.tensor([1.5, 4.0, 4.0, 8.0, 0.0]), delta_range=14.4,
         )
         conf = torch.tensor(fig["confusion"])
         assert conf.shape == (5, 6) and int(conf[:, 5].sum()) == 2 and int(conf[1, 2]) == 1
@@ -234,7 +234,7 @@ class TestEvaluation:
         md = report_markdown({"title": "t", "settings": {"x": fig}})
         assert "cannot tell" in md and "40.0 %" in md
         with pytest.raises(ValueError, match="cannot tell"):
-            evaluate_predictions(torch.tensor([6]), torch.tensor([1.0]), torch.tensor([0]), torch.tensor([1.0]), 14.4)
+            evaluate_predictions(torch.tensor([6]), torch.tensor([1.0]), torch.tensor([0]), torch.tensor([1.0]), delta_range=14.4)
 
 
 def test_fit_is_float64_on_cpu_invariant_to_order():

@@ -119,7 +119,7 @@ def test_output_paths_checked_up_front(tmp_path):
 
     (tmp_path / "f").write_text("x")
     os.mkfifo(tmp_path / "p.pt")
-    assert check_output_file(tmp_path / "new" / "m.pt", "--out", (".pt",)) == tmp_path / "new" / "m.pt"
+    assert check_output_file(tmp_path / "new" / "m.pt", "--out", suffixes=(".pt",)) == tmp_path / "new" / "m.pt"
     for bad, match in [
         (str(tmp_path / "d") + "/", "got the directory"),
         (tmp_path, "got the directory"),
@@ -128,7 +128,7 @@ def test_output_paths_checked_up_front(tmp_path):
         (tmp_path / "f" / "m.pt", "is not a folder"),
     ]:
         with pytest.raises(ValueError, match=match):
-            check_output_file(bad, "--out", (".pt",))
+            check_output_file(bad, "--out", suffixes=(".pt",))
     assert check_output_dir(tmp_path / "a" / "b", "--out") == tmp_path / "a" / "b"
     with pytest.raises(ValueError, match="exists and is not one"):
         check_output_dir(tmp_path / "f", "--out")

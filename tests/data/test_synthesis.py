@@ -189,7 +189,7 @@ def sampling_points(scene_sizes, params: PairParams, config) -> tuple[torch.Tens
     x0, y0 = distortion_center(h, w)
     p0 = torch.tensor([x0, y0], dtype=torch.float64)
     box = footprint(config)
-    q = distortion_grid(params.k2, params.k4, h, w, torch.float64).reshape(-1, h * w, 2)
+    q = distortion_grid(params.k2, params.k4, h, w, dtype=torch.float64).reshape(-1, h * w, 2)
     qh = torch.cat([q, torch.ones_like(q[..., :1])], -1) @ params.M.transpose(1, 2)
     mq = qh[..., :2] / qh[..., 2:]
     size = torch.tensor([scene_sizes[int(s)] for s in params.scene], dtype=torch.float64)  # (B, 2) = (hs, ws)
@@ -344,7 +344,7 @@ class TestMakePairs:
         assert out.H.shape == (4, 3, 3) and out.H.dtype == torch.float64
         assert out.img1 is None and out.img2 is None
         for m in ("delta_avg", "delta_max"):
-            torch.testing.assert_close(out.delta[m], delta_metric(m, out.params.k2, out.params.k4, HS, WS))
+            torch.testing.assert_close(out.delta[m], delta_metric(out.params.k2, out.params.k4, HS, WS, metric=m))
             assert out.classes[m][2:].tolist() == [REJECT, REJECT]
             assert all(0 <= c < 4 for c in out.classes[m][:2].tolist())
         assert bool((out.delta["delta_avg"][2:] == 0).all())

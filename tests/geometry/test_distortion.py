@@ -62,10 +62,10 @@ class TestSpecNumbers:
 
     def test_delta_metric_by_name(self):
         k2, k4 = [1e-6, 2e-6], [3e-12, 1e-11]
-        assert torch.equal(delta_metric("delta_max", k2, k4, H, W), delta_max(k2, k4, H, W))
-        assert torch.equal(delta_metric("delta_avg", k2, k4, H, W), delta_avg(k2, k4, H, W))
+        assert torch.equal(delta_metric(k2, k4, H, W, metric="delta_max"), delta_max(k2, k4, H, W))
+        assert torch.equal(delta_metric(k2, k4, H, W, metric="delta_avg"), delta_avg(k2, k4, H, W))
         with pytest.raises(ValueError, match="metric"):
-            delta_metric("delta_median", k2, k4, H, W)
+            delta_metric(k2, k4, H, W, metric="delta_median")
 
     def test_delta_max_is_at_the_corner(self):
         """The farthest pixel centre from p0 is a corner: r^2 = 211.5^2 + 159.5^2."""
@@ -165,7 +165,7 @@ class TestAgainstEq4:
 
     def test_distortion_grid_is_eq4_per_pair(self):
         k2, k4 = [K2, 1e-6, 0.0], [K4, 0.0, 1e-11]
-        grid = distortion_grid(k2, k4, 40, 56, torch.float64)
+        grid = distortion_grid(k2, k4, 40, 56, dtype=torch.float64)
         assert grid.shape == (3, 40, 56, 2)
         g = pixel_grid(40, 56, torch.float64)
         for i in range(3):
@@ -243,7 +243,7 @@ class TestClasses:
     def test_top_coefficients_are_the_last_class(self):
         for metric in ("delta_max", "delta_avg"):
             top = delta_top(metric, LensdistConfig())
-            d = delta_metric(metric, [K2, K2 / 1000], [K4, K4 / 1000], H, W)
+            d = delta_metric([K2, K2 / 1000], [K4, K4 / 1000], H, W, metric=metric)
             assert distortion_class(d, top).tolist()[0] == 3
             assert distortion_class(d, top).tolist()[1] == 0
 
@@ -289,8 +289,8 @@ def test_one_pair_and_a_sequence_have_their_own_r_threshold():
     """
     cfg = LensdistConfig()
     d = torch.tensor([0.2, 0.5, 0.8, 3.0], dtype=torch.float64)
-    pair = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, "delta_avg", cfg)]
-    seq = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, "delta_avg", cfg, cfg.calibration.no_distortion_px)]
+    pair = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, metric="delta_avg", config=cfg)]
+    seq = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, metric="delta_avg", config=cfg, threshold=cfg.calibration.no_distortion_px)]
     assert pair == ["R", "R", "1", "1"] and seq == ["R", "1", "1", "1"]
     assert class_bounds("R", "delta_avg", cfg) == (0.0, 0.75)
     assert class_bounds("1", "delta_avg", cfg, 0.25) == pytest.approx((0.25, delta_top("delta_avg", cfg) / 4))

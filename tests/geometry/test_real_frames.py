@@ -50,8 +50,8 @@ def test_real_views_through_a_known_lens(views, k2):
     if res.class_label is not None:  # a class, when given, is the truth's
         cfg = LensdistConfig()
         paper = torch.tensor([paper_frame_delta_avg(k2, 0.0, (240, 320), cfg)])  # the same lens at 320 x 424
-        assert res.class_label == CLASS_LABELS[int(estimated_class(paper, paper, "delta_avg", cfg,
-                                                                   cfg.calibration.no_distortion_px)[0])]
+        assert res.class_label == CLASS_LABELS[int(estimated_class(paper, paper, metric="delta_avg", config=cfg,
+                                                                   threshold=cfg.calibration.no_distortion_px)[0])]
 
 
 # ------------------------------------------------------------------ registered or not: the misfit

@@ -32,7 +32,7 @@ def _truth_and_distorted(k2, k4, dtype=torch.float64):
     offset = torch.tensor([200.0, 200.0], dtype=dtype)
     k2t, k4t = torch.tensor([k2], dtype=dtype), torch.tensor([k4], dtype=dtype)
     ideal = sample_at_pixels(scene, pixel_grid(H, W, dtype)[None] + offset)
-    distorted = sample_at_pixels(scene, distortion_grid(k2t, k4t, H, W, dtype) + offset)
+    distorted = sample_at_pixels(scene, distortion_grid(k2t, k4t, H, W, dtype=dtype) + offset)
     return ideal, distorted, k2t, k4t
 
 

@@ -12,30 +12,8 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[2] / "lensdist_torch"
 MAX_POSITIONAL = 4
 
-_OWNED = "its module had another owner during issue 50"
-#: The public functions that still take more (module below lensdist_torch, function), and why.
-ALLOWED = {
-    "workflows.decision.domain_checks": _OWNED,
-    "workflows.evaluate.fit_classifier": _OWNED,
-    "workflows.evaluate.analyze_test_set": _OWNED,
-    "workflows.evaluate.evaluate_selfcal": _OWNED,
-    "workflows.evaluate.evaluate_checkpoints": _OWNED,
-    "workflows.prepare.prepare_batch": _OWNED,
-    "workflows.reproduce.reproduce": _OWNED,
-    # called by position from a module another change owned (issue 50)
-    "calibration.controllers.multiview_path.multiview_path": "calibrate.py passes its settings by position",
-    "core.frames.frames_of_one_size": "calibrate.py passes its settings by position",
-    "data.relief.relief_samples": "calibrate.py passes altitude by position",
-    "geometry.distortion.distortion_grid": "calibrate.py passes dtype by position",
-    "core.outputs.check_output_file": "cli/analyze.py passes its settings by position",
-    "geometry.distortion.estimated_class": "workflows/analyze.py and prepare.py pass metric and config by position",
-    "workflows.decision_fit.calibration_table": "reproduce.py passes its configs and split by position",
-    "workflows.decision_fit.coverage_row": "reproduce.py passes its configs and split by position",
-    "workflows.figures.save_map_grid": "reproduce.py passes title by position",
-    "workflows.reports.evaluate_predictions": "evaluate.py passes all seven by position",
-    # not a matter of a ``*``
-    "geometry.distortion.delta_metric": "its setting (metric) comes before its data: a reorder",
-}
+#: The public functions that still take more (module below lensdist_torch, function), and why: none.
+ALLOWED: dict[str, str] = {}
 
 
 def _public(tree: ast.Module) -> set[str] | None:

@@ -316,8 +316,8 @@ def test_refuse_inputs_api(tmp_path):
     a = tmp_path / "a.png"
     a.write_bytes(b"x")
     with pytest.raises(ValueError, match="--map .* is the input img"):
-        check_output_file(a, "--map", (".png",), inputs={"img": [tmp_path / "other.png", a]})
-    assert check_output_file(tmp_path / "b.png", "--map", (".png",), inputs={"img": a, "cfg": None}) == tmp_path / "b.png"
+        check_output_file(a, "--map", suffixes=(".png",), inputs={"img": [tmp_path / "other.png", a]})
+    assert check_output_file(tmp_path / "b.png", "--map", suffixes=(".png",), inputs={"img": a, "cfg": None}) == tmp_path / "b.png"
     with pytest.raises(ValueError, match="would overwrite"):
         check_output_dir(tmp_path, "--out", inputs={"img": str(a)}, writes=["a.png"])
     assert check_output_dir(tmp_path / "sub", "--out", inputs={"img": a}, writes=["a.png"]) == tmp_path / "sub"

@@ -183,26 +183,26 @@ def test_disagreement_with_the_selfcal_is_out_of_domain():
     cfg = LensdistConfig()
     sc = {"estimated_class": "R", "delta_avg": 0.1, "raw_confidence": 0.9}
     far = _res(estimated_class="3", delta_avg=9.0)
-    domain_checks(far, sc, None, {"scenes": ["gravel", "grass"]}, cfg)
+    domain_checks(far, sc, None, {"scenes": ["gravel", "grass"]}, cfg=cfg)
     decide(far, cfg)
     assert not far["selfcal_check"]["agrees"] and not far["in_domain"] and far["class"] is None
     assert any("self-calibration disagrees" in w for w in far["warnings"]) and far["fitted_on"] == ["gravel", "grass"]
     some = _res(estimated_class="1", delta_avg=1.5)  # distortion where the self-calibration sees none
-    domain_checks(some, sc, None, {}, cfg)
+    domain_checks(some, sc, None, {}, cfg=cfg)
     decide(some, cfg)
     assert not some["selfcal_check"]["agrees"] and some["class"] is None
     near = _res(estimated_class="1", delta_avg=1.5, confidence=0.8)  # one class apart, 1.3 px: agrees (a regression)
-    domain_checks(near, {**sc, "estimated_class": "2", "delta_avg": 2.8}, None, {}, cfg)
+    domain_checks(near, {**sc, "estimated_class": "2", "delta_avg": 2.8}, None, {}, cfg=cfg)
     decide(near, cfg)
     assert near["selfcal_check"]["agrees"] and near["in_domain"] and near["class"] == "1"
     apart = _res(estimated_class="1", delta_avg=1.5)  # two classes apart
-    domain_checks(apart, {**sc, "estimated_class": "3", "delta_avg": 5.0}, None, {}, cfg)
+    domain_checks(apart, {**sc, "estimated_class": "3", "delta_avg": 5.0}, None, {}, cfg=cfg)
     assert not apart["selfcal_check"]["agrees"]
     rejected = _res(estimated_class="R", delta_avg=6.0)  # an eigen-space R keeps its nearest class's Delta
-    domain_checks(rejected, sc, None, {}, cfg)
+    domain_checks(rejected, sc, None, {}, cfg=cfg)
     assert rejected["selfcal_check"]["agrees"]
     unsure = _res(confidence=0.8)
-    domain_checks(unsure, {**sc, "raw_confidence": 0.1}, None, {}, cfg)  # a selfcal that cannot tell says nothing
+    domain_checks(unsure, {**sc, "raw_confidence": 0.1}, None, {}, cfg=cfg)  # a selfcal that cannot tell says nothing
     decide(unsure, cfg)
     assert not unsure["selfcal_check"]["usable"] and unsure["in_domain"] and unsure["class"] == "3"
 
@@ -214,27 +214,27 @@ def test_an_eigenspace_class_stands_only_where_the_selfcal_confirms_it():
     cfg = LensdistConfig()
     sc = {"estimated_class": "2", "delta_avg": 6.2, "raw_confidence": 0.99}
     adjacent = _res(estimated_class="3", delta_avg=8.3)  # confidence None: the eigen-space
-    domain_checks(adjacent, sc, None, {}, cfg)
+    domain_checks(adjacent, sc, None, {}, cfg=cfg)
     decide(adjacent, cfg)
     assert adjacent["selfcal_check"]["agrees"] and not adjacent["selfcal_check"]["confirms"]
     assert adjacent["class"] is None and adjacent["cannot_tell"] and adjacent["delta_avg"] is None
     assert adjacent["estimated_class"] == "3" and adjacent["in_domain"]  # not out of domain: unconfirmed
     assert "the self-calibration finds class 2 (Delta_avg 6.20 px), not 3" in " ".join(adjacent["warnings"])
     same = _res(estimated_class="2", delta_avg=5.9)
-    domain_checks(same, sc, None, {}, cfg)
+    domain_checks(same, sc, None, {}, cfg=cfg)
     decide(same, cfg)
     assert same["selfcal_check"]["confirms"] and same["class"] == "2" and same["delta_avg"] == 5.9
     unsure = _res(estimated_class="2", delta_avg=5.9)  # a self-calibration that cannot tell confirms nothing
-    domain_checks(unsure, {**sc, "raw_confidence": 0.3}, None, {}, cfg)
+    domain_checks(unsure, {**sc, "raw_confidence": 0.3}, None, {}, cfg=cfg)
     decide(unsure, cfg)
     assert unsure["class"] is None and "the self-calibration cannot tell from this pair" in " ".join(unsure["warnings"])
     loose = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, eigenspace_max_class_disagreement=1))
     adjacent = _res(estimated_class="3", delta_avg=8.3)
-    domain_checks(adjacent, sc, None, {}, loose)
+    domain_checks(adjacent, sc, None, {}, cfg=loose)
     decide(adjacent, loose)
     assert adjacent["class"] == "3"  # the setting: one class apart tolerated
     regression = _res(estimated_class="3", delta_avg=8.3, confidence=0.9)  # a confidence: the gate applies instead
-    domain_checks(regression, sc, None, {}, cfg)
+    domain_checks(regression, sc, None, {}, cfg=cfg)
     decide(regression, cfg)
     assert "confirms" not in regression["selfcal_check"] and regression["class"] == "3"
 

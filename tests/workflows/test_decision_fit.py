@@ -99,7 +99,7 @@ def _validation(n: int, inflate: float, seed: int = 0):
     est = (true + inflate * std * torch.randn(n, generator=g, dtype=torch.float64)).abs()
     results = [{"in_domain": True, "estimated_delta_avg": float(e), "delta_avg_std": float(s), "motion_px": 10.0,
                 "relief_found": False, "raw_confidence": 0.5} for e, s in zip(est, std)]
-    data = {"class_avg": estimated_class(true, true, "delta_avg", cfg), "delta_avg": true}
+    data = {"class_avg": estimated_class(true, true, metric="delta_avg", config=cfg), "delta_avg": true}
     return results, data, cfg
 
 
@@ -123,7 +123,7 @@ def test_a_plateau_of_r_thresholds_is_decided_by_the_confidence_not_the_shipped_
     for r in results[:80]:  # class R: true 0, estimates a little above it
         r["estimated_delta_avg"] = float(0.02 + 0.18 * torch.rand(1, generator=g, dtype=torch.float64))
     data["delta_avg"][:80] = 0.0
-    data["class_avg"] = estimated_class(data["delta_avg"], data["delta_avg"], "delta_avg", cfg)
+    data["class_avg"] = estimated_class(data["delta_avg"], data["delta_avg"], metric="delta_avg", config=cfg)
     for r in results[80:]:
         r["estimated_delta_avg"] = max(r["estimated_delta_avg"], 1.0)
     fits = [fit_decision({"selfcal": results}, data, _cfg(no_distortion_px=t))["no_distortion_px"] for t in (0.25, 0.5, 0.9)]
@@ -133,7 +133,7 @@ def test_a_plateau_of_r_thresholds_is_decided_by_the_confidence_not_the_shipped_
 def test_scales_stay_where_there_is_nothing_to_score():
     results, data, cfg = _validation(50, 1.0)
     data["class_avg"] = estimated_class(torch.tensor([r["estimated_delta_avg"] for r in results]),
-                                        torch.tensor([r["estimated_delta_avg"] for r in results]), "delta_avg", cfg)
+                                        torch.tensor([r["estimated_delta_avg"] for r in results]), metric="delta_avg", config=cfg)
     fitted = fit_decision({"selfcal": results}, data, _cfg(selfcal_std_scale=1.3))
     assert fitted["selfcal_std_scale"] == 1.3  # every class right: the sharpest scale would always win
 

@@ -107,7 +107,7 @@ def test_a_prepared_batch_under_another_decision_is_one_fit(monkeypatch):
     calls = []
     real = prepare.estimate_distortion
     monkeypatch.setattr(prepare, "estimate_distortion", lambda *x, **k: calls.append(1) or real(*x, **k))
-    prep = prepare_batch(a, b, cfg)
+    prep = prepare_batch(a, b, config=cfg)
     mine = analyze_batch(None, None, config=cfg, prepared=prep)
     theirs = analyze_batch(None, None, config=other, prepared=prep.with_decision(other.analysis))
     assert len(calls) == 2  # one fit per pair, shared by both decisions
@@ -164,7 +164,7 @@ def test_inputs_and_shared_preparation(tmp_path):
     as_list = analyze_batch([a[0], a[1]], [b[0], b[1]], config=cfg)
     as_tensor = analyze_batch(a, b, config=cfg)
     assert [r.delta_avg for r in as_list] == [r.delta_avg for r in as_tensor]
-    prep = prepare_batch(a, b, cfg)
+    prep = prepare_batch(a, b, config=cfg)
     again = analyze_batch(None, None, config=cfg, prepared=prep)
     assert [r.delta_avg for r in again] == [r.delta_avg for r in as_tensor]
     given = analyze_batch(a, b, config=cfg, homography=prep.H)

@@ -29,7 +29,7 @@ def _phi(x: float) -> float:
 
 def _label(d: float, cfg: LensdistConfig) -> str:
     t = torch.tensor([d], dtype=torch.float64)
-    return CLASS_LABELS[int(estimated_class(t, t, "delta_avg", cfg)[0])]
+    return CLASS_LABELS[int(estimated_class(t, t, metric="delta_avg", config=cfg)[0])]
 
 
 # ------------------------------------------------------------------ the statistic and the rule
@@ -101,7 +101,7 @@ def _split(n: int, planar_bias: float, planar_noise: float, relief_noise: float,
                 "planar_delta_avg": float(p), "planar_delta_avg_std": planar_noise,
                 "relief_delta_avg": float(r), "relief_delta_avg_std": relief_noise, "relief_found": False}
                for p, r in zip(planar, relief)]
-    return results, {"class_avg": estimated_class(true, true, "delta_avg", cfg), "delta_avg": true}, cfg
+    return results, {"class_avg": estimated_class(true, true, metric="delta_avg", config=cfg), "delta_avg": true}, cfg
 
 
 def _fitted(results, data, cfg):

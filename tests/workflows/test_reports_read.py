@@ -22,7 +22,7 @@ def _report() -> dict:
     t = CANNOT_TELL
     fig = evaluate_predictions(
         torch.tensor([0, t, 2, 3, 4, 4, 1]), torch.tensor([1.0, float("nan"), 9.0, 12.0, 0.0, 0.0, 3.0]),
-        torch.tensor([0, 1, 1, 3, 4, 4, 4]), torch.tensor([1.5, 4.0, 4.0, 12.5, 0.0, 0.0, 0.0]), 14.4,
+        torch.tensor([0, 1, 1, 3, 4, 4, 4]), torch.tensor([1.5, 4.0, 4.0, 12.5, 0.0, 0.0, 0.0]), delta_range=14.4,
         registration_ok=torch.tensor([True] * 7),
         extra_groups={"t_y 0-5 px": torch.tensor([1, 1, 0, 0, 0, 0, 0]), "t_y 5-40 px": torch.tensor([0, 0, 1, 1, 1, 1, 1])},
     )

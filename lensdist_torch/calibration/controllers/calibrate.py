@@ -131,7 +131,7 @@ def calibrate_path(
                               or focal <= 0):  # checked before the run, not by the OpenCV export at its end
         raise ValueError(f"focal must be a positive number of pixels or None, got {focal!r}")
     cfg, frames, scale = or_defaults(config, CalibrationConfig), [], 1.0
-    for _, img in frames_of_one_size(path, True, max_frames, quiet, "reading"):
+    for _, img in frames_of_one_size(path, grey=True, max_frames=max_frames, quiet=quiet, desc="reading"):
         scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
         frames.append(to_analysis(img, scale))
         size = tuple(img.shape[-2:])
@@ -159,7 +159,7 @@ def calibrate_path(
         # (too few frames for a mapping is the multi-view path's own reason)
         mv = {"ok": False, "reason": cal.reason}
     elif method != "direct":
-        mv = multiview_path(path, size, st.multiview, st, max_frames, quiet)
+        mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames, quiet=quiet)
         if method == "multiview" and not mv["ok"]:
             raise ValueError(mv["reason"])
     return _finite(_verified(_with_focal(combine(out, mv), focal, size), torch.cat(frames), cal, cfg, st))
@@ -270,7 +270,8 @@ def synthetic_sequence(
     src = load_scene(scene).double()
     hs, ws = src.shape[-2:]
     c = torch.tensor(distortion_center(h, w), dtype=torch.float64)
-    rel = torch.stack([distortion_grid([k2], [k4], h, w, torch.float64)[0], distortion_grid([0.0], [0.0], h, w, torch.float64)[0]]) - c
+    rel = torch.stack([distortion_grid([k2], [k4], h, w, dtype=torch.float64)[0],
+                       distortion_grid([0.0], [0.0], h, w, dtype=torch.float64)[0]]) - c
     u = torch.rand(3, n_frames, generator=g, dtype=torch.float64)
     ty = torch.cat([torch.zeros(1, dtype=torch.float64), (step_px[0] + (step_px[1] - step_px[0]) * u[0, 1:]).cumsum(0)])
     tx, th = jitter_px * (2 * u[1] - 1), torch.deg2rad(rotation_deg * (2 * u[2] - 1))
@@ -288,7 +289,7 @@ def synthetic_sequence(
         y = z * (float(ext[1]) + ty[i] + sin * ri[..., 0] + cos * ri[..., 1])
         nadir = ((ws - 1) / 2 + z * float(tx[i]), z * (float(ext[1]) + float(ty[i])))
         # heights are fractions of the camera's height: a lower camera sees the same hills larger
-        x, y = relief_samples(x, y, nadir, field, float(scale[i]))
+        x, y = relief_samples(x, y, nadir, field, altitude=float(scale[i]))
         out.append(F.grid_sample(src.expand(2, -1, -1, -1), torch.stack([x / (ws - 1), y / (hs - 1)], -1) * 2 - 1,
                                  align_corners=True).float())
     frames = torch.stack(out, 1)  # (2, N, 1, H, W)

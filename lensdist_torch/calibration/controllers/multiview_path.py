@@ -56,7 +56,7 @@ def evenly_spaced(n: int, most: int) -> list[int]:
     return [round(i * (n - 1) / (most - 1)) for i in range(most)]
 
 
-def multiview_path(path: str | Path, image_size: tuple[int, int], config: MultiViewConfig | None = None,
+def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: MultiViewConfig | None = None,
                    settings: LensdistConfig | None = None, max_frames: int | None = 300, quiet: bool = True) -> dict:
     """The multi-view calibration of a folder of frames or a video, as a dict (module docstring).
 
