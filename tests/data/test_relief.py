@@ -14,8 +14,8 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.data.relief import HeightField, draw_height_field, relief_fraction, relief_samples
 from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
+from lensdist_torch.data.relief import HeightField, draw_height_field, relief_fraction, relief_samples
 
 F64 = torch.float64
 REGION = (0.0, 400.0, 0.0, 300.0)
