@@ -23,13 +23,12 @@ from __future__ import annotations
 import csv
 import dataclasses
 import hashlib
-import json
 import time
 from pathlib import Path
 
 from lensdist_torch import __version__
 from lensdist_torch.calibration.controllers.archive import input_digest
-from lensdist_torch.calibration.controllers.archive_book import ArchiveBook, check_shard, share_of
+from lensdist_torch.calibration.controllers.archive_book import ArchiveBook, check_shard, payload_digest, share_of
 from lensdist_torch.calibration.controllers.archive_table import row_columns, write_rows
 from lensdist_torch.config import LensdistConfig, config_to_dict
 from lensdist_torch.config.checks import one_line, or_defaults
@@ -240,7 +239,7 @@ def pair_settings_digest(*, method: str = "selfcal", checkpoint=None, checkpoint
     payload = {"analysis": "pair", "method": method, "checkpoint": file(checkpoint), "checkpoint_max": file(checkpoint_max),
                "device": str(device or "cpu").split(":")[0],
                "config": config_to_dict(or_defaults(settings, LensdistConfig, "settings")), "version": __version__}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+    return payload_digest(payload)
 
 
 def pair_row(answer: dict, *, pair: PairInput, seconds: float, digest: str, settings: str, answer_file: str,

@@ -62,14 +62,21 @@ from pathlib import Path
 import torch
 
 from lensdist_torch.calibration.controllers.answer_file import Calibration, read_calibration
-from lensdist_torch.calibration.controllers.answer_lens import eq4_lens, lens_grid, lens_ideal, lens_view, scale_lens
+from lensdist_torch.calibration.controllers.answer_lens import (
+    eq4_lens,
+    lens_grid,
+    lens_ideal,
+    lens_view,
+    radial_lens_opencv,
+    scale_lens,
+)
 from lensdist_torch.core.frames import frames_of_one_size, list_frames
 from lensdist_torch.core.outputs import refuse_data_sets
 from lensdist_torch.core.png import deep_samples, encode_png, to_uint8, to_uint16
 from lensdist_torch.core.storage import atomic_write_text, staged_folder
 from lensdist_torch.geometry.distortion import distortion_center, sample_at_pixels
 from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_export, radial_monotone
+from lensdist_torch.geometry.opencv_model import opencv_export, radial_monotone
 from lensdist_torch.geometry.radial_lens import monotone_radius
 from lensdist_torch.geometry.undistort import monotone_branch
 
@@ -324,9 +331,7 @@ def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, al
     if lens is None:
         cv, model = opencv_export(k2, k4, h, w, focal=focal, model="standard"), "standard"
     elif lens["kind"] == "radial":
-        fit = opencv_camera_from_map(lambda p: lens_ideal(lens, p, h, w)[0], h, w, focal=focal, model="rational",
-                                     step=map_grid_step(h, w), centre=lens["centre"])
-        cv, model = {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items()}, "rational"
+        cv, model = radial_lens_opencv(lens, h, w, focal=focal, model="rational"), "rational"
     else:  # the camera itself: exact
         cv = {"camera_matrix": lens["camera_matrix"], "dist_coeffs": lens["dist_coeffs"], "fit_error_mean_px": 0.0,
               "fit_error_max_px": 0.0}

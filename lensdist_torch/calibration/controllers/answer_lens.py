@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
-from lensdist_torch.geometry.opencv_model import opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_ideal_points
 from lensdist_torch.geometry.radial_lens import lens_ideal_points, lens_inverts
 from lensdist_torch.geometry.undistort import (
     lens_optimal_view,
@@ -33,7 +33,7 @@ from lensdist_torch.geometry.undistort import (
     undistortion_grid,
 )
 
-__all__ = ["answer_lens", "eq4_lens", "scale_lens", "lens_ideal", "lens_grid", "lens_view"]
+__all__ = ["answer_lens", "eq4_lens", "scale_lens", "lens_ideal", "lens_grid", "lens_view", "radial_lens_opencv"]
 
 
 def answer_lens(res: dict) -> dict | None:
@@ -126,3 +126,20 @@ def lens_grid(lens: dict, height: int, width: int, *, dtype: torch.dtype = torch
 def lens_view(lens: dict, height: int, width: int, alpha: float) -> tuple[float, float, float, float]:
     """The view of OpenCV's ``getOptimalNewCameraMatrix(..., alpha)`` under ``lens``."""
     return _VIEWS[lens["kind"]](*_args(lens), height, width, alpha=alpha)
+
+
+def radial_lens_opencv(lens: dict, height: int, width: int, *, focal: float | None = None, model: str = "rational") -> dict:
+    """OpenCV's camera fitted to a "radial" ``lens`` about its centre, strict-JSON-ready (the fit's ``model`` left out).
+
+    ``focal``: fx = fy in pixels (the half diagonal when None); ``model`` "standard" (5
+    coefficients) or "rational" (8).
+
+    Example:
+        >>> lens = {"kind": "radial", "coefficients": [0.05], "centre": [31.5, 23.5]}
+        >>> cam = radial_lens_opencv(lens, 48, 64, focal=100.0)
+        >>> cam["camera_matrix"][0][0], len(cam["dist_coeffs"]), cam["fit_error_mean_px"] < 0.05
+        (100.0, 8, True)
+    """
+    fit = opencv_camera_from_map(lambda p: lens_ideal(lens, p, height, width)[0], height, width, focal=focal, model=model,
+                                 step=map_grid_step(height, width), centre=lens["centre"])
+    return {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items() if k != "model"}

@@ -31,14 +31,13 @@ import csv
 import dataclasses
 import glob
 import hashlib
-import json
 import struct
 import time
 from pathlib import Path
 
 from lensdist_torch import __version__
 from lensdist_torch.calibration.controllers.answer_file import answer_text
-from lensdist_torch.calibration.controllers.archive_book import ArchiveBook, check_shard, share_of
+from lensdist_torch.calibration.controllers.archive_book import ArchiveBook, check_shard, payload_digest, share_of
 from lensdist_torch.calibration.controllers.archive_table import (
     ArchiveRow,
     CameraSummary,
@@ -196,7 +195,7 @@ def settings_digest(*, method: str = "auto", max_frames: int | None = 300, focal
     """
     payload = {"method": method, "max_frames": max_frames, "focal": focal, "device": str(device or "cpu").split(":")[0],
                "config": config_to_dict(or_defaults(settings, LensdistConfig, "settings")), "version": __version__}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
+    return payload_digest(payload)
 
 
 def require_ray():

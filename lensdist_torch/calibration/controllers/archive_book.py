@@ -30,7 +30,17 @@ from lensdist_torch.config.checks import one_line
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.data.locks import DataSetLocked, share_lock
 
-__all__ = ["ArchiveBook", "archive_key", "archive_stem", "check_shard", "read_row_file", "share_of"]
+__all__ = ["ArchiveBook", "payload_digest", "archive_key", "archive_stem", "check_shard", "read_row_file", "share_of"]
+
+
+def payload_digest(payload: dict) -> str:
+    """SHA-256 (hex) of a run's settings as canonical strict JSON (keys sorted): one digest for every archive.
+
+    Example:
+        >>> payload_digest({"b": 1, "a": [2.0]}) == payload_digest({"a": [2.0], "b": 1})
+        True
+    """
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, allow_nan=False).encode()).hexdigest()
 
 
 def archive_key(ident: str, digest: str | None, settings: str) -> str:

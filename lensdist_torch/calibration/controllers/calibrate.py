@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from lensdist_torch.calibration.controllers.answer_lens import answer_lens, lens_ideal, scale_lens
+from lensdist_torch.calibration.controllers.answer_lens import answer_lens, radial_lens_opencv, scale_lens
 from lensdist_torch.calibration.controllers.multiview_path import MIN_FRAMES, combine, multiview_path
 from lensdist_torch.calibration.controllers.verify import verdict, verify_undistortion
 from lensdist_torch.calibration.direct import (
@@ -40,7 +40,7 @@ from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
-from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_export
+from lensdist_torch.geometry.opencv_model import opencv_export
 
 METHODS = ("auto", "multiview", "direct")
 #: Where the OpenCV camera's fx = fy comes from (the answer's ``focal_source``): COLMAP's bundle
@@ -178,11 +178,8 @@ def _with_focal(res: dict, focal: float | None, size: tuple[int, int]) -> dict:
     res["focal_source"] = FOCAL_SOURCES[1] if focal is not None else FOCAL_SOURCES[2]
     lens = answer_lens(res)
     if focal is not None and lens is not None and lens["kind"] == "radial":
-        h, w = size
         for key, model in (("opencv", "standard"), ("opencv_rational", "rational")):
-            fit = opencv_camera_from_map(lambda p: lens_ideal(lens, p, h, w)[0], h, w, focal=focal, model=model,
-                                         step=map_grid_step(h, w), centre=lens["centre"])
-            res[key] = {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items() if k != "model"}
+            res[key] = radial_lens_opencv(lens, *size, focal=focal, model=model)
     return res
 
 
