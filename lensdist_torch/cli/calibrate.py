@@ -185,10 +185,9 @@ def _cmd_archive(args: argparse.Namespace) -> int:
                               device=resolve_device(args.device), settings=settings, shard=args.shard or (0, 1),
                               engine=args.engine or "local", ray_address=args.ray_address, quiet=args.quiet)
     if args.json:
-        print(json.dumps({"inputs": run.inputs, "selected": run.selected, "computed": run.computed, "reused": run.reused,
-                          "failed": run.failed, "rows": [r.columns() for r in run.rows],
-                          "cameras": [c.columns() for c in run.cameras], "files": list(run.files)},
-                         indent=2, allow_nan=False))
+        argtypes.print_json({"inputs": run.inputs, "selected": run.selected, "computed": run.computed,
+                             "reused": run.reused, "failed": run.failed, "rows": [r.columns() for r in run.rows],
+                             "cameras": [c.columns() for c in run.cameras], "files": list(run.files)})
     else:
         _print_archive(run)
     return 0
