@@ -77,34 +77,60 @@ def accuracy(m: int, noise: float = 0.0, realistic: bool = False) -> dict:
                                         realistic=realistic)[0]
             if noise > 0:  # sensor noise, then 8-bit quantisation
                 g = torch.Generator().manual_seed(seed)
-                frames = ((frames + noise / 255 * torch.randn(frames.shape, generator=g)).clamp(0, 1) * 255).round() / 255
+                frames = (
+                    (frames + noise / 255 * torch.randn(frames.shape, generator=g)).clamp(0, 1) * 255
+                ).round() / 255
             t0 = time.perf_counter()
             cal = calibrate_sequence(frames)
-            rows.append({"level": level, "seed": seed, "time_s": time.perf_counter() - t0, "cal": cal,
-                         "true_avg": float(delta_avg([k2], [k4], *SIZE)[0]), "true_max": float(delta_max([k2], [k4], *SIZE)[0])})
+            rows.append(
+                {
+                    "level": level,
+                    "seed": seed,
+                    "time_s": time.perf_counter() - t0,
+                    "cal": cal,
+                    "true_avg": float(delta_avg([k2], [k4], *SIZE)[0]),
+                    "true_max": float(delta_max([k2], [k4], *SIZE)[0]),
+                }
+            )
     out = {"range_px": top, "per_level": {}}
     for level in LEVELS:
         sel = [r for r in rows if r["level"] == level]
         err = torch.tensor([r["cal"].delta_avg_user_px - r["true_avg"] for r in sel], dtype=torch.float64)
-        cover_avg = [r["cal"].delta_avg_user_interval[0] <= r["true_avg"] <= r["cal"].delta_avg_user_interval[1] for r in sel]
-        cover_max = [r["cal"].delta_max_user_interval[0] <= r["true_max"] <= r["cal"].delta_max_user_interval[1] for r in sel]
+        cover_avg = [
+            r["cal"].delta_avg_user_interval[0] <= r["true_avg"] <= r["cal"].delta_avg_user_interval[1] for r in sel
+        ]
+        cover_max = [
+            r["cal"].delta_max_user_interval[0] <= r["true_max"] <= r["cal"].delta_max_user_interval[1] for r in sel
+        ]
         want = "R" if level == 0 else str(1 + int(level * 4))
-        half = torch.tensor([(r["cal"].delta_avg_user_interval[1] - r["cal"].delta_avg_user_interval[0]) / 2 for r in sel])
+        half = torch.tensor(
+            [(r["cal"].delta_avg_user_interval[1] - r["cal"].delta_avg_user_interval[0]) / 2 for r in sel]
+        )
         out["per_level"][str(level)] = {
-            "n": len(sel), "true_delta_avg_px": sum(r["true_avg"] for r in sel) / len(sel),
-            "rmse_px": float(err.pow(2).mean().sqrt()), "rmse_pct": float(100 * err.pow(2).mean().sqrt() / top),
-            "bias_px": float(err.mean()), "max_abs_err_px": float(err.abs().max()),
-            "coverage_delta_avg": sum(cover_avg) / len(sel), "coverage_delta_max": sum(cover_max) / len(sel),
-            "median_halfwidth_px": float(half.median()), "class_rate": sum(r["cal"].class_label == want for r in sel) / len(sel),
+            "n": len(sel),
+            "true_delta_avg_px": sum(r["true_avg"] for r in sel) / len(sel),
+            "rmse_px": float(err.pow(2).mean().sqrt()),
+            "rmse_pct": float(100 * err.pow(2).mean().sqrt() / top),
+            "bias_px": float(err.mean()),
+            "max_abs_err_px": float(err.abs().max()),
+            "coverage_delta_avg": sum(cover_avg) / len(sel),
+            "coverage_delta_max": sum(cover_max) / len(sel),
+            "median_halfwidth_px": float(half.median()),
+            "class_rate": sum(r["cal"].class_label == want for r in sel) / len(sel),
             "pairs_used_mean": sum(r["cal"].pairs_used for r in sel) / len(sel),
             "pairs_rejected_total": sum(r["cal"].pairs_rejected for r in sel),
         }
     all_err = torch.tensor([r["cal"].delta_avg_user_px - r["true_avg"] for r in rows], dtype=torch.float64)
     cov = [r["cal"].delta_avg_user_interval[0] <= r["true_avg"] <= r["cal"].delta_avg_user_interval[1] for r in rows]
     covm = [r["cal"].delta_max_user_interval[0] <= r["true_max"] <= r["cal"].delta_max_user_interval[1] for r in rows]
-    out["all"] = {"n": len(rows), "rmse_pct": float(100 * all_err.pow(2).mean().sqrt() / top),
-                  "max_abs_err_pct": float(100 * all_err.abs().max() / top), "coverage_delta_avg": sum(cov) / len(rows),
-                  "coverage_delta_max": sum(covm) / len(rows), "seconds_per_sequence": sum(r["time_s"] for r in rows) / len(rows)}
+    out["all"] = {
+        "n": len(rows),
+        "rmse_pct": float(100 * all_err.pow(2).mean().sqrt() / top),
+        "max_abs_err_pct": float(100 * all_err.abs().max() / top),
+        "coverage_delta_avg": sum(cov) / len(rows),
+        "coverage_delta_max": sum(covm) / len(rows),
+        "seconds_per_sequence": sum(r["time_s"] for r in rows) / len(rows),
+    }
     errs = [opencv_error(r["cal"].k2_user, r["cal"].k4_user, SIZE) for r in rows if r["level"] > 0]
     out["opencv_320x424"] = {"source": errs[0][2], "mean_px_mean": sum(e[0] for e in errs) / len(errs),
                              "mean_px_worst": max(e[0] for e in errs), "max_px_worst": max(e[1] for e in errs)}

@@ -124,17 +124,41 @@ def main() -> None:
                 print(f"{method}: {runs[-1]['seconds']:.1f} s, {runs[-1]['peak_rss_mb']:.0f} MB, "
                       f"class {runs[-1]['class']}, {runs[-1]['delta_avg_user_px']:.2f} px", flush=True)
     best = {m: min(r["seconds"] for r in runs if r["method"] == m) for m in ("direct", "auto")}
-    out = {"command": "python benchmarks/bench_calibrate_speed.py " + " ".join(
-               f"--{k} {v}" for k, v in vars(args).items() if k != "out") + f" --out {args.out}",
-           "sequence": {"frames": args.frames, "size": list(size), "scene": "gravel", "seed": 0, "relief": 0.02,
-                        "realistic": True, "rotation_deg": args.rotation, "altitude": args.altitude, "k2": k2, "k4": k4,
-                        "upsample": up, "rendered_size": list(rendered), "truth_delta_avg_px": float(delta_avg([k2], [k4], *size)[0])},
-           "machine": {"cpus": multiprocessing.cpu_count(), "threads": args.threads, "python": platform.python_version(),
-                       "load_average_at_end": list(os.getloadavg())},
-           "goal_s": goal, "best_seconds": best, "auto_over_direct": best["auto"] / best["direct"],
-           "meets_goal": best["auto"] <= goal, "runs": runs}
+    out = {
+        "command": "python benchmarks/bench_calibrate_speed.py "
+        + " ".join(f"--{k} {v}" for k, v in vars(args).items() if k != "out")
+        + f" --out {args.out}",
+        "sequence": {
+            "frames": args.frames,
+            "size": list(size),
+            "scene": "gravel",
+            "seed": 0,
+            "relief": 0.02,
+            "realistic": True,
+            "rotation_deg": args.rotation,
+            "altitude": args.altitude,
+            "k2": k2,
+            "k4": k4,
+            "upsample": up,
+            "rendered_size": list(rendered),
+            "truth_delta_avg_px": float(delta_avg([k2], [k4], *size)[0]),
+        },
+        "machine": {
+            "cpus": multiprocessing.cpu_count(),
+            "threads": args.threads,
+            "python": platform.python_version(),
+            "load_average_at_end": list(os.getloadavg()),
+        },
+        "goal_s": goal,
+        "best_seconds": best,
+        "auto_over_direct": best["auto"] / best["direct"],
+        "meets_goal": best["auto"] <= goal,
+        "runs": runs,
+    }
     atomic_write_text(args.out, json.dumps(out, indent=1, allow_nan=False) + "\n")
-    print(f"auto {best['auto']:.1f} s = {out['auto_over_direct']:.1f} x direct {best['direct']:.1f} s (goal {goal:g} s)")
+    print(
+        f"auto {best['auto']:.1f} s = {out['auto_over_direct']:.1f} x direct {best['direct']:.1f} s (goal {goal:g} s)"
+    )
 
 
 if __name__ == "__main__":

@@ -82,14 +82,18 @@ def calibrations(corners: dict, size: tuple[int, int]) -> list[dict]:
     for model, flags in (("standard (5)", 0), ("rational (8)", cv2.CALIB_RATIONAL_MODEL)):
         rows, held = [], []
         for part, sel, other in (("all views", even + odd, []), ("even views", even, odd), ("odd views", odd, even)):
-            rms, k, dist, _, _ = cv2.calibrateCamera([obj] * len(sel), [img[i] for i in sel], (w, h), None, None, flags=flags)
+            rms, k, dist, _, _ = cv2.calibrateCamera(
+                [obj] * len(sel), [img[i] for i in sel], (w, h), None, None, flags=flags
+            )
             dist = dist.ravel()[: 8 if flags else 5]
             rows.append({"model": model, "views": part, "n_views": len(sel), "rms_px": float(rms), "K": k.tolist(),
                          "dist": dist.tolist()})
             if other:  # this half's intrinsics on the other half's views
                 held.append(held_out_rms(obj, [img[i] for i in other], k, dist))
                 rows[-1]["held_out_rms_px"] = float(np.sqrt(held[-1][0] / held[-1][1]))
-        rows[0]["held_out_rms_px"] = float(np.sqrt(sum(se for se, _ in held) / sum(n for _, n in held)))  # both halves pooled
+        rows[0]["held_out_rms_px"] = float(
+            np.sqrt(sum(se for se, _ in held) / sum(n for _, n in held))
+        )  # both halves pooled
         out += rows
     return out
 
@@ -113,14 +117,22 @@ def main() -> None:
     rows = []
     print(f"the board's region: {100 * float(board.double().mean()):.1f} % of the frame; the published calibration "
           f"inverts on {100 * float(published.double().mean()):.1f} %")
-    print("| calibration | views | RMS (px) | held out (px) | inverts | Delta_avg where it inverts | where the published one "
-          "inverts | over the board's region |")
+    print(
+        "| calibration | views | RMS (px) | held out (px) | inverts | Delta_avg where it inverts | where the published one "
+        "inverts | over the board's region |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for c in calibrations(corners, (h, w)):
-        ideal, ok = opencv_ideal_points(g, torch.tensor(c["K"], dtype=torch.float64), torch.tensor(c["dist"], dtype=torch.float64))
+        ideal, ok = opencv_ideal_points(
+            g, torch.tensor(c["K"], dtype=torch.float64), torch.tensor(c["dist"], dtype=torch.float64)
+        )
         off = (ideal - g).norm(dim=-1)
-        c.update(invertible_fraction=float(ok.double().mean()), delta_avg_own_px=float(off[ok].mean()),
-                 delta_avg_inverts_px=float(off[published & ok].mean()), delta_avg_board_px=float(off[board & ok].mean()))
+        c.update(
+            invertible_fraction=float(ok.double().mean()),
+            delta_avg_own_px=float(off[ok].mean()),
+            delta_avg_inverts_px=float(off[published & ok].mean()),
+            delta_avg_board_px=float(off[board & ok].mean()),
+        )
         rows.append(c)
         print(f"| {c['model']} | {c['views']} ({c['n_views']}) | {c['rms_px']:.3f} | {c['held_out_rms_px']:.3f} | "
               f"{100 * c['invertible_fraction']:.1f} % | "
@@ -134,9 +146,11 @@ def main() -> None:
             report[f"answer_{key}"] = {"delta_avg_px": value, "interval": list(iv),
                                        "covers": [r["model"] + ", " + r["views"] for r in rows
                                                   if iv[0] <= r[f"delta_avg_{key}_px"] <= iv[1]]}
-            print(f"the answer's homography model over the {'pixels where the published calibration inverts' if key == 'inverts' else 'board region'}: "
-                  f"{value:.2f} px [{iv[0]:.2f}, {iv[1]:.2f}], covering {len(report[f'answer_{key}']['covers'])} of {len(rows)}: "
-                  f"{'; '.join(report[f'answer_{key}']['covers']) or 'none'}")
+            print(
+                f"the answer's homography model over the {'pixels where the published calibration inverts' if key == 'inverts' else 'board region'}: "
+                f"{value:.2f} px [{iv[0]:.2f}, {iv[1]:.2f}], covering {len(report[f'answer_{key}']['covers'])} of {len(rows)}: "
+                f"{'; '.join(report[f'answer_{key}']['covers']) or 'none'}"
+            )
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=1, allow_nan=False) + "\n")
 

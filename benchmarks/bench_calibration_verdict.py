@@ -147,7 +147,9 @@ def main() -> None:
         db = str(Path(tmp) / "frames.db")
         extract_and_match(db, frames, names, config=cfg, image_size=size)
         verified = read_verified_matches(db, names, cfg.planar_min_matches)
-        found = guided_matches(read_features(db, names), verified, planar["coefficients"], centre=planar["centre"], size=size, config=cfg)
+        found = guided_matches(
+            read_features(db, names), verified, planar["coefficients"], centre=planar["centre"], size=size, config=cfg
+        )
     m, info = refined_matches(found, lambda v: load_image(frames / names[v])[0, 0], planar["coefficients"],
                               centre=planar["centre"], size=size, config=cfg)
     m = m._replace(x1=m.x1.double(), x2=m.x2.double())
@@ -155,11 +157,23 @@ def main() -> None:
     regions = {"board": board, "outside": ~board, "all": torch.ones_like(board)}
     every = range(len(m.first))
     lenses = [("published", "standard (5)", "all views", opencv_lens(cal["K"], cal["dist"]), None)]
-    lenses += [("refit", c["model"], c["views"], opencv_lens(c["K"], c["dist"]), None) for c in calibrations(corners, size)]
-    lenses.append(("answer", "homography model", "in-sample", radial_lens(planar["coefficients"], planar["centre"], size), None))
+    lenses += [
+        ("refit", c["model"], c["views"], opencv_lens(c["K"], c["dist"]), None) for c in calibrations(corners, size)
+    ]
+    lenses.append(
+        ("answer", "homography model", "in-sample", radial_lens(planar["coefficients"], planar["centre"], size), None)
+    )
     mv = res.get("multiview") or {}
     if mv.get("camera_matrix") and mv.get("dist_coeffs"):  # COLMAP's self-calibration on the same frames
-        lenses.append(("COLMAP", mv.get("model", ""), "its reconstruction", opencv_lens(mv["camera_matrix"], mv["dist_coeffs"]), None))
+        lenses.append(
+            (
+                "COLMAP",
+                mv.get("model", ""),
+                "its reconstruction",
+                opencv_lens(mv["camera_matrix"], mv["dist_coeffs"]),
+                None,
+            )
+        )
     g = grid_points(*size, 2)
     g = g[opencv_lens(cal["K"], cal["dist"])[0](g)[1]]  # where the published calibration inverts
     rows = []
@@ -173,19 +187,38 @@ def main() -> None:
         other = range(1 - half, len(m.first), 2)
         part = transfer_errors(radial_lens(held[half][0], held[half][1], size), m, other)
         e = torch.where(torch.isfinite(part), part, e)
-    rows.append({"calibration": "answer", "model": "homography model", "views": "held out (two halves of the pairs)",
-                 "delta_avg_px": [delta_avg(radial_lens(h[0], h[1], size), g) for h in held], **{k: summary(e, r) for k, r in regions.items()}})
+    rows.append(
+        {
+            "calibration": "answer",
+            "model": "homography model",
+            "views": "held out (two halves of the pairs)",
+            "delta_avg_px": [delta_avg(radial_lens(h[0], h[1], size), g) for h in held],
+            **{k: summary(e, r) for k, r in regions.items()},
+        }
+    )
     print(f"{len(m.x1)} refined matches in {len(m.first)} pairs ({info['kept']} of {info['matches']} kept), "
           f"{int(board.sum())} inside the board's region")
     print("| lens | model | fitted on | board: median / RMS / > 2 px | outside | all | not inverted | Delta_avg (px) |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
-        cells = [f"{r[k]['median_px']:.3f} / {r[k]['rms_px']:.3f} / {100 * r[k]['over_2px']:.1f} %" if r[k]["matches"] else "-"
-                 for k in regions]
-        print(f"| {r['calibration']} | {r['model']} | {r['views']} | {' | '.join(cells)} | {r['all']['not_judged']} | "
-              f"{' / '.join(f'{v:.2f}' for v in (r['delta_avg_px'] if isinstance(r['delta_avg_px'], list) else [r['delta_avg_px']]))} |")
+        cells = [
+            f"{r[k]['median_px']:.3f} / {r[k]['rms_px']:.3f} / {100 * r[k]['over_2px']:.1f} %"
+            if r[k]["matches"]
+            else "-"
+            for k in regions
+        ]
+        print(
+            f"| {r['calibration']} | {r['model']} | {r['views']} | {' | '.join(cells)} | {r['all']['not_judged']} | "
+            f"{' / '.join(f'{v:.2f}' for v in (r['delta_avg_px'] if isinstance(r['delta_avg_px'], list) else [r['delta_avg_px']]))} |"
+        )
     if args.out:
-        report = {"matches": len(m.x1), "pairs": len(m.first), "refined": info, "board_matches": int(board.sum()), "rows": rows}
+        report = {
+            "matches": len(m.x1),
+            "pairs": len(m.first),
+            "refined": info,
+            "board_matches": int(board.sum()),
+            "rows": rows,
+        }
         atomic_write_text(Path(args.out), json.dumps(report, indent=1, allow_nan=False) + "\n")
 
 

@@ -47,7 +47,13 @@ def stages(pairs: int, batch: int, threads: int) -> dict:
         t4 = time.perf_counter()
         registration_error_counts(i1, w, v, config=cfg.quality, validate=False)
         t5 = time.perf_counter()
-        for k, a, b in (("draw", t0, t1), ("render", t1, t2), ("registration", t2, t3), ("warp", t3, t4), ("metric", t4, t5)):
+        for k, a, b in (
+            ("draw", t0, t1),
+            ("render", t1, t2),
+            ("registration", t2, t3),
+            ("warp", t3, t4),
+            ("metric", t4, t5),
+        ):
             t[k] += b - a
         # accuracy on the same pairs without distortion, where the true H = M^-1 is exact
         p.k2.zero_()

@@ -98,7 +98,9 @@ def metric_cases(device: torch.device, size: tuple[int, int], batches, seconds: 
         for name, fn in cases.items():
             with torch.set_grad_enabled(name.startswith("loss")):
                 pps, peak = rate(fn, batch, device, seconds)
-            rows.append({"case": name, "size": f"{h}x{w}", "batch": batch, "pairs_per_s": pps, "peak_mb_per_pair": peak})
+            rows.append(
+                {"case": name, "size": f"{h}x{w}", "batch": batch, "pairs_per_s": pps, "peak_mb_per_pair": peak}
+            )
     return rows
 
 
@@ -172,7 +174,9 @@ def main(argv=None) -> int:
     p.add_argument("--seconds", type=float, default=1.0)
     p.add_argument("--pairs", type=int, default=32)
     p.add_argument("--config", default="configs/realistic.toml")
-    p.add_argument("--compile", action="store_true", help="also the compiled hard map on the device (320 x 424, batch 64)")
+    p.add_argument(
+        "--compile", action="store_true", help="also the compiled hard map on the device (320 x 424, batch 64)"
+    )
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
     device = torch.device(args.device)
@@ -196,7 +200,9 @@ def main(argv=None) -> int:
     result["agreement"] = agreement(answers["cpu"], answers[device.type])
     key = {(r["case"], r["size"], r["batch"], r["on"]): r for r in result["rows"]}
     print(f"device: {result['device']}; CPU: {args.threads} threads; torch {torch.__version__}")
-    print("| case | size | batch | device pairs/s | CPU pairs/s | device / CPU | x SSIM (device) | device peak MB / pair |")
+    print(
+        "| case | size | batch | device pairs/s | CPU pairs/s | device / CPU | x SSIM (device) | device peak MB / pair |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
     for r in result["rows"]:
@@ -206,8 +212,10 @@ def main(argv=None) -> int:
         peer = key.get(("kornia SSIM (peer)", r["size"], r["batch"], device.type))
         r["device_over_cpu"] = r["pairs_per_s"] / c["pairs_per_s"] if c else None
         r["over_ssim"] = r["pairs_per_s"] / peer["pairs_per_s"] if peer else None
-        print(f"| {r['case']} | {r['size']} | {r['batch']} | {r['pairs_per_s']:.1f} | {fmt(c and c['pairs_per_s'], '.1f')} | "
-              f"{fmt(r['device_over_cpu'], '.1f')} | {fmt(r['over_ssim'], '.2f')} | {fmt(r['peak_mb_per_pair'], '.1f')} |")
+        print(
+            f"| {r['case']} | {r['size']} | {r['batch']} | {r['pairs_per_s']:.1f} | {fmt(c and c['pairs_per_s'], '.1f')} | "
+            f"{fmt(r['device_over_cpu'], '.1f')} | {fmt(r['over_ssim'], '.2f')} | {fmt(r['peak_mb_per_pair'], '.1f')} |"
+        )
     print(json.dumps(result["agreement"]))
     if args.out:
         with open(args.out, "w") as f:

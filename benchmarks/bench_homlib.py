@@ -154,7 +154,9 @@ def run(a, config: LensdistConfig, homlib, cv2) -> dict:
     ours_avg, ours_max, ours_conf, t_ours = [], [], [], 0.0
     t_sift = c_sift = 0.0
     n_matches = []
-    theirs = {k: {"avg": [], "max": [], "lam": [], "inliers": [], "t": 0.0, "cpu": 0.0, "errors": []} for k in a.solvers}
+    theirs = {
+        k: {"avg": [], "max": [], "lam": [], "inliers": [], "t": 0.0, "cpu": 0.0, "errors": []} for k in a.solvers
+    }
     for s0 in range(0, n, a.batch):
         idx = list(range(s0, min(n, s0 + a.batch)))
         p = draw_pairs(config, "test", idx, len(scenes))
@@ -251,7 +253,11 @@ def table(res: dict, threads: int) -> str:
             lines.append(f"| {name} | {f['n']} | {f['flagged']} | {100 * f['class_rate']:.1f} | {f['rmse_px']:.2f} | "
                          f"{f['bias_px']:+.2f} | {f['delta_max']['rmse_px']:.2f} | - | - |")
             continue
-        speed = f"{f['pairs_per_s']:.2f} (batched, {threads} thr)" if ours else f"{f['pairs_per_s']:.2f} (1 thr, incl. SIFT)"
+        speed = (
+            f"{f['pairs_per_s']:.2f} (batched, {threads} thr)"
+            if ours
+            else f"{f['pairs_per_s']:.2f} (1 thr, incl. SIFT)"
+        )
         solver = "" if ours else f"{f['solver_pairs_per_s']:.1f}"
         lines.append(f"| {name} | {f['n']} | {f['flagged']} | {100 * f['class_rate']:.1f} | {f['rmse_px']:.2f} | "
                      f"{f['bias_px']:+.2f} | {f['delta_max']['rmse_px']:.2f} | {speed} | {solver} |")

@@ -41,7 +41,9 @@ def fit_family(points: torch.Tensor, ideal: torch.Tensor, centre, terms: int, si
     alone (:func:`lens_ideal_points`) adds to the points.
     """
     unit = torch.eye(terms, dtype=points.dtype)
-    columns = torch.stack([(lens_ideal_points(points, unit[k], *size, centre=centre) - points).reshape(-1) for k in range(terms)], 1)
+    columns = torch.stack(
+        [(lens_ideal_points(points, unit[k], *size, centre=centre) - points).reshape(-1) for k in range(terms)], 1
+    )
     return torch.linalg.lstsq(columns, (ideal - points).reshape(-1, 1)).solution[:, 0].tolist()
 
 
@@ -62,8 +64,10 @@ def checked(corners: dict, **lens) -> dict:
 
 
 def said(s: dict) -> str:
-    return (f"corners median {s['median_px']:.3f} px, worst {s['worst_px']:.2f} px, within 1 px {100 * s['within_1px']:.0f} % "
-            f"of views; in the image's px {s['image_median_px']:.3f}, {s['image_worst_px']:.2f}, {100 * s['image_within_1px']:.0f} %")
+    return (
+        f"corners median {s['median_px']:.3f} px, worst {s['worst_px']:.2f} px, within 1 px {100 * s['within_1px']:.0f} % "
+        f"of views; in the image's px {s['image_median_px']:.3f}, {s['image_worst_px']:.2f}, {100 * s['image_within_1px']:.0f} %"
+    )
 
 
 def main() -> None:
@@ -88,7 +92,10 @@ def main() -> None:
     if args.answer:
         planar = json.loads(Path(args.answer).read_text())["answer"]["planar"]
         centres[f"lensdist's ({planar['model']})"] = planar["centre"]
-    truth_a, truth_c = [0.3, 0.1, 0.05], [w / 2 + 7.0, h / 2 - 5.0]  # self-check: the family's own map is fitted exactly
+    truth_a, truth_c = (
+        [0.3, 0.1, 0.05],
+        [w / 2 + 7.0, h / 2 - 5.0],
+    )  # self-check: the family's own map is fitted exactly
     back = fit_family(p, lens_ideal_points(p, truth_a, h, w, centre=truth_c), truth_c, 3, (h, w))
     if max(abs(x - y) for x, y in zip(back, truth_a)) > 1e-9:
         raise SystemExit(f"self-check failed: {truth_a} fitted as {back}")
@@ -99,8 +106,15 @@ def main() -> None:
             a = fit_family(p, ideal, centre, n, (h, w))
             fitted = lens_ideal_points(p, a, h, w, centre=centre)
             map_rms = float((fitted - ideal).norm(dim=-1).pow(2).mean().sqrt())
-            s = checked(corners, k=None, dist=None, ideal=lambda x, a=a, centre=centre: lens_ideal_points(x, a, h, w, centre=centre))
-            report["rows"].append({"centre": where, "centre_px": centre, "terms": n, "coefficients": a, "map_rms_px": map_rms, **s})
+            s = checked(
+                corners,
+                k=None,
+                dist=None,
+                ideal=lambda x, a=a, centre=centre: lens_ideal_points(x, a, h, w, centre=centre),
+            )
+            report["rows"].append(
+                {"centre": where, "centre_px": centre, "terms": n, "coefficients": a, "map_rms_px": map_rms, **s}
+            )
             print(f"{n} terms about {where} ({centre[0]:.1f}, {centre[1]:.1f}): map RMS {map_rms:.2f} px; {said(s)}")
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=1) + "\n")

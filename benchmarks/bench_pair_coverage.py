@@ -46,9 +46,18 @@ def draw(seed: int, j: int) -> dict:
     g = torch.Generator().manual_seed(seed * 1_000_003 + j)
     truth = float(torch.rand(1, generator=g, dtype=torch.float64)) * 14.4
     sign = 1.0 if float(torch.rand(1, generator=g)) < 0.8 else -1.0
-    unit = float(delta_avg(torch.tensor([1e-6], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *SIZE)[0]) / 1e-6
-    return {"step": STEPS[j % len(STEPS)], "truth": truth, "k2": sign * truth / unit, "scene": ("gravel", "grass")[j % 2],
-            "realistic": j % 3 == 0, "seed": seed * 1_000_003 + j}
+    unit = (
+        float(delta_avg(torch.tensor([1e-6], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *SIZE)[0])
+        / 1e-6
+    )
+    return {
+        "step": STEPS[j % len(STEPS)],
+        "truth": truth,
+        "k2": sign * truth / unit,
+        "scene": ("gravel", "grass")[j % 2],
+        "realistic": j % 3 == 0,
+        "seed": seed * 1_000_003 + j,
+    }
 
 
 SLOW_K2 = (0.7e-6, 1.5e-6, 2.5e-6, 3.2e-6)  # Delta_avg 2.9, 6.3, 10.5, 13.4 px: near class boundaries
@@ -60,7 +69,9 @@ def draw_slow(seed: int, j: int) -> dict:
     ~ U[s, 1.1 s] px, +-0.5 px jitter, +-0.1 degree, every (k2, s) of the grid once per seed
     ``seed``, ``seed`` + 1, ..."""
     k2, step = SLOW_K2[(j // len(SLOW_STEPS)) % len(SLOW_K2)], SLOW_STEPS[j % len(SLOW_STEPS)]
-    truth = float(delta_avg(torch.tensor([k2], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *SIZE)[0])
+    truth = float(
+        delta_avg(torch.tensor([k2], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *SIZE)[0]
+    )
     return {"step": step, "truth": truth, "k2": k2, "scene": "gravel", "realistic": False,
             "seed": seed + j // (len(SLOW_K2) * len(SLOW_STEPS)), "design": "slow-pans"}
 
@@ -69,7 +80,9 @@ def run(seed: int, n: int, cfg: LensdistConfig, methods: tuple[str, ...], design
     rows = []
     for j in range(n):
         d = draw(seed, j) if design == "pans" else draw_slow(seed, j)
-        steps, jitter, rot = ((d["step"],) * 2, 1.0, 0.5) if design == "pans" else ((d["step"], 1.1 * d["step"]), 0.5, 0.1)
+        steps, jitter, rot = (
+            ((d["step"],) * 2, 1.0, 0.5) if design == "pans" else ((d["step"], 1.1 * d["step"]), 0.5, 0.1)
+        )
         frames, _ = synthetic_sequence(2, d["k2"], 0.0, size=SIZE, scene=d["scene"], seed=d["seed"], step_px=steps,
                                        jitter_px=jitter, rotation_deg=rot, realistic=d["realistic"], config=cfg)
         prep = prepare_batch(frames[:1], frames[1:], config=cfg)
@@ -84,7 +97,11 @@ def run(seed: int, n: int, cfg: LensdistConfig, methods: tuple[str, ...], design
 
 def _true_class(truth: float, cfg: LensdistConfig) -> str:
     t = torch.tensor([truth], dtype=torch.float64)
-    return CLASS_LABELS[int(distortion_class(t, delta_top("delta_avg", cfg))[0])] if truth >= cfg.analysis.no_distortion_px else "R"
+    return (
+        CLASS_LABELS[int(distortion_class(t, delta_top("delta_avg", cfg))[0])]
+        if truth >= cfg.analysis.no_distortion_px
+        else "R"
+    )
 
 
 def table(rows: list[dict], cfg: LensdistConfig, floor: float | None = None) -> list[dict]:
@@ -134,7 +151,9 @@ def main() -> None:
             still = [r for r in sel if r["motion"] is not None and r["motion"] < cfg.analysis.min_motion_px]
             result[f"{method}_answered_below_min_motion"] = [sum(r["class"] is not None for r in still), len(still)]
             result[f"{method}_answered"] = sum(r["class"] is not None for r in sel)
-            result[f"{method}_wrong_class_answered"] = sum(r["class"] not in (None, _true_class(r["truth"], cfg)) for r in sel)
+            result[f"{method}_wrong_class_answered"] = sum(
+                r["class"] not in (None, _true_class(r["truth"], cfg)) for r in sel
+            )
     if args.fit:
         for e in [k * 1e-6 for k in range(0, 101)]:
             bins = table(rows, cfg, floor=e)

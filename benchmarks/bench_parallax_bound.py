@@ -56,8 +56,9 @@ def correspondences(cfg, params, i: int, step: int):
     h, w = cfg.image.size
     x0, y0 = distortion_center(h, w)
     c = torch.tensor([x0, y0], dtype=torch.float64)
-    ys, xs = torch.meshgrid(torch.arange(0, h, step, dtype=torch.float64), torch.arange(0, w, step, dtype=torch.float64),
-                            indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(0, h, step, dtype=torch.float64), torch.arange(0, w, step, dtype=torch.float64), indexing="ij"
+    )
     p2 = torch.stack([xs.flatten(), ys.flatten()], -1)
     k2, k4 = params.k2[i : i + 1], params.k4[i : i + 1]
     u = undistort_points(p2[None], k2, k4, (x0, y0))[0] - c  # I2's ideal points, centred
@@ -145,8 +146,15 @@ def main() -> None:
             th = fit(src, dst, c, r, b, direction, epipole=epipole)
             ok = bool(torch.isfinite(th).all() and th[:2].abs().max() <= 2)
             est[name].append(float(delta_avg(th[0:1] / r**2, th[1:2] / r**4, h, w)) if ok else float("nan"))
-    out = {"config": a.config, "pairs": a.n, "step": a.step, "bumps": a.bumps, "width": a.width, "direction": a.direction,
-           "seconds": round(time.perf_counter() - t0, 1)}
+    out = {
+        "config": a.config,
+        "pairs": a.n,
+        "step": a.step,
+        "bumps": a.bumps,
+        "width": a.width,
+        "direction": a.direction,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
     truth = distortion_class(true, delta_top("delta_avg", cfg), cfg.distortion.n_classes)
     for name, values in est.items():
         e = torch.tensor(values, dtype=torch.float64)
@@ -160,7 +168,10 @@ def main() -> None:
         out["per_pair"] = {"index": list(range(a.n)), "relief_px": [round(v, 4) for v in est["relief"]],
                            "true_px": [round(float(v), 4) for v in true]}
         return _write(out, a.out)
-    wrong = estimated_class(torch.tensor(est["planar"]), torch.tensor(est["planar"]), metric="delta_avg", config=cfg) != truth
+    wrong = (
+        estimated_class(torch.tensor(est["planar"]), torch.tensor(est["planar"]), metric="delta_avg", config=cfg)
+        != truth
+    )
     out["cannot_tell_share"] = float(wrong.double().mean())  # planar model wrong on exact points (NaN counts)
     out["per_pair"] = {"index": list(range(a.n)), "relief": [round(float(v), 5) for v in params.realism.relief[:, 0]],
                        "planar_px": [round(v, 4) for v in est["planar"]], "true_px": [round(float(v), 4) for v in true]}

@@ -121,7 +121,9 @@ def main(argv=None) -> int:
                     best[("smooth", batch, threads, "current")]["pairs_per_s"]
                     / best[("smooth_fwd_bwd", batch, threads, "current")]["pairs_per_s"]
                 )
-                print(f"threads {threads}, batch {batch}: smooth forward+backward costs {ratio:.2f} x the smooth forward")
+                print(
+                    f"threads {threads}, batch {batch}: smooth forward+backward costs {ratio:.2f} x the smooth forward"
+                )
             if args.baseline:
                 for kind in args.kinds:
                     if kind == "kornia_ssim":

@@ -95,12 +95,18 @@ def homography_rms(k, dist, corners: dict, ideal=None, image_px: bool = False) -
 def truth_footprint(truth_k, truth_dist, size: tuple[int, int], step: int) -> torch.Tensor:
     """The ``step``-spaced grid pixels (N, 2) where the truth's model inverts."""
     p = grid_points(*size, step)
-    return p[opencv_ideal_points(p, torch.tensor(truth_k, dtype=torch.float64), torch.tensor(truth_dist, dtype=torch.float64))[1]]
+    return p[
+        opencv_ideal_points(
+            p, torch.tensor(truth_k, dtype=torch.float64), torch.tensor(truth_dist, dtype=torch.float64)
+        )[1]
+    ]
 
 
 def on_footprint(k, dist, points: torch.Tensor) -> float:
     """Delta_avg (px) of (k, dist) over ``points`` (the truth's footprint) where it inverts too."""
-    ideal, ok = opencv_ideal_points(points, torch.tensor(k, dtype=torch.float64), torch.tensor(dist, dtype=torch.float64))
+    ideal, ok = opencv_ideal_points(
+        points, torch.tensor(k, dtype=torch.float64), torch.tensor(dist, dtype=torch.float64)
+    )
     return float((ideal - points).norm(dim=-1)[ok].mean()) if bool(ok.any()) else float("nan")
 
 
@@ -113,8 +119,12 @@ def main() -> None:
     ap.add_argument("--corners", default=None)
     ap.add_argument("--out", default=None)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--answer", default=None, help="the JSON of `lensdist calibrate FRAMES --json` on these frames "
-                                                     "(or this benchmark's report), checked instead of running it again")
+    ap.add_argument(
+        "--answer",
+        default=None,
+        help="the JSON of `lensdist calibrate FRAMES --json` on these frames "
+        "(or this benchmark's report), checked instead of running it again",
+    )
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cal = json.loads(Path(args.calibration).read_text())["primary"]
@@ -128,20 +138,35 @@ def main() -> None:
     footprint = {step: truth_footprint(cal["K"], cal["dist"], (h, w), step) for step in (2, 4)}
     on_truth = None  # the homography model where the calibration inverts (its interval from its replicates, same rules)
     if pl.get("coefficients"):
-        on_truth = delta_avg_where(pl, footprint[2], h, w, config=MultiViewConfig(confidence=res.get("confidence", 0.95)))
+        on_truth = delta_avg_where(
+            pl, footprint[2], h, w, config=MultiViewConfig(confidence=res.get("confidence", 0.95))
+        )
     own = f"{res['delta_avg_user_px']:.2f} px over its own footprint"
     if res.get("method") == "planar" and on_truth is not None:
         rows = [("lensdist calibrate (answer)", "planar", on_truth[0], on_truth[1], res["class"], own)]
     else:
-        rows = [("lensdist calibrate (answer)", res.get("method"), res["delta_avg_user_px"], res["delta_avg_user_interval"],
-                 res["class"], (res.get("reason") or "") + " (over its own footprint)")]
+        rows = [
+            (
+                "lensdist calibrate (answer)",
+                res.get("method"),
+                res["delta_avg_user_px"],
+                res["delta_avg_user_interval"],
+                res["class"],
+                (res.get("reason") or "") + " (over its own footprint)",
+            )
+        ]
     mv = res.get("multiview") or {}
     for model, v in (mv.get("models") or {}).items():
-        if "camera_matrix" in v:  # its Delta where the calibration inverts, as the truth's (an answer saved before: its own footprint)
+        if (
+            "camera_matrix" in v
+        ):  # its Delta where the calibration inverts, as the truth's (an answer saved before: its own footprint)
             value = on_footprint(v["camera_matrix"], v["dist_coeffs"], footprint[2])
             note = f"reprojection {v['reprojection_px']:.3f} px; {v['delta_avg_px']:.2f} px where it inverts"
         else:
-            value, note = v["delta_avg_px"], f"reprojection {v['reprojection_px']:.3f} px; where it inverts, not the truth's pixels"
+            value, note = (
+                v["delta_avg_px"],
+                f"reprojection {v['reprojection_px']:.3f} px; where it inverts, not the truth's pixels",
+            )
         if "weight" in v:  # the held-out evidence and the posterior (answers since the models were weighed)
             note += (f"; weight {v['weight']:.3f}, posterior std {v['delta_avg_std_px']:.3f} px, jackknife "
                      f"{v['jackknife_std_px']:.3f} px, held-out RMS {v['heldout_rms_px']:.3f} px")
@@ -151,12 +176,22 @@ def main() -> None:
         rows.append(("lensdist, homography model", f"{pl['terms']} terms, {pl['pairs']} pairs", value, iv, pl["class"],
                      pl.get("reason") or f"{pl['delta_avg_user_px']:.2f} px over its own footprint"))
     d = res["direct"]
-    rows.append(("lensdist, direct path alone", "pairs", d["delta_avg_user_px"], d["delta_avg_user_interval"], d["class"],
-                 d.get("reason")))
+    rows.append(
+        (
+            "lensdist, direct path alone",
+            "pairs",
+            d["delta_avg_user_px"],
+            d["delta_avg_user_interval"],
+            d["class"],
+            d.get("reason"),
+        )
+    )
     report = {"frames": args.frames, "seconds": seconds, "truth": truth, "answer": res, "rows": rows,
               "multiview_reason": mv.get("reason")}
-    print(f"{res['frames']} frames of {w} x {h}, {seconds:.0f} s; truth Delta_avg {truth['delta_avg_px']:.2f} px over the "
-          f"{100 * truth['invertible_fraction']:.1f} % of pixels where the calibration's model inverts")
+    print(
+        f"{res['frames']} frames of {w} x {h}, {seconds:.0f} s; truth Delta_avg {truth['delta_avg_px']:.2f} px over the "
+        f"{100 * truth['invertible_fraction']:.1f} % of pixels where the calibration's model inverts"
+    )
     if "model" not in mv:
         print(f"multi-view path: no answer ({mv.get('reason')})")
     else:
@@ -186,12 +221,16 @@ def main() -> None:
         cam = res["opencv"] or res["opencv_rational"]
         if cam is not None:
             checks["lensdist answer"] = (cam["camera_matrix"], cam["dist_coeffs"])
-            report["answer_on_truth_footprint_px"] = on_footprint(cam["camera_matrix"], cam["dist_coeffs"], footprint[4])
+            report["answer_on_truth_footprint_px"] = on_footprint(
+                cam["camera_matrix"], cam["dist_coeffs"], footprint[4]
+            )
             print(f"the answer's Delta_avg over the pixels where the calibration inverts too: "
                   f"{report['answer_on_truth_footprint_px']:.2f} px")
         if "model" in mv:
             checks["multi-view estimate"] = (mv["camera_matrix"], mv["dist_coeffs"])
-            report["multiview_on_truth_footprint_px"] = on_footprint(mv["camera_matrix"], mv["dist_coeffs"], footprint[4])
+            report["multiview_on_truth_footprint_px"] = on_footprint(
+                mv["camera_matrix"], mv["dist_coeffs"], footprint[4]
+            )
             print(f"the multi-view estimate's Delta_avg there: {report['multiview_on_truth_footprint_px']:.2f} px")
         planar = res.get("planar") or {}
         maps = {}
@@ -201,24 +240,36 @@ def main() -> None:
             value, iv = on_truth
             report["planar_on_truth_footprint"] = {"delta_avg_px": value, "interval": iv,
                                                    "covers": iv[0] <= truth["delta_avg_px"] <= iv[1]}
-            for name, model in (("opencv", "standard"), ("opencv_rational", "rational")):  # its exports, about its centre
+            for name, model in (
+                ("opencv", "standard"),
+                ("opencv_rational", "rational"),
+            ):  # its exports, about its centre
                 cam = planar.get(name)
                 if cam is None:  # an answer saved before the block carried them: the library's same export of its map
                     fit = opencv_camera_from_map(maps["homography model (its lens map)"], h, w, model=model,
                                                  step=map_grid_step(h, w), centre=centre)
                     cam = {"camera_matrix": fit.camera_matrix.tolist(), "dist_coeffs": fit.dist_coeffs.tolist()}
                 checks[f"homography model ({name})"] = (cam["camera_matrix"], cam["dist_coeffs"])
-            print(f"the homography model: {planar['model']} about ({planar['centre'][0]:.1f}, {planar['centre'][1]:.1f}), "
-                  f"the calibration's principal point ({cal['K'][0][2]:.1f}, {cal['K'][1][2]:.1f}); its bending half-width "
-                  f"{planar['bending_halfwidth_px']:.2f} px over the {100 * planar['matched_fraction']:.0f} % of the frame its "
-                  "matches reach")
-            print(f"the homography model's Delta_avg over the pixels where the calibration inverts: {value:.2f} px "
-                  f"({100 * value / truth['delta_avg_px']:.1f} % of the truth) [{iv[0]:.2f}, {iv[1]:.2f}], covers "
-                  f"{'yes' if report['planar_on_truth_footprint']['covers'] else 'no'} ({planar['delta_avg_user_px']:.2f} "
-                  "px over its own footprint, every pixel)")
+            print(
+                f"the homography model: {planar['model']} about ({planar['centre'][0]:.1f}, {planar['centre'][1]:.1f}), "
+                f"the calibration's principal point ({cal['K'][0][2]:.1f}, {cal['K'][1][2]:.1f}); its bending half-width "
+                f"{planar['bending_halfwidth_px']:.2f} px over the {100 * planar['matched_fraction']:.0f} % of the frame its "
+                "matches reach"
+            )
+            print(
+                f"the homography model's Delta_avg over the pixels where the calibration inverts: {value:.2f} px "
+                f"({100 * value / truth['delta_avg_px']:.1f} % of the truth) [{iv[0]:.2f}, {iv[1]:.2f}], covers "
+                f"{'yes' if report['planar_on_truth_footprint']['covers'] else 'no'} ({planar['delta_avg_user_px']:.2f} "
+                "px over its own footprint, every pixel)"
+            )
         report["homography_rms"], report["homography_rms_image_px"] = {}, {}
-        for name, (k, dist, ideal) in ({n: (*v, None) for n, v in checks.items()} | {n: (None, None, f) for n, f in maps.items()}).items():
-            for key, unit, image_px in (("homography_rms", "undistorted px", False), ("homography_rms_image_px", "image px", True)):
+        for name, (k, dist, ideal) in (
+            {n: (*v, None) for n, v in checks.items()} | {n: (None, None, f) for n, f in maps.items()}
+        ).items():
+            for key, unit, image_px in (
+                ("homography_rms", "undistorted px", False),
+                ("homography_rms_image_px", "image px", True),
+            ):
                 rms = homography_rms(k, dist, corners, ideal, image_px=image_px)
                 report[key][name] = rms
                 finite = [v for v in rms if np.isfinite(v)]

@@ -47,11 +47,20 @@ def main() -> None:
     answered = [x for x in rows if x["class"] is not None]
     with_iv = [x for x in answered if x["interval_user_px"]]
     covers = [x for x in with_iv if x["interval_user_px"][0] <= args.truth <= x["interval_user_px"][1]]
-    summary = {"pairs": len(rows), "registered": sum(x["registered"] for x in rows), "answered": len(answered),
-               "classes": sorted({x["class"] for x in answered}), "answered_with_interval": len(with_iv),
-               "interval_covers_truth": len(covers), "truth_user_px": args.truth, "config": args.config,
-               "estimates_user_px": [round(x["estimate_user_px"], 1) for x in answered],
-               "cannot_tell_reasons": {c: sum(c in x["reasons"] for x in rows) for c in sorted({c for x in rows for c in x["reasons"]})}}
+    summary = {
+        "pairs": len(rows),
+        "registered": sum(x["registered"] for x in rows),
+        "answered": len(answered),
+        "classes": sorted({x["class"] for x in answered}),
+        "answered_with_interval": len(with_iv),
+        "interval_covers_truth": len(covers),
+        "truth_user_px": args.truth,
+        "config": args.config,
+        "estimates_user_px": [round(x["estimate_user_px"], 1) for x in answered],
+        "cannot_tell_reasons": {
+            c: sum(c in x["reasons"] for x in rows) for c in sorted({c for x in rows for c in x["reasons"]})
+        },
+    }
     print(json.dumps(summary, indent=1))
     if args.out:
         from lensdist_torch.core import atomic_write_text

@@ -62,7 +62,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("frames")
     ap.add_argument("calibration")
-    ap.add_argument("--levels", type=float, nargs="+", default=[0.0, 3.0, 6.0, 12.0], help="truth Delta_avg at --size, px")
+    ap.add_argument(
+        "--levels", type=float, nargs="+", default=[0.0, 3.0, 6.0, 12.0], help="truth Delta_avg at --size, px"
+    )
     ap.add_argument("--first", type=int, default=0)
     ap.add_argument("--count", type=int, default=22)
     ap.add_argument("--size", type=int, nargs=2, default=[288, 384], metavar=("H", "W"))
@@ -77,7 +79,11 @@ def main() -> None:
     files = files[args.first : args.first + args.count]
     frames = torch.cat([load_image(f) for f in files])
     size = tuple(args.size)
-    spread = calibration_spread(cal, cals["alternative_subpix"], frames.shape[-2:], size) if "alternative_subpix" in cals else None
+    spread = (
+        calibration_spread(cal, cals["alternative_subpix"], frames.shape[-2:], size)
+        if "alternative_subpix" in cals
+        else None
+    )
     rows = []
     for level in args.levels:
         k2 = k2_for(level, size)
@@ -91,26 +97,57 @@ def main() -> None:
         truth = float(delta_avg([k2], [0.0], *size)[0])
         iv = res["delta_avg_user_interval"]
         mv, d = res.get("multiview") or {}, res.get("direct") or {}
-        rows.append({
-            "level": level, "k2_user": k2, "truth_px": truth, "valid_fraction": out.valid_fraction, "seconds": seconds,
-            "answer_px": res["delta_avg_user_px"], "interval": iv, "class": res["class"], "reason": res["reason"],
-            "method": res.get("method"), "pairs_used": res.get("pairs_used"), "relief_z": res.get("relief_z"),
-            "covers": bool(iv is not None and iv[0] is not None and iv[0] <= truth <= iv[1]),
-            "direct": {k: d.get(k) for k in ("delta_avg_user_px", "delta_avg_user_interval", "class", "reason")},
-            "multiview": {k: mv.get(k) for k in ("delta_avg_user_px", "delta_avg_user_interval", "class", "reason",
-                                                 "registered", "model")},
-            "colmap_models": {m: v.get("delta_avg_px") for m, v in (mv.get("models") or {}).items()},
-            "planar": {k: (res.get("planar") or {}).get(k) for k in ("delta_avg_user_px", "delta_avg_user_interval", "class",
-                                                                    "reason", "terms", "pairs", "inliers")},
-        })
+        rows.append(
+            {
+                "level": level,
+                "k2_user": k2,
+                "truth_px": truth,
+                "valid_fraction": out.valid_fraction,
+                "seconds": seconds,
+                "answer_px": res["delta_avg_user_px"],
+                "interval": iv,
+                "class": res["class"],
+                "reason": res["reason"],
+                "method": res.get("method"),
+                "pairs_used": res.get("pairs_used"),
+                "relief_z": res.get("relief_z"),
+                "covers": bool(iv is not None and iv[0] is not None and iv[0] <= truth <= iv[1]),
+                "direct": {k: d.get(k) for k in ("delta_avg_user_px", "delta_avg_user_interval", "class", "reason")},
+                "multiview": {
+                    k: mv.get(k)
+                    for k in ("delta_avg_user_px", "delta_avg_user_interval", "class", "reason", "registered", "model")
+                },
+                "colmap_models": {m: v.get("delta_avg_px") for m, v in (mv.get("models") or {}).items()},
+                "planar": {
+                    k: (res.get("planar") or {}).get(k)
+                    for k in (
+                        "delta_avg_user_px",
+                        "delta_avg_user_interval",
+                        "class",
+                        "reason",
+                        "terms",
+                        "pairs",
+                        "inliers",
+                    )
+                },
+            }
+        )
         r = rows[-1]
         print(f"level {level:g} px: truth {truth:.2f}, answer {r['answer_px']:.2f} "
               f"[{iv[0]:.2f}, {iv[1]:.2f}] class {r['class'] or 'cannot tell'} ({r['reason'] or r['method']}), "
               f"{seconds:.0f} s", flush=True)
     h, w = size
-    print(f"\n{len(files)} real frames ({files[0].name} .. {files[-1].name}) relensed at {w} x {h}"
-          + (f"; the truth's own uncertainty (two chessboard calibrations, a homography apart): {spread:.3f} px" if spread else ""))
-    print("| truth Delta_avg (px) | answer (px) | error | 95 % interval | covers | class | reason | direct | multi-view |")
+    print(
+        f"\n{len(files)} real frames ({files[0].name} .. {files[-1].name}) relensed at {w} x {h}"
+        + (
+            f"; the truth's own uncertainty (two chessboard calibrations, a homography apart): {spread:.3f} px"
+            if spread
+            else ""
+        )
+    )
+    print(
+        "| truth Delta_avg (px) | answer (px) | error | 95 % interval | covers | class | reason | direct | multi-view |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         iv, err = r["interval"], r["answer_px"] - r["truth_px"]

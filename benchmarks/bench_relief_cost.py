@@ -31,7 +31,11 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--repeats", type=int, default=2, help="alternating timed passes per setting (the best counts)")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--against", default="selfcal.parallax=0", help="SECTION.KEY=VALUE (TOML value): the setting timed against the default")
+    ap.add_argument(
+        "--against",
+        default="selfcal.parallax=0",
+        help="SECTION.KEY=VALUE (TOML value): the setting timed against the default",
+    )
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cfg = condition_config(a.config, [])
@@ -44,14 +48,21 @@ def main() -> None:
     for _ in range(a.repeats):
         for name, c in settings.items():
             t0 = time.perf_counter()
-            res = [r for s in range(0, len(idx), a.batch) for r in analyze_batch(img1[s : s + a.batch], img2[s : s + a.batch], config=c)]
+            res = [
+                r
+                for s in range(0, len(idx), a.batch)
+                for r in analyze_batch(img1[s : s + a.batch], img2[s : s + a.batch], config=c)
+            ]
             best[name] = min(best[name], time.perf_counter() - t0)
             answers[name] = res
     out = {"config": a.config, "pairs": len(idx), "threads": a.threads}
     for name, res in answers.items():
         reasons = [code for r in res for code in r.cannot_tell_reasons]
-        out[name] = {"ms_per_pair": round(1000 * best[name] / len(idx), 1), "cannot_tell": sum(r.cannot_tell for r in res),
-                     "reasons": {c: reasons.count(c) for c in sorted(set(reasons))}}
+        out[name] = {
+            "ms_per_pair": round(1000 * best[name] / len(idx), 1),
+            "cannot_tell": sum(r.cannot_tell for r in res),
+            "reasons": {c: reasons.count(c) for c in sorted(set(reasons))},
+        }
     out["ratio"] = round(best["default"] / best[a.against], 2)  # default / against
     print(json.dumps(out, indent=1))
 

@@ -82,7 +82,9 @@ def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = 
     with tempfile.TemporaryDirectory() as tmp:
         write_frames(frames, Path(tmp))
         t0 = time.perf_counter()
-        res = calibrate_path(tmp, method=method, config=None if settings is None else settings.calibration, settings=settings)
+        res = calibrate_path(
+            tmp, method=method, config=None if settings is None else settings.calibration, settings=settings
+        )
         seconds = time.perf_counter() - t0
     top = delta_top("delta_avg", LensdistConfig())
     true_class = "R" if truth == 0 else str(int(distortion_class(torch.tensor([truth]), top)[0]) + 1)
@@ -93,12 +95,24 @@ def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = 
     covered = None if not interval or interval[0] is None else bool(  # an upper end of None: unbounded (strict JSON)
         interval[0] <= truth <= (math.inf if interval[1] is None else interval[1]))
     cls = res.get("class")
-    return {**spec, "truth_delta_avg": truth, "true_class": true_class, "estimate": est, "interval": interval,
-            "covered": covered, "class": cls, "reason": res.get("reason"), "method": res.get("method"),
-            "confidence": res.get("confidence"), "seconds": round(seconds, 1),
-            "relief_effect_px": res.get("relief_effect_px"), "relief_z": res.get("relief_z"),
-            "paths": {k: _path_summary(res.get(k)) for k in ("direct", "multiview", "planar")}, "pairs_used": res.get("pairs_used"),
-            "confidently_wrong": cls is not None and str(cls) != true_class}
+    return {
+        **spec,
+        "truth_delta_avg": truth,
+        "true_class": true_class,
+        "estimate": est,
+        "interval": interval,
+        "covered": covered,
+        "class": cls,
+        "reason": res.get("reason"),
+        "method": res.get("method"),
+        "confidence": res.get("confidence"),
+        "seconds": round(seconds, 1),
+        "relief_effect_px": res.get("relief_effect_px"),
+        "relief_z": res.get("relief_z"),
+        "paths": {k: _path_summary(res.get(k)) for k in ("direct", "multiview", "planar")},
+        "pairs_used": res.get("pairs_used"),
+        "confidently_wrong": cls is not None and str(cls) != true_class,
+    }
 
 
 def _path_summary(part: dict | None) -> dict | None:
@@ -108,8 +122,10 @@ def _path_summary(part: dict | None) -> dict | None:
     out = {k: part.get(k) for k in ("class", "delta_avg_user_px", "delta_avg_user_interval", "reason", "model",
                                      "rotation_spread_deg", "registered", "dispersion") if k in part}
     if part.get("models"):  # the multi-view comparison: each candidate's Delta_avg, weight and held-out RMS
-        out["models"] = {m: {k: v.get(k) for k in ("delta_avg_px", "delta_avg_std_px", "weight", "elpd", "heldout_rms_px")}
-                         for m, v in part["models"].items()}
+        out["models"] = {
+            m: {k: v.get(k) for k in ("delta_avg_px", "delta_avg_std_px", "weight", "elpd", "heldout_rms_px")}
+            for m, v in part["models"].items()
+        }
     return out
 
 
@@ -124,7 +140,9 @@ def summary(rows: list[dict]) -> dict:
         cov = [r["covered"] for r in sel if r["covered"] is not None]
         out[name] = {
             "n": len(sel),
-            "rmse_pct_of_range": None if not err else round(100 * math.sqrt(sum(e * e for e in err) / len(err)) / rng, 2),
+            "rmse_pct_of_range": None
+            if not err
+            else round(100 * math.sqrt(sum(e * e for e in err) / len(err)) / rng, 2),
             "worst_pct_of_range": None if not err else round(100 * max(abs(e) for e in err) / rng, 2),
             "coverage": None if not cov else round(sum(cov) / len(cov), 3),
             "with_interval": len(cov),
@@ -142,7 +160,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--method", choices=["auto", "direct", "multiview"], default="auto",
                     help="calibrate_path's method (direct: the photometric path alone, seconds a sequence)")
-    ap.add_argument("--config", default=None, help="a TOML config for calibrate_path's settings (e.g. [selfcal] parallax)")
+    ap.add_argument(
+        "--config", default=None, help="a TOML config for calibrate_path's settings (e.g. [selfcal] parallax)"
+    )
     ap.add_argument("--out", type=Path, default=Path("bench_relief_sequences.json"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

@@ -53,7 +53,11 @@ from lensdist_torch.workflows.decision_fit import confidences, outcomes, scored_
 from lensdist_torch.workflows.evaluate import analyze_test_set
 from lensdist_torch.workflows.reports import dumps_strict
 
-CONDITIONS = {"default": None, "planar_realistic": "configs/realistic.toml", "relief_realistic": "configs/realistic_relief.toml"}
+CONDITIONS = {
+    "default": None,
+    "planar_realistic": "configs/realistic.toml",
+    "relief_realistic": "configs/realistic_relief.toml",
+}
 PRIORS = (0.5, 0.6, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 #: The analysis result's fields kept per pair (null where the result has none).
 PER_PAIR = ("estimated_class", "estimated_delta_avg", "delta_avg_std", "planar_delta_avg", "planar_delta_avg_std",
@@ -89,9 +93,13 @@ def undistorted(results: list) -> dict:
             reasons[why] = reasons.get(why, 0) + 1
     m = max(1, len(results))
     called = [r.estimated_class for r in results if not r.cannot_tell]
-    return {"pairs": len(results), "called_r": round(100 * called.count(CLASS_LABELS[REJECT]) / m, 2),
-            "cannot_tell": round(100 * sum(bool(r.cannot_tell) for r in results) / m, 2), "cannot_tell_by_reason": reasons,
-            "other_class": len(called) - called.count(CLASS_LABELS[REJECT])}
+    return {
+        "pairs": len(results),
+        "called_r": round(100 * called.count(CLASS_LABELS[REJECT]) / m, 2),
+        "cannot_tell": round(100 * sum(bool(r.cannot_tell) for r in results) / m, 2),
+        "cannot_tell_by_reason": reasons,
+        "other_class": len(called) - called.count(CLASS_LABELS[REJECT]),
+    }
 
 
 def with_prior(cfg: LensdistConfig, prior: float) -> LensdistConfig:
@@ -119,9 +127,14 @@ def summary(results: list, data: dict, cfg: LensdistConfig) -> tuple[dict, set[i
     sure = conf >= cfg.analysis.min_confidence
     cannot = set(range(len(results))) - {i for i, s in zip(keep, sure.tolist()) if s}
     n, r, wrong = len(results), int((right & sure).sum()), int((~right & sure).sum())
-    return {"right_or_cannot_tell": round(100 * (r + len(cannot)) / n, 2), "cannot_tell": round(100 * len(cannot) / n, 2),
-            "right_among_confident": round(100 * r / max(1, r + wrong), 2), "confident_wrong": wrong,
-            "scored_pairs": len(keep), "ece": round(100 * expected_calibration_error(conf, right), 2)}, cannot
+    return {
+        "right_or_cannot_tell": round(100 * (r + len(cannot)) / n, 2),
+        "cannot_tell": round(100 * len(cannot) / n, 2),
+        "right_among_confident": round(100 * r / max(1, r + wrong), 2),
+        "confident_wrong": wrong,
+        "scored_pairs": len(keep),
+        "ece": round(100 * expected_calibration_error(conf, right), 2),
+    }, cannot
 
 
 def self_check(results: list, cfg: LensdistConfig, cannot: set[int]) -> dict:
@@ -210,7 +223,9 @@ def main() -> None:
     out["chosen_prior"] = float(min(worst, key=lambda k: (worst[k], -float(k))))
     print("largest ECE by prior", dumps_strict(worst), "chosen", out["chosen_prior"], flush=True)
     if a.thresholds:
-        worst_t = {f"{t:g}": max(c["by_threshold"][f"{t:g}"]["ece"] for c in out["conditions"].values()) for t in a.thresholds}
+        worst_t = {
+            f"{t:g}": max(c["by_threshold"][f"{t:g}"]["ece"] for c in out["conditions"].values()) for t in a.thresholds
+        }
         out["thresholds"], out["largest_ece_by_threshold"] = list(a.thresholds), worst_t
         out["chosen_threshold"] = float(min(worst_t, key=lambda k: (worst_t[k], float(k))))
         print("largest ECE by R threshold", dumps_strict(worst_t), "chosen", out["chosen_threshold"], flush=True)

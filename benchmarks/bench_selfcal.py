@@ -53,15 +53,27 @@ def figures(est, true, ty, top, confident=None) -> dict:
         m = (c_true == c) & ok
         if m.any():
             rm = float(err[m].pow(2).mean().sqrt())
-            out["per_class"][str(c + 1)] = {"n": int(m.sum()), "rmse_px": rm, "rmse_pct": 100 * rm / top,
-                                            "bias_px": float(err[m].mean()), "class_rate": float((c_est[m] == c).double().mean())}
+            out["per_class"][str(c + 1)] = {
+                "n": int(m.sum()),
+                "rmse_px": rm,
+                "rmse_pct": 100 * rm / top,
+                "bias_px": float(err[m].mean()),
+                "class_rate": float((c_est[m] == c).double().mean()),
+            }
     for name, m in (("t_y < 10", ty < 10), ("t_y >= 10", ty >= 10)):
-        out[name] = {"n": int(m.sum()), "class_rate": float((c_est[m] == c_true[m]).double().mean()) if m.any() else None,
-                     "rmse_px": float(err[m & ok].pow(2).mean().sqrt()) if (m & ok).any() else None}
+        out[name] = {
+            "n": int(m.sum()),
+            "class_rate": float((c_est[m] == c_true[m]).double().mean()) if m.any() else None,
+            "rmse_px": float(err[m & ok].pow(2).mean().sqrt()) if (m & ok).any() else None,
+        }
     if confident is not None:
         out["confident_share"] = float(confident.double().mean())
-        out["confident_class_rate"] = float((c_est[confident] == c_true[confident]).double().mean()) if confident.any() else None
-        out["unconfident_class_rate"] = float((c_est[~confident] == c_true[~confident]).double().mean()) if (~confident).any() else None
+        out["confident_class_rate"] = (
+            float((c_est[confident] == c_true[confident]).double().mean()) if confident.any() else None
+        )
+        out["unconfident_class_rate"] = (
+            float((c_est[~confident] == c_true[~confident]).double().mean()) if (~confident).any() else None
+        )
         out["confident_rmse_px"] = float(err[confident & ok].pow(2).mean().sqrt()) if (confident & ok).any() else None
     return out
 

@@ -66,11 +66,16 @@ def figures(cfg: LensdistConfig, scene: str, n: int, variants: dict) -> dict:
         ok = torch.isfinite(err)
         z = err.abs() / info.delta_avg_std.double()
         out[name] = {
-            "rmse_px": float(err[ok].pow(2).mean().sqrt()), "bias_px": float(err[ok].mean()),
-            "bias_over_10px": float(err[ok & (true > 10)].mean()), "max_abs_px": float(err[ok].abs().max()),
-            "over_1px": int((err.abs() > 1).sum()), "median_err_over_std": float(z[ok].median()),
-            "within_2_std": float((z[ok] < 2).double().mean()), "confidence_below_half": int((info.confidence < 0.5).sum()),
-            "diverged": int((~ok).sum()), "pairs_per_s": n / seconds,
+            "rmse_px": float(err[ok].pow(2).mean().sqrt()),
+            "bias_px": float(err[ok].mean()),
+            "bias_over_10px": float(err[ok & (true > 10)].mean()),
+            "max_abs_px": float(err[ok].abs().max()),
+            "over_1px": int((err.abs() > 1).sum()),
+            "median_err_over_std": float(z[ok].median()),
+            "within_2_std": float((z[ok] < 2).double().mean()),
+            "confidence_below_half": int((info.confidence < 0.5).sum()),
+            "diverged": int((~ok).sum()),
+            "pairs_per_s": n / seconds,
         }
     return out
 
@@ -92,16 +97,22 @@ def main() -> None:
     ap.add_argument("--only", default="", help="comma-separated realistic fields to keep on (e.g. relief)")
     ap.add_argument("--set", action="append", default=[], help="protocol FIELD=VALUE (commas for pairs)")
     ap.add_argument("--registration", action="append", default=[], help="registration FIELD=VALUE")
-    ap.add_argument("--variant", action="append", default=[], help="selfcal FIELD=VALUE[,VALUE...][;FIELD=...] beside the default")
+    ap.add_argument(
+        "--variant", action="append", default=[], help="selfcal FIELD=VALUE[,VALUE...][;FIELD=...] beside the default"
+    )
     ap.add_argument("--effects", action="store_true", help="registration failures per realistic effect instead")
     ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cfg = load_config(a.config) if a.config else LensdistConfig()
     sets = dict(item.split("=", 1) for item in a.set)
-    cfg = dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, **{k: _value(v) for k, v in sets.items()}))
+    cfg = dataclasses.replace(
+        cfg, protocol=dataclasses.replace(cfg.protocol, **{k: _value(v) for k, v in sets.items()})
+    )
     regs = dict(item.split("=", 1) for item in a.registration)
-    cfg = dataclasses.replace(cfg, registration=dataclasses.replace(cfg.registration, **{k: _value(v) for k, v in regs.items()}))
+    cfg = dataclasses.replace(
+        cfg, registration=dataclasses.replace(cfg.registration, **{k: _value(v) for k, v in regs.items()})
+    )
     if a.only:
         cfg = with_only(cfg, tuple(a.only.split(",")))
     if a.effects:

@@ -75,7 +75,9 @@ def analyse(scenes: list, config, indices: list[int], batch_size: int = 8) -> di
 
     out = {"eigenspace": [], "regression": [], "selfcal": []}
     for s in range(0, len(indices), batch_size):
-        batch = make_pairs(scenes, config=config, set_name="test", indices=indices[s : s + batch_size], keep_images=True)
+        batch = make_pairs(
+            scenes, config=config, set_name="test", indices=indices[s : s + batch_size], keep_images=True
+        )
         truth = [CLASS_LABELS[int(c)] for c in batch.classes["delta_avg"]]
         r_pairs = batch.params.perturbed
         for sel, hom in ((~r_pairs, None), (r_pairs, batch.H[r_pairs])):
@@ -110,15 +112,21 @@ def main(argv=None) -> int:
 
     cfg = LensdistConfig()
     n_d = args.pairs - args.pairs // 5
-    idx = list(range(n_d)) + list(range(cfg.protocol.n_test_distorted, cfg.protocol.n_test_distorted + args.pairs - n_d))
+    idx = list(range(n_d)) + list(
+        range(cfg.protocol.n_test_distorted, cfg.protocol.n_test_distorted + args.pairs - n_d)
+    )
     rows = {}
     rows["gravel + grass (training scenes)"] = analyse(load_scenes(cfg)[0], cfg, idx)
     for name, scene in unseen_scenes().items():
         rows[name] = analyse([scene], cfg, idx)
     table = {name: {m: summary(v) for m, v in res.items()} for name, res in rows.items()}
-    unseen = {m: summary([x for name, res in rows.items() if "training" not in name for x in res[m]]) for m in rows[name]}
+    unseen = {
+        m: summary([x for name, res in rows.items() if "training" not in name for x in res[m]]) for m in rows[name]
+    }
     table["all unseen scenes"] = unseen
-    print(f"{args.pairs} protocol test pairs per scene ({args.pairs - n_d} class R), shipped checkpoints, default [analysis]")
+    print(
+        f"{args.pairs} protocol test pairs per scene ({args.pairs - n_d} class R), shipped checkpoints, default [analysis]"
+    )
     print("| scene | method | right | flagged (cannot tell) | right or flagged | confident wrong |")
     print("|---|---|---|---|---|---|")
     for name, per in table.items():

@@ -98,11 +98,17 @@ def run(args: argparse.Namespace, keypoints: int) -> None:
     ok = torch.tensor(conv)
     e = err[ok]
     n, nf = len(cells), int(fast.converged.sum())
-    print(f"fast path alone: {nf}/{n} registered; robust: {int(ok.sum())}/{n} ({100 * float(ok.double().mean()):.0f} %)")
+    print(
+        f"fast path alone: {nf}/{n} registered; robust: {int(ok.sum())}/{n} ({100 * float(ok.double().mean()):.0f} %)"
+    )
     if e.numel():
         q = torch.quantile(e, torch.tensor([0.5, 0.9], dtype=e.dtype)).tolist()
-        print(f"corner error of the registered pairs: median {q[0]:.4f} px, p90 {q[1]:.4f} px, max {float(e.max()):.4f} px")
-    print(f"fast path:            {1e3 * (c1 - c0) / n:8.1f} ms CPU {1e3 * (w1 - w0) / n:8.1f} ms wall per pair (batch of {n})")
+        print(
+            f"corner error of the registered pairs: median {q[0]:.4f} px, p90 {q[1]:.4f} px, max {float(e.max()):.4f} px"
+        )
+    print(
+        f"fast path:            {1e3 * (c1 - c0) / n:8.1f} ms CPU {1e3 * (w1 - w0) / n:8.1f} ms wall per pair (batch of {n})"
+    )
     print(f"features (SIFT+RANSAC): {t_feat[0] / n:6.2f} s CPU   {t_feat[1] / n:6.2f} s wall per pair")
     nfb = max(n - nf, 1)  # the robust call per pair: fast path, then the fallback where it failed
     print(f"robust, per fallback pair: {t_all[0] / nfb:6.2f} s CPU {t_all[1] / nfb:6.2f} s wall")

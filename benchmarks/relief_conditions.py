@@ -32,10 +32,14 @@ from lensdist_torch.workflows.reports import SHIPPED_SUFFIX
 SETTING = "selfcal, delta_avg"
 #: The same pairs answered under the shipped decision (``lensdist reproduce``'s row beside the fitted one).
 SHIPPED = f"{SETTING}{SHIPPED_SUFFIX}"
-ROWS = (("right or cannot tell", "right_or_cannot_tell_share", "%"), ("cannot tell", "cannot_tell_share", "%"),
-        ("right among confident answers", "confident_rate", "%"), ("confidently wrong (of 500)", "confident_wrong", "n"),
-        ("RMSE on confident (% of range)", "confident_rmse_pct", "%"),
-        ("undistorted called R", None, "R"))
+ROWS = (
+    ("right or cannot tell", "right_or_cannot_tell_share", "%"),
+    ("cannot tell", "cannot_tell_share", "%"),
+    ("right among confident answers", "confident_rate", "%"),
+    ("confidently wrong (of 500)", "confident_wrong", "n"),
+    ("RMSE on confident (% of range)", "confident_rmse_pct", "%"),
+    ("undistorted called R", None, "R"),
+)
 
 
 def _fig(report: dict, part: str, setting: str = SETTING) -> dict:
@@ -64,7 +68,9 @@ def bound_outcomes(relief: dict, bound: dict) -> dict:
     cfg = load_config(bound["config"])  # the config the bound's pairs were drawn with
     true = torch.tensor(bound["per_pair"]["true_px"], dtype=torch.float64)
     planar = torch.tensor(bound["per_pair"]["planar_px"], dtype=torch.float64)
-    truth = distortion_class(true, delta_top("delta_avg", cfg), cfg.distortion.n_classes)  # R only at 0, as the bound scores
+    truth = distortion_class(
+        true, delta_top("delta_avg", cfg), cfg.distortion.n_classes
+    )  # R only at 0, as the bound scores
     hard = (estimated_class(planar, planar, metric="delta_avg", config=cfg) != truth).tolist()
     per = relief["settings"][SETTING]["per_pair"]
     out = {"hard": sum(hard), "right": 0, "wrong": 0, "cannot_tell": {}}
@@ -85,26 +91,37 @@ def bound_outcomes(relief: dict, bound: dict) -> dict:
 
 def table(planar: dict, relief: dict, bound: dict) -> str:
     """The Markdown page."""
-    lines = ["# Planar and relief realistic conditions, side by side", "",
-             "The self-calibration (`lensdist analyze`'s default) on the realistic protocol's 500 test pairs "
-             "and on the same pairs drawn on brick (unseen); each condition's decision fitted on its own "
-             "validation split: the R threshold, the confidence (the class's mass over the planar and the plane + parallax "
-             "answers, weighed by `analysis.flat_prior`, the stds by `analysis.selfcal_std_scale`) and what it withholds "
-             "(`analysis.min_confidence`). Written by `benchmarks/relief_conditions.py` from the two `lensdist reproduce` "
-             "reports and `benchmarks/bench_parallax_bound.py`. Each column twice: under the fitted decision, "
-             "then (shipped) under the shipped one, the same fits answered as `analyze` answers without `--config`.", "",
-             "| measure | planar realistic | (shipped) | relief realistic | (shipped) | planar, brick | (shipped) "
-             "| relief, brick | (shipped) | goal |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    goals = {"right or cannot tell": ">= 97 %", "cannot tell": "planar <= 10 %; relief <= bound + 10 points",
-             "right among confident answers": ">= 97 %", "confidently wrong (of 500)": "", "RMSE on confident (% of range)": "<= 3 %",
-             "undistorted called R": ">= 95 % (planar)"}
+    lines = [
+        "# Planar and relief realistic conditions, side by side",
+        "",
+        "The self-calibration (`lensdist analyze`'s default) on the realistic protocol's 500 test pairs "
+        "and on the same pairs drawn on brick (unseen); each condition's decision fitted on its own "
+        "validation split: the R threshold, the confidence (the class's mass over the planar and the plane + parallax "
+        "answers, weighed by `analysis.flat_prior`, the stds by `analysis.selfcal_std_scale`) and what it withholds "
+        "(`analysis.min_confidence`). Written by `benchmarks/relief_conditions.py` from the two `lensdist reproduce` "
+        "reports and `benchmarks/bench_parallax_bound.py`. Each column twice: under the fitted decision, "
+        "then (shipped) under the shipped one, the same fits answered as `analyze` answers without `--config`.",
+        "",
+        "| measure | planar realistic | (shipped) | relief realistic | (shipped) | planar, brick | (shipped) "
+        "| relief, brick | (shipped) | goal |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    goals = {
+        "right or cannot tell": ">= 97 %",
+        "cannot tell": "planar <= 10 %; relief <= bound + 10 points",
+        "right among confident answers": ">= 97 %",
+        "confidently wrong (of 500)": "",
+        "RMSE on confident (% of range)": "<= 3 %",
+        "undistorted called R": ">= 95 % (planar)",
+    }
     for label, key, kind in ROWS:
         cells = [_cell(_fig(r, part, setting), key, kind) for part in ("settings", "unseen") for r in (planar, relief)
                  for setting in (SETTING, SHIPPED)]
         lines.append(f"| {label} | " + " | ".join(cells) + f" | {goals[label]} |")
-    lines.append(f"| ECE of the confidence (validation; test) | {_ece(planar)} | {_ece(planar, 'before')} | {_ece(relief)} | "
-                 f"{_ece(relief, 'before')} | - | - | - | - | <= 3 % |")
+    lines.append(
+        f"| ECE of the confidence (validation; test) | {_ece(planar)} | {_ece(planar, 'before')} | {_ece(relief)} | "
+        f"{_ece(relief, 'before')} | - | - | - | - | <= 3 % |"
+    )
     for name, rep in (("planar realistic", planar), ("relief realistic", relief)):
         for setting, which in ((SETTING, ""), (SHIPPED, SHIPPED_SUFFIX)):
             reasons = rep["settings"].get(setting, {}).get("cannot_tell_reasons", {})

@@ -50,11 +50,15 @@ def main(argv: list[str] | None = None) -> dict:
     path, truth = (out / "frames", render_demo(out / "frames")) if args.demo else (Path(args.path), None)
 
     answer = calibrate_path(path, method=args.method)          # the dict `lensdist calibrate --json` prints
-    saved = write_answer(answer, out)                            # what `lensdist calibrate --out OUT` writes
-    interval = ", ".join("no bound" if v is None else f"{v:.2f}" for v in answer["delta_avg_user_interval"] or (None, None))
+    saved = write_answer(answer, out)  # what `lensdist calibrate --out OUT` writes
+    interval = ", ".join(
+        "no bound" if v is None else f"{v:.2f}" for v in answer["delta_avg_user_interval"] or (None, None)
+    )
     value = answer["delta_avg_user_px"]
-    print(f"Delta_avg {'unknown' if value is None else f'{value:.2f}'} px [{interval}] (95 %), class {answer['class']}, "
-          f"by the {answer['method']} path" + (f"; truth {truth:.2f} px" if truth is not None else ""))
+    print(
+        f"Delta_avg {'unknown' if value is None else f'{value:.2f}'} px [{interval}] (95 %), class {answer['class']}, "
+        f"by the {answer['method']} path" + (f"; truth {truth:.2f} px" if truth is not None else "")
+    )
     if answer["class"] is None:
         print(f"cannot tell: {answer['reason']}")
         return answer

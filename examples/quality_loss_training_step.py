@@ -49,7 +49,9 @@ def main(argv: list[str] | None = None) -> torch.Tensor:
         if step % 50 == 0 or step == args.steps - 1:
             print(f"step {step:4d}  loss {float(loss.detach()):.4f}  shift {shift.detach().tolist()}")
     error = float((shift.detach() - truth).norm())
-    print(f"learned shift {[round(v, 2) for v in shift.detach().tolist()]}, truth {truth.tolist()}, error {error:.3f} px")
+    print(
+        f"learned shift {[round(v, 2) for v in shift.detach().tolist()]}, truth {truth.tolist()}, error {error:.3f} px"
+    )
     return shift.detach()
 
 

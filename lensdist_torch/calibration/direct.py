@@ -182,7 +182,9 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
     n, _, h, w = frames.shape
     if n < 2:
         return torch.zeros(0, 2, dtype=torch.int64), torch.zeros(0, 2, dtype=torch.float64)
-    steps = torch.cat([_translation(frames[i : min(i + 16, n - 1)], frames[i + 1 : i + 17]) for i in range(0, n - 1, 16)])
+    steps = torch.cat(
+        [_translation(frames[i : min(i + 16, n - 1)], frames[i + 1 : i + 17]) for i in range(0, n - 1, 16)]
+    )
     if n > 5:  # a running median of 5 steps: a broken frame (two wrong steps) leaves the path whole
         steps = torch.cat([steps[:1]] * 2 + [steps] + [steps[-1:]] * 2).unfold(0, 5, 1).median(-1).values
     path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), steps.cumsum(0)])
@@ -230,7 +232,9 @@ def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = Non
         return f"{TOO_LITTLE_MOTION}: no two frames moved enough apart"
     t = _translation(a, b)  # a(p) ~ b(p + t): b moved back by t matches a where they were registered
     m = int(t.abs().max().ceil()) + 2
-    back = torch.stack([torch.roll(b[i], (-round(float(t[i, 1])), -round(float(t[i, 0]))), dims=(1, 2)) for i in range(len(b))])
+    back = torch.stack(
+        [torch.roll(b[i], (-round(float(t[i, 1])), -round(float(t[i, 0]))), dims=(1, 2)) for i in range(len(b))]
+    )
     aligned = (a - back).abs()[..., m:-m, m:-m].mean(dim=(1, 2, 3)) if 2 * m < min(a.shape[-2:]) else static
     if bool((aligned <= 0.5 * texture).all()):
         path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), t.cumsum(0)])
@@ -254,7 +258,9 @@ def _failure_width(size, cfg: CalibrationConfig, st: LensdistConfig) -> float:
 
 def _signed_mean(height: int, width: int, rn: float) -> torch.Tensor:
     """(2,) g: g . (a, b) is the mean signed offset (px) for k2 = a / rn^2, k4 = b / rn^4."""
-    grid = pixel_grid(height, width, torch.float64) - torch.tensor([(width - 1) / 2, (height - 1) / 2], dtype=torch.float64)
+    grid = pixel_grid(height, width, torch.float64) - torch.tensor(
+        [(width - 1) / 2, (height - 1) / 2], dtype=torch.float64
+    )
     r = grid.norm(dim=-1)
     return torch.stack([(r**3).mean() / rn**2, (r**5).mean() / rn**4])
 
@@ -268,11 +274,15 @@ def _stack(frames) -> torch.Tensor:
         for i, f in enumerate(frames):
             check_image(f, f"frames[{i}]")
             if f.shape[0] != 1 or f.shape[-2:] != frames[0].shape[-2:]:
-                raise ValueError(f"frames must be (1, C, H, W) frames of one size: frames[0] is {tuple(frames[0].shape)}, "
-                                 f"frames[{i}] is {tuple(f.shape)}")
+                raise ValueError(
+                    f"frames must be (1, C, H, W) frames of one size: frames[0] is {tuple(frames[0].shape)}, "
+                    f"frames[{i}] is {tuple(f.shape)}"
+                )
         return torch.cat([to_grey(f).float() for f in frames])
     if not isinstance(frames, torch.Tensor):
-        raise TypeError(f"frames must be a (N, C, H, W) tensor or a list of (1, C, H, W) tensors, got {type(frames).__name__}")
+        raise TypeError(
+            f"frames must be a (N, C, H, W) tensor or a list of (1, C, H, W) tensors, got {type(frames).__name__}"
+        )
     return to_grey(check_image(frames, "frames")).float()
 
 
@@ -285,10 +295,16 @@ def _prepare(frames, cfg: CalibrationConfig, frame_size) -> tuple[torch.Tensor, 
     if frame_size is None:
         scale = analysis_scale(h, w, cfg)
         return torch.cat([to_analysis(x[i : i + 8], scale) for i in range(0, len(x), 8)]), (h, w), scale
-    ok = isinstance(frame_size, (tuple, list)) and len(frame_size) == 2 and all(type(v) is int and v > 0 for v in frame_size)
+    ok = (
+        isinstance(frame_size, (tuple, list))
+        and len(frame_size) == 2
+        and all(type(v) is int and v > 0 for v in frame_size)
+    )
     scale = analysis_scale(*frame_size, cfg) if ok else 1.0
     if not ok or analysis_size(*frame_size, scale) != (h, w):
-        raise ValueError(f"frame_size must be the (height, width) whose analysis size is the frames' {h} x {w}, got {frame_size!r}")
+        raise ValueError(
+            f"frame_size must be the (height, width) whose analysis size is the frames' {h} x {w}, got {frame_size!r}"
+        )
     return x, tuple(frame_size), scale
 
 
@@ -334,7 +350,9 @@ def calibrate_sequence(
     fits = fit_pairs(xa, pairs, shifts, settings=st, cfg=cfg, progress=progress)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     if cfg.registered_start and len(pairs):
-        refitted = refit_from_registration(xa, pairs, shifts, fits, retry=_doubtful(fits, xa, cfg, st), settings=st, cfg=cfg)
+        refitted = refit_from_registration(
+            xa, pairs, shifts, fits, retry=_doubtful(fits, xa, cfg, st), settings=st, cfg=cfg
+        )
     ab, std, res, planar, relief, misfit = fits
     std = reject_residuals(std, res, cfg, misfit)
     return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief), misfit, refitted)
@@ -381,8 +399,14 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     ra, rc = half_diagonal(h, w), half_diagonal(hc, wc)
     corner = half_diagonal(hh, ww)
     ru = scale * ra  # the analysis half diagonal in user px
-    fun = torch.stack([_signed_mean(h, w, ra), _signed_mean(hh, ww, ru),
-                       torch.tensor([corner**3 / ru**2, corner**5 / ru**4], dtype=torch.float64), _signed_mean(hc, wc, rc)])
+    fun = torch.stack(
+        [
+            _signed_mean(h, w, ra),
+            _signed_mean(hh, ww, ru),
+            torch.tensor([corner**3 / ru**2, corner**5 / ru**4], dtype=torch.float64),
+            _signed_mean(hc, wc, rc),
+        ]
+    )
     weights, keep = pair_weights(ab @ fun[0], std, cfg, _failure_width((h, w), cfg, st))
     theta, sd, t = pool_pairs(ab, weights, keep, pairs[:, 0], fun=fun, cfg=cfg)
     a, b = float(theta[0]), float(theta[1])

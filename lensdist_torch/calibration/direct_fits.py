@@ -26,7 +26,14 @@ from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.registration.wide_baseline import SiftMemo, estimate_homography_robust
 from lensdist_torch.selfcal.fit import estimate_distortion
 
-__all__ = ["sequence_selfcal", "fit_pairs", "pair_misfit", "unregistered", "refit_from_registration", "reject_residuals"]
+__all__ = [
+    "sequence_selfcal",
+    "fit_pairs",
+    "pair_misfit",
+    "unregistered",
+    "refit_from_registration",
+    "reject_residuals",
+]
 
 
 def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
@@ -48,7 +55,11 @@ def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> tor
         [0.0, 0.49]
     """
     contrast = (a.double().var(dim=(1, 2, 3), correction=0) + b.double().var(dim=(1, 2, 3), correction=0)).sqrt().cpu()
-    return torch.where(contrast > 0, residual.double().cpu() / contrast.clamp_min(1e-300), torch.tensor(float("inf"), dtype=torch.float64))
+    return torch.where(
+        contrast > 0,
+        residual.double().cpu() / contrast.clamp_min(1e-300),
+        torch.tensor(float("inf"), dtype=torch.float64),
+    )
 
 
 def unregistered(misfit: torch.Tensor, cfg: CalibrationConfig) -> torch.Tensor:
@@ -94,7 +105,9 @@ def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
         >>> s.parallax_px, s.parallax_evidence, LensdistConfig().selfcal.parallax_evidence
         (1.0, False, True)
     """
-    return dataclasses.replace(settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px, parallax_evidence=False)
+    return dataclasses.replace(
+        settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px, parallax_evidence=False
+    )
 
 
 def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: CalibrationConfig, progress):
@@ -108,13 +121,20 @@ def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: Calibrati
         if progress is not None:
             progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
     if not parts:
-        return [torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, dtype=torch.float64),
-                torch.zeros(0, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 2, dtype=torch.float64),
-                torch.zeros(0, dtype=torch.float64)]
+        return [
+            torch.zeros(0, 2, dtype=torch.float64),
+            torch.zeros(0, dtype=torch.float64),
+            torch.zeros(0, dtype=torch.float64),
+            torch.zeros(0, 2, dtype=torch.float64),
+            torch.zeros(0, 2, dtype=torch.float64),
+            torch.zeros(0, dtype=torch.float64),
+        ]
     return [torch.cat(x) for x in zip(*parts)]
 
 
-def refit_from_registration(frames, pairs, shifts, fits, *, retry, settings: LensdistConfig, cfg: CalibrationConfig) -> torch.Tensor:
+def refit_from_registration(
+    frames, pairs, shifts, fits, *, retry, settings: LensdistConfig, cfg: CalibrationConfig
+) -> torch.Tensor:
     """Step 3's second start: the pairs ``retry`` (P,) bool refitted from their own registration, in place.
 
     A pair is refitted where the homography of ``estimate_homography_robust`` (converged or not:
@@ -135,7 +155,10 @@ def refit_from_registration(frames, pairs, shifts, fits, *, retry, settings: Len
         # a registration that did not pass its own checks is still a start: the refit keeps the better one
         # and the misfit gate judges the result (real views far apart: docs/method.md, section 10)
         finite = torch.isfinite(h).flatten(1).all(1)
-        far = finite & (corner_error(torch.nan_to_num(h), _translations(shifts[rows]), *frames.shape[-2:]) > 2 ** (selfcal.levels - 1))
+        far = finite & (
+            corner_error(torch.nan_to_num(h), _translations(shifts[rows]), *frames.shape[-2:])
+            > 2 ** (selfcal.levels - 1)
+        )
         if not bool(far.any()):
             continue
         sub = rows[far]

@@ -177,7 +177,9 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, *, cent
         if i not in views or j not in views:
             continue
         hm = pair_homography(pairs, views, i, j)
-        ok_i, ok_j = _guided_pair(apply_homography(hm[None], ideal[i])[0], ideal[j], features[i][1], features[j][1], cfg)
+        ok_i, ok_j = _guided_pair(
+            apply_homography(hm[None], ideal[i])[0], ideal[j], features[i][1], features[j][1], cfg
+        )
         if len(ok_i) < cfg.planar_min_matches:
             continue
         both = torch.cat([features[i][0][ok_i], features[j][0][ok_j]], 1).unique(dim=0)
@@ -256,8 +258,12 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, 
     verified = read_verified_matches(database, names, cfg.planar_min_matches)
     first = self_calibrate_planar(verified, size, config=cfg, settings=settings)
     res, used = first, verified
-    if (cfg.planar_guided_px > 0 and math.isfinite(first.delta_avg_user_px)
-            and first.inlier_share >= cfg.planar_min_inlier_share and first.pairs < cfg.planar_guided_below * len(verified.first)):
+    if (
+        cfg.planar_guided_px > 0
+        and math.isfinite(first.delta_avg_user_px)
+        and first.inlier_share >= cfg.planar_min_inlier_share
+        and first.pairs < cfg.planar_guided_below * len(verified.first)
+    ):
         found = guided_matches(read_features(database, names), verified, first.coefficients, centre=first.centre,
                                size=size, config=cfg)
         info = {"pairs_verified": len(verified.first), "pairs_matched": len(found.first), "matches": len(found.pair),
@@ -267,8 +273,14 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, 
         if not math.isfinite(again.delta_avg_user_px):
             res = dataclasses.replace(first, guided={**info, "used": False, "reason": again.reason})
         elif again.pairs <= first.pairs:  # it was to bring lost pairs back: where it did not, the first fit stands
-            res = dataclasses.replace(first, guided={**info, "used": False, "reason": f"the guided matches count {again.pairs} pairs, "
-                                                                         f"the verified ones {first.pairs}"})
+            res = dataclasses.replace(
+                first,
+                guided={
+                    **info,
+                    "used": False,
+                    "reason": f"the guided matches count {again.pairs} pairs, the verified ones {first.pairs}",
+                },
+            )
         else:
             res, used = dataclasses.replace(again, guided={**info, "used": True, "reason": ""}), found
     if (images is None or cfg.planar_refine_px <= 0 or not math.isfinite(res.delta_avg_user_px)
@@ -276,7 +288,9 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, 
         return res
     refined, info = refined_matches(used, images, res.coefficients, centre=res.centre, size=size, config=cfg)
     info = {**info, "half_px": cfg.planar_refine_px, "before": _figures(res)}
-    again = self_calibrate_planar(refined, size, config=cfg, settings=settings, start=res.coefficients, plane_share=first.inlier_share)
+    again = self_calibrate_planar(
+        refined, size, config=cfg, settings=settings, start=res.coefficients, plane_share=first.inlier_share
+    )
     if not math.isfinite(again.delta_avg_user_px):
         return dataclasses.replace(res, refined={**info, "used": False, "reason": again.reason})
     return dataclasses.replace(again, guided=res.guided, refined={**info, "used": True, "reason": ""})

@@ -46,7 +46,9 @@ from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_idea
 __all__ = ["align_patches", "local_affines", "refine_matches"]
 
 _CONVERGED_PX = 0.02  # the last Gauss-Newton step of a kept match is shorter than this (px)
-_MIN_TEXTURE = 1e-5  # the smaller eigenvalue of a kept patch's windowed mean gradient moments (intensity in [0, 1] per px)
+_MIN_TEXTURE = (
+    1e-5  # the smaller eigenvalue of a kept patch's windowed mean gradient moments (intensity in [0, 1] per px)
+)
 
 
 def _sample(image: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -67,8 +69,16 @@ def _prepared(image: torch.Tensor, blur: float) -> torch.Tensor:
     return torch.cat([x[0], spatial_gradient(x, "sobel", normalized=True)[0, 0]], 0)
 
 
-def align_patches(image1: torch.Tensor, image2: torch.Tensor, x1: torch.Tensor, x2: torch.Tensor, *, affine: torch.Tensor,
-                  half: int = 7, iterations: int = 15) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def align_patches(
+    image1: torch.Tensor,
+    image2: torch.Tensor,
+    x1: torch.Tensor,
+    x2: torch.Tensor,
+    *,
+    affine: torch.Tensor,
+    half: int = 7,
+    iterations: int = 15,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Each point of the second view moved to where its patch aligns with the first view's (module docstring, step 2).
 
     Args:

@@ -82,8 +82,17 @@ from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_from_colmap, opencv_ideal_points
 
-__all__ = ["MultiViewCalibration", "pycolmap_or_error", "feature_cap", "extract_and_match", "reconstruct", "self_calibrate_reconstruction", "opencv_from_colmap",
-           "rotation_spread_deg", "BA_FUNCTION_TOLERANCE"]
+__all__ = [
+    "MultiViewCalibration",
+    "pycolmap_or_error",
+    "feature_cap",
+    "extract_and_match",
+    "reconstruct",
+    "self_calibrate_reconstruction",
+    "opencv_from_colmap",
+    "rotation_spread_deg",
+    "BA_FUNCTION_TOLERANCE",
+]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -191,7 +200,11 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
         for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
             pc.set_random_seed(cfg.seed + i)
             mapping = pc.IncrementalPipelineOptions()
-            mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = cfg.num_threads, cfg.seed + i, False
+            mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = (
+                cfg.num_threads,
+                cfg.seed + i,
+                False,
+            )
             mapping.ba_global_function_tolerance = mapping.ba_local_function_tolerance = BA_FUNCTION_TOLERANCE
             mapping.structure_less_registration_fallback = False  # seconds per frame; such frames add little
             with quiet_log():
@@ -202,8 +215,14 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
     return out
 
 
-def extract_and_match(database: str | Path, image_dir: str | Path, names: list[str], *, config: MultiViewConfig | None = None,
-                      image_size: tuple[int, int] | None = None) -> None:
+def extract_and_match(
+    database: str | Path,
+    image_dir: str | Path,
+    names: list[str],
+    *,
+    config: MultiViewConfig | None = None,
+    image_size: tuple[int, int] | None = None,
+) -> None:
     """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
 
     Exhaustive matching up to ``exhaustive_below`` frames, sequential beyond; one shared RADIAL
@@ -225,7 +244,9 @@ def extract_and_match(database: str | Path, image_dir: str | Path, names: list[s
         pc.extract_features(database, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
                             reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
         if len(names) <= cfg.exhaustive_below:
-            pc.match_exhaustive(database, matching_options=matching, verification_options=verification, device=pc.Device.cpu)
+            pc.match_exhaustive(
+                database, matching_options=matching, verification_options=verification, device=pc.Device.cpu
+            )
         else:
             pairing = pc.SequentialPairingOptions()
             pairing.overlap = cfg.sequential_overlap
@@ -256,15 +277,32 @@ def _other_rows(rec, others: dict, fits: dict, scale: float, n_blocks: int, conf
         ivs = [o.get(k) for k in ("delta_avg_user_interval", "delta_max_user_interval")]
         if not all(v is not None and math.isfinite(v) for v in values) or any(iv is None or None in iv for iv in ivs):
             continue
-        cam = held_camera(o["camera_matrix"], o["dist_coeffs"], focal=base.mean_focal_length(), camera_id=base.camera_id,
-                          width=base.width, height=base.height, scale=scale)
+        cam = held_camera(
+            o["camera_matrix"],
+            o["dist_coeffs"],
+            focal=base.mean_focal_length(),
+            camera_id=base.camera_id,
+            width=base.width,
+            height=base.height,
+            scale=scale,
+        )
         fit = fit_held_camera(rec, cam, n_blocks)
         stds = [max(hi - v, v - lo) / z for v, (lo, hi) in zip(values, ivs)]
-        out[name] = {**fit, "row": {"path": name, "delta_avg_px": values[0], "delta_avg_std_px": stds[0],
-                                    "delta_max_px": values[1], "delta_max_std_px": stds[1],
-                                    "reprojection_px": fit["reprojection_px"], "heldout_rms_px": fit["heldout_rms_px"],
-                                    "invertible_fraction": o.get("invertible_fraction", 1.0),
-                                    "camera_matrix": [list(r) for r in o["camera_matrix"]], "dist_coeffs": list(o["dist_coeffs"])}}
+        out[name] = {
+            **fit,
+            "row": {
+                "path": name,
+                "delta_avg_px": values[0],
+                "delta_avg_std_px": stds[0],
+                "delta_max_px": values[1],
+                "delta_max_std_px": stds[1],
+                "reprojection_px": fit["reprojection_px"],
+                "heldout_rms_px": fit["heldout_rms_px"],
+                "invertible_fraction": o.get("invertible_fraction", 1.0),
+                "camera_matrix": [list(r) for r in o["camera_matrix"]],
+                "dist_coeffs": list(o["dist_coeffs"]),
+            },
+        }
     return out
 
 
@@ -323,12 +361,27 @@ def self_calibrate_reconstruction(
     weights = np.zeros(len(rows))
     weights[carried] = evidence_weights(lpd[carried], cfg.evidence_draws, cfg.seed)
     table = {m: {**r, "weight": float(w), "elpd": float(e)} for m, r, w, e in zip(fits, rows, weights, lpd.sum(axis=1))}
-    best = max((m for m, c in zip(table, carried) if c), key=lambda m: table[m]["elpd"])  # near-twins split weight, not elpd
-    intervals = [tuple(max(0.0, v) for v in mixture_interval([r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] * math.sqrt(w)
-                 for r, w in zip(rows, widen)], weights, cfg.confidence)) for fig in ("delta_avg", "delta_max")]
+    best = max(
+        (m for m, c in zip(table, carried) if c), key=lambda m: table[m]["elpd"]
+    )  # near-twins split weight, not elpd
+    intervals = [
+        tuple(
+            max(0.0, v)
+            for v in mixture_interval(
+                [r[f"{fig}_px"] for r in rows],
+                [r[f"{fig}_std_px"] * math.sqrt(w) for r, w in zip(rows, widen)],
+                weights,
+                cfg.confidence,
+            )
+        )
+        for fig in ("delta_avg", "delta_max")
+    ]
     if best in held:
         row = table[best]
-        k, d = torch.tensor(row["camera_matrix"], dtype=torch.float64), torch.tensor(row["dist_coeffs"], dtype=torch.float64)
+        k, d = (
+            torch.tensor(row["camera_matrix"], dtype=torch.float64),
+            torch.tensor(row["dist_coeffs"], dtype=torch.float64),
+        )
         dl = {"delta_avg_px": row["delta_avg_px"], "delta_max_px": row["delta_max_px"],
               "invertible_fraction": row["invertible_fraction"]}
     else:
@@ -347,11 +400,26 @@ def self_calibrate_reconstruction(
         label, reason = sequence_class(dc, dl["delta_avg_px"], half_avg, st)
     chosen = fits[next(iter(cfg.models))]["rec"]
     return MultiViewCalibration(
-        model=best, camera_matrix=k.tolist(),
+        model=best,
+        camera_matrix=k.tolist(),
         dist_coeffs=(d if d.numel() == 8 else torch.cat([d, d.new_zeros(5 - d.numel())])).tolist(),
-        delta_avg_user_px=dl["delta_avg_px"], delta_avg_user_interval=intervals[0], delta_max_user_px=dl["delta_max_px"],
-        delta_max_user_interval=intervals[1], invertible_fraction=dl["invertible_fraction"], k2_user=k2u, k4_user=k4u,
-        eq4_fit_error_px=fit_err, class_label=label, reason=reason, registered=chosen.num_reg_images(),
-        frames=frames or chosen.num_reg_images(), points3D=chosen.num_points3D(),
-        reprojection_px=table[best]["reprojection_px"], models=table, jackknife=fits[best].get("jackknife", []),
-        rotation_spread_deg=rotation_spread_deg(rec), paper_delta_avg_px=dc, dispersion=spread)
+        delta_avg_user_px=dl["delta_avg_px"],
+        delta_avg_user_interval=intervals[0],
+        delta_max_user_px=dl["delta_max_px"],
+        delta_max_user_interval=intervals[1],
+        invertible_fraction=dl["invertible_fraction"],
+        k2_user=k2u,
+        k4_user=k4u,
+        eq4_fit_error_px=fit_err,
+        class_label=label,
+        reason=reason,
+        registered=chosen.num_reg_images(),
+        frames=frames or chosen.num_reg_images(),
+        points3D=chosen.num_points3D(),
+        reprojection_px=table[best]["reprojection_px"],
+        models=table,
+        jackknife=fits[best].get("jackknife", []),
+        rotation_spread_deg=rotation_spread_deg(rec),
+        paper_delta_avg_px=dc,
+        dispersion=spread,
+    )

@@ -51,8 +51,18 @@ from statistics import NormalDist, median
 
 import numpy as np
 
-__all__ = ["checked_scale", "CAP", "camera_covariance", "posterior_std", "dispersion", "heldout_squared_errors", "heldout_rms", "unit_log_evidence",
-           "evidence_weights", "mixture_interval"]
+__all__ = [
+    "checked_scale",
+    "CAP",
+    "camera_covariance",
+    "posterior_std",
+    "dispersion",
+    "heldout_squared_errors",
+    "heldout_rms",
+    "unit_log_evidence",
+    "evidence_weights",
+    "mixture_interval",
+]
 
 #: A held-out squared error counts at most this many times its fold's median (over every model).
 CAP = 16.0
@@ -130,7 +140,9 @@ def dispersion(posterior_stds: Sequence[float], jackknife_stds: Sequence[float])
         >>> dispersion([0.04, float("inf")], [0.03, 0.3])  # a scene the posterior describes: no adjustment
         1.0
     """
-    r = [(j / p) ** 2 for p, j in zip(posterior_stds, jackknife_stds) if math.isfinite(p) and p > 0 and math.isfinite(j)]
+    r = [
+        (j / p) ** 2 for p, j in zip(posterior_stds, jackknife_stds) if math.isfinite(p) and p > 0 and math.isfinite(j)
+    ]
     return round(max(1.0, median(r)), 12) if r else 1.0
 
 
@@ -218,7 +230,9 @@ def unit_log_evidence(errors: Sequence[Sequence[Sequence[np.ndarray]]]) -> np.nd
         cap = CAP * float(np.median(every))
         s2 = max(float(np.mean(np.minimum(every, cap))) / 2, 1e-300)
         for j in range(len(frames[0])):
-            units.append([float(np.sum(-math.log(2 * math.pi * s2) - np.minimum(fr[j], cap) / (2 * s2))) for fr in frames])
+            units.append(
+                [float(np.sum(-math.log(2 * math.pi * s2) - np.minimum(fr[j], cap) / (2 * s2))) for fr in frames]
+            )
     return np.array(units).T if units else np.zeros((m, 0))
 
 

@@ -36,8 +36,22 @@ from lensdist_torch.calibration.multiview_evidence import (
 )
 from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_from_colmap
 
-__all__ = ["pycolmap_or_error", "quiet_log", "camera_of", "rss", "adjust", "with_model", "deltas", "rotation_spread_deg",
-           "fold_blocks", "fit_model", "held_camera", "fit_held_camera", "copy_reconstruction", "BA_FUNCTION_TOLERANCE"]
+__all__ = [
+    "pycolmap_or_error",
+    "quiet_log",
+    "camera_of",
+    "rss",
+    "adjust",
+    "with_model",
+    "deltas",
+    "rotation_spread_deg",
+    "fold_blocks",
+    "fit_model",
+    "held_camera",
+    "fit_held_camera",
+    "copy_reconstruction",
+    "BA_FUNCTION_TOLERANCE",
+]
 
 #: Relative cost decrease below which a bundle adjustment stops (Ceres' default; COLMAP's 0 crawled
 #: along the valley of a poorly conditioned camera).
@@ -174,7 +188,9 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
     with quiet_log():
         cov = camera_covariance(r, cam.camera_id, ss, n)
     fixed = set(cam.principal_point_idxs())
-    std_avg, std_max = posterior_std(list(cam.params), [i for i in range(len(cam.params)) if i not in fixed], cov, measure)
+    std_avg, std_max = posterior_std(
+        list(cam.params), [i for i in range(len(cam.params)) if i not in fixed], cov, measure
+    )
     jk_avg, jk_max, errors = [], [], []
     for train, fold_errors in _folds(r, n_blocks):
         d = measure(np.asarray(camera_of(train).params, dtype=float))
@@ -196,7 +212,9 @@ def copy_reconstruction(rec):
     return pycolmap_or_error().Reconstruction(rec)
 
 
-def held_camera(camera_matrix, dist_coeffs, *, focal: float, camera_id: int, width: int, height: int, scale: float = 1.0):
+def held_camera(
+    camera_matrix, dist_coeffs, *, focal: float, camera_id: int, width: int, height: int, scale: float = 1.0
+):
     """Another path's OpenCV camera (in pixels scaled by ``scale``) as COLMAP's FULL_OPENCV at focal length ``focal``.
 
     The lens map in pixels is kept (module docstring): every pixel goes to the same ideal pixel.

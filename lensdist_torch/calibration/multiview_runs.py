@@ -121,7 +121,15 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
         among = f" (the {len(ok)} reconstructions differ by up to {spread:.2f} px)" if len(ok) > 1 else ""
         label, reason = None, f"interval too wide: +-{half:.2f} px{among}"
     elif label is not None:  # the class of the widened interval, which may now span the R threshold
-        label, reason = sequence_class(best.paper_delta_avg_px, best.delta_avg_user_px, half, or_defaults(settings, LensdistConfig))
-    return dataclasses.replace(best, delta_avg_user_interval=intervals[0], delta_max_user_interval=intervals[1], class_label=label,
-                         reason=reason, reconstructions=tuple(_summary(s, r) for s, r in runs),
-                         reconstruction_spread_px=spread)
+        label, reason = sequence_class(
+            best.paper_delta_avg_px, best.delta_avg_user_px, half, or_defaults(settings, LensdistConfig)
+        )
+    return dataclasses.replace(
+        best,
+        delta_avg_user_interval=intervals[0],
+        delta_max_user_interval=intervals[1],
+        class_label=label,
+        reason=reason,
+        reconstructions=tuple(_summary(s, r) for s, r in runs),
+        reconstruction_spread_px=spread,
+    )

@@ -177,7 +177,9 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
 def _start(matches: PlanarMatches, size, cfg: MultiViewConfig, terms: int):
     """The scan of a_1 (step 2): the lens, the pairs' homographies and the inliers with the most inliers."""
     lo, hi = cfg.planar_scan_range
-    counts = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, torch.ones_like(matches.pair))
+    counts = torch.zeros(len(matches.first), dtype=torch.long).index_add_(
+        0, matches.pair, torch.ones_like(matches.pair)
+    )
     scanned = torch.sort(-counts, stable=True).indices[: cfg.planar_scan_pairs]  # the pairs with the most matches
     best = None
     for i in range(cfg.planar_scan_steps):
@@ -202,7 +204,9 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
     big_r = half_diagonal(h, w)
     table, fits = {}, {}
     n_obs = 4 * int(inl.sum())
-    n_info = 2 * int(inl.sum())  # BIC's count: a match's two transfer errors measure one misfit (4 residuals, 2 observations)
+    n_info = 2 * int(
+        inl.sum()
+    )  # BIC's count: a match's two transfer errors measure one misfit (4 residuals, 2 observations)
     for n in range(1, cfg.planar_terms + 1):
         for free in (False, True) if cfg.planar_centre_max > 0 else (False,):
             start = torch.cat([theta0[:n], theta0.new_zeros(2)]) if free else theta0[:n].clone()
@@ -215,9 +219,12 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
             rss = float((r * r).sum())
             dl = lens_deltas(tn, n, size, step)
             name = f"planar-{n}" + ("-centre" if free else "")
-            table[name] = {"bic": n_info * math.log(max(rss, 1e-300) / max(n_obs, 1)) + (n + 2 * free) * math.log(max(n_info, 1)),
-                           "delta_avg_px": dl["delta_avg_px"], "reprojection_px": math.sqrt(rss / max(n_obs, 1)),
-                           **dict(zip(("coefficients", "centre"), lens_of(tn, n, size)))}
+            table[name] = {
+                "bic": n_info * math.log(max(rss, 1e-300) / max(n_obs, 1)) + (n + 2 * free) * math.log(max(n_info, 1)),
+                "delta_avg_px": dl["delta_avg_px"],
+                "reprojection_px": math.sqrt(rss / max(n_obs, 1)),
+                **dict(zip(("coefficients", "centre"), lens_of(tn, n, size))),
+            }
             fits[name] = (tn, hn, dl, n)
     return table, fits
 
@@ -331,7 +338,12 @@ def self_calibrate_planar(
     theta, hs, dl, n = fits[best]
     a, centre = lens_of(theta, n, (h, w))
     if good_pairs < cfg.planar_min_pairs:
-        return fail(f"too few pairs fit one homography: {good_pairs} of at least {cfg.planar_min_pairs}", a, int(inl.sum()), table)
+        return fail(
+            f"too few pairs fit one homography: {good_pairs} of at least {cfg.planar_min_pairs}",
+            a,
+            int(inl.sum()),
+            table,
+        )
     spread = model_spread(table, best, cfg)
     # the jackknife over contiguous blocks of frames
     n_blocks = min(cfg.jackknife_blocks, n_frames)
@@ -355,20 +367,50 @@ def self_calibrate_planar(
     half_avg = (intervals[0][1] - intervals[0][0]) / 2
     label, reason = None, ""
     if share < cfg.planar_min_inlier_share:
-        reason = (f"not a plane: one homography per pair explains {100 * share:.0f} % of its pair's verified matches (at least "
-                  f"{100 * cfg.planar_min_inlier_share:.0f} % needed)")
+        reason = (
+            f"not a plane: one homography per pair explains {100 * share:.0f} % of its pair's verified matches (at least "
+            f"{100 * cfg.planar_min_inlier_share:.0f} % needed)"
+        )
     elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
         reason = f"interval too wide: +-{half_avg:.2f} px"
     elif math.isfinite(k2u):
         label, reason = sequence_class(paper_frame_delta_avg(k2u, k4u, (h, w), st), dl["delta_avg_px"], half_avg, st)
-    cams = [opencv_camera_from_map(lambda p: lens_ideal_points(p, a, h, w, centre=centre), h, w, model=m, step=step, centre=centre)
-            for m in ("standard", "rational")]
-    standard, rational = ({k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in c._asdict().items() if k != "model"}
-                          for c in cams)
+    cams = [
+        opencv_camera_from_map(
+            lambda p: lens_ideal_points(p, a, h, w, centre=centre), h, w, model=m, step=step, centre=centre
+        )
+        for m in ("standard", "rational")
+    ]
+    standard, rational = (
+        {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in c._asdict().items() if k != "model"}
+        for c in cams
+    )
     return PlanarCalibration(
-        coefficients=a, terms=n, model=best, centre=centre, k2_user=k2u, k4_user=k4u, eq4_fit_error_px=fit_err,
-        delta_avg_user_px=dl["delta_avg_px"], delta_avg_user_interval=intervals[0], delta_max_user_px=dl["delta_max_px"],
-        delta_max_user_interval=intervals[1], invertible_fraction=dl["invertible_fraction"], bending_halfwidth_px=bending,
-        matched_fraction=reach, class_label=label, reason=reason, pairs=good_pairs, inliers=int(inl.sum()),
-        matches=len(matches.pair), inlier_share=share, reprojection_px=table[best]["reprojection_px"], models=table,
-        jackknife=jk_avg, jackknife_coefficients=jk_a, jackknife_centres=jk_c, opencv=standard, opencv_rational=rational)
+        coefficients=a,
+        terms=n,
+        model=best,
+        centre=centre,
+        k2_user=k2u,
+        k4_user=k4u,
+        eq4_fit_error_px=fit_err,
+        delta_avg_user_px=dl["delta_avg_px"],
+        delta_avg_user_interval=intervals[0],
+        delta_max_user_px=dl["delta_max_px"],
+        delta_max_user_interval=intervals[1],
+        invertible_fraction=dl["invertible_fraction"],
+        bending_halfwidth_px=bending,
+        matched_fraction=reach,
+        class_label=label,
+        reason=reason,
+        pairs=good_pairs,
+        inliers=int(inl.sum()),
+        matches=len(matches.pair),
+        inlier_share=share,
+        reprojection_px=table[best]["reprojection_px"],
+        models=table,
+        jackknife=jk_avg,
+        jackknife_coefficients=jk_a,
+        jackknife_centres=jk_c,
+        opencv=standard,
+        opencv_rational=rational,
+    )

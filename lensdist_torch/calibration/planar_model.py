@@ -44,8 +44,14 @@ def _adjugate(m: torch.Tensor) -> torch.Tensor:
     (``torch.linalg.solve`` under ``vmap(jacfwd)`` gave wrong derivatives here.)
     """
     def cross(x, y):  # written out: linalg.cross has no fast batching rule under forward-mode AD
-        return torch.stack([x[..., 1] * y[..., 2] - x[..., 2] * y[..., 1], x[..., 2] * y[..., 0] - x[..., 0] * y[..., 2],
-                            x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0]], -1)
+        return torch.stack(
+            [
+                x[..., 1] * y[..., 2] - x[..., 2] * y[..., 1],
+                x[..., 2] * y[..., 0] - x[..., 0] * y[..., 2],
+                x[..., 0] * y[..., 1] - x[..., 1] * y[..., 0],
+            ],
+            -1,
+        )
 
     c0, c1, c2 = m[..., :, 0], m[..., :, 1], m[..., :, 2]
     return torch.stack([cross(c1, c2), cross(c2, c0), cross(c0, c1)], -2)
@@ -152,7 +158,9 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair
         uhh = torch.zeros(n_pairs, 8, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * jh)))
         whd = torch.zeros(n_pairs, 8, a.numel(), dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * ja)))
         vdd = (ja.transpose(1, 2) @ (wr * ja)).sum(0)
-        gh = -torch.zeros(n_pairs, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0])
+        gh = -torch.zeros(n_pairs, 8, dtype=a.dtype).index_add_(
+            0, pair, (jh.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0]
+        )
         gd = -(ja.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0].sum(0)
         eye8 = torch.eye(8, dtype=a.dtype)
         while True:
@@ -281,5 +289,8 @@ def model_spread(table: dict, best: str, cfg: MultiViewConfig) -> float:
     (The 3-D models weigh themselves by held-out frames instead: :mod:`~lensdist_torch.calibration.multiview_evidence`.)
     """
     b = table[best]
-    return max(abs(v["delta_avg_px"] - b["delta_avg_px"]) for v in table.values()
-               if v["bic"] - b["bic"] <= cfg.bic_margin or v["reprojection_px"] <= (1 + cfg.rms_margin) * b["reprojection_px"])
+    return max(
+        abs(v["delta_avg_px"] - b["delta_avg_px"])
+        for v in table.values()
+        if v["bic"] - b["bic"] <= cfg.bic_margin or v["reprojection_px"] <= (1 + cfg.rms_margin) * b["reprojection_px"]
+    )

@@ -42,7 +42,15 @@ import torch
 
 from lensdist_torch.config import CalibrationConfig
 
-__all__ = ["GoodBadFit", "good_and_bad", "pair_weights", "pool_pairs", "t_quantile", "within_mads", "jackknife_interval"]
+__all__ = [
+    "GoodBadFit",
+    "good_and_bad",
+    "pair_weights",
+    "pool_pairs",
+    "t_quantile",
+    "within_mads",
+    "jackknife_interval",
+]
 
 _SHARES = (0.2, 0.35, 0.5, 0.65, 0.8, 0.95)  # the grid's good shares pi
 _KAPPAS = 64  # the grid's std scales, geometric from 1 to the values' spread over their smallest std
@@ -104,9 +112,14 @@ def good_and_bad(values: torch.Tensor, std: torch.Tensor, width: float) -> GoodB
         >>> round(fit.mean, 3), round(fit.kappa, 2), fit.p_good[-1].item() < 1e-6  # ML: kappa^2 = 0.08 / 0.1^2
         (3.0, 2.83, True)
     """
-    d, s = torch.as_tensor(values, dtype=torch.float64).reshape(-1), torch.as_tensor(std, dtype=torch.float64).reshape(-1)
+    d, s = (
+        torch.as_tensor(values, dtype=torch.float64).reshape(-1),
+        torch.as_tensor(std, dtype=torch.float64).reshape(-1),
+    )
     if d.shape != s.shape or d.numel() == 0:
-        raise ValueError(f"values and std must be two (n,) tensors with n >= 1, got {tuple(d.shape)} and {tuple(s.shape)}")
+        raise ValueError(
+            f"values and std must be two (n,) tensors with n >= 1, got {tuple(d.shape)} and {tuple(s.shape)}"
+        )
     if not (bool(torch.isfinite(d).all()) and bool(torch.isfinite(s).all()) and bool((s > 0).all())):
         raise ValueError("values must be finite and std finite and > 0")
     if not (isinstance(width, (int, float)) and math.isfinite(width) and width > 0):

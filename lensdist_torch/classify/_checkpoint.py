@@ -110,7 +110,9 @@ def check_state(sd: Any, spec: Spec, dims: dict[str, int], path: str | Path) -> 
         if t.dtype != dtype:
             raise CheckpointError(f"checkpoint {path}: {name} has dtype {t.dtype}, expected {dtype}")
         if t.dim() != len(shape):
-            raise CheckpointError(f"checkpoint {path}: {name} has shape {tuple(t.shape)}, expected {len(shape)} dimensions")
+            raise CheckpointError(
+                f"checkpoint {path}: {name} has shape {tuple(t.shape)}, expected {len(shape)} dimensions"
+            )
         for size, want in zip(t.shape, shape):
             if isinstance(want, str):
                 want = dims.setdefault(want, size)

@@ -154,7 +154,9 @@ class EigenSpaceClassifier(nn.Module):
 
     def _check_fit(self, features, classes, deltas):
         if not isinstance(features, torch.Tensor) or features.dim() != 2 or features.shape[1] != self.n_features:
-            raise ValueError(f"features must be (N, {self.n_features}), got {getattr(features, 'shape', type(features))}")
+            raise ValueError(
+                f"features must be (N, {self.n_features}), got {getattr(features, 'shape', type(features))}"
+            )
         n = features.shape[0]
         if not isinstance(classes, torch.Tensor) or classes.shape != (n,) or classes.is_floating_point():
             raise ValueError(f"classes must be an integer tensor of shape ({n},)")
@@ -174,7 +176,9 @@ class EigenSpaceClassifier(nn.Module):
         if not bool(self.fitted):
             raise RuntimeError("EigenSpaceClassifier is not fitted: call fit() or load a checkpoint")
         if not isinstance(features, torch.Tensor) or features.dim() != 2 or features.shape[1] != self.n_features:
-            raise ValueError(f"features must be (B, {self.n_features}), got {getattr(features, 'shape', type(features))}")
+            raise ValueError(
+                f"features must be (B, {self.n_features}), got {getattr(features, 'shape', type(features))}"
+            )
         return features.to(self.means.device, self.means.dtype)
 
     def _project(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -231,7 +235,9 @@ class EigenSpaceClassifier(nn.Module):
                    extra=self.extra if extra is None else extra)
 
     @classmethod
-    def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "EigenSpaceClassifier":
+    def load(
+        cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu"
+    ) -> "EigenSpaceClassifier":
         """Load a checkpoint (``torch.load(weights_only=True)``).
 
         The content digest is verified, then the payload is validated before anything is
@@ -294,4 +300,6 @@ def _check_plausible(sd: dict, config: LensdistConfig, d: int, path) -> None:
     top = max_coefficient_norm(d)
     row_norms_below(sd, "train_coeffs", top, path)
     in_range(sd, "reject_threshold", lo=0.0, hi=top, path=path, why="a distance between quality maps")
-    in_range(sd, "train_delta", lo=0.0, hi=max_delta(config), path=path, why="a Delta in px, at most the image diagonal")
+    in_range(
+        sd, "train_delta", lo=0.0, hi=max_delta(config), path=path, why="a Delta in px, at most the image diagonal"
+    )

@@ -103,7 +103,11 @@ class DeltaRegressor(nn.Module):
     """
 
     def __init__(
-        self, n_features: int, config: LensdistConfig | None = None, n_components: int | None = None, k: int | None = None
+        self,
+        n_features: int,
+        config: LensdistConfig | None = None,
+        n_components: int | None = None,
+        k: int | None = None,
     ) -> None:
         super().__init__()
         self.config = or_defaults(config, LensdistConfig)
@@ -190,7 +194,14 @@ class DeltaRegressor(nn.Module):
         (FileExistsError otherwise: never an image, a data shard or another file).
         """
         sizes = {"n_features": self.n_features, "n_components": self.n_components, "k": self.k}
-        save_model(self, path, kind=_KIND, version=CHECKPOINT_VERSION, sizes=sizes, extra=self.extra if extra is None else extra)
+        save_model(
+            self,
+            path,
+            kind=_KIND,
+            version=CHECKPOINT_VERSION,
+            sizes=sizes,
+            extra=self.extra if extra is None else extra,
+        )
 
     @classmethod
     def load(cls, path: str | Path, expected: LensdistConfig | None = None, map_location="cpu") -> "DeltaRegressor":
@@ -236,7 +247,9 @@ class DeltaRegressor(nn.Module):
                 f"pairs of {d} features keeps {min(nc, dims['N'], d)}"
             )
         if k >= dims["N"]:
-            raise CheckpointError(f"checkpoint {path}: k={k} neighbours needs more than k training pairs, it holds {dims['N']}")
+            raise CheckpointError(
+                f"checkpoint {path}: k={k} neighbours needs more than k training pairs, it holds {dims['N']}"
+            )
         if k > MAX_NEIGHBOURS:  # the bound of regression.k: the median must stay local
             raise CheckpointError(
                 f"checkpoint {path}: k={k} neighbours of {dims['N']} training pairs, expected at most {MAX_NEIGHBOURS} "
@@ -245,7 +258,9 @@ class DeltaRegressor(nn.Module):
         in_range(sd, "mean", lo=FEATURE_RANGE[0], hi=FEATURE_RANGE[1], path=path, why="a mean of quality maps")
         orthonormal_rows(sd, "components", 2e-2, path)
         row_norms_below(sd, "train_coeffs", max_coefficient_norm(d), path)
-        in_range(sd, "train_delta", lo=0.0, hi=max_delta(config), path=path, why="a Delta in px, at most the image diagonal")
+        in_range(
+            sd, "train_delta", lo=0.0, hi=max_delta(config), path=path, why="a Delta in px, at most the image diagonal"
+        )
         if bool((sd["train_coeffs"][:, -1] < 0).any()):
             raise CheckpointError(f"checkpoint {path}: train_coeffs holds a negative residual norm (its last column)")
         extra = check_extra(payload, path)

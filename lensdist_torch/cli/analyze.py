@@ -57,7 +57,9 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         from lensdist_torch.workflows.figures import save_map_grid
 
         label = f"{res.method}: Delta_avg {_fmt(res.delta_avg)}"
-        save_map_grid(qmap.cpu(), [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res.class_label or "?"])
+        save_map_grid(
+            qmap.cpu(), [label], args.save_map, valid=_valid_blocks(res, qmap), classes=[res.class_label or "?"]
+        )
         _note(args, f"map: {args.save_map}")
     return 3 if args.strict and res.cannot_tell else 0
 
@@ -74,8 +76,16 @@ def _cmd_pairs(args: argparse.Namespace) -> int:
     argtypes.existing(args.pairs, "pairs file")  # before the imports below: a missing file's error at once
     from lensdist_torch.core.outputs import check_output_dir
 
-    check_output_dir(args.out, "--out", {"--pairs": args.pairs, "--config": args.config, "--checkpoint": args.checkpoint,
-                                         "--checkpoint-max": args.checkpoint_max})
+    check_output_dir(
+        args.out,
+        "--out",
+        {
+            "--pairs": args.pairs,
+            "--config": args.config,
+            "--checkpoint": args.checkpoint,
+            "--checkpoint-max": args.checkpoint_max,
+        },
+    )
     from lensdist_torch.config import load_config
     from lensdist_torch.workflows.analyze import resolve_device
     from lensdist_torch.workflows.pair_archive import pair_inputs, run_pair_archive
@@ -138,8 +148,16 @@ def add_analyze_command(command) -> None:
                    help="selfcal (most accurate), regression, or the paper's eigenspace")
     p.add_argument("--checkpoint", default=None,
                    help="eigenspace: the Delta_avg classifier; regression: the regressor (default: shipped)")
-    p.add_argument("--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)")
-    p.add_argument("--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)")
+    p.add_argument(
+        "--checkpoint-max", default=None, help="eigenspace only: the Delta_max classifier (default: shipped)"
+    )
+    p.add_argument(
+        "--save-map", default=None, help="figure of the quality map; the suffix names the format (.png, .pdf, .svg)"
+    )
     p.add_argument("--strict", action="store_true", help="exit with status 3 when the answer is 'cannot tell'")
-    p.add_argument("--config", default=None, help=argtypes.CONFIG_HELP + ", e.g. a calibration.toml written by `lensdist reproduce`")
+    p.add_argument(
+        "--config",
+        default=None,
+        help=argtypes.CONFIG_HELP + ", e.g. a calibration.toml written by `lensdist reproduce`",
+    )
     p.add_argument("--device", type=argtypes.device, default="cpu", help=argtypes.DEVICE_HELP)

@@ -30,8 +30,10 @@ def _guided(pl: dict) -> str:
     first = g["first_fit"]
     if not g.get("used"):
         return f"; guided matching found no answer ({g.get('reason')}): the first fit's"
-    return (f"; on guided matches ({g['matches']} in {g['pairs_matched']} of {g['pairs_verified']} verified pairs; the first "
-            f"fit on the verified matches: {first['pairs']} pairs, Delta_avg {first['delta_avg_user_px']:.2f} px)")
+    return (
+        f"; on guided matches ({g['matches']} in {g['pairs_matched']} of {g['pairs_verified']} verified pairs; the first "
+        f"fit on the verified matches: {first['pairs']} pairs, Delta_avg {first['delta_avg_user_px']:.2f} px)"
+    )
 
 
 def _refined(pl: dict) -> str:
@@ -51,8 +53,10 @@ def _paths(res: dict) -> None:
     """Each path's own numbers, after the answer: the frames and the direct path, the multi-view path, the homography model."""
     (h, w) = res["image_size"]
     unregistered = f" ({res['pairs_unregistered']} not registered)" if res.get("pairs_unregistered") else ""
-    print(f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected"
-          + unregistered)
+    print(
+        f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected"
+        + unregistered
+    )
     mv = res.get("multiview")
     if mv is not None and "model" not in mv:
         print(f"multi-view path: no answer ({mv['reason']})")
@@ -60,17 +64,21 @@ def _paths(res: dict) -> None:
         weight = (mv.get("models") or {}).get(mv["model"], {}).get("weight")
         by = "" if weight is None else f" (weight {weight:.2f} on held-out frames)"
         iv = mv["delta_avg_user_interval"]
-        print(f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, camera model {mv['model']}"
-              f"{by}, reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px"
-              + ("" if iv is None or None in iv else f" [{iv[0]:.2f}, {iv[1]:.2f}]"))
+        print(
+            f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, camera model {mv['model']}"
+            f"{by}, reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px"
+            + ("" if iv is None or None in iv else f" [{iv[0]:.2f}, {iv[1]:.2f}]")
+        )
     pl = res.get("planar")
     if pl is not None and "terms" not in pl:
         print(f"homography model: no answer ({pl['reason']})")
     elif pl is not None:
-        print(f"homography model: {pl['pairs']} pairs, {pl['inliers']} of {pl['matches']} matches on one homography per "
-              f"pair, {pl['terms']} radial terms about ({pl['centre'][0]:.1f}, {pl['centre'][1]:.1f}) (by BIC), RMS "
-              f"{pl['reprojection_px']:.2f} px, Delta_avg {pl['delta_avg_user_px']:.2f} px "
-              f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl) + _guided(pl) + _refined(pl))
+        print(
+            f"homography model: {pl['pairs']} pairs, {pl['inliers']} of {pl['matches']} matches on one homography per "
+            f"pair, {pl['terms']} radial terms about ({pl['centre'][0]:.1f}, {pl['centre'][1]:.1f}) (by BIC), RMS "
+            f"{pl['reprojection_px']:.2f} px, Delta_avg {pl['delta_avg_user_px']:.2f} px "
+            f"({pl['class'] or 'cannot tell: ' + str(pl['reason'])})" + _straightness(pl) + _guided(pl) + _refined(pl)
+        )
 
 
 #: Which path an answer's ``method`` names, in words.
@@ -99,13 +107,22 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
         print(f"no estimate: {res['reason']}")
         _paths(res)
         return
-    print(f"distortion class: {(res['class'] + _kind(res)) if res['class'] else 'cannot tell (' + res['reason'] + ')'}  "
-          "(1 = small ... 4 = very strong, R = none visible)")
+    print(
+        f"distortion class: {(res['class'] + _kind(res)) if res['class'] else 'cannot tell (' + res['reason'] + ')'}  "
+        "(1 = small ... 4 = very strong, R = none visible)"
+    )
     # where it cannot tell, the numbers are the estimate that could not be trusted, and say so
     tag = "" if res["class"] is not None else "estimate, not an answer: "
     for name, d, a, b in (("avg", res["delta_avg_user_px"], lo, hi), ("max", res["delta_max_user_px"], mlo, mhi)):
-        bound = "" if a is None else (f" (95 % interval {a:.2f} to {b:.2f})" if b is not None else
-                                      f" (95 % interval from {a:.2f}, no upper bound: a model the tracks do not determine)")
+        bound = (
+            ""
+            if a is None
+            else (
+                f" (95 % interval {a:.2f} to {b:.2f})"
+                if b is not None
+                else f" (95 % interval from {a:.2f}, no upper bound: a model the tracks do not determine)"
+            )
+        )
         print(f"{tag}Delta_{name} = {d:.2f} px" + bound + f" over your {w} x {h} frames")
     print(f"from {_FROM.get(res.get('method'), res.get('method'))}" + (
         "" if res.get("eq4_fit_error_px") is None else
@@ -114,36 +131,61 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
 
     standard, rational = res["opencv"], res.get("opencv_rational")
     shown = [standard or rational]
-    if standard and rational and max(standard["fit_error_mean_px"], standard.get("forward_error_mean_px", 0.0)) > FOLLOWS_PX:
+    if (
+        standard
+        and rational
+        and max(standard["fit_error_mean_px"], standard.get("forward_error_mean_px", 0.0)) > FOLLOWS_PX
+    ):
         shown.append(rational)  # the 5 coefficients cannot follow this lens: the 8 rational ones beside them
     for cv in shown:
         k, n = cv["camera_matrix"], len(cv["dist_coeffs"])
         forward = cv.get("forward_error_mean_px")
-        print(f"{tag}OpenCV ({n} coefficients): fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, "
-              f"dist_coeffs = [{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error "
-              f"{cv['fit_error_mean_px']:.3f} px mean, {cv['fit_error_max_px']:.3f} px max"
-              + ("" if forward is None else f"; cv2.undistort's map {forward:.3f} px mean") + ")")
+        print(
+            f"{tag}OpenCV ({n} coefficients): fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, "
+            f"dist_coeffs = [{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error "
+            f"{cv['fit_error_mean_px']:.3f} px mean, {cv['fit_error_max_px']:.3f} px max"
+            + ("" if forward is None else f"; cv2.undistort's map {forward:.3f} px mean")
+            + ")"
+        )
     if res.get("focal_source") in _FOCAL:
         print(f"fx, fy: {_FOCAL[res['focal_source']]}")
     if len(shown) == 2:
         print(f"OpenCV's 5 coefficients do not follow this lens (over {FOLLOWS_PX:g} px mean): use the 8 rational ones "
               "(cv2.CALIB_RATIONAL_MODEL's order); `lensdist undistort --from` applies the answer's own lens")
-    print(f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}" + (
-        "" if res.get("eq4_fit_error_px") is None else f" (follows the answer's lens to {res['eq4_fit_error_px']:.2f} px RMS)"))
+    print(
+        f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}"
+        + (
+            ""
+            if res.get("eq4_fit_error_px") is None
+            else f" (follows the answer's lens to {res['eq4_fit_error_px']:.2f} px RMS)"
+        )
+    )
     if res["class"] is not None and res["class"] != "R":
         src = res.get("path", "PATH")
         cal = Path(out) / "calibration.json" if out else None
-        print("next: " + (f"lensdist undistort {src} --from {cal} --out {Path(out) / 'undistorted'}" if cal else
-                          f"lensdist calibrate {src} --out DIR, then lensdist undistort {src} --from DIR/calibration.json "
-                          "--out DIR/undistorted"))
+        print(
+            "next: "
+            + (
+                f"lensdist undistort {src} --from {cal} --out {Path(out) / 'undistorted'}"
+                if cal
+                else f"lensdist calibrate {src} --out DIR, then lensdist undistort {src} --from DIR/calibration.json "
+                "--out DIR/undistorted"
+            )
+        )
     print("each path:")
     _paths(res)
 
 
 def _archive_mode(args: argparse.Namespace) -> bool:
     """Several inputs, a glob, a manifest or an archive option: the archive run; one PATH alone: as ever."""
-    return (len(args.paths) != 1 or args.manifest is not None or args.shard is not None or args.engine is not None
-            or args.ray_address is not None or (any(c in args.paths[0] for c in "*?[") and not Path(args.paths[0]).exists()))
+    return (
+        len(args.paths) != 1
+        or args.manifest is not None
+        or args.shard is not None
+        or args.engine is not None
+        or args.ray_address is not None
+        or (any(c in args.paths[0] for c in "*?[") and not Path(args.paths[0]).exists())
+    )
 
 
 def _print_archive(run) -> None:
@@ -160,8 +202,10 @@ def _print_archive(run) -> None:
             print(f"{name}: {cam.inputs} inputs, none answered")
             continue
         off = "none" if not cam.disagreeing else ", ".join(cam.disagreeing)
-        print(f"{name}: {cam.inputs} inputs, {cam.answered} answered: Delta_avg {cam.delta_avg_px:.2f} px pooled over "
-              f"{cam.pooled} (95 % interval {cam.delta_avg_low_px:.2f} to {cam.delta_avg_high_px:.2f}); disagreeing: {off}")
+        print(
+            f"{name}: {cam.inputs} inputs, {cam.answered} answered: Delta_avg {cam.delta_avg_px:.2f} px pooled over "
+            f"{cam.pooled} (95 % interval {cam.delta_avg_low_px:.2f} to {cam.delta_avg_high_px:.2f}); disagreeing: {off}"
+        )
     print("written: " + ", ".join(run.files) + f", {Path(run.out) / 'answers'}/")
 
 
@@ -244,8 +288,10 @@ def _cmd_undistort(args: argparse.Namespace) -> int:
     if lens is None:
         applied = f"k2 = {res['k2']:.4e}, k4 = {res['k4']:.4e}"
     elif lens["kind"] == "radial":
-        applied = (f"the homography model's lens: {len(lens['coefficients'])} radial terms about ({lens['centre'][0]:.1f}, "
-                   f"{lens['centre'][1]:.1f})")
+        applied = (
+            f"the homography model's lens: {len(lens['coefficients'])} radial terms about ({lens['centre'][0]:.1f}, "
+            f"{lens['centre'][1]:.1f})"
+        )
     else:
         applied = f"the multi-view path's camera: {len(lens['dist_coeffs'])} OpenCV coefficients"
     k = res["camera"]["new_camera_matrix"]
@@ -287,11 +333,15 @@ files of the names it writes unless --overwrite."""
 def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
     """Register ``calibrate`` and ``undistort`` on the ``lensdist`` parser's subparsers (``parents``: --debug)."""
     p = subparsers.add_parser(
-        "calibrate", help="the distortion of one camera from a folder of frames or a video", description=_CALIBRATE,
+        "calibrate",
+        help="the distortion of one camera from a folder of frames or a video",
+        description=_CALIBRATE,
         epilog="examples:\n  lensdist calibrate frames/ --out calib/\n  lensdist calibrate dive.mp4 --json --method direct\n"
-               "  lensdist calibrate 'archive/*.mp4' --out archive_answers/\n"
-               "  lensdist calibrate --manifest dives.csv --out answers/ --shard 0/8",
-        parents=parents or [], formatter_class=argtypes.Formatter)
+        "  lensdist calibrate 'archive/*.mp4' --out archive_answers/\n"
+        "  lensdist calibrate --manifest dives.csv --out answers/ --shard 0/8",
+        parents=parents or [],
+        formatter_class=argtypes.Formatter,
+    )
     p.add_argument("paths", nargs="*", metavar="path",
                    help="folder of frames (sorted by name) or a video file; several, or a quoted glob, for an archive")
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -309,7 +359,12 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
     p.add_argument("--config", default=None, help="TOML config ([calibration] and [multiview]; the defaults of "
                    "docs/method.md when omitted)")
     p.add_argument("--max-frames", type=argtypes.positive_int, default=300, help="read at most this many frames")
-    p.add_argument("--focal", type=argtypes.positive_float, default=None, help="OpenCV focal length in px (default: the half diagonal)")
+    p.add_argument(
+        "--focal",
+        type=argtypes.positive_float,
+        default=None,
+        help="OpenCV focal length in px (default: the half diagonal)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--device", type=argtypes.device, default="cpu",
                    help="where registration and self-calibration run: cpu, cuda or cuda:N")
@@ -325,18 +380,34 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
         epilog="examples:\n  lensdist undistort frames/ --from calib/calibration.json --out corrected/\n"
                "  lensdist undistort dive.mp4 --k2 2e-7 --k4 0 --alpha 1 --out corrected/")
     p.add_argument("path", help="folder of frames or a video file")
-    p.add_argument("--k2", type=argtypes.finite_float, default=None, help="eq. 4's k2 in the frames' pixels (0 if only --k4 is given)")
-    p.add_argument("--k4", type=argtypes.finite_float, default=None, help="eq. 4's k4 in the frames' pixels (0 if only --k2 is given)")
+    p.add_argument(
+        "--k2",
+        type=argtypes.finite_float,
+        default=None,
+        help="eq. 4's k2 in the frames' pixels (0 if only --k4 is given)",
+    )
+    p.add_argument(
+        "--k4",
+        type=argtypes.finite_float,
+        default=None,
+        help="eq. 4's k4 in the frames' pixels (0 if only --k2 is given)",
+    )
     p.add_argument("--from", dest="from_json", default=None,
                    help="the JSON of lensdist calibrate (--out or --json) or of lensdist analyze --json")
     p.add_argument("--out", required=True, help="output folder (frames as PNG, masks in out/masks, undistortion.json)")
     p.add_argument("--alpha", type=argtypes.float_in(0.0, 1.0), default=None,
                    help="0: only valid pixels, 1: every source pixel kept, between: interpolated (OpenCV's "
                         "getOptimalNewCameraMatrix); omitted: the frames keep their scale and centre")
-    p.add_argument("--json", action="store_true", help="print the result (with undistortion.json's content) as one JSON object")
+    p.add_argument(
+        "--json", action="store_true", help="print the result (with undistortion.json's content) as one JSON object"
+    )
     p.add_argument("--overwrite", action="store_true",
                    help="replace existing files of the names it writes in --out (never an input)")
-    p.add_argument("--max-frames", type=argtypes.positive_int, default=None, help="at most this many frames (default: all)")
+    p.add_argument(
+        "--max-frames", type=argtypes.positive_int, default=None, help="at most this many frames (default: all)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--device", type=argtypes.device, default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N")
+    p.add_argument(
+        "--device", type=argtypes.device, default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N"
+    )
     p.set_defaults(func=_cmd_undistort)

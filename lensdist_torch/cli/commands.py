@@ -108,7 +108,9 @@ def _cmd_generate(args: argparse.Namespace) -> int:
         if info.get("complete"):
             print(f"  {name}: {info['n_pairs']} pairs, complete; registration failed for {info['registration_failed']}")
         else:
-            print(f"  {name}: {info.get('shards_present', 0)} of {info['n_shards']} shards present (other --shard jobs)")
+            print(
+                f"  {name}: {info.get('shards_present', 0)} of {info['n_shards']} shards present (other --shard jobs)"
+            )
     return 0
 
 
@@ -146,8 +148,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace) -> int:
-    check_output_dir(args.out, "--out", {"--data": args.data, "--checkpoint": args.checkpoint or [], "--regression": args.regression,
-                                         "--config": args.config}, writes=["evaluate.md", "evaluate.json"])
+    check_output_dir(
+        args.out,
+        "--out",
+        {
+            "--data": args.data,
+            "--checkpoint": args.checkpoint or [],
+            "--regression": args.regression,
+            "--config": args.config,
+        },
+        writes=["evaluate.md", "evaluate.json"],
+    )
     refuse_inside(Path(args.out) / "evaluate.json", "--out", args.data, "--data")
     if not (args.checkpoint or args.regression or args.selfcal):
         raise ValueError("nothing to evaluate: give --checkpoint, --regression and/or --selfcal")
@@ -159,7 +170,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     device = resolve_device(args.device)
     if any(":" in s for s in read_manifest(args.data)["scenes"]):
-        raise ValueError("evaluate re-renders the test pairs for the analysis and needs a data set of the embedded scenes")
+        raise ValueError(
+            "evaluate re-renders the test pairs for the analysis and needs a data set of the embedded scenes"
+        )
     test = load_set(args.data, "test")
     cfg = None if args.config is None else load_config(args.config)
     settings = evaluate_checkpoints(test, args.checkpoint or [], regression=args.regression, selfcal=args.selfcal,
@@ -182,8 +195,15 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     from lensdist_torch.workflows.reproduce import reproduce
 
     cfg, device = load_config(args.config), resolve_device(args.device)
-    res = reproduce(cfg, args.out, quick=args.quick, workers=args.workers, batch_size=args.batch_size, progress=not args.quiet,
-                    device=device)
+    res = reproduce(
+        cfg,
+        args.out,
+        quick=args.quick,
+        workers=args.workers,
+        batch_size=args.batch_size,
+        progress=not args.quiet,
+        device=device,
+    )
     report = json.loads(Path(res["json"]).read_text())
     written, reused = _shards(report.get("generation", {}))
     if args.json:
@@ -192,7 +212,10 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
         from lensdist_torch.workflows.reports import report_summary
 
         print(report_summary(report, res["markdown"]), end="")
-    _note(args, f"data: {written} shards generated, reused {reused} shards" if reused else f"data: {written} shards generated")
+    _note(
+        args,
+        f"data: {written} shards generated, reused {reused} shards" if reused else f"data: {written} shards generated",
+    )
     _note(args, f"written: {res['markdown']}, {res['json']}")
     return 0
 
@@ -240,11 +263,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_demo(command) -> None:
-    p = command("demo", "quality map of a known misregistration on the embedded scene",
-                "lensdist demo --scale-error 0.02 --out results", _cmd_demo, "print only the summary as one JSON object")
+    p = command(
+        "demo",
+        "quality map of a known misregistration on the embedded scene",
+        "lensdist demo --scale-error 0.02 --out results",
+        _cmd_demo,
+        "print only the summary as one JSON object",
+    )
     p.add_argument("--scene", default="gravel", help="embedded scene")
-    p.add_argument("--scale-error", type=_scale_error, default=0.01,
-                   help="relative scale error of the second view, from 0 to 0.1 (beyond, errors no longer grow outwards)")
+    p.add_argument(
+        "--scale-error",
+        type=_scale_error,
+        default=0.01,
+        help="relative scale error of the second view, from 0 to 0.1 (beyond, errors no longer grow outwards)",
+    )
     p.add_argument("--config", default=None, help=argtypes.CONFIG_HELP)
     p.add_argument("--out", default="results", help="folder for demo.png")
 
@@ -256,24 +288,51 @@ def _add_generate(command) -> None:
     p.add_argument("--config", default=None, help=argtypes.CONFIG_HELP + ", e.g. configs/paper.toml")
     p.add_argument("--out", required=True, help="output folder (shards + manifest.json)")
     p.add_argument("--sets", default="train,test", help="comma-separated: train,test")
-    p.add_argument("--shard", type=argtypes.shard, default=None, help="I/N: this job's share of the shards (array jobs; default: all)")
+    p.add_argument(
+        "--shard",
+        type=argtypes.shard,
+        default=None,
+        help="I/N: this job's share of the shards (array jobs; default: all)",
+    )
     p.add_argument("--workers", type=argtypes.positive_int, default=2, help="worker processes (one thread each)")
-    p.add_argument("--batch-size", type=argtypes.positive_int, default=16, help="pairs per batch (the maps do not depend on it; H only to ~1e-6)")
+    p.add_argument(
+        "--batch-size",
+        type=argtypes.positive_int,
+        default=16,
+        help="pairs per batch (the maps do not depend on it; H only to ~1e-6)",
+    )
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--scenes", default=None, help="folder of real, undistorted scene images (default: the embedded scenes)")
+    src.add_argument(
+        "--scenes", default=None, help="folder of real, undistorted scene images (default: the embedded scenes)"
+    )
     src.add_argument("--sequence", default=None, help="folder of consecutive frames of a real, undistorted sequence: "
                      "pairs of consecutive frames instead of synthetic motion")
-    p.add_argument("--limit", type=argtypes.positive_int, default=None, help="only the first N pairs of each set (default: all)")
+    p.add_argument(
+        "--limit", type=argtypes.positive_int, default=None, help="only the first N pairs of each set (default: all)"
+    )
 
 
 def _add_train(command) -> None:
-    p = command("train", "fit the eigen-space classifier on generated training pairs",
-                "lensdist train --data data/paper --out ckpt/eigenspace_avg_10ev.pt --metric delta_avg --eigenvectors 10",
-                _cmd_train, "print the summary as one JSON object")
+    p = command(
+        "train",
+        "fit the eigen-space classifier on generated training pairs",
+        "lensdist train --data data/paper --out ckpt/eigenspace_avg_10ev.pt --metric delta_avg --eigenvectors 10",
+        _cmd_train,
+        "print the summary as one JSON object",
+    )
     p.add_argument("--data", required=True, help="folder written by `lensdist generate`")
-    p.add_argument("--out", required=True, help="checkpoint file path, ending in .pt (not a folder), outside the --data folder")
-    p.add_argument("--metric", choices=["delta_avg", "delta_max"], default=None, help="Delta metric (default: the config's)")
-    p.add_argument("--eigenvectors", type=argtypes.positive_int, default=None, help="eigenvectors per class (paper: 5 or 10; default: the config's)")
+    p.add_argument(
+        "--out", required=True, help="checkpoint file path, ending in .pt (not a folder), outside the --data folder"
+    )
+    p.add_argument(
+        "--metric", choices=["delta_avg", "delta_max"], default=None, help="Delta metric (default: the config's)"
+    )
+    p.add_argument(
+        "--eigenvectors",
+        type=argtypes.positive_int,
+        default=None,
+        help="eigenvectors per class (paper: 5 or 10; default: the config's)",
+    )
     p.add_argument("--config", default=None, help="TOML config (default: the data set's own)")
 
 
@@ -299,7 +358,9 @@ def _add_reproduce(command) -> None:
     p.add_argument("--out", default="results/reproduce", help="folder for data, checkpoints and the report")
     p.add_argument("--quick", action="store_true", help="a tenth of the pairs, for a first look")
     p.add_argument("--workers", type=argtypes.positive_int, default=2, help="worker processes for generation")
-    p.add_argument("--batch-size", type=argtypes.positive_int, default=16, help="pairs per batch for generation and analysis")
+    p.add_argument(
+        "--batch-size", type=argtypes.positive_int, default=16, help="pairs per batch for generation and analysis"
+    )
     p.add_argument("--device", type=argtypes.device, default="cpu", help=argtypes.DEVICE_HELP)
 
 
@@ -320,7 +381,10 @@ def main(argv: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else 2
     prog = f"lensdist {args.command}"
     if sys.stdout is None:  # started with stdout closed (`>&-`): the result would be lost
-        print(f"{prog}: error: stdout is closed, the result would be lost (redirect it, e.g. > /dev/null)", file=sys.stderr)
+        print(
+            f"{prog}: error: stdout is closed, the result would be lost (redirect it, e.g. > /dev/null)",
+            file=sys.stderr,
+        )
         return 2
     try:
         with guarded_stdout():

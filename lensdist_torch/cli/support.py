@@ -164,7 +164,9 @@ def device(text: str) -> str:
     if m.group(1) is None:
         return "cuda"
     if int(m.group(1)) >= n:
-        raise argparse.ArgumentTypeError(f"device {text!r} asked for, but this machine has {n} CUDA device(s): cuda:0 to cuda:{n - 1}")
+        raise argparse.ArgumentTypeError(
+            f"device {text!r} asked for, but this machine has {n} CUDA device(s): cuda:0 to cuda:{n - 1}"
+        )
     return f"cuda:{int(m.group(1))}"
 
 
@@ -242,7 +244,11 @@ def print_json(obj) -> None:
 
 def fmt(value, spec: str = ".1f", unit: str = " px") -> str:
     """A number, or "n/a" where there is no (finite) estimate."""
-    return f"{value:{spec}}{unit}" if isinstance(value, (int, float)) and value == value and abs(value) != float("inf") else "n/a"
+    return (
+        f"{value:{spec}}{unit}"
+        if isinstance(value, (int, float)) and value == value and abs(value) != float("inf")
+        else "n/a"
+    )
 
 
 # ----------------------------------------------------------------------------- stdout

@@ -17,7 +17,19 @@ import math
 import numbers
 from typing import Any
 
-__all__ = ["or_defaults", "one_line", "show", "real", "positive", "integer", "flag", "choice", "pair", "integers", "names"]
+__all__ = [
+    "or_defaults",
+    "one_line",
+    "show",
+    "real",
+    "positive",
+    "integer",
+    "flag",
+    "choice",
+    "pair",
+    "integers",
+    "names",
+]
 
 
 def or_defaults(value: Any, cls: type, name: str = "config") -> Any:
@@ -138,7 +150,9 @@ def _sequence(obj, name, what: str) -> tuple:
     return tuple(value)
 
 
-def pair(obj, name, *, positive: bool = False, within: tuple[float, float] | None = None, integral: bool = False) -> None:
+def pair(
+    obj, name, *, positive: bool = False, within: tuple[float, float] | None = None, integral: bool = False
+) -> None:
     """(low, high): two finite (or positive) numbers with low <= high.
 
     ``within`` = (a, b) also asks a <= low and high <= b; ``integral`` asks for ints (stored as
@@ -174,6 +188,10 @@ def names(obj, name, empty: bool = False) -> None:
     """A tuple of distinct non-empty strings, non-empty unless ``empty``."""
     what = ("a" if empty else "a non-empty") + " list of distinct non-empty strings"
     value = _sequence(obj, name, what)
-    if (not value and not empty) or not all(isinstance(v, str) and v.strip() for v in value) or len(set(value)) != len(value):
+    if (
+        (not value and not empty)
+        or not all(isinstance(v, str) and v.strip() for v in value)
+        or len(set(value)) != len(value)
+    ):
         _fail(obj, name, what, getattr(obj, name))
     object.__setattr__(obj, name, value)

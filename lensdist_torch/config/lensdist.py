@@ -22,8 +22,17 @@ from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
 from lensdist_torch.config.sequence import CalibrationConfig, MultiViewConfig
 from lensdist_torch.config.toml import check_tables, read_toml
 
-__all__ = ["FROM_CLASS_TOLERANCE", "INERT", "RETIRED", "LensdistConfig", "config_from_dict", "config_to_dict", "load_config",
-           "retired_keys", "stored_config"]
+__all__ = [
+    "FROM_CLASS_TOLERANCE",
+    "INERT",
+    "RETIRED",
+    "LensdistConfig",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+    "retired_keys",
+    "stored_config",
+]
 
 
 @dataclass(frozen=True)
@@ -129,8 +138,10 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
     if isinstance(protocol, dict) and "parallax_px" in protocol:
         px = protocol["parallax_px"]
         if protocol.get("realistic") and px:
-            raise ValueError(f"saved under the realistic protocol's former fixed parallax (protocol.parallax_px = {px!r}), "
-                             f"which this version replaced by {RETIRED[('protocol', 'parallax_px')]}: fit it again")
+            raise ValueError(
+                f"saved under the realistic protocol's former fixed parallax (protocol.parallax_px = {px!r}), "
+                f"which this version replaced by {RETIRED[('protocol', 'parallax_px')]}: fit it again"
+            )
         data = {**data, "protocol": {k: v for k, v in protocol.items() if k != "parallax_px"}}
     for section, key in INERT:
         if isinstance(data.get(section), dict) and key in data[section]:

@@ -113,8 +113,15 @@ class CalibrationConfig:
             raise ValueError(f"calibration.motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, "
                              f"got {show(steps)}")
         object.__setattr__(self, "motion_steps", tuple(float(v) for v in steps))
-        for name in ("outlier_mads", "outlier_range", "max_residual_ratio", "max_misfit", "max_class_halfwidth_px", "parallax_px",
-                     "no_distortion_px"):
+        for name in (
+            "outlier_mads",
+            "outlier_range",
+            "max_residual_ratio",
+            "max_misfit",
+            "max_class_halfwidth_px",
+            "parallax_px",
+            "no_distortion_px",
+        ):
             real(self, name, lo=0, lo_open=True)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "systematic_rel", lo=0, hi=1, hi_open=True)
@@ -261,13 +268,27 @@ class MultiViewConfig:
         for m in self.models:
             if m not in MULTIVIEW_MODELS:
                 raise ValueError(f"multiview.models must hold names from {', '.join(MULTIVIEW_MODELS)}, got {m!r}")
-        for name, lo in (("max_image_side", 64), ("max_features", 64), ("exhaustive_below", 2), ("sequential_overlap", 1),
-                         ("mapped_frames", 3),
-                         ("jackknife_blocks", 2), ("evidence_draws", 1), ("reconstructions", 1),
-                         ("extra_mappings", 0), ("num_threads", 1), ("seed", 0), ("planar_terms", 0),
-                         ("planar_scan_steps", 1), ("planar_scan_pairs", 1), ("planar_min_matches", 8), ("planar_min_pairs", 1),
-                         ("planar_iterations", 1), ("planar_pair_matches", 0),
-                         ("planar_refine_px", 0)):
+        for name, lo in (
+            ("max_image_side", 64),
+            ("max_features", 64),
+            ("exhaustive_below", 2),
+            ("sequential_overlap", 1),
+            ("mapped_frames", 3),
+            ("jackknife_blocks", 2),
+            ("evidence_draws", 1),
+            ("reconstructions", 1),
+            ("extra_mappings", 0),
+            ("num_threads", 1),
+            ("seed", 0),
+            ("planar_terms", 0),
+            ("planar_scan_steps", 1),
+            ("planar_scan_pairs", 1),
+            ("planar_min_matches", 8),
+            ("planar_min_pairs", 1),
+            ("planar_iterations", 1),
+            ("planar_pair_matches", 0),
+            ("planar_refine_px", 0),
+        ):
             integer(self, name, lo=lo)
         pair(self, "planar_scan_range")
         real(self, "planar_ransac_px", lo=0, lo_open=True)

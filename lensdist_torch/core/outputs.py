@@ -139,7 +139,9 @@ def refuse_inputs(path: str | Path, option: str, inputs: Inputs | None, written:
         for v in values:
             if v is not None and _same_path(out, Path(v)):
                 what = f"{option} would overwrite {out}, which is" if written else f"{option} {os.fspath(path)} is"
-                raise ValueError(f"{what} the input {name} {os.fspath(v)}: refusing to overwrite an input, give another path")
+                raise ValueError(
+                    f"{what} the input {name} {os.fspath(v)}: refusing to overwrite an input, give another path"
+                )
 
 
 def refuse_inside(path: str | Path, option: str, folder: str | os.PathLike | None, folder_option: str) -> None:

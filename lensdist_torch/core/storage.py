@@ -233,7 +233,13 @@ def check_replaceable(path: str | Path, kind: str) -> None:
 
 
 def save_versioned(
-    path: str | Path, kind: str, version: int, payload: dict, *, digest: bool = True, replace_same_kind_only: bool = False,
+    path: str | Path,
+    kind: str,
+    version: int,
+    payload: dict,
+    *,
+    digest: bool = True,
+    replace_same_kind_only: bool = False,
 ) -> str:
     """``torch.save`` of {kind, format_version, **payload}, atomically; returns the sha256 (hex) of the bytes.
 

@@ -63,7 +63,9 @@ def _opencv(path: Path, grey: bool) -> Iterator[torch.Tensor]:
     cap = cv2.VideoCapture(str(path))
     try:
         if not cap.isOpened():
-            raise ValueError(f"{path.name} is not a video OpenCV can read (or OpenCV was built without a video backend)")
+            raise ValueError(
+                f"{path.name} is not a video OpenCV can read (or OpenCV was built without a video backend)"
+            )
         while True:
             ok, bgr = cap.read()
             if not ok:

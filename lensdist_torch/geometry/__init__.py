@@ -40,7 +40,12 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "render_distorted",
         "undistort_points",
     ),
-    "lensdist_torch.geometry.homography": ("apply_homography", "corner_error", "mean_displacement", "perturb_homography"),
+    "lensdist_torch.geometry.homography": (
+        "apply_homography",
+        "corner_error",
+        "mean_displacement",
+        "perturb_homography",
+    ),
     "lensdist_torch.geometry.phase": ("phase_correlation",),
     "lensdist_torch.geometry.opencv_model": ("OpenCVCamera", "opencv_camera"),
     "lensdist_torch.geometry.undistort": ("Undistort", "undistort_image"),

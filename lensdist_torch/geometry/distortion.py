@@ -317,7 +317,9 @@ def paper_frame_delta_avg(k2: float, k4: float, size: tuple[int, int], config: L
     return float(delta_avg([k2 / ratio**2], [k4 / ratio**4], hc, wc)[0])
 
 
-def class_bounds(label: str, metric: str, config: LensdistConfig, threshold: float | None = None) -> tuple[float, float]:
+def class_bounds(
+    label: str, metric: str, config: LensdistConfig, threshold: float | None = None
+) -> tuple[float, float]:
     """The Delta (of ``metric``) interval ]lo, hi] that :func:`estimated_class` labels ``label``.
 
     R is [0, ``threshold``[ (of Delta_avg; default ``analysis.no_distortion_px``); class i of n

@@ -131,7 +131,9 @@ def mean_displacement(H: torch.Tensor, height: int, width: int, step: int = 4) -
     """
     hb = H[None] if isinstance(H, torch.Tensor) and H.dim() == 2 else H
     if not isinstance(hb, torch.Tensor) or hb.dim() != 3 or hb.shape[1:] != (3, 3) or not hb.is_floating_point():
-        raise ValueError(f"H must be a float tensor of shape (3, 3) or (B, 3, 3), got {getattr(H, 'shape', type(H).__name__)}")
+        raise ValueError(
+            f"H must be a float tensor of shape (3, 3) or (B, 3, 3), got {getattr(H, 'shape', type(H).__name__)}"
+        )
     hb = hb.double()
     ys = torch.arange(0, height, step, dtype=torch.float64, device=hb.device)
     xs = torch.arange(0, width, step, dtype=torch.float64, device=hb.device)

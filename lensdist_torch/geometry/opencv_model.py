@@ -43,9 +43,23 @@ import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
 
-__all__ = ["OpenCVCamera", "MODELS", "FOLLOWS_PX", "opencv_camera", "opencv_camera_from_map", "opencv_export", "opencv_distort_normalized", "opencv_distort_full", "opencv_undistort_points",
-           "opencv_ideal_points", "radial_monotone", "opencv_delta", "grid_points", "map_grid_step",
-           "opencv_from_colmap"]
+__all__ = [
+    "OpenCVCamera",
+    "MODELS",
+    "FOLLOWS_PX",
+    "opencv_camera",
+    "opencv_camera_from_map",
+    "opencv_export",
+    "opencv_distort_normalized",
+    "opencv_distort_full",
+    "opencv_undistort_points",
+    "opencv_ideal_points",
+    "radial_monotone",
+    "opencv_delta",
+    "grid_points",
+    "map_grid_step",
+    "opencv_from_colmap",
+]
 
 MODELS = ("standard", "rational")
 
@@ -210,8 +224,12 @@ def opencv_camera_from_map(
     centre = distortion_center(height, width) if centre is None else tuple(float(v) for v in centre)
     if len(centre) != 2 or not all(math.isfinite(v) for v in centre):
         raise ValueError(f"centre must be two finite pixel coordinates (x, y), got {centre!r}")
-    xs = torch.cat([torch.arange(0, width - 1, step, dtype=torch.float64), torch.tensor([width - 1.0], dtype=torch.float64)])
-    ys = torch.cat([torch.arange(0, height - 1, step, dtype=torch.float64), torch.tensor([height - 1.0], dtype=torch.float64)])
+    xs = torch.cat(
+        [torch.arange(0, width - 1, step, dtype=torch.float64), torch.tensor([width - 1.0], dtype=torch.float64)]
+    )
+    ys = torch.cat(
+        [torch.arange(0, height - 1, step, dtype=torch.float64), torch.tensor([height - 1.0], dtype=torch.float64)]
+    )
     pd = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
     p = ideal(pd)
     c = torch.tensor(centre, dtype=torch.float64)
@@ -231,7 +249,9 @@ def opencv_camera_from_map(
         forward_error_mean_px=float(fwd.mean()), forward_error_max_px=float(fwd.max()), model=model)
 
 
-def opencv_export(k2: float, k4: float, height: int, width: int, *, focal: float | None = None, model: str = "standard"):
+def opencv_export(
+    k2: float, k4: float, height: int, width: int, *, focal: float | None = None, model: str = "standard"
+):
     """:func:`opencv_camera` as plain JSON-ready values, or None where (k2, k4) is not finite.
 
     Args:
@@ -265,9 +285,16 @@ def _forward_full(x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch
     f, df = _radial(r2[..., None], d)
     f, df = f[..., 0], df[..., 0]
     p1, p2 = d[2], d[3]
-    xd = torch.stack([u * f + 2 * p1 * u * v + p2 * (r2 + 2 * u * u), v * f + p1 * (r2 + 2 * v * v) + 2 * p2 * u * v], -1)
-    j = torch.stack([torch.stack([f + 2 * u * u * df + 2 * p1 * v + 6 * p2 * u, 2 * u * v * df + 2 * p1 * u + 2 * p2 * v], -1),
-                     torch.stack([2 * u * v * df + 2 * p1 * u + 2 * p2 * v, f + 2 * v * v * df + 6 * p1 * v + 2 * p2 * u], -1)], -2)
+    xd = torch.stack(
+        [u * f + 2 * p1 * u * v + p2 * (r2 + 2 * u * u), v * f + p1 * (r2 + 2 * v * v) + 2 * p2 * u * v], -1
+    )
+    j = torch.stack(
+        [
+            torch.stack([f + 2 * u * u * df + 2 * p1 * v + 6 * p2 * u, 2 * u * v * df + 2 * p1 * u + 2 * p2 * v], -1),
+            torch.stack([2 * u * v * df + 2 * p1 * u + 2 * p2 * v, f + 2 * v * v * df + 6 * p1 * v + 2 * p2 * u], -1),
+        ],
+        -2,
+    )
     return xd, j
 
 
@@ -378,7 +405,11 @@ def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, *, step: i
     off = (ideal - p).norm(dim=-1)[ok]
     if off.numel() == 0:
         return {"delta_avg_px": float("nan"), "delta_max_px": float("nan"), "invertible_fraction": 0.0}
-    return {"delta_avg_px": float(off.mean()), "delta_max_px": float(off.max()), "invertible_fraction": float(ok.double().mean())}
+    return {
+        "delta_avg_px": float(off.mean()),
+        "delta_max_px": float(off.max()),
+        "invertible_fraction": float(ok.double().mean()),
+    }
 
 
 def opencv_from_colmap(camera, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:

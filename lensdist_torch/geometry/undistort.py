@@ -118,7 +118,9 @@ def optimal_view(k2: float, k4: float, height: int, width: int, *, alpha: float)
     return _view(ideal, height, width, alpha, f"k2 = {k2:.4g}, k4 = {k4:.4g}", "eq. 4")
 
 
-def lens_optimal_view(coefficients, centre, height: int, width: int, *, alpha: float) -> tuple[float, float, float, float]:
+def lens_optimal_view(
+    coefficients, centre, height: int, width: int, *, alpha: float
+) -> tuple[float, float, float, float]:
     """:func:`optimal_view` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
 
     Example:
@@ -131,7 +133,9 @@ def lens_optimal_view(coefficients, centre, height: int, width: int, *, alpha: f
     a = torch.as_tensor(coefficients, dtype=torch.float64)
 
     def ideal(pts: torch.Tensor) -> torch.Tensor:
-        return lens_ideal_points(pts[lens_inverts(pts, a, height, width, centre=centre)], a, height, width, centre=centre)
+        return lens_ideal_points(
+            pts[lens_inverts(pts, a, height, width, centre=centre)], a, height, width, centre=centre
+        )
 
     return _view(ideal, height, width, alpha, f"the lens {[round(float(v), 4) for v in a]}", "the lens")
 
@@ -144,8 +148,12 @@ def _view(ideal, height: int, width: int, alpha: float, what: str, model: str) -
         raise ValueError(f"alpha must be a number from 0 to 1, got {alpha!r}")
     xs = torch.arange(width, dtype=torch.float64)
     ys = torch.arange(height, dtype=torch.float64)
-    edges = {"left": torch.stack([torch.zeros_like(ys), ys], -1), "right": torch.stack([torch.full_like(ys, width - 1.0), ys], -1),
-             "top": torch.stack([xs, torch.zeros_like(xs)], -1), "bottom": torch.stack([xs, torch.full_like(xs, height - 1.0)], -1)}
+    edges = {
+        "left": torch.stack([torch.zeros_like(ys), ys], -1),
+        "right": torch.stack([torch.full_like(ys, width - 1.0), ys], -1),
+        "top": torch.stack([xs, torch.zeros_like(xs)], -1),
+        "bottom": torch.stack([xs, torch.full_like(xs, height - 1.0)], -1),
+    }
     ideal = {name: ideal(pts) for name, pts in edges.items()}
     if any(len(v) == 0 for v in ideal.values()):
         raise ValueError(f"{what} fold {model} before a whole edge of the {height} x {width} frame")
@@ -226,8 +234,9 @@ def undistortion_grid(
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6), valid
 
 
-def lens_undistortion_grid(coefficients, centre, height: int, width: int, *, dtype: torch.dtype = torch.float32, device=None,
-                           view=None) -> tuple[torch.Tensor, torch.Tensor]:
+def lens_undistortion_grid(
+    coefficients, centre, height: int, width: int, *, dtype: torch.dtype = torch.float32, device=None, view=None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`undistortion_grid` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
 
     ``centre``: (x, y) in pixels, or None for the frame centre. Valid where the inverse is exact
@@ -297,7 +306,9 @@ def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int
     return torch.nan_to_num(src, nan=-1e6, posinf=-1e6, neginf=-1e6).to(dtype).reshape(1, height, width, 2), valid
 
 
-def opencv_optimal_view(camera_matrix, dist_coeffs, height: int, width: int, *, alpha: float) -> tuple[float, float, float, float]:
+def opencv_optimal_view(
+    camera_matrix, dist_coeffs, height: int, width: int, *, alpha: float
+) -> tuple[float, float, float, float]:
     """:func:`optimal_view` for an OpenCV camera: the frame's edges at their converged ideal positions, where they invert.
 
     Example:
@@ -316,7 +327,9 @@ def opencv_optimal_view(camera_matrix, dist_coeffs, height: int, width: int, *, 
                  "its model")
 
 
-def undistort_image(img: torch.Tensor, k2, k4, *, mode: str = "bilinear", view=None) -> tuple[torch.Tensor, torch.Tensor]:
+def undistort_image(
+    img: torch.Tensor, k2, k4, *, mode: str = "bilinear", view=None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Undistort images: I(p) = I_d(distort(p)) for every ideal pixel p (module docstring).
 
     Args:

@@ -147,7 +147,10 @@ def hard_counts(g1, g2, valid, *, cfg: QualityConfig, visual: bool, measured: bo
         out = _hard_counts_chunk(g1, g2, valid, cfg, t, visual, measured)
         return out if measured else out[:2]
     # Chunks keep the ~20 intermediates of a chunk in cache; the maps do not depend on it.
-    parts = [_hard_counts_chunk(g1[sl], g2[sl], None if valid is None else valid[sl], cfg, t, visual, measured) for sl in spans]
+    parts = [
+        _hard_counts_chunk(g1[sl], g2[sl], None if valid is None else valid[sl], cfg, t, visual, measured)
+        for sl in spans
+    ]
     reg = torch.cat([p[0] for p in parts])
     vis = torch.cat([p[1] for p in parts]) if visual else None
     if not measured:

@@ -316,4 +316,6 @@ def check_pair_values(img1, img2, valid, *, data_range, measurable=None) -> None
             ``valid`` (or ``img1`` when no mask was given and the image is too small).
     """
     name = "valid" if valid is not None else "img1"
-    check_values([("img1", img1), ("img2", img2)], valid, data_range=data_range, measurable=measurable, measurable_name=name)
+    check_values(
+        [("img1", img1), ("img2", img2)], valid, data_range=data_range, measurable=measurable, measurable_name=name
+    )

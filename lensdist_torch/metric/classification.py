@@ -98,7 +98,11 @@ class ClassRMSE:
             target: (N,) true Delta.
             target_class: (N,) ground-truth class of each pair (classes >= num_classes skipped).
         """
-        pred, target, cls = pred.reshape(-1).double().cpu(), target.reshape(-1).double().cpu(), target_class.reshape(-1).long().cpu()
+        pred, target, cls = (
+            pred.reshape(-1).double().cpu(),
+            target.reshape(-1).double().cpu(),
+            target_class.reshape(-1).long().cpu(),
+        )
         keep = cls < self.num_classes
         e = (pred - target)[keep]
         cls = cls[keep]

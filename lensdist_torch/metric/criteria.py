@@ -272,7 +272,9 @@ def error_images(
     return error_images_unchecked(criteria, v, cfg, smooth)
 
 
-def error_images_unchecked(criteria: LocalCriteria, v: torch.Tensor | None, cfg: QualityConfig, smooth: bool) -> ErrorImages:
+def error_images_unchecked(
+    criteria: LocalCriteria, v: torch.Tensor | None, cfg: QualityConfig, smooth: bool
+) -> ErrorImages:
     """error_images with ``v`` the eroded {0, 1} validity (or None)."""
     r = criteria.r
     if smooth:

@@ -140,8 +140,9 @@ def registration_quality_loss(
         torch.Size([2, 1, 4, 4])
     """
     _check_reduction(reduction)
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad,
-                                      overshoot=OVERSHOOT)
+    g1, g2, valid, cfg = prepare_pair(
+        img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad, overshoot=OVERSHOOT
+    )
     v = None if valid is None else erode_valid(valid)
     crit = criteria_from_grey(g1, g2, cfg, smooth=True)
     reg_map = block_pool(error_images_unchecked(crit, v, cfg, smooth=True).e_reg, cfg, smooth=True)

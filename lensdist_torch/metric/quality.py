@@ -172,7 +172,9 @@ def registration_error_counts(
         >>> registration_error_counts(x, x).dtype
         torch.uint8
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad)
+    g1, g2, valid, cfg = prepare_pair(
+        img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad
+    )
     if cfg.block_size > 15:
         raise ValueError(f"uint8 counts need block_size <= 15, got {cfg.block_size}")
     with torch.no_grad():
@@ -219,7 +221,9 @@ def quality_map(
         >>> quality_map(torch.rand(1, 1, 37, 61), torch.rand(1, 1, 37, 61)).shape
         torch.Size([1, 1, 5, 8])
     """
-    g1, g2, valid, cfg = prepare_pair(img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad)
+    g1, g2, valid, cfg = prepare_pair(
+        img1, img2, valid, config=config, data_range=data_range, validate=validate, pad=pad
+    )
     with torch.no_grad():
         reg, _ = hard_counts(g1, g2, valid, cfg=cfg, visual=False)
     return _floor(reg, cfg)

@@ -234,7 +234,9 @@ class RegistrationQualityMetric(MetricBase):
         Raises:
             RuntimeError: no pair was added.
         """
-        with self.sync_context(dist_sync_fn=self.dist_sync_fn, should_sync=self._to_sync, should_unsync=self._should_unsync):
+        with self.sync_context(
+            dist_sync_fn=self.dist_sync_fn, should_sync=self._to_sync, should_unsync=self._should_unsync
+        ):
             return _result(self.quality_sum, self.map_sum, self.num_pairs, self.num_skipped)
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:

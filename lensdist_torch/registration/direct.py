@@ -128,8 +128,7 @@ def _buffer(key: str, shape: tuple[int, ...], device: torch.device) -> torch.Ten
 def _grid(m: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor, key: str) -> tuple[torch.Tensor, torch.Tensor]:
     """Projective grid, float32 in the buffers ``key``, one broadcast pass per plane.
 
-    (B, 3, 3) m, (w,) xs, (h,) ys -> ((B, h, w, 2) m (x, y, 1) dehomogenised, (B, h, w) its
-    third coordinate).
+    (B, 3, 3) m, (w,) xs, (h,) ys -> ((B, h, w, 2) m (x, y, 1) dehomogenised, (B, h, w) its third coordinate).
     """
     g, dev, shape = m.float(), m.device, (m.shape[0], len(ys), len(xs))
     out, den = _buffer(key, (*shape, 2), dev), _buffer(key + "_den", shape, dev)
@@ -162,10 +161,7 @@ class _Frame:
         return _grid(self.out @ hn, self.uf, self.vf, key)[0]
 
     def rectangle(self, hn: torch.Tensor, margin: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Row (B, h) and column (B, w) masks of a rectangle of template pixels.
-
-        The rectangle is inscribed in the overlap, mapping at least ``margin`` level px inside img2.
-        """
+        """(B, h) row and (B, w) column masks of template pixels in the overlap, ``margin`` level px inside img2."""
         m, (u0, u1, v0, v1) = margin / self.px, self.box
         box = torch.tensor([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], dtype=hn.dtype, device=hn.device)
         q = apply_homography(torch.linalg.inv_ex(hn)[0], box)  # img2's corners in img1
@@ -189,7 +185,11 @@ _frame = functools.lru_cache(maxsize=16)(_Frame)  # frames depend on sizes only
 
 @torch.no_grad()
 def estimate_homography(
-    img1: torch.Tensor, img2: torch.Tensor, *, init: torch.Tensor | None = None, config: RegistrationConfig | None = None,
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    *,
+    init: torch.Tensor | None = None,
+    config: RegistrationConfig | None = None,
     validate: bool = True,
 ) -> tuple[torch.Tensor, RegistrationInfo]:
     """Estimate, per pair, the homography H with img1(p) = img2(H p).

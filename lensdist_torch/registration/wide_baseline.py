@@ -83,7 +83,9 @@ class SiftMemo:
 
     def __call__(self, img: torch.Tensor, max_keypoints: int) -> tuple[torch.Tensor, torch.Tensor]:
         """:func:`_describe` of ``img`` (1, C, H, W), from the memo where these values were described before."""
-        digest = hashlib.blake2b(img.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes(), digest_size=16).hexdigest()
+        digest = hashlib.blake2b(
+            img.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes(), digest_size=16
+        ).hexdigest()
         key = (digest, tuple(img.shape), str(img.dtype), str(img.device), max_keypoints)
         if key not in self._store:
             self._store[key] = _describe(img, max_keypoints)

@@ -180,7 +180,9 @@ def estimate_distortion(img1, img2, *, init=None, config: SelfCalConfig | None =
             raise ValueError(f"init must be ({bsz}, 3, 3), got {tuple(init.shape)}")
     parts = []
     for sl in chunk_slices(bsz, cfg.chunk_size, img1.device, h * w):
-        parts.append(_fit(to_grey(img1[sl]).float(), to_grey(img2[sl]).float(), None if init is None else init[sl], cfg))
+        parts.append(
+            _fit(to_grey(img1[sl]).float(), to_grey(img2[sl]).float(), None if init is None else init[sl], cfg)
+        )
     k2, k4, H = (torch.cat([p[j] for p in parts]) for j in range(3))
     info = SelfCalInfo(*(torch.cat(f) for f in zip(*[p[3] for p in parts])))
     return k2, k4, H, info
@@ -351,7 +353,9 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     n_par = st.J.shape[1]
     # weighted residual variance, floored at the quantisation noise of 8-bit images, so that a
     # textureless or identical pair cannot claim certainty
-    s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(cfg.noise_floor**2)
+    s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(
+        cfg.noise_floor**2
+    )
     inv = posterior_inverse(jtj, s2, st.tau2, cfg)  # with the relief: precision J W J^T / s^2 + I / tau^2
     cov = s2[:, None, None] * inv
     if region is not None:  # cluster-robust: the larger of the two
@@ -409,9 +413,15 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     floor = cfg.small_motion_error * r0**2 / motion.clamp_min(1e-3)  # 1e-3 px: no motion, no information
     std = torch.where(ok, torch.sqrt(std**2 + floor**2), torch.full_like(std, float("inf")))
     conf = cfg.cannot_tell_std_px / (cfg.cannot_tell_std_px + std)
-    gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)
+    gb = (
+        theta[:, 10:12]
+        if cfg.photometric == "gain_bias"
+        else torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)
+    )
     rms = aligned_residual(st.res, st.valid)
-    aligned = aligned_residual(st.res, st.valid, region, n_regions=cfg.clusters**2, drop=int(cfg.occluded_share * cfg.clusters**2))
+    aligned = aligned_residual(
+        st.res, st.valid, region, n_regions=cfg.clusters**2, drop=int(cfg.occluded_share * cfg.clusters**2)
+    )
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(
         converged=ok, confident=ok & (conf >= cfg.confidence_threshold), confidence=conf, delta_avg=d_avg,

@@ -131,7 +131,11 @@ def selfcal_residual(img1, img2, H, *, k2, k4, newton: int = 5, gain=None, bias=
     b_, _, h, w = img1.shape
     r, nrm = half_diagonal(h, w), normalizer(h, w, H.dtype, H.device)
     hn = nrm @ H @ torch.linalg.inv(nrm)
-    ud = normalized_grid(0, h, w, full_height=h, full_width=w, dtype=H.dtype, device=H.device).view(1, -1, 2).expand(b_, -1, -1)
+    ud = (
+        normalized_grid(0, h, w, full_height=h, full_width=w, dtype=H.dtype, device=H.device)
+        .view(1, -1, 2)
+        .expand(b_, -1, -1)
+    )
     u = undistort_normalized(ud, k2 * r**2, k4 * r**4)
     wv = torch.cat([u, torch.ones_like(u[..., :1])], -1) @ hn.transpose(1, 2)
     v = wv[..., :2] / wv[..., 2:]
@@ -294,7 +298,11 @@ def evaluate(theta: torch.Tensor, lv: Level, jac: bool = True):
         ed = ex * lv.direction[:, :1] + ey * lv.direction[:, 1:]
         J = torch.cat([J, ed[:, None] * lv.basis], 1)
     if lv.photometric == "normalized":  # the moments move with the samples: project them out
-        J = (J - _valid_mean(J, vf[:, None], n[:, None]) - z[:, None] * _valid_mean(z[:, None] * J, vf[:, None], n[:, None]))
+        J = (
+            J
+            - _valid_mean(J, vf[:, None], n[:, None])
+            - z[:, None] * _valid_mean(z[:, None] * J, vf[:, None], n[:, None])
+        )
         J = J * vf[:, None]
     return res, valid, J
 

@@ -17,7 +17,14 @@ import torch
 from lensdist_torch.config import SelfCalConfig
 from lensdist_torch.selfcal.model import planar_parameters
 
-__all__ = ["evidence_variance", "relief_precision", "add_relief_prior", "posterior_inverse", "start_tau2", "evidence_tau2"]
+__all__ = [
+    "evidence_variance",
+    "relief_precision",
+    "add_relief_prior",
+    "posterior_inverse",
+    "start_tau2",
+    "evidence_tau2",
+]
 
 
 def evidence_variance(coef: torch.Tensor, posterior_trace: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -64,7 +71,9 @@ def add_relief_prior(jtj: torch.Tensor, variance: torch.Tensor, tau2: torch.Tens
     return prec, rel
 
 
-def posterior_inverse(jtj: torch.Tensor, variance: torch.Tensor, tau2: torch.Tensor | None, cfg: SelfCalConfig) -> torch.Tensor:
+def posterior_inverse(
+    jtj: torch.Tensor, variance: torch.Tensor, tau2: torch.Tensor | None, cfg: SelfCalConfig
+) -> torch.Tensor:
     """(B, P, P) float64 (J W J^T + the relief prior + ``ridge`` I)^-1: the posterior covariance over ``variance``.
 
     ``jtj`` (B, P, P) the robust normal matrix without the prior (not changed); ``tau2`` (B,) the

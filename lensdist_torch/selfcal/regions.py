@@ -38,7 +38,9 @@ def region_ids(h0: int, w0: int, *, block: int, clusters: int, device=None) -> t
     return (rows[:, None] * clusters + cols[None, :]).flatten()
 
 
-def cluster_robust_covariance(inv: torch.Tensor, score: torch.Tensor, region: torch.Tensor, n_regions: int) -> torch.Tensor:
+def cluster_robust_covariance(
+    inv: torch.Tensor, score: torch.Tensor, region: torch.Tensor, n_regions: int
+) -> torch.Tensor:
     """A^-1 (sum_c g_c g_c^T) A^-1 C / (C - 1), g_c the sum of ``score``'s samples in rectangle c.
 
     Args:

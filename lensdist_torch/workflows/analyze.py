@@ -51,7 +51,11 @@ __all__ = ["analyze_batch", "analyze_pair", "analysis_config", "prepare_batch", 
 METHODS = ("selfcal", "regression", "eigenspace")
 _CKPT_DIR = Path(str(resources.files("lensdist_torch") / "checkpoints"))  # package data: in the wheel too
 _ATTRIBUTES = {key: name for name, key in JSON_KEYS.items()}  # the working dict's keys -> PairAnalysis's names
-_SHIPPED = {"delta_avg": "eigenspace_delta_avg_10ev.pt", "delta_max": "eigenspace_delta_max_10ev.pt", "regression": "regression.pt"}
+_SHIPPED = {
+    "delta_avg": "eigenspace_delta_avg_10ev.pt",
+    "delta_max": "eigenspace_delta_max_10ev.pt",
+    "regression": "regression.pt",
+}
 
 
 def default_checkpoint(name: str = "delta_avg") -> Path:
@@ -63,7 +67,9 @@ def default_checkpoint(name: str = "delta_avg") -> Path:
         raise ValueError(f"name must be one of {sorted(_SHIPPED)}, got {name!r}")
     path = _CKPT_DIR / _SHIPPED[name]
     if not path.is_file():
-        raise FileNotFoundError(f"shipped checkpoint {path} not found; pass checkpoint=PATH, e.g. one written by `lensdist reproduce`")
+        raise FileNotFoundError(
+            f"shipped checkpoint {path} not found; pass checkpoint=PATH, e.g. one written by `lensdist reproduce`"
+        )
     return path
 
 
@@ -98,7 +104,9 @@ def _load_regressor(path) -> DeltaRegressor:
     if isinstance(path, DeltaRegressor):
         return path
     if isinstance(path, EigenSpaceClassifier):
-        raise CheckpointError("checkpoint (--checkpoint) is an eigen-space classifier, but method 'regression' needs a Delta regressor")
+        raise CheckpointError(
+            "checkpoint (--checkpoint) is an eigen-space classifier, but method 'regression' needs a Delta regressor"
+        )
     return _cached_regressor(*_file_key(path))
 
 
@@ -118,7 +126,9 @@ def _eigenspace_models(checkpoint, checkpoint_max) -> tuple:
         path = default_checkpoint(metric) if c is None else c
         model = _load_eigenspace(path)
         if model.config.classifier.metric != metric:
-            raise CheckpointError(f"{path} is a {model.config.classifier.metric} classifier, but {option} needs a {metric} one")
+            raise CheckpointError(
+                f"{path} is a {model.config.classifier.metric} classifier, but {option} needs a {metric} one"
+            )
         models.append(model)
     if models[0] is None and models[1] is None:
         raise ValueError("method 'eigenspace' needs at least one of checkpoint and checkpoint_max")
@@ -163,7 +173,13 @@ def _regression(p: PreparedPairs, i: int, reg: DeltaRegressor) -> dict:
 
 def _eigenspace(p: PreparedPairs, i: int, models) -> dict:
     """The paper's classifiers on pair i's quality map: classes, both Deltas, distances, domain check."""
-    out = {"estimated_class": None, "estimated_class_max": None, "delta_avg": None, "delta_max": None, "confidence": None}
+    out = {
+        "estimated_class": None,
+        "estimated_class_max": None,
+        "delta_avg": None,
+        "delta_max": None,
+        "confidence": None,
+    }
     far = False
     x = p.qmap[i : i + 1].flatten(1)
     for model, metric in zip(models, METRICS):
@@ -197,7 +213,9 @@ def _models_and_config(method, checkpoint, checkpoint_max, config):
     if checkpoint_max is not None and checkpoint_max is not False and method != "eigenspace":
         raise ValueError(f"checkpoint_max (--checkpoint-max) is used by method 'eigenspace' only, not {method!r}")
     if checkpoint is not None and method == "selfcal":
-        raise ValueError("checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'")
+        raise ValueError(
+            "checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'"
+        )
     if method == "selfcal":
         return None, or_defaults(config, LensdistConfig)
     if method == "eigenspace":
@@ -290,9 +308,15 @@ def analyze_batch(
         (['2', 'R'], True)
     """
     models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
-    p = prepared if prepared is not None else prepare_batch(img1, img2, config=cfg, homography=homography, device=device)
+    p = (
+        prepared
+        if prepared is not None
+        else prepare_batch(img1, img2, config=cfg, homography=homography, device=device)
+    )
     if prepared is not None and (p.config.image != cfg.image or p.config.quality != cfg.quality):
-        raise CheckpointError("the prepared batch was made under another image size or quality thresholds than the checkpoint's")
+        raise CheckpointError(
+            "the prepared batch was made under another image size or quality thresholds than the checkpoint's"
+        )
     cfg = p.config
     dev = p.img1.device
     models = tuple(_model_on(m, dev) for m in models) if isinstance(models, tuple) else _model_on(models, dev)
@@ -370,13 +394,17 @@ def analyze_pair(img1, img2, *, checkpoint=None, checkpoint_max=None, method: st
     """
     for img, name in ((img1, "img1"), (img2, "img2")):
         if isinstance(img, (list, tuple)) or (isinstance(img, torch.Tensor) and img.dim() == 4 and img.shape[0] != 1):
-            raise ValueError(f"{name} must be one image (a path or an (H, W), (C, H, W), (1, C, H, W) tensor); use analyze_batch for more")
+            raise ValueError(
+                f"{name} must be one image (a path or an (H, W), (C, H, W), (1, C, H, W) tensor); use analyze_batch for more"
+            )
     hom = None
     if homography is not None:
         try:
             hom = torch.as_tensor(homography, dtype=torch.float64)
         except (TypeError, ValueError, RuntimeError):
-            raise TypeError(f"homography must be a (3, 3) or (1, 3, 3) array of numbers, got {type(homography).__name__}") from None
+            raise TypeError(
+                f"homography must be a (3, 3) or (1, 3, 3) array of numbers, got {type(homography).__name__}"
+            ) from None
         if hom.device.type == "meta":
             raise ValueError("homography is on the meta device (a shape, no values): give a (3, 3) matrix")
         if hom.shape not in ((3, 3), (1, 3, 3)):

@@ -25,8 +25,17 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
 from lensdist_torch.workflows.pair_analysis import JSON_KEYS
 
-__all__ = ["SceneModels", "scene_models", "flat_or_relief", "relief_agreement", "rescored", "rescored_confidence", "rescored_relief_found",
-           "delta_interval", "result_field"]
+__all__ = [
+    "SceneModels",
+    "scene_models",
+    "flat_or_relief",
+    "relief_agreement",
+    "rescored",
+    "rescored_confidence",
+    "rescored_relief_found",
+    "delta_interval",
+    "result_field",
+]
 
 
 def result_field(result, key: str, default=None):
@@ -116,7 +125,9 @@ class SceneModels(NamedTuple):
     parted: torch.Tensor | bool
 
 
-def scene_models(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> SceneModels:
+def scene_models(
+    label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig
+) -> SceneModels:
     """One pair's :class:`SceneModels`: what :func:`flat_or_relief` weighs, and what it finds, in one pass.
 
     Example:
@@ -132,7 +143,9 @@ def scene_models(label: str, planar: tuple[float, float], relief: tuple[float, f
         parted=bool(m.parted[0]))
 
 
-def flat_or_relief(label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig) -> tuple[float, bool]:
+def flat_or_relief(
+    label: str, planar: tuple[float, float], relief: tuple[float, float], cfg: LensdistConfig
+) -> tuple[float, bool]:
     """The raw confidence of a pair's class over both models of its scene, and whether they part.
 
     A user does not say whether the scene is flat. With the planar answer (Delta_avg, std) and

@@ -40,7 +40,16 @@ __all__ = ["REASONS", "in_user_pixels", "class_distance", "domain_checks", "deci
 #: the views overlap too little, no estimate, too little motion, relief found (the planar and
 #: the plane + parallax models put the pair in different classes), a low confidence, out of the learned methods' domain, an answer without a
 #: confidence that the self-calibration does not confirm.
-REASONS = ("registration", "overlap", "no_estimate", "motion", "relief", "low_confidence", "out_of_domain", "unconfirmed")
+REASONS = (
+    "registration",
+    "overlap",
+    "no_estimate",
+    "motion",
+    "relief",
+    "low_confidence",
+    "out_of_domain",
+    "unconfirmed",
+)
 
 
 # ------------------------------------------------------------------ the answer
@@ -52,7 +61,9 @@ def class_distance(a: str | None, b: str | None) -> int | None:
     return abs(rank[a] - rank[b])
 
 
-def domain_checks(res: dict, selfcal: dict | None, texture: torch.Tensor | None, extra: dict, *, cfg: LensdistConfig) -> None:
+def domain_checks(
+    res: dict, selfcal: dict | None, texture: torch.Tensor | None, extra: dict, *, cfg: LensdistConfig
+) -> None:
     """The learned methods' domain checks on one result, in place (read by :func:`decide`).
 
     Args:
@@ -80,7 +91,9 @@ def domain_checks(res: dict, selfcal: dict | None, texture: torch.Tensor | None,
         # whether there is distortion at all is asked first: R against a class disagrees
         is_r = [c == CLASS_LABELS[-1] for c in (res["estimated_class"], selfcal["estimated_class"])]
         # a class-R answer's Delta is the eigen-space's guess of its nearest class: the classes decide
-        far = not any(is_r) and abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top("delta_avg", cfg)
+        far = not any(is_r) and abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top(
+            "delta_avg", cfg
+        )
         check["agrees"] = not ((gap is not None and gap > a.max_class_disagreement) or far or is_r[0] != is_r[1])
     if res.get("confidence") is None:  # the eigen-space: its class needs the self-calibration's confirmation
         gap = class_distance(res["estimated_class"], selfcal["estimated_class"]) if usable else None
@@ -239,5 +252,10 @@ def in_user_pixels(res: dict, s: float, size) -> dict:
     k2_user, k4_user = user_coefficients(res["k2"], res["k4"], s)
     fh, fw = max(1, round(int(size[0]) / s)), max(1, round(int(size[1]) / s))
     off = pixel_offsets(res["k2"], res["k4"], fh, fw)  # one map for both Deltas
-    return {"k2_user": k2_user, "k4_user": k4_user, "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1])),
-            "delta_avg_user_px": float(off.mean()) * s, "delta_max_user_px": float(off.max()) * s}
+    return {
+        "k2_user": k2_user,
+        "k4_user": k4_user,
+        "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1])),
+        "delta_avg_user_px": float(off.mean()) * s,
+        "delta_max_user_px": float(off.max()) * s,
+    }

@@ -51,7 +51,18 @@ from lensdist_torch.workflows.confidence import (
 )
 from lensdist_torch.workflows.evaluate import analyze_test_set
 
-__all__ = ["validation_config", "scored_pairs", "confidences", "outcomes", "answers", "fit_decision", "calibration_table", "interval_coverage", "coverage_row", "fit_confidence"]
+__all__ = [
+    "validation_config",
+    "scored_pairs",
+    "confidences",
+    "outcomes",
+    "answers",
+    "fit_decision",
+    "calibration_table",
+    "interval_coverage",
+    "coverage_row",
+    "fit_confidence",
+]
 
 _PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
           "regression": ("regression_confidence_scale", "regression_confidence_shift")}
@@ -75,7 +86,9 @@ def validation_config(config: LensdistConfig) -> LensdistConfig:
         1
     """
     p = config.protocol
-    return dataclasses.replace(config, protocol=dataclasses.replace(p, seed=p.seed + config.analysis.validation_seed_offset))
+    return dataclasses.replace(
+        config, protocol=dataclasses.replace(p, seed=p.seed + config.analysis.validation_seed_offset)
+    )
 
 
 def _with(config: LensdistConfig, **analysis) -> LensdistConfig:
@@ -101,7 +114,11 @@ def scored_pairs(results: list, config: LensdistConfig) -> list[int]:
 def _scored(results: list, config: LensdistConfig) -> tuple[list[int], torch.Tensor]:
     """(:func:`scored_pairs`, every result's raw self-calibration confidence under ``config``): one rescoring."""
     a = config.analysis
-    conf, relief = rescored(results, config) if results else (torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool))
+    conf, relief = (
+        rescored(results, config)
+        if results
+        else (torch.zeros(0, dtype=torch.float64), torch.zeros(0, dtype=torch.bool))
+    )
     relief = relief.tolist()
     keep = [i for i, r in enumerate(results)
             if result_field(r, "in_domain") and result_field(r, "estimated_delta_avg") is not None and not relief[i]
@@ -115,7 +132,9 @@ def _right(results: list, data: dict, config: LensdistConfig, keep: list[int]) -
     return estimated_class(d, d, metric="delta_avg", config=config) == data["class_avg"][keep]
 
 
-def confidences(results: list, keep: list[int], *, config: LensdistConfig, method: str, calibrated: bool) -> torch.Tensor:
+def confidences(
+    results: list, keep: list[int], *, config: LensdistConfig, method: str, calibrated: bool
+) -> torch.Tensor:
     """The pairs ``keep``'s confidences under ``config`` (``calibrated``: through its Platt map).
 
     The self-calibration's raw one recomputed under ``config`` (its std scale, its R threshold),
@@ -141,7 +160,9 @@ def outcomes(results: list, data: dict, *, config: LensdistConfig, method: str, 
     """
     keep, raw = _scored(results, config)
     # the self-calibration's: from the rescoring that chose the pairs
-    raw = raw[keep] if method == "selfcal" else confidences(results, keep, config=config, method=method, calibrated=False)
+    raw = (
+        raw[keep] if method == "selfcal" else confidences(results, keep, config=config, method=method, calibrated=False)
+    )
     return (_calibrated(raw, config, method) if calibrated else raw), _right(results, data, config, keep)
 
 
@@ -161,8 +182,14 @@ def interval_coverage(results: list, data: dict, config: LensdistConfig) -> dict
         >>> interval_coverage([r, r | {"estimated_delta_avg": 7.0}], {"delta_avg": torch.tensor([5.5, 5.5])}, LensdistConfig())
         {'pairs': 2, 'coverage': 0.5}
     """
-    intervals = {i: delta_interval(result_field(results[i], "estimated_delta_avg"), result_field(results[i], "delta_avg_std", math.inf),
-                                   config.analysis) for i in scored_pairs(results, config)}
+    intervals = {
+        i: delta_interval(
+            result_field(results[i], "estimated_delta_avg"),
+            result_field(results[i], "delta_avg_std", math.inf),
+            config.analysis,
+        )
+        for i in scored_pairs(results, config)
+    }
     intervals = {i: iv for i, iv in intervals.items() if iv is not None}
     if not intervals:
         return {"pairs": 0, "coverage": float("nan")}
@@ -200,7 +227,9 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
              if result_field(r, "in_domain") and result_field(r, "estimated_delta_avg") is not None]
     counts = {t: int(_right(results["selfcal"], data, _with(config, no_distortion_px=t), every).sum()) for t in grid}
     most = max(counts.values())
-    std_fits = {t: _std_fit(results["selfcal"], data, _with(config, no_distortion_px=t)) for t, n in counts.items() if n == most}
+    std_fits = {
+        t: _std_fit(results["selfcal"], data, _with(config, no_distortion_px=t)) for t, n in counts.items() if n == most
+    }
     best = min(std_fits, key=lambda t: (std_fits[t][0], abs(math.log(t / a0.no_distortion_px))))
     fitted = {"no_distortion_px": float(best)}
     cfg = _with(config, no_distortion_px=best)
@@ -216,7 +245,9 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
             new, old = fit_platt(raw, right), (getattr(a0, f_scale), getattr(a0, f_shift))
             # a refit must earn its place: on a small split (--quick) it can fall back to the
             # identity and double the ECE of the map it replaces; then the config's map stays
-            if expected_calibration_error(platt(raw, *new), right) >= expected_calibration_error(platt(raw, *old), right):
+            if expected_calibration_error(platt(raw, *new), right) >= expected_calibration_error(
+                platt(raw, *old), right
+            ):
                 new = old
             fitted[f_scale], fitted[f_shift] = new
     return fitted
@@ -266,9 +297,13 @@ def _fit_withholding(results: list, data: dict, config: LensdistConfig, scale_pr
         fit = {"min_confidence": float(m), "selfcal_std_scale": k, "flat_prior": w}
         got = answers(results, data, _with(config, **fit))
         if trace is not None:  # JSON: no NaN (no answer, no precision)
-            trace.append({key: v if not (isinstance(v, float) and math.isnan(v)) else None for key, v in (fit | got).items()})
+            trace.append(
+                {key: v if not (isinstance(v, float) and math.isnan(v)) else None for key, v in (fit | got).items()}
+            )
         if got["cannot_tell"] <= a.max_cannot_tell and math.isfinite(got["precision_bound"]):
-            rows.append((got["precision_bound"] >= a.target_precision, got["answered"], got["precision_bound"], -m, fit))
+            rows.append(
+                (got["precision_bound"] >= a.target_precision, got["answered"], got["precision_bound"], -m, fit)
+            )
     if not rows:
         return {"min_confidence": a.min_confidence, "selfcal_std_scale": k, "flat_prior": w}
     reached = [r for r in rows if r[0]]
@@ -311,7 +346,9 @@ def _fit_interval_scale(results: list, data: dict, config: LensdistConfig) -> fl
     return float(max(_SCALES))
 
 
-def calibration_table(results: dict, data: dict, *, before: LensdistConfig, after: LensdistConfig, split: str) -> tuple[list, dict]:
+def calibration_table(
+    results: dict, data: dict, *, before: LensdistConfig, after: LensdistConfig, split: str
+) -> tuple[list, dict]:
     """ECE rows (method, split, pairs, before, after) and reliability curves, per method in ``results``."""
     rows, curves = [], {}
     for method in _PLATT:
@@ -368,12 +405,21 @@ def fit_confidence(config: LensdistConfig, out, *, regression=None, scenes: list
     from lensdist_torch.workflows.reports import dumps_strict
 
     out = Path(out)
-    generate(validation_config(config), out / "validation", sets=["test"], workers=workers, batch_size=batch_size, progress=progress)
+    generate(
+        validation_config(config),
+        out / "validation",
+        sets=["test"],
+        workers=workers,
+        batch_size=batch_size,
+        progress=progress,
+    )
     data = load_set(out / "validation", "test")
     runs = {"selfcal": {"method": "selfcal"}}
     if regression is not None:
         runs["regression"] = {"method": "regression", "checkpoint": regression}
-    results = analyze_test_set(data, runs, scenes, config=config, batch_size=batch_size, progress=progress, device=device)
+    results = analyze_test_set(
+        data, runs, scenes, config=config, batch_size=batch_size, progress=progress, device=device
+    )
     candidates: list = []
     fitted = fit_decision(results, data, config, candidates)
     calibrated = _with(config, **fitted)

@@ -40,8 +40,14 @@ def scale_error_demo(config: LensdistConfig, scene: str = "gravel", scale_error:
         A summary dict (offsets, blocks with errors, mean error ratio in the centre and outer
         thirds, quality index) and the tensors (img1, img2, quality map, pixel validity).
     """
-    if isinstance(scale_error, bool) or not isinstance(scale_error, (int, float)) or not 0 <= scale_error <= MAX_SCALE_ERROR:
-        raise ValueError(f"scale_error must be a number from 0 to {MAX_SCALE_ERROR} (the range the demo shows), got {scale_error!r}")
+    if (
+        isinstance(scale_error, bool)
+        or not isinstance(scale_error, (int, float))
+        or not 0 <= scale_error <= MAX_SCALE_ERROR
+    ):
+        raise ValueError(
+            f"scale_error must be a number from 0 to {MAX_SCALE_ERROR} (the range the demo shows), got {scale_error!r}"
+        )
     h, w = config.image.height, config.image.width
     full = load_scene(scene)
     y0, x0 = (full.shape[-2] - h) // 2, (full.shape[-1] - w) // 2

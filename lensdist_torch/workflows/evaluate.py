@@ -184,8 +184,15 @@ def figures_of(results: list[PairAnalysis], test: dict, metric: str, config: Len
     delta = torch.tensor([float("nan") if d is None else d for d in own], dtype=torch.float64)
     truth = test[CLASS_KEYS[metric]]
     ok = torch.tensor([r.registration_ok for r in results])
-    fig = evaluate_predictions(pred, delta, truth, test[metric], delta_range=delta_top(metric, config), registration_ok=ok,
-                               extra_groups=motion_groups(test))
+    fig = evaluate_predictions(
+        pred,
+        delta,
+        truth,
+        test[metric],
+        delta_range=delta_top(metric, config),
+        registration_ok=ok,
+        extra_groups=motion_groups(test),
+    )
     fig["metric"] = metric
     reasons = [code for r in results for code in r.cannot_tell_reasons]
     fig["cannot_tell_reasons"] = {code: reasons.count(code) for code in REASONS if code in reasons}
@@ -235,8 +242,16 @@ def evaluate_regressor(model: DeltaRegressor, test: dict, scenes: list | None = 
     return {m: {**figures_of(res, test, m, cfg), "method": "regression"} for m in ("delta_avg", "delta_max")}
 
 
-def evaluate_selfcal(test: dict, *, config: LensdistConfig | None = None, scenes: list | None = None, batch_size: int = 16,
-                     progress: bool = True, results: list | None = None, device=None) -> dict:
+def evaluate_selfcal(
+    test: dict,
+    *,
+    config: LensdistConfig | None = None,
+    scenes: list | None = None,
+    batch_size: int = 16,
+    progress: bool = True,
+    results: list | None = None,
+    device=None,
+) -> dict:
     """{metric: figures} of the self-calibration of every test pair (re-rendered, analysed)."""
     cfg = config if config is not None else test["config"]
     res = _run_or_use(results, test, scenes, {"method": "selfcal"}, cfg, progress, device, batch_size)
@@ -283,9 +298,18 @@ def evaluate_checkpoints(test: dict, checkpoints=(), *, regression=None, selfcal
             if metric in g:
                 other = g.get("delta_avg" if metric == "delta_max" else "delta_max")
                 name = f"{g['n']} EV, {metric}" + ("" if f"{g['n']} EV, {metric}" not in settings else f" ({i + 1})")
-                settings[name] = evaluate_classifier(g[metric], test, partner=other, results=results[f"eigenspace {i}"], config=cfg)
+                settings[name] = evaluate_classifier(
+                    g[metric], test, partner=other, results=results[f"eigenspace {i}"], config=cfg
+                )
     if reg is not None:
-        settings.update({f"regression, {m}": f for m, f in evaluate_regressor(reg, test, results=results["regression"], config=cfg).items()})
+        settings.update(
+            {
+                f"regression, {m}": f
+                for m, f in evaluate_regressor(reg, test, results=results["regression"], config=cfg).items()
+            }
+        )
     if selfcal:
-        settings.update({f"selfcal, {m}": f for m, f in evaluate_selfcal(test, config=cfg, results=results["selfcal"]).items()})
+        settings.update(
+            {f"selfcal, {m}": f for m, f in evaluate_selfcal(test, config=cfg, results=results["selfcal"]).items()}
+        )
     return settings

@@ -80,7 +80,9 @@ def _block_mask(valid: torch.Tensor | None, maps: torch.Tensor) -> torch.Tensor 
     if (vh, vw) != (h, w):
         b = vh // h
         if b < 1 or vw // w != b or vh - h * b >= b or vw - w * b >= b:
-            raise ValueError(f"valid must be block-sized {(h, w)} or pixel-sized (a block size times it), got {(vh, vw)}")
+            raise ValueError(
+                f"valid must be block-sized {(h, w)} or pixel-sized (a block size times it), got {(vh, vw)}"
+            )
         v = torch.nn.functional.max_pool2d(v[..., : h * b, : w * b], b)
     return v > 0
 
@@ -102,7 +104,13 @@ def _map_colorbar(fig, im, axes, ok) -> None:
 
 
 def save_demo_figure(
-    img1: torch.Tensor, img2: torch.Tensor, qmap: torch.Tensor, path, *, title: str = "", valid: torch.Tensor | None = None
+    img1: torch.Tensor,
+    img2: torch.Tensor,
+    qmap: torch.Tensor,
+    path,
+    *,
+    title: str = "",
+    valid: torch.Tensor | None = None,
 ) -> Path:
     """Two (1, 1, H, W) images and their (1, 1, h, w) quality map side by side.
 
@@ -218,7 +226,9 @@ def save_eigenvectors(vectors: dict[str, torch.Tensor], shape: tuple[int, int], 
     return _save(fig, path)
 
 
-def save_curves(curves: dict[str, list[float]], path, *, xlabel: str = "step", ylabel: str = "loss", title: str = "") -> Path:
+def save_curves(
+    curves: dict[str, list[float]], path, *, xlabel: str = "step", ylabel: str = "loss", title: str = ""
+) -> Path:
     """Line plot of named series."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 3.6))

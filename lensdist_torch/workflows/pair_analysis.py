@@ -29,7 +29,11 @@ _TAIL = ("analysed_region_user_px", "delta_avg_region_user_px", "delta_max_regio
 
 def _fmt(value, spec: str = ".1f", unit: str = " px") -> str:
     """A number, or "n/a" where there is no (finite) estimate (the CLI's rule)."""
-    return f"{value:{spec}}{unit}" if isinstance(value, (int, float)) and value == value and abs(value) != float("inf") else "n/a"
+    return (
+        f"{value:{spec}}{unit}"
+        if isinstance(value, (int, float)) and value == value and abs(value) != float("inf")
+        else "n/a"
+    )
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -214,7 +218,10 @@ class PairAnalysis:
             names += ["relief_found", *(_RELIEF if self.relief_delta_avg is not None else ())]
         names += ["registration_ok", "registered_by", "overlap", "motion_px"]
         if self.method != "selfcal":  # the learned methods' domain checks
-            names += ["fitted_on", *(n for n in ("texture_distance", "texture_limit", "selfcal_check") if getattr(self, n) is not None)]
+            names += [
+                "fitted_on",
+                *(n for n in ("texture_distance", "texture_limit", "selfcal_check") if getattr(self, n) is not None),
+            ]
         names += ["in_domain", "warnings", "cannot_tell", "cannot_tell_reasons", "class_label", "class_max_label",
                   "estimated_delta_avg", "estimated_delta_max"]
         if not fitted:  # the interval only where the decision withheld it, for every method
@@ -260,13 +267,17 @@ class PairAnalysis:
         """
         lines = [f"registration: {'ok' if self.registration_ok else 'FAILED'} (overlap {100 * self.overlap:.0f} %)"]
         conf = "" if self.confidence is None or self.class_label is None else f", confidence {self.confidence:.2f}"
-        lines.append(f"method: {self.method}{conf}" + (f"; fitted on: {', '.join(self.fitted_on)}" if self.fitted_on else ""))
+        lines.append(
+            f"method: {self.method}{conf}" + (f"; fitted on: {', '.join(self.fitted_on)}" if self.fitted_on else "")
+        )
         if self.class_label is None:
             lines.append("distortion class: cannot tell (see the warnings)")
         else:
             kind = f", {self.distortion_type}" if self.distortion_type else ""
             beyond = " or beyond (Delta_avg lies past the classes' range)" if self.beyond_class_range else ""
-            lines.append(f"distortion class: {self.class_label}{beyond}{kind}  (1 = small ... 4 = very strong, R = none visible)")
+            lines.append(
+                f"distortion class: {self.class_label}{beyond}{kind}  (1 = small ... 4 = very strong, R = none visible)"
+            )
         (h, w), (ih, iw) = self.analysis_size, self.input_size
         if self.class_label is None:  # no number that reads as an answer (the JSON keeps estimated_*)
             why = f"the views moved by {_fmt(self.motion_px, '.2f')}" if self.registration_ok else "registration failed"
@@ -274,11 +285,16 @@ class PairAnalysis:
             lines.append(f"Delta: none given ({'reason: ' + reasons + '; ' if reasons else ''}{why})")
         else:
             iv = self.delta_avg_interval
-            lines.append(f"Delta_avg ~ {_fmt(self.delta_avg, '.2f')}" + (f" [{iv[0]:.2f}, {iv[1]:.2f}] (95 %)" if iv else "")
-                         + f", Delta_max ~ {_fmt(self.delta_max)} at {w} x {h}")
-            lines.append(f"in your {iw} x {ih} pixels: Delta_avg {_fmt(self.delta_avg_user_px)}, Delta_max "
-                         f"{_fmt(self.delta_max_user_px)} over the whole frame; {_fmt(self.delta_avg_region_user_px)} and "
-                         f"{_fmt(self.delta_max_region_user_px)} over the analysed centre crop")
+            lines.append(
+                f"Delta_avg ~ {_fmt(self.delta_avg, '.2f')}"
+                + (f" [{iv[0]:.2f}, {iv[1]:.2f}] (95 %)" if iv else "")
+                + f", Delta_max ~ {_fmt(self.delta_max)} at {w} x {h}"
+            )
+            lines.append(
+                f"in your {iw} x {ih} pixels: Delta_avg {_fmt(self.delta_avg_user_px)}, Delta_max "
+                f"{_fmt(self.delta_max_user_px)} over the whole frame; {_fmt(self.delta_avg_region_user_px)} and "
+                f"{_fmt(self.delta_max_region_user_px)} over the analysed centre crop"
+            )
         if self.distances:
             lines.append("eigen-space distances: " + ", ".join(f"{d:.3f}" for d in self.distances)
                          + f" (reject above {self.reject_threshold:.3f})")

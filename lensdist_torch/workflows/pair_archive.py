@@ -236,9 +236,15 @@ def pair_settings_digest(*, method: str = "selfcal", checkpoint=None, checkpoint
     def file(path):
         return None if path is None else [str(path), input_digest(path)]
 
-    payload = {"analysis": "pair", "method": method, "checkpoint": file(checkpoint), "checkpoint_max": file(checkpoint_max),
-               "device": str(device or "cpu").split(":")[0],
-               "config": config_to_dict(or_defaults(settings, LensdistConfig, "settings")), "version": __version__}
+    payload = {
+        "analysis": "pair",
+        "method": method,
+        "checkpoint": file(checkpoint),
+        "checkpoint_max": file(checkpoint_max),
+        "device": str(device or "cpu").split(":")[0],
+        "config": config_to_dict(or_defaults(settings, LensdistConfig, "settings")),
+        "version": __version__,
+    }
     return payload_digest(payload)
 
 
@@ -257,12 +263,28 @@ def pair_row(answer: dict, *, pair: PairInput, seconds: float, digest: str, sett
     """
     low, high = answer.get("delta_avg_interval") or (None, None)
     height, width = answer.get("input_size") or (None, None)
-    return PairRow(img1=pair.img1, img2=pair.img2, camera=pair.camera, ok=True, class_label=answer.get("class"),
-                   delta_avg_user_px=answer.get("delta_avg_user_px"), delta_max_user_px=answer.get("delta_max_user_px"),
-                   delta_avg=answer.get("delta_avg"), delta_avg_low=low, delta_avg_high=high,
-                   confidence=answer.get("confidence"), reason=";".join(answer.get("cannot_tell_reasons") or []) or None,
-                   method=answer.get("method"), height=height, width=width, seconds=seconds, digest=digest,
-                   settings=settings, answer=answer_file, version=version)
+    return PairRow(
+        img1=pair.img1,
+        img2=pair.img2,
+        camera=pair.camera,
+        ok=True,
+        class_label=answer.get("class"),
+        delta_avg_user_px=answer.get("delta_avg_user_px"),
+        delta_max_user_px=answer.get("delta_max_user_px"),
+        delta_avg=answer.get("delta_avg"),
+        delta_avg_low=low,
+        delta_avg_high=high,
+        confidence=answer.get("confidence"),
+        reason=";".join(answer.get("cannot_tell_reasons") or []) or None,
+        method=answer.get("method"),
+        height=height,
+        width=width,
+        seconds=seconds,
+        digest=digest,
+        settings=settings,
+        answer=answer_file,
+        version=version,
+    )
 
 
 class _Pairs(ArchiveBook):

@@ -47,9 +47,13 @@ def resolve_device(device=None) -> torch.device:
         raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {device!r}")
     if dev.type == "cuda":
         if not torch.cuda.is_available():
-            raise ValueError(f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); use --device cpu")
+            raise ValueError(
+                f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); use --device cpu"
+            )
         if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ValueError(f"device {str(dev)!r} asked for, but only {torch.cuda.device_count()} CUDA device(s) exist")
+            raise ValueError(
+                f"device {str(dev)!r} asked for, but only {torch.cuda.device_count()} CUDA device(s) exist"
+            )
     return dev
 
 
@@ -137,7 +141,9 @@ class PreparedPairs:
                 the decision may differ from the batch's).
         """
         if not isinstance(analysis, AnalysisConfig):
-            raise TypeError(f"analysis (with_decision) must be an AnalysisConfig (a config's [analysis]), got {type(analysis).__name__}")
+            raise TypeError(
+                f"analysis (with_decision) must be an AnalysisConfig (a config's [analysis]), got {type(analysis).__name__}"
+            )
         return dataclasses.replace(self, config=dataclasses.replace(self.config, analysis=analysis), _selfcal=None)
 
     def texture(self) -> torch.Tensor:
@@ -174,7 +180,9 @@ def prepare_batch(img1, img2, *, config: LensdistConfig | None = None, homograph
     a, b, scale, sizes = [], [], [], []
     for x, y in zip(ones, twos):
         if x.shape[-2:] != y.shape[-2:]:
-            raise ValueError(f"img1 and img2 must have the same size, got {tuple(x.shape[-2:])} and {tuple(y.shape[-2:])}")
+            raise ValueError(
+                f"img1 and img2 must have the same size, got {tuple(x.shape[-2:])} and {tuple(y.shape[-2:])}"
+            )
         oh, ow = x.shape[-2:]
         scale.append(min(ow / w, oh / h))  # user px per analysis px (the crop keeps the aspect)
         sizes.append([int(oh), int(ow)])
@@ -183,7 +191,9 @@ def prepare_batch(img1, img2, *, config: LensdistConfig | None = None, homograph
     a, b = torch.cat(a), torch.cat(b)
     n = a.shape[0]
     if homography is None:
-        regs = [estimate_homography_robust(a[g], b[g], config=cfg.registration, validate=False) for g in _groups(dev, n)]
+        regs = [
+            estimate_homography_robust(a[g], b[g], config=cfg.registration, validate=False) for g in _groups(dev, n)
+        ]
         H = torch.cat([r[0] for r in regs]).double()
         ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
         residual = torch.cat([r[1].residual for r in regs]).float().cpu()
@@ -193,7 +203,9 @@ def prepare_batch(img1, img2, *, config: LensdistConfig | None = None, homograph
             raise ValueError(f"homography must be ({n}, 3, 3), got {tuple(H.shape)}")
         ok, residual = torch.isfinite(H).all(dim=(1, 2)).cpu(), torch.full((n,), float("nan"))
     finite = torch.isfinite(H).all(dim=(1, 2))[:, None, None]  # a missing registration warps by the identity
-    warped, valid = warp_to_reference(b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)), validate=False)
+    warped, valid = warp_to_reference(
+        b, torch.where(finite, H, torch.eye(3, dtype=H.dtype, device=dev)), validate=False
+    )
     qmap = counts_to_map(registration_error_counts(a, warped, valid, config=cfg.quality, validate=False), cfg.quality)
     overlap = valid.flatten(1).float().mean(1).cpu()
     motion = mean_displacement(H, h, w).cpu()
@@ -304,7 +316,14 @@ def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
     m = scene_models(out["estimated_class"], (d0, s0), (d1, s1), cfg)
     if not (math.isfinite(d1) and math.isfinite(s1)):
         return {"raw_confidence": m.confidence, "relief_found": False}
-    both = {"relief_agreement": m.agreement, "relief_parted": m.parted,
-            "planar_delta_avg": d0, "planar_delta_avg_std": s0, "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
-            "relief_delta_avg": d1, "relief_delta_avg_std": s1, "relief_delta_avg_interval": delta_interval(d1, s1, cfg.analysis)}
+    both = {
+        "relief_agreement": m.agreement,
+        "relief_parted": m.parted,
+        "planar_delta_avg": d0,
+        "planar_delta_avg_std": s0,
+        "planar_delta_avg_interval": delta_interval(d0, s0, cfg.analysis),
+        "relief_delta_avg": d1,
+        "relief_delta_avg_std": s1,
+        "relief_delta_avg_interval": delta_interval(d1, s1, cfg.analysis),
+    }
     return {"raw_confidence": m.confidence, "relief_found": m.relief_found, **both}

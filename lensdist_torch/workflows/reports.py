@@ -36,10 +36,46 @@ __all__ = [
 # The paper's Table 1 (confusion matrices, rows 1-4, R) and Table 2 (RMSE of Delta_avg).
 PAPER = {
     "table1": {
-        "5ev_delta_max": {"rate": 62.8, "confusion": [[17, 7, 0, 0, 0], [6, 52, 11, 4, 0], [0, 25, 79, 26, 0], [1, 2, 30, 140, 0], [36, 20, 16, 2, 26]]},
-        "10ev_delta_max": {"rate": 66.4, "confusion": [[18, 5, 0, 1, 0], [6, 49, 13, 5, 0], [0, 33, 70, 27, 0], [0, 4, 22, 147, 0], [29, 1, 20, 2, 48]]},
-        "5ev_delta_avg": {"rate": 61.2, "confusion": [[23, 7, 1, 0, 0], [14, 56, 12, 5, 0], [1, 23, 115, 21, 0], [1, 2, 39, 80, 0], [45, 20, 3, 0, 32]]},
-        "10ev_delta_avg": {"rate": 67.8, "confusion": [[26, 4, 1, 0, 0], [8, 58, 18, 2, 1], [0, 23, 102, 32, 3], [0, 2, 32, 88, 0], [28, 3, 2, 2, 65]]},
+        "5ev_delta_max": {
+            "rate": 62.8,
+            "confusion": [
+                [17, 7, 0, 0, 0],
+                [6, 52, 11, 4, 0],
+                [0, 25, 79, 26, 0],
+                [1, 2, 30, 140, 0],
+                [36, 20, 16, 2, 26],
+            ],
+        },
+        "10ev_delta_max": {
+            "rate": 66.4,
+            "confusion": [
+                [18, 5, 0, 1, 0],
+                [6, 49, 13, 5, 0],
+                [0, 33, 70, 27, 0],
+                [0, 4, 22, 147, 0],
+                [29, 1, 20, 2, 48],
+            ],
+        },
+        "5ev_delta_avg": {
+            "rate": 61.2,
+            "confusion": [
+                [23, 7, 1, 0, 0],
+                [14, 56, 12, 5, 0],
+                [1, 23, 115, 21, 0],
+                [1, 2, 39, 80, 0],
+                [45, 20, 3, 0, 32],
+            ],
+        },
+        "10ev_delta_avg": {
+            "rate": 67.8,
+            "confusion": [
+                [26, 4, 1, 0, 0],
+                [8, 58, 18, 2, 1],
+                [0, 23, 102, 32, 3],
+                [0, 2, 32, 88, 0],
+                [28, 3, 2, 2, 65],
+            ],
+        },
     },
     "table2_range_px": 30.0,
     "table2": {"5": [3.48, 4.73, 5.13, 4.85], "10": [3.56, 4.79, 5.19, 4.93]},
@@ -131,8 +167,12 @@ def evaluate_predictions(
     """
     pred_label, true_label = pred_label.reshape(-1).long().cpu(), true_label.reshape(-1).long().cpu()
     k = len(CLASS_LABELS)
-    if bool(((pred_label < 0) | (pred_label > CANNOT_TELL)).any()) or bool(((true_label < 0) | (true_label >= k)).any()):
-        raise ValueError(f"predicted classes must lie in 0..{CANNOT_TELL} (the last: cannot tell), true ones in 0..{k - 1}")
+    if bool(((pred_label < 0) | (pred_label > CANNOT_TELL)).any()) or bool(
+        ((true_label < 0) | (true_label >= k)).any()
+    ):
+        raise ValueError(
+            f"predicted classes must lie in 0..{CANNOT_TELL} (the last: cannot tell), true ones in 0..{k - 1}"
+        )
     conf = torch.bincount(true_label * (k + 1) + pred_label, minlength=k * (k + 1)).view(k, k + 1)
     confident = pred_label != CANNOT_TELL
     right = int(conf[:, :k].diag().sum())
@@ -191,9 +231,11 @@ def md_goals(settings: dict) -> list[str]:
              "(% of range) | undistorted called R | registration failed |", "|---|---|---|---|---|---|---|"]
     for name, fig in settings.items():
         r = 100.0 * fig["rejected_R"] / fig["n_R"] if fig.get("n_R") else float("nan")
-        lines.append(f"| {name} | {_pct(fig.get('right_or_cannot_tell_share'))} | {_pct(fig.get('cannot_tell_share'))} | "
-                     f"{_pct(fig.get('confident_rate'))} | {_pct(fig.get('confident_rmse_pct'))} | {_pct(r)} | "
-                     f"{fig.get('registration_failed', '-')} |")
+        lines.append(
+            f"| {name} | {_pct(fig.get('right_or_cannot_tell_share'))} | {_pct(fig.get('cannot_tell_share'))} | "
+            f"{_pct(fig.get('confident_rate'))} | {_pct(fig.get('confident_rmse_pct'))} | {_pct(r)} | "
+            f"{fig.get('registration_failed', '-')} |"
+        )
     return lines + [""]
 
 
@@ -214,15 +256,26 @@ def _md_calibration(cal: dict) -> list[str]:
     lines = ["## Calibration of the decision and the confidence", "", str(cal.get("note", "")), ""]
     fitted = cal.get("analysis", {})
     if fitted:
-        lines += ["Fitted on the validation split ([analysis]): " + ", ".join(f"{k} = {v:.4g}" for k, v in fitted.items()), ""]
+        lines += [
+            "Fitted on the validation split ([analysis]): " + ", ".join(f"{k} = {v:.4g}" for k, v in fitted.items()),
+            "",
+        ]
     lines += ["| method | split | pairs | ECE before | ECE after |", "|---|---|---|---|---|"]
     for row in cal.get("ece", []):
-        lines.append(f"| {row['method']} | {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} |")
+        lines.append(
+            f"| {row['method']} | {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} |"
+        )
     if cal.get("intervals"):
-        lines += ["", "| self-calibration intervals | pairs | coverage before | coverage after | nominal |", "|---|---|---|---|---|"]
+        lines += [
+            "",
+            "| self-calibration intervals | pairs | coverage before | coverage after | nominal |",
+            "|---|---|---|---|---|",
+        ]
         for row in cal["intervals"]:
-            lines.append(f"| {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} | "
-                         f"{_pct(100 * row['nominal'])} |")
+            lines.append(
+                f"| {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} | "
+                f"{_pct(100 * row['nominal'])} |"
+            )
     return lines + [""] + _terms("ECE")
 
 
@@ -277,7 +330,10 @@ def report_markdown(report: dict) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for name, fig in settings.items():
-        cells = [f"{px:.2f} px ({pct:.1f} %)" if math.isfinite(px) else "-" for px, pct in zip(fig["rmse_px"], fig["rmse_pct"])]
+        cells = [
+            f"{px:.2f} px ({pct:.1f} %)" if math.isfinite(px) else "-"
+            for px, pct in zip(fig["rmse_px"], fig["rmse_pct"])
+        ]
         bias = sum(b * n for b, n in zip(fig["bias_px"], fig["n_per_class"]) if n) / max(1, sum(fig["n_per_class"]))
         lines.append(f"| {name} | " + " | ".join(cells) + f" | ]0, {fig['delta_range_px']:.1f}] px | {bias:+.2f} px |")
     for ev, vals in PAPER["table2"].items():
@@ -292,7 +348,12 @@ def report_markdown(report: dict) -> str:
                     *(["shipped decision"] if any(n.endswith(SHIPPED_SUFFIX) for n in settings) else []))
     unseen = report.get("unseen")
     if unseen:
-        lines += [f"## On a scene no method was fitted on: {', '.join(unseen['scenes'])}", "", str(unseen.get("note", "")), ""]
+        lines += [
+            f"## On a scene no method was fitted on: {', '.join(unseen['scenes'])}",
+            "",
+            str(unseen.get("note", "")),
+            "",
+        ]
         lines += ["Columns as in \"Can the answers be trusted?\" above.", ""] + md_goals(unseen["settings"])
         for name, fig in unseen["settings"].items():
             lines += [f"### {name} (unseen scene)", ""] + _md_confusion(fig["confusion"]) + [""]
@@ -312,8 +373,11 @@ def report_summary(report: dict, full_report: str | Path | None = None) -> str:
     lines = [str(report.get("title", "lensdist evaluation"))]
     if report.get("protocol"):
         lines.append(str(report["protocol"]))
-    lines += ["", "| setting | rate (paper) | cannot tell | right among confident | R rejected (paper) | RMSE on confident |",
-              "|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| setting | rate (paper) | cannot tell | right among confident | R rejected (paper) | RMSE on confident |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, fig in report["settings"].items():
         paper = PAPER["table1"].get(fig.get("paper_key", ""), None)
         p_rate, p_rej = (f" ({paper['rate']:.1f} %)", f" ({paper['confusion'][4][4]} of 100)") if paper else ("", "")
@@ -324,16 +388,24 @@ def report_summary(report: dict, full_report: str | Path | None = None) -> str:
     unseen = report.get("unseen")
     if unseen:
         shares = ", ".join(f"{n} {_pct(f.get('right_or_cannot_tell_share'))}" for n, f in unseen["settings"].items())
-        lines.append(f"On {', '.join(unseen['scenes'])}, a scene no method was fitted on, right or cannot tell: {shares}.")
+        lines.append(
+            f"On {', '.join(unseen['scenes'])}, a scene no method was fitted on, right or cannot tell: {shares}."
+        )
     ece = [r for r in report.get("calibration", {}).get("ece", []) if r.get("split") == "test"]
     if ece:
-        lines.append("ECE on the test pairs, before -> after the fitted decision: "
-                     + ", ".join(f"{r['method']} {_pct(100 * r['before'])} -> {_pct(100 * r['after'])}" for r in ece) + ".")
+        lines.append(
+            "ECE on the test pairs, before -> after the fitted decision: "
+            + ", ".join(f"{r['method']} {_pct(100 * r['before'])} -> {_pct(100 * r['after'])}" for r in ece)
+            + "."
+        )
     used = ["EV", "rate", "cannot tell", "right among confident", "R rejected", "RMSE on confident"]
     used += (["right or cannot tell"] if unseen else []) + (["ECE"] if ece else [])
     lines += [""] + [f"{n}: {TERMS[n]}." for n in used]
     if full_report is not None:
-        lines += ["", f"Full report (confusion matrices, Table 2: RMSE per class, each term where it appears): {full_report}"]
+        lines += [
+            "",
+            f"Full report (confusion matrices, Table 2: RMSE per class, each term where it appears): {full_report}",
+        ]
     return "\n".join(lines) + "\n"
 
 

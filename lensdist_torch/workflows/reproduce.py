@@ -138,16 +138,21 @@ def reproduce(
         report["unseen"] = unseen
     curves = {}
     if cal is not None:
-        rows, curves = calibration_table({k: results[k] for k in ("selfcal", "regression")}, test, before=config, after=acfg, split="test")
+        rows, curves = calibration_table(
+            {k: results[k] for k in ("selfcal", "regression")}, test, before=config, after=acfg, split="test"
+        )
         report["calibration"] = {
-            "note": (f"Fitted on a validation split ({cal['validation_pairs']} pairs of the protocol with seed "
-                     f"{cal['validation_seed']}, never the test set); ECE of the confidence as an estimate of "
-                     "P(class right), 10 bins, over the pairs answered or withheld for low confidence (not those "
-                     "withheld for another reason: registration, overlap, motion, relief, domain); the "
-                     "self-calibration's interval coverage over the same pairs."),
+            "note": (
+                f"Fitted on a validation split ({cal['validation_pairs']} pairs of the protocol with seed "
+                f"{cal['validation_seed']}, never the test set); ECE of the confidence as an estimate of "
+                "P(class right), 10 bins, over the pairs answered or withheld for low confidence (not those "
+                "withheld for another reason: registration, overlap, motion, relief, domain); the "
+                "self-calibration's interval coverage over the same pairs."
+            ),
             "analysis": cal["analysis"],
             "ece": cal["ece"] + rows,
-            "intervals": cal["intervals"] + [coverage_row(results["selfcal"], test, before=config, after=acfg, split="test")],
+            "intervals": cal["intervals"]
+            + [coverage_row(results["selfcal"], test, before=config, after=acfg, split="test")],
         }
     md, js = write_report(report, out, "reproduce")
     if figures:

@@ -116,7 +116,9 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration
         raise ValueError(f"{src} holds no estimate: {' '.join(reason.split())}")
     s = size[1] / wc
     if abs(size[0] / hc - s) > 5e-3 * s:
-        raise ValueError(f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling")
+        raise ValueError(
+            f"frames are {size[0]} x {size[1]}, the calibration in {src.name} is for {hc} x {wc}: not a rescaling"
+        )
     return k2 / s**2, k4 / s**4
 
 
@@ -140,7 +142,10 @@ def _check_lens(lens: dict, height: int, width: int, from_json) -> None:
         what = f"the lens of {from_json} (planar.coefficients {[round(float(v), 4) for v in a]})"
         top = monotone_radius(a) * big_r  # px from the centre where the radius stops increasing
     else:
-        k, d = torch.tensor(lens["camera_matrix"], dtype=torch.float64), torch.tensor(lens["dist_coeffs"], dtype=torch.float64)
+        k, d = (
+            torch.tensor(lens["camera_matrix"], dtype=torch.float64),
+            torch.tensor(lens["dist_coeffs"], dtype=torch.float64),
+        )
         (cx, cy), f = k[:2, 2].tolist(), float(k[0, 0] + k[1, 1]) / 2
         what = f"the camera of {from_json} (dist_coeffs {[round(float(v), 4) for v in d]})"
         r = torch.linspace(0.0, 2 * big_r / f, 2001, dtype=torch.float64)  # ideal radii, normalised by f
@@ -155,8 +160,10 @@ def _check_lens(lens: dict, height: int, width: int, from_json) -> None:
     c = torch.tensor([cx, cy], dtype=torch.float64)
     stretch = float(((ideal - c).norm(dim=-1) / (corners - c).norm(dim=-1))[ok].max()) if bool(ok.any()) else 1.0
     if stretch > MAX_STRETCH:
-        raise ValueError(f"{what} stretches the {height} x {width} frames {stretch:.3g}-fold at a corner, expected at most "
-                         f"{MAX_STRETCH:g}: no lens that it describes (a fisheye needs another model)")
+        raise ValueError(
+            f"{what} stretches the {height} x {width} frames {stretch:.3g}-fold at a corner, expected at most "
+            f"{MAX_STRETCH:g}: no lens that it describes (a fisheye needs another model)"
+        )
 
 
 def _focal_for(size: tuple[int, int], cal: Calibration | None) -> float | None:
@@ -208,7 +215,9 @@ def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: b
                 raise ValueError(f"{seen[p.stem.lower()].name} and {p.name} would both be written as {p.stem}.png; "
                                  "rename one of them or move it out of the folder")
             seen[p.stem.lower()] = p
-    protected = {p.resolve() for p in (files or [path])} | ({Path(from_json).resolve()} if from_json is not None else set())
+    protected = {p.resolve() for p in (files or [path])} | (
+        {Path(from_json).resolve()} if from_json is not None else set()
+    )
     if out.exists() and not out.is_dir():
         raise ValueError(f"out_dir {out} exists and is not a folder")
     for folder in (out, out / "masks"):
@@ -315,8 +324,18 @@ def undistort_path(
             raise ValueError(f"path {path} holds no frames")
     camera["frames"], camera["valid_fraction"] = n, valid_sum / n
     atomic_write_text(out / CAMERA_FILE, json.dumps(camera, indent=2, allow_nan=False) + "\n")
-    return {"frames": n, "out_dir": str(out), "k2": k2, "k4": k4, "lens": camera["lens"], "valid_fraction": valid_sum / n,
-            "bits": sorted(bits), "alpha": alpha, "camera": camera, "camera_file": str(out / CAMERA_FILE)}
+    return {
+        "frames": n,
+        "out_dir": str(out),
+        "k2": k2,
+        "k4": k4,
+        "lens": camera["lens"],
+        "valid_fraction": valid_sum / n,
+        "bits": sorted(bits),
+        "alpha": alpha,
+        "camera": camera,
+        "camera_file": str(out / CAMERA_FILE),
+    }
 
 
 def _camera(k2: float, k4: float, size: tuple[int, int], focal: float | None, alpha, view, lens=None) -> dict:

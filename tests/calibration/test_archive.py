@@ -109,7 +109,9 @@ def test_rows_are_the_single_runs_answers(full, inputs, capsys):
         for col, key in (("delta_avg_user_px", "delta_avg_user_px"), ("k2_user", "k2_user")):
             assert row[col] == ("" if answer[key] is None else repr(answer[key]))
         lo, hi = answer["delta_avg_user_interval"]
-        assert (row["delta_avg_low_px"], row["delta_avg_high_px"]) == tuple("" if v is None else repr(v) for v in (lo, hi))
+        assert (row["delta_avg_low_px"], row["delta_avg_high_px"]) == tuple(
+            "" if v is None else repr(v) for v in (lo, hi)
+        )
 
 
 def test_broken_inputs_are_rows_with_their_reasons(full):

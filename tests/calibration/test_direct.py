@@ -140,7 +140,11 @@ def test_realistic_sequence_recovers_the_camera(one_thread_module, level, seed, 
     assert cal.delta_avg_user_px == pytest.approx(true, abs=0.1) and lo <= true <= hi and hi - lo < 1.5
     cfg = LensdistConfig()
     paper = delta_avg([k2 / S**2], [k4 / S**4], *cfg.image.size)  # the same lens at the paper's frame
-    want = CLASS_LABELS[int(estimated_class(paper, paper, metric="delta_avg", config=cfg, threshold=cfg.calibration.no_distortion_px)[0])]
+    want = CLASS_LABELS[
+        int(
+            estimated_class(paper, paper, metric="delta_avg", config=cfg, threshold=cfg.calibration.no_distortion_px)[0]
+        )
+    ]
     assert (want == "R") == (level == 0)
     assert cal.class_label == want
 
@@ -203,7 +207,9 @@ def test_opencv_export_matches_cv2_undistort_points(frac):
     got = cv2.undistortPoints(pd.numpy().reshape(-1, 1, 2), k, d, P=k).reshape(-1, 2)
     err = np.linalg.norm(got - ideal, axis=1)
     assert err.mean() <= 0.1 and cam.fit_error_mean_px <= 0.1
-    assert d.shape == (5,) and d[2] == 0 and d[3] == 0 and k[0, 0] == k[1, 1] == pytest.approx(0.5 * math.hypot(639, 479))
+    assert (
+        d.shape == (5,) and d[2] == 0 and d[3] == 0 and k[0, 0] == k[1, 1] == pytest.approx(0.5 * math.hypot(639, 479))
+    )
     assert (k[0, 2], k[1, 2]) == distortion_center(h, w)
     ours = opencv_undistort_points(pd, cam.camera_matrix, cam.dist_coeffs).numpy()  # OpenCV's algorithm in torch
     assert np.abs(ours - got).max() < 1e-6
@@ -236,7 +242,9 @@ def test_opencv_camera_from_a_map_about_its_own_centre_is_cv2s():
     ideal = undistort_points(pd[None], [k2], [k4], centre)[0].numpy()
     assert np.linalg.norm(got - ideal, axis=1).mean() < 0.05 and cam.fit_error_mean_px < 0.05
     # about the frame's centre instead, the same map cannot be followed
-    assert opencv_camera_from_map(lambda q: undistort_points(q[None], [k2], [k4], centre)[0], h, w).fit_error_mean_px > 1.0
+    assert (
+        opencv_camera_from_map(lambda q: undistort_points(q[None], [k2], [k4], centre)[0], h, w).fit_error_mean_px > 1.0
+    )
     with pytest.raises(ValueError, match="centre must be two finite"):
         opencv_camera_from_map(lambda q: q, h, w, centre=(float("nan"), 1.0))
 
@@ -301,7 +309,9 @@ def test_no_pairs_says_whether_the_frames_did_not_move_or_did_not_register():
     still = calibrate_sequence(torch.cat([scene] * 6))
     assert still.class_label is None and still.reason.startswith("too little motion")
     # six far-apart views of one scene (no neighbour overlaps the next): they change, phase correlation finds nothing
-    views = torch.cat([load_scene(name)[..., 100 * i: 100 * i + 96, 200: 328] for name in ("gravel", "grass") for i in range(3)])
+    views = torch.cat(
+        [load_scene(name)[..., 100 * i : 100 * i + 96, 200:328] for name in ("gravel", "grass") for i in range(3)]
+    )
     far = calibrate_sequence(views)
     assert far.class_label is None and not far.reason.startswith("too little motion")
 
@@ -330,7 +340,9 @@ def test_the_relief_model_of_the_sequence_path():
 
     size = (240, 320)
     k2 = 2.5e-6 * (424 / 320) ** 2
-    truth = float(delta_avg(torch.tensor([k2], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *size)[0])
+    truth = float(
+        delta_avg(torch.tensor([k2], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *size)[0]
+    )
     assert CalibrationConfig().parallax == 5
     answers = {}
     for seed in (36, 32):

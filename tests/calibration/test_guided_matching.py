@@ -48,7 +48,9 @@ def _views(n_views: int = 4, period: float = 14.0, noise: float = 0.05, seed: in
     for v in range(n_views):
         m = _similarity(0.02 * v, 1 + 0.02 * v, 9.0 * v, -5.0 * v)
         ideal = _apply(m, plane)
-        dist = distort_points(ideal[None], K2, 0.0, centre)[0] + noise * torch.randn(len(plane), 2, generator=g, dtype=torch.float64)
+        dist = distort_points(ideal[None], K2, 0.0, centre)[0] + noise * torch.randn(
+            len(plane), 2, generator=g, dtype=torch.float64
+        )
         inside = (dist[:, 0] >= 0) & (dist[:, 0] <= w - 1) & (dist[:, 1] >= 0) & (dist[:, 1] <= h - 1)
         desc = torch.nn.functional.normalize(kinds[tile] + 0.05 * torch.randn(len(plane), 128, generator=g), dim=1)
         feats.append((dist[inside], desc[inside]))
@@ -86,9 +88,14 @@ def test_chain_views_recovers_a_pair_whose_own_matches_failed():
     feats, homs, ids = _views()
     verified = _verified(feats, ids, [(0, 1), (1, 2), (2, 3)], good=30, wrong=0)
     wrong = _verified(feats, ids, [(0, 3)], good=0, wrong=40, seed=5)  # only look-alikes: no homography counts
-    both = PlanarMatches(torch.cat([verified.x1, wrong.x1]), torch.cat([verified.x2, wrong.x2]),
-                         torch.cat([verified.pair, wrong.pair + 3]), torch.tensor([0, 1, 2, 0]), torch.tensor([1, 2, 3, 3]),
-                         verified.names)
+    both = PlanarMatches(
+        torch.cat([verified.x1, wrong.x1]),
+        torch.cat([verified.x2, wrong.x2]),
+        torch.cat([verified.pair, wrong.pair + 3]),
+        torch.tensor([0, 1, 2, 0]),
+        torch.tensor([1, 2, 3, 3]),
+        verified.names,
+    )
     pairs, views = chain_views(both, _lens(), centre=None, size=SIZE)
     assert set(pairs) == {(0, 1), (1, 2), (2, 3)} and sorted(views) == [0, 1, 2, 3]
     chained = torch.linalg.inv(views[3]) @ views[0]
@@ -114,7 +121,9 @@ def test_guided_matches_find_the_true_partners_among_look_alikes():
         common = len(set(ids[i].tolist()) & set(ids[j].tolist()))
         assert int(sel.sum()) >= 0.9 * common  # nearly every shared point, where the matcher kept 20
     # a look-alike at the next tile (14 px) is never within the 3 px radius; a radius over the period admits them
-    wide = guided_matches(feats, verified, _lens(), centre=None, size=SIZE, config=MultiViewConfig(planar_guided_px=30.0))
+    wide = guided_matches(
+        feats, verified, _lens(), centre=None, size=SIZE, config=MultiViewConfig(planar_guided_px=30.0)
+    )
     assert len(wide.pair) < 0.1 * len(out.pair)  # the ratio test rejects the look-alikes' ties
 
 
@@ -128,7 +137,9 @@ def test_the_plane_test_can_be_carried_over():
     carried = self_calibrate_planar(found, SIZE, config=cfg, start=_lens(), plane_share=0.3)
     assert plain.inlier_share > 0.9 and plain.class_label is not None
     assert carried.inlier_share == 0.3 and carried.class_label is None and carried.reason.startswith("not a plane: ")
-    assert carried.delta_avg_user_px == pytest.approx(plain.delta_avg_user_px, rel=1e-3)  # from the lens, not the scan: same fit
+    assert carried.delta_avg_user_px == pytest.approx(
+        plain.delta_avg_user_px, rel=1e-3
+    )  # from the lens, not the scan: same fit
 
 
 def _stub_database(monkeypatch, verified: PlanarMatches, feats: list, keep_pairs: int | None = None):
@@ -144,7 +155,9 @@ def _stub_database(monkeypatch, verified: PlanarMatches, feats: list, keep_pairs
         def fewer(*args, **kwargs):
             m = real(*args, **kwargs)
             sel = m.pair < keep_pairs
-            return PlanarMatches(m.x1[sel], m.x2[sel], m.pair[sel], m.first[:keep_pairs], m.second[:keep_pairs], m.names)
+            return PlanarMatches(
+                m.x1[sel], m.x2[sel], m.pair[sel], m.first[:keep_pairs], m.second[:keep_pairs], m.names
+            )
 
         monkeypatch.setattr(gm, "guided_matches", fewer)
 
@@ -158,8 +171,14 @@ def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
     feats, homs, ids = _views(n_views=5)
     near = _verified(feats, ids, [(i, i + 1) for i in range(4)], good=14, wrong=20)
     far = _verified(feats, ids, [(i, j) for i in range(5) for j in range(i + 2, 5)], good=5, wrong=40, seed=2)
-    verified = PlanarMatches(torch.cat([near.x1, far.x1]), torch.cat([near.x2, far.x2]), torch.cat([near.pair, far.pair + 4]),
-                             torch.cat([near.first, far.first]), torch.cat([near.second, far.second]), near.names)
+    verified = PlanarMatches(
+        torch.cat([near.x1, far.x1]),
+        torch.cat([near.x2, far.x2]),
+        torch.cat([near.pair, far.pair + 4]),
+        torch.cat([near.first, far.first]),
+        torch.cat([near.second, far.second]),
+        near.names,
+    )
     cfg = MultiViewConfig(planar_terms=2, planar_centre_max=0.0, planar_min_matches=10, planar_min_inlier_share=0.2)
     _stub_database(monkeypatch, verified, feats)
     res = self_calibrate_guided("db", list(verified.names), SIZE, config=cfg)
@@ -167,11 +186,18 @@ def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
     assert res.guided["used"] and res.pairs > first["pairs"] and res.guided["pairs_verified"] == 10
     assert first["pairs"] < 0.5 * 10  # why it ran: under planar_guided_below of the verified pairs counted
     lo, hi = res.delta_avg_user_interval
-    assert lo <= res.delta_avg_user_px <= hi and (hi - lo) < (first["delta_avg_user_interval"][1] - first["delta_avg_user_interval"][0])
+    assert lo <= res.delta_avg_user_px <= hi and (hi - lo) < (
+        first["delta_avg_user_interval"][1] - first["delta_avg_user_interval"][0]
+    )
     # guided matches that count fewer pairs than the first fit: the first fit stands, and says why
     _stub_database(monkeypatch, verified, feats, keep_pairs=first["pairs"])
     fewer = self_calibrate_guided("db", list(verified.names), SIZE, config=cfg)
     assert not fewer.guided["used"] and fewer.guided["reason"].startswith("the guided matches count ")
     assert fewer.delta_avg_user_px == pytest.approx(first["delta_avg_user_px"], rel=1e-6)
     # most verified pairs counted: no guided matching at all
-    assert self_calibrate_guided("db", list(verified.names), SIZE, config=dataclasses.replace(cfg, planar_guided_below=0.1)).guided is None
+    assert (
+        self_calibrate_guided(
+            "db", list(verified.names), SIZE, config=dataclasses.replace(cfg, planar_guided_below=0.1)
+        ).guided
+        is None
+    )

@@ -33,23 +33,31 @@ def _render(plane_to_ideal: torch.Tensor) -> torch.Tensor:
     h, w = SIZE
     yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     pix = torch.stack([xx, yy], -1).reshape(-1, 2)
-    plane = apply_homography(torch.linalg.inv(plane_to_ideal)[None], lens_ideal_points(pix, LENS, h, w, centre=CENTRE))[0]
+    plane = apply_homography(torch.linalg.inv(plane_to_ideal)[None], lens_ideal_points(pix, LENS, h, w, centre=CENTRE))[
+        0
+    ]
     return _texture(plane).reshape(h, w).float()
 
 
 def _true_partner(x1: torch.Tensor, h01: torch.Tensor) -> torch.Tensor:
     h, w = SIZE
-    return lens_distorted_points(apply_homography(h01[None], lens_ideal_points(x1, LENS, h, w, centre=CENTRE))[0], LENS, h, w, centre=CENTRE)[0]
+    return lens_distorted_points(
+        apply_homography(h01[None], lens_ideal_points(x1, LENS, h, w, centre=CENTRE))[0], LENS, h, w, centre=CENTRE
+    )[0]
 
 
 def test_align_patches_recovers_a_shift_under_a_change_of_exposure():
     yy, xx = torch.meshgrid(torch.arange(80.0), torch.arange(100.0), indexing="ij")
     one = _texture(torch.stack([xx, yy], -1).double()).float()
-    two = (0.7 * _texture(torch.stack([xx - 1.37, yy + 2.21], -1).double()) + 0.12).float()  # content moved by (1.37, -2.21)
+    two = (
+        0.7 * _texture(torch.stack([xx - 1.37, yy + 2.21], -1).double()) + 0.12
+    ).float()  # content moved by (1.37, -2.21)
     x1 = torch.tensor([[40.0, 30.0], [55.5, 41.25], [30.0, 50.0]], dtype=torch.float64)
     start = x1 + torch.tensor([1.37, -2.21], dtype=torch.float64) + torch.tensor([[0.6, -0.5], [-0.7, 0.4], [0.3, 0.8]],
                                                                                  dtype=torch.float64)
-    out, ncc, ok = align_patches(_prepared(one, 1.0), _prepared(two, 1.0), x1, start, affine=torch.eye(2, dtype=torch.float64).expand(3, 2, 2))
+    out, ncc, ok = align_patches(
+        _prepared(one, 1.0), _prepared(two, 1.0), x1, start, affine=torch.eye(2, dtype=torch.float64).expand(3, 2, 2)
+    )
     assert ok.all() and (ncc > 0.999).all()
     # bilinear sampling of the 14 px waves errs by up to 0.008 in intensity: about 0.02 px here (0.8 px before)
     assert (out - x1 - torch.tensor([1.37, -2.21], dtype=torch.float64)).abs().max() < 0.03
@@ -89,7 +97,9 @@ def scene():
 def test_refined_matches_are_the_true_partners(scene):
     images, x1, truth, h01, g = scene
     noisy = truth + 0.8 * torch.randn(truth.shape, generator=g, dtype=torch.float64).clamp(-2, 2)  # a keypoint's error
-    m = PlanarMatches(x1, noisy, torch.zeros(len(x1), dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b"))
+    m = PlanarMatches(
+        x1, noisy, torch.zeros(len(x1), dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b")
+    )
     out, info = refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE)
     kept = (x1[:, None] == out.x1[None]).all(-1).any(1)
     error = (out.x2 - truth[kept]).norm(dim=1)
@@ -103,10 +113,15 @@ def test_refined_matches_are_the_true_partners(scene):
 
 def test_pairs_without_a_homography_are_dropped_and_a_wrong_size_refused(scene):
     images, x1, truth, h01, _ = scene
-    m = PlanarMatches(x1, truth, torch.zeros(len(x1), dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b"))
+    m = PlanarMatches(
+        x1, truth, torch.zeros(len(x1), dtype=torch.long), torch.tensor([0]), torch.tensor([1]), ("a", "b")
+    )
     out, info = refine_matches(m, lambda v: images[v], {}, LENS, centre=CENTRE, size=SIZE)
     assert len(out.pair) == 0 and len(out.first) == 0 and info["kept"] == 0 and math.isnan(info["median_shift_px"])
     few = MultiViewConfig(planar_min_matches=200)  # more than the pair has: dropped
-    assert len(refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE, config=few)[0].first) == 0
+    assert (
+        len(refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE, config=few)[0].first)
+        == 0
+    )
     with pytest.raises(ValueError, match=r"^images: view 0 is \(120, 160\), expected"):
         refine_matches(m, lambda v: images[v][::2, ::2], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE)

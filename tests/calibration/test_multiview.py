@@ -15,15 +15,20 @@ cv2 = pytest.importorskip("cv2")
 
 # A wide-angle action camera (GoPro HERO4, 1280 x 960): OpenCV's calibration of the chessboard views
 # of github.com/udacity/CarND-Camera-Calibration (MIT), computed with calibrateCamera's defaults.
-GOPRO_K = np.array([[560.2738673000947, 0.0, 651.2616487995417], [0.0, 561.3238292031594, 499.05810110554165], [0, 0, 1]])
+GOPRO_K = np.array(
+    [[560.2738673000947, 0.0, 651.2616487995417], [0.0, 561.3238292031594, 499.05810110554165], [0, 0, 1]]
+)
 GOPRO_DIST = np.array([-0.23287939835072627, 0.06167987983514998, -1.4677466480809523e-05, 3.785501319615777e-05,
                        -0.007540935298540569])
 
 
 def _converged_cv2(points, k, dist):
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 500, 1e-14)
-    return cv2.undistortPointsIter(points[:, None], k, dist, None, k, crit)[:, 0] if hasattr(cv2, "undistortPointsIter") \
+    return (
+        cv2.undistortPointsIter(points[:, None], k, dist, None, k, crit)[:, 0]
+        if hasattr(cv2, "undistortPointsIter")
         else cv2.undistortPoints(points[:, None], k, dist, None, k, criteria=crit)[:, 0]
+    )
 
 
 def test_ideal_points_agree_with_opencv_run_to_convergence():
@@ -141,7 +146,9 @@ def test_models_within_the_rms_margin_join_the_spread():
     assert model_spread(table, "FULL_OPENCV", MultiViewConfig(rms_margin=0.06)) == pytest.approx(122.42 - 99.84)
     assert model_spread(table, "FULL_OPENCV", MultiViewConfig(bic_margin=1e6)) == pytest.approx(122.42 - 51.39)
     # a richer model that reprojects better than the chosen one always counts
-    assert model_spread(table, "RADIAL", MultiViewConfig(rms_margin=0.0, bic_margin=0.0)) == pytest.approx(122.42 - 100.56)
+    assert model_spread(table, "RADIAL", MultiViewConfig(rms_margin=0.0, bic_margin=0.0)) == pytest.approx(
+        122.42 - 100.56
+    )
 
 
 def _spread_synthetic(seed, frames=8, noise=0.5):
@@ -170,14 +177,18 @@ def test_a_held_camera_keeps_the_paths_lens_map_at_any_focal_length():
 
     k = torch.tensor([[400.0, 0, 319.5], [0, 404.0, 239.5], [0, 0, 1]], dtype=torch.float64)
     d = torch.tensor([-0.3, 0.1, 1e-3, -2e-3, -0.02, 0.05, 0.01, 0.002], dtype=torch.float64)
-    p = torch.rand(400, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * torch.tensor([639.0, 479.0])
+    p = torch.rand(400, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * torch.tensor(
+        [639.0, 479.0]
+    )
     want, ok = opencv_ideal_points(p, k, d)
     for focal in (250.0, 600.0, 1500.0):  # COLMAP's focal differs from the path's convention: the map stays
         cam = held_camera(k.tolist(), d.tolist(), focal=focal, camera_id=1, width=640, height=480)
         got, ok2 = opencv_ideal_points(p, *opencv_from_colmap(cam))
         assert cam.model_name == "FULL_OPENCV" and cam.params[0] == focal and bool((ok == ok2).all())
         assert float((got - want)[ok].abs().max()) < 1e-9
-    half = held_camera(k.tolist(), d.tolist(), focal=300.0, camera_id=1, width=320, height=240, scale=2.0)  # a reconstruction at half the size
+    half = held_camera(
+        k.tolist(), d.tolist(), focal=300.0, camera_id=1, width=320, height=240, scale=2.0
+    )  # a reconstruction at half the size
     assert float((opencv_ideal_points(p, *opencv_from_colmap(half, 2.0))[0] - want)[ok].abs().max()) < 1e-9
 
 
@@ -198,7 +209,10 @@ def test_other_paths_cameras_are_weighed_on_the_same_held_out_frames():
     res = self_calibrate_reconstruction(rec, MultiViewConfig(models=("RADIAL",), jackknife_blocks=4),
                                         others={"own lens": other(d), "k1 doubled": other(wrong)})
     rows = res.models
-    assert rows["k1 doubled"]["weight"] < 0.01 and rows["k1 doubled"]["heldout_rms_px"] > 3 * rows["RADIAL"]["heldout_rms_px"]
+    assert (
+        rows["k1 doubled"]["weight"] < 0.01
+        and rows["k1 doubled"]["heldout_rms_px"] > 3 * rows["RADIAL"]["heldout_rms_px"]
+    )
     assert rows["own lens"]["heldout_rms_px"] == pytest.approx(rows["RADIAL"]["heldout_rms_px"], rel=0.1)
     assert rows["own lens"]["path"] == "own lens" and sum(v["weight"] for v in rows.values()) == pytest.approx(1.0)
     if res.model == "own lens":  # the winner answers with its own numbers and camera
@@ -218,10 +232,9 @@ def test_the_posterior_std_of_delta_is_the_spread_of_the_estimates_over_noise_dr
     assert truth == pytest.approx(14.97, abs=0.01)
     ratio = float(np.mean(std)) / float(np.std(est, ddof=1))  # a sample std of 8 is within 0.6-1.5 of sigma at 90 %
     assert 0.6 < ratio < 1.8 and covered >= 7
-    assert res.class_label == "3" and res.reason == "" and res.dispersion < 2.0  # independent noise: the posterior holds
-
-
-
+    assert (
+        res.class_label == "3" and res.reason == "" and res.dispersion < 2.0
+    )  # independent noise: the posterior holds
 
 
 def test_too_few_frames_is_a_one_line_error():
@@ -243,17 +256,41 @@ def test_frames_without_points_are_a_one_line_error():
 
 # ------------------------------------------------------------------ combining the two paths
 def _direct(cls, d, lo, hi):
-    return {"class": cls, "reason": None if cls else "interval too wide", "delta_avg_user_px": d,
-            "delta_avg_user_interval": [lo, hi], "delta_max_user_px": 2 * d, "delta_max_user_interval": [2 * lo, 2 * hi],
-            "k2_user": 1e-7, "k4_user": 0.0, "opencv": {"camera_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}}
+    return {
+        "class": cls,
+        "reason": None if cls else "interval too wide",
+        "delta_avg_user_px": d,
+        "delta_avg_user_interval": [lo, hi],
+        "delta_max_user_px": 2 * d,
+        "delta_max_user_interval": [2 * lo, 2 * hi],
+        "k2_user": 1e-7,
+        "k4_user": 0.0,
+        "opencv": {"camera_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]},
+    }
 
 
 def _mv(cls, d, lo, hi):
-    return {"ok": True, "class_label": cls, "reason": "" if cls else "interval too wide: +-9 px", "model": "RADIAL",
-            "delta_avg_user_px": d, "delta_avg_user_interval": (lo, hi), "delta_max_user_px": 3 * d,
-            "delta_max_user_interval": (3 * lo, 3 * hi), "invertible_fraction": 1.0, "eq4_fit_error_px": 0.1,
-            "registered": 20, "points3D": 900, "reprojection_px": 0.4, "rotation_spread_deg": 30.0, "models": {}, "k2_user": 2e-7, "k4_user": 1e-13,
-            "camera_matrix": [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]], "dist_coeffs": [-0.1, 0.01, 0, 0, 0]}
+    return {
+        "ok": True,
+        "class_label": cls,
+        "reason": "" if cls else "interval too wide: +-9 px",
+        "model": "RADIAL",
+        "delta_avg_user_px": d,
+        "delta_avg_user_interval": (lo, hi),
+        "delta_max_user_px": 3 * d,
+        "delta_max_user_interval": (3 * lo, 3 * hi),
+        "invertible_fraction": 1.0,
+        "eq4_fit_error_px": 0.1,
+        "registered": 20,
+        "points3D": 900,
+        "reprojection_px": 0.4,
+        "rotation_spread_deg": 30.0,
+        "models": {},
+        "k2_user": 2e-7,
+        "k4_user": 1e-13,
+        "camera_matrix": [[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]],
+        "dist_coeffs": [-0.1, 0.01, 0, 0, 0],
+    }
 
 
 def test_confident_paths_that_disagree_cannot_tell_and_give_both_numbers():
@@ -269,7 +306,9 @@ def test_multiview_answers_with_its_exact_opencv_camera_where_the_paths_agree():
 
 
 def test_direct_answers_where_multiview_cannot():
-    failed = combine(_direct("3", 9.0, 8.8, 9.2), {"ok": False, "reason": "the engine could not reconstruct the sequence"})
+    failed = combine(
+        _direct("3", 9.0, 8.8, 9.2), {"ok": False, "reason": "the engine could not reconstruct the sequence"}
+    )
     assert failed["method"] == "direct" and failed["class"] == "3" and "reconstruct" in failed["multiview"]["reason"]
     wide = combine(_direct("3", 9.0, 8.8, 9.2), _mv(None, 12.0, 0.0, 30.0))
     assert wide["method"] == "direct" and wide["class"] == "3"
@@ -284,18 +323,47 @@ def test_direct_answers_where_multiview_cannot():
     assert gopro["method"] == "multiview" and gopro["class"] is None and gopro["delta_avg_user_px"] == 119.24
     assert "do not overlap" in gopro["reason"]
     kept = combine(_direct(None, 5.0, 4.0, 6.0), _mv(None, 12.0, 0.0, 30.0))  # the direct one is the tighter
-    assert kept["method"] == "direct" and kept["delta_avg_user_px"] == 5.0 and "numbers are the direct" in kept["reason"]
+    assert (
+        kept["method"] == "direct" and kept["delta_avg_user_px"] == 5.0 and "numbers are the direct" in kept["reason"]
+    )
 
 
 def _planar(cls, d, lo, hi):
-    return {"ok": True, "class_label": cls, "reason": "" if cls else "interval too wide: +-9 px", "terms": 3,
-            "delta_avg_user_px": d, "delta_avg_user_interval": (lo, hi), "delta_max_user_px": 4 * d,
-            "delta_max_user_interval": (4 * lo, 4 * hi), "invertible_fraction": 1.0, "eq4_fit_error_px": 2.9,
-            "k2_user": 7e-7, "k4_user": 1e-12, "pairs": 41, "inliers": 1133, "matches": 4925, "inlier_share": 0.61, "reprojection_px": 0.83,
-            "models": {}, "jackknife": [], "jackknife_coefficients": [], "jackknife_centres": [], "coefficients": [0.59, 0.1, 0.33],
-            "model": "planar-3-centre", "centre": [636.0, 509.0], "bending_halfwidth_px": 36.0, "matched_fraction": 0.81, "opencv_rational": None,
-            "opencv": {"camera_matrix": [[800.0, 0, 639.5], [0, 800.0, 479.5], [0, 0, 1]], "dist_coeffs": [-0.4, 0.1, 0, 0, 0],
-                       "fit_error_mean_px": 9.7, "fit_error_max_px": 30.0}}
+    return {
+        "ok": True,
+        "class_label": cls,
+        "reason": "" if cls else "interval too wide: +-9 px",
+        "terms": 3,
+        "delta_avg_user_px": d,
+        "delta_avg_user_interval": (lo, hi),
+        "delta_max_user_px": 4 * d,
+        "delta_max_user_interval": (4 * lo, 4 * hi),
+        "invertible_fraction": 1.0,
+        "eq4_fit_error_px": 2.9,
+        "k2_user": 7e-7,
+        "k4_user": 1e-12,
+        "pairs": 41,
+        "inliers": 1133,
+        "matches": 4925,
+        "inlier_share": 0.61,
+        "reprojection_px": 0.83,
+        "models": {},
+        "jackknife": [],
+        "jackknife_coefficients": [],
+        "jackknife_centres": [],
+        "coefficients": [0.59, 0.1, 0.33],
+        "model": "planar-3-centre",
+        "centre": [636.0, 509.0],
+        "bending_halfwidth_px": 36.0,
+        "matched_fraction": 0.81,
+        "opencv_rational": None,
+        "opencv": {
+            "camera_matrix": [[800.0, 0, 639.5], [0, 800.0, 479.5], [0, 0, 1]],
+            "dist_coeffs": [-0.4, 0.1, 0, 0, 0],
+            "fit_error_mean_px": 9.7,
+            "fit_error_max_px": 30.0,
+        },
+    }
 
 
 def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_relief_is_found():
@@ -307,19 +375,38 @@ def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_re
     assert out["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["terms"] == 3
     # the JSON's planar block carries its lens (centre included), how straight it makes lines and its own exports
     assert out["planar"]["centre"] == [636.0, 509.0] and out["planar"]["bending_halfwidth_px"] == 36.0
-    assert out["planar"]["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["model"] == "planar-3-centre"
+    assert (
+        out["planar"]["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["model"] == "planar-3-centre"
+    )
     # what guided matching did, carried into the JSON (None where it did not run)
     assert out["planar"]["guided"] is None
-    guided = {"used": True, "reason": "", "pairs_verified": 197, "pairs_matched": 143, "matches": 6596, "radius_px": 3.0,
-              "first_fit": {"pairs": 38}}
+    guided = {
+        "used": True,
+        "reason": "",
+        "pairs_verified": 197,
+        "pairs_matched": 143,
+        "matches": 6596,
+        "radius_px": 3.0,
+        "first_fit": {"pairs": 38},
+    }
     assert combine(direct, {**mv, "planar": {**mv["planar"], "guided": guided}})["planar"]["guided"] == guided
     assert out["planar"]["refined"] is None  # and what the sub-pixel refinement did
-    refined = {"used": True, "reason": "", "kept": 2845, "matches": 6594, "median_shift_px": 0.92, "before": {"pairs": 131}}
+    refined = {
+        "used": True,
+        "reason": "",
+        "kept": 2845,
+        "matches": 6594,
+        "median_shift_px": 0.92,
+        "before": {"pairs": 131},
+    }
     assert combine(direct, {**mv, "planar": {**mv["planar"], "refined": refined}})["planar"]["refined"] == refined
     # relief found by the direct path's plane + parallax test: one homography per pair would absorb it
     relief = combine({**direct, "relief_z": 5.6}, mv)
     assert relief["method"] != "planar" and relief["class"] is None
-    assert relief["planar"]["reason"] == "relief: the direct path's plane + parallax test finds relief (z = 5.6, at most 2)"
+    assert (
+        relief["planar"]["reason"]
+        == "relief: the direct path's plane + parallax test finds relief (z = 5.6, at most 2)"
+    )
     # an interval that misses another path's: no answer from it
     apart = combine({**_direct(None, 20.0, 10.0, 30.0), "relief_z": 0.1}, mv)
     assert apart["method"] != "planar" and apart["class"] is None

@@ -44,7 +44,9 @@ def test_spread_joins_the_interval_in_quadrature_by_hand():
     assert res.class_label == "4" and res.reason == ""  # 12.7 px is within 25 % of 100
     assert [r["seed"] for r in res.reconstructions] == [0, 1, 2] and res.reconstructions[2]["delta_avg_user_px"] == 97.0
     # spread 12 (others 112 and 96): sqrt(225 + (1.96 * 12)^2) = 27.896 > 25 % of 100: no class, the spread named
-    wide = combine_reconstructions([(0, _cal(112.0, 97.0, 127.0)), (1, _cal(100.0, 85.0, 115.0)), (2, _cal(96.0, 81.0, 111.0))])
+    wide = combine_reconstructions(
+        [(0, _cal(112.0, 97.0, 127.0)), (1, _cal(100.0, 85.0, 115.0)), (2, _cal(96.0, 81.0, 111.0))]
+    )
     assert wide.class_label is None and wide.delta_avg_user_interval[1] == pytest.approx(127.896, abs=1e-3)
     assert wide.reason == "interval too wide: +-27.90 px (the 3 reconstructions differ by up to 12.00 px)"
 
@@ -57,11 +59,16 @@ def test_one_reconstruction_keeps_its_interval():
 
 def test_reconstructions_that_disagree_beyond_their_intervals_cannot_tell():
     """The GoPro views' runs of 2026-11-24 (truth 103.2 px): 122.4 [107.3, 137.5] alone was confidently wrong."""
-    runs = [(0, _cal(122.4, 107.3, 137.5)), (1, _cal(53.0, 17.9, 88.2, label=None, reason="interval too wide: +-35.15 px")),
-            (2, _cal(119.2, 61.2, 177.3, label=None, reason="interval too wide: +-58.05 px"))]
+    runs = [
+        (0, _cal(122.4, 107.3, 137.5)),
+        (1, _cal(53.0, 17.9, 88.2, label=None, reason="interval too wide: +-35.15 px")),
+        (2, _cal(119.2, 61.2, 177.3, label=None, reason="interval too wide: +-58.05 px")),
+    ]
     res = combine_reconstructions(runs, THREE)
     assert res.class_label is None and res.delta_avg_user_px == 119.2
-    assert res.reason.startswith("the reconstructions disagree beyond their intervals (seed 0 122.40 px [107.30, 137.50]")
+    assert res.reason.startswith(
+        "the reconstructions disagree beyond their intervals (seed 0 122.40 px [107.30, 137.50]"
+    )
     lo, hi = res.delta_avg_user_interval
     assert lo <= 103.2 <= hi and res.reconstruction_spread_px == pytest.approx(66.2)
     assert hi - 119.2 == pytest.approx(math.hypot(58.1, Z * 66.2), abs=1e-9)
@@ -74,8 +81,13 @@ def test_too_few_reconstructions_cannot_tell_and_a_median_of_two_prefers_more_vi
     res = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0)), (1, "5 of 37 frames registered"),
                                    (2, "0 of 37 frames registered")], THREE)
     assert res.class_label is None and res.reason.startswith("only 1 of 3 reconstructions succeeded (3 needed)")
-    assert "seed 1: 5 of 37 frames registered" in res.reason and res.reconstructions[1] == {"seed": 1, "failed": "5 of 37 frames registered"}
-    two = combine_reconstructions([(0, _cal(100.0, 95.0, 105.0, registered=20)), (1, _cal(102.0, 97.0, 107.0, registered=30))], THREE)
+    assert "seed 1: 5 of 37 frames registered" in res.reason and res.reconstructions[1] == {
+        "seed": 1,
+        "failed": "5 of 37 frames registered",
+    }
+    two = combine_reconstructions(
+        [(0, _cal(100.0, 95.0, 105.0, registered=20)), (1, _cal(102.0, 97.0, 107.0, registered=30))], THREE
+    )
     assert two.delta_avg_user_px == 102.0 and two.reconstruction_spread_px == 2.0
     with pytest.raises(ValueError, match="at least one successful reconstruction"):
         combine_reconstructions([(0, "0 of 37 frames registered")], THREE)
@@ -95,8 +107,10 @@ def test_failed_starts_beside_enough_successes_keep_the_class_and_are_listed():
 
 def test_the_answers_own_reason_stays():
     own = "the interval [0.20, 0.31] px at the paper's frame spans the no-distortion threshold (0.25 px)"
-    res = combine_reconstructions([(0, _cal(10.0, 9.8, 10.2, label=None, reason=own)),
-                                   (1, _cal(10.1, 9.9, 10.3, label=None, reason=own))], MultiViewConfig(reconstructions=2))
+    res = combine_reconstructions(
+        [(0, _cal(10.0, 9.8, 10.2, label=None, reason=own)), (1, _cal(10.1, 9.9, 10.3, label=None, reason=own))],
+        MultiViewConfig(reconstructions=2),
+    )
     assert res.class_label is None and res.reason == own
 
 

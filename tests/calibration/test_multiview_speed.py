@@ -64,7 +64,10 @@ def _fake_colmap(monkeypatch, tmp_path, answers):
 
 def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
     # the GoPro views: seeds 1 and 2 stop at 3 views in about a second; 0, 3 and 4 answer, seed 5 never runs
-    ok = [dataclasses.replace(_cal(d, 30.0, label="3", reason=""), delta_avg_user_interval=(d - 1, d + 1)) for d in (8.0, 8.4, 7.8, 99.0)]
+    ok = [
+        dataclasses.replace(_cal(d, 30.0, label="3", reason=""), delta_avg_user_interval=(d - 1, d + 1))
+        for d in (8.0, 8.4, 7.8, 99.0)
+    ]
     calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 0, ok[1], ok[2], ok[3]])
     res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 5 and res["ok"] and res["class_label"] == "3" and res["delta_avg_user_px"] == 8.0
@@ -75,7 +78,10 @@ def test_failed_mappings_are_retried_with_further_seeds(monkeypatch, tmp_path):
     calls = _fake_colmap(monkeypatch, tmp_path, [ok[0], 3, 3, 3, 3, ok[1]])
     res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(reconstructions=3))
     assert calls["mappings"] == 6 and res["class_label"] is None
-    assert res["reason"].startswith("only 2 of 6 reconstructions succeeded (3 needed)") and "seed 4: 3 of 22" in res["reason"]
+    assert (
+        res["reason"].startswith("only 2 of 6 reconstructions succeeded (3 needed)")
+        and "seed 4: 3 of 22" in res["reason"]
+    )
     # a slow pan after a failed start: the three successes run (no mapping is skipped for the motion)
     calls = _fake_colmap(monkeypatch, tmp_path, [3, _cal(12.3, 2.4), _cal(12.2, 2.4), _cal(13.0, 2.3)])
     res = wmv.multiview_path(tmp_path, (288, 384), config=MultiViewConfig(reconstructions=3))
@@ -141,4 +147,7 @@ def test_bundle_adjustments_stop_at_ceres_default_tolerance(monkeypatch):
         (options.ceres.solver_options.function_tolerance, options.refine_focal_length, options.refine_extra_params)))
     adjust(object())
     adjust(object(), held=True)  # another path's camera held: only the structure and the poses move
-    assert seen == [(BA_FUNCTION_TOLERANCE, True, True), (BA_FUNCTION_TOLERANCE, False, False)] and BA_FUNCTION_TOLERANCE == 1e-6
+    assert (
+        seen == [(BA_FUNCTION_TOLERANCE, True, True), (BA_FUNCTION_TOLERANCE, False, False)]
+        and BA_FUNCTION_TOLERANCE == 1e-6
+    )

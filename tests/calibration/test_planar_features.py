@@ -44,7 +44,9 @@ def _plane_matches(k2: float, k4: float, views: int = 8, noise: float = 0.3, out
     """
     h, w = SIZE
     rng = torch.Generator().manual_seed(seed)
-    base = torch.rand(400, 2, generator=rng, dtype=torch.float64) * torch.tensor([w * 1.4, h * 1.4]) - torch.tensor([0.2 * w, 0.2 * h])
+    base = torch.rand(400, 2, generator=rng, dtype=torch.float64) * torch.tensor([w * 1.4, h * 1.4]) - torch.tensor(
+        [0.2 * w, 0.2 * h]
+    )
     z = 1 + depth * torch.rand(400, generator=rng, dtype=torch.float64)
     centre = ((w - 1) / 2 + offset[0], (h - 1) / 2 + offset[1])
     seen = []
@@ -62,7 +64,9 @@ def _plane_matches(k2: float, k4: float, views: int = 8, noise: float = 0.3, out
             both = seen[i][1] & seen[j][1]
             a, b = seen[i][0][both], seen[j][0][both].clone()
             wrong = torch.rand(len(b), generator=rng) < outliers
-            b[wrong] = torch.rand(int(wrong.sum()), 2, generator=rng, dtype=torch.float64) * torch.tensor([w - 1.0, h - 1.0])
+            b[wrong] = torch.rand(int(wrong.sum()), 2, generator=rng, dtype=torch.float64) * torch.tensor(
+                [w - 1.0, h - 1.0]
+            )
             x1.append(a)
             x2.append(b)
             pair.append(torch.full((len(a),), len(first)))
@@ -119,8 +123,14 @@ def test_jacobian_agrees_with_finite_differences(theta):
     # the pairs' homographies once each, indexed by pair: the same residuals and derivatives
     pair = torch.tensor([0, 1, 1, 0, 1])
     hp = torch.stack([h[0], h[0] + 0.01])
-    assert torch.allclose(transfer_residuals(a, hp, v1, v2, terms=3, pair=pair), transfer_residuals(a, hp[pair], v1, v2, terms=3), atol=1e-14)
-    for got, want in zip(transfer_jacobians(a, hp, v1, v2, terms=3, pair=pair), transfer_jacobians(a, hp[pair], v1, v2, terms=3)):
+    assert torch.allclose(
+        transfer_residuals(a, hp, v1, v2, terms=3, pair=pair),
+        transfer_residuals(a, hp[pair], v1, v2, terms=3),
+        atol=1e-14,
+    )
+    for got, want in zip(
+        transfer_jacobians(a, hp, v1, v2, terms=3, pair=pair), transfer_jacobians(a, hp[pair], v1, v2, terms=3)
+    ):
         assert torch.allclose(got, want, atol=1e-12)
 
 
@@ -156,15 +166,23 @@ def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
     centre = ((w - 1) / 2 + off[0], (h - 1) / 2 + off[1])
     assert res.model.endswith("-centre") and res.class_label is not None
     assert math.dist(res.centre, centre) < 2.5  # 1.9 px off (0.3 px noise, 8 views)
-    p = torch.stack(torch.meshgrid(torch.arange(0.0, w, 8, dtype=torch.float64), torch.arange(0.0, h, 8, dtype=torch.float64),
-                                   indexing="xy"), -1).reshape(-1, 2)
+    p = torch.stack(
+        torch.meshgrid(
+            torch.arange(0.0, w, 8, dtype=torch.float64), torch.arange(0.0, h, 8, dtype=torch.float64), indexing="xy"
+        ),
+        -1,
+    ).reshape(-1, 2)
     truth = undistort_points(p[None], k2, 0.0, centre)[0]
     ours = lens_ideal_points(p, res.coefficients, h, w, centre=res.centre)
     bent = _bending(p, truth, ours)  # 0.26 px: lines as straight as the true lens makes them, to a quarter pixel
     assert bent < 0.3 and bent < res.bending_halfwidth_px  # and its own half-width (0.49) covers that
-    assert abs(res.delta_avg_user_px - float((truth - p).norm(dim=-1).mean())) < 0.03 * float((truth - p).norm(dim=-1).mean())
+    assert abs(res.delta_avg_user_px - float((truth - p).norm(dim=-1).mean())) < 0.03 * float(
+        (truth - p).norm(dim=-1).mean()
+    )
     # the frame-centred model cannot follow it: 2.1 px of bending (BIC prefers the free centre by 589)
-    fixed = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, config=MultiViewConfig(planar_terms=2, planar_centre_max=0.0))
+    fixed = self_calibrate_planar(
+        _plane_matches(k2, 0.0, offset=off), SIZE, config=MultiViewConfig(planar_terms=2, planar_centre_max=0.0)
+    )
     assert _bending(p, truth, lens_ideal_points(p, fixed.coefficients, h, w)) > 5 * _bending(p, truth, ours)
     # OpenCV's camera about the same centre
     assert res.opencv["camera_matrix"][0][2] == pytest.approx(res.centre[0]) and res.opencv["fit_error_mean_px"] < 0.1
@@ -172,7 +190,9 @@ def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
 
 def test_no_distortion_gives_a_small_delta_and_no_class_where_the_interval_spans_the_threshold():
     res = self_calibrate_planar(_plane_matches(0.0, 0.0), SIZE, config=MultiViewConfig(planar_terms=2))
-    assert res.delta_avg_user_px < 0.2 and res.delta_avg_user_interval[0] == 0.0  # 0.17 (60 matches a pair kept of ~300)
+    assert (
+        res.delta_avg_user_px < 0.2 and res.delta_avg_user_interval[0] == 0.0
+    )  # 0.17 (60 matches a pair kept of ~300)
     # the interval starts at 0 and reaches past 0.25 px at the paper's frame: R or class 1 cannot be told
     assert res.class_label is None and "spans the no-distortion threshold (0.25 px)" in res.reason
 
@@ -181,7 +201,9 @@ def test_a_scene_with_depth_is_not_a_plane():
     # depths 1 .. 2 (or 1 .. 3) under a camera moving sideways: a homography fits a band of depths, about 30 %
     # of a pair's matches, where a plane keeps all but its outliers (80 % here, 61 % on the GoPro's chessboard)
     for depth in (1.0, 2.0):
-        res = self_calibrate_planar(_plane_matches(2e-6, 0.0, depth=depth, outliers=0.0), SIZE, config=MultiViewConfig(planar_terms=2))
+        res = self_calibrate_planar(
+            _plane_matches(2e-6, 0.0, depth=depth, outliers=0.0), SIZE, config=MultiViewConfig(planar_terms=2)
+        )
         assert res.class_label is None and res.inlier_share < 0.4
         assert res.reason.startswith("not a plane: one homography per pair explains"), res.reason
     plane = self_calibrate_planar(_plane_matches(2e-6, 0.0), SIZE, config=MultiViewConfig(planar_terms=2))
@@ -209,7 +231,9 @@ def test_bending_halfwidth_is_the_jackknife_of_what_no_affine_map_takes_away():
     got, share = bending_halfwidth(theta, [theta, other], n=2, size=SIZE, dl=dl, confidence=0.95, seen=seen)
     p = dl["points"][dl["ok"]]
     m = _bending(p, lens_ideal_points(p, [0.2, 0.05], h, w), lens_ideal_points(p, [0.21, 0.05], h, w)) ** 2
-    assert got == pytest.approx(12.7062047 * math.sqrt(0.5 * m), rel=1e-6) and share == pytest.approx(float(dl["ok"].double().mean()))
+    assert got == pytest.approx(12.7062047 * math.sqrt(0.5 * m), rel=1e-6) and share == pytest.approx(
+        float(dl["ok"].double().mean())
+    )
     # pixels no match comes near do not count
     corner = torch.tensor([[0.0, 0.0]], dtype=torch.float64)
     _, few = bending_halfwidth(theta, [theta, other], n=2, size=SIZE, dl=dl, confidence=0.95, seen=corner)

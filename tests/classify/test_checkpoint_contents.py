@@ -27,14 +27,18 @@ TEXTURE = {"names": ["gravel"], "edges": [0.01, 0.1], "reference": [[0.25, 0.5, 
 def _eigenspace(d=12) -> EigenSpaceClassifier:
     g = torch.Generator().manual_seed(0)
     cfg = LensdistConfig(classifier=ClassifierConfig(n_eigenvectors=2))
-    model = EigenSpaceClassifier(d, cfg).fit(torch.rand(40, d, generator=g), torch.arange(40) % 4, torch.rand(40, generator=g) * 9)
+    model = EigenSpaceClassifier(d, cfg).fit(
+        torch.rand(40, d, generator=g), torch.arange(40) % 4, torch.rand(40, generator=g) * 9
+    )
     model.extra = {"scenes": ["gravel"], "texture": TEXTURE}
     return model
 
 
 def _regressor(d=12) -> DeltaRegressor:
     g = torch.Generator().manual_seed(1)
-    model = DeltaRegressor(d, n_components=3, k=4).fit(torch.rand(30, d, generator=g), torch.rand(30) * 9, torch.rand(30) * 40)
+    model = DeltaRegressor(d, n_components=3, k=4).fit(
+        torch.rand(30, d, generator=g), torch.rand(30) * 9, torch.rand(30) * 40
+    )
     model.extra = {"scenes": ["gravel"], "texture": TEXTURE}
     return model
 
@@ -147,16 +151,45 @@ def _set(t: torch.Tensor, value: float) -> torch.Tensor:
 
 
 EIG_EDITS = [
-    ("means 1e30", lambda r: _edit_state(r, "means", lambda t: _set(t, 1e30)), r"means holds values .*outside \[-0.1, 1.1\]"),
+    (
+        "means 1e30",
+        lambda r: _edit_state(r, "means", lambda t: _set(t, 1e30)),
+        r"means holds values .*outside \[-0.1, 1.1\]",
+    ),
     ("bases scaled", lambda r: _edit_state(r, "bases", lambda t: t * 3), "rows of bases are not orthonormal"),
     ("explained above 1", lambda r: _edit_state(r, "explained", lambda t: _set(t, 4.0)), "explained holds values"),
-    ("train_coeffs huge", lambda r: _edit_state(r, "train_coeffs", lambda t: _set(t, 1e6)), "train_coeffs has a row of norm"),
-    ("reject_threshold huge", lambda r: _edit_state(r, "reject_threshold", lambda t: t * 0 + 1e9), "reject_threshold holds values"),
-    ("reject_threshold negative", lambda r: _edit_state(r, "reject_threshold", lambda t: t * 0 - 1), "reject_threshold holds values"),
-    ("train_delta negative", lambda r: _edit_state(r, "train_delta", lambda t: _set(t, -2.0)), "train_delta holds values"),
-    ("train_delta beyond the frame", lambda r: _edit_state(r, "train_delta", lambda t: _set(t, 1e5)), r"train_delta .*image diagonal"),
-    ("a class with too few pairs", lambda r: _edit_state(r, "train_class", lambda t: torch.where(t == 3, 2, t).index_fill(0, torch.tensor([3]), 3)),
-     "more than n_eigenvectors=2 times"),
+    (
+        "train_coeffs huge",
+        lambda r: _edit_state(r, "train_coeffs", lambda t: _set(t, 1e6)),
+        "train_coeffs has a row of norm",
+    ),
+    (
+        "reject_threshold huge",
+        lambda r: _edit_state(r, "reject_threshold", lambda t: t * 0 + 1e9),
+        "reject_threshold holds values",
+    ),
+    (
+        "reject_threshold negative",
+        lambda r: _edit_state(r, "reject_threshold", lambda t: t * 0 - 1),
+        "reject_threshold holds values",
+    ),
+    (
+        "train_delta negative",
+        lambda r: _edit_state(r, "train_delta", lambda t: _set(t, -2.0)),
+        "train_delta holds values",
+    ),
+    (
+        "train_delta beyond the frame",
+        lambda r: _edit_state(r, "train_delta", lambda t: _set(t, 1e5)),
+        r"train_delta .*image diagonal",
+    ),
+    (
+        "a class with too few pairs",
+        lambda r: _edit_state(
+            r, "train_class", lambda t: torch.where(t == 3, 2, t).index_fill(0, torch.tensor([3]), 3)
+        ),
+        "more than n_eigenvectors=2 times",
+    ),
 ]
 
 
@@ -171,13 +204,33 @@ def _top_level(raw: dict, **changes) -> dict:
 
 
 REG_EDITS = [
-    ("k 100000", lambda r: _top_level(r, k=100000), r"k=100000 neighbours needs more than k training pairs, it holds 30"),
+    (
+        "k 100000",
+        lambda r: _top_level(r, k=100000),
+        r"k=100000 neighbours needs more than k training pairs, it holds 30",
+    ),
     ("k equal to the pairs", lambda r: _top_level(r, k=30), "k=30 neighbours"),
-    ("n_components larger than kept", lambda r: _top_level(r, n_components=9), "components has 3 rows; a fit of n_components=9"),
+    (
+        "n_components larger than kept",
+        lambda r: _top_level(r, n_components=9),
+        "components has 3 rows; a fit of n_components=9",
+    ),
     ("mean out of range", lambda r: _edit_state(r, "mean", lambda t: _set(t, -5.0)), "mean holds values"),
-    ("components scaled", lambda r: _edit_state(r, "components", lambda t: t * 2), "rows of components are not orthonormal"),
-    ("train_coeffs huge", lambda r: _edit_state(r, "train_coeffs", lambda t: _set(t, 6e4)), "train_coeffs has a row of norm"),
-    ("negative residual", lambda r: _edit_state(r, "train_coeffs", lambda t: t.index_fill(1, torch.tensor([3]), -0.5)), "negative residual"),
+    (
+        "components scaled",
+        lambda r: _edit_state(r, "components", lambda t: t * 2),
+        "rows of components are not orthonormal",
+    ),
+    (
+        "train_coeffs huge",
+        lambda r: _edit_state(r, "train_coeffs", lambda t: _set(t, 6e4)),
+        "train_coeffs has a row of norm",
+    ),
+    (
+        "negative residual",
+        lambda r: _edit_state(r, "train_coeffs", lambda t: t.index_fill(1, torch.tensor([3]), -0.5)),
+        "negative residual",
+    ),
     ("train_delta absurd", lambda r: _edit_state(r, "train_delta", lambda t: _set(t, 7e4)), "train_delta holds values"),
 ]
 
@@ -203,10 +256,18 @@ EXTRA_EDITS = [
     ("texture infinite spread", {"texture": _texture(spread=math.inf)}, "extra.texture spread"),
     ("texture spread a string", {"texture": _texture(spread="0.05")}, "extra.texture spread"),
     ("texture not a dict", {"texture": [1, 2]}, "extra.texture must be a dict"),
-    ("texture without reference", {"texture": {k: v for k, v in TEXTURE.items() if k != "reference"}}, "extra.texture lacks reference"),
+    (
+        "texture without reference",
+        {"texture": {k: v for k, v in TEXTURE.items() if k != "reference"}},
+        "extra.texture lacks reference",
+    ),
     ("texture NaN histogram", {"texture": _texture(reference=[[math.nan, 0.5, 0.5]])}, "extra.texture reference"),
     ("texture histogram of the wrong length", {"texture": _texture(reference=[[0.5, 0.5]])}, "extra.texture reference"),
-    ("texture histogram not summing to 1", {"texture": _texture(reference=[[0.5, 0.5, 0.5]])}, "extra.texture reference"),
+    (
+        "texture histogram not summing to 1",
+        {"texture": _texture(reference=[[0.5, 0.5, 0.5]])},
+        "extra.texture reference",
+    ),
     ("texture one histogram for two names", {"texture": _texture(names=["a", "b"])}, "one histogram per name"),
     ("texture edges decreasing", {"texture": _texture(edges=[0.1, 0.01])}, "extra.texture edges"),
 ]
@@ -243,10 +304,24 @@ def test_command_line_exit_2_with_one_line(saved, tmp_path, capsys):
 
     s = load_scene("gravel")[0, 0]
     for name, img in (("a.png", s[10:330, 20:444]), ("b.png", s[30:350, 22:446])):
-        write_image(str(tmp_path / name), (img.clamp(0, 1) * 255).round().to(torch.uint8)[None].expand(3, -1, -1).contiguous())
+        write_image(
+            str(tmp_path / name), (img.clamp(0, 1) * 255).round().to(torch.uint8)[None].expand(3, -1, -1).contiguous()
+        )
     raw = _raw(SHIPPED / "regression.pt")
-    bad = _rewrite(_extra(raw, texture={**raw["extra"]["texture"], "reference": "gravel"}), tmp_path / "bad.pt", resign=True)
-    code = main(["analyze", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--method", "regression", "--checkpoint", str(bad)])
+    bad = _rewrite(
+        _extra(raw, texture={**raw["extra"]["texture"], "reference": "gravel"}), tmp_path / "bad.pt", resign=True
+    )
+    code = main(
+        [
+            "analyze",
+            str(tmp_path / "a.png"),
+            str(tmp_path / "b.png"),
+            "--method",
+            "regression",
+            "--checkpoint",
+            str(bad),
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 2, err
     assert err.count("\n") == 1 and "extra.texture reference" in err and "internal error" not in err
@@ -256,7 +331,9 @@ def test_regressor_k_beyond_a_local_median(tmp_path):
     """The re-audit's case: k = 11000 neighbours of 12000 training pairs (below N) loaded and answered
     the median of nearly the whole training set for every input; k is bounded like regression.k."""
     g = torch.Generator().manual_seed(3)
-    model = DeltaRegressor(12, n_components=3, k=8).fit(torch.rand(12000, 12, generator=g), torch.rand(12000) * 9, torch.rand(12000) * 40)
+    model = DeltaRegressor(12, n_components=3, k=8).fit(
+        torch.rand(12000, 12, generator=g), torch.rand(12000) * 9, torch.rand(12000) * 40
+    )
     model.save(tmp_path / "r.pt")
     assert DeltaRegressor.load(tmp_path / "r.pt").k == 8
     bad = _rewrite(_top_level(_raw(tmp_path / "r.pt"), k=11000), tmp_path / "x.pt", resign=True)

@@ -20,7 +20,12 @@ pytestmark = pytest.mark.bad_input
 
 
 #: Texture statistics of the form of workflows.texture.texture_statistics (two scenes, three bins).
-TEXTURE = {"names": ["a", "b"], "edges": [0.01, 0.1], "reference": [[0.25, 0.5, 0.25], [0.5, 0.25, 0.25]], "spread": 0.05}
+TEXTURE = {
+    "names": ["a", "b"],
+    "edges": [0.01, 0.1],
+    "reference": [[0.25, 0.5, 0.25], [0.5, 0.25, 0.25]],
+    "spread": 0.05,
+}
 
 
 def _cfg(n=2):
@@ -40,7 +45,9 @@ def eig_payload(tmp_path_factory):
 def reg_payload(tmp_path_factory):
     g = torch.Generator().manual_seed(1)
     path = tmp_path_factory.mktemp("reg") / "r.pt"
-    DeltaRegressor(12, n_components=3, k=4).fit(torch.rand(30, 12, generator=g), torch.rand(30), torch.rand(30)).save(path)
+    DeltaRegressor(12, n_components=3, k=4).fit(torch.rand(30, 12, generator=g), torch.rand(30), torch.rand(30)).save(
+        path
+    )
     return torch.load(path, weights_only=True)
 
 
@@ -148,7 +155,9 @@ def test_eigenspace_class_indices(tmp_path, eig_payload):
     cls = eig_payload["state_dict"]["train_class"].clone()
     cls[0] = 7
     _fails(EigenSpaceClassifier, tmp_path, _edit(eig_payload, train_class=cls), "train_class")
-    _fails(EigenSpaceClassifier, tmp_path, _edit(eig_payload, train_class=torch.zeros(40, dtype=torch.long)), "every class")
+    _fails(
+        EigenSpaceClassifier, tmp_path, _edit(eig_payload, train_class=torch.zeros(40, dtype=torch.long)), "every class"
+    )
 
 
 def test_unfitted_invalid_config_and_extra(tmp_path, eig_payload):
@@ -200,7 +209,10 @@ def test_stored_fraction_out_of_range_cli(tmp_path, capsys, reg_payload):
     rc = cli.main(["analyze", *map(str, pngs), "--method", "regression", "--checkpoint", str(path)])
     err = capsys.readouterr().err
     assert rc == 2 and len(err.splitlines()) == 1 and "Traceback" not in err, err
-    assert err.startswith("lensdist analyze: error: ") and "regression.cannot_tell_fraction must be a number in ]0, 1]" in err
+    assert (
+        err.startswith("lensdist analyze: error: ")
+        and "regression.cannot_tell_fraction must be a number in ]0, 1]" in err
+    )
 
 
 @pytest.mark.parametrize("key", ["n_features", "n_components", "k", "config", "state_dict"])
@@ -216,8 +228,15 @@ def test_regressor_oversize_and_inconsistent(tmp_path, reg_payload):
     _fails(DeltaRegressor, tmp_path, _edit(reg_payload, n_components=2), "n_components=2")
     coeffs = reg_payload["state_dict"]["train_coeffs"]
     _fails(DeltaRegressor, tmp_path, _edit(reg_payload, train_coeffs=coeffs[:, :3].contiguous()), "do not fit")
-    _fails(DeltaRegressor, tmp_path, _edit(reg_payload, train_delta=torch.zeros(29, 2)), r"train_delta has shape \(29, 2\)")
-    _fails(DeltaRegressor, tmp_path, _edit(reg_payload, components=torch.zeros(3, 12)), "components has dtype torch.float32")
+    _fails(
+        DeltaRegressor, tmp_path, _edit(reg_payload, train_delta=torch.zeros(29, 2)), r"train_delta has shape \(29, 2\)"
+    )
+    _fails(
+        DeltaRegressor,
+        tmp_path,
+        _edit(reg_payload, components=torch.zeros(3, 12)),
+        "components has dtype torch.float32",
+    )
 
 
 @pytest.mark.parametrize("key", ["mean", "components", "train_coeffs", "train_delta"])

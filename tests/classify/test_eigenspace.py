@@ -234,7 +234,9 @@ class TestEvaluation:
         md = report_markdown({"title": "t", "settings": {"x": fig}})
         assert "cannot tell" in md and "40.0 %" in md
         with pytest.raises(ValueError, match="cannot tell"):
-            evaluate_predictions(torch.tensor([6]), torch.tensor([1.0]), torch.tensor([0]), torch.tensor([1.0]), delta_range=14.4)
+            evaluate_predictions(
+                torch.tensor([6]), torch.tensor([1.0]), torch.tensor([0]), torch.tensor([1.0]), delta_range=14.4
+            )
 
 
 def test_fit_is_float64_on_cpu_invariant_to_order():

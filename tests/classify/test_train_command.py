@@ -73,13 +73,18 @@ def test_library_save_refuses_other_kinds(data, tmp_path):
     g = torch.Generator().manual_seed(0)
     x = torch.rand(40, 12, generator=g)
     reg = DeltaRegressor(12, n_components=3, k=4).fit(x, torch.rand(40), torch.rand(40))
-    eig = EigenSpaceClassifier(12, config_from_dict({"classifier": {"n_eigenvectors": 1}})).fit(x, torch.arange(40) % 4, torch.rand(40))
+    eig = EigenSpaceClassifier(12, config_from_dict({"classifier": {"n_eigenvectors": 1}})).fit(
+        x, torch.arange(40) % 4, torch.rand(40)
+    )
     reg.save(tmp_path / "r.pt")
     eig.save(tmp_path / "e.pt")
     eig.save(tmp_path / "e.pt")  # its own kind: replaced
     for model, other in ((eig, "r.pt"), (reg, "e.pt")):
         before = _digest(tmp_path / other)
-        with pytest.raises(FileExistsError, match=f"refusing to overwrite .*{other}: it is not a lensdist-(eigenspace|delta-regression) checkpoint"):
+        with pytest.raises(
+            FileExistsError,
+            match=f"refusing to overwrite .*{other}: it is not a lensdist-(eigenspace|delta-regression) checkpoint",
+        ):
             model.save(tmp_path / other)
         assert _digest(tmp_path / other) == before
 
@@ -87,7 +92,9 @@ def test_library_save_refuses_other_kinds(data, tmp_path):
 def test_config_that_disagrees_with_the_data_is_refused(data, tmp_path, capsys):
     """The audit's case: the checkpoint recorded --config's theta_e while its tensors were the data's."""
     out = tmp_path / "c.pt"
-    code = main(["train", "--data", str(data), "--config", str(_toml(tmp_path / "other.toml", 0.05)), "--out", str(out)])
+    code = main(
+        ["train", "--data", str(data), "--config", str(_toml(tmp_path / "other.toml", 0.05)), "--out", str(out)]
+    )
     err = capsys.readouterr().err
     assert code == 2, err
     assert err.count("\n") == 1 and "quality.theta_e (0.05 here, 0.06 in the data)" in err
@@ -98,7 +105,9 @@ def test_checkpoint_records_the_data_config(data, tmp_path, capsys):
     """Without --config, and with one that changes only the classifier: the data's quality thresholds."""
     for args in ([], ["--config", str(_toml(tmp_path / "same.toml", 0.06, n_eigenvectors=1))]):
         out = tmp_path / f"c{len(args)}.pt"
-        assert main(["train", "--data", str(data), "--eigenvectors", "1", "--out", str(out), *args]) == 0, capsys.readouterr().err
+        assert main(["train", "--data", str(data), "--eigenvectors", "1", "--out", str(out), *args]) == 0, (
+            capsys.readouterr().err
+        )
         model = EigenSpaceClassifier.load(out)
         assert model.config.quality == CFG.quality and model.config.image == CFG.image
         assert config_to_dict(model.config)["protocol"] == config_to_dict(CFG)["protocol"]

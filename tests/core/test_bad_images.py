@@ -36,12 +36,22 @@ def _chunk(kind: bytes, body: bytes) -> bytes:
     return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
 
 
-def _png_bytes(rows: np.ndarray, colour: int, depth: int, *, size=None, extra: bytes = b"", interlace: int = 0) -> bytes:
+def _png_bytes(
+    rows: np.ndarray, colour: int, depth: int, *, size=None, extra: bytes = b"", interlace: int = 0
+) -> bytes:
     """A PNG of the pixels ``rows`` ((H, W) or (H, W, C); big-endian ``>u2`` for 16 bits; packed
     bytes with an explicit ``size`` below 8 bits), filter 0 on every row."""
     if interlace:  # Adam7: the seven passes one after the other
         raw = b""
-        for x0, y0, dx, dy in ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2)):
+        for x0, y0, dx, dy in (
+            (0, 0, 8, 8),
+            (4, 0, 8, 8),
+            (0, 4, 4, 8),
+            (2, 0, 4, 4),
+            (0, 2, 2, 4),
+            (1, 0, 2, 2),
+            (0, 1, 1, 2),
+        ):
             sub = rows[y0::dy, x0::dx]
             if sub.size:
                 raw += b"".join(b"\x00" + r.tobytes() for r in sub)
@@ -49,7 +59,13 @@ def _png_bytes(rows: np.ndarray, colour: int, depth: int, *, size=None, extra: b
         raw = b"".join(b"\x00" + r.tobytes() for r in rows)
     h, w = size if size is not None else rows.shape[:2]
     ihdr = struct.pack(">IIBBBBB", w, h, depth, colour, 0, 0, interlace)
-    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + extra + _chunk(b"IDAT", zlib.compress(raw)) + _chunk(b"IEND", b"")
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + _chunk(b"IHDR", ihdr)
+        + extra
+        + _chunk(b"IDAT", zlib.compress(raw))
+        + _chunk(b"IEND", b"")
+    )
 
 
 def _rand_u8(*shape, seed=0) -> np.ndarray:

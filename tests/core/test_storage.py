@@ -182,6 +182,8 @@ def test_load_versioned_verifies_the_digest(tmp_path):
     torch.save(raw, tmp_path / "bare.pt")
     with pytest.raises(CheckpointError, match=r"bare\.pt carries no content digest"):
         load_versioned(tmp_path / "bare.pt", kind="k", version=3, what="test", digest=True)
-    assert load_versioned(tmp_path / "bare.pt", kind="k", version=3, what="test")["w"][2] == 1.5  # not required: as before
+    assert (
+        load_versioned(tmp_path / "bare.pt", kind="k", version=3, what="test")["w"][2] == 1.5
+    )  # not required: as before
     save_versioned(tmp_path / "plain.pt", "k", 3, {"w": torch.ones(1)}, digest=False)
     assert DIGEST_KEY not in torch.load(tmp_path / "plain.pt", weights_only=True)

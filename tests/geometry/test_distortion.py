@@ -290,7 +290,10 @@ def test_one_pair_and_a_sequence_have_their_own_r_threshold():
     cfg = LensdistConfig()
     d = torch.tensor([0.2, 0.5, 0.8, 3.0], dtype=torch.float64)
     pair = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, metric="delta_avg", config=cfg)]
-    seq = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, metric="delta_avg", config=cfg, threshold=cfg.calibration.no_distortion_px)]
+    seq = [
+        CLASS_LABELS[int(c)]
+        for c in estimated_class(d, d, metric="delta_avg", config=cfg, threshold=cfg.calibration.no_distortion_px)
+    ]
     assert pair == ["R", "R", "1", "1"] and seq == ["R", "1", "1", "1"]
     assert class_bounds("R", "delta_avg", cfg) == (0.0, 0.75)
     assert class_bounds("1", "delta_avg", cfg, 0.25) == pytest.approx((0.25, delta_top("delta_avg", cfg) / 4))

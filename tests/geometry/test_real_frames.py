@@ -59,8 +59,14 @@ def test_pair_misfit_by_hand():
     # a 0/1 checkerboard has variance 1/4: two of them sqrt(1/2); a residual RMS of 0.3536 is half that
     board = (torch.arange(64).view(8, 8) % 2 ^ torch.arange(64).view(8, 8) // 8 % 2).double().view(1, 1, 8, 8)
     flat = torch.full((1, 1, 8, 8), 0.5, dtype=torch.float64)
-    got = pair_misfit(torch.cat([board, board, flat]), torch.cat([board, board, flat]), torch.tensor([0.0, 0.5**1.5, 0.1], dtype=torch.float64))
-    assert got[:2].tolist() == pytest.approx([0.0, 0.5], abs=1e-12) and got[2] == math.inf  # flat frames: nothing registered
+    got = pair_misfit(
+        torch.cat([board, board, flat]),
+        torch.cat([board, board, flat]),
+        torch.tensor([0.0, 0.5**1.5, 0.1], dtype=torch.float64),
+    )
+    assert (
+        got[:2].tolist() == pytest.approx([0.0, 0.5], abs=1e-12) and got[2] == math.inf
+    )  # flat frames: nothing registered
 
 
 def test_a_registered_real_pair_has_a_low_misfit_and_an_unrelated_one_a_high(views):
@@ -85,7 +91,11 @@ def test_unregistered_pairs_do_not_count_and_the_reason_says_so(views):
     out = relens_frames(frames, cal["K"], cal["dist"], k2=2e-6, k4=0.0)
     res = calibrate_sequence(out.frames, CalibrationConfig(max_misfit=0.02, registered_start=False))
     assert res.pairs_used == 0 and not bool(res.pair_used.any()) and bool((res.pair_misfit > 0.02).all())
-    assert res.class_label is None and "not registered" in res.reason and f"{len(res.pairs)} of {len(res.pairs)}" in res.reason
+    assert (
+        res.class_label is None
+        and "not registered" in res.reason
+        and f"{len(res.pairs)} of {len(res.pairs)}" in res.reason
+    )
 
 
 # ------------------------------------------------------------------ the homography model on the views as they are
@@ -113,7 +123,9 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     truth = opencv_delta(k, dist, 240, 320, step=1)["delta_avg_px"]
     g = grid_points(240, 320, 1)
     _, ok = opencv_ideal_points(g, k, dist)
-    value, (lo, hi) = delta_avg_where(res, g[ok], 240, 320, config=cfg)  # where the calibration's model inverts (90.6 %)
+    value, (lo, hi) = delta_avg_where(
+        res, g[ok], 240, 320, config=cfg
+    )  # where the calibration's model inverts (90.6 %)
     assert abs(value - truth) < 0.08 * truth
     assert lo <= truth <= hi
     # guided matching (forced: here 19 of 29 verified pairs count, so by default it does not run), measured
@@ -125,13 +137,17 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     assert guided.guided["used"] and guided.guided["first_fit"]["pairs"] == res.pairs and guided.pairs > res.pairs
     value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320, config=forced)
     assert abs(value - truth) < 0.1 * truth and lo <= truth <= hi
-    assert self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg).guided is None  # the default: the first fit
+    assert (
+        self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg).guided is None
+    )  # the default: the first fit
     # the matches refined against the frames (sub-pixel patch alignment), measured 2026-11-28: the first fit's
     # 0.55 px RMS transfer error -> 0.19, 26.15 px [22.58, 29.72]; after guided matching 0.81 -> 0.24, 26.31 [25.66, 26.95]
     for c, before in ((cfg, res), (forced, guided)):
         refined = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=c,
                                         images=lambda v: load_image(REAL / names[v])[0, 0])
-        assert refined.refined["used"] and refined.refined["before"]["reprojection_px"] == pytest.approx(before.reprojection_px)
+        assert refined.refined["used"] and refined.refined["before"]["reprojection_px"] == pytest.approx(
+            before.reprojection_px
+        )
         assert refined.reprojection_px < 0.5 * before.reprojection_px and refined.class_label == "4"
         value, (lo, hi) = delta_avg_where(refined, g[ok], 240, 320, config=c)
         assert abs(value - truth) < 0.05 * truth and lo <= truth <= hi

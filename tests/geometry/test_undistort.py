@@ -62,7 +62,9 @@ def test_mask_is_where_the_source_lies_inside():
     ideal = pixel_grid(H, W, torch.float64).expand(2, H, W, 2)
     src = distort_points(ideal, k2, k4, distortion_center(H, W))
     assert torch.allclose(grid, src)
-    inside = (src[..., 0] >= -1e-3) & (src[..., 0] <= W - 1 + 1e-3) & (src[..., 1] >= -1e-3) & (src[..., 1] <= H - 1 + 1e-3)
+    inside = (
+        (src[..., 0] >= -1e-3) & (src[..., 0] <= W - 1 + 1e-3) & (src[..., 1] >= -1e-3) & (src[..., 1] <= H - 1 + 1e-3)
+    )
     assert torch.equal(valid[:, 0].bool(), inside)
     assert bool(valid[0].all())  # barrel: every ideal pixel comes from inside the frame
     assert float(valid[1].mean()) < 0.95 and valid[1, 0, 0, 0] == 0 and valid[1, 0, H // 2, W // 2] == 1

@@ -62,7 +62,9 @@ def _imports(name: str, path: Path) -> list[str]:
             elif node.module and node.module.startswith("lensdist_torch"):
                 found.append(node.module[len("lensdist_torch") :].lstrip("."))
         elif isinstance(node, ast.Import):
-            found += [a.name[len("lensdist_torch") :].lstrip(".") for a in node.names if a.name.startswith("lensdist_torch")]
+            found += [
+                a.name[len("lensdist_torch") :].lstrip(".") for a in node.names if a.name.startswith("lensdist_torch")
+            ]
     return [f for f in found if f]
 
 
@@ -98,7 +100,9 @@ def test_matplotlib_only_in_figures():
 
 
 def test_no_module_too_long():
-    long = {n: len(p.read_text().splitlines()) for n, p in _modules().items() if len(p.read_text().splitlines()) > MAX_LINES}
+    long = {
+        n: len(p.read_text().splitlines()) for n, p in _modules().items() if len(p.read_text().splitlines()) > MAX_LINES
+    }
     assert long == {}
 
 
@@ -180,7 +184,11 @@ def test_architecture_doc_names_every_module():
         rel = path.relative_to(PKG)
         if path.name == "__init__.py" or "scenes" in rel.parts:
             continue
-        if f"`{path.name}`" not in doc and f"`{rel.as_posix()}`" not in doc and f"{rel.parent.as_posix()}/{path.name}" not in doc:
+        if (
+            f"`{path.name}`" not in doc
+            and f"`{rel.as_posix()}`" not in doc
+            and f"{rel.parent.as_posix()}/{path.name}" not in doc
+        ):
             missing.append(rel.as_posix())
     assert missing == []
 

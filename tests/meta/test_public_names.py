@@ -169,12 +169,16 @@ def _sub_exports(sub: str) -> dict[str, tuple[str, ...]]:
     return importlib.import_module(f"lensdist_torch.{sub}")._EXPORTS
 
 
-SUB_NAMES = sorted((sub, module, name) for sub in SUBPACKAGES for module, names in _sub_exports(sub).items() for name in names)
+SUB_NAMES = sorted(
+    (sub, module, name) for sub in SUBPACKAGES for module, names in _sub_exports(sub).items() for name in names
+)
 
 
 def _defines(module: str, name: str) -> bool:
     """Whether ``module``'s source defines ``name`` at its top level (a def, class or assignment, not an import)."""
-    return any(name in _bound(node) for node in ast.parse(Path(importlib.util.find_spec(module).origin).read_text()).body)
+    return any(
+        name in _bound(node) for node in ast.parse(Path(importlib.util.find_spec(module).origin).read_text()).body
+    )
 
 
 @pytest.mark.parametrize("sub, module, name", SUB_NAMES)

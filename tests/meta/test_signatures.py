@@ -19,7 +19,9 @@ ALLOWED: dict[str, str] = {}
 def _public(tree: ast.Module) -> set[str] | None:
     """The module's ``__all__``, or None where it has none."""
     for node in tree.body:
-        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        targets = (
+            node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        )
         if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
             return set(ast.literal_eval(node.value))
     return None

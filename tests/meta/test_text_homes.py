@@ -38,7 +38,9 @@ def stale_text(path: Path, root: Path = ROOT) -> list[str]:
         found = [(i + 1, line.split("#", 1)[1]) for i, line in enumerate(path.read_text().splitlines()) if "#" in line]
     else:
         found = _docstrings(path) + _comments(path)
-    return [f"{path.relative_to(root)}:{line}: {STALE.search(text).group(0)}" for line, text in found if STALE.search(text)]
+    return [
+        f"{path.relative_to(root)}:{line}: {STALE.search(text).group(0)}" for line, text in found if STALE.search(text)
+    ]
 
 
 def test_no_docstring_or_comment_dates_a_figure_or_names_footage():
@@ -60,7 +62,11 @@ CLIMBING = re.compile(r"\]\((\.\./|/)")
 
 def climbing_links(path: Path, root: Path = ROOT) -> list[str]:
     """``path:line`` of each Markdown link in ``path`` that climbs out of its folder."""
-    return [f"{path.relative_to(root)}:{i + 1}" for i, line in enumerate(path.read_text().splitlines()) if CLIMBING.search(line)]
+    return [
+        f"{path.relative_to(root)}:{i + 1}"
+        for i, line in enumerate(path.read_text().splitlines())
+        if CLIMBING.search(line)
+    ]
 
 
 def test_no_markdown_link_climbs_out_of_its_folder():

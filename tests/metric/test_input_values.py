@@ -56,13 +56,17 @@ class TestPadding:
         assert got.shape == (2, 1, 5, 8)  # ceil(37 / 8) x ceil(61 / 8)
         assert torch.equal(got, quality_map(p1, p2, pv, pad=False))
         assert float(got.sum()) > 0
-        assert torch.equal(registration_error_counts(img1, img2, valid), registration_error_counts(p1, p2, pv, pad=False))
+        assert torch.equal(
+            registration_error_counts(img1, img2, valid), registration_error_counts(p1, p2, pv, pad=False)
+        )
         res, ref = registration_quality(img1, img2, valid), registration_quality(p1, p2, pv, pad=False)
         for a, b in zip(res, ref):
             if a is not None:
                 assert torch.equal(a, b)
         smooth = registration_quality(img1, img2, valid, smooth=True)
-        assert torch.equal(smooth.registration_map, registration_quality(p1, p2, pv, smooth=True, pad=False).registration_map)
+        assert torch.equal(
+            smooth.registration_map, registration_quality(p1, p2, pv, smooth=True, pad=False).registration_map
+        )
         for reduction in ("none", "masked_mean", "mean", "sum"):
             assert torch.equal(
                 registration_quality_loss(img1, img2, valid, reduction=reduction),

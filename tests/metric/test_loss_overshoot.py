@@ -31,7 +31,9 @@ def test_a_bicubic_overshoot_is_measured_with_its_gradient(pair):
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(warped.grad).all() and warped.grad.abs().sum() > 0
     # the same images in 0-255 with data_range=255: the same loss (the overshoot is in units of white)
-    assert float(registration_quality_loss(255 * warped.detach(), 255 * x, data_range=255)) == pytest.approx(float(loss))
+    assert float(registration_quality_loss(255 * warped.detach(), 255 * x, data_range=255)) == pytest.approx(
+        float(loss)
+    )
 
 
 def test_bicubic_overshoot_is_bounded_by_the_constant():
@@ -43,7 +45,9 @@ def test_bicubic_overshoot_is_bounded_by_the_constant():
 
 
 @pytest.mark.bad_input
-@pytest.mark.parametrize("scale,words", [(255.0, ("img1", "data_range=255")), (1.0 + 1.5 * OVERSHOOT, ("img1", "expected [0, 1]"))])
+@pytest.mark.parametrize(
+    "scale,words", [(255.0, ("img1", "data_range=255")), (1.0 + 1.5 * OVERSHOOT, ("img1", "expected [0, 1]"))]
+)
 def test_farther_out_is_still_a_one_line_error(pair, scale, words):
     x, _ = pair
     one_line_error(ValueError, lambda: registration_quality_loss(x * scale, x), *words)

@@ -19,7 +19,9 @@ def smooth(h: int, w: int, dx: float, dy: float) -> torch.Tensor:
     return (0.5 + 0.2 * torch.sin(x / 15) * torch.cos(y / 21) + 0.1 * torch.sin((x + 0.5 * y) / 12)).float()[None, None]
 
 
-def assert_columns_match_finite_differences(theta: torch.Tensor, lv: selfcal_model.Level, columns, eps: float = 1e-3) -> None:
+def assert_columns_match_finite_differences(
+    theta: torch.Tensor, lv: selfcal_model.Level, columns, eps: float = 1e-3
+) -> None:
     """Each listed column of ``evaluate``'s Jacobian against central differences of its residual
     (relative L2 error < 6 %; the valid set must not change with the steps)."""
     _, valid, J = selfcal_model.evaluate(theta, lv)

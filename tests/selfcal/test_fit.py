@@ -92,7 +92,9 @@ def test_pincushion_negative_coefficients():
     r = _norm(h, w)
     a, b = -0.12, -0.03
     i1, i2 = _pair(h, w, a / r**2, b / r**4, (1.0, 9.0))
-    k2h, k4h, _, info = estimate_distortion(i1, i2, config=SelfCalConfig(levels=2, iterations=(12, 6), sample_block=(1, 2)))
+    k2h, k4h, _, info = estimate_distortion(
+        i1, i2, config=SelfCalConfig(levels=2, iterations=(12, 6), sample_block=(1, 2))
+    )
     assert bool(info.converged[0])
     assert abs(float(k2h[0]) * r**2 - a) < TOL_A and abs(float(k4h[0]) * r**4 - b) < TOL_B
 
@@ -184,8 +186,19 @@ def test_jacobian_matches_finite_differences(photometric):
     ud = normalized_grid(0, h, w, full_height=h, full_width=w).view(-1, 2)
     idx = torch.nonzero(ud.norm(dim=-1) < 0.4).flatten()[None]
     ux, uy = ud[idx, 0], ud[idx, 1]
-    lv = selfcal_model.Level(torch.gather(i1.flatten(1), 1, idx), selfcal_model.with_gradients(i2), ux, uy,
-                             ux * ux + uy * uy, half_diagonal(h, w), level_to_grid(0, h, w, full_height=h, full_width=w), 8, 4.0, photometric, 1e-6)
+    lv = selfcal_model.Level(
+        torch.gather(i1.flatten(1), 1, idx),
+        selfcal_model.with_gradients(i2),
+        ux,
+        uy,
+        ux * ux + uy * uy,
+        half_diagonal(h, w),
+        level_to_grid(0, h, w, full_height=h, full_width=w),
+        8,
+        4.0,
+        photometric,
+        1e-6,
+    )
     n_par = 12 if photometric == "gain_bias" else 10
     theta = torch.zeros(1, n_par, dtype=torch.float64)
     theta[0, :10] = torch.tensor([0.01, -0.005, 0.02, 0.004, -0.01, 0.03, 0.002, -0.001, 0.05, 0.02])
@@ -201,7 +214,11 @@ def test_robust_scale_weights_and_cost():
     valid = torch.tensor([[True] * 7 + [False]])
     # median 1 of the seven valid residuals, |r - 1| = 1, 0, 2, 1, 3, 99, 2: MAD 2
     assert math.isclose(float(selfcal_model.robust_scale(res, valid, 1e-3)[0]), 1.4826 * 2, rel_tol=1e-6)
-    assert math.isclose(float(selfcal_model.robust_scale(torch.zeros(1, 8), torch.ones(1, 8, dtype=torch.bool), 0.01)[0]), 0.01, rel_tol=1e-6)
+    assert math.isclose(
+        float(selfcal_model.robust_scale(torch.zeros(1, 8), torch.ones(1, 8, dtype=torch.bool), 0.01)[0]),
+        0.01,
+        rel_tol=1e-6,
+    )
     sigma = torch.tensor([1.0])
     assert selfcal_model.robust_weights(res, sigma, "none", 1.0) is None
     hub = selfcal_model.robust_weights(res, sigma, "huber", 1.345)[0]
@@ -272,7 +289,9 @@ def test_every_tensor_is_made_on_a_named_device(module):
         if not isinstance(node, ast.Call):
             continue
         f = node.func
-        name = f.attr if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id == "torch" else None
+        name = (
+            f.attr if isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id == "torch" else None
+        )
         name = f.id if isinstance(f, ast.Name) and f.id in _HELPERS else name
         if name in _FACTORIES or name in _HELPERS:
             named = any(k.arg == "device" for k in node.keywords) or len(node.args) > _HELPERS.get(name, 99)
@@ -320,7 +339,9 @@ def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clus
     noise = 0.1 * torch.randn(1, n, generator=g).double()
     gn = 0.01 * inv.diagonal(dim1=1, dim2=2)
     cid = region_ids(h0, w0, block=4, clusters=6)
-    assert cid.bincount().tolist() == [4 * c for c in (6, 5, 5, 6, 5, 5)] * 6  # 24 / 6 rows; 32 columns as 6, 5, 5, 6, 5, 5
+    assert (
+        cid.bincount().tolist() == [4 * c for c in (6, 5, 5, 6, 5, 5)] * 6
+    )  # 24 / 6 rows; 32 columns as 6, 5, 5, 6, 5, 5
     sw = cluster_robust_covariance(inv, J * noise[:, None], cid, 36).diagonal(dim1=1, dim2=2)
     assert torch.allclose(sw, gn, rtol=0.6)  # 36 clusters: a noisy but unbiased estimate
     # a residual shared within each cluster, correlated with the Jacobian there: much wider
@@ -334,7 +355,9 @@ def test_parallax_widens_the_interval():
     the misfit, the cluster-robust one grows several times (docs/method.md, section 10, the limit)."""
     i1, i2, _ = relief_only_pairs(0.06, 4)
     # the covariances alone (the small-motion floor, the same in both, off)
-    plain = estimate_distortion(i1, i2, config=SelfCalConfig(clusters=0, small_motion_error=0.0, parallax=0))[3].delta_avg_std
+    plain = estimate_distortion(i1, i2, config=SelfCalConfig(clusters=0, small_motion_error=0.0, parallax=0))[
+        3
+    ].delta_avg_std
     robust = estimate_distortion(i1, i2, config=SelfCalConfig(small_motion_error=0.0, parallax=0))[3].delta_avg_std
     assert float((robust / plain).median()) > 3
 
@@ -347,7 +370,9 @@ def test_the_blended_kernel_removes_most_of_the_small_motion_bias():
     bicubic 2.00 high and 0.67 low there (opposite signs); their mean errs 4 times less on
     average (0.26 px against 1.02 and 0.98)."""
     h, w = 320, 424
-    truth = float(delta_avg(torch.tensor([2.5e-6], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), h, w)[0])
+    truth = float(
+        delta_avg(torch.tensor([2.5e-6], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), h, w)[0]
+    )
     pairs = [_pair(h, w, 2.5e-6, 0.0, (0.0, s)) for s in (1.5, 2.0, 2.5, 2.75, 3.0, 3.5)]
     i1, i2 = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
     assert SelfCalConfig().interpolation == "blend"

@@ -41,9 +41,21 @@ def test_relief_columns_of_the_jacobian_match_finite_differences():
     idx = torch.nonzero(ud.norm(dim=-1) < 0.4).flatten()[None]
     ux, uy = ud[idx, 0], ud[idx, 1]
     direction = torch.tensor([[0.6, 0.8]])
-    lv = selfcal_model.Level(torch.gather(i1.flatten(1), 1, idx), selfcal_model.with_gradients(i2), ux, uy,
-                             ux * ux + uy * uy, half_diagonal(h, w), level_to_grid(0, h, w, full_height=h, full_width=w), 8, 4.0, "gain_bias",
-                             1e-6, selfcal_model.relief_basis(ux, uy, n=3, width=0.3, h0=h, w0=w), direction)
+    lv = selfcal_model.Level(
+        torch.gather(i1.flatten(1), 1, idx),
+        selfcal_model.with_gradients(i2),
+        ux,
+        uy,
+        ux * ux + uy * uy,
+        half_diagonal(h, w),
+        level_to_grid(0, h, w, full_height=h, full_width=w),
+        8,
+        4.0,
+        "gain_bias",
+        1e-6,
+        selfcal_model.relief_basis(ux, uy, n=3, width=0.3, h0=h, w0=w),
+        direction,
+    )
     theta = torch.zeros(1, 12 + 9, dtype=torch.float64)
     theta[0, :12] = torch.tensor([0.01, -0.005, 0.02, 0.004, -0.01, 0.03, 0.002, -0.001, 0.05, 0.02, 1.1, -0.05])
     theta[0, 12:] = 0.002 * torch.arange(9) - 0.008
@@ -156,7 +168,9 @@ def test_evidence_variance_fixed_point_maximises_the_marginal_likelihood(scale):
     g = torch.Generator().manual_seed(int(scale * 100))
     n, k, sigma2 = 60, 9, 0.04
     X = torch.randn(n, k, generator=g, dtype=torch.float64)
-    y = X @ (scale * torch.randn(k, generator=g, dtype=torch.float64)) + sigma2**0.5 * torch.randn(n, generator=g, dtype=torch.float64)
+    y = X @ (scale * torch.randn(k, generator=g, dtype=torch.float64)) + sigma2**0.5 * torch.randn(
+        n, generator=g, dtype=torch.float64
+    )
     tau2 = torch.tensor([1.0], dtype=torch.float64)
     for _ in range(500):
         cov = sigma2 * torch.linalg.inv(X.T @ X + sigma2 / tau2 * torch.eye(k, dtype=torch.float64))

@@ -51,7 +51,10 @@ def _patch(x: torch.Tensor, seed: int, value: float | None = None) -> torch.Tens
     ph, pw = round(h * 0.1**0.5), round(w * 0.1**0.5)
     out = x.clone()
     for i in range(b):
-        y0, x0 = int(torch.randint(0, h - ph + 1, (1,), generator=g)), int(torch.randint(0, w - pw + 1, (1,), generator=g))
+        y0, x0 = (
+            int(torch.randint(0, h - ph + 1, (1,), generator=g)),
+            int(torch.randint(0, w - pw + 1, (1,), generator=g)),
+        )
         ty = int(torch.randint(0, tex.shape[-2] - ph + 1, (1,), generator=g))
         tx = int(torch.randint(0, tex.shape[-1] - pw + 1, (1,), generator=g))
         out[i, :, y0 : y0 + ph, x0 : x0 + pw] = tex[0, :, ty : ty + ph, tx : tx + pw] if value is None else value

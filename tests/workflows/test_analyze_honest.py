@@ -77,7 +77,9 @@ def test_selfcal_answer_in_user_pixels_and_opencv_terms():
     assert r.k2_user == pytest.approx(r.k2 / s**2) and r.k4_user == pytest.approx(r.k4 / s**4)
     cv = r.opencv
     assert len(cv["camera_matrix"]) == 3 and len(cv["dist_coeffs"]) == 5
-    assert cv["camera_matrix"][0][2] == pytest.approx((848 - 1) / 2) and cv["camera_matrix"][1][2] == pytest.approx((640 - 1) / 2)
+    assert cv["camera_matrix"][0][2] == pytest.approx((848 - 1) / 2) and cv["camera_matrix"][1][2] == pytest.approx(
+        (640 - 1) / 2
+    )
     assert cv["fit_error_mean_px"] < 0.1
     json.dumps(r.to_json(), allow_nan=False)
 

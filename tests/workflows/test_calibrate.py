@@ -29,7 +29,9 @@ TINT = torch.tensor([1.0, 0.8, 0.6]).view(1, 3, 1, 1)
 def _write(folder, frames, names=None):
     folder.mkdir(parents=True, exist_ok=True)
     for i, f in enumerate(frames):
-        (folder / f"{(names or [f'frame_{j}' for j in range(len(frames))])[i]}.png").write_bytes(encode_png(to_uint8(f)))
+        (folder / f"{(names or [f'frame_{j}' for j in range(len(frames))])[i]}.png").write_bytes(
+            encode_png(to_uint8(f))
+        )
     return folder
 
 
@@ -91,7 +93,9 @@ def test_cli_calibrate_then_undistort_from_json(sequence, tmp_path, capsys):
     assert args.func(args) == 0 and "4 frames undistorted" in capsys.readouterr().out
     img = cv2.imread(str(tmp_path / "und" / "frame_0.png"), cv2.IMREAD_UNCHANGED)
     assert img.shape == SIZE and img.dtype == np.uint8  # grey in, grey out
-    args = _parser().parse_args(["calibrate", str(folder), "--quiet", "--method", "direct"])  # the text; COLMAP ran above
+    args = _parser().parse_args(
+        ["calibrate", str(folder), "--quiet", "--method", "direct"]
+    )  # the text; COLMAP ran above
     assert args.func(args) == 0
     text = capsys.readouterr().out
     assert "Delta_avg" in text and "95 % interval" in text and "OpenCV" in text and "distortion class: 3" in text
@@ -117,7 +121,9 @@ def test_too_little_motion_is_said_before_any_mapping(tmp_path, capsys, monkeypa
     import lensdist_torch.calibration.controllers.calibrate as calibrate_mod
 
     scene = synthetic_sequence(1, K2, K4, size=(112, 144))[0][0]
-    frames = [scene[..., 8:104, 8:136] if moved == "identical" else scene[..., 8:104, 8 + i : 136 + i] for i in range(6)]
+    frames = [
+        scene[..., 8:104, 8:136] if moved == "identical" else scene[..., 8:104, 8 + i : 136 + i] for i in range(6)
+    ]
     folder = _write(tmp_path / "static", frames)
 
     def no_mapping(*args, **kwargs):
@@ -153,7 +159,9 @@ def test_video_through_pyav(sequence, tmp_path, fake_pyav):
     frames = torch.cat([load_image(p, grey=False) for p in list_frames(folder)])
     fake_pyav([_pyav_frame(f) for f in frames])
     (tmp_path / "clip.mp4").write_bytes(b"")
-    res = calibrate_path(tmp_path / "clip.mp4", max_frames=8, method="direct")  # the reading is tested, not COLMAP (CI time)
+    res = calibrate_path(
+        tmp_path / "clip.mp4", max_frames=8, method="direct"
+    )  # the reading is tested, not COLMAP (CI time)
     assert res["frames"] == 8 and res["class"] == "3"
     out = undistort_path(tmp_path / "clip.mp4", tmp_path / "out", k2=K2, k4=K4, max_frames=2)
     assert out["frames"] == 2 and load_image(tmp_path / "out" / "frame_000001.png", grey=False).shape == (1, 3, *SIZE)
@@ -242,7 +250,9 @@ def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
 def test_cuda_calibrates_and_undistorts_as_the_cpu(sequence, tmp_path):
     folder, _ = sequence
     cpu, gpu = calibrate_path(folder), calibrate_path(folder, device="cuda")
-    assert gpu["class"] == cpu["class"] and gpu["delta_avg_user_px"] == pytest.approx(cpu["delta_avg_user_px"], abs=0.02)
+    assert gpu["class"] == cpu["class"] and gpu["delta_avg_user_px"] == pytest.approx(
+        cpu["delta_avg_user_px"], abs=0.02
+    )
     a = undistort_path(folder, tmp_path / "cpu", k2=K2, k4=K4)
     b = undistort_path(folder, tmp_path / "gpu", k2=K2, k4=K4, device="cuda")
     assert a["valid_fraction"] == pytest.approx(b["valid_fraction"], abs=1e-6)
@@ -263,13 +273,25 @@ def test_cuda_without_cuda_is_a_one_line_error(sequence, tmp_path, capsys, comma
     assert "\n" not in err and "device 'cuda'" in err and "CUDA is not available" in err
 
 
-@pytest.mark.parametrize("bending,says", [(36.0, "straightens lines to +-36.00 px (95 %, RMS over the 81 % of the frame"),
-                                          (None, None)])
+@pytest.mark.parametrize(
+    "bending,says", [(36.0, "straightens lines to +-36.00 px (95 %, RMS over the 81 % of the frame"), (None, None)]
+)
 def test_the_homography_models_line_names_its_centre_and_how_straight_it_makes_lines(capsys, bending, says):
     from lensdist_torch.cli.calibrate import _print_calibration
 
-    planar = {"pairs": 39, "inliers": 1106, "matches": 4925, "terms": 3, "centre": [635.78, 508.89], "reprojection_px": 0.83,
-              "delta_avg_user_px": 144.5, "class": "4", "reason": None, "bending_halfwidth_px": bending, "matched_fraction": 0.81}
+    planar = {
+        "pairs": 39,
+        "inliers": 1106,
+        "matches": 4925,
+        "terms": 3,
+        "centre": [635.78, 508.89],
+        "reprojection_px": 0.83,
+        "delta_avg_user_px": 144.5,
+        "class": "4",
+        "reason": None,
+        "bending_halfwidth_px": bending,
+        "matched_fraction": 0.81,
+    }
     res = {"image_size": [960, 1280], "delta_avg_user_interval": [None, None], "delta_max_user_interval": [None, None],
            "frames": 37, "pairs_used": 3, "pairs_rejected": 0, "planar": planar, "method": "direct", "k2_user": None,
            "reason": "too few pairs"}
@@ -283,24 +305,56 @@ def test_the_homography_models_line_says_what_guided_matching_did(capsys):
     from lensdist_torch.cli.calibrate import _print_calibration
 
     first = {"pairs": 40, "delta_avg_user_px": 134.91}
-    planar = {"pairs": 131, "inliers": 4995, "matches": 5921, "terms": 3, "centre": [639.0, 495.7], "reprojection_px": 0.9,
-              "delta_avg_user_px": 137.07, "class": "4", "reason": None, "bending_halfwidth_px": 4.87, "matched_fraction": 0.8,
-              "guided": {"used": True, "reason": "", "matches": 6530, "pairs_matched": 144, "pairs_verified": 197,
-                         "first_fit": first}}
+    planar = {
+        "pairs": 131,
+        "inliers": 4995,
+        "matches": 5921,
+        "terms": 3,
+        "centre": [639.0, 495.7],
+        "reprojection_px": 0.9,
+        "delta_avg_user_px": 137.07,
+        "class": "4",
+        "reason": None,
+        "bending_halfwidth_px": 4.87,
+        "matched_fraction": 0.8,
+        "guided": {
+            "used": True,
+            "reason": "",
+            "matches": 6530,
+            "pairs_matched": 144,
+            "pairs_verified": 197,
+            "first_fit": first,
+        },
+    }
     res = {"image_size": [960, 1280], "delta_avg_user_interval": [None, None], "delta_max_user_interval": [None, None],
            "frames": 37, "pairs_used": 3, "pairs_rejected": 0, "planar": planar, "method": "direct", "k2_user": None,
            "reason": "too few pairs"}
     _print_calibration(res)
     line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
-    assert line.endswith("; on guided matches (6530 in 144 of 197 verified pairs; the first fit on the verified matches: "
-                         "40 pairs, Delta_avg 134.91 px)")
+    assert line.endswith(
+        "; on guided matches (6530 in 144 of 197 verified pairs; the first fit on the verified matches: "
+        "40 pairs, Delta_avg 134.91 px)"
+    )
     # and what the sub-pixel refinement did after it, where it answered and where it did not
     before = {"pairs": 131, "reprojection_px": 0.948, "delta_avg_user_px": 143.94}
-    for refined, tail in (({"used": True, "reason": "", "kept": 2845, "matches": 6594, "median_shift_px": 0.917, "before": before},
-                           "; on sub-pixel matches (2845 of 6594 kept, moved 0.92 px median; before: 131 pairs, RMS 0.95 px, "
-                           "Delta_avg 143.94 px)"),
-                          ({"used": False, "reason": "too few pairs", "kept": 10, "matches": 6594, "median_shift_px": 0.9,
-                            "before": before}, "; its matches refined found no answer (too few pairs): the fit before")):
+    for refined, tail in (
+        (
+            {"used": True, "reason": "", "kept": 2845, "matches": 6594, "median_shift_px": 0.917, "before": before},
+            "; on sub-pixel matches (2845 of 6594 kept, moved 0.92 px median; before: 131 pairs, RMS 0.95 px, "
+            "Delta_avg 143.94 px)",
+        ),
+        (
+            {
+                "used": False,
+                "reason": "too few pairs",
+                "kept": 10,
+                "matches": 6594,
+                "median_shift_px": 0.9,
+                "before": before,
+            },
+            "; its matches refined found no answer (too few pairs): the fit before",
+        ),
+    ):
         _print_calibration({**res, "planar": {**planar, "refined": refined}})
         line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("homography model:"))
         assert line.endswith(tail) and "on guided matches (6530" in line
@@ -314,16 +368,35 @@ def test_the_rational_export_is_named_where_the_standard_one_cannot_follow(capsy
 
     # the GoPro answer's lens (3 terms about its own centre): OpenCV's exports fitted to it as calibrate does
     a, centre = [0.4207, 0.8161, -0.2777], [636.7, 494.9]
-    cams = {m: opencv_camera_from_map(lambda p: lens_ideal_points(p, a, 960, 1280, centre=centre), 960, 1280, model=m, step=16,
-                                      centre=centre) for m in ("standard", "rational")}
+    cams = {
+        m: opencv_camera_from_map(
+            lambda p: lens_ideal_points(p, a, 960, 1280, centre=centre), 960, 1280, model=m, step=16, centre=centre
+        )
+        for m in ("standard", "rational")
+    }
     assert cams["standard"].forward_error_mean_px > 1 > 0.1 > cams["rational"].forward_error_mean_px
-    export = {m: {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in c._asdict().items()} for m, c in cams.items()}
+    export = {
+        m: {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in c._asdict().items()} for m, c in cams.items()
+    }
     export["standard"]["fit_error_mean_px"] = standard_error  # the rule reads the larger of the two errors
     export["standard"]["forward_error_mean_px"] = min(standard_error, export["standard"]["forward_error_mean_px"])
-    res = {"image_size": [960, 1280], "delta_avg_user_interval": [120.0, 160.0], "delta_max_user_interval": [900.0, 950.0],
-           "frames": 37, "pairs_used": 3, "pairs_rejected": 0, "method": "planar", "class": "4", "reason": None,
-           "k2_user": 7.47e-07, "k4_user": 1.48e-12, "delta_avg_user_px": 143.8, "delta_max_user_px": 934.7,
-           "opencv": export["standard"], "opencv_rational": export["rational"]}
+    res = {
+        "image_size": [960, 1280],
+        "delta_avg_user_interval": [120.0, 160.0],
+        "delta_max_user_interval": [900.0, 950.0],
+        "frames": 37,
+        "pairs_used": 3,
+        "pairs_rejected": 0,
+        "method": "planar",
+        "class": "4",
+        "reason": None,
+        "k2_user": 7.47e-07,
+        "k4_user": 1.48e-12,
+        "delta_avg_user_px": 143.8,
+        "delta_max_user_px": 934.7,
+        "opencv": export["standard"],
+        "opencv_rational": export["rational"],
+    }
     _print_calibration(res)
     out = capsys.readouterr().out.splitlines()
     assert sum(t.startswith("OpenCV (") for t in out) == lines

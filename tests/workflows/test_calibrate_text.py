@@ -15,12 +15,27 @@ from lensdist_torch.geometry.opencv_model import opencv_export
 def _answer(k2: float, cls: str | None = "2", method: str = "direct", focal_source: str = "half diagonal") -> dict:
     h, w = 240, 320
     d = float(delta_avg(torch.tensor(k2, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64), h, w))
-    return {"path": "frames/", "image_size": [h, w], "frames": 12, "pairs_used": 9, "pairs_rejected": 1, "method": method,
-            "class": cls, "reason": None if cls else "interval too wide: +-2.00 px", "k2_user": k2, "k4_user": 0.0,
-            "delta_avg_user_px": d, "delta_avg_user_interval": [0.9 * d, 1.1 * d], "delta_max_user_px": 4 * d,
-            "delta_max_user_interval": [3.6 * d, 4.4 * d], "opencv": opencv_export(k2, 0.0, h, w, model="standard"),
-            "opencv_rational": opencv_export(k2, 0.0, h, w, model="rational"), "focal_source": focal_source,
-            "multiview": None, "planar": None}
+    return {
+        "path": "frames/",
+        "image_size": [h, w],
+        "frames": 12,
+        "pairs_used": 9,
+        "pairs_rejected": 1,
+        "method": method,
+        "class": cls,
+        "reason": None if cls else "interval too wide: +-2.00 px",
+        "k2_user": k2,
+        "k4_user": 0.0,
+        "delta_avg_user_px": d,
+        "delta_avg_user_interval": [0.9 * d, 1.1 * d],
+        "delta_max_user_px": 4 * d,
+        "delta_max_user_interval": [3.6 * d, 4.4 * d],
+        "opencv": opencv_export(k2, 0.0, h, w, model="standard"),
+        "opencv_rational": opencv_export(k2, 0.0, h, w, model="rational"),
+        "focal_source": focal_source,
+        "multiview": None,
+        "planar": None,
+    }
 
 
 @pytest.mark.parametrize("k2,kind", [(2e-6, "barrel"), (-2e-6, "pincushion")])
@@ -32,8 +47,9 @@ def test_the_answer_comes_first_with_its_kind_and_the_next_command(capsys, k2, k
     assert lines[3] == "from the direct path (eq. 4)"
     assert "fx, fy: the half diagonal, a convention (the lens model has no focal length; --focal F sets yours)" in lines
     assert "next: lensdist undistort frames/ --from out/calibration.json --out out/undistorted" in lines
-    assert lines.index("each path:") > lines.index("fx, fy: the half diagonal, a convention (the lens model has no focal "
-                                                   "length; --focal F sets yours)")
+    assert lines.index("each path:") > lines.index(
+        "fx, fy: the half diagonal, a convention (the lens model has no focal length; --focal F sets yours)"
+    )
     assert lines[-1].startswith("12 frames of 320 x 240; direct path: 9 pairs used")
 
 

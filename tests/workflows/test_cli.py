@@ -112,7 +112,9 @@ def test_version(capsys):
     assert capsys.readouterr().out.startswith("lensdist ")
 
 
-@pytest.mark.parametrize("command", ["demo", "generate", "train", "evaluate", "reproduce", "analyze", "calibrate", "undistort"])
+@pytest.mark.parametrize(
+    "command", ["demo", "generate", "train", "evaluate", "reproduce", "analyze", "calibrate", "undistort"]
+)
 def test_help_shows_defaults_example_json_debug(capsys, command):
     with pytest.raises(SystemExit):
         cli.main([command, "--help"])
@@ -215,7 +217,9 @@ def test_eigenspace_checkpoint_as_regressor(capsys, pair, ckpts):
 @bad_input
 def test_missing_data_and_bad_shard(capsys, tmp_path):
     one_error(capsys, "train", "--data", tmp_path / "none", "--out", tmp_path / "m.pt", match="no manifest.json")
-    one_error(capsys, "evaluate", "--data", tmp_path / "none", "--selfcal", "--out", tmp_path / "r", match="no manifest.json")
+    one_error(
+        capsys, "evaluate", "--data", tmp_path / "none", "--selfcal", "--out", tmp_path / "r", match="no manifest.json"
+    )
     one_error(capsys, "generate", "--out", tmp_path / "g", "--shard", "3/2", match="0 <= I < N")
 
 
@@ -300,7 +304,9 @@ def test_train_out_must_be_a_pt_file(capsys, tmp_path, out):
     (tmp_path / "existing").mkdir()
     target = str(tmp_path / out) + ("/" if out.endswith("/") else "")
     # the --out check comes before the data are read (the data folder does not exist)
-    one_error(capsys, "train", "--data", tmp_path / "none", "--out", target, match="--out must be a file path ending in .pt")
+    one_error(
+        capsys, "train", "--data", tmp_path / "none", "--out", target, match="--out must be a file path ending in .pt"
+    )
     assert not (tmp_path / "newdir").exists()
 
 
@@ -376,7 +382,10 @@ def test_json_only_on_stdout(capsys, tmp_path):
     rc, out, err = run(capsys, "demo", "--out", tmp_path, "--json")
     assert rc == 0, err
     summary = _strict(out)
-    assert summary["blocks"] == 40 * 53 and summary["mean_error_ratio_outer_third"] > summary["mean_error_ratio_centre_third"]
+    assert (
+        summary["blocks"] == 40 * 53
+        and summary["mean_error_ratio_outer_third"] > summary["mean_error_ratio_centre_third"]
+    )
     rc, out, err = run(capsys, "demo", "--out", tmp_path)
     assert rc == 0 and out.startswith("A 1.0 % scale error") and not out.lstrip().startswith("{")
     assert math.isfinite(summary["quality_index"])
@@ -400,4 +409,7 @@ def test_the_text_answer_names_the_reason_codes(tmp_path, capsys):
     assert cli.main(["analyze", str(tmp_path / "a.png"), str(tmp_path / "b.png")]) == 0
     out = capsys.readouterr().out
     assert "Delta: none given (reason: relief; the views moved by" in out
-    assert "warning: cannot tell: relief: a plane + parallax model puts Delta_avg at 11.48 px" in out and "planar model at 9.25 px" in out
+    assert (
+        "warning: cannot tell: relief: a plane + parallax model puts Delta_avg at 11.48 px" in out
+        and "planar model at 9.25 px" in out
+    )

@@ -6,11 +6,19 @@ import sys
 import pytest
 
 CASES = [
-    (["analyze", "{tmp}/missing.png", "{tmp}/missing2.png"], "lensdist analyze: error: image file not found: {tmp}/missing.png"),
+    (
+        ["analyze", "{tmp}/missing.png", "{tmp}/missing2.png"],
+        "lensdist analyze: error: image file not found: {tmp}/missing.png",
+    ),
     (["calibrate", "{tmp}/no_frames"], "lensdist calibrate: error: path not found: {tmp}/no_frames"),
-    (["undistort", "{tmp}/no_frames", "--out", "{tmp}/out", "--k2", "0"], "lensdist undistort: error: path not found: {tmp}/no_frames"),
-    (["undistort", "{tmp}", "--from", "{tmp}/none.json", "--out", "{tmp}/out"],
-     "lensdist undistort: error: calibration file not found: {tmp}/none.json"),
+    (
+        ["undistort", "{tmp}/no_frames", "--out", "{tmp}/out", "--k2", "0"],
+        "lensdist undistort: error: path not found: {tmp}/no_frames",
+    ),
+    (
+        ["undistort", "{tmp}", "--from", "{tmp}/none.json", "--out", "{tmp}/out"],
+        "lensdist undistort: error: calibration file not found: {tmp}/none.json",
+    ),
 ]
 
 PROBE = """

@@ -74,20 +74,36 @@ DEVICE_COMMANDS = {
 @pytest.mark.parametrize("command", sorted(DEVICE_COMMANDS))
 @pytest.mark.parametrize("dev", ["bogus", "CPU", "", "meta", "mps", "cuda:-1", "cuda:x", " cpu"])
 def test_device_unknown_is_a_usage_error(capsys, command, dev):
-    usage_error(capsys, *DEVICE_COMMANDS[command], "--device", dev, match=("argument --device", repr(dev), "cpu, cuda or cuda:N"))
+    usage_error(
+        capsys,
+        *DEVICE_COMMANDS[command],
+        "--device",
+        dev,
+        match=("argument --device", repr(dev), "cpu, cuda or cuda:N"),
+    )
 
 
 @pytest.mark.parametrize("command", ["analyze", "calibrate"])
 def test_device_cuda_without_cuda(capsys, monkeypatch, command):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     for dev in ("cuda", "cuda:0"):
-        usage_error(capsys, *DEVICE_COMMANDS[command], "--device", dev, match=("argument --device", "CUDA is not available"))
+        usage_error(
+            capsys, *DEVICE_COMMANDS[command], "--device", dev, match=("argument --device", "CUDA is not available")
+        )
 
 
 def test_device_index_beyond_the_devices(capsys, monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    usage_error(capsys, "analyze", "a", "b", "--device", "cuda:2", match=("argument --device", "2 CUDA device(s)", "cuda:0 to cuda:1"))
+    usage_error(
+        capsys,
+        "analyze",
+        "a",
+        "b",
+        "--device",
+        "cuda:2",
+        match=("argument --device", "2 CUDA device(s)", "cuda:0 to cuda:1"),
+    )
     parser = cli.build_parser()
     for given, parsed in (("cuda", "cuda"), ("cuda:1", "cuda:1"), ("cuda:01", "cuda:1"), ("cpu", "cpu")):
         assert parser.parse_args(["analyze", "a", "b", "--device", given]).device == parsed
@@ -111,7 +127,14 @@ def test_negative_number_is_a_value_not_an_option(text):
 @pytest.mark.parametrize("text", ["-1e-3", "-1.5E-9", "-.5", "-3"])
 def test_negative_number_reaches_the_options_type(capsys, text):
     """A negative value reaches the option's check, which names what it wants."""
-    usage_error(capsys, "calibrate", "frames", "--focal", text, match=("argument --focal", "expected a positive number", repr(text)))
+    usage_error(
+        capsys,
+        "calibrate",
+        "frames",
+        "--focal",
+        text,
+        match=("argument --focal", "expected a positive number", repr(text)),
+    )
     usage_error(capsys, "demo", "--scale-error", text, match=("argument --scale-error", "from 0 to", repr(text)))
 
 
@@ -154,7 +177,9 @@ def test_stdout_none_in_process(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(sys, "stdout", None)
     rc = cli.main(["demo", "--json", "--out", str(tmp_path)])
     err = capsys.readouterr().err
-    assert rc == 2 and err.splitlines() == ["lensdist demo: error: stdout is closed, the result would be lost (redirect it, e.g. > /dev/null)"]
+    assert rc == 2 and err.splitlines() == [
+        "lensdist demo: error: stdout is closed, the result would be lost (redirect it, e.g. > /dev/null)"
+    ]
     assert not (tmp_path / "demo.png").exists()  # nothing done
 
 
@@ -173,7 +198,9 @@ def test_stdout_write_fails_on_write(capsys, monkeypatch, tmp_path):
     monkeypatch.setattr(sys, "stdout", _Stream(OSError(errno.ENOSPC, "No space left on device"), "write"))
     rc = cli.main(["demo", "--out", str(tmp_path)])
     err = capsys.readouterr().err
-    assert rc == 2 and err.splitlines() == ["lensdist demo: error: cannot write the result to stdout: No space left on device"]
+    assert rc == 2 and err.splitlines() == [
+        "lensdist demo: error: cannot write the result to stdout: No space left on device"
+    ]
 
 
 def test_broken_pipe_ends_quietly(capsys, monkeypatch, tmp_path):
@@ -192,7 +219,15 @@ def test_save_map_onto_an_input_image(capsys, pair, tmp_path):
     sym = tmp_path / "sym.png"
     sym.symlink_to(b)
     for target, name in ((a, "img1"), (b, "img2"), (link, "img1"), (sym, "img2"), (tmp_path / "." / "a.png", "img1")):
-        one_error(capsys, "analyze", a, b, "--save-map", target, match=("--save-map", f"the input {name}", "refusing to overwrite"))
+        one_error(
+            capsys,
+            "analyze",
+            a,
+            b,
+            "--save-map",
+            target,
+            match=("--save-map", f"the input {name}", "refusing to overwrite"),
+        )
     assert (a.read_bytes(), b.read_bytes()) == before
 
 
@@ -213,7 +248,9 @@ def test_demo_out_writes_onto_its_config(capsys, tmp_path):
 
 def test_evaluate_out_is_the_data(capsys, tmp_path):
     (tmp_path / "manifest.json").write_text("{}")
-    one_error(capsys, "evaluate", "--data", tmp_path, "--selfcal", "--out", tmp_path, match=("--out", "the input --data"))
+    one_error(
+        capsys, "evaluate", "--data", tmp_path, "--selfcal", "--out", tmp_path, match=("--out", "the input --data")
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["manifest.json"]
 
 
@@ -228,7 +265,9 @@ def test_evaluate_report_onto_a_checkpoint(capsys, tmp_path):
 def test_reproduce_onto_its_config(capsys, tmp_path):
     cfg = tmp_path / "calibration.toml"
     cfg.write_text("[quality]\ntheta_e = 0.5\n")
-    one_error(capsys, "reproduce", "--config", cfg, "--out", tmp_path, match=("--out would overwrite", "the input --config"))
+    one_error(
+        capsys, "reproduce", "--config", cfg, "--out", tmp_path, match=("--out would overwrite", "the input --config")
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.toml"]
 
 
@@ -292,7 +331,9 @@ def test_train_out_is_its_config(capsys, monkeypatch, data_folder, tmp_path):
         one_error(capsys, "train", "--data", data_folder, "--config", cfg, "--out", out,
                   match=(f"--out {out} is the input --config", "refusing to overwrite an input"))
     assert cfg.read_text() == "[quality]\ntheta_e = 0.5\n"
-    one_error(capsys, "train", "--data", data_folder, "--out", data_folder, match=("--out must be a file path", "directory"))
+    one_error(
+        capsys, "train", "--data", data_folder, "--out", data_folder, match=("--out must be a file path", "directory")
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cfg.pt", "mid", "sym.pt"]
 
 
@@ -317,7 +358,10 @@ def test_refuse_inputs_api(tmp_path):
     a.write_bytes(b"x")
     with pytest.raises(ValueError, match="--map .* is the input img"):
         check_output_file(a, "--map", suffixes=(".png",), inputs={"img": [tmp_path / "other.png", a]})
-    assert check_output_file(tmp_path / "b.png", "--map", suffixes=(".png",), inputs={"img": a, "cfg": None}) == tmp_path / "b.png"
+    assert (
+        check_output_file(tmp_path / "b.png", "--map", suffixes=(".png",), inputs={"img": a, "cfg": None})
+        == tmp_path / "b.png"
+    )
     with pytest.raises(ValueError, match="would overwrite"):
         check_output_dir(tmp_path, "--out", inputs={"img": str(a)}, writes=["a.png"])
     assert check_output_dir(tmp_path / "sub", "--out", inputs={"img": a}, writes=["a.png"]) == tmp_path / "sub"
@@ -326,7 +370,13 @@ def test_refuse_inputs_api(tmp_path):
 # ----------------------------------------------------------------------------- 5. numbers
 @pytest.mark.parametrize("value", ["-0.5", "1e6", "0.11", "nan", "inf", "-inf", "NaN", "abc"])
 def test_demo_scale_error_range(capsys, value):
-    usage_error(capsys, "demo", "--scale-error", value, match=("argument --scale-error", f"from 0 to {MAX_SCALE_ERROR:g}", repr(value)))
+    usage_error(
+        capsys,
+        "demo",
+        "--scale-error",
+        value,
+        match=("argument --scale-error", f"from 0 to {MAX_SCALE_ERROR:g}", repr(value)),
+    )
 
 
 def test_demo_scale_error_api_and_help(capsys):
@@ -364,6 +414,10 @@ def test_number_types():
     assert cli_support.positive_int("3") == 3 and cli_support.positive_float("1e-3") == 1e-3
     assert cli_support.finite_float("-1.5E-9") == -1.5e-9
     assert cli_support.float_in(0, 0.1)("0.1") == 0.1
-    for f, text in ((cli_support.finite_float, "nan"), (cli_support.finite_float, "-inf"), (cli_support.positive_float, "-0.0")):
+    for f, text in (
+        (cli_support.finite_float, "nan"),
+        (cli_support.finite_float, "-inf"),
+        (cli_support.positive_float, "-0.0"),
+    ):
         with pytest.raises(Exception, match="expected"):
             f(text)

@@ -94,7 +94,10 @@ def test_debug_shows_the_traceback_of_an_internal_error(capsys, monkeypatch, tmp
     argv = ["calibrate", str(tmp_path), "--quiet"]
     assert cli.main(argv) == 1
     err = capsys.readouterr().err
-    assert err.strip() == "lensdist calibrate: error: internal error: RuntimeError: boom (run with --debug for the traceback)"
+    assert (
+        err.strip()
+        == "lensdist calibrate: error: internal error: RuntimeError: boom (run with --debug for the traceback)"
+    )
     assert cli.main(["--debug", *argv] if where == "before" else [*argv, "--debug"]) == 1
     err = capsys.readouterr().err
     assert "Traceback (most recent call last)" in err and err.strip().endswith("internal error: RuntimeError: boom")
@@ -102,13 +105,33 @@ def test_debug_shows_the_traceback_of_an_internal_error(capsys, monkeypatch, tmp
 
 # ------------------------------------------------------------------ analyze's text answer
 def _res(**kw):
-    base = {"estimated_class": "3", "estimated_class_max": "3", "delta_avg": 9.0, "delta_max": 50.0, "confidence": 0.9,
-            "registration_ok": True, "overlap": 0.9, "method": "selfcal", "analysis_size": [320, 424],
-            "input_size": [320, 424], "delta_avg_user_px": 9.0, "delta_max_user_px": 50.0, "delta_avg_region_user_px": 9.0,
-            "delta_max_region_user_px": 50.0, "distances": None, "motion_px": 12.0, "distortion_type": "barrel",
-            "delta_avg_interval": [8.5, 9.5], "reject_threshold": None, "registered_by": "homography",
-            "analysed_region_user_px": [0, 0, 320, 424], "registration_residual": 0.01, "error_blocks": 0,
-            "user_px_per_analysis_px": 1.0, "homography": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}
+    base = {
+        "estimated_class": "3",
+        "estimated_class_max": "3",
+        "delta_avg": 9.0,
+        "delta_max": 50.0,
+        "confidence": 0.9,
+        "registration_ok": True,
+        "overlap": 0.9,
+        "method": "selfcal",
+        "analysis_size": [320, 424],
+        "input_size": [320, 424],
+        "delta_avg_user_px": 9.0,
+        "delta_max_user_px": 50.0,
+        "delta_avg_region_user_px": 9.0,
+        "delta_max_region_user_px": 50.0,
+        "distances": None,
+        "motion_px": 12.0,
+        "distortion_type": "barrel",
+        "delta_avg_interval": [8.5, 9.5],
+        "reject_threshold": None,
+        "registered_by": "homography",
+        "analysed_region_user_px": [0, 0, 320, 424],
+        "registration_residual": 0.01,
+        "error_blocks": 0,
+        "user_px_per_analysis_px": 1.0,
+        "homography": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    }
     return {**base, **kw}
 
 
@@ -158,7 +181,14 @@ def test_the_planar_setting_the_readme_gives_answers(tmp_path, capsys):
     for name, f in zip("ab", frames):
         (tmp_path / f"{name}.png").write_bytes(encode_png(to_uint8(f)))
     (tmp_path / "flat.toml").write_text("[selfcal]\nparallax = 0\n")
-    argv = ["analyze", str(tmp_path / "a.png"), str(tmp_path / "b.png"), "--config", str(tmp_path / "flat.toml"), "--json"]
+    argv = [
+        "analyze",
+        str(tmp_path / "a.png"),
+        str(tmp_path / "b.png"),
+        "--config",
+        str(tmp_path / "flat.toml"),
+        "--json",
+    ]
     assert cli.main(argv) == 0
     res = json.loads(capsys.readouterr().out)
     truth = paper_frame_delta_avg(2e-6, 0.0, (240, 320), LensdistConfig())  # the same lens at the analysis frame

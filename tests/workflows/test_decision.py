@@ -91,8 +91,15 @@ def test_relief_found_is_the_reason_and_both_answers_stay():
     """The planar and plane + parallax models answer different classes: "cannot tell", reason
     relief (not also low confidence), the planar and the relief estimates in the result and the warning."""
     cfg = LensdistConfig()
-    r = _res(relief=True, relief_found=True, relief_z=5.0, relief_delta_avg=8.1, relief_delta_avg_interval=[7.5, 8.7], planar_delta_avg=9.0,
-             confidence=0.3)
+    r = _res(
+        relief=True,
+        relief_found=True,
+        relief_z=5.0,
+        relief_delta_avg=8.1,
+        relief_delta_avg_interval=[7.5, 8.7],
+        planar_delta_avg=9.0,
+        confidence=0.3,
+    )
     decide(r, cfg)
     assert r["cannot_tell"] and r["class"] is None and r["delta_avg"] is None
     assert r["cannot_tell_reasons"] == ["relief"]
@@ -108,7 +115,12 @@ def test_a_low_confidence_where_the_two_models_part_is_relief():
     answers in one class is low confidence; a confident pair whose answers part is answered."""
     cfg = LensdistConfig()
     cfg = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, relief_mass=0.0, min_confidence=0.8))
-    both = {"relief_delta_avg": 8.1, "relief_delta_avg_interval": [7.5, 8.7], "planar_delta_avg": 9.0, "relief_found": False}
+    both = {
+        "relief_delta_avg": 8.1,
+        "relief_delta_avg_interval": [7.5, 8.7],
+        "planar_delta_avg": 9.0,
+        "relief_found": False,
+    }
     r = _res(**both, relief_parted=True, confidence=0.7)
     decide(r, cfg)
     assert r["cannot_tell_reasons"] == ["relief"] and r["warnings"][0].startswith("cannot tell: relief")
@@ -294,7 +306,10 @@ def test_calibration_is_fitted_on_a_validation_split(tiny_run):
 
 
 def _results(raws, deltas):
-    return [{"in_domain": True, "estimated_delta_avg": d, "raw_confidence": c, "delta_avg_std": 0.3} for c, d in zip(raws, deltas)]
+    return [
+        {"in_domain": True, "estimated_delta_avg": d, "raw_confidence": c, "delta_avg_std": 0.3}
+        for c, d in zip(raws, deltas)
+    ]
 
 
 def test_a_refit_that_raises_the_ece_is_not_kept():

@@ -38,7 +38,11 @@ def _cfg(**analysis) -> LensdistConfig:
 @pytest.mark.parametrize("k", [0.5, 1.0, 2.5])
 def test_std_scale_is_the_stds_multiplied(k):
     """flat_or_relief under selfcal_std_scale k equals it at 1 with every std multiplied by k."""
-    for label, planar, relief in (("2", (7.0, 0.2), (7.4, 0.5)), ("R", (0.3, 0.2), (0.9, 0.4)), ("3", (9.0, 1.0), (float("nan"), float("inf")))):
+    for label, planar, relief in (
+        ("2", (7.0, 0.2), (7.4, 0.5)),
+        ("R", (0.3, 0.2), (0.9, 0.4)),
+        ("3", (9.0, 1.0), (float("nan"), float("inf"))),
+    ):
         scaled = flat_or_relief(label, planar, relief, _cfg(selfcal_std_scale=k))
         by_hand = flat_or_relief(label, (planar[0], k * planar[1]), (relief[0], k * relief[1]), _cfg())
         assert scaled[0] == pytest.approx(by_hand[0], abs=1e-12) and scaled[1] == by_hand[1]
@@ -47,8 +51,9 @@ def test_std_scale_is_the_stds_multiplied(k):
 def test_a_wider_std_lowers_the_confidence_of_an_estimate_near_a_boundary():
     # class 2 ends at 7.18 px: 7.0 +- 0.2 is Phi(0.92) = 0.82, +- 0.4 is Phi(0.46) = 0.68
     assert flat_or_relief("2", (7.0, 0.2), (float("nan"), float("inf")), _cfg())[0] == pytest.approx(0.8215, abs=2e-3)
-    assert flat_or_relief("2", (7.0, 0.2), (float("nan"), float("inf")), _cfg(selfcal_std_scale=2.0))[0] == pytest.approx(
-        0.677, abs=3e-3)
+    assert flat_or_relief("2", (7.0, 0.2), (float("nan"), float("inf")), _cfg(selfcal_std_scale=2.0))[
+        0
+    ] == pytest.approx(0.677, abs=3e-3)
 
 
 @pytest.fixture(scope="module")
@@ -70,8 +75,12 @@ def test_rescored_confidence_is_what_analyze_says(analysed, k, w, q):
     assert res.estimated_delta_avg is not None and res.relief_delta_avg is not None
     assert rescored_confidence(res, cfg) == pytest.approx(res.raw_confidence, abs=1e-9)
     assert rescored_relief_found(res, cfg) == res.relief_found
-    assert res.relief_agreement == pytest.approx(relief_agreement(res.planar_delta_avg, (res.relief_delta_avg, res.relief_delta_avg_std), cfg))
-    assert rescored_confidence({"estimated_delta_avg": None}, cfg) != rescored_confidence({"estimated_delta_avg": None}, cfg)  # NaN
+    assert res.relief_agreement == pytest.approx(
+        relief_agreement(res.planar_delta_avg, (res.relief_delta_avg, res.relief_delta_avg_std), cfg)
+    )
+    assert rescored_confidence({"estimated_delta_avg": None}, cfg) != rescored_confidence(
+        {"estimated_delta_avg": None}, cfg
+    )  # NaN
 
 
 def test_interval_scale_widens_the_answers_interval(analysed):
@@ -126,14 +135,20 @@ def test_a_plateau_of_r_thresholds_is_decided_by_the_confidence_not_the_shipped_
     data["class_avg"] = estimated_class(data["delta_avg"], data["delta_avg"], metric="delta_avg", config=cfg)
     for r in results[80:]:
         r["estimated_delta_avg"] = max(r["estimated_delta_avg"], 1.0)
-    fits = [fit_decision({"selfcal": results}, data, _cfg(no_distortion_px=t))["no_distortion_px"] for t in (0.25, 0.5, 0.9)]
+    fits = [
+        fit_decision({"selfcal": results}, data, _cfg(no_distortion_px=t))["no_distortion_px"] for t in (0.25, 0.5, 0.9)
+    ]
     assert fits[0] == fits[1] == fits[2] and 0.2 < fits[0] <= 1.0
 
 
 def test_scales_stay_where_there_is_nothing_to_score():
     results, data, cfg = _validation(50, 1.0)
-    data["class_avg"] = estimated_class(torch.tensor([r["estimated_delta_avg"] for r in results]),
-                                        torch.tensor([r["estimated_delta_avg"] for r in results]), metric="delta_avg", config=cfg)
+    data["class_avg"] = estimated_class(
+        torch.tensor([r["estimated_delta_avg"] for r in results]),
+        torch.tensor([r["estimated_delta_avg"] for r in results]),
+        metric="delta_avg",
+        config=cfg,
+    )
     fitted = fit_decision({"selfcal": results}, data, _cfg(selfcal_std_scale=1.3))
     assert fitted["selfcal_std_scale"] == 1.3  # every class right: the sharpest scale would always win
 

@@ -30,7 +30,16 @@ RUNS = {
     "eigenspace": ({"checkpoint": "eigenspace_delta_avg_10ev.pt", "checkpoint_max": "eigenspace_delta_max_10ev.pt"},
                    ("10 EV, delta_avg", "10 EV, delta_max")),
 }
-FIGURES = ("confusion", "correct", "total", "cannot_tell", "confident_wrong", "rejected_R", "n_per_class", "registration_failed")
+FIGURES = (
+    "confusion",
+    "correct",
+    "total",
+    "cannot_tell",
+    "confident_wrong",
+    "rejected_R",
+    "n_per_class",
+    "registration_failed",
+)
 
 
 def _one_by_one(out, method, cfg):

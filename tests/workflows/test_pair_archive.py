@@ -67,7 +67,9 @@ def test_rows_are_the_single_runs_answers(full, pairs_file, capsys):
     capsys.readouterr()
     rows = _table(full, drop=())
     pairs = pair_inputs(pairs_file)
-    assert [(r["img1"], r["img2"]) for r in rows] == [(p.img1, p.img2) for p in pairs] and list(rows[0]) == list(PAIR_COLUMNS)
+    assert [(r["img1"], r["img2"]) for r in rows] == [(p.img1, p.img2) for p in pairs] and list(rows[0]) == list(
+        PAIR_COLUMNS
+    )
     for row in rows[:4]:
         assert row["ok"] == "True", row
         assert cli.main(["analyze", row["img1"], row["img2"], "--json"]) == 0
@@ -113,7 +115,9 @@ def test_two_shards_make_the_full_table(full, pairs_file, tmp_path, capsys):
     assert cli.main(["analyze", "--pairs", str(pairs_file), "--out", str(out), "--quiet", "--shard", "0/2"]) == 0
     assert [r["img1"] for r in _table(out)] == [r["img1"] for r in _table(full)][0::2]
     assert "(3 in this share): 3 analysed" in capsys.readouterr().out
-    assert cli.main(["analyze", "--pairs", str(pairs_file), "--out", str(out), "--quiet", "--shard", "1/2", "--json"]) == 0
+    assert (
+        cli.main(["analyze", "--pairs", str(pairs_file), "--out", str(out), "--quiet", "--shard", "1/2", "--json"]) == 0
+    )
     res = json.loads(capsys.readouterr().out)
     assert (res["pairs"], res["selected"], res["computed"], res["failed"]) == (6, 3, 3, 2)
     assert _table(out) == _table(full) and _answers(out) == _answers(full)

@@ -38,7 +38,9 @@ def test_mean_displacement_by_hand():
     t = torch.tensor([[1.0, 0, 3], [0, 1, -4], [0, 0, 1]], dtype=torch.float64)
     assert float(mean_displacement(t, 10, 20)[0]) == pytest.approx(5.0)
     s = torch.diag(torch.tensor([1.1, 1.1, 1.0], dtype=torch.float64))
-    ys, xs = torch.meshgrid(torch.arange(0, 8, 4.0, dtype=torch.float64), torch.arange(0, 12, 4.0, dtype=torch.float64), indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(0, 8, 4.0, dtype=torch.float64), torch.arange(0, 12, 4.0, dtype=torch.float64), indexing="ij"
+    )
     expected = float((0.1 * torch.sqrt(xs**2 + ys**2)).mean())
     assert float(mean_displacement(s, 8, 12)[0]) == pytest.approx(expected)
     nan = torch.full((3, 3), float("nan"), dtype=torch.float64)
@@ -176,7 +178,9 @@ def test_beyond_the_classes_range_says_so():
 
 
 @pytest.mark.bad_input
-@pytest.mark.parametrize("bad", [torch.eye(4), torch.eye(3)[:2], [[1, 0], [0, 1]], "eye", torch.full((3, 3), float("nan"))])
+@pytest.mark.parametrize(
+    "bad", [torch.eye(4), torch.eye(3)[:2], [[1, 0], [0, 1]], "eye", torch.full((3, 3), float("nan"))]
+)
 def test_homography_argument_checked(bad):
     scene = load_scene("gravel")
     with pytest.raises((ValueError, TypeError), match="homography"):
@@ -186,7 +190,9 @@ def test_homography_argument_checked(bad):
 def test_min_motion_is_a_setting():
     a, b = _pan(3)
     cfg = LensdistConfig()
-    strict = type(cfg)(**{**cfg.__dict__, "analysis": type(cfg.analysis)(**{**cfg.analysis.__dict__, "min_motion_px": 5.0})})
+    strict = type(cfg)(
+        **{**cfg.__dict__, "analysis": type(cfg.analysis)(**{**cfg.analysis.__dict__, "min_motion_px": 5.0})}
+    )
     r = analyze_pair(a, b, config=strict)
     assert r.class_label is None and any("(< 5)" in w for w in r.warnings)
 

@@ -33,7 +33,9 @@ def _label(d: float, cfg: LensdistConfig) -> str:
 
 
 # ------------------------------------------------------------------ the statistic and the rule
-@pytest.mark.parametrize("planar, relief", [(7.0, (7.6, 0.4)), (5.0, (5.3, 0.4)), (0.1, (0.4, 0.3)), (10.0, (3.0, 2.0))])
+@pytest.mark.parametrize(
+    "planar, relief", [(7.0, (7.6, 0.4)), (5.0, (5.3, 0.4)), (0.1, (0.4, 0.3)), (10.0, (3.0, 2.0))]
+)
 def test_relief_agreement_is_the_folded_normal_mass_of_the_planar_class(planar, relief):
     """P(|D| in the planar answer's class) for D ~ N(relief): the two tails of the fold by hand."""
     cfg = _cfg(selfcal_std_scale=1.3)
@@ -53,7 +55,9 @@ def test_relief_mass_one_is_the_classes_differ_rule_and_zero_never():
         agreement = relief_agreement(d0, (d1, s1), _cfg())
         assert flat_or_relief(_label(d0, _cfg()), (d0, s0), (d1, s1), _cfg())[1] == parted  # the default, 1
         assert not flat_or_relief(_label(d0, _cfg()), (d0, s0), (d1, s1), _cfg(relief_mass=0.0))[1]
-        assert flat_or_relief(_label(d0, _cfg()), (d0, s0), (d1, s1), _cfg(relief_mass=0.2))[1] == (parted and agreement < 0.2)
+        assert flat_or_relief(_label(d0, _cfg()), (d0, s0), (d1, s1), _cfg(relief_mass=0.2))[1] == (
+            parted and agreement < 0.2
+        )
         if parted:  # the other class holds the plane + parallax answer's centre: mostly under half
             assert agreement < 0.75
 
@@ -69,7 +73,12 @@ def test_the_rule_does_not_change_the_confidence():
 def test_rescored_relief_keeps_the_stored_flag_without_two_answers():
     r = {"estimated_delta_avg": 5.0, "delta_avg_std": 0.2, "relief_found": True}
     assert rescored_relief_found(r, _cfg(relief_mass=0.0))  # nothing to recompute it from
-    both = r | {"planar_delta_avg": 7.0, "planar_delta_avg_std": 0.2, "relief_delta_avg": 7.6, "relief_delta_avg_std": 0.4}
+    both = r | {
+        "planar_delta_avg": 7.0,
+        "planar_delta_avg_std": 0.2,
+        "relief_delta_avg": 7.6,
+        "relief_delta_avg_std": 0.4,
+    }
     assert rescored_relief_found(both, _cfg()) and not rescored_relief_found(both, _cfg(relief_mass=0.1))
 
 

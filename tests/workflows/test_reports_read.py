@@ -21,10 +21,16 @@ from lensdist_torch.workflows.reports import (
 def _report() -> dict:
     t = CANNOT_TELL
     fig = evaluate_predictions(
-        torch.tensor([0, t, 2, 3, 4, 4, 1]), torch.tensor([1.0, float("nan"), 9.0, 12.0, 0.0, 0.0, 3.0]),
-        torch.tensor([0, 1, 1, 3, 4, 4, 4]), torch.tensor([1.5, 4.0, 4.0, 12.5, 0.0, 0.0, 0.0]), delta_range=14.4,
+        torch.tensor([0, t, 2, 3, 4, 4, 1]),
+        torch.tensor([1.0, float("nan"), 9.0, 12.0, 0.0, 0.0, 3.0]),
+        torch.tensor([0, 1, 1, 3, 4, 4, 4]),
+        torch.tensor([1.5, 4.0, 4.0, 12.5, 0.0, 0.0, 0.0]),
+        delta_range=14.4,
         registration_ok=torch.tensor([True] * 7),
-        extra_groups={"t_y 0-5 px": torch.tensor([1, 1, 0, 0, 0, 0, 0]), "t_y 5-40 px": torch.tensor([0, 0, 1, 1, 1, 1, 1])},
+        extra_groups={
+            "t_y 0-5 px": torch.tensor([1, 1, 0, 0, 0, 0, 0]),
+            "t_y 5-40 px": torch.tensor([0, 0, 1, 1, 1, 1, 1]),
+        },
     )
     fig["paper_key"] = "10ev_delta_avg"
     return {
@@ -84,7 +90,9 @@ def test_lensdist_reproduce_prints_the_summary_not_the_report(tiny_run, tmp_path
 
     out, _ = tiny_run
     tiny_cli_folder(out, tmp_path)
-    code = main(["reproduce", "--config", str(tmp_path / "tiny.toml"), "--out", str(tmp_path), "--workers", "1", "--quiet"])
+    code = main(
+        ["reproduce", "--config", str(tmp_path / "tiny.toml"), "--out", str(tmp_path), "--workers", "1", "--quiet"]
+    )
     r = capsys.readouterr()
     assert code == 0, r.err
     lines = r.out.splitlines()

@@ -86,7 +86,9 @@ def test_a_stretch_peaking_inside_the_frame_is_refused(tmp_path):
     # k4 < 0: 1 + k2 s + k4 s^2 peaks at s = r^2 = 5e4, 1 + 50 - 25 = 26, though the corner gives 1 + 70.2 - 49.2 = 22;
     # it does not fold before the nearest edge (159.5 px)
     folder = _frames(tmp_path / "frames", names=("a.png",), size=(320, 424))
-    with pytest.raises(ValueError, match=r"k2 = 0.001, k4 = -1e-08 stretch the 320 x 424 frames 26-fold .*r = 223.6 px, inside"):
+    with pytest.raises(
+        ValueError, match=r"k2 = 0.001, k4 = -1e-08 stretch the 320 x 424 frames 26-fold .*r = 223.6 px, inside"
+    ):
         undistort_path(folder, tmp_path / "out", k2=1e-3, k4=-1e-8)
 
 
@@ -105,7 +107,9 @@ def test_a_wide_angle_lens_within_the_bound_is_undistorted(tmp_path, capsys):
     # eq. 4 fitted to the GoPro HERO4's wide calibration (k2 = 6.37e-7, k4 = 1.763e-12 at 1280 x 960), here at
     # a quarter of that size (k2 x 16, k4 x 256): a stretch of 2.13 at the corner, accepted
     folder = _frames(tmp_path / "frames", names=("a.png",))
-    code, out, err = _run(capsys, folder, f"--k2={6.37e-7 * 16!r}", f"--k4={1.763e-12 * 256!r}", "--out", tmp_path / "out")
+    code, out, err = _run(
+        capsys, folder, f"--k2={6.37e-7 * 16!r}", f"--k4={1.763e-12 * 256!r}", "--out", tmp_path / "out"
+    )
     assert code == 0 and "1 frames undistorted" in out, err
     mask = cv2.imread(str(tmp_path / "out" / "masks" / "a.png"), cv2.IMREAD_UNCHANGED)
     assert (mask == 255).all()  # barrel: every ideal pixel samples inside the frame
@@ -163,7 +167,10 @@ def test_16_bit_frames_stay_16_bit(tmp_path, capsys, channels):
     code, out, _ = _run(capsys, folder, "--k2", "0", "--k4", "0", "--out", tmp_path / "same")
     assert code == 0 and "16-bit PNG" in out
     for i, name in enumerate(("a.png", "b.png")):
-        src, got = _image(i, channels=channels, bits=16), cv2.imread(str(tmp_path / "same" / name), cv2.IMREAD_UNCHANGED)
+        src, got = (
+            _image(i, channels=channels, bits=16),
+            cv2.imread(str(tmp_path / "same" / name), cv2.IMREAD_UNCHANGED),
+        )
         assert got.dtype == np.uint16 and got.shape == src.shape
         assert np.abs(got.astype(np.int64) - src).max() <= 2  # the identity warp keeps every level
         assert len(np.unique(got)) > 5000
@@ -177,7 +184,9 @@ def test_8_bit_frames_stay_8_bit(tmp_path, capsys):
     folder = _frames(tmp_path / "frames", names=("a.png", "b.jpg"))
     code, out, _ = _run(capsys, folder, "--k2", "2e-6", "--k4", "0", "--out", tmp_path / "out")
     assert code == 0 and "8-bit PNG" in out and "16-bit" not in out
-    assert all(cv2.imread(str(tmp_path / "out" / n), cv2.IMREAD_UNCHANGED).dtype == np.uint8 for n in ("a.png", "b.png"))
+    assert all(
+        cv2.imread(str(tmp_path / "out" / n), cv2.IMREAD_UNCHANGED).dtype == np.uint8 for n in ("a.png", "b.png")
+    )
 
 
 # ------------------------------------------------------------------ 4. numbers read from --from
@@ -258,7 +267,9 @@ def test_numeric_options_are_refused_by_their_type(tmp_path, capsys, option, val
 def test_negative_coefficients_and_counts_that_mean_something_still_parse():
     from lensdist_torch.cli import build_parser
 
-    args = build_parser().parse_args(["undistort", "f", "--k2", "-1e-7", "--k4", "-0", "--max-frames", "1", "--out", "o"])
+    args = build_parser().parse_args(
+        ["undistort", "f", "--k2", "-1e-7", "--k4", "-0", "--max-frames", "1", "--out", "o"]
+    )
     assert (args.k2, args.k4, args.max_frames) == (-1e-7, 0.0, 1)
     assert build_parser().parse_args(["undistort", "f", "--k2", "0", "--k4", "0", "--out", "o"]).max_frames is None
 

@@ -137,25 +137,44 @@ def test_a_class_without_coefficients(tmp_path, capsys, frames):
     _refused(tmp_path, capsys, frames, data, "field 'class' is '2', but 'k2_user' and 'k4_user' are null")
 
 
-@pytest.mark.parametrize("changes,words", [
-    ({"verification": "yes"}, ("field 'verification' must be null or an object",)),
-    ({"verification__pairs": -1}, ("field 'verification.pairs' must be an int >= 0", "got -1")),
-    ({"verification__blocks_after": 1.5}, ("'verification.blocks_after' must be an int >= 0",)),
-    ({"verification__registered_after": ...}, ("'verification.registered_after' must be an int >= 0", "got None")),
-    ({"verification__registered_after": 9}, ("counts more registered pairs or error blocks after",)),
-    ({"verification__error_blocks_before": 2000}, ("counts more registered pairs or error blocks before",)),
-    ({"verification__error_share_after": 0.1}, ("'verification.error_share_after' must be error_blocks_after / blocks_after",)),
-    ({"verification__error_share_before": "0.9"}, ("'verification.error_share_before' must be",)),
-    ({"verification__verdict": "great"}, ("'verification.verdict' must be one of 'lowered', 'not lowered', 'not measurable'",)),
-    ({"verification__verdict": "not measurable"}, ("'verification.verdict' is 'not measurable', but its shares and "
-                                                   "counts say 'lowered'",)),
-    # the shares rose: the verdict 'lowered' is a lie
-    ({"verification__error_blocks_after": 1300, "verification__error_share_after": 1300 / 1385},
-     ("'verification.verdict' is 'lowered', but its shares and counts say 'not lowered'",)),
-    # a consistent 'not lowered' beside a class: calibrate withholds the class then
-    ({"verification__error_blocks_after": 1300, "verification__error_share_after": 1300 / 1385,
-      "verification__verdict": "not lowered"}, ("fields 'class' ('2') and 'verification' contradict", "withholds")),
-])
+@pytest.mark.parametrize(
+    "changes,words",
+    [
+        ({"verification": "yes"}, ("field 'verification' must be null or an object",)),
+        ({"verification__pairs": -1}, ("field 'verification.pairs' must be an int >= 0", "got -1")),
+        ({"verification__blocks_after": 1.5}, ("'verification.blocks_after' must be an int >= 0",)),
+        ({"verification__registered_after": ...}, ("'verification.registered_after' must be an int >= 0", "got None")),
+        ({"verification__registered_after": 9}, ("counts more registered pairs or error blocks after",)),
+        ({"verification__error_blocks_before": 2000}, ("counts more registered pairs or error blocks before",)),
+        (
+            {"verification__error_share_after": 0.1},
+            ("'verification.error_share_after' must be error_blocks_after / blocks_after",),
+        ),
+        ({"verification__error_share_before": "0.9"}, ("'verification.error_share_before' must be",)),
+        (
+            {"verification__verdict": "great"},
+            ("'verification.verdict' must be one of 'lowered', 'not lowered', 'not measurable'",),
+        ),
+        (
+            {"verification__verdict": "not measurable"},
+            ("'verification.verdict' is 'not measurable', but its shares and counts say 'lowered'",),
+        ),
+        # the shares rose: the verdict 'lowered' is a lie
+        (
+            {"verification__error_blocks_after": 1300, "verification__error_share_after": 1300 / 1385},
+            ("'verification.verdict' is 'lowered', but its shares and counts say 'not lowered'",),
+        ),
+        # a consistent 'not lowered' beside a class: calibrate withholds the class then
+        (
+            {
+                "verification__error_blocks_after": 1300,
+                "verification__error_share_after": 1300 / 1385,
+                "verification__verdict": "not lowered",
+            },
+            ("fields 'class' ('2') and 'verification' contradict", "withholds"),
+        ),
+    ],
+)
 def test_a_malformed_or_contradictory_verification(tmp_path, capsys, frames, changes, words):
     """Before: every one undistorted the frames, exit 0."""
     _refused(tmp_path, capsys, frames, _edit(CALIBRATE, **changes), *words)
@@ -175,7 +194,13 @@ def test_a_file_with_the_earlier_verdict_still_loads(tmp_path, capsys, frames):
         code, err, _ = _run(tmp_path / given, capsys, frames, data)
         assert code == 0, err
     data["verification"]["verdict"] = "not lowered"  # neither rule's: refused
-    _refused(tmp_path, capsys, frames, data, "'verification.verdict' is 'not lowered', but its shares and counts say 'lowered'")
+    _refused(
+        tmp_path,
+        capsys,
+        frames,
+        data,
+        "'verification.verdict' is 'not lowered', but its shares and counts say 'lowered'",
+    )
 
 
 def test_a_verified_class_r(tmp_path, capsys, frames):

@@ -50,7 +50,9 @@ def _answer(tmp_path, lens=LENS, **changes) -> tuple:
     k2, k4, _ = fit_eq4(p, ideal, H, W)
     cfg = LensdistConfig()
     dc = paper_frame_delta_avg(k2, k4, (H, W), cfg)
-    label = next(c for c in CLASS_LABELS if class_bounds(c, "delta_avg", cfg)[0] <= dc < class_bounds(c, "delta_avg", cfg)[1])
+    label = next(
+        c for c in CLASS_LABELS if class_bounds(c, "delta_avg", cfg)[0] <= dc < class_bounds(c, "delta_avg", cfg)[1]
+    )
     folder = tmp_path / "frames"
     folder.mkdir()
     for name in ("a", "b"):
@@ -63,7 +65,9 @@ def _answer(tmp_path, lens=LENS, **changes) -> tuple:
 
 
 def test_the_lens_inverse_round_trips_and_matches_eq4_as_its_special_case():
-    p = torch.rand(500, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * torch.tensor([W - 1.0, H - 1.0])
+    p = torch.rand(500, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * torch.tensor(
+        [W - 1.0, H - 1.0]
+    )
     back, ok = lens_distorted_points(lens_ideal_points(p, LENS[0], H, W, centre=LENS[1]), LENS[0], H, W, centre=LENS[1])
     assert bool(ok.all()) and float((back - p).abs().max()) < 1e-8
     grid, valid = lens_undistortion_grid(*LENS, H, W, dtype=torch.float64)
@@ -97,7 +101,10 @@ def test_undistort_from_a_planar_answer_applies_its_lens(tmp_path):
 def test_frames_at_another_size_scale_the_centre(tmp_path):
     folder, src, _ = _answer(tmp_path)
     data = json.loads(src.read_text())
-    data["image_size"] = [2 * H, 2 * W]  # the answer was for frames twice as large: the centre halves about pixel centres
+    data["image_size"] = [
+        2 * H,
+        2 * W,
+    ]  # the answer was for frames twice as large: the centre halves about pixel centres
     data["planar"]["centre"] = [(c + 0.5) * 2 - 0.5 for c in LENS[1]]
     src.write_text(json.dumps(data))
     res = undistort_path(folder, tmp_path / "out", from_json=src)
@@ -139,7 +146,10 @@ def test_the_view_of_alpha_follows_the_lens(tmp_path):
 
 
 # ------------------------------------------------------------------ the multi-view path's OpenCV camera
-CAM = ([[90.0, 0.0, 70.0], [0.0, 92.0, 41.0], [0.0, 0.0, 1.0]], [-0.3, 0.1, 3e-3, -4e-3, -0.01])  # off-centre, tangential
+CAM = (
+    [[90.0, 0.0, 70.0], [0.0, 92.0, 41.0], [0.0, 0.0, 1.0]],
+    [-0.3, 0.1, 3e-3, -4e-3, -0.01],
+)  # off-centre, tangential
 
 
 @pytest.mark.parametrize("dist", [CAM[1], CAM[1] + [0.05, 0.01, 0.0]])
@@ -166,7 +176,9 @@ def test_undistort_from_a_multiview_answer_applies_its_camera(tmp_path):
     (folder / "a.png").write_bytes(encode_png((distorted[0].clamp(0, 1) * 255).round().to(torch.uint8)))
     cfg = LensdistConfig()
     dc = paper_frame_delta_avg(k2, k4, (H, W), cfg)
-    label = next(c for c in CLASS_LABELS if class_bounds(c, "delta_avg", cfg)[0] <= dc < class_bounds(c, "delta_avg", cfg)[1])
+    label = next(
+        c for c in CLASS_LABELS if class_bounds(c, "delta_avg", cfg)[0] <= dc < class_bounds(c, "delta_avg", cfg)[1]
+    )
     answer = {"k2_user": k2, "k4_user": k4, "image_size": [H, W], "class": label, "reason": None, "method": "multiview",
               "opencv": {"camera_matrix": CAM[0], "dist_coeffs": CAM[1]}, "opencv_rational": None}
     src = tmp_path / "calibration.json"
@@ -204,5 +216,7 @@ def test_a_lens_whose_class_is_not_the_files_is_refused(tmp_path):
     data = json.loads(src.read_text())
     data["planar"]["coefficients"] = [0.002]  # a lens of a fraction of a pixel: not class 4
     src.write_text(json.dumps(data))
-    with pytest.raises(ValueError, match=r"'class' is '4', but field 'planar\.coefficients' \(the lens applied.*contradicts itself"):
+    with pytest.raises(
+        ValueError, match=r"'class' is '4', but field 'planar\.coefficients' \(the lens applied.*contradicts itself"
+    ):
         undistort_path(folder, tmp_path / "out", from_json=src)

@@ -50,7 +50,10 @@ def test_a_class_is_withheld_when_the_correction_does_not_help(frames):
     cal = SimpleNamespace(pairs=PAIRS, pair_used=torch.ones(3, dtype=torch.bool))
     cfg, st = CalibrationConfig(), LensdistConfig()
     right = _verified(_answer(K2), frames, cal, cfg, st)
-    assert right["class"] == "1" and right["verification"]["error_share_after"] < right["verification"]["error_share_before"]
+    assert (
+        right["class"] == "1"
+        and right["verification"]["error_share_after"] < right["verification"]["error_share_before"]
+    )
     wrong = _verified(_answer(-K2), frames, cal, cfg, st)  # pincushion for a barrel lens: more errors
     assert wrong["class"] is None and "does not lower their registration errors" in wrong["reason"]
     # nothing to verify: no class, class R, or verification off

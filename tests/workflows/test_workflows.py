@@ -133,7 +133,9 @@ class TestTinyProtocol:
         assert "67.8 %" in md and "Table 2" in md
         for fig in rep["settings"].values():  # the trust table's shares, from the confusion matrix
             conf = torch.tensor(fig["confusion"])
-            assert fig["right_or_cannot_tell_share"] == pytest.approx(100.0 * float(conf[:, :5].diag().sum() + conf[:, 5].sum()) / 12)
+            assert fig["right_or_cannot_tell_share"] == pytest.approx(
+                100.0 * float(conf[:, :5].diag().sum() + conf[:, 5].sum()) / 12
+            )
 
     def test_reproduce_tests_every_method_on_the_unseen_scene(self, tiny_run):
         out, _ = tiny_run
@@ -143,7 +145,9 @@ class TestTinyProtocol:
         test = load_set(out / "unseen", "test")
         seen = load_set(out / "data", "test")
         assert test["config"].protocol.scenes == ("brick",) and bool((test["scene"] == 0).all())
-        assert torch.equal(test["k2"], seen["k2"]) and torch.equal(test["seed"], seen["seed"])  # same draws, another scene
+        assert torch.equal(test["k2"], seen["k2"]) and torch.equal(
+            test["seed"], seen["seed"]
+        )  # same draws, another scene
         for fig in unseen["settings"].values():
             assert int(torch.tensor(fig["confusion"]).sum()) == 12
         assert "## On a scene no method was fitted on: brick" in (out / "reproduce.md").read_text()
@@ -152,13 +156,39 @@ class TestTinyProtocol:
         out, _ = tiny_run
         ck = tmp_path / "m.pt"
         cmd = [sys.executable, "-m", "lensdist_torch.cli"]
-        r = subprocess.run(cmd + ["train", "--data", str(out / "data"), "--out", str(ck), "--metric", "delta_max",
-                                  "--eigenvectors", "3", "--json"], check=True, capture_output=True, text=True, timeout=300)
+        r = subprocess.run(
+            cmd
+            + [
+                "train",
+                "--data",
+                str(out / "data"),
+                "--out",
+                str(ck),
+                "--metric",
+                "delta_max",
+                "--eigenvectors",
+                "3",
+                "--json",
+            ],
+            check=True,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert json.loads(r.stdout)["checkpoint"] == str(ck)
         raw = torch.load(ck, weights_only=True)
-        assert raw["config"]["classifier"] == {**raw["config"]["classifier"], "metric": "delta_max", "n_eigenvectors": 3}
-        r = subprocess.run(cmd + ["evaluate", "--data", str(out / "data"), "--checkpoint", str(ck), "--out", str(tmp_path)],
-                           check=True, capture_output=True, text=True, timeout=300)
+        assert raw["config"]["classifier"] == {
+            **raw["config"]["classifier"],
+            "metric": "delta_max",
+            "n_eigenvectors": 3,
+        }
+        r = subprocess.run(
+            cmd + ["evaluate", "--data", str(out / "data"), "--checkpoint", str(ck), "--out", str(tmp_path)],
+            check=True,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert "3 EV, delta_max" in r.stdout
         rep = json.loads((tmp_path / "evaluate.json").read_text())
         assert rep["settings"]["3 EV, delta_max"]["total"] == 12
@@ -178,8 +208,19 @@ class TestTinyProtocol:
     def test_evaluate_refuses_other_image_size(self, tiny_run, tmp_path):
         out, _ = tiny_run
         r = subprocess.run(
-            [sys.executable, "-m", "lensdist_torch.cli", "evaluate", "--data", str(out / "data"), "--checkpoint", str(SHIPPED)],
-            capture_output=True, text=True, timeout=300,
+            [
+                sys.executable,
+                "-m",
+                "lensdist_torch.cli",
+                "evaluate",
+                "--data",
+                str(out / "data"),
+                "--checkpoint",
+                str(SHIPPED),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
         )
         if SHIPPED.is_file():
             assert r.returncode == 2 and "image size" in r.stderr
@@ -192,7 +233,9 @@ class TestTinyProtocol:
         tiny_cli_folder(out, tmp_path)
         from lensdist_torch.cli import main
 
-        code = main(["reproduce", "--config", str(tmp_path / "tiny.toml"), "--out", str(tmp_path), "--workers", "1", "--json"])
+        code = main(
+            ["reproduce", "--config", str(tmp_path / "tiny.toml"), "--out", str(tmp_path), "--workers", "1", "--json"]
+        )
         r = capsys.readouterr()
         assert code == 0, r.err
         rep = json.loads(r.out, parse_constant=lambda c: pytest.fail(f"{c} in strict JSON"))
@@ -204,7 +247,9 @@ class TestSequence:
     """`--sequence DIR`: pairs of consecutive real frames instead of synthetic motion."""
 
     def _frames(self, folder, n=4, step=6, size=(150, 200)):
-        big = torch.nn.functional.interpolate(load_scene("gravel"), scale_factor=1.5, mode="bilinear", align_corners=True)
+        big = torch.nn.functional.interpolate(
+            load_scene("gravel"), scale_factor=1.5, mode="bilinear", align_corners=True
+        )
         folder.mkdir()
         for i in range(n):
             fr = big[0, :, step * i : step * i + size[0], 50 : 50 + size[1]]
@@ -214,8 +259,12 @@ class TestSequence:
     def test_consecutive_frames(self, tmp_path):
         from lensdist_torch.data.shards import generate, load_set
 
-        cfg = config_from_dict({"image": {"height": 96, "width": 128},
-                                "protocol": {"n_train": 6, "n_test_distorted": 2, "n_test_undistorted": 1, "shard_size": 6}})
+        cfg = config_from_dict(
+            {
+                "image": {"height": 96, "width": 128},
+                "protocol": {"n_train": 6, "n_test_distorted": 2, "n_test_undistorted": 1, "shard_size": 6},
+            }
+        )
         frames = self._frames(tmp_path / "seq")
         generate(cfg, tmp_path / "out", scenes_dir=frames, sequence=True, progress=False)
         d = load_set(tmp_path / "out", "train")
@@ -252,6 +301,10 @@ def test_demo_cli(tmp_path):
 
 
 def test_cli_reports_bad_input_clearly(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "lensdist_torch.cli", "analyze", str(tmp_path / "no.png"), str(tmp_path / "no.png")],
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "lensdist_torch.cli", "analyze", str(tmp_path / "no.png"), str(tmp_path / "no.png")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 2 and "not found" in r.stderr

@@ -90,7 +90,9 @@ def _save(path, model, opt, step, history, cfg, spec, seed, wall_s, evaluation=N
 
 
 def _load(path, cfg, spec, seed, model, opt) -> dict:
-    state = load_versioned(path, kind=CHECKPOINT_KIND, version=CHECKPOINT_VERSION, what="fine-stage", map_location="cpu")
+    state = load_versioned(
+        path, kind=CHECKPOINT_KIND, version=CHECKPOINT_VERSION, what="fine-stage", map_location="cpu"
+    )
     if state.get("arm") != arm_name(spec) or state.get("seed") != int(seed):
         raise CheckpointError(f"{path} holds arm {state.get('arm')!r} seed {state.get('seed')}, not {arm_name(spec)!r}")
     if state["config"] != comparable(cfg) or state.get("spec") != dict(spec):

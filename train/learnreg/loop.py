@@ -130,7 +130,9 @@ def load_checkpoint(path: Path, cfg: dict, arm_name: str, model, opt) -> dict:
 
     Raises CheckpointError for another kind, format version, arm or config.
     """
-    state = load_versioned(path, kind=CHECKPOINT_KIND, version=CHECKPOINT_VERSION, what="learned-registration", map_location="cpu")
+    state = load_versioned(
+        path, kind=CHECKPOINT_KIND, version=CHECKPOINT_VERSION, what="learned-registration", map_location="cpu"
+    )
     if state.get("arm") != arm_name:
         raise CheckpointError(f"{path} holds arm {state.get('arm')!r}, not {arm_name!r}")
     if comparable(state["config"]) != comparable(cfg):

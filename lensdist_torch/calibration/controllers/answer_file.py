@@ -193,16 +193,28 @@ def _check_verification(data: dict, label, src: Path) -> None:
         raise ValueError(f"{src}: field 'verification.verdict' is {given!r}, but its shares and counts say "
                          f"{verdict(check)!r}")
     if label == CLASS_LABELS[-1] or given == "not lowered":
-        why = "class 'R' is never verified" if label == CLASS_LABELS[-1] else "a verdict 'not lowered' withholds the class"
+        why = (
+            "class 'R' is never verified"
+            if label == CLASS_LABELS[-1]
+            else "a verdict 'not lowered' withholds the class"
+        )
         raise ValueError(f"{src}: fields 'class' ({label!r}) and 'verification' contradict each other: {why}")
 
 
 def _camera_matrix(cv: Any, size: tuple[int, int], src: Path, name: str = "opencv") -> list:
     """``name``'s camera matrix, checked (module docstring)."""
     m = cv.get("camera_matrix") if isinstance(cv, dict) else None
-    ok = (isinstance(m, list) and len(m) == 3 and all(isinstance(r, list) and len(r) == 3 and all(map(_number, r)) for r in m)
-          and m[0][0] > 0 and m[1][1] > 0 and m[0][1] == m[1][0] == m[2][0] == m[2][1] == 0 and m[2][2] == 1
-          and 0 <= m[0][2] <= size[1] - 1 and 0 <= m[1][2] <= size[0] - 1)
+    ok = (
+        isinstance(m, list)
+        and len(m) == 3
+        and all(isinstance(r, list) and len(r) == 3 and all(map(_number, r)) for r in m)
+        and m[0][0] > 0
+        and m[1][1] > 0
+        and m[0][1] == m[1][0] == m[2][0] == m[2][1] == 0
+        and m[2][2] == 1
+        and 0 <= m[0][2] <= size[1] - 1
+        and 0 <= m[1][2] <= size[0] - 1
+    )
     if not ok:
         raise ValueError(f"{src}: field '{name}.camera_matrix' must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, "
                          f"fy > 0 and (cx, cy) inside the {size[0]} x {size[1]} frame, got {m!r:.80}")
@@ -237,8 +249,10 @@ def _lens(data: dict, size: tuple[int, int], src: Path) -> dict | None:
         cam = data.get(name)
         d = cam.get("dist_coeffs") if isinstance(cam, dict) else None
         if not (isinstance(d, list) and len(d) in (4, 5, 8) and all(map(_number, d))):
-            raise ValueError(f"{src}: field '{name}.dist_coeffs' must be 4, 5 or 8 finite numbers (OpenCV's order) where "
-                             f"the multi-view path answered ('method' \"multiview\"), got {d!r:.60}")
+            raise ValueError(
+                f"{src}: field '{name}.dist_coeffs' must be 4, 5 or 8 finite numbers (OpenCV's order) where "
+                f"the multi-view path answered ('method' \"multiview\"), got {d!r:.60}"
+            )
         _camera_matrix(cam, size, src, name)
         return answer_lens(data)
     block = data.get("planar")

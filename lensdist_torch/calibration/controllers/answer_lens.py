@@ -48,10 +48,18 @@ def answer_lens(res: dict) -> dict | None:
     if res.get("k2_user") is None:
         return None
     if res.get("method") == "planar":
-        return {"kind": "radial", "coefficients": list(res["planar"]["coefficients"]), "centre": list(res["planar"]["centre"])}
+        return {
+            "kind": "radial",
+            "coefficients": list(res["planar"]["coefficients"]),
+            "centre": list(res["planar"]["centre"]),
+        }
     if res.get("method") == "multiview":
         cam = res.get("opencv") or res.get("opencv_rational")
-        return {"kind": "opencv", "camera_matrix": [list(r) for r in cam["camera_matrix"]], "dist_coeffs": list(cam["dist_coeffs"])}
+        return {
+            "kind": "opencv",
+            "camera_matrix": [list(r) for r in cam["camera_matrix"]],
+            "dist_coeffs": list(cam["dist_coeffs"]),
+        }
     return None
 
 
@@ -79,7 +87,10 @@ def scale_lens(lens: dict | None, s: float) -> dict | None:
     if lens["kind"] == "radial":
         return {**lens, "centre": [(v + 0.5) * s - 0.5 for v in lens["centre"]]}
     (fx, _, cx), (_, fy, cy), _ = lens["camera_matrix"]
-    return {**lens, "camera_matrix": [[fx * s, 0.0, (cx + 0.5) * s - 0.5], [0.0, fy * s, (cy + 0.5) * s - 0.5], [0.0, 0.0, 1.0]]}
+    return {
+        **lens,
+        "camera_matrix": [[fx * s, 0.0, (cx + 0.5) * s - 0.5], [0.0, fy * s, (cy + 0.5) * s - 0.5], [0.0, 0.0, 1.0]],
+    }
 
 
 #: Each kind's parameters, in the order its grid and view functions take them.
@@ -128,7 +139,9 @@ def lens_view(lens: dict, height: int, width: int, alpha: float) -> tuple[float,
     return _VIEWS[lens["kind"]](*_args(lens), height, width, alpha=alpha)
 
 
-def radial_lens_opencv(lens: dict, height: int, width: int, *, focal: float | None = None, model: str = "rational") -> dict:
+def radial_lens_opencv(
+    lens: dict, height: int, width: int, *, focal: float | None = None, model: str = "rational"
+) -> dict:
     """OpenCV's camera fitted to a "radial" ``lens`` about its centre, strict-JSON-ready (the fit's ``model`` left out).
 
     ``focal``: fx = fy in pixels (the half diagonal when None); ``model`` "standard" (5
@@ -140,6 +153,13 @@ def radial_lens_opencv(lens: dict, height: int, width: int, *, focal: float | No
         >>> cam["camera_matrix"][0][0], len(cam["dist_coeffs"]), cam["fit_error_mean_px"] < 0.05
         (100.0, 8, True)
     """
-    fit = opencv_camera_from_map(lambda p: lens_ideal(lens, p, height, width)[0], height, width, focal=focal, model=model,
-                                 step=map_grid_step(height, width), centre=lens["centre"])
+    fit = opencv_camera_from_map(
+        lambda p: lens_ideal(lens, p, height, width)[0],
+        height,
+        width,
+        focal=focal,
+        model=model,
+        step=map_grid_step(height, width),
+        centre=lens["centre"],
+    )
     return {k: (v.tolist() if isinstance(v, torch.Tensor) else v) for k, v in fit._asdict().items() if k != "model"}

@@ -121,8 +121,10 @@ def share_of(out: str | Path, shard: tuple[int, int]):
         with share_lock(out, tuple(shard)):
             yield
     except DataSetLocked:
-        raise ValueError(f"another run is writing share {shard[0]}/{shard[1]} of {out} (its lock file is "
-                         f"{out}/.lock-{shard[0]}-of-{shard[1]}): wait for it, or delete the lock if no such run is going") from None
+        raise ValueError(
+            f"another run is writing share {shard[0]}/{shard[1]} of {out} (its lock file is "
+            f"{out}/.lock-{shard[0]}-of-{shard[1]}): wait for it, or delete the lock if no such run is going"
+        ) from None
 
 
 class ArchiveBook:
@@ -215,8 +217,10 @@ class ArchiveBook:
         stem = self.stem(item, key)
         if answer is not None:
             atomic_write_text(self.out / "answers" / f"{stem}.json", answer)
-        atomic_write_text(self.out / "rows" / f"{stem}.json",
-                          json.dumps({"key": key, "final": final, "row": row.columns()}, indent=1, allow_nan=False) + "\n")
+        atomic_write_text(
+            self.out / "rows" / f"{stem}.json",
+            json.dumps({"key": key, "final": final, "row": row.columns()}, indent=1, allow_nan=False) + "\n",
+        )
         self.rows[self.ident(item)] = row
         self.computed += digest is not None
         self._step()

@@ -249,9 +249,19 @@ def camera_summaries(rows) -> list[CameraSummary]:
     for (camera, size), members in groups.items():
         answered = [r for r in members if _answered(r)]
         kept, pooled = _agreeing(answered) if answered else ([], (None, None, None))
-        out.append(CameraSummary(camera=camera, size=size, inputs=len(members), answered=len(answered),
-                                 pooled=len(kept), delta_avg_px=pooled[0], delta_avg_low_px=pooled[1],
-                                 delta_avg_high_px=pooled[2], disagreeing=tuple(r.path for r in answered if r not in kept)))
+        out.append(
+            CameraSummary(
+                camera=camera,
+                size=size,
+                inputs=len(members),
+                answered=len(answered),
+                pooled=len(kept),
+                delta_avg_px=pooled[0],
+                delta_avg_low_px=pooled[1],
+                delta_avg_high_px=pooled[2],
+                disagreeing=tuple(r.path for r in answered if r not in kept),
+            )
+        )
     return out
 
 
@@ -319,4 +329,6 @@ def write_tables(out: str | Path, rows, cameras) -> list[Path]:
 def _schema(pa, row_type):
     """The Parquet columns' types, from ``row_type``'s annotations (a column of nulls keeps its type)."""
     kinds = {"str": pa.string(), "bool": pa.bool_(), "float": pa.float64(), "int": pa.int64()}
-    return pa.schema([(c, kinds[str(f.type).split(" ")[0]]) for c, f in zip(row_columns(row_type), dataclasses.fields(row_type))])
+    return pa.schema(
+        [(c, kinds[str(f.type).split(" ")[0]]) for c, f in zip(row_columns(row_type), dataclasses.fields(row_type))]
+    )

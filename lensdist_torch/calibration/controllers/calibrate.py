@@ -142,7 +142,9 @@ def calibrate_path(
             bar.total = total
             bar.update(done - bar.n)
 
-        cal = calibrate_sequence(torch.cat(frames).to(device or "cpu"), cfg, settings, frame_size=size, progress=progress)
+        cal = calibrate_sequence(
+            torch.cat(frames).to(device or "cpu"), cfg, settings, frame_size=size, progress=progress
+        )
     out = {k: getattr(cal, k) for k in ("frames", "image_size", "analysis_size", "scale", "k2_user", "k4_user",
                                         "delta_avg_user_px", "delta_avg_user_interval", "delta_max_user_px",
                                         "delta_max_user_interval", "relief_effect_px", "relief_z")}
@@ -154,7 +156,12 @@ def calibrate_path(
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = or_defaults(settings, LensdistConfig, "settings")
     mv = None
-    if method != "direct" and len(frames) >= MIN_FRAMES and not len(cal.pairs) and cal.reason.startswith(TOO_LITTLE_MOTION):
+    if (
+        method != "direct"
+        and len(frames) >= MIN_FRAMES
+        and not len(cal.pairs)
+        and cal.reason.startswith(TOO_LITTLE_MOTION)
+    ):
         # the frames' phase correlations say they did not move: no mapping can see more, so none runs
         # (too few frames for a mapping is the multi-view path's own reason)
         mv = {"ok": False, "reason": cal.reason}
@@ -276,7 +283,11 @@ def synthetic_sequence(
     ext = big + math.sin(math.radians(abs(rotation_deg))) * big.flip(0) + 2  # half extents, any rotation drawn
     ext = ext * (1 + relief / (1 - altitude))  # a hollow moves samples away from the nadir
     z = min((ws - 1) / (2 * float(ext[0]) + 2 * jitter_px), (hs - 1) / (2 * float(ext[1]) + float(ty[-1])))
-    scale = 1 - altitude * torch.rand(n_frames, generator=g, dtype=torch.float64) if altitude > 0 else torch.ones(n_frames, dtype=torch.float64)
+    scale = (
+        1 - altitude * torch.rand(n_frames, generator=g, dtype=torch.float64)
+        if altitude > 0
+        else torch.ones(n_frames, dtype=torch.float64)
+    )
     field = draw_height_field(g, (0.0, ws - 1.0, 0.0, hs - 1.0), relief) if relief > 0 else None
     out = []
     for i in range(n_frames):

@@ -97,7 +97,10 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                     kept, stride = kept[::2], 2 * stride
             names = [kept[i] for i in evenly_spaced(len(kept), cfg.mapped_frames)]
         if len(names) < MIN_FRAMES:
-            return {"ok": False, "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}"}
+            return {
+                "ok": False,
+                "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}",
+            }
         least = max(MIN_FRAMES, math.ceil(cfg.min_registered * len(names)))
         runs, got, planar = [], 0, {}
 
@@ -105,7 +108,9 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
             bar.update(1)
             if cfg.planar_terms:
                 bar.set_postfix_str("homography model")
-                planar["answer"] = planar_path(database, names, image_size, config=cfg, settings=settings, folder=folder)
+                planar["answer"] = planar_path(
+                    database, names, image_size, config=cfg, settings=settings, folder=folder
+                )
             bar.set_postfix_str("mapping")
 
         def take(i: int, rec) -> bool:  # one mapping's answer; True: enough mappings succeeded
@@ -131,14 +136,20 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
             bar.set_postfix_str(f"{model} fitted")
 
         stages = 1 + cfg.reconstructions * (1 + len(cfg.models))  # features and matches, then per mapping
-        with tqdm(total=stages, disable=quiet, desc=f"multi-view, {len(names)} frames", unit="stage", leave=False) as bar:
+        with tqdm(
+            total=stages, disable=quiet, desc=f"multi-view, {len(names)} frames", unit="stage", leave=False
+        ) as bar:
             bar.set_postfix_str("features and matches")
             reconstruct(folder, names, config=cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model)
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
-            return {"ok": False, "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
-                                           f"registered at most{tries} (at least {least} needed)",
-                    "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
+            return {
+                "ok": False,
+                "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
+                f"registered at most{tries} (at least {least} needed)",
+                "planar": planar.get("answer"),
+                "planar_max_relief_z": cfg.planar_max_relief_z,
+            }
         res = combine_reconstructions(runs, cfg, settings=settings)
     return {"ok": True, **res.to_dict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
 
@@ -179,7 +190,14 @@ def _summary(res: dict, keys: tuple[str, ...]) -> dict:
     return {k: res.get(k) for k in keys}
 
 
-_KEYS = ("class", "reason", "delta_avg_user_px", "delta_avg_user_interval", "delta_max_user_px", "delta_max_user_interval")
+_KEYS = (
+    "class",
+    "reason",
+    "delta_avg_user_px",
+    "delta_avg_user_interval",
+    "delta_max_user_px",
+    "delta_max_user_interval",
+)
 
 
 def combine(direct: dict, mv: dict | None) -> dict:
@@ -191,13 +209,45 @@ def combine(direct: dict, mv: dict | None) -> dict:
     """
     out = _combine_two(direct, mv)
     planar = (mv or {}).get("planar")
-    out["planar"] = None if planar is None else (
-        {"reason": planar["reason"]} if not planar["ok"] else
-        {"class": planar["class_label"], "reason": planar["reason"] or None, "terms": planar["terms"],
-         **{k: planar[k] for k in (*_KEYS[2:], "pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife", "jackknife_coefficients",
-                                   "jackknife_centres", "coefficients", "model", "centre", "bending_halfwidth_px", "matched_fraction",
-                                   "invertible_fraction", "eq4_fit_error_px", "opencv", "opencv_rational")},
-         "guided": planar.get("guided"), "refined": planar.get("refined")})  # None where they did not run
+    out["planar"] = (
+        None
+        if planar is None
+        else (
+            {"reason": planar["reason"]}
+            if not planar["ok"]
+            else {
+                "class": planar["class_label"],
+                "reason": planar["reason"] or None,
+                "terms": planar["terms"],
+                **{
+                    k: planar[k]
+                    for k in (
+                        *_KEYS[2:],
+                        "pairs",
+                        "inliers",
+                        "matches",
+                        "inlier_share",
+                        "reprojection_px",
+                        "models",
+                        "jackknife",
+                        "jackknife_coefficients",
+                        "jackknife_centres",
+                        "coefficients",
+                        "model",
+                        "centre",
+                        "bending_halfwidth_px",
+                        "matched_fraction",
+                        "invertible_fraction",
+                        "eq4_fit_error_px",
+                        "opencv",
+                        "opencv_rational",
+                    )
+                },
+                "guided": planar.get("guided"),
+                "refined": planar.get("refined"),
+            }
+        )
+    )  # None where they did not run
     if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
         return out
     z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)
@@ -227,13 +277,24 @@ def _combine_two(direct: dict, mv: dict | None) -> dict:
     if not mv["ok"]:
         out.update(method="direct", multiview={"reason": mv["reason"]})
         return out
-    mv_view = {"class": mv["class_label"], "reason": mv["reason"] or None, "model": mv["model"],
-               **{k: mv[k] for k in _KEYS[2:]}, "invertible_fraction": mv["invertible_fraction"],
-               "eq4_fit_error_px": mv["eq4_fit_error_px"], "registered": mv["registered"], "points3D": mv["points3D"],
-               "reprojection_px": mv["reprojection_px"], "rotation_spread_deg": mv["rotation_spread_deg"],
-               "camera_matrix": mv["camera_matrix"], "dist_coeffs": mv["dist_coeffs"],
-               "models": mv["models"], "reconstructions": list(mv.get("reconstructions", ())),
-               "reconstruction_spread_px": mv.get("reconstruction_spread_px", 0.0), "dispersion": mv.get("dispersion", 1.0)}
+    mv_view = {
+        "class": mv["class_label"],
+        "reason": mv["reason"] or None,
+        "model": mv["model"],
+        **{k: mv[k] for k in _KEYS[2:]},
+        "invertible_fraction": mv["invertible_fraction"],
+        "eq4_fit_error_px": mv["eq4_fit_error_px"],
+        "registered": mv["registered"],
+        "points3D": mv["points3D"],
+        "reprojection_px": mv["reprojection_px"],
+        "rotation_spread_deg": mv["rotation_spread_deg"],
+        "camera_matrix": mv["camera_matrix"],
+        "dist_coeffs": mv["dist_coeffs"],
+        "models": mv["models"],
+        "reconstructions": list(mv.get("reconstructions", ())),
+        "reconstruction_spread_px": mv.get("reconstruction_spread_px", 0.0),
+        "dispersion": mv.get("dispersion", 1.0),
+    }
     out["multiview"] = mv_view
     if mv["class_label"] is None:  # no multi-view class: the direct answer stands, unless neither can tell
         out["method"] = "direct"
@@ -243,7 +304,9 @@ def _combine_two(direct: dict, mv: dict | None) -> dict:
         both = (f"multi-view {mv['delta_avg_user_px']:.2f} px [{m_iv[0]:.2f}, {m_iv[1]:.2f}], direct "
                 f"{direct['delta_avg_user_px']:.2f} px [{d_iv[0]:.2f}, {d_iv[1]:.2f}]")
         apart = "" if _overlap(tuple(d_iv), m_iv) else ", and their intervals do not overlap"
-        if _relative_halfwidth(m_iv, mv["delta_avg_user_px"]) < _relative_halfwidth(tuple(d_iv), direct["delta_avg_user_px"]):
+        if _relative_halfwidth(m_iv, mv["delta_avg_user_px"]) < _relative_halfwidth(
+            tuple(d_iv), direct["delta_avg_user_px"]
+        ):
             # the numbers of the less uncertain estimate (relative half-width), still no class
             _take_multiview(out, mv)
         out["reason"] = f"neither path can tell ({both}{apart}); the numbers are the {out['method']} path's"
@@ -251,8 +314,10 @@ def _combine_two(direct: dict, mv: dict | None) -> dict:
     if direct.get("class") is not None and not _overlap(tuple(direct["delta_avg_user_interval"]),
                                                         tuple(mv["delta_avg_user_interval"])):
         out.update(method="both", **{"class": None})
-        out["reason"] = (f"the multi-view ({mv['delta_avg_user_px']:.2f} px) and the direct ({direct['delta_avg_user_px']:.2f} "
-                         "px) estimates of Delta_avg disagree beyond their intervals")
+        out["reason"] = (
+            f"the multi-view ({mv['delta_avg_user_px']:.2f} px) and the direct ({direct['delta_avg_user_px']:.2f} "
+            "px) estimates of Delta_avg disagree beyond their intervals"
+        )
         return out
     _take_multiview(out, mv)
     out.update({"class": mv["class_label"], "reason": None})

@@ -160,7 +160,9 @@ def verify_undistortion(frames: torch.Tensor, pairs: torch.Tensor, k2: float, k4
     for i, j in pairs.tolist():
         e0, n0, ok0 = error_blocks(frames[i : i + 1], frames[j : j + 1], ones, ones, settings=st)
         fi, fj = row[i], row[j]
-        e1, n1, ok1 = error_blocks(fixed[fi : fi + 1], fixed[fj : fj + 1], masks[fi : fi + 1], masks[fj : fj + 1], settings=st)
+        e1, n1, ok1 = error_blocks(
+            fixed[fi : fi + 1], fixed[fj : fj + 1], masks[fi : fi + 1], masks[fj : fj + 1], settings=st
+        )
         totals["registered_before"] += ok0
         totals["registered_after"] += ok1
         if ok0 and ok1:
