@@ -405,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             traceback.print_exc()
         if isinstance(exc, _USER_ERRORS):
-            print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
+            print(f"{prog}: error: {argtypes.as_flags(_one_line(exc))}", file=sys.stderr)
             return 2
         hint = "" if args.debug else " (run with --debug for the traceback)"
         print(f"{prog}: error: internal error: {type(exc).__name__}: {_one_line(exc)}{hint}", file=sys.stderr)

@@ -14,6 +14,8 @@ Contracts:
   value, not an option: ``--k2 -1e-3`` works as ``--k2=-1e-3`` does.
 - Numbers are finite ('nan' and 'inf', which Python's ``float`` accepts, are refused) and in the
   range the option states.
+- An error of the library names its Python parameters in backticks (`` `out_dir` ``,
+  `` `overwrite=True` ``); the command line prints their flags instead (:func:`as_flags`).
 - The result cannot be written to stdout (closed, EBADF, disk full): one line on stderr, exit
   2. A broken pipe (``lensdist ... | head``) ends quietly with exit 1 (Python's convention).
 """
@@ -35,6 +37,7 @@ __all__ = [
     "Parser",
     "debug_parent",
     "StdoutError",
+    "as_flags",
     "device",
     "finite_float",
     "float_in",
@@ -55,6 +58,35 @@ DEVICE_HELP = "where the tensors go: cpu, cuda or cuda:N (N below the number of 
 #: A negative number as a value: argparse's own pattern (``^-\d+$|^-\d*\.\d+$``) misses
 #: exponents; 'inf' and 'nan' are matched so that their type refuses them by name.
 _NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE)
+
+
+#: Python parameters whose flag is not ``--`` and the name with dashes (a value: the flag alone).
+FLAGS = {"out_dir": "--out", "from_json": "--from", "overwrite=True": "--overwrite"}
+#: a Python parameter named in an error, in backticks, with an optional ``=value``
+_PARAMETER = re.compile(r"`([A-Za-z_][A-Za-z0-9_]*)(=[^`\s]+)?`")
+
+
+def as_flags(message: str) -> str:
+    """``message`` with each Python parameter in backticks written as its command-line flag.
+
+    ``name`` becomes ``--name`` (underscores as dashes), ``name=value`` ``--name value``; the
+    exceptions are in :data:`FLAGS`. Text in backticks that is not one identifier stays as it is.
+
+    Example:
+        >>> as_flags("choose an empty `out_dir` or pass `overwrite=True`; `checkpoint_max` or `alpha=0.5`")
+        'choose an empty --out or pass --overwrite; --checkpoint-max or --alpha 0.5'
+        >>> as_flags("run `lensdist generate --out DIR` first")
+        'run `lensdist generate --out DIR` first'
+    """
+
+    def flag(match: re.Match) -> str:
+        name, value = match.group(1), match.group(2) or ""
+        if name + value in FLAGS:
+            return FLAGS[name + value]
+        dashed = FLAGS.get(name, "--" + name.replace("_", "-"))
+        return dashed + (" " + value[1:] if value else "")
+
+    return _PARAMETER.sub(flag, message)
 
 
 class Formatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):

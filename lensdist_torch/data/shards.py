@@ -334,7 +334,7 @@ def generate(
     """
     out = Path(out)
     _check_arguments(sets, shard, workers, batch_size, limit, scenes_dir, sequence)
-    refuse_foreign_folder(out, "out (--out)", SETS)  # someone's folder gets no data set written among its files
+    refuse_foreign_folder(out, "`out`", SETS)  # someone's folder gets no data set written among its files
     scenes, scene_ids = load_scenes(config, scenes_dir, sequence)
     fp = config_fingerprint(config, scene_ids)
     header = {"format_version": FORMAT_VERSION, "fingerprint": fp, "config": config_to_dict(config), "scenes": scene_ids}

@@ -105,7 +105,7 @@ def _load_regressor(path) -> DeltaRegressor:
         return path
     if isinstance(path, EigenSpaceClassifier):
         raise CheckpointError(
-            "checkpoint (--checkpoint) is an eigen-space classifier, but method 'regression' needs a Delta regressor"
+            "`checkpoint` is an eigen-space classifier, but method 'regression' needs a Delta regressor"
         )
     return _cached_regressor(*_file_key(path))
 
@@ -117,7 +117,7 @@ def _eigenspace_models(checkpoint, checkpoint_max) -> tuple:
     Both must be fitted under the same image size, block size and thresholds.
     """
     wanted = [(c, metric, option) for c, metric, option in zip(
-        (checkpoint, checkpoint_max), METRICS, ("checkpoint (--checkpoint)", "checkpoint_max (--checkpoint-max)"))]
+        (checkpoint, checkpoint_max), METRICS, ("`checkpoint`", "`checkpoint_max`"))]
     models = []
     for c, metric, option in wanted:
         if c is False:
@@ -208,13 +208,13 @@ def _models_and_config(method, checkpoint, checkpoint_max, config):
     ranges) are adopted and everything else is the default; with one, they must match.
     """
     if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        raise ValueError(f"`method` must be one of {METHODS}, got {method!r}")
     # an option the method does not use is refused, not ignored; checkpoints load before the images
     if checkpoint_max is not None and checkpoint_max is not False and method != "eigenspace":
-        raise ValueError(f"checkpoint_max (--checkpoint-max) is used by method 'eigenspace' only, not {method!r}")
+        raise ValueError(f"`checkpoint_max` is used by method 'eigenspace' only, not {method!r}")
     if checkpoint is not None and method == "selfcal":
         raise ValueError(
-            "checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'"
+            "`checkpoint` is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'"
         )
     if method == "selfcal":
         return None, or_defaults(config, LensdistConfig)
@@ -246,7 +246,7 @@ def analysis_config(*, method: str = "selfcal", checkpoint=None, checkpoint_max=
         >>> analysis_config(checkpoint="m.pt")
         Traceback (most recent call last):
         ...
-        ValueError: checkpoint (--checkpoint) is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'
+        ValueError: `checkpoint` is not used by method 'selfcal'; it is for 'regression' or 'eigenspace'
     """
     return _models_and_config(method, checkpoint, checkpoint_max, config)[1]
 

@@ -101,14 +101,14 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration
     """
     if from_json is None:
         if k2 is None and k4 is None:
-            raise ValueError("give k2 or k4 (--k2, --k4; the other is 0), or from_json (--from CALIBRATION.json)")
+            raise ValueError("give `k2` or `k4` (the other is 0), or `from_json`")
         k2, k4 = 0.0 if k2 is None else k2, 0.0 if k4 is None else k4
         for name, value in (("k2", k2), ("k4", k4)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"{name} (--{name}) must be a finite number, got {value!r}")
+                raise ValueError(f"`{name}` must be a finite number, got {value!r}")
         return float(k2), float(k4)
     if k2 is not None or k4 is not None:
-        raise ValueError("give either k2 and k4 (--k2, --k4) or from_json (--from), not both")
+        raise ValueError("give either `k2` and `k4` or `from_json`, not both")
     src = Path(from_json)
     cal = read_calibration(src) if cal is None else cal
     k2, k4, hc, wc, reason = cal.k2, cal.k4, cal.height, cal.width, cal.reason
@@ -204,8 +204,8 @@ def _check_stretch(k2: float, k4: float, height: int, width: int, from_json) -> 
 def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: bool) -> list[Path] | None:
     """The input files of a folder (None for a video), once every output was checked (module docstring)."""
     if path.is_dir() and out.resolve() == path.resolve():
-        raise ValueError(f"out_dir must differ from the input folder {path}")
-    refuse_data_sets(out, "out_dir (--out)", out)
+        raise ValueError(f"`out_dir` must differ from the input folder {path}")
+    refuse_data_sets(out, "`out_dir`", out)
     files = list_frames(path)[:max_frames] if path.is_dir() else None
     names = [p.stem for p in files] if files is not None else None
     if names is not None:
@@ -219,7 +219,7 @@ def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: b
         {Path(from_json).resolve()} if from_json is not None else set()
     )
     if out.exists() and not out.is_dir():
-        raise ValueError(f"out_dir {out} exists and is not a folder")
+        raise ValueError(f"`out_dir` {out} exists and is not a folder")
     for folder in (out, out / "masks"):
         if not folder.is_dir():
             continue
@@ -230,10 +230,10 @@ def _plan(path: Path, out: Path, max_frames: int | None, from_json, overwrite: b
             if not mine:
                 continue
             if existing.resolve() in protected:
-                raise ValueError(f"{existing} is one of the inputs; choose another out_dir (--out)")
+                raise ValueError(f"{existing} is one of the inputs; choose another `out_dir`")
             if not overwrite:
-                raise ValueError(f"{existing} exists; choose an empty out_dir (--out) or pass overwrite=True "
-                                 "(--overwrite) to replace what a previous run wrote")
+                raise ValueError(f"{existing} exists; choose an empty `out_dir` or pass `overwrite=True` "
+                                 "to replace what a previous run wrote")
     return files
 
 
@@ -271,9 +271,9 @@ def undistort_path(
 
     Returns:
         dict: frames, out_dir, k2, k4 (as applied, or eq. 4's approximation of ``lens``), lens (the
-        answer's own lens where applied, its ``kind`` "radial" or "opencv", else None), valid_fraction (mean of the masks), bits (the
-        sample depths written, e.g. [16]), alpha, camera (what ``undistortion.json`` holds) and
-        camera_file (its path).
+        answer's own lens where applied, its ``kind`` "radial" or "opencv", else None),
+        valid_fraction (mean of the masks), bits (the sample depths written, e.g. [16]), alpha,
+        camera (what ``undistortion.json`` holds) and camera_file (its path).
 
     Example:
         >>> import tempfile
@@ -291,11 +291,11 @@ def undistort_path(
     if not path.exists():
         raise FileNotFoundError(f"path not found: {path}")
     if max_frames is not None and (type(max_frames) is not int or max_frames < 1):
-        raise ValueError(f"max_frames must be a positive int or None, got {max_frames!r}")
+        raise ValueError(f"`max_frames` must be a positive int or None, got {max_frames!r}")
     if type(overwrite) is not bool:
-        raise TypeError(f"overwrite must be a bool, got {overwrite!r}")
+        raise TypeError(f"`overwrite` must be a bool, got {overwrite!r}")
     if alpha is not None and (isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0 <= alpha <= 1):
-        raise ValueError(f"alpha (--alpha) must be a number from 0 to 1 or None, got {alpha!r}")
+        raise ValueError(f"`alpha` must be a number from 0 to 1 or None, got {alpha!r}")
     # the file read once (what is checked is what is used); every coefficient checked before any frame is read
     cal = read_calibration(Path(from_json)) if from_json is not None and k2 is None and k4 is None else None
     _coefficients_for((1, 1) if cal is None else (cal.height, cal.width), k2, k4, from_json, cal)

@@ -223,7 +223,7 @@ def test_bad_undistort_arguments_are_one_line_errors(sequence, tmp_path):
                                                     "class": None, "reason": "too little motion"}))
     cases = [
         ({"from_json": tmp_path / "none.json"}, "holds no estimate: too little motion"),
-        ({}, "give k2 or k4"),
+        ({}, "give `k2` or `k4`"),
         ({"k2": 1e-6, "k4": 0.0, "from_json": tmp_path / "x.json"}, "not both"),
         ({"from_json": tmp_path / "bad.json"}, "not a calibration"),
         ({"k2": float("nan"), "k4": 0.0}, "finite"),

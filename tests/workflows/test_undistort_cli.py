@@ -229,7 +229,7 @@ def test_every_number_read_from_the_calibration_is_checked(tmp_path, capsys, tex
 @pytest.mark.parametrize("k2,k4", [(True, 0.0), (1e-6, "0"), (1e-6, float("inf"))])
 def test_coefficients_given_in_python_are_real_numbers(tmp_path, k2, k4):
     folder = _frames(tmp_path / "frames", names=("a.png",))
-    with pytest.raises(ValueError, match=r"k[24] \(--k[24]\) must be a finite number") as err:
+    with pytest.raises(ValueError, match=r"`k[24]` must be a finite number") as err:
         undistort_path(folder, tmp_path / "out", k2=k2, k4=k4)
     assert "\n" not in str(err.value) and not (tmp_path / "out").exists()
 
@@ -290,6 +290,24 @@ def test_an_existing_file_of_an_output_name_is_not_overwritten(tmp_path, capsys)
     code, out, _ = _run(capsys, folder, "--k2", "1e-6", "--k4", "0", "--out", par, "--overwrite")
     assert code == 0 and "2 frames undistorted" in out
     assert cv2.imread(str(mine), cv2.IMREAD_UNCHANGED).shape == SIZE and (par / "masks" / "frame_01.png").is_file()
+
+
+@pytest.mark.bad_input
+def test_errors_name_flags_on_the_command_line_and_parameters_in_python(tmp_path, capsys):
+    # the same refusal: the command line's words on the command line, Python's in Python
+    par = tmp_path / "par"
+    folder = _frames(par / "frames")
+    (par / "frame_00.png").write_bytes(b"not yours")
+    code, _, err = _run(capsys, folder, "--k2", "1e-6", "--k4", "0", "--out", par)
+    one_line_usage(code, err, "undistort")
+    assert "choose an empty --out or pass --overwrite" in err
+    assert "out_dir" not in err and "overwrite=True" not in err and "`" not in err
+    with pytest.raises(ValueError, match="choose an empty `out_dir` or pass `overwrite=True`") as caught:
+        undistort_path(folder, par, k2=1e-6, k4=0.0)
+    assert "--" not in str(caught.value)
+    code, _, err = _run(capsys, folder, "--out", tmp_path / "out")
+    one_line_usage(code, err, "undistort")
+    assert "give --k2 or --k4 (the other is 0), or --from" in err
 
 
 @pytest.mark.bad_input
