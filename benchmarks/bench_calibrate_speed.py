@@ -1,4 +1,5 @@
-"""The speed of `lensdist calibrate` against its goals: 22 frames of 384 x 288 in 60 s on 2 cores (and 300 of 1920 x 1080 in 10 min).
+"""The speed of `lensdist calibrate` against its goals: 22 frames of 384 x 288 in 60 s on 2 cores
+(and 300 of 1920 x 1080 in 10 min).
 
 Renders the goal's sequence (``synthetic_sequence(22, k2, k4, size=(288, 384), scene="gravel",
 seed=0, relief=0.02, realistic=True)``, eq. 4 scaled from the library's largest coefficients to
@@ -12,7 +13,8 @@ memory, and is the fallback where /proc is missing) is its own; torch and
 COLMAP use ``--threads`` threads. Writes JSON to ``--out``.
 
     python benchmarks/bench_calibrate_speed.py --threads 2 --repeats 2 --out docs/results/bench_calibrate_speed.json
-    python benchmarks/bench_calibrate_speed.py --frames 300 --size 1080 1920 --out docs/results/bench_calibrate_speed_1080p.json
+    python benchmarks/bench_calibrate_speed.py --frames 300 --size 1080 1920 \\
+        --out docs/results/bench_calibrate_speed_1080p.json
 
 ``--frames`` and ``--size`` render another sequence (the same lens scaled to the frame: Delta_avg 7.5 px
 times width / 384); its goal is 60 s for the first and 600 s for any other (the 1080p video's).

@@ -10,11 +10,11 @@ corners (CORNERS.json: per view ``image_points`` and the board's ``object_points
 ``cv2.calibrateCamera`` under the choices a careful user could make (OpenCV's 5 coefficients as
 published; the 8 of its rational model; each on the even and on the odd views), and reports for
 each its reprojection RMS, its held-out RMS (fitted on one half of the views, each view of the
-other half posed under those intrinsics; the all-views row: both halves pooled), Delta_avg where it inverts, where the published calibration inverts
-(and it too), and over the board's region (the pixels inside some view's board, where the corners
-measure the lens). ANSWER.json: the JSON of
-``lensdist calibrate FRAMES --json`` (or ``bench_real_calibration.py``'s report); its homography
-model's Delta_avg and interval over the same two regions, from its own replicates
+other half posed under those intrinsics; the all-views row: both halves pooled), Delta_avg where
+it inverts, where the published calibration inverts (and it too), and over the board's region
+(the pixels inside some view's board, where the corners measure the lens). ANSWER.json: the JSON
+of ``lensdist calibrate FRAMES --json`` (or ``bench_real_calibration.py``'s report); its
+homography model's Delta_avg and interval over the same two regions, from its own replicates
 (:func:`~lensdist_torch.calibration.planar_features.delta_avg_where`). The answer never saw the
 board.
 """
@@ -47,9 +47,11 @@ def board_region(corners: dict, size: tuple[int, int], points: torch.Tensor) -> 
 
 
 def held_out_rms(obj, img: list, k, dist) -> tuple[float, int]:
-    """Sum of squared reprojection errors (px^2) of views ``img`` under fixed intrinsics (k, dist), and the corners counted.
+    """Sum of squared reprojection errors (px^2) of views ``img`` under fixed intrinsics (k, dist),
+    and the corners counted.
 
-    Each view's pose by ``cv2.solvePnP`` refined by ``cv2.solvePnPRefineLM``; the intrinsics stay as fitted on other views.
+    Each view's pose by ``cv2.solvePnP`` refined by ``cv2.solvePnPRefineLM``; the intrinsics stay as fitted
+    on other views.
     """
     import cv2
 
@@ -118,8 +120,8 @@ def main() -> None:
     print(f"the board's region: {100 * float(board.double().mean()):.1f} % of the frame; the published calibration "
           f"inverts on {100 * float(published.double().mean()):.1f} %")
     print(
-        "| calibration | views | RMS (px) | held out (px) | inverts | Delta_avg where it inverts | where the published one "
-        "inverts | over the board's region |"
+        "| calibration | views | RMS (px) | held out (px) | inverts | Delta_avg where it inverts | "
+        "where the published one inverts | over the board's region |"
     )
     print("|---|---|---|---|---|---|---|---|")
     for c in calibrations(corners, (h, w)):
@@ -147,8 +149,10 @@ def main() -> None:
                                        "covers": [r["model"] + ", " + r["views"] for r in rows
                                                   if iv[0] <= r[f"delta_avg_{key}_px"] <= iv[1]]}
             print(
-                f"the answer's homography model over the {'pixels where the published calibration inverts' if key == 'inverts' else 'board region'}: "
-                f"{value:.2f} px [{iv[0]:.2f}, {iv[1]:.2f}], covering {len(report[f'answer_{key}']['covers'])} of {len(rows)}: "
+                f"the answer's homography model over the "
+                f"{'pixels where the published calibration inverts' if key == 'inverts' else 'board region'}: "
+                f"{value:.2f} px [{iv[0]:.2f}, {iv[1]:.2f}], "
+                f"covering {len(report[f'answer_{key}']['covers'])} of {len(rows)}: "
                 f"{'; '.join(report[f'answer_{key}']['covers']) or 'none'}"
             )
     if args.out:

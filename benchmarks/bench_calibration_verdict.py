@@ -26,8 +26,8 @@ into the image (px, the mean of both directions); a match the lens does not inve
 such, not as an error. Reported over the board's region (both points inside some view's board,
 where the corners measured the lens), outside it, and over all matches: the median, RMS and the
 share over 2 px; beside them each lens's Delta_avg where the published calibration inverts (the
-truth of ``bench_real_calibration.py``; the held-out row: each half's). ANSWER.json: the JSON of ``lensdist calibrate FRAMES --json`` (or
-``bench_real_calibration.py``'s report).
+truth of ``bench_real_calibration.py``; the held-out row: each half's). ANSWER.json: the JSON of
+``lensdist calibrate FRAMES --json`` (or ``bench_real_calibration.py``'s report).
 """
 
 from __future__ import annotations
@@ -70,7 +70,8 @@ def radial_lens(coefficients, centre, size):
 
 
 def transfer_errors(lens, m: PlanarMatches, pairs) -> torch.Tensor:
-    """(N,) each match's transfer error (image px) under ``lens`` on the ``pairs`` given; NaN elsewhere or where it does not invert."""
+    """(N,) each match's transfer error (image px) under ``lens`` on the ``pairs`` given; NaN elsewhere or where it
+    does not invert."""
     import cv2
 
     ideal, distort = lens
@@ -209,7 +210,7 @@ def main() -> None:
         ]
         print(
             f"| {r['calibration']} | {r['model']} | {r['views']} | {' | '.join(cells)} | {r['all']['not_judged']} | "
-            f"{' / '.join(f'{v:.2f}' for v in (r['delta_avg_px'] if isinstance(r['delta_avg_px'], list) else [r['delta_avg_px']]))} |"
+            f"{' / '.join(f'{v:.2f}' for v in (r['delta_avg_px'] if isinstance(r['delta_avg_px'], list) else [r['delta_avg_px']]))} |"  # noqa: E501
         )
     if args.out:
         report = {

@@ -201,7 +201,8 @@ def main(argv=None) -> int:
     key = {(r["case"], r["size"], r["batch"], r["on"]): r for r in result["rows"]}
     print(f"device: {result['device']}; CPU: {args.threads} threads; torch {torch.__version__}")
     print(
-        "| case | size | batch | device pairs/s | CPU pairs/s | device / CPU | x SSIM (device) | device peak MB / pair |"
+        "| case | size | batch | device pairs/s | CPU pairs/s | device / CPU | x SSIM (device) | "
+        "device peak MB / pair |"
     )
     print("|---|---|---|---|---|---|---|---|")
     fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
@@ -213,7 +214,8 @@ def main(argv=None) -> int:
         r["device_over_cpu"] = r["pairs_per_s"] / c["pairs_per_s"] if c else None
         r["over_ssim"] = r["pairs_per_s"] / peer["pairs_per_s"] if peer else None
         print(
-            f"| {r['case']} | {r['size']} | {r['batch']} | {r['pairs_per_s']:.1f} | {fmt(c and c['pairs_per_s'], '.1f')} | "
+            f"| {r['case']} | {r['size']} | {r['batch']} | {r['pairs_per_s']:.1f} | "
+            f"{fmt(c and c['pairs_per_s'], '.1f')} | "
             f"{fmt(r['device_over_cpu'], '.1f')} | {fmt(r['over_ssim'], '.2f')} | {fmt(r['peak_mb_per_pair'], '.1f')} |"
         )
     print(json.dumps(result["agreement"]))

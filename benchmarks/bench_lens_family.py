@@ -48,7 +48,8 @@ def fit_family(points: torch.Tensor, ideal: torch.Tensor, centre, terms: int, si
 
 
 def summary(rms: list[float], image: list[float] | None = None) -> dict:
-    """Median, worst and share within 1 px of per-view RMS (undistorted px), and with ``image`` the same in the image's px."""
+    """Median, worst and share within 1 px of per-view RMS (undistorted px), and with ``image`` the same in the
+    image's px."""
     out = {}
     for prefix, values in (("", rms), ("image_", image)):
         if values is not None:
@@ -65,8 +66,9 @@ def checked(corners: dict, **lens) -> dict:
 
 def said(s: dict) -> str:
     return (
-        f"corners median {s['median_px']:.3f} px, worst {s['worst_px']:.2f} px, within 1 px {100 * s['within_1px']:.0f} % "
-        f"of views; in the image's px {s['image_median_px']:.3f}, {s['image_worst_px']:.2f}, {100 * s['image_within_1px']:.0f} %"
+        f"corners median {s['median_px']:.3f} px, worst {s['worst_px']:.2f} px, "
+        f"within 1 px {100 * s['within_1px']:.0f} % of views; "
+        f"in the image's px {s['image_median_px']:.3f}, {s['image_worst_px']:.2f}, {100 * s['image_within_1px']:.0f} %"
     )
 
 

@@ -52,7 +52,8 @@ from lensdist_torch.selfcal.model import relief_basis
 
 
 def correspondences(cfg, params, i: int, step: int):
-    """I2's pixels (N, 2) and their exact matches in I1 (N, 2), both inside the frame, the centre and the centred motion."""
+    """I2's pixels (N, 2) and their exact matches in I1 (N, 2), both inside the frame, the centre and the centred
+    motion."""
     h, w = cfg.image.size
     x0, y0 = distortion_center(h, w)
     c = torch.tensor([x0, y0], dtype=torch.float64)

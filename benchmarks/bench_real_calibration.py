@@ -11,9 +11,9 @@ every COLMAP camera model fitted by bundle adjustment on the same tracks (what C
 that model fixed), the homography model (``multiview.planar_*``: one lens and one homography per
 pair on the same matches) and the direct path alone, each over the pixels where the calibration
 inverts (the truth's; the direct path, and an answer saved before the models carried their
-cameras, over their own). ``--answer`` checks a saved answer (the JSON
-of ``lensdist calibrate FRAMES --json``) instead of running it again. The truth is Delta = |p - undistortPoints(p, K, dist,
-P=K)| run to convergence, over the pixels where the calibration's model inverts.
+cameras, over their own). ``--answer`` checks a saved answer (the JSON of ``lensdist calibrate
+FRAMES --json``) instead of running it again. The truth is Delta = |p - undistortPoints(p, K,
+dist, P=K)| run to convergence, over the pixels where the calibration's model inverts.
 
 With ``--corners`` (per view the chessboard's inner corners, {"image_points": {name: [[x, y], ...]},
 "object_points_xy": [[X, Y], ...]}), the check that does not trust any Delta: each answer's OpenCV
@@ -189,8 +189,8 @@ def main() -> None:
     report = {"frames": args.frames, "seconds": seconds, "truth": truth, "answer": res, "rows": rows,
               "multiview_reason": mv.get("reason")}
     print(
-        f"{res['frames']} frames of {w} x {h}, {seconds:.0f} s; truth Delta_avg {truth['delta_avg_px']:.2f} px over the "
-        f"{100 * truth['invertible_fraction']:.1f} % of pixels where the calibration's model inverts"
+        f"{res['frames']} frames of {w} x {h}, {seconds:.0f} s; truth Delta_avg {truth['delta_avg_px']:.2f} px "
+        f"over the {100 * truth['invertible_fraction']:.1f} % of pixels where the calibration's model inverts"
     )
     if "model" not in mv:
         print(f"multi-view path: no answer ({mv.get('reason')})")
@@ -251,16 +251,17 @@ def main() -> None:
                     cam = {"camera_matrix": fit.camera_matrix.tolist(), "dist_coeffs": fit.dist_coeffs.tolist()}
                 checks[f"homography model ({name})"] = (cam["camera_matrix"], cam["dist_coeffs"])
             print(
-                f"the homography model: {planar['model']} about ({planar['centre'][0]:.1f}, {planar['centre'][1]:.1f}), "
-                f"the calibration's principal point ({cal['K'][0][2]:.1f}, {cal['K'][1][2]:.1f}); its bending half-width "
-                f"{planar['bending_halfwidth_px']:.2f} px over the {100 * planar['matched_fraction']:.0f} % of the frame its "
-                "matches reach"
+                f"the homography model: {planar['model']} about "
+                f"({planar['centre'][0]:.1f}, {planar['centre'][1]:.1f}), "
+                f"the calibration's principal point ({cal['K'][0][2]:.1f}, {cal['K'][1][2]:.1f}); "
+                f"its bending half-width {planar['bending_halfwidth_px']:.2f} px "
+                f"over the {100 * planar['matched_fraction']:.0f} % of the frame its matches reach"
             )
             print(
                 f"the homography model's Delta_avg over the pixels where the calibration inverts: {value:.2f} px "
                 f"({100 * value / truth['delta_avg_px']:.1f} % of the truth) [{iv[0]:.2f}, {iv[1]:.2f}], covers "
-                f"{'yes' if report['planar_on_truth_footprint']['covers'] else 'no'} ({planar['delta_avg_user_px']:.2f} "
-                "px over its own footprint, every pixel)"
+                f"{'yes' if report['planar_on_truth_footprint']['covers'] else 'no'} "
+                f"({planar['delta_avg_user_px']:.2f} px over its own footprint, every pixel)"
             )
         report["homography_rms"], report["homography_rms_image_px"] = {}, {}
         for name, (k, dist, ideal) in (

@@ -8,7 +8,8 @@ against another single setting instead (e.g. ``selfcal.occluded_share=0``: the a
 cost).
 
     python benchmarks/bench_relief_cost.py --n 48 --threads 1 [--config configs/realistic.toml]
-    python benchmarks/bench_relief_cost.py --n 24 --threads 1 --config configs/realistic.toml --against selfcal.occluded_share=0
+    python benchmarks/bench_relief_cost.py --n 24 --threads 1 --config configs/realistic.toml \\
+        --against selfcal.occluded_share=0
 """
 
 from __future__ import annotations

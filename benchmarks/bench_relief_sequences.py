@@ -22,8 +22,10 @@ and wrong), "cannot tell", per motion and overall. Results are appended to ``--o
 sequence (a long run keeps what it finished).
 
     python benchmarks/bench_relief_sequences.py --n 20 --threads 2 --out docs/results/bench_relief_sequences.json
-    python benchmarks/bench_relief_sequences.py --n 40 --method direct --out docs/results/bench_relief_sequences_direct.json
-    python benchmarks/bench_relief_sequences.py --start 40 --n 40 --method direct --config RAW.toml --out ..._raw_validation.json
+    python benchmarks/bench_relief_sequences.py --n 40 --method direct \\
+        --out docs/results/bench_relief_sequences_direct.json
+    python benchmarks/bench_relief_sequences.py --start 40 --n 40 --method direct --config RAW.toml \\
+        --out ..._raw_validation.json
 
 (RAW.toml: ``[calibration]`` ``relief_test = 0``, ``relief_rel = 0``: every sequence reports its raw relief
 effect and z, the intervals without the relief term.)

@@ -66,7 +66,7 @@ PER_PAIR = ("estimated_class", "estimated_delta_avg", "delta_avg_std", "planar_d
 
 
 def validation_set(cfg: LensdistConfig, batch: int, limit: int | None) -> dict:
-    """The validation split's test set (its first ``limit`` pairs; all when None), as ``lensdist reproduce`` makes it."""
+    """The validation split's test set (its first ``limit`` pairs; all if None), as ``lensdist reproduce`` makes it."""
     val = validation_config(cfg)
     with tempfile.TemporaryDirectory() as tmp:
         generate(val, tmp, sets=["test"], batch_size=batch, limit=limit, progress=False)
@@ -160,7 +160,8 @@ def per_pair(results: list, data: dict) -> dict:
 
 
 def condition_config(path: str | None, overrides: list[str]) -> LensdistConfig:
-    """The condition's config with ``--set`` SECTION.FIELD=VALUE items applied (the config layer's own parsing and checks)."""
+    """The condition's config with ``--set`` SECTION.FIELD=VALUE items applied (the config layer's own parsing and
+    checks)."""
     try:
         return config_from_dict(apply_overrides(read_toml(path) if path else {}, parse_overrides(overrides)))
     except ValueError as exc:

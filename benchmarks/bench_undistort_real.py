@@ -86,8 +86,8 @@ def main() -> None:
         r.update(found=len(r["views"]), median_px=statistics.median(v), worst_px=max(v),
                  within_1px=sum(x <= 1 for x in v) / len(v))
         print(
-            f"{name}: board found in {r['found']} frames; over the {len(common)} common ones median {r['median_px']:.3f} "
-            f"px, worst {r['worst_px']:.2f} px, within 1 px {100 * r['within_1px']:.0f} %"
+            f"{name}: board found in {r['found']} frames; over the {len(common)} common ones "
+            f"median {r['median_px']:.3f} px, worst {r['worst_px']:.2f} px, within 1 px {100 * r['within_1px']:.0f} %"
         )
     if args.out:
         atomic_write_text(Path(args.out), json.dumps(report, indent=1) + "\n")

@@ -125,7 +125,8 @@ def main(argv=None) -> int:
     }
     table["all unseen scenes"] = unseen
     print(
-        f"{args.pairs} protocol test pairs per scene ({args.pairs - n_d} class R), shipped checkpoints, default [analysis]"
+        f"{args.pairs} protocol test pairs per scene ({args.pairs - n_d} class R), "
+        "shipped checkpoints, default [analysis]"
     )
     print("| scene | method | right | flagged (cannot tell) | right or flagged | confident wrong |")
     print("|---|---|---|---|---|---|")

@@ -104,10 +104,12 @@ def run(args: argparse.Namespace, keypoints: int) -> None:
     if e.numel():
         q = torch.quantile(e, torch.tensor([0.5, 0.9], dtype=e.dtype)).tolist()
         print(
-            f"corner error of the registered pairs: median {q[0]:.4f} px, p90 {q[1]:.4f} px, max {float(e.max()):.4f} px"
+            f"corner error of the registered pairs: median {q[0]:.4f} px, p90 {q[1]:.4f} px, "
+            f"max {float(e.max()):.4f} px"
         )
     print(
-        f"fast path:            {1e3 * (c1 - c0) / n:8.1f} ms CPU {1e3 * (w1 - w0) / n:8.1f} ms wall per pair (batch of {n})"
+        f"fast path:            {1e3 * (c1 - c0) / n:8.1f} ms CPU {1e3 * (w1 - w0) / n:8.1f} ms wall per pair "
+        f"(batch of {n})"
     )
     print(f"features (SIFT+RANSAC): {t_feat[0] / n:6.2f} s CPU   {t_feat[1] / n:6.2f} s wall per pair")
     nfb = max(n - nf, 1)  # the robust call per pair: fast path, then the fallback where it failed

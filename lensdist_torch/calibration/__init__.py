@@ -5,12 +5,15 @@ print or read files):
 
 * :mod:`~lensdist_torch.calibration.lens_answer`: the lens answer every path gives; each path's record derives from it.
 * :mod:`~lensdist_torch.calibration.direct`: the direct photometric path, the pairs' self-calibrations pooled.
-* :mod:`~lensdist_torch.calibration.direct_fits`: its pairs fitted one by one, the failures refitted from their registration.
-* :mod:`~lensdist_torch.calibration.pooling`: how its pairs pool: which count (the good-and-bad mixture), mean, interval.
+* :mod:`~lensdist_torch.calibration.direct_fits`: its pairs fitted one by one, the failures refitted from their
+  registration.
+* :mod:`~lensdist_torch.calibration.pooling`: how its pairs pool: which count (the good-and-bad mixture), mean,
+  interval.
 * :mod:`~lensdist_torch.calibration.sequence_class`: a sequence's class or "cannot tell", shared by every path.
 * :mod:`~lensdist_torch.calibration.multiview`: bundle adjustment on COLMAP's tracks, one shared camera.
 * :mod:`~lensdist_torch.calibration.multiview_fits`: a camera fitted on a reconstruction's tracks, free or held.
-* :mod:`~lensdist_torch.calibration.multiview_evidence`: the lens models' posteriors, held-out evidence, the weighted answer.
+* :mod:`~lensdist_torch.calibration.multiview_evidence`: the lens models' posteriors, held-out evidence, the weighted
+  answer.
 * :mod:`~lensdist_torch.calibration.multiview_runs`: several mappings' run-to-run spread.
 * :mod:`~lensdist_torch.calibration.planar_features`: a plane or a turning camera: one lens, one homography per pair.
 * :mod:`~lensdist_torch.calibration.planar_model`: its residual, Jacobian and Levenberg-Marquardt.

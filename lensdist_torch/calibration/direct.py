@@ -240,7 +240,10 @@ def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = Non
         path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), t.cumsum(0)])
         span = float((path[None] - path[:, None]).norm(dim=-1).max())
         need = min(cfg.motion_steps) * half_diagonal(*frames.shape[-2:])
-        return f"{TOO_LITTLE_MOTION}: the camera moved {span:.1f} px at most between two frames (a pair needs {need:.1f} px)"
+        return (
+            f"{TOO_LITTLE_MOTION}: the camera moved {span:.1f} px at most between two frames "
+            f"(a pair needs {need:.1f} px)"
+        )
     return ("the frames could not be registered: they change, but phase correlation finds no consistent motion "
             "between neighbours (views too far apart or unrelated)")
 
@@ -336,7 +339,8 @@ def calibrate_sequence(
         >>> from lensdist_torch.geometry.distortion import distortion_grid, sample_at_pixels
         >>> grid = distortion_grid([8e-6], [0.0], 160, 200)  # the ideal point of every pixel
         >>> scene = load_scene("gravel")  # a camera panning down 8 px a frame
-        >>> frames = torch.cat([sample_at_pixels(scene, grid + torch.tensor([150.0, 100.0 + 8 * i])) for i in range(10)])
+        >>> frames = torch.cat([sample_at_pixels(scene, grid + torch.tensor([150.0, 100.0 + 8 * i]))
+        ...                     for i in range(10)])
         >>> cal = calibrate_sequence(frames)
         >>> round(cal.k2_user * 1e6, 1), cal.class_label, cal.frames, cal.image_size
         (8.1, '3', 10, (160, 200))

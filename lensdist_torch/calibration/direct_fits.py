@@ -80,7 +80,10 @@ def _translations(shifts: torch.Tensor) -> torch.Tensor:
 
 
 def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
-    """One batch of pairs from the starts ``init``: (a, b), std, residual, planar and relief (a, b), misfit on the CPU, NaN / inf where dropped."""
+    """One batch of pairs from the starts ``init``: (a, b), std, residual, planar and relief (a, b), misfit.
+
+    On the CPU, NaN / inf where dropped.
+    """
     info = estimate_distortion(a, b, init=init, config=selfcal, validate=False)[3]
     # the fit runs on the frames' device; its few numbers per pair come back to the CPU
     ab, std, res, planar, relief = (x.double().cpu() for x in (info.ab, info.delta_avg_std, info.residual,
@@ -111,7 +114,11 @@ def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
 
 
 def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: CalibrationConfig, progress):
-    """Step 3 per pair, from the phase correlation's translations: [(a, b) (P, 2), std (P,), residual (P,), planar, relief, misfit (P,)]."""
+    """Step 3 per pair, from the phase correlation's translations.
+
+    Returns:
+        [(a, b) (P, 2), std (P,), residual (P,), planar, relief, misfit (P,)].
+    """
     selfcal = sequence_selfcal(settings, cfg)
     parts = []
     for s in range(0, len(pairs), cfg.batch_size):
@@ -171,7 +178,11 @@ def refit_from_registration(
 
 
 def reject_residuals(std, res, cfg: CalibrationConfig, misfit: torch.Tensor | None = None) -> torch.Tensor:
-    """Step 3: inf std for pairs whose residual exceeds ``max_residual_ratio`` times the lower quartile, or whose ``misfit`` (:func:`pair_misfit`) exceeds ``max_misfit`` (not registered)."""
+    """Step 3: inf std for the pairs that fail a check.
+
+    A pair fails where its residual exceeds ``max_residual_ratio`` times the lower quartile, or where its
+    ``misfit`` (:func:`pair_misfit`) exceeds ``max_misfit`` (not registered).
+    """
     if misfit is not None:
         std = torch.where(unregistered(misfit, cfg), float("inf"), std)
     if not bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many

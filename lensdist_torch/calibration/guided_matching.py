@@ -133,7 +133,7 @@ def chain_views(matches: PlanarMatches, coefficients, *, centre, size: tuple[int
 
 
 def pair_homography(pairs: dict, views: dict, i: int, j: int) -> torch.Tensor | None:
-    """View i's ideal pixels to view j's: the pair's own homography where it counts, the chain's otherwise (None: unchained)."""
+    """View i's ideal pixels to view j's: the pair's own homography if it counts, else the chain's (None: unchained)."""
     hm = pairs.get((i, j))
     if hm is None and i in views and j in views:
         hm = torch.linalg.inv(views[j]) @ views[i]
@@ -226,7 +226,7 @@ def _guided_pair(predicted: torch.Tensor, target: torch.Tensor, d1: torch.Tensor
 
 def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, config: MultiViewConfig | None = None,
                           settings=None, images: Callable[[int], torch.Tensor] | None = None):
-    """The homography model on a COLMAP database, fitted again on guided matches, then on refined ones (module docstring).
+    """The homography model on a COLMAP database, refitted on guided matches, then on refined ones (module docstring).
 
     The first fit is on the verified matches
     (:func:`~lensdist_torch.calibration.planar_features.self_calibrate_planar`); where it has a lens

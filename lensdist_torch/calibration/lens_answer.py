@@ -37,7 +37,8 @@ class LensAnswer:
     Example:
         >>> nan = float("nan")
         >>> a = LensAnswer(k2_user=nan, k4_user=nan, delta_avg_user_px=nan, delta_avg_user_interval=(nan, nan),
-        ...                delta_max_user_px=nan, delta_max_user_interval=(nan, nan), class_label=None, reason="no pair")
+        ...                delta_max_user_px=nan, delta_max_user_interval=(nan, nan), class_label=None,
+        ...                reason="no pair")
         >>> a.class_label, list(a.to_dict())[:2]
         (None, ['k2_user', 'k4_user'])
         >>> LensAnswer(1e-7, 0.0)

@@ -3,10 +3,11 @@
 A SIFT keypoint sits where a blob of some scale peaks; under the perspective and the lens between
 two views the same blob peaks at a slightly different place, so a match's two points are not the
 same point of the scene to well under a pixel (on real views of a chessboard the refinement
-below moves them by most of a pixel: docs/method.md, section 12). Once a fit has the lens and each pair's homography, the
-second view's neighbourhood of a match is the first view's under a known local map; aligning the
-two patches pins the partner of the first view's point to a few hundredths of a pixel on
-texture (the idea of feature-metric refinement in structure from motion).
+below moves them by most of a pixel: docs/method.md, section 12). Once a fit has the lens and
+each pair's homography, the second view's neighbourhood of a match is the first view's under a
+known local map; aligning the two patches pins the partner of the first view's point to a few
+hundredths of a pixel on texture (the idea of feature-metric refinement in structure from
+motion).
 docs/method.md, section 12, step 11.
 
 For each match (x1 in view i, x2 in view j) of a pair with homography H between ideal points:
@@ -147,7 +148,7 @@ def local_affines(x1: torch.Tensor, homography: torch.Tensor, coefficients, *, c
     Example:
         >>> x = torch.tensor([[100.0, 80.0]], dtype=torch.float64)
         >>> h = torch.tensor([[2.0, 0.0, 5.0], [0.0, 2.0, -3.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        >>> local_affines(x, h, [0.0], centre=None, size=(240, 320)).squeeze(0).tolist()  # no lens: the homography's scale
+        >>> local_affines(x, h, [0.0], centre=None, size=(240, 320)).squeeze(0).tolist()  # no lens: H's scale
         [[2.0, 0.0], [0.0, 2.0]]
     """
     h, w = size

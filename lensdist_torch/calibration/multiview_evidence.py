@@ -189,7 +189,7 @@ def heldout_squared_errors(train, camera, full, frame_ids: Sequence[int]) -> lis
 
 
 def heldout_rms(errors: Sequence[np.ndarray]) -> float:
-    """RMS (px) of the finite squared errors of held-out frames (a point behind a frame's camera has none); NaN for none.
+    """RMS (px) of the finite squared errors of held-out frames (a point behind a frame's camera has none); NaN if none.
 
     Example:
         >>> import numpy as np

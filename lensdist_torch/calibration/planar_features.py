@@ -20,8 +20,9 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 2. **Start**: a_1 over ``planar_scan_range`` (the other terms 0); for each, the homography of
    each of the ``planar_scan_pairs`` pairs with the most matches by COLMAP's LO-RANSAC
    (``pycolmap.estimate_homography_matrix``, ``planar_ransac_px``) on the undistorted points; the
-   a_1 with the most inliers starts, with every pair's homography and inliers there. On repetitive texture (a chessboard) half of the epipolar-verified
-   matches are wrong, and only the homography tells them apart.
+   a_1 with the most inliers starts, with every pair's homography and inliers there. On repetitive
+   texture (a chessboard) half of the epipolar-verified matches are wrong, and only the homography
+   tells them apart.
 3. **Fit**: Levenberg-Marquardt on the lens and every pair's homography together (the pairs'
    8 x 8 blocks eliminated by the Schur complement), on the symmetric transfer error divided by
    the lens's local scale (so, about, in the image's pixels); twice: the matches within
@@ -199,7 +200,11 @@ def _eq4_fit(a: torch.Tensor, centre: list[float], size: tuple[int, int], dl: di
 
 
 def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiViewConfig, step: int):
-    """Step 4: the models n = 1 .. terms, the centre fixed and free, from ``theta0`` (terms,) on the inliers ``inl``: (table, fits)."""
+    """Step 4: the models n = 1 .. terms, the centre fixed and free, from ``theta0`` (terms,) on the inliers ``inl``.
+
+    Returns:
+        (table, fits).
+    """
     h, w = size
     big_r = half_diagonal(h, w)
     table, fits = {}, {}
@@ -230,18 +235,20 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
 
 
 def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, config: MultiViewConfig | None = None):
-    """The answer's Delta_avg (px) over other ``points`` (M, 2) (say, where a reference calibration inverts), with its interval.
+    """The answer's Delta_avg (px) over other ``points`` (M, 2), with its interval.
 
-    The same rules as the answer's own: its jackknife lenses and its models' spread measured on
-    those pixels. ``res``: a :class:`PlanarCalibration` or its dict (the JSON's ``planar`` block).
+    ``points``: say, where a reference calibration inverts. The same rules as the answer's own: its
+    jackknife lenses and its models' spread measured on those pixels. ``res``: a
+    :class:`PlanarCalibration` or its dict (the JSON's ``planar`` block).
 
     Returns:
         (value, (low, high)).
 
     Example:
-        >>> r = {"coefficients": [0.1], "centre": [4.5, 3.5], "model": "planar-1", "jackknife_coefficients": [[0.1], [0.1]],
-        ...      "jackknife_centres": [[4.5, 3.5], [4.5, 3.5]], "models": {"planar-1": {"bic": 0.0, "reprojection_px": 0.5,
-        ...      "coefficients": [0.1], "centre": [4.5, 3.5]}}}
+        >>> r = {"coefficients": [0.1], "centre": [4.5, 3.5], "model": "planar-1",
+        ...      "jackknife_coefficients": [[0.1], [0.1]], "jackknife_centres": [[4.5, 3.5], [4.5, 3.5]],
+        ...      "models": {"planar-1": {"bic": 0.0, "reprojection_px": 0.5, "coefficients": [0.1],
+        ...                              "centre": [4.5, 3.5]}}}
         >>> value, (lo, hi) = delta_avg_where(r, torch.tensor([[0.0, 0.0]], dtype=torch.float64), 8, 10)
         >>> round(value, 4), lo == hi == value  # a corner at r = 1: 10 % of 5.7 px; replicates alike: no width
         (0.5701, True)
@@ -368,8 +375,8 @@ def self_calibrate_planar(
     label, reason = None, ""
     if share < cfg.planar_min_inlier_share:
         reason = (
-            f"not a plane: one homography per pair explains {100 * share:.0f} % of its pair's verified matches (at least "
-            f"{100 * cfg.planar_min_inlier_share:.0f} % needed)"
+            f"not a plane: one homography per pair explains {100 * share:.0f} % of its pair's verified matches "
+            f"(at least {100 * cfg.planar_min_inlier_share:.0f} % needed)"
         )
     elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
         reason = f"interval too wide: +-{half_avg:.2f} px"

@@ -2,10 +2,10 @@
 
 The lens (:mod:`~lensdist_torch.geometry.radial_lens`) maps a pixel p to its ideal point
 c + (p - c) (1 + a_1 r^2 + ... + a_n r^(2n)), r = |p - c| / R (c the distortion centre, the frame
-centre unless the fit frees it; R the frame's half diagonal); n = 2 with c the frame centre is eq. 4. A match between two views of a plane is
-explained by the lens and its pair's homography H (img1's ideal points to img2's, normalised
-frame, H[2, 2] = 1): the residual is the symmetric transfer error, each side divided by the lens's
-factor at the point, so it reads about in the image's pixels (times R).
+centre unless the fit frees it; R the frame's half diagonal); n = 2 with c the frame centre is eq. 4. A
+match between two views of a plane is explained by the lens and its pair's homography H (img1's ideal
+points to img2's, normalised frame, H[2, 2] = 1): the residual is the symmetric transfer error, each
+side divided by the lens's factor at the point, so it reads about in the image's pixels (times R).
 
 Its measures: Delta over the frame where the map is monotone, and how well the map's bending is
 known (a jackknife's half-width of what no homography takes away).
@@ -206,8 +206,8 @@ def pair_homographies(u1: torch.Tensor, u2: torch.Tensor, pair: torch.Tensor, *,
 
     Example:
         >>> u = torch.rand(30, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 100
-        >>> [(p, round(float(h[0, 2]), 3), int(m.sum())) for p, _, h, m in
-        ...  pair_homographies(u, u + 2.0, torch.zeros(30, dtype=torch.long), which=[0], max_error=1.0, seed=0)]  # a shift by 2 px
+        >>> [(p, round(float(h[0, 2]), 3), int(m.sum())) for p, _, h, m in  # a shift by 2 px
+        ...  pair_homographies(u, u + 2.0, torch.zeros(30, dtype=torch.long), which=[0], max_error=1.0, seed=0)]
         [(0, 2.0, 30)]
     """
     pc = pycolmap_or_error()
@@ -251,7 +251,7 @@ def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: in
 
 def bending_halfwidth(theta, replicates: list, *, n: int, size: tuple[int, int], dl: dict, confidence: float,
                        seen: torch.Tensor) -> tuple[float, float]:
-    """The jackknife's half-width (px, RMS) of the lens map's bending where the matches reach, and that share of the frame.
+    """The jackknife's half-width (px, RMS) of the lens map's bending where matches reach, and that share of the frame.
 
     Each replicate's ideal points are mapped onto the answer's by the best affine map (a change of
     the lens's scale or centre is about one); what remains is its bending. Half-width: t on

@@ -188,7 +188,10 @@ def jackknife_interval(value: float, replicates: list[float], extra: float, conf
 
 
 def within_mads(lin, std, cfg: CalibrationConfig) -> torch.Tensor:
-    """(P,) bool: finite, and within ``outlier_mads`` robust deviations (1.4826 MAD, at least the median sigma) of the median."""
+    """(P,) bool: finite, and within ``outlier_mads`` robust deviations of the median.
+
+    A robust deviation: 1.4826 MAD, at least the median sigma.
+    """
     ok = torch.isfinite(lin) & torch.isfinite(std) & (std > 0)
     if not bool(ok.any()):
         return ok

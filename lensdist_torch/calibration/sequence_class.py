@@ -56,7 +56,8 @@ def sequence_class(paper_delta: float, delta: float, half: float, settings: Lens
     if not (math.isfinite(paper_delta) and math.isfinite(delta) and math.isfinite(half)):
         return (
             None,
-            f"no Delta_avg at the paper's frame (eq. 4's fit gave {paper_delta:.3g} px for {delta:.3g} +- {half:.3g} px)",
+            f"no Delta_avg at the paper's frame (eq. 4's fit gave {paper_delta:.3g} px for {delta:.3g} "
+            f"+- {half:.3g} px)",
         )
     return class_or_open(paper_delta, half * paper_delta / max(delta, 1e-12), settings)
 

@@ -13,8 +13,9 @@ classes 1 and 4.
 
 Confidence: the spread of the neighbours' Delta_avg (1.4826 x their median absolute deviation)
 is the std of the estimate; ``confidence = s0 / (s0 + std)`` with ``s0 =
-config.regression.cannot_tell_fraction * Delta_top``, so confidence < 0.5 ("cannot tell") where similar maps came from very different
-lenses, typically nearly empty maps (little motion).
+config.regression.cannot_tell_fraction * Delta_top``, so confidence < 0.5 ("cannot tell")
+where similar maps came from very different lenses, typically nearly empty maps (little
+motion).
 
 Everything fitted is a buffer (float16 for the basis and the training coefficients, to keep
 the checkpoint small); checkpoints carry a format version and the config.
@@ -97,7 +98,8 @@ class DeltaRegressor(nn.Module):
         k: neighbours; default ``config.regression.k``; at most ``config.MAX_NEIGHBOURS``.
 
     Example:
-        >>> reg = DeltaRegressor(12, n_components=3, k=4).fit(torch.rand(50, 12), torch.rand(50) * 14, torch.rand(50) * 79)
+        >>> reg = DeltaRegressor(12, n_components=3, k=4).fit(torch.rand(50, 12), torch.rand(50) * 14,
+        ...                                                   torch.rand(50) * 79)
         >>> reg(torch.rand(2, 12)).delta_avg.shape
         torch.Size([2])
     """

@@ -1,4 +1,4 @@
-"""``[classifier]``, ``[regression]``: the eigen-space classifier and the Delta regression (docs/method.md, section 8)."""
+"""``[classifier]``, ``[regression]``: the eigen-space classifier and Delta regression (docs/method.md, section 8)."""
 
 from __future__ import annotations
 

@@ -124,9 +124,9 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
     """The config a checkpoint of an earlier version was saved with.
 
     A retired key is dropped where it had no effect (``protocol.parallax_px`` outside the
-    realistic protocol, or 0; those of :data:`INERT` always: ``analysis.relief_z``); where it had one, the saved object was made
-    under a protocol this version no longer has, and that is a one-line ValueError saying what
-    replaced it.
+    realistic protocol, or 0; those of :data:`INERT` always: ``analysis.relief_z``); where it
+    had one, the saved object was made under a protocol this version no longer has, and that
+    is a one-line ValueError saying what replaced it.
 
     Example:
         >>> stored_config({"protocol": {"parallax_px": 1.5}}).protocol.relief

@@ -1,4 +1,7 @@
-"""``[image]``, ``[distortion]``, ``[protocol]``: the analysis size, the coefficient ranges and the pair protocol (docs/method.md, sections 1, 6, 7)."""
+"""``[image]``, ``[distortion]``, ``[protocol]``: the analysis size, the coefficient ranges and the pair protocol.
+
+docs/method.md, sections 1, 6, 7.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""``[quality]``: the registration-quality metric's thresholds, temperatures and block size (docs/method.md, sections 2-5)."""
+"""``[quality]``: the registration-quality metric's thresholds, temperatures and block size.
+
+docs/method.md, sections 2-5.
+"""
 
 from __future__ import annotations
 

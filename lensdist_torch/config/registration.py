@@ -141,9 +141,10 @@ class SelfCalConfig:
             weigh in the confidence (``analysis.flat_prior``).
         parallax_width: the bumps' sigma, in half-diagonals.
         parallax_px: the std (px) of the Gaussian prior on each bump's height: how far a
-            relief may move points (MAP; larger: freer relief), chosen on validation pairs: on the realistic protocol the model's freedom mostly fits
-            noise and JPEG (docs/method.md, section 10); the sequence path keeps its own
-            (``calibration.parallax_px``). With ``parallax_evidence`` the std each pair starts from.
+            relief may move points (MAP; larger: freer relief), chosen on validation pairs: on the
+            realistic protocol the model's freedom mostly fits noise and JPEG (docs/method.md,
+            section 10); the sequence path keeps its own (``calibration.parallax_px``). With
+            ``parallax_evidence`` the std each pair starts from.
         parallax_evidence: re-estimate that std per pair from the evidence (MacKay's type-II
             maximum likelihood, after every LM step of the relief): a flat pair drives it down,
             a relief the data pin drives it up, so a flat scene's answer stays by the planar one

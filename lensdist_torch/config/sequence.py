@@ -62,10 +62,10 @@ class CalibrationConfig:
         registered_start: the pairs the pooling would not count (unregistered ones included), or
             that lie more than 3 of their own sigma from its value, are fitted again from their own registration
             (``estimate_homography_robust``: direct, then features + RANSAC; its homography even
-            where it did not pass its own checks) where its corners lie more than one pixel of the fit's coarsest level (2^(selfcal.levels - 1)
-            px) from the phase correlation's translation; the refit replaces the first where its
-            residual is lower. False: the translation alone (views far apart, turned or seen
-            obliquely hold that start in a wrong minimum: docs/method.md, section 10).
+            where it did not pass its own checks) where its corners lie more than one pixel of the fit's
+            coarsest level (2^(selfcal.levels - 1) px) from the phase correlation's translation; the refit
+            replaces the first where its residual is lower. False: the translation alone (views far apart,
+            turned or seen obliquely hold that start in a wrong minimum: docs/method.md, section 10).
 
     Example:
         >>> import dataclasses

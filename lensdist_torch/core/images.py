@@ -59,7 +59,7 @@ _CHUNK_PIXELS = 1 << 20
 
 
 def should_validate(validate: bool) -> bool:
-    """Whether to run the value checks (NaN, Inf, ranges: each a host sync): asked for, and not while torch.compile traces.
+    """Whether to run the value checks (NaN, Inf, ranges: each a host sync): asked, and not while torch.compile traces.
 
     The one switch of the package's value checks: every entry point's ``validate`` (the
     metric's, the estimators') and :func:`check_image`'s ``finite`` go through it.

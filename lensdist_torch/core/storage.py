@@ -287,7 +287,8 @@ def load_versioned(
     Example:
         >>> with tempfile.TemporaryDirectory() as tmp:
         ...     sha = save_versioned(Path(tmp) / "m.pt", "demo", 1, {"w": torch.arange(3)})
-        ...     payload = load_versioned(Path(tmp) / "m.pt", kind="demo", version=1, what="demo", sha256=sha, digest=True)
+        ...     payload = load_versioned(Path(tmp) / "m.pt", kind="demo", version=1, what="demo", sha256=sha,
+        ...                              digest=True)
         >>> sorted(payload), payload["w"].tolist()  # the digest checked and removed
         (['format_version', 'kind', 'w'], [0, 1, 2])
     """
@@ -320,7 +321,8 @@ def load_versioned(
             raise error(f"{noun} {path} is nested too deeply to be a lensdist file") from None
         if not isinstance(stored, str) or stored != actual:
             raise error(
-                f"{noun} {path} is corrupted or edited: its content does not match the digest recorded when it was written"
+                f"{noun} {path} is corrupted or edited: "
+                "its content does not match the digest recorded when it was written"
             )
     return payload
 

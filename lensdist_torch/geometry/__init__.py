@@ -7,7 +7,8 @@
 * :mod:`~lensdist_torch.geometry.homography`: homographies on points, the class-R perturbation, corner error, motion.
 * :mod:`~lensdist_torch.geometry.opencv_model`: eq. 4 as OpenCV camera parameters, in pure torch.
 * :mod:`~lensdist_torch.geometry.undistort`: undistorted images, batched and differentiable.
-* :mod:`~lensdist_torch.geometry.radial_lens`: a radial lens about a distortion centre (eq. 4 its special case) and its inverse.
+* :mod:`~lensdist_torch.geometry.radial_lens`: a radial lens about a distortion centre (eq. 4 its special case) and its
+  inverse.
 
 Built on them: one pair's registration (:mod:`lensdist_torch.registration`) and self-calibration
 (:mod:`lensdist_torch.selfcal`), a whole sequence's calibration (:mod:`lensdist_torch.calibration`).

@@ -294,7 +294,8 @@ def estimated_class(
 
     Example:
         >>> d = torch.tensor([0.1, 5.0, 5.0])  # Delta_avg estimates (px at 320 x 424), the last one not finite:
-        >>> estimated_class(d, torch.tensor([0.1, 5.0, float("nan")]), metric="delta_avg", config=LensdistConfig()).tolist()
+        >>> estimated_class(d, torch.tensor([0.1, 5.0, float("nan")]), metric="delta_avg",
+        ...                 config=LensdistConfig()).tolist()
         [4, 1, 4]
     """
     t = config.analysis.no_distortion_px if threshold is None else threshold

@@ -21,8 +21,9 @@ side of p0 as p, at a distorted radius r where r (1 + k2 r^2 + k4 r^4) still inc
 [0, r] (:func:`monotone_branch`). Strongly negative coefficients make eq. 4 fold over: past the
 fold an ideal radius has no preimage or a second one (a mirrored or folded-back position whose
 round trip is exact all the same); such pixels are marked invalid, never filled with a wrong
-sample. Outside the mask the image is 0. Gradients flow to the image and to k2, k4 (as for any bilinear warp, the gradient
-with respect to the coordinates is that of the bilinear interpolant).
+sample. Outside the mask the image is 0. Gradients flow to the image and to k2, k4 (as for any
+bilinear warp, the gradient with respect to the coordinates is that of the bilinear
+interpolant).
 
 A lens that eq. 4 cannot follow (the homography model's: up to three radial terms about its own
 distortion centre, :mod:`~lensdist_torch.geometry.radial_lens`) has its own grid and view,
@@ -121,7 +122,9 @@ def optimal_view(k2: float, k4: float, height: int, width: int, *, alpha: float)
 def lens_optimal_view(
     coefficients, centre, height: int, width: int, *, alpha: float
 ) -> tuple[float, float, float, float]:
-    """:func:`optimal_view` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
+    """:func:`optimal_view` for the radial lens a_1 .. a_n about ``centre``.
+
+    The lens of :mod:`~lensdist_torch.geometry.radial_lens`.
 
     Example:
         >>> from lensdist_torch.geometry.frame import half_diagonal
@@ -141,7 +144,10 @@ def lens_optimal_view(
 
 
 def _view(ideal, height: int, width: int, alpha: float, what: str, model: str) -> tuple[float, float, float, float]:
-    """The view of :func:`optimal_view` from ``ideal``: a frame edge's (N, 2) pixels to those it keeps, at their ideal positions."""
+    """The view of :func:`optimal_view` from ``ideal``.
+
+    ``ideal``: a frame edge's (N, 2) pixels to those it keeps, at their ideal positions.
+    """
     if not (type(height) is int and type(width) is int and height > 1 and width > 1):
         raise ValueError(f"height and width must be ints above 1, got {height!r} and {width!r}")
     if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 <= alpha <= 1.0:
@@ -237,11 +243,11 @@ def undistortion_grid(
 def lens_undistortion_grid(
     coefficients, centre, height: int, width: int, *, dtype: torch.dtype = torch.float32, device=None, view=None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`undistortion_grid` for the radial lens a_1 .. a_n about ``centre`` (:mod:`~lensdist_torch.geometry.radial_lens`).
+    """:func:`undistortion_grid` for the radial lens a_1 .. a_n about ``centre``.
 
-    ``centre``: (x, y) in pixels, or None for the frame centre. Valid where the inverse is exact
-    and on the lens's monotone branch (:func:`~lensdist_torch.geometry.radial_lens.lens_distorted_points`)
-    and inside the distorted frame.
+    The lens of :mod:`~lensdist_torch.geometry.radial_lens`; ``centre``: (x, y) in pixels, or None for
+    the frame centre. Valid where the inverse is exact and on the lens's monotone branch
+    (:func:`~lensdist_torch.geometry.radial_lens.lens_distorted_points`) and inside the distorted frame.
 
     Returns:
         grid: (1, H, W, 2) pixel coordinates of each ideal pixel in the distorted image.
@@ -284,7 +290,8 @@ def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int
 
     Example:
         >>> K = [[60.0, 0.0, 23.5], [0.0, 60.0, 15.5], [0.0, 0.0, 1.0]]
-        >>> grid, valid = opencv_undistortion_grid(K, [0.0] * 5, 32, 48, dtype=torch.float64)  # no distortion: every pixel itself
+        >>> grid, valid = opencv_undistortion_grid(K, [0.0] * 5, 32, 48,  # no distortion: every pixel itself
+        ...                                        dtype=torch.float64)
         >>> bool((grid[0] - pixel_grid(32, 48, torch.float64)).abs().max() < 1e-12), float(valid.mean())
         (True, 1.0)
     """
@@ -309,11 +316,12 @@ def opencv_undistortion_grid(camera_matrix, dist_coeffs, height: int, width: int
 def opencv_optimal_view(
     camera_matrix, dist_coeffs, height: int, width: int, *, alpha: float
 ) -> tuple[float, float, float, float]:
-    """:func:`optimal_view` for an OpenCV camera: the frame's edges at their converged ideal positions, where they invert.
+    """:func:`optimal_view` for an OpenCV camera: the frame edges at their converged ideal positions where they invert.
 
     Example:
         >>> K = [[60.0, 0.0, 23.5], [0.0, 60.0, 15.5], [0.0, 0.0, 1.0]]
-        >>> [round(v, 9) + 0.0 for v in opencv_optimal_view(K, [0.0] * 5, 32, 48, alpha=1.0)]  # no distortion: the frame itself
+        >>> [round(v, 9) + 0.0  # no distortion: the frame itself
+        ...  for v in opencv_optimal_view(K, [0.0] * 5, 32, 48, alpha=1.0)]
         [1.0, 1.0, 0.0, 0.0]
     """
     k = torch.as_tensor(camera_matrix, dtype=torch.float64)

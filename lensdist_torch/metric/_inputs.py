@@ -55,7 +55,7 @@ def _number(x: float) -> str:
 
 
 def _range_error(name: str, lo: float, hi: float, data_range: float, tolerance: float = RANGE_TOLERANCE) -> str | None:
-    """The one-line error for a float image with values outside [0, data_range] by more than ``tolerance`` of it, or None."""
+    """The one-line error for a float image with values outside [0, data_range] by over ``tolerance`` of it, or None."""
     eps = tolerance * data_range
     if data_range == 1.0:
         if hi > 1.0 + eps:

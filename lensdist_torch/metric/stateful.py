@@ -95,7 +95,8 @@ def _result(quality_sum, map_sum, num_pairs, num_skipped) -> QualityMetricResult
         if skipped:
             raise RuntimeError(
                 f"compute() has no pair to average: the {skipped} pair(s) added had nothing to measure "
-                "(no pixel of the mask valid after its 3 x 3 erosion, or flat images: every valid pixel in the risk map)"
+                "(no pixel of the mask valid after its 3 x 3 erosion, or flat images: "
+                "every valid pixel in the risk map)"
             )
         raise RuntimeError("compute() needs at least one update() with a pair (or call it after reset + update)")
     return QualityMetricResult(

@@ -10,10 +10,10 @@ integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with the motion 
    not misregistration), both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px), a pyramid of 2 x 2 means.
 2. Initial translation by phase correlation (Hann window, sub-pixel parabola) at 1/8, unless
    ``init`` is given.
-3. Inverse-compositional Gauss-Newton (Baker-Matthews) on the 8 homography parameters at 1/4, then
-   at full resolution (a 1/2 level costs more iterations than it saves), in the normalised frame
-   u of :mod:`~lensdist_torch.geometry.frame` (centred, in half-diagonals). At full resolution the template (img1) pixels have stride 2 while img2 is
-   sampled at full resolution: a quarter of the work for the same accuracy on smoothed images.
+3. Inverse-compositional Gauss-Newton (Baker-Matthews) on the 8 homography parameters at 1/4, then at full resolution (a
+   1/2 level costs more iterations than it saves), in the normalised frame u of :mod:`~lensdist_torch.geometry.frame`
+   (centred, in half-diagonals). At full resolution the template (img1) pixels have stride 2 while img2 is sampled at
+   full resolution: a quarter of the work for the same accuracy on smoothed images.
 4. A level uses an axis-aligned rectangle of template pixels inscribed in the overlap, ``margin``
    level px inside img2. With separable masks the Hessian and the steepest-descent sums are image
    moments sum(g_a g_b u^i v^j), one small batched matmul each; the (B, 8, N) steepest-descent

@@ -52,7 +52,7 @@ def _sift(max_keypoints: int, device: torch.device) -> SIFTFeature:
 
 
 def _describe(img: torch.Tensor, max_keypoints: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """One image (1, C, H, W) -> its keypoints' centres (K, 2) and RootSIFT descriptors (K, 128), flat patches dropped."""
+    """One image (1, C, H, W) -> its keypoints' centres (K, 2), RootSIFT descriptors (K, 128); flat patches dropped."""
     lafs, resp, d = _sift(max_keypoints, img.device)(to_grey(img).float())
     keep = (resp[0] > 0) & torch.isfinite(d[0]).all(1)  # a flat patch has no response
     return get_laf_center(lafs)[0][keep], d[0][keep]

@@ -9,7 +9,8 @@ Modules:
 * :mod:`~lensdist_torch.workflows.pair_analysis`: a pair's analysis as one record, with the CLI's JSON and text.
 * :mod:`~lensdist_torch.workflows.decision`: the honest answer, the calibrated confidence, the domain checks.
 * :mod:`~lensdist_torch.workflows.confidence`: the confidence's Platt map and its reliability.
-* :mod:`~lensdist_torch.workflows.decision_fit`: the decision fitted on a validation split (R threshold, std scales, Platt map).
+* :mod:`~lensdist_torch.workflows.decision_fit`: the decision fitted on a validation split (R threshold, std scales,
+  Platt map).
 * :mod:`~lensdist_torch.workflows.texture`: the scenes' gradient histograms of the learned methods' domain check.
 * :mod:`~lensdist_torch.workflows.evaluate`: every method on a generated test set, through the analysis path.
 * :mod:`~lensdist_torch.workflows.reports`: an evaluation's figures, Markdown and JSON.

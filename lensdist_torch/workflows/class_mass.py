@@ -46,7 +46,8 @@ def result_field(result, key: str, default=None):
     a saved ``to_json()``, or the few keys a synthetic validation split gives.
 
     Example:
-        >>> result_field({"delta_avg_std": None}, "delta_avg_std", math.inf), result_field({"in_domain": True}, "in_domain")
+        >>> (result_field({"delta_avg_std": None}, "delta_avg_std", math.inf),
+        ...  result_field({"in_domain": True}, "in_domain"))
         (inf, True)
     """
     attribute = {json_key: name for name, json_key in JSON_KEYS.items()}.get(key, key)
@@ -100,9 +101,11 @@ def rescored_relief_found(res, cfg: LensdistConfig) -> bool:
     Example:
         >>> import dataclasses
         >>> from lensdist_torch.config import LensdistConfig
-        >>> res = {"estimated_delta_avg": 7.0, "delta_avg_std": 0.2, "planar_delta_avg": 7.0, "planar_delta_avg_std": 0.2,
+        >>> res = {"estimated_delta_avg": 7.0, "delta_avg_std": 0.2,
+        ...        "planar_delta_avg": 7.0, "planar_delta_avg_std": 0.2,
         ...        "relief_delta_avg": 7.6, "relief_delta_avg_std": 0.4}  # class 2: mass 0.15 under 7.6 +- 0.4
-        >>> strict = LensdistConfig(analysis=dataclasses.replace(LensdistConfig().analysis, relief_mass=0.1))  # below 0.1 only
+        >>> strict = LensdistConfig(
+        ...     analysis=dataclasses.replace(LensdistConfig().analysis, relief_mass=0.1))  # below 0.1 only
         >>> rescored_relief_found(res, LensdistConfig()), rescored_relief_found(res, strict)
         (True, False)
     """

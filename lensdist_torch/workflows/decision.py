@@ -38,8 +38,8 @@ __all__ = ["REASONS", "in_user_pixels", "class_distance", "domain_checks", "deci
 
 #: The codes of ``cannot_tell_reasons``, in the order they are listed: the registration failed,
 #: the views overlap too little, no estimate, too little motion, relief found (the planar and
-#: the plane + parallax models put the pair in different classes), a low confidence, out of the learned methods' domain, an answer without a
-#: confidence that the self-calibration does not confirm.
+#: the plane + parallax models put the pair in different classes), a low confidence, out of the learned methods'
+#: domain, an answer without a confidence that the self-calibration does not confirm.
 REASONS = (
     "registration",
     "overlap",
@@ -128,7 +128,8 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
         out.append("registration failed: the pair could not be aligned by a homography; the result is not meaningful")
     if res["overlap"] < cfg.analysis.min_overlap:
         out.append(
-            f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): too little to judge"
+            f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): "
+            "too little to judge"
         )
     aligned = res["registration_ok"] and res["overlap"] >= cfg.analysis.min_overlap  # else that is the reason given
     low = _low_confidence(res, cfg)

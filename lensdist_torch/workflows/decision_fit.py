@@ -179,7 +179,8 @@ def interval_coverage(results: list, data: dict, config: LensdistConfig) -> dict
 
     Example:
         >>> r = {"in_domain": True, "estimated_delta_avg": 5.0, "delta_avg_std": 0.5, "motion_px": 9.0}
-        >>> interval_coverage([r, r | {"estimated_delta_avg": 7.0}], {"delta_avg": torch.tensor([5.5, 5.5])}, LensdistConfig())
+        >>> interval_coverage([r, r | {"estimated_delta_avg": 7.0}], {"delta_avg": torch.tensor([5.5, 5.5])},
+        ...                   LensdistConfig())
         {'pairs': 2, 'coverage': 0.5}
     """
     intervals = {
@@ -254,7 +255,10 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
 
 
 def _std_fit(results: list, data: dict, config: LensdistConfig) -> tuple[float, float, float]:
-    """(log-loss, selfcal_std_scale, flat_prior) of the least log-loss over the config's scored pairs; inf where nothing is scored."""
+    """(log-loss, selfcal_std_scale, flat_prior) of the least log-loss over the config's scored pairs.
+
+    The log-loss is inf where nothing is scored.
+    """
     a = config.analysis
     keep = scored_pairs(results, config)  # fixed: the scores compare one set of pairs
     right = _right(results, data, config, keep)
@@ -312,13 +316,12 @@ def _fit_withholding(results: list, data: dict, config: LensdistConfig, scale_pr
 
 
 def answers(results: list, data: dict, config: LensdistConfig) -> dict:
-    """{"pairs", "answered", "cannot_tell", "precision", "precision_bound"} of the self-calibration's answers under ``config``.
+    """{"pairs", "answered", "cannot_tell", "precision", "precision_bound"} of the self-calibration's answers.
 
-    A pair is answered where it is scored (:func:`scored_pairs`) and its calibrated confidence
-    reaches ``analysis.min_confidence``; "cannot tell" is the share of all pairs not answered
-    (every reason), precision the share of the answers whose class is right (NaN without one),
-    precision_bound the lower end of its 95 % interval
-    (:func:`~lensdist_torch.workflows.confidence.precision_bound`).
+    Under ``config``, a pair is answered where it is scored (:func:`scored_pairs`) and its calibrated confidence
+    reaches ``analysis.min_confidence``; "cannot tell" is the share of all pairs not answered (every reason),
+    precision the share of the answers whose class is right (NaN without one), precision_bound the lower end of
+    its 95 % interval (:func:`~lensdist_torch.workflows.confidence.precision_bound`).
 
     Example:
         >>> r = {"in_domain": True, "estimated_delta_avg": 5.0, "delta_avg_std": 0.2, "motion_px": 9.0}

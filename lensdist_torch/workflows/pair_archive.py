@@ -160,7 +160,7 @@ def _fields(path: Path, number: int, line: str, header: list[str] | None) -> dic
 
 
 def pair_inputs(file: str | Path) -> list[PairInput]:
-    """The pairs listed in ``file``: CSV with columns ``img1``, ``img2`` (and optionally ``camera``), or two paths per line.
+    """The pairs listed in ``file``: CSV with columns ``img1``, ``img2`` (optionally ``camera``), or two paths per line.
 
     Blank lines and ``#`` comments are skipped; a CSV file is one whose first line names
     ``img1`` or ``img2`` (case aside), and then both must be columns; relative paths are
@@ -204,7 +204,9 @@ def pair_inputs(file: str | Path) -> list[PairInput]:
 
 
 def pair_digest(img1: str | Path, img2: str | Path) -> str:
-    """SHA-256 (hex) of a pair: each image's name, size and bytes (:func:`~lensdist_torch.calibration.controllers.archive.input_digest`), in order.
+    """SHA-256 (hex) of a pair: each image's name, size and bytes, in order.
+
+    Each image's digest is :func:`~lensdist_torch.calibration.controllers.archive.input_digest`.
 
     Example:
         >>> import tempfile
@@ -223,7 +225,7 @@ def pair_digest(img1: str | Path, img2: str | Path) -> str:
 
 def pair_settings_digest(*, method: str = "selfcal", checkpoint=None, checkpoint_max=None, device=None,
                          settings: LensdistConfig | None = None) -> str:
-    """SHA-256 (hex) of what decides a pair's answer besides its images: the method, the checkpoints' bytes, every setting.
+    """SHA-256 (hex) of what decides a pair's answer besides its images: the method, checkpoint bytes, every setting.
 
     Also the device's kind and the library's version; a checkpoint is a path (None: the shipped one).
 
@@ -250,7 +252,7 @@ def pair_settings_digest(*, method: str = "selfcal", checkpoint=None, checkpoint
 
 def pair_row(answer: dict, *, pair: PairInput, seconds: float, digest: str, settings: str, answer_file: str,
              version: str) -> PairRow:
-    """The row of a pair's answer: the ``to_json()`` of its :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`.
+    """The row of a pair's answer: ``to_json()`` of its :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`.
 
     Example:
         >>> answer = {"method": "selfcal", "class": None, "delta_avg": None, "delta_avg_interval": None,

@@ -263,7 +263,8 @@ def _md_calibration(cal: dict) -> list[str]:
     lines += ["| method | split | pairs | ECE before | ECE after |", "|---|---|---|---|---|"]
     for row in cal.get("ece", []):
         lines.append(
-            f"| {row['method']} | {row['split']} | {row['pairs']} | {_pct(100 * row['before'])} | {_pct(100 * row['after'])} |"
+            f"| {row['method']} | {row['split']} | {row['pairs']} | "
+            f"{_pct(100 * row['before'])} | {_pct(100 * row['after'])} |"
         )
     if cal.get("intervals"):
         lines += [
@@ -300,8 +301,9 @@ def report_markdown(report: dict) -> str:
         p_rate = f"{paper['rate']:.1f} %" if paper else "-"
         p_rej = f"{paper['confusion'][4][4]} of 100" if paper else "-"
         lines.append(
-            f"| {name} | {_pct(fig['rate'])} ({fig['correct']}/{fig['total']}) | {_pct(fig.get('cannot_tell_share'))} | "
-            f"{_pct(fig.get('confident_rate'))} | {fig.get('confident_wrong', '-')} | {fig['rejected_R']} of {fig['n_R']} | "
+            f"| {name} | {_pct(fig['rate'])} ({fig['correct']}/{fig['total']}) | "
+            f"{_pct(fig.get('cannot_tell_share'))} | {_pct(fig.get('confident_rate'))} | "
+            f"{fig.get('confident_wrong', '-')} | {fig['rejected_R']} of {fig['n_R']} | "
             f"{p_rate} | {p_rej} | {fig.get('registration_failed', '-')} |"
         )
     lines.append("")

@@ -121,7 +121,8 @@ def reproduce(
         "title": "lensdist reproduce: the paper's Tables 1 and 2" + (" (quick: a tenth of the pairs)" if quick else ""),
         "protocol": (
             f"{p.n_train} training pairs, {p.n_test_distorted} distorted + {p.n_test_undistorted} class-R test pairs "
-            f"on the scenes {list(p.scenes)}, {config.image.height} x {config.image.width}; {_generation_note(gen, t_gen)}; "
+            f"on the scenes {list(p.scenes)}, {config.image.height} x {config.image.width}; "
+            f"{_generation_note(gen, t_gen)}; "
             f"registration failed for {gen['sets']['train'].get('registration_failed', '?')} training "
             f"and {gen['sets']['test'].get('registration_failed', '?')} test pairs (at generation)."
         ),

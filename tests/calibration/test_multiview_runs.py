@@ -18,7 +18,8 @@ Z = 1.959963984540054  # the normal quantile at 97.5 %: the models' posteriors a
 
 
 def _cal(d, lo, hi, label="4", reason="", registered=28, rms=1.3, paper=None):
-    """A reconstruction's answer; ``paper``: its Delta_avg at the paper's frame (default d: a frame of the paper's size)."""
+    """A reconstruction's answer; ``paper``: its Delta_avg at the paper's frame (default d: a frame of the paper's
+    size)."""
     return MultiViewCalibration(
         model="RADIAL", camera_matrix=[[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1]], dist_coeffs=[-0.2, 0.05, 0, 0, 0],
         delta_avg_user_px=d, delta_avg_user_interval=(lo, hi), delta_max_user_px=2 * d,

@@ -59,7 +59,8 @@ def test_the_true_lens_leaves_only_the_noise_in_image_pixels():
     assert max(homography_rms(K, DIST, _views(0.0), image_px=True)) < 1e-6  # no noise: every corner on its homography
     sigma = 0.4
     rms = homography_rms(K, DIST, _views(sigma, seed=3), image_px=True)
-    # a least-squares fit of 8 parameters to 96 coordinates leaves sqrt((96 - 8) / 96) of the noise, per corner 2 coordinates
+    # a least-squares fit of 8 parameters to 96 coordinates leaves sqrt((96 - 8) / 96) of the noise,
+    # per corner 2 coordinates
     expected = sigma * math.sqrt(2 * (96 - 8) / 96)
     assert all(0.7 * expected < r < 1.3 * expected for r in rms), (rms, expected)
     # the undistorted frame magnifies this barrel lens's edges: its RMS is larger

@@ -1,4 +1,5 @@
-"""OpenCV's camera fitted to a lens is the same from call to call (a calibration's JSON is reproducible byte for byte)."""
+"""OpenCV's camera fitted to a lens is the same from call to call
+(a calibration's JSON is reproducible byte for byte)."""
 
 import pytest
 import torch

@@ -141,7 +141,8 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
         self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg).guided is None
     )  # the default: the first fit
     # the matches refined against the frames (sub-pixel patch alignment), measured 2026-11-28: the first fit's
-    # 0.55 px RMS transfer error -> 0.19, 26.15 px [22.58, 29.72]; after guided matching 0.81 -> 0.24, 26.31 [25.66, 26.95]
+    # 0.55 px RMS transfer error -> 0.19, 26.15 px [22.58, 29.72];
+    # after guided matching 0.81 -> 0.24, 26.31 [25.66, 26.95]
     for c, before in ((cfg, res), (forced, guided)):
         refined = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=c,
                                         images=lambda v: load_image(REAL / names[v])[0, 0])

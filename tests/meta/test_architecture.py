@@ -109,7 +109,8 @@ def test_no_module_too_long():
 def test_import_loads_no_application_layer():
     code = (
         "import sys, lensdist_torch\n"
-        "bad = [m for m in sys.modules if m.startswith(('lensdist_torch.data', 'lensdist_torch.workflows', 'lensdist_torch.cli'))"
+        "bad = [m for m in sys.modules if m.startswith(('lensdist_torch.data', 'lensdist_torch.workflows', "
+        "'lensdist_torch.cli'))"
         " or m == 'matplotlib']\n"
         "print(','.join(bad))\n"
     )

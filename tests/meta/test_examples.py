@@ -2,9 +2,10 @@
 which the doctests (``pytest --doctest-modules``, as CI runs them) execute.
 
 Public names are those of ``lensdist_torch.__all__`` and of its subpackages' ``__all__`` (core,
-classify, data, geometry, registration, selfcal, calibration, workflows: :data:`PACKAGES`). Each example must also be one that the
-doctests run: in the object's own docstring, found by :mod:`doctest` in the module that defines it
-(an inherited docstring, or a ``>>>`` that does not start a line, would pass the first check only).
+classify, data, geometry, registration, selfcal, calibration, workflows: :data:`PACKAGES`). Each
+example must also be one that the doctests run: in the object's own docstring, found by
+:mod:`doctest` in the module that defines it (an inherited docstring, or a ``>>>`` that does not
+start a line, would pass the first check only).
 
 Plain constants (tuples, strings, numbers, ...) cannot carry a docstring of their own and are
 skipped; ``CLASS_LABELS`` is shown in the example of its module, ``geometry/distortion.py``.

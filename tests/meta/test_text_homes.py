@@ -33,7 +33,8 @@ def _comments(path: Path) -> list[tuple[int, str]]:
 
 
 def stale_text(path: Path, root: Path = ROOT) -> list[str]:
-    """``path:line: text`` for each docstring or comment of a .py file, or comment of a .toml file, that dates a figure or names footage."""
+    """``path:line: text`` for each docstring or comment of a .py file, or comment of a .toml file, that dates a figure
+    or names footage."""
     if path.suffix == ".toml":
         found = [(i + 1, line.split("#", 1)[1]) for i, line in enumerate(path.read_text().splitlines()) if "#" in line]
     else:

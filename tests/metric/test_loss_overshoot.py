@@ -37,7 +37,7 @@ def test_a_bicubic_overshoot_is_measured_with_its_gradient(pair):
 
 
 def test_bicubic_overshoot_is_bounded_by_the_constant():
-    """The worst pattern for a half-pixel bicubic shift (a = -0.75): +1 under the positive taps, 0 under the negative."""
+    """The worst pattern for a half-pixel bicubic shift (a = -0.75): +1 under positive taps, 0 under the negative."""
     w = torch.tensor([-0.09375, 0.59375, 0.59375, -0.09375])  # the kernel at t = 0.5
     w2 = w[:, None] * w[None, :]
     over = float(w2.clamp_min(0).sum()) - 1

@@ -115,8 +115,8 @@ def test_the_prior_narrows_the_relief_and_its_interval():
     thousands of samples they outweigh any prior)."""
     i1, i2, true = relief_only_pairs(0.06, n=4)
     planar = _errors(i1, i2, true, PLANAR)[1].delta_avg
-    # the posterior std (Gauss-Newton, clusters = 0, without the motion floor); the cluster-robust one may widen where a tight
-    # prior leaves a smooth misfit that the relief would have taken
+    # the posterior std (Gauss-Newton, clusters = 0, without the motion floor); the cluster-robust one may widen where
+    # a tight prior leaves a smooth misfit that the relief would have taken
     infos = [_errors(i1, i2, true, dataclasses.replace(RELIEF, parallax_test=0.0, parallax_px=p, clusters=0,
                                                        small_motion_error=0.0, parallax_evidence=False))[1]
              for p in (100.0, 1.0, 0.01)]

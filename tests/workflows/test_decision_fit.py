@@ -58,7 +58,8 @@ def test_a_wider_std_lowers_the_confidence_of_an_estimate_near_a_boundary():
 
 @pytest.fixture(scope="module")
 def analysed():
-    """Test pair 7 of the protocol (answered: class 2; pair 5 until the relief prior became 0.2 px, now "cannot tell: relief"): the two images and the config, at 160 x 216."""
+    """Test pair 7 of the protocol (answered: class 2; pair 5 until the relief prior became 0.2 px, now
+    "cannot tell: relief"): the two images and the config, at 160 x 216."""
     cfg = LensdistConfig()
     cfg = dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, height=160, width=216))
     scenes, _ = load_scenes(cfg)
@@ -68,7 +69,8 @@ def analysed():
 
 @pytest.mark.parametrize("k, w, q", [(1.0, 0.8, 1.0), (1.7, 0.3, 0.2)])
 def test_rescored_confidence_is_what_analyze_says(analysed, k, w, q):
-    """The raw confidence and the relief flag recomputed from a result's kept answers are analyze's own, under the same config."""
+    """The raw confidence and the relief flag recomputed from a result's kept answers are analyze's own, under the
+    same config."""
     img1, img2, base = analysed
     cfg = _with(base, selfcal_std_scale=k, flat_prior=w, relief_mass=q)
     res = analyze_pair(img1, img2, method="selfcal", config=cfg)

@@ -36,7 +36,8 @@ LENS = ([0.22, 0.06, 0.03], [70.0, 41.0])  # barrel about a centre 6.5 px right 
 
 
 def _scene() -> torch.Tensor:
-    """The gravel scene smoothed (a quarter of the size, enlarged again): bilinear resampling twice stays exact to ~0.3 %."""
+    """The gravel scene smoothed (a quarter of the size, enlarged again): bilinear resampling twice stays exact to
+    ~0.3 %."""
     small = torch.nn.functional.interpolate(load_scene("gravel"), size=(H // 4, W // 4), mode="area")
     return torch.nn.functional.interpolate(small, size=(H, W), mode="bicubic", align_corners=True).clamp(0, 1)
 

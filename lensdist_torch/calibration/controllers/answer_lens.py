@@ -11,9 +11,10 @@ and the answer's own lens is what undistorting and verifying must use:
   OpenCV camera (tangential terms included).
 
 Eq. 4 itself is a lens too, {"kind": "eq4", "k2", "k4"} (:func:`eq4_lens`), so undistorting and
-verifying take one path whichever answered. Pixels here are those of the answer's ``image_size``; :func:`scale_lens` moves a lens to frames
-scaled by a factor (the normalised coefficients stay, the centre, principal point and focal
-length scale about pixel centres at integers: (c + 0.5) s - 0.5).
+verifying take one path whichever answered. Pixels here are those of the answer's
+``image_size``; :func:`scale_lens` moves a lens to frames scaled by a factor (the normalised
+coefficients stay, the centre, principal point and focal length scale about pixel centres at
+integers: (c + 0.5) s - 0.5).
 """
 
 from __future__ import annotations
@@ -104,10 +105,11 @@ def _args(lens: dict) -> tuple:
 
 
 def lens_ideal(lens: dict, points: torch.Tensor, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(ideal (..., 2), ok (...,)): the ideal pixels of distorted ``points`` (float64) under ``lens``, and where it inverts.
+    """(ideal (..., 2), ok (...,)): ideal pixels of distorted ``points`` (float64) under ``lens``, and where it inverts.
 
     Example:
-        >>> lens = {"kind": "opencv", "camera_matrix": [[100.0, 0, 50], [0, 100, 40], [0, 0, 1]], "dist_coeffs": [-0.4, 0, 0, 0]}
+        >>> lens = {"kind": "opencv", "camera_matrix": [[100.0, 0, 50], [0, 100, 40], [0, 0, 1]],
+        ...         "dist_coeffs": [-0.4, 0, 0, 0]}
         >>> ideal, ok = lens_ideal(lens, torch.tensor([[95.0, 40.0]], dtype=torch.float64), 80, 100)
         >>> [round(v, 6) for v in ideal[0].tolist()], ok.tolist()
         ([100.0, 40.0], [True])

@@ -242,7 +242,7 @@ class _Calibrations(ArchiveBook):
                           digest=digest, settings=self.settings)
 
     def finish(self, inp: ArchiveInput, key: str, digest: str | None, result: tuple) -> None:
-        """Record one input's calibration: (answer or None, reason or None, seconds, final) of :func:`_calibrate_one`."""
+        """Record an input's calibration: (answer or None, reason or None, seconds, final) of :func:`_calibrate_one`."""
         answer, reason, seconds, final = result
         if answer is None:
             self.record(inp, key, digest, self.failed_row(inp, reason, seconds=seconds, digest=digest), final=final)
@@ -259,7 +259,7 @@ def _local(archive: _Calibrations, selected: list[ArchiveInput], kwargs: dict) -
 
 
 def _ray(archive: _Calibrations, selected: list[ArchiveInput], kwargs: dict, address: str | None, cpus: int) -> None:
-    """One Ray task per input (``cpus`` CPUs, a GPU where the device is one), gathered with ``ray.wait`` as they finish."""
+    """One Ray task per input (``cpus`` CPUs, a GPU if the device is one), gathered with ``ray.wait`` as they finish."""
     ray = require_ray()
     started = not ray.is_initialized()
     if started:

@@ -209,7 +209,7 @@ class ArchiveBook:
             yield item, key, digest
 
     def record(self, item, key: str, digest: str | None, row, *, final: bool, answer: str | None = None) -> None:
-        """Write the item's answer file (``answer``, its text, where it has one), then its row file; the row in the table.
+        """Write the item's answer file (``answer``, its text, if it has one), then its row file; the row in the table.
 
         ``final``: a rerun reuses the row (False: the item is tried again, as where it could not be
         read to a ``digest``, which is None then and the item not counted as computed).

@@ -233,9 +233,9 @@ def camera_summaries(rows) -> list[CameraSummary]:
 
     Example:
         >>> def row(path, d, lo, hi, camera="A"):
-        ...     return answer_row({"path": path, "class": "2", "delta_avg_user_px": d, "delta_avg_user_interval": [lo, hi],
-        ...                        "image_size": [120, 160]}, camera=camera, seconds=0.0, digest="", settings="",
-        ...                       answer_file="", version="0")
+        ...     return answer_row({"path": path, "class": "2", "delta_avg_user_px": d,
+        ...                        "delta_avg_user_interval": [lo, hi], "image_size": [120, 160]},
+        ...                       camera=camera, seconds=0.0, digest="", settings="", answer_file="", version="0")
         >>> rows = [row("a", 3.0, 2.5, 3.5), row("b", 3.2, 2.8, 3.6), row("c", 3.1, 2.9, 3.3), row("d", 6.0, 5.5, 6.5)]
         >>> [s] = camera_summaries(rows)  # d's lens changed: set aside, the camera's answer from a, b, c
         >>> s.camera, s.size, s.answered, s.pooled, round(s.delta_avg_px, 2), s.disagreeing

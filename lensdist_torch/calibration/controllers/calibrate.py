@@ -101,11 +101,11 @@ def calibrate_path(
         delta_max_user_px, delta_max_user_interval, confidence, class, reason, pairs_used,
         pairs_rejected, pairs_refitted (pairs fitted again from their own registration),
         pairs_unregistered (pairs whose fit did not register them, ``calibration.max_misfit``; among the rejected),
-        relief_effect_px and relief_z (the direct path's: how far its plane +
-        parallax and planar answers part, and in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors),
-        focal_source (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``),
-        method (which path answered: "direct", "multiview", "both", "planar"), direct, multiview and planar
-        (each path's own numbers; planar: the homography model of the multi-view path).
+        relief_effect_px and relief_z (the direct path's: how far its plane + parallax and planar answers part, and
+        in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors), focal_source
+        (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``), method (which path answered: "direct",
+        "multiview", "both", "planar"), direct, multiview and planar (each path's own numbers; planar: the
+        homography model of the multi-view path).
 
     Example:
         >>> import tempfile

@@ -52,7 +52,8 @@ def verdict(check: dict, count_gained: bool = True) -> str:
     pairs a correction registers in addition (a calibration file with that verdict still loads).
 
     Example:
-        >>> counts = {"registered_before": 1, "registered_after": 3, "error_share_before": 0.050, "error_share_after": 0.056}
+        >>> counts = {"registered_before": 1, "registered_after": 3,
+        ...           "error_share_before": 0.050, "error_share_after": 0.056}
         >>> verdict(counts)  # two more pairs register after the correction: the paper's metric says it helped
         'lowered'
         >>> verdict(counts, count_gained=False), verdict({**counts, "registered_after": 1})  # the shares decide
