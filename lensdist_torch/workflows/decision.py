@@ -245,18 +245,25 @@ def in_user_pixels(res: dict, s: float, size) -> dict:
     The analysis frame is a centred crop scaled by s: p_user - c_user = s (p - c), so
     k2_user = k2 / s^2 and k4_user = k4 / s^4. ``delta_avg_user_px`` / ``delta_max_user_px``
     are over the user's whole H x W frame (not only the analysed crop), sampled at the analysis
-    resolution: s times Delta of (k2, k4) on a round(H / s) x round(W / s) frame. All None
-    without an answer (``delta_avg`` None: no estimate, or "cannot tell").
+    resolution: s times Delta of (k2, k4) on a round(H / s) x round(W / s) frame.
+    ``delta_avg_user_interval`` is ``delta_avg_interval`` carried to the user's whole frame along
+    the lens's own scale: Delta over either frame is proportional to t for coefficients t (k2, k4),
+    so the interval's ends are multiplied by the ratio of the two Deltas (docs/method.md,
+    section 10). All None without an answer (``delta_avg`` None: no estimate, or "cannot tell").
     """
+    none = ("k2_user", "k4_user", "opencv", "delta_avg_user_px", "delta_max_user_px", "delta_avg_user_interval")
     if res.get("k2") is None or res["delta_avg"] is None:
-        return {"k2_user": None, "k4_user": None, "opencv": None, "delta_avg_user_px": None, "delta_max_user_px": None}
+        return dict.fromkeys(none)
     k2_user, k4_user = user_coefficients(res["k2"], res["k4"], s)
     fh, fw = max(1, round(int(size[0]) / s)), max(1, round(int(size[1]) / s))
     off = pixel_offsets(res["k2"], res["k4"], fh, fw)  # one map for both Deltas
+    d_user, iv = float(off.mean()) * s, res.get("delta_avg_interval")
+    ratio = d_user / res["delta_avg"] if res["delta_avg"] > 0 else s  # no lens: the crop's scale alone
     return {
         "k2_user": k2_user,
         "k4_user": k4_user,
         "opencv": opencv_export(k2_user, k4_user, int(size[0]), int(size[1])),
-        "delta_avg_user_px": float(off.mean()) * s,
+        "delta_avg_user_px": d_user,
         "delta_max_user_px": float(off.max()) * s,
+        "delta_avg_user_interval": None if iv is None else [iv[0] * ratio, iv[1] * ratio],
     }

@@ -23,7 +23,7 @@ _RELIEF = ("relief_agreement", "relief_parted", "planar_delta_avg", "planar_delt
            "relief_delta_avg", "relief_delta_avg_std", "relief_delta_avg_interval")
 #: In the user's pixels and the registration's, after the decision (every method).
 _TAIL = ("analysed_region_user_px", "delta_avg_region_user_px", "delta_max_region_user_px", "delta_avg_user_px",
-         "delta_max_user_px", "registration_residual", "error_blocks", "analysis_size", "input_size",
+         "delta_avg_user_interval", "delta_max_user_px", "registration_residual", "error_blocks", "analysis_size", "input_size",
          "user_px_per_analysis_px", "homography")
 
 
@@ -86,6 +86,8 @@ class PairAnalysis:
         delta_avg_user_px: Delta_avg over the user's whole frame (user px): the
             self-calibration's (k2, k4) extended to it, the learned methods' only where the crop
             is the frame; None otherwise and without an answer.
+        delta_avg_user_interval: [low, high], ``delta_avg_interval`` carried to the user's whole
+            frame (user px); None likewise and for the learned methods.
         delta_max_user_px: Delta_max over the whole frame (user px), likewise.
         registration_residual: the registration's RMS residual (grey levels 0 to 1); NaN where
             the homography was given.
@@ -170,6 +172,7 @@ class PairAnalysis:
     delta_avg_region_user_px: float | None
     delta_max_region_user_px: float | None
     delta_avg_user_px: float | None
+    delta_avg_user_interval: list[float] | None = None
     delta_max_user_px: float | None
     registration_residual: float
     error_blocks: int
@@ -290,8 +293,11 @@ class PairAnalysis:
                 + (f" [{iv[0]:.2f}, {iv[1]:.2f}] (95 %)" if iv else "")
                 + f", Delta_max ~ {_fmt(self.delta_max)} at {w} x {h}"
             )
+            uv = self.delta_avg_user_interval
             lines.append(
-                f"in your {iw} x {ih} pixels: Delta_avg {_fmt(self.delta_avg_user_px)}, Delta_max "
+                f"in your {iw} x {ih} pixels: Delta_avg {_fmt(self.delta_avg_user_px)}"
+                + (f" [{uv[0]:.1f}, {uv[1]:.1f}] (95 %)" if uv else "")
+                + ", Delta_max "
                 f"{_fmt(self.delta_max_user_px)} over the whole frame; {_fmt(self.delta_avg_region_user_px)} and "
                 f"{_fmt(self.delta_max_region_user_px)} over the analysed centre crop"
             )
