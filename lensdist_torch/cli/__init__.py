@@ -1,6 +1,7 @@
 """The ``lensdist`` command line (layer 5): argument parsing, printing, exit codes.
 
-* :mod:`~lensdist_torch.cli.commands`: ``main``, the parser, and the protocol's commands (demo, generate, train, evaluate, reproduce).
+* :mod:`~lensdist_torch.cli.commands`: ``main``, the parser, and the protocol's commands (demo, generate, train,
+  evaluate, reproduce).
 * :mod:`~lensdist_torch.cli.analyze`: a user's pair, ``lensdist analyze``.
 * :mod:`~lensdist_torch.cli.calibrate`: a user's camera, ``lensdist calibrate`` and ``lensdist undistort``.
 * :mod:`~lensdist_torch.cli.support`: the parser class, argument types, shared help texts, the stdout guard.

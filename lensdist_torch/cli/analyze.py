@@ -65,7 +65,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
 
 
 def _cmd_pairs(args: argparse.Namespace) -> int:
-    """``lensdist analyze --pairs FILE --out DIR [--shard I/N]``: every pair's answer and one table; exit 0 once it ran."""
+    """``lensdist analyze --pairs FILE --out DIR [--shard I/N]``: every pair's answer, one table; exit 0 if it ran."""
     if args.img1 is not None:
         raise ValueError("--pairs FILE lists the pairs: give no IMG1 IMG2 with it")
     for option, given in (("--save-map", args.save_map), ("--strict", args.strict)):

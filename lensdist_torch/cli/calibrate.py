@@ -19,7 +19,10 @@ def _straightness(pl: dict) -> str:
     b, share = pl.get("bending_halfwidth_px"), pl.get("matched_fraction")
     if not isinstance(b, float) or b != b or not isinstance(share, float):
         return ""
-    return f"; it straightens lines to +-{b:.2f} px (95 %, RMS over the {100 * share:.0f} % of the frame its matches reach)"
+    return (
+        f"; it straightens lines to +-{b:.2f} px (95 %, RMS over the {100 * share:.0f} % of the frame "
+        "its matches reach)"
+    )
 
 
 def _guided(pl: dict) -> str:
@@ -31,7 +34,8 @@ def _guided(pl: dict) -> str:
     if not g.get("used"):
         return f"; guided matching found no answer ({g.get('reason')}): the first fit's"
     return (
-        f"; on guided matches ({g['matches']} in {g['pairs_matched']} of {g['pairs_verified']} verified pairs; the first "
+        f"; on guided matches ({g['matches']} in {g['pairs_matched']} of {g['pairs_verified']} verified pairs; "
+        "the first "
         f"fit on the verified matches: {first['pairs']} pairs, Delta_avg {first['delta_avg_user_px']:.2f} px)"
     )
 
@@ -50,11 +54,12 @@ def _refined(pl: dict) -> str:
 
 
 def _paths(res: dict) -> None:
-    """Each path's own numbers, after the answer: the frames and the direct path, the multi-view path, the homography model."""
+    """Each path's own numbers, after the answer: the frames, the direct and multi-view paths, the homography model."""
     (h, w) = res["image_size"]
     unregistered = f" ({res['pairs_unregistered']} not registered)" if res.get("pairs_unregistered") else ""
     print(
-        f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, {res['pairs_rejected']} rejected"
+        f"{res['frames']} frames of {w} x {h}; direct path: {res['pairs_used']} pairs used, "
+        f"{res['pairs_rejected']} rejected"
         + unregistered
     )
     mv = res.get("multiview")
@@ -65,7 +70,8 @@ def _paths(res: dict) -> None:
         by = "" if weight is None else f" (weight {weight:.2f} on held-out frames)"
         iv = mv["delta_avg_user_interval"]
         print(
-            f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, camera model {mv['model']}"
+            f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, "
+            f"camera model {mv['model']}"
             f"{by}, reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px"
             + ("" if iv is None or None in iv else f" [{iv[0]:.2f}, {iv[1]:.2f}]")
         )
@@ -141,7 +147,8 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
         k, n = cv["camera_matrix"], len(cv["dist_coeffs"])
         forward = cv.get("forward_error_mean_px")
         print(
-            f"{tag}OpenCV ({n} coefficients): fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, "
+            f"{tag}OpenCV ({n} coefficients): fx = {k[0][0]:.2f}, fy = {k[1][1]:.2f}, "
+            f"cx = {k[0][2]:.2f}, cy = {k[1][2]:.2f}, "
             f"dist_coeffs = [{', '.join(f'{v:.6g}' for v in cv['dist_coeffs'])}] (undistortPoints error "
             f"{cv['fit_error_mean_px']:.3f} px mean, {cv['fit_error_max_px']:.3f} px max"
             + ("" if forward is None else f"; cv2.undistort's map {forward:.3f} px mean")
@@ -204,13 +211,14 @@ def _print_archive(run) -> None:
         off = "none" if not cam.disagreeing else ", ".join(cam.disagreeing)
         print(
             f"{name}: {cam.inputs} inputs, {cam.answered} answered: Delta_avg {cam.delta_avg_px:.2f} px pooled over "
-            f"{cam.pooled} (95 % interval {cam.delta_avg_low_px:.2f} to {cam.delta_avg_high_px:.2f}); disagreeing: {off}"
+            f"{cam.pooled} (95 % interval {cam.delta_avg_low_px:.2f} to {cam.delta_avg_high_px:.2f}); "
+            f"disagreeing: {off}"
         )
     print("written: " + ", ".join(run.files) + f", {Path(run.out) / 'answers'}/")
 
 
 def _cmd_archive(args: argparse.Namespace) -> int:
-    """``lensdist calibrate PATH... | --manifest FILE --out DIR [--shard I/N] [--engine local|ray]``: exit 0 once it ran."""
+    """``lensdist calibrate PATH... | --manifest FILE --out DIR [--shard I/N] [--engine local|ray]``: 0 if it ran."""
     from lensdist_torch.calibration.controllers import archive
 
     if args.engine == "ray":
@@ -336,7 +344,8 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
         "calibrate",
         help="the distortion of one camera from a folder of frames or a video",
         description=_CALIBRATE,
-        epilog="examples:\n  lensdist calibrate frames/ --out calib/\n  lensdist calibrate dive.mp4 --json --method direct\n"
+        epilog="examples:\n  lensdist calibrate frames/ --out calib/\n"
+        "  lensdist calibrate dive.mp4 --json --method direct\n"
         "  lensdist calibrate 'archive/*.mp4' --out archive_answers/\n"
         "  lensdist calibrate --manifest dives.csv --out answers/ --shard 0/8",
         parents=parents or [],
