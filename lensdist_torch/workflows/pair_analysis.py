@@ -23,8 +23,8 @@ _RELIEF = ("relief_agreement", "relief_parted", "planar_delta_avg", "planar_delt
            "relief_delta_avg", "relief_delta_avg_std", "relief_delta_avg_interval")
 #: In the user's pixels and the registration's, after the decision (every method).
 _TAIL = ("analysed_region_user_px", "delta_avg_region_user_px", "delta_max_region_user_px", "delta_avg_user_px",
-         "delta_avg_user_interval", "delta_max_user_px", "registration_residual", "error_blocks", "analysis_size", "input_size",
-         "user_px_per_analysis_px", "homography")
+         "delta_avg_user_interval", "delta_max_user_px", "registration_residual", "error_blocks", "analysis_size",
+         "input_size", "user_px_per_analysis_px", "homography")
 
 
 def _fmt(value, spec: str = ".1f", unit: str = " px") -> str:
