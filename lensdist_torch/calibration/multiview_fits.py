@@ -188,9 +188,11 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
     with quiet_log():
         cov = camera_covariance(r, cam.camera_id, ss, n)
     fixed = set(cam.principal_point_idxs())
-    std_avg, std_max = posterior_std(
-        list(cam.params), [i for i in range(len(cam.params)) if i not in fixed], cov, measure
-    )
+    variable = [i for i in range(len(cam.params)) if i not in fixed]
+    std_avg, std_max = posterior_std(list(cam.params), variable, cov, measure)
+    fi = cam.focal_length_idxs()[0]  # fx's std, in the OpenCV camera's pixels
+    f = variable.index(fi)
+    focal_std = math.inf if cov is None else math.sqrt(max(float(cov[f, f]), 0.0)) * float(km[0, 0]) / cam.params[fi]
     jk_avg, jk_max, errors = [], [], []
     for train, fold_errors in _folds(r, n_blocks):
         d = measure(np.asarray(camera_of(train).params, dtype=float))
@@ -204,7 +206,8 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
         "delta_avg_std_px": std_avg, "delta_max_px": dl["delta_max_px"], "delta_max_std_px": std_max,
         "jackknife_std_px": jk_std, "reprojection_px": math.sqrt(ss / max(n, 1)),
         "heldout_rms_px": heldout_rms([e for fold in errors for e in fold]),
-        "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist()}}
+        "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist(),
+        "focal_std_px": focal_std}}
 
 
 def copy_reconstruction(rec):

@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
+from statistics import NormalDist
 
 from lensdist_torch.cli import support as argtypes
 
@@ -96,6 +98,17 @@ _FOCAL = {"colmap": "COLMAP's estimate from the bundle adjustment",
           "half diagonal": "the half diagonal, a convention (the lens model has no focal length; --focal F sets yours)"}
 
 
+def _focal_spread(res: dict) -> str:
+    """", +-X px (95 %)" of COLMAP's focal length from its posterior, or why there is none; "" for the others."""
+    if res.get("focal_source") != "colmap":
+        return ""
+    std = ((res.get("multiview") or {}).get("models") or {}).get(res.get("camera_model"), {}).get("focal_std_px")
+    if std is None or not math.isfinite(std):
+        return ", not determined by the tracks: a value to check, not to use"
+    level = res.get("confidence") or 0.95
+    return f", +-{NormalDist().inv_cdf(0.5 + level / 2) * std:.1f} px ({100 * level:.0f} %)"
+
+
 def _kind(res: dict) -> str:
     """", barrel" / ", pincushion" / ", mustache" of the answer's eq. 4, or ""."""
     from lensdist_torch.geometry.distortion import distortion_type
@@ -155,7 +168,7 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
             + ")"
         )
     if res.get("focal_source") in _FOCAL:
-        print(f"fx, fy: {_FOCAL[res['focal_source']]}")
+        print(f"fx, fy: {_FOCAL[res['focal_source']]}{_focal_spread(res)}")
     if len(shown) == 2:
         print(f"OpenCV's 5 coefficients do not follow this lens (over {FOLLOWS_PX:g} px mean): use the 8 rational ones "
               "(cv2.CALIB_RATIONAL_MODEL's order); `lensdist undistort --from` applies the answer's own lens")

@@ -222,16 +222,21 @@ def test_other_paths_cameras_are_weighed_on_the_same_held_out_frames():
 def test_the_posterior_std_of_delta_is_the_spread_of_the_estimates_over_noise_draws():
     # an independent check of the bundle adjustment's covariance carried to Delta_avg: the same scene, eight
     # draws of 0.5 px noise; the std over the draws against the mean posterior std, and the 95 % intervals
-    est, std, covered = [], [], 0
+    # and likewise fx's posterior std (the focal length printed with its interval), the truth 1500 px
+    est, std, covered, focal, focal_std, focal_covered = [], [], 0, [], [], 0
     for seed in range(1, 9):
         rec, truth = _spread_synthetic(seed)
         res = self_calibrate_reconstruction(rec, MultiViewConfig(models=("RADIAL",), jackknife_blocks=4))
         est.append(res.delta_avg_user_px)
         std.append(res.models["RADIAL"]["delta_avg_std_px"])
         covered += res.delta_avg_user_interval[0] <= truth <= res.delta_avg_user_interval[1]
+        focal.append(res.camera_matrix[0][0])
+        focal_std.append(res.models["RADIAL"]["focal_std_px"])
+        focal_covered += abs(focal[-1] - 1500.0) <= 1.96 * focal_std[-1]
     assert truth == pytest.approx(14.97, abs=0.01)
     ratio = float(np.mean(std)) / float(np.std(est, ddof=1))  # a sample std of 8 is within 0.6-1.5 of sigma at 90 %
     assert 0.6 < ratio < 1.8 and covered >= 7
+    assert 0.6 < float(np.mean(focal_std)) / float(np.std(focal, ddof=1)) < 1.8 and focal_covered >= 7
     assert (
         res.class_label == "3" and res.reason == "" and res.dispersion < 2.0
     )  # independent noise: the posterior holds

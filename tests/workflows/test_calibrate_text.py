@@ -66,6 +66,16 @@ def test_the_focal_says_where_it_comes_from(capsys, source, says):
     assert f"fx, fy: {says}" in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("std,says", [(10.0, ", +-19.6 px (95 %)"), (float("inf"), ", not determined by the tracks")])
+def test_colmaps_focal_comes_with_its_posterior(capsys, std, says):
+    res = _answer(2e-6, method="multiview", focal_source="colmap") | {"camera_model": "RADIAL", "confidence": 0.95}
+    res["multiview"] = {"model": "RADIAL", "registered": 12, "points3D": 900, "reprojection_px": 0.5,
+                        "delta_avg_user_px": 1.0, "delta_avg_user_interval": [0.9, 1.1],
+                        "models": {"RADIAL": {"focal_std_px": std}, "OPENCV": {"focal_std_px": 1.0}}}
+    _print_calibration(res, None)
+    assert f"fx, fy: COLMAP's estimate from the bundle adjustment{says}" in capsys.readouterr().out
+
+
 def test_a_given_focal_reaches_the_homography_models_camera():
     """The homography model's lens has no focal: its OpenCV camera is fitted again at the caller's."""
     lens = {"coefficients": [0.05], "centre": [159.5, 119.5]}
