@@ -19,7 +19,9 @@ may override any field. Its sections map one to one onto the dataclasses, one mo
 Every threshold of a decision lives in this package, nowhere else. The field checks, with their
 ``section.field`` messages, and the one "this config or its defaults" helper are in
 :mod:`~lensdist_torch.config.checks`; the training scripts (``train/``) read their TOML files and
-``--set`` overrides with the same reader (:mod:`~lensdist_torch.config.toml`).
+``--set`` overrides with the same reader (:mod:`~lensdist_torch.config.toml`). A key an earlier
+version read, a constant of the method now among them, loads by the one table of
+:mod:`~lensdist_torch.config.retired`.
 
 Example:
     >>> from lensdist_torch.config import LensdistConfig, config_to_dict
@@ -31,18 +33,16 @@ from lensdist_torch.config.analysis import AnalysisConfig
 from lensdist_torch.config.classify import MAX_NEIGHBOURS, ClassifierConfig, RegressionConfig
 from lensdist_torch.config.lensdist import (
     FROM_CLASS_TOLERANCE,
-    INERT,
-    RETIRED,
     LensdistConfig,
     config_from_dict,
     config_to_dict,
     load_config,
-    retired_keys,
     stored_config,
 )
 from lensdist_torch.config.protocol import DistortionConfig, ImageConfig, ProtocolConfig
 from lensdist_torch.config.quality import QualityConfig
 from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
+from lensdist_torch.config.retired import INERT, RETIRED, retired_keys
 from lensdist_torch.config.sequence import MULTIVIEW_MODELS, CalibrationConfig, MultiViewConfig
 from lensdist_torch.config.toml import (
     apply_overrides,

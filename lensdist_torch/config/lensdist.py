@@ -19,18 +19,16 @@ from lensdist_torch.config.classify import ClassifierConfig, RegressionConfig
 from lensdist_torch.config.protocol import DistortionConfig, ImageConfig, ProtocolConfig
 from lensdist_torch.config.quality import QualityConfig
 from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
+from lensdist_torch.config.retired import INERT, RETIRED, drop_constants
 from lensdist_torch.config.sequence import CalibrationConfig, MultiViewConfig
 from lensdist_torch.config.toml import check_tables, read_toml
 
 __all__ = [
     "FROM_CLASS_TOLERANCE",
-    "INERT",
-    "RETIRED",
     "LensdistConfig",
     "config_from_dict",
     "config_to_dict",
     "load_config",
-    "retired_keys",
     "stored_config",
 ]
 
@@ -88,36 +86,17 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
 
     Raises:
         TypeError: ``data`` is not a dict.
-        ValueError: an unknown section or key, a section that is not a table, or a bad value;
-            the message names the section and the field.
+        ValueError: an unknown section or key, a section that is not a table, a bad value, or a
+            key that became a constant of the method at another value than the constant's
+            (:data:`~lensdist_torch.config.retired.RETIRED`); the message names the section and the field.
 
     Example:
         >>> config_from_dict({"quality": {"block_size": 16}, "image": {"height": 320, "width": 416}}).quality.block_size
         16
     """
+    data = drop_constants(data)  # a key that became a constant of the method, at its value (config/retired.py)
     check_tables(data, {name: {f.name for f in dataclasses.fields(cls)} for name, cls in _SECTIONS.items()})
     return LensdistConfig(**{name: cls(**data.get(name, {})) for name, cls in _SECTIONS.items()})
-
-
-#: Keys an earlier version wrote that this one no longer reads: (section, key) -> what replaced it.
-RETIRED = {("protocol", "parallax_px"): "protocol.relief (a scene's relief; the parallax follows each pair's motion)",
-           ("analysis", "relief_z"): "analysis.flat_prior (both models of the scene weighed in a pair's confidence; "
-                                     "relief where their classes differ)"}
-#: Retired keys that never shaped a fitted model or a data set (decisions made at analysis time):
-#: dropped wherever a saved config is read.
-INERT = {("analysis", "relief_z")}
-
-
-def retired_keys(data: dict[str, Any]) -> list[str]:
-    """The ``section.key`` names of :data:`RETIRED` present in a saved config's dict.
-
-    Example:
-        >>> retired_keys({"protocol": {"parallax_px": 1.5}}), retired_keys({"protocol": {}})
-        (['protocol.parallax_px'], [])
-        >>> retired_keys({"analysis": {"relief_z": 4.0}})
-        ['analysis.relief_z']
-    """
-    return [f"{s}.{k}" for s, k in RETIRED if isinstance(data.get(s), dict) and k in data[s]]
 
 
 def stored_config(data: dict[str, Any]) -> LensdistConfig:
@@ -140,7 +119,7 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
         if protocol.get("realistic") and px:
             raise ValueError(
                 f"saved under the realistic protocol's former fixed parallax (protocol.parallax_px = {px!r}), "
-                f"which this version replaced by {RETIRED[('protocol', 'parallax_px')]}: fit it again"
+                f"which this version replaced by {RETIRED[('protocol', 'parallax_px')].by}: fit it again"
             )
         data = {**data, "protocol": {k: v for k, v in protocol.items() if k != "parallax_px"}}
     for section, key in INERT:

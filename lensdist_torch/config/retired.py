@@ -1,0 +1,106 @@
+"""Keys an earlier version read that this one does not, and how a file or a stored config naming one loads.
+
+One table, :data:`RETIRED`: (section, key) -> a :class:`Retired` saying what replaced the key.
+A key that became a constant of the method (the value every config file and stored checkpoint
+held) loads where it holds that constant's value, and is dropped: it means what the constant
+does. Any other value is a one-line ``ValueError`` naming the key and the constant, never a
+silent change of meaning. The other retired keys are refused in a user's file (an unknown key)
+and dropped from a stored config where they had no effect (``stored_config``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from lensdist_torch.config.checks import show
+
+__all__ = ["INERT", "RETIRED", "Retired", "drop_constants", "retired_keys"]
+
+
+@dataclass(frozen=True)
+class Retired:
+    """What replaced a key of an earlier version.
+
+    Attributes:
+        by: what replaced it: a key of this version (with why), or, for a key that became a
+            constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``).
+        value: for a constant, its value: the key loads at this value (dropped) and is refused
+            at any other; None for the others.
+        inert: it never shaped a fitted model or a data set (a decision made at analysis time):
+            dropped wherever a saved config is read.
+
+    Example:
+        >>> RETIRED[("analysis", "relief_z")].inert, RETIRED[("protocol", "parallax_px")].value
+        (True, None)
+    """
+
+    by: str
+    value: Any = None
+    inert: bool = False
+
+
+def _constant(name: str, value: Any) -> Retired:
+    return Retired(by=f"lensdist_torch.calibration.{name}", value=value)
+
+
+#: Keys an earlier version wrote that this one no longer reads: (section, key) -> what replaced it.
+RETIRED = {
+    ("protocol", "parallax_px"): Retired(
+        by="protocol.relief (a scene's relief; the parallax follows each pair's motion)"),
+    ("analysis", "relief_z"): Retired(
+        by="analysis.flat_prior (both models of the scene weighed in a pair's confidence; relief where their "
+           "classes differ)", inert=True),
+}
+#: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
+INERT = {key for key, r in RETIRED.items() if r.inert}
+
+
+def _same(value: Any, constant: Any) -> bool:
+    """Whether a config's ``value`` (TOML: lists for tuples, ints for whole floats) is ``constant``."""
+    if isinstance(constant, tuple):
+        return isinstance(value, (list, tuple)) and len(value) == len(constant) and all(
+            _same(v, c) for v, c in zip(value, constant))
+    if isinstance(value, bool) or isinstance(constant, bool):
+        return type(value) is type(constant) and value == constant
+    return isinstance(value, (int, float)) and value == constant
+
+
+def _named(data: Any, section: str, key: str) -> bool:
+    return isinstance(data, dict) and isinstance(data.get(section), dict) and key in data[section]
+
+
+def retired_keys(data: dict[str, Any]) -> list[str]:
+    """The ``section.key`` names of :data:`RETIRED` in a saved config's dict that do not load as they are.
+
+    A key that became a constant of the method, at the constant's value, loads (dropped): it is not one.
+
+    Example:
+        >>> retired_keys({"protocol": {"parallax_px": 1.5}}), retired_keys({"protocol": {}})
+        (['protocol.parallax_px'], [])
+        >>> retired_keys({"analysis": {"relief_z": 4.0}})
+        ['analysis.relief_z']
+    """
+    return [f"{s}.{k}" for (s, k), r in RETIRED.items()
+            if _named(data, s, k) and (r.value is None or not _same(data[s][k], r.value))]
+
+
+def drop_constants(data: Any) -> Any:
+    """``data`` (a parsed config) without the keys that became constants of the method, where they hold its value.
+
+    Raises:
+        ValueError: such a key at another value, one line naming the key and the constant.
+
+    Example:
+        >>> drop_constants({"quality": {"block_size": 16}})
+        {'quality': {'block_size': 16}}
+    """
+    for (section, key), r in RETIRED.items():
+        if r.value is None or not _named(data, section, key):
+            continue
+        value = data[section][key]
+        if not _same(value, r.value):
+            raise ValueError(f"{section}.{key} = {show(value)} cannot be set: a constant of the method now: "
+                             f"{r.by} = {r.value!r}")
+        data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
+    return data

@@ -1,0 +1,52 @@
+"""Keys that became constants of the method: a file or a stored config naming one never silently changes meaning.
+
+The one table is :data:`lensdist_torch.config.retired.RETIRED`; a key at its constant's value
+loads (dropped), at any other value it is a one-line error naming the key, the file and the
+constant.
+"""
+
+from __future__ import annotations
+
+import pytest
+from one_line import one_line_error
+
+from lensdist_torch.config import LensdistConfig, config_from_dict, load_config, retired_keys, stored_config
+from lensdist_torch.config.retired import RETIRED, Retired
+
+FAKE = ("quality", "old_margin")  # a key of an earlier version, a constant now: the mechanism, whatever the table holds
+
+
+@pytest.fixture
+def fake_constant(monkeypatch):
+    monkeypatch.setitem(RETIRED, FAKE, Retired(by="lensdist_torch.calibration.direct.OLD_MARGIN", value=(0.5, 2.0)))
+
+
+def test_a_removed_key_at_the_constant_loads_and_is_dropped(fake_constant, tmp_path):
+    path = tmp_path / "old.toml"
+    path.write_text("[quality]\nold_margin = [0.5, 2]\nblock_size = 16\n[image]\nheight = 320\nwidth = 416\n")
+    assert load_config(path).quality.block_size == 16
+    assert stored_config({"quality": {"old_margin": [0.5, 2.0]}}) == LensdistConfig()  # a checkpoint's config
+    assert retired_keys({"quality": {"old_margin": [0.5, 2.0]}}) == []  # loads as it is: a data set's too
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("value", ["[0.5, 3.0]", "[0.5]", "0.5", "true", "'0.5, 2'"])
+def test_a_removed_key_at_another_value_is_one_line(fake_constant, tmp_path, value):
+    path = tmp_path / "old.toml"
+    path.write_text(f"[quality]\nold_margin = {value}\n")
+    one_line_error(ValueError, lambda: load_config(path), "quality.old_margin", str(path),
+                   "a constant of the method now: lensdist_torch.calibration.direct.OLD_MARGIN")
+    one_line_error(ValueError, lambda: stored_config({"quality": {"old_margin": [1.0, 2.0]}}), "quality.old_margin")
+    assert retired_keys({"quality": {"old_margin": [1.0, 2.0]}}) == ["quality.old_margin"]
+
+
+def test_every_constant_of_the_table_is_the_modules():
+    """The table's value of each key that became a constant is the constant's, in the module that names it."""
+    import importlib
+
+    for (section, key), r in RETIRED.items():
+        if r.value is None:
+            continue
+        module, name = r.by.rsplit(".", 1)
+        assert getattr(importlib.import_module(module), name) == r.value, (section, key)
+        assert key not in config_from_dict({}).__getattribute__(section).__dataclass_fields__, (section, key)
