@@ -8,12 +8,11 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    so **k2_user = k2 / s^2 and k4_user = k4 / s^4**, exactly.
 2. **Pairs**: a camera path from consecutive phase correlations (a running median of 5 against
    a broken frame); each frame is paired with the first later frame that moved by each fraction
-   ``motion_steps`` of the half diagonal R (little motion cancels the distortion), at most
-   ``max_motion`` R.
+   :data:`MOTION_STEPS` of the half diagonal R (little motion cancels the distortion), at most :data:`MAX_MOTION` R.
 3. **Per pair**, :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (batched, from the
    pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
    where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
-   diverged or whose residual exceeds ``max_residual_ratio`` times the lower quartile's drop, or
+   diverged or whose residual exceeds ``MAX_RESIDUAL_RATIO`` times the lower quartile's drop, or
    that the fit did not register: residual RMS over ``max_misfit`` of sqrt(var_1 + var_2), the
    frames' contrast (real views far apart stop in a wrong minimum and say anything there).
    With ``registered_start``, the pairs step 4 would not count, or that lie more than 3 of their
@@ -21,19 +20,19 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    from the translation (:mod:`~lensdist_torch.calibration.direct_fits`).
 4. **Combination: the inverse-variance mean** of (a_i, b_i) (weights 1 / sigma_i^2) of the pairs
    that count: those whose signed Delta_avg R (a m3 + b m5) (m_k: the frame's mean |u|^k) lies
-   within ``outlier_mads`` robust deviations (1.4826 MAD, at least the median sigma_i) of the
+   within ``OUTLIER_MADS`` robust deviations (1.4826 MAD, at least the median sigma_i) of the
    median and that the good-and-bad mixture finds more likely good than failed (failures spread
-   over +-``outlier_range`` class ranges: :func:`~lensdist_torch.calibration.pooling.good_and_bad`).
+   over +-``OUTLIER_RANGE`` class ranges: :func:`~lensdist_torch.calibration.pooling.good_and_bad`).
 5. **Intervals**: pairs sharing frames have correlated errors, so the variance is a
-   delete-a-block jackknife (``jackknife_blocks`` contiguous blocks), or the Birge-scaled
-   max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger, plus ``systematic_rel`` D in
+   delete-a-block jackknife (``JACKKNIFE_BLOCKS`` contiguous blocks), or the Birge-scaled
+   max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger, plus :data:`SYSTEMATIC_REL` D in
    quadrature (what all pairs share), plus ``relief_rel`` times the relief's effect: the pairs'
    plane + parallax minus planar answers combined as the answers are, where it exceeds
    ``relief_test`` of its jackknife stds (relief parts the models alike in every pair, noise
    does not), else the effect that test cannot exclude, ``relief_test`` of those stds (a relief can bias
    both models alike; no jackknife sees it: docs/method.md, 7). t on blocks - 1 dof; [max(0, D - t sd), D + t sd].
 6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame, or None with a
-   reason: under ``min_pairs`` usable pairs, a half-width there over ``max_class_halfwidth_px``,
+   reason: under ``MIN_PAIRS`` usable pairs, a half-width there over ``MAX_CLASS_HALFWIDTH_PX``,
    or an interval there that spans ``no_distortion_px``, a sequence's R threshold (R or class 1
    cannot be told: R's bin, 0.25 px, is narrower than the intervals of scenes with relief).
 
@@ -51,8 +50,8 @@ import torch.nn.functional as F
 
 from lensdist_torch.calibration.direct_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
 from lensdist_torch.calibration.lens_answer import LensAnswer
-from lensdist_torch.calibration.pooling import pair_weights, pool_pairs, within_mads
-from lensdist_torch.calibration.sequence_class import class_or_open
+from lensdist_torch.calibration.pooling import OUTLIER_RANGE, pair_weights, pool_pairs, within_mads
+from lensdist_torch.calibration.sequence_class import MAX_CLASS_HALFWIDTH_PX, MIN_PAIRS, class_or_open
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
@@ -61,7 +60,15 @@ from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 from lensdist_torch.geometry.phase import phase_correlation
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
-           "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION"]
+           "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION",
+           "MAX_MOTION", "MOTION_STEPS", "SYSTEMATIC_REL"]
+
+#: Step 2: each frame is paired with the first later frame moved by each of these fractions of the half diagonal.
+MOTION_STEPS = (0.14, 0.22)
+#: Step 2: no pair moves by more than this fraction of the half diagonal.
+MAX_MOTION = 0.35
+#: Step 5: a std of this fraction of each Delta, in quadrature: the error all pairs share (docs/method.md, 10).
+SYSTEMATIC_REL = 1e-3
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -192,9 +199,9 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
     moved = (path[None] - path[:, None]).norm(dim=-1)  # (N, N): |path_j - path_i|
     chosen: set[tuple[int, int]] = set()
     for i in range(n - 1):
-        for step in cfg.motion_steps:
+        for step in MOTION_STEPS:
             far = (moved[i, i + 1 :] >= step * r).nonzero()
-            if len(far) and moved[i, i + 1 + int(far[0])] <= cfg.max_motion * r:
+            if len(far) and moved[i, i + 1 + int(far[0])] <= MAX_MOTION * r:
                 chosen.add((i, i + 1 + int(far[0])))
     pairs = torch.tensor(sorted(chosen), dtype=torch.int64).reshape(-1, 2)
     if len(pairs) > cfg.max_pairs:
@@ -207,13 +214,13 @@ def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) 
 TOO_LITTLE_MOTION = "too little motion"
 
 
-def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = None) -> str:
+def no_pairs_reason(frames: torch.Tensor) -> str:
     """Why :func:`choose_pairs` found no pair: the frames did not move enough, or they could not be registered.
 
     Too little motion where neighbouring frames differ less than half as much as a frame
     differs from itself moved by 2 px (they did not move), or where every neighbour, moved back by
     its phase-correlation translation, matches that well (they moved, and consistently) but the
-    camera path never spans ``motion_steps[0]`` of the half diagonal; otherwise they changed
+    camera path never spans ``MOTION_STEPS[0]`` of the half diagonal; otherwise they changed
     and the phase correlation could not relate them: a registration failure (views too far
     apart, or unrelated).
 
@@ -224,7 +231,6 @@ def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = Non
         >>> no_pairs_reason(torch.cat([x, torch.rand(1, 1, 64, 64)]))[:30]
         'the frames could not be regist'
     """
-    cfg = or_defaults(config, CalibrationConfig)
     a, b = frames[:-1].float(), frames[1:].float()
     static = (a - b).abs().mean(dim=(1, 2, 3))
     texture = (a - torch.roll(a, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))
@@ -239,7 +245,7 @@ def no_pairs_reason(frames: torch.Tensor, config: CalibrationConfig | None = Non
     if bool((aligned <= 0.5 * texture).all()):
         path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), t.cumsum(0)])
         span = float((path[None] - path[:, None]).norm(dim=-1).max())
-        need = min(cfg.motion_steps) * half_diagonal(*frames.shape[-2:])
+        need = min(MOTION_STEPS) * half_diagonal(*frames.shape[-2:])
         return (
             f"{TOO_LITTLE_MOTION}: the camera moved {span:.1f} px at most between two frames "
             f"(a pair needs {need:.1f} px)"
@@ -254,9 +260,9 @@ def _translation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 # ------------------------------------------------------------------ combination
-def _failure_width(size, cfg: CalibrationConfig, st: LensdistConfig) -> float:
+def _failure_width(size, st: LensdistConfig) -> float:
     """The span (px of the analysis frame ``size``) over which a failed pair's signed Delta_avg may fall."""
-    return 2 * cfg.outlier_range * delta_top("delta_avg", st) * half_diagonal(*size) / half_diagonal(*st.image.size)
+    return 2 * OUTLIER_RANGE * delta_top("delta_avg", st) * half_diagonal(*size) / half_diagonal(*st.image.size)
 
 
 def _signed_mean(height: int, width: int, rn: float) -> torch.Tensor:
@@ -366,7 +372,7 @@ def _doubtful(fits, xa, cfg: CalibrationConfig, st: LensdistConfig) -> torch.Ten
     """(P,) bool: the pairs step 4 would not count, or that lie more than 3 of their own sigma from its value."""
     h, w = xa.shape[-2:]
     lin, std = fits[0] @ _signed_mean(h, w, half_diagonal(h, w)), reject_residuals(fits[1], fits[2], cfg, fits[5])
-    weights, keep = pair_weights(lin, std, cfg, _failure_width((h, w), cfg, st))
+    weights, keep = pair_weights(lin, std, _failure_width((h, w), st))
     if not bool(keep.any()):
         return ~keep
     mu = (weights * torch.nan_to_num(lin)).sum() / weights.sum()
@@ -377,13 +383,13 @@ def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple
     """Step 5's relief terms of the three stds, z (|effect| / its jackknife std) and the effect found.
 
     The models' differences are pooled by inverse variance (1 / sigma_i^2) over those within
-    ``outlier_mads`` of their median: they part by noise or by relief, not by failures.
+    ``OUTLIER_MADS`` of their median: they part by noise or by relief, not by failures.
     Below ``relief_test``, that many stds count (the effect the test cannot exclude), none is found.
     """
     diff = None if models is None else models[1] - models[0]
     if diff is None or not bool((diff[torch.isfinite(diff)] != 0).any()):
         return (0.0, 0.0, 0.0), 0.0, 0.0
-    keep = within_mads(diff @ fun[0], std, cfg)
+    keep = within_mads(diff @ fun[0], std)
     w = torch.where(keep, 1.0 / std.clamp_min(1e-12) ** 2, torch.zeros_like(std))
     theta_d, sd_d, _ = pool_pairs(diff, w, keep, pairs[:, 0], fun=fun, cfg=cfg)
     effect, z = (theta_d @ fun.T).abs(), 0.0
@@ -411,7 +417,7 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
             _signed_mean(hc, wc, rc),
         ]
     )
-    weights, keep = pair_weights(ab @ fun[0], std, cfg, _failure_width((h, w), cfg, st))
+    weights, keep = pair_weights(ab @ fun[0], std, _failure_width((h, w), st))
     theta, sd, t = pool_pairs(ab, weights, keep, pairs[:, 0], fun=fun, cfg=cfg)
     a, b = float(theta[0]), float(theta[1])
     k2u, k4u = user_coefficients(a / ra**2, b / ra**4, scale)
@@ -419,19 +425,19 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     d_avg, d_max = (float(f([k2u], [k4u], hh, ww)[0]) if n_used else nan for f in (delta_avg, delta_max))
     dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
     relief, relief_z, found = _relief_term(models, std, pairs, fun, cfg) if n_used > 1 else ((0.0, 0.0, 0.0), 0.0, 0.0)
-    half = [t * math.sqrt(float(e) ** 2 + (cfg.systematic_rel * d) ** 2 + (cfg.relief_rel * r) ** 2)
+    half = [t * math.sqrt(float(e) ** 2 + (SYSTEMATIC_REL * d) ** 2 + (cfg.relief_rel * r) ** 2)
             for e, d, r in zip(sd[1:], (d_avg, d_max, dc), relief)]
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
-        reason = no_pairs_reason(xa, cfg)
-    elif n_used < cfg.min_pairs:
+        reason = no_pairs_reason(xa)
+    elif n_used < MIN_PAIRS:
         failed = 0 if misfit is None else int(unregistered(misfit, cfg).sum())
-        reason = f"too few usable pairs: {n_used} of at least {cfg.min_pairs}" + (
+        reason = f"too few usable pairs: {n_used} of at least {MIN_PAIRS}" + (
             f" ({failed} of {len(pairs)} pairs not registered: their residual is over {cfg.max_misfit} of their "
             "frames' contrast, views too far apart or too different)" if failed else "")
-    elif not half[2] <= cfg.max_class_halfwidth_px:
-        reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {cfg.max_class_halfwidth_px})"
+    elif not half[2] <= MAX_CLASS_HALFWIDTH_PX:
+        reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {MAX_CLASS_HALFWIDTH_PX})"
     else:
         label, reason = class_or_open(dc, half[2], st)
     return SequenceCalibration(

@@ -33,7 +33,16 @@ __all__ = [
     "unregistered",
     "refit_from_registration",
     "reject_residuals",
+    "MAX_RESIDUAL_RATIO",
+    "PARALLAX_PX",
 ]
+
+#: Step 3: a pair whose photometric residual exceeds this multiple of the pairs' lower quartile does not count (a
+#: broken or foreign frame).
+MAX_RESIDUAL_RATIO = 3.0
+#: The prior std (px) of each relief bump's height in the sequence's pairs (``selfcal.parallax_px`` for one pair):
+#: the setting its relief figures and ``calibration.relief_rel`` were measured with (docs/method.md, section 10).
+PARALLAX_PX = 1.0
 
 
 def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
@@ -99,7 +108,7 @@ def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
 def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
     """The self-calibration settings of the sequence path: the user's, with the sequence's own relief model.
 
-    Its relief prior is fixed (``calibration.parallax_px``; the pairs' evidence-based one is
+    Its relief prior is fixed (:data:`PARALLAX_PX`; the pairs' evidence-based one is
     not used here: the sequence path's tests and benchmarks hold it fixed).
 
     Example:
@@ -109,7 +118,7 @@ def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
         (1.0, False, True)
     """
     return dataclasses.replace(
-        settings.selfcal, parallax=cfg.parallax, parallax_px=cfg.parallax_px, parallax_evidence=False
+        settings.selfcal, parallax=cfg.parallax, parallax_px=PARALLAX_PX, parallax_evidence=False
     )
 
 
@@ -180,11 +189,11 @@ def refit_from_registration(
 def reject_residuals(std, res, cfg: CalibrationConfig, misfit: torch.Tensor | None = None) -> torch.Tensor:
     """Step 3: inf std for the pairs that fail a check.
 
-    A pair fails where its residual exceeds ``max_residual_ratio`` times the lower quartile, or where its
+    A pair fails where its residual exceeds :data:`MAX_RESIDUAL_RATIO` times the lower quartile, or where its
     ``misfit`` (:func:`pair_misfit`) exceeds ``max_misfit`` (not registered).
     """
     if misfit is not None:
         std = torch.where(unregistered(misfit, cfg), float("inf"), std)
     if not bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many
         return std
-    return torch.where(res <= cfg.max_residual_ratio * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))
+    return torch.where(res <= MAX_RESIDUAL_RATIO * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))

@@ -49,6 +49,9 @@ __all__ = [
     "pool_pairs",
     "t_quantile",
     "within_mads",
+    "JACKKNIFE_BLOCKS",
+    "OUTLIER_MADS",
+    "OUTLIER_RANGE",
     "jackknife_interval",
 ]
 
@@ -187,8 +190,18 @@ def jackknife_interval(value: float, replicates: list[float], extra: float, conf
     return max(0.0, value - half), value + half
 
 
-def within_mads(lin, std, cfg: CalibrationConfig) -> torch.Tensor:
-    """(P,) bool: finite, and within ``outlier_mads`` robust deviations of the median.
+#: Step 4's first cut: a pair beyond this many robust deviations (1.4826 MAD, at least the median sigma) of the
+#: pairs' median signed Delta_avg does not count (docs/method.md, section 10).
+OUTLIER_MADS = 4.0
+#: A failed pair's signed Delta_avg falls anywhere within +- this many times the classes' range (``delta_top``),
+#: evenly: the bad half of the good-and-bad mixture that decides which pairs count (docs/method.md, section 10).
+OUTLIER_RANGE = 2.0
+#: Step 5's jackknife: the pooled answer is computed again without each of this many contiguous blocks of pairs.
+JACKKNIFE_BLOCKS = 8
+
+
+def within_mads(lin, std) -> torch.Tensor:
+    """(P,) bool: finite, and within :data:`OUTLIER_MADS` robust deviations of the median.
 
     A robust deviation: 1.4826 MAD, at least the median sigma.
     """
@@ -197,20 +210,20 @@ def within_mads(lin, std, cfg: CalibrationConfig) -> torch.Tensor:
         return ok
     med = lin[ok].median()
     spread = torch.maximum(1.4826 * (lin[ok] - med).abs().median(), std[ok].median())
-    return ok & ((lin - med).abs() <= cfg.outlier_mads * spread)
+    return ok & ((lin - med).abs() <= OUTLIER_MADS * spread)
 
 
-def pair_weights(lin, std, cfg: CalibrationConfig, width: float) -> tuple[torch.Tensor, torch.Tensor]:
+def pair_weights(lin, std, width: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Step 4: each pair's weight (P,) and whether it counts (P,) bool, from its signed Delta_avg ``lin``.
 
-    Pairs beyond ``outlier_mads`` robust deviations go first; the good-and-bad mixture
+    Pairs beyond :data:`OUTLIER_MADS` robust deviations go first; the good-and-bad mixture
     (:func:`good_and_bad`, failures spread over ``width``), fitted to the sharper half of the rest
     (stds at most their median: a pair that cannot tell by itself, 0 +- 4 px stuck at its start,
     does not choose which pairs are good), then keeps every pair more likely good than failed under
     it, each weighted 1 / sigma_i^2 (their scatter beyond the stds, the mixture's kappa, is what
     :func:`pool_pairs`' Birge factor and jackknife take in).
     """
-    keep = within_mads(lin, std, cfg)
+    keep = within_mads(lin, std)
     if not bool(keep.any()):
         return torch.zeros_like(std), keep
     idx = keep.nonzero()[:, 0]
@@ -233,7 +246,7 @@ def pool_pairs(ab, w, keep, first, *, fun, cfg: CalibrationConfig):
     theta = (w[:, None] * torch.nan_to_num(ab)).sum(0) / w.sum()
     if n < 2:
         return theta, nan, float("nan")
-    blocks = min(cfg.jackknife_blocks, n)
+    blocks = min(JACKKNIFE_BLOCKS, n)
     idx = keep.nonzero()[:, 0]
     rank = torch.empty(n, dtype=torch.int64)
     rank[torch.argsort(first[idx], stable=True)] = torch.arange(n)

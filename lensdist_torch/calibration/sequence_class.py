@@ -18,7 +18,13 @@ import torch
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class
 
-__all__ = ["class_or_open", "sequence_class", "interval_too_wide"]
+__all__ = ["MAX_CLASS_HALFWIDTH_PX", "MIN_PAIRS", "class_or_open", "sequence_class", "interval_too_wide"]
+
+#: The direct path: fewer usable pairs give no class ("cannot tell"; docs/method.md, section 10).
+MIN_PAIRS = 4
+#: The direct path: a half-width of Delta_avg over this many px at the paper's 320 x 424 frame gives no class
+#: (a class bin is 3.6 px wide there).
+MAX_CLASS_HALFWIDTH_PX = 1.0
 
 
 def class_or_open(dc: float, half: float, settings: LensdistConfig) -> tuple[str | None, str]:

@@ -16,8 +16,10 @@ may override any field. Its sections map one to one onto the dataclasses, one mo
     [multiview]     the same by COLMAP's bundle adjustment    sequence.py
 
 :class:`LensdistConfig` holds one of each, and ``lensdist.py`` reads and writes it (TOML, dicts).
-Every threshold of a decision lives in this package, nowhere else. The field checks, with their
-``section.field`` messages, and the one "this config or its defaults" helper are in
+Every setting a user may change lives in this package; the method's constants (thresholds,
+counts, margins nobody sets) are named constants in the modules that use them (docs/method.md).
+The field checks, with their ``section.field`` messages, and the one "this config or its
+defaults" helper are in
 :mod:`~lensdist_torch.config.checks`; the training scripts (``train/``) read their TOML files and
 ``--set`` overrides with the same reader (:mod:`~lensdist_torch.config.toml`). A key an earlier
 version read, a constant of the method now among them, loads by the one table of

@@ -51,6 +51,17 @@ RETIRED = {
     ("analysis", "relief_z"): Retired(
         by="analysis.flat_prior (both models of the scene weighed in a pair's confidence; relief where their "
            "classes differ)", inert=True),
+    # the direct path's constants (docs/method.md, section 10)
+    ("calibration", "motion_steps"): _constant("direct.MOTION_STEPS", (0.14, 0.22)),
+    ("calibration", "max_motion"): _constant("direct.MAX_MOTION", 0.35),
+    ("calibration", "outlier_mads"): _constant("pooling.OUTLIER_MADS", 4.0),
+    ("calibration", "outlier_range"): _constant("pooling.OUTLIER_RANGE", 2.0),
+    ("calibration", "max_residual_ratio"): _constant("direct_fits.MAX_RESIDUAL_RATIO", 3.0),
+    ("calibration", "jackknife_blocks"): _constant("pooling.JACKKNIFE_BLOCKS", 8),
+    ("calibration", "systematic_rel"): _constant("direct.SYSTEMATIC_REL", 1e-3),
+    ("calibration", "min_pairs"): _constant("sequence_class.MIN_PAIRS", 4),
+    ("calibration", "max_class_halfwidth_px"): _constant("sequence_class.MAX_CLASS_HALFWIDTH_PX", 1.0),
+    ("calibration", "parallax_px"): _constant("direct_fits.PARALLAX_PX", 1.0),
 }
 #: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
 INERT = {key for key, r in RETIRED.items() if r.inert}

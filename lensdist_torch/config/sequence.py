@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import flag, integer, names, pair, real, show
+from lensdist_torch.config.checks import flag, integer, names, pair, real
 
 __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
@@ -17,26 +17,19 @@ __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 class CalibrationConfig:
     """Settings of :func:`~lensdist_torch.calibration.direct.calibrate_sequence` (``[calibration]``).
 
+    What a user sets; the method's constants are named in the modules that use them
+    (:mod:`~lensdist_torch.calibration.direct`, ``pooling``, ``direct_fits``, ``sequence_class``;
+    docs/method.md, section 10).
+
     Attributes:
         analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
-        motion_steps: per frame, a pair with the first later frame moved by each fraction of R.
-        max_motion: no pair moves by more than this fraction of the half diagonal.
         max_pairs: at most this many pairs, evenly spread over those chosen.
         batch_size: pairs self-calibrated together (the progress callback's step).
-        outlier_mads: rejection threshold in robust deviations of the signed Delta_avg.
-        outlier_range: a failed pair's signed Delta_avg is taken to fall anywhere within +- this many
-            times the classes' range (``delta_top``), evenly: the bad half of the good-and-bad mixture
-            that decides which pairs count (``calibration/pooling.py``).
-        max_residual_ratio: pairs whose photometric residual exceeds this multiple of the
-            pairs' lower quartile are rejected (a broken or foreign frame).
         max_misfit: a pair counts only where its registration explains its frames: the RMS of its
             photometrically corrected residual at most this share of sqrt(var_1 + var_2), the
             frames' intensity variances (0: a perfect fit; about 0.7 for unrelated frames of that
             contrast). Real views far apart that the fit could not register, 0.4-0.9, say anything
             (docs/method.md, section 10); such pairs get the second start of ``registered_start``.
-        jackknife_blocks: contiguous blocks of pairs of the jackknife variance.
-        systematic_rel: a std of this fraction of each Delta, added in quadrature: the error all
-            pairs share (fitted on rendered sequences: docs/method.md, section 10).
         relief_rel: a std of this multiple of the relief's effect on each Delta (the pairs' plane +
             parallax minus planar answers, combined), added in quadrature: the error the plane +
             parallax model leaves, which all pairs share (fitted on validation sequences of
@@ -45,9 +38,6 @@ class CalibrationConfig:
             jackknife stds (a sequence-level Hausman test; on a planar scene the models part by
             noise); below, this many of those stds count instead (what the test cannot exclude).
         confidence: coverage of the intervals.
-        min_pairs: fewer usable pairs give no class ("cannot tell").
-        max_class_halfwidth_px: a half-width of Delta_avg above this at the paper's 320 x 424 frame
-            gives no class (a class bin is 3.6 px wide there).
         no_distortion_px: a sequence's Delta_avg (px at 320 x 424) below this is class R, of
             both sequence paths (``calibrate``); an interval that spans it gives no class. A
             sequence's intervals are hundredths of a pixel on rendered planes, so its threshold is
@@ -56,9 +46,6 @@ class CalibrationConfig:
             the share of error blocks must fall, else no class (``calibration/controllers/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
-        parallax_px: the prior std (px) of each bump's height in those pairs (``selfcal.parallax_px``
-            for the sequence path): 1 px, with which its relief figures and ``relief_rel`` were
-            measured (the single pair's default is smaller: ``selfcal.parallax_px``).
         registered_start: the pairs the pooling would not count (unregistered ones included), or
             that lie more than 3 of their own sigma from its value, are fitted again from their own registration
             (``estimate_homography_robust``: direct, then features + RANSAC; its homography even
@@ -79,52 +66,26 @@ class CalibrationConfig:
     """
 
     analysis_side: int = 512
-    motion_steps: tuple[float, ...] = (0.14, 0.22)
-    max_motion: float = 0.35
     max_pairs: int = 64
     batch_size: int = 16
-    outlier_mads: float = 4.0
-    outlier_range: float = 2.0
-    max_residual_ratio: float = 3.0
     max_misfit: float = 0.4
-    jackknife_blocks: int = 8
-    systematic_rel: float = 1e-3
     relief_rel: float = 0.8
     relief_test: float = 2.0
     confidence: float = 0.95
-    min_pairs: int = 4
-    max_class_halfwidth_px: float = 1.0
     no_distortion_px: float = 0.25
     verify_pairs: int = 6
     parallax: int = 5
-    parallax_px: float = 1.0
     registered_start: bool = True
 
     def __post_init__(self) -> None:
         flag(self, "registered_start")
         for name in ("verify_pairs", "parallax"):
             integer(self, name, lo=0)
-        for name in ("analysis_side", "max_pairs", "batch_size", "jackknife_blocks", "min_pairs"):
-            integer(self, name, lo={"analysis_side": 64, "jackknife_blocks": 2}.get(name, 1))
-        real(self, "max_motion", lo=0, hi=1, lo_open=True, hi_open=True)
-        steps = self.motion_steps
-        if not (isinstance(steps, (tuple, list)) and steps and all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < self.max_motion for v in steps)):
-            raise ValueError(f"calibration.motion_steps must be a non-empty tuple of numbers in ]0, max_motion[, "
-                             f"got {show(steps)}")
-        object.__setattr__(self, "motion_steps", tuple(float(v) for v in steps))
-        for name in (
-            "outlier_mads",
-            "outlier_range",
-            "max_residual_ratio",
-            "max_misfit",
-            "max_class_halfwidth_px",
-            "parallax_px",
-            "no_distortion_px",
-        ):
+        for name in ("analysis_side", "max_pairs", "batch_size"):
+            integer(self, name, lo={"analysis_side": 64}.get(name, 1))
+        for name in ("max_misfit", "no_distortion_px"):
             real(self, name, lo=0, lo_open=True)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
-        real(self, "systematic_rel", lo=0, hi=1, hi_open=True)
         real(self, "relief_rel", lo=0)
         real(self, "relief_test", lo=0)
 

@@ -50,3 +50,28 @@ def test_every_constant_of_the_table_is_the_modules():
         module, name = r.by.rsplit(".", 1)
         assert getattr(importlib.import_module(module), name) == r.value, (section, key)
         assert key not in config_from_dict({}).__getattribute__(section).__dataclass_fields__, (section, key)
+
+
+def test_a_direct_path_key_of_an_earlier_version(tmp_path):
+    """``[calibration] outlier_mads`` became ``pooling.OUTLIER_MADS``: at 4 it loads, at 5 it is refused."""
+    from lensdist_torch.calibration.pooling import OUTLIER_MADS
+
+    path = tmp_path / "old.toml"
+    path.write_text(f"[calibration]\noutlier_mads = {OUTLIER_MADS}\nmotion_steps = [0.14, 0.22]\nparallax = 0\n")
+    assert load_config(path).calibration.parallax == 0
+    path.write_text("[calibration]\noutlier_mads = 5.0\n")
+    one_line_error(ValueError, lambda: load_config(path), "calibration.outlier_mads", str(path),
+                   "a constant of the method now: lensdist_torch.calibration.pooling.OUTLIER_MADS")
+
+
+@pytest.mark.bad_input
+def test_calibrate_refuses_a_changed_constant_with_one_line(tmp_path, capsys):
+    from lensdist_torch.cli import main as cli_main
+
+    (tmp_path / "frames").mkdir()
+    path = tmp_path / "old.toml"
+    path.write_text("[calibration]\nmax_motion = 0.5\n")
+    assert cli_main(["calibrate", str(tmp_path / "frames"), "--config", str(path), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "calibration.max_motion" in err and str(path) in err
+    assert "a constant of the method now: lensdist_torch.calibration.direct.MAX_MOTION" in err
