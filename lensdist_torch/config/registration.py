@@ -157,6 +157,12 @@ class SelfCalConfig:
         small_motion_error: a floor e R^2 / m px on the std of Delta_avg that the covariance
             leaves out, m the fitted H's mean displacement (px), R the half diagonal: fitted on
             rendered validation pairs to cover the truth in every motion bin (docs/method.md, 10).
+        parallax_score_level: with ``parallax_evidence``, the plane + parallax stage runs on a pair
+            where the planar answer's score test (Rao's, of the relief at zero, on the planar
+            fit's finest samples) rejects a flat scene at this level; elsewhere the evidence holds
+            the relief at the floor of ``parallax_px_range`` and the pair keeps the planar answer
+            alone (no relief answer). 1: on every pair; a fixed prior always runs it (docs/method.md,
+            section 10).
         parallax_test: the plane + parallax answer replaces the planar one where their
             Delta_avg differ by more than this many standard deviations of the difference
             (Hausman's test: under a planar scene both are right and the planar one is the
@@ -202,6 +208,7 @@ class SelfCalConfig:
     parallax_px_range: tuple[float, float] = (0.02, 2.0)
     parallax_iterations: int = 6
     parallax_test: float = 2.0
+    parallax_score_level: float = 0.01
     parallax_block: int = 2
     small_motion_error: float = 1.5e-5
     interpolation: str = "blend"
@@ -215,6 +222,7 @@ class SelfCalConfig:
         integer(self, "parallax_iterations")
         integer(self, "parallax_block")
         real(self, "parallax_test", lo=0)
+        real(self, "parallax_score_level", lo=0, hi=1)
         real(self, "parallax_width", lo=0, lo_open=True)
         real(self, "parallax_px", lo=0, lo_open=True)
         flag(self, "parallax_evidence")

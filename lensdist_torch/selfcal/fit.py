@@ -89,6 +89,7 @@ from lensdist_torch.selfcal.model import (
     invertible,
     planar_parameters,
     relief_basis,
+    relief_direction,
     robust_cost,
     robust_scale,
     robust_weights,
@@ -101,7 +102,9 @@ from lensdist_torch.selfcal.prior import (
     add_relief_prior,
     evidence_tau2,
     posterior_inverse,
+    relief_p_value,
     relief_precision,
+    relief_score,
     start_tau2,
 )
 from lensdist_torch.selfcal.regions import aligned_residual, cluster_robust_covariance, region_ids
@@ -223,24 +226,46 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     theta, *planar = _result(theta, state, n_starts, init is not None, h0, w0, cfg, cfg.sample_block[-1])
     if cfg.parallax == 0:
         return planar
-    # the plane + parallax model, from the planar fit; kept where it moves Delta_avg significantly
+    # the plane + parallax model, from the planar fit, where the pair's evidence asks for it
     theta = torch.cat([theta, theta.new_zeros(bsz, cfg.parallax**2)], 1)
-    lam = torch.full((bsz,), cfg.damping, dtype=torch.float64, device=g1.device)
-    theta, _, state = _levenberg_marquardt(theta, lam, _level(pyr1, pyr2, 0, theta, 1, cfg, relief=True),
-                                           cfg.parallax_iterations, cfg)
+    score = _relief_score(pyr1, pyr2, theta, cfg, h0, w0)
+    ask = planar[3].converged & (relief_p_value(score, cfg) <= cfg.parallax_score_level)
+    rows = (ask | (not cfg.parallax_evidence)).nonzero()[:, 0]  # a fixed prior: every pair
+    nan = torch.full_like(score, float("nan"))
+    info = planar[3]._replace(relief_score=score, relief_z=nan, relief_std=nan)
+    if len(rows) == 0:
+        return (*planar[:3], info)
+    lam = torch.full((len(rows),), cfg.damping, dtype=torch.float64, device=g1.device)
+    lv = _level([p[rows] for p in pyr1], [p[rows] for p in pyr2], 0, theta[rows], 1, cfg, relief=True)
+    theta, _, state = _levenberg_marquardt(theta[rows], lam, lv, cfg.parallax_iterations, cfg)
     _, *relief = _result(theta, state, 1, False, h0, w0, cfg, cfg.parallax_block)
-    (d0, s0), (d1, s1) = (planar[3].delta_avg, planar[3].delta_avg_std), (relief[3].delta_avg, relief[3].delta_avg_std)
+    d0, s0, d1, s1 = planar[3].delta_avg[rows], planar[3].planar_std[rows], relief[3].delta_avg, relief[3].delta_avg_std
     # Hausman: under a planar scene the planar answer is the efficient one, var(d1 - d0) = s1^2 - s0^2
     z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(_HAUSMAN_FLOOR_PX**2).sqrt()
-    use = relief[3].converged & planar[3].converged & (z >= cfg.parallax_test)  # 0: on every pair
+    use = relief[3].converged & planar[3].converged[rows] & (z >= cfg.parallax_test)  # 0: on every pair
 
-    def per_pair(a, b):  # a where the relief answer is kept, else b
-        return torch.where(use.view(-1, *(1,) * (a.dim() - 1)), a, b)
+    def kept(a, b, m=use):  # b, with a on the relief's rows where m
+        out = b.clone()
+        out[rows] = torch.where(m.view(-1, *(1,) * (a.dim() - 1)), a, b[rows])
+        return out
 
-    info = SelfCalInfo(*map(per_pair, relief[3], planar[3]))._replace(
-        from_init=planar[3].from_init, relief=use, planar_ab=planar[3].ab, relief_ab=relief[3].ab, relief_z=z,
-        planar_std=s0, relief_std=s1)
-    return (*map(per_pair, relief[:3], planar[:3]), info)
+    every = torch.ones_like(use)
+    info = SelfCalInfo(*map(kept, relief[3], info))._replace(
+        relief=kept(use, info.relief, every), relief_ab=kept(relief[3].ab, info.relief_ab, every),
+        relief_z=kept(z, nan, every), relief_std=kept(s1, nan, every), from_init=info.from_init,
+        planar_ab=info.planar_ab, planar_std=info.planar_std, relief_score=score)
+    return (*map(kept, relief[:3], planar[:3]), info)
+
+
+def _relief_score(pyr1, pyr2, theta, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Tensor:
+    """(B,) :func:`~lensdist_torch.selfcal.prior.relief_score` at the planar answer ``theta``, on its own samples."""
+    lv = _level(pyr1, pyr2, 0, theta, 1, cfg, relief=False)
+    lv = lv._replace(basis=_bumps(lv.ux_d, lv.uy_d, cfg, h0, w0), direction=relief_direction(theta))
+    res, valid, J = evaluate(theta, lv)
+    w = robust_weights(res, robust_scale(res, valid, cfg.noise_floor), cfg.robust, _robust_constant(cfg))
+    w = valid.float() if w is None else w * valid
+    jtj, jtr = _normal_equations(J, res, w)
+    return relief_score(jtj, jtr, _residual_variance(res, w, J.shape[1], cfg), cfg)
 
 
 def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relief: bool) -> Level:
@@ -252,25 +277,15 @@ def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relie
     ux_d, uy_d = ud[idx, 0], ud[idx, 1]
     lv = [torch.gather(i1.flatten(1), 1, idx), with_gradients(pyr2[lev]), ux_d, uy_d, ux_d * ux_d + uy_d * uy_d]
     i1s, stack2, ux_d, uy_d, rho = (x.repeat(n_starts, *(1,) * (x.dim() - 1)) if n_starts > 1 else x for x in lv)
-    basis, direction = _relief(theta, ux_d, uy_d, cfg, h0, w0) if relief else (None, None)
+    basis, direction = (_bumps(ux_d, uy_d, cfg, h0, w0), relief_direction(theta)) if relief else (None, None)
     return Level(i1=i1s, stack2=stack2, ux_d=ux_d, uy_d=uy_d, rho=rho, px=half_diagonal(h0, w0) / 2**lev,
                  to_grid=level_to_grid(lev, h, w, full_height=h0, full_width=w0), newton=cfg.newton, margin=cfg.margin,
                  photometric=cfg.photometric, floor=cfg.noise_floor, basis=basis, direction=direction,
                  interpolation=_RELIEF_INTERPOLATION if relief else cfg.interpolation)
 
 
-def _relief(theta, ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
-    """(basis (B, K, N), direction (B, 2)) of the plane + parallax model.
-
-    The direction is the current homography's translation (h02, h12), fixed for the level
-    (downwards where it is 0): a camera translating parallel to the scene moves every point of a
-    relief along it.
-    """
-    t = theta[:, [2, 5]].float()
-    n = t.norm(dim=1, keepdim=True)
-    down = torch.tensor([0.0, 1.0], device=t.device).expand_as(t)
-    basis = relief_basis(ux_d, uy_d, n=cfg.parallax, width=cfg.parallax_width, h0=h0, w0=w0)
-    return basis, torch.where(n > 0, t / n.clamp_min(1e-12), down)
+def _bumps(ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
+    return relief_basis(ux_d, uy_d, n=cfg.parallax, width=cfg.parallax_width, h0=h0, w0=w0)
 
 
 def _plausible(theta: torch.Tensor, cfg: SelfCalConfig) -> torch.Tensor:
@@ -341,6 +356,12 @@ def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | Non
     return cost + prec * (theta[:, rel].double() ** 2).sum(1) / valid.sum(1).clamp_min(1).double()
 
 
+def _residual_variance(res, w, n_par: int, cfg: SelfCalConfig) -> torch.Tensor:
+    """(B,) the weighted residual variance, floored at 8-bit quantisation: no certainty without texture."""
+    s2 = (w.double() * res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)
+    return s2.clamp_min(cfg.noise_floor**2)
+
+
 def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region: torch.Tensor | None) -> torch.Tensor:
     """Std (px) of Delta_avg from the covariance of the final fit; inf where not finite.
 
@@ -350,12 +371,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     w = robust_weights(st.res, st.sigma, cfg.robust, _robust_constant(cfg))
     w = st.valid.float() if w is None else w * st.valid
     jtj, _ = _normal_equations(st.J, st.res, w)
-    n_par = st.J.shape[1]
-    # weighted residual variance, floored at the quantisation noise of 8-bit images, so that a
-    # textureless or identical pair cannot claim certainty
-    s2 = ((w.double() * st.res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)).clamp_min(
-        cfg.noise_floor**2
-    )
+    s2 = _residual_variance(st.res, w, st.J.shape[1], cfg)
     inv = posterior_inverse(jtj, s2, st.tau2, cfg)  # with the relief: precision J W J^T / s^2 + I / tau^2
     cov = s2[:, None, None] * inv
     if region is not None:  # cluster-robust: the larger of the two
@@ -428,5 +444,6 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
         delta_avg_std=std, residual=rms, overlap=overlap, ab=ab, gain_bias=gb.double(), scale=st.sigma.double(),
         from_init=from_init, relief=torch.zeros_like(ok), motion=torch.where(ok, motion, nan), planar_ab=ab,
         relief_ab=torch.full_like(ab, float("nan")), relief_z=torch.full_like(d_avg, float("nan")), planar_std=std,
-        relief_std=torch.full_like(std, float("nan")), aligned_residual=aligned)
+        relief_std=torch.full_like(std, float("nan")), aligned_residual=aligned,
+        relief_score=torch.full_like(std, float("nan")))
     return theta, k2, k4, H, info

@@ -41,6 +41,7 @@ __all__ = [
     "evaluate",
     "select_samples",
     "relief_basis",
+    "relief_direction",
     "invertible",
     "robust_scale",
     "robust_weights",
@@ -173,7 +174,11 @@ class SelfCalInfo(NamedTuple):
     models' Delta_avg stds whichever was kept (relief_std NaN without that model, inf where it did
     not converge), aligned_residual the RMS of the same residual over the frame's ``clusters`` x
     ``clusters`` rectangles but the worst ``occluded_share`` of them (what ``analyze`` tests: an
-    occluder spoils a few rectangles, a model that cannot follow the lens most of the border).
+    occluder spoils a few rectangles, a model that cannot follow the lens most of the border),
+    relief_score Rao's score statistic of the relief at the planar answer (chi-square with
+    ``parallax**2`` degrees of freedom on a flat scene; what ``parallax_score_level`` tests; NaN
+    without that model). Where the plane + parallax model was not fitted (the score test kept the
+    pair flat) relief_ab, relief_z and relief_std are NaN, as without that model.
     """
 
     converged: torch.Tensor
@@ -195,6 +200,7 @@ class SelfCalInfo(NamedTuple):
     planar_std: torch.Tensor
     relief_std: torch.Tensor
     aligned_residual: torch.Tensor
+    relief_score: torch.Tensor
 
 
 class Level(NamedTuple):
@@ -318,6 +324,18 @@ def relief_basis(ux_d: torch.Tensor, uy_d: torch.Tensor, *, n: int, width: float
     cy = torch.linspace(-(h0 - 1) / (2 * r), (h0 - 1) / (2 * r), n, device=ux_d.device)
     d2 = (ux_d[:, None] - cx.repeat_interleave(n)[:, None]) ** 2 + (uy_d[:, None] - cy.repeat(n)[:, None]) ** 2
     return torch.exp(-d2 / (2 * width * width))
+
+
+def relief_direction(theta: torch.Tensor) -> torch.Tensor:
+    """(B, 2) the unit direction the relief moves img2's points along: the homography's translation.
+
+    (h02, h12) of ``theta`` (B, P), downwards where it is 0: a camera translating parallel to the
+    scene moves every point of a relief along it.
+    """
+    t = theta[:, [2, 5]].float()
+    n = t.norm(dim=1, keepdim=True)
+    down = torch.tensor([0.0, 1.0], device=t.device).expand_as(t)
+    return torch.where(n > 0, t / n.clamp_min(1e-12), down)
 
 
 def select_samples(img: torch.Tensor, block: int, margin: float) -> torch.Tensor:

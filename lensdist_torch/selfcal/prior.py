@@ -7,7 +7,8 @@ covariance (:func:`posterior_inverse`). tau is ``selfcal.parallax_px``
 over the level's pixels per unit, or, with ``selfcal.parallax_evidence``, re-estimated per pair
 from the evidence after every Levenberg-Marquardt step (:func:`evidence_tau2`, MacKay's update
 :func:`evidence_variance`): a flat pair drives it down to the floor of ``parallax_px_range``, a
-relief the data pin up (docs/method.md, section 10).
+relief the data pin up (docs/method.md, section 10). Whether a pair's evidence asks for the relief
+at all: :func:`relief_score`, Rao's score test of the relief at zero.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ __all__ = [
     "posterior_inverse",
     "start_tau2",
     "evidence_tau2",
+    "relief_score",
+    "relief_p_value",
 ]
 
 
@@ -122,3 +125,40 @@ def evidence_tau2(theta, jtj, sigma, tau2, *, px: float, cfg: SelfCalConfig) -> 
     new = evidence_variance(theta[:, rel].double(), trace, tau2)
     lo, hi = (_normalised(v, px) for v in cfg.parallax_px_range)
     return torch.where(torch.isfinite(new), new.clamp(lo, hi), tau2)
+
+
+def relief_score(jtj: torch.Tensor, jtr: torch.Tensor, variance: torch.Tensor, cfg: SelfCalConfig) -> torch.Tensor:
+    """(B,) Rao's score statistic of the relief coefficients at zero, from the planar answer.
+
+    ``jtj`` (B, P, P) and ``jtr`` (B, P): the robust normal equations J W J^T and J W r of the
+    planar model with the relief's columns appended (the relief at 0), ``variance`` (B,) the
+    weighted residual variance. The relief's efficient score over its information, (g^T A^-1 g
+    - g_p^T A_pp^-1 g_p) / s^2 (the planar parameters' own gradient, near 0 at the planar answer,
+    projected out), is chi-square with ``parallax**2`` degrees of freedom under a flat scene:
+    no prior, no refit.
+
+    Example:
+        >>> cfg = SelfCalConfig(parallax=1, photometric="none", ridge=1e-12)  # 10 planar parameters, 1 bump
+        >>> jtj, jtr = torch.eye(11, dtype=torch.float64)[None], torch.zeros(1, 11, dtype=torch.float64)
+        >>> jtr[0, 10] = 3.0  # the bump's gradient, 3 s.d. of its information
+        >>> round(float(relief_score(jtj, jtr, torch.tensor([1.0], dtype=torch.float64), cfg)), 6)
+        9.0
+    """
+    p = planar_parameters(cfg.photometric)
+    eye = torch.eye(jtj.shape[1], dtype=torch.float64, device=jtj.device)
+
+    def quadratic(a, g):  # g^T (a + ridge)^-1 g
+        return (g * torch.linalg.solve(a + cfg.ridge * eye[: a.shape[1], : a.shape[1]], g)).sum(1)
+
+    return (quadratic(jtj, jtr) - quadratic(jtj[:, :p, :p], jtr[:, :p])) / variance
+
+
+def relief_p_value(score: torch.Tensor, cfg: SelfCalConfig) -> torch.Tensor:
+    """(B,) the p-value of :func:`relief_score` under a flat scene (chi-square, ``parallax**2`` dof); NaN stays NaN.
+
+    Example:
+        >>> round(float(relief_p_value(torch.tensor([44.314]), SelfCalConfig(parallax=5))), 4)  # chi2(25)'s 99 % point
+        0.01
+    """
+    k = torch.tensor(cfg.parallax**2 / 2, dtype=torch.float64, device=score.device)
+    return torch.special.gammaincc(k, score.double().clamp_min(0) / 2)

@@ -18,6 +18,7 @@ from lensdist_torch.selfcal.fit import SelfCalConfig, estimate_distortion
 
 RELIEF = SelfCalConfig(parallax=5)
 PLANAR = SelfCalConfig(parallax=0)
+EVERY = dataclasses.replace(RELIEF, parallax_score_level=1.0)  # the relief stage on every pair, flat or not
 
 
 def test_relief_basis_is_gaussian_bumps_on_a_grid_over_the_frame():
@@ -88,11 +89,11 @@ def test_relief_model_leaves_a_planar_scene_nearly_as_it_was():
     not, the relief model's answer is still close."""
     i1, i2, true = relief_only_pairs(0.0, 12)
     planar, _ = _errors(i1, i2, true, PLANAR)
-    relief, info = _errors(i1, i2, true, RELIEF)
+    relief, info = _errors(i1, i2, true, EVERY)
     assert int(info.relief.sum()) <= 3
     assert float(planar.max()) < 0.6 and float(relief.max()) < float(planar.max()) + 0.3
     assert float(relief.pow(2).mean().sqrt()) < float(planar.pow(2).mean().sqrt()) + 0.1
-    off = dataclasses.replace(RELIEF, parallax=0)
+    off = dataclasses.replace(EVERY, parallax=0)
     flat = _errors(i1, i2, true, off)[1]
     assert not bool(flat.relief.any())
     # both models' coefficients travel with the answer: ab is the kept one's, the planar ones are
@@ -134,7 +135,7 @@ def test_the_evidence_holds_a_flat_pair_to_its_plane_and_frees_a_relief():
     starts from, on 6 pairs each: on flat pairs the relief answer moves less off the planar one
     (mean 0.091 -> 0.073 px when written), on pairs with relief (6 %) it is nearer the truth (RMSE
     0.42 -> 0.37 px; the planar model's 1.15)."""
-    fixed, free = (dataclasses.replace(RELIEF, parallax_test=0.0, parallax_evidence=e) for e in (False, True))
+    fixed, free = (dataclasses.replace(EVERY, parallax_test=0.0, parallax_evidence=e) for e in (False, True))
     i1, i2, true = relief_only_pairs(0.0, n=6)
     planar = _errors(i1, i2, true, PLANAR)[1].delta_avg
     moved = [float((_errors(i1, i2, true, c)[1].delta_avg - planar).abs().mean()) for c in (fixed, free)]
@@ -144,11 +145,33 @@ def test_the_evidence_holds_a_flat_pair_to_its_plane_and_frees_a_relief():
     assert rmse[2] < 0.95 * rmse[1] and rmse[2] < 0.4 * rmse[0]
 
 
+@pytest.mark.usefixtures("one_thread_module")
+def test_the_relief_stage_runs_where_the_planar_answers_score_asks_for_it():
+    """Rao's score test of the relief at the planar answer (``parallax_score_level``): on flat pairs
+    the statistic is chi-square with 25 degrees of freedom and the stage is skipped (no relief
+    answer; the planar one, as with parallax = 0); on pairs with relief (6 %) it runs. Level 1:
+    every pair, as before the test."""
+    i1, i2, true = relief_only_pairs(0.0, 12)
+    flat, planar, every = (_errors(i1, i2, true, c)[1] for c in (RELIEF, PLANAR, EVERY))
+    skipped = flat.relief_ab.isnan().all(1)
+    assert int(skipped.sum()) >= 10 and 12 < float(flat.relief_score.median()) < 40
+    assert torch.equal(flat.delta_avg[skipped], planar.delta_avg[skipped])
+    assert bool(flat.relief_z[skipped].isnan().all()) and bool(flat.relief_std[skipped].isnan().all())
+    assert not bool(flat.relief[skipped].any()) and bool(torch.isfinite(every.relief_ab).all())
+    assert torch.equal(every.relief_score, flat.relief_score) and bool(planar.relief_score.isnan().all())
+    i1, i2, true = relief_only_pairs(0.06, 12)
+    info = _errors(i1, i2, true, RELIEF)[1]
+    assert int(torch.isfinite(info.relief_ab).all(1).sum()) >= 10 and float(info.relief_score.median()) > 100
+    fixed = _errors(i1[:2], i2[:2], true[:2], dataclasses.replace(RELIEF, parallax_evidence=False))[1]
+    assert bool(torch.isfinite(fixed.relief_ab).all())  # a fixed prior: every pair, whatever its score
+
+
 @pytest.mark.bad_input
 @pytest.mark.parametrize("field,value", [("parallax", -1), ("parallax", 2.5), ("parallax_width", 0.0),
                                          ("parallax_iterations", 0), ("parallax_block", 0), ("parallax_test", -1.0),
                                          ("parallax_px", 0.0), ("parallax_evidence", "yes"),
-                                         ("parallax_px_range", (2.0, 0.02)), ("parallax_px_range", (0.0, 1.0))])
+                                         ("parallax_px_range", (2.0, 0.02)), ("parallax_px_range", (0.0, 1.0)),
+                                         ("parallax_score_level", 1.5), ("parallax_score_level", -0.1)])
 def test_relief_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=field) as err:
         SelfCalConfig(**{field: value})
