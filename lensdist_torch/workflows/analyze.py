@@ -43,7 +43,7 @@ from lensdist_torch.geometry.homography import check_homography
 from lensdist_torch.workflows.confidence import platt
 from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels
 from lensdist_torch.workflows.pair_analysis import JSON_KEYS, PairAnalysis
-from lensdist_torch.workflows.prepare import PreparedPairs, prepare_batch, resolve_device
+from lensdist_torch.workflows.prepare import PreparedPairs, one_thread, prepare_batch, resolve_device
 
 __all__ = ["analyze_batch", "analyze_pair", "analysis_config", "prepare_batch", "PreparedPairs", "default_checkpoint",
            "resolve_device", "METHODS"]
@@ -307,6 +307,16 @@ def analyze_batch(
         >>> [r.class_label for r in res], abs(res[0].delta_avg - 4.19) < 0.25  # px at 320 x 424
         (['2', 'R'], True)
     """
+    dev = resolve_device(device) if prepared is None else prepared.img1.device
+    with one_thread(dev):  # one pair's small tensors on the CPU: one thread (prepare.one_thread)
+        return _analyze_batch(img1, img2, method=method, config=config, checkpoint=checkpoint,
+                              checkpoint_max=checkpoint_max, device=device, homography=homography, prepared=prepared,
+                              return_maps=return_maps)
+
+
+def _analyze_batch(img1, img2, *, method, config, checkpoint, checkpoint_max, device, homography, prepared,
+                   return_maps):
+    """:func:`analyze_batch`'s work, on the threads it was given."""
     models, cfg = _models_and_config(method, checkpoint, checkpoint_max, config)
     p = (
         prepared

@@ -9,6 +9,7 @@ share: the self-calibration of each pair (with its 95 % interval) and the textur
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from pathlib import Path
@@ -34,7 +35,7 @@ from lensdist_torch.selfcal.fit import SelfCalInfo, estimate_distortion
 from lensdist_torch.workflows.class_mass import delta_interval, scene_models
 from lensdist_torch.workflows.texture import texture_histogram
 
-__all__ = ["PreparedPairs", "prepare_batch", "resolve_device"]
+__all__ = ["PreparedPairs", "prepare_batch", "resolve_device", "one_thread"]
 
 
 def resolve_device(device=None) -> torch.device:
@@ -191,9 +192,9 @@ def prepare_batch(img1, img2, *, config: LensdistConfig | None = None, homograph
     a, b = torch.cat(a), torch.cat(b)
     n = a.shape[0]
     if homography is None:
-        regs = [
-            estimate_homography_robust(a[g], b[g], config=cfg.registration, validate=False) for g in _groups(dev, n)
-        ]
+        with one_thread(dev):
+            regs = [estimate_homography_robust(a[g], b[g], config=cfg.registration, validate=False)
+                    for g in _groups(dev, n)]
         H = torch.cat([r[0] for r in regs]).double()
         ok = torch.cat([r[1].converged for r in regs]).bool().cpu()
         residual = torch.cat([r[1].residual for r in regs]).float().cpu()
@@ -242,6 +243,27 @@ def _groups(dev: torch.device, n: int, same=None) -> list:
     return [idx.to(dev) for idx in (keys.nonzero()[:, 0], (~keys).nonzero()[:, 0]) if idx.numel()]
 
 
+@contextlib.contextmanager
+def one_thread(dev: torch.device):
+    """On the CPU, an analysis on one torch thread, the count restored after (a no-op on a GPU).
+
+    The estimators take one pair at a time there (:func:`_groups`), and one pair's tensors are
+    small (a 320 x 424 frame, a few thousand samples): a second thread halves little of each
+    operation but meets the first at a barrier after every one, and on a machine whose cores are
+    busy each such meeting waits for a time slice (docs/method.md, section 10). With one thread a
+    pair's float32 reductions, and so its answer, no longer depend on the thread count either.
+    """
+    threads = torch.get_num_threads()
+    if _batched(dev) or threads == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def _selfcal_fits(p: PreparedPairs) -> list[tuple]:
     """Self-calibration of every pair, started from the registration's H wherever it is finite: (k2, k4, info, aligned, motion) each.
 
@@ -259,7 +281,8 @@ def _selfcal_fits(p: PreparedPairs) -> list[tuple]:
     for g in _groups(p.img1.device, n, start):
         pairs = range(n)[g] if isinstance(g, slice) else g.tolist()
         init = p.H[g] if bool(start[pairs[0]]) else None
-        k2, k4, _, sc = estimate_distortion(p.img1[g], p.img2[g], init=init, config=cfg.selfcal, validate=False)
+        with one_thread(p.img1.device):
+            k2, k4, _, sc = estimate_distortion(p.img1[g], p.img2[g], init=init, config=cfg.selfcal, validate=False)
         k2, k4, sc = k2.cpu(), k4.cpu(), SelfCalInfo(*(f.cpu() for f in sc))  # one copy, not one per number
         for j, i in enumerate(pairs):
             one = SelfCalInfo(*(f[j : j + 1] for f in sc))
