@@ -12,7 +12,7 @@ It runs where fewer than ``planar_guided_below`` of the verified pairs kept thei
 inliers in the first fit (:func:`self_calibrate_guided`).
 
 1. **Each view on the plane**: every verified pair's homography between the lens's ideal points
-   by LO-RANSAC (``planar_inlier_px``; pairs with ``planar_min_matches`` inliers count); a
+   by LO-RANSAC (``PLANAR_INLIER_PX``; pairs with ``planar_min_matches`` inliers count); a
    spanning tree of the counting pairs, the pairs with most inliers first, chains the views onto
    one plane, so a pair whose own matches failed gets its homography through the others.
 2. **Guided matches**: for every verified pair of two chained views (the pairs COLMAP matched,
@@ -20,7 +20,7 @@ inliers in the first fit (:func:`self_calibrate_guided`).
    it counts, the chain's otherwise); its partner is the keypoint of the second view within
    ``planar_guided_px`` (ideal pixels) whose descriptor is closest, kept where the two are each
    other's closest and the closest is clearly closer than the next candidate more than 2 px away
-   (``planar_guided_ratio`` on the descriptors' distances; nearer ones are the same point's other
+   (``PLANAR_GUIDED_RATIO`` on the descriptors' distances; nearer ones are the same point's other
    SIFT orientations). A match found through several orientations is kept once.
 
 The matches are then fitted again (:func:`~lensdist_torch.calibration.planar_features.self_calibrate_planar`
@@ -36,17 +36,21 @@ from collections.abc import Callable
 
 import torch
 
-from lensdist_torch.calibration.match_refinement import refine_matches
+from lensdist_torch.calibration.match_refinement import PLANAR_REFINE_PX, refine_matches
 from lensdist_torch.calibration.matches import PlanarMatches, read_verified_matches, thin_matches
 from lensdist_torch.calibration.multiview import pycolmap_or_error
-from lensdist_torch.calibration.planar_features import pair_homographies, self_calibrate_planar
+from lensdist_torch.calibration.planar_features import PLANAR_INLIER_PX, pair_homographies, self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
-__all__ = ["chain_views", "guided_matches", "pair_homography", "read_features", "refined_matches",
-           "self_calibrate_guided"]
+__all__ = ["PLANAR_GUIDED_RATIO", "chain_views", "guided_matches", "pair_homography", "read_features",
+           "refined_matches", "self_calibrate_guided"]
+
+#: A guided match's descriptor distance at most this share of the next candidate's (the ratio test, among the
+#: candidates within ``planar_guided_px``).
+PLANAR_GUIDED_RATIO = 0.8
 
 
 def read_features(database, names: list[str]) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -83,8 +87,8 @@ def chain_views(matches: PlanarMatches, coefficients, *, centre, size: tuple[int
         coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.calibration.planar_model.lens_ideal_points`).
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_inlier_px``,
-            ``planar_min_matches``, ``seed``).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_min_matches``, ``seed``;
+            the constant ``PLANAR_INLIER_PX``).
 
     Returns:
         (pairs, views): {(i, j): 3 x 3 homography from view i's ideal pixels to view j's} for the
@@ -105,7 +109,7 @@ def chain_views(matches: PlanarMatches, coefficients, *, centre, size: tuple[int
     u1 = lens_ideal_points(matches.x1, coefficients, h, w, centre=centre)
     u2 = lens_ideal_points(matches.x2, coefficients, h, w, centre=centre)
     for p, _, hm, mask in pair_homographies(u1, u2, matches.pair, which=range(len(matches.first)),
-                                            max_error=cfg.planar_inlier_px, seed=cfg.seed):
+                                            max_error=PLANAR_INLIER_PX, seed=cfg.seed):
         if hm is not None and int(mask.sum()) >= cfg.planar_min_matches:
             key = (int(matches.first[p]), int(matches.second[p]))
             pairs[key], weight[key] = hm, int(mask.sum())
@@ -151,7 +155,7 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, *, cent
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_guided_px``,
-            ``planar_guided_ratio``, ``planar_min_matches`` and :func:`chain_views`' fields).
+            ``planar_min_matches``, the constant :data:`PLANAR_GUIDED_RATIO` and :func:`chain_views`' fields).
 
     Returns:
         :class:`~lensdist_torch.calibration.matches.PlanarMatches` (pairs with at least
@@ -219,7 +223,7 @@ def _guided_pair(predicted: torch.Tensor, target: torch.Tensor, d1: torch.Tensor
     other = (chosen[ci] >= 0) & ((target[cj] - target[chosen[ci].clamp_min(0)]).norm(dim=-1) > 2.0)
     runner = torch.full((n1,), -2.0, dtype=sim.dtype).scatter_reduce(0, ci[other], sim[other], "amax")
     dist = lambda s: torch.sqrt((2 - 2 * s).clamp_min(0))  # noqa: E731 - unit vectors' distance from their cosine
-    clear = (runner[ci] < -1.5) | (dist(sim) < cfg.planar_guided_ratio * dist(runner[ci]))
+    clear = (runner[ci] < -1.5) | (dist(sim) < PLANAR_GUIDED_RATIO * dist(runner[ci]))
     keep = top & clear
     return ci[keep], cj[keep]
 
@@ -283,11 +287,11 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, 
             )
         else:
             res, used = dataclasses.replace(again, guided={**info, "used": True, "reason": ""}), found
-    if (images is None or cfg.planar_refine_px <= 0 or not math.isfinite(res.delta_avg_user_px)
+    if (images is None or PLANAR_REFINE_PX <= 0 or not math.isfinite(res.delta_avg_user_px)
             or res.inlier_share < cfg.planar_min_inlier_share):
         return res
     refined, info = refined_matches(used, images, res.coefficients, centre=res.centre, size=size, config=cfg)
-    info = {**info, "half_px": cfg.planar_refine_px, "before": _figures(res)}
+    info = {**info, "half_px": PLANAR_REFINE_PX, "before": _figures(res)}
     again = self_calibrate_planar(
         refined, size, config=cfg, settings=settings, start=res.coefficients, plane_share=first.inlier_share
     )

@@ -18,12 +18,12 @@ For each match (x1 in view i, x2 in view j) of a pair with homography H between 
 2. **Alignment** (:func:`align_patches`): the first view's (2 ``half`` + 1)^2 patch about x1
    (Gaussian window of standard deviation ``half`` / 2) against the second view sampled at
    x2 + t + A d, Gauss-Newton on t and a gain and offset of the intensities (exposure changes
-   between views), both images smoothed by a Gaussian of ``planar_refine_blur`` px, gradients by
+   between views), both images smoothed by a Gaussian of ``PLANAR_REFINE_BLUR`` px, gradients by
    kornia's normalised Sobel.
 3. **Kept** where the alignment converged (last step under 0.02 px), moved at most
-   ``planar_inlier_px``, both patches lie inside their frames, the patch has texture in both
+   ``PLANAR_INLIER_PX``, both patches lie inside their frames, the patch has texture in both
    directions (the smaller eigenvalue of its gradients' moment matrix), and the aligned patches'
-   windowed normalised cross-correlation is at least ``planar_refine_ncc``; the others are dropped.
+   windowed normalised cross-correlation is at least ``PLANAR_REFINE_NCC``; the others are dropped.
 
 The first view's point stays where it was: the pair's correspondence is what the fit needs, not
 a keypoint's detection.
@@ -39,12 +39,21 @@ import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d, spatial_gradient
 
 from lensdist_torch.calibration.matches import PlanarMatches
+from lensdist_torch.calibration.planar_features import PLANAR_INLIER_PX
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
 
-__all__ = ["align_patches", "local_affines", "refine_matches"]
+__all__ = ["PLANAR_REFINE_BLUR", "PLANAR_REFINE_NCC", "PLANAR_REFINE_PX", "align_patches", "local_affines",
+           "refine_matches"]
+
+#: The half size (px) of the patches that move each match to where the two views align; 0: no refinement.
+PLANAR_REFINE_PX = 7
+#: The Gaussian's standard deviation (px) that smooths the frames for the refinement.
+PLANAR_REFINE_BLUR = 1.0
+#: A refined match is kept where its aligned patches correlate at least this much (normalised cross-correlation).
+PLANAR_REFINE_NCC = 0.9
 
 _CONVERGED_PX = 0.02  # the last Gauss-Newton step of a kept match is shorter than this (px)
 _MIN_TEXTURE = (
@@ -176,8 +185,8 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
         coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.geometry.radial_lens.lens_ideal_points`).
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_refine_px``,
-            ``planar_refine_blur``, ``planar_refine_ncc``, ``planar_inlier_px``, ``planar_min_matches``).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_min_matches``; the constants
+            :data:`PLANAR_REFINE_PX`, :data:`PLANAR_REFINE_BLUR`, :data:`PLANAR_REFINE_NCC`, ``PLANAR_INLIER_PX``).
         cache_mb: the prepared views (the smoothed frame and its gradients, 12 bytes a pixel) kept at once,
             in MB, at least two; the least recently used leaves first (pairs in order of their first view).
             A cache too small for the views a pair sequence revisits reads the frames again and again.
@@ -188,7 +197,7 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
     """
     cfg = or_defaults(config, MultiViewConfig)
     h, w = size
-    half = cfg.planar_refine_px
+    half = PLANAR_REFINE_PX
     ready: OrderedDict = OrderedDict()
     most = max(2, int(cache_mb * 2**20 // (12 * h * w)))
 
@@ -197,7 +206,7 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
             image = images(v)
             if tuple(image.shape) != (h, w):
                 raise ValueError(f"images: view {v} is {tuple(image.shape)}, expected the frames' (H, W) = {(h, w)}")
-            ready[v] = _prepared(image, cfg.planar_refine_blur)
+            ready[v] = _prepared(image, PLANAR_REFINE_BLUR)
             if len(ready) > most:
                 ready.popitem(last=False)
         ready.move_to_end(v)
@@ -218,7 +227,7 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
         affine = local_affines(x1, hm, coefficients, centre=centre, size=size)
         moved, ncc, ok = align_patches(view(i), view(j), x1, x2, affine=affine, half=half)
         shift = (moved - x2).norm(dim=1)
-        keep = ok & (ncc >= cfg.planar_refine_ncc) & (shift <= cfg.planar_inlier_px) & inside(x1) & inside(moved)
+        keep = ok & (ncc >= PLANAR_REFINE_NCC) & (shift <= PLANAR_INLIER_PX) & inside(x1) & inside(moved)
         if int(keep.sum()) < cfg.planar_min_matches:
             continue
         x1s.append(x1[keep])

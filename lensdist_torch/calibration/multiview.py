@@ -12,7 +12,7 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    the frame centre (the data rarely pin it, and refining it was measured to go wrong). A frame
    that sees too few of the 3-D points to be posed is left out: COLMAP's structure-less fallback,
    which poses it from its 2-D matches alone, takes seconds per frame. One mapping answers
-   (``reconstructions``); with a caller's ``stop`` up to ``extra_mappings`` further seeds are
+   (``reconstructions``); with a caller's ``stop`` up to ``EXTRA_MAPPINGS`` further seeds are
    tried where a mapping registers too few frames (a wrong initial pair).
 2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
    adjustment on the same tracks (structure, poses, focal length and the model's distortion
@@ -83,6 +83,10 @@ from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_from_colmap, opencv_ideal_points
 
 __all__ = [
+    "EVIDENCE_DRAWS",
+    "EXHAUSTIVE_BELOW",
+    "EXTRA_MAPPINGS",
+    "SEQUENTIAL_OVERLAP",
     "MultiViewCalibration",
     "pycolmap_or_error",
     "feature_cap",
@@ -93,6 +97,16 @@ __all__ = [
     "rotation_spread_deg",
     "BA_FUNCTION_TOLERANCE",
 ]
+
+#: Up to this many frames every pair is matched; more: each frame with its :data:`SEQUENTIAL_OVERLAP` successors.
+EXHAUSTIVE_BELOW = 60
+#: Successors matched per frame in sequential matching (a video's frames beyond :data:`EXHAUSTIVE_BELOW`).
+SEQUENTIAL_OVERLAP = 12
+#: Bayesian-bootstrap draws over the folds for the models' evidence weights (docs/method.md, section 11).
+EVIDENCE_DRAWS = 1000
+#: Mappings tried with further seeds where one registers too few frames (a wrong initial pair: the focal length
+#: runs off and the mapping ends early).
+EXTRA_MAPPINGS = 3
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -181,7 +195,7 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
         stop: called after each mapping with its index and its reconstruction (or None), outside
             the silenced log; True skips the remaining mappings (each costs as much as the
             first: 40-45 s on 22 frames of 384 x 288 on 2 cores). With ``stop`` up to
-            ``reconstructions + extra_mappings`` mappings run, without it ``reconstructions``.
+            ``reconstructions +`` :data:`EXTRA_MAPPINGS` mappings run, without it ``reconstructions``.
         image_size: the frames' (H, W), for the features' cap (:func:`feature_cap`); None: ``max_features``.
         on_matches: called with the database's path once the features and verified matches are in
             it, before the first mapping (the homography model reads them:
@@ -198,7 +212,7 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
         extract_and_match(db, image_dir, names, config=cfg, image_size=image_size)
         if on_matches is not None:
             on_matches(db)
-        for i in range(cfg.reconstructions + (cfg.extra_mappings if stop is not None else 0)):
+        for i in range(cfg.reconstructions + (EXTRA_MAPPINGS if stop is not None else 0)):
             pc.set_random_seed(cfg.seed + i)
             mapping = pc.IncrementalPipelineOptions()
             mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = (
@@ -226,7 +240,7 @@ def extract_and_match(
 ) -> None:
     """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
 
-    Exhaustive matching up to ``exhaustive_below`` frames, sequential beyond; one shared RADIAL
+    Exhaustive matching up to :data:`EXHAUSTIVE_BELOW` frames, sequential beyond; one shared RADIAL
     camera; the geometric verification's RANSAC seeded by ``seed``. :func:`reconstruct` maps on it;
     :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads its matches.
     """
@@ -244,13 +258,13 @@ def extract_and_match(
     with quiet_log():
         pc.extract_features(database, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
                             reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
-        if len(names) <= cfg.exhaustive_below:
+        if len(names) <= EXHAUSTIVE_BELOW:
             pc.match_exhaustive(
                 database, matching_options=matching, verification_options=verification, device=pc.Device.cpu
             )
         else:
             pairing = pc.SequentialPairingOptions()
-            pairing.overlap = cfg.sequential_overlap
+            pairing.overlap = SEQUENTIAL_OVERLAP
             pc.match_sequential(database, matching_options=matching, pairing_options=pairing,
                                 verification_options=verification, device=pc.Device.cpu)
 
@@ -360,7 +374,7 @@ def self_calibrate_reconstruction(
     carried = np.array([math.isfinite(r["delta_avg_std_px"]) for r in rows]) if any(
         math.isfinite(r["delta_avg_std_px"]) for r in rows) else np.ones(len(rows), dtype=bool)
     weights = np.zeros(len(rows))
-    weights[carried] = evidence_weights(lpd[carried], cfg.evidence_draws, cfg.seed)
+    weights[carried] = evidence_weights(lpd[carried], EVIDENCE_DRAWS, cfg.seed)
     table = {m: {**r, "weight": float(w), "elpd": float(e)} for m, r, w, e in zip(fits, rows, weights, lpd.sum(axis=1))}
     best = max(
         (m for m, c in zip(table, carried) if c), key=lambda m: table[m]["elpd"]

@@ -8,7 +8,7 @@ the mapping runs that many times on the same features and matches (seeds ``seed`
 ...; :func:`~lensdist_torch.calibration.multiview.reconstruct`), each reconstruction is
 self-calibrated, and :func:`combine_reconstructions` measures the engine's variation. A mapping
 that registers too few frames is no answer but a failed start (a wrong initial pair: the focal
-length runs off and the mapping ends in about a second), so up to ``multiview.extra_mappings``
+length runs off and the mapping ends in about a second), so up to ``multiview.EXTRA_MAPPINGS``
 further seeds are tried until ``reconstructions`` succeed; the failures are listed. :func:`combine_reconstructions`
 
 * answers with the median reconstruction by Delta_avg (of two in the middle, the one with more

@@ -17,16 +17,16 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.calibration.multiview.reconstruct`
    computes them once for the mappings too), pairs with at least ``planar_min_matches``, each
    pair's thinned to ``planar_pair_matches`` (:func:`thin_matches`).
-2. **Start**: a_1 over ``planar_scan_range`` (the other terms 0); for each, the homography of
-   each of the ``planar_scan_pairs`` pairs with the most matches by COLMAP's LO-RANSAC
-   (``pycolmap.estimate_homography_matrix``, ``planar_ransac_px``) on the undistorted points; the
+2. **Start**: a_1 over ``PLANAR_SCAN_RANGE`` (the other terms 0); for each, the homography of
+   each of the ``PLANAR_SCAN_PAIRS`` pairs with the most matches by COLMAP's LO-RANSAC
+   (``pycolmap.estimate_homography_matrix``, ``PLANAR_RANSAC_PX``) on the undistorted points; the
    a_1 with the most inliers starts, with every pair's homography and inliers there. On repetitive
    texture (a chessboard) half of the epipolar-verified matches are wrong, and only the homography
    tells them apart.
 3. **Fit**: Levenberg-Marquardt on the lens and every pair's homography together (the pairs'
    8 x 8 blocks eliminated by the Schur complement), on the symmetric transfer error divided by
    the lens's local scale (so, about, in the image's pixels); twice: the matches within
-   ``planar_inlier_px`` of the first fit are the inliers of the second (the centre at the frame's:
+   ``PLANAR_INLIER_PX`` of the first fit are the inliers of the second (the centre at the frame's:
    a free centre would bend to take parallax in).
 4. **The model by evidence**: n = 1 .. ``planar_terms``, each with the centre at the frame's and
    free (a candidate while within ``planar_centre_max`` of the half diagonal from the frame
@@ -40,7 +40,7 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
    blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
    is too wide (:func:`~lensdist_torch.calibration.sequence_class.interval_too_wide`), when it spans the
    no-distortion threshold at the paper's frame (the direct path's rule), when fewer than
-   ``planar_min_pairs`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
+   ``PLANAR_MIN_PAIRS`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
    the verified matches fit: the scene is not a plane and the camera did not only turn.
 6. **In the user's pixels and OpenCV's terms**: Delta over every pixel of the frame where the
    lens map is monotone; eq. 4's (k2, k4) fitted to the map (``eq4_fit_error_px``); OpenCV's
@@ -77,7 +77,23 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points
 
-__all__ = ["PlanarCalibration", "delta_avg_where", "self_calibrate_planar"]
+__all__ = ["PLANAR_INLIER_PX", "PLANAR_ITERATIONS", "PLANAR_MIN_PAIRS", "PLANAR_RANSAC_PX", "PLANAR_SCAN_PAIRS",
+           "PLANAR_SCAN_RANGE", "PLANAR_SCAN_STEPS", "PlanarCalibration", "delta_avg_where", "self_calibrate_planar"]
+
+#: Step 2: the first radial term's start values, from and to (normalised frame), ...
+PLANAR_SCAN_RANGE = (-0.3, 1.5)
+#: ... this many, evenly spaced, ...
+PLANAR_SCAN_STEPS = 19
+#: ... on this many pairs at most, those with the most matches (a video's 60 mapped frames give about 700).
+PLANAR_SCAN_PAIRS = 60
+#: Step 2: LO-RANSAC's threshold (px) for each pair's homography at a start value.
+PLANAR_RANSAC_PX = 2.0
+#: Step 3: a match within this transfer error (px) of the first fit is an inlier.
+PLANAR_INLIER_PX = 3.0
+#: Fewer counting pairs: the homography model has no answer.
+PLANAR_MIN_PAIRS = 4
+#: Levenberg-Marquardt iterations at most per fit.
+PLANAR_ITERATIONS = 100
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -159,9 +175,9 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
     s = torch.tensor([[big_r, 0, c[0]], [0, big_r, c[1]], [0, 0, 1]], dtype=torch.float64)
     hs, inliers = torch.zeros(len(matches.first), 8, dtype=torch.float64), torch.zeros(len(u1), dtype=torch.bool)
 
-    def threshold(idx: torch.Tensor) -> float:  # planar_ransac_px in the image's pixels, at the lens's mean scale
+    def threshold(idx: torch.Tensor) -> float:  # PLANAR_RANSAC_PX in the image's pixels, at the lens's mean scale
         scale = float(lens_factor(((matches.x2[idx] - c) / big_r).pow(2).sum(-1, keepdim=True), a).mean())
-        return cfg.planar_ransac_px * max(scale, 1e-3)
+        return PLANAR_RANSAC_PX * max(scale, 1e-3)
 
     which = range(len(matches.first)) if pairs is None else pairs.tolist()
     for p, idx, hm, mask in pair_homographies(u1, u2, matches.pair, which=which, max_error=threshold, seed=cfg.seed):
@@ -177,15 +193,15 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
 
 def _start(matches: PlanarMatches, size, cfg: MultiViewConfig, terms: int):
     """The scan of a_1 (step 2): the lens, the pairs' homographies and the inliers with the most inliers."""
-    lo, hi = cfg.planar_scan_range
+    lo, hi = PLANAR_SCAN_RANGE
     counts = torch.zeros(len(matches.first), dtype=torch.long).index_add_(
         0, matches.pair, torch.ones_like(matches.pair)
     )
-    scanned = torch.sort(-counts, stable=True).indices[: cfg.planar_scan_pairs]  # the pairs with the most matches
+    scanned = torch.sort(-counts, stable=True).indices[:PLANAR_SCAN_PAIRS]  # the pairs with the most matches
     best = None
-    for i in range(cfg.planar_scan_steps):
+    for i in range(PLANAR_SCAN_STEPS):
         a = torch.zeros(terms, dtype=torch.float64)
-        a[0] = lo + (hi - lo) * i / max(cfg.planar_scan_steps - 1, 1)
+        a[0] = lo + (hi - lo) * i / max(PLANAR_SCAN_STEPS - 1, 1)
         n = int(_ransac(matches, a, size, cfg, scanned)[1].sum())
         if best is None or n > best[1]:
             best = (a, n)
@@ -216,7 +232,7 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
         for free in (False, True) if cfg.planar_centre_max > 0 else (False,):
             start = torch.cat([theta0[:n], theta0.new_zeros(2)]) if free else theta0[:n].clone()
             tn, hn = fit_lens_and_homographies(start, hs.clone(), v1, v2, pair=pair, w=inl.double(),
-                                               iterations=cfg.planar_iterations, terms=n)
+                                               iterations=PLANAR_ITERATIONS, terms=n)
             d = split_lens(tn, n)[1]
             if d is not None and not float(d.norm()) <= cfg.planar_centre_max:
                 continue  # a centre that far off is no lens's: not a candidate
@@ -319,8 +335,8 @@ def self_calibrate_planar(
             matches=len(matches.pair), inlier_share=nan, reprojection_px=nan, models=models or {}, jackknife=[],
             jackknife_coefficients=[], jackknife_centres=[], opencv={}, opencv_rational={})
 
-    if len(matches.first) < cfg.planar_min_pairs:
-        return fail(f"too few matched pairs: {len(matches.first)} of at least {cfg.planar_min_pairs}")
+    if len(matches.first) < PLANAR_MIN_PAIRS:
+        return fail(f"too few matched pairs: {len(matches.first)} of at least {PLANAR_MIN_PAIRS}")
     terms = cfg.planar_terms
     if start is None:
         theta, hs, inl = _start(matches, (h, w), cfg, terms)
@@ -331,8 +347,8 @@ def self_calibrate_planar(
     for _ in range(2):  # fit on the inliers, then again on the matches the fit explains (the centre fixed: a free one
         # would bend to take parallax in, and "not a plane" would go unseen)
         theta, hs = fit_lens_and_homographies(theta, hs, v1, v2, pair=matches.pair, w=inl.double(),
-                                              iterations=cfg.planar_iterations, terms=terms)
-        inl = transfer_errors(theta, hs, v1, v2, pair=matches.pair, big_r=big_r, terms=terms) < cfg.planar_inlier_px
+                                              iterations=PLANAR_ITERATIONS, terms=terms)
+        inl = transfer_errors(theta, hs, v1, v2, pair=matches.pair, big_r=big_r, terms=terms) < PLANAR_INLIER_PX
         per_pair = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
         inl &= (per_pair >= cfg.planar_min_matches)[matches.pair]
     kept = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
@@ -344,9 +360,9 @@ def self_calibrate_planar(
     best = min(table, key=lambda m: table[m]["bic"])
     theta, hs, dl, n = fits[best]
     a, centre = lens_of(theta, n, (h, w))
-    if good_pairs < cfg.planar_min_pairs:
+    if good_pairs < PLANAR_MIN_PAIRS:
         return fail(
-            f"too few pairs fit one homography: {good_pairs} of at least {cfg.planar_min_pairs}",
+            f"too few pairs fit one homography: {good_pairs} of at least {PLANAR_MIN_PAIRS}",
             a,
             int(inl.sum()),
             table,
@@ -360,7 +376,7 @@ def self_calibrate_planar(
         out = torch.isin(matches.first, block) | torch.isin(matches.second, block)
         wj = inl.double() * (~out[matches.pair]).double()
         tj, _ = fit_lens_and_homographies(theta.clone(), hs.clone(), v1, v2, pair=matches.pair, w=wj,
-                                          iterations=cfg.planar_iterations, terms=n)
+                                          iterations=PLANAR_ITERATIONS, terms=n)
         dj = lens_deltas(tj, n, (h, w), 2 * step)
         jk_avg.append(dj["delta_avg_px"])
         jk_max.append(dj["delta_max_px"])

@@ -18,13 +18,19 @@ import torch
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class
 
-__all__ = ["MAX_CLASS_HALFWIDTH_PX", "MIN_PAIRS", "class_or_open", "sequence_class", "interval_too_wide"]
+__all__ = ["MAX_CLASS_HALFWIDTH_PX", "MAX_HALFWIDTH_PX", "MAX_HALFWIDTH_REL", "MIN_PAIRS", "class_or_open",
+           "sequence_class", "interval_too_wide"]
 
 #: The direct path: fewer usable pairs give no class ("cannot tell"; docs/method.md, section 10).
 MIN_PAIRS = 4
 #: The direct path: a half-width of Delta_avg over this many px at the paper's 320 x 424 frame gives no class
 #: (a class bin is 3.6 px wide there).
 MAX_CLASS_HALFWIDTH_PX = 1.0
+#: The multi-view and homography-model paths: a half-width over this share of Delta_avg, and over
+#: :data:`MAX_HALFWIDTH_PX`, gives no class (docs/method.md, sections 11-12).
+MAX_HALFWIDTH_REL = 0.25
+#: See :data:`MAX_HALFWIDTH_REL`, in the user's pixels.
+MAX_HALFWIDTH_PX = 1.0
 
 
 def class_or_open(dc: float, half: float, settings: LensdistConfig) -> tuple[str | None, str]:
@@ -71,7 +77,7 @@ def sequence_class(paper_delta: float, delta: float, half: float, settings: Lens
 def interval_too_wide(half: float, value: float, cfg: MultiViewConfig) -> bool:
     """Whether a Delta_avg of ``value`` px with 95 % half-width ``half`` is too uncertain for a class.
 
-    Too wide beyond ``max_halfwidth_px`` and ``max_halfwidth_rel`` of the value, both; a
+    Too wide beyond :data:`MAX_HALFWIDTH_PX` and :data:`MAX_HALFWIDTH_REL` of the value, both; a
     half-width that is not finite always.
 
     Example:
@@ -80,4 +86,4 @@ def interval_too_wide(half: float, value: float, cfg: MultiViewConfig) -> bool:
         >>> interval_too_wide(30.0, 100.0, MultiViewConfig())  # beyond 1 px and 25 %
         True
     """
-    return not math.isfinite(half) or half > max(cfg.max_halfwidth_px, cfg.max_halfwidth_rel * value)
+    return not math.isfinite(half) or half > max(MAX_HALFWIDTH_PX, MAX_HALFWIDTH_REL * value)

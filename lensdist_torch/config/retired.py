@@ -62,6 +62,26 @@ RETIRED = {
     ("calibration", "min_pairs"): _constant("sequence_class.MIN_PAIRS", 4),
     ("calibration", "max_class_halfwidth_px"): _constant("sequence_class.MAX_CLASS_HALFWIDTH_PX", 1.0),
     ("calibration", "parallax_px"): _constant("direct_fits.PARALLAX_PX", 1.0),
+    # the multi-view path's and the homography model's constants (docs/method.md, sections 11-12)
+    ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 60),
+    ("multiview", "sequential_overlap"): _constant("multiview.SEQUENTIAL_OVERLAP", 12),
+    ("multiview", "evidence_draws"): _constant("multiview.EVIDENCE_DRAWS", 1000),
+    ("multiview", "extra_mappings"): _constant("multiview.EXTRA_MAPPINGS", 3),
+    ("multiview", "min_registered"): _constant("controllers.multiview_path.MIN_REGISTERED", 0.5),
+    ("multiview", "planar_max_relief_z"): _constant("controllers.multiview_path.PLANAR_MAX_RELIEF_Z", 2.0),
+    ("multiview", "max_halfwidth_rel"): _constant("sequence_class.MAX_HALFWIDTH_REL", 0.25),
+    ("multiview", "max_halfwidth_px"): _constant("sequence_class.MAX_HALFWIDTH_PX", 1.0),
+    ("multiview", "planar_scan_range"): _constant("planar_features.PLANAR_SCAN_RANGE", (-0.3, 1.5)),
+    ("multiview", "planar_scan_steps"): _constant("planar_features.PLANAR_SCAN_STEPS", 19),
+    ("multiview", "planar_scan_pairs"): _constant("planar_features.PLANAR_SCAN_PAIRS", 60),
+    ("multiview", "planar_ransac_px"): _constant("planar_features.PLANAR_RANSAC_PX", 2.0),
+    ("multiview", "planar_inlier_px"): _constant("planar_features.PLANAR_INLIER_PX", 3.0),
+    ("multiview", "planar_min_pairs"): _constant("planar_features.PLANAR_MIN_PAIRS", 4),
+    ("multiview", "planar_iterations"): _constant("planar_features.PLANAR_ITERATIONS", 100),
+    ("multiview", "planar_guided_ratio"): _constant("guided_matching.PLANAR_GUIDED_RATIO", 0.8),
+    ("multiview", "planar_refine_px"): _constant("match_refinement.PLANAR_REFINE_PX", 7),
+    ("multiview", "planar_refine_blur"): _constant("match_refinement.PLANAR_REFINE_BLUR", 1.0),
+    ("multiview", "planar_refine_ncc"): _constant("match_refinement.PLANAR_REFINE_NCC", 0.9),
 }
 #: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
 INERT = {key for key, r in RETIRED.items() if r.inert}

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import flag, integer, names, pair, real
+from lensdist_torch.config.checks import flag, integer, names, real
 
 __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
@@ -98,6 +98,10 @@ MULTIVIEW_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 class MultiViewConfig:
     """Settings of :mod:`~lensdist_torch.calibration.multiview` (``[multiview]``): bundle adjustment on COLMAP.
 
+    What a user sets; the method's constants are named in the modules that use them
+    (:mod:`~lensdist_torch.calibration.multiview`, ``planar_features``, ``guided_matching``,
+    ``match_refinement``, ``sequence_class``, ``controllers.multiview_path``; docs/method.md, 11-12).
+
     Attributes:
         models: the camera models fitted on the reconstruction's tracks, each weighed by how well it
             predicts held-out frames (COLMAP names, all with an exact OpenCV equivalent;
@@ -109,49 +113,30 @@ class MultiViewConfig:
             1 megapixel on. On 22 rendered frames of 384 x 288 the multi-view path took 28 s
             instead of 55 s with 1024 features instead of 8192, Delta_avg 7.62 px [3.60, 11.63]
             instead of 7.64 [3.64, 11.63] (truth 7.5): matching and mapping scale with the features.
-        exhaustive_below: up to this many frames every pair is matched; more: each frame with
-            its ``sequential_overlap`` successors (a video).
-        sequential_overlap: successors matched per frame in sequential matching.
         mapped_frames: at most this many frames go to COLMAP, evenly spaced over the sequence (a
             video's neighbouring frames add tracks but little baseline, while matching and
             mapping grow with the frames): of 300 frames every 5th.
-        min_registered: fewer registered frames than this share of the frames (or than 3):
-            "cannot tell" (the engine could not reconstruct the sequence).
         jackknife_blocks: the folds: contiguous blocks of frames held out in turn; each model is
             adjusted without a block and scored on predicting it (its evidence), and the spread of
             those fits is the jackknife that checks each model's posterior.
-        evidence_draws: Bayesian-bootstrap draws over the folds for the models' evidence weights.
         bic_margin: the homography model's models within this BIC of its best fit equally well:
             their spread of Delta joins its interval.
         rms_margin: so do its models whose reprojection RMS is within this share of the best's: on
             thousands of matches BIC prefers the richest model for a few % of RMS
             (docs/method.md, section 12).
         confidence: coverage of the intervals.
-        max_halfwidth_rel: an interval half-width over this share of Delta_avg (and over
-            ``max_halfwidth_px``) gives no class.
-        max_halfwidth_px: see ``max_halfwidth_rel``, in the user's pixels.
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); one
             answers, its posterior checked by its own jackknife; more: their spread of Delta_avg
             joins the interval (:mod:`~lensdist_torch.calibration.multiview_runs`) and a class needs
             this many mappings that registered enough frames.
-        extra_mappings: mappings tried with further seeds where one registers too few frames (a
-            wrong initial pair: the focal length runs off and the mapping ends in about a second).
         num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
             and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
         seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
         planar_terms: the homography model's radial terms at most (1 .. this many fitted, BIC
             chooses; :mod:`~lensdist_torch.calibration.planar_features`); 0: no homography model.
-        planar_scan_range: the first radial term's start values, from and to (normalised frame).
-        planar_scan_steps: start values tried, evenly spaced over ``planar_scan_range``.
-        planar_scan_pairs: the scan looks at this many pairs at most, those with the most matches
-            (a video's 60 mapped frames give about 700 sequential pairs).
-        planar_ransac_px: LO-RANSAC's threshold (px) for each pair's homography at a start value.
-        planar_inlier_px: a match within this transfer error (px) of the first fit is an inlier.
         planar_min_matches: a pair needs this many verified matches (and inliers) to count.
-        planar_min_pairs: fewer counting pairs: the homography model has no answer.
         planar_min_inlier_share: under this share of the verified matches on one homography per
             pair: not a plane (nor a turning camera), no class.
-        planar_iterations: Levenberg-Marquardt iterations at most per fit.
         planar_pair_matches: a pair's matches beyond this many are thinned to this many, evenly
             over the pair's list (a homography needs few; the fits' time grows with the matches);
             0: every match.
@@ -165,16 +150,6 @@ class MultiViewConfig:
             pairs keep ``planar_min_matches`` homography inliers in the first fit (repetitive
             texture lost them); where most keep them the matcher did its work, and guided
             matches would only cost time.
-        planar_guided_ratio: a guided match's descriptor distance at most this share of the
-            next candidate's (the ratio test, among the candidates within ``planar_guided_px``).
-        planar_refine_px: the half size (px) of the patches that move each match of the
-            homography model's answer to where the two views align, before it is fitted again
-            (:mod:`~lensdist_torch.calibration.match_refinement`); 0: no refinement.
-        planar_refine_blur: the Gaussian's standard deviation (px) that smooths the frames for it.
-        planar_refine_ncc: a refined match is kept where its aligned patches correlate at least this much.
-        planar_max_relief_z: the homography model answers only where the direct path's plane +
-            parallax test finds no relief beyond this z (``relief_z``): under one homography per
-            pair a scene's relief passes for distortion.
 
     Example:
         >>> MultiViewConfig().models
@@ -189,40 +164,21 @@ class MultiViewConfig:
     max_image_side: int = 1600
     max_features: int = 8192
     features_per_megapixel: float = 8192.0
-    exhaustive_below: int = 60
-    sequential_overlap: int = 12
     mapped_frames: int = 60
-    min_registered: float = 0.5
     jackknife_blocks: int = 6
-    evidence_draws: int = 1000
     bic_margin: float = 10.0
     rms_margin: float = 0.05
     confidence: float = 0.95
-    max_halfwidth_rel: float = 0.25
-    max_halfwidth_px: float = 1.0
     reconstructions: int = 1
-    extra_mappings: int = 3
     num_threads: int = 2
     seed: int = 0
     planar_terms: int = 3
-    planar_scan_range: tuple[float, float] = (-0.3, 1.5)
-    planar_scan_steps: int = 19
-    planar_scan_pairs: int = 60
-    planar_ransac_px: float = 2.0
-    planar_inlier_px: float = 3.0
     planar_min_matches: int = 15
-    planar_min_pairs: int = 4
     planar_min_inlier_share: float = 0.5
-    planar_iterations: int = 100
     planar_pair_matches: int = 60
     planar_centre_max: float = 0.1
     planar_guided_px: float = 3.0
     planar_guided_below: float = 0.5
-    planar_guided_ratio: float = 0.8
-    planar_refine_px: int = 7
-    planar_refine_blur: float = 1.0
-    planar_refine_ncc: float = 0.9
-    planar_max_relief_z: float = 2.0
 
     def __post_init__(self) -> None:
         names(self, "models")
@@ -232,41 +188,22 @@ class MultiViewConfig:
         for name, lo in (
             ("max_image_side", 64),
             ("max_features", 64),
-            ("exhaustive_below", 2),
-            ("sequential_overlap", 1),
             ("mapped_frames", 3),
             ("jackknife_blocks", 2),
-            ("evidence_draws", 1),
             ("reconstructions", 1),
-            ("extra_mappings", 0),
             ("num_threads", 1),
             ("seed", 0),
             ("planar_terms", 0),
-            ("planar_scan_steps", 1),
-            ("planar_scan_pairs", 1),
             ("planar_min_matches", 8),
-            ("planar_min_pairs", 1),
-            ("planar_iterations", 1),
             ("planar_pair_matches", 0),
-            ("planar_refine_px", 0),
         ):
             integer(self, name, lo=lo)
-        pair(self, "planar_scan_range")
-        real(self, "planar_ransac_px", lo=0, lo_open=True)
-        real(self, "planar_inlier_px", lo=0, lo_open=True)
         real(self, "planar_min_inlier_share", lo=0, hi=1)
-        real(self, "planar_max_relief_z", lo=0)
         real(self, "planar_centre_max", lo=0, hi=1)
         real(self, "planar_guided_px", lo=0)
-        real(self, "planar_guided_ratio", lo=0, hi=1, lo_open=True)
         real(self, "planar_guided_below", lo=0, hi=1)
-        real(self, "planar_refine_blur", lo=0)
-        real(self, "planar_refine_ncc", lo=-1, hi=1)
-        real(self, "min_registered", lo=0, hi=1, lo_open=True)
         real(self, "bic_margin", lo=0)
         real(self, "rms_margin", lo=0)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
-        real(self, "max_halfwidth_rel", lo=0, hi=1, lo_open=True, why="a share of Delta_avg")
-        real(self, "max_halfwidth_px", lo=0, lo_open=True)
         real(self, "features_per_megapixel", lo=0, lo_open=True)
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from lensdist_torch.calibration.controllers import multiview_path as wmv
-from lensdist_torch.calibration.multiview import BA_FUNCTION_TOLERANCE, MultiViewCalibration
+from lensdist_torch.calibration.multiview import BA_FUNCTION_TOLERANCE, EXTRA_MAPPINGS, MultiViewCalibration
 from lensdist_torch.config import MultiViewConfig
 
 WIDE = "interval too wide: +-12.00 px"
@@ -50,7 +50,7 @@ def _fake_colmap(monkeypatch, tmp_path, answers):
         assert callable(on_matches)  # the homography model reads the matches before any mapping (no database here)
         calls["names"], calls["files"] = list(names), sorted(p.name for p in Path(folder).iterdir())
         out = []
-        for i in range(config.reconstructions + (config.extra_mappings if stop is not None else 0)):
+        for i in range(config.reconstructions + (EXTRA_MAPPINGS if stop is not None else 0)):
             calls["mappings"] += 1
             out.append(Rec(answers[i]))
             if stop is not None and stop(i, out[-1]):

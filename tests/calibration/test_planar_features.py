@@ -212,7 +212,7 @@ def test_a_scene_with_depth_is_not_a_plane():
 
 def test_too_few_pairs_say_so():
     m = _plane_matches(2e-6, 0.0, views=3)
-    res = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_min_pairs=4))
+    res = self_calibrate_planar(m, SIZE, config=MultiViewConfig())
     assert res.class_label is None and math.isnan(res.delta_avg_user_px)
     assert res.reason == "too few matched pairs: 3 of at least 4"
 

@@ -181,7 +181,7 @@ OUT_OF_RANGE = [
     ("analysis", "interval_confidence", 1.0),
     ("analysis", "max_delta_disagreement", 3.0),
     ("registration", "max_step", 2.0),
-    ("multiview", "max_halfwidth_rel", 5.0),
+    ("multiview", "planar_guided_below", 5.0),
     ("calibration", "confidence", 1.5),
 ]
 

@@ -151,16 +151,12 @@ BAD_VALUES = [
     ("regression", "cannot_tell_fraction", "1000.0"),  # a share of the class range: 1000 read as confident
     ("analysis", "max_delta_disagreement", "1.5"),
     ("registration", "max_step", "2.0"),
-    ("multiview", "max_halfwidth_rel", "3.0"),
     ("multiview", "features_per_megapixel", "0.0"),
-    ("multiview", "extra_mappings", "-1"),
     ("multiview", "planar_centre_max", "1.5"),  # a distortion centre beyond the frame's corner
     ("multiview", "planar_centre_max", "nan"),
     ("multiview", "planar_pair_matches", "-1"),
     ("multiview", "planar_pair_matches", "60.5"),
     ("multiview", "planar_guided_px", "-1"),  # a radius
-    ("multiview", "planar_guided_ratio", "0"),  # a share of the next candidate's distance
-    ("multiview", "planar_guided_ratio", "1.5"),
     ("multiview", "planar_guided_below", "2"),  # a share of the verified pairs
     ("regression", "confidence_threshold", "nan"),
     ("analysis", "no_distortion_px", "0.0"),

@@ -32,12 +32,19 @@ from lensdist_torch.core.frames import list_frames, read_frames
 from lensdist_torch.core.images import load_image
 from lensdist_torch.core.png import encode_png, to_uint8
 
-__all__ = ["COLMAP_SUFFIXES", "evenly_spaced", "multiview_path", "planar_path", "combine"]
+__all__ = ["MIN_REGISTERED", "PLANAR_MAX_RELIEF_Z", "COLMAP_SUFFIXES", "evenly_spaced", "multiview_path",
+           "planar_path", "combine"]
 
 #: Image files COLMAP reads as they are; other frames are written as PNG first.
 COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 #: the fewest frames a multi-view calibration takes
 MIN_FRAMES = 3
+#: Fewer registered frames than this share of the frames (or than :data:`MIN_FRAMES`): "cannot tell" (the engine
+#: could not reconstruct the sequence).
+MIN_REGISTERED = 0.5
+#: The homography model answers only where the direct path's plane + parallax test finds no relief beyond this z
+#: (``relief_z``): under one homography per pair a scene's relief passes for distortion (docs/method.md, 12).
+PLANAR_MAX_RELIEF_Z = 2.0
 
 
 def _encode(frame: torch.Tensor) -> bytes:
@@ -101,7 +108,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 "ok": False,
                 "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}",
             }
-        least = max(MIN_FRAMES, math.ceil(cfg.min_registered * len(names)))
+        least = max(MIN_FRAMES, math.ceil(MIN_REGISTERED * len(names)))
         runs, got, planar = [], 0, {}
 
         def homography_model(database: Path) -> None:  # the same matches, before any mapping
@@ -127,7 +134,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 runs.append((cfg.seed + i, self_calibrate_reconstruction(
                     rec, cfg, settings, frames=len(names), image_size=tuple(image_size), on_model=model_done)))
                 return sum(not isinstance(r, str) for _, r in runs) >= cfg.reconstructions
-            bar.total += 1  # a failed mapping: another seed (reconstruct's extra_mappings)
+            bar.total += 1  # a failed mapping: another seed (reconstruct's EXTRA_MAPPINGS)
             bar.update(1)
             return False
 
@@ -148,10 +155,10 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
                 f"registered at most{tries} (at least {least} needed)",
                 "planar": planar.get("answer"),
-                "planar_max_relief_z": cfg.planar_max_relief_z,
+                "planar_max_relief_z": PLANAR_MAX_RELIEF_Z,
             }
         res = combine_reconstructions(runs, cfg, settings=settings)
-    return {"ok": True, **res.to_dict(), "planar": planar.get("answer"), "planar_max_relief_z": cfg.planar_max_relief_z}
+    return {"ok": True, **res.to_dict(), "planar": planar.get("answer"), "planar_max_relief_z": PLANAR_MAX_RELIEF_Z}
 
 
 def planar_path(database: Path, names: list[str], image_size: tuple[int, int], *, config: MultiViewConfig,
