@@ -2,7 +2,8 @@
 
 * :mod:`~lensdist_torch.selfcal.fit`: the robust Levenberg-Marquardt fit of a batch of pairs, ``estimate_distortion``.
 * :mod:`~lensdist_torch.selfcal.model`: its model, residual and Jacobian, and the per-pair diagnostics ``SelfCalInfo``.
-* :mod:`~lensdist_torch.selfcal.prior`: the Gaussian prior on the plane + parallax model's relief, set per pair by its evidence.
+* :mod:`~lensdist_torch.selfcal.prior`: the Gaussian prior on the plane + parallax model's relief, set per pair by
+  its evidence.
 * :mod:`~lensdist_torch.selfcal.regions`: the frame's rectangles of the samples, for the cluster-robust covariance.
 
 The names users need are exported here and imported on first use (PEP 562).

@@ -307,8 +307,8 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
 
     A pair's step is accepted where the robust cost at the current sigma falls, the model stays
     plausible and some overlap remains; sigma is then re-estimated, and with the relief the
-    prior's variance where it is estimated per pair (:func:`~lensdist_torch.selfcal.prior.evidence_tau2`). Returns theta,
-    lambda and the :class:`_State` at theta.
+    prior's variance where it is estimated per pair (:func:`~lensdist_torch.selfcal.prior.evidence_tau2`).
+    Returns theta, lambda and the :class:`_State` at theta.
     """
     loss, k = cfg.robust, _robust_constant(cfg)
     res, valid, J = evaluate(theta, lv)

@@ -1,7 +1,8 @@
 """Self-calibration's model: eq. 4, the photometric model, the residual and its Jacobian.
 
 Also the samples and the M-estimator (docs/method.md, section 10). Used by
-:mod:`lensdist_torch.selfcal.fit`, which holds the fit; see its docstring. Per pair, theta holds 8 homography entries (H_n - I, H_n[2, 2] = 1), the normalised
+:mod:`lensdist_torch.selfcal.fit`, which holds the fit; see its docstring. Per pair, theta holds 8 homography
+entries (H_n - I, H_n[2, 2] = 1), the normalised
 coefficients (a, b) and, with the ``gain_bias`` photometric model, a gain g and a bias c:
 
     r = img1(p_d) - (g img2(p0 + R v_d) + c)                       ("gain_bias")
@@ -238,8 +239,8 @@ def evaluate(theta: torch.Tensor, lv: Level, jac: bool = True):
     """Residual (B, N), mask (B, N) and (optionally) the Jacobian (B, P, N) at theta (B, P).
 
     P = 12 with the ``gain_bias`` model (its rows 10, 11 d r / d g = -img2(...), d r / d c
-    = -1), 10 otherwise, plus K relief coefficients with the plane + parallax model. Coordinates are kept as separate x / y planes (B, N): elementwise ops
-    stay contiguous.
+    = -1), 10 otherwise, plus K relief coefficients with the plane + parallax model. Coordinates are kept as
+    separate x / y planes (B, N): elementwise ops stay contiguous.
     """
     bsz, _, h, w = lv.stack2.shape
     ux_d, uy_d, rho, r_l, (sx, ox, sy, oy) = lv.ux_d, lv.uy_d, lv.rho, lv.px, lv.to_grid

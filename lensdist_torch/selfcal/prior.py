@@ -84,7 +84,8 @@ def posterior_inverse(
 
     Example:
         >>> cfg = SelfCalConfig(parallax=1, photometric="none", ridge=1e-9)  # 10 planar parameters, 1 bump
-        >>> inv = posterior_inverse(torch.eye(11, dtype=torch.float64)[None], torch.tensor([1.0]), torch.tensor([0.5]), cfg)
+        >>> a = torch.eye(11, dtype=torch.float64)[None]
+        >>> inv = posterior_inverse(a, torch.tensor([1.0]), torch.tensor([0.5]), cfg)
         >>> round(float(inv[0, 10, 10]), 6), round(float(inv[0, 0, 0]), 6)  # 1 / (1 + 1 / 0.5) on the bump
         (0.333333, 1.0)
     """

@@ -138,7 +138,7 @@ def _eigenspace_models(checkpoint, checkpoint_max) -> tuple:
 
 
 def _model_on(model, device: torch.device):
-    """The model with its buffers on ``device`` (a copy when it lives elsewhere: the caller's and cached models stay)."""
+    """The model with its buffers on ``device`` (a copy if it lives elsewhere: the caller's and cached ones stay)."""
     if model is None or next(iter(model.buffers())).device == device:
         return model
     moved = copy.deepcopy(model).to(device)
@@ -405,7 +405,8 @@ def analyze_pair(img1, img2, *, checkpoint=None, checkpoint_max=None, method: st
     for img, name in ((img1, "img1"), (img2, "img2")):
         if isinstance(img, (list, tuple)) or (isinstance(img, torch.Tensor) and img.dim() == 4 and img.shape[0] != 1):
             raise ValueError(
-                f"{name} must be one image (a path or an (H, W), (C, H, W), (1, C, H, W) tensor); use analyze_batch for more"
+                f"{name} must be one image (a path or an (H, W), (C, H, W), (1, C, H, W) tensor); "
+                "use analyze_batch for more"
             )
     hom = None
     if homography is not None:

@@ -49,7 +49,8 @@ def resolve_device(device=None) -> torch.device:
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(
-                f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); use --device cpu"
+                f"device {str(dev)!r} asked for, but CUDA is not available here (torch {torch.__version__}); "
+                "use --device cpu"
             )
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise ValueError(
@@ -112,7 +113,7 @@ class PreparedPairs:
     _shared: dict = dataclasses.field(default_factory=dict)
 
     def selfcal(self) -> list[dict]:
-        """The self-calibration of every pair (started from the registration's H where it worked), answered under ``config``."""
+        """The self-calibration of every pair (started from the registration's H where it worked), under ``config``."""
         if self._selfcal is None:
             if "selfcal" not in self._shared:
                 self._shared["selfcal"] = _selfcal_fits(self)
@@ -120,12 +121,13 @@ class PreparedPairs:
         return self._selfcal
 
     def with_decision(self, analysis: AnalysisConfig) -> PreparedPairs:
-        """This batch answered under another decision: ``analysis``, an ``[analysis]`` section (:class:`~lensdist_torch.config.AnalysisConfig`).
+        """This batch answered under another decision: ``analysis``, an ``[analysis]`` section.
 
-        The registration, the quality maps and the self-calibration's fit are this batch's (fitted
-        once, whichever copy asks first); only the answers (class, confidence, relief found,
-        interval) follow the new section. ``reproduce`` reports the shipped decision beside the
-        fitted one this way: the same fits, answered as ``analyze`` answers under each.
+        ``analysis`` is an :class:`~lensdist_torch.config.AnalysisConfig`. The registration, the quality
+        maps and the self-calibration's fit are this batch's (fitted once, whichever copy asks first);
+        only the answers (class, confidence, relief found, interval) follow the new section.
+        ``reproduce`` reports the shipped decision beside the fitted one this way: the same fits,
+        answered as ``analyze`` answers under each.
 
         Example:
             >>> import dataclasses
@@ -143,7 +145,8 @@ class PreparedPairs:
         """
         if not isinstance(analysis, AnalysisConfig):
             raise TypeError(
-                f"analysis (with_decision) must be an AnalysisConfig (a config's [analysis]), got {type(analysis).__name__}"
+                f"analysis (with_decision) must be an AnalysisConfig (a config's [analysis]), "
+                f"got {type(analysis).__name__}"
             )
         return dataclasses.replace(self, config=dataclasses.replace(self.config, analysis=analysis), _selfcal=None)
 
@@ -265,7 +268,7 @@ def one_thread(dev: torch.device):
 
 
 def _selfcal_fits(p: PreparedPairs) -> list[tuple]:
-    """Self-calibration of every pair, started from the registration's H wherever it is finite: (k2, k4, info, aligned, motion) each.
+    """Self-calibration of every pair, from the registration's H wherever finite: (k2, k4, info, aligned, motion) each.
 
     Also where the registration failed its own test: its H is still the nearest start on most
     such pairs, and beside it the phase-correlation start is fitted (``selfcal.both_starts``).
@@ -325,7 +328,9 @@ def _selfcal_answer(k2: torch.Tensor, k4: torch.Tensor, sc: SelfCalInfo, cfg: Le
 
 
 def _two_models(out: dict, sc, cfg: LensdistConfig) -> dict:
-    """``raw_confidence``, ``relief_found``, ``relief_agreement`` and ``relief_parted`` of one pair (:func:`~lensdist_torch.workflows.class_mass.scene_models`), both answers where found.
+    """``raw_confidence``, ``relief_found``, ``relief_agreement``, ``relief_parted`` of a pair; both answers if found.
+
+    The models' class masses are :func:`~lensdist_torch.workflows.class_mass.scene_models`'.
 
     Where relief is found, both answers stay beside the "cannot tell" (``decision.decide``) as
     ``planar_delta_avg``, ``relief_delta_avg``, their intervals and the fit's own stds (given
