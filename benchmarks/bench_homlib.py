@@ -55,7 +55,8 @@ from bench_selfcal import figures  # the same figures as the self-calibration be
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data import draw_pairs, render_pairs
 from lensdist_torch.data.shards import load_scenes
-from lensdist_torch.geometry import delta_avg, delta_max, delta_top, estimate_distortion
+from lensdist_torch.geometry import delta_avg, delta_max, delta_top
+from lensdist_torch.selfcal import estimate_distortion
 
 PIP = "pip install homlib opencv-python-headless"
 

@@ -28,8 +28,9 @@ import torch
 import torch.nn.functional as F
 
 from lensdist_torch.core import load_scene
-from lensdist_torch.geometry import corner_error, estimate_homography, warp_to_reference
+from lensdist_torch.geometry import corner_error
 from lensdist_torch.metric import registration_error_counts
+from lensdist_torch.registration import estimate_homography, warp_to_reference
 
 H0, W0 = 320, 424
 

@@ -29,7 +29,8 @@ from kornia.geometry import warp_perspective
 
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.core import load_scene
-from lensdist_torch.geometry import corner_error, estimate_homography
+from lensdist_torch.geometry import corner_error
+from lensdist_torch.registration import estimate_homography
 from lensdist_torch.registration.wide_baseline import estimate_homography_robust, feature_homography
 
 H0, W0 = 320, 424
