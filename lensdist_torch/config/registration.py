@@ -5,7 +5,7 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import choice, flag, integer, integers, pair, real
+from lensdist_torch.config.checks import choice, flag, integer, integers, real
 
 __all__ = ["RegistrationConfig", "SelfCalConfig"]
 
@@ -98,36 +98,26 @@ class RegistrationConfig:
 
 @dataclass(frozen=True)
 class SelfCalConfig:
-    """Settings of :func:`~lensdist_torch.selfcal.fit.estimate_distortion`.
+    """Settings of :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (``[selfcal]``).
+
+    What a user sets; the method's constants (the damping, the bounds of a plausible fit, the
+    robust constants, the relief's bumps and iterations) are named in the modules that use them
+    (:mod:`~lensdist_torch.selfcal.fit`, ``model``, ``prior``; docs/method.md, section 10).
 
     Attributes:
         levels: pyramid levels (2 x 2 means), coarsest first in ``iterations``.
         iterations: Levenberg-Marquardt iterations per level, coarsest first.
-        newton: Newton steps of the inverse of eq. 4.
-        damping: initial LM lambda, relative to diag(J^T J).
-        margin: level pixels kept inside img2.
-        max_coefficient: bound on |a|, |b| (normalised units) beyond which a fit diverged.
-        min_overlap: share of img1's sampled pixels that must map inside img2.
         sample_block: per level (coarsest first), the residual uses the strongest-gradient
             pixel of every block x block cell (1: every pixel).
         chunk_size: pairs fitted together; results do not depend on it.
-        cannot_tell_std_px: posterior std of Delta_avg (px) at which confidence is 0.5.
-        confidence_threshold: pairs below this confidence are "cannot tell from this pair".
-        noise_floor: intensity std floor of the covariance (8-bit quantisation), so that a
-            textureless or identical pair cannot claim certainty.
-        ridge: absolute ridge on J^T J in the covariance.
+        confidence_threshold: pairs below this confidence are "cannot tell from this pair" (the
+            confidence is 0.5 at a std of Delta_avg of ``selfcal.fit.CANNOT_TELL_STD_PX``).
         robust: the M-estimator of the photometric residual: "tukey" (biweight), "huber" or
             "none" (least squares); IRLS with sigma = 1.4826 MAD re-estimated every iteration.
-        huber_k: Huber's constant, in sigmas (1.345: 95 % efficiency for Gaussian noise).
-        tukey_c: Tukey's biweight constant, in sigmas (4.685: 95 % efficiency).
         photometric: "gain_bias" (img2 times a fitted gain plus a bias), "normalized"
             (zero-mean, unit-variance samples per pair) or "none".
-        gain_range: (low, high) plausible gain of ``gain_bias``; the start is clamped to it, a
-            fit that leaves it is flagged.
         both_starts: with an ``init`` homography, also fit from phase correlation in the same
             batch and keep, per pair, the start with the lower final robust cost.
-        distortion_levels: (a, b) are fitted on the finest this many levels; the coarser ones
-            fit the homography and the photometric model only (a = b = 0 there).
         clusters: the full-size samples are grouped in clusters x clusters rectangles of the
             frame for the cluster-robust (sandwich) covariance of the fit; 0: the Gauss-Newton
             covariance alone (docs/method.md, section 10).
@@ -139,28 +129,23 @@ class SelfCalConfig:
             (fitted where (a, b) are); 0: a planar scene. On by default: whether a pair's scene is
             a plane is decided per pair: Hausman's test (``parallax_test``) keeps one answer, and both
             weigh in the confidence (``analysis.flat_prior``).
-        parallax_width: the bumps' sigma, in half-diagonals.
         parallax_px: the std (px) of the Gaussian prior on each bump's height: how far a
             relief may move points (MAP; larger: freer relief), chosen on validation pairs: on the
             realistic protocol the model's freedom mostly fits noise and JPEG (docs/method.md,
-            section 10); the sequence path keeps its own (``calibration.parallax_px``). With
+            section 10); the sequence path keeps its own (``calibration.direct_fits.PARALLAX_PX``). With
             ``parallax_evidence`` the std each pair starts from.
         parallax_evidence: re-estimate that std per pair from the evidence (MacKay's type-II
             maximum likelihood, after every LM step of the relief): a flat pair drives it down,
             a relief the data pin drives it up, so a flat scene's answer stays by the planar one
             while a relief is not shrunk (docs/method.md, section 10). The
             sequence path keeps its fixed prior.
-        parallax_px_range: (low, high) px, the range the evidence may move that std in.
-        parallax_iterations: LM iterations of the plane + parallax model at full size, started
-            from the planar fit.
-        parallax_block: its samples: the strongest-gradient pixel of every block x block cell.
         small_motion_error: a floor e R^2 / m px on the std of Delta_avg that the covariance
             leaves out, m the fitted H's mean displacement (px), R the half diagonal: fitted on
             rendered validation pairs to cover the truth in every motion bin (docs/method.md, 10).
         parallax_score_level: with ``parallax_evidence``, the plane + parallax stage runs on a pair
             where the planar answer's score test (Rao's, of the relief at zero, on the planar
             fit's finest samples) rejects a flat scene at this level; elsewhere the evidence holds
-            the relief at the floor of ``parallax_px_range`` and the pair keeps the planar answer
+            the relief at the floor of ``selfcal.prior.PARALLAX_PX_RANGE`` and the pair keeps the planar answer
             alone (no relief answer). 1: on every pair; a fixed prior always runs it (docs/method.md,
             section 10).
         parallax_test: the plane + parallax answer replaces the planar one where their
@@ -181,65 +166,37 @@ class SelfCalConfig:
 
     levels: int = 3
     iterations: tuple[int, ...] = (8, 4, 6)
-    newton: int = 5
-    damping: float = 1e-3
-    margin: float = 2.0
-    max_coefficient: float = 2.0
-    min_overlap: float = 0.3
     sample_block: tuple[int, ...] = (2, 4, 4)
     chunk_size: int = 16
-    cannot_tell_std_px: float = 0.5
     confidence_threshold: float = 0.5
-    noise_floor: float = 0.5 / 255
-    ridge: float = 1e-6
     robust: str = "tukey"
-    huber_k: float = 1.345
-    tukey_c: float = 4.685
     photometric: str = "gain_bias"
-    gain_range: tuple[float, float] = (0.25, 4.0)
     both_starts: bool = True
-    distortion_levels: int = 2
     clusters: int = 6
     occluded_share: float = 0.15
     parallax: int = 5
-    parallax_width: float = 0.3
     parallax_px: float = 0.2
     parallax_evidence: bool = True
-    parallax_px_range: tuple[float, float] = (0.02, 2.0)
-    parallax_iterations: int = 6
     parallax_test: float = 2.0
     parallax_score_level: float = 0.01
-    parallax_block: int = 2
     small_motion_error: float = 1.5e-5
     interpolation: str = "blend"
 
     def __post_init__(self) -> None:
         real(self, "small_motion_error", lo=0)
-        integer(self, "distortion_levels")
         integer(self, "clusters", lo=0)
         real(self, "occluded_share", lo=0, hi=1, hi_open=True)
         integer(self, "parallax", lo=0)
-        integer(self, "parallax_iterations")
-        integer(self, "parallax_block")
         real(self, "parallax_test", lo=0)
         real(self, "parallax_score_level", lo=0, hi=1)
-        real(self, "parallax_width", lo=0, lo_open=True)
         real(self, "parallax_px", lo=0, lo_open=True)
         flag(self, "parallax_evidence")
-        pair(self, "parallax_px_range", positive=True)
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
         choice(self, "interpolation", ("bilinear", "bicubic", "blend"))
-        real(self, "huber_k", lo=0, lo_open=True)
-        real(self, "tukey_c", lo=0, lo_open=True)
-        pair(self, "gain_range", positive=True)
         flag(self, "both_starts")
-        for name in ("levels", "newton", "chunk_size"):
+        for name in ("levels", "chunk_size"):
             integer(self, name)
         for name in ("iterations", "sample_block"):
             integers(self, name, n=self.levels, per="level")
-        for name in ("damping", "max_coefficient", "cannot_tell_std_px", "noise_floor", "ridge"):
-            real(self, name, lo=0, lo_open=True)
-        real(self, "margin", lo=0)
-        real(self, "min_overlap", lo=0, hi=1)
         real(self, "confidence_threshold", lo=0, hi=1)

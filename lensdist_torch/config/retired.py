@@ -24,7 +24,8 @@ class Retired:
 
     Attributes:
         by: what replaced it: a key of this version (with why), or, for a key that became a
-            constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``).
+            constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``,
+            ``lensdist_torch.selfcal.X.NAME``).
         value: for a constant, its value: the key loads at this value (dropped) and is refused
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
@@ -40,8 +41,8 @@ class Retired:
     inert: bool = False
 
 
-def _constant(name: str, value: Any) -> Retired:
-    return Retired(by=f"lensdist_torch.calibration.{name}", value=value)
+def _constant(name: str, value: Any, package: str = "calibration") -> Retired:
+    return Retired(by=f"lensdist_torch.{package}.{name}", value=value)
 
 
 #: Keys an earlier version wrote that this one no longer reads: (section, key) -> what replaced it.
@@ -82,6 +83,23 @@ RETIRED = {
     ("multiview", "planar_refine_px"): _constant("match_refinement.PLANAR_REFINE_PX", 7),
     ("multiview", "planar_refine_blur"): _constant("match_refinement.PLANAR_REFINE_BLUR", 1.0),
     ("multiview", "planar_refine_ncc"): _constant("match_refinement.PLANAR_REFINE_NCC", 0.9),
+    # one pair's self-calibration's constants (docs/method.md, section 10)
+    ("selfcal", "newton"): _constant("model.NEWTON", 5, "selfcal"),
+    ("selfcal", "margin"): _constant("model.MARGIN", 2.0, "selfcal"),
+    ("selfcal", "noise_floor"): _constant("model.NOISE_FLOOR", 0.5 / 255, "selfcal"),
+    ("selfcal", "huber_k"): _constant("model.HUBER_K", 1.345, "selfcal"),
+    ("selfcal", "tukey_c"): _constant("model.TUKEY_C", 4.685, "selfcal"),
+    ("selfcal", "gain_range"): _constant("model.GAIN_RANGE", (0.25, 4.0), "selfcal"),
+    ("selfcal", "parallax_width"): _constant("model.PARALLAX_WIDTH", 0.3, "selfcal"),
+    ("selfcal", "damping"): _constant("fit.DAMPING", 1e-3, "selfcal"),
+    ("selfcal", "distortion_levels"): _constant("fit.DISTORTION_LEVELS", 2, "selfcal"),
+    ("selfcal", "max_coefficient"): _constant("fit.MAX_COEFFICIENT", 2.0, "selfcal"),
+    ("selfcal", "min_overlap"): _constant("fit.MIN_OVERLAP", 0.3, "selfcal"),
+    ("selfcal", "cannot_tell_std_px"): _constant("fit.CANNOT_TELL_STD_PX", 0.5, "selfcal"),
+    ("selfcal", "parallax_iterations"): _constant("fit.PARALLAX_ITERATIONS", 6, "selfcal"),
+    ("selfcal", "parallax_block"): _constant("fit.PARALLAX_BLOCK", 2, "selfcal"),
+    ("selfcal", "ridge"): _constant("prior.RIDGE", 1e-6, "selfcal"),
+    ("selfcal", "parallax_px_range"): _constant("prior.PARALLAX_PX_RANGE", (0.02, 2.0), "selfcal"),
 }
 #: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
 INERT = {key for key, r in RETIRED.items() if r.inert}

@@ -12,46 +12,43 @@ batched over pairs, coarse to fine (2 x 2 mean pyramid), in the normalised frame
     v_d  = eq. 4 inverted by Newton on the radius (differentiable)
     r    = img1(p_d) - (g img2(p0 + R v_d) + c)   over the pixels whose v_d lies inside img2
 
-In normalised radius the coefficients are O(0.1): a = k2 R^2, b = k4 R^4 (docs/method.md,
-section 10); both signs are allowed (pincushion too). (a, b) are held at 0 on the levels coarser than
-``config.distortion_levels``: there they trade off with H on few samples and can lead the fit
-into a far minimum. The Jacobian is analytic (chain rule through eq. 4, the homography
-and the implicit derivative of the Newton inverse), times the image gradient of img2; one
-sampling of (img2, d/dx, d/dy) per iteration (:mod:`.selfcal_model`).
+In normalised radius the coefficients are O(0.1): a = k2 R^2, b = k4 R^4 (docs/method.md, section 10);
+both signs are allowed (pincushion too). (a, b) are held at 0 on the levels coarser than :data:`DISTORTION_LEVELS`:
+there they trade off with H on few samples and can lead the fit into a far minimum. The Jacobian is analytic
+(chain rule through eq. 4, the homography and the implicit derivative of the Newton inverse), times the image
+gradient of img2; one sampling of (img2, d/dx, d/dy) per iteration (:mod:`.selfcal_model`).
 
-Interpolation (``config.interpolation``): img2 and its gradients are sampled by the mean of the
-bilinear and the bicubic kernel (``blend``, default; :func:`.selfcal_model.sample_image`); the
-plane + parallax stage below samples bilinearly.
+Interpolation (``config.interpolation``): img2 and its gradients are sampled by the mean of the bilinear and
+the bicubic kernel (``blend``, default; :func:`.selfcal_model.sample_image`); the plane + parallax stage below
+samples bilinearly.
 
-Photometric model (``config.photometric``): ``gain_bias`` (default) fits g and c with the rest
-under the robust weights, started at the ratio of the robust standard deviations (1.4826 MAD)
-and the difference of the medians of the coarsest level; ``normalized`` compares zero-mean,
-unit-variance samples instead (moments that outliers move, and that jump as samples enter or
-leave the overlap); ``none`` compares raw intensities.
+Photometric model (``config.photometric``): ``gain_bias`` (default) fits g and c with the rest under the robust
+weights, started at the ratio of the robust standard deviations (1.4826 MAD) and the difference of the medians
+of the coarsest level; ``normalized`` compares zero-mean, unit-variance samples instead (moments that outliers
+move, and that jump as samples enter or leave the overlap); ``none`` compares raw intensities.
 
 Robust loss (``config.robust``): each LM iteration solves the weighted normal equations
-(J W J^T + lambda diag) d = -J W r with Tukey (default) or Huber weights of z = r / sigma,
-sigma = 1.4826 MAD of the pair's residuals, re-estimated every iteration; a step is accepted
-where the robust cost 2 sigma^2 mean rho(z), at the same sigma, falls. Tukey's weights drop an
-occluder entirely; Huber's keep a bounded pull that can drag the gain down.
+(J W J^T + lambda diag) d = -J W r with Tukey (default) or Huber weights of z = r / sigma, sigma = 1.4826 MAD of
+the pair's residuals, re-estimated every iteration; a step is accepted where the robust cost 2 sigma^2 mean
+rho(z), at the same sigma, falls. Tukey's weights drop an occluder entirely; Huber's keep a bounded pull that can
+drag the gain down.
 
-Starts. Without ``init``, H starts at the phase correlation of the coarsest level. With
-``init`` (e.g. :func:`estimate_homography`'s H, which absorbs part of the distortion and can
-hold the fit in a wrong minimum) and ``config.both_starts``, both starts are fitted in the same
-batch and, per pair, the one with the lower final robust cost (at the smaller of the two
-sigmas; a flagged start loses) is kept; a = b = 0 in both.
+Starts. Without ``init``, H starts at the phase correlation of the coarsest level. With ``init`` (e.g.
+:func:`estimate_homography`'s H, which absorbs part of the distortion and can hold the fit in a wrong minimum)
+and ``config.both_starts``, both starts are fitted in the same batch and, per pair, the one with the lower final
+robust cost (at the smaller of the two sigmas; a flagged start loses) is kept; a = b = 0 in both.
 
 Confidence. The weighted Gauss-Newton covariance s_w^2 (J W J^T)^-1, s_w^2 = sum w r^2 / (sum w - P)
 (W the final IRLS weights), is propagated to Delta_avg through its gradient in (a, b): ``delta_avg_std`` (px).
-With little motion the distortion of the two views cancels, J's (a, b) columns vanish and the
-std explodes. ``confidence = s0 / (s0 + delta_avg_std)`` with ``s0 = config.cannot_tell_std_px``;
-below ``config.confidence_threshold`` the answer is "cannot tell from this pair"
-(``info.confident`` False; the numbers are still returned).
+With little motion the distortion of the two views cancels, J's (a, b) columns vanish and the std explodes.
+``confidence = s0 / (s0 + delta_avg_std)`` with s0 = :data:`CANNOT_TELL_STD_PX`; below
+``config.confidence_threshold`` the answer is "cannot tell from this pair" (``info.confident`` False; the
+numbers are still returned).
 
-Divergence. A pair whose fit goes non-finite, leaves the plausible range (|a|, |b| <=
-``max_coefficient``, the gain within ``gain_range``), makes eq. 4 non-invertible on the image
-(dr/dr_d <= 0), loses its overlap or ends with a larger robust cost than it started with gets
-``converged`` False and k2 = k4 = NaN, H = NaN: flagged, never returned as a number.
+Divergence. A pair whose fit goes non-finite, leaves the plausible range (|a|, |b| <= :data:`MAX_COEFFICIENT`,
+the gain within ``selfcal_model.GAIN_RANGE``), makes eq. 4 non-invertible on the image (dr/dr_d <= 0), keeps
+less than :data:`MIN_OVERLAP` of its samples inside img2 or ends with a larger robust cost than it started with
+gets ``converged`` False and k2 = k4 = NaN, H = NaN: flagged, never returned as a number.
 
 Device: the images' (CUDA included); the model in float32, the normal equations in float64.
 
@@ -80,16 +77,22 @@ from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import mean_pyramid
 from lensdist_torch.selfcal.model import (
+    GAIN_RANGE,
+    MARGIN,
+    NEWTON,
+    NOISE_FLOOR,
+    PARALLAX_WIDTH,
     Level,
     SelfCalInfo,
     distort_normalized,
     evaluate,
     h_matrix,
     homography_parameters,
-    invertible,
     planar_parameters,
+    plausible,
     relief_basis,
     relief_direction,
+    robust_constant,
     robust_cost,
     robust_scale,
     robust_weights,
@@ -110,6 +113,8 @@ from lensdist_torch.selfcal.prior import (
 from lensdist_torch.selfcal.regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
+    "CANNOT_TELL_STD_PX", "DAMPING", "DISTORTION_LEVELS", "MAX_COEFFICIENT", "MIN_OVERLAP", "PARALLAX_BLOCK",
+    "PARALLAX_ITERATIONS",
     "SelfCalConfig",
     "SelfCalInfo",
     "estimate_distortion",
@@ -141,10 +146,20 @@ _RELIEF_INTERPOLATION = "bilinear"
 
 #: floor (px) of the std of the difference in Hausman's test (the relief's std can fall below the planar one)
 _HAUSMAN_FLOOR_PX = 0.05
-
-
-def _robust_constant(cfg: SelfCalConfig) -> float:
-    return cfg.tukey_c if cfg.robust == "tukey" else cfg.huber_k
+#: Initial Levenberg-Marquardt lambda, relative to diag(J^T J), at each level's start (docs/method.md, section 10).
+DAMPING = 1e-3
+#: (a, b) are fitted on the finest this many levels; the coarser fit H and the photometry only (section 10).
+DISTORTION_LEVELS = 2
+#: A fit whose |a| or |b| (normalised units) exceeds this diverged (docs/method.md, section 10).
+MAX_COEFFICIENT = 2.0
+#: A fit keeping a smaller share of img1's samples inside img2 diverged (docs/method.md, section 10).
+MIN_OVERLAP = 0.3
+#: The std of Delta_avg (px) at which a pair's confidence is 0.5: s0 / (s0 + std) (docs/method.md, section 10).
+CANNOT_TELL_STD_PX = 0.5
+#: LM iterations of the plane + parallax model at full size, from the planar fit (docs/method.md, section 10).
+PARALLAX_ITERATIONS = 6
+#: That model's samples: the strongest-gradient pixel of every block x block cell (docs/method.md, section 10).
+PARALLAX_BLOCK = 2
 
 
 @torch.no_grad()
@@ -181,11 +196,8 @@ def estimate_distortion(img1, img2, *, init=None, config: SelfCalConfig | None =
         init = torch.as_tensor(init, dtype=torch.float64, device=img1.device)
         if init.shape != (bsz, 3, 3):
             raise ValueError(f"init must be ({bsz}, 3, 3), got {tuple(init.shape)}")
-    parts = []
-    for sl in chunk_slices(bsz, cfg.chunk_size, img1.device, h * w):
-        parts.append(
-            _fit(to_grey(img1[sl]).float(), to_grey(img2[sl]).float(), None if init is None else init[sl], cfg)
-        )
+    parts = [_fit(to_grey(img1[sl]).float(), to_grey(img2[sl]).float(), None if init is None else init[sl], cfg)
+             for sl in chunk_slices(bsz, cfg.chunk_size, img1.device, h * w)]
     k2, k4, H = (torch.cat([p[j] for p in parts]) for j in range(3))
     info = SelfCalInfo(*(torch.cat(f) for f in zip(*[p[3] for p in parts])))
     return k2, k4, H, info
@@ -198,7 +210,7 @@ def _starts(pyr1, pyr2, init, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Ten
     c1, c2 = pyr1[-1].flatten(1), pyr2[-1].flatten(1)
     if cfg.photometric == "gain_bias":  # robust std ratio and median difference of the coarsest level
         every = torch.ones_like(c1, dtype=torch.bool)
-        g = (robust_scale(c1, every, cfg.noise_floor) / robust_scale(c2, every, cfg.noise_floor)).clamp(*cfg.gain_range)
+        g = (robust_scale(c1, every, NOISE_FLOOR) / robust_scale(c2, every, NOISE_FLOOR)).clamp(*GAIN_RANGE)
         theta[:, 10], theta[:, 11] = g, c1.median(1).values - g * c2.median(1).values
     out = []
     if init is not None:
@@ -218,11 +230,11 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     pyr1, pyr2 = mean_pyramid(g1, cfg.levels), mean_pyramid(g2, cfg.levels)
     theta = _starts(pyr1, pyr2, init, cfg, h0, w0)
     n_starts = theta.shape[0] // bsz
-    lam = torch.full((theta.shape[0],), cfg.damping, dtype=torch.float64, device=g1.device)
+    lam = torch.full((theta.shape[0],), DAMPING, dtype=torch.float64, device=g1.device)
     for lev, iters in zip(range(cfg.levels - 1, -1, -1), cfg.iterations):
         lv = _level(pyr1, pyr2, lev, theta, n_starts, cfg, relief=False)
-        theta, lam, state = _levenberg_marquardt(theta, lam, lv, iters, cfg, lev < cfg.distortion_levels)
-        lam = lam.clamp_min(cfg.damping)  # a fresh start of the damping at the next level
+        theta, lam, state = _levenberg_marquardt(theta, lam, lv, iters, cfg, lev < DISTORTION_LEVELS)
+        lam = lam.clamp_min(DAMPING)  # a fresh start of the damping at the next level
     theta, *planar = _result(theta, state, n_starts, init is not None, h0, w0, cfg, cfg.sample_block[-1])
     if cfg.parallax == 0:
         return planar
@@ -235,10 +247,10 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     info = planar[3]._replace(relief_score=score, relief_z=nan, relief_std=nan)
     if len(rows) == 0:
         return (*planar[:3], info)
-    lam = torch.full((len(rows),), cfg.damping, dtype=torch.float64, device=g1.device)
+    lam = torch.full((len(rows),), DAMPING, dtype=torch.float64, device=g1.device)
     lv = _level([p[rows] for p in pyr1], [p[rows] for p in pyr2], 0, theta[rows], 1, cfg, relief=True)
-    theta, _, state = _levenberg_marquardt(theta[rows], lam, lv, cfg.parallax_iterations, cfg)
-    _, *relief = _result(theta, state, 1, False, h0, w0, cfg, cfg.parallax_block)
+    theta, _, state = _levenberg_marquardt(theta[rows], lam, lv, PARALLAX_ITERATIONS, cfg)
+    _, *relief = _result(theta, state, 1, False, h0, w0, cfg, PARALLAX_BLOCK)
     d0, s0, d1, s1 = planar[3].delta_avg[rows], planar[3].planar_std[rows], relief[3].delta_avg, relief[3].delta_avg_std
     # Hausman: under a planar scene the planar answer is the efficient one, var(d1 - d0) = s1^2 - s0^2
     z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(_HAUSMAN_FLOOR_PX**2).sqrt()
@@ -262,7 +274,7 @@ def _relief_score(pyr1, pyr2, theta, cfg: SelfCalConfig, h0: int, w0: int) -> to
     lv = _level(pyr1, pyr2, 0, theta, 1, cfg, relief=False)
     lv = lv._replace(basis=_bumps(lv.ux_d, lv.uy_d, cfg, h0, w0), direction=relief_direction(theta))
     res, valid, J = evaluate(theta, lv)
-    w = robust_weights(res, robust_scale(res, valid, cfg.noise_floor), cfg.robust, _robust_constant(cfg))
+    w = robust_weights(res, robust_scale(res, valid, NOISE_FLOOR), cfg.robust, robust_constant(cfg.robust))
     w = valid.float() if w is None else w * valid
     jtj, jtr = _normal_equations(J, res, w)
     return relief_score(jtj, jtr, _residual_variance(res, w, J.shape[1], cfg), cfg)
@@ -272,28 +284,20 @@ def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relie
     """The fixed data of level ``lev`` (samples of img1, img2 and its gradients), repeated per start."""
     i1, h, w = pyr1[lev], *pyr1[lev].shape[-2:]
     h0, w0 = pyr1[0].shape[-2:]
-    idx = select_samples(i1, cfg.parallax_block if relief else cfg.sample_block[cfg.levels - 1 - lev], cfg.margin)
+    idx = select_samples(i1, PARALLAX_BLOCK if relief else cfg.sample_block[cfg.levels - 1 - lev], MARGIN)
     ud = normalized_grid(lev, h, w, full_height=h0, full_width=w0, device=i1.device).view(-1, 2)
     ux_d, uy_d = ud[idx, 0], ud[idx, 1]
     lv = [torch.gather(i1.flatten(1), 1, idx), with_gradients(pyr2[lev]), ux_d, uy_d, ux_d * ux_d + uy_d * uy_d]
     i1s, stack2, ux_d, uy_d, rho = (x.repeat(n_starts, *(1,) * (x.dim() - 1)) if n_starts > 1 else x for x in lv)
     basis, direction = (_bumps(ux_d, uy_d, cfg, h0, w0), relief_direction(theta)) if relief else (None, None)
     return Level(i1=i1s, stack2=stack2, ux_d=ux_d, uy_d=uy_d, rho=rho, px=half_diagonal(h0, w0) / 2**lev,
-                 to_grid=level_to_grid(lev, h, w, full_height=h0, full_width=w0), newton=cfg.newton, margin=cfg.margin,
-                 photometric=cfg.photometric, floor=cfg.noise_floor, basis=basis, direction=direction,
+                 to_grid=level_to_grid(lev, h, w, full_height=h0, full_width=w0), newton=NEWTON, margin=MARGIN,
+                 photometric=cfg.photometric, floor=NOISE_FLOOR, basis=basis, direction=direction,
                  interpolation=_RELIEF_INTERPOLATION if relief else cfg.interpolation)
 
 
 def _bumps(ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
-    return relief_basis(ux_d, uy_d, n=cfg.parallax, width=cfg.parallax_width, h0=h0, w0=w0)
-
-
-def _plausible(theta: torch.Tensor, cfg: SelfCalConfig) -> torch.Tensor:
-    """(B,) bool: eq. 4 invertible on the image and the gain within ``gain_range``."""
-    ok = invertible(torch.nan_to_num(theta[:, 8:10]))
-    if cfg.photometric == "gain_bias":
-        ok &= (theta[:, 10] >= cfg.gain_range[0]) & (theta[:, 10] <= cfg.gain_range[1])
-    return ok
+    return relief_basis(ux_d, uy_d, n=cfg.parallax, width=PARALLAX_WIDTH, h0=h0, w0=w0)
 
 
 def _normal_equations(J, res, weights):
@@ -310,9 +314,9 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     prior's variance where it is estimated per pair (:func:`~lensdist_torch.selfcal.prior.evidence_tau2`).
     Returns theta, lambda and the :class:`_State` at theta.
     """
-    loss, k = cfg.robust, _robust_constant(cfg)
+    loss, k = cfg.robust, robust_constant(cfg.robust)
     res, valid, J = evaluate(theta, lv)
-    sigma = robust_scale(res, valid, cfg.noise_floor)
+    sigma = robust_scale(res, valid, NOISE_FLOOR)
     tau2 = None if lv.basis is None else start_tau2(len(theta), lv.px, cfg, theta.device)
     cost = _cost(theta, res, valid, sigma, cfg, tau2)
     theta0, res0, valid0 = theta, res, valid
@@ -330,14 +334,15 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
         cand = theta + torch.nan_to_num(step, nan=0.0)
         res_c, valid_c, J_c = evaluate(cand, lv)
         cost_c = _cost(cand, res_c, valid_c, sigma, cfg, tau2)
-        acc = (cost_c < cost) & torch.isfinite(cost_c) & _plausible(cand, cfg) & (valid_c.float().mean(1) > 0.05)
+        acc = (cost_c < cost) & torch.isfinite(cost_c) & plausible(cand, cfg.photometric)
+        acc &= valid_c.float().mean(1) > 0.05
         m = acc[:, None]
         theta = torch.where(m, cand, theta)
         res, valid = torch.where(m, res_c, res), torch.where(m, valid_c, valid)
         J = torch.where(m[..., None], J_c, J)
         lam = torch.where(acc, lam / 3, lam * 4).clamp(1e-7, 1e7)
         if loss != "none":  # sigma re-estimated
-            sigma = torch.where(acc, robust_scale(res, valid, cfg.noise_floor), sigma)
+            sigma = torch.where(acc, robust_scale(res, valid, NOISE_FLOOR), sigma)
         if tau2 is not None and cfg.parallax_evidence:  # and the relief prior's variance
             normal = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
             tau2 = evidence_tau2(theta, normal[0], sigma, tau2, px=lv.px, cfg=cfg)
@@ -349,7 +354,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
 
 def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | None = None):
     """The robust cost, plus the relief prior's term (on the same per-sample scale) where fitted."""
-    cost = robust_cost(res, valid, sigma, loss=cfg.robust, k=_robust_constant(cfg))
+    cost = robust_cost(res, valid, sigma, loss=cfg.robust, k=robust_constant(cfg.robust))
     if tau2 is None:
         return cost
     prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
@@ -359,7 +364,7 @@ def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | Non
 def _residual_variance(res, w, n_par: int, cfg: SelfCalConfig) -> torch.Tensor:
     """(B,) the weighted residual variance, floored at 8-bit quantisation: no certainty without texture."""
     s2 = (w.double() * res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)
-    return s2.clamp_min(cfg.noise_floor**2)
+    return s2.clamp_min(NOISE_FLOOR**2)
 
 
 def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region: torch.Tensor | None) -> torch.Tensor:
@@ -368,7 +373,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     The weighted Gauss-Newton covariance, or (with the samples' ``region``, ``clusters`` > 1) the
     cluster-robust one where it is larger (:func:`~lensdist_torch.selfcal.regions.cluster_robust_covariance`).
     """
-    w = robust_weights(st.res, st.sigma, cfg.robust, _robust_constant(cfg))
+    w = robust_weights(st.res, st.sigma, cfg.robust, robust_constant(cfg.robust))
     w = st.valid.float() if w is None else w * st.valid
     jtj, _ = _normal_equations(st.J, st.res, w)
     s2 = _residual_variance(st.res, w, st.J.shape[1], cfg)
@@ -396,7 +401,7 @@ def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> 
     if n_starts == 1:
         return rows
     sigma = st.sigma.view(n_starts, bsz).amin(0).repeat(n_starts)
-    cost = robust_cost(st.res, st.valid, sigma, loss=cfg.robust, k=_robust_constant(cfg))
+    cost = robust_cost(st.res, st.valid, sigma, loss=cfg.robust, k=robust_constant(cfg.robust))
     cost = torch.where(ok & torch.isfinite(cost), cost, torch.full_like(cost, float("inf"))).view(n_starts, bsz)
     return rows + bsz * cost.argmin(0)  # ties: the first start (init)
 
@@ -406,8 +411,8 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     dev = theta.device
     overlap = st.valid.float().mean(1)
     ab = theta[:, 8:10]
-    ok = (torch.isfinite(theta).all(1) & (ab.abs() <= cfg.max_coefficient).all(1) & _plausible(theta, cfg)
-          & (overlap >= cfg.min_overlap) & (st.cost <= st.start_cost * (1 + 1e-6)))
+    ok = (torch.isfinite(theta).all(1) & (ab.abs() <= MAX_COEFFICIENT).all(1) & plausible(theta, cfg.photometric)
+          & (overlap >= MIN_OVERLAP) & (st.cost <= st.start_cost * (1 + 1e-6)))
     keep = _choose(st, ok, n_starts, cfg)
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
     st = _State(*(None if x is None else x[keep] for x in st))
@@ -428,16 +433,12 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     motion = mean_displacement(torch.where(ok[:, None, None], H, torch.eye(3, dtype=H.dtype, device=dev)), h0, w0)
     floor = cfg.small_motion_error * r0**2 / motion.clamp_min(1e-3)  # 1e-3 px: no motion, no information
     std = torch.where(ok, torch.sqrt(std**2 + floor**2), torch.full_like(std, float("inf")))
-    conf = cfg.cannot_tell_std_px / (cfg.cannot_tell_std_px + std)
-    gb = (
-        theta[:, 10:12]
-        if cfg.photometric == "gain_bias"
-        else torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)
-    )
+    conf = CANNOT_TELL_STD_PX / (CANNOT_TELL_STD_PX + std)
+    unit = torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)  # gain 1, bias 0
+    gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else unit
     rms = aligned_residual(st.res, st.valid)
-    aligned = aligned_residual(
-        st.res, st.valid, region, n_regions=cfg.clusters**2, drop=int(cfg.occluded_share * cfg.clusters**2)
-    )
+    n_regions = cfg.clusters**2
+    aligned = aligned_residual(st.res, st.valid, region, n_regions=n_regions, drop=int(cfg.occluded_share * n_regions))
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(
         converged=ok, confident=ok & (conf >= cfg.confidence_threshold), confidence=conf, delta_avg=d_avg,

@@ -27,9 +27,16 @@ from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normaliz
 from lensdist_torch.geometry.pyramid import central_differences
 
 __all__ = [
+    "GAIN_RANGE",
+    "HUBER_K",
     "INTERPOLATION",
+    "MARGIN",
+    "NEWTON",
+    "NOISE_FLOOR",
+    "PARALLAX_WIDTH",
     "PHOTOMETRIC",
     "ROBUST",
+    "TUKEY_C",
     "Level",
     "SelfCalInfo",
     "undistort_normalized",
@@ -44,6 +51,8 @@ __all__ = [
     "relief_basis",
     "relief_direction",
     "invertible",
+    "plausible",
+    "robust_constant",
     "robust_scale",
     "robust_weights",
     "robust_cost",
@@ -53,6 +62,22 @@ PHOTOMETRIC = ("none", "gain_bias", "normalized")
 INTERPOLATION = ("bilinear", "bicubic", "blend")
 ROBUST = ("none", "huber", "tukey")
 MAD_TO_STD = 1.4826  # sigma = 1.4826 MAD for Gaussian residuals
+#: Newton steps of the inverse of eq. 4 on the radius (docs/method.md, section 10).
+NEWTON = 5
+#: Level px by which a sample's point must map inside img2 to count (docs/method.md, section 10).
+MARGIN = 2.0
+#: Intensity std floor of the residual's scale and of the covariance (8-bit quantisation, half a grey level in
+#: [0, 1] units): a textureless or identical pair cannot claim certainty (docs/method.md, section 10).
+NOISE_FLOOR = 0.5 / 255
+#: Huber's constant, in sigmas: 95 % efficiency for Gaussian noise (``selfcal.robust`` "huber"; section 10).
+HUBER_K = 1.345
+#: Tukey's biweight constant, in sigmas: 95 % efficiency for Gaussian noise (``selfcal.robust`` "tukey"; section 10).
+TUKEY_C = 4.685
+#: (low, high) plausible gain of the ``gain_bias`` photometric model: its start is clamped to it, a fit that leaves
+#: it diverged (docs/method.md, section 10).
+GAIN_RANGE = (0.25, 4.0)
+#: The plane + parallax model's Gaussian bumps' sigma, in half-diagonals (docs/method.md, section 10).
+PARALLAX_WIDTH = 0.3
 
 
 # ------------------------------------------------------------------ eq. 4, normalised units
@@ -366,7 +391,20 @@ def invertible(ab: torch.Tensor, s_max: float = 1.05) -> torch.Tensor:
     return (radial_derivative(s2, ab[:, :1], ab[:, 1:]) > 0.05).all(-1)
 
 
+def plausible(theta: torch.Tensor, photometric: str) -> torch.Tensor:
+    """(B,) bool: eq. 4 invertible on the image and, with ``gain_bias``, the gain within :data:`GAIN_RANGE`."""
+    ok = invertible(torch.nan_to_num(theta[:, 8:10]))
+    if photometric == "gain_bias":
+        ok &= (theta[:, 10] >= GAIN_RANGE[0]) & (theta[:, 10] <= GAIN_RANGE[1])
+    return ok
+
+
 # ------------------------------------------------------------------ the M-estimator
+def robust_constant(loss: str) -> float:
+    """The M-estimator's constant, in sigmas: :data:`TUKEY_C` for "tukey", else :data:`HUBER_K`."""
+    return TUKEY_C if loss == "tukey" else HUBER_K
+
+
 def robust_scale(res: torch.Tensor, valid: torch.Tensor, floor: float, samples: int = 1024) -> torch.Tensor:
     """Per pair, sigma = 1.4826 MAD of the valid residuals (B, N) -> (B,), at least ``floor``.
 

@@ -6,7 +6,7 @@ equations J W J^T, which carry no 1 / sigma^2, it adds sigma^2 / tau^2 to the re
 covariance (:func:`posterior_inverse`). tau is ``selfcal.parallax_px``
 over the level's pixels per unit, or, with ``selfcal.parallax_evidence``, re-estimated per pair
 from the evidence after every Levenberg-Marquardt step (:func:`evidence_tau2`, MacKay's update
-:func:`evidence_variance`): a flat pair drives it down to the floor of ``parallax_px_range``, a
+:func:`evidence_variance`): a flat pair drives it down to the floor of :data:`PARALLAX_PX_RANGE`, a
 relief the data pin up (docs/method.md, section 10). Whether a pair's evidence asks for the relief
 at all: :func:`relief_score`, Rao's score test of the relief at zero.
 """
@@ -19,6 +19,8 @@ from lensdist_torch.config import SelfCalConfig
 from lensdist_torch.selfcal.model import planar_parameters
 
 __all__ = [
+    "PARALLAX_PX_RANGE",
+    "RIDGE",
     "evidence_variance",
     "relief_precision",
     "add_relief_prior",
@@ -28,6 +30,12 @@ __all__ = [
     "relief_score",
     "relief_p_value",
 ]
+
+#: Absolute ridge on J W J^T in the posterior covariance and the score test (docs/method.md, section 10).
+RIDGE = 1e-6
+#: (low, high) px: the range the evidence may move the relief prior's std in (``selfcal.parallax_evidence``;
+#: docs/method.md, section 10).
+PARALLAX_PX_RANGE = (0.02, 2.0)
 
 
 def evidence_variance(coef: torch.Tensor, posterior_trace: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -77,23 +85,23 @@ def add_relief_prior(jtj: torch.Tensor, variance: torch.Tensor, tau2: torch.Tens
 def posterior_inverse(
     jtj: torch.Tensor, variance: torch.Tensor, tau2: torch.Tensor | None, cfg: SelfCalConfig
 ) -> torch.Tensor:
-    """(B, P, P) float64 (J W J^T + the relief prior + ``ridge`` I)^-1: the posterior covariance over ``variance``.
+    """(B, P, P) float64 (J W J^T + the relief prior + :data:`RIDGE` I)^-1: the posterior covariance over ``variance``.
 
     ``jtj`` (B, P, P) the robust normal matrix without the prior (not changed); ``tau2`` (B,) the
     prior's variance, or None without the relief (no prior term).
 
     Example:
-        >>> cfg = SelfCalConfig(parallax=1, photometric="none", ridge=1e-9)  # 10 planar parameters, 1 bump
+        >>> cfg = SelfCalConfig(parallax=1, photometric="none")  # 10 planar parameters, 1 bump
         >>> a = torch.eye(11, dtype=torch.float64)[None]
         >>> inv = posterior_inverse(a, torch.tensor([1.0]), torch.tensor([0.5]), cfg)
-        >>> round(float(inv[0, 10, 10]), 6), round(float(inv[0, 0, 0]), 6)  # 1 / (1 + 1 / 0.5) on the bump
-        (0.333333, 1.0)
+        >>> round(float(inv[0, 10, 10]), 5), round(float(inv[0, 0, 0]), 5)  # 1 / (1 + 1 / 0.5) on the bump
+        (0.33333, 1.0)
     """
     post = jtj.clone()
     if tau2 is not None:
         add_relief_prior(post, variance, tau2, cfg)
     eye = torch.eye(post.shape[1], dtype=torch.float64, device=post.device)
-    return torch.linalg.inv(post + cfg.ridge * eye)
+    return torch.linalg.inv(post + RIDGE * eye)
 
 
 def _normalised(px_std: float, px: float) -> float:
@@ -117,14 +125,14 @@ def evidence_tau2(theta, jtj, sigma, tau2, *, px: float, cfg: SelfCalConfig) -> 
     ``jtj`` (B, P, P): the fit's robust normal matrix J W J^T there, without the prior (left as
     it is); ``sigma`` (B,) the residual scale, ``tau2`` (B,) the current variance, ``px`` the
     level's pixels per unit. The posterior's trace over the relief gives
-    :func:`evidence_variance`, kept within ``parallax_px_range`` (px); a row whose update is not
+    :func:`evidence_variance`, kept within :data:`PARALLAX_PX_RANGE` (px); a row whose update is not
     finite keeps its variance.
     """
     variance = sigma.double() ** 2
     rel = relief_precision(variance, tau2, cfg)[1]
     trace = variance * torch.diagonal(posterior_inverse(jtj, variance, tau2, cfg), dim1=1, dim2=2)[:, rel].sum(1)
     new = evidence_variance(theta[:, rel].double(), trace, tau2)
-    lo, hi = (_normalised(v, px) for v in cfg.parallax_px_range)
+    lo, hi = (_normalised(v, px) for v in PARALLAX_PX_RANGE)
     return torch.where(torch.isfinite(new), new.clamp(lo, hi), tau2)
 
 
@@ -139,17 +147,17 @@ def relief_score(jtj: torch.Tensor, jtr: torch.Tensor, variance: torch.Tensor, c
     no prior, no refit.
 
     Example:
-        >>> cfg = SelfCalConfig(parallax=1, photometric="none", ridge=1e-12)  # 10 planar parameters, 1 bump
+        >>> cfg = SelfCalConfig(parallax=1, photometric="none")  # 10 planar parameters, 1 bump
         >>> jtj, jtr = torch.eye(11, dtype=torch.float64)[None], torch.zeros(1, 11, dtype=torch.float64)
         >>> jtr[0, 10] = 3.0  # the bump's gradient, 3 s.d. of its information
-        >>> round(float(relief_score(jtj, jtr, torch.tensor([1.0], dtype=torch.float64), cfg)), 6)
+        >>> round(float(relief_score(jtj, jtr, torch.tensor([1.0], dtype=torch.float64), cfg)), 4)
         9.0
     """
     p = planar_parameters(cfg.photometric)
     eye = torch.eye(jtj.shape[1], dtype=torch.float64, device=jtj.device)
 
     def quadratic(a, g):  # g^T (a + ridge)^-1 g
-        return (g * torch.linalg.solve(a + cfg.ridge * eye[: a.shape[1], : a.shape[1]], g)).sum(1)
+        return (g * torch.linalg.solve(a + RIDGE * eye[: a.shape[1], : a.shape[1]], g)).sum(1)
 
     return (quadratic(jtj, jtr) - quadratic(jtj[:, :p, :p], jtr[:, :p])) / variance
 

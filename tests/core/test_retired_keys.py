@@ -75,3 +75,15 @@ def test_calibrate_refuses_a_changed_constant_with_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "calibration.max_motion" in err and str(path) in err
     assert "a constant of the method now: lensdist_torch.calibration.direct.MAX_MOTION" in err
+
+
+def test_a_self_calibration_key_of_an_earlier_version(tmp_path):
+    """``[selfcal] noise_floor`` became ``selfcal.model.NOISE_FLOOR``: as paper.toml wrote it, it loads."""
+    path = tmp_path / "old.toml"
+    path.write_text("[selfcal]\nnoise_floor = 0.00196078431372549\ngain_range = [0.25, 4]\nnewton = 5\nparallax = 0\n")
+    assert load_config(path).selfcal.parallax == 0
+    path.write_text("[selfcal]\nhuber_k = 2.0\n")
+    one_line_error(ValueError, lambda: load_config(path), "selfcal.huber_k", str(path),
+                   "a constant of the method now: lensdist_torch.selfcal.model.HUBER_K")
+    one_line_error(ValueError, lambda: stored_config({"selfcal": {"ridge": 1e-9}}), "selfcal.ridge",
+                   "lensdist_torch.selfcal.prior.RIDGE")
