@@ -177,7 +177,7 @@ def test_a_folder_that_is_not_a_data_set_is_refused(tmp_path, capsys):
     code = cli_main(["generate", "--config", str(tmp_path / "tiny.toml"), "--out", str(folder), "--sets", "test", "--quiet"])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
-    assert err.startswith(f"lensdist generate: error: out (--out) {folder} holds files that are not a lensdist data set "
+    assert err.startswith(f"lensdist generate: error: --out {folder} holds files that are not a lensdist data set "
                           "(2024, IMG_0001.jpg, test; no manifest.json)"), err
     with pytest.raises(ValueError, match="not a lensdist data set"):
         generate(CFG, folder, sets=["test"], progress=False)
