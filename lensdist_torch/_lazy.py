@@ -1,7 +1,7 @@
 """Lazy exports of a package (PEP 562): a name is imported from its module on first access.
 
 The one implementation behind ``lensdist_torch`` and its subpackages (``core``, ``classify``,
-``data``, ``geometry``, ``registration``, ``selfcal``, ``calibration``, ``workflows``): each
+``data``, ``geometry``, ``metric``, ``registration``, ``selfcal``, ``calibration``, ``workflows``): each
 holds a table, module -> the names taken from it, and gets its ``__all__``, ``__getattr__`` and
 ``__dir__`` from :func:`lazy_exports`. Importing a package, or one of its modules, therefore
 loads none of the modules its table names.

@@ -24,48 +24,32 @@ Example:
     (1.0, (1, 1, 2, 2))
 """
 
-from lensdist_torch.config import QualityConfig
-from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
-from lensdist_torch.metric.quality import (
-    ErrorImages,
-    LocalCriteria,
-    QualityResult,
-    RegistrationQuality,
-    RegistrationQualityLoss,
-    block_counts,
-    block_pool,
-    counts_to_map,
-    erode_valid,
-    error_images,
-    floor_ratio,
-    local_criteria,
-    quality_map,
-    registration_error_counts,
-    registration_quality,
-    registration_quality_loss,
-)
-from lensdist_torch.metric.stateful import QualityMetricResult, RegistrationQualityMetric
+from lensdist_torch._lazy import lazy_exports
 
-__all__ = [
-    "ClassRMSE",
-    "ConfusionMatrix",
-    "ErrorImages",
-    "LocalCriteria",
-    "QualityConfig",
-    "QualityMetricResult",
-    "QualityResult",
-    "RegistrationQuality",
-    "RegistrationQualityLoss",
-    "RegistrationQualityMetric",
-    "block_counts",
-    "block_pool",
-    "counts_to_map",
-    "erode_valid",
-    "error_images",
-    "floor_ratio",
-    "local_criteria",
-    "quality_map",
-    "registration_error_counts",
-    "registration_quality",
-    "registration_quality_loss",
-]
+#: The public names of the package: module -> the names taken from it (imported on first use, PEP 562:
+#: the stateful metrics' torchmetrics loads only where they are used).
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "lensdist_torch.config": ("QualityConfig",),
+    "lensdist_torch.metric.classification": ("ClassRMSE", "ConfusionMatrix"),
+    "lensdist_torch.metric.quality": (
+        "ErrorImages",
+        "LocalCriteria",
+        "QualityResult",
+        "RegistrationQuality",
+        "RegistrationQualityLoss",
+        "block_counts",
+        "block_pool",
+        "counts_to_map",
+        "erode_valid",
+        "error_images",
+        "floor_ratio",
+        "local_criteria",
+        "quality_map",
+        "registration_error_counts",
+        "registration_quality",
+        "registration_quality_loss",
+    ),
+    "lensdist_torch.metric.stateful": ("QualityMetricResult", "RegistrationQualityMetric"),
+}
+
+__all__, __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

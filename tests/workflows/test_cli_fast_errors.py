@@ -35,3 +35,14 @@ def test_a_missing_input_is_refused_before_torch_is_imported(tmp_path, argv, say
     run = subprocess.run([sys.executable, "-c", PROBE, *argv], capture_output=True, text=True, timeout=120)
     assert run.stdout.split() == ["2", "False"], (run.stdout, run.stderr)
     assert run.stderr == says.format(tmp=tmp_path) + "\n"
+
+
+def test_analyzing_a_pair_does_not_import_torchmetrics():
+    # the stateful metrics' torchmetrics costs about a second of imports that one pair's answer never uses
+    probe = ("import sys\nfrom lensdist_torch.workflows.analyze import analyze_pair\n"
+             "print('torchmetrics' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert run.stdout.split() == ["False"], (run.stdout, run.stderr)
+    run = subprocess.run([sys.executable, "-c", "from lensdist_torch.metric import RegistrationQualityMetric as M\n"
+                          "print(M.__module__)"], capture_output=True, text=True, timeout=120)
+    assert run.stdout.split() == ["lensdist_torch.metric.stateful"], run.stderr
