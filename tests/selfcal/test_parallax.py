@@ -8,10 +8,10 @@ import dataclasses
 
 import pytest
 import torch
-from selfcal_helpers import assert_columns_match_finite_differences, relief_only_pairs, smooth
+from selfcal_helpers import assert_columns_match_finite_differences, central_level, relief_only_pairs
 
 from lensdist_torch.geometry.distortion import delta_avg
-from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid
+from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.selfcal import model as selfcal_model
 from lensdist_torch.selfcal import prior as selfcal_prior
 from lensdist_torch.selfcal.fit import SelfCalConfig, estimate_distortion
@@ -36,31 +36,11 @@ def test_relief_basis_is_gaussian_bumps_on_a_grid_over_the_frame():
 def test_relief_columns_of_the_jacobian_match_finite_differences():
     """The relief's columns d r / d c_k = (d r / d v . direction) phi_k against central
     differences of the residual, on a smooth pair (as test_selfcal's check of the others)."""
-    h, w = 60, 80
-    i1, i2 = smooth(h, w, 0, 0), smooth(h, w, 1.5, 2.0)
-    ud = normalized_grid(0, h, w, full_height=h, full_width=w).view(-1, 2)
-    idx = torch.nonzero(ud.norm(dim=-1) < 0.4).flatten()[None]
-    ux, uy = ud[idx, 0], ud[idx, 1]
-    direction = torch.tensor([[0.6, 0.8]])
-    lv = selfcal_model.Level(
-        torch.gather(i1.flatten(1), 1, idx),
-        selfcal_model.with_gradients(i2),
-        ux,
-        uy,
-        ux * ux + uy * uy,
-        half_diagonal(h, w),
-        level_to_grid(0, h, w, full_height=h, full_width=w),
-        8,
-        4.0,
-        "gain_bias",
-        1e-6,
-        selfcal_model.relief_basis(ux, uy, n=3, width=0.3, h0=h, w0=w),
-        direction,
-    )
+    lv, n = central_level("gain_bias", relief_n=3, direction=torch.tensor([[0.6, 0.8]]))
     theta = torch.zeros(1, 12 + 9, dtype=torch.float64)
     theta[0, :12] = torch.tensor([0.01, -0.005, 0.02, 0.004, -0.01, 0.03, 0.002, -0.001, 0.05, 0.02, 1.1, -0.05])
     theta[0, 12:] = 0.002 * torch.arange(9) - 0.008
-    assert selfcal_model.evaluate(theta, lv)[2].shape == (1, 21, idx.shape[1])
+    assert selfcal_model.evaluate(theta, lv)[2].shape == (1, 21, n)
     assert_columns_match_finite_differences(theta, lv, range(12, 21))
 
 
