@@ -146,8 +146,9 @@ class SelfCalConfig:
             where the planar answer's score test (Rao's, of the relief at zero, on the planar
             fit's finest samples) rejects a flat scene at this level; elsewhere the evidence holds
             the relief at the floor of ``selfcal.prior.PARALLAX_PX_RANGE`` and the pair keeps the planar answer
-            alone (no relief answer). 1: on every pair; a fixed prior always runs it (docs/method.md,
-            section 10).
+            alone (no relief answer). 1 (the default): on every pair, as the decision was fitted;
+            0.01 trades confident answers at small motion for speed; a fixed prior always runs it
+            (docs/method.md, section 10).
         parallax_test: the plane + parallax answer replaces the planar one where their
             Delta_avg differ by more than this many standard deviations of the difference
             (Hausman's test: under a planar scene both are right and the planar one is the
@@ -178,7 +179,7 @@ class SelfCalConfig:
     parallax_px: float = 0.2
     parallax_evidence: bool = True
     parallax_test: float = 2.0
-    parallax_score_level: float = 0.01
+    parallax_score_level: float = 1.0
     small_motion_error: float = 1.5e-5
     interpolation: str = "blend"
 

@@ -16,9 +16,9 @@ from lensdist_torch.selfcal import model as selfcal_model
 from lensdist_torch.selfcal import prior as selfcal_prior
 from lensdist_torch.selfcal.fit import SelfCalConfig, estimate_distortion
 
-RELIEF = SelfCalConfig(parallax=5)
+RELIEF = SelfCalConfig(parallax=5, parallax_score_level=0.01)  # the relief stage where the planar score asks
 PLANAR = SelfCalConfig(parallax=0)
-EVERY = dataclasses.replace(RELIEF, parallax_score_level=1.0)  # the relief stage on every pair, flat or not
+EVERY = SelfCalConfig(parallax=5)  # the default: the relief stage on every pair, flat or not
 
 
 def test_relief_basis_is_gaussian_bumps_on_a_grid_over_the_frame():

@@ -14,12 +14,12 @@ from lensdist_torch.cli import main
 from lensdist_torch.workflows.pair_analysis import JSON_KEYS
 
 #: The JSON's keys in their order for the gravel pair below, as ``lensdist analyze --json`` printed
-#: them when the analysis was a dict: the record must not reorder, drop or add one. (The pair is
-#: flat: the relief stage's score test leaves it planar, so no relief_* and planar_* answers.)
+#: them when the analysis was a dict: the record must not reorder, drop or add one.
 KEYS = {
     "selfcal": "method distances reject_threshold confidence estimated_class estimated_class_max delta_avg delta_max "
     "k2 k4 delta_avg_std delta_avg_interval relief relief_z distortion_type raw_confidence relief_found "
-    "registration_ok registered_by overlap motion_px in_domain "
+    "relief_agreement relief_parted planar_delta_avg planar_delta_avg_std planar_delta_avg_interval relief_delta_avg "
+    "relief_delta_avg_std relief_delta_avg_interval registration_ok registered_by overlap motion_px in_domain "
     "warnings cannot_tell cannot_tell_reasons class class_max estimated_delta_avg estimated_delta_max "
     "beyond_class_range analysed_region_user_px delta_avg_region_user_px delta_max_region_user_px "
     "delta_avg_user_px delta_avg_user_interval delta_max_user_px registration_residual error_blocks "
