@@ -1,8 +1,10 @@
 """Single pairs of real frames with a published calibration: does a confident answer's interval cover the truth?
 
 Every consecutive pair of FRAMES_DIR is analysed as `lensdist analyze` does (`analyze_pair`,
-self-calibration); the truth is Delta_avg of the calibration (user px, over the pixels where its
-model inverts: the `truth` of bench_real_calibration.py's JSON, given here as --truth).
+self-calibration); the answer's Delta_avg and its interval in the user's pixels over the whole frame
+(`delta_avg_user_px`, `delta_avg_user_interval`) against the truth, Delta_avg of the calibration
+(user px, over the pixels where its model inverts: the `truth` of bench_real_calibration.py's JSON,
+given here as --truth).
 
     python benchmarks/bench_real_pairs.py /work/shared/real/gopro_hero4_wall/frames --truth 103.15 [--out F.json]
 
@@ -38,12 +40,13 @@ def main() -> None:
     rows = []
     for a, b in zip(frames[:-1], frames[1:]):
         r = analyze_pair(str(a), str(b), config=cfg)
-        s, iv = r.user_px_per_analysis_px, r.delta_avg_interval
+        s = r.user_px_per_analysis_px  # the answer's own numbers over the whole frame; the estimate's where none
+        estimate = r.delta_avg_user_px if r.delta_avg_user_px is not None else (
+            None if r.estimated_delta_avg is None else r.estimated_delta_avg * s)
         rows.append({"pair": [a.name, b.name], "registered": r.registration_ok, "motion_px": r.motion_px,
                      "class": r.class_label, "confidence": r.confidence, "reasons": r.cannot_tell_reasons,
-                     "relief_z": r.relief_z,
-                     "estimate_user_px": None if r.estimated_delta_avg is None else r.estimated_delta_avg * s,
-                     "interval_user_px": None if iv is None else [iv[0] * s, iv[1] * s]})
+                     "relief_z": r.relief_z, "estimate_user_px": estimate,
+                     "interval_user_px": r.delta_avg_user_interval})
     answered = [x for x in rows if x["class"] is not None]
     with_iv = [x for x in answered if x["interval_user_px"]]
     covers = [x for x in with_iv if x["interval_user_px"][0] <= args.truth <= x["interval_user_px"][1]]
