@@ -99,10 +99,15 @@ _FOCAL = {"colmap": "COLMAP's estimate from the bundle adjustment",
 
 
 def _focal_spread(res: dict) -> str:
-    """", +-X px (95 %)" of COLMAP's focal length from its posterior, or why there is none; "" for the others."""
-    if res.get("focal_source") != "colmap":
+    """", +-X px (95 %)" of COLMAP's focal length from its posterior, or why there is none.
+
+    "" for the other sources, and for another path's camera weighed at COLMAP's focal (its row has
+    no ``focal_std_px``: the focal is not that camera's own estimate).
+    """
+    row = ((res.get("multiview") or {}).get("models") or {}).get(res.get("camera_model"), {})
+    if res.get("focal_source") != "colmap" or "focal_std_px" not in row:
         return ""
-    std = ((res.get("multiview") or {}).get("models") or {}).get(res.get("camera_model"), {}).get("focal_std_px")
+    std = row["focal_std_px"]  # None in the JSON where the posterior has no bound
     if std is None or not math.isfinite(std):
         return ", not determined by the tracks: a value to check, not to use"
     level = res.get("confidence") or 0.95

@@ -66,7 +66,8 @@ def test_the_focal_says_where_it_comes_from(capsys, source, says):
     assert f"fx, fy: {says}" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("std,says", [(10.0, ", +-19.6 px (95 %)"), (float("inf"), ", not determined by the tracks")])
+@pytest.mark.parametrize("std,says", [(10.0, ", +-19.6 px (95 %)"), (float("inf"), ", not determined by the tracks"),
+                                     (None, ", not determined by the tracks")])
 def test_colmaps_focal_comes_with_its_posterior(capsys, std, says):
     res = _answer(2e-6, method="multiview", focal_source="colmap") | {"camera_model": "RADIAL", "confidence": 0.95}
     res["multiview"] = {"model": "RADIAL", "registered": 12, "points3D": 900, "reprojection_px": 0.5,
@@ -74,6 +75,16 @@ def test_colmaps_focal_comes_with_its_posterior(capsys, std, says):
                         "models": {"RADIAL": {"focal_std_px": std}, "OPENCV": {"focal_std_px": 1.0}}}
     _print_calibration(res, None)
     assert f"fx, fy: COLMAP's estimate from the bundle adjustment{says}" in capsys.readouterr().out
+
+
+def test_another_paths_camera_at_colmaps_focal_claims_no_spread(capsys):
+    # a held row (another path's lens weighed at COLMAP's focal) has no posterior of its own focal
+    res = _answer(2e-6, method="multiview", focal_source="colmap") | {"camera_model": "own lens"}
+    res["multiview"] = {"model": "own lens", "registered": 12, "points3D": 900, "reprojection_px": 0.5,
+                        "delta_avg_user_px": 1.0, "delta_avg_user_interval": [0.9, 1.1],
+                        "models": {"own lens": {"weight": 0.9}, "RADIAL": {"focal_std_px": 1.0}}}
+    _print_calibration(res, None)
+    assert "fx, fy: COLMAP's estimate from the bundle adjustment\n" in capsys.readouterr().out
 
 
 def test_a_given_focal_reaches_the_homography_models_camera():
