@@ -91,7 +91,7 @@ def _paths(res: dict) -> None:
 
 #: Which path an answer's ``method`` names, in words.
 _FROM = {"direct": "the direct path (eq. 4)", "multiview": "the multi-view path (COLMAP)",
-         "planar": "the homography model", "both": "the direct and multi-view paths"}
+         "planar": "the homography model"}
 #: What the OpenCV camera's fx = fy is, per ``focal_source``.
 _FOCAL = {"colmap": "COLMAP's estimate from the bundle adjustment",
           "given": "yours (--focal)",

@@ -298,16 +298,23 @@ def _mv(cls, d, lo, hi):
     }
 
 
-def test_confident_paths_that_disagree_cannot_tell_and_give_both_numbers():
-    out = combine(_direct("R", 0.1, 0.0, 0.8), _mv("2", 7.0, 6.5, 7.5))
-    assert out["class"] is None and out["method"] == "both" and "disagree" in out["reason"]
+def test_paths_that_disagree_cannot_tell_and_name_each_number():
+    out = combine(_direct("R", 0.1, 0.0, 0.8), _mv("2", 7.0, 6.5, 7.5))  # widths 0.8 and 1.0
+    assert out["class"] is None and out["method"] == "direct" and out["delta_avg_user_px"] == 0.1
+    assert out["reason"] == ("the paths disagree beyond their intervals (direct 0.10 px [0.00, 0.80]; multi-view "
+                             "7.00 px [6.50, 7.50]); the numbers are the direct path's, the most precise")
     assert out["direct"]["delta_avg_user_px"] == 0.1 and out["multiview"]["delta_avg_user_px"] == 7.0
 
 
-def test_multiview_answers_with_its_exact_opencv_camera_where_the_paths_agree():
-    out = combine(_direct("2", 6.9, 6.0, 7.2), _mv("2", 7.0, 6.5, 7.5))
+def test_the_most_precise_path_answers_with_its_own_camera_where_the_paths_agree():
+    out = combine(_direct("2", 6.9, 6.0, 7.2), _mv("2", 7.0, 6.5, 7.5))  # widths 1.2 and 1.0
     assert out["method"] == "multiview" and out["class"] == "2" and out["delta_avg_user_px"] == 7.0
     assert out["opencv"]["dist_coeffs"] == [-0.1, 0.01, 0, 0, 0] and out["opencv_rational"] is None
+    tighter = combine(_direct("2", 6.9, 6.6, 7.2), _mv("2", 7.0, 6.5, 7.5))  # widths 0.6 and 1.0
+    assert tighter["method"] == "direct" and tighter["class"] == "2" and tighter["delta_avg_user_px"] == 6.9
+    # the most precise estimate without a class (its interval spans two): no other path's class stands in
+    open_ = combine(_direct(None, 6.9, 6.8, 7.4), _mv("2", 7.0, 6.5, 7.5))
+    assert open_["method"] == "direct" and open_["class"] is None and open_["reason"] == "interval too wide"
 
 
 def test_direct_answers_where_multiview_cannot():
@@ -317,20 +324,16 @@ def test_direct_answers_where_multiview_cannot():
     assert failed["method"] == "direct" and failed["class"] == "3" and "reconstruct" in failed["multiview"]["reason"]
     wide = combine(_direct("3", 9.0, 8.8, 9.2), _mv(None, 12.0, 0.0, 30.0))
     assert wide["method"] == "direct" and wide["class"] == "3"
-    # neither can tell: the numbers of the estimate whose relative half-width is smaller, both named
-    neither = combine(_direct(None, 1.0, 0.0, 9.0), _mv(None, 12.0, 0.0, 30.0))  # half-widths 450 % and 125 %
-    assert neither["class"] is None and neither["method"] == "multiview" and neither["delta_avg_user_px"] == 12.0
-    assert "neither path can tell" in neither["reason"] and "direct 1.00 px [0.00, 9.00]" in neither["reason"]
-    assert "do not overlap" not in neither["reason"] and neither["opencv"]["dist_coeffs"] == [-0.1, 0.01, 0, 0, 0]
-    assert neither["multiview"]["reason"].startswith("interval too wide")
-    # the GoPro views (2026-11-24): direct 16.49 [0, 43.11], multi-view 119.24 [61.21, 177.27]
+    assert wide["multiview"]["reason"].startswith("interval too wide")
+    neither = combine(_direct(None, 1.0, 0.0, 9.0), _mv(None, 12.0, 0.0, 30.0))  # widths 9 and 30, overlapping
+    assert neither["class"] is None and neither["method"] == "direct" and neither["reason"] == "interval too wide"
+    # the GoPro views (docs/results): direct 16.49 [0, 43.11], multi-view 119.24 [61.21, 177.27]
     gopro = combine(_direct(None, 16.49, 0.0, 43.11), _mv(None, 119.24, 61.21, 177.27))
-    assert gopro["method"] == "multiview" and gopro["class"] is None and gopro["delta_avg_user_px"] == 119.24
-    assert "do not overlap" in gopro["reason"]
-    kept = combine(_direct(None, 5.0, 4.0, 6.0), _mv(None, 12.0, 0.0, 30.0))  # the direct one is the tighter
-    assert (
-        kept["method"] == "direct" and kept["delta_avg_user_px"] == 5.0 and "numbers are the direct" in kept["reason"]
-    )
+    assert gopro["method"] == "direct" and gopro["class"] is None and gopro["delta_avg_user_px"] == 16.49
+    assert "disagree beyond their intervals" in gopro["reason"] and "multi-view 119.24 px" in gopro["reason"]
+    # no interval from the direct path: the multi-view one answers alone
+    alone = combine({**_direct(None, float("nan"), 0, 0), "delta_avg_user_interval": None}, _mv("2", 7.0, 6.5, 7.5))
+    assert alone["method"] == "multiview" and alone["class"] == "2"
 
 
 def _planar(cls, d, lo, hi):
@@ -371,7 +374,7 @@ def _planar(cls, d, lo, hi):
     }
 
 
-def test_the_homography_model_answers_only_where_neither_path_can_tell_and_no_relief_is_found():
+def test_the_homography_model_answers_where_it_is_most_precise_on_a_flat_scene():
     direct = {**_direct(None, 61.5, 0.0, 172.0), "relief_z": 0.1}
     mv = {**_mv(None, 116.0, 0.0, 272.4), "planar": _planar("4", 134.2, 105.6, 162.8), "planar_max_relief_z": 2.0}
     out = combine(direct, mv)

@@ -103,8 +103,8 @@ def calibrate_path(
         pairs_unregistered (pairs whose fit did not register them, ``calibration.max_misfit``; among the rejected),
         relief_effect_px and relief_z (the direct path's: how far its plane + parallax and planar answers part, and
         in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors), focal_source
-        (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``), method (which path answered: "direct",
-        "multiview", "both", "planar"), direct, multiview and planar (each path's own numbers; planar: the
+        (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``), method (which path answered, the most precise:
+        "direct", "multiview", "planar"), direct, multiview and planar (each path's own numbers; planar: the
         homography model of the multi-view path).
 
     Example:

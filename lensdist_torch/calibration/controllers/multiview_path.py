@@ -166,22 +166,19 @@ def planar_path(database: Path, names: list[str], image_size: tuple[int, int], *
     """The homography model on a COLMAP database (its verified matches, then guided and refined ones), as a dict.
 
     ``folder`` holds the frames ``names`` (the refinement reads them; None: no refinement).
-    ``ok`` False with a ``reason`` where it has no answer (too few pairs of matches); otherwise the
+    ``ok`` False with a ``reason`` where it has no answer (too few pairs of matches); otherwise ``plane``
+    (False: "not a plane", no estimate for :func:`combine`) and the
     fields of :class:`~lensdist_torch.calibration.planar_features.PlanarCalibration` (strict-JSON-ready).
     """
     images = None if folder is None else (lambda v: load_image(Path(folder) / names[v], max_pixels=None)[0, 0])
     res = self_calibrate_guided(database, names, image_size, config=config, settings=settings, images=images)
     if not math.isfinite(res.delta_avg_user_px):
         return {"ok": False, "reason": res.reason}
-    return {"ok": True, **res.to_dict()}
+    return {"ok": True, "plane": res.inlier_share >= config.planar_min_inlier_share, **res.to_dict()}
 
 
 def _overlap(a: tuple, b: tuple) -> bool:
     return a[0] <= b[1] and b[0] <= a[1]
-
-
-def _relative_halfwidth(interval: tuple, value: float) -> float:
-    return (interval[1] - interval[0]) / 2 / max(value, 1e-12)
 
 
 def _take_multiview(out: dict, mv: dict) -> None:
@@ -190,7 +187,8 @@ def _take_multiview(out: dict, mv: dict) -> None:
              "fit_error_max_px": 0.0, "forward_error_mean_px": 0.0, "forward_error_max_px": 0.0}
     out.update({k: mv[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
     out.update(method="multiview", camera_model=mv["model"], opencv=exact if len(mv["dist_coeffs"]) == 5 else None,
-               opencv_rational=exact if len(mv["dist_coeffs"]) == 8 else None)
+               opencv_rational=exact if len(mv["dist_coeffs"]) == 8 else None,
+               **{"class": mv["class_label"], "reason": mv["reason"] or None})
 
 
 def _summary(res: dict, keys: tuple[str, ...]) -> dict:
@@ -210,122 +208,110 @@ _KEYS = (
 def combine(direct: dict, mv: dict | None) -> dict:
     """One answer from the direct result (``calibrate_path``'s dict) and the multi-view one (or None).
 
-    Adds ``method`` (which path answered), ``direct``, ``multiview`` and ``planar`` (each path's
-    own numbers). The homography model (``mv["planar"]``) answers only where the other two give
-    no class, with a class of its own and an interval that meets each of theirs.
+    Every path whose scene model holds and which has a Delta_avg interval is an estimate of the same
+    number: the direct path; the multi-view path where it reconstructed the sequence; the homography
+    model where it found a plane and the direct path's plane + parallax test no relief beyond
+    :data:`PLANAR_MAX_RELIEF_Z`. The most precise of them (the narrowest interval) answers, with
+    its class where every other path's interval meets its own, else "cannot tell" naming each path's
+    number (docs/method.md, section 11). Adds ``method`` (which path answered), ``direct``,
+    ``multiview`` and ``planar`` (each path's own numbers; None where it did not run).
+
+    Example:
+        >>> d = {"class": "2", "reason": None, "delta_avg_user_px": 6.0, "delta_avg_user_interval": [5.0, 7.0],
+        ...      "delta_max_user_px": 12.0, "delta_max_user_interval": [10.0, 14.0]}
+        >>> out = combine(d, None)
+        >>> out["method"], out["class"], out["multiview"]
+        ('direct', '2', None)
     """
-    out = _combine_two(direct, mv)
+    out = dict(direct, method="direct")
+    out["direct"] = _summary(direct, _KEYS)
+    out["multiview"] = None if mv is None else _multiview_view(mv)
     planar = (mv or {}).get("planar")
-    out["planar"] = (
-        None
-        if planar is None
-        else (
-            {"reason": planar["reason"]}
-            if not planar["ok"]
-            else {
-                "class": planar["class_label"],
-                "reason": planar["reason"] or None,
-                "terms": planar["terms"],
-                **{
-                    k: planar[k]
-                    for k in (
-                        *_KEYS[2:],
-                        "pairs",
-                        "inliers",
-                        "matches",
-                        "inlier_share",
-                        "reprojection_px",
-                        "models",
-                        "jackknife",
-                        "jackknife_coefficients",
-                        "jackknife_centres",
-                        "coefficients",
-                        "model",
-                        "centre",
-                        "bending_halfwidth_px",
-                        "matched_fraction",
-                        "invertible_fraction",
-                        "eq4_fit_error_px",
-                        "opencv",
-                        "opencv_rational",
-                    )
-                },
-                "guided": planar.get("guided"),
-                "refined": planar.get("refined"),
-            }
-        )
-    )  # None where they did not run
-    if out.get("class") is not None or planar is None or not planar["ok"] or planar["class_label"] is None:
+    out["planar"] = None if planar is None else _planar_view(planar)
+    found = _estimates(direct, mv)
+    if planar is not None and planar["ok"] and planar.get("plane", True) and "planar" not in found:
+        z = direct.get("relief_z")  # relief imitates distortion under one homography per pair (method.md, 12)
+        out["planar"]["reason"] = "relief: the direct path's plane + parallax test " + (
+            f"finds relief (z = {z:.1f}, at most {mv['planar_max_relief_z']:g})"
+            if z is not None and math.isfinite(z) else "could not run")
+    if not found:
         return out
-    z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)
-    if z is None or not math.isfinite(z) or z > most:  # relief imitates distortion under one homography per pair
-        out["planar"]["reason"] = ("relief: the direct path's plane + parallax test " + (
-            f"finds relief (z = {z:.1f}, at most {most:g})" if z is not None and math.isfinite(z) else "could not run"))
-        return out
-    iv = tuple(planar["delta_avg_user_interval"])
-    others = [tuple(x["delta_avg_user_interval"]) for x in (out["direct"], out.get("multiview") or {})
-              if x.get("delta_avg_user_interval") is not None and None not in x["delta_avg_user_interval"]]
-    if not all(_overlap(iv, o) for o in others):
-        return out
-    out.update({k: planar[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
-    out.update(method="planar", camera_model=planar["model"], opencv=planar["opencv"],
-               opencv_rational=planar["opencv_rational"],
-               **{"class": planar["class_label"], "reason": None})
+    name = min(found, key=lambda n: found[n][1] - found[n][0])
+    if name == "multiview":
+        _take_multiview(out, mv)
+    elif name == "planar":
+        _take_planar(out, planar)
+    chosen = found[name]
+    apart = [n for n, iv in found.items() if not _overlap(chosen, iv)]
+    if apart:
+        each = "; ".join(f"{_NAMES[n]} {_path(n, direct, mv)['delta_avg_user_px']:.2f} px [{iv[0]:.2f}, {iv[1]:.2f}]"
+                         for n, iv in found.items())
+        out.update({"class": None, "reason": f"the paths disagree beyond their intervals ({each}); the numbers are "
+                                             f"the {_NAMES[name]} path's, the most precise"})
     return out
 
 
-def _combine_two(direct: dict, mv: dict | None) -> dict:
-    """The direct and the multi-view answers combined (module docstring), the homography model aside."""
-    out = dict(direct)
-    out["direct"] = _summary(direct, _KEYS)
-    if mv is None:
-        out.update(method="direct", multiview=None)
-        return out
+#: How the text and the reasons name each path.
+_NAMES = {"direct": "direct", "multiview": "multi-view", "planar": "homography model"}
+
+
+def _path(name: str, direct: dict, mv: dict | None) -> dict:
+    return {"direct": direct, "multiview": mv, "planar": (mv or {}).get("planar")}[name]
+
+
+def _estimates(direct: dict, mv: dict | None) -> dict[str, tuple[float, float]]:
+    """Each path's Delta_avg interval in the user's pixels, where its scene model holds (:func:`combine`)."""
+    z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)
+    holds = {"direct": True, "multiview": mv is not None and mv["ok"],
+             "planar": z is not None and math.isfinite(z) and z <= most and ((mv or {}).get("planar") or {}).get(
+                 "plane", True)}
+    found = {}
+    for name in _NAMES:
+        res = _path(name, direct, mv)
+        if not holds[name] or res is None or not res.get("ok", True):
+            continue
+        iv = res.get("delta_avg_user_interval")
+        if iv is not None and None not in iv and all(math.isfinite(v) for v in iv):
+            found[name] = (float(iv[0]), float(iv[1]))
+    return found
+
+
+def _multiview_view(mv: dict) -> dict:
+    """The multi-view path's own numbers, as the JSON's ``multiview`` block."""
     if not mv["ok"]:
-        out.update(method="direct", multiview={"reason": mv["reason"]})
-        return out
-    mv_view = {
+        return {"reason": mv["reason"]}
+    return {
         "class": mv["class_label"],
         "reason": mv["reason"] or None,
         "model": mv["model"],
         **{k: mv[k] for k in _KEYS[2:]},
-        "invertible_fraction": mv["invertible_fraction"],
-        "eq4_fit_error_px": mv["eq4_fit_error_px"],
-        "registered": mv["registered"],
-        "points3D": mv["points3D"],
-        "reprojection_px": mv["reprojection_px"],
-        "rotation_spread_deg": mv["rotation_spread_deg"],
-        "camera_matrix": mv["camera_matrix"],
-        "dist_coeffs": mv["dist_coeffs"],
-        "models": mv["models"],
+        **{k: mv[k] for k in ("invertible_fraction", "eq4_fit_error_px", "registered", "points3D", "reprojection_px",
+                              "rotation_spread_deg", "camera_matrix", "dist_coeffs", "models")},
         "reconstructions": list(mv.get("reconstructions", ())),
         "reconstruction_spread_px": mv.get("reconstruction_spread_px", 0.0),
         "dispersion": mv.get("dispersion", 1.0),
     }
-    out["multiview"] = mv_view
-    if mv["class_label"] is None:  # no multi-view class: the direct answer stands, unless neither can tell
-        out["method"] = "direct"
-        d_iv, m_iv = direct.get("delta_avg_user_interval"), tuple(mv["delta_avg_user_interval"])
-        if direct.get("class") is not None or d_iv is None or None in d_iv:
-            return out
-        both = (f"multi-view {mv['delta_avg_user_px']:.2f} px [{m_iv[0]:.2f}, {m_iv[1]:.2f}], direct "
-                f"{direct['delta_avg_user_px']:.2f} px [{d_iv[0]:.2f}, {d_iv[1]:.2f}]")
-        apart = "" if _overlap(tuple(d_iv), m_iv) else ", and their intervals do not overlap"
-        if _relative_halfwidth(m_iv, mv["delta_avg_user_px"]) < _relative_halfwidth(
-            tuple(d_iv), direct["delta_avg_user_px"]
-        ):
-            # the numbers of the less uncertain estimate (relative half-width), still no class
-            _take_multiview(out, mv)
-        out["reason"] = f"neither path can tell ({both}{apart}); the numbers are the {out['method']} path's"
-        return out
-    if direct.get("class") is not None and not _overlap(tuple(direct["delta_avg_user_interval"]),
-                                                        tuple(mv["delta_avg_user_interval"])):
-        out.update(method="both", **{"class": None})
-        out["reason"] = (
-            f"the multi-view ({mv['delta_avg_user_px']:.2f} px) and the direct ({direct['delta_avg_user_px']:.2f} "
-            "px) estimates of Delta_avg disagree beyond their intervals"
-        )
-        return out
-    _take_multiview(out, mv)
-    out.update({"class": mv["class_label"], "reason": None})
-    return out
+
+
+#: The homography model's fields in the JSON's ``planar`` block, beside :data:`_KEYS`.
+_PLANAR_KEYS = ("pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife",
+                "jackknife_coefficients", "jackknife_centres", "coefficients", "model", "centre",
+                "bending_halfwidth_px", "matched_fraction", "invertible_fraction", "eq4_fit_error_px", "opencv",
+                "opencv_rational")
+
+
+def _planar_view(planar: dict) -> dict:
+    """The homography model's own numbers, as the JSON's ``planar`` block."""
+    if not planar["ok"]:
+        return {"reason": planar["reason"]}
+    return {"class": planar["class_label"], "reason": planar["reason"] or None, "terms": planar["terms"],
+            **{k: planar[k] for k in (*_KEYS[2:], *_PLANAR_KEYS)},
+            "guided": planar.get("guided"), "refined": planar.get("refined")}
+
+
+def _take_planar(out: dict, planar: dict) -> None:
+    """``out`` gets the homography model's numbers, class and OpenCV exports."""
+    out.update({k: planar[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
+    out.update(method="planar", camera_model=planar["model"], opencv=planar["opencv"],
+               opencv_rational=planar["opencv_rational"], **{"class": planar["class_label"],
+                                                             "reason": planar["reason"] or None})
