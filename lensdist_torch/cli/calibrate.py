@@ -148,7 +148,8 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
             )
         )
         print(f"{tag}Delta_{name} = {d:.2f} px" + bound + f" over your {w} x {h} frames")
-    print(f"from {_FROM.get(res.get('method'), res.get('method'))}" + (
+    print(f"from {_FROM.get(res.get('method'), res.get('method'))}"
+          + (f", lens model {res['camera_model']}" if res.get("camera_model") else "") + (
         "" if res.get("eq4_fit_error_px") is None else
         f"; Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where its lens inverts"))
     from lensdist_torch.geometry.opencv_model import FOLLOWS_PX

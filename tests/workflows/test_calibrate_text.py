@@ -74,7 +74,9 @@ def test_colmaps_focal_comes_with_its_posterior(capsys, std, says):
                         "delta_avg_user_px": 1.0, "delta_avg_user_interval": [0.9, 1.1],
                         "models": {"RADIAL": {"focal_std_px": std}, "OPENCV": {"focal_std_px": 1.0}}}
     _print_calibration(res, None)
-    assert f"fx, fy: COLMAP's estimate from the bundle adjustment{says}" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert f"fx, fy: COLMAP's estimate from the bundle adjustment{says}" in text
+    assert "\nfrom the multi-view path (COLMAP), lens model RADIAL\n" in text  # the model that gave the answer
 
 
 def test_another_paths_camera_at_colmaps_focal_claims_no_spread(capsys):
