@@ -118,7 +118,8 @@ def _manifest_problem(m) -> str | None:
     if missing:
         return f"missing field(s) {missing}"
     if m["format_version"] != FORMAT_VERSION or isinstance(m["format_version"], bool):
-        return f"format version {m['format_version']!r}, this library reads {FORMAT_VERSION} (generate into another --out)"
+        return (f"format version {m['format_version']!r}, this library reads {FORMAT_VERSION} "
+                "(generate into another --out)")
     scenes = m["scenes"]
     if not (isinstance(scenes, list) and scenes and all(isinstance(s, str) for s in scenes)):
         return "scenes must be a non-empty list of names"
@@ -159,7 +160,9 @@ def _record_problem(rec, config: LensdistConfig, name: str) -> str | None:
     if not isinstance(rec.get("complete"), bool):
         return "complete must be true or false"
     if not rec["complete"]:
-        return None if _is_count(rec.get("shards_present"), n_shards) else f"shards_present must be an int in [0, {n_shards}]"
+        if _is_count(rec.get("shards_present"), n_shards):
+            return None
+        return f"shards_present must be an int in [0, {n_shards}]"
     if not _is_count(rec.get("registration_failed"), n):
         return f"registration_failed must be an int in [0, {n}]"
     for key in ("pairs_per_class_avg", "pairs_per_class_max"):
@@ -168,7 +171,8 @@ def _record_problem(rec, config: LensdistConfig, name: str) -> str | None:
             return f"{key} must be {N_CLASSES} counts summing to n_pairs {n}"
     digests = rec.get("shard_sha256")  # absent in a record of an older lensdist: load_set asks for a re-check
     if digests is not None and not (
-        isinstance(digests, list) and len(digests) == n_shards and all(isinstance(d, str) and _SHA256.fullmatch(d) for d in digests)
+        isinstance(digests, list) and len(digests) == n_shards
+        and all(isinstance(d, str) and _SHA256.fullmatch(d) for d in digests)
     ):
         return f"shard_sha256 must list {n_shards} sha256 digests (hex), one per shard"
     return None
