@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 from lensdist_torch.config.checks import choice, flag, integer, integers, real
@@ -12,88 +11,41 @@ __all__ = ["RegistrationConfig", "SelfCalConfig"]
 
 @dataclass(frozen=True)
 class RegistrationConfig:
-    """Settings of :func:`estimate_homography`.
+    """Settings of :func:`estimate_homography` (``[registration]``).
+
+    What a user sets: the acceptance gates, the feature fallback and the speed; the method's constants (the
+    pyramid, the iterations, the tolerances, the damping, the feature matching's) are named in the modules that
+    use them (:mod:`~lensdist_torch.registration.direct`, ``wide_baseline``; docs/method.md, section 7).
 
     Attributes:
-        levels: pyramid levels to run, coarsest first, ending with 0 (level l is 1 / 2**l of the
-            size); levels whose smaller side would be under 16 px are dropped.
-        iterations: maximum IC iterations for each entry of ``levels``.
-        step_tol: full resolution is done when an update moves no corner by more than this (px).
-        coarse_tol: the same for the coarser levels (full-resolution px).
-        phase_level: pyramid level of the phase correlation (lowered for small images).
-        damping: Hessian damping, a fraction of its mean diagonal.
-        min_texture: smallest admissible eigenvalue of the per-pixel Gauss-Newton Hessian
-            (gradients in level px, coordinates in half-diagonals).
         min_overlap: fraction of img1 that must map inside img2.
         max_residual: largest RMS residual, relative to sqrt(2) x img1's standard deviation
             (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with the strongest
             distortion of docs/method.md section 6).
-        margin: level px by which the pixels used must map inside img2.
-        max_step: an update moving a corner by more than this fraction of the diagonal diverged.
-        fine_stride: template pixel stride at full resolution.
-        presmooth: binomial smoothing (sigma 1 px) of both images first.
-        match_intensity: img2's grey levels mapped affinely to img1's mean and standard deviation
-            first (per pair): a change of exposure (gain, offset) is not read as misregistration.
         chunk_size: pairs registered together (cache locality); results do not depend on it.
         feature_fallback: :func:`~lensdist_torch.registration.wide_baseline.estimate_homography_robust`
             retries the pairs that did not converge from SIFT matches (docs/method.md, section 10).
-        max_keypoints: SIFT keypoints kept per image by the fallback.
-        match_ratio: second-nearest-neighbour ratio of the fallback's mutual matches, in ]0, 1].
-        ransac_threshold: px, one-way transfer error of a RANSAC inlier in the fallback.
-        min_inliers: fewest RANSAC inliers for a feature homography.
 
     Example:
         >>> from dataclasses import replace
-        >>> RegistrationConfig().levels, replace(RegistrationConfig(), levels=(3, 1, 0), iterations=(10, 8, 6)).levels
-        ((2, 0), (3, 1, 0))
-        >>> RegistrationConfig(levels=(0, 2))
+        >>> RegistrationConfig().min_overlap, replace(RegistrationConfig(), min_overlap=0.5).min_overlap
+        (0.3, 0.5)
+        >>> RegistrationConfig(min_overlap=1.5)
         Traceback (most recent call last):
         ...
-        ValueError: registration.levels must be a decreasing tuple of ints ending with 0, got (0, 2)
+        ValueError: registration.min_overlap must be a number in [0, 1], got 1.5
     """
 
-    levels: tuple[int, ...] = (2, 0)
-    iterations: tuple[int, ...] = (10, 6)
-    step_tol: float = 0.01
-    coarse_tol: float = 0.2
-    phase_level: int = 3
-    damping: float = 1e-6
-    min_texture: float = 1e-8
     min_overlap: float = 0.3
     max_residual: float = 0.5
-    margin: float = 2.0
-    max_step: float = 0.25
-    fine_stride: int = 2
-    presmooth: bool = True
-    match_intensity: bool = True
     chunk_size: int = 8
     feature_fallback: bool = True
-    max_keypoints: int = 2000
-    match_ratio: float = 0.9
-    ransac_threshold: float = 2.0
-    min_inliers: int = 15
 
     def __post_init__(self) -> None:
-        integers(self, "levels", lo=0)
-        lv = self.levels
-        if lv[-1] != 0 or not all(a > b for a, b in itertools.pairwise(lv)):
-            raise ValueError(f"registration.levels must be a decreasing tuple of ints ending with 0, got {lv!r}")
-        integers(self, "iterations", n=len(lv), per="level")
-        for name in ("step_tol", "coarse_tol", "min_texture", "max_residual"):
-            real(self, name, lo=0, lo_open=True)
-        real(self, "max_step", lo=0, hi=1, lo_open=True, why="a share of the diagonal")
-        integer(self, "phase_level", lo=0)
-        real(self, "damping", lo=0)
-        real(self, "margin", lo=0)
+        real(self, "max_residual", lo=0, lo_open=True)
         real(self, "min_overlap", lo=0, hi=1)
-        integer(self, "fine_stride")
-        flag(self, "presmooth")
         integer(self, "chunk_size")
         flag(self, "feature_fallback")
-        integer(self, "max_keypoints", lo=4)
-        real(self, "match_ratio", lo=0, hi=1, lo_open=True)
-        real(self, "ransac_threshold", lo=0, lo_open=True)
-        integer(self, "min_inliers", lo=4)
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ class Retired:
     Attributes:
         by: what replaced it: a key of this version (with why), or, for a key that became a
             constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``,
-            ``lensdist_torch.selfcal.X.NAME``).
+            ``lensdist_torch.selfcal.X.NAME``, ``lensdist_torch.registration.X.NAME``).
         value: for a constant, its value: the key loads at this value (dropped) and is refused
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
@@ -100,6 +100,23 @@ RETIRED = {
     ("selfcal", "parallax_block"): _constant("fit.PARALLAX_BLOCK", 2, "selfcal"),
     ("selfcal", "ridge"): _constant("prior.RIDGE", 1e-6, "selfcal"),
     ("selfcal", "parallax_px_range"): _constant("prior.PARALLAX_PX_RANGE", (0.02, 2.0), "selfcal"),
+    # one pair's registration's constants (docs/method.md, section 7)
+    ("registration", "levels"): _constant("direct.LEVELS", (2, 0), "registration"),
+    ("registration", "iterations"): _constant("direct.ITERATIONS", (10, 6), "registration"),
+    ("registration", "step_tol"): _constant("direct.STEP_TOL", 0.01, "registration"),
+    ("registration", "coarse_tol"): _constant("direct.COARSE_TOL", 0.2, "registration"),
+    ("registration", "phase_level"): _constant("direct.PHASE_LEVEL", 3, "registration"),
+    ("registration", "damping"): _constant("direct.DAMPING", 1e-6, "registration"),
+    ("registration", "min_texture"): _constant("direct.MIN_TEXTURE", 1e-8, "registration"),
+    ("registration", "margin"): _constant("direct.MARGIN", 2.0, "registration"),
+    ("registration", "max_step"): _constant("direct.MAX_STEP", 0.25, "registration"),
+    ("registration", "fine_stride"): _constant("direct.FINE_STRIDE", 2, "registration"),
+    ("registration", "presmooth"): _constant("direct.PRESMOOTH", True, "registration"),
+    ("registration", "match_intensity"): _constant("direct.MATCH_INTENSITY", True, "registration"),
+    ("registration", "max_keypoints"): _constant("wide_baseline.MAX_KEYPOINTS", 2000, "registration"),
+    ("registration", "match_ratio"): _constant("wide_baseline.MATCH_RATIO", 0.9, "registration"),
+    ("registration", "ransac_threshold"): _constant("wide_baseline.RANSAC_THRESHOLD", 2.0, "registration"),
+    ("registration", "min_inliers"): _constant("wide_baseline.MIN_INLIERS", 15, "registration"),
 }
 #: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
 INERT = {key for key, r in RETIRED.items() if r.inert}

@@ -15,7 +15,7 @@ import json
 import re
 from pathlib import Path
 
-from lensdist_torch.config import INERT, LensdistConfig, config_to_dict, retired_keys, stored_config
+from lensdist_torch.config import INERT, RETIRED, LensdistConfig, config_to_dict, retired_keys, stored_config
 from lensdist_torch.core.storage import atomic_write_bytes
 from lensdist_torch.data.locks import lock
 from lensdist_torch.data.synthesis import SETS, set_size
@@ -41,8 +41,15 @@ _LOCK_WAIT_S = 30.0  # the manifest's lock is held for one read-merge-write only
 
 #: The config sections that change a data set's pairs (the fingerprint covers them).
 _DATA_SECTIONS = ("quality", "image", "distortion", "protocol", "registration")
-#: Registration settings that only the analysis of a user's pair uses (the wide-baseline fallback).
+#: Registration keys (a setting; constants now, the others) that only the analysis of a user's pair uses (the fallback).
 _NOT_IN_DATA = ("feature_fallback", "max_keypoints", "match_ratio", "ransac_threshold", "min_inliers")
+#: The registration's constants that were ``[registration]`` keys, at their values (lists for tuples, as a config
+#: dict holds them): the fingerprint hashes them as it did the keys, so a data set generated before keeps its own.
+_REGISTRATION_CONSTANTS = {
+    key: list(r.value) if isinstance(r.value, tuple) else r.value
+    for (section, key), r in RETIRED.items()
+    if section == "registration" and r.value is not None and key not in _NOT_IN_DATA
+}
 
 
 class ShardError(ValueError):
@@ -72,6 +79,7 @@ def _data_fields(config: LensdistConfig) -> dict:
         d[name].pop("chunk_size", None)
     for key in _NOT_IN_DATA:
         d["registration"].pop(key, None)
+    d["registration"].update(_REGISTRATION_CONSTANTS)  # the constants that were keys: a data set keeps its fingerprint
     d["protocol"].pop("unseen_scenes", None)  # only reproduce's extra test set reads it
     return d
 

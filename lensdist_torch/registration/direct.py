@@ -6,29 +6,29 @@ integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with the motion 
 
 :func:`estimate_homography`, batched over pairs (no Python loop over pairs):
 
-1. Grey images, img2's mapped affinely to img1's mean and std (``match_intensity``: an exposure change is
-   not misregistration), both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px), a pyramid of 2 x 2 means.
-2. Initial translation by phase correlation (Hann window, sub-pixel parabola) at 1/8, unless
-   ``init`` is given.
+1. Grey images, img2's mapped affinely to img1's mean and std (:data:`MATCH_INTENSITY`: an exposure change is not
+   misregistration), both smoothed by a binomial [1 4 6 4 1] / 16 (sigma = 1 px), a pyramid of 2 x 2 means.
+2. Initial translation by phase correlation (Hann window, sub-pixel parabola) at 1/8 (:data:`PHASE_LEVEL`),
+   unless ``init`` is given.
 3. Inverse-compositional Gauss-Newton (Baker-Matthews) on the 8 homography parameters at 1/4, then at full resolution (a
    1/2 level costs more iterations than it saves), in the normalised frame u of :mod:`~lensdist_torch.geometry.frame`
    (centred, in half-diagonals). At full resolution the template (img1) pixels have stride 2 while img2 is sampled at
    full resolution: a quarter of the work for the same accuracy on smoothed images.
-4. A level uses an axis-aligned rectangle of template pixels inscribed in the overlap, ``margin``
-   level px inside img2. With separable masks the Hessian and the steepest-descent sums are image
-   moments sum(g_a g_b u^i v^j), one small batched matmul each; the (B, 8, N) steepest-descent
-   images are never stored. The damped Hessian is built and inverted (float64) once per level,
-   again if a pair drifts beyond the margin; an iteration is one ``grid_sample`` of img2, three
-   products, a batched matmul and a float64 8 x 8 matrix-vector product.
-5. Per pair, a level ends when an update moves no image corner by more than its tolerance; done,
-   diverged and textureless pairs leave the batch, so a pair's result does not depend on the
-   others (up to float rounding, ~1e-7 relative).
+4. A level uses an axis-aligned rectangle of template pixels inscribed in the overlap, :data:`MARGIN` level px inside
+   img2. With separable masks the Hessian and the steepest-descent sums are image moments sum(g_a g_b u^i v^j), one
+   small batched matmul each; the (B, 8, N) steepest-descent images are never stored. The damped Hessian is built and
+   inverted (float64) once per level, again if a pair drifts beyond the margin; an iteration is one ``grid_sample``
+   of img2, three products, a batched matmul and a float64 8 x 8 matrix-vector product.
+5. Per pair, a level ends when an update moves no image corner by more than its tolerance (:data:`STEP_TOL`,
+   :data:`COARSE_TOL`); done, diverged and textureless pairs leave the batch, so a pair's result does not depend on
+   the others (up to float rounding, ~1e-7 relative).
 
-``converged`` is False (never a silent answer) when the smallest eigenvalue of the per-pixel
-Gauss-Newton Hessian at full resolution is below ``min_texture`` (constant or one-dimensional
-texture), an update is non-finite or moves a corner by more than ``max_step`` of the diagonal, the
-overlap is below ``min_overlap``, the full-resolution residual grew or exceeds ``max_residual`` of
-that of two unrelated images of img1's contrast, or the last update was not below ``step_tol``.
+``converged`` is False (never a silent answer) when the smallest eigenvalue of the per-pixel Gauss-Newton Hessian at
+full resolution is below :data:`MIN_TEXTURE` (constant or one-dimensional texture), an update is non-finite or moves a
+corner by more than :data:`MAX_STEP` of the diagonal, the overlap is below ``config.min_overlap``, the full-resolution
+residual grew or exceeds ``config.max_residual`` of that of two unrelated images of img1's contrast, or the last update
+was not below :data:`STEP_TOL`. The method's constants are named below (docs/method.md, section 7); the config holds
+what a user sets.
 
 References:
     S. Baker, I. Matthews, "Lucas-Kanade 20 years on: a unifying framework", IJCV 56(3), 2004.
@@ -62,15 +62,27 @@ from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import binomial_blur, central_differences, mean_pyramid
 
 __all__ = [
-    "RegistrationConfig",
-    "RegistrationInfo",
-    "corner_error",
-    "estimate_homography",
-    "match_intensity",
-    "perturb_homography",
-    "residual_limit",
-    "warp_to_reference",
+    "COARSE_TOL", "DAMPING", "FINE_STRIDE", "ITERATIONS", "LEVELS", "MARGIN", "MATCH_INTENSITY", "MAX_STEP",
+    "MIN_TEXTURE", "PHASE_LEVEL", "PRESMOOTH", "STEP_TOL", "RegistrationConfig", "RegistrationInfo", "corner_error",
+    "estimate_homography", "match_intensity", "perturb_homography", "residual_limit", "warp_to_reference",
 ]
+
+#: Pyramid levels run, coarsest first, ending with 0 (level l is 1 / 2**l of the size; under 16 px: dropped).
+LEVELS = (2, 0)
+ITERATIONS = (10, 6)  # the most IC iterations at each of LEVELS
+STEP_TOL = 0.01  # px: full resolution is done when an update moves no image corner by more than this
+COARSE_TOL = 0.2  # full-resolution px: the same for the coarser levels
+PHASE_LEVEL = 3  # pyramid level of the phase correlation (lowered for small images)
+DAMPING = 1e-6  # the Gauss-Newton Hessian's damping, a fraction of its mean diagonal
+#: Smallest admissible eigenvalue of the per-pixel Hessian (gradients in level px, coordinates in half-diagonals).
+MIN_TEXTURE = 1e-8
+MARGIN = 2.0  # level px by which the pixels used must map inside img2 (px in the feature fallback's crop)
+MAX_STEP = 0.25  # an update moving a corner by more than this share of the diagonal diverged
+FINE_STRIDE = 2  # template (img1) pixel stride at full resolution
+PRESMOOTH = True  # both images smoothed by the binomial filter (sigma 1 px) first
+#: img2's grey levels mapped affinely to img1's mean and std first (per pair): an exposure change is not
+#: misregistration.
+MATCH_INTENSITY = True
 
 
 class RegistrationInfo(NamedTuple):
@@ -81,7 +93,7 @@ class RegistrationInfo(NamedTuple):
         at the last evaluated estimate (before its final update).
     iterations: IC iterations, all levels together.
     overlap: fraction of img1 mapped inside img2 by H (counted on the 1/4 level's pixels).
-    textured: bool, the full-resolution Hessian passed ``min_texture``.
+    textured: bool, the full-resolution Hessian passed :data:`MIN_TEXTURE`.
     """
 
     converged: torch.Tensor
@@ -113,10 +125,7 @@ _WORK = threading.local()
 
 
 def _buffer(key: str, shape: tuple[int, ...], device: torch.device) -> torch.Tensor:
-    """A float32 work buffer, kept per thread on the CPU.
-
-    Fresh multi-MB tensors page-fault on every call, a large share of the run time at this size.
-    """
+    """A float32 work buffer, kept per thread on the CPU: fresh multi-MB tensors page-fault on every call."""
     if device.type != "cpu":
         return torch.empty(shape, device=device)
     cache, n = _WORK.__dict__.setdefault("cache", {}), math.prod(shape)
@@ -185,12 +194,8 @@ _frame = functools.lru_cache(maxsize=16)(_Frame)  # frames depend on sizes only
 
 @torch.no_grad()
 def estimate_homography(
-    img1: torch.Tensor,
-    img2: torch.Tensor,
-    *,
-    init: torch.Tensor | None = None,
-    config: RegistrationConfig | None = None,
-    validate: bool = True,
+    img1: torch.Tensor, img2: torch.Tensor, *, init: torch.Tensor | None = None,
+    config: RegistrationConfig | None = None, validate: bool = True,
 ) -> tuple[torch.Tensor, RegistrationInfo]:
     """Estimate, per pair, the homography H with img1(p) = img2(H p).
 
@@ -221,13 +226,12 @@ def estimate_homography(
     parts = []
     for sl in chunk_slices(bsz, cfg.chunk_size, img1.device, h0 * w0):  # on the CPU a chunk's planes stay in cache
         g1, g2 = (to_grey(x[sl])[:, 0].float() for x in (img1, img2))
-        if cfg.match_intensity:
+        if MATCH_INTENSITY:
             g2 = match_intensity(g1, g2)
         parts.append(_register(g1, g2, None if hn0 is None else hn0[sl], cfg))
     hn, conv, res, its, ov, tex = (torch.cat(p) for p in zip(*parts))
     h = torch.linalg.inv(to_u) @ hn @ to_u
-    return h / h[:, 2:, 2:], RegistrationInfo(
-        converged=conv, residual=res, iterations=its, overlap=ov, textured=tex)
+    return h / h[:, 2:, 2:], RegistrationInfo(converged=conv, residual=res, iterations=its, overlap=ov, textured=tex)
 
 
 def residual_limit(template: torch.Tensor, config: RegistrationConfig) -> torch.Tensor:
@@ -267,14 +271,10 @@ def match_intensity(ref: torch.Tensor, img: torch.Tensor) -> torch.Tensor:
 
 
 class _Level:
-    """One chunk at one level.
+    """One chunk at one level: img1's data; per pair the pixels used, the inverse damped Hessian and its estimate."""
 
-    The template (img1) data, and per pair the pixels used (masks times powers of u, v), the
-    inverse damped Hessian and the estimate they were built at.
-    """
-
-    def __init__(self, fr: _Frame, img1: torch.Tensor, cfg: RegistrationConfig):
-        self.fr, self.cfg, (b, h, w), dev = fr, cfg, (img1.shape[0], fr.h, fr.w), img1.device
+    def __init__(self, fr: _Frame, img1: torch.Tensor):
+        self.fr, (b, h, w), dev = fr, (img1.shape[0], fr.h, fr.w), img1.device
         self.t1 = img1[:, :: fr.stride, :: fr.stride].contiguous()
         self.grad = central_differences(img1, fr.stride, _buffer("grad", (b, h, 2, w), dev))  # (b, h, 2, w)
         self.g2sq = _buffer("g2sq", (b, h, 3, w), dev)  # gx^2, gx gy, gy^2
@@ -290,14 +290,14 @@ class _Level:
         fr, b, h, w = self.fr, self.t1.shape[0], self.fr.h, self.fr.w
         self.h_ref = hn.clone() if self.h_ref is None else self.h_ref
         self.h_ref[idx] = hn[idx]
-        rows, cols = fr.rectangle(hn[idx], self.cfg.margin)
+        rows, cols = fr.rectangle(hn[idx], MARGIN)
         cu, rv = cols[:, :, None] * fr.pow_u, rows[:, None, :] * fr.pow_v  # (n, w, 5), (n, 5, h)
         g2sq = self.g2sq if idx.numel() == b else self.g2sq[idx]
         a = torch.bmm(rv, g2sq.view(-1, h, 3 * w)).view(-1, 5, 3, w)
         hess = torch.einsum("bcij,cijkl->bkl", torch.einsum("bjcw,bwi->bcij", a, cu).double(), _C.to(a.device))
         n = rows.sum(1).double() * cols.sum(1).double()
-        good = torch.linalg.eigvalsh(hess / n.clamp_min(1)[:, None, None])[:, 0] > self.cfg.min_texture
-        damp = self.cfg.damping * hess.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-30)
+        good = torch.linalg.eigvalsh(hess / n.clamp_min(1)[:, None, None])[:, 0] > MIN_TEXTURE
+        damp = DAMPING * hess.diagonal(dim1=1, dim2=2).mean(1).clamp_min(1e-30)
         self.cols3[idx], self.rows3[idx], self.npix[idx], self.ok[idx] = cu[..., :3], rv[:, :3], n, good & (n > 0)
         eye = torch.eye(8, dtype=torch.float64, device=a.device)
         self.hinv[idx] = torch.linalg.inv_ex(hess + damp[:, None, None] * eye)[0]
@@ -307,16 +307,16 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
     """One chunk: g1, g2 (b, h, w) float32 grey; hn (b, 3, 3) in u units, or None."""
     (bsz, h0, w0), dev = g1.shape, g1.device
     f64 = {"dtype": torch.float64, "device": dev}
-    run = [(lv, n) for lv, n in zip(cfg.levels, cfg.iterations) if min(h0, w0) >> lv >= 16 or lv == 0]
-    pc = max(run[0][0], min(cfg.phase_level, int(math.log2(min(h0, w0) / 16))))
+    run = [(lv, n) for lv, n in zip(LEVELS, ITERATIONS) if min(h0, w0) >> lv >= 16 or lv == 0]
+    pc = max(run[0][0], min(PHASE_LEVEL, int(math.log2(min(h0, w0) / 16))))
     both = _buffer("both", (2 * bsz, h0, w0), dev)  # img1s then img2s
     for k, g in enumerate((g1, g2)):
-        if cfg.presmooth:
+        if PRESMOOTH:
             binomial_blur(g, both[k * bsz : (k + 1) * bsz], _buffer("blur", (bsz, h0, w0 + 4), dev))
         else:
             both[k * bsz : (k + 1) * bsz] = g
     pyr = mean_pyramid(both, pc + 1)
-    frames = {lv: _frame(lv, *pyr[lv].shape[-2:], h0, w0, dev, cfg.fine_stride if lv == 0 else 1) for lv, _ in run}
+    frames = {lv: _frame(lv, *pyr[lv].shape[-2:], h0, w0, dev, FINE_STRIDE if lv == 0 else 1) for lv, _ in run}
     scale = frames[0].scale
     if hn is None:
         hn = torch.eye(3, **f64).repeat(bsz, 1, 1)
@@ -331,11 +331,11 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
 
     for lv, n_its in run:
         fr, finest = frames[lv], lv == 0
-        lev, all_idx = _Level(fr, pyr[lv][:bsz], cfg), torch.arange(bsz, device=dev)
+        lev, all_idx = _Level(fr, pyr[lv][:bsz]), torch.arange(bsz, device=dev)
         lev.setup(all_idx, hn)
         frozen = diverged | ~lev.ok  # at full resolution evaluated once (residual), never moved
         active, sub = all_idx if finest else all_idx[~frozen], None
-        tol = cfg.step_tol if finest else cfg.coarse_tol
+        tol = STEP_TOL if finest else COARSE_TOL
         for _ in range(n_its):
             if active.numel() == 0:
                 break
@@ -361,7 +361,7 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
             h_new = h_new / h_new[:, 2:, 2:]
             c_new, c_old, c_ref = (apply_homography(m, corners) for m in (h_new, h_cur, lev.h_ref[idx]))
             step = (c_new - c_old).norm(dim=-1).amax(1) * scale
-            bad = ~torch.isfinite(step) | (step > cfg.max_step * 2 * scale)
+            bad = ~torch.isfinite(step) | (step > MAX_STEP * 2 * scale)
             hn[idx] = torch.where(bad[:, None, None], h_cur, h_new)
             iterations[idx] += 1
             if finest:
@@ -370,7 +370,7 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
                 first_res[idx] = torch.where(first_res[idx].isnan(), res, first_res[idx])
             diverged[idx] |= bad
             done = bad | (step < tol) | ~movable
-            redo = ~done & ((c_new - c_ref).norm(dim=-1).amax(1) * scale > 0.75 * cfg.margin * 2.0**lv)
+            redo = ~done & ((c_new - c_ref).norm(dim=-1).amax(1) * scale > 0.75 * MARGIN * 2.0**lv)
             if bool(redo.any()):  # moved too far for the rectangle: new pixels, new Hessian
                 lev.setup(idx[redo], hn)
                 frozen[idx[redo]] = ~lev.ok[idx[redo]]
@@ -378,7 +378,7 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
                 active, sub = idx[~done], None
 
     overlap = (frames[run[0][0]].grid(hn, "grid_top").abs() <= 1 + 1e-6).all(-1).flatten(1).double().mean(1)
-    converged = lev.ok & ~diverged & (last_step < cfg.step_tol) & ~(residual > first_res * 1.01 + 1e-4)
+    converged = lev.ok & ~diverged & (last_step < STEP_TOL) & ~(residual > first_res * 1.01 + 1e-4)
     converged &= (overlap >= cfg.min_overlap) & (residual <= residual_limit(lev.t1, cfg))
     converged &= torch.isfinite(hn).all(dim=(1, 2))
     return hn, converged, residual.float(), iterations, overlap.float(), lev.ok.clone()

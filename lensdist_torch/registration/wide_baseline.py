@@ -9,14 +9,14 @@ for the others:
 1. :func:`feature_homography`: kornia's weight-free SIFT (multi-resolution DoG detector, dominant
    gradient orientation, RootSIFT descriptor; nothing is downloaded), mutual nearest neighbours
    with the second-nearest ratio test (``match_smnn``), and RANSAC (MSAC, Levenberg-Marquardt
-   local optimisation, a fixed seed) for H; a pair without ``min_inliers`` inliers, or whose H
+   local optimisation, a fixed seed) for H; a pair without :data:`MIN_INLIERS` inliers, or whose H
    sends a corner of img1 behind the camera, has no feature estimate.
-2. The refinement in img1's frame: the largest axis-aligned rectangle of img1 whose pixels the
-   feature H maps at least ``margin`` px inside img2 (exact for the convex overlap, on a 4 px
+2. The refinement in img1's frame: the largest axis-aligned rectangle of img1 whose pixels the feature H maps at
+   least :data:`~lensdist_torch.registration.direct.MARGIN` px inside img2 (exact for the convex overlap, on a 4 px
    grid), img2 warped into it by the feature H (bilinear), and ``estimate_homography`` of that
    crop against the warped crop from the identity: the remaining motion is small, so its own
    checks (texture, divergence, residual, step) decide. H = H_f T H_r T^-1, T the crop's offset.
-3. ``converged`` also needs the final H to map ``min_overlap`` of img1 inside img2; ``overlap``
+3. ``converged`` also needs the final H to map ``config.min_overlap`` of img1 inside img2; ``overlap``
    is that fraction (img1's pixels on a 4 px grid), ``residual`` and ``textured`` are the crop's,
    ``iterations`` both runs'. A pair that fails again keeps the first run's H and diagnostics
    (``converged=False``: could not register).
@@ -38,11 +38,22 @@ from kornia.geometry import RANSAC
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
-from lensdist_torch.registration.direct import RegistrationInfo, estimate_homography, warp_to_reference
+from lensdist_torch.registration.direct import MARGIN, RegistrationInfo, estimate_homography, warp_to_reference
 
-__all__ = ["SiftMemo", "estimate_homography_robust", "feature_homography"]
+__all__ = [
+    "MATCH_RATIO", "MAX_KEYPOINTS", "MIN_INLIERS", "RANSAC_THRESHOLD", "SiftMemo", "estimate_homography_robust",
+    "feature_homography",
+]
 
 _GRID = 4  # px: the grid on which the overlap and the refinement rectangle are measured
+#: SIFT keypoints kept per image (the strongest responses).
+MAX_KEYPOINTS = 2000
+#: Second-nearest-neighbour ratio of the mutual matches, in ]0, 1].
+MATCH_RATIO = 0.9
+#: px: one-way transfer error of a RANSAC inlier.
+RANSAC_THRESHOLD = 2.0
+#: Fewest RANSAC inliers for a feature homography.
+MIN_INLIERS = 15
 
 
 @functools.lru_cache(maxsize=4)
@@ -120,8 +131,8 @@ def feature_homography(
     Args:
         img1: (B, C, H, W) float in [0, 1] or uint8, C in {1, 3}.
         img2: the same shape and dtype as img1.
-        config: :class:`~lensdist_torch.config.RegistrationConfig` (``max_keypoints``,
-            ``match_ratio``, ``ransac_threshold``, ``min_inliers``); defaults when None.
+        config: a :class:`~lensdist_torch.config.RegistrationConfig` or None; none of its fields changes the
+            features (:data:`MAX_KEYPOINTS`, :data:`MATCH_RATIO`, :data:`RANSAC_THRESHOLD`, :data:`MIN_INLIERS`).
         validate: check the images' values (one host sync); False for images already checked.
         memo: a :class:`SiftMemo` that describes each distinct image once (None: every image
             of every pair is described).
@@ -129,7 +140,7 @@ def feature_homography(
     Returns:
         H: (B, 3, 3) float64 with H[:, 2, 2] = 1, img1 pixel coordinates -> img2's; the identity
             where ``ok`` is False.
-        ok: (B,) bool, at least ``min_inliers`` inliers and img1's corners in front of the camera.
+        ok: (B,) bool, at least :data:`MIN_INLIERS` inliers and img1's corners in front of the camera.
         n_inliers: (B,) int64 RANSAC inliers (0 without enough matches).
 
     Example:
@@ -140,7 +151,7 @@ def feature_homography(
         >>> bool(ok), [round(float(v)) for v in H[0, :2, 2]]
         (True, [-30, 20])
     """
-    cfg = _config(config)
+    _config(config)  # its type: the features' settings are this module's constants
     check_image_pair(img1, img2, finite=validate)
     bsz, _, h0, w0 = img1.shape
     dev = img1.device
@@ -148,18 +159,18 @@ def feature_homography(
     ok = torch.zeros(bsz, dtype=torch.bool, device=dev)
     n_inl = torch.zeros(bsz, dtype=torch.int64, device=dev)
     describe = memo if memo is not None else _describe
-    ransac = RANSAC("homography", inl_th=cfg.ransac_threshold, seed=0)
+    ransac = RANSAC("homography", inl_th=RANSAC_THRESHOLD, seed=0)
     for i in range(bsz):
-        pts, desc = zip(*(describe(img[i : i + 1], cfg.max_keypoints) for img in (img1, img2)))
+        pts, desc = zip(*(describe(img[i : i + 1], MAX_KEYPOINTS) for img in (img1, img2)))
         if min(len(d) for d in desc) < 4:
             continue
-        _, idx = match_smnn(desc[0], desc[1], cfg.match_ratio)
-        if len(idx) < max(4, cfg.min_inliers):
+        _, idx = match_smnn(desc[0], desc[1], MATCH_RATIO)
+        if len(idx) < max(4, MIN_INLIERS):
             continue
         m, inliers = ransac(pts[0][idx[:, 0]], pts[1][idx[:, 1]])
         m = m.to(torch.float64)[None]
         n_inl[i] = int(inliers.sum())
-        if n_inl[i] >= cfg.min_inliers and float(m[0, 2, 2].abs()) > 0:
+        if n_inl[i] >= MIN_INLIERS and float(m[0, 2, 2].abs()) > 0:
             m = m / m[:, 2:, 2:]
             if bool(_in_front(m, h0, w0)[0]) and torch.linalg.matrix_rank(m[0]) == 3:
                 out[i], ok[i] = m[0], True
@@ -223,7 +234,7 @@ def _shift(x: float, y: float, ref: torch.Tensor) -> torch.Tensor:
 def _refine(g1: torch.Tensor, g2: torch.Tensor, hf: torch.Tensor, cfg: RegistrationConfig):
     """One pair (1, 1, h, w) grey float, feature H (3, 3) -> (H, RegistrationInfo of the crop) or None."""
     h0, w0 = g1.shape[-2:]
-    box = _rectangle(hf, h0, w0, cfg.margin)
+    box = _rectangle(hf, h0, w0, MARGIN)
     if box is None:
         return None
     x0, y0, x1, y1 = box

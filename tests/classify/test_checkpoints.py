@@ -180,7 +180,8 @@ OUT_OF_RANGE = [
     ("analysis", "min_confidence", -0.1),
     ("analysis", "interval_confidence", 1.0),
     ("analysis", "max_delta_disagreement", 3.0),
-    ("registration", "max_step", 2.0),
+    ("registration", "max_step", 2.0),  # a constant of the method now: refused at another value, named
+    ("registration", "min_overlap", 1.5),
     ("multiview", "planar_guided_below", 5.0),
     ("calibration", "confidence", 1.5),
 ]

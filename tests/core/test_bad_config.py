@@ -13,7 +13,7 @@ from one_line import one_line_error
 from lensdist_torch.config import (
     LensdistConfig,
     ProtocolConfig,
-    RegistrationConfig,
+    SelfCalConfig,
     config_from_dict,
     config_to_dict,
     load_config,
@@ -60,8 +60,8 @@ class TestShippedConfig:
         q = ProtocolConfig(scenes=["grass"], ty_range=[0, 10])  # type: ignore[arg-type]
         assert q.scenes == ("grass",) and q.ty_range == (0.0, 10.0)
         hash(q)
-        r = RegistrationConfig(levels=[3, 1, 0], iterations=[5, 5, 5])  # type: ignore[arg-type]
-        assert r.levels == (3, 1, 0) and r.iterations == (5, 5, 5)
+        r = SelfCalConfig(iterations=[5, 5, 5], sample_block=[2, 4, 4])  # type: ignore[arg-type]
+        assert r.iterations == (5, 5, 5) and r.sample_block == (2, 4, 4)
 
     def test_round_trip_after_normalisation(self):
         cfg = LensdistConfig(protocol=ProtocolConfig(rotation_deg=2, tx_range=[-1, 1]))  # type: ignore[arg-type]
@@ -128,6 +128,8 @@ BAD_VALUES = [
     ("registration", "phase_level", "-1"),
     ("registration", "fine_stride", "0"),
     ("registration", "chunk_size", "2.0"),
+    ("registration", "max_residual", "0.0"),
+    ("registration", "feature_fallback", "1"),
     ("classifier", "metric", '"delta_median"'),
     ("classifier", "metric", "1"),
     ("classifier", "reject_quantile", "0.0"),
@@ -188,8 +190,8 @@ BAD_PYTHON_VALUES = [
     ("protocol", "scale_range", (1.02, 0.98)),
     ("protocol", "seed", True),
     ("protocol", "scenes", ("grass", None)),
-    ("registration", "levels", (2.0, 0.0)),
-    ("registration", "presmooth", "yes"),
+    ("registration", "min_overlap", 1.5),
+    ("registration", "feature_fallback", "yes"),
     ("classifier", "metric", None),
     ("selfcal", "iterations", "12,6,3"),
     ("regression", "k", True),

@@ -87,3 +87,63 @@ def test_a_self_calibration_key_of_an_earlier_version(tmp_path):
                    "a constant of the method now: lensdist_torch.selfcal.model.HUBER_K")
     one_line_error(ValueError, lambda: stored_config({"selfcal": {"ridge": 1e-9}}), "selfcal.ridge",
                    "lensdist_torch.selfcal.prior.RIDGE")
+
+
+def test_a_registration_key_of_an_earlier_version(tmp_path):
+    """``[registration] levels`` became ``registration.direct.LEVELS``: as paper.toml wrote it, it loads."""
+    path = tmp_path / "old.toml"
+    path.write_text("[registration]\nlevels = [2, 0]\niterations = [10, 6]\ndamping = 1e-06\nmin_texture = 1e-08\n"
+                    "margin = 2.0\npresmooth = true\nmatch_intensity = true\nmin_inliers = 15\nmin_overlap = 0.4\n")
+    assert load_config(path).registration.min_overlap == 0.4
+    path.write_text("[registration]\nlevels = [3, 1, 0]\n")
+    one_line_error(ValueError, lambda: load_config(path), "registration.levels", str(path),
+                   "a constant of the method now: lensdist_torch.registration.direct.LEVELS")
+    path.write_text("[registration]\nmatch_intensity = false\n")
+    one_line_error(ValueError, lambda: load_config(path), "registration.match_intensity", str(path),
+                   "lensdist_torch.registration.direct.MATCH_INTENSITY")
+    one_line_error(ValueError, lambda: stored_config({"registration": {"min_inliers": 10}}),
+                   "registration.min_inliers", "lensdist_torch.registration.wide_baseline.MIN_INLIERS")
+
+
+#: ``[registration]`` of every data set generated before its constants left the config, as the config wrote it.
+OLD_REGISTRATION = {
+    "levels": [2, 0], "iterations": [10, 6], "step_tol": 0.01, "coarse_tol": 0.2, "phase_level": 3, "damping": 1e-6,
+    "min_texture": 1e-8, "min_overlap": 0.3, "max_residual": 0.5, "margin": 2.0, "max_step": 0.25, "fine_stride": 2,
+    "presmooth": True, "match_intensity": True, "chunk_size": 8, "feature_fallback": True, "max_keypoints": 2000,
+    "match_ratio": 0.9, "ransac_threshold": 2.0, "min_inliers": 15,
+}
+
+
+def test_the_data_fingerprint_hashes_the_registration_as_before():
+    """The retired keys are hashed at their constants' values: a data set generated before keeps its fingerprint."""
+    from lensdist_torch.config import config_to_dict
+    from lensdist_torch.data.manifest import _data_fields, config_fingerprint
+
+    fields = _data_fields(LensdistConfig())
+    old = {k: v for k, v in OLD_REGISTRATION.items()  # chunk_size and the fallback's were never hashed
+           if k not in ("chunk_size", "feature_fallback", "max_keypoints", "match_ratio", "ransac_threshold",
+                        "min_inliers")}
+    assert fields["registration"] == old and len(old) == 14
+    assert all(type(fields["registration"][k]) is type(v) for k, v in old.items())  # 2.0 stays a float, [2, 0] a list
+    others = {s: dict(config_to_dict(LensdistConfig())[s]) for s in ("quality", "image", "distortion", "protocol")}
+    others["quality"].pop("chunk_size"), others["protocol"].pop("unseen_scenes")  # as before: not hashed
+    assert fields == {**others, "registration": old}
+    assert config_fingerprint(LensdistConfig(), ["gravel", "grass"]) == "aa65403107c95ae1"  # as the old code made it
+
+
+def test_a_manifest_of_an_earlier_version_still_reads(tmp_path):
+    """A data set's manifest naming every old ``[registration]`` key reads as it is; at another value it is refused."""
+    import json
+
+    from lensdist_torch.config import config_to_dict
+    from lensdist_torch.data.manifest import FORMAT_VERSION, ShardError, read_manifest
+
+    config = {**config_to_dict(LensdistConfig()), "registration": OLD_REGISTRATION}
+    m = {"format_version": FORMAT_VERSION, "fingerprint": "aa65403107c95ae1", "config": config,
+         "scenes": ["gravel", "grass"], "sets": {}}
+    (tmp_path / "manifest.json").write_text(json.dumps(m, allow_nan=False))
+    assert read_manifest(tmp_path)["fingerprint"] == "aa65403107c95ae1"
+    m["config"] = {**config, "registration": {**OLD_REGISTRATION, "levels": [3, 1, 0]}}
+    (tmp_path / "manifest.json").write_text(json.dumps(m, allow_nan=False))
+    with pytest.raises(ShardError, match=r"earlier version of the pair protocol \(registration\.levels\)"):
+        read_manifest(tmp_path)

@@ -73,7 +73,7 @@ def test_feature_homography(wide):
     img1, img2, h_true = wide
     h, ok, n = feature_homography(img1[:1], img2[:1])
     assert h.shape == (1, 3, 3) and h.dtype == torch.float64 and n.dtype == torch.int64
-    assert bool(ok[0]) and int(n[0]) >= RegistrationConfig().min_inliers
+    assert bool(ok[0]) and int(n[0]) >= wide_baseline.MIN_INLIERS
     assert float(corner_error(h, h_true[:1], H0, W0)[0]) < 2.0  # the coarse estimate: < 1 px measured
 
 
@@ -123,13 +123,13 @@ def test_unrelated_and_flat_pairs_do_not_register():
     assert info.converged.tolist() == [False, False, False]
     assert bool(torch.isfinite(h).all())
     _, ok, n = feature_homography(img1[:1], img2[:1])
-    assert not bool(ok[0]) and int(n[0]) < RegistrationConfig().min_inliers
+    assert not bool(ok[0]) and int(n[0]) < wide_baseline.MIN_INLIERS
 
 
 @pytest.mark.parametrize(
     "field, value",
-    [("feature_fallback", 1), ("max_keypoints", 0), ("max_keypoints", 100.0), ("match_ratio", 0.0),
-     ("match_ratio", 1.5), ("ransac_threshold", -1.0), ("ransac_threshold", math.nan), ("min_inliers", 3)],
+    [("feature_fallback", 1), ("feature_fallback", "yes"), ("min_overlap", -0.1), ("min_overlap", math.nan),
+     ("max_residual", -1.0), ("max_residual", math.inf), ("chunk_size", 0)],
 )
 def test_config_fields_are_checked(field, value):
     with pytest.raises(ValueError, match=rf"^registration\.{field} must be [^\n]*$"):
