@@ -31,10 +31,10 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    ``relief_test`` of its jackknife stds (relief parts the models alike in every pair, noise
    does not), else the effect that test cannot exclude, ``relief_test`` of those stds (a relief can bias
    both models alike; no jackknife sees it: docs/method.md, 7). t on blocks - 1 dof; [max(0, D - t sd), D + t sd].
-6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame, or None with a
-   reason: under ``MIN_PAIRS`` usable pairs, a half-width there over ``MAX_CLASS_HALFWIDTH_PX``,
-   or an interval there that spans ``no_distortion_px``, a sequence's R threshold (R or class 1
-   cannot be told: R's bin, 0.25 px, is narrower than the intervals of scenes with relief).
+6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame where the whole
+   interval, carried there, lies in that class (:func:`~lensdist_torch.calibration.sequence_class.interval_class`,
+   the rule every path shares), or None with a reason: under ``MIN_PAIRS`` usable pairs, or the
+   classes the interval spans (R against 1 where it spans ``no_distortion_px``, a sequence's R threshold).
 
 Why this combination: docs/method.md, section 10.
 """
@@ -51,7 +51,7 @@ import torch.nn.functional as F
 from lensdist_torch.calibration.direct_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
 from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.pooling import OUTLIER_RANGE, pair_weights, pool_pairs, within_mads
-from lensdist_torch.calibration.sequence_class import MAX_CLASS_HALFWIDTH_PX, MIN_PAIRS, class_or_open
+from lensdist_torch.calibration.sequence_class import MIN_PAIRS, interval_class
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
@@ -426,7 +426,7 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
     relief, relief_z, found = _relief_term(models, std, pairs, fun, cfg) if n_used > 1 else ((0.0, 0.0, 0.0), 0.0, 0.0)
     half = [t * math.sqrt(float(e) ** 2 + (SYSTEMATIC_REL * d) ** 2 + (cfg.relief_rel * r) ** 2)
-            for e, d, r in zip(sd[1:], (d_avg, d_max, dc), relief)]
+            for e, d, r in zip(sd[1:3], (d_avg, d_max), relief)]
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
@@ -436,10 +436,8 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
         reason = f"too few usable pairs: {n_used} of at least {MIN_PAIRS}" + (
             f" ({failed} of {len(pairs)} pairs not registered: their residual is over {cfg.max_misfit} of their "
             "frames' contrast, views too far apart or too different)" if failed else "")
-    elif not half[2] <= MAX_CLASS_HALFWIDTH_PX:
-        reason = f"interval too wide: +-{half[2]:.2f} px at the paper's frame (limit {MAX_CLASS_HALFWIDTH_PX})"
     else:
-        label, reason = class_or_open(dc, half[2], st)
+        label, reason = interval_class(dc, d_avg, iv_avg, st)
     return SequenceCalibration(
         k2_user=k2u, k4_user=k4u, delta_avg_user_px=d_avg, delta_avg_user_interval=iv_avg, delta_max_user_px=d_max,
         delta_max_user_interval=iv_max, class_label=label, reason=reason, pairs_used=n_used,

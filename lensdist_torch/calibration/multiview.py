@@ -76,7 +76,7 @@ from lensdist_torch.calibration.multiview_fits import (
     quiet_log,
     rotation_spread_deg,
 )
-from lensdist_torch.calibration.sequence_class import interval_too_wide, sequence_class
+from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
@@ -403,16 +403,12 @@ def self_calibrate_reconstruction(
         k, d = opencv_from_colmap(camera_of(fits[best]["rec"]), scale)
         dl = fits[best]["delta"]
     k2u, k4u, fit_err = _eq4_fit(k, d, size, step)
-    half_avg = max(intervals[0][1] - dl["delta_avg_px"], dl["delta_avg_px"] - intervals[0][0])
-    label, reason = None, ""
     dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens
-    if interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
+    label, reason = interval_class(dc, dl["delta_avg_px"], intervals[0], st)
+    if label is None and table[best]["weight"] <= 0.95:
         shared = ", ".join(f"{m} {v['delta_avg_px']:.2f} px at {v['weight']:.2f}" for m, v in
                            sorted(table.items(), key=lambda kv: -kv[1]["weight"]) if v["weight"] >= 0.01)
-        reason = f"interval too wide: +-{half_avg:.2f} px" + (f" (the models' evidence is shared: {shared})" if
-                                                               table[best]["weight"] <= 0.95 else "")
-    else:
-        label, reason = sequence_class(dc, dl["delta_avg_px"], half_avg, st)
+        reason += f" (the models' evidence is shared: {shared})"
     chosen = fits[next(iter(cfg.models))]["rec"]
     return MultiViewCalibration(
         model=best,

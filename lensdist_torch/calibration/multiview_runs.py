@@ -30,7 +30,7 @@ import math
 from statistics import NormalDist
 
 from lensdist_torch.calibration.multiview import MultiViewCalibration
-from lensdist_torch.calibration.sequence_class import interval_too_wide, sequence_class
+from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 
@@ -108,7 +108,6 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     spread_max = reconstruction_spread([r.delta_max_user_px for _, r in ok], best.delta_max_user_px)
     intervals = [widened_interval(best.delta_avg_user_px, best.delta_avg_user_interval, spread, t),
                  widened_interval(best.delta_max_user_px, best.delta_max_user_interval, spread_max, t)]
-    half = max(intervals[0][1] - best.delta_avg_user_px, best.delta_avg_user_px - intervals[0][0])
     need, label, reason = cfg.reconstructions, best.class_label, best.reason
     apart = _disagreement(ok)
     if len(ok) < need:
@@ -117,13 +116,11 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
                                f"engine's own variation is not known" + (f" ({failed})" if failed else ""))
     elif apart:
         label, reason = None, f"the reconstructions disagree beyond their intervals ({apart})"
-    elif interval_too_wide(half, best.delta_avg_user_px, cfg):
-        among = f" (the {len(ok)} reconstructions differ by up to {spread:.2f} px)" if len(ok) > 1 else ""
-        label, reason = None, f"interval too wide: +-{half:.2f} px{among}"
-    elif label is not None:  # the class of the widened interval, which may now span the R threshold
-        label, reason = sequence_class(
-            best.paper_delta_avg_px, best.delta_avg_user_px, half, or_defaults(settings, LensdistConfig)
-        )
+    elif label is not None:  # the class of the widened interval, which may now span two
+        label, reason = interval_class(best.paper_delta_avg_px, best.delta_avg_user_px, intervals[0],
+                                       or_defaults(settings, LensdistConfig))
+        if label is None and len(ok) > 1:
+            reason += f" (the {len(ok)} reconstructions differ by up to {spread:.2f} px)"
     return dataclasses.replace(
         best,
         delta_avg_user_interval=intervals[0],

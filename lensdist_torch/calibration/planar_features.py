@@ -38,8 +38,8 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
    frames (every pair with a frame of the block left out, the chosen model fitted again), t on
    blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
-   is too wide (:func:`~lensdist_torch.calibration.sequence_class.interval_too_wide`), when it spans the
-   no-distortion threshold at the paper's frame (the direct path's rule), when fewer than
+   spans two classes at the paper's frame (:func:`~lensdist_torch.calibration.sequence_class.interval_class`,
+   the rule every path shares), when fewer than
    ``PLANAR_MIN_PAIRS`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
    the verified matches fit: the scene is not a plane and the camera did not only turn.
 6. **In the user's pixels and OpenCV's terms**: Delta over every pixel of the frame where the
@@ -69,7 +69,7 @@ from lensdist_torch.calibration.planar_model import (
     transfer_residuals,
 )
 from lensdist_torch.calibration.pooling import jackknife_interval
-from lensdist_torch.calibration.sequence_class import interval_too_wide, sequence_class
+from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.distortion import distortion_center, fit_eq4, paper_frame_delta_avg
@@ -387,17 +387,15 @@ def self_calibrate_planar(
     seen = torch.cat([matches.x1[inl], matches.x2[inl]]).unique(dim=0)
     bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=cfg.confidence, seen=seen)
     k2u, k4u, fit_err = _eq4_fit(a, centre, (h, w), dl)
-    half_avg = (intervals[0][1] - intervals[0][0]) / 2
     label, reason = None, ""
     if share < cfg.planar_min_inlier_share:
         reason = (
             f"not a plane: one homography per pair explains {100 * share:.0f} % of its pair's verified matches "
             f"(at least {100 * cfg.planar_min_inlier_share:.0f} % needed)"
         )
-    elif interval_too_wide(half_avg, dl["delta_avg_px"], cfg):
-        reason = f"interval too wide: +-{half_avg:.2f} px"
-    elif math.isfinite(k2u):
-        label, reason = sequence_class(paper_frame_delta_avg(k2u, k4u, (h, w), st), dl["delta_avg_px"], half_avg, st)
+    else:
+        paper = paper_frame_delta_avg(k2u, k4u, (h, w), st) if math.isfinite(k2u) else math.nan
+        label, reason = interval_class(paper, dl["delta_avg_px"], intervals[0], st)
     cams = [
         opencv_camera_from_map(
             lambda p: lens_ideal_points(p, a, h, w, centre=centre), h, w, model=m, step=step, centre=centre

@@ -61,7 +61,9 @@ RETIRED = {
     ("calibration", "jackknife_blocks"): _constant("pooling.JACKKNIFE_BLOCKS", 8),
     ("calibration", "systematic_rel"): _constant("direct.SYSTEMATIC_REL", 1e-3),
     ("calibration", "min_pairs"): _constant("sequence_class.MIN_PAIRS", 4),
-    ("calibration", "max_class_halfwidth_px"): _constant("sequence_class.MAX_CLASS_HALFWIDTH_PX", 1.0),
+    ("calibration", "max_class_halfwidth_px"): Retired(
+        by="the class rule every path of calibrate shares, a class where the whole interval lies in one "
+           "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
     ("calibration", "parallax_px"): _constant("direct_fits.PARALLAX_PX", 1.0),
     # the multi-view path's and the homography model's constants (docs/method.md, sections 11-12)
     ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 60),
@@ -70,8 +72,12 @@ RETIRED = {
     ("multiview", "extra_mappings"): _constant("multiview.EXTRA_MAPPINGS", 3),
     ("multiview", "min_registered"): _constant("controllers.multiview_path.MIN_REGISTERED", 0.5),
     ("multiview", "planar_max_relief_z"): _constant("controllers.multiview_path.PLANAR_MAX_RELIEF_Z", 2.0),
-    ("multiview", "max_halfwidth_rel"): _constant("sequence_class.MAX_HALFWIDTH_REL", 0.25),
-    ("multiview", "max_halfwidth_px"): _constant("sequence_class.MAX_HALFWIDTH_PX", 1.0),
+    ("multiview", "max_halfwidth_rel"): Retired(
+        by="the class rule every path of calibrate shares, a class where the whole interval lies in one "
+           "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
+    ("multiview", "max_halfwidth_px"): Retired(
+        by="the class rule every path of calibrate shares, a class where the whole interval lies in one "
+           "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
     ("multiview", "planar_scan_range"): _constant("planar_features.PLANAR_SCAN_RANGE", (-0.3, 1.5)),
     ("multiview", "planar_scan_steps"): _constant("planar_features.PLANAR_SCAN_STEPS", 19),
     ("multiview", "planar_scan_pairs"): _constant("planar_features.PLANAR_SCAN_PAIRS", 60),

@@ -11,7 +11,7 @@ from lensdist_torch.calibration.multiview_runs import (
     reconstruction_spread,
     widened_interval,
 )
-from lensdist_torch.calibration.sequence_class import sequence_class
+from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 
 Z = 1.959963984540054  # the normal quantile at 97.5 %: the models' posteriors are normal
@@ -42,14 +42,15 @@ def test_spread_joins_the_interval_in_quadrature_by_hand():
     assert res.delta_avg_user_interval == pytest.approx((87.293, 112.707), abs=1e-3)
     # Delta_max: 200 +- 20, spread 8: sqrt(400 + (1.96 * 8)^2) = 25.414
     assert res.delta_max_user_interval == pytest.approx((174.586, 225.414), abs=1e-3)
-    assert res.class_label == "4" and res.reason == ""  # 12.7 px is within 25 % of 100
+    assert res.class_label == "4" and res.reason == ""  # [87.3, 112.7] lies in class 4 (10.8 px and up)
     assert [r["seed"] for r in res.reconstructions] == [0, 1, 2] and res.reconstructions[2]["delta_avg_user_px"] == 97.0
-    # spread 12 (others 112 and 96): sqrt(225 + (1.96 * 12)^2) = 27.896 > 25 % of 100: no class, the spread named
-    wide = combine_reconstructions(
-        [(0, _cal(112.0, 97.0, 127.0)), (1, _cal(100.0, 85.0, 115.0)), (2, _cal(96.0, 81.0, 111.0))]
-    )
-    assert wide.class_label is None and wide.delta_avg_user_interval[1] == pytest.approx(127.896, abs=1e-3)
-    assert wide.reason == "interval too wide: +-27.90 px (the 3 reconstructions differ by up to 12.00 px)"
+    # class 3 each (7.2-10.8 px; +-2 px, overlapping), spread 1.5 (others 10.5 and 8): sqrt(4 + (1.96 * 1.5)^2)
+    # = 3.556 px, [5.444, 12.556]: classes 2 to 4, no class, the spread named
+    wide = combine_reconstructions([(0, _cal(10.5, 8.5, 12.5, label="3")), (1, _cal(9.0, 7.0, 11.0, label="3")),
+                                    (2, _cal(8.0, 6.0, 10.0, label="3"))])
+    assert wide.class_label is None and wide.delta_avg_user_interval[1] == pytest.approx(12.556, abs=1e-3)
+    assert wide.reason == ("the interval [5.44, 12.56] px at the paper's frame spans classes 2, 3 and 4 (the 3 "
+                           "reconstructions differ by up to 1.50 px)")
 
 
 def test_one_reconstruction_keeps_its_interval():
@@ -122,13 +123,18 @@ def test_a_sequence_class_scales_its_interval_to_the_papers_frame_by_hand():
     so +-0.2 px here is +-0.1 px there, [0.2, 0.4] spanning 0.25; +-0.08 px is [0.26, 0.34]: class 1.
     """
     st = LensdistConfig()
-    assert sequence_class(0.3, 0.6, 0.08, st) == ("1", "")
-    label, reason = sequence_class(0.3, 0.6, 0.2, st)
+    assert interval_class(0.3, 0.6, (0.52, 0.68), st) == ("1", "")
+    label, reason = interval_class(0.3, 0.6, (0.4, 0.8), st)
     assert label is None and reason == ("the interval [0.20, 0.40] px at the paper's frame spans the no-distortion "
                                         "threshold (0.25 px): a distortion or none cannot be told")
-    assert sequence_class(0.1, 0.2, 0.02, st) == ("R", "")  # [0.09, 0.11]: below it
-    label, reason = sequence_class(math.nan, 0.6, 0.08, st)
-    assert label is None and "no Delta_avg at the paper's frame" in reason
+    assert interval_class(0.1, 0.2, (0.18, 0.22), st) == ("R", "")  # [0.09, 0.11]: below it
+    assert interval_class(0.1, 0.2, (-0.5, 0.22), st) == ("R", "")  # a lower end below 0 is 0
+    label, reason = interval_class(math.nan, 0.6, (0.52, 0.68), st)
+    assert label is None and reason.startswith("no class: Delta_avg 0.6 px in [0.52, 0.68], nan px at the paper's")
+    assert interval_class(0.3, 0.6, (0.52, math.inf), st)[0] is None  # no upper bound: no class
+    # a class bin is 3.6 px wide at the paper's frame: [3.7, 7.1] is class 2 however wide, [3.5, 3.7] spans 1 and 2
+    assert interval_class(5.0, 5.0, (3.7, 7.1), st) == ("2", "")
+    assert interval_class(3.6, 3.6, (3.5, 3.7), st)[1].endswith("spans classes 1 and 2")
 
 
 def test_the_widened_interval_that_spans_the_r_threshold_cannot_tell():

@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.calibration.sequence_class import class_or_open
+from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
@@ -298,8 +298,9 @@ def test_one_pair_and_a_sequence_have_their_own_r_threshold():
     assert class_bounds("R", "delta_avg", cfg) == (0.0, 0.75)
     assert class_bounds("1", "delta_avg", cfg, 0.25) == pytest.approx((0.25, delta_top("delta_avg", cfg) / 4))
     # the sequence rule: class 1 at 0.5 +- 0.1 px, none where the interval spans 0.25 px, whatever the pair's threshold
-    assert class_or_open(0.5, 0.1, cfg)[0] == "1"
-    label, reason = class_or_open(0.3, 0.1, cfg)
+    assert interval_class(0.5, 0.5, (0.4, 0.6), cfg)[0] == "1"
+    label, reason = interval_class(0.3, 0.3, (0.2, 0.4), cfg)
     assert label is None and "no-distortion threshold (0.25 px)" in reason
     moved = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, no_distortion_px=0.1))
-    assert class_or_open(0.5, 0.1, moved)[0] == "1" and class_or_open(0.3, 0.1, moved)[0] is None
+    assert interval_class(0.5, 0.5, (0.4, 0.6), moved)[0] == "1"
+    assert interval_class(0.3, 0.3, (0.2, 0.4), moved)[0] is None

@@ -6,12 +6,9 @@ temporary folder) to COLMAP (:mod:`~lensdist_torch.calibration.multiview`;
 ``multiview.reconstructions`` mappings, each self-calibrated, combined by
 :mod:`~lensdist_torch.calibration.multiview_runs`) and returns a strict-JSON-ready dict, or the
 reason it has no answer (no mapping registered enough frames). :func:`combine` makes the
-one answer of :func:`~lensdist_torch.calibration.controllers.calibrate.calibrate_path` from the two paths:
-
-* the multi-view answer when it has one and the direct path's interval does not contradict it;
-* the direct answer (confident or "cannot tell") where the multi-view path has none: pycolmap
-  missing, the engine could not reconstruct the sequence, an interval too wide;
-* "cannot tell" with both numbers when both are confident and their intervals do not overlap.
+one answer of :func:`~lensdist_torch.calibration.controllers.calibrate.calibrate_path` from its
+paths' estimates (the direct one, the multi-view one, the homography model): the most precise of
+those whose scene model holds, with its class where every other path's interval meets its own.
 """
 
 from __future__ import annotations
