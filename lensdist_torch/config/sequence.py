@@ -110,9 +110,7 @@ class MultiViewConfig:
         max_features: SIFT features per frame at most.
         features_per_megapixel: and at most this many per megapixel of the frame as SIFT reads it
             (where the caller gives the frames' size): 906 on 384 x 288, ``max_features`` from
-            1 megapixel on. On 22 rendered frames of 384 x 288 the multi-view path took 28 s
-            instead of 55 s with 1024 features instead of 8192, Delta_avg 7.62 px [3.60, 11.63]
-            instead of 7.64 [3.64, 11.63] (truth 7.5): matching and mapping scale with the features.
+            1 megapixel on; matching and mapping scale with the features (docs/method.md, 11).
         mapped_frames: at most this many frames go to COLMAP, evenly spaced over the sequence (a
             video's neighbouring frames add tracks but little baseline, while matching and
             mapping grow with the frames): of 300 frames every 5th.
