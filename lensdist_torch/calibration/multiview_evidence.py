@@ -54,6 +54,7 @@ import numpy as np
 __all__ = [
     "checked_scale",
     "CAP",
+    "NO_GRADIENT",
     "camera_covariance",
     "posterior_std",
     "dispersion",
@@ -66,6 +67,9 @@ __all__ = [
 
 #: A held-out squared error counts at most this many times its fold's median (over every model).
 CAP = 16.0
+#: A central difference smaller than this (px of Delta per unit of a parameter) is no dependence: a camera without
+#: distortion has Delta 0 whatever its focal length, known even where the adjustment does not determine the camera.
+NO_GRADIENT = 1e-9
 
 
 def camera_covariance(rec, camera_id: int, rss: float, observations: int) -> np.ndarray | None:
@@ -104,16 +108,17 @@ def posterior_std(params: Sequence[float], variable: Sequence[int], cov: np.ndar
     """The posterior std of each figure ``measure(params)`` returns, by its central-difference gradient.
 
     ``variable``: the indices of ``params`` that ``cov`` (k, k) covers, in its order; None as
-    ``cov``: every std is infinite (the camera is not determined).
+    ``cov`` (the camera is not determined): infinite, except for a figure no variable moves
+    (:data:`NO_GRADIENT`), whose std is 0.
 
     Example:
         >>> import numpy as np
         >>> posterior_std([2.0, 5.0], [0], np.array([[0.01]]), lambda p: (3 * p[0], p[0] ** 2 + p[1]))
         [0.3, 0.4]
+        >>> posterior_std([2.0, 5.0], [0], None, lambda p: (3 * p[0], 0.0 * p[0]))
+        [inf, 0.0]
     """
     p0 = np.asarray(params, dtype=float)
-    if cov is None:
-        return [math.inf] * len(measure(p0))
     grads = []
     for i in variable:
         h = 1e-4 * max(abs(p0[i]), 1e-3)
@@ -121,6 +126,8 @@ def posterior_std(params: Sequence[float], variable: Sequence[int], cov: np.ndar
         up[i], down[i] = p0[i] + h, p0[i] - h
         grads.append((np.asarray(measure(up)) - np.asarray(measure(down))) / (2 * h))
     g = np.stack(grads)  # (k, figures)
+    if cov is None:  # a figure that no variable moves (a camera without distortion: Delta 0) is still known
+        return [0.0 if np.all(np.abs(col) < NO_GRADIENT) else math.inf for col in g.T]
     var = np.einsum("if,ij,jf->f", g, cov, g)
     return [round(float(math.sqrt(max(v, 0.0))), 12) for v in var]
 

@@ -91,7 +91,7 @@ class CalibrationConfig:
 
 
 #: The camera models :class:`MultiViewConfig` may choose from: COLMAP's names, all OpenCV-compatible.
-MULTIVIEW_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+MULTIVIEW_MODELS = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,9 @@ class MultiViewConfig:
     Attributes:
         models: the camera models fitted on the reconstruction's tracks, each weighed by how well it
             predicts held-out frames (COLMAP names, all with an exact OpenCV equivalent;
-            :mod:`~lensdist_torch.calibration.multiview_evidence`).
+            :mod:`~lensdist_torch.calibration.multiview_evidence`). SIMPLE_PINHOLE, a camera without
+            distortion, may join them: where the tracks cannot tell a relief from a lens, it predicts
+            held-out frames as well and the answer's interval reaches 0 (docs/method.md, section 11).
         max_image_side: frames are read by COLMAP's SIFT at most this long (px).
         max_features: SIFT features per frame at most.
         features_per_megapixel: and at most this many per megapixel of the frame as SIFT reads it
@@ -152,10 +154,10 @@ class MultiViewConfig:
     Example:
         >>> MultiViewConfig().models
         ('SIMPLE_RADIAL', 'RADIAL', 'OPENCV', 'FULL_OPENCV')
-        >>> MultiViewConfig(models=("RADIAL", "FISHEYE"))
+        >>> MultiViewConfig(models=("RADIAL", "FISHEYE"))  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        ValueError: multiview.models must hold names from SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, got 'FISHEYE'
+        ValueError: multiview.models must hold names from SIMPLE_PINHOLE, SIMPLE_RADIAL, ..., got 'FISHEYE'
     """
 
     models: tuple[str, ...] = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")

@@ -415,8 +415,8 @@ def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, *, step: i
 def opencv_from_colmap(camera, scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor]:
     """COLMAP camera -> OpenCV's K (3, 3) and dist_coeffs (5 or 8), float64, in pixels scaled by ``scale``.
 
-    Exact for SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV (OpenCV's model with some
-    coefficients 0); the principal point moves by -0.5 px (COLMAP's pixel centres lie at +0.5).
+    Exact for SIMPLE_PINHOLE (no distortion), SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV (OpenCV's
+    model with some coefficients 0); the principal point moves by -0.5 px (COLMAP's pixel centres lie at +0.5).
     ``camera`` needs ``params`` and ``model_name`` (a ``pycolmap.Camera``).
 
     Example:
@@ -426,7 +426,10 @@ def opencv_from_colmap(camera, scale: float = 1.0) -> tuple[torch.Tensor, torch.
         ([500.0, 0.0, 319.5], [-0.1, 0.02, 0.0, 0.0, 0.0])
     """
     p, name = [float(v) for v in camera.params], camera.model_name
-    if name in ("SIMPLE_RADIAL", "RADIAL"):
+    if name == "SIMPLE_PINHOLE":  # no distortion
+        fx = fy = p[0]
+        cx, cy, dist = p[1], p[2], [0.0] * 5
+    elif name in ("SIMPLE_RADIAL", "RADIAL"):
         fx = fy = p[0]
         cx, cy, extra = p[1], p[2], p[3:]
         dist = [extra[0], extra[1] if len(extra) > 1 else 0.0, 0.0, 0.0, 0.0]
@@ -434,7 +437,8 @@ def opencv_from_colmap(camera, scale: float = 1.0) -> tuple[torch.Tensor, torch.
         fx, fy, cx, cy, extra = p[0], p[1], p[2], p[3], p[4:]
         dist = extra + [0.0] if name == "OPENCV" else extra
     else:
-        raise ValueError(f"camera model must be one of SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, got {name}")
+        raise ValueError(
+            f"camera model must be one of SIMPLE_PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV, got {name}")
     k = torch.tensor([[scale * fx, 0.0, scale * cx - 0.5], [0.0, scale * fy, scale * cy - 0.5], [0.0, 0.0, 1.0]],
                      dtype=torch.float64)
     return k, torch.tensor(dist, dtype=torch.float64)

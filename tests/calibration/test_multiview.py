@@ -74,9 +74,11 @@ from lensdist_torch.calibration.multiview import (  # noqa: E402
     rotation_spread_deg,
     self_calibrate_reconstruction,
 )
+from lensdist_torch.calibration.multiview_fits import camera_of, with_model  # noqa: E402
 
 
 @pytest.mark.parametrize("model, params", [
+    ("SIMPLE_PINHOLE", [500.0, 320.0, 240.0]),
     ("SIMPLE_RADIAL", [500.0, 320.0, 240.0, -0.1]),
     ("RADIAL", [500.0, 320.0, 240.0, -0.2, 0.04]),
     ("OPENCV", [500.0, 505.0, 321.0, 239.0, -0.2, 0.04, 1e-3, -2e-3]),
@@ -105,6 +107,18 @@ def _synthetic(seed, frames=8, noise=0.5):
     n.point2D_stddev = noise
     pycolmap.synthesize_noise(n, rec)
     return rec, truth
+
+
+def test_a_camera_without_distortion_is_weighed_with_delta_zero_and_loses_to_a_real_lens():
+    # COLMAP's synthetic RADIAL camera (k = -0.2, 0.05) seen with little noise: SIMPLE_PINHOLE predicts held-out
+    # frames worse and keeps no weight; its row is Delta 0 with std 0 (no parameter moves it)
+    rec, truth = _synthetic(1, frames=10, noise=0.3)
+    cfg = MultiViewConfig(models=("SIMPLE_PINHOLE", "RADIAL"), jackknife_blocks=4)
+    res = self_calibrate_reconstruction(rec, cfg)
+    pin, radial = res.models["SIMPLE_PINHOLE"], res.models["RADIAL"]
+    assert pin["delta_avg_px"] == pytest.approx(0.0, abs=1e-9) and pin["delta_avg_std_px"] == 0.0
+    assert pin["elpd"] < radial["elpd"] and pin["weight"] < 0.01 and res.model == "RADIAL"
+    assert opencv_from_colmap(camera_of(with_model(rec, "SIMPLE_PINHOLE")))[1].tolist() == [0.0] * 5
 
 
 def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_that_covers():
