@@ -259,13 +259,11 @@ def _path(name: str, direct: dict, mv: dict | None) -> dict:
 def _estimates(direct: dict, mv: dict | None) -> dict[str, tuple[float, float]]:
     """Each path's Delta_avg interval in the user's pixels, where its scene model holds (:func:`combine`)."""
     z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)
-    holds = {"direct": True, "multiview": mv is not None and mv["ok"],
-             "planar": z is not None and math.isfinite(z) and z <= most and ((mv or {}).get("planar") or {}).get(
-                 "plane", True)}
+    flat = z is not None and math.isfinite(z) and z <= most  # the homography model's scene: no relief found
     found = {}
     for name in _NAMES:
         res = _path(name, direct, mv)
-        if not holds[name] or res is None or not res.get("ok", True):
+        if res is None or not res.get("ok", True) or (name == "planar" and not (flat and res.get("plane", True))):
             continue
         iv = res.get("delta_avg_user_interval")
         if iv is not None and None not in iv and all(math.isfinite(v) for v in iv):
