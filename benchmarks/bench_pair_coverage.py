@@ -35,6 +35,7 @@ from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.geometry.distortion import CLASS_LABELS, delta_avg, delta_top, distortion_class
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.workflows.analyze import analyze_batch, prepare_batch
+from lensdist_torch.workflows.class_mass import INTERVAL_CONFIDENCE
 
 STEPS = (0.0, 0.3, 0.5, 1, 1.5, 2, 3, 4, 6, 8, 12, 16, 24, 32, 40)
 BINS = (0.0, 1.0, 2.0, 4.0, 8.0, 16.0, 64.0)
@@ -106,7 +107,7 @@ def _true_class(truth: float, cfg: LensdistConfig) -> str:
 
 def table(rows: list[dict], cfg: LensdistConfig, floor: float | None = None) -> list[dict]:
     """Per motion bin: the figures of the self-calibration's rows (``floor``: recompute the std with it)."""
-    z = float(torch.special.ndtri(torch.tensor(0.5 + cfg.analysis.interval_confidence / 2, dtype=torch.float64)))
+    z = float(torch.special.ndtri(torch.tensor(0.5 + INTERVAL_CONFIDENCE / 2, dtype=torch.float64)))
     r0 = half_diagonal(*SIZE)
     out = []
     for lo, hi in zip(BINS[:-1], BINS[1:]):

@@ -3,7 +3,7 @@
 For each condition (the default protocol, the planar realistic one, the relief realistic one)
 the first ``--n`` distorted pairs of the validation split (the test set of
 :func:`~lensdist_torch.workflows.decision_fit.validation_config`: the protocol seed moved by
-``analysis.validation_seed_offset``) are generated and analysed as ``lensdist reproduce`` does
+``decision_fit.VALIDATION_SEED_OFFSET``) are generated and analysed as ``lensdist reproduce`` does
 (:func:`~lensdist_torch.workflows.decision_fit.fit_confidence`): ``generate`` and ``load_set``,
 then :func:`~lensdist_torch.workflows.evaluate.analyze_test_set`, the user's path
 (``analyze_batch``: registration, self-calibration with Hausman's test choosing the kept answer,

@@ -1,4 +1,4 @@
-"""``[analysis]``: the decision of ``analyze`` (R threshold, overlap, confidence) and of the estimators' evaluation."""
+"""``[analysis]``: the decision of ``analyze`` (R threshold, confidence, motion) and the fit of that decision."""
 
 from __future__ import annotations
 
@@ -11,7 +11,14 @@ __all__ = ["AnalysisConfig"]
 
 @dataclass(frozen=True)
 class AnalysisConfig:
-    """The decision of ``analyze`` and of the evaluation of the estimators.
+    """The decision of ``analyze`` and of the evaluation of the estimators (``[analysis]``).
+
+    What a user sets and what ``fit_confidence`` writes (the R threshold, the confidence, the
+    intervals' scale, fitted on a validation split); the decision's constants (the overlap, the
+    domain checks, the self-calibration's Platt map, the intervals' coverage, the validation
+    split's seed offset, the fit's target precision) are named in the modules that use them
+    (:mod:`~lensdist_torch.workflows.decision`, ``analyze``, ``class_mass``, ``decision_fit``;
+    docs/method.md, section 10).
 
     Attributes:
         no_distortion_px: one pair's estimated Delta_avg (px at 320 x 424) below this is class
@@ -20,18 +27,14 @@ class AnalysisConfig:
             is the threshold whose largest reliability error over the three rendered conditions
             is least, and on real views with no lens it called 2 of 6 answers class 1 where
             0.25 px called 6 of 7 (docs/method.md, section 10).
-        min_overlap: below this share of valid pixels the map is too small to judge.
-        out_of_domain_factor: an eigen-space map whose smallest class distance exceeds this
-            multiple of the reject threshold is unlike every training map.
         min_confidence: below this calibrated confidence (an estimate of P(class right)) the
             answer is "cannot tell" (self-calibration and regression). Fitted on a validation
             split (``fit_confidence``): the value that answers most while the answers' share
-            right reaches ``target_precision`` (at the lower end of its 95 % interval), within
-            ``max_cannot_tell``.
-        selfcal_confidence_scale, selfcal_confidence_shift: the Platt map of the
-            self-calibration's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave
-            it as it is. Fitted on a validation split by ``fit_confidence``.
-        regression_confidence_scale, regression_confidence_shift: the same for the regression.
+            right reaches ``decision_fit.TARGET_PRECISION`` (at the lower end of its 95 %
+            interval), within ``max_cannot_tell``.
+        regression_confidence_scale, regression_confidence_shift: the Platt map of the
+            regression's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave it as it
+            is. Fitted on a validation split by ``fit_confidence``.
         selfcal_std_scale: the factor on a pair's Delta_avg stds (the fit's covariance) in the
             self-calibration's confidence, its class's mass under each model of the scene; 1
             leaves them. Fitted on a validation split by ``fit_confidence`` (least log-loss):
@@ -39,26 +42,16 @@ class AnalysisConfig:
         interval_std_scale: the factor on a pair's Delta_avg std in its intervals (the kept
             answer's, the planar and the plane + parallax ones); 1 leaves them. Fitted on a
             validation split by ``fit_confidence``: the least whose intervals cover the true
-            Delta_avg on ``interval_confidence`` of its pairs. The shipped default is 1 for both:
-            real pairs are not the rendered protocol (docs/method.md, section 10).
+            Delta_avg on ``class_mass.INTERVAL_CONFIDENCE`` of its pairs. The shipped default is 1
+            for both: real pairs are not the rendered protocol (docs/method.md, section 10).
         cross_check: the learned methods (regression, eigen-space) also run the
             self-calibration and are out of domain where the two disagree.
-        max_class_disagreement: out of domain where the classes differ by more than this;
-            class R against any class (distortion found by one, none by the other) always does.
         eigenspace_max_class_disagreement: the eigen-space gives no confidence, so its class stands
             only where the self-calibration confidently finds a class at most this far from it
             (0: the same); elsewhere "cannot tell" (with ``cross_check``).
-        max_delta_disagreement: out of domain where the Delta_avg estimates differ by more than
-            this share of the Delta_avg range.
-        texture_factor: out of domain where the images' gradient-magnitude histogram is farther
-            from every training scene than this multiple of the largest distance of a
-            training view (stored in the checkpoint).
-        validation_seed_offset: the validation split used to fit the decision is the test set
-            of the protocol seed plus this offset (never the test set itself).
         min_motion_px: below this mean displacement (analysis px) of the registration, every
             method says "cannot tell": both views carry the same distortion, which cancels
             where the scene did not move. Positive, and applied with or without ``cross_check``.
-        interval_confidence: coverage of a pair's Delta_avg interval (self-calibration).
         flat_prior: with the plane + parallax model (``selfcal.parallax`` > 0), the weight of the
             planar model in a pair's confidence: the class's mass under the planar answer times
             this, plus its mass under the plane + parallax answer times 1 - this (a prior
@@ -74,8 +67,6 @@ class AnalysisConfig:
             wherever the classes differ. Not fitted: on rendered flat pairs 0 answers more
             and as well, but on real frames the rule withheld a pair both models got wrong
             (docs/method.md, section 10); 0 is for scenes known to be flat.
-        target_precision: the share of confident answers that should be right, what fitting
-            ``min_confidence`` aims for on a validation split.
         max_cannot_tell: the largest share of a validation split's pairs that may be "cannot
             tell" (for every reason) when ``min_confidence`` is fitted: a decision that
             withholds more to be right more often is not chosen.
@@ -84,16 +75,14 @@ class AnalysisConfig:
         >>> from dataclasses import replace
         >>> AnalysisConfig().no_distortion_px, replace(AnalysisConfig(), no_distortion_px=0.5).no_distortion_px
         (0.75, 0.5)
+        >>> AnalysisConfig(relief_mass=1.5)
+        Traceback (most recent call last):
+        ...
+        ValueError: analysis.relief_mass must be a number in [0, 1], got 1.5
     """
 
     no_distortion_px: float = 0.75
-    min_overlap: float = 0.5
-    out_of_domain_factor: float = 2.0
     min_confidence: float = 0.5
-    # the identity: the self-calibration's raw confidence is its class's probability mass, with an
-    # ECE of 4.1 % on the validation split and 4.9 % over motions of 1-40 px (docs/method.md, section 10)
-    selfcal_confidence_scale: float = 1.0
-    selfcal_confidence_shift: float = 0.0
     # fitted by `lensdist reproduce` (configs/paper.toml) on its validation split, the run that
     # fitted the shipped checkpoints (docs/results/reproduce.md, "Calibration")
     regression_confidence_scale: float = 0.5684
@@ -101,36 +90,21 @@ class AnalysisConfig:
     selfcal_std_scale: float = 1.0
     interval_std_scale: float = 1.0
     cross_check: bool = True
-    max_class_disagreement: int = 1
     eigenspace_max_class_disagreement: int = 0
-    max_delta_disagreement: float = 0.25
-    texture_factor: float = 2.0
-    validation_seed_offset: int = 1
     min_motion_px: float = 1.0
-    interval_confidence: float = 0.95
     flat_prior: float = 0.5
     relief_mass: float = 1.0
-    target_precision: float = 0.97
     max_cannot_tell: float = 0.25
 
     def __post_init__(self) -> None:
         real(self, "no_distortion_px", lo=0, lo_open=True)
         real(self, "min_motion_px", lo=0, lo_open=True, why="at 0 every method answers on the same image twice")
-        real(self, "interval_confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "flat_prior", lo=0, hi=1)
         real(self, "relief_mass", lo=0, hi=1)
-        real(self, "target_precision", lo=0, hi=1)
         real(self, "max_cannot_tell", lo=0, hi=1)
-        real(self, "min_overlap", lo=0, hi=1)
-        real(self, "out_of_domain_factor", lo=0, lo_open=True)
         real(self, "min_confidence", lo=0, hi=1)
-        for name in ("selfcal_confidence_scale", "regression_confidence_scale", "texture_factor",
-                     "selfcal_std_scale", "interval_std_scale"):
+        for name in ("regression_confidence_scale", "selfcal_std_scale", "interval_std_scale"):
             real(self, name, lo=0, lo_open=True)
-        real(self, "max_delta_disagreement", lo=0, hi=1, lo_open=True, why="a share of the Delta_avg range")
-        real(self, "selfcal_confidence_shift")
         real(self, "regression_confidence_shift")
         flag(self, "cross_check")
-        integer(self, "max_class_disagreement", lo=0)
         integer(self, "eigenspace_max_class_disagreement", lo=0)
-        integer(self, "validation_seed_offset")

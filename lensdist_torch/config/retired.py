@@ -25,7 +25,8 @@ class Retired:
     Attributes:
         by: what replaced it: a key of this version (with why), or, for a key that became a
             constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``,
-            ``lensdist_torch.selfcal.X.NAME``, ``lensdist_torch.registration.X.NAME``).
+            ``lensdist_torch.selfcal.X.NAME``, ``lensdist_torch.registration.X.NAME``,
+            ``lensdist_torch.workflows.X.NAME``).
         value: for a constant, its value: the key loads at this value (dropped) and is refused
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
@@ -129,6 +130,17 @@ RETIRED = {
     ("registration", "match_ratio"): _constant("wide_baseline.MATCH_RATIO", 0.9, "registration"),
     ("registration", "ransac_threshold"): _constant("wide_baseline.RANSAC_THRESHOLD", 2.0, "registration"),
     ("registration", "min_inliers"): _constant("wide_baseline.MIN_INLIERS", 15, "registration"),
+    # the decision of analyze's constants (docs/method.md, section 10)
+    ("analysis", "min_overlap"): _constant("decision.MIN_OVERLAP", 0.5, "workflows"),
+    ("analysis", "out_of_domain_factor"): _constant("analyze.OUT_OF_DOMAIN_FACTOR", 2.0, "workflows"),
+    ("analysis", "selfcal_confidence_scale"): _constant("decision.SELFCAL_CONFIDENCE_SCALE", 1.0, "workflows"),
+    ("analysis", "selfcal_confidence_shift"): _constant("decision.SELFCAL_CONFIDENCE_SHIFT", 0.0, "workflows"),
+    ("analysis", "max_class_disagreement"): _constant("decision.MAX_CLASS_DISAGREEMENT", 1, "workflows"),
+    ("analysis", "max_delta_disagreement"): _constant("decision.MAX_DELTA_DISAGREEMENT", 0.25, "workflows"),
+    ("analysis", "texture_factor"): _constant("decision.TEXTURE_FACTOR", 2.0, "workflows"),
+    ("analysis", "validation_seed_offset"): _constant("decision_fit.VALIDATION_SEED_OFFSET", 1, "workflows"),
+    ("analysis", "interval_confidence"): _constant("class_mass.INTERVAL_CONFIDENCE", 0.95, "workflows"),
+    ("analysis", "target_precision"): _constant("decision_fit.TARGET_PRECISION", 0.97, "workflows"),
 }
 #: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
 INERT = {key for key, r in RETIRED.items() if r.inert}

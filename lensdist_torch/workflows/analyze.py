@@ -11,7 +11,8 @@ self-calibration (default; started from the registration's H), the Delta regress
 paper's eigen-space classifiers; then the decision of :mod:`~lensdist_torch.workflows.decision`
 (class or "cannot tell", calibrated confidence, domain checks). Each pair's answer is a
 :class:`~lensdist_torch.workflows.pair_analysis.PairAnalysis`, offsets in analysis pixels and in
-the user's pixels. Every threshold is in ``config.analysis``.
+the user's pixels. What a user sets is in ``config.analysis``; the decision's constants are named
+in the modules that use them (:data:`OUT_OF_DOMAIN_FACTOR` here).
 
 On the CPU the estimators (registration, self-calibration, classifiers) run pair by pair: their
 batched float32 kernels round differently with the batch's size, and a pair's answer must not
@@ -41,7 +42,13 @@ from lensdist_torch.core.storage import CheckpointError, check_compatible
 from lensdist_torch.geometry.distortion import CLASS_LABELS, METRICS, estimated_class
 from lensdist_torch.geometry.homography import check_homography
 from lensdist_torch.workflows.confidence import platt
-from lensdist_torch.workflows.decision import decide, domain_checks, in_user_pixels
+from lensdist_torch.workflows.decision import (
+    SELFCAL_CONFIDENCE_SCALE,
+    SELFCAL_CONFIDENCE_SHIFT,
+    decide,
+    domain_checks,
+    in_user_pixels,
+)
 from lensdist_torch.workflows.pair_analysis import JSON_KEYS, PairAnalysis
 from lensdist_torch.workflows.prepare import PreparedPairs, one_thread, prepare_batch, resolve_device
 
@@ -56,6 +63,8 @@ _SHIPPED = {
     "delta_max": "eigenspace_delta_max_10ev.pt",
     "regression": "regression.pt",
 }
+#: An eigen-space map farther from every class than this multiple of its reject threshold is unlike every training map.
+OUT_OF_DOMAIN_FACTOR = 2.0
 
 
 def default_checkpoint(name: str = "delta_avg") -> Path:
@@ -148,9 +157,8 @@ def _model_on(model, device: torch.device):
 
 # ------------------------------------------------------------------ the methods, one pair each
 def _selfcal(p: PreparedPairs, i: int, _models) -> dict:
-    a = p.config.analysis
     res = dict(p.selfcal()[i])
-    res["confidence"] = float(platt(res["raw_confidence"], a.selfcal_confidence_scale, a.selfcal_confidence_shift))
+    res["confidence"] = float(platt(res["raw_confidence"], SELFCAL_CONFIDENCE_SCALE, SELFCAL_CONFIDENCE_SHIFT))
     return res
 
 
@@ -193,7 +201,7 @@ def _eigenspace(p: PreparedPairs, i: int, models) -> dict:
         if metric == "delta_avg" or models[0] is None:
             out["distances"] = [float(v) for v in r.distances[0]]
             out["reject_threshold"] = float(model.reject_threshold)
-            far = min(out["distances"]) > p.config.analysis.out_of_domain_factor * out["reject_threshold"]
+            far = min(out["distances"]) > OUT_OF_DOMAIN_FACTOR * out["reject_threshold"]
     out["_far"] = far
     return out
 

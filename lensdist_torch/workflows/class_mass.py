@@ -37,6 +37,9 @@ __all__ = [
     "result_field",
 ]
 
+#: Coverage of a pair's Delta_avg interval (the self-calibration's): a normal's two-sided probability.
+INTERVAL_CONFIDENCE = 0.95
+
 
 def result_field(result, key: str, default=None):
     """One field of an analysis result, ``default`` where it is absent or None (null in JSON).
@@ -233,7 +236,7 @@ def _mass(d: torch.Tensor, std: torch.Tensor, bounds: torch.Tensor) -> torch.Ten
 def delta_interval(d: float, std: float, a) -> list[float] | None:
     """A pair's Delta_avg interval: [max(0, d - z k std), d + z k std]; None if std is not finite.
 
-    ``a`` is the [analysis] settings: z the normal quantile of ``a.interval_confidence``, k
+    ``a`` is the [analysis] settings: z the normal quantile of :data:`INTERVAL_CONFIDENCE`, k
     ``a.interval_std_scale``. The one interval of the self-calibration's answers (and of
     :func:`~lensdist_torch.workflows.decision_fit.interval_coverage`).
 
@@ -246,6 +249,6 @@ def delta_interval(d: float, std: float, a) -> list[float] | None:
     """
     if not math.isfinite(std):
         return None
-    z = float(torch.special.ndtri(torch.tensor(0.5 + a.interval_confidence / 2, dtype=torch.float64)))
+    z = float(torch.special.ndtri(torch.tensor(0.5 + INTERVAL_CONFIDENCE / 2, dtype=torch.float64)))
     half = z * a.interval_std_scale * std
     return [max(0.0, d - half), d + half]

@@ -1,26 +1,28 @@
 """The decision of ``analyze``: the honest answer, the calibrated confidence and the domain checks.
 
-Every threshold is in ``config.analysis`` (:class:`~lensdist_torch.config.AnalysisConfig`).
+What a user sets is in ``config.analysis`` (:class:`~lensdist_torch.config.AnalysisConfig`); the
+decision's constants are named below.
 
 * **Confidence.** The self-calibration and the regression give a raw confidence c = s0 /
   (s0 + std) (docs/method.md, section 10). The reported confidence is its Platt map
   sigmoid(scale * logit(c) + shift), fitted on a validation split so that it estimates
-  P(class right) (:mod:`~lensdist_torch.workflows.confidence`); below ``min_confidence`` the
-  answer is "cannot tell".
+  P(class right) (:mod:`~lensdist_torch.workflows.confidence`; the self-calibration's is the
+  identity, :data:`SELFCAL_CONFIDENCE_SCALE` and :data:`SELFCAL_CONFIDENCE_SHIFT`); below
+  ``min_confidence`` the answer is "cannot tell".
 * **Domain** of the learned methods (regression, eigen-space), whose checkpoints were fitted on
   a few scenes: a pair is out of domain where its gradient-magnitude histogram is farther from
-  every training scene than ``texture_factor`` times the largest distance of a training view
+  every training scene than :data:`TEXTURE_FACTOR` times the largest distance of a training view
   (:mod:`~lensdist_torch.workflows.texture`, stored in the checkpoint's ``extra``), or where the
   self-calibration, which learns nothing, confidently disagrees: one finds distortion and the
-  other none (class R against a class), the classes are more than ``max_class_disagreement``
-  apart, or Delta_avg more than ``max_delta_disagreement`` of its range apart.
+  other none (class R against a class), the classes are more than :data:`MAX_CLASS_DISAGREEMENT`
+  apart, or Delta_avg more than :data:`MAX_DELTA_DISAGREEMENT` of its range apart.
 * **Confirmation** of an answer without a confidence (the eigen-space's: nothing says how sure
   it is, and on rendered pairs 30 of its 75 answers were a class off): its class stands only
   where the self-calibration confidently finds a class at most ``eigenspace_max_class_disagreement``
   (0) from it; where the self-calibration cannot tell or finds another class, "cannot tell".
 * **The answer** (:func:`decide`): ``class`` is None and ``cannot_tell`` True whenever the
-  registration failed, there is no estimate, the overlap is too small, the pair is out of
-  domain or the confidence is low; ``estimated_class`` keeps the estimator's own guess.
+  registration failed, there is no estimate, the overlap is below :data:`MIN_OVERLAP`, the pair
+  is out of domain or the confidence is low; ``estimated_class`` keeps the estimator's own guess.
 """
 
 from __future__ import annotations
@@ -50,6 +52,18 @@ REASONS = (
     "out_of_domain",
     "unconfirmed",
 )
+#: Share of the analysis frame's pixels valid after the registration's warp below which the map is too small to judge.
+MIN_OVERLAP = 0.5
+#: Scale of the self-calibration's Platt map, sigmoid(scale * logit(c) + shift): 1 with a shift of 0 is the identity.
+SELFCAL_CONFIDENCE_SCALE = 1.0
+#: Shift of the self-calibration's Platt map (see :data:`SELFCAL_CONFIDENCE_SCALE`).
+SELFCAL_CONFIDENCE_SHIFT = 0.0
+#: Out of domain where a learned method's class and the confident self-calibration's are more than this many apart.
+MAX_CLASS_DISAGREEMENT = 1
+#: Out of domain where their Delta_avg estimates differ by more than this share of the Delta_avg range.
+MAX_DELTA_DISAGREEMENT = 0.25
+#: Out of domain beyond this multiple of the largest texture distance of a training view (the checkpoint's).
+TEXTURE_FACTOR = 2.0
 
 
 # ------------------------------------------------------------------ the answer
@@ -79,11 +93,11 @@ def domain_checks(
     stats = extra.get("texture")
     if stats and texture is not None:
         d = float(texture_distance(texture, stats)[0])
-        res["texture_distance"], res["texture_limit"] = d, a.texture_factor * float(stats["spread"])
+        res["texture_distance"], res["texture_limit"] = d, TEXTURE_FACTOR * float(stats["spread"])
         res["_texture_far"] = d > res["texture_limit"]
     if selfcal is None:
         return
-    conf = float(platt(selfcal["raw_confidence"], a.selfcal_confidence_scale, a.selfcal_confidence_shift))
+    conf = float(platt(selfcal["raw_confidence"], SELFCAL_CONFIDENCE_SCALE, SELFCAL_CONFIDENCE_SHIFT))
     usable = selfcal["delta_avg"] is not None and conf >= a.min_confidence and res["delta_avg"] is not None
     check = {"class": selfcal["estimated_class"], "delta_avg": selfcal["delta_avg"], "usable": usable, "agrees": True}
     if usable:
@@ -91,10 +105,10 @@ def domain_checks(
         # whether there is distortion at all is asked first: R against a class disagrees
         is_r = [c == CLASS_LABELS[-1] for c in (res["estimated_class"], selfcal["estimated_class"])]
         # a class-R answer's Delta is the eigen-space's guess of its nearest class: the classes decide
-        far = not any(is_r) and abs(res["delta_avg"] - selfcal["delta_avg"]) > a.max_delta_disagreement * delta_top(
+        far = not any(is_r) and abs(res["delta_avg"] - selfcal["delta_avg"]) > MAX_DELTA_DISAGREEMENT * delta_top(
             "delta_avg", cfg
         )
-        check["agrees"] = not ((gap is not None and gap > a.max_class_disagreement) or far or is_r[0] != is_r[1])
+        check["agrees"] = not ((gap is not None and gap > MAX_CLASS_DISAGREEMENT) or far or is_r[0] != is_r[1])
     if res.get("confidence") is None:  # the eigen-space: its class needs the self-calibration's confirmation
         gap = class_distance(res["estimated_class"], selfcal["estimated_class"]) if usable else None
         check["confirms"] = bool(check["agrees"] and gap is not None and gap <= a.eigenspace_max_class_disagreement)
@@ -126,12 +140,12 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
                    "stands only where the self-calibration confirms it")
     if not res["registration_ok"]:
         out.append("registration failed: the pair could not be aligned by a homography; the result is not meaningful")
-    if res["overlap"] < cfg.analysis.min_overlap:
+    if res["overlap"] < MIN_OVERLAP:
         out.append(
-            f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * cfg.analysis.min_overlap:.0f} %): "
+            f"the images overlap on {100 * res['overlap']:.0f} % only (< {100 * MIN_OVERLAP:.0f} %): "
             "too little to judge"
         )
-    aligned = res["registration_ok"] and res["overlap"] >= cfg.analysis.min_overlap  # else that is the reason given
+    aligned = res["registration_ok"] and res["overlap"] >= MIN_OVERLAP  # else that is the reason given
     low = _low_confidence(res, cfg)
     if aligned and _relief(res, low):
         lo, hi = res["relief_delta_avg_interval"] or (float("nan"), float("nan"))
@@ -147,11 +161,10 @@ def _warnings(res: dict, cfg: LensdistConfig) -> list[str]:
 
 def _reasons(res: dict, cfg: LensdistConfig, still: bool, low: bool, no_number: bool, unconfirmed: bool) -> list[str]:
     """The machine-readable reasons of a "cannot tell", one code each (:data:`REASONS`), the text in ``warnings``."""
-    a = cfg.analysis
-    aligned = res["registration_ok"] and res["overlap"] >= a.min_overlap
+    aligned = res["registration_ok"] and res["overlap"] >= MIN_OVERLAP
     found = {
         "registration": not res["registration_ok"],
-        "overlap": res["registration_ok"] and res["overlap"] < a.min_overlap,
+        "overlap": res["registration_ok"] and res["overlap"] < MIN_OVERLAP,
         "no_estimate": aligned and no_number,
         "motion": still,
         "relief": aligned and _relief(res, low),
@@ -199,7 +212,7 @@ def decide(res: dict, cfg: LensdistConfig) -> None:
     a = cfg.analysis
     check = res.get("selfcal_check")
     res["in_domain"] = bool(
-        res["registration_ok"] and res["overlap"] >= a.min_overlap and not res.get("_far", False)
+        res["registration_ok"] and res["overlap"] >= MIN_OVERLAP and not res.get("_far", False)
         and not res.get("_texture_far", False) and not (check and not check["agrees"])
     )
     if not res["registration_ok"] or res.get("_diverged", False):  # no alignment, no estimate

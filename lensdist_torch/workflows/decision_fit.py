@@ -13,12 +13,12 @@ does, and fits the ``[analysis]`` values that turn the estimators' outputs into 
   under both models of the scene, :func:`~lensdist_torch.workflows.class_mass.flat_or_relief`),
   the values of a grid whose confidences score best (least log-loss) as P(class right).
 * ``min_confidence``: the least confidence of an answer, the value that answers most while the
-  share of its answers that are right reaches ``target_precision`` at the lower end of its 95 %
+  share of its answers that are right reaches :data:`TARGET_PRECISION` at the lower end of its 95 %
   interval, with at most ``max_cannot_tell`` of the pairs "cannot tell". ``relief_mass`` is not
   fitted: on rendered flat pairs naming relief only withholds right answers, on real frames it
   withheld a pair both models got wrong (docs/method.md, section 10).
 * ``interval_std_scale``: the factor on the std in a pair's 95 % intervals, the least of the same
-  grid whose intervals cover the true Delta_avg on ``interval_confidence`` of the pairs.
+  grid whose intervals cover the true Delta_avg on ``class_mass.INTERVAL_CONFIDENCE`` of the pairs.
 * the regression's Platt map, kept only where it lowers the split's ECE.
 
 The fit's own covariance is what both scales correct: on the rendered planar conditions it is
@@ -41,7 +41,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import estimated_class
-from lensdist_torch.workflows.class_mass import delta_interval, rescored, result_field
+from lensdist_torch.workflows.class_mass import INTERVAL_CONFIDENCE, delta_interval, rescored, result_field
 from lensdist_torch.workflows.confidence import (
     expected_calibration_error,
     fit_platt,
@@ -49,6 +49,7 @@ from lensdist_torch.workflows.confidence import (
     precision_bound,
     reliability,
 )
+from lensdist_torch.workflows.decision import SELFCAL_CONFIDENCE_SCALE, SELFCAL_CONFIDENCE_SHIFT
 from lensdist_torch.workflows.evaluate import analyze_test_set
 
 __all__ = [
@@ -64,8 +65,12 @@ __all__ = [
     "fit_confidence",
 ]
 
-_PLATT = {"selfcal": ("selfcal_confidence_scale", "selfcal_confidence_shift"),
-          "regression": ("regression_confidence_scale", "regression_confidence_shift")}
+#: Per method, the ``[analysis]`` fields of its Platt map; None: the self-calibration's, a constant (the identity).
+_PLATT = {"selfcal": None, "regression": ("regression_confidence_scale", "regression_confidence_shift")}
+#: The validation split is the test set of the protocol seed plus this (never the test set itself).
+VALIDATION_SEED_OFFSET = 1
+#: Share right of the confident answers, at the lower end of its 95 % interval, that fitting min_confidence aims for.
+TARGET_PRECISION = 0.97
 
 #: The candidate std scales (both): log-spaced from 0.5 to 4, and the config's own value.
 _SCALES = tuple(torch.logspace(math.log10(0.5), math.log10(4.0), 25, dtype=torch.float64).tolist())
@@ -76,7 +81,7 @@ _MIN_CONFIDENCES = (0.5, 0.6, 0.7, 0.8, 0.9)
 
 
 def validation_config(config: LensdistConfig) -> LensdistConfig:
-    """The protocol of the validation split: the seed moved by ``analysis.validation_seed_offset``.
+    """The protocol of the validation split: the seed moved by :data:`VALIDATION_SEED_OFFSET`.
 
     Its test set shares no pair with the test set of ``config`` (every pair's seed hashes the
     protocol seed, docs/method.md, section 7).
@@ -86,9 +91,7 @@ def validation_config(config: LensdistConfig) -> LensdistConfig:
         1
     """
     p = config.protocol
-    return dataclasses.replace(
-        config, protocol=dataclasses.replace(p, seed=p.seed + config.analysis.validation_seed_offset)
-    )
+    return dataclasses.replace(config, protocol=dataclasses.replace(p, seed=p.seed + VALIDATION_SEED_OFFSET))
 
 
 def _with(config: LensdistConfig, **analysis) -> LensdistConfig:
@@ -148,8 +151,10 @@ def confidences(
 
 
 def _calibrated(raw: torch.Tensor, config: LensdistConfig, method: str) -> torch.Tensor:
-    """Raw confidences through ``method``'s Platt map of ``config``."""
-    return platt(raw, *(getattr(config.analysis, f) for f in _PLATT[method]))
+    """Raw confidences through ``method``'s Platt map (the regression's: ``config``'s)."""
+    fields = _PLATT[method]
+    return platt(raw, *((SELFCAL_CONFIDENCE_SCALE, SELFCAL_CONFIDENCE_SHIFT) if fields is None
+                        else (getattr(config.analysis, f) for f in fields)))
 
 
 def outcomes(results: list, data: dict, *, config: LensdistConfig, method: str, calibrated: bool):
@@ -211,13 +216,13 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
     plane + parallax answer), the least log-loss of the self-calibration's confidence as
     P(class right), kept at the config's where the pairs are all right or all wrong (nothing to
     score); then ``min_confidence`` of 0.5 to 0.9, the one with the most answers whose share
-    right reaches ``target_precision`` at the lower end of its 95 % interval, with at most
+    right reaches :data:`TARGET_PRECISION` at the lower end of its 95 % interval, with at most
     ``max_cannot_tell`` of the pairs "cannot tell" (:func:`_fit_withholding`); then
     ``interval_std_scale``, the least
-    whose intervals cover the true Delta_avg on ``interval_confidence`` of the scored pairs
+    whose intervals cover the true Delta_avg on ``class_mass.INTERVAL_CONFIDENCE`` of the scored pairs
     (the largest where none does). Then the Platt map of
     the regression's confidence, kept only where it lowers the split's ECE below the config's
-    map. The self-calibration's Platt map stays the config's (the identity by default): its
+    map. The self-calibration's Platt map is a constant, the identity: its
     confidence is a probability already, and its std scale is what is fitted. ``trace``, where
     given, receives the withholding's candidates with their answers on the split.
     """
@@ -237,11 +242,12 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
     fitted |= _fit_withholding(results["selfcal"], data, cfg, std_fits[best][1:], trace)
     cfg = _with(cfg, **fitted)
     fitted["interval_std_scale"] = _fit_interval_scale(results["selfcal"], data, cfg)
-    for method, (f_scale, f_shift) in _PLATT.items():
+    for method, fields in _PLATT.items():
         # a map fitted on the protocol, whose pairs mostly move by tens of pixels, made pairs that
         # moved by < 2 px claim 0.93 where 0.69 were right (docs/method.md, section 10): the
         # self-calibration's std scale keeps each pair's own std, and so its motion, in the confidence
-        if method in results and method != "selfcal":
+        if method in results and fields is not None:
+            f_scale, f_shift = fields
             raw, right = outcomes(results[method], data, config=cfg, method=method, calibrated=False)
             new, old = fit_platt(raw, right), (getattr(a0, f_scale), getattr(a0, f_shift))
             # a refit must earn its place: on a small split (--quick) it can fall back to the
@@ -284,7 +290,7 @@ def _fit_withholding(results: list, data: dict, config: LensdistConfig, scale_pr
     of :data:`_MIN_CONFIDENCES` (and the config's), the split's self-calibration answers as
     ``analyze`` would give them (:func:`answers`). Of the candidates with at most
     ``max_cannot_tell`` of the pairs "cannot tell", the one with the most answers whose share
-    right is at least ``target_precision`` at the lower end of its 95 % interval
+    right is at least :data:`TARGET_PRECISION` at the lower end of its 95 % interval
     (:func:`~lensdist_torch.workflows.confidence.precision_bound`: the split's own chance allowed
     for); where none is, the one with the highest such bound; where none is within the limit,
     the config's. ``relief_mass`` stays the config's: a rendered split cannot price what naming
@@ -306,7 +312,7 @@ def _fit_withholding(results: list, data: dict, config: LensdistConfig, scale_pr
             )
         if got["cannot_tell"] <= a.max_cannot_tell and math.isfinite(got["precision_bound"]):
             rows.append(
-                (got["precision_bound"] >= a.target_precision, got["answered"], got["precision_bound"], -m, fit)
+                (got["precision_bound"] >= TARGET_PRECISION, got["answered"], got["precision_bound"], -m, fit)
             )
     if not rows:
         return {"min_confidence": a.min_confidence, "selfcal_std_scale": k, "flat_prior": w}
@@ -339,7 +345,7 @@ def answers(results: list, data: dict, config: LensdistConfig) -> dict:
 
 
 def _fit_interval_scale(results: list, data: dict, config: LensdistConfig) -> float:
-    want = config.analysis.interval_confidence
+    want = INTERVAL_CONFIDENCE
     for s in sorted(set(_SCALES) | {config.analysis.interval_std_scale}):
         cov = interval_coverage(results, data, _with(config, interval_std_scale=s))
         if cov["pairs"] == 0:
@@ -368,7 +374,7 @@ def coverage_row(results: list, data: dict, *, before: LensdistConfig, after: Le
     """The self-calibration's interval coverage before and after the fitted decision, on one split."""
     b, a = interval_coverage(results, data, before), interval_coverage(results, data, after)
     return {"split": split, "pairs": a["pairs"], "before": b["coverage"], "after": a["coverage"],
-            "nominal": after.analysis.interval_confidence}
+            "nominal": INTERVAL_CONFIDENCE}
 
 
 def _toml(config: LensdistConfig) -> str:

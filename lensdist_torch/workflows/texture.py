@@ -2,7 +2,7 @@
 
 A checkpoint fitted on a few scenes stores their gradient-magnitude histograms
 (:func:`texture_statistics`, in its ``extra``); a pair whose histogram is farther from every
-training scene than ``analysis.texture_factor`` times the largest distance of a training view is
+training scene than ``decision.TEXTURE_FACTOR`` times the largest distance of a training view is
 out of domain (:func:`~lensdist_torch.workflows.decision.domain_checks`).
 
 Example:

@@ -178,8 +178,9 @@ OUT_OF_RANGE = [
     ("regression", "confidence_threshold", 1.5),
     ("classifier", "reject_quantile", 2.0),
     ("analysis", "min_confidence", -0.1),
-    ("analysis", "interval_confidence", 1.0),
+    ("analysis", "interval_confidence", 1.0),  # constants of the method now: refused at another value, named
     ("analysis", "max_delta_disagreement", 3.0),
+    ("analysis", "max_cannot_tell", 1.5),
     ("registration", "max_step", 2.0),  # a constant of the method now: refused at another value, named
     ("registration", "min_overlap", 1.5),
     ("multiview", "planar_guided_below", 5.0),

@@ -149,7 +149,8 @@ BAD_VALUES = [
     ("regression", "n_components", "3.5"),
     ("regression", "cannot_tell_fraction", "-0.1"),
     ("regression", "cannot_tell_fraction", "1000.0"),  # a share of the class range: 1000 read as confident
-    ("analysis", "max_delta_disagreement", "1.5"),
+    ("analysis", "max_delta_disagreement", "1.5"),  # a constant of the method now: refused at another value, named
+    ("analysis", "max_cannot_tell", "1.5"),
     ("registration", "max_step", "2.0"),
     ("multiview", "features_per_megapixel", "0.0"),
     ("multiview", "planar_centre_max", "1.5"),  # a distortion centre beyond the frame's corner
@@ -160,8 +161,10 @@ BAD_VALUES = [
     ("multiview", "planar_guided_below", "2"),  # a share of the verified pairs
     ("regression", "confidence_threshold", "nan"),
     ("analysis", "no_distortion_px", "0.0"),
-    ("analysis", "min_overlap", "-0.5"),
+    ("analysis", "min_overlap", "-0.5"),  # constants of the method now: refused at another value, named
     ("analysis", "out_of_domain_factor", "inf"),
+    ("analysis", "min_confidence", "-0.5"),
+    ("analysis", "relief_mass", "inf"),
     ("analysis", "eigenspace_max_class_disagreement", "-1"),
     ("analysis", "min_motion_px", "0.0"),  # every method would answer on the same image twice
     ("analysis", "min_motion_px", "-1.0"),
@@ -195,7 +198,7 @@ BAD_PYTHON_VALUES = [
     ("classifier", "metric", None),
     ("selfcal", "iterations", "12,6,3"),
     ("regression", "k", True),
-    ("analysis", "min_overlap", "0.5"),
+    ("analysis", "min_confidence", "0.5"),
 ]
 
 

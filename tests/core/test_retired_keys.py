@@ -147,3 +147,51 @@ def test_a_manifest_of_an_earlier_version_still_reads(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(m, allow_nan=False))
     with pytest.raises(ShardError, match=r"earlier version of the pair protocol \(registration\.levels\)"):
         read_manifest(tmp_path)
+
+
+#: The ``[analysis]`` keys that became constants of the method, as paper.toml and every stored config wrote them.
+OLD_ANALYSIS = {
+    "min_overlap": 0.5, "out_of_domain_factor": 2.0, "selfcal_confidence_scale": 1.0, "selfcal_confidence_shift": 0.0,
+    "max_class_disagreement": 1, "max_delta_disagreement": 0.25, "texture_factor": 2.0,
+    "validation_seed_offset": 1, "interval_confidence": 0.95, "target_precision": 0.97,
+}
+
+
+def test_an_analysis_key_of_an_earlier_version(tmp_path):
+    """``[analysis] texture_factor`` became ``workflows.decision.TEXTURE_FACTOR``: as paper.toml wrote it, it loads."""
+    import json
+
+    path = tmp_path / "old.toml"
+    old = "".join(f"{k} = {json.dumps(v)}\n" for k, v in OLD_ANALYSIS.items())
+    path.write_text(f"[analysis]\n{old}min_confidence = 0.6\n")
+    assert load_config(path) == config_from_dict({"analysis": {"min_confidence": 0.6}})
+    path.write_text("[analysis]\nout_of_domain_factor = 3\n")
+    one_line_error(ValueError, lambda: load_config(path), "analysis.out_of_domain_factor", str(path),
+                   "a constant of the method now: lensdist_torch.workflows.analyze.OUT_OF_DOMAIN_FACTOR")
+    path.write_text("[analysis]\ntexture_factor = 3.0\n")
+    one_line_error(ValueError, lambda: load_config(path), "analysis.texture_factor", str(path),
+                   "lensdist_torch.workflows.decision.TEXTURE_FACTOR")
+    one_line_error(ValueError, lambda: stored_config({"analysis": {"interval_confidence": 0.9}}),
+                   "analysis.interval_confidence", "lensdist_torch.workflows.class_mass.INTERVAL_CONFIDENCE")
+
+
+@pytest.mark.parametrize("name", ["eigenspace_delta_avg_10ev.pt", "eigenspace_delta_max_10ev.pt", "regression.pt"])
+def test_the_shipped_checkpoints_name_the_retired_keys_and_load(name):
+    """Their stored configs hold retired keys at the constants' values: loaded, the config is as stored, less those."""
+    from pathlib import Path
+
+    import torch
+
+    from lensdist_torch.classify.eigenspace import EigenSpaceClassifier
+    from lensdist_torch.classify.regression import DeltaRegressor
+    from lensdist_torch.config import config_to_dict
+
+    path = Path(__file__).resolve().parents[2] / "lensdist_torch" / "checkpoints" / name
+    stored = torch.load(path, weights_only=True)["config"]
+    constants = {key for key, r in RETIRED.items() if r.value is not None}
+    named = {(s, k) for s, keys in stored.items() for k in keys if (s, k) in constants}
+    assert {("analysis", k) for k in OLD_ANALYSIS} & named and ("registration", "levels") in named
+    loaded = config_to_dict((DeltaRegressor if name == "regression.pt" else EigenSpaceClassifier).load(path).config)
+    for section, values in loaded.items():  # every kept key as stored (a key the stored config lacks: its default)
+        assert {k: v for k, v in values.items() if k in stored.get(section, {})} == {
+            k: v for k, v in stored.get(section, {}).items() if k in values}, section

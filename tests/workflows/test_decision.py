@@ -20,7 +20,13 @@ from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.workflows.analyze import analyze_batch
 from lensdist_torch.workflows.class_mass import flat_or_relief
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
-from lensdist_torch.workflows.decision import class_distance, decide, domain_checks
+from lensdist_torch.workflows.decision import (
+    SELFCAL_CONFIDENCE_SCALE,
+    SELFCAL_CONFIDENCE_SHIFT,
+    class_distance,
+    decide,
+    domain_checks,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -294,7 +300,8 @@ def test_calibration_is_fitted_on_a_validation_split(tiny_run):
     # the self-calibration's confidence is a probability already: no map is fitted for it
     assert "selfcal_confidence_scale" not in fitted and "selfcal_confidence_shift" not in fitted
     cfg = load_config(out / "calibration.toml")
-    assert (cfg.analysis.selfcal_confidence_scale, cfg.analysis.selfcal_confidence_shift) == (1.0, 0.0)
+    assert "selfcal_confidence" not in (out / "calibration.toml").read_text()  # a constant of the method now
+    assert float(platt(0.7, SELFCAL_CONFIDENCE_SCALE, SELFCAL_CONFIDENCE_SHIFT)) == pytest.approx(0.7)  # the identity
     for key, value in fitted.items():
         assert getattr(cfg.analysis, key) == pytest.approx(value)
     assert cfg.image.size == (96, 128)

@@ -15,7 +15,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
 from lensdist_torch.workflows.class_mass import flat_or_relief, relief_agreement, rescored_relief_found
 from lensdist_torch.workflows.confidence import precision_bound
-from lensdist_torch.workflows.decision_fit import answers, fit_decision
+from lensdist_torch.workflows.decision_fit import TARGET_PRECISION, answers, fit_decision
 
 
 def _cfg(**analysis) -> LensdistConfig:
@@ -126,9 +126,9 @@ def test_a_flat_split_answers_at_the_least_confidence_and_trusts_the_plane():
     assert "relief_mass" not in fitted and fitted["min_confidence"] == 0.5
     assert fitted["flat_prior"] >= 0.8
     got, never = answers(results, data, after), answers(results, data, _with_mass(after, 0.0))
-    assert got["precision_bound"] >= cfg.analysis.target_precision
+    assert got["precision_bound"] >= TARGET_PRECISION
     # a user who knows the scene is flat (relief_mass 0) gets more answers, as right
-    assert never["answered"] > got["answered"] and never["precision_bound"] >= cfg.analysis.target_precision
+    assert never["answered"] > got["answered"] and never["precision_bound"] >= TARGET_PRECISION
 
 
 def _with_mass(cfg: LensdistConfig, q: float, **more) -> LensdistConfig:
