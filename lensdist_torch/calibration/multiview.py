@@ -98,8 +98,9 @@ __all__ = [
     "BA_FUNCTION_TOLERANCE",
 ]
 
-#: Up to this many frames every pair is matched; more: each frame with its :data:`SEQUENTIAL_OVERLAP` successors.
-EXHAUSTIVE_BELOW = 60
+#: Up to this many frames every pair is matched; more (a video's): each frame with its :data:`SEQUENTIAL_OVERLAP`
+#: successors and those 2^k frames on (COLMAP's quadratic overlap), as the frames' order is the recording's.
+EXHAUSTIVE_BELOW = 30
 #: Successors matched per frame in sequential matching (a video's frames beyond :data:`EXHAUSTIVE_BELOW`).
 SEQUENTIAL_OVERLAP = 12
 #: Bayesian-bootstrap draws over the folds for the models' evidence weights (docs/method.md, section 11).

@@ -67,7 +67,7 @@ RETIRED = {
            "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
     ("calibration", "parallax_px"): _constant("direct_fits.PARALLAX_PX", 1.0),
     # the multi-view path's and the homography model's constants (docs/method.md, sections 11-12)
-    ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 60),
+    ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 30),
     ("multiview", "sequential_overlap"): _constant("multiview.SEQUENTIAL_OVERLAP", 12),
     ("multiview", "evidence_draws"): _constant("multiview.EVIDENCE_DRAWS", 1000),
     ("multiview", "extra_mappings"): _constant("multiview.EXTRA_MAPPINGS", 3),
