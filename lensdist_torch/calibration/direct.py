@@ -380,7 +380,7 @@ def _doubtful(fits, xa, cfg: CalibrationConfig, st: LensdistConfig) -> torch.Ten
 
 
 def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple[float, ...], float, float]:
-    """Step 5's relief terms of the three stds, z (|effect| / its jackknife std) and the effect found.
+    """Step 5's relief terms of the user's Delta_avg and Delta_max stds, z (|effect| / its std), the effect found.
 
     The models' differences are pooled by inverse variance (1 / sigma_i^2) over those within
     ``OUTLIER_MADS`` of their median: they part by noise or by relief, not by failures.
@@ -397,7 +397,7 @@ def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple
         z = float(effect[1] / sd_d[1]) if float(sd_d[1]) > 0 else math.inf
     if z >= cfg.relief_test:  # the models part consistently over the sequence: relief
         return tuple(float(e) for e in effect[1:]), z, float(effect[1])
-    bound = tuple(cfg.relief_test * float(v) for v in sd_d[1:]) if bool(torch.isfinite(sd_d[1:]).all()) else (0.0,) * 3
+    bound = tuple(cfg.relief_test * float(v) for v in sd_d[1:]) if bool(torch.isfinite(sd_d[1:]).all()) else (0.0,) * 2
     return bound, z, 0.0
 
 
@@ -414,7 +414,6 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
             _signed_mean(h, w, ra),
             _signed_mean(hh, ww, ru),
             torch.tensor([corner**3 / ru**2, corner**5 / ru**4], dtype=torch.float64),
-            _signed_mean(hc, wc, rc),
         ]
     )
     weights, keep = pair_weights(ab @ fun[0], std, _failure_width((h, w), st))
@@ -424,9 +423,9 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     n_used, nan = int(keep.sum()), float("nan")
     d_avg, d_max = (float(f([k2u], [k4u], hh, ww)[0]) if n_used else nan for f in (delta_avg, delta_max))
     dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
-    relief, relief_z, found = _relief_term(models, std, pairs, fun, cfg) if n_used > 1 else ((0.0, 0.0, 0.0), 0.0, 0.0)
+    relief, relief_z, found = _relief_term(models, std, pairs, fun, cfg) if n_used > 1 else ((0.0, 0.0), 0.0, 0.0)
     half = [t * math.sqrt(float(e) ** 2 + (SYSTEMATIC_REL * d) ** 2 + (cfg.relief_rel * r) ** 2)
-            for e, d, r in zip(sd[1:3], (d_avg, d_max), relief)]
+            for e, d, r in zip(sd[1:], (d_avg, d_max), relief)]
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
