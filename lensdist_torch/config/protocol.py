@@ -64,10 +64,14 @@ class DistortionConfig:
 
 @dataclass(frozen=True)
 class ProtocolConfig:
-    """The pair protocol (docs/method.md section 7): motion ranges, set sizes, seed.
+    """The pair protocol (docs/method.md section 7): motion ranges, set sizes, seed (``[protocol]``).
+
+    The choices a user makes when generating data; the protocol's constants (the perspective
+    terms' half-width, the class-R perturbation's, an occluding patch's area) are named in the
+    modules that use them (:mod:`~lensdist_torch.data.synthesis`, ``realism``).
 
     ``seed`` is any int; ``scenes`` distinct embedded scene names; the ranges (low, high); the
-    rotation and perspective half-widths >= 0; the class-R ``perturbation`` in [0, 1[.
+    rotation half-width >= 0.
     ``unseen_scenes``: embedded scenes none of ``scenes``, on which ``lensdist reproduce`` also
     tests every method (a scene unlike the training ones; empty: no such test; not in the data
     fingerprint: the training and test pairs do not depend on it).
@@ -78,10 +82,8 @@ class ProtocolConfig:
     largest share, in [0, 1[, that a ramp / vignetting darkens), ``noise_range`` (Gaussian
     sigma, in [0, 1]), ``jpeg_quality`` (ints in [1, 100]), ``relief`` (in [0, 0.5[: the
     largest height of the scene over its plane as a fraction of camera 1's height; each pair
-    draws its own uniformly in [0, relief], and its parallax follows from its motion),
-    ``occluder_rate`` (share of pairs with a
-    moving or occluding patch, in [0, 1]) and ``occluder_area`` (its share of the frame, in
-    ]0, 1]).
+    draws its own uniformly in [0, relief], and its parallax follows from its motion) and
+    ``occluder_rate`` (share of pairs with a moving or occluding patch, in [0, 1]).
 
     Example:
         >>> from dataclasses import replace
@@ -103,8 +105,6 @@ class ProtocolConfig:
     tx_range: tuple[float, float] = (-4.0, 4.0)
     rotation_deg: float = 1.0
     scale_range: tuple[float, float] = (0.98, 1.02)
-    perspective: float = 2e-5
-    perturbation: float = 0.01
     shard_size: int = 500
     realistic: bool = False
     gain_range: tuple[float, float] = (0.7, 1.3)
@@ -115,7 +115,6 @@ class ProtocolConfig:
     jpeg_quality: tuple[int, int] = (60, 95)
     relief: float = 0.0
     occluder_rate: float = 0.2
-    occluder_area: tuple[float, float] = (0.05, 0.15)
 
     def __post_init__(self) -> None:
         integer(self, "seed", lo=None)
@@ -130,8 +129,6 @@ class ProtocolConfig:
         pair(self, "tx_range")
         pair(self, "scale_range", positive=True)
         real(self, "rotation_deg", lo=0)
-        real(self, "perspective", lo=0)
-        real(self, "perturbation", lo=0, hi=1, hi_open=True)
         integer(self, "shard_size")
         flag(self, "realistic")
         pair(self, "gain_range", positive=True)
@@ -142,4 +139,3 @@ class ProtocolConfig:
         pair(self, "jpeg_quality", within=(1, 100), integral=True)
         real(self, "relief", lo=0, hi=0.5, hi_open=True, why="a fraction of the camera's height")
         real(self, "occluder_rate", lo=0, hi=1)
-        pair(self, "occluder_area", positive=True, within=(0, 1))

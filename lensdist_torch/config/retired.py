@@ -26,7 +26,7 @@ class Retired:
         by: what replaced it: a key of this version (with why), or, for a key that became a
             constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``,
             ``lensdist_torch.selfcal.X.NAME``, ``lensdist_torch.registration.X.NAME``,
-            ``lensdist_torch.workflows.X.NAME``).
+            ``lensdist_torch.workflows.X.NAME``, ``lensdist_torch.data.X.NAME``).
         value: for a constant, its value: the key loads at this value (dropped) and is refused
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
@@ -141,6 +141,10 @@ RETIRED = {
     ("analysis", "validation_seed_offset"): _constant("decision_fit.VALIDATION_SEED_OFFSET", 1, "workflows"),
     ("analysis", "interval_confidence"): _constant("class_mass.INTERVAL_CONFIDENCE", 0.95, "workflows"),
     ("analysis", "target_precision"): _constant("decision_fit.TARGET_PRECISION", 0.97, "workflows"),
+    # the pair protocol's constants (docs/method.md, section 7; hashed by the data fingerprint as the keys were)
+    ("protocol", "perspective"): _constant("synthesis.PERSPECTIVE", 2e-5, "data"),
+    ("protocol", "perturbation"): _constant("synthesis.PERTURBATION", 0.01, "data"),
+    ("protocol", "occluder_area"): _constant("realism.OCCLUDER_AREA", (0.05, 0.15), "data"),
 }
 #: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
 INERT = {key for key, r in RETIRED.items() if r.inert}

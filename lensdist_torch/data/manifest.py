@@ -43,12 +43,13 @@ _LOCK_WAIT_S = 30.0  # the manifest's lock is held for one read-merge-write only
 _DATA_SECTIONS = ("quality", "image", "distortion", "protocol", "registration")
 #: Registration keys (a setting; constants now, the others) that only the analysis of a user's pair uses (the fallback).
 _NOT_IN_DATA = ("feature_fallback", "max_keypoints", "match_ratio", "ransac_threshold", "min_inliers")
-#: The registration's constants that were ``[registration]`` keys, at their values (lists for tuples, as a config
-#: dict holds them): the fingerprint hashes them as it did the keys, so a data set generated before keeps its own.
-_REGISTRATION_CONSTANTS = {
-    key: list(r.value) if isinstance(r.value, tuple) else r.value
-    for (section, key), r in RETIRED.items()
-    if section == "registration" and r.value is not None and key not in _NOT_IN_DATA
+#: Per data section, its constants that were keys (``[registration]``, ``[protocol]``), at their values (lists for
+#: tuples, as a config dict holds them): the fingerprint hashes them as it did the keys, so a data set keeps its own.
+_CONSTANTS = {
+    name: {key: list(r.value) if isinstance(r.value, tuple) else r.value
+           for (section, key), r in RETIRED.items()
+           if section == name and r.value is not None and not (name == "registration" and key in _NOT_IN_DATA)}
+    for name in _DATA_SECTIONS
 }
 
 
@@ -79,7 +80,8 @@ def _data_fields(config: LensdistConfig) -> dict:
         d[name].pop("chunk_size", None)
     for key in _NOT_IN_DATA:
         d["registration"].pop(key, None)
-    d["registration"].update(_REGISTRATION_CONSTANTS)  # the constants that were keys: a data set keeps its fingerprint
+    for name in _DATA_SECTIONS:
+        d[name].update(_CONSTANTS[name])  # the constants that were keys: a data set keeps its fingerprint
     d["protocol"].pop("unseen_scenes", None)  # only reproduce's extra test set reads it
     return d
 

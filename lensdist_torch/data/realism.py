@@ -61,6 +61,8 @@ PHOTOMETRIC = ("gain", "offset", "gamma", "illumination", "ramp_weight", "ramp_a
 N_BUMPS = 4  # Gaussian bumps of a pair's height field
 _BUMP_WIDTH = (0.15, 0.4)  # bump sigma, in half-diagonals: low frequency only
 _RATIO = (0.5, 2.0)  # occluder width / height, log-uniform
+#: An occluding patch's area, a share of the frame, uniform in [low, high].
+OCCLUDER_AREA = (0.05, 0.15)
 _CONTRAST = (0.2, 0.5)  # texture amplitude of a textured occluder
 _TEXTURE_PX = 6  # feature size of a textured occluder, px
 _OCC = 16 + 1 + 4 * N_BUMPS  # first occluder uniform
@@ -159,7 +161,7 @@ def draw_realism(config: LensdistConfig, seeds: Sequence[int]) -> Realism:
 
     o = u[:, _OCC:]
     occluded = o[:, 0] < p.occluder_rate
-    area = lin(o[:, 2], p.occluder_area) * h * w
+    area = lin(o[:, 2], OCCLUDER_AREA) * h * w
     aspect = _log_uniform(o[:, 3], *_RATIO)
     pw = torch.clamp(torch.round(torch.sqrt(area * aspect)), 1, w)
     ph = torch.clamp(torch.round(area / pw), 1, h)

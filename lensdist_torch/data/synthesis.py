@@ -40,6 +40,10 @@ __all__ = [
 
 SETS = ("train", "test")
 _N_DRAWS = 11  # scene, k2, k4, ty, tx, rotation, scale, h31, h32, position x, position y
+#: Half-width of a pair's perspective terms h31, h32 (1 / px, about the image centre): each uniform in [-this, this].
+PERSPECTIVE = 2e-5
+#: The class-R perturbation: each free parameter of the estimated homography times (1 + e), e ~ U[-this, this].
+PERTURBATION = 0.01
 
 
 @dataclass
@@ -158,8 +162,8 @@ def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) ->
             between(4, *p.tx_range),
             between(5, -p.rotation_deg, p.rotation_deg),
             between(6, *p.scale_range),
-            between(7, -p.perspective, p.perspective),
-            between(8, -p.perspective, p.perspective),
+            between(7, -PERSPECTIVE, PERSPECTIVE),
+            between(8, -PERSPECTIVE, PERSPECTIVE),
         ],
         dim=1,
     )
@@ -234,7 +238,7 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     extremes = list(
         itertools.product(
             p.ty_range, p.tx_range, (-p.rotation_deg, p.rotation_deg), p.scale_range,
-            (-p.perspective, p.perspective), (-p.perspective, p.perspective),
+            (-PERSPECTIVE, PERSPECTIVE), (-PERSPECTIVE, PERSPECTIVE),
         )
     )
     M = motion_matrix(torch.tensor(extremes, dtype=torch.float64), h, w)
@@ -419,7 +423,7 @@ def make_pairs(
         sel = params.perturbed.nonzero().flatten()
         gens = [params.generators[i] for i in sel.tolist()]
         size = (config.image.height, config.image.width)
-        H[sel] = perturb_homography(H[sel], gens, config.protocol.perturbation, size=size).double()
+        H[sel] = perturb_homography(H[sel], gens, PERTURBATION, size=size).double()
     warped, valid = warp_to_reference(img2, H.float())
     counts = registration_error_counts(img1, warped, valid, config=config.quality, validate=False)
     h, w = config.image.height, config.image.width

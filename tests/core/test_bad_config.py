@@ -110,10 +110,12 @@ BAD_VALUES = [
     ("protocol", "scale_range", "[-1.0, 1.0]"),
     ("protocol", "rotation_deg", "-1.0"),
     ("protocol", "rotation_deg", "inf"),
-    ("protocol", "perspective", "-2e-5"),
+    ("protocol", "perspective", "-2e-5"),  # constants of the method now: refused at another value, named
     ("protocol", "perspective", "nan"),
     ("protocol", "perturbation", "1.0"),
     ("protocol", "perturbation", "-0.01"),
+    ("protocol", "relief", "0.5"),
+    ("protocol", "occluder_rate", "-0.1"),
     ("protocol", "shard_size", "0"),
     ("registration", "levels", "[0, 2]"),
     ("registration", "levels", "[2, 1]"),

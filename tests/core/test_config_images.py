@@ -32,6 +32,7 @@ from lensdist_torch.core.images import (
     scene_names,
     to_grey,
 )
+from lensdist_torch.data.synthesis import PERSPECTIVE, PERTURBATION
 
 # ----------------------------------------------------------------------------- config
 
@@ -55,7 +56,7 @@ class TestDefaults:
         p = ProtocolConfig()
         assert (p.n_train, p.n_test_distorted, p.n_test_undistorted) == (12000, 400, 100)
         assert (p.ty_range, p.tx_range, p.scale_range) == ((0.0, 40.0), (-4.0, 4.0), (0.98, 1.02))
-        assert (p.rotation_deg, p.perspective, p.perturbation) == (1.0, 2e-5, 0.01)
+        assert p.rotation_deg == 1.0 and (PERSPECTIVE, PERTURBATION) == (2e-5, 0.01)  # the latter constants now
         c = ClassifierConfig()
         assert c.n_eigenvectors in (5, 10) and c.reject_quantile == 0.95 and c.n_neighbours == 4
         assert load_config(None) == LensdistConfig()

@@ -114,8 +114,14 @@ OLD_REGISTRATION = {
 }
 
 
-def test_the_data_fingerprint_hashes_the_registration_as_before():
+#: ``[protocol]``'s keys that became constants of the method, as every data set generated before wrote them.
+OLD_PROTOCOL = {"perspective": 2e-5, "perturbation": 0.01, "occluder_area": [0.05, 0.15]}
+
+
+def test_the_data_fingerprint_hashes_the_retired_keys_as_before():
     """The retired keys are hashed at their constants' values: a data set generated before keeps its fingerprint."""
+    from pathlib import Path
+
     from lensdist_torch.config import config_to_dict
     from lensdist_torch.data.manifest import _data_fields, config_fingerprint
 
@@ -125,28 +131,50 @@ def test_the_data_fingerprint_hashes_the_registration_as_before():
                         "min_inliers")}
     assert fields["registration"] == old and len(old) == 14
     assert all(type(fields["registration"][k]) is type(v) for k, v in old.items())  # 2.0 stays a float, [2, 0] a list
+    assert all(type(fields["protocol"][k]) is type(v) for k, v in OLD_PROTOCOL.items())
     others = {s: dict(config_to_dict(LensdistConfig())[s]) for s in ("quality", "image", "distortion", "protocol")}
     others["quality"].pop("chunk_size"), others["protocol"].pop("unseen_scenes")  # as before: not hashed
-    assert fields == {**others, "registration": old}
-    assert config_fingerprint(LensdistConfig(), ["gravel", "grass"]) == "aa65403107c95ae1"  # as the old code made it
+    assert fields == {**others, "protocol": {**others["protocol"], **OLD_PROTOCOL}, "registration": old}
+    # as the old code made them: the default protocol, with and without scenes, and the two realistic conditions
+    assert config_fingerprint(LensdistConfig(), ["gravel", "grass"]) == "aa65403107c95ae1"
+    assert config_fingerprint(LensdistConfig(), []) == "57d173dc8ee860f9"
+    configs = Path(__file__).resolve().parents[2] / "configs"
+    for name, fingerprint in (("realistic", "2afd8774946456f6"), ("realistic_relief", "7b3af95e40432cd4")):
+        assert config_fingerprint(load_config(configs / f"{name}.toml"), ["gravel", "grass"]) == fingerprint, name
 
 
 def test_a_manifest_of_an_earlier_version_still_reads(tmp_path):
-    """A data set's manifest naming every old ``[registration]`` key reads as it is; at another value it is refused."""
+    """A data set's manifest naming every old ``[registration]`` and ``[protocol]`` key reads as it is; at another
+    value it is refused."""
     import json
 
     from lensdist_torch.config import config_to_dict
     from lensdist_torch.data.manifest import FORMAT_VERSION, ShardError, read_manifest
 
-    config = {**config_to_dict(LensdistConfig()), "registration": OLD_REGISTRATION}
+    default = config_to_dict(LensdistConfig())
+    config = {**default, "protocol": {**default["protocol"], **OLD_PROTOCOL}, "registration": OLD_REGISTRATION}
     m = {"format_version": FORMAT_VERSION, "fingerprint": "aa65403107c95ae1", "config": config,
          "scenes": ["gravel", "grass"], "sets": {}}
     (tmp_path / "manifest.json").write_text(json.dumps(m, allow_nan=False))
     assert read_manifest(tmp_path)["fingerprint"] == "aa65403107c95ae1"
-    m["config"] = {**config, "registration": {**OLD_REGISTRATION, "levels": [3, 1, 0]}}
-    (tmp_path / "manifest.json").write_text(json.dumps(m, allow_nan=False))
-    with pytest.raises(ShardError, match=r"earlier version of the pair protocol \(registration\.levels\)"):
-        read_manifest(tmp_path)
+    for section, key, value in (("registration", "levels", [3, 1, 0]), ("protocol", "perspective", 1e-4)):
+        m["config"] = {**config, section: {**config[section], key: value}}
+        (tmp_path / "manifest.json").write_text(json.dumps(m, allow_nan=False))
+        with pytest.raises(ShardError, match=rf"earlier version of the pair protocol \({section}\.{key}\)"):
+            read_manifest(tmp_path)
+
+
+def test_a_protocol_key_of_an_earlier_version(tmp_path):
+    """``[protocol] occluder_area`` became ``data.realism.OCCLUDER_AREA``: as paper.toml wrote it, it loads."""
+    path = tmp_path / "old.toml"
+    path.write_text("[protocol]\nperspective = 2e-5\nperturbation = 0.01\noccluder_area = [0.05, 0.15]\n"
+                    "relief = 0.02\n")
+    assert load_config(path) == config_from_dict({"protocol": {"relief": 0.02}})
+    path.write_text("[protocol]\noccluder_area = [0.05, 0.3]\n")
+    one_line_error(ValueError, lambda: load_config(path), "protocol.occluder_area", str(path),
+                   "a constant of the method now: lensdist_torch.data.realism.OCCLUDER_AREA")
+    one_line_error(ValueError, lambda: stored_config({"protocol": {"perturbation": 0.02}}), "protocol.perturbation",
+                   "lensdist_torch.data.synthesis.PERTURBATION")
 
 
 #: The ``[analysis]`` keys that became constants of the method, as paper.toml and every stored config wrote them.

@@ -423,8 +423,7 @@ class TestDeterminism:
         ("relief", 0.5),
         ("relief", True),
         ("occluder_rate", 1.5),
-        ("occluder_area", [0.0, 0.15]),
-        ("occluder_area", [0.05, 1.5]),
+        ("occluder_rate", -0.1),
     ],
 )
 def test_bad_realistic_values(field, value):

@@ -18,6 +18,7 @@ from lensdist_torch.config import config_from_dict
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import generate_shard
 from lensdist_torch.data.synthesis import (
+    PERSPECTIVE,
     PairParams,
     draw_pairs,
     footprint,
@@ -220,7 +221,7 @@ def extreme_params(config, n_scenes: int) -> PairParams:
     motions = list(
         itertools.product(
             p.ty_range, p.tx_range, (-p.rotation_deg, p.rotation_deg), p.scale_range,
-            (-p.perspective, p.perspective), (-p.perspective, p.perspective),
+            (-PERSPECTIVE, PERSPECTIVE), (-PERSPECTIVE, PERSPECTIVE),
         )
     )
     rows = []
