@@ -223,3 +223,13 @@ def test_the_shipped_checkpoints_name_the_retired_keys_and_load(name):
     for section, values in loaded.items():  # every kept key as stored (a key the stored config lacks: its default)
         assert {k: v for k, v in values.items() if k in stored.get(section, {})} == {
             k: v for k, v in stored.get(section, {}).items() if k in values}, section
+
+
+@pytest.mark.parametrize("name", ["calibration_default", "calibration_realistic", "calibration_realistic_relief"])
+def test_the_fitted_decisions_in_the_results_load(name):
+    """`lensdist reproduce` wrote these configs (docs/results/README.md): a user passes them with --config."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "docs" / "results" / f"{name}.toml"
+    cfg = load_config(path)
+    assert 0 < cfg.analysis.no_distortion_px < 1 and cfg.analysis != LensdistConfig().analysis  # its fitted decision
