@@ -18,7 +18,7 @@ COLMAP use ``--threads`` threads. Writes JSON to ``--out``.
 
 ``--frames`` and ``--size`` render another sequence (the same lens scaled to the frame: Delta_avg 7.5 px
 times width / 384); its goal is 60 s for the first and 600 s for any other (the 1080p video's).
-``--upsample F`` renders at 1 / F of the size (the rows rounded up to 8) and enlarges the frames F times
+``--upsample F`` renders at 1 / F of the size (rows and columns rounded up to 8) and enlarges the frames F times
 (bilinear, about the centre, cropped to the size): rendering 1080p frames takes seconds each. Eq. 4 is
 applied to the rendered frames with (k2 F^2, k4 F^4), which is (k2, k4) in the enlarged frames' pixels.
 """
@@ -102,9 +102,10 @@ def main() -> None:
     args = ap.parse_args()
     size, up = tuple(args.size), args.upsample
     goal = GOAL_S if (args.frames, size) == (22, SIZE) else GOAL_LONG_S
-    # rendered at 1 / up of the size, rows rounded up to the blocks, enlarged up times about the same centre and
-    # cropped to the size: eq. 4 about the centre with (k2 up^2, k4 up^4) becomes (k2, k4) in the frames' pixels
-    rendered = (8 * math.ceil(size[0] / up / 8), size[1] // up)
+    # rendered at 1 / up of the size, rows and columns rounded up to the blocks, enlarged up times about the same
+    # centre and cropped to the size: eq. 4 about the centre with (k2 up^2, k4 up^4) becomes (k2, k4) in the frames'
+    # pixels
+    rendered = (8 * math.ceil(size[0] / up / 8), 8 * math.ceil(size[1] / up / 8))
     k2, k4 = coefficients(7.5 * size[1] / SIZE[1], size)
     frames, _ = synthetic_sequence(args.frames, k2 * up**2, k4 * up**4, size=rendered, scene="gravel", seed=0,
                                    relief=0.02, realistic=True, rotation_deg=args.rotation, altitude=args.altitude)

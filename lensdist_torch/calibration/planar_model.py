@@ -263,7 +263,8 @@ def bending_halfwidth(theta, replicates: list, *, n: int, size: tuple[int, int],
     big_r = half_diagonal(h, w)
     p = dl["points"][dl["ok"]]
     if len(seen):
-        near = torch.cat([torch.cdist(q, seen).amin(1) for q in p.split(4096)]) <= 0.05 * big_r
+        rows = max(1, 2**22 // len(seen))  # a chunk's distances in 32 MB
+        near = torch.cat([torch.cdist(q, seen).amin(1) for q in p.split(rows)]) <= 0.05 * big_r
         p = p[near]
     share = len(p) / max(len(dl["points"]), 1)
     if len(replicates) < 2 or len(p) < 3 or not len(seen):
