@@ -129,7 +129,8 @@ def main() -> None:
     best = {m: min(r["seconds"] for r in runs if r["method"] == m) for m in ("direct", "auto")}
     out = {
         "command": "python benchmarks/bench_calibrate_speed.py "
-        + " ".join(f"--{k} {v}" for k, v in vars(args).items() if k != "out")
+        + " ".join(f"--{k} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in vars(args).items()
+                   if k != "out")
         + f" --out {args.out}",
         "sequence": {
             "frames": args.frames,
