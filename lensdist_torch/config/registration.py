@@ -53,8 +53,9 @@ class SelfCalConfig:
     """Settings of :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (``[selfcal]``).
 
     What a user sets; the method's constants (the damping, the bounds of a plausible fit, the
-    robust constants, the relief's bumps and iterations) are named in the modules that use them
-    (:mod:`~lensdist_torch.selfcal.fit`, ``model``, ``prior``; docs/method.md, section 10).
+    robust constants, the relief's bumps and iterations, the "cannot tell" threshold) are named
+    in the modules that use them (:mod:`~lensdist_torch.selfcal.fit`, ``model``, ``prior``;
+    docs/method.md, section 10).
 
     Attributes:
         levels: pyramid levels (2 x 2 means), coarsest first in ``iterations``.
@@ -62,8 +63,6 @@ class SelfCalConfig:
         sample_block: per level (coarsest first), the residual uses the strongest-gradient
             pixel of every block x block cell (1: every pixel).
         chunk_size: pairs fitted together; results do not depend on it.
-        confidence_threshold: pairs below this confidence are "cannot tell from this pair" (the
-            confidence is 0.5 at a std of Delta_avg of ``selfcal.fit.CANNOT_TELL_STD_PX``).
         robust: the M-estimator of the photometric residual: "tukey" (biweight), "huber" or
             "none" (least squares); IRLS with sigma = 1.4826 MAD re-estimated every iteration.
         photometric: "gain_bias" (img2 times a fitted gain plus a bias), "normalized"
@@ -121,7 +120,6 @@ class SelfCalConfig:
     iterations: tuple[int, ...] = (8, 4, 6)
     sample_block: tuple[int, ...] = (2, 4, 4)
     chunk_size: int = 16
-    confidence_threshold: float = 0.5
     robust: str = "tukey"
     photometric: str = "gain_bias"
     both_starts: bool = True
@@ -152,4 +150,3 @@ class SelfCalConfig:
             integer(self, name)
         for name in ("iterations", "sample_block"):
             integers(self, name, n=self.levels, per="level")
-        real(self, "confidence_threshold", lo=0, hi=1)

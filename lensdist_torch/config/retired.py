@@ -109,6 +109,7 @@ RETIRED = {
     ("selfcal", "max_coefficient"): _constant("fit.MAX_COEFFICIENT", 2.0, "selfcal"),
     ("selfcal", "min_overlap"): _constant("fit.MIN_OVERLAP", 0.3, "selfcal"),
     ("selfcal", "cannot_tell_std_px"): _constant("fit.CANNOT_TELL_STD_PX", 0.5, "selfcal"),
+    ("selfcal", "confidence_threshold"): _constant("fit.CONFIDENCE_THRESHOLD", 0.5, "selfcal"),
     ("selfcal", "parallax_iterations"): _constant("fit.PARALLAX_ITERATIONS", 6, "selfcal"),
     ("selfcal", "parallax_block"): _constant("fit.PARALLAX_BLOCK", 2, "selfcal"),
     ("selfcal", "ridge"): _constant("prior.RIDGE", 1e-6, "selfcal"),

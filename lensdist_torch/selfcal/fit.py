@@ -42,7 +42,7 @@ Confidence. The weighted Gauss-Newton covariance s_w^2 (J W J^T)^-1, s_w^2 = sum
 (W the final IRLS weights), is propagated to Delta_avg through its gradient in (a, b): ``delta_avg_std`` (px).
 With little motion the distortion of the two views cancels, J's (a, b) columns vanish and the std explodes.
 ``confidence = s0 / (s0 + delta_avg_std)`` with s0 = :data:`CANNOT_TELL_STD_PX`; below
-``config.confidence_threshold`` the answer is "cannot tell from this pair" (``info.confident`` False; the
+:data:`CONFIDENCE_THRESHOLD` the answer is "cannot tell from this pair" (``info.confident`` False; the
 numbers are still returned).
 
 Divergence. A pair whose fit goes non-finite, leaves the plausible range (|a|, |b| <= :data:`MAX_COEFFICIENT`,
@@ -113,13 +113,9 @@ from lensdist_torch.selfcal.prior import (
 from lensdist_torch.selfcal.regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
-    "CANNOT_TELL_STD_PX", "DAMPING", "DISTORTION_LEVELS", "MAX_COEFFICIENT", "MIN_OVERLAP", "PARALLAX_BLOCK",
-    "PARALLAX_ITERATIONS",
-    "SelfCalConfig",
-    "SelfCalInfo",
-    "estimate_distortion",
-    "selfcal_residual",
-    "distort_normalized",
+    "CANNOT_TELL_STD_PX", "CONFIDENCE_THRESHOLD", "DAMPING", "DISTORTION_LEVELS", "MAX_COEFFICIENT", "MIN_OVERLAP",
+    "PARALLAX_BLOCK", "PARALLAX_ITERATIONS",
+    "SelfCalConfig", "SelfCalInfo", "estimate_distortion", "selfcal_residual", "distort_normalized",
     "undistort_normalized",
 ]
 
@@ -156,6 +152,8 @@ MAX_COEFFICIENT = 2.0
 MIN_OVERLAP = 0.3
 #: The std of Delta_avg (px) at which a pair's confidence is 0.5: s0 / (s0 + std) (docs/method.md, section 10).
 CANNOT_TELL_STD_PX = 0.5
+#: A pair whose confidence (a probability) is below this is "cannot tell from this pair": ``info.confident`` False.
+CONFIDENCE_THRESHOLD = 0.5
 #: LM iterations of the plane + parallax model at full size, from the planar fit (docs/method.md, section 10).
 PARALLAX_ITERATIONS = 6
 #: That model's samples: the strongest-gradient pixel of every block x block cell (docs/method.md, section 10).
@@ -441,7 +439,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     aligned = aligned_residual(st.res, st.valid, region, n_regions=n_regions, drop=int(cfg.occluded_share * n_regions))
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(
-        converged=ok, confident=ok & (conf >= cfg.confidence_threshold), confidence=conf, delta_avg=d_avg,
+        converged=ok, confident=ok & (conf >= CONFIDENCE_THRESHOLD), confidence=conf, delta_avg=d_avg,
         delta_avg_std=std, residual=rms, overlap=overlap, ab=ab, gain_bias=gb.double(), scale=st.sigma.double(),
         from_init=from_init, relief=torch.zeros_like(ok), motion=torch.where(ok, motion, nan), planar_ab=ab,
         relief_ab=torch.full_like(ab, float("nan")), relief_z=torch.full_like(d_avg, float("nan")), planar_std=std,

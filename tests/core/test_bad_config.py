@@ -143,7 +143,8 @@ BAD_VALUES = [
     ("selfcal", "newton", "-5"),
     ("selfcal", "noise_floor", "0.0"),
     ("selfcal", "ridge", "inf"),
-    ("selfcal", "confidence_threshold", "2.0"),
+    ("selfcal", "confidence_threshold", "2.0"),  # a constant of the method now: refused at another value, named
+    ("selfcal", "occluded_share", "1.0"),  # a share of the frame's rectangles left out, below 1
     ("selfcal", "min_overlap", "nan"),
     ("selfcal", "margin", "-1.0"),
     ("regression", "k", "0"),

@@ -87,6 +87,11 @@ def test_a_self_calibration_key_of_an_earlier_version(tmp_path):
                    "a constant of the method now: lensdist_torch.selfcal.model.HUBER_K")
     one_line_error(ValueError, lambda: stored_config({"selfcal": {"ridge": 1e-9}}), "selfcal.ridge",
                    "lensdist_torch.selfcal.prior.RIDGE")
+    path.write_text("[selfcal]\nconfidence_threshold = 0.5\nclusters = 4\n")
+    assert load_config(path) == config_from_dict({"selfcal": {"clusters": 4}})
+    path.write_text("[selfcal]\nconfidence_threshold = 0.6\n")
+    one_line_error(ValueError, lambda: load_config(path), "selfcal.confidence_threshold", str(path),
+                   "a constant of the method now: lensdist_torch.selfcal.fit.CONFIDENCE_THRESHOLD")
 
 
 def test_a_registration_key_of_an_earlier_version(tmp_path):
