@@ -30,9 +30,9 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
    a free centre would bend to take parallax in).
 4. **The model by evidence**: n = 1 .. ``planar_terms``, each with the centre at the frame's and
    free (a candidate while within ``planar_centre_max`` of the half diagonal from the frame
-   centre), on the same inliers, chosen by BIC (the homographies are common to all); every model
-   joins the interval by its distance in Delta_avg from the chosen one, weighed by its evidence
-   exp(-BIC / 2) (:func:`~lensdist_torch.calibration.planar_model.model_spread`). A real wide-angle
+   centre), on the same inliers, chosen by BIC (the homographies are common to all); models within
+   ``bic_margin``, or whose RMS is within ``rms_margin`` of the best's, join the interval by their
+   spread of Delta_avg (:func:`~lensdist_torch.calibration.planar_model.model_spread`). A real wide-angle
    lens's centre is off the frame's by a few % of the half diagonal: a lens of 100 px then bends
    the frame-centred model's lines by pixels.
 5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
@@ -63,7 +63,6 @@ from lensdist_torch.calibration.planar_model import (
     lens_deltas,
     lens_of,
     model_spread,
-    model_weights,
     pair_homographies,
     split_lens,
     transfer_errors,
@@ -120,7 +119,7 @@ class PlanarCalibration(LensAnswer):
         matches: the verified matches (at most ``planar_pair_matches`` a pair).
         inlier_share: inliers over the counted pairs' matches.
         reprojection_px: the inliers' RMS transfer error (px).
-        models: per model its BIC, evidence ``weight``, Delta_avg, RMS and coefficients.
+        models: per n its BIC, Delta_avg, RMS and coefficients.
         jackknife: the leave-a-block-out Delta_avg values (px).
         jackknife_coefficients: their lenses' coefficients.
         jackknife_centres: their lenses' centres.
@@ -248,8 +247,6 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
                 **dict(zip(("coefficients", "centre"), lens_of(tn, n, size))),
             }
             fits[name] = (tn, hn, dl, n)
-    for name, weight in model_weights(table).items():
-        table[name]["weight"] = weight
     return table, fits
 
 
@@ -257,7 +254,7 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, confi
     """The answer's Delta_avg (px) over other ``points`` (M, 2), with its interval.
 
     ``points``: say, where a reference calibration inverts. The same rules as the answer's own: its
-    jackknife lenses and its models' evidence-weighted spread measured on those pixels. ``res``: a
+    jackknife lenses and its models' spread measured on those pixels. ``res``: a
     :class:`PlanarCalibration` or its dict (the JSON's ``planar`` block).
 
     Returns:
@@ -281,7 +278,7 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, confi
     value = there(r["coefficients"], r["centre"])
     table = {m: {**v, "delta_avg_px": there(v["coefficients"], v["centre"])} for m, v in r["models"].items()}
     replicates = [there(a, c) for a, c in zip(r["jackknife_coefficients"], r["jackknife_centres"])]
-    return value, jackknife_interval(value, replicates, model_spread(table, r["model"]), cfg.confidence)
+    return value, jackknife_interval(value, replicates, model_spread(table, r["model"], cfg), cfg.confidence)
 
 
 # ------------------------------------------------------------------ the estimator
@@ -300,7 +297,8 @@ def self_calibrate_planar(
         matches: :class:`PlanarMatches` (:func:`read_verified_matches`), in the user's pixels.
         image_size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig` (its ``planar_*`` fields, the
-            interval's ``jackknife_blocks`` and ``confidence``).
+            interval's ``jackknife_blocks``, ``confidence``, ``bic_margin``, ``rms_margin`` and
+            half-width rule).
         settings: the library's config (the class rule and the paper's frame).
         start: a lens's a_1 .. a_n to start from instead of the scan (step 2), or None.
         plane_share: the share of verified matches on one homography per pair, where ``matches``
@@ -369,7 +367,7 @@ def self_calibrate_planar(
             int(inl.sum()),
             table,
         )
-    spread = model_spread(table, best)
+    spread = model_spread(table, best, cfg)
     # the jackknife over contiguous blocks of frames
     n_blocks = min(cfg.jackknife_blocks, n_frames)
     jk_avg, jk_max, jk_t = [], [], []

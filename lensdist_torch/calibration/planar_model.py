@@ -27,14 +27,14 @@ import torch
 
 from lensdist_torch.calibration.multiview import pycolmap_or_error
 from lensdist_torch.calibration.pooling import t_quantile
+from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, lens_inverts
 
-__all__ = ["model_spread", "model_weights", "split_lens", "transfer_residuals", "transfer_jacobians",
-           "fit_lens_and_homographies", "transfer_errors", "lens_of", "lens_deltas", "bending_halfwidth",
-           "pair_homographies"]
+__all__ = ["model_spread", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
+           "transfer_errors", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
 
 
 # ------------------------------------------------------------------ the lens and the residual
@@ -282,36 +282,16 @@ def bending_halfwidth(theta, replicates: list, *, n: int, size: tuple[int, int],
     return t_quantile(0.5 + confidence / 2, b - 1) * math.sqrt((b - 1) / b * sum(msq)), share
 
 
-def model_weights(table: dict) -> dict[str, float]:
-    """Each of the homography model's models' evidence weight: exp(-BIC / 2), normalised over ``table``.
+def model_spread(table: dict, best: str, cfg: MultiViewConfig) -> float:
+    """The largest |Delta_avg - the best's| over the models that fit as well as ``best`` (the homography model's).
 
-    Schwarz's approximation of each model's marginal likelihood (the same evidence ranks them:
-    the answer is the least BIC). ``table``: per model at least {"bic"}.
-
-    Example:
-        >>> w = model_weights({"planar-1": {"bic": 0.0}, "planar-2": {"bic": 2 * math.log(3)}, "planar-3": {"bic": 90}})
-        >>> [round(v, 6) for v in w.values()]  # exp(0) : exp(-log 3) : exp(-45)
-        [0.75, 0.25, 0.0]
+    ``table``: per model {"bic", "delta_avg_px", "reprojection_px"}. As well: within
+    ``cfg.bic_margin`` of its BIC, or a reprojection RMS at most (1 + ``cfg.rms_margin``) times its.
+    (The 3-D models weigh themselves by held-out frames instead: :mod:`~lensdist_torch.calibration.multiview_evidence`.)
     """
-    low = min(v["bic"] for v in table.values())
-    raw = {m: math.exp(-(v["bic"] - low) / 2) for m, v in table.items()}
-    total = sum(raw.values())
-    return {m: w / total for m, w in raw.items()}
-
-
-def model_spread(table: dict, best: str) -> float:
-    """How far the homography model's models put Delta_avg from ``best``'s, weighed by their evidence (px, a std).
-
-    sqrt(sum_m w_m (Delta_m - Delta_best)^2), w the :func:`model_weights`; ``table``: per model
-    {"bic", "delta_avg_px"}. It joins the jackknife's spread in quadrature (docs/method.md,
-    section 12). (The 3-D models weigh themselves by held-out frames instead:
-    :mod:`~lensdist_torch.calibration.multiview_evidence`.)
-
-    Example:
-        >>> t = {"planar-1": {"bic": 0.0, "delta_avg_px": 10.0},
-        ...      "planar-2": {"bic": 2 * math.log(3), "delta_avg_px": 14.0}}
-        >>> model_spread(t, "planar-1")  # sqrt(0.25 * 4^2)
-        2.0
-    """
-    b = table[best]["delta_avg_px"]
-    return math.sqrt(sum(w * (table[m]["delta_avg_px"] - b) ** 2 for m, w in model_weights(table).items()))
+    b = table[best]
+    return max(
+        abs(v["delta_avg_px"] - b["delta_avg_px"])
+        for v in table.values()
+        if v["bic"] - b["bic"] <= cfg.bic_margin or v["reprojection_px"] <= (1 + cfg.rms_margin) * b["reprojection_px"]
+    )

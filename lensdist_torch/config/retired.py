@@ -79,12 +79,6 @@ RETIRED = {
     ("multiview", "max_halfwidth_px"): Retired(
         by="the class rule every path of calibrate shares, a class where the whole interval lies in one "
            "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
-    ("multiview", "bic_margin"): Retired(
-        by="the homography model's evidence weights, exp(-BIC / 2) over its models "
-           "(lensdist_torch.calibration.planar_model.model_spread)", inert=True),
-    ("multiview", "rms_margin"): Retired(
-        by="the homography model's evidence weights, exp(-BIC / 2) over its models "
-           "(lensdist_torch.calibration.planar_model.model_spread)", inert=True),
     ("multiview", "planar_scan_range"): _constant("planar_features.PLANAR_SCAN_RANGE", (-0.3, 1.5)),
     ("multiview", "planar_scan_steps"): _constant("planar_features.PLANAR_SCAN_STEPS", 19),
     ("multiview", "planar_scan_pairs"): _constant("planar_features.PLANAR_SCAN_PAIRS", 60),

@@ -119,6 +119,11 @@ class MultiViewConfig:
         jackknife_blocks: the folds: contiguous blocks of frames held out in turn; each model is
             adjusted without a block and scored on predicting it (its evidence), and the spread of
             those fits is the jackknife that checks each model's posterior.
+        bic_margin: the homography model's models within this BIC of its best fit equally well:
+            their spread of Delta joins its interval.
+        rms_margin: so do its models whose reprojection RMS is within this share of the best's: on
+            thousands of matches BIC prefers the richest model for a few % of RMS
+            (docs/method.md, section 12).
         confidence: coverage of the intervals.
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); one
             answers, its posterior checked by its own jackknife; more: their spread of Delta_avg
@@ -161,6 +166,8 @@ class MultiViewConfig:
     features_per_megapixel: float = 8192.0
     mapped_frames: int = 60
     jackknife_blocks: int = 6
+    bic_margin: float = 10.0
+    rms_margin: float = 0.05
     confidence: float = 0.95
     reconstructions: int = 1
     num_threads: int = 2
@@ -195,6 +202,8 @@ class MultiViewConfig:
         real(self, "planar_centre_max", lo=0, hi=1)
         real(self, "planar_guided_px", lo=0)
         real(self, "planar_guided_below", lo=0, hi=1)
+        real(self, "bic_margin", lo=0)
+        real(self, "rms_margin", lo=0)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "features_per_megapixel", lo=0, lo_open=True)
 
