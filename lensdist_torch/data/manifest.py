@@ -48,7 +48,7 @@ _NOT_IN_DATA = ("feature_fallback", "max_keypoints", "match_ratio", "ransac_thre
 _CONSTANTS = {
     name: {key: list(r.value) if isinstance(r.value, tuple) else r.value
            for (section, key), r in RETIRED.items()
-           if section == name and r.value is not None and not (name == "registration" and key in _NOT_IN_DATA)}
+           if section == name and r.value is not None}
     for name in _DATA_SECTIONS
 }
 
@@ -78,10 +78,10 @@ def _data_fields(config: LensdistConfig) -> dict:
     d = {name: d[name] for name in _DATA_SECTIONS}
     for name in ("quality", "registration"):
         d[name].pop("chunk_size", None)
-    for key in _NOT_IN_DATA:
-        d["registration"].pop(key, None)
     for name in _DATA_SECTIONS:
         d[name].update(_CONSTANTS[name])  # the constants that were keys: a data set keeps its fingerprint
+    for key in _NOT_IN_DATA:
+        d["registration"].pop(key, None)
     d["protocol"].pop("unseen_scenes", None)  # only reproduce's extra test set reads it
     return d
 
