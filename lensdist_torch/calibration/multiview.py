@@ -55,17 +55,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from statistics import NormalDist
 
-import numpy as np
 import torch
 
 from lensdist_torch.calibration.lens_answer import LensAnswer
-from lensdist_torch.calibration.multiview_evidence import (
-    checked_scale,
-    dispersion,
-    evidence_weights,
-    mixture_interval,
-    unit_log_evidence,
-)
+from lensdist_torch.calibration.multiview_evidence import weigh_models
 from lensdist_torch.calibration.multiview_fits import (
     BA_FUNCTION_TOLERANCE,
     camera_of,
@@ -366,32 +359,17 @@ def self_calibrate_reconstruction(
         if on_model is not None:
             on_model(model)
     rows = [f["row"] for f in fits.values()]
-    spread = dispersion([r["delta_avg_std_px"] for r in rows], [r["jackknife_std_px"] for r in rows])
-    widen = [checked_scale(spread, r["delta_avg_std_px"], r["jackknife_std_px"]) for r in rows]
     held = _other_rows(rec, others or {}, fits, scale, n_blocks, cfg.confidence)
-    fits, rows, widen = {**fits, **held}, rows + [h["row"] for h in held.values()], widen + [1.0] * len(held)
-    lpd = unit_log_evidence([f["errors"] for f in fits.values()]) / spread
-    # a model the tracks do not determine (a posterior without bound) is one the data cannot carry: no weight
-    carried = np.array([math.isfinite(r["delta_avg_std_px"]) for r in rows]) if any(
-        math.isfinite(r["delta_avg_std_px"]) for r in rows) else np.ones(len(rows), dtype=bool)
-    weights = np.zeros(len(rows))
-    weights[carried] = evidence_weights(lpd[carried], EVIDENCE_DRAWS, cfg.seed)
+    fits, checked = {**fits, **held}, [True] * len(rows) + [False] * len(held)
+    rows += [h["row"] for h in held.values()]
+    weighed = weigh_models(rows, [f["errors"] for f in fits.values()], checked=checked, confidence=cfg.confidence,
+                           draws=EVIDENCE_DRAWS, seed=cfg.seed)
+    weights, lpd, carried, intervals = (weighed[k] for k in ("weights", "lpd", "carried", "intervals"))
+    spread = weighed["dispersion"]
     table = {m: {**r, "weight": float(w), "elpd": float(e)} for m, r, w, e in zip(fits, rows, weights, lpd.sum(axis=1))}
     best = max(
         (m for m, c in zip(table, carried) if c), key=lambda m: table[m]["elpd"]
     )  # near-twins split weight, not elpd
-    intervals = [
-        tuple(
-            max(0.0, v)
-            for v in mixture_interval(
-                [r[f"{fig}_px"] for r in rows],
-                [r[f"{fig}_std_px"] * math.sqrt(w) for r, w in zip(rows, widen)],
-                weights,
-                cfg.confidence,
-            )
-        )
-        for fig in ("delta_avg", "delta_max")
-    ]
     if best in held:
         row = table[best]
         k, d = (

@@ -52,6 +52,7 @@ from statistics import NormalDist, median
 import numpy as np
 
 __all__ = [
+    "fold_ranges",
     "checked_scale",
     "CAP",
     "NO_GRADIENT",
@@ -63,6 +64,8 @@ __all__ = [
     "unit_log_evidence",
     "evidence_weights",
     "mixture_interval",
+    "weigh_models",
+    "mixed_intervals",
 ]
 
 #: A held-out squared error counts at most this many times its fold's median (over every model).
@@ -70,6 +73,17 @@ CAP = 16.0
 #: A central difference smaller than this (px of Delta per unit of a parameter) is no dependence: a camera without
 #: distortion has Delta 0 whatever its focal length, known even where the adjustment does not determine the camera.
 NO_GRADIENT = 1e-9
+
+
+def fold_ranges(n: int, blocks: int) -> list[range]:
+    """The folds of ``n`` frames in recording order: ``min(blocks, n)`` contiguous blocks of their indices.
+
+    Example:
+        >>> [list(r) for r in fold_ranges(5, 2)]
+        [[0, 1], [2, 3, 4]]
+    """
+    b = min(blocks, n)
+    return [range(g * n // b, (g + 1) * n // b) for g in range(b)]
 
 
 def camera_covariance(rec, camera_id: int, rss: float, observations: int) -> np.ndarray | None:
@@ -303,3 +317,62 @@ def mixture_interval(means: Sequence[float], stds: Sequence[float], weights: Seq
         return (lo + hi) / 2
 
     return quantile(tail), quantile(1 - tail)
+
+
+def weigh_models(rows: Sequence[dict], errors: Sequence, *, checked: Sequence[bool], confidence: float,
+                 draws: int = 1000, seed: int = 0) -> dict:
+    """The models' weights and the answer's intervals: dispersion, checked posteriors, pseudo-BMA+, their mixture.
+
+    ``rows``: per model ``delta_avg_px``, ``delta_max_px`` and their posterior stds
+    (``delta_avg_std_px``, ``delta_max_std_px``) and ``jackknife_std_px`` (of Delta_avg);
+    ``errors``: per model what :func:`unit_log_evidence` takes. ``checked``: the models whose
+    jackknife sets the :func:`dispersion` and checks their posterior (:func:`checked_scale`; the
+    others' posteriors stay as they are). A model without a finite posterior (the data do not
+    determine it) takes no weight, unless none has one.
+
+    Returns:
+        ``weights`` (M,), ``lpd`` (M, units; the log evidence over the dispersion), ``dispersion``,
+        ``carried`` (M,) bool and ``intervals``: the central ``confidence`` intervals of Delta_avg and
+        Delta_max (each >= 0) of the models' normals mixed by their weights.
+
+    Example:
+        >>> import numpy as np
+        >>> rows = [{"delta_avg_px": 10.0, "delta_avg_std_px": 1.0, "delta_max_px": 20.0, "delta_max_std_px": 2.0,
+        ...          "jackknife_std_px": 2.0}]
+        >>> out = weigh_models(rows, [[[np.ones(4)]]], checked=[True], confidence=0.95)
+        >>> out["dispersion"], [round(v, 2) for v in out["intervals"][0]]  # the jackknife doubles the std
+        (4.0, [6.08, 13.92])
+    """
+    spread = dispersion([r["delta_avg_std_px"] for r, c in zip(rows, checked) if c],
+                        [r["jackknife_std_px"] for r, c in zip(rows, checked) if c])
+    lpd = unit_log_evidence(errors) / spread
+    finite = np.array([math.isfinite(r["delta_avg_std_px"]) for r in rows])
+    carried = finite if finite.any() else np.ones(len(rows), dtype=bool)
+    weights = np.zeros(len(rows))
+    weights[carried] = evidence_weights(lpd[carried], draws, seed)
+    intervals = mixed_intervals(rows, weights, dispersion=spread, checked=checked, confidence=confidence)
+    return {"weights": weights, "lpd": lpd, "dispersion": spread, "carried": carried, "intervals": intervals}
+
+
+def mixed_intervals(rows: Sequence[dict], weights: Sequence[float], *, dispersion: float, checked: Sequence[bool],
+                    confidence: float) -> list[tuple[float, float]]:
+    """The central ``confidence`` intervals (each >= 0) of Delta_avg and Delta_max: the models' normals, mixed.
+
+    ``rows`` as :func:`weigh_models` takes them; each checked model's posterior variance times
+    :func:`checked_scale` of ``dispersion``, the others' as they are.
+
+    Example:
+        >>> row = {"delta_avg_px": 10.0, "delta_avg_std_px": 1.0, "delta_max_px": 20.0, "delta_max_std_px": 2.0,
+        ...        "jackknife_std_px": 0.5}
+        >>> [[round(v, 2) for v in iv] for iv in mixed_intervals([row], [1.0], dispersion=1.0, checked=[True],
+        ...                                                      confidence=0.95)]
+        [[8.04, 11.96], [16.08, 23.92]]
+    """
+    widen = [checked_scale(dispersion, r["delta_avg_std_px"], r["jackknife_std_px"]) if c else 1.0
+             for r, c in zip(rows, checked)]
+    return [
+        tuple(max(0.0, v) for v in mixture_interval(
+            [r[f"{fig}_px"] for r in rows], [r[f"{fig}_std_px"] * math.sqrt(w) for r, w in zip(rows, widen)],
+            weights, confidence))
+        for fig in ("delta_avg", "delta_max")
+    ]

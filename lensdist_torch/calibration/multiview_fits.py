@@ -30,6 +30,7 @@ import torch
 
 from lensdist_torch.calibration.multiview_evidence import (
     camera_covariance,
+    fold_ranges,
     heldout_rms,
     heldout_squared_errors,
     posterior_std,
@@ -157,8 +158,7 @@ def rotation_spread_deg(rec) -> float:
 def fold_blocks(rec, n_blocks: int) -> list[list[int]]:
     """Registered frame ids in contiguous blocks by image name (recording order)."""
     images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
-    n = len(images)
-    return [[im.frame_id for im in images[g * n // n_blocks:(g + 1) * n // n_blocks]] for g in range(n_blocks)]
+    return [[images[i].frame_id for i in r] for r in fold_ranges(len(images), n_blocks)]
 
 
 def _folds(rec, n_blocks: int, held: bool = False):

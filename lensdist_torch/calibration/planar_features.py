@@ -28,17 +28,17 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
    the lens's local scale (so, about, in the image's pixels); twice: the matches within
    ``PLANAR_INLIER_PX`` of the first fit are the inliers of the second (the centre at the frame's:
    a free centre would bend to take parallax in).
-4. **The model by evidence**: n = 1 .. ``planar_terms``, each with the centre at the frame's and
-   free (a candidate while within ``planar_centre_max`` of the half diagonal from the frame
-   centre), on the same inliers, chosen by BIC (the homographies are common to all); models within
-   ``bic_margin``, or whose RMS is within ``rms_margin`` of the best's, join the interval by their
-   spread of Delta_avg (:func:`~lensdist_torch.calibration.planar_model.model_spread`). A real wide-angle
-   lens's centre is off the frame's by a few % of the half diagonal: a lens of 100 px then bends
-   the frame-centred model's lines by pixels.
-5. **Interval**: a delete-a-block jackknife over ``jackknife_blocks`` contiguous blocks of
-   frames (every pair with a frame of the block left out, the chosen model fitted again), t on
-   blocks - 1 degrees of freedom, the models' spread in quadrature. No class when the interval
-   spans two classes at the paper's frame (:func:`~lensdist_torch.calibration.sequence_class.interval_class`,
+4. **The models by their evidence**: n = 1 .. ``planar_terms``, each with the centre at the
+   frame's and free (a candidate while within ``planar_centre_max`` of the half diagonal from the
+   frame centre), on the same inliers, each fitted again without each of ``jackknife_blocks``
+   contiguous blocks of frames and scored on predicting the pairs it left out; pseudo-BMA+ weights
+   (:mod:`~lensdist_torch.calibration.planar_evidence`). The model of most weight answers. A real
+   wide-angle lens's centre is off the frame's by a few % of the half diagonal: a lens of 100 px
+   then bends the frame-centred model's lines by pixels.
+5. **Interval**: the folds' fits are each model's delete-a-block jackknife; the models' jackknife
+   normals (t on blocks - 1 degrees of freedom) mixed by their weights
+   (:func:`~lensdist_torch.calibration.planar_evidence.weighted_interval`). No class when the
+   interval spans two classes at the paper's frame (:func:`~lensdist_torch.calibration.sequence_class.interval_class`,
    the rule every path shares), when fewer than
    ``PLANAR_MIN_PAIRS`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
    the verified matches fit: the scene is not a plane and the camera did not only turn.
@@ -53,22 +53,23 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.matches import PlanarMatches, thin_matches
+from lensdist_torch.calibration.multiview_evidence import mixed_intervals, posterior_std
+from lensdist_torch.calibration.planar_evidence import score_models
 from lensdist_torch.calibration.planar_model import (
     bending_halfwidth,
     fit_lens_and_homographies,
     lens_deltas,
     lens_of,
-    model_spread,
     pair_homographies,
     split_lens,
     transfer_errors,
     transfer_residuals,
 )
-from lensdist_torch.calibration.pooling import jackknife_interval
 from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
@@ -119,10 +120,13 @@ class PlanarCalibration(LensAnswer):
         matches: the verified matches (at most ``planar_pair_matches`` a pair).
         inlier_share: inliers over the counted pairs' matches.
         reprojection_px: the inliers' RMS transfer error (px).
-        models: per n its BIC, Delta_avg, RMS and coefficients.
-        jackknife: the leave-a-block-out Delta_avg values (px).
-        jackknife_coefficients: their lenses' coefficients.
-        jackknife_centres: their lenses' centres.
+        models: per model its evidence ``weight``, ``heldout_rms_px`` (held-out pairs' transfer
+            error), BIC, Delta_avg and Delta_max with their posterior stds, the lens's ``covariance``,
+            RMS, coefficients and centre, and its jackknife (``jackknife_std_px``;
+            ``jackknife_coefficients``, ``jackknife_centres``: the folds' lenses).
+        jackknife: the answer model's leave-a-block-out Delta_avg values (px).
+        dispersion: how much more the folds scatter than the posteriors allow (>= 1): the scale of
+            the posteriors' variances and of the log evidence.
         opencv: OpenCV's camera fitted to the map, 5 coefficients (``camera_matrix``,
             ``dist_coeffs`` and the fit's errors, as
             :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
@@ -154,8 +158,7 @@ class PlanarCalibration(LensAnswer):
     reprojection_px: float
     models: dict
     jackknife: list
-    jackknife_coefficients: list
-    jackknife_centres: list
+    dispersion: float
     opencv: dict
     opencv_rational: dict
     guided: dict | None = None
@@ -215,6 +218,12 @@ def _eq4_fit(a: torch.Tensor, centre: list[float], size: tuple[int, int], dl: di
     return fit_eq4(p, lens_ideal_points(p, a, *size, centre=centre), *size)
 
 
+def _stays(theta: torch.Tensor, n: int, cfg: MultiViewConfig) -> bool:
+    """Whether the lens ``theta``'s centre, where free, lies within ``planar_centre_max`` of the frame centre."""
+    d = split_lens(theta, n)[1]
+    return d is None or float(d.norm()) <= cfg.planar_centre_max
+
+
 def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiViewConfig, step: int):
     """Step 4: the models n = 1 .. terms, the centre fixed and free, from ``theta0`` (terms,) on the inliers ``inl``.
 
@@ -233,8 +242,7 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
             start = torch.cat([theta0[:n], theta0.new_zeros(2)]) if free else theta0[:n].clone()
             tn, hn = fit_lens_and_homographies(start, hs.clone(), v1, v2, pair=pair, w=inl.double(),
                                                iterations=PLANAR_ITERATIONS, terms=n)
-            d = split_lens(tn, n)[1]
-            if d is not None and not float(d.norm()) <= cfg.planar_centre_max:
+            if not _stays(tn, n, cfg):
                 continue  # a centre that far off is no lens's: not a candidate
             r = transfer_residuals(tn, hn, v1, v2, terms=n, pair=pair)[inl] * big_r
             rss = float((r * r).sum())
@@ -243,6 +251,7 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
             table[name] = {
                 "bic": n_info * math.log(max(rss, 1e-300) / max(n_obs, 1)) + (n + 2 * free) * math.log(max(n_info, 1)),
                 "delta_avg_px": dl["delta_avg_px"],
+                "delta_max_px": dl["delta_max_px"],
                 "reprojection_px": math.sqrt(rss / max(n_obs, 1)),
                 **dict(zip(("coefficients", "centre"), lens_of(tn, n, size))),
             }
@@ -253,18 +262,19 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
 def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, config: MultiViewConfig | None = None):
     """The answer's Delta_avg (px) over other ``points`` (M, 2), with its interval.
 
-    ``points``: say, where a reference calibration inverts. The same rules as the answer's own: its
-    jackknife lenses and its models' spread measured on those pixels. ``res``: a
+    ``points``: say, where a reference calibration inverts. The same rule as the answer's own: each
+    model's figure, its posterior (its ``covariance``) and its jackknife lenses measured on those
+    pixels, mixed by the models' weights
+    (:func:`~lensdist_torch.calibration.multiview_evidence.mixed_intervals`). ``res``: a
     :class:`PlanarCalibration` or its dict (the JSON's ``planar`` block).
 
     Returns:
         (value, (low, high)).
 
     Example:
-        >>> r = {"coefficients": [0.1], "centre": [4.5, 3.5], "model": "planar-1",
-        ...      "jackknife_coefficients": [[0.1], [0.1]], "jackknife_centres": [[4.5, 3.5], [4.5, 3.5]],
-        ...      "models": {"planar-1": {"bic": 0.0, "reprojection_px": 0.5, "coefficients": [0.1],
-        ...                              "centre": [4.5, 3.5]}}}
+        >>> one = {"coefficients": [0.1], "centre": [4.5, 3.5], "weight": 1.0, "covariance": [[0.0]],
+        ...        "jackknife_coefficients": [[0.1], [0.1]], "jackknife_centres": [[4.5, 3.5], [4.5, 3.5]]}
+        >>> r = {"coefficients": [0.1], "centre": [4.5, 3.5], "models": {"planar-1": one}, "dispersion": 1.0}
         >>> value, (lo, hi) = delta_avg_where(r, torch.tensor([[0.0, 0.0]], dtype=torch.float64), 8, 10)
         >>> round(value, 4), lo == hi == value  # a corner at r = 1: 10 % of 5.7 px; replicates alike: no width
         (0.5701, True)
@@ -275,10 +285,23 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, confi
     def there(a, centre) -> float:
         return float((lens_ideal_points(points, a, height, width, centre=centre) - points).norm(dim=-1).mean())
 
-    value = there(r["coefficients"], r["centre"])
-    table = {m: {**v, "delta_avg_px": there(v["coefficients"], v["centre"])} for m, v in r["models"].items()}
-    replicates = [there(a, c) for a, c in zip(r["jackknife_coefficients"], r["jackknife_centres"])]
-    return value, jackknife_interval(value, replicates, model_spread(table, r["model"], cfg), cfg.confidence)
+    rows = []
+    for v in r["models"].values():
+        coef, centre, free = v["coefficients"], v["centre"], len(v.get("covariance") or []) > len(v["coefficients"])
+        n = len(coef)
+
+        def measure(p, n=n, free=free, centre=centre):
+            return (there(list(p[:n]), list(p[n:]) if free else centre),)
+
+        jk = torch.tensor([there(a, c) for a, c in zip(v["jackknife_coefficients"], v["jackknife_centres"])])
+        cov = v.get("covariance")
+        params = list(coef) + (list(centre) if free else [])
+        std = posterior_std(params, list(range(len(params))), None if cov is None else np.asarray(cov), measure)[0]
+        rows.append({"delta_avg_px": there(coef, centre), "delta_avg_std_px": std, "delta_max_px": 0.0,
+                     "delta_max_std_px": 0.0, "jackknife_std_px": float(jk.std(correction=0)) * math.sqrt(len(jk) - 1)})
+    interval = mixed_intervals(rows, [v["weight"] for v in r["models"].values()], dispersion=r["dispersion"],
+                               checked=[True] * len(rows), confidence=cfg.confidence)[0]
+    return there(r["coefficients"], r["centre"]), interval
 
 
 # ------------------------------------------------------------------ the estimator
@@ -297,8 +320,7 @@ def self_calibrate_planar(
         matches: :class:`PlanarMatches` (:func:`read_verified_matches`), in the user's pixels.
         image_size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig` (its ``planar_*`` fields, the
-            interval's ``jackknife_blocks``, ``confidence``, ``bic_margin``, ``rms_margin`` and
-            half-width rule).
+            folds' ``jackknife_blocks``, ``confidence`` and ``seed``).
         settings: the library's config (the class rule and the paper's frame).
         start: a lens's a_1 .. a_n to start from instead of the scan (step 2), or None.
         plane_share: the share of verified matches on one homography per pair, where ``matches``
@@ -319,7 +341,6 @@ def self_calibrate_planar(
     matches = thin_matches(matches, cfg.planar_pair_matches)
     h, w = (int(v) for v in image_size)
     big_r = half_diagonal(h, w)
-    n_frames = len(matches.names)
     step = map_grid_step(h, w)
     c = matches.x1.new_tensor(distortion_center(h, w))
     v1, v2 = (matches.x1 - c) / big_r, (matches.x2 - c) / big_r
@@ -333,7 +354,7 @@ def self_calibrate_planar(
             delta_max_user_interval=(nan, nan), invertible_fraction=0.0, bending_halfwidth_px=nan,
             matched_fraction=0.0, class_label=None, reason=reason, pairs=len(matches.first), inliers=inl,
             matches=len(matches.pair), inlier_share=nan, reprojection_px=nan, models=models or {}, jackknife=[],
-            jackknife_coefficients=[], jackknife_centres=[], opencv={}, opencv_rational={})
+            dispersion=nan, opencv={}, opencv_rational={})
 
     if len(matches.first) < PLANAR_MIN_PAIRS:
         return fail(f"too few matched pairs: {len(matches.first)} of at least {PLANAR_MIN_PAIRS}")
@@ -357,33 +378,23 @@ def self_calibrate_planar(
     share = float(inl[counted].double().mean()) if bool(counted.any()) else 0.0
     share = share if plane_share is None else plane_share
     table, fits = _fit_models(theta, hs, v1, v2, matches.pair, inl, (h, w), cfg, step)
-    best = min(table, key=lambda m: table[m]["bic"])
+    if good_pairs < PLANAR_MIN_PAIRS:
+        return fail(f"too few pairs fit one homography: {good_pairs} of at least {PLANAR_MIN_PAIRS}",
+                    lens_of(theta, terms, (h, w))[0], int(inl.sum()), table)
+    scores, answer = score_models(fits, matches, v1, v2, inliers=inl, blocks=cfg.jackknife_blocks, size=(h, w),
+                                  step=step, iterations=PLANAR_ITERATIONS, confidence=cfg.confidence, seed=cfg.seed,
+                                  stays=lambda t, n: _stays(t, n, cfg))
+    table = {m: table[m] for m in scores}
+    for m, sc in scores.items():
+        lenses = [lens_of(tj, fits[m][3], (h, w)) for tj in sc["jackknife_thetas"]]
+        table[m].update({k: sc[k] for k in ("weight", "elpd", "delta_avg_std_px", "delta_max_std_px",
+                                            "jackknife_std_px", "heldout_rms_px", "covariance")},
+                        jackknife_coefficients=[v[0] for v in lenses], jackknife_centres=[v[1] for v in lenses])
+    best = max(table, key=lambda m: table[m]["elpd"])  # near-twins split weight, not elpd
     theta, hs, dl, n = fits[best]
     a, centre = lens_of(theta, n, (h, w))
-    if good_pairs < PLANAR_MIN_PAIRS:
-        return fail(
-            f"too few pairs fit one homography: {good_pairs} of at least {PLANAR_MIN_PAIRS}",
-            a,
-            int(inl.sum()),
-            table,
-        )
-    spread = model_spread(table, best, cfg)
-    # the jackknife over contiguous blocks of frames
-    n_blocks = min(cfg.jackknife_blocks, n_frames)
-    jk_avg, jk_max, jk_t = [], [], []
-    for g in range(n_blocks):
-        block = torch.arange(g * n_frames // n_blocks, (g + 1) * n_frames // n_blocks)
-        out = torch.isin(matches.first, block) | torch.isin(matches.second, block)
-        wj = inl.double() * (~out[matches.pair]).double()
-        tj, _ = fit_lens_and_homographies(theta.clone(), hs.clone(), v1, v2, pair=matches.pair, w=wj,
-                                          iterations=PLANAR_ITERATIONS, terms=n)
-        dj = lens_deltas(tj, n, (h, w), 2 * step)
-        jk_avg.append(dj["delta_avg_px"])
-        jk_max.append(dj["delta_max_px"])
-        jk_t.append(tj)
-    jk_a, jk_c = ([lens_of(tj, n, (h, w))[k] for tj in jk_t] for k in (0, 1))
-    intervals = [jackknife_interval(value, jk, extra, cfg.confidence)
-                 for value, jk, extra in ((dl["delta_avg_px"], jk_avg, spread), (dl["delta_max_px"], jk_max, 0.0))]
+    jk_t = scores[best]["jackknife_thetas"]
+    intervals = answer["intervals"]
     seen = torch.cat([matches.x1[inl], matches.x2[inl]]).unique(dim=0)
     bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=cfg.confidence, seen=seen)
     k2u, k4u, fit_err = _eq4_fit(a, centre, (h, w), dl)
@@ -429,9 +440,8 @@ def self_calibrate_planar(
         inlier_share=share,
         reprojection_px=table[best]["reprojection_px"],
         models=table,
-        jackknife=jk_avg,
-        jackknife_coefficients=jk_a,
-        jackknife_centres=jk_c,
+        jackknife=scores[best]["jackknife_avg"],
+        dispersion=answer["dispersion"],
         opencv=standard,
         opencv_rational=rational,
     )

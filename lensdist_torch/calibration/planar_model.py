@@ -27,14 +27,13 @@ import torch
 
 from lensdist_torch.calibration.multiview import pycolmap_or_error
 from lensdist_torch.calibration.pooling import t_quantile
-from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.distortion import distortion_center
 from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import grid_points
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, lens_inverts
 
-__all__ = ["model_spread", "split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
-           "transfer_errors", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
+__all__ = ["split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
+           "transfer_errors", "lens_covariance", "lens_of", "lens_deltas", "bending_halfwidth", "pair_homographies"]
 
 
 # ------------------------------------------------------------------ the lens and the residual
@@ -138,37 +137,52 @@ def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: t
     return ja, jh
 
 
+def _normal_equations(a, hs, v1, v2, *, pair, w, terms):
+    """The weighted Gauss-Newton blocks at (``a``, ``hs``), the pairs' to be eliminated (Schur complement).
+
+    Per pair U (P, 8, 8) and W (P, 8, n), the lens's V (n, n), the gradients' negatives g_h (P, 8) and g_a (n,).
+    """
+    n_pairs = hs.shape[0]
+    r = transfer_residuals(a, hs, v1, v2, terms=terms, pair=pair)
+    ja, jh = transfer_jacobians(a, hs, v1, v2, terms=terms, pair=pair)
+    wr = w[:, None, None]
+    uhh = torch.zeros(n_pairs, 8, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * jh)))
+    whd = torch.zeros(n_pairs, 8, a.numel(), dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * ja)))
+    vdd = (ja.transpose(1, 2) @ (wr * ja)).sum(0)
+    gh = -torch.zeros(n_pairs, 8, dtype=a.dtype).index_add_(
+        0, pair, (jh.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0]
+    )
+    gd = -(ja.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0].sum(0)
+    return uhh, whd, vdd, gh, gd
+
+
 def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair, w, iterations: int,
-                              terms: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                              terms: int | None = None, lens_held: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Levenberg-Marquardt on the lens ``a`` (``theta``, ``terms``) and the pairs' homographies ``hs`` (P, 8) (step 3).
 
-    ``w`` (N,) weights the matches (0: left out). The pairs' blocks are eliminated (Schur complement).
+    ``w`` (N,) weights the matches (0: left out; a pair without weight keeps its homography). The
+    pairs' blocks are eliminated (Schur complement). ``lens_held``: the homographies alone move
+    (a held-out pair posed again under a lens fitted without it).
     """
-    n_pairs, lam = hs.shape[0], 1e-3
+    lam = 1e-3
 
     def cost(a_, hs_):
         r = transfer_residuals(a_, hs_, v1, v2, terms=terms, pair=pair)
         return float((w[:, None] * r * r).sum())
 
     c0 = cost(a, hs)
+    eye8 = torch.eye(8, dtype=a.dtype)
     for _ in range(iterations):
-        r = transfer_residuals(a, hs, v1, v2, terms=terms, pair=pair)
-        ja, jh = transfer_jacobians(a, hs, v1, v2, terms=terms, pair=pair)
-        wr = w[:, None, None]
-        uhh = torch.zeros(n_pairs, 8, 8, dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * jh)))
-        whd = torch.zeros(n_pairs, 8, a.numel(), dtype=a.dtype).index_add_(0, pair, (jh.transpose(1, 2) @ (wr * ja)))
-        vdd = (ja.transpose(1, 2) @ (wr * ja)).sum(0)
-        gh = -torch.zeros(n_pairs, 8, dtype=a.dtype).index_add_(
-            0, pair, (jh.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0]
-        )
-        gd = -(ja.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0].sum(0)
-        eye8 = torch.eye(8, dtype=a.dtype)
+        uhh, whd, vdd, gh, gd = _normal_equations(a, hs, v1, v2, pair=pair, w=w, terms=terms)
         while True:
             ud = uhh + lam * (torch.diagonal(uhh, dim1=1, dim2=2)[..., None] * eye8 + 1e-12 * eye8)
             ui = torch.linalg.pinv(ud)
-            s = vdd + lam * torch.diag(torch.diagonal(vdd) + 1e-12) - torch.einsum("pji,pjk,pkl->il", whd, ui, whd)
-            rhs = gd - torch.einsum("pji,pjk,pk->i", whd, ui, gh)
-            da = torch.linalg.lstsq(s, rhs[:, None]).solution[:, 0]
+            if lens_held:
+                da = torch.zeros_like(a)
+            else:
+                s = vdd + lam * torch.diag(torch.diagonal(vdd) + 1e-12) - torch.einsum("pji,pjk,pkl->il", whd, ui, whd)
+                rhs = gd - torch.einsum("pji,pjk,pk->i", whd, ui, gh)
+                da = torch.linalg.lstsq(s, rhs[:, None]).solution[:, 0]
             dh = torch.einsum("pij,pj->pi", ui, gh - whd @ da)
             c1 = cost(a + da, hs + dh)
             if math.isfinite(c1) and c1 < c0:
@@ -182,6 +196,26 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair
         if done:
             break
     return a, hs
+
+
+def lens_covariance(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair, w, terms: int | None = None):
+    """The covariance (n, n) of the fitted lens ``a`` (``theta``), every pair's homography marginalised, or None.
+
+    The inverse of the lens's Schur complement V - sum_p W_p^T U_p^-1 W_p at the fit, times
+    RSS / (2 N - 8 P - n) over the N weighted matches and P pairs that hold them: a match's
+    forward and backward transfer errors measure one 2-D misfit twice, so the normal matrix and the
+    RSS both count it twice and the degrees of freedom once. None where they are not positive or
+    the complement is singular (the matches do not determine the lens).
+    """
+    uhh, whd, vdd, _, _ = _normal_equations(a, hs, v1, v2, pair=pair, w=w, terms=terms)
+    held = torch.zeros(hs.shape[0], dtype=torch.bool)
+    held[pair[w > 0]] = True
+    s = vdd - torch.einsum("pji,pjk,pkl->il", whd[held], torch.linalg.pinv(uhh[held]), whd[held])
+    r = transfer_residuals(a, hs, v1, v2, terms=terms, pair=pair)
+    dof = 2 * int((w > 0).sum()) - 8 * int(held.sum()) - a.numel()
+    if dof <= 0 or torch.linalg.matrix_rank(s) < a.numel():
+        return None
+    return float((w[:, None] * r * r).sum()) / dof * torch.linalg.inv(s)
 
 
 def transfer_errors(a, hs, v1, v2, *, pair, big_r: float, terms: int | None = None) -> torch.Tensor:
@@ -280,18 +314,3 @@ def bending_halfwidth(theta, replicates: list, *, n: int, size: tuple[int, int],
         msq.append(float(((y - fit) ** 2).sum(-1).mean()))
     b = len(replicates)
     return t_quantile(0.5 + confidence / 2, b - 1) * math.sqrt((b - 1) / b * sum(msq)), share
-
-
-def model_spread(table: dict, best: str, cfg: MultiViewConfig) -> float:
-    """The largest |Delta_avg - the best's| over the models that fit as well as ``best`` (the homography model's).
-
-    ``table``: per model {"bic", "delta_avg_px", "reprojection_px"}. As well: within
-    ``cfg.bic_margin`` of its BIC, or a reprojection RMS at most (1 + ``cfg.rms_margin``) times its.
-    (The 3-D models weigh themselves by held-out frames instead: :mod:`~lensdist_torch.calibration.multiview_evidence`.)
-    """
-    b = table[best]
-    return max(
-        abs(v["delta_avg_px"] - b["delta_avg_px"])
-        for v in table.values()
-        if v["bic"] - b["bic"] <= cfg.bic_margin or v["reprojection_px"] <= (1 + cfg.rms_margin) * b["reprojection_px"]
-    )

@@ -47,6 +47,12 @@ def _constant(name: str, value: Any, package: str = "calibration") -> Retired:
 
 
 #: Keys an earlier version wrote that this one no longer reads: (section, key) -> what replaced it.
+#: Keys whose rule another replaced, a decision made at analysis time.
+_BY_CLASS_RULE = Retired(by="the class rule every path of calibrate shares, a class where the whole interval lies in "
+                            "one (lensdist_torch.calibration.sequence_class.interval_class)", inert=True)
+_BY_EVIDENCE = Retired(by="the homography model's lens models weighed by how well each predicts held-out pairs "
+                          "(lensdist_torch.calibration.planar_evidence)", inert=True)
+
 RETIRED = {
     ("protocol", "parallax_px"): Retired(
         by="protocol.relief (a scene's relief; the parallax follows each pair's motion)"),
@@ -62,9 +68,7 @@ RETIRED = {
     ("calibration", "jackknife_blocks"): _constant("pooling.JACKKNIFE_BLOCKS", 8),
     ("calibration", "systematic_rel"): _constant("direct.SYSTEMATIC_REL", 1e-3),
     ("calibration", "min_pairs"): _constant("sequence_class.MIN_PAIRS", 4),
-    ("calibration", "max_class_halfwidth_px"): Retired(
-        by="the class rule every path of calibrate shares, a class where the whole interval lies in one "
-           "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
+    ("calibration", "max_class_halfwidth_px"): _BY_CLASS_RULE,
     ("calibration", "parallax_px"): _constant("direct_fits.PARALLAX_PX", 1.0),
     # the multi-view path's and the homography model's constants (docs/method.md, sections 11-12)
     ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 30),
@@ -73,12 +77,10 @@ RETIRED = {
     ("multiview", "extra_mappings"): _constant("multiview.EXTRA_MAPPINGS", 3),
     ("multiview", "min_registered"): _constant("controllers.multiview_path.MIN_REGISTERED", 0.5),
     ("multiview", "planar_max_relief_z"): _constant("controllers.multiview_path.PLANAR_MAX_RELIEF_Z", 2.0),
-    ("multiview", "max_halfwidth_rel"): Retired(
-        by="the class rule every path of calibrate shares, a class where the whole interval lies in one "
-           "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
-    ("multiview", "max_halfwidth_px"): Retired(
-        by="the class rule every path of calibrate shares, a class where the whole interval lies in one "
-           "(lensdist_torch.calibration.sequence_class.interval_class)", inert=True),
+    ("multiview", "max_halfwidth_rel"): _BY_CLASS_RULE,
+    ("multiview", "max_halfwidth_px"): _BY_CLASS_RULE,
+    ("multiview", "bic_margin"): _BY_EVIDENCE,
+    ("multiview", "rms_margin"): _BY_EVIDENCE,
     ("multiview", "planar_scan_range"): _constant("planar_features.PLANAR_SCAN_RANGE", (-0.3, 1.5)),
     ("multiview", "planar_scan_steps"): _constant("planar_features.PLANAR_SCAN_STEPS", 19),
     ("multiview", "planar_scan_pairs"): _constant("planar_features.PLANAR_SCAN_PAIRS", 60),

@@ -119,11 +119,6 @@ class MultiViewConfig:
         jackknife_blocks: the folds: contiguous blocks of frames held out in turn; each model is
             adjusted without a block and scored on predicting it (its evidence), and the spread of
             those fits is the jackknife that checks each model's posterior.
-        bic_margin: the homography model's models within this BIC of its best fit equally well:
-            their spread of Delta joins its interval.
-        rms_margin: so do its models whose reprojection RMS is within this share of the best's: on
-            thousands of matches BIC prefers the richest model for a few % of RMS
-            (docs/method.md, section 12).
         confidence: coverage of the intervals.
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); one
             answers, its posterior checked by its own jackknife; more: their spread of Delta_avg
@@ -131,9 +126,11 @@ class MultiViewConfig:
             this many mappings that registered enough frames.
         num_threads: threads of COLMAP; with 1 a run repeats bit for bit. With more the features
             and verified matches repeat but the mapping is not promised to (docs/method.md, 11).
-        seed: COLMAP's random seed (the verification's RANSAC and the first mapping).
-        planar_terms: the homography model's radial terms at most (1 .. this many fitted, BIC
-            chooses; :mod:`~lensdist_torch.calibration.planar_features`); 0: no homography model.
+        seed: COLMAP's random seed (the verification's RANSAC and the first mapping) and the
+            Bayesian bootstrap's of the models' weights.
+        planar_terms: the homography model's radial terms at most (1 .. this many fitted, each
+            weighed by how well it predicts held-out pairs:
+            :mod:`~lensdist_torch.calibration.planar_evidence`); 0: no homography model.
         planar_min_matches: a pair needs this many verified matches (and inliers) to count.
         planar_min_inlier_share: under this share of the verified matches on one homography per
             pair: not a plane (nor a turning camera), no class.
@@ -141,8 +138,9 @@ class MultiViewConfig:
             over the pair's list (a homography needs few; the fits' time grows with the matches);
             0: every match.
         planar_centre_max: the models with a free distortion centre are candidates while it lies
-            within this fraction of the half diagonal from the frame centre (BIC chooses among
-            them and the models centred on the frame); 0: the centre stays at the frame's.
+            within this fraction of the half diagonal from the frame centre, in the fit on every
+            pair and in each fold's (held-out pairs weigh them against the models centred on the
+            frame); 0: the centre stays at the frame's.
         planar_guided_px: the homography model's matches found again within this many ideal
             pixels of where its first fit sends each keypoint, and fitted again
             (:mod:`~lensdist_torch.calibration.guided_matching`); 0: the first fit answers.
@@ -166,8 +164,6 @@ class MultiViewConfig:
     features_per_megapixel: float = 8192.0
     mapped_frames: int = 60
     jackknife_blocks: int = 6
-    bic_margin: float = 10.0
-    rms_margin: float = 0.05
     confidence: float = 0.95
     reconstructions: int = 1
     num_threads: int = 2
@@ -202,8 +198,6 @@ class MultiViewConfig:
         real(self, "planar_centre_max", lo=0, hi=1)
         real(self, "planar_guided_px", lo=0)
         real(self, "planar_guided_below", lo=0, hi=1)
-        real(self, "bic_margin", lo=0)
-        real(self, "rms_margin", lo=0)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
         real(self, "features_per_megapixel", lo=0, lo_open=True)
 

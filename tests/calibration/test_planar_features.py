@@ -143,14 +143,20 @@ def test_recovers_a_known_lens_from_noisy_matches_with_outliers(k2, k4, cls):
     lo, hi = res.delta_avg_user_interval
     assert abs(res.delta_avg_user_px - truth) < 0.03 * truth
     assert lo <= truth <= hi
-    assert res.delta_max_user_px == pytest.approx(float(delta_max([k2], [k4], h, w)[0]), rel=0.05)
+    truth_max = float(delta_max([k2], [k4], h, w)[0])
+    lo, hi = res.delta_max_user_interval
+    assert lo <= truth_max <= hi
     assert res.class_label == cls and (res.reason == "" if cls else res.reason.endswith("spans classes 3 and 4"))
     # 20 % of the matches were moved anywhere: the inliers are the others
     assert 0.7 < res.inliers / res.matches < 0.85
     assert res.opencv["fit_error_mean_px"] < 0.1
-    # the lens's centre is the frame's: BIC keeps it there (a free centre is two parameters the data do not need)
-    assert not res.model.endswith("-centre") and res.centre == [(w - 1) / 2, (h - 1) / 2]
-    assert res.bending_halfwidth_px < 0.5 and res.matched_fraction > 0.9
+    # the lens's centre is the frame's: a free centre predicts held-out pairs no better, so the centred model of
+    # the answer's terms keeps a share of the weight (or all of it), and its Delta_max is the truth's
+    centred = res.models[f"planar-{res.terms}"]
+    assert centred["weight"] > 0.2
+    assert centred["delta_max_px"] == pytest.approx(truth_max, rel=0.05)
+    # lines come out straight to half a pixel, or to the few pixels the folds move a free centre by
+    assert res.bending_halfwidth_px < (3.0 if res.model.endswith("-centre") else 0.5) and res.matched_fraction > 0.9
 
 
 def _bending(p: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> float:

@@ -289,8 +289,8 @@ def _multiview_view(mv: dict) -> dict:
 
 
 #: The homography model's fields in the JSON's ``planar`` block, beside :data:`_KEYS`.
-_PLANAR_KEYS = ("pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife",
-                "jackknife_coefficients", "jackknife_centres", "coefficients", "model", "centre",
+_PLANAR_KEYS = ("pairs", "inliers", "matches", "inlier_share", "reprojection_px", "models", "jackknife", "dispersion",
+                "coefficients", "model", "centre",
                 "bending_halfwidth_px", "matched_fraction", "invertible_fraction", "eq4_fit_error_px", "opencv",
                 "opencv_rational")
 
