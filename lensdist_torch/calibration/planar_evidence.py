@@ -11,10 +11,12 @@ on the homography model's terms (docs/method.md, section 12):
   is fitted again on the other pairs, from its fit on all of them: its delete-a-block jackknife,
   the check of its posterior.
 * **Its evidence.** Each held-out pair is registered again under the fold's lens, the lens held
-  (its homography alone fitted to its inliers), and its inliers' transfer errors, each side a 2-D
-  error in pixels, are what the model predicts. Every model predicts the same observations; per
-  held-out pair their log predictive density. A model with more terms that only fits the noise
-  predicts held-out pairs no better, whatever BIC says on thousands of matches.
+  (its homography alone fitted to its inliers), and its inliers' transfer errors are what the
+  model predicts: one 2-D error in pixels per match, the mean square of its two sides (the
+  forward and backward errors measure one misfit, as the posterior counts it). Every model
+  predicts the same observations; per held-out pair their log predictive density. A model with
+  more terms that only fits the noise predicts held-out pairs no better, whatever BIC says on
+  thousands of matches.
 * **One answer.** Where the folds scatter more than the posteriors allow (a frame's features
   recur in many pairs, so the matches are not independent), their median ratio scales the
   posteriors' variances and the log evidence alike; pseudo-BMA+ weights; the interval is the
@@ -73,8 +75,8 @@ def score_models(fits: dict, matches: PlanarMatches, v1: torch.Tensor, v2: torch
         (per model that stays: ``weight``, ``elpd`` (its held-out log evidence over the
         dispersion), ``delta_avg_std_px`` and ``delta_max_std_px`` (the posterior's),
         ``covariance`` (of its coefficients and, where free, its centre in pixels; None where the
-        matches do not determine it), ``jackknife_std_px``, ``heldout_rms_px`` (its held-out
-        transfer errors' RMS, px, per coordinate), ``jackknife_avg`` and ``jackknife_thetas`` (its
+        matches do not determine it: then no weight), ``jackknife_std_px``, ``heldout_rms_px`` (its
+        held-out transfer errors' RMS, px, per coordinate), ``jackknife_avg`` and ``jackknife_thetas`` (its
         folds' Delta_avg and lenses);
         the answer: ``intervals`` of Delta_avg and Delta_max and the ``dispersion``).
     """
@@ -96,8 +98,11 @@ def score_models(fits: dict, matches: PlanarMatches, v1: torch.Tensor, v2: torch
             _, hh = fit_lens_and_homographies(tj, hs.clone(), v1, v2, pair=pair, w=held.double(),
                                               iterations=iterations, terms=n, lens_held=True)
             r = transfer_residuals(tj, hh, v1[held], v2[held], terms=n, pair=held_pair) * big_r
-            e = (r.reshape(-1, 2, 2) ** 2).sum(-1)  # (K, 2): each side's squared 2-D error
-            errors[m].append([e[held_pair == p].reshape(-1).numpy() for p in units])
+            # (K,): one squared 2-D error per match, its two sides' mean (each side measures the same misfit);
+            # a point the fold's lens cannot map is an error without bound (the cap takes it)
+            e = (r.reshape(-1, 2, 2) ** 2).sum(-1).mean(-1)
+            e = torch.where(torch.isfinite(e), e, torch.inf)
+            errors[m].append([e[held_pair == p].numpy() for p in units])
             out[m]["jackknife_avg"].append(lens_deltas(tj, n, size, 2 * step)["delta_avg_px"])
             out[m]["jackknife_thetas"].append(tj)
     # the folds are the model too: one whose centre strays from where a lens's may lie is not determined

@@ -32,12 +32,13 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
    frame's and free (a candidate while within ``planar_centre_max`` of the half diagonal from the
    frame centre), on the same inliers, each fitted again without each of ``jackknife_blocks``
    contiguous blocks of frames and scored on predicting the pairs it left out; pseudo-BMA+ weights
-   (:mod:`~lensdist_torch.calibration.planar_evidence`). The model of most weight answers. A real
-   wide-angle lens's centre is off the frame's by a few % of the half diagonal: a lens of 100 px
-   then bends the frame-centred model's lines by pixels.
-5. **Interval**: the folds' fits are each model's delete-a-block jackknife; the models' jackknife
-   normals (t on blocks - 1 degrees of freedom) mixed by their weights
-   (:func:`~lensdist_torch.calibration.planar_evidence.weighted_interval`). No class when the
+   (:mod:`~lensdist_torch.calibration.planar_evidence`). The model of most held-out evidence among
+   those the matches determine answers. A real wide-angle lens's centre is off the frame's by a
+   few % of the half diagonal: a lens of 100 px then bends the frame-centred model's lines by
+   pixels.
+5. **Interval**: each model's posterior (the fit's covariance), widened by the dispersion or to
+   its folds' jackknife where that scatters more, mixed by the weights
+   (:func:`~lensdist_torch.calibration.multiview_evidence.mixed_intervals`). No class when the
    interval spans two classes at the paper's frame (:func:`~lensdist_torch.calibration.sequence_class.interval_class`,
    the rule every path shares), when fewer than
    ``PLANAR_MIN_PAIRS`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
@@ -390,7 +391,8 @@ def self_calibrate_planar(
         table[m].update({k: sc[k] for k in ("weight", "elpd", "delta_avg_std_px", "delta_max_std_px",
                                             "jackknife_std_px", "heldout_rms_px", "covariance")},
                         jackknife_coefficients=[v[0] for v in lenses], jackknife_centres=[v[1] for v in lenses])
-    best = max(table, key=lambda m: table[m]["elpd"])  # near-twins split weight, not elpd
+    # the most held-out evidence among the models the matches determine (near-twins split weight, not elpd)
+    best = max((m for m in table if table[m]["weight"] > 0), key=lambda m: table[m]["elpd"])
     theta, hs, dl, n = fits[best]
     a, centre = lens_of(theta, n, (h, w))
     jk_t = scores[best]["jackknife_thetas"]

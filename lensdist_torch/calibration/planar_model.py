@@ -28,8 +28,7 @@ import torch
 from lensdist_torch.calibration.multiview import pycolmap_or_error
 from lensdist_torch.calibration.pooling import t_quantile
 from lensdist_torch.geometry.distortion import distortion_center
-from lensdist_torch.geometry.frame import half_diagonal
-from lensdist_torch.geometry.opencv_model import grid_points
+from lensdist_torch.geometry.frame import grid_near, grid_points, half_diagonal
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_factor_derivative, lens_ideal_points, lens_inverts
 
 __all__ = ["split_lens", "transfer_residuals", "transfer_jacobians", "fit_lens_and_homographies",
@@ -270,7 +269,8 @@ def lens_of(theta: torch.Tensor, terms: int, size: tuple[int, int]) -> tuple[lis
 def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: int) -> dict:
     """Delta (px) of the lens ``theta`` over a ``step``-spaced grid where its map is monotone.
 
-    Returns ``delta_avg_px``, ``delta_max_px``, ``invertible_fraction``, the grid ``points`` and the mask ``ok``.
+    Returns ``delta_avg_px``, ``delta_max_px``, ``invertible_fraction``, the grid ``points``, the mask ``ok`` and
+    the grid's ``step``.
     """
     h, w = size
     a, centre = lens_of(theta, terms, size)
@@ -278,9 +278,10 @@ def lens_deltas(theta: torch.Tensor, terms: int, size: tuple[int, int], step: in
     ok = lens_inverts(p, a, h, w, centre=centre)
     off = (lens_ideal_points(p, a, h, w, centre=centre) - p).norm(dim=-1)[ok]
     if off.numel() == 0:
-        return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok}
+        return {"delta_avg_px": math.nan, "delta_max_px": math.nan, "invertible_fraction": 0.0, "points": p, "ok": ok,
+                "step": step}
     return {"delta_avg_px": float(off.mean()), "delta_max_px": float(off.max()),
-            "invertible_fraction": float(ok.double().mean()), "points": p, "ok": ok}
+            "invertible_fraction": float(ok.double().mean()), "points": p, "ok": ok, "step": step}
 
 
 def bending_halfwidth(theta, replicates: list, *, n: int, size: tuple[int, int], dl: dict, confidence: float,
@@ -297,9 +298,7 @@ def bending_halfwidth(theta, replicates: list, *, n: int, size: tuple[int, int],
     big_r = half_diagonal(h, w)
     p = dl["points"][dl["ok"]]
     if len(seen):
-        rows = max(1, 2**22 // len(seen))  # a chunk's distances in 32 MB
-        near = torch.cat([torch.cdist(q, seen).amin(1) for q in p.split(rows)]) <= 0.05 * big_r
-        p = p[near]
+        p = p[grid_near(seen, h, w, step=dl["step"], radius=0.05 * big_r)[dl["ok"]]]
     share = len(p) / max(len(dl["points"]), 1)
     if len(replicates) < 2 or len(p) < 3 or not len(seen):
         return math.nan, share

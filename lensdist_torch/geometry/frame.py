@@ -19,6 +19,8 @@ from kornia.geometry import create_meshgrid
 from kornia.geometry.conversions import normalize_pixel_coordinates
 
 __all__ = [
+    "grid_points",
+    "grid_near",
     "half_diagonal",
     "normalizer",
     "level_coordinates",
@@ -95,3 +97,36 @@ def grid_sample_matrix(height: int, width: int, dtype=torch.float64, device=None
     """
     m = [[2 / max(width - 1, 1), 0, -1], [0, 2 / max(height - 1, 1), -1], [0, 0, 1]]
     return torch.tensor(m, dtype=dtype, device=device)
+
+
+def grid_points(height: int, width: int, step: int) -> torch.Tensor:
+    """Every ``step``-th pixel of a (height, width) frame as (N, 2) float64 (x, y), x fastest."""
+    xs = torch.arange(0, width, step, dtype=torch.float64)
+    ys = torch.arange(0, height, step, dtype=torch.float64)
+    return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
+
+
+def grid_near(points: torch.Tensor, height: int, width: int, *, step: int, radius: float) -> torch.Tensor:
+    """(N,) bool over :func:`grid_points`: the grid's pixels within ``radius`` (px) of any of ``points`` (M, 2).
+
+    Exact, and linear in M: each point marks the grid pixels of its (2 ceil(radius / step) + 1)^2
+    neighbourhood that lie within the radius (a distance matrix would be N x M).
+
+    Example:
+        >>> grid_points(4, 6, 2).tolist()
+        [[0.0, 0.0], [2.0, 0.0], [4.0, 0.0], [0.0, 2.0], [2.0, 2.0], [4.0, 2.0]]
+        >>> near = grid_near(torch.tensor([[0.5, 0.5]], dtype=torch.float64), 4, 6, step=2, radius=2.0)
+        >>> near.tolist()  # (2, 2) is 2.12 away
+        [True, True, False, True, False, False]
+    """
+    nx, ny = len(range(0, width, step)), len(range(0, height, step))
+    k = math.ceil(radius / step)
+    off = torch.arange(-k, k + 1)
+    mask = torch.zeros(nx * ny, dtype=torch.bool)
+    for chunk in points.split(4096):  # (4096, 2k + 1, 2k + 1) candidates at a time
+        x, y = chunk[:, 0, None, None], chunk[:, 1, None, None]
+        i = torch.round(x / step).long() + off[None, :, None]
+        j = torch.round(y / step).long() + off[None, None, :]
+        ok = ((i * step - x) ** 2 + (j * step - y) ** 2 <= radius**2) & (i >= 0) & (i < nx) & (j >= 0) & (j < ny)
+        mask[(j * nx + i)[ok]] = True
+    return mask

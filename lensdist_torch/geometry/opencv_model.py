@@ -42,6 +42,7 @@ from typing import NamedTuple
 import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
+from lensdist_torch.geometry.frame import grid_points
 
 __all__ = [
     "OpenCVCamera",
@@ -378,13 +379,6 @@ def map_grid_step(height: int, width: int) -> int:
         (8, 1)
     """
     return max(1, round(math.sqrt(height * width / 20000)))
-
-
-def grid_points(height: int, width: int, step: int) -> torch.Tensor:
-    """Every ``step``-th pixel of a (height, width) frame as (N, 2) float64 (x, y), x fastest."""
-    xs = torch.arange(0, width, step, dtype=torch.float64)
-    ys = torch.arange(0, height, step, dtype=torch.float64)
-    return torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).reshape(-1, 2)
 
 
 def opencv_delta(camera_matrix, dist_coeffs, height: int, width: int, *, step: int = 4) -> dict:

@@ -158,3 +158,15 @@ def test_a_model_whose_folds_stray_is_no_candidate(scored):
     scores, _ = score_models(fits, matches, v1, v2, inliers=inl, blocks=3, size=SIZE, step=map_grid_step(*SIZE),
                              iterations=100, confidence=0.95, stays=lambda t, n: t.numel() == n)  # free centres stray
     assert set(scores) == {"planar-1", "planar-2"}
+
+
+@pytest.mark.parametrize("step,radius", [(1, 3.0), (5, 28.6), (8, 7.5)])
+def test_grid_near_is_the_distance_matrix_rule(step, radius):
+    """The bending check's "within the radius of a match", exact: the same mask as the nearest distance."""
+    from lensdist_torch.geometry.frame import grid_near, grid_points
+
+    h, w = 61, 97
+    g = torch.Generator().manual_seed(step)
+    pts = torch.rand(300, 2, generator=g, **F64) * torch.tensor([w + 10.0, h + 10.0]) - 5.0  # some off the frame
+    want = torch.cdist(grid_points(h, w, step), pts).amin(1) <= radius
+    assert torch.equal(grid_near(pts, h, w, step=step, radius=radius), want)
