@@ -408,6 +408,11 @@ def test_the_homography_model_answers_where_it_is_most_precise_on_a_flat_scene()
         relief["planar"]["reason"]
         == "relief: the direct path's plane + parallax test finds relief (z = 5.6, at most 2)"
     )
+    # no relief but no finite interval either: the homography model does not count, and says nothing of relief
+    nan = float("nan")
+    flat = combine({**direct, "relief_z": 0.1},
+                   {**mv, "planar": {**mv["planar"], "delta_avg_user_interval": [nan, nan], "reason": ""}})
+    assert flat["method"] != "planar" and not (flat["planar"]["reason"] or "").startswith("relief")
     # an interval that misses another path's: no answer from it
     apart = combine({**_direct(None, 20.0, 10.0, 30.0), "relief_z": 0.1}, mv)
     assert apart["method"] != "planar" and apart["class"] is None

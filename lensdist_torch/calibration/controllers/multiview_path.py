@@ -225,12 +225,9 @@ def combine(direct: dict, mv: dict | None) -> dict:
     out["multiview"] = None if mv is None else _multiview_view(mv)
     planar = (mv or {}).get("planar")
     out["planar"] = None if planar is None else _planar_view(planar)
-    found = _estimates(direct, mv)
-    if planar is not None and planar["ok"] and planar.get("plane", True) and "planar" not in found:
-        z = direct.get("relief_z")  # relief imitates distortion under one homography per pair (method.md, 12)
-        out["planar"]["reason"] = "relief: the direct path's plane + parallax test " + (
-            f"finds relief (z = {z:.1f}, at most {mv['planar_max_relief_z']:g})"
-            if z is not None and math.isfinite(z) else "could not run")
+    found, relief = _estimates(direct, mv)
+    if relief:
+        out["planar"]["reason"] = relief
     if not found:
         return out
     name = min(found, key=lambda n: found[n][1] - found[n][0])
@@ -256,19 +253,28 @@ def _path(name: str, direct: dict, mv: dict | None) -> dict:
     return {"direct": direct, "multiview": mv, "planar": (mv or {}).get("planar")}[name]
 
 
-def _estimates(direct: dict, mv: dict | None) -> dict[str, tuple[float, float]]:
-    """Each path's Delta_avg interval in the user's pixels, where its scene model holds (:func:`combine`)."""
+def _estimates(direct: dict, mv: dict | None) -> tuple[dict[str, tuple[float, float]], str]:
+    """Each path's Delta_avg interval in the user's pixels, where its scene model holds (:func:`combine`).
+
+    And why the homography model does not count where it found a plane but the direct path's plane +
+    parallax test found relief, or could not run ("" otherwise): relief imitates distortion under
+    one homography per pair (docs/method.md, section 12).
+    """
     z, most = direct.get("relief_z"), (mv or {}).get("planar_max_relief_z", math.inf)
-    flat = z is not None and math.isfinite(z) and z <= most  # the homography model's scene: no relief found
-    found = {}
+    measured = z is not None and math.isfinite(z)
+    found, relief = {}, ""
     for name in _NAMES:
         res = _path(name, direct, mv)
-        if res is None or not res.get("ok", True) or (name == "planar" and not (flat and res.get("plane", True))):
+        if res is None or not res.get("ok", True) or (name == "planar" and not res.get("plane", True)):
+            continue
+        if name == "planar" and not (measured and z <= most):
+            relief = "relief: the direct path's plane + parallax test " + (
+                f"finds relief (z = {z:.1f}, at most {most:g})" if measured else "could not run")
             continue
         iv = res.get("delta_avg_user_interval")
         if iv is not None and None not in iv and all(math.isfinite(v) for v in iv):
             found[name] = (float(iv[0]), float(iv[1]))
-    return found
+    return found, relief
 
 
 def _multiview_view(mv: dict) -> dict:
