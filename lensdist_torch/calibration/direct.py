@@ -343,13 +343,13 @@ def calibrate_sequence(
     Example:
         >>> from lensdist_torch.core.images import load_scene
         >>> from lensdist_torch.geometry.distortion import distortion_grid, sample_at_pixels
-        >>> grid = distortion_grid([8e-6], [0.0], 160, 200)  # the ideal point of every pixel
+        >>> grid = distortion_grid([6e-6], [0.0], 160, 200)  # the ideal point of every pixel
         >>> scene = load_scene("gravel")  # a camera panning down 8 px a frame
         >>> frames = torch.cat([sample_at_pixels(scene, grid + torch.tensor([150.0, 100.0 + 8 * i]))
         ...                     for i in range(10)])
         >>> cal = calibrate_sequence(frames)
         >>> round(cal.k2_user * 1e6, 1), cal.class_label, cal.frames, cal.image_size
-        (8.1, '3', 10, (160, 200))
+        (6.1, '2', 10, (160, 200))
     """
     cfg, st = or_defaults(config, CalibrationConfig), or_defaults(settings, LensdistConfig, "settings")
     xa, size, scale = _prepare(frames, cfg, frame_size)
