@@ -35,6 +35,7 @@ from lensdist_torch.calibration.multiview_evidence import (
     heldout_squared_errors,
     posterior_std,
 )
+from lensdist_torch.calibration.pooling import jackknife_std
 from lensdist_torch.geometry.opencv_model import opencv_delta, opencv_from_colmap
 
 __all__ = [
@@ -199,7 +200,7 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
         jk_avg.append(d[0])
         jk_max.append(d[1])
         errors.append(fold_errors)
-    jk_std = math.sqrt((len(jk_avg) - 1) / len(jk_avg) * float(np.sum((np.asarray(jk_avg) - np.mean(jk_avg)) ** 2)))
+    jk_std = jackknife_std(jk_avg)
     k = len(cam.params) - 2  # the principal point is held
     return {"rec": r, "delta": dl, "errors": errors, "jackknife": jk_avg, "row": {
         "bic": 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n), "delta_avg_px": dl["delta_avg_px"],

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from lensdist_torch.calibration.matches import PlanarMatches
@@ -45,6 +44,7 @@ from lensdist_torch.calibration.planar_model import (
     lens_deltas,
     transfer_residuals,
 )
+from lensdist_torch.calibration.pooling import jackknife_std
 from lensdist_torch.geometry.frame import half_diagonal
 
 __all__ = ["score_models"]
@@ -119,9 +119,7 @@ def score_models(fits: dict, matches: PlanarMatches, v1: torch.Tensor, v2: torch
 
         std_avg, std_max = posterior_std(theta.tolist(), list(range(theta.numel())),
                                          None if cov is None else cov.numpy(), measure)
-        jk = np.asarray(out[m]["jackknife_avg"], dtype=float)
-        jk_std = math.sqrt((len(jk) - 1) / len(jk) * float(((jk - jk.mean()) ** 2).sum())) if np.isfinite(
-            jk).all() else math.inf
+        jk_std = jackknife_std(out[m]["jackknife_avg"])
         flat = [u for fold in errors[m] for u in fold]
         to_px = torch.cat([torch.ones(n, dtype=torch.float64), torch.full((theta.numel() - n,), big_r)])
         out[m].update(delta_avg_std_px=std_avg, delta_max_std_px=std_max, jackknife_std_px=jk_std,

@@ -71,6 +71,7 @@ from lensdist_torch.calibration.planar_model import (
     transfer_errors,
     transfer_residuals,
 )
+from lensdist_torch.calibration.pooling import jackknife_std
 from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
@@ -294,12 +295,12 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, confi
         def measure(p, n=n, free=free, centre=centre):
             return (there(list(p[:n]), list(p[n:]) if free else centre),)
 
-        jk = torch.tensor([there(a, c) for a, c in zip(v["jackknife_coefficients"], v["jackknife_centres"])])
+        jk = [there(a, c) for a, c in zip(v["jackknife_coefficients"], v["jackknife_centres"])]
         cov = v.get("covariance")
         params = list(coef) + (list(centre) if free else [])
         std = posterior_std(params, list(range(len(params))), None if cov is None else np.asarray(cov), measure)[0]
         rows.append({"delta_avg_px": there(coef, centre), "delta_avg_std_px": std, "delta_max_px": 0.0,
-                     "delta_max_std_px": 0.0, "jackknife_std_px": float(jk.std(correction=0)) * math.sqrt(len(jk) - 1)})
+                     "delta_max_std_px": 0.0, "jackknife_std_px": jackknife_std(jk)})
     interval = mixed_intervals(rows, [v["weight"] for v in r["models"].values()], dispersion=r["dispersion"],
                                checked=[True] * len(rows), confidence=cfg.confidence)[0]
     return there(r["coefficients"], r["centre"]), interval

@@ -139,7 +139,8 @@ def transfer_jacobians(a: torch.Tensor, h: torch.Tensor, v1: torch.Tensor, v2: t
 def _normal_equations(a, hs, v1, v2, *, pair, w, terms):
     """The weighted Gauss-Newton blocks at (``a``, ``hs``), the pairs' to be eliminated (Schur complement).
 
-    Per pair U (P, 8, 8) and W (P, 8, n), the lens's V (n, n), the gradients' negatives g_h (P, 8) and g_a (n,).
+    Per pair U (P, 8, 8) and W (P, 8, n), the lens's V (n, n), the gradients' negatives g_h (P, 8) and g_a (n,),
+    and the weighted sum of squared residuals.
     """
     n_pairs = hs.shape[0]
     r = transfer_residuals(a, hs, v1, v2, terms=terms, pair=pair)
@@ -152,7 +153,7 @@ def _normal_equations(a, hs, v1, v2, *, pair, w, terms):
         0, pair, (jh.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0]
     )
     gd = -(ja.transpose(1, 2) @ (w[:, None] * r)[..., None])[..., 0].sum(0)
-    return uhh, whd, vdd, gh, gd
+    return uhh, whd, vdd, gh, gd, float((w[:, None] * r * r).sum())
 
 
 def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair, w, iterations: int,
@@ -172,7 +173,7 @@ def fit_lens_and_homographies(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair
     c0 = cost(a, hs)
     eye8 = torch.eye(8, dtype=a.dtype)
     for _ in range(iterations):
-        uhh, whd, vdd, gh, gd = _normal_equations(a, hs, v1, v2, pair=pair, w=w, terms=terms)
+        uhh, whd, vdd, gh, gd, _ = _normal_equations(a, hs, v1, v2, pair=pair, w=w, terms=terms)
         while True:
             ud = uhh + lam * (torch.diagonal(uhh, dim1=1, dim2=2)[..., None] * eye8 + 1e-12 * eye8)
             ui = torch.linalg.pinv(ud)
@@ -206,15 +207,14 @@ def lens_covariance(a: torch.Tensor, hs: torch.Tensor, v1, v2, *, pair, w, terms
     RSS both count it twice and the degrees of freedom once. None where they are not positive or
     the complement is singular (the matches do not determine the lens).
     """
-    uhh, whd, vdd, _, _ = _normal_equations(a, hs, v1, v2, pair=pair, w=w, terms=terms)
+    uhh, whd, vdd, _, _, rss = _normal_equations(a, hs, v1, v2, pair=pair, w=w, terms=terms)
     held = torch.zeros(hs.shape[0], dtype=torch.bool)
     held[pair[w > 0]] = True
     s = vdd - torch.einsum("pji,pjk,pkl->il", whd[held], torch.linalg.pinv(uhh[held]), whd[held])
-    r = transfer_residuals(a, hs, v1, v2, terms=terms, pair=pair)
     dof = 2 * int((w > 0).sum()) - 8 * int(held.sum()) - a.numel()
     if dof <= 0 or torch.linalg.matrix_rank(s) < a.numel():
         return None
-    return float((w[:, None] * r * r).sum()) / dof * torch.linalg.inv(s)
+    return rss / dof * torch.linalg.inv(s)
 
 
 def transfer_errors(a, hs, v1, v2, *, pair, big_r: float, terms: int | None = None) -> torch.Tensor:

@@ -43,6 +43,7 @@ import torch
 from lensdist_torch.config import CalibrationConfig
 
 __all__ = [
+    "jackknife_std",
     "GoodBadFit",
     "good_and_bad",
     "pair_weights",
@@ -173,6 +174,20 @@ def t_quantile(p: float, dof: int) -> float:
     return t
 
 
+def jackknife_std(replicates) -> float:
+    """The delete-a-block jackknife's std of B ``replicates``: sqrt((B - 1) / B sum (x_b - mean)^2).
+
+    NaN where a replicate is not finite (a fold whose fit has no Delta): no jackknife to check against.
+
+    Example:
+        >>> jackknife_std([9.0, 11.0]), jackknife_std([1.0, float("nan")])
+        (1.0, nan)
+    """
+    x = torch.as_tensor(replicates, dtype=torch.float64)
+    b = len(x)
+    return math.sqrt((b - 1) / b * float(((x - x.mean()) ** 2).sum()))
+
+
 def jackknife_interval(value: float, replicates: list[float], extra: float, confidence: float) -> tuple[float, float]:
     """The delete-a-block jackknife interval of a Delta (>= 0), an ``extra`` spread added in quadrature.
 
@@ -183,10 +198,7 @@ def jackknife_interval(value: float, replicates: list[float], extra: float, conf
         >>> [round(v, 3) for v in jackknife_interval(10.0, [9.0, 11.0], 0.0, 0.95)]  # sqrt(1/2 * 2) = 1, t(1) = 12.706
         [0.0, 22.706]
     """
-    b = len(replicates)
-    jt = torch.tensor(replicates, dtype=torch.float64)
-    var = (b - 1) / b * float(((jt - jt.mean()) ** 2).sum())
-    half = t_quantile(0.5 + confidence / 2, b - 1) * math.sqrt(var + extra**2)
+    half = t_quantile(0.5 + confidence / 2, len(replicates) - 1) * math.hypot(jackknife_std(replicates), extra)
     return max(0.0, value - half), value + half
 
 
