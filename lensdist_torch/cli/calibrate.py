@@ -124,8 +124,11 @@ def _kind(res: dict) -> str:
     return f", {kind}" if kind else ""
 
 
-def _print_calibration(res: dict, out: str | Path | None = None) -> None:
-    """The text answer: the answer first (class, Delta, OpenCV's camera, the next command), then each path's numbers."""
+def _print_calibration(res: dict, out: str | Path | None = None, *, debug: bool = False) -> None:
+    """The answer (class, Delta, OpenCV's camera, the next command); eq. 4 and each path's numbers with ``debug``.
+
+    An answer without an estimate prints each path's numbers always: they say why there is none.
+    """
     (h, w), (lo, hi), (mlo, mhi) = res["image_size"], res["delta_avg_user_interval"], res["delta_max_user_interval"]
     if res["k2_user"] is None:
         print(f"no estimate: {res['reason']}")
@@ -178,14 +181,6 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
     if len(shown) == 2:
         print(f"OpenCV's 5 coefficients do not follow this lens (over {FOLLOWS_PX:g} px mean): use the 8 rational ones "
               "(cv2.CALIB_RATIONAL_MODEL's order); `lensdist undistort --from` applies the answer's own lens")
-    print(
-        f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}"
-        + (
-            ""
-            if res.get("eq4_fit_error_px") is None
-            else f" (follows the answer's lens to {res['eq4_fit_error_px']:.2f} px RMS)"
-        )
-    )
     if res["class"] is not None and res["class"] != "R":
         src = res.get("path", "PATH")
         cal = Path(out) / "calibration.json" if out else None
@@ -198,6 +193,17 @@ def _print_calibration(res: dict, out: str | Path | None = None) -> None:
                 "--out DIR/undistorted"
             )
         )
+    if not debug:
+        print("eq. 4's k2, k4 and each path's numbers: with --debug, or in the JSON (--json, --out)")
+        return
+    print(
+        f"{tag}eq. 4 about the frame centre, in your pixels: k2 = {res['k2_user']:.4e}, k4 = {res['k4_user']:.4e}"
+        + (
+            ""
+            if res.get("eq4_fit_error_px") is None
+            else f" (follows the answer's lens to {res['eq4_fit_error_px']:.2f} px RMS)"
+        )
+    )
     print("each path:")
     _paths(res)
 
@@ -291,7 +297,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if args.json:
         print(answer_text(res))
     else:
-        _print_calibration(res, args.out)
+        _print_calibration(res, args.out, debug=getattr(args, "debug", False))
         if args.out:
             print(f"written: {Path(args.out) / 'calibration.json'}")
     return 0
@@ -335,7 +341,8 @@ Estimate the lens distortion of one camera (eq. 4's k2, k4, Delta_avg and Delta_
 intervals, the class, OpenCV's camera matrix and coefficients) from a folder of frames or a
 video (.mp4, .mov, .avi, .mkv, ...: PyAV from the 'video' extra, or OpenCV where PyAV is
 missing). The frames must show one camera moving over a scene; every option is checked before
-any frame is read.
+any frame is read. The text gives the answer, OpenCV's camera and the next command; --debug adds
+eq. 4's k2, k4 and each path's numbers (always in the JSON).
 
 Several inputs, a quoted glob or --manifest make an archive run (docs/guide/archive.md): each
 input's answer in OUT/answers/NAME-KEY.json (what --json prints for it), one row per input in

@@ -1,5 +1,5 @@
 """``lensdist calibrate``'s text: the answer first (class and kind, Delta, OpenCV's camera and what its focal
-is, the next command), each path's numbers after it; and the OpenCV camera at a user's focal."""
+is, the next command), eq. 4 and each path's numbers only with --debug; and the OpenCV camera at a user's focal."""
 
 from __future__ import annotations
 
@@ -46,11 +46,23 @@ def test_the_answer_comes_first_with_its_kind_and_the_next_command(capsys, k2, k
     assert lines[1].startswith("Delta_avg = ") and lines[1].endswith("over your 320 x 240 frames")
     assert lines[3] == "from the direct path (eq. 4)"
     assert "fx, fy: the half diagonal, a convention (the lens model has no focal length; --focal F sets yours)" in lines
-    assert "next: lensdist undistort frames/ --from out/calibration.json --out out/undistorted" in lines
-    assert lines.index("each path:") > lines.index(
-        "fx, fy: the half diagonal, a convention (the lens model has no focal length; --focal F sets yours)"
-    )
-    assert lines[-1].startswith("12 frames of 320 x 240; direct path: 9 pairs used")
+    assert lines[-2:] == [
+        "next: lensdist undistort frames/ --from out/calibration.json --out out/undistorted",
+        "eq. 4's k2, k4 and each path's numbers: with --debug, or in the JSON (--json, --out)",
+    ]
+
+
+def test_eq4_and_each_paths_numbers_only_with_debug(capsys):
+    """Issue 51: eq. 4's coefficients and each path's internals stood where a user looks for the answer."""
+    _print_calibration(_answer(2e-6), "out")
+    plain = capsys.readouterr().out
+    assert "eq. 4 about" not in plain and "each path:" not in plain and "pairs used" not in plain
+    _print_calibration(_answer(2e-6), "out", debug=True)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[: len(plain.splitlines()) - 1] == plain.splitlines()[:-1]  # the same answer, then the internals
+    i = lines.index("next: lensdist undistort frames/ --from out/calibration.json --out out/undistorted")
+    assert lines[i + 1] == "eq. 4 about the frame centre, in your pixels: k2 = 2.0000e-06, k4 = 0.0000e+00"
+    assert lines[i + 2 :] == ["each path:", "12 frames of 320 x 240; direct path: 9 pairs used, 1 rejected"]
 
 
 def test_cannot_tell_names_no_kind_and_no_next_command(capsys):
@@ -101,3 +113,17 @@ def test_a_given_focal_reaches_the_homography_models_camera():
         assert out[key]["fit_error_mean_px"] < 0.05  # the same lens, at that focal
     assert _with_focal(dict(res), None, (240, 320))["focal_source"] == "half diagonal"
     assert _with_focal({**res, "method": "multiview"}, 500.0, (240, 320))["focal_source"] == "colmap"
+
+
+@pytest.mark.parametrize(
+    "argv", [["calibrate", "{d}"], ["--debug", "calibrate", "{d}"], ["calibrate", "{d}", "--debug"]]
+)
+def test_the_command_shows_the_internals_with_debug_only(capsys, monkeypatch, tmp_path, argv):
+    import lensdist_torch.calibration.controllers.calibrate as calibrate
+    from lensdist_torch import cli
+
+    monkeypatch.setattr(calibrate, "calibrate_path", lambda *a, **k: _answer(2e-6) | {"path": str(tmp_path)})
+    assert cli.main([a.format(d=tmp_path) for a in argv] + ["--quiet"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "distortion class: 2, barrel  (1 = small ... 4 = very strong, R = none visible)"
+    assert ("each path:" in lines) == ("--debug" in argv)
