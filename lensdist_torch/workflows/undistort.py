@@ -108,7 +108,7 @@ def _coefficients_for(size: tuple[int, int], k2, k4, from_json, cal: Calibration
                 raise ValueError(f"`{name}` must be a finite number, got {value!r}")
         return float(k2), float(k4)
     if k2 is not None or k4 is not None:
-        raise ValueError("give either `k2` and `k4` or `from_json`, not both")
+        raise ValueError("give the coefficients (`k2`, `k4`) or `from_json`, not both")
     src = Path(from_json)
     cal = read_calibration(src) if cal is None else cal
     k2, k4, hc, wc, reason = cal.k2, cal.k4, cal.height, cal.width, cal.reason

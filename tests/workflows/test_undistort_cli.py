@@ -308,6 +308,11 @@ def test_errors_name_flags_on_the_command_line_and_parameters_in_python(tmp_path
     code, _, err = _run(capsys, folder, "--out", tmp_path / "out")
     one_line_usage(code, err, "undistort")
     assert "give --k2 or --k4 (the other is 0), or --from" in err
+    # --k2 alone is a lens (k4 = 0): beside --from the error names what was typed, not a missing --k4
+    (tmp_path / "cal.json").write_text("{}")
+    code, _, err = _run(capsys, folder, "--k2", "1e-6", "--from", tmp_path / "cal.json", "--out", tmp_path / "out")
+    one_line_usage(code, err, "undistort")
+    assert err == "lensdist undistort: error: give the coefficients (--k2, --k4) or --from, not both"
 
 
 @pytest.mark.bad_input
