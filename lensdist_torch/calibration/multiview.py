@@ -125,7 +125,8 @@ class MultiViewCalibration(LensAnswer):
             inverts) with their posterior stds, the jackknife's std (``jackknife_std_px``, the
             check), RMS on its tracks and on held-out frames (``heldout_rms_px``), BIC, rotation
             spread and OpenCV camera (``camera_matrix``, ``dist_coeffs``, and fx's posterior std
-            ``focal_std_px``, inf where the tracks do not determine the camera).
+            ``focal_std_px``, inf where the tracks do not determine the camera), and whether its
+            adjustment ``converged`` (in how many ``iterations``; one that did not has no posterior).
         jackknife: the chosen model's leave-a-block-out Delta_avg values (px).
         rotation_spread_deg: the largest rotation between two frames of the mapping (a diagnostic).
         reconstructions: per seed of the mapping its numbers (set by

@@ -53,11 +53,16 @@ __all__ = [
     "fit_held_camera",
     "copy_reconstruction",
     "BA_FUNCTION_TOLERANCE",
+    "BA_MAX_ITERATIONS",
 ]
 
 #: Relative cost decrease below which a bundle adjustment stops (Ceres' default; COLMAP's 0 crawled
 #: along the valley of a poorly conditioned camera).
 BA_FUNCTION_TOLERANCE = 1e-6
+#: Iterations of a bundle adjustment at most (Ceres' default). A camera the tracks determine converges well within
+#: it from the mapping's structure; one they do not (its focal length traded along a valley of the cost) reaches no
+#: minimum at any cap, and :func:`fit_model` gives it no posterior (docs/method.md, section 11).
+BA_MAX_ITERATIONS = 100
 
 
 def pycolmap_or_error():
@@ -110,20 +115,35 @@ def rss(rec) -> tuple[float, int]:
     return ss, n
 
 
-def adjust(rec, held: bool = False) -> None:
-    """A global bundle adjustment of ``rec`` in place: points, poses and (unless ``held``) focal and distortion."""
+def adjust(rec, held: bool = False) -> tuple[bool, int]:
+    """A global bundle adjustment of ``rec`` in place: points, poses and (unless ``held``) focal and distortion.
+
+    Every registered frame adjusts, the gauge fixed by two frames' poses (as ``pycolmap.bundle_adjustment``
+    does, bit for bit). Returns whether Ceres converged (within :data:`BA_MAX_ITERATIONS`: the cost's relative
+    decrease below :data:`BA_FUNCTION_TOLERANCE`, or its gradient vanished) and the iterations it took.
+    """
     pc = pycolmap_or_error()
     options = pc.BundleAdjustmentOptions()
     options.refine_principal_point, options.print_summary = False, False
     if held:
         options.refine_focal_length = options.refine_extra_params = False
     options.ceres.solver_options.function_tolerance = BA_FUNCTION_TOLERANCE
+    options.ceres.solver_options.max_num_iterations = BA_MAX_ITERATIONS
+    config = pc.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pc.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     with quiet_log():
-        pc.bundle_adjustment(rec, options)
+        summary = pc.create_default_ceres_bundle_adjuster(options, config, rec).solve().ceres_summary
+    steps = summary.num_successful_steps + summary.num_unsuccessful_steps  # Ceres counts its iteration 0 as a step
+    return summary.termination_type.name == "CONVERGENCE", steps - 1
 
 
 def with_model(rec, model: str):
-    """A copy of ``rec`` whose camera is ``model`` (focal and the first radial terms carried over), adjusted."""
+    """A copy of ``rec`` whose camera is ``model`` (focal and the first radial terms carried over), adjusted.
+
+    Returns the copy and :func:`adjust`'s (converged, iterations).
+    """
     pc = pycolmap_or_error()
     out, cam = copy_reconstruction(rec), camera_of(rec)
     new = pc.Camera.create_from_model_name(cam.camera_id, model, cam.mean_focal_length(), cam.width, cam.height)
@@ -133,8 +153,7 @@ def with_model(rec, model: str):
         params[j] = cam.params[i]
     new.params = params
     out.cameras[cam.camera_id] = new
-    adjust(out)
-    return out
+    return out, adjust(out)
 
 
 def deltas(camera, size: tuple[int, int], scale: float, step: int) -> dict:
@@ -173,8 +192,12 @@ def _folds(rec, n_blocks: int, held: bool = False):
 
 
 def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int, n_blocks: int) -> dict:
-    """One model on ``rec``'s tracks: its adjustment, posterior, delete-a-block fits and held-out errors."""
-    r = with_model(rec, model)
+    """One model on ``rec``'s tracks: its adjustment, posterior, delete-a-block fits and held-out errors.
+
+    An adjustment that does not converge within :data:`BA_MAX_ITERATIONS` stops at no minimum: the
+    normal equations' inverse there is no posterior, and the model's is unbounded (it takes no weight).
+    """
+    r, (converged, iterations) = with_model(rec, model)
     ss, n = rss(r)
     cam = camera_of(r)
     km, dm = opencv_from_colmap(cam, scale)
@@ -187,7 +210,7 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
         return d["delta_avg_px"], d["delta_max_px"]
 
     with quiet_log():
-        cov = camera_covariance(r, cam.camera_id, ss, n)
+        cov = camera_covariance(r, cam.camera_id, ss, n) if converged else None
     fixed = set(cam.principal_point_idxs())
     variable = [i for i in range(len(cam.params)) if i not in fixed]
     std_avg, std_max = posterior_std(list(cam.params), variable, cov, measure)
@@ -208,7 +231,7 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
         "jackknife_std_px": jk_std, "reprojection_px": math.sqrt(ss / max(n, 1)),
         "heldout_rms_px": heldout_rms([e for fold in errors for e in fold]),
         "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist(),
-        "focal_std_px": focal_std}}
+        "focal_std_px": focal_std, "converged": converged, "iterations": iterations}}
 
 
 def copy_reconstruction(rec):

@@ -118,7 +118,7 @@ def test_a_camera_without_distortion_is_weighed_with_delta_zero_and_loses_to_a_r
     pin, radial = res.models["SIMPLE_PINHOLE"], res.models["RADIAL"]
     assert pin["delta_avg_px"] == pytest.approx(0.0, abs=1e-9) and pin["delta_avg_std_px"] == 0.0
     assert pin["elpd"] < radial["elpd"] and pin["weight"] < 0.01 and res.model == "RADIAL"
-    assert opencv_from_colmap(camera_of(with_model(rec, "SIMPLE_PINHOLE")))[1].tolist() == [0.0] * 5
+    assert opencv_from_colmap(camera_of(with_model(rec, "SIMPLE_PINHOLE")[0]))[1].tolist() == [0.0] * 5
 
 
 def test_tracks_that_leave_the_corners_unseen_give_cannot_tell_and_an_interval_that_covers():
@@ -456,3 +456,34 @@ def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
         calibrate_path(tmp_path, method="colmap")
     auto = calibrate_path(tmp_path)  # the direct answer stands, the multi-view reason beside it
     assert auto["method"] == "direct" and "at least 3 frames" in auto["multiview"]["reason"]
+
+
+def test_the_adjustment_is_pycolmaps_bit_for_bit_and_says_it_converged():
+    # two frames' poses fix the gauge, as pycolmap.bundle_adjustment does: the same camera to the last bit
+    from lensdist_torch.calibration.multiview_fits import BA_FUNCTION_TOLERANCE, adjust, copy_reconstruction
+
+    rec, _ = _synthetic(3, frames=6, noise=0.5)
+    ours, theirs = copy_reconstruction(rec), copy_reconstruction(rec)
+    converged, iterations = adjust(ours)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_principal_point, options.print_summary = False, False
+    options.ceres.solver_options.function_tolerance = BA_FUNCTION_TOLERANCE
+    pycolmap.bundle_adjustment(theirs, options)
+    assert converged and 1 <= iterations < 100
+    assert camera_of(ours).params.tolist() == camera_of(theirs).params.tolist()
+    held = copy_reconstruction(rec)
+    assert adjust(held, held=True)[0] and camera_of(held).params.tolist() == camera_of(rec).params.tolist()
+
+
+def test_a_model_whose_adjustment_does_not_converge_has_no_posterior_and_no_weight(monkeypatch):
+    # one iteration cannot reach SIMPLE_RADIAL's minimum from RADIAL's (k2 dropped): it stops at no minimum and
+    # has no covariance; RADIAL, adjusted from its own minimum, converges at once and answers alone
+    from lensdist_torch.calibration import multiview_fits
+
+    rec, _ = _synthetic(1, frames=10, noise=0.3)
+    multiview_fits.adjust(rec)  # RADIAL at its minimum, as a mapping leaves it
+    monkeypatch.setattr(multiview_fits, "BA_MAX_ITERATIONS", 1)
+    res = self_calibrate_reconstruction(rec, MultiViewConfig(models=("SIMPLE_RADIAL", "RADIAL"), jackknife_blocks=4))
+    sr, radial = res.models["SIMPLE_RADIAL"], res.models["RADIAL"]
+    assert not sr["converged"] and sr["iterations"] == 1 and sr["delta_avg_std_px"] == math.inf
+    assert sr["weight"] == 0.0 and radial["converged"] and radial["weight"] == 1.0 and res.model == "RADIAL"

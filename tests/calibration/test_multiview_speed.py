@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from lensdist_torch.calibration.controllers import multiview_path as wmv
-from lensdist_torch.calibration.multiview import BA_FUNCTION_TOLERANCE, EXTRA_MAPPINGS, MultiViewCalibration
+from lensdist_torch.calibration.multiview import EXTRA_MAPPINGS, MultiViewCalibration
 from lensdist_torch.config import MultiViewConfig
 
 WIDE = "the interval [0.30, 24.30] px at the paper's frame spans classes 1, 2, 3 and 4"
@@ -136,18 +136,3 @@ def test_every_mapping_runs_whatever_the_camera_turned(monkeypatch, tmp_path, ro
     assert res["delta_avg_user_px"] == 12.3 and res["reconstruction_spread_px"] == pytest.approx(0.72)
     half = res["delta_avg_user_interval"][1] - 12.3  # sqrt(0.5^2 + (1.96 0.72)^2): the spread widens it
     assert half == pytest.approx(1.5, abs=0.01) and res["class_label"] == "4" and res["reason"] == ""
-
-
-def test_bundle_adjustments_stop_at_ceres_default_tolerance(monkeypatch):
-    pycolmap = pytest.importorskip("pycolmap")
-    from lensdist_torch.calibration.multiview_fits import adjust
-
-    seen = []
-    monkeypatch.setattr(pycolmap, "bundle_adjustment", lambda rec, options: seen.append(
-        (options.ceres.solver_options.function_tolerance, options.refine_focal_length, options.refine_extra_params)))
-    adjust(object())
-    adjust(object(), held=True)  # another path's camera held: only the structure and the poses move
-    assert (
-        seen == [(BA_FUNCTION_TOLERANCE, True, True), (BA_FUNCTION_TOLERANCE, False, False)]
-        and BA_FUNCTION_TOLERANCE == 1e-6
-    )
