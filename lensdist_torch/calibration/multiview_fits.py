@@ -59,7 +59,7 @@ __all__ = [
 #: Relative cost decrease below which a bundle adjustment stops (Ceres' default; COLMAP's 0 crawled
 #: along the valley of a poorly conditioned camera).
 BA_FUNCTION_TOLERANCE = 1e-6
-#: Iterations of a bundle adjustment at most (Ceres' default). A camera the tracks determine converges well within
+#: Iterations of a bundle adjustment at most (COLMAP's default). A camera the tracks determine converges well within
 #: it from the mapping's structure; one they do not (its focal length traded along a valley of the cost) reaches no
 #: minimum at any cap, and :func:`fit_model` gives it no posterior (docs/method.md, section 11).
 BA_MAX_ITERATIONS = 100

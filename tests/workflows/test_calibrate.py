@@ -58,13 +58,16 @@ def test_round_trip_distort_calibrate_undistort(sequence, tmp_path):
     assert res["delta_avg_user_px"] == pytest.approx(true, abs=0.1)
     lo, hi = res["delta_avg_user_interval"]
     assert lo <= true <= hi and res["pairs_used"] >= 6
-    # a plane under translation: COLMAP reconstructs it, but relief and distortion trade (each mapping's RADIAL
-    # says 11-12 px, sure of itself): the blocks of frames scatter far more than its posterior allows (the
-    # dispersion, 7-9 here), the models share the evidence, and the multi-view path gives no class with an
-    # interval that holds the truth. The plane's homography model is the most precise (a flat scene, no relief
-    # found) and answers; the direct path agrees, with its own class
+    # a plane under translation: COLMAP reconstructs it, but relief and distortion trade: RADIAL and OPENCV crawl
+    # along the valley (11.6-11.7 px after 100 iterations, each sure of itself where it stopped) and, stopped at
+    # no minimum, have no posterior; the models that converge share the evidence, and the multi-view path gives
+    # no class with an interval that holds the truth. The plane's homography model is the most precise (a flat
+    # scene, no relief found) and answers; the direct path agrees, with its own class
     mv = res["multiview"]
-    assert res["method"] == "planar" and mv["class"] is None and mv["reason"] and mv["dispersion"] > 2
+    assert res["method"] == "planar" and mv["class"] is None and mv["reason"]
+    crawled = [m for m, row in mv["models"].items() if not row["converged"]]
+    assert crawled and all(mv["models"][m]["delta_avg_std_px"] is None and mv["models"][m]["weight"] == 0
+                           for m in crawled)
     assert mv["delta_avg_user_interval"][0] <= true <= mv["delta_avg_user_interval"][1]
     d_lo, d_hi = res["direct"]["delta_avg_user_interval"]
     assert res["direct"]["class"] == "3" and d_lo <= true <= d_hi and hi - lo < d_hi - d_lo
