@@ -57,6 +57,7 @@ from statistics import NormalDist
 
 import torch
 
+from lensdist_torch.calibration.features import EXHAUSTIVE_BELOW, SEQUENTIAL_OVERLAP, extract_and_match, feature_cap
 from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.multiview_evidence import weigh_models
 from lensdist_torch.calibration.multiview_fits import (
@@ -91,11 +92,6 @@ __all__ = [
     "BA_FUNCTION_TOLERANCE",
 ]
 
-#: Up to this many frames every pair is matched; more (a video's): each frame with its :data:`SEQUENTIAL_OVERLAP`
-#: successors and those 2^k frames on (COLMAP's quadratic overlap), as the frames' order is the recording's.
-EXHAUSTIVE_BELOW = 30
-#: Successors matched per frame in sequential matching (a video's frames beyond :data:`EXHAUSTIVE_BELOW`).
-SEQUENTIAL_OVERLAP = 12
 #: Bayesian-bootstrap draws over the folds for the models' evidence weights (docs/method.md, section 11).
 EVIDENCE_DRAWS = 1000
 #: Mappings tried with further seeds where one registers too few frames (a wrong initial pair: the focal length
@@ -156,23 +152,6 @@ class MultiViewCalibration(LensAnswer):
 
 
 # ------------------------------------------------------------------ the reconstruction
-def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = None) -> int:
-    """SIFT features per frame at most (``max_features``, and by area where the frames' size is known).
-
-    ``features_per_megapixel`` of the frame's area as SIFT reads it (at most ``max_image_side``
-    long) where ``image_size`` (H, W) is given; never below 64.
-
-    Example:
-        >>> feature_cap(MultiViewConfig(), (288, 384)), feature_cap(MultiViewConfig(), (1080, 1920))
-        (906, 8192)
-    """
-    if image_size is None:
-        return config.max_features
-    h, w = image_size
-    shrink = min(1.0, config.max_image_side / max(h, w))
-    return max(64, min(config.max_features, math.ceil(config.features_per_megapixel * h * w * shrink * shrink / 1e6)))
-
-
 def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewConfig | None = None,
                 stop: Callable[[int, object], bool] | None = None, image_size: tuple[int, int] | None = None,
                 on_matches: Callable[[Path], None] | None = None) -> list:
@@ -211,7 +190,7 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
             pc.set_random_seed(cfg.seed + i)
             mapping = pc.IncrementalPipelineOptions()
             mapping.num_threads, mapping.random_seed, mapping.ba_refine_principal_point = (
-                cfg.num_threads,
+                1,  # with more it did not repeat, and was no faster (docs/method.md, section 11)
                 cfg.seed + i,
                 False,
             )
@@ -223,45 +202,6 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
             if stop is not None and stop(i, out[-1]):
                 break
     return out
-
-
-def extract_and_match(
-    database: str | Path,
-    image_dir: str | Path,
-    names: list[str],
-    *,
-    config: MultiViewConfig | None = None,
-    image_size: tuple[int, int] | None = None,
-) -> None:
-    """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
-
-    Exhaustive matching up to :data:`EXHAUSTIVE_BELOW` frames, sequential beyond; one shared RADIAL
-    camera; the geometric verification's RANSAC seeded by ``seed``. :func:`reconstruct` maps on it;
-    :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads its matches.
-    """
-    pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
-    pc.set_random_seed(cfg.seed)
-    reader = pc.ImageReaderOptions()
-    reader.camera_model = "RADIAL"
-    extraction = pc.FeatureExtractionOptions()
-    extraction.num_threads, extraction.max_image_size, extraction.use_gpu = cfg.num_threads, cfg.max_image_side, False
-    extraction.sift.max_num_features = feature_cap(cfg, image_size)
-    matching = pc.FeatureMatchingOptions()
-    matching.num_threads, matching.use_gpu = cfg.num_threads, False
-    verification = pc.TwoViewGeometryOptions()
-    verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
-    with quiet_log():
-        pc.extract_features(database, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
-                            reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
-        if len(names) <= EXHAUSTIVE_BELOW:
-            pc.match_exhaustive(
-                database, matching_options=matching, verification_options=verification, device=pc.Device.cpu
-            )
-        else:
-            pairing = pc.SequentialPairingOptions()
-            pairing.overlap = SEQUENTIAL_OVERLAP
-            pc.match_sequential(database, matching_options=matching, pairing_options=pairing,
-                                verification_options=verification, device=pc.Device.cpu)
 
 
 def _eq4_fit(k: torch.Tensor, d: torch.Tensor, size: tuple[int, int], step: int) -> tuple[float, float, float]:

@@ -1,0 +1,146 @@
+"""A sequence's features and verified matches in a COLMAP database, the same on every run.
+
+COLMAP's SIFT on every frame (at most ``max_image_side`` px and :func:`feature_cap` features),
+exhaustive matching (or sequential for a video's many frames), and the geometric verification
+in fixed shards (:func:`verify_in_shards`). :func:`~lensdist_torch.calibration.multiview.reconstruct`
+maps on the database; :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads it.
+
+References:
+    J. L. Schönberger, J.-M. Frahm, "Structure-from-Motion Revisited", CVPR 2016 (COLMAP: features,
+    matching, geometric verification).
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+from lensdist_torch.calibration.multiview_fits import pycolmap_or_error, quiet_log
+from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.config.checks import or_defaults
+
+__all__ = ["EXHAUSTIVE_BELOW", "SEQUENTIAL_OVERLAP", "feature_cap", "extract_and_match", "verify_in_shards"]
+
+#: Up to this many frames every pair is matched; more (a video's): each frame with its :data:`SEQUENTIAL_OVERLAP`
+#: successors and those 2^k frames on (COLMAP's quadratic overlap), as the frames' order is the recording's.
+EXHAUSTIVE_BELOW = 30
+#: Successors matched per frame in sequential matching (a video's frames beyond :data:`EXHAUSTIVE_BELOW`).
+SEQUENTIAL_OVERLAP = 12
+
+def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = None) -> int:
+    """SIFT features per frame at most (``max_features``, and by area where the frames' size is known).
+
+    ``features_per_megapixel`` of the frame's area as SIFT reads it (at most ``max_image_side``
+    long) where ``image_size`` (H, W) is given; never below 64.
+
+    Example:
+        >>> feature_cap(MultiViewConfig(), (288, 384)), feature_cap(MultiViewConfig(), (1080, 1920))
+        (906, 8192)
+    """
+    if image_size is None:
+        return config.max_features
+    h, w = image_size
+    shrink = min(1.0, config.max_image_side / max(h, w))
+    return max(64, min(config.max_features, math.ceil(config.features_per_megapixel * h * w * shrink * shrink / 1e6)))
+
+
+def extract_and_match(
+    database: str | Path,
+    image_dir: str | Path,
+    names: list[str],
+    *,
+    config: MultiViewConfig | None = None,
+    image_size: tuple[int, int] | None = None,
+) -> None:
+    """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
+
+    Exhaustive matching up to :data:`EXHAUSTIVE_BELOW` frames, sequential beyond; one shared RADIAL
+    camera; the geometric verification's RANSAC seeded by ``seed``. :func:`reconstruct` maps on it;
+    :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads its matches.
+
+    A run repeats bit for bit whatever ``num_threads``: the extraction runs on one thread (with
+    more, frames entered the database in the order their threads finished) and the verification
+    on ``num_threads`` fixed shards of the matched pairs, one thread each (:func:`verify_in_shards`;
+    COLMAP's own threads each draw from a seeded generator whichever pairs they are handed, so
+    the verified matches, and every answer after them, changed from run to run).
+    """
+    pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
+    pc.set_random_seed(cfg.seed)
+    reader = pc.ImageReaderOptions()
+    reader.camera_model = "RADIAL"
+    extraction = pc.FeatureExtractionOptions()
+    extraction.num_threads, extraction.max_image_size, extraction.use_gpu = 1, cfg.max_image_side, False
+    extraction.sift.max_num_features = feature_cap(cfg, image_size)
+    matching = pc.FeatureMatchingOptions()
+    matching.num_threads, matching.use_gpu, matching.skip_geometric_verification = cfg.num_threads, False, True
+    verification = pc.TwoViewGeometryOptions()
+    verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
+    with quiet_log():
+        pc.extract_features(database, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
+                            reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
+        if len(names) <= EXHAUSTIVE_BELOW:
+            pc.match_exhaustive(
+                database, matching_options=matching, verification_options=verification, device=pc.Device.cpu
+            )
+        else:
+            pairing = pc.SequentialPairingOptions()
+            pairing.overlap = SEQUENTIAL_OVERLAP
+            pc.match_sequential(database, matching_options=matching, pairing_options=pairing,
+                                verification_options=verification, device=pc.Device.cpu)
+        verify_in_shards(database, verification, threads=cfg.num_threads)
+
+
+def verify_in_shards(database: str | Path, verification, *, threads: int) -> None:
+    """COLMAP's geometric verification of every matched pair in ``database``, in ``threads`` fixed shards.
+
+    The pairs (by pair id) are dealt into ``threads`` shards; each is verified on one thread in a
+    copy of the database holding only its matches, the shards side by side, and their two-view
+    geometries are written into ``database``. The same pairs meet the same seeded RANSAC in the
+    same order on every run.
+
+    Args:
+        database: a COLMAP database with features and (unverified) matches.
+        verification: ``pycolmap.TwoViewGeometryOptions`` (its RANSAC seeded).
+        threads: the shards, at least 1.
+    """
+    pc = pycolmap_or_error()
+    database = Path(database)
+    db = pc.Database.open(database)
+    try:
+        pairs = sorted(db.read_all_matches()[0])
+    finally:
+        db.close()
+    shards = []
+    for k in range(max(1, min(threads, len(pairs)))):
+        copy = database.with_name(f"{database.stem}-verify{k}{database.suffix}")
+        shutil.copyfile(database, copy)
+        part = pc.Database.open(copy)
+        try:
+            for i, pair in enumerate(pairs):
+                if i % threads != k:
+                    part.delete_matches(*pc.pair_id_to_image_pair(pair))
+        finally:
+            part.close()
+        shards.append(copy)
+
+    def verify(path: Path) -> None:
+        options = pc.GeometricVerifierOptions()
+        options.num_threads = 1
+        pc.geometric_verification(path, verifier_options=options, two_view_geometry_options=verification)
+
+    with ThreadPoolExecutor(len(shards)) as pool:  # COLMAP lets Python's lock go while it verifies
+        list(pool.map(verify, shards))
+    db = pc.Database.open(database)
+    try:
+        for copy in shards:
+            part = pc.Database.open(copy)
+            try:
+                for pair, geometry in zip(*part.read_two_view_geometries()):
+                    db.write_two_view_geometry(*pc.pair_id_to_image_pair(pair), geometry)
+            finally:
+                part.close()
+            copy.unlink()
+    finally:
+        db.close()
