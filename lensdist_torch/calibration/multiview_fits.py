@@ -24,6 +24,7 @@ import copy
 import math
 import os
 import sys
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -43,6 +44,7 @@ __all__ = [
     "quiet_log",
     "camera_of",
     "rss",
+    "Adjustment",
     "adjust",
     "with_model",
     "deltas",
@@ -115,12 +117,30 @@ def rss(rec) -> tuple[float, int]:
     return ss, n
 
 
-def adjust(rec, held: bool = False) -> tuple[bool, int]:
+@dataclass(frozen=True, kw_only=True)
+class Adjustment:
+    """What one bundle adjustment (:func:`adjust`) did.
+
+    Attributes:
+        converged: whether Ceres converged within :data:`BA_MAX_ITERATIONS` (the cost's relative
+            decrease below :data:`BA_FUNCTION_TOLERANCE`, or its gradient vanished).
+        iterations: the iterations it took.
+        rss: the sum of squared reprojection errors after it (px^2): twice Ceres' final cost, the
+            loss being the squared error itself (as :func:`rss` sums them over the tracks).
+        observations: the observations adjusted (each two residuals).
+    """
+
+    converged: bool
+    iterations: int
+    rss: float
+    observations: int
+
+
+def adjust(rec, held: bool = False) -> Adjustment:
     """A global bundle adjustment of ``rec`` in place: points, poses and (unless ``held``) focal and distortion.
 
     Every registered frame adjusts, the gauge fixed by two frames' poses (as ``pycolmap.bundle_adjustment``
-    does, bit for bit). Returns whether Ceres converged (within :data:`BA_MAX_ITERATIONS`: the cost's relative
-    decrease below :data:`BA_FUNCTION_TOLERANCE`, or its gradient vanished) and the iterations it took.
+    does, bit for bit).
     """
     pc = pycolmap_or_error()
     options = pc.BundleAdjustmentOptions()
@@ -136,13 +156,14 @@ def adjust(rec, held: bool = False) -> tuple[bool, int]:
     with quiet_log():
         summary = pc.create_default_ceres_bundle_adjuster(options, config, rec).solve().ceres_summary
     steps = summary.num_successful_steps + summary.num_unsuccessful_steps  # Ceres counts its iteration 0 as a step
-    return summary.termination_type.name == "CONVERGENCE", steps - 1
+    return Adjustment(converged=summary.termination_type.name == "CONVERGENCE", iterations=steps - 1,
+                      rss=2 * summary.final_cost, observations=summary.num_residuals // 2)
 
 
 def with_model(rec, model: str):
     """A copy of ``rec`` whose camera is ``model`` (focal and the first radial terms carried over), adjusted.
 
-    Returns the copy and :func:`adjust`'s (converged, iterations).
+    Returns the copy and its :class:`Adjustment`.
     """
     pc = pycolmap_or_error()
     out, cam = copy_reconstruction(rec), camera_of(rec)
@@ -197,8 +218,8 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
     An adjustment that does not converge within :data:`BA_MAX_ITERATIONS` stops at no minimum: the
     normal equations' inverse there is no posterior, and the model's is unbounded (it takes no weight).
     """
-    r, (converged, iterations) = with_model(rec, model)
-    ss, n = rss(r)
+    r, adjusted = with_model(rec, model)
+    ss, n, converged = adjusted.rss, adjusted.observations, adjusted.converged
     cam = camera_of(r)
     km, dm = opencv_from_colmap(cam, scale)
     dl = opencv_delta(km, dm, *size, step=step)
@@ -231,7 +252,7 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
         "jackknife_std_px": jk_std, "reprojection_px": math.sqrt(ss / max(n, 1)),
         "heldout_rms_px": heldout_rms([e for fold in errors for e in fold]),
         "rotation_deg": rotation_spread_deg(r), "camera_matrix": km.tolist(), "dist_coeffs": dm.tolist(),
-        "focal_std_px": focal_std, "converged": converged, "iterations": iterations}}
+        "focal_std_px": focal_std, "converged": converged, "iterations": adjusted.iterations}}
 
 
 def copy_reconstruction(rec):
@@ -269,8 +290,8 @@ def fit_held_camera(rec, camera, n_blocks: int) -> dict:
     """
     r = copy_reconstruction(rec)
     r.cameras[camera.camera_id] = camera
-    adjust(r, held=True)
-    ss, n = rss(r)
+    adjusted = adjust(r, held=True)
+    ss, n = adjusted.rss, adjusted.observations
     errors = [fold_errors for _, fold_errors in _folds(r, n_blocks, held=True)]
     return {"errors": errors, "reprojection_px": math.sqrt(ss / max(n, 1)),
             "heldout_rms_px": heldout_rms([e for fold in errors for e in fold])}

@@ -460,19 +460,21 @@ def test_calibrate_path_names_what_the_multiview_path_lacks(tmp_path):
 
 def test_the_adjustment_is_pycolmaps_bit_for_bit_and_says_it_converged():
     # two frames' poses fix the gauge, as pycolmap.bundle_adjustment does: the same camera to the last bit
-    from lensdist_torch.calibration.multiview_fits import BA_FUNCTION_TOLERANCE, adjust, copy_reconstruction
+    from lensdist_torch.calibration.multiview_fits import BA_FUNCTION_TOLERANCE, adjust, copy_reconstruction, rss
 
     rec, _ = _synthetic(3, frames=6, noise=0.5)
     ours, theirs = copy_reconstruction(rec), copy_reconstruction(rec)
-    converged, iterations = adjust(ours)
+    adjusted = adjust(ours)
     options = pycolmap.BundleAdjustmentOptions()
     options.refine_principal_point, options.print_summary = False, False
     options.ceres.solver_options.function_tolerance = BA_FUNCTION_TOLERANCE
     pycolmap.bundle_adjustment(theirs, options)
-    assert converged and 1 <= iterations < 100
+    assert adjusted.converged and 1 <= adjusted.iterations < 100
     assert camera_of(ours).params.tolist() == camera_of(theirs).params.tolist()
+    ss, n = rss(ours)  # the residuals summed over the tracks in Python: Ceres' final cost is half of it
+    assert adjusted.rss == pytest.approx(ss, rel=1e-9) and adjusted.observations == n
     held = copy_reconstruction(rec)
-    assert adjust(held, held=True)[0] and camera_of(held).params.tolist() == camera_of(rec).params.tolist()
+    assert adjust(held, held=True).converged and camera_of(held).params.tolist() == camera_of(rec).params.tolist()
 
 
 def test_a_model_whose_adjustment_does_not_converge_has_no_posterior_and_no_weight(monkeypatch):
@@ -481,7 +483,7 @@ def test_a_model_whose_adjustment_does_not_converge_has_no_posterior_and_no_weig
     from lensdist_torch.calibration import multiview_fits
 
     rec, _ = _synthetic(1, frames=10, noise=0.3)
-    multiview_fits.adjust(rec)  # RADIAL at its minimum, as a mapping leaves it
+    assert multiview_fits.adjust(rec).converged  # RADIAL at its minimum, as a mapping leaves it
     monkeypatch.setattr(multiview_fits, "BA_MAX_ITERATIONS", 1)
     res = self_calibrate_reconstruction(rec, MultiViewConfig(models=("SIMPLE_RADIAL", "RADIAL"), jackknife_blocks=4))
     sr, radial = res.models["SIMPLE_RADIAL"], res.models["RADIAL"]
