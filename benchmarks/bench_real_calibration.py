@@ -168,7 +168,9 @@ def main() -> None:
                 f"reprojection {v['reprojection_px']:.3f} px; where it inverts, not the truth's pixels",
             )
         if "weight" in v:  # the held-out evidence and the posterior (answers since the models were weighed)
-            note += (f"; weight {v['weight']:.3f}, posterior std {v['delta_avg_std_px']:.3f} px, jackknife "
+            std = v["delta_avg_std_px"]  # None (JSON's inf): the tracks do not determine it, or it did not converge
+            note += (f"; weight {v['weight']:.3f}, posterior std "
+                     f"{'none' if std is None else format(std, '.3f') + ' px'}, jackknife "
                      f"{v['jackknife_std_px']:.3f} px, held-out RMS {v['heldout_rms_px']:.3f} px")
         rows.append((f"COLMAP, {model} fixed (same tracks)", f"BIC {v['bic']:.0f}", value, None, None, note))
     if "terms" in pl:

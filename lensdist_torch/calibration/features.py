@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import shutil
+import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -57,7 +58,8 @@ def extract_and_match(
     """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
 
     Exhaustive matching up to :data:`EXHAUSTIVE_BELOW` frames, sequential beyond; one shared RADIAL
-    camera; the geometric verification's RANSAC seeded by ``seed``. :func:`reconstruct` maps on it;
+    camera; the geometric verification's RANSAC seeded by ``seed``.
+    :func:`~lensdist_torch.calibration.multiview.reconstruct` maps on it;
     :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads its matches.
 
     A run repeats bit for bit whatever ``num_threads``: the extraction runs on one thread (with
@@ -103,8 +105,11 @@ def verify_in_shards(database: str | Path, verification, *, threads: int) -> Non
     Args:
         database: a COLMAP database with features and (unverified) matches.
         verification: ``pycolmap.TwoViewGeometryOptions`` (its RANSAC seeded).
-        threads: the shards, at least 1.
+        threads: the shards, at least 1 (at most one a pair). The copies live in a temporary
+            folder beside ``database`` and go with it, whatever happens.
     """
+    if not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"threads must be a positive int, got {threads!r}")
     pc = pycolmap_or_error()
     database = Path(database)
     db = pc.Database.open(database)
@@ -112,35 +117,33 @@ def verify_in_shards(database: str | Path, verification, *, threads: int) -> Non
         pairs = sorted(db.read_all_matches()[0])
     finally:
         db.close()
-    shards = []
-    for k in range(max(1, min(threads, len(pairs)))):
-        copy = database.with_name(f"{database.stem}-verify{k}{database.suffix}")
-        shutil.copyfile(database, copy)
-        part = pc.Database.open(copy)
+    n = max(1, min(threads, len(pairs)))
+
+    def verify(k: int, path: Path) -> None:  # one shard: a copy holding only its pairs' matches
+        shutil.copyfile(database, path)
+        part = pc.Database.open(path)
         try:
             for i, pair in enumerate(pairs):
-                if i % threads != k:
+                if i % n != k:
                     part.delete_matches(*pc.pair_id_to_image_pair(pair))
         finally:
             part.close()
-        shards.append(copy)
-
-    def verify(path: Path) -> None:
         options = pc.GeometricVerifierOptions()
         options.num_threads = 1
         pc.geometric_verification(path, verifier_options=options, two_view_geometry_options=verification)
 
-    with ThreadPoolExecutor(len(shards)) as pool:  # COLMAP lets Python's lock go while it verifies
-        list(pool.map(verify, shards))
-    db = pc.Database.open(database)
-    try:
-        for copy in shards:
-            part = pc.Database.open(copy)
-            try:
-                for pair, geometry in zip(*part.read_two_view_geometries()):
-                    db.write_two_view_geometry(*pc.pair_id_to_image_pair(pair), geometry)
-            finally:
-                part.close()
-            copy.unlink()
-    finally:
-        db.close()
+    with tempfile.TemporaryDirectory(prefix="lensdist-verify-", dir=database.parent) as tmp:
+        shards = [Path(tmp) / f"shard{k}.db" for k in range(n)]
+        with ThreadPoolExecutor(n) as pool:  # COLMAP lets Python's lock go while it verifies
+            list(pool.map(verify, range(n), shards))
+        db = pc.Database.open(database)
+        try:
+            for path in shards:
+                part = pc.Database.open(path)
+                try:
+                    for pair, geometry in zip(*part.read_two_view_geometries()):
+                        db.write_two_view_geometry(*pc.pair_id_to_image_pair(pair), geometry)
+                finally:
+                    part.close()
+        finally:
+            db.close()

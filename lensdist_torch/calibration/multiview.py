@@ -168,7 +168,7 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
         config: :class:`~lensdist_torch.config.MultiViewConfig`.
         stop: called after each mapping with its index and its reconstruction (or None), outside
             the silenced log; True skips the remaining mappings (each costs as much as the
-            first: 40-45 s on 22 frames of 384 x 288 on 2 cores). With ``stop`` up to
+            first). With ``stop`` up to
             ``reconstructions +`` :data:`EXTRA_MAPPINGS` mappings run, without it ``reconstructions``.
         image_size: the frames' (H, W), for the features' cap (:func:`feature_cap`); None: ``max_features``.
         on_matches: called with the database's path once the features and verified matches are in
@@ -248,6 +248,8 @@ def _other_rows(rec, others: dict, fits: dict, scale: float, n_blocks: int, conf
                 "delta_max_std_px": stds[1],
                 "reprojection_px": fit["reprojection_px"],
                 "heldout_rms_px": fit["heldout_rms_px"],
+                "converged": fit["converged"],
+                "iterations": fit["iterations"],
                 "invertible_fraction": o.get("invertible_fraction", 1.0),
                 "camera_matrix": [list(r) for r in o["camera_matrix"]],
                 "dist_coeffs": list(o["dist_coeffs"]),

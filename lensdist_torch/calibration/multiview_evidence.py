@@ -328,7 +328,8 @@ def weigh_models(rows: Sequence[dict], errors: Sequence, *, checked: Sequence[bo
     ``errors``: per model what :func:`unit_log_evidence` takes. ``checked``: the models whose
     jackknife sets the :func:`dispersion` and checks their posterior (:func:`checked_scale`; the
     others' posteriors stay as they are). A model without a finite posterior (the data do not
-    determine it) takes no weight, unless none has one.
+    determine it) or whose adjustment did not converge (a row's ``converged`` False) takes no
+    weight, unless no model is left.
 
     Returns:
         ``weights`` (M,), ``lpd`` (M, units; the log evidence over the dispersion), ``dispersion``,
@@ -346,7 +347,7 @@ def weigh_models(rows: Sequence[dict], errors: Sequence, *, checked: Sequence[bo
     spread = dispersion([r["delta_avg_std_px"] for r, c in zip(rows, checked) if c],
                         [r["jackknife_std_px"] for r, c in zip(rows, checked) if c])
     lpd = unit_log_evidence(errors) / spread
-    finite = np.array([math.isfinite(r["delta_avg_std_px"]) for r in rows])
+    finite = np.array([math.isfinite(r["delta_avg_std_px"]) and r.get("converged", True) for r in rows])
     carried = finite if finite.any() else np.ones(len(rows), dtype=bool)
     weights = np.zeros(len(rows))
     weights[carried] = evidence_weights(lpd[carried], draws, seed)

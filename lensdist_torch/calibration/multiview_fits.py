@@ -286,7 +286,7 @@ def fit_held_camera(rec, camera, n_blocks: int) -> dict:
     """``camera`` held on ``rec``'s tracks: the structure and poses adjusted, its held-out errors per fold.
 
     Returns ``{"errors": per fold the held-out frames' squared errors, "reprojection_px": RMS on the
-    tracks, "heldout_rms_px"}`` (as :func:`fit_model`'s, for the same folds).
+    tracks, "heldout_rms_px", "converged", "iterations"}`` (as :func:`fit_model`'s, for the same folds).
     """
     r = copy_reconstruction(rec)
     r.cameras[camera.camera_id] = camera
@@ -294,4 +294,5 @@ def fit_held_camera(rec, camera, n_blocks: int) -> dict:
     ss, n = adjusted.rss, adjusted.observations
     errors = [fold_errors for _, fold_errors in _folds(r, n_blocks, held=True)]
     return {"errors": errors, "reprojection_px": math.sqrt(ss / max(n, 1)),
-            "heldout_rms_px": heldout_rms([e for fold in errors for e in fold])}
+            "heldout_rms_px": heldout_rms([e for fold in errors for e in fold]),
+            "converged": adjusted.converged, "iterations": adjusted.iterations}

@@ -73,3 +73,30 @@ def test_posterior_std_of_a_nonlinear_figure_against_its_exact_gradient():
     (std,) = posterior_std([a, b, 99.0], [0, 1], cov, lambda p: (p[0] ** 2 * p[1],))
     assert std == pytest.approx(math.sqrt(g @ cov @ g), rel=1e-6)
     assert posterior_std([a, b], [0, 1], None, lambda p: (p[0], p[1])) == [math.inf, math.inf]
+
+
+def test_a_model_that_did_not_converge_takes_no_weight_even_with_a_known_delta():
+    # a camera without distortion has Delta 0 with std 0 whatever its focal length; stopped at no minimum, its
+    # held-out frames (here predicted better) are no evidence: the converged model answers alone
+    from lensdist_torch.calibration.multiview_evidence import weigh_models
+
+    pinhole = {"delta_avg_px": 0.0, "delta_avg_std_px": 0.0, "delta_max_px": 0.0, "delta_max_std_px": 0.0,
+               "jackknife_std_px": 0.0, "converged": False}
+    radial = {"delta_avg_px": 8.0, "delta_avg_std_px": 0.5, "delta_max_px": 20.0, "delta_max_std_px": 1.0,
+              "jackknife_std_px": 0.5, "converged": True}
+    errors = [[[np.full(50, 0.5)] for _ in range(3)], [[np.full(50, 1.0)] for _ in range(3)]]
+    out = weigh_models([pinhole, radial], errors, checked=[True, True], confidence=0.95)
+    assert out["carried"].tolist() == [False, True] and out["weights"].tolist() == [0.0, 1.0]
+    lo, hi = out["intervals"][0]
+    assert lo == pytest.approx(8.0 - 1.959964 * 0.5, abs=1e-4) and hi == pytest.approx(8.0 + 1.959964 * 0.5, abs=1e-4)
+    both = weigh_models([{**pinhole, "converged": True}, radial], errors, checked=[True, True], confidence=0.95)
+    assert both["weights"][0] > 0.99  # converged, the pinhole's better predictions would take the weight
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("threads", [0, -1, 1.5, None])
+def test_verification_shards_must_be_a_positive_int(threads, tmp_path):
+    from lensdist_torch.calibration.features import verify_in_shards
+
+    with pytest.raises(ValueError, match=r"^threads must be a positive int, got "):
+        verify_in_shards(tmp_path / "db.db", None, threads=threads)

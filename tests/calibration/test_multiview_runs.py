@@ -161,8 +161,8 @@ def test_reconstructions_must_be_a_positive_int(value):
 
 # ------------------------------------------------------------------ the same numbers, run after run
 def test_reconstructions_repeat_exactly_with_the_default_threads(tmp_path):
-    # the extraction and the verification run on one thread: with two, the 12 GoPro views' verified matches
-    # (and COLMAP's focal) changed from run to run; the matching and the mapping keep two
+    # the extraction and the mapping run on one thread, the matching on two, the verification in two shards of one
+    # thread each: with COLMAP's own threads the 12 GoPro views' verified matches changed from run to run
     pycolmap = pytest.importorskip("pycolmap")
     from lensdist_torch.calibration.multiview import reconstruct
 
