@@ -88,15 +88,16 @@ def score_models(fits: dict, matches: PlanarMatches, v1: torch.Tensor, v2: torch
     for frames in fold_ranges(len(matches.names), blocks):
         block = torch.tensor(frames)
         left = (torch.isin(first, block) | torch.isin(second, block))[pair]
-        train, held = (inliers & ~left).double(), inliers & left
+        train, held = inliers & ~left, inliers & left  # each fit sees its own matches only (the rest weigh 0)
         held_pair = pair[held]
         units = held_pair.unique()
         for m in names:
             theta, hs, _, n = fits[m]
-            tj, _ = fit_lens_and_homographies(theta.clone(), hs.clone(), v1, v2, pair=pair, w=train,
-                                              iterations=iterations, terms=n)
-            _, hh = fit_lens_and_homographies(tj, hs.clone(), v1, v2, pair=pair, w=held.double(),
-                                              iterations=iterations, terms=n, lens_held=True)
+            tj, _ = fit_lens_and_homographies(theta.clone(), hs.clone(), v1[train], v2[train], pair=pair[train],
+                                              w=v1.new_ones(int(train.sum())), iterations=iterations, terms=n)
+            _, hh = fit_lens_and_homographies(tj, hs.clone(), v1[held], v2[held], pair=held_pair,
+                                              w=v1.new_ones(len(held_pair)), iterations=iterations, terms=n,
+                                              lens_held=True)
             r = transfer_residuals(tj, hh, v1[held], v2[held], terms=n, pair=held_pair) * big_r
             # (K,): one squared 2-D error per match, its two sides' mean (each side measures the same misfit);
             # a point the fold's lens cannot map is an error without bound (the cap takes it)
