@@ -5,10 +5,11 @@ It sees feature vectors (row-major flattened quality maps), never images.
 Per class c: the mean mu_c and the top n eigenvectors U_c (rows) of the centred training
 vectors, from ``torch.linalg.svd`` on the CPU in float64. A vector x is assigned to the class
 whose eigen-space it lies closest to, eps_c(x) = ||(x - mu_c) - U_c^T U_c (x - mu_c)||, and to
-the reject class R where even the smallest distance exceeds tau_R, a quantile of the training
-pairs' own smallest distances. Delta is interpolated from the 4 nearest training pairs of the
-winning class, by distance between eigen-space coefficients y = U_c (x - mu_c), with weights
-1 / (d + 1e-6). A pair classed R still gets the Delta of its nearest class (its best guess).
+the reject class R where even the smallest distance exceeds tau_R, the ``REJECT_QUANTILE`` (0.95)
+quantile of the training pairs' own smallest distances. Delta is interpolated from the
+``N_NEIGHBOURS`` (4) nearest training pairs of the winning class, by distance between
+eigen-space coefficients y = U_c (x - mu_c), with weights 1 / (d + 1e-6). A pair classed R
+still gets the Delta of its nearest class (its best guess).
 
 Everything fitted is a buffer, so ``state_dict`` carries it and ``.to("cuda")`` moves it.
 
@@ -51,6 +52,10 @@ __all__ = ["EigenSpaceClassifier", "ClassifierResult", "CheckpointError", "CHECK
 #: 2: a content digest (core.storage.content_digest); version 1 files are refused (refit them).
 CHECKPOINT_VERSION = 2
 _KIND = "lensdist-eigenspace"
+#: The reject threshold tau_R: this quantile of the training pairs' own smallest class distances.
+REJECT_QUANTILE = 0.95
+#: Training pairs of the winning class whose Delta is interpolated (nearest in eigen-space coefficients).
+N_NEIGHBOURS = 4
 
 
 class ClassifierResult(NamedTuple):
@@ -149,7 +154,7 @@ class EigenSpaceClassifier(nn.Module):
         self.train_delta = deltas.detach().cpu().float()
         self.fitted.fill_(True)
         own = self.distances(features).min(1).values
-        self.reject_threshold.fill_(float(torch.quantile(own.double(), self.settings.reject_quantile)))
+        self.reject_threshold.fill_(float(torch.quantile(own.double(), REJECT_QUANTILE)))
         return self
 
     def _check_fit(self, features, classes, deltas):
@@ -201,7 +206,7 @@ class EigenSpaceClassifier(nn.Module):
         y, dist = self._project(features)
         nearest = dist.argmin(1)
         label = torch.where(dist.min(1).values > self.reject_threshold, torch.full_like(nearest, REJECT), nearest)
-        kn = self.settings.n_neighbours
+        kn = N_NEIGHBOURS
         b, dev = y.shape[0], y.device
         neigh = torch.zeros(b, kn, dtype=torch.long, device=dev)
         ndist = torch.zeros(b, kn, device=dev)

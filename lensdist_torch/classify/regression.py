@@ -13,7 +13,7 @@ classes 1 and 4.
 
 Confidence: the spread of the neighbours' Delta_avg (1.4826 x their median absolute deviation)
 is the std of the estimate; ``confidence = s0 / (s0 + std)`` with ``s0 =
-config.regression.cannot_tell_fraction * Delta_top``, so confidence < 0.5 ("cannot tell")
+CANNOT_TELL_FRACTION * Delta_top`` (0.125 of it), so confidence < 0.5 ("cannot tell")
 where similar maps came from very different lenses, typically nearly empty maps (little
 motion).
 
@@ -56,6 +56,10 @@ __all__ = ["DeltaRegressor", "RegressionResult", "CHECKPOINT_VERSION"]
 CHECKPOINT_VERSION = 3
 _KIND = "lensdist-delta-regression"
 _MAD_TO_STD = 1.4826
+#: The neighbours' Delta_avg spread, a share of the class range Delta_top, at which the confidence is 0.5.
+CANNOT_TELL_FRACTION = 0.125
+#: Below this confidence the regression's answer is "cannot tell".
+CONFIDENCE_THRESHOLD = 0.5
 
 
 class RegressionResult(NamedTuple):
@@ -179,9 +183,9 @@ class DeltaRegressor(nn.Module):
         std = _MAD_TO_STD * (nd - pred[:, None, :]).abs().median(dim=1).values
         cfg = self.config
         classes = [estimated_class(pred[:, i], pred[:, 0], metric=m, config=cfg) for i, m in enumerate(METRICS)]
-        s0 = cfg.regression.cannot_tell_fraction * delta_top("delta_avg", cfg)
+        s0 = CANNOT_TELL_FRACTION * delta_top("delta_avg", cfg)
         conf = s0 / (s0 + std[:, 0])
-        confident = conf >= cfg.regression.confidence_threshold
+        confident = conf >= CONFIDENCE_THRESHOLD
         return RegressionResult(
             delta_avg=pred[:, 0], delta_max=pred[:, 1], class_avg=classes[0], class_max=classes[1], std_avg=std[:, 0],
             std_max=std[:, 1], confidence=conf, confident=confident)

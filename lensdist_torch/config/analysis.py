@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import flag, integer, real
+from lensdist_torch.config.checks import flag, real
 
 __all__ = ["AnalysisConfig"]
 
@@ -16,7 +16,8 @@ class AnalysisConfig:
     What a user sets and what ``fit_confidence`` writes (the R threshold, the confidence, the
     intervals' scale, fitted on a validation split); the decision's constants (the overlap, the
     domain checks, the self-calibration's Platt map, the intervals' coverage, the validation
-    split's seed offset, the fit's target precision) are named in the modules that use them
+    split's seed offset, the fit's target precision and its most "cannot tell", the eigen-space's
+    confirmation) are named in the modules that use them
     (:mod:`~lensdist_torch.workflows.decision`, ``analyze``, ``class_mass``, ``decision_fit``;
     docs/method.md, section 10).
 
@@ -31,7 +32,7 @@ class AnalysisConfig:
             answer is "cannot tell" (self-calibration and regression). Fitted on a validation
             split (``fit_confidence``): the value that answers most while the answers' share
             right reaches ``decision_fit.TARGET_PRECISION`` (at the lower end of its 95 %
-            interval), within ``max_cannot_tell``.
+            interval), within ``decision_fit.MAX_CANNOT_TELL``.
         regression_confidence_scale, regression_confidence_shift: the Platt map of the
             regression's confidence c: sigmoid(scale * logit(c) + shift); 1 and 0 leave it as it
             is. Fitted on a validation split by ``fit_confidence``.
@@ -45,10 +46,9 @@ class AnalysisConfig:
             Delta_avg on ``class_mass.INTERVAL_CONFIDENCE`` of its pairs. The shipped default is 1
             for both: real pairs are not the rendered protocol (docs/method.md, section 10).
         cross_check: the learned methods (regression, eigen-space) also run the
-            self-calibration and are out of domain where the two disagree.
-        eigenspace_max_class_disagreement: the eigen-space gives no confidence, so its class stands
-            only where the self-calibration confidently finds a class at most this far from it
-            (0: the same); elsewhere "cannot tell" (with ``cross_check``).
+            self-calibration and are out of domain where the two disagree; the eigen-space's
+            class, which has no confidence, stands only where the self-calibration confirms it
+            (``decision.EIGENSPACE_MAX_CLASS_DISAGREEMENT``).
         min_motion_px: below this mean displacement (analysis px) of the registration, every
             method says "cannot tell": both views carry the same distortion, which cancels
             where the scene did not move. Positive, and applied with or without ``cross_check``.
@@ -67,9 +67,6 @@ class AnalysisConfig:
             wherever the classes differ. Not fitted: on rendered flat pairs 0 answers more
             and as well, but on real frames the rule withheld a pair both models got wrong
             (docs/method.md, section 10); 0 is for scenes known to be flat.
-        max_cannot_tell: the largest share of a validation split's pairs that may be "cannot
-            tell" (for every reason) when ``min_confidence`` is fitted: a decision that
-            withholds more to be right more often is not chosen.
 
     Example:
         >>> from dataclasses import replace
@@ -90,21 +87,17 @@ class AnalysisConfig:
     selfcal_std_scale: float = 1.0
     interval_std_scale: float = 1.0
     cross_check: bool = True
-    eigenspace_max_class_disagreement: int = 0
     min_motion_px: float = 1.0
     flat_prior: float = 0.5
     relief_mass: float = 1.0
-    max_cannot_tell: float = 0.25
 
     def __post_init__(self) -> None:
         real(self, "no_distortion_px", lo=0, lo_open=True)
         real(self, "min_motion_px", lo=0, lo_open=True, why="at 0 every method answers on the same image twice")
         real(self, "flat_prior", lo=0, hi=1)
         real(self, "relief_mass", lo=0, hi=1)
-        real(self, "max_cannot_tell", lo=0, hi=1)
         real(self, "min_confidence", lo=0, hi=1)
         for name in ("regression_confidence_scale", "selfcal_std_scale", "interval_std_scale"):
             real(self, name, lo=0, lo_open=True)
         real(self, "regression_confidence_shift")
         flag(self, "cross_check")
-        integer(self, "eigenspace_max_class_disagreement", lo=0)

@@ -26,7 +26,8 @@ class Retired:
         by: what replaced it: a key of this version (with why), or, for a key that became a
             constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``,
             ``lensdist_torch.selfcal.X.NAME``, ``lensdist_torch.registration.X.NAME``,
-            ``lensdist_torch.workflows.X.NAME``, ``lensdist_torch.data.X.NAME``).
+            ``lensdist_torch.workflows.X.NAME``, ``lensdist_torch.data.X.NAME``,
+            ``lensdist_torch.classify.X.NAME``).
         value: for a constant, its value: the key loads at this value (dropped) and is refused
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
@@ -142,6 +143,14 @@ RETIRED = {
     ("protocol", "perspective"): _constant("synthesis.PERSPECTIVE", 2e-5, "data"),
     ("protocol", "perturbation"): _constant("synthesis.PERTURBATION", 0.01, "data"),
     ("protocol", "occluder_area"): _constant("realism.OCCLUDER_AREA", (0.05, 0.15), "data"),
+    # the classifiers' and the decision's fit's constants (docs/method.md, sections 8 and 10)
+    ("classifier", "reject_quantile"): _constant("eigenspace.REJECT_QUANTILE", 0.95, "classify"),
+    ("classifier", "n_neighbours"): _constant("eigenspace.N_NEIGHBOURS", 4, "classify"),
+    ("regression", "cannot_tell_fraction"): _constant("regression.CANNOT_TELL_FRACTION", 0.125, "classify"),
+    ("regression", "confidence_threshold"): _constant("regression.CONFIDENCE_THRESHOLD", 0.5, "classify"),
+    ("analysis", "eigenspace_max_class_disagreement"): _constant("decision.EIGENSPACE_MAX_CLASS_DISAGREEMENT", 0,
+                                                                 "workflows"),
+    ("analysis", "max_cannot_tell"): _constant("decision_fit.MAX_CANNOT_TELL", 0.25, "workflows"),
 }
 #: Retired keys that never shaped a fitted model or a data set: dropped wherever a saved config is read.
 INERT = {key for key, r in RETIRED.items() if r.inert}

@@ -18,8 +18,9 @@ decision's constants are named below.
   apart, or Delta_avg more than :data:`MAX_DELTA_DISAGREEMENT` of its range apart.
 * **Confirmation** of an answer without a confidence (the eigen-space's: nothing says how sure
   it is, and on rendered pairs 30 of its 75 answers were a class off): its class stands only
-  where the self-calibration confidently finds a class at most ``eigenspace_max_class_disagreement``
-  (0) from it; where the self-calibration cannot tell or finds another class, "cannot tell".
+  where the self-calibration confidently finds a class at most
+  :data:`EIGENSPACE_MAX_CLASS_DISAGREEMENT` (0) from it; where the self-calibration cannot tell
+  or finds another class, "cannot tell".
 * **The answer** (:func:`decide`): ``class`` is None and ``cannot_tell`` True whenever the
   registration failed, there is no estimate, the overlap is below :data:`MIN_OVERLAP`, the pair
   is out of domain or the confidence is low; ``estimated_class`` keeps the estimator's own guess.
@@ -58,6 +59,8 @@ MIN_OVERLAP = 0.5
 SELFCAL_CONFIDENCE_SCALE = 1.0
 #: Shift of the self-calibration's Platt map (see :data:`SELFCAL_CONFIDENCE_SCALE`).
 SELFCAL_CONFIDENCE_SHIFT = 0.0
+#: The eigen-space's class (no confidence) stands where the confident self-calibration's is at most this far.
+EIGENSPACE_MAX_CLASS_DISAGREEMENT = 0
 #: Out of domain where a learned method's class and the confident self-calibration's are more than this many apart.
 MAX_CLASS_DISAGREEMENT = 1
 #: Out of domain where their Delta_avg estimates differ by more than this share of the Delta_avg range.
@@ -111,7 +114,7 @@ def domain_checks(
         check["agrees"] = not ((gap is not None and gap > MAX_CLASS_DISAGREEMENT) or far or is_r[0] != is_r[1])
     if res.get("confidence") is None:  # the eigen-space: its class needs the self-calibration's confirmation
         gap = class_distance(res["estimated_class"], selfcal["estimated_class"]) if usable else None
-        check["confirms"] = bool(check["agrees"] and gap is not None and gap <= a.eigenspace_max_class_disagreement)
+        check["confirms"] = bool(check["agrees"] and gap is not None and gap <= EIGENSPACE_MAX_CLASS_DISAGREEMENT)
     res["selfcal_check"] = check
 
 

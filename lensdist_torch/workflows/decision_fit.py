@@ -14,7 +14,7 @@ does, and fits the ``[analysis]`` values that turn the estimators' outputs into 
   the values of a grid whose confidences score best (least log-loss) as P(class right).
 * ``min_confidence``: the least confidence of an answer, the value that answers most while the
   share of its answers that are right reaches :data:`TARGET_PRECISION` at the lower end of its 95 %
-  interval, with at most ``max_cannot_tell`` of the pairs "cannot tell". ``relief_mass`` is not
+  interval, with at most :data:`MAX_CANNOT_TELL` of the pairs "cannot tell". ``relief_mass`` is not
   fitted: on rendered flat pairs naming relief only withholds right answers, on real frames it
   withheld a pair both models got wrong (docs/method.md, section 10).
 * ``interval_std_scale``: the factor on the std in a pair's 95 % intervals, the least of the same
@@ -71,6 +71,8 @@ _PLATT = {"selfcal": None, "regression": ("regression_confidence_scale", "regres
 VALIDATION_SEED_OFFSET = 1
 #: Share right of the confident answers, at the lower end of its 95 % interval, that fitting min_confidence aims for.
 TARGET_PRECISION = 0.97
+#: The largest share of the split's pairs that may be "cannot tell" (any reason) at a fitted min_confidence.
+MAX_CANNOT_TELL = 0.25
 
 #: The candidate std scales (both): log-spaced from 0.5 to 4, and the config's own value.
 _SCALES = tuple(torch.logspace(math.log10(0.5), math.log10(4.0), 25, dtype=torch.float64).tolist())
@@ -217,7 +219,7 @@ def fit_decision(results: dict, data: dict, config: LensdistConfig, trace: list 
     P(class right), kept at the config's where the pairs are all right or all wrong (nothing to
     score); then ``min_confidence`` of 0.5 to 0.9, the one with the most answers whose share
     right reaches :data:`TARGET_PRECISION` at the lower end of its 95 % interval, with at most
-    ``max_cannot_tell`` of the pairs "cannot tell" (:func:`_fit_withholding`); then
+    :data:`MAX_CANNOT_TELL` of the pairs "cannot tell" (:func:`_fit_withholding`); then
     ``interval_std_scale``, the least
     whose intervals cover the true Delta_avg on ``class_mass.INTERVAL_CONFIDENCE`` of the scored pairs
     (the largest where none does). Then the Platt map of
@@ -289,7 +291,7 @@ def _fit_withholding(results: list, data: dict, config: LensdistConfig, scale_pr
     (:func:`_std_fit`); then, for each ``min_confidence``
     of :data:`_MIN_CONFIDENCES` (and the config's), the split's self-calibration answers as
     ``analyze`` would give them (:func:`answers`). Of the candidates with at most
-    ``max_cannot_tell`` of the pairs "cannot tell", the one with the most answers whose share
+    :data:`MAX_CANNOT_TELL` of the pairs "cannot tell", the one with the most answers whose share
     right is at least :data:`TARGET_PRECISION` at the lower end of its 95 % interval
     (:func:`~lensdist_torch.workflows.confidence.precision_bound`: the split's own chance allowed
     for); where none is, the one with the highest such bound; where none is within the limit,
@@ -310,7 +312,7 @@ def _fit_withholding(results: list, data: dict, config: LensdistConfig, scale_pr
             trace.append(
                 {key: v if not (isinstance(v, float) and math.isnan(v)) else None for key, v in (fit | got).items()}
             )
-        if got["cannot_tell"] <= a.max_cannot_tell and math.isfinite(got["precision_bound"]):
+        if got["cannot_tell"] <= MAX_CANNOT_TELL and math.isfinite(got["precision_bound"]):
             rows.append(
                 (got["precision_bound"] >= TARGET_PRECISION, got["answered"], got["precision_bound"], -m, fit)
             )

@@ -5,6 +5,7 @@ import dataclasses
 import pytest
 import torch
 
+from lensdist_torch.classify import eigenspace
 from lensdist_torch.classify.eigenspace import CHECKPOINT_VERSION, CheckpointError, EigenSpaceClassifier
 from lensdist_torch.config import ClassifierConfig, ImageConfig, LensdistConfig, QualityConfig
 from lensdist_torch.geometry.distortion import REJECT
@@ -12,8 +13,8 @@ from lensdist_torch.metric.classification import ClassRMSE, ConfusionMatrix
 from lensdist_torch.workflows.reports import CANNOT_TELL, evaluate_predictions, report_markdown
 
 
-def _cfg(n_ev=2, q=0.95, k=4):
-    return LensdistConfig(classifier=ClassifierConfig(n_eigenvectors=n_ev, reject_quantile=q, n_neighbours=k))
+def _cfg(n_ev=2):
+    return LensdistConfig(classifier=ClassifierConfig(n_eigenvectors=n_ev))
 
 
 def _subspace_data(n_per=30, d=20, n_ev=2, noise=0.0, seed=0):
@@ -63,9 +64,10 @@ class TestFit:
             eps = (xc - xc @ u.T @ u).norm(dim=1)
             assert torch.allclose(dist[:, k].double(), eps, atol=1e-4)
 
-    def test_reject_threshold_is_training_quantile(self):
+    def test_reject_threshold_is_training_quantile(self, monkeypatch):
+        monkeypatch.setattr(eigenspace, "REJECT_QUANTILE", 0.8)
         x, c, d, _ = _subspace_data(noise=0.3)
-        clf = EigenSpaceClassifier(20, _cfg(q=0.8)).fit(x, c, d)
+        clf = EigenSpaceClassifier(20, _cfg()).fit(x, c, d)
         own = clf.distances(x).min(1).values.double()
         assert float(clf.reject_threshold) == pytest.approx(float(torch.quantile(own, 0.8)), rel=1e-6)
         far = clf.means[0:1] + 100.0
@@ -73,10 +75,11 @@ class TestFit:
         # about 20 % of the training pairs lie beyond the 0.8 quantile
         assert 0.15 <= float((clf(x).label == REJECT).float().mean()) <= 0.25
 
-    def test_delta_inverse_distance_weights(self):
+    def test_delta_inverse_distance_weights(self, monkeypatch):
         # class 0 training coefficients at known positions; check the 2-NN weighted mean by hand
+        monkeypatch.setattr(eigenspace, "N_NEIGHBOURS", 2)
         d_feat = 6
-        cfg = _cfg(n_ev=1, k=2)
+        cfg = _cfg(n_ev=1)
         x = torch.zeros(4 * 5, d_feat)
         cls = torch.arange(4).repeat_interleave(5)
         for k in range(4):

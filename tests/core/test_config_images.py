@@ -11,6 +11,7 @@ import torch
 from kornia.color import rgb_to_grayscale
 
 from lensdist_torch import quality_map
+from lensdist_torch.classify.eigenspace import N_NEIGHBOURS, REJECT_QUANTILE
 from lensdist_torch.config import (
     ClassifierConfig,
     DistortionConfig,
@@ -58,7 +59,7 @@ class TestDefaults:
         assert (p.ty_range, p.tx_range, p.scale_range) == ((0.0, 40.0), (-4.0, 4.0), (0.98, 1.02))
         assert p.rotation_deg == 1.0 and (PERSPECTIVE, PERTURBATION) == (2e-5, 0.01)  # the latter constants now
         c = ClassifierConfig()
-        assert c.n_eigenvectors in (5, 10) and c.reject_quantile == 0.95 and c.n_neighbours == 4
+        assert c.n_eigenvectors in (5, 10) and (REJECT_QUANTILE, N_NEIGHBOURS) == (0.95, 4)  # constants now
         assert load_config(None) == LensdistConfig()
 
     def test_frozen(self):

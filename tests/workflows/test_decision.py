@@ -17,6 +17,7 @@ from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import load_scenes, read_manifest
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.workflows import decision
 from lensdist_torch.workflows.analyze import analyze_batch
 from lensdist_torch.workflows.class_mass import flat_or_relief
 from lensdist_torch.workflows.confidence import expected_calibration_error, fit_platt, platt, reliability
@@ -246,11 +247,12 @@ def test_an_eigenspace_class_stands_only_where_the_selfcal_confirms_it():
     domain_checks(unsure, {**sc, "raw_confidence": 0.3}, None, {}, cfg=cfg)
     decide(unsure, cfg)
     assert unsure["class"] is None and "the self-calibration cannot tell from this pair" in " ".join(unsure["warnings"])
-    loose = dataclasses.replace(cfg, analysis=dataclasses.replace(cfg.analysis, eigenspace_max_class_disagreement=1))
-    adjacent = _res(estimated_class="3", delta_avg=8.3)
-    domain_checks(adjacent, sc, None, {}, cfg=loose)
-    decide(adjacent, loose)
-    assert adjacent["class"] == "3"  # the setting: one class apart tolerated
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(decision, "EIGENSPACE_MAX_CLASS_DISAGREEMENT", 1)
+        adjacent = _res(estimated_class="3", delta_avg=8.3)
+        domain_checks(adjacent, sc, None, {}, cfg=cfg)
+        decide(adjacent, cfg)
+    assert adjacent["class"] == "3"  # the constant at 1: one class apart tolerated
     regression = _res(estimated_class="3", delta_avg=8.3, confidence=0.9)  # a confidence: the gate applies instead
     domain_checks(regression, sc, None, {}, cfg=cfg)
     decide(regression, cfg)

@@ -13,6 +13,7 @@ import torch
 
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, estimated_class
+from lensdist_torch.workflows import decision_fit
 from lensdist_torch.workflows.class_mass import flat_or_relief, relief_agreement, rescored_relief_found
 from lensdist_torch.workflows.confidence import precision_bound
 from lensdist_torch.workflows.decision_fit import TARGET_PRECISION, answers, fit_decision
@@ -144,17 +145,19 @@ def test_a_split_with_relief_trusts_the_relief_model_and_withholds_what_it_must(
     assert fitted["flat_prior"] <= 0.5 and fitted["min_confidence"] > 0.5
     got, every = answers(results, data, after), answers(results, data, _with_mass(after, 1.0, min_confidence=0.5))
     assert got["precision_bound"] > every["precision_bound"] and got["answered"] < every["answered"]
-    assert got["cannot_tell"] <= cfg.analysis.max_cannot_tell
+    assert got["cannot_tell"] <= decision_fit.MAX_CANNOT_TELL
 
 
-def test_the_fitted_decision_stays_within_the_cannot_tell_limit():
+def test_the_fitted_decision_stays_within_the_cannot_tell_limit(monkeypatch):
     """The split above withholds at some "cannot tell" cost; a tighter limit fits a decision within it."""
     results, data, _ = _split(1200, 0.4, 0.05, 0.3)
     free, after = _fitted(results, data, _cfg())
     cost = answers(results, data, after)["cannot_tell"]
     limit = cost - 0.004  # five pairs fewer
-    fitted, tight = _fitted(results, data, _cfg(max_cannot_tell=limit))
+    monkeypatch.setattr(decision_fit, "MAX_CANNOT_TELL", limit)
+    fitted, tight = _fitted(results, data, _cfg())
     assert answers(results, data, tight)["cannot_tell"] <= limit
     assert fitted["min_confidence"] < free["min_confidence"]
-    none_within = fit_decision({"selfcal": results}, data, _cfg(max_cannot_tell=0.0))  # none: the config's
+    monkeypatch.setattr(decision_fit, "MAX_CANNOT_TELL", 0.0)
+    none_within = fit_decision({"selfcal": results}, data, _cfg())  # none: the config's
     assert none_within["min_confidence"] == 0.5
