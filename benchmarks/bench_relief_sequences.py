@@ -24,11 +24,11 @@ sequence (a long run keeps what it finished).
     python benchmarks/bench_relief_sequences.py --n 20 --threads 2 --out docs/results/bench_relief_sequences.json
     python benchmarks/bench_relief_sequences.py --n 40 --method direct \\
         --out docs/results/bench_relief_sequences_direct.json
-    python benchmarks/bench_relief_sequences.py --start 40 --n 40 --method direct --config RAW.toml \\
+    python benchmarks/bench_relief_sequences.py --start 40 --n 40 --method direct --raw \\
         --out ..._raw_validation.json
 
-(RAW.toml: ``[calibration]`` ``relief_test = 0``, ``relief_rel = 0``: every sequence reports its raw relief
-effect and z, the intervals without the relief term.)
+(``--raw``: the constants ``calibration.direct.RELIEF_TEST`` and ``RELIEF_REL`` set to 0 in this run: every
+sequence reports its raw relief effect and z, the intervals without the relief term.)
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from pathlib import Path
 
 import torch
 
+from lensdist_torch.calibration import direct
 from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
 from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.png import encode_png
@@ -165,9 +166,12 @@ def main() -> None:
     ap.add_argument(
         "--config", default=None, help="a TOML config for calibrate_path's settings (e.g. [selfcal] parallax)"
     )
+    ap.add_argument("--raw", action="store_true", help="direct.RELIEF_TEST = RELIEF_REL = 0: no relief term")
     ap.add_argument("--out", type=Path, default=Path("bench_relief_sequences.json"))
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.raw:
+        direct.RELIEF_TEST = direct.RELIEF_REL = 0.0
     rows = json.loads(args.out.read_text())["rows"] if args.start and args.out.exists() else []
     settings = load_config(args.config) if args.config else None  # read once, not per sequence
     for i in range(args.start, args.start + args.n):

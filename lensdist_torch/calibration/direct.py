@@ -13,9 +13,9 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
    pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
    where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
    diverged or whose residual exceeds ``MAX_RESIDUAL_RATIO`` times the lower quartile's drop, or
-   that the fit did not register: residual RMS over ``max_misfit`` of sqrt(var_1 + var_2), the
+   that the fit did not register: residual RMS over ``MAX_MISFIT`` of sqrt(var_1 + var_2), the
    frames' contrast (real views far apart stop in a wrong minimum and say anything there).
-   With ``registered_start``, the pairs step 4 would not count, or that lie more than 3 of their
+   With ``REGISTERED_START``, the pairs step 4 would not count, or that lie more than 3 of their
    own sigma_i from its value, are fitted again from their own registration where it lies far
    from the translation (:mod:`~lensdist_torch.calibration.direct_fits`).
 4. **Combination: the inverse-variance mean** of (a_i, b_i) (weights 1 / sigma_i^2) of the pairs
@@ -26,15 +26,15 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
 5. **Intervals**: pairs sharing frames have correlated errors, so the variance is a
    delete-a-block jackknife (``JACKKNIFE_BLOCKS`` contiguous blocks), or the Birge-scaled
    max(1, chi^2 / (n - 1)) / sum(1 / sigma_i^2) where larger, plus :data:`SYSTEMATIC_REL` D in
-   quadrature (what all pairs share), plus ``relief_rel`` times the relief's effect: the pairs'
+   quadrature (what all pairs share), plus :data:`RELIEF_REL` times the relief's effect: the pairs'
    plane + parallax minus planar answers combined as the answers are, where it exceeds
-   ``relief_test`` of its jackknife stds (relief parts the models alike in every pair, noise
-   does not), else the effect that test cannot exclude, ``relief_test`` of those stds (a relief can bias
+   :data:`RELIEF_TEST` of its jackknife stds (relief parts the models alike in every pair, noise
+   does not), else the effect that test cannot exclude, ``RELIEF_TEST`` of those stds (a relief can bias
    both models alike; no jackknife sees it: docs/method.md, 7). t on blocks - 1 dof; [max(0, D - t sd), D + t sd].
 6. **Class** (``estimated_class``) of Delta_avg at the paper's 320 x 424 frame where the whole
    interval, carried there, lies in that class (:func:`~lensdist_torch.calibration.sequence_class.interval_class`,
    the rule every path shares), or None with a reason: under ``MIN_PAIRS`` usable pairs, or the
-   classes the interval spans (R against 1 where it spans ``no_distortion_px``, a sequence's R threshold).
+   classes the interval spans (R against 1 where it spans ``NO_DISTORTION_PX``, a sequence's R threshold).
 
 Why this combination: docs/method.md, section 10.
 """
@@ -48,6 +48,7 @@ from typing import Callable
 import torch
 import torch.nn.functional as F
 
+from lensdist_torch.calibration import direct_fits
 from lensdist_torch.calibration.direct_fits import fit_pairs, refit_from_registration, reject_residuals, unregistered
 from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.pooling import OUTLIER_RANGE, pair_weights, pool_pairs, within_mads
@@ -61,14 +62,16 @@ from lensdist_torch.geometry.phase import phase_correlation
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
            "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION",
-           "MAX_MOTION", "MOTION_STEPS", "SYSTEMATIC_REL"]
+           "MAX_MOTION", "MOTION_STEPS", "SYSTEMATIC_REL", "RELIEF_REL", "RELIEF_TEST"]
 
-#: Step 2: each frame is paired with the first later frame moved by each of these fractions of the half diagonal.
-MOTION_STEPS = (0.14, 0.22)
-#: Step 2: no pair moves by more than this fraction of the half diagonal.
-MAX_MOTION = 0.35
+MOTION_STEPS = (0.14, 0.22)  # step 2: each frame's pairs: the first later frames moved by these shares of R
+MAX_MOTION = 0.35  # step 2: no pair moves by more than this share of the half diagonal R
 #: Step 5: a std of this fraction of each Delta, in quadrature: the error all pairs share (docs/method.md, 10).
 SYSTEMATIC_REL = 1e-3
+#: Step 5: a std of this multiple of the relief's effect on each Delta, in quadrature (what plane + parallax leaves).
+RELIEF_REL = 0.8
+#: Step 5: the relief's effect counts at this many of its jackknife stds or more; below, this many of those stds count.
+RELIEF_TEST = 2.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -92,11 +95,11 @@ class SequenceCalibration(LensAnswer):
         pair_used: (P,) bool, the pair counts.
         relief_effect_px: |Delta_avg of the pairs' plane + parallax answers - that of their planar
             answers| (user px), combined as the answers are, where significant, else 0.
-        relief_z: that effect over its jackknife std (significant at ``relief_test`` or more).
+        relief_z: that effect over its jackknife std (significant at :data:`RELIEF_TEST` or more).
         pair_refitted: (P,) bool, the pair was fitted again from its own registration
-            (``registered_start``) and that fit replaced the first; None where none ran.
+            (``direct_fits.REGISTERED_START``) and that fit replaced the first; None where none ran.
         pair_misfit: (P,) what each pair's registration leaves unexplained
-            (:func:`~lensdist_torch.calibration.direct_fits.pair_misfit`; over ``max_misfit``:
+            (:func:`~lensdist_torch.calibration.direct_fits.pair_misfit`; over ``direct_fits.MAX_MISFIT``:
             not registered, not used); None where none ran.
 
     Example:
@@ -359,7 +362,7 @@ def calibrate_sequence(
     pairs, shifts = choose_pairs(xa, cfg)
     fits = fit_pairs(xa, pairs, shifts, settings=st, cfg=cfg, progress=progress)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
-    if cfg.registered_start and len(pairs):
+    if direct_fits.REGISTERED_START and len(pairs):
         refitted = refit_from_registration(
             xa, pairs, shifts, fits, retry=_doubtful(fits, xa, cfg, st), settings=st, cfg=cfg
         )
@@ -384,7 +387,7 @@ def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple
 
     The models' differences are pooled by inverse variance (1 / sigma_i^2) over those within
     ``OUTLIER_MADS`` of their median: they part by noise or by relief, not by failures.
-    Below ``relief_test``, that many stds count (the effect the test cannot exclude), none is found.
+    Below :data:`RELIEF_TEST`, that many stds count (the effect the test cannot exclude), none is found.
     """
     diff = None if models is None else models[1] - models[0]
     if diff is None or not bool((diff[torch.isfinite(diff)] != 0).any()):
@@ -395,9 +398,9 @@ def _relief_term(models, std, pairs, fun, cfg: CalibrationConfig) -> tuple[tuple
     effect, z = (theta_d @ fun.T).abs(), 0.0
     if float(effect[1]) > 0 and bool(torch.isfinite(sd_d[1])):
         z = float(effect[1] / sd_d[1]) if float(sd_d[1]) > 0 else math.inf
-    if z >= cfg.relief_test:  # the models part consistently over the sequence: relief
+    if z >= RELIEF_TEST:  # the models part consistently over the sequence: relief
         return tuple(float(e) for e in effect[1:]), z, float(effect[1])
-    bound = tuple(cfg.relief_test * float(v) for v in sd_d[1:]) if bool(torch.isfinite(sd_d[1:]).all()) else (0.0,) * 2
+    bound = tuple(RELIEF_TEST * float(v) for v in sd_d[1:]) if bool(torch.isfinite(sd_d[1:]).all()) else (0.0,) * 2
     return bound, z, 0.0
 
 
@@ -424,17 +427,17 @@ def _result(ab, std, pairs, xa, size, scale, cfg: CalibrationConfig, st: Lensdis
     d_avg, d_max = (float(f([k2u], [k4u], hh, ww)[0]) if n_used else nan for f in (delta_avg, delta_max))
     dc = float(delta_avg([a / rc**2], [b / rc**4], hc, wc)[0]) if n_used else nan
     relief, relief_z, found = _relief_term(models, std, pairs, fun, cfg) if n_used > 1 else ((0.0, 0.0), 0.0, 0.0)
-    half = [t * math.sqrt(float(e) ** 2 + (SYSTEMATIC_REL * d) ** 2 + (cfg.relief_rel * r) ** 2)
+    half = [t * math.sqrt(float(e) ** 2 + (SYSTEMATIC_REL * d) ** 2 + (RELIEF_REL * r) ** 2)
             for e, d, r in zip(sd[1:], (d_avg, d_max), relief)]
     iv_avg, iv_max = ((max(0.0, d - e) if n_used > 1 else nan, d + e) for d, e in ((d_avg, half[0]), (d_max, half[1])))
     label, reason = None, ""
     if len(pairs) == 0:
         reason = no_pairs_reason(xa)
     elif n_used < MIN_PAIRS:
-        failed = 0 if misfit is None else int(unregistered(misfit, cfg).sum())
+        failed = 0 if misfit is None else int(unregistered(misfit).sum())
         reason = f"too few usable pairs: {n_used} of at least {MIN_PAIRS}" + (
-            f" ({failed} of {len(pairs)} pairs not registered: their residual is over {cfg.max_misfit} of their "
-            "frames' contrast, views too far apart or too different)" if failed else "")
+            f" ({failed} of {len(pairs)} pairs not registered: their residual is over {direct_fits.MAX_MISFIT} of "
+            "their frames' contrast, views too far apart or too different)" if failed else "")
     else:
         label, reason = interval_class(dc, d_avg, iv_avg, st)
     return SequenceCalibration(

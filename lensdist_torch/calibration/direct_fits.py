@@ -34,14 +34,21 @@ __all__ = [
     "refit_from_registration",
     "reject_residuals",
     "MAX_RESIDUAL_RATIO",
+    "MAX_MISFIT",
     "PARALLAX_PX",
+    "REGISTERED_START",
 ]
 
 #: Step 3: a pair whose photometric residual exceeds this multiple of the pairs' lower quartile does not count (a
 #: broken or foreign frame).
 MAX_RESIDUAL_RATIO = 3.0
+#: Step 3: a pair counts only where its residual RMS is at most this share of sqrt(var_1 + var_2), its frames'
+#: contrast (0: a perfect fit; about 0.7 for unrelated frames): else its registration did not explain its frames.
+MAX_MISFIT = 0.4
+#: Step 3: the pairs the pooling doubts are fitted again from their own registration (False: the translation alone).
+REGISTERED_START = True
 #: The prior std (px) of each relief bump's height in the sequence's pairs (``selfcal.parallax_px`` for one pair):
-#: the setting its relief figures and ``calibration.relief_rel`` were measured with (docs/method.md, section 10).
+#: the setting its relief figures and ``direct.RELIEF_REL`` were measured with (docs/method.md, section 10).
 PARALLAX_PX = 1.0
 
 
@@ -71,14 +78,14 @@ def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> tor
     )
 
 
-def unregistered(misfit: torch.Tensor, cfg: CalibrationConfig) -> torch.Tensor:
-    """(P,) bool: the pairs whose :func:`pair_misfit` exceeds ``max_misfit`` (or is NaN): the fit did not register them.
+def unregistered(misfit: torch.Tensor) -> torch.Tensor:
+    """(P,) bool: the pairs whose :func:`pair_misfit` exceeds :data:`MAX_MISFIT` (or is NaN): not registered.
 
     Example:
-        >>> unregistered(torch.tensor([0.1, 0.6, float("inf")]), CalibrationConfig()).tolist()
+        >>> unregistered(torch.tensor([0.1, 0.6, float("inf")])).tolist()
         [False, True, True]
     """
-    return ~(misfit <= cfg.max_misfit)
+    return ~(misfit <= MAX_MISFIT)
 
 
 def _translations(shifts: torch.Tensor) -> torch.Tensor:
@@ -190,10 +197,10 @@ def reject_residuals(std, res, cfg: CalibrationConfig, misfit: torch.Tensor | No
     """Step 3: inf std for the pairs that fail a check.
 
     A pair fails where its residual exceeds :data:`MAX_RESIDUAL_RATIO` times the lower quartile, or where its
-    ``misfit`` (:func:`pair_misfit`) exceeds ``max_misfit`` (not registered).
+    ``misfit`` (:func:`pair_misfit`) exceeds :data:`MAX_MISFIT` (not registered).
     """
     if misfit is not None:
-        std = torch.where(unregistered(misfit, cfg), float("inf"), std)
+        std = torch.where(unregistered(misfit), float("inf"), std)
     if not bool(torch.isfinite(res).any()):  # against the lower quartile: broken pairs may be many
         return std
     return torch.where(res <= MAX_RESIDUAL_RATIO * res[torch.isfinite(res)].quantile(0.25), std, float("inf"))

@@ -3,7 +3,7 @@
 A sequence's answer is a Delta_avg with a 95 % interval in the user's pixels and eq. 4's fit of
 its lens. Its class is the class of that lens at the paper's frame (the same normalised lens,
 :func:`~lensdist_torch.geometry.distortion.paper_frame_delta_avg`), R below a sequence's own
-threshold, ``calibration.no_distortion_px`` (0.25 px; one pair's is ``analysis.no_distortion_px``).
+threshold, :data:`NO_DISTORTION_PX` (0.25 px; one pair's is ``analysis.no_distortion_px``).
 :func:`interval_class` gives it where every value of the interval, carried to the paper's frame,
 falls in that one class, and otherwise names the classes the interval spans (docs/method.md,
 section 10): no width limit besides, since a class bin is the width that matters.
@@ -18,16 +18,17 @@ import torch
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import CLASS_LABELS, estimated_class
 
-__all__ = ["MIN_PAIRS", "interval_class"]
+__all__ = ["MIN_PAIRS", "NO_DISTORTION_PX", "interval_class"]
 
 #: The direct path: fewer usable pairs give no class ("cannot tell"; docs/method.md, section 10).
 MIN_PAIRS = 4
+#: A sequence's Delta_avg (px at the paper's 320 x 424 frame) below this is class R, on every path of calibrate.
+NO_DISTORTION_PX = 0.25
 
 
 def _class_of(value: float, settings: LensdistConfig) -> str:
     x = torch.tensor([value], dtype=torch.float64)
-    t = settings.calibration.no_distortion_px
-    return CLASS_LABELS[int(estimated_class(x, x, metric="delta_avg", config=settings, threshold=t)[0])]
+    return CLASS_LABELS[int(estimated_class(x, x, metric="delta_avg", config=settings, threshold=NO_DISTORTION_PX)[0])]
 
 
 def interval_class(paper_delta: float, delta: float, interval, settings: LensdistConfig) -> tuple[str | None, str]:
@@ -60,7 +61,7 @@ def interval_class(paper_delta: float, delta: float, interval, settings: Lensdis
         return first, ""
     where = f"the interval [{lo:.2f}, {hi:.2f}] px at the paper's frame spans "
     if "R" in (first, last):
-        return None, (where + f"the no-distortion threshold ({settings.calibration.no_distortion_px} px): a distortion "
+        return None, (where + f"the no-distortion threshold ({NO_DISTORTION_PX} px): a distortion "
                       "or none cannot be told")
     spanned = [c for c in CLASS_LABELS if c != "R" and first <= c <= last]
     return None, where + "classes " + (", ".join(spanned[:-1]) + " and " + spanned[-1])

@@ -24,7 +24,7 @@ class AnalysisConfig:
     Attributes:
         no_distortion_px: one pair's estimated Delta_avg (px at 320 x 424) below this is class
             R, "no visible distortion" (class 1 spans ]0, 3.6] px there). One pair's estimate
-            is noisier than a sequence's (``calibration.no_distortion_px``, 0.25 px): 0.75 px
+            is noisier than a sequence's (``calibration.sequence_class.NO_DISTORTION_PX``, 0.25 px): 0.75 px
             is the threshold whose largest reliability error over the three rendered conditions
             is least, and on real views with no lens it called 2 of 6 answers class 1 where
             0.25 px called 6 of 7 (docs/method.md, section 10).

@@ -71,6 +71,12 @@ RETIRED = {
     ("calibration", "min_pairs"): _constant("sequence_class.MIN_PAIRS", 4),
     ("calibration", "max_class_halfwidth_px"): _BY_CLASS_RULE,
     ("calibration", "parallax_px"): _constant("direct_fits.PARALLAX_PX", 1.0),
+    ("calibration", "max_misfit"): _constant("direct_fits.MAX_MISFIT", 0.4),
+    ("calibration", "registered_start"): _constant("direct_fits.REGISTERED_START", True),
+    ("calibration", "relief_rel"): _constant("direct.RELIEF_REL", 0.8),
+    ("calibration", "relief_test"): _constant("direct.RELIEF_TEST", 2.0),
+    ("calibration", "no_distortion_px"): _constant("sequence_class.NO_DISTORTION_PX", 0.25),
+    ("calibration", "verify_pairs"): _constant("controllers.calibrate.VERIFY_PAIRS", 6),
     # the multi-view path's and the homography model's constants (docs/method.md, sections 11-12)
     ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 30),
     ("multiview", "sequential_overlap"): _constant("multiview.SEQUENTIAL_OVERLAP", 12),

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import flag, integer, names, real
+from lensdist_torch.config.checks import integer, names, real
 
 __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
@@ -17,77 +17,42 @@ __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 class CalibrationConfig:
     """Settings of :func:`~lensdist_torch.calibration.direct.calibrate_sequence` (``[calibration]``).
 
-    What a user sets; the method's constants are named in the modules that use them
-    (:mod:`~lensdist_torch.calibration.direct`, ``pooling``, ``direct_fits``, ``sequence_class``;
-    docs/method.md, section 10).
+    What a user sets; the method's constants (the misfit gate, the refit from a pair's own
+    registration, the relief's test and share of the interval, a sequence's R threshold, the
+    verification's pairs among them) are named in the modules that use them
+    (:mod:`~lensdist_torch.calibration.direct`, ``pooling``, ``direct_fits``, ``sequence_class``,
+    ``controllers.calibrate``; docs/method.md, section 10).
 
     Attributes:
         analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
         max_pairs: at most this many pairs, evenly spread over those chosen.
         batch_size: pairs self-calibrated together (the progress callback's step).
-        max_misfit: a pair counts only where its registration explains its frames: the RMS of its
-            photometrically corrected residual at most this share of sqrt(var_1 + var_2), the
-            frames' intensity variances (0: a perfect fit; about 0.7 for unrelated frames of that
-            contrast). Real views far apart that the fit could not register, 0.4-0.9, say anything
-            (docs/method.md, section 10); such pairs get the second start of ``registered_start``.
-        relief_rel: a std of this multiple of the relief's effect on each Delta (the pairs' plane +
-            parallax minus planar answers, combined), added in quadrature: the error the plane +
-            parallax model leaves, which all pairs share (fitted on validation sequences of
-            scenes with relief, docs/method.md section 7).
-        relief_test: the relief's effect counts where it is at least this many of its own
-            jackknife stds (a sequence-level Hausman test; on a planar scene the models part by
-            noise); below, this many of those stds count instead (what the test cannot exclude).
         confidence: coverage of the intervals.
-        no_distortion_px: a sequence's Delta_avg (px at 320 x 424) below this is class R, of
-            both sequence paths (``calibrate``); an interval that spans it gives no class. A
-            sequence's intervals are hundredths of a pixel on rendered planes, so its threshold is
-            finer than one pair's (``analysis.no_distortion_px``).
-        verify_pairs: a class is verified on this many pairs, registered again after undistorting:
-            the share of error blocks must fall, else no class (``calibration/controllers/verify.py``); 0: none.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
-        registered_start: the pairs the pooling would not count (unregistered ones included), or
-            that lie more than 3 of their own sigma from its value, are fitted again from their own registration
-            (``estimate_homography_robust``: direct, then features + RANSAC; its homography even
-            where it did not pass its own checks) where its corners lie more than one pixel of the fit's
-            coarsest level (2^(selfcal.levels - 1) px) from the phase correlation's translation; the refit
-            replaces the first where its residual is lower. False: the translation alone (views far apart,
-            turned or seen obliquely hold that start in a wrong minimum: docs/method.md, section 10).
 
     Example:
         >>> import dataclasses
         >>> cfg = CalibrationConfig()
         >>> cfg.analysis_side, dataclasses.replace(cfg, parallax=0).parallax
         (512, 0)
-        >>> CalibrationConfig(relief_rel=-1)
+        >>> CalibrationConfig(confidence=1.5)
         Traceback (most recent call last):
         ...
-        ValueError: calibration.relief_rel must be a finite number >= 0, got -1
+        ValueError: calibration.confidence must be a number in ]0, 1[, got 1.5
     """
 
     analysis_side: int = 512
     max_pairs: int = 64
     batch_size: int = 16
-    max_misfit: float = 0.4
-    relief_rel: float = 0.8
-    relief_test: float = 2.0
     confidence: float = 0.95
-    no_distortion_px: float = 0.25
-    verify_pairs: int = 6
     parallax: int = 5
-    registered_start: bool = True
 
     def __post_init__(self) -> None:
-        flag(self, "registered_start")
-        for name in ("verify_pairs", "parallax"):
-            integer(self, name, lo=0)
+        integer(self, "parallax", lo=0)
         for name in ("analysis_side", "max_pairs", "batch_size"):
             integer(self, name, lo={"analysis_side": 64}.get(name, 1))
-        for name in ("max_misfit", "no_distortion_px"):
-            real(self, name, lo=0, lo_open=True)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
-        real(self, "relief_rel", lo=0)
-        real(self, "relief_test", lo=0)
 
 
 #: The camera models :class:`MultiViewConfig` may choose from: COLMAP's names, all OpenCV-compatible.

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import cv2
@@ -21,6 +20,7 @@ from lensdist_torch.calibration.direct import (
     user_coefficients,
 )
 from lensdist_torch.calibration.pooling import t_quantile
+from lensdist_torch.calibration.sequence_class import NO_DISTORTION_PX
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
@@ -129,12 +129,12 @@ def test_realistic_sequence_recovers_the_camera(one_thread_module, level, seed, 
     """Per-frame gain, offset, gamma, vignetting, noise, JPEG and moving patches (docs/method.md 7)."""
     k2, k4 = K2 * level / 0.6, K4 * level / 0.6
     # the undistorted camera gets 16 frames: the moving patches leave some pairs unregistered
-    # (calibration.max_misfit), and with 12 frames it keeps 7 of 12 pairs and says "cannot tell" ([0, 0.40] px
+    # (direct_fits.MAX_MISFIT), and with 12 frames it keeps 7 of 12 pairs and says "cannot tell" ([0, 0.40] px
     # at the paper's frame, across R's 0.25 px); with 16, 18 of 22 and class R
     cal = calibrate_sequence(synthetic_sequence(n, k2, k4, size=SIZE, seed=seed, realistic=True)[0])
     true = float(delta_avg([k2], [k4], *SIZE)[0])
     lo, hi = cal.delta_avg_user_interval
-    # the width is mostly the relief that the sequence's Hausman test cannot exclude (calibration.relief_test
+    # the width is mostly the relief that the sequence's Hausman test cannot exclude (direct.RELIEF_TEST
     # stds of the plane + parallax answers' difference): 0.47-0.58 px here, under 0.3 px without that term; on an
     # AVX-512 CPU the misfit gate keeps 10 of the 12 pairs of level 0.3 and its jackknife gives 1.46 px
     assert cal.delta_avg_user_px == pytest.approx(true, abs=0.1) and lo <= true <= hi and hi - lo < 1.5
@@ -143,7 +143,7 @@ def test_realistic_sequence_recovers_the_camera(one_thread_module, level, seed, 
 
     def class_at_paper(x):
         x = torch.as_tensor(x, dtype=torch.float64).reshape(1)
-        t = cfg.calibration.no_distortion_px
+        t = NO_DISTORTION_PX
         return CLASS_LABELS[int(estimated_class(x, x, metric="delta_avg", config=cfg, threshold=t)[0])]
 
     want = class_at_paper(paper)
@@ -280,10 +280,7 @@ def test_bad_frames_are_one_line_errors(frames, match):
     [
         ({"analysis_side": 10}, "analysis_side"),
         ({"confidence": 1.0}, "confidence"),
-        ({"relief_rel": -0.5}, "relief_rel"),
-        ({"relief_test": float("nan")}, "relief_test"),
         ({"parallax": 2.0}, "parallax"),
-        ({"verify_pairs": "6"}, "verify_pairs"),
     ],
 )
 def test_bad_config_is_a_one_line_error(kwargs, match):
@@ -361,12 +358,13 @@ def test_the_relief_model_of_the_sequence_path():
     assert planar.relief_effect_px == 0.0  # planar pairs have no relief answers
 
 
-def test_the_relief_effect_widens_the_interval_as_documented():
+def test_the_relief_effect_widens_the_interval_as_documented(monkeypatch):
     """Hand-built pairs whose plane + parallax answers lie 10 % above their planar ones.
     relief_effect_px is the distance between the two models' inverse-variance combinations (an
-    independent sum here), and relief_rel adds
-    (t relief_rel relief_effect)^2 to the squared half-width; where the models part by noise alone,
-    (t relief_rel relief_test sd)^2, sd the std of their difference; models that agree, nothing."""
+    independent sum here), and direct.RELIEF_REL adds
+    (t RELIEF_REL relief_effect)^2 to the squared half-width; where the models part by noise alone,
+    (t RELIEF_REL RELIEF_TEST sd)^2, sd the std of their difference; models that agree, nothing."""
+    from lensdist_torch.calibration import direct
     from lensdist_torch.calibration.direct import _result, _signed_mean
     from lensdist_torch.calibration.pooling import pool_pairs, within_mads
     from lensdist_torch.geometry.frame import half_diagonal
@@ -379,7 +377,8 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     xa, st = torch.zeros(n + 2, 1, h, w), LensdistConfig()
     base = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(), st, (ab, ab.clone()))
     assert base.relief_effect_px == 0.0
-    wide = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(relief_rel=0.7), st, (ab, ab * 1.1))
+    monkeypatch.setattr(direct, "RELIEF_REL", 0.7)
+    wide = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(), st, (ab, ab * 1.1))
     assert wide.delta_avg_user_px == base.delta_avg_user_px
     wgt = 1 / std**2
     ra = half_diagonal(h, w)
@@ -392,10 +391,10 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     t = t_quantile(0.975, 7)
     h0, h1 = (c.delta_avg_user_interval[1] - c.delta_avg_user_px for c in (base, wide))
     assert h1**2 - h0**2 == pytest.approx((t * 0.7 * wide.relief_effect_px) ** 2, rel=1e-6)
-    # models that part by noise alone (a planar scene): under relief_test stds no relief effect is
-    # reported, but the effect the test cannot exclude, relief_test stds of the difference, widens
+    # models that part by noise alone (a planar scene): under RELIEF_TEST stds no relief effect is
+    # reported, but the effect the test cannot exclude, RELIEF_TEST stds of the difference, widens
     noisy = ab + 0.01 * torch.randn(n, 2, generator=g, dtype=torch.float64)
-    flat = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(relief_rel=0.7), st, (ab, noisy))
+    flat = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(), st, (ab, noisy))
     assert 0 < flat.relief_z < 2.0 and flat.relief_effect_px == 0.0
     fun = _signed_mean(h, w, ra).expand(2, 2)  # the user frame is the analysis frame here
     cfg = CalibrationConfig()
@@ -404,14 +403,15 @@ def test_the_relief_effect_widens_the_interval_as_documented():
     assert flat.delta_avg_user_px == base.delta_avg_user_px and sd_d > 0
     h2 = flat.delta_avg_user_interval[1] - flat.delta_avg_user_px
     assert h2**2 - h0**2 == pytest.approx((t * 0.7 * 2.0 * sd_d) ** 2, rel=1e-6)
-    same = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(relief_rel=0.7), st, (ab, ab.clone()))
+    same = _result(ab, std, pairs, xa, (h, w), 1.0, CalibrationConfig(), st, (ab, ab.clone()))
     assert same.delta_avg_user_interval == base.delta_avg_user_interval  # models that agree exactly: nothing
 
 
-def test_an_interval_across_the_no_distortion_threshold_gives_no_class():
+def test_an_interval_across_the_no_distortion_threshold_gives_no_class(monkeypatch):
     """Undistorted scenes with relief came out at 0.3-0.6 px, intervals reaching 0, and were
-    called class 1: where the interval at the paper's frame spans calibration.no_distortion_px
+    called class 1: where the interval at the paper's frame spans sequence_class.NO_DISTORTION_PX
     (0.25 px) R and 1 cannot be told. Hand-built pairs at Delta_avg ~0.4 px at the paper's frame."""
+    from lensdist_torch.calibration import direct, sequence_class
     from lensdist_torch.calibration.direct import _result
     from lensdist_torch.geometry.frame import half_diagonal
 
@@ -425,13 +425,14 @@ def test_an_interval_across_the_no_distortion_threshold_gives_no_class():
                       torch.zeros(n, dtype=torch.float64)], 1)
     std = torch.full((n,), 0.01, dtype=torch.float64)
     # the same pairs; in the second their relief answers lie 50 % higher (a relief effect of 0.2 px)
-    cfg = CalibrationConfig(relief_rel=1.1)
+    cfg = CalibrationConfig()
+    monkeypatch.setattr(direct, "RELIEF_REL", 1.1)
     tight, wide = (_result(ab, std, pairs, xa, (h, w), 1.0, cfg, st, (ab, ab * f)) for f in (1.0, 1.5))
     assert tight.class_label == "1" and tight.delta_avg_user_interval[0] > 0.25
     lo, hi = wide.delta_avg_user_interval
     assert lo < 0.25 < hi and hi - lo < 2.0  # not too wide: the threshold is the reason
     assert wide.class_label is None and "no-distortion threshold (0.25 px)" in wide.reason
-    # a sequence's threshold is calibration.no_distortion_px, not one pair's (analysis, 0.75 px by default)
-    assert st.analysis.no_distortion_px > 0.4 > st.calibration.no_distortion_px
-    moved = dataclasses.replace(st, calibration=dataclasses.replace(st.calibration, no_distortion_px=0.6))
-    assert _result(ab, std, pairs, xa, (h, w), 1.0, cfg, moved, (ab, ab)).class_label == "R"
+    # a sequence's threshold is sequence_class.NO_DISTORTION_PX, not one pair's (analysis, 0.75 px by default)
+    assert st.analysis.no_distortion_px > 0.4 > sequence_class.NO_DISTORTION_PX
+    monkeypatch.setattr(sequence_class, "NO_DISTORTION_PX", 0.6)
+    assert _result(ab, std, pairs, xa, (h, w), 1.0, cfg, st, (ab, ab)).class_label == "R"

@@ -238,3 +238,31 @@ def test_the_fitted_decisions_in_the_results_load(name):
     path = Path(__file__).resolve().parents[2] / "docs" / "results" / f"{name}.toml"
     cfg = load_config(path)
     assert 0 < cfg.analysis.no_distortion_px < 1 and cfg.analysis != LensdistConfig().analysis  # its fitted decision
+
+
+#: Keys that became constants of the method in issue 50's pass over the config, as paper.toml and every stored
+#: config wrote them (section -> key -> the old default).
+OLD_ISSUE_50 = {
+    "classifier": {"reject_quantile": 0.95, "n_neighbours": 4},
+    "regression": {"cannot_tell_fraction": 0.125, "confidence_threshold": 0.5},
+    "analysis": {"eigenspace_max_class_disagreement": 0, "max_cannot_tell": 0.25},
+    "calibration": {"max_misfit": 0.4, "relief_rel": 0.8, "relief_test": 2.0, "no_distortion_px": 0.25,
+                    "verify_pairs": 6, "registered_start": True},
+}
+
+
+def test_the_keys_of_issue_50_load_at_their_old_defaults(tmp_path):
+    """Each loads at its old default (dropped) and is refused at another value, one line naming its constant."""
+    import json
+
+    path = tmp_path / "old.toml"
+    path.write_text("".join(f"[{s}]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in keys.items())
+                            for s, keys in OLD_ISSUE_50.items()))
+    assert load_config(path) == LensdistConfig()
+    assert stored_config(OLD_ISSUE_50) == LensdistConfig() and retired_keys(OLD_ISSUE_50) == []
+    for section, keys in OLD_ISSUE_50.items():
+        for key, value in keys.items():
+            other = (not value) if isinstance(value, bool) else value + 1
+            path.write_text(f"[{section}]\n{key} = {json.dumps(other)}\n")
+            one_line_error(ValueError, lambda: load_config(path), f"{section}.{key}", str(path),
+                           f"a constant of the method now: {RETIRED[(section, key)].by}")

@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.calibration.sequence_class import interval_class
+from lensdist_torch.calibration.sequence_class import NO_DISTORTION_PX, interval_class
 from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
@@ -283,7 +283,7 @@ class TestRender:
 
 
 def test_one_pair_and_a_sequence_have_their_own_r_threshold():
-    """R below analysis.no_distortion_px (one pair, 0.75 px) or calibration.no_distortion_px (a sequence, 0.25 px).
+    """R below analysis.no_distortion_px (one pair, 0.75 px) or sequence_class.NO_DISTORTION_PX (a sequence, 0.25 px).
 
     Class 1 is ]0, 14.4 / 4] px at 320 x 424 (Delta_top = 14.39 px, section 6), starting at the threshold.
     """
@@ -292,7 +292,7 @@ def test_one_pair_and_a_sequence_have_their_own_r_threshold():
     pair = [CLASS_LABELS[int(c)] for c in estimated_class(d, d, metric="delta_avg", config=cfg)]
     seq = [
         CLASS_LABELS[int(c)]
-        for c in estimated_class(d, d, metric="delta_avg", config=cfg, threshold=cfg.calibration.no_distortion_px)
+        for c in estimated_class(d, d, metric="delta_avg", config=cfg, threshold=NO_DISTORTION_PX)
     ]
     assert pair == ["R", "R", "1", "1"] and seq == ["R", "1", "1", "1"]
     assert class_bounds("R", "delta_avg", cfg) == (0.0, 0.75)

@@ -15,9 +15,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from lensdist_torch.calibration import calibrate_sequence
+from lensdist_torch.calibration import calibrate_sequence, direct_fits
 from lensdist_torch.calibration.direct_fits import pair_misfit
-from lensdist_torch.config import CalibrationConfig, LensdistConfig
+from lensdist_torch.calibration.sequence_class import NO_DISTORTION_PX
+from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core import load_image
 from lensdist_torch.core.images import load_scene, to_grey
 from lensdist_torch.data.relens import relens_frames
@@ -36,7 +37,7 @@ def views(one_thread_module):
 @pytest.mark.slow
 # Delta_avg 0, 3.58 and 14.33 px at 320 x 240; before the pooling and the second start these views gave
 # 0.06, 2.18 and 5.70 px (the last two outside the tolerance below), then 0.06, 3.66 and 12.80; with the
-# misfit gate (calibration.max_misfit: 11-13 of the 15-16 pairs unregistered) 0.06, 3.68 and 15.76 [0, 35.73]
+# misfit gate (direct_fits.MAX_MISFIT: 11-13 of the 15-16 pairs unregistered) 0.06, 3.68 and 15.76 [0, 35.73]
 @pytest.mark.parametrize("k2", [0.0, 2e-6, 8e-6])
 def test_real_views_through_a_known_lens(views, k2):
     frames, cal = views
@@ -51,7 +52,7 @@ def test_real_views_through_a_known_lens(views, k2):
         cfg = LensdistConfig()
         paper = torch.tensor([paper_frame_delta_avg(k2, 0.0, (240, 320), cfg)])  # the same lens at 320 x 424
         assert res.class_label == CLASS_LABELS[int(estimated_class(paper, paper, metric="delta_avg", config=cfg,
-                                                                   threshold=cfg.calibration.no_distortion_px)[0])]
+                                                                   threshold=NO_DISTORTION_PX)[0])]
 
 
 # ------------------------------------------------------------------ registered or not: the misfit
@@ -80,16 +81,17 @@ def test_a_registered_real_pair_has_a_low_misfit_and_an_unrelated_one_a_high(vie
     init[0, 0, 2] = 12.0
     info = estimate_distortion(torch.cat([a, a]), torch.cat([b, other]), init=init)[3]
     misfit = pair_misfit(torch.cat([a, a]), torch.cat([b, other]), info.residual)
-    cfg = CalibrationConfig()
-    assert float(misfit[0]) < 0.1 < cfg.max_misfit < 0.55 < float(misfit[1]) < 1.0
+    assert float(misfit[0]) < 0.1 < direct_fits.MAX_MISFIT < 0.55 < float(misfit[1]) < 1.0
 
 
 @pytest.mark.slow
-def test_unregistered_pairs_do_not_count_and_the_reason_says_so(views):
+def test_unregistered_pairs_do_not_count_and_the_reason_says_so(views, monkeypatch):
     # with a misfit limit no pair meets, none counts, and the answer names the registration as the cause
     frames, cal = views
     out = relens_frames(frames, cal["K"], cal["dist"], k2=2e-6, k4=0.0)
-    res = calibrate_sequence(out.frames, CalibrationConfig(max_misfit=0.02, registered_start=False))
+    monkeypatch.setattr(direct_fits, "MAX_MISFIT", 0.02)
+    monkeypatch.setattr(direct_fits, "REGISTERED_START", False)
+    res = calibrate_sequence(out.frames)
     assert res.pairs_used == 0 and not bool(res.pair_used.any()) and bool((res.pair_misfit > 0.02).all())
     assert (
         res.class_label is None

@@ -18,7 +18,7 @@ each problem is one ValueError naming the file and the field:
   must be the one its coefficients give: Delta_avg at the paper's frame of the same normalised
   lens (:func:`~lensdist_torch.geometry.distortion.paper_frame_delta_avg`) within
   ``FROM_CLASS_TOLERANCE`` of the class's bounds (the default classes; R's bound is the
-  producer's default, a sequence's ``calibration.no_distortion_px`` or one pair's
+  producer's default, a sequence's ``sequence_class.NO_DISTORTION_PX`` or one pair's
   ``analysis.no_distortion_px``: either is accepted);
 - ``verification`` (calibrate): null, or :func:`~lensdist_torch.calibration.controllers.verify.verify_undistortion`'s
   counts with their shares and the verdict that follows from them
@@ -48,6 +48,7 @@ from typing import Any, NamedTuple
 
 from lensdist_torch.calibration.controllers.answer_lens import answer_lens, lens_ideal
 from lensdist_torch.calibration.controllers.verify import COUNTS, VERDICTS, verdict
+from lensdist_torch.calibration.sequence_class import NO_DISTORTION_PX
 from lensdist_torch.config import FROM_CLASS_TOLERANCE, LensdistConfig
 from lensdist_torch.core.storage import atomic_write_text
 from lensdist_torch.geometry.distortion import CLASS_LABELS, class_bounds, fit_eq4, paper_frame_delta_avg
@@ -154,7 +155,7 @@ def _check_class(label, k2, k4, ref: tuple[int, int], src: Path, what: str | Non
     """Refuse a class that its coefficients do not give (module docstring); ``what`` names them where not the file's."""
     cfg = LensdistConfig()
     dc = paper_frame_delta_avg(k2, k4, ref, cfg)
-    ts = sorted({cfg.calibration.no_distortion_px, cfg.analysis.no_distortion_px})  # calibrate's, analyze's R
+    ts = sorted({NO_DISTORTION_PX, cfg.analysis.no_distortion_px})  # calibrate's, analyze's R
     lo, hi = class_bounds(label, "delta_avg", cfg, ts[0])[0], class_bounds(label, "delta_avg", cfg, ts[-1])[1]
     if lo * (1 - FROM_CLASS_TOLERANCE) <= dc <= hi * (1 + FROM_CLASS_TOLERANCE):
         return

@@ -43,6 +43,8 @@ from lensdist_torch.geometry.distortion import distortion_center, distortion_gri
 from lensdist_torch.geometry.opencv_model import opencv_export
 
 METHODS = ("auto", "multiview", "direct")
+#: A class is verified on this many pairs, registered again after undistorting: fewer error blocks, or no class.
+VERIFY_PAIRS = 6
 #: Where the OpenCV camera's fx = fy comes from (the answer's ``focal_source``): COLMAP's bundle
 #: adjustment (the multi-view camera), the caller's ``focal``, or the half diagonal (a convention).
 FOCAL_SOURCES = ("colmap", "given", "half diagonal")
@@ -100,7 +102,7 @@ def calibrate_path(
         analysis_size, scale, k2_user, k4_user, delta_avg_user_px, delta_avg_user_interval,
         delta_max_user_px, delta_max_user_interval, confidence, class, reason, pairs_used,
         pairs_rejected, pairs_refitted (pairs fitted again from their own registration),
-        pairs_unregistered (pairs whose fit did not register them, ``calibration.max_misfit``; among the rejected),
+        pairs_unregistered (pairs whose fit did not register them, ``direct_fits.MAX_MISFIT``; among the rejected),
         relief_effect_px and relief_z (the direct path's: how far its plane + parallax and planar answers part, and
         in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors), focal_source
         (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``), method (which path answered, the most precise:
@@ -151,7 +153,7 @@ def calibrate_path(
     out.update({"path": str(path), "confidence": cfg.confidence, "class": cal.class_label, "reason": cal.reason or None,
                 "pairs_used": cal.pairs_used, "pairs_rejected": cal.pairs_rejected,
                 "pairs_refitted": int(cal.pair_refitted.sum()) if cal.pair_refitted is not None else 0,
-                "pairs_unregistered": int(unregistered(cal.pair_misfit, cfg).sum()),
+                "pairs_unregistered": int(unregistered(cal.pair_misfit).sum()),
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
     st = or_defaults(settings, LensdistConfig, "settings")
@@ -200,7 +202,7 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
     class stands, unverified); None where there is no distortion class to verify).
     """
     res["verification"] = None
-    if cfg.verify_pairs == 0 or res["class"] in (None, "R") or res.get("k2_user") is None:
+    if VERIFY_PAIRS == 0 or res["class"] in (None, "R") or res.get("k2_user") is None:
         return res
     pairs = cal.pairs[cal.pair_used] if bool(cal.pair_used.any()) else cal.pairs
     if len(pairs) == 0:  # the direct path chose none (the multi-view path answered): far-apart frames
@@ -208,7 +210,7 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
         pairs = torch.stack([torch.arange(n - n // 2), torch.arange(n // 2, n)], 1)
     s = res["scale"]  # user px per analysis px; the answer's own lens where eq. 4 only approximates it
     check = verify_undistortion(frames, pairs, res["k2_user"] * s**2, res["k4_user"] * s**4, settings=st,
-                                max_pairs=cfg.verify_pairs,
+                                max_pairs=VERIFY_PAIRS,
                                 lens=scale_lens(answer_lens(res), 1 / s))
     before, after = check["error_share_before"], check["error_share_after"]
     check["verdict"] = verdict(check)
