@@ -73,6 +73,8 @@ class MultiViewConfig:
             :mod:`~lensdist_torch.calibration.multiview_evidence`). SIMPLE_PINHOLE, a camera without
             distortion, may join them: where the tracks cannot tell a relief from a lens, it predicts
             held-out frames as well and the answer's interval reaches 0 (docs/method.md, section 11).
+            SIMPLE_RADIAL (RADIAL with k2 = 0) may join them too; it is not among the defaults:
+            RADIAL holds it, and its adjustment crawled without converging on long videos.
         max_image_side: frames are read by COLMAP's SIFT at most this long (px).
         max_features: SIFT features per frame at most.
         features_per_megapixel: and at most this many per megapixel of the frame as SIFT reads it
@@ -117,14 +119,14 @@ class MultiViewConfig:
 
     Example:
         >>> MultiViewConfig().models
-        ('SIMPLE_RADIAL', 'RADIAL', 'OPENCV', 'FULL_OPENCV')
+        ('RADIAL', 'OPENCV', 'FULL_OPENCV')
         >>> MultiViewConfig(models=("RADIAL", "FISHEYE"))  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
         ValueError: multiview.models must hold names from SIMPLE_PINHOLE, SIMPLE_RADIAL, ..., got 'FISHEYE'
     """
 
-    models: tuple[str, ...] = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+    models: tuple[str, ...] = ("RADIAL", "OPENCV", "FULL_OPENCV")
     max_image_side: int = 1600
     max_features: int = 8192
     features_per_megapixel: float = 8192.0
