@@ -12,7 +12,7 @@ realistic effect alone.
     python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --set relief=0.03 \
         --only relief --variant parallax=0
     python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --effects \
-        [--registration max_residual=0.6]
+        [--registration chunk_size=4]
 """
 
 from __future__ import annotations

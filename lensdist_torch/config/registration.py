@@ -13,39 +13,28 @@ __all__ = ["RegistrationConfig", "SelfCalConfig"]
 class RegistrationConfig:
     """Settings of :func:`estimate_homography` (``[registration]``).
 
-    What a user sets: the acceptance gates, the feature fallback and the speed; the method's constants (the
-    pyramid, the iterations, the tolerances, the damping, the feature matching's) are named in the modules that
-    use them (:mod:`~lensdist_torch.registration.direct`, ``wide_baseline``; docs/method.md, section 7).
+    What a user sets: the speed; the method's constants (the acceptance gates, the feature
+    fallback, the pyramid, the iterations, the tolerances, the damping, the feature matching's)
+    are named in the modules that use them (:mod:`~lensdist_torch.registration.direct`,
+    ``wide_baseline``; docs/method.md, section 7).
 
     Attributes:
-        min_overlap: fraction of img1 that must map inside img2.
-        max_residual: largest RMS residual, relative to sqrt(2) x img1's standard deviation
-            (about 1 for unrelated images; ~0.02 registered, up to ~0.25 with the strongest
-            distortion of docs/method.md section 6).
         chunk_size: pairs registered together (cache locality); results do not depend on it.
-        feature_fallback: :func:`~lensdist_torch.registration.wide_baseline.estimate_homography_robust`
-            retries the pairs that did not converge from SIFT matches (docs/method.md, section 10).
 
     Example:
         >>> from dataclasses import replace
-        >>> RegistrationConfig().min_overlap, replace(RegistrationConfig(), min_overlap=0.5).min_overlap
-        (0.3, 0.5)
-        >>> RegistrationConfig(min_overlap=1.5)
+        >>> RegistrationConfig().chunk_size, replace(RegistrationConfig(), chunk_size=4).chunk_size
+        (8, 4)
+        >>> RegistrationConfig(chunk_size=0)
         Traceback (most recent call last):
         ...
-        ValueError: registration.min_overlap must be a number in [0, 1], got 1.5
+        ValueError: registration.chunk_size must be a positive int, got 0
     """
 
-    min_overlap: float = 0.3
-    max_residual: float = 0.5
     chunk_size: int = 8
-    feature_fallback: bool = True
 
     def __post_init__(self) -> None:
-        real(self, "max_residual", lo=0, lo_open=True)
-        real(self, "min_overlap", lo=0, hi=1)
         integer(self, "chunk_size")
-        flag(self, "feature_fallback")
 
 
 @dataclass(frozen=True)

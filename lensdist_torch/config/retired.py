@@ -134,6 +134,9 @@ RETIRED = {
     ("registration", "match_ratio"): _constant("wide_baseline.MATCH_RATIO", 0.9, "registration"),
     ("registration", "ransac_threshold"): _constant("wide_baseline.RANSAC_THRESHOLD", 2.0, "registration"),
     ("registration", "min_inliers"): _constant("wide_baseline.MIN_INLIERS", 15, "registration"),
+    ("registration", "min_overlap"): _constant("direct.MIN_OVERLAP", 0.3, "registration"),
+    ("registration", "max_residual"): _constant("direct.MAX_RESIDUAL", 0.5, "registration"),
+    ("registration", "feature_fallback"): _constant("wide_baseline.FEATURE_FALLBACK", True, "registration"),
     # the decision of analyze's constants (docs/method.md, section 10)
     ("analysis", "min_overlap"): _constant("decision.MIN_OVERLAP", 0.5, "workflows"),
     ("analysis", "out_of_domain_factor"): _constant("analyze.OUT_OF_DOMAIN_FACTOR", 2.0, "workflows"),

@@ -25,8 +25,8 @@ integer positions (``align_corners=True``), ``H[:, 2, 2] = 1``; with the motion 
 
 ``converged`` is False (never a silent answer) when the smallest eigenvalue of the per-pixel Gauss-Newton Hessian at
 full resolution is below :data:`MIN_TEXTURE` (constant or one-dimensional texture), an update is non-finite or moves a
-corner by more than :data:`MAX_STEP` of the diagonal, the overlap is below ``config.min_overlap``, the full-resolution
-residual grew or exceeds ``config.max_residual`` of that of two unrelated images of img1's contrast, or the last update
+corner by more than :data:`MAX_STEP` of the diagonal, the overlap is below :data:`MIN_OVERLAP`, the full-resolution
+residual grew or exceeds :data:`MAX_RESIDUAL` of that of two unrelated images of img1's contrast, or the last update
 was not below :data:`STEP_TOL`. The method's constants are named below (docs/method.md, section 7); the config holds
 what a user sets.
 
@@ -62,9 +62,10 @@ from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import binomial_blur, central_differences, mean_pyramid
 
 __all__ = [
-    "COARSE_TOL", "DAMPING", "FINE_STRIDE", "ITERATIONS", "LEVELS", "MARGIN", "MATCH_INTENSITY", "MAX_STEP",
-    "MIN_TEXTURE", "PHASE_LEVEL", "PRESMOOTH", "STEP_TOL", "RegistrationConfig", "RegistrationInfo", "corner_error",
-    "estimate_homography", "match_intensity", "perturb_homography", "residual_limit", "warp_to_reference",
+    "COARSE_TOL", "DAMPING", "FINE_STRIDE", "ITERATIONS", "LEVELS", "MARGIN", "MATCH_INTENSITY", "MAX_RESIDUAL",
+    "MAX_STEP", "MIN_OVERLAP", "MIN_TEXTURE", "PHASE_LEVEL", "PRESMOOTH", "STEP_TOL", "RegistrationConfig",
+    "RegistrationInfo", "corner_error", "estimate_homography", "match_intensity", "perturb_homography",
+    "residual_limit", "warp_to_reference",
 ]
 
 #: Pyramid levels run, coarsest first, ending with 0 (level l is 1 / 2**l of the size; under 16 px: dropped).
@@ -80,9 +81,9 @@ MARGIN = 2.0  # level px by which the pixels used must map inside img2 (px in th
 MAX_STEP = 0.25  # an update moving a corner by more than this share of the diagonal diverged
 FINE_STRIDE = 2  # template (img1) pixel stride at full resolution
 PRESMOOTH = True  # both images smoothed by the binomial filter (sigma 1 px) first
-#: img2's grey levels mapped affinely to img1's mean and std first (per pair): an exposure change is not
-#: misregistration.
-MATCH_INTENSITY = True
+MATCH_INTENSITY = True  # img2's grey levels mapped affinely to img1's mean and std: exposure is not misregistration
+MIN_OVERLAP = 0.3  # converged needs at least this share of img1 to map inside img2
+MAX_RESIDUAL = 0.5  # largest RMS residual, a share of sqrt(2) x img1's std (two unrelated images: about 1)
 
 
 class RegistrationInfo(NamedTuple):
@@ -234,23 +235,22 @@ def estimate_homography(
     return h / h[:, 2:, 2:], RegistrationInfo(converged=conv, residual=res, iterations=its, overlap=ov, textured=tex)
 
 
-def residual_limit(template: torch.Tensor, config: RegistrationConfig) -> torch.Tensor:
+def residual_limit(template: torch.Tensor) -> torch.Tensor:
     """(B,) float64: the largest RMS residual a registration of these templates may leave.
 
-    ``config.max_residual`` times sqrt(2) x each template's standard deviation (the residual of
+    :data:`MAX_RESIDUAL` times sqrt(2) x each template's standard deviation (the residual of
     two unrelated images of that contrast): the registration's own test, and the one ``analyze``
     puts to the self-calibration's residual where the homography alone failed it.
 
     Args:
         template: (B, ...) the first images (any shape after the batch dimension).
-        config: :class:`RegistrationConfig`.
 
     Example:
         >>> x = torch.tensor([[0.0, 1.0, 0.0, 1.0]])  # std 0.577
-        >>> round(float(residual_limit(x, RegistrationConfig())[0]), 3)  # 0.5 x sqrt(2) x 0.577
+        >>> round(float(residual_limit(x)[0]), 3)  # 0.5 x sqrt(2) x 0.577
         0.408
     """
-    return config.max_residual * (math.sqrt(2) * template.flatten(1).double().std(1))
+    return MAX_RESIDUAL * (math.sqrt(2) * template.flatten(1).double().std(1))
 
 
 def match_intensity(ref: torch.Tensor, img: torch.Tensor) -> torch.Tensor:
@@ -379,7 +379,7 @@ def _register(g1: torch.Tensor, g2: torch.Tensor, hn: torch.Tensor | None, cfg: 
 
     overlap = (frames[run[0][0]].grid(hn, "grid_top").abs() <= 1 + 1e-6).all(-1).flatten(1).double().mean(1)
     converged = lev.ok & ~diverged & (last_step < STEP_TOL) & ~(residual > first_res * 1.01 + 1e-4)
-    converged &= (overlap >= cfg.min_overlap) & (residual <= residual_limit(lev.t1, cfg))
+    converged &= (overlap >= MIN_OVERLAP) & (residual <= residual_limit(lev.t1))
     converged &= torch.isfinite(hn).all(dim=(1, 2))
     return hn, converged, residual.float(), iterations, overlap.float(), lev.ok.clone()
 

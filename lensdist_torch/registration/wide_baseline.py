@@ -16,7 +16,7 @@ for the others:
    grid), img2 warped into it by the feature H (bilinear), and ``estimate_homography`` of that
    crop against the warped crop from the identity: the remaining motion is small, so its own
    checks (texture, divergence, residual, step) decide. H = H_f T H_r T^-1, T the crop's offset.
-3. ``converged`` also needs the final H to map ``config.min_overlap`` of img1 inside img2; ``overlap``
+3. ``converged`` also needs the final H to map ``direct.MIN_OVERLAP`` of img1 inside img2; ``overlap``
    is that fraction (img1's pixels on a 4 px grid), ``residual`` and ``textured`` are the crop's,
    ``iterations`` both runs'. A pair that fails again keeps the first run's H and diagnostics
    (``converged=False``: could not register).
@@ -38,14 +38,22 @@ from kornia.geometry import RANSAC
 from lensdist_torch.config import RegistrationConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image_pair, to_grey
-from lensdist_torch.registration.direct import MARGIN, RegistrationInfo, estimate_homography, warp_to_reference
+from lensdist_torch.registration.direct import (
+    MARGIN,
+    MIN_OVERLAP,
+    RegistrationInfo,
+    estimate_homography,
+    warp_to_reference,
+)
 
 __all__ = [
-    "MATCH_RATIO", "MAX_KEYPOINTS", "MIN_INLIERS", "RANSAC_THRESHOLD", "SiftMemo", "estimate_homography_robust",
-    "feature_homography",
+    "FEATURE_FALLBACK", "MATCH_RATIO", "MAX_KEYPOINTS", "MIN_INLIERS", "RANSAC_THRESHOLD", "SiftMemo",
+    "estimate_homography_robust", "feature_homography",
 ]
 
 _GRID = 4  # px: the grid on which the overlap and the refinement rectangle are measured
+#: The pairs the direct registration did not register are retried from SIFT matches (docs/method.md, section 10).
+FEATURE_FALLBACK = True
 #: SIFT keypoints kept per image (the strongest responses).
 MAX_KEYPOINTS = 2000
 #: Second-nearest-neighbour ratio of the mutual matches, in ]0, 1].
@@ -257,7 +265,7 @@ def estimate_homography_robust(
     The batch is registered as usual; each pair it does not register (``converged`` False) gets a
     feature homography (:func:`feature_homography`) and a direct refinement from it (module
     docstring; docs/method.md, section 10). A pair that still fails keeps the first run's answer
-    with ``converged=False``: could not register. ``config.feature_fallback=False`` returns the
+    with ``converged=False``: could not register. :data:`FEATURE_FALLBACK` False returns the
     first run unchanged.
 
     Args:
@@ -289,7 +297,7 @@ def estimate_homography_robust(
     cfg = _config(config)
     h, info = estimate_homography(img1, img2, config=cfg, validate=validate)  # checks the images
     failed = (~info.converged).nonzero()[:, 0].tolist()
-    if not cfg.feature_fallback or not failed:
+    if not FEATURE_FALLBACK or not failed:
         return h, info
     h, fields = h.clone(), [x.clone() for x in info]
     h0, w0 = img1.shape[-2:]
@@ -304,7 +312,7 @@ def estimate_homography_robust(
             continue
         m, sub = res
         ov = _overlap(m[None], h0, w0)[0]
-        if not (bool(sub.converged[0]) and float(ov) >= cfg.min_overlap and bool(_in_front(m[None], h0, w0)[0])):
+        if not (bool(sub.converged[0]) and float(ov) >= MIN_OVERLAP and bool(_in_front(m[None], h0, w0)[0])):
             fields[2][i] += sub.iterations[0]
             continue
         h[i] = m

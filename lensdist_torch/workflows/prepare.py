@@ -279,7 +279,7 @@ def _selfcal_fits(p: PreparedPairs) -> list[tuple]:
     """
     cfg, n = p.config, p.img1.shape[0]
     start = torch.isfinite(p.H).all(dim=(1, 2)).cpu()
-    limit = residual_limit(p.img1, cfg.registration).cpu()
+    limit = residual_limit(p.img1).cpu()
     out: list = [None] * n
     for g in _groups(p.img1.device, n, start):
         pairs = range(n)[g] if isinstance(g, slice) else g.tolist()

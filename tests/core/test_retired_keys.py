@@ -98,8 +98,8 @@ def test_a_registration_key_of_an_earlier_version(tmp_path):
     """``[registration] levels`` became ``registration.direct.LEVELS``: as paper.toml wrote it, it loads."""
     path = tmp_path / "old.toml"
     path.write_text("[registration]\nlevels = [2, 0]\niterations = [10, 6]\ndamping = 1e-06\nmin_texture = 1e-08\n"
-                    "margin = 2.0\npresmooth = true\nmatch_intensity = true\nmin_inliers = 15\nmin_overlap = 0.4\n")
-    assert load_config(path).registration.min_overlap == 0.4
+                    "margin = 2.0\npresmooth = true\nmatch_intensity = true\nmin_inliers = 15\nchunk_size = 4\n")
+    assert load_config(path).registration.chunk_size == 4
     path.write_text("[registration]\nlevels = [3, 1, 0]\n")
     one_line_error(ValueError, lambda: load_config(path), "registration.levels", str(path),
                    "a constant of the method now: lensdist_torch.registration.direct.LEVELS")
@@ -246,6 +246,7 @@ OLD_ISSUE_50 = {
     "classifier": {"reject_quantile": 0.95, "n_neighbours": 4},
     "regression": {"cannot_tell_fraction": 0.125, "confidence_threshold": 0.5},
     "analysis": {"eigenspace_max_class_disagreement": 0, "max_cannot_tell": 0.25},
+    "registration": {"min_overlap": 0.3, "max_residual": 0.5, "feature_fallback": True},
     "calibration": {"max_misfit": 0.4, "relief_rel": 0.8, "relief_test": 2.0, "no_distortion_px": 0.25,
                     "verify_pairs": 6, "registered_start": True},
 }
