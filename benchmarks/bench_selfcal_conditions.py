@@ -26,18 +26,19 @@ import torch
 
 from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.data import realism
 from lensdist_torch.data.synthesis import make_pairs
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.selfcal.fit import estimate_distortion
 
-#: Each realistic effect's "off" values (configs/realistic.toml turns them all on).
+#: Each realistic effect's "off" values: the constants of data/realism.py, and the config's relief.
 EFFECTS_OFF = {
-    "gain_range": (1.0, 1.0), "offset_range": (0.0, 0.0), "gamma_range": (1.0, 1.0), "illumination": 0.0,
-    "noise_range": (0.0, 0.0), "jpeg_quality": (100, 100), "relief": 0.0, "occluder_rate": 0.0,
+    "GAIN_RANGE": (1.0, 1.0), "OFFSET_RANGE": (0.0, 0.0), "GAMMA_RANGE": (1.0, 1.0), "ILLUMINATION": 0.0,
+    "NOISE_RANGE": (0.0, 0.0), "JPEG_QUALITY": (100, 100), "relief": 0.0, "OCCLUDER_RATE": 0.0,
 }
-EFFECTS = {"gain+offset": ("gain_range", "offset_range"), "gamma": ("gamma_range",), "illumination": ("illumination",),
-           "noise+jpeg": ("noise_range", "jpeg_quality"), "relief": ("relief",), "occluder": ("occluder_rate",)}
-
+EFFECTS = {"gain+offset": ("GAIN_RANGE", "OFFSET_RANGE"), "gamma": ("GAMMA_RANGE",), "illumination": ("ILLUMINATION",),
+           "noise+jpeg": ("NOISE_RANGE", "JPEG_QUALITY"), "relief": ("relief",), "occluder": ("OCCLUDER_RATE",)}
+_ON = {k: getattr(realism, k) for k in EFFECTS_OFF if k != "relief"}  # the method's values
 
 def _value(text: str):
     if text.lower() in ("true", "false"):
@@ -48,9 +49,11 @@ def _value(text: str):
 
 
 def with_only(cfg: LensdistConfig, keep: tuple[str, ...]) -> LensdistConfig:
-    """The config with every realistic effect off except ``keep``."""
-    off = {k: v for k, v in EFFECTS_OFF.items() if k not in keep}
-    return dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, **off))
+    """The config with every realistic effect off except ``keep`` (realism's constants set in this process)."""
+    for k, v in _ON.items():
+        setattr(realism, k, v if k in keep else EFFECTS_OFF[k])
+    relief = cfg.protocol.relief if "relief" in keep else 0.0
+    return dataclasses.replace(cfg, protocol=dataclasses.replace(cfg.protocol, relief=relief))
 
 
 def figures(cfg: LensdistConfig, scene: str, n: int, variants: dict) -> dict:
@@ -94,7 +97,7 @@ def main() -> None:
     ap.add_argument("--config", default=None, help="TOML config (default: the defaults)")
     ap.add_argument("--scene", default="gravel", help="embedded scene")
     ap.add_argument("--n", type=int, default=96, help="test pairs")
-    ap.add_argument("--only", default="", help="comma-separated realistic fields to keep on (e.g. relief)")
+    ap.add_argument("--only", default="", help="comma-separated effects kept on: GAIN_RANGE, ..., relief")
     ap.add_argument("--set", action="append", default=[], help="protocol FIELD=VALUE (commas for pairs)")
     ap.add_argument("--registration", action="append", default=[], help="registration FIELD=VALUE")
     ap.add_argument(

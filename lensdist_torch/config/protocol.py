@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import flag, integer, names, pair, real
+from lensdist_torch.config.checks import flag, integer, names, real
 
 __all__ = ["ImageConfig", "DistortionConfig", "ProtocolConfig"]
 
@@ -64,35 +64,31 @@ class DistortionConfig:
 
 @dataclass(frozen=True)
 class ProtocolConfig:
-    """The pair protocol (docs/method.md section 7): motion ranges, set sizes, seed (``[protocol]``).
+    """The pair protocol (docs/method.md section 7): seed, scenes, set sizes, switches (``[protocol]``).
 
-    The choices a user makes when generating data; the protocol's constants (the perspective
-    terms' half-width, the class-R perturbation's, an occluding patch's area) are named in the
-    modules that use them (:mod:`~lensdist_torch.data.synthesis`, ``realism``).
+    The choices a user makes when generating data; the protocol's constants (the motion ranges,
+    the perspective terms' half-width, the class-R perturbation's, the realistic protocol's
+    ranges, an occluding patch's rate and area) are named in the modules that use them
+    (:mod:`~lensdist_torch.data.synthesis`, ``realism``).
 
-    ``seed`` is any int; ``scenes`` distinct embedded scene names; the ranges (low, high); the
-    rotation half-width >= 0.
-    ``unseen_scenes``: embedded scenes none of ``scenes``, on which ``lensdist reproduce`` also
-    tests every method (a scene unlike the training ones; empty: no such test; not in the data
-    fingerprint: the training and test pairs do not depend on it).
+    ``seed`` is any int; ``scenes`` distinct embedded scene names; ``shard_size`` pairs per
+    shard file. ``unseen_scenes``: embedded scenes none of ``scenes``, on which ``lensdist
+    reproduce`` also tests every method (a scene unlike the training ones; empty: no such test;
+    not in the data fingerprint: the training and test pairs do not depend on it).
 
     ``realistic`` (off by default) adds the effects of a photograph (docs/method.md section 7,
-    the realistic protocol), each drawn per view or per pair: ``gain_range`` (> 0),
-    ``offset_range`` (in [-1, 1]), ``gamma_range`` (> 0, log-uniform), ``illumination`` (the
-    largest share, in [0, 1[, that a ramp / vignetting darkens), ``noise_range`` (Gaussian
-    sigma, in [0, 1]), ``jpeg_quality`` (ints in [1, 100]), ``relief`` (in [0, 0.5[: the
+    the realistic protocol), each drawn per view or per pair; ``relief`` (in [0, 0.5[: the
     largest height of the scene over its plane as a fraction of camera 1's height; each pair
-    draws its own uniformly in [0, relief], and its parallax follows from its motion) and
-    ``occluder_rate`` (share of pairs with a moving or occluding patch, in [0, 1]).
+    draws its own uniformly in [0, relief], and its parallax follows from its motion).
 
     Example:
         >>> from dataclasses import replace
         >>> ProtocolConfig().n_train, replace(ProtocolConfig(), n_train=100).n_train
         (12000, 100)
-        >>> ProtocolConfig(ty_range=(40, 0))
+        >>> ProtocolConfig(relief=0.5)
         Traceback (most recent call last):
         ...
-        ValueError: protocol.ty_range must be (low, high): two finite numbers with low <= high, got (40, 0) (tuple)
+        ValueError: protocol.relief must be a number in [0, 0.5[ (a fraction of the camera's height), got 0.5
     """
 
     seed: int = 0
@@ -101,20 +97,9 @@ class ProtocolConfig:
     n_train: int = 12000
     n_test_distorted: int = 400
     n_test_undistorted: int = 100
-    ty_range: tuple[float, float] = (0.0, 40.0)
-    tx_range: tuple[float, float] = (-4.0, 4.0)
-    rotation_deg: float = 1.0
-    scale_range: tuple[float, float] = (0.98, 1.02)
     shard_size: int = 500
     realistic: bool = False
-    gain_range: tuple[float, float] = (0.7, 1.3)
-    offset_range: tuple[float, float] = (-0.1, 0.1)
-    gamma_range: tuple[float, float] = (0.8, 1.25)
-    illumination: float = 0.25
-    noise_range: tuple[float, float] = (0.0, 0.02)
-    jpeg_quality: tuple[int, int] = (60, 95)
     relief: float = 0.0
-    occluder_rate: float = 0.2
 
     def __post_init__(self) -> None:
         integer(self, "seed", lo=None)
@@ -125,17 +110,6 @@ class ProtocolConfig:
                              f"{sorted(set(self.unseen_scenes) & set(self.scenes))}")
         for name in ("n_train", "n_test_distorted", "n_test_undistorted"):
             integer(self, name, lo=0)
-        pair(self, "ty_range")
-        pair(self, "tx_range")
-        pair(self, "scale_range", positive=True)
-        real(self, "rotation_deg", lo=0)
         integer(self, "shard_size")
         flag(self, "realistic")
-        pair(self, "gain_range", positive=True)
-        pair(self, "offset_range", within=(-1, 1))
-        pair(self, "gamma_range", positive=True)
-        real(self, "illumination", lo=0, hi=1, hi_open=True)
-        pair(self, "noise_range", within=(0, 1))
-        pair(self, "jpeg_quality", within=(1, 100), integral=True)
         real(self, "relief", lo=0, hi=0.5, hi_open=True, why="a fraction of the camera's height")
-        real(self, "occluder_rate", lo=0, hi=1)

@@ -63,6 +63,20 @@ _BUMP_WIDTH = (0.15, 0.4)  # bump sigma, in half-diagonals: low frequency only
 _RATIO = (0.5, 2.0)  # occluder width / height, log-uniform
 #: An occluding patch's area, a share of the frame, uniform in [low, high].
 OCCLUDER_AREA = (0.05, 0.15)
+#: The share of pairs with a moving or occluding patch.
+OCCLUDER_RATE = 0.2
+#: Per view: I' = L gain I^gamma + offset, gain uniform in [low, high].
+GAIN_RANGE = (0.7, 1.3)
+#: Per view: the offset, uniform in [low, high] (intensities in [0, 1]).
+OFFSET_RANGE = (-0.1, 0.1)
+#: Per view: gamma, log-uniform in [low, high].
+GAMMA_RANGE = (0.8, 1.25)
+#: Per view: the largest share a ramp / vignetting darkens, L in [1 - s, 1], s uniform in [0, this].
+ILLUMINATION = 0.25
+#: Per view: the Gaussian sensor noise's sigma, uniform in [low, high] (intensities in [0, 1]).
+NOISE_RANGE = (0.0, 0.02)
+#: Per view: the JPEG quality, an int uniform in [low, high].
+JPEG_QUALITY = (60, 95)
 _CONTRAST = (0.2, 0.5)  # texture amplitude of a textured occluder
 _TEXTURE_PX = 6  # feature size of a textured occluder, px
 _OCC = 16 + 1 + 4 * N_BUMPS  # first occluder uniform
@@ -139,16 +153,16 @@ def draw_realism(config: LensdistConfig, seeds: Sequence[int]) -> Realism:
         return rng[0] + (rng[1] - rng[0]) * x
 
     v = u[:, :16].reshape(b, 2, 8)  # per view, the columns of PHOTOMETRIC
-    q_lo, q_hi = p.jpeg_quality
+    q_lo, q_hi = JPEG_QUALITY
     photometric = torch.stack(
         [
-            lin(v[..., 0], p.gain_range),
-            lin(v[..., 1], p.offset_range),
-            _log_uniform(v[..., 2], *p.gamma_range),
-            p.illumination * v[..., 3],
+            lin(v[..., 0], GAIN_RANGE),
+            lin(v[..., 1], OFFSET_RANGE),
+            _log_uniform(v[..., 2], *GAMMA_RANGE),
+            ILLUMINATION * v[..., 3],
             v[..., 4],
             360.0 * v[..., 5],
-            lin(v[..., 6], p.noise_range),
+            lin(v[..., 6], NOISE_RANGE),
             torch.clamp(q_lo + torch.floor(v[..., 7] * (q_hi - q_lo + 1)), max=q_hi),
         ],
         dim=-1,
@@ -160,7 +174,7 @@ def draw_realism(config: LensdistConfig, seeds: Sequence[int]) -> Realism:
     relief = torch.cat([p.relief * u[:, 16:17], bumps.flatten(1)], 1)
 
     o = u[:, _OCC:]
-    occluded = o[:, 0] < p.occluder_rate
+    occluded = o[:, 0] < OCCLUDER_RATE
     area = lin(o[:, 2], OCCLUDER_AREA) * h * w
     aspect = _log_uniform(o[:, 3], *_RATIO)
     pw = torch.clamp(torch.round(torch.sqrt(area * aspect)), 1, w)

@@ -44,6 +44,10 @@ _N_DRAWS = 11  # scene, k2, k4, ty, tx, rotation, scale, h31, h32, position x, p
 PERSPECTIVE = 2e-5
 #: The class-R perturbation: each free parameter of the estimated homography times (1 + e), e ~ U[-this, this].
 PERTURBATION = 0.01
+TY_RANGE = (0.0, 40.0)  # px: a pair's translation along y, uniform in [low, high]
+TX_RANGE = (-4.0, 4.0)  # px: its translation along x, uniform in [low, high]
+ROTATION_DEG = 1.0  # degrees: its rotation, uniform in [-this, this]
+SCALE_RANGE = (0.98, 1.02)  # its scale, uniform in [low, high]
 
 
 @dataclass
@@ -158,10 +162,10 @@ def draw_pairs(config: LensdistConfig, set_name: str, indices, n_scenes: int) ->
     k4 = torch.where(dist, (1.0 - u[:, 2]) * dcfg.k4_max, torch.zeros(()).double())
     motion = torch.stack(
         [
-            between(3, *p.ty_range),
-            between(4, *p.tx_range),
-            between(5, -p.rotation_deg, p.rotation_deg),
-            between(6, *p.scale_range),
+            between(3, *TY_RANGE),
+            between(4, *TX_RANGE),
+            between(5, -ROTATION_DEG, ROTATION_DEG),
+            between(6, *SCALE_RANGE),
             between(7, -PERSPECTIVE, PERSPECTIVE),
             between(8, -PERSPECTIVE, PERSPECTIVE),
         ],
@@ -237,7 +241,7 @@ def footprint(config: LensdistConfig) -> tuple[float, float, float, float]:
     p = config.protocol
     extremes = list(
         itertools.product(
-            p.ty_range, p.tx_range, (-p.rotation_deg, p.rotation_deg), p.scale_range,
+            TY_RANGE, TX_RANGE, (-ROTATION_DEG, ROTATION_DEG), SCALE_RANGE,
             (-PERSPECTIVE, PERSPECTIVE), (-PERSPECTIVE, PERSPECTIVE),
         )
     )

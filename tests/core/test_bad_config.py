@@ -51,20 +51,20 @@ class TestShippedConfig:
 
     def test_numbers_and_sequences_are_stored_canonically(self, tmp_path):
         path = tmp_path / "ints.toml"
-        path.write_text("[protocol]\nrotation_deg = 1\nty_range = [0, 40]\nscale_range = [1, 1]\n")
-        p = load_config(path).protocol
-        assert p.rotation_deg == 1.0 and type(p.rotation_deg) is float
-        assert p.ty_range == (0.0, 40.0) and all(type(v) is float for v in p.ty_range)
-        assert p.scale_range == (1.0, 1.0)
+        path.write_text('[protocol]\nrelief = 0\nscenes = ["grass"]\n[analysis]\nmin_motion_px = 2\n')
+        cfg = load_config(path)
+        assert cfg.protocol.relief == 0.0 and type(cfg.protocol.relief) is float
+        assert cfg.analysis.min_motion_px == 2.0 and type(cfg.analysis.min_motion_px) is float
+        assert cfg.protocol.scenes == ("grass",)
         # lists become tuples in direct construction as well (hashable, equal to the TOML form)
-        q = ProtocolConfig(scenes=["grass"], ty_range=[0, 10])  # type: ignore[arg-type]
-        assert q.scenes == ("grass",) and q.ty_range == (0.0, 10.0)
+        q = ProtocolConfig(scenes=["grass"], unseen_scenes=[])  # type: ignore[arg-type]
+        assert q.scenes == ("grass",) and q.unseen_scenes == ()
         hash(q)
         r = SelfCalConfig(iterations=[5, 5, 5], sample_block=[2, 4, 4])  # type: ignore[arg-type]
         assert r.iterations == (5, 5, 5) and r.sample_block == (2, 4, 4)
 
     def test_round_trip_after_normalisation(self):
-        cfg = LensdistConfig(protocol=ProtocolConfig(rotation_deg=2, tx_range=[-1, 1]))  # type: ignore[arg-type]
+        cfg = LensdistConfig(protocol=ProtocolConfig(relief=0, scenes=["grass"]))  # type: ignore[arg-type]
         assert config_from_dict(config_to_dict(cfg)) == cfg
 
 
@@ -192,8 +192,8 @@ BAD_PYTHON_VALUES = [
     ("image", "height", 320.0),
     ("distortion", "k2_max", -1.0),
     ("protocol", "scenes", "grass"),  # not iterated as characters
-    ("protocol", "ty_range", (0.0, 40.0, 1.0)),
-    ("protocol", "scale_range", (1.02, 0.98)),
+    ("protocol", "relief", 0.5),
+    ("protocol", "unseen_scenes", ("gravel",)),  # a training scene
     ("protocol", "seed", True),
     ("protocol", "scenes", ("grass", None)),
     ("registration", "chunk_size", 1.5),

@@ -33,7 +33,7 @@ from lensdist_torch.core.images import (
     scene_names,
     to_grey,
 )
-from lensdist_torch.data.synthesis import PERSPECTIVE, PERTURBATION
+from lensdist_torch.data.synthesis import PERSPECTIVE, PERTURBATION, ROTATION_DEG, SCALE_RANGE, TX_RANGE, TY_RANGE
 
 # ----------------------------------------------------------------------------- config
 
@@ -56,8 +56,8 @@ class TestDefaults:
         assert (d.k2_max, d.k4_max, d.n_classes) == (2.5e-6, 2.5e-11, 4)
         p = ProtocolConfig()
         assert (p.n_train, p.n_test_distorted, p.n_test_undistorted) == (12000, 400, 100)
-        assert (p.ty_range, p.tx_range, p.scale_range) == ((0.0, 40.0), (-4.0, 4.0), (0.98, 1.02))
-        assert p.rotation_deg == 1.0 and (PERSPECTIVE, PERTURBATION) == (2e-5, 0.01)  # the latter constants now
+        assert (TY_RANGE, TX_RANGE, SCALE_RANGE) == ((0.0, 40.0), (-4.0, 4.0), (0.98, 1.02))  # constants now
+        assert ROTATION_DEG == 1.0 and (PERSPECTIVE, PERTURBATION) == (2e-5, 0.01)
         c = ClassifierConfig()
         assert c.n_eigenvectors in (5, 10) and (REJECT_QUANTILE, N_NEIGHBOURS) == (0.95, 4)  # constants now
         assert load_config(None) == LensdistConfig()
@@ -104,8 +104,8 @@ class TestDefaults:
             ImageConfig(height=0)
         with pytest.raises(ValueError, match="metric"):
             ClassifierConfig(metric="delta_median")
-        with pytest.raises(ValueError, match="ty_range"):
-            ProtocolConfig(ty_range=(40.0, 0.0))
+        with pytest.raises(ValueError, match="relief"):
+            ProtocolConfig(relief=-0.1)
         with pytest.raises(ValueError, match="scenes"):
             ProtocolConfig(scenes=())
 
@@ -131,13 +131,13 @@ class TestLoadConfig:
             "width = 96\n"
             "[protocol]\n"
             'scenes = ["grass"]\n'
-            "ty_range = [0.0, 10.0]\n"
+            "n_train = 100\n"
         )
         cfg = load_config(path)
         assert cfg.quality == QualityConfig(block_size=4, theta_e=0.4, tau_g=1e-3)
         assert cfg.quality.theta_g == 0.02  # left out: the default
         assert (cfg.image.height, cfg.image.width) == (64, 96)
-        assert cfg.protocol.scenes == ("grass",) and cfg.protocol.ty_range == (0.0, 10.0)
+        assert cfg.protocol.scenes == ("grass",) and cfg.protocol.n_train == 100
         assert cfg.distortion == DistortionConfig() and cfg.classifier == ClassifierConfig()
         assert load_config(str(path)) == cfg
         # the loaded settings drive the metric

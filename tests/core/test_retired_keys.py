@@ -120,7 +120,10 @@ OLD_REGISTRATION = {
 
 
 #: ``[protocol]``'s keys that became constants of the method, as every data set generated before wrote them.
-OLD_PROTOCOL = {"perspective": 2e-5, "perturbation": 0.01, "occluder_area": [0.05, 0.15]}
+OLD_PROTOCOL = {"perspective": 2e-5, "perturbation": 0.01, "occluder_area": [0.05, 0.15], "ty_range": [0.0, 40.0],
+                "tx_range": [-4.0, 4.0], "rotation_deg": 1.0, "scale_range": [0.98, 1.02], "gain_range": [0.7, 1.3],
+                "offset_range": [-0.1, 0.1], "gamma_range": [0.8, 1.25], "illumination": 0.25,
+                "noise_range": [0.0, 0.02], "jpeg_quality": [60, 95], "occluder_rate": 0.2}
 
 
 def test_the_data_fingerprint_hashes_the_retired_keys_as_before():
@@ -137,6 +140,7 @@ def test_the_data_fingerprint_hashes_the_retired_keys_as_before():
     assert fields["registration"] == old and len(old) == 14
     assert all(type(fields["registration"][k]) is type(v) for k, v in old.items())  # 2.0 stays a float, [2, 0] a list
     assert all(type(fields["protocol"][k]) is type(v) for k, v in OLD_PROTOCOL.items())
+    assert all(type(x) is int for x in fields["protocol"]["jpeg_quality"])  # ints, as the config stored them
     others = {s: dict(config_to_dict(LensdistConfig())[s]) for s in ("quality", "image", "distortion", "protocol")}
     others["quality"].pop("chunk_size"), others["protocol"].pop("unseen_scenes")  # as before: not hashed
     assert fields == {**others, "protocol": {**others["protocol"], **OLD_PROTOCOL}, "registration": old}
@@ -247,6 +251,7 @@ OLD_ISSUE_50 = {
     "regression": {"cannot_tell_fraction": 0.125, "confidence_threshold": 0.5},
     "analysis": {"eigenspace_max_class_disagreement": 0, "max_cannot_tell": 0.25},
     "registration": {"min_overlap": 0.3, "max_residual": 0.5, "feature_fallback": True},
+    "protocol": {k: v for k, v in OLD_PROTOCOL.items() if k not in ("perspective", "perturbation", "occluder_area")},
     "calibration": {"max_misfit": 0.4, "relief_rel": 0.8, "relief_test": 2.0, "no_distortion_px": 0.25,
                     "verify_pairs": 6, "registered_start": True},
 }
@@ -263,7 +268,8 @@ def test_the_keys_of_issue_50_load_at_their_old_defaults(tmp_path):
     assert stored_config(OLD_ISSUE_50) == LensdistConfig() and retired_keys(OLD_ISSUE_50) == []
     for section, keys in OLD_ISSUE_50.items():
         for key, value in keys.items():
-            other = (not value) if isinstance(value, bool) else value + 1
+            other = (not value) if isinstance(value, bool) else [v + 1 for v in value] if isinstance(value, list) \
+                else value + 1
             path.write_text(f"[{section}]\n{key} = {json.dumps(other)}\n")
             one_line_error(ValueError, lambda: load_config(path), f"{section}.{key}", str(path),
                            f"a constant of the method now: {RETIRED[(section, key)].by}")

@@ -19,6 +19,10 @@ from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import generate_shard
 from lensdist_torch.data.synthesis import (
     PERSPECTIVE,
+    ROTATION_DEG,
+    SCALE_RANGE,
+    TX_RANGE,
+    TY_RANGE,
     PairParams,
     draw_pairs,
     footprint,
@@ -217,10 +221,9 @@ def step_by_step(scenes, params: PairParams, config) -> tuple[torch.Tensor, torc
 
 def extreme_params(config, n_scenes: int) -> PairParams:
     """Every corner of the motion ranges, at the largest coefficients, at both ends of the position."""
-    p = config.protocol
     motions = list(
         itertools.product(
-            p.ty_range, p.tx_range, (-p.rotation_deg, p.rotation_deg), p.scale_range,
+            TY_RANGE, TX_RANGE, (-ROTATION_DEG, ROTATION_DEG), SCALE_RANGE,
             (-PERSPECTIVE, PERSPECTIVE), (-PERSPECTIVE, PERSPECTIVE),
         )
     )

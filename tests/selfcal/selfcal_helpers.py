@@ -3,10 +3,12 @@ finite-difference check of the model's Jacobian columns, and rendered pairs of a
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from lensdist_torch.config import LensdistConfig, ProtocolConfig
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.data import realism
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normalized_grid
@@ -52,13 +54,19 @@ def assert_columns_match_finite_differences(
         assert float((J[0, k] - fd[0]).norm() / fd[0].norm()) < 0.06, k
 
 
+#: realism's constants with every effect of the realistic protocol off (JPEG at quality 100, no occluder).
+NEUTRAL = {"GAIN_RANGE": (1.0, 1.0), "OFFSET_RANGE": (0.0, 0.0), "GAMMA_RANGE": (1.0, 1.0), "ILLUMINATION": 0.0,
+           "NOISE_RANGE": (0.0, 0.0), "JPEG_QUALITY": (100, 100), "OCCLUDER_RATE": 0.0}
+
+
 def relief_only_pairs(relief: float, n: int):
     """The first n test pairs of the realistic protocol with every effect off but the scene's
     relief (up to ``relief`` of camera 1's height; the parallax follows each pair's motion):
     img1, img2 (n, 1, H, W) and their true Delta_avg (n,)."""
-    cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, gain_range=(1.0, 1.0), offset_range=(0.0, 0.0),
-                                                 gamma_range=(1.0, 1.0), illumination=0.0, noise_range=(0.0, 0.0),
-                                                 jpeg_quality=(100, 100), occluder_rate=0.0, relief=relief))
-    p = draw_pairs(cfg, "test", list(range(n)), 2)
-    i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
+    cfg = LensdistConfig(protocol=ProtocolConfig(realistic=True, relief=relief))
+    with pytest.MonkeyPatch.context() as mp:  # realism's constants: every effect off
+        for name, value in NEUTRAL.items():
+            mp.setattr(realism, name, value)
+        p = draw_pairs(cfg, "test", list(range(n)), 2)
+        i1, i2 = render_pairs([load_scene("gravel"), load_scene("grass")], p, cfg)
     return i1, i2, delta_avg(p.k2, p.k4, *cfg.image.size)
