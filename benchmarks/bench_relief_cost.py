@@ -4,12 +4,12 @@ The same rendered pairs of the protocol's test set, analysed with the default se
 (``selfcal.parallax`` = 5, the test on every pair) and with ``selfcal.parallax = 0`` (planar
 scenes only), alternately in one process with pinned threads; reports ms per pair of each, the
 ratio, and how many pairs each says "cannot tell" for, and why. ``--against`` times the default
-against another single setting instead (e.g. ``selfcal.occluded_share=0``: the aligned residual's
+against another single setting instead (e.g. ``selfcal.parallax_evidence=false``: the evidence's
 cost).
 
     python benchmarks/bench_relief_cost.py --n 48 --threads 1 [--config configs/realistic.toml]
     python benchmarks/bench_relief_cost.py --n 24 --threads 1 --config configs/realistic.toml \\
-        --against selfcal.occluded_share=0
+        --against selfcal.parallax_evidence=false
 """
 
 from __future__ import annotations

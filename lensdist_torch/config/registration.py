@@ -42,7 +42,9 @@ class SelfCalConfig:
     """Settings of :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (``[selfcal]``).
 
     What a user sets; the method's constants (the damping, the bounds of a plausible fit, the
-    robust constants, the relief's bumps and iterations, the "cannot tell" threshold) are named
+    robust constants, the relief's bumps and iterations, the "cannot tell" threshold, the
+    sampling kernel, the second start, the clusters of the covariance and the share an occluder
+    may spoil, the small-motion floor, Hausman's test and the score test's level) are named
     in the modules that use them (:mod:`~lensdist_torch.selfcal.fit`, ``model``, ``prior``;
     docs/method.md, section 10).
 
@@ -56,18 +58,10 @@ class SelfCalConfig:
             "none" (least squares); IRLS with sigma = 1.4826 MAD re-estimated every iteration.
         photometric: "gain_bias" (img2 times a fitted gain plus a bias), "normalized"
             (zero-mean, unit-variance samples per pair) or "none".
-        both_starts: with an ``init`` homography, also fit from phase correlation in the same
-            batch and keep, per pair, the start with the lower final robust cost.
-        clusters: the full-size samples are grouped in clusters x clusters rectangles of the
-            frame for the cluster-robust (sandwich) covariance of the fit; 0: the Gauss-Newton
-            covariance alone (docs/method.md, section 10).
-        occluded_share: the share of those rectangles that an occluder or a moving object may
-            spoil: ``aligned_residual``, the RMS that ``analyze`` puts to the registration's test,
-            leaves out the worst of them (0, or ``clusters`` < 2: the RMS of every sample).
         parallax: plane + parallax model: a relief displacing img2's points along the
             registration's translation, a smooth field of parallax x parallax Gaussian bumps
             (fitted where (a, b) are); 0: a planar scene. On by default: whether a pair's scene is
-            a plane is decided per pair: Hausman's test (``parallax_test``) keeps one answer, and both
+            a plane is decided per pair: Hausman's test (``fit.PARALLAX_TEST``) keeps one answer, and both
             weigh in the confidence (``analysis.flat_prior``).
         parallax_px: the std (px) of the Gaussian prior on each bump's height: how far a
             relief may move points (MAP; larger: freer relief), chosen on validation pairs: on the
@@ -79,21 +73,6 @@ class SelfCalConfig:
             a relief the data pin drives it up, so a flat scene's answer stays by the planar one
             while a relief is not shrunk (docs/method.md, section 10). The
             sequence path keeps its fixed prior.
-        small_motion_error: a floor e R^2 / m px on the std of Delta_avg that the covariance
-            leaves out, m the fitted H's mean displacement (px), R the half diagonal: fitted on
-            rendered validation pairs to cover the truth in every motion bin (docs/method.md, 10).
-        parallax_score_level: with ``parallax_evidence``, the plane + parallax stage runs on a pair
-            where the planar answer's score test (Rao's, of the relief at zero, on the planar
-            fit's finest samples) rejects a flat scene at this level; elsewhere the evidence holds
-            the relief at the floor of ``selfcal.prior.PARALLAX_PX_RANGE`` and the pair keeps the planar answer
-            alone (no relief answer). 1 (the default): on every pair, as the decision was fitted;
-            0.01 trades confident answers at small motion for speed; a fixed prior always runs it
-            (docs/method.md, section 10).
-        parallax_test: the plane + parallax answer replaces the planar one where their
-            Delta_avg differ by more than this many standard deviations of the difference
-            (Hausman's test: under a planar scene both are right and the planar one is the
-            more precise).
-        interpolation: img2's sampling kernel: "bilinear", "bicubic" or "blend" (their mean).
 
     Example:
         >>> from dataclasses import replace
@@ -111,30 +90,16 @@ class SelfCalConfig:
     chunk_size: int = 16
     robust: str = "tukey"
     photometric: str = "gain_bias"
-    both_starts: bool = True
-    clusters: int = 6
-    occluded_share: float = 0.15
     parallax: int = 5
     parallax_px: float = 0.2
     parallax_evidence: bool = True
-    parallax_test: float = 2.0
-    parallax_score_level: float = 1.0
-    small_motion_error: float = 1.5e-5
-    interpolation: str = "blend"
 
     def __post_init__(self) -> None:
-        real(self, "small_motion_error", lo=0)
-        integer(self, "clusters", lo=0)
-        real(self, "occluded_share", lo=0, hi=1, hi_open=True)
         integer(self, "parallax", lo=0)
-        real(self, "parallax_test", lo=0)
-        real(self, "parallax_score_level", lo=0, hi=1)
         real(self, "parallax_px", lo=0, lo_open=True)
         flag(self, "parallax_evidence")
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
-        choice(self, "interpolation", ("bilinear", "bicubic", "blend"))
-        flag(self, "both_starts")
         for name in ("levels", "chunk_size"):
             integer(self, name)
         for name in ("iterations", "sample_block"):

@@ -117,6 +117,13 @@ RETIRED = {
     ("selfcal", "parallax_block"): _constant("fit.PARALLAX_BLOCK", 2, "selfcal"),
     ("selfcal", "ridge"): _constant("prior.RIDGE", 1e-6, "selfcal"),
     ("selfcal", "parallax_px_range"): _constant("prior.PARALLAX_PX_RANGE", (0.02, 2.0), "selfcal"),
+    ("selfcal", "interpolation"): _constant("fit.SAMPLING", "blend", "selfcal"),
+    ("selfcal", "both_starts"): _constant("fit.BOTH_STARTS", True, "selfcal"),
+    ("selfcal", "clusters"): _constant("fit.CLUSTERS", 6, "selfcal"),
+    ("selfcal", "occluded_share"): _constant("fit.OCCLUDED_SHARE", 0.15, "selfcal"),
+    ("selfcal", "small_motion_error"): _constant("fit.SMALL_MOTION_ERROR", 1.5e-5, "selfcal"),
+    ("selfcal", "parallax_test"): _constant("fit.PARALLAX_TEST", 2.0, "selfcal"),
+    ("selfcal", "parallax_score_level"): _constant("fit.PARALLAX_SCORE_LEVEL", 1.0, "selfcal"),
     # one pair's registration's constants (docs/method.md, section 7)
     ("registration", "levels"): _constant("direct.LEVELS", (2, 0), "registration"),
     ("registration", "iterations"): _constant("direct.ITERATIONS", (10, 6), "registration"),
@@ -181,7 +188,7 @@ def _same(value: Any, constant: Any) -> bool:
     if isinstance(constant, tuple):
         return isinstance(value, (list, tuple)) and len(value) == len(constant) and all(
             _same(v, c) for v, c in zip(value, constant))
-    if isinstance(value, bool) or isinstance(constant, bool):
+    if isinstance(value, (bool, str)) or isinstance(constant, (bool, str)):
         return type(value) is type(constant) and value == constant
     return isinstance(value, (int, float)) and value == constant
 

@@ -18,7 +18,7 @@ there they trade off with H on few samples and can lead the fit into a far minim
 (chain rule through eq. 4, the homography and the implicit derivative of the Newton inverse), times the image
 gradient of img2; one sampling of (img2, d/dx, d/dy) per iteration (:mod:`.selfcal_model`).
 
-Interpolation (``config.interpolation``): img2 and its gradients are sampled by the mean of the bilinear and
+Interpolation (:data:`SAMPLING`): img2 and its gradients are sampled by the mean of the bilinear and
 the bicubic kernel (``blend``, default; :func:`.selfcal_model.sample_image`); the plane + parallax stage below
 samples bilinearly.
 
@@ -35,7 +35,7 @@ drag the gain down.
 
 Starts. Without ``init``, H starts at the phase correlation of the coarsest level. With ``init`` (e.g.
 :func:`estimate_homography`'s H, which absorbs part of the distortion and can hold the fit in a wrong minimum)
-and ``config.both_starts``, both starts are fitted in the same batch and, per pair, the one with the lower final
+and :data:`BOTH_STARTS`, both starts are fitted in the same batch and, per pair, the one with the lower final
 robust cost (at the smaller of the two sigmas; a flagged start loses) is kept; a = b = 0 in both.
 
 Confidence. The weighted Gauss-Newton covariance s_w^2 (J W J^T)^-1, s_w^2 = sum w r^2 / (sum w - P)
@@ -113,8 +113,9 @@ from lensdist_torch.selfcal.prior import (
 from lensdist_torch.selfcal.regions import aligned_residual, cluster_robust_covariance, region_ids
 
 __all__ = [
-    "CANNOT_TELL_STD_PX", "CONFIDENCE_THRESHOLD", "DAMPING", "DISTORTION_LEVELS", "MAX_COEFFICIENT", "MIN_OVERLAP",
-    "PARALLAX_BLOCK", "PARALLAX_ITERATIONS",
+    "BOTH_STARTS", "CANNOT_TELL_STD_PX", "CLUSTERS", "CONFIDENCE_THRESHOLD", "DAMPING", "DISTORTION_LEVELS",
+    "MAX_COEFFICIENT", "MIN_OVERLAP", "OCCLUDED_SHARE", "PARALLAX_BLOCK", "PARALLAX_ITERATIONS", "PARALLAX_SCORE_LEVEL",
+    "PARALLAX_TEST", "SAMPLING", "SMALL_MOTION_ERROR",
     "SelfCalConfig", "SelfCalInfo", "estimate_distortion", "selfcal_residual", "distort_normalized",
     "undistort_normalized",
 ]
@@ -140,24 +141,23 @@ class _State(NamedTuple):
 #: of 24 flat pairs (errors up to 1.5 px), with bilinear on none (tests/selfcal/test_parallax.py)
 _RELIEF_INTERPOLATION = "bilinear"
 
-#: floor (px) of the std of the difference in Hausman's test (the relief's std can fall below the planar one)
-_HAUSMAN_FLOOR_PX = 0.05
-#: Initial Levenberg-Marquardt lambda, relative to diag(J^T J), at each level's start (docs/method.md, section 10).
-DAMPING = 1e-3
-#: (a, b) are fitted on the finest this many levels; the coarser fit H and the photometry only (section 10).
-DISTORTION_LEVELS = 2
-#: A fit whose |a| or |b| (normalised units) exceeds this diverged (docs/method.md, section 10).
-MAX_COEFFICIENT = 2.0
-#: A fit keeping a smaller share of img1's samples inside img2 diverged (docs/method.md, section 10).
-MIN_OVERLAP = 0.3
-#: The std of Delta_avg (px) at which a pair's confidence is 0.5: s0 / (s0 + std) (docs/method.md, section 10).
-CANNOT_TELL_STD_PX = 0.5
+_HAUSMAN_FLOOR_PX = 0.05  # floor (px) of the std of the difference in Hausman's test (the relief's can be below)
+DAMPING = 1e-3  # initial Levenberg-Marquardt lambda, relative to diag(J^T J), at each level's start
+DISTORTION_LEVELS = 2  # (a, b) are fitted on the finest this many levels; the coarser fit H and the photometry only
+MAX_COEFFICIENT = 2.0  # a fit whose |a| or |b| (normalised units) exceeds this diverged
+MIN_OVERLAP = 0.3  # a fit keeping a smaller share of img1's samples inside img2 diverged
+CANNOT_TELL_STD_PX = 0.5  # the std of Delta_avg (px) at which a pair's confidence s0 / (s0 + std) is 0.5
 #: A pair whose confidence (a probability) is below this is "cannot tell from this pair": ``info.confident`` False.
 CONFIDENCE_THRESHOLD = 0.5
-#: LM iterations of the plane + parallax model at full size, from the planar fit (docs/method.md, section 10).
-PARALLAX_ITERATIONS = 6
-#: That model's samples: the strongest-gradient pixel of every block x block cell (docs/method.md, section 10).
-PARALLAX_BLOCK = 2
+PARALLAX_ITERATIONS = 6  # LM iterations of the plane + parallax model at full size, from the planar fit
+PARALLAX_BLOCK = 2  # that model's samples: the strongest-gradient pixel of every block x block cell
+SAMPLING = "blend"  # img2's sampling kernel: the mean of bilinear and bicubic (their sub-pixel biases cancel)
+BOTH_STARTS = True  # with an init H, the phase-correlation start is fitted too; the lower robust cost is kept
+CLUSTERS = 6  # the frame's clusters x clusters rectangles of the cluster-robust covariance (0: Gauss-Newton's)
+OCCLUDED_SHARE = 0.15  # the share of those rectangles the aligned residual leaves out (an occluder's)
+SMALL_MOTION_ERROR = 1.5e-5  # a floor e R^2 / m px on Delta_avg's std, m the pair's motion (px), R the half diagonal
+PARALLAX_TEST = 2.0  # the relief's answer is kept where Delta_avg moves by this many stds of the difference (Hausman)
+PARALLAX_SCORE_LEVEL = 1.0  # the relief is fitted where the planar fit's score test rejects a plane at this level
 
 
 @torch.no_grad()
@@ -168,7 +168,7 @@ def estimate_distortion(img1, img2, *, init=None, config: SelfCalConfig | None =
         img1: (B, C, H, W) float in [0, 1] or uint8; H and W at least 16 (and 2^levels).
         img2: the same shape and dtype, with the same distortion as img1.
         init: optional (B, 3, 3) homography img1 -> img2 (pixels), e.g. from :func:`estimate_homography`;
-            beside the phase-correlation start when ``config.both_starts`` (the better kept), alone otherwise.
+            beside the phase-correlation start (:data:`BOTH_STARTS`; the better kept).
         config: :class:`SelfCalConfig`; defaults when None.
         validate: check the images' values (one host sync); False for images already checked.
 
@@ -215,7 +215,7 @@ def _starts(pyr1, pyr2, init, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Ten
         nrm = normalizer(h0, w0, device=dev)
         out.append(theta.clone())
         out[0][:, :8] = homography_parameters(nrm @ init @ torch.linalg.inv(nrm))
-    if init is None or cfg.both_starts:  # the translation in level px -> u
+    if init is None or BOTH_STARTS:  # the translation in level px -> u
         t = phase_correlation(pyr1[-1][:, 0], pyr2[-1][:, 0]).double()
         theta[:, 2:6:3] = t * 2 ** (cfg.levels - 1) / half_diagonal(h0, w0)
         out.append(theta)
@@ -239,7 +239,7 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     # the plane + parallax model, from the planar fit, where the pair's evidence asks for it
     theta = torch.cat([theta, theta.new_zeros(bsz, cfg.parallax**2)], 1)
     score = _relief_score(pyr1, pyr2, theta, cfg, h0, w0)
-    ask = planar[3].converged & (relief_p_value(score, cfg) <= cfg.parallax_score_level)
+    ask = planar[3].converged & (relief_p_value(score, cfg) <= PARALLAX_SCORE_LEVEL)
     rows = (ask | (not cfg.parallax_evidence)).nonzero()[:, 0]  # a fixed prior: every pair
     nan = torch.full_like(score, float("nan"))
     info = planar[3]._replace(relief_score=score, relief_z=nan, relief_std=nan)
@@ -252,7 +252,7 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     d0, s0, d1, s1 = planar[3].delta_avg[rows], planar[3].planar_std[rows], relief[3].delta_avg, relief[3].delta_avg_std
     # Hausman: under a planar scene the planar answer is the efficient one, var(d1 - d0) = s1^2 - s0^2
     z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(_HAUSMAN_FLOOR_PX**2).sqrt()
-    use = relief[3].converged & planar[3].converged[rows] & (z >= cfg.parallax_test)  # 0: on every pair
+    use = relief[3].converged & planar[3].converged[rows] & (z >= PARALLAX_TEST)  # 0: on every pair
 
     def kept(a, b, m=use):  # b, with a on the relief's rows where m
         out = b.clone()
@@ -291,7 +291,7 @@ def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relie
     return Level(i1=i1s, stack2=stack2, ux_d=ux_d, uy_d=uy_d, rho=rho, px=half_diagonal(h0, w0) / 2**lev,
                  to_grid=level_to_grid(lev, h, w, full_height=h0, full_width=w0), newton=NEWTON, margin=MARGIN,
                  photometric=cfg.photometric, floor=NOISE_FLOOR, basis=basis, direction=direction,
-                 interpolation=_RELIEF_INTERPOLATION if relief else cfg.interpolation)
+                 interpolation=_RELIEF_INTERPOLATION if relief else SAMPLING)
 
 
 def _bumps(ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
@@ -379,7 +379,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     cov = s2[:, None, None] * inv
     if region is not None:  # cluster-robust: the larger of the two
         score = (st.J * (w * st.res)[:, None]).double()  # (B, P, N)
-        cov = torch.maximum(cov, cluster_robust_covariance(inv, score, region, cfg.clusters**2))
+        cov = torch.maximum(cov, cluster_robust_covariance(inv, score, region, CLUSTERS**2))
     # Delta_avg and its gradient in (a, b): R * mean |a u^3 + b u^5|, the mean over the centres
     # of 4 x 4 blocks (the gradient is smooth; 16 times fewer terms)
     grid = normalized_grid(2, h0 // 4, w0 // 4, full_height=h0, full_width=w0, dtype=torch.float64, device=ab.device)
@@ -416,7 +416,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     st = _State(*(None if x is None else x[keep] for x in st))
     r0 = half_diagonal(h0, w0)
     # the frame's rectangles of the samples: the cluster-robust covariance and the aligned residual
-    region = region_ids(h0, w0, block=block, clusters=cfg.clusters, device=dev) if cfg.clusters > 1 else None
+    region = region_ids(h0, w0, block=block, clusters=CLUSTERS, device=dev) if CLUSTERS > 1 else None
     std = _delta_avg_std(ab, st, h0, w0, cfg, region)
     nan = torch.tensor(float("nan"), dtype=torch.float64, device=dev)
     k2, k4 = (torch.where(ok, k, nan) for k in from_normalized(ab, h0, w0))
@@ -429,14 +429,14 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     # which the pair's motion m turns into a Delta error ~ 1 / m (the distortion cancels where the
     # views did not move); fitted on rendered validation pairs (docs/method.md, section 10)
     motion = mean_displacement(torch.where(ok[:, None, None], H, torch.eye(3, dtype=H.dtype, device=dev)), h0, w0)
-    floor = cfg.small_motion_error * r0**2 / motion.clamp_min(1e-3)  # 1e-3 px: no motion, no information
+    floor = SMALL_MOTION_ERROR * r0**2 / motion.clamp_min(1e-3)  # 1e-3 px: no motion, no information
     std = torch.where(ok, torch.sqrt(std**2 + floor**2), torch.full_like(std, float("inf")))
     conf = CANNOT_TELL_STD_PX / (CANNOT_TELL_STD_PX + std)
     unit = torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)  # gain 1, bias 0
     gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else unit
     rms = aligned_residual(st.res, st.valid)
-    n_regions = cfg.clusters**2
-    aligned = aligned_residual(st.res, st.valid, region, n_regions=n_regions, drop=int(cfg.occluded_share * n_regions))
+    n_regions = CLUSTERS**2
+    aligned = aligned_residual(st.res, st.valid, region, n_regions=n_regions, drop=int(OCCLUDED_SHARE * n_regions))
     from_init = (keep < len(keep)) & has_init  # rows [init start, phase-correlation start]
     info = SelfCalInfo(
         converged=ok, confident=ok & (conf >= CONFIDENCE_THRESHOLD), confidence=conf, delta_avg=d_avg,

@@ -2,11 +2,11 @@
 
 The full-size samples of :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (one per
 ``block`` x ``block`` cell, row-major) are grouped in ``clusters`` x ``clusters`` rectangles of
-the frame (``selfcal.clusters``). Two statistics read them (docs/method.md, section 10):
+the frame (``selfcal.fit.CLUSTERS``). Two statistics read them (docs/method.md, section 10):
 
 * the cluster-robust (sandwich) covariance of the fit: residuals that a smooth misfit makes
   alike within a rectangle pull together and widen the std;
-* the aligned residual: the RMS residual without the worst ``selfcal.occluded_share`` of the
+* the aligned residual: the RMS residual without the worst ``selfcal.fit.OCCLUDED_SHARE`` of the
   rectangles, what ``analyze`` puts to the registration's test. An occluder or a moving object
   spoils a few rectangles; a lens the model cannot follow spoils most of the border.
 """

@@ -271,9 +271,9 @@ def _selfcal_fits(p: PreparedPairs) -> list[tuple]:
     """Self-calibration of every pair, from the registration's H wherever finite: (k2, k4, info, aligned, motion) each.
 
     Also where the registration failed its own test: its H is still the nearest start on most
-    such pairs, and beside it the phase-correlation start is fitted (``selfcal.both_starts``).
+    such pairs, and beside it the phase-correlation start is fitted (``selfcal.fit.BOTH_STARTS``).
     The fit aligned the pair where it converged and its RMS residual (the lens and the photometry
-    modelled; the worst ``selfcal.occluded_share`` of the frame's rectangles left out, where an
+    modelled; the worst ``selfcal.fit.OCCLUDED_SHARE`` of the frame's rectangles left out, where an
     occluder may be: ``aligned_residual``) passes the registration's own test
     (:func:`~lensdist_torch.registration.direct.residual_limit`).
     """
@@ -320,7 +320,7 @@ def _selfcal_answer(k2: torch.Tensor, k4: torch.Tensor, sc: SelfCalInfo, cfg: Le
         "k4": float(k4[0]),
         "delta_avg_std": std,
         "delta_avg_interval": delta_interval(float(d_avg[0]), std, cfg.analysis),
-        "relief": bool(sc.relief[0]),  # the plane + parallax model's answer kept (selfcal.parallax_test)
+        "relief": bool(sc.relief[0]),  # the plane + parallax model's answer kept (selfcal.fit.PARALLAX_TEST)
         "relief_z": float(sc.relief_z[0]),  # Hausman's statistic; NaN without that model
         "distortion_type": distortion_type(float(sc.ab[0, 0]), float(sc.ab[0, 1])),
     }

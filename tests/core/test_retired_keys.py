@@ -87,8 +87,8 @@ def test_a_self_calibration_key_of_an_earlier_version(tmp_path):
                    "a constant of the method now: lensdist_torch.selfcal.model.HUBER_K")
     one_line_error(ValueError, lambda: stored_config({"selfcal": {"ridge": 1e-9}}), "selfcal.ridge",
                    "lensdist_torch.selfcal.prior.RIDGE")
-    path.write_text("[selfcal]\nconfidence_threshold = 0.5\nclusters = 4\n")
-    assert load_config(path) == config_from_dict({"selfcal": {"clusters": 4}})
+    path.write_text("[selfcal]\nconfidence_threshold = 0.5\nchunk_size = 4\n")
+    assert load_config(path) == config_from_dict({"selfcal": {"chunk_size": 4}})
     path.write_text("[selfcal]\nconfidence_threshold = 0.6\n")
     one_line_error(ValueError, lambda: load_config(path), "selfcal.confidence_threshold", str(path),
                    "a constant of the method now: lensdist_torch.selfcal.fit.CONFIDENCE_THRESHOLD")
@@ -252,6 +252,8 @@ OLD_ISSUE_50 = {
     "analysis": {"eigenspace_max_class_disagreement": 0, "max_cannot_tell": 0.25},
     "registration": {"min_overlap": 0.3, "max_residual": 0.5, "feature_fallback": True},
     "protocol": {k: v for k, v in OLD_PROTOCOL.items() if k not in ("perspective", "perturbation", "occluder_area")},
+    "selfcal": {"interpolation": "blend", "both_starts": True, "clusters": 6, "occluded_share": 0.15,
+                "small_motion_error": 1.5e-5, "parallax_test": 2.0, "parallax_score_level": 1.0},
     "calibration": {"max_misfit": 0.4, "relief_rel": 0.8, "relief_test": 2.0, "no_distortion_px": 0.25,
                     "verify_pairs": 6, "registered_start": True},
 }
@@ -269,7 +271,7 @@ def test_the_keys_of_issue_50_load_at_their_old_defaults(tmp_path):
     for section, keys in OLD_ISSUE_50.items():
         for key, value in keys.items():
             other = (not value) if isinstance(value, bool) else [v + 1 for v in value] if isinstance(value, list) \
-                else value + 1
+                else value + "x" if isinstance(value, str) else value + 1
             path.write_text(f"[{section}]\n{key} = {json.dumps(other)}\n")
             one_line_error(ValueError, lambda: load_config(path), f"{section}.{key}", str(path),
                            f"a constant of the method now: {RETIRED[(section, key)].by}")

@@ -6,7 +6,6 @@ test_selfcal_robust.py."""
 from __future__ import annotations
 
 import ast
-import dataclasses
 import math
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from lensdist_torch.geometry.distortion import (
     undistort_points,
 )
 from lensdist_torch.registration.direct import estimate_homography
+from lensdist_torch.selfcal import fit as selfcal_fit
 from lensdist_torch.selfcal import model as selfcal_model
 from lensdist_torch.selfcal.fit import (
     CONFIDENCE_THRESHOLD,
@@ -119,8 +119,10 @@ def test_divergent_pair_is_flagged_not_returned():
     far = torch.eye(3, dtype=torch.float64)[None].repeat(2, 1, 1)
     far[0, 0, 2] = 5000.0  # maps img1 entirely outside img2: no overlap
     far[1, 1, 2] = -8.0  # a sane one beside it
-    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2), both_starts=False)
-    k2, k4, H, info = estimate_distortion(i1.repeat(2, 1, 1, 1), i2.repeat(2, 1, 1, 1), init=far, config=cfg)
+    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(selfcal_fit, "BOTH_STARTS", False)
+        k2, k4, H, info = estimate_distortion(i1.repeat(2, 1, 1, 1), i2.repeat(2, 1, 1, 1), init=far, config=cfg)
     assert not bool(info.converged[0]) and not bool(info.confident[0])
     assert math.isnan(float(k2[0])) and math.isnan(float(k4[0])) and torch.isnan(H[0]).all()
     assert math.isnan(float(info.delta_avg[0]))
@@ -235,7 +237,9 @@ def test_init_from_registration_is_never_worse_than_no_init():
     short = SelfCalConfig(iterations=(12, 6, 3), parallax=0)  # the planar fit's starts
     free = estimate_distortion(i1, i2, config=short)[3]
     both = estimate_distortion(i1, i2, init=H, config=short)[3]
-    alone = estimate_distortion(i1, i2, init=H, config=dataclasses.replace(short, both_starts=False))[3]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(selfcal_fit, "BOTH_STARTS", False)
+        alone = estimate_distortion(i1, i2, init=H, config=short)[3]
     assert bool(((free.delta_avg - true).abs() < 0.3).all())
     assert bool(((alone.delta_avg - true).abs() > 1.0).all())
     assert not bool(both.from_init.any()) and torch.equal(both.delta_avg, free.delta_avg)
@@ -302,7 +306,7 @@ def test_cuda_matches_cpu():
 @pytest.mark.bad_input
 @pytest.mark.parametrize(
     "field,value",
-    [("robust", "cauchy"), ("photometric", "gain"), ("both_starts", 1), ("interpolation", "nearest")],
+    [("robust", "cauchy"), ("photometric", "gain")],
 )
 def test_robust_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=rf"^selfcal\.{field} must be [^\n]*, got "):
@@ -337,10 +341,12 @@ def test_parallax_widens_the_interval():
     the misfit, the cluster-robust one grows several times (docs/method.md, section 10, the limit)."""
     i1, i2, _ = relief_only_pairs(0.06, 4)
     # the covariances alone (the small-motion floor, the same in both, off)
-    plain = estimate_distortion(i1, i2, config=SelfCalConfig(clusters=0, small_motion_error=0.0, parallax=0))[
-        3
-    ].delta_avg_std
-    robust = estimate_distortion(i1, i2, config=SelfCalConfig(small_motion_error=0.0, parallax=0))[3].delta_avg_std
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(selfcal_fit, "SMALL_MOTION_ERROR", 0.0)
+        mp.setattr(selfcal_fit, "CLUSTERS", 0)
+        plain = estimate_distortion(i1, i2, config=SelfCalConfig(parallax=0))[3].delta_avg_std
+        mp.setattr(selfcal_fit, "CLUSTERS", 6)
+        robust = estimate_distortion(i1, i2, config=SelfCalConfig(parallax=0))[3].delta_avg_std
     assert float((robust / plain).median()) > 3
 
 
@@ -357,9 +363,12 @@ def test_the_blended_kernel_removes_most_of_the_small_motion_bias():
     )
     pairs = [_pair(h, w, 2.5e-6, 0.0, (0.0, s)) for s in (1.5, 2.0, 2.5, 2.75, 3.0, 3.5)]
     i1, i2 = torch.cat([p[0] for p in pairs]), torch.cat([p[1] for p in pairs])
-    assert SelfCalConfig().interpolation == "blend"
-    err = {m: estimate_distortion(i1, i2, config=SelfCalConfig(interpolation=m))[3].delta_avg - truth
-           for m in ("bilinear", "bicubic", "blend")}
+    assert selfcal_fit.SAMPLING == "blend"
+    err = {}
+    for m in ("bilinear", "bicubic", "blend"):
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(selfcal_fit, "SAMPLING", m)
+            err[m] = estimate_distortion(i1, i2, config=SelfCalConfig())[3].delta_avg - truth
     assert float((err["bilinear"] * err["bicubic"] < 0).float().mean()) >= 0.5  # opposite signs, mostly
     mean = {m: float(e.abs().mean()) for m, e in err.items()}
     assert mean["bilinear"] > 0.8 and mean["bicubic"] > 0.8

@@ -12,13 +12,21 @@ from selfcal_helpers import assert_columns_match_finite_differences, central_lev
 
 from lensdist_torch.geometry.distortion import delta_avg
 from lensdist_torch.geometry.frame import half_diagonal
+from lensdist_torch.selfcal import fit as selfcal_fit
 from lensdist_torch.selfcal import model as selfcal_model
 from lensdist_torch.selfcal import prior as selfcal_prior
 from lensdist_torch.selfcal.fit import SelfCalConfig, estimate_distortion
 
-RELIEF = SelfCalConfig(parallax=5, parallax_score_level=0.01)  # the relief stage where the planar score asks
-PLANAR = SelfCalConfig(parallax=0)
-EVERY = SelfCalConfig(parallax=5)  # the default: the relief stage on every pair, flat or not
+#: (config, selfcal.fit's constants patched for the fit): the relief stage where the planar score asks,
+RELIEF = (SelfCalConfig(parallax=5), {"PARALLAX_SCORE_LEVEL": 0.01})
+PLANAR = (SelfCalConfig(parallax=0), {})
+EVERY = (SelfCalConfig(parallax=5), {})  # the default: the relief stage on every pair, flat or not
+
+
+def _with(setting, constants=None, **fields):
+    """``setting`` with ``fields`` of its config replaced and ``constants`` of selfcal.fit added."""
+    config, known = setting
+    return dataclasses.replace(config, **fields), {**known, **(constants or {})}
 
 
 def test_relief_basis_is_gaussian_bumps_on_a_grid_over_the_frame():
@@ -44,8 +52,12 @@ def test_relief_columns_of_the_jacobian_match_finite_differences():
     assert_columns_match_finite_differences(theta, lv, range(12, 21))
 
 
-def _errors(i1, i2, true, config):
-    k2, k4, _, info = estimate_distortion(i1, i2, config=config)
+def _errors(i1, i2, true, setting):
+    config, constants = setting
+    with pytest.MonkeyPatch.context() as mp:
+        for name, value in constants.items():
+            mp.setattr(selfcal_fit, name, value)
+        k2, k4, _, info = estimate_distortion(i1, i2, config=config)
     return (delta_avg(k2, k4, *i1.shape[-2:]) - true).abs(), info
 
 
@@ -73,7 +85,7 @@ def test_relief_model_leaves_a_planar_scene_nearly_as_it_was():
     assert int(info.relief.sum()) <= 3
     assert float(planar.max()) < 0.6 and float(relief.max()) < float(planar.max()) + 0.3
     assert float(relief.pow(2).mean().sqrt()) < float(planar.pow(2).mean().sqrt()) + 0.1
-    off = dataclasses.replace(EVERY, parallax=0)
+    off = _with(EVERY, parallax=0)
     flat = _errors(i1, i2, true, off)[1]
     assert not bool(flat.relief.any())
     # both models' coefficients travel with the answer: ab is the kept one's, the planar ones are
@@ -96,10 +108,10 @@ def test_the_prior_narrows_the_relief_and_its_interval():
     thousands of samples they outweigh any prior)."""
     i1, i2, true = relief_only_pairs(0.06, n=4)
     planar = _errors(i1, i2, true, PLANAR)[1].delta_avg
-    # the posterior std (Gauss-Newton, clusters = 0, without the motion floor); the cluster-robust one may widen where
-    # a tight prior leaves a smooth misfit that the relief would have taken
-    infos = [_errors(i1, i2, true, dataclasses.replace(RELIEF, parallax_test=0.0, parallax_px=p, clusters=0,
-                                                       small_motion_error=0.0, parallax_evidence=False))[1]
+    # the posterior std (Gauss-Newton, fit.CLUSTERS = 0, without the motion floor); the cluster-robust one may widen
+    # where a tight prior leaves a smooth misfit that the relief would have taken
+    infos = [_errors(i1, i2, true, _with(RELIEF, {"PARALLAX_TEST": 0.0, "CLUSTERS": 0, "SMALL_MOTION_ERROR": 0.0},
+                                         parallax_px=p, parallax_evidence=False))[1]
              for p in (100.0, 1.0, 0.01)]
     stds = [i.delta_avg_std for i in infos]
     moved = [float((i.delta_avg - planar).abs().mean()) for i in infos]
@@ -115,7 +127,7 @@ def test_the_evidence_holds_a_flat_pair_to_its_plane_and_frees_a_relief():
     starts from, on 6 pairs each: on flat pairs the relief answer moves less off the planar one
     (mean 0.091 -> 0.073 px when written), on pairs with relief (6 %) it is nearer the truth (RMSE
     0.42 -> 0.37 px; the planar model's 1.15)."""
-    fixed, free = (dataclasses.replace(EVERY, parallax_test=0.0, parallax_evidence=e) for e in (False, True))
+    fixed, free = (_with(EVERY, {"PARALLAX_TEST": 0.0}, parallax_evidence=e) for e in (False, True))
     i1, i2, true = relief_only_pairs(0.0, n=6)
     planar = _errors(i1, i2, true, PLANAR)[1].delta_avg
     moved = [float((_errors(i1, i2, true, c)[1].delta_avg - planar).abs().mean()) for c in (fixed, free)]
@@ -127,7 +139,7 @@ def test_the_evidence_holds_a_flat_pair_to_its_plane_and_frees_a_relief():
 
 @pytest.mark.usefixtures("one_thread_module")
 def test_the_relief_stage_runs_where_the_planar_answers_score_asks_for_it():
-    """Rao's score test of the relief at the planar answer (``parallax_score_level``): on flat pairs
+    """Rao's score test of the relief at the planar answer (``fit.PARALLAX_SCORE_LEVEL``): on flat pairs
     the statistic is chi-square with 25 degrees of freedom and the stage is skipped (no relief
     answer; the planar one, as with parallax = 0); on pairs with relief (6 %) it runs. Level 1:
     every pair, as before the test."""
@@ -142,14 +154,13 @@ def test_the_relief_stage_runs_where_the_planar_answers_score_asks_for_it():
     i1, i2, true = relief_only_pairs(0.06, 12)
     info = _errors(i1, i2, true, RELIEF)[1]
     assert int(torch.isfinite(info.relief_ab).all(1).sum()) >= 10 and float(info.relief_score.median()) > 100
-    fixed = _errors(i1[:2], i2[:2], true[:2], dataclasses.replace(RELIEF, parallax_evidence=False))[1]
+    fixed = _errors(i1[:2], i2[:2], true[:2], _with(RELIEF, parallax_evidence=False))[1]
     assert bool(torch.isfinite(fixed.relief_ab).all())  # a fixed prior: every pair, whatever its score
 
 
 @pytest.mark.bad_input
-@pytest.mark.parametrize("field,value", [("parallax", -1), ("parallax", 2.5), ("parallax_test", -1.0),
-                                         ("parallax_px", 0.0), ("parallax_evidence", "yes"),
-                                         ("parallax_score_level", 1.5), ("parallax_score_level", -0.1)])
+@pytest.mark.parametrize("field,value", [("parallax", -1), ("parallax", 2.5), ("parallax_px", 0.0),
+                                         ("parallax_evidence", "yes")])
 def test_relief_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=field) as err:
         SelfCalConfig(**{field: value})

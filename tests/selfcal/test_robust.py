@@ -20,6 +20,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import delta_avg
+from lensdist_torch.selfcal import fit as selfcal_fit
 from lensdist_torch.selfcal.fit import SelfCalConfig, estimate_distortion
 
 PAIRS = [0, 1, 2, 3, 5, 6, 7, 8, 10, 11, 13, 14]  # the test set's first pairs with t_y >= 10 px
@@ -108,12 +109,14 @@ def _offset_pair(rects: int):
 def test_aligned_residual_leaves_out_the_worst_rectangles(rects):
     """Hand-worked: Tukey's weights drop the raised patch, whose k = rects^2 rectangles (96 samples
     each) keep a residual of 0.3, the others ~0. Over the n valid samples (the overlap times the
-    48 x 72 samples) the RMS is 0.3 sqrt(96 k / n); occluded_share 0.15 leaves out the worst 5
+    48 x 72 samples) the RMS is 0.3 sqrt(96 k / n); fit.OCCLUDED_SHARE 0.15 leaves out the worst 5
     rectangles (int(0.15 x 36)): one spoiled rectangle vanishes (RMS ~ 0), of nine four stay,
-    0.3 sqrt(96 x 4 / (n - 96 x 5)). With occluded_share 0 it is the plain RMS."""
+    0.3 sqrt(96 x 4 / (n - 96 x 5)). With it at 0 it is the plain RMS."""
     i1, i2 = _offset_pair(rects)
     _, _, _, info = estimate_distortion(i1, i2)
-    _, _, _, plain = estimate_distortion(i1, i2, config=SelfCalConfig(occluded_share=0.0))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(selfcal_fit, "OCCLUDED_SHARE", 0.0)
+        _, _, _, plain = estimate_distortion(i1, i2, config=SelfCalConfig())
     assert bool(info.converged.all()) and bool(plain.converged.all())
     k, n = rects * rects, float(info.overlap[0]) * 48 * 72
     assert float(info.residual[0]) == pytest.approx(0.3 * (96 * k / n) ** 0.5, rel=1e-4)

@@ -84,19 +84,22 @@ def test_selfcal_answer_in_user_pixels_and_opencv_terms():
     json.dumps(r.to_json(), allow_nan=False)
 
 
-def test_the_answer_says_which_model_gave_it():
-    """With the plane + parallax model on every pair (selfcal.parallax, parallax_test = 0, and
-    parallax_score_level = 1: fitted on this flat pair too) the answer says it came from that
+def test_the_answer_says_which_model_gave_it(monkeypatch):
+    """With the plane + parallax model on every pair (selfcal.parallax, fit.PARALLAX_TEST = 0, and
+    PARALLAX_SCORE_LEVEL = 1: fitted on this flat pair too) the answer says it came from that
     model; by default it never does."""
     import dataclasses
 
     from lensdist_torch.config import LensdistConfig
+    from lensdist_torch.selfcal import fit
 
     scene = load_scene("gravel")
     a, b = scene[..., :320, :424], scene[..., 8:328, 4:428]
     base = LensdistConfig()
-    every = dataclasses.replace(base.selfcal, parallax=5, parallax_test=0.0, parallax_score_level=1.0)
+    every = dataclasses.replace(base.selfcal, parallax=5)
     relief = dataclasses.replace(base, selfcal=every)
     assert analyze_pair(a, b).relief is False
+    monkeypatch.setattr(fit, "PARALLAX_TEST", 0.0)
+    monkeypatch.setattr(fit, "PARALLAX_SCORE_LEVEL", 1.0)
     r = analyze_pair(a, b, config=relief)
     assert r.relief is True and r.estimated_class == "R"  # the wider relief interval may not support "R"

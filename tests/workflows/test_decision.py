@@ -17,6 +17,7 @@ from lensdist_torch.config import LensdistConfig, load_config
 from lensdist_torch.core.images import load_scene
 from lensdist_torch.data.shards import load_scenes, read_manifest
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
+from lensdist_torch.selfcal import fit as selfcal_fit
 from lensdist_torch.workflows import decision
 from lensdist_torch.workflows.analyze import analyze_batch
 from lensdist_torch.workflows.class_mass import flat_or_relief
@@ -178,7 +179,7 @@ def test_a_pair_of_a_scene_with_relief_says_relief():
 def test_an_occluded_pair_is_registered_by_the_self_calibration():
     """Planar realistic validation pair 5 (truth 12.93 px, class 4): an occluder in I1 only fails
     the homography's residual test (RMS <= 0.5 sqrt 2 std(img1)). The self-calibration leaves the
-    worst selfcal.occluded_share of the frame's rectangles out of the same test and registers it,
+    worst selfcal.fit.OCCLUDED_SHARE of the frame's rectangles out of the same test and registers it,
     with the right class; counting every rectangle (occluded_share 0) it is "cannot tell:
     registration", as with the homography alone."""
     from lensdist_torch.workflows.decision_fit import validation_config
@@ -189,8 +190,9 @@ def test_an_occluded_pair_is_registered_by_the_self_calibration():
     assert bool(p.realism.occluded[0]) and float(p.realism.relief[0, 0]) == 0.0
     (r,) = analyze_batch(img1, img2, config=cfg)
     assert r.registered_by == "self-calibration" and r.class_label == "4"
-    strict = dataclasses.replace(cfg, selfcal=dataclasses.replace(cfg.selfcal, occluded_share=0.0))
-    (s,) = analyze_batch(img1, img2, config=strict)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(selfcal_fit, "OCCLUDED_SHARE", 0.0)
+        (s,) = analyze_batch(img1, img2, config=cfg)
     assert s.registered_by is None and s.cannot_tell_reasons == ["registration"]
 
 def test_class_distance():

@@ -14,6 +14,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.data.shards import load_scenes
 from lensdist_torch.data.synthesis import draw_pairs, render_pairs
 from lensdist_torch.geometry.distortion import estimated_class
+from lensdist_torch.selfcal import fit as selfcal_fit
 from lensdist_torch.workflows.analyze import analyze_pair
 from lensdist_torch.workflows.class_mass import (
     flat_or_relief,
@@ -62,8 +63,8 @@ def analysed():
     "cannot tell: relief"): the two images and the config, at 160 x 216, the plane + parallax model
     fitted whatever its score test says (a flat pair: both answers to rescore)."""
     cfg = LensdistConfig()
-    cfg = dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, height=160, width=216),
-                              selfcal=dataclasses.replace(cfg.selfcal, parallax_score_level=1.0))
+    cfg = dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, height=160, width=216))
+    assert selfcal_fit.PARALLAX_SCORE_LEVEL == 1.0  # the default: the relief fitted on every pair
     scenes, _ = load_scenes(cfg)
     img1, img2 = render_pairs(scenes, draw_pairs(cfg, "test", [7], len(scenes)), cfg)
     return img1, img2, cfg

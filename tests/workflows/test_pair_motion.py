@@ -47,12 +47,16 @@ def test_mean_displacement_by_hand():
     assert math.isnan(float(mean_displacement(nan, 8, 12)[0]))
 
 
-def test_small_motion_floor_adds_in_quadrature():
+def test_small_motion_floor_adds_in_quadrature(monkeypatch):
     """std = sqrt(std_cov^2 + (e R^2 / m)^2), m the fitted H's mean displacement."""
+    from lensdist_torch.selfcal import fit
+
     a, b = _pan(3)
     e = 2.8e-5
-    *_, off = estimate_distortion(a, b, config=SelfCalConfig(small_motion_error=0.0))
-    k2, k4, H, on = estimate_distortion(a, b, config=SelfCalConfig(small_motion_error=e))
+    monkeypatch.setattr(fit, "SMALL_MOTION_ERROR", 0.0)
+    *_, off = estimate_distortion(a, b, config=SelfCalConfig())
+    monkeypatch.setattr(fit, "SMALL_MOTION_ERROR", e)
+    k2, k4, H, on = estimate_distortion(a, b, config=SelfCalConfig())
     m = float(mean_displacement(H, 320, 424)[0])
     assert float(on.motion[0]) == pytest.approx(m) and 2.5 < m < 3.5
     floor = e * half_diagonal(320, 424) ** 2 / m
