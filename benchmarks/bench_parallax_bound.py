@@ -38,6 +38,7 @@ from lensdist_torch.data.realism import height_field
 from lensdist_torch.data.relief import homography_view_points
 from lensdist_torch.data.synthesis import draw_pairs
 from lensdist_torch.geometry.distortion import (
+    N_CLASSES,
     delta_avg,
     delta_top,
     distort_points,
@@ -156,7 +157,7 @@ def main() -> None:
         "direction": a.direction,
         "seconds": round(time.perf_counter() - t0, 1),
     }
-    truth = distortion_class(true, delta_top("delta_avg", cfg), cfg.distortion.n_classes)
+    truth = distortion_class(true, delta_top("delta_avg", cfg), N_CLASSES)
     for name, values in est.items():
         e = torch.tensor(values, dtype=torch.float64)
         ok = torch.isfinite(e)

@@ -27,6 +27,7 @@ import torch
 from lensdist_torch import load_config
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry import CLASS_LABELS, delta_top, distortion_class, estimated_class
+from lensdist_torch.geometry.distortion import N_CLASSES
 from lensdist_torch.workflows.reports import SHIPPED_SUFFIX
 
 SETTING = "selfcal, delta_avg"
@@ -69,7 +70,7 @@ def bound_outcomes(relief: dict, bound: dict) -> dict:
     true = torch.tensor(bound["per_pair"]["true_px"], dtype=torch.float64)
     planar = torch.tensor(bound["per_pair"]["planar_px"], dtype=torch.float64)
     truth = distortion_class(
-        true, delta_top("delta_avg", cfg), cfg.distortion.n_classes
+        true, delta_top("delta_avg", cfg), N_CLASSES
     )  # R only at 0, as the bound scores
     hard = (estimated_class(planar, planar, metric="delta_avg", config=cfg) != truth).tolist()
     per = relief["settings"][SETTING]["per_pair"]

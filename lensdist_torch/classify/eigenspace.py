@@ -45,7 +45,7 @@ from lensdist_torch.classify._checkpoint import (
 from lensdist_torch.config import ClassifierConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.storage import CheckpointError
-from lensdist_torch.geometry.distortion import REJECT
+from lensdist_torch.geometry.distortion import N_CLASSES, REJECT
 
 __all__ = ["EigenSpaceClassifier", "ClassifierResult", "CheckpointError", "CHECKPOINT_VERSION"]
 
@@ -104,7 +104,7 @@ class EigenSpaceClassifier(nn.Module):
         super().__init__()
         self.config = or_defaults(config, LensdistConfig)
         c = self.config.classifier
-        k = self.config.distortion.n_classes
+        k = N_CLASSES
         n = c.n_eigenvectors
         if not (isinstance(n_features, int) and n_features > n):
             raise ValueError(f"n_features must be an int larger than n_eigenvectors={n}, got {n_features!r}")
@@ -264,7 +264,7 @@ class EigenSpaceClassifier(nn.Module):
         payload, config = load_payload(path, kind=_KIND, version=CHECKPOINT_VERSION, what="eigen-space",
                                        map_location=map_location, sizes=("n_features",), expected=expected)
         d = positive_int(payload, "n_features", path)
-        k, n = config.distortion.n_classes, config.classifier.n_eigenvectors
+        k, n = N_CLASSES, config.classifier.n_eigenvectors
         if d <= n:
             raise CheckpointError(f"checkpoint {path}: n_features={d} must exceed n_eigenvectors={n}")
         f32 = torch.float32

@@ -39,8 +39,8 @@ class ImageConfig:
 class DistortionConfig:
     """Ranges of the radial coefficients (docs/method.md section 6).
 
-    k2 lies in ]0, k2_max], k4 in ]0, k4_max]. ``n_classes`` is 4: the labels are the classes
-    1-4 and R.
+    k2 lies in ]0, k2_max], k4 in ]0, k4_max]; the classes 1-4 are equal-width bins of the Delta
+    they give (their number, 4, is ``geometry.distortion.N_CLASSES``).
 
     Example:
         >>> from dataclasses import replace
@@ -50,16 +50,10 @@ class DistortionConfig:
 
     k2_max: float = 2.5e-6
     k4_max: float = 2.5e-11
-    n_classes: int = 4
 
     def __post_init__(self) -> None:
         real(self, "k2_max", lo=0, lo_open=True)
         real(self, "k4_max", lo=0, lo_open=True)
-        integer(self, "n_classes")
-        if self.n_classes != 4:
-            raise ValueError(
-                f"distortion.n_classes must be 4 (the labels are the classes 1-4 and R), got {self.n_classes}"
-            )
 
 
 @dataclass(frozen=True)

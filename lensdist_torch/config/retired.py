@@ -27,7 +27,7 @@ class Retired:
             constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``,
             ``lensdist_torch.selfcal.X.NAME``, ``lensdist_torch.registration.X.NAME``,
             ``lensdist_torch.workflows.X.NAME``, ``lensdist_torch.data.X.NAME``,
-            ``lensdist_torch.classify.X.NAME``).
+            ``lensdist_torch.classify.X.NAME``, ``lensdist_torch.geometry.X.NAME``).
         value: for a constant, its value: the key loads at this value (dropped) and is refused
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
@@ -170,6 +170,7 @@ RETIRED = {
     ("protocol", "noise_range"): _constant("realism.NOISE_RANGE", (0.0, 0.02), "data"),
     ("protocol", "jpeg_quality"): _constant("realism.JPEG_QUALITY", (60, 95), "data"),
     ("protocol", "occluder_rate"): _constant("realism.OCCLUDER_RATE", 0.2, "data"),
+    ("distortion", "n_classes"): _constant("distortion.N_CLASSES", 4, "geometry"),
     # the classifiers' and the decision's fit's constants (docs/method.md, sections 8 and 10)
     ("classifier", "reject_quantile"): _constant("eigenspace.REJECT_QUANTILE", 0.95, "classify"),
     ("classifier", "n_neighbours"): _constant("eigenspace.N_NEIGHBOURS", 4, "classify"),

@@ -62,6 +62,7 @@ __all__ = [
 #: Class labels; index 4 is the reject class R (no visible distortion).
 CLASS_LABELS = ("1", "2", "3", "4", "R")
 REJECT = 4
+N_CLASSES = 4  # the distortion classes 1-4: equal-width bins of ]0, Delta_top]; R besides
 METRICS = ("delta_avg", "delta_max")
 
 
@@ -254,7 +255,7 @@ def _delta_top(metric: str, k2: float, k4: float, h: int, w: int) -> float:
     return float(delta_metric([k2], [k4], h, w, metric=metric)[0])
 
 
-def distortion_class(delta: torch.Tensor, top: float, n_classes: int = 4) -> torch.Tensor:
+def distortion_class(delta: torch.Tensor, top: float, n_classes: int = N_CLASSES) -> torch.Tensor:
     """Class index of a true Delta: 0..n-1 for the equal-width bins of ]0, top], ``REJECT`` for 0.
 
     Values above ``top`` fall into the last class.
@@ -288,7 +289,7 @@ def estimated_class(
         delta: (B,) estimates of ``metric`` (px at the analysis size).
         delta_avg_estimate: (B,) the same pairs' estimated Delta_avg, which decides R.
         metric: ``"delta_avg"`` or ``"delta_max"`` (the bins' range).
-        config: the classes (``distortion.n_classes``) and the default threshold.
+        config: the classes' range (Delta_top) and the default threshold.
         threshold: the R threshold (px at 320 x 424); default one pair's,
             ``config.analysis.no_distortion_px`` (a sequence's is ``config.calibration``'s).
 
@@ -303,7 +304,7 @@ def estimated_class(
     d_avg = torch.as_tensor(delta_avg_estimate, dtype=torch.float64)
     none = ~torch.isfinite(d_avg) | ~torch.isfinite(delta) | (d_avg < t)
     top = delta_top(metric, config)
-    label = distortion_class(torch.where(none, top, delta).clamp_min(1e-12), top, config.distortion.n_classes)
+    label = distortion_class(torch.where(none, top, delta).clamp_min(1e-12), top, N_CLASSES)
     return torch.where(none, torch.full_like(label, REJECT), label)
 
 
@@ -335,7 +336,7 @@ def class_bounds(
     t = config.analysis.no_distortion_px if threshold is None else threshold
     if label == CLASS_LABELS[REJECT]:
         return 0.0, t
-    n, w = config.distortion.n_classes, delta_top(metric, config) / config.distortion.n_classes
+    n, w = N_CLASSES, delta_top(metric, config) / N_CLASSES
     i = CLASS_LABELS.index(label) + 1
     lo = max((i - 1) * w, t) if i == 1 else (i - 1) * w
     return lo, (math.inf if i == n else i * w)

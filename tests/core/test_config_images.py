@@ -34,6 +34,7 @@ from lensdist_torch.core.images import (
     to_grey,
 )
 from lensdist_torch.data.synthesis import PERSPECTIVE, PERTURBATION, ROTATION_DEG, SCALE_RANGE, TX_RANGE, TY_RANGE
+from lensdist_torch.geometry.distortion import N_CLASSES
 
 # ----------------------------------------------------------------------------- config
 
@@ -53,7 +54,7 @@ class TestDefaults:
         assert (img.height, img.width) == (320, 424)
         assert (img.height // 8) * (img.width // 8) == 2120  # section 1: feature length
         d = DistortionConfig()
-        assert (d.k2_max, d.k4_max, d.n_classes) == (2.5e-6, 2.5e-11, 4)
+        assert (d.k2_max, d.k4_max, N_CLASSES) == (2.5e-6, 2.5e-11, 4)  # the last a constant now
         p = ProtocolConfig()
         assert (p.n_train, p.n_test_distorted, p.n_test_undistorted) == (12000, 400, 100)
         assert (TY_RANGE, TX_RANGE, SCALE_RANGE) == ((0.0, 40.0), (-4.0, 4.0), (0.98, 1.02))  # constants now

@@ -143,7 +143,9 @@ def test_the_data_fingerprint_hashes_the_retired_keys_as_before():
     assert all(type(x) is int for x in fields["protocol"]["jpeg_quality"])  # ints, as the config stored them
     others = {s: dict(config_to_dict(LensdistConfig())[s]) for s in ("quality", "image", "distortion", "protocol")}
     others["quality"].pop("chunk_size"), others["protocol"].pop("unseen_scenes")  # as before: not hashed
-    assert fields == {**others, "protocol": {**others["protocol"], **OLD_PROTOCOL}, "registration": old}
+    assert fields == {**others, "protocol": {**others["protocol"], **OLD_PROTOCOL}, "registration": old,
+                      "distortion": {**others["distortion"], "n_classes": 4}}
+    assert type(fields["distortion"]["n_classes"]) is int
     # as the old code made them: the default protocol, with and without scenes, and the two realistic conditions
     assert config_fingerprint(LensdistConfig(), ["gravel", "grass"]) == "aa65403107c95ae1"
     assert config_fingerprint(LensdistConfig(), []) == "57d173dc8ee860f9"
@@ -247,6 +249,7 @@ def test_the_fitted_decisions_in_the_results_load(name):
 #: Keys that became constants of the method in issue 50's pass over the config, as paper.toml and every stored
 #: config wrote them (section -> key -> the old default).
 OLD_ISSUE_50 = {
+    "distortion": {"n_classes": 4},
     "classifier": {"reject_quantile": 0.95, "n_neighbours": 4},
     "regression": {"cannot_tell_fraction": 0.125, "confidence_threshold": 0.5},
     "analysis": {"eigenspace_max_class_disagreement": 0, "max_cannot_tell": 0.25},
