@@ -8,7 +8,7 @@ median |error| / std and the share within 2 std (is the std honest?), pairs belo
 0.5, pairs/s. With ``--effects``: the registration failures of 96 training pairs with each
 realistic effect alone.
 
-    python benchmarks/bench_selfcal_conditions.py --scene brick --variant iterations=12,6,3
+    python benchmarks/bench_selfcal_conditions.py --scene brick --variant parallax_px=0.5
     python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --set relief=0.03 \
         --only relief --variant parallax=0
     python benchmarks/bench_selfcal_conditions.py --config configs/realistic.toml --effects \

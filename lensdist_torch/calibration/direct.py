@@ -59,6 +59,7 @@ from lensdist_torch.core.images import check_image, to_grey
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
 from lensdist_torch.geometry.phase import phase_correlation
+from lensdist_torch.selfcal.fit import LEVELS
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
            "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION",
@@ -356,7 +357,7 @@ def calibrate_sequence(
     """
     cfg, st = or_defaults(config, CalibrationConfig), or_defaults(settings, LensdistConfig, "settings")
     xa, size, scale = _prepare(frames, cfg, frame_size)
-    least = max(16, 2**st.selfcal.levels)
+    least = max(16, 2**LEVELS)
     if min(xa.shape[-2:]) < least:
         raise ValueError(f"frames must be at least {least} px on each side, got {tuple(xa.shape[-2:])}")
     pairs, shifts = choose_pairs(xa, cfg)

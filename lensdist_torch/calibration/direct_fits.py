@@ -24,7 +24,7 @@ import torch
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.registration.wide_baseline import SiftMemo, estimate_homography_robust
-from lensdist_torch.selfcal.fit import estimate_distortion
+from lensdist_torch.selfcal.fit import LEVELS, estimate_distortion
 
 __all__ = [
     "sequence_selfcal",
@@ -180,7 +180,7 @@ def refit_from_registration(
         finite = torch.isfinite(h).flatten(1).all(1)
         far = finite & (
             corner_error(torch.nan_to_num(h), _translations(shifts[rows]), *frames.shape[-2:])
-            > 2 ** (selfcal.levels - 1)
+            > 2 ** (LEVELS - 1)
         )
         if not bool(far.any()):
             continue

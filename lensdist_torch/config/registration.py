@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import choice, flag, integer, integers, real
+from lensdist_torch.config.checks import choice, flag, integer, real
 
 __all__ = ["RegistrationConfig", "SelfCalConfig"]
 
@@ -41,18 +41,14 @@ class RegistrationConfig:
 class SelfCalConfig:
     """Settings of :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (``[selfcal]``).
 
-    What a user sets; the method's constants (the damping, the bounds of a plausible fit, the
-    robust constants, the relief's bumps and iterations, the "cannot tell" threshold, the
-    sampling kernel, the second start, the clusters of the covariance and the share an occluder
-    may spoil, the small-motion floor, Hausman's test and the score test's level) are named
-    in the modules that use them (:mod:`~lensdist_torch.selfcal.fit`, ``model``, ``prior``;
-    docs/method.md, section 10).
+    What a user sets; the method's constants (the pyramid, its iterations and sampling cells, the
+    damping, the bounds of a plausible fit, the robust constants, the relief's bumps and
+    iterations, the "cannot tell" threshold, the sampling kernel, the second start, the clusters
+    of the covariance and the share an occluder may spoil, the small-motion floor, Hausman's test
+    and the score test's level) are named in the modules that use them
+    (:mod:`~lensdist_torch.selfcal.fit`, ``model``, ``prior``; docs/method.md, section 10).
 
     Attributes:
-        levels: pyramid levels (2 x 2 means), coarsest first in ``iterations``.
-        iterations: Levenberg-Marquardt iterations per level, coarsest first.
-        sample_block: per level (coarsest first), the residual uses the strongest-gradient
-            pixel of every block x block cell (1: every pixel).
         chunk_size: pairs fitted together; results do not depend on it.
         robust: the M-estimator of the photometric residual: "tukey" (biweight), "huber" or
             "none" (least squares); IRLS with sigma = 1.4826 MAD re-estimated every iteration.
@@ -84,9 +80,6 @@ class SelfCalConfig:
         ValueError: selfcal.robust must be 'none' or 'huber' or 'tukey', got 'l1' (str)
     """
 
-    levels: int = 3
-    iterations: tuple[int, ...] = (8, 4, 6)
-    sample_block: tuple[int, ...] = (2, 4, 4)
     chunk_size: int = 16
     robust: str = "tukey"
     photometric: str = "gain_bias"
@@ -100,7 +93,4 @@ class SelfCalConfig:
         flag(self, "parallax_evidence")
         choice(self, "robust", ("none", "huber", "tukey"))
         choice(self, "photometric", ("none", "gain_bias", "normalized"))
-        for name in ("levels", "chunk_size"):
-            integer(self, name)
-        for name in ("iterations", "sample_block"):
-            integers(self, name, n=self.levels, per="level")
+        integer(self, "chunk_size")

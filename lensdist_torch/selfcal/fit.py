@@ -114,10 +114,9 @@ from lensdist_torch.selfcal.regions import aligned_residual, cluster_robust_cova
 
 __all__ = [
     "BOTH_STARTS", "CANNOT_TELL_STD_PX", "CLUSTERS", "CONFIDENCE_THRESHOLD", "DAMPING", "DISTORTION_LEVELS",
-    "MAX_COEFFICIENT", "MIN_OVERLAP", "OCCLUDED_SHARE", "PARALLAX_BLOCK", "PARALLAX_ITERATIONS", "PARALLAX_SCORE_LEVEL",
-    "PARALLAX_TEST", "SAMPLING", "SMALL_MOTION_ERROR",
-    "SelfCalConfig", "SelfCalInfo", "estimate_distortion", "selfcal_residual", "distort_normalized",
-    "undistort_normalized",
+    "ITERATIONS", "LEVELS", "MAX_COEFFICIENT", "MIN_OVERLAP", "OCCLUDED_SHARE", "PARALLAX_BLOCK", "PARALLAX_ITERATIONS",
+    "PARALLAX_SCORE_LEVEL", "PARALLAX_TEST", "SAMPLE_BLOCK", "SAMPLING", "SMALL_MOTION_ERROR", "SelfCalConfig",
+    "SelfCalInfo", "estimate_distortion", "selfcal_residual", "distort_normalized", "undistort_normalized",
 ]
 
 
@@ -137,9 +136,7 @@ class _State(NamedTuple):
     tau2: torch.Tensor | None = None
 
 
-#: the plane + parallax stage samples bilinearly: with the blended kernel its relief was kept on 4
-#: of 24 flat pairs (errors up to 1.5 px), with bilinear on none (tests/selfcal/test_parallax.py)
-_RELIEF_INTERPOLATION = "bilinear"
+_RELIEF_INTERPOLATION = "bilinear"  # the relief stage's kernel: blended, its relief stayed on 4 of 24 flat pairs
 
 _HAUSMAN_FLOOR_PX = 0.05  # floor (px) of the std of the difference in Hausman's test (the relief's can be below)
 DAMPING = 1e-3  # initial Levenberg-Marquardt lambda, relative to diag(J^T J), at each level's start
@@ -147,8 +144,10 @@ DISTORTION_LEVELS = 2  # (a, b) are fitted on the finest this many levels; the c
 MAX_COEFFICIENT = 2.0  # a fit whose |a| or |b| (normalised units) exceeds this diverged
 MIN_OVERLAP = 0.3  # a fit keeping a smaller share of img1's samples inside img2 diverged
 CANNOT_TELL_STD_PX = 0.5  # the std of Delta_avg (px) at which a pair's confidence s0 / (s0 + std) is 0.5
-#: A pair whose confidence (a probability) is below this is "cannot tell from this pair": ``info.confident`` False.
-CONFIDENCE_THRESHOLD = 0.5
+CONFIDENCE_THRESHOLD = 0.5  # a confidence below this: "cannot tell from this pair" (``info.confident`` False)
+LEVELS = 3  # pyramid levels (2 x 2 means), coarsest first in ITERATIONS and SAMPLE_BLOCK
+ITERATIONS = (8, 4, 6)  # Levenberg-Marquardt iterations per level, coarsest first (6 at full size: unseen textures)
+SAMPLE_BLOCK = (2, 4, 4)  # per level: the residual's samples, the strongest-gradient pixel of each block x block cell
 PARALLAX_ITERATIONS = 6  # LM iterations of the plane + parallax model at full size, from the planar fit
 PARALLAX_BLOCK = 2  # that model's samples: the strongest-gradient pixel of every block x block cell
 SAMPLING = "blend"  # img2's sampling kernel: the mean of bilinear and bicubic (their sub-pixel biases cancel)
@@ -165,7 +164,7 @@ def estimate_distortion(img1, img2, *, init=None, config: SelfCalConfig | None =
     """Estimate (k2, k4) and H together, per pair of a batch (see the module docstring).
 
     Args:
-        img1: (B, C, H, W) float in [0, 1] or uint8; H and W at least 16 (and 2^levels).
+        img1: (B, C, H, W) float in [0, 1] or uint8; H and W at least 16 (and 2^LEVELS).
         img2: the same shape and dtype, with the same distortion as img1.
         init: optional (B, 3, 3) homography img1 -> img2 (pixels), e.g. from :func:`estimate_homography`;
             beside the phase-correlation start (:data:`BOTH_STARTS`; the better kept).
@@ -187,7 +186,7 @@ def estimate_distortion(img1, img2, *, init=None, config: SelfCalConfig | None =
     """
     cfg = or_defaults(config, SelfCalConfig)
     check_image_pair(img1, img2, finite=validate)
-    (bsz, _, h, w), least = img1.shape, max(16, 2**cfg.levels)
+    (bsz, _, h, w), least = img1.shape, max(16, 2**LEVELS)
     if h < least or w < least:
         raise ValueError(f"img1 and img2 must be at least {least} x {least} pixels, got {h} x {w}")
     if init is not None:
@@ -217,7 +216,7 @@ def _starts(pyr1, pyr2, init, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Ten
         out[0][:, :8] = homography_parameters(nrm @ init @ torch.linalg.inv(nrm))
     if init is None or BOTH_STARTS:  # the translation in level px -> u
         t = phase_correlation(pyr1[-1][:, 0], pyr2[-1][:, 0]).double()
-        theta[:, 2:6:3] = t * 2 ** (cfg.levels - 1) / half_diagonal(h0, w0)
+        theta[:, 2:6:3] = t * 2 ** (LEVELS - 1) / half_diagonal(h0, w0)
         out.append(theta)
     return torch.cat(out)
 
@@ -225,15 +224,15 @@ def _starts(pyr1, pyr2, init, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Ten
 def _fit(g1, g2, init, cfg: SelfCalConfig):
     """One chunk: g1, g2 (b, 1, h, w) float32 grey on any device -> k2, k4, H, info."""
     bsz, _, h0, w0 = g1.shape
-    pyr1, pyr2 = mean_pyramid(g1, cfg.levels), mean_pyramid(g2, cfg.levels)
+    pyr1, pyr2 = mean_pyramid(g1, LEVELS), mean_pyramid(g2, LEVELS)
     theta = _starts(pyr1, pyr2, init, cfg, h0, w0)
     n_starts = theta.shape[0] // bsz
     lam = torch.full((theta.shape[0],), DAMPING, dtype=torch.float64, device=g1.device)
-    for lev, iters in zip(range(cfg.levels - 1, -1, -1), cfg.iterations):
+    for lev, iters in zip(range(LEVELS - 1, -1, -1), ITERATIONS):
         lv = _level(pyr1, pyr2, lev, theta, n_starts, cfg, relief=False)
         theta, lam, state = _levenberg_marquardt(theta, lam, lv, iters, cfg, lev < DISTORTION_LEVELS)
         lam = lam.clamp_min(DAMPING)  # a fresh start of the damping at the next level
-    theta, *planar = _result(theta, state, n_starts, init is not None, h0, w0, cfg, cfg.sample_block[-1])
+    theta, *planar = _result(theta, state, n_starts, init is not None, h0, w0, cfg, SAMPLE_BLOCK[-1])
     if cfg.parallax == 0:
         return planar
     # the plane + parallax model, from the planar fit, where the pair's evidence asks for it
@@ -282,7 +281,7 @@ def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relie
     """The fixed data of level ``lev`` (samples of img1, img2 and its gradients), repeated per start."""
     i1, h, w = pyr1[lev], *pyr1[lev].shape[-2:]
     h0, w0 = pyr1[0].shape[-2:]
-    idx = select_samples(i1, PARALLAX_BLOCK if relief else cfg.sample_block[cfg.levels - 1 - lev], MARGIN)
+    idx = select_samples(i1, PARALLAX_BLOCK if relief else SAMPLE_BLOCK[LEVELS - 1 - lev], MARGIN)
     ud = normalized_grid(lev, h, w, full_height=h0, full_width=w0, device=i1.device).view(-1, 2)
     ux_d, uy_d = ud[idx, 0], ud[idx, 1]
     lv = [torch.gather(i1.flatten(1), 1, idx), with_gradients(pyr2[lev]), ux_d, uy_d, ux_d * ux_d + uy_d * uy_d]

@@ -13,7 +13,6 @@ from one_line import one_line_error
 from lensdist_torch.config import (
     LensdistConfig,
     ProtocolConfig,
-    SelfCalConfig,
     config_from_dict,
     config_to_dict,
     load_config,
@@ -60,8 +59,6 @@ class TestShippedConfig:
         q = ProtocolConfig(scenes=["grass"], unseen_scenes=[])  # type: ignore[arg-type]
         assert q.scenes == ("grass",) and q.unseen_scenes == ()
         hash(q)
-        r = SelfCalConfig(iterations=[5, 5, 5], sample_block=[2, 4, 4])  # type: ignore[arg-type]
-        assert r.iterations == (5, 5, 5) and r.sample_block == (2, 4, 4)
 
     def test_round_trip_after_normalisation(self):
         cfg = LensdistConfig(protocol=ProtocolConfig(relief=0, scenes=["grass"]))  # type: ignore[arg-type]
@@ -198,7 +195,7 @@ BAD_PYTHON_VALUES = [
     ("protocol", "scenes", ("grass", None)),
     ("registration", "chunk_size", 1.5),
     ("classifier", "metric", None),
-    ("selfcal", "iterations", "12,6,3"),
+    ("selfcal", "parallax", 2.5),
     ("regression", "k", True),
     ("analysis", "min_confidence", "0.5"),
 ]

@@ -38,6 +38,15 @@ from lensdist_torch.selfcal.fit import (
 # Stated tolerances of the recovery on noiseless pairs with enough motion (normalised units,
 # a = k2 R^2, b = k4 R^4, R the half diagonal; the largest coefficients of docs/method.md,
 # section 6 are a = 0.18, b = 0.12).
+
+def _short(monkeypatch, levels, iterations, sample_block) -> SelfCalConfig:
+    """The default config, with selfcal.fit's pyramid set for this test: its levels, iterations and cells."""
+    monkeypatch.setattr(selfcal_fit, "LEVELS", levels)
+    monkeypatch.setattr(selfcal_fit, "ITERATIONS", iterations)
+    monkeypatch.setattr(selfcal_fit, "SAMPLE_BLOCK", sample_block)
+    return SelfCalConfig()
+
+
 TOL_A, TOL_B, TOL_DELTA_AVG_PX = 0.03, 0.05, 0.3
 
 
@@ -87,23 +96,23 @@ def test_recovers_known_coefficients_at_spec_size():
     assert torch.allclose(H[0, :2, 2], torch.tensor([-2.0, -18.0], dtype=H.dtype), atol=0.3)
 
 
-def test_pincushion_negative_coefficients():
+def test_pincushion_negative_coefficients(monkeypatch):
     h, w = 160, 212
     r = _norm(h, w)
     a, b = -0.12, -0.03
     i1, i2 = _pair(h, w, a / r**2, b / r**4, (1.0, 9.0))
     k2h, k4h, _, info = estimate_distortion(
-        i1, i2, config=SelfCalConfig(levels=2, iterations=(12, 6), sample_block=(1, 2))
+        i1, i2, config=_short(monkeypatch, 2, (12, 6), (1, 2))
     )
     assert bool(info.converged[0])
     assert abs(float(k2h[0]) * r**2 - a) < TOL_A and abs(float(k4h[0]) * r**4 - b) < TOL_B
 
 
-def test_no_motion_is_low_confidence():
+def test_no_motion_is_low_confidence(monkeypatch):
     h, w = 160, 212
     r = _norm(h, w)
     i1, _ = _pair(h, w, 0.15 / r**2, 0.05 / r**4, (0.0, 0.0))
-    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2))
+    cfg = _short(monkeypatch, 2, (8, 4), (1, 2))
     _, _, _, info = estimate_distortion(i1, i1.clone(), config=cfg)
     assert float(info.confidence[0]) < CONFIDENCE_THRESHOLD and not bool(info.confident[0])
     # a textureless pair: never confident
@@ -112,14 +121,14 @@ def test_no_motion_is_low_confidence():
     assert not bool(info.confident[0])
 
 
-def test_divergent_pair_is_flagged_not_returned():
+def test_divergent_pair_is_flagged_not_returned(monkeypatch):
     h, w = 160, 212
     r = _norm(h, w)
     i1, i2 = _pair(h, w, 0.1 / r**2, 0.05 / r**4, (0.0, 8.0))
     far = torch.eye(3, dtype=torch.float64)[None].repeat(2, 1, 1)
     far[0, 0, 2] = 5000.0  # maps img1 entirely outside img2: no overlap
     far[1, 1, 2] = -8.0  # a sane one beside it
-    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2))
+    cfg = _short(monkeypatch, 2, (8, 4), (1, 2))
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(selfcal_fit, "BOTH_STARTS", False)
         k2, k4, H, info = estimate_distortion(i1.repeat(2, 1, 1, 1), i2.repeat(2, 1, 1, 1), init=far, config=cfg)
@@ -129,7 +138,7 @@ def test_divergent_pair_is_flagged_not_returned():
     assert bool(info.converged[1]) and math.isfinite(float(k2[1]))
     assert info.from_init.tolist() == [True, True]
     # with both starts (the default) the phase-correlation start rescues the far init
-    cfg = SelfCalConfig(levels=2, iterations=(8, 4), sample_block=(1, 2))
+    cfg = _short(monkeypatch, 2, (8, 4), (1, 2))
     k2, _, H, info = estimate_distortion(i1.repeat(2, 1, 1, 1), i2.repeat(2, 1, 1, 1), init=far, config=cfg)
     assert bool(info.converged.all()) and not bool(info.from_init[0])
     assert torch.allclose(H[0, :2, 2], torch.tensor([0.0, -8.0], dtype=H.dtype), atol=0.3)
@@ -153,18 +162,18 @@ def test_gradients_through_the_model_are_finite():
 
 @pytest.mark.bad_input
 @pytest.mark.parametrize("h,w,levels", [(1, 1, 3), (4, 4, 3), (7, 40, 3), (15, 40, 3), (40, 15, 3), (31, 40, 5)])
-def test_too_small_images_raise_one_line(h, w, levels):
+def test_too_small_images_raise_one_line(h, w, levels, monkeypatch):
     """Below 16 x 16 (and 2^levels) a one-line ValueError naming img1/img2 and the minimum."""
-    cfg = SelfCalConfig(levels=levels, iterations=(2,) * levels, sample_block=(1,) * levels)
+    cfg = _short(monkeypatch, levels, (2,) * levels, (1,) * levels)
     least = max(16, 2**levels)
     x = torch.rand(1, 1, h, w)
     with pytest.raises(ValueError, match=rf"^img1 and img2 must be at least {least} x {least} pixels, got {h} x {w}$"):
         estimate_distortion(x, x.clone(), config=cfg)
 
 
-def test_smallest_accepted_size_runs():
+def test_smallest_accepted_size_runs(monkeypatch):
     i1, i2 = _pair(16, 16, 0.0, 0.0, (1.0, 0.0))
-    cfg = SelfCalConfig(levels=2, iterations=(2, 2), sample_block=(1, 1))
+    cfg = _short(monkeypatch, 2, (2, 2), (1, 1))
     k2, _, _, info = estimate_distortion(i1, i2, config=cfg)
     assert k2.shape == (1,) and info.converged.shape == (1,)
 
@@ -234,10 +243,11 @@ def test_init_from_registration_is_never_worse_than_no_init():
     true = delta_avg(p.k2, p.k4, 320, 424)
     H, reg = estimate_homography(i1, i2)
     assert bool(reg.converged.all())
-    short = SelfCalConfig(iterations=(12, 6, 3), parallax=0)  # the planar fit's starts
-    free = estimate_distortion(i1, i2, config=short)[3]
-    both = estimate_distortion(i1, i2, init=H, config=short)[3]
+    short = SelfCalConfig(parallax=0)  # the planar fit's starts, 3 full-size iterations
     with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(selfcal_fit, "ITERATIONS", (12, 6, 3))
+        free = estimate_distortion(i1, i2, config=short)[3]
+        both = estimate_distortion(i1, i2, init=H, config=short)[3]
         mp.setattr(selfcal_fit, "BOTH_STARTS", False)
         alone = estimate_distortion(i1, i2, init=H, config=short)[3]
     assert bool(((free.delta_avg - true).abs() < 0.3).all())
@@ -253,10 +263,10 @@ def _outputs(img1, img2, init=None, config=None):
     return [k2, k4, H, *info]
 
 
-def test_outputs_follow_the_input_device():
+def test_outputs_follow_the_input_device(monkeypatch):
     i1, i2 = _pair(64, 80, 2e-5, 1e-9, (0.5, 3.0))
     init = torch.eye(3, dtype=torch.float64)[None]
-    cfg = SelfCalConfig(levels=2, iterations=(4, 2), sample_block=(1, 1))
+    cfg = _short(monkeypatch, 2, (4, 2), (1, 1))
     for out in (_outputs(i1, i2, config=cfg), _outputs(i1, i2, init, cfg)):
         assert all(t.device == i1.device for t in out)
         assert out[0].dtype == out[1].dtype == out[2].dtype == torch.float64
