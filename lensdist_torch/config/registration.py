@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from lensdist_torch.config.checks import choice, flag, integer, real
+from lensdist_torch.config.checks import flag, integer, real
 
 __all__ = ["RegistrationConfig", "SelfCalConfig"]
 
@@ -42,18 +42,15 @@ class SelfCalConfig:
     """Settings of :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (``[selfcal]``).
 
     What a user sets; the method's constants (the pyramid, its iterations and sampling cells, the
-    damping, the bounds of a plausible fit, the robust constants, the relief's bumps and
-    iterations, the "cannot tell" threshold, the sampling kernel, the second start, the clusters
-    of the covariance and the share an occluder may spoil, the small-motion floor, Hausman's test
-    and the score test's level) are named in the modules that use them
+    robust loss and the photometric model, the damping, the bounds of a plausible fit, the robust
+    constants, the relief's bumps and iterations, the "cannot tell" threshold, the sampling
+    kernel, the second start, the clusters of the covariance and the share an occluder may spoil,
+    the small-motion floor, Hausman's test and the score test's level) are named in the modules
+    that use them
     (:mod:`~lensdist_torch.selfcal.fit`, ``model``, ``prior``; docs/method.md, section 10).
 
     Attributes:
         chunk_size: pairs fitted together; results do not depend on it.
-        robust: the M-estimator of the photometric residual: "tukey" (biweight), "huber" or
-            "none" (least squares); IRLS with sigma = 1.4826 MAD re-estimated every iteration.
-        photometric: "gain_bias" (img2 times a fitted gain plus a bias), "normalized"
-            (zero-mean, unit-variance samples per pair) or "none".
         parallax: plane + parallax model: a relief displacing img2's points along the
             registration's translation, a smooth field of parallax x parallax Gaussian bumps
             (fitted where (a, b) are); 0: a planar scene. On by default: whether a pair's scene is
@@ -72,17 +69,15 @@ class SelfCalConfig:
 
     Example:
         >>> from dataclasses import replace
-        >>> SelfCalConfig().robust, replace(SelfCalConfig(), robust="huber").robust
-        ('tukey', 'huber')
-        >>> SelfCalConfig(robust="l1")
+        >>> SelfCalConfig().parallax, replace(SelfCalConfig(), parallax=0).parallax
+        (5, 0)
+        >>> SelfCalConfig(parallax=-1)
         Traceback (most recent call last):
         ...
-        ValueError: selfcal.robust must be 'none' or 'huber' or 'tukey', got 'l1' (str)
+        ValueError: selfcal.parallax must be an int >= 0, got -1
     """
 
     chunk_size: int = 16
-    robust: str = "tukey"
-    photometric: str = "gain_bias"
     parallax: int = 5
     parallax_px: float = 0.2
     parallax_evidence: bool = True
@@ -91,6 +86,4 @@ class SelfCalConfig:
         integer(self, "parallax", lo=0)
         real(self, "parallax_px", lo=0, lo_open=True)
         flag(self, "parallax_evidence")
-        choice(self, "robust", ("none", "huber", "tukey"))
-        choice(self, "photometric", ("none", "gain_bias", "normalized"))
         integer(self, "chunk_size")

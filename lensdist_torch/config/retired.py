@@ -117,6 +117,8 @@ RETIRED = {
     ("selfcal", "parallax_block"): _constant("fit.PARALLAX_BLOCK", 2, "selfcal"),
     ("selfcal", "ridge"): _constant("prior.RIDGE", 1e-6, "selfcal"),
     ("selfcal", "parallax_px_range"): _constant("prior.PARALLAX_PX_RANGE", (0.02, 2.0), "selfcal"),
+    ("selfcal", "robust"): _constant("model.ROBUST_LOSS", "tukey", "selfcal"),
+    ("selfcal", "photometric"): _constant("model.PHOTOMETRIC_MODEL", "gain_bias", "selfcal"),
     ("selfcal", "levels"): _constant("fit.LEVELS", 3, "selfcal"),
     ("selfcal", "iterations"): _constant("fit.ITERATIONS", (8, 4, 6), "selfcal"),
     ("selfcal", "sample_block"): _constant("fit.SAMPLE_BLOCK", (2, 4, 4), "selfcal"),

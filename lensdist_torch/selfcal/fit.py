@@ -22,12 +22,12 @@ Interpolation (:data:`SAMPLING`): img2 and its gradients are sampled by the mean
 the bicubic kernel (``blend``, default; :func:`.selfcal_model.sample_image`); the plane + parallax stage below
 samples bilinearly.
 
-Photometric model (``config.photometric``): ``gain_bias`` (default) fits g and c with the rest under the robust
+Photometric model (``model.PHOTOMETRIC_MODEL``): ``gain_bias`` (default) fits g and c with the rest under the robust
 weights, started at the ratio of the robust standard deviations (1.4826 MAD) and the difference of the medians
 of the coarsest level; ``normalized`` compares zero-mean, unit-variance samples instead (moments that outliers
 move, and that jump as samples enter or leave the overlap); ``none`` compares raw intensities.
 
-Robust loss (``config.robust``): each LM iteration solves the weighted normal equations
+Robust loss (``model.ROBUST_LOSS``): each LM iteration solves the weighted normal equations
 (J W J^T + lambda diag) d = -J W r with Tukey (default) or Huber weights of z = r / sigma, sigma = 1.4826 MAD of
 the pair's residuals, re-estimated every iteration; a step is accepted where the robust cost 2 sigma^2 mean
 rho(z), at the same sigma, falls. Tukey's weights drop an occluder entirely; Huber's keep a bounded pull that can
@@ -76,6 +76,7 @@ from lensdist_torch.geometry.frame import half_diagonal, level_to_grid, normaliz
 from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import mean_pyramid
+from lensdist_torch.selfcal import model as _model  # ROBUST_LOSS, PHOTOMETRIC_MODEL read at call time
 from lensdist_torch.selfcal.model import (
     GAIN_RANGE,
     MARGIN,
@@ -203,9 +204,9 @@ def estimate_distortion(img1, img2, *, init=None, config: SelfCalConfig | None =
 def _starts(pyr1, pyr2, init, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Tensor:
     """(S B, P) float64 starting parameters: [init start,] [phase-correlation start]."""
     bsz, dev = pyr1[0].shape[0], pyr1[0].device
-    theta = torch.zeros(bsz, planar_parameters(cfg.photometric), dtype=torch.float64, device=dev)
+    theta = torch.zeros(bsz, planar_parameters(_model.PHOTOMETRIC_MODEL), dtype=torch.float64, device=dev)
     c1, c2 = pyr1[-1].flatten(1), pyr2[-1].flatten(1)
-    if cfg.photometric == "gain_bias":  # robust std ratio and median difference of the coarsest level
+    if _model.PHOTOMETRIC_MODEL == "gain_bias":  # robust std ratio and median difference of the coarsest level
         every = torch.ones_like(c1, dtype=torch.bool)
         g = (robust_scale(c1, every, NOISE_FLOOR) / robust_scale(c2, every, NOISE_FLOOR)).clamp(*GAIN_RANGE)
         theta[:, 10], theta[:, 11] = g, c1.median(1).values - g * c2.median(1).values
@@ -271,7 +272,8 @@ def _relief_score(pyr1, pyr2, theta, cfg: SelfCalConfig, h0: int, w0: int) -> to
     lv = _level(pyr1, pyr2, 0, theta, 1, cfg, relief=False)
     lv = lv._replace(basis=_bumps(lv.ux_d, lv.uy_d, cfg, h0, w0), direction=relief_direction(theta))
     res, valid, J = evaluate(theta, lv)
-    w = robust_weights(res, robust_scale(res, valid, NOISE_FLOOR), cfg.robust, robust_constant(cfg.robust))
+    loss = _model.ROBUST_LOSS
+    w = robust_weights(res, robust_scale(res, valid, NOISE_FLOOR), loss, robust_constant(loss))
     w = valid.float() if w is None else w * valid
     jtj, jtr = _normal_equations(J, res, w)
     return relief_score(jtj, jtr, _residual_variance(res, w, J.shape[1], cfg), cfg)
@@ -289,7 +291,7 @@ def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relie
     basis, direction = (_bumps(ux_d, uy_d, cfg, h0, w0), relief_direction(theta)) if relief else (None, None)
     return Level(i1=i1s, stack2=stack2, ux_d=ux_d, uy_d=uy_d, rho=rho, px=half_diagonal(h0, w0) / 2**lev,
                  to_grid=level_to_grid(lev, h, w, full_height=h0, full_width=w0), newton=NEWTON, margin=MARGIN,
-                 photometric=cfg.photometric, floor=NOISE_FLOOR, basis=basis, direction=direction,
+                 photometric=_model.PHOTOMETRIC_MODEL, floor=NOISE_FLOOR, basis=basis, direction=direction,
                  interpolation=_RELIEF_INTERPOLATION if relief else SAMPLING)
 
 
@@ -311,7 +313,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
     prior's variance where it is estimated per pair (:func:`~lensdist_torch.selfcal.prior.evidence_tau2`).
     Returns theta, lambda and the :class:`_State` at theta.
     """
-    loss, k = cfg.robust, robust_constant(cfg.robust)
+    loss, k = _model.ROBUST_LOSS, robust_constant(_model.ROBUST_LOSS)
     res, valid, J = evaluate(theta, lv)
     sigma = robust_scale(res, valid, NOISE_FLOOR)
     tau2 = None if lv.basis is None else start_tau2(len(theta), lv.px, cfg, theta.device)
@@ -331,7 +333,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
         cand = theta + torch.nan_to_num(step, nan=0.0)
         res_c, valid_c, J_c = evaluate(cand, lv)
         cost_c = _cost(cand, res_c, valid_c, sigma, cfg, tau2)
-        acc = (cost_c < cost) & torch.isfinite(cost_c) & plausible(cand, cfg.photometric)
+        acc = (cost_c < cost) & torch.isfinite(cost_c) & plausible(cand, _model.PHOTOMETRIC_MODEL)
         acc &= valid_c.float().mean(1) > 0.05
         m = acc[:, None]
         theta = torch.where(m, cand, theta)
@@ -351,7 +353,7 @@ def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalCon
 
 def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | None = None):
     """The robust cost, plus the relief prior's term (on the same per-sample scale) where fitted."""
-    cost = robust_cost(res, valid, sigma, loss=cfg.robust, k=robust_constant(cfg.robust))
+    cost = robust_cost(res, valid, sigma, loss=_model.ROBUST_LOSS, k=robust_constant(_model.ROBUST_LOSS))
     if tau2 is None:
         return cost
     prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
@@ -370,7 +372,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     The weighted Gauss-Newton covariance, or (with the samples' ``region``, ``clusters`` > 1) the
     cluster-robust one where it is larger (:func:`~lensdist_torch.selfcal.regions.cluster_robust_covariance`).
     """
-    w = robust_weights(st.res, st.sigma, cfg.robust, robust_constant(cfg.robust))
+    w = robust_weights(st.res, st.sigma, _model.ROBUST_LOSS, robust_constant(_model.ROBUST_LOSS))
     w = st.valid.float() if w is None else w * st.valid
     jtj, _ = _normal_equations(st.J, st.res, w)
     s2 = _residual_variance(st.res, w, st.J.shape[1], cfg)
@@ -398,7 +400,7 @@ def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> 
     if n_starts == 1:
         return rows
     sigma = st.sigma.view(n_starts, bsz).amin(0).repeat(n_starts)
-    cost = robust_cost(st.res, st.valid, sigma, loss=cfg.robust, k=robust_constant(cfg.robust))
+    cost = robust_cost(st.res, st.valid, sigma, loss=_model.ROBUST_LOSS, k=robust_constant(_model.ROBUST_LOSS))
     cost = torch.where(ok & torch.isfinite(cost), cost, torch.full_like(cost, float("inf"))).view(n_starts, bsz)
     return rows + bsz * cost.argmin(0)  # ties: the first start (init)
 
@@ -408,8 +410,8 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     dev = theta.device
     overlap = st.valid.float().mean(1)
     ab = theta[:, 8:10]
-    ok = (torch.isfinite(theta).all(1) & (ab.abs() <= MAX_COEFFICIENT).all(1) & plausible(theta, cfg.photometric)
-          & (overlap >= MIN_OVERLAP) & (st.cost <= st.start_cost * (1 + 1e-6)))
+    ok = (torch.isfinite(theta).all(1) & (ab.abs() <= MAX_COEFFICIENT).all(1) & (overlap >= MIN_OVERLAP)
+          & plausible(theta, _model.PHOTOMETRIC_MODEL) & (st.cost <= st.start_cost * (1 + 1e-6)))
     keep = _choose(st, ok, n_starts, cfg)
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
     st = _State(*(None if x is None else x[keep] for x in st))
@@ -432,7 +434,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
     std = torch.where(ok, torch.sqrt(std**2 + floor**2), torch.full_like(std, float("inf")))
     conf = CANNOT_TELL_STD_PX / (CANNOT_TELL_STD_PX + std)
     unit = torch.tensor([1.0, 0.0], device=dev).expand(len(theta), 2)  # gain 1, bias 0
-    gb = theta[:, 10:12] if cfg.photometric == "gain_bias" else unit
+    gb = theta[:, 10:12] if _model.PHOTOMETRIC_MODEL == "gain_bias" else unit
     rms = aligned_residual(st.res, st.valid)
     n_regions = CLUSTERS**2
     aligned = aligned_residual(st.res, st.valid, region, n_regions=n_regions, drop=int(OCCLUDED_SHARE * n_regions))

@@ -62,6 +62,8 @@ PHOTOMETRIC = ("none", "gain_bias", "normalized")
 INTERPOLATION = ("bilinear", "bicubic", "blend")
 ROBUST = ("none", "huber", "tukey")
 MAD_TO_STD = 1.4826  # sigma = 1.4826 MAD for Gaussian residuals
+ROBUST_LOSS = "tukey"  # the photometric residual's M-estimator, one of ROBUST: Tukey's biweight (IRLS)
+PHOTOMETRIC_MODEL = "gain_bias"  # one of PHOTOMETRIC: img2 times a gain plus a bias, fitted per pair
 #: Newton steps of the inverse of eq. 4 on the radius (docs/method.md, section 10).
 NEWTON = 5
 #: Level px by which a sample's point must map inside img2 to count (docs/method.md, section 10).
@@ -69,9 +71,9 @@ MARGIN = 2.0
 #: Intensity std floor of the residual's scale and of the covariance (8-bit quantisation, half a grey level in
 #: [0, 1] units): a textureless or identical pair cannot claim certainty (docs/method.md, section 10).
 NOISE_FLOOR = 0.5 / 255
-#: Huber's constant, in sigmas: 95 % efficiency for Gaussian noise (``selfcal.robust`` "huber"; section 10).
+#: Huber's constant, in sigmas: 95 % efficiency for Gaussian noise (``ROBUST_LOSS`` "huber"; section 10).
 HUBER_K = 1.345
-#: Tukey's biweight constant, in sigmas: 95 % efficiency for Gaussian noise (``selfcal.robust`` "tukey"; section 10).
+#: Tukey's biweight constant, in sigmas: 95 % efficiency for Gaussian noise (``ROBUST_LOSS`` "tukey"; section 10).
 TUKEY_C = 4.685
 #: (low, high) plausible gain of the ``gain_bias`` photometric model: its start is clamped to it, a fit that leaves
 #: it diverged (docs/method.md, section 10).

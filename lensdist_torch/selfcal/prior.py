@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from lensdist_torch.config import SelfCalConfig
+from lensdist_torch.selfcal import model as selfcal_model
 from lensdist_torch.selfcal.model import planar_parameters
 
 __all__ = [
@@ -67,7 +68,7 @@ def relief_precision(variance: torch.Tensor, tau2: torch.Tensor, cfg: SelfCalCon
         >>> relief_precision(torch.tensor([4.0]), torch.tensor([0.5]), cfg)
         (tensor([8.]), slice(12, 16, None))
     """
-    start = planar_parameters(cfg.photometric)
+    start = planar_parameters(selfcal_model.PHOTOMETRIC_MODEL)
     return variance / tau2, slice(start, start + cfg.parallax**2)
 
 
@@ -91,10 +92,10 @@ def posterior_inverse(
     prior's variance, or None without the relief (no prior term).
 
     Example:
-        >>> cfg = SelfCalConfig(parallax=1, photometric="none")  # 10 planar parameters, 1 bump
-        >>> a = torch.eye(11, dtype=torch.float64)[None]
+        >>> cfg = SelfCalConfig(parallax=1)  # 12 planar parameters (gain and bias among them), 1 bump
+        >>> a = torch.eye(13, dtype=torch.float64)[None]
         >>> inv = posterior_inverse(a, torch.tensor([1.0]), torch.tensor([0.5]), cfg)
-        >>> round(float(inv[0, 10, 10]), 5), round(float(inv[0, 0, 0]), 5)  # 1 / (1 + 1 / 0.5) on the bump
+        >>> round(float(inv[0, 12, 12]), 5), round(float(inv[0, 0, 0]), 5)  # 1 / (1 + 1 / 0.5) on the bump
         (0.33333, 1.0)
     """
     post = jtj.clone()
@@ -147,13 +148,13 @@ def relief_score(jtj: torch.Tensor, jtr: torch.Tensor, variance: torch.Tensor, c
     no prior, no refit.
 
     Example:
-        >>> cfg = SelfCalConfig(parallax=1, photometric="none")  # 10 planar parameters, 1 bump
-        >>> jtj, jtr = torch.eye(11, dtype=torch.float64)[None], torch.zeros(1, 11, dtype=torch.float64)
-        >>> jtr[0, 10] = 3.0  # the bump's gradient, 3 s.d. of its information
+        >>> cfg = SelfCalConfig(parallax=1)  # 12 planar parameters (gain and bias among them), 1 bump
+        >>> jtj, jtr = torch.eye(13, dtype=torch.float64)[None], torch.zeros(1, 13, dtype=torch.float64)
+        >>> jtr[0, 12] = 3.0  # the bump's gradient, 3 s.d. of its information
         >>> round(float(relief_score(jtj, jtr, torch.tensor([1.0], dtype=torch.float64), cfg)), 4)
         9.0
     """
-    p = planar_parameters(cfg.photometric)
+    p = planar_parameters(selfcal_model.PHOTOMETRIC_MODEL)
     eye = torch.eye(jtj.shape[1], dtype=torch.float64, device=jtj.device)
 
     def quadratic(a, g):  # g^T (a + ridge)^-1 g

@@ -255,9 +255,10 @@ OLD_ISSUE_50 = {
     "analysis": {"eigenspace_max_class_disagreement": 0, "max_cannot_tell": 0.25},
     "registration": {"min_overlap": 0.3, "max_residual": 0.5, "feature_fallback": True},
     "protocol": {k: v for k, v in OLD_PROTOCOL.items() if k not in ("perspective", "perturbation", "occluder_area")},
-    "selfcal": {"levels": 3, "iterations": [8, 4, 6], "sample_block": [2, 4, 4], "interpolation": "blend",
-                "both_starts": True, "clusters": 6, "occluded_share": 0.15,
-                "small_motion_error": 1.5e-5, "parallax_test": 2.0, "parallax_score_level": 1.0},
+    "selfcal": {"robust": "tukey", "photometric": "gain_bias", "levels": 3, "iterations": [8, 4, 6],
+                "sample_block": [2, 4, 4], "interpolation": "blend", "both_starts": True, "clusters": 6,
+                "occluded_share": 0.15, "small_motion_error": 1.5e-5, "parallax_test": 2.0,
+                "parallax_score_level": 1.0},
     "calibration": {"max_misfit": 0.4, "relief_rel": 0.8, "relief_test": 2.0, "no_distortion_px": 0.25,
                     "verify_pairs": 6, "registered_start": True},
 }

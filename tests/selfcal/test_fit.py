@@ -312,17 +312,6 @@ def test_cuda_matches_cpu():
         assert float((info_cpu[3] - info_gpu[3].cpu()).abs().max()) < 1e-3  # Delta_avg, px
 
 
-# ------------------------------------------------------------------ settings
-@pytest.mark.bad_input
-@pytest.mark.parametrize(
-    "field,value",
-    [("robust", "cauchy"), ("photometric", "gain")],
-)
-def test_robust_settings_are_checked(field, value):
-    with pytest.raises(ValueError, match=rf"^selfcal\.{field} must be [^\n]*, got "):
-        SelfCalConfig(**{field: value})
-
-
 # ------------------------------------------------------------------ the cluster-robust covariance
 def test_sandwich_matches_gauss_newton_for_independent_noise_and_widens_for_clustered_residuals():
     from lensdist_torch.selfcal.regions import cluster_robust_covariance, region_ids
