@@ -6,9 +6,8 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
 1. **Analysis size**: frames longer than ``analysis_side`` are scaled down by s (user px per
    analysis px) about their centre, p_user - c_user = s (p - c). Eq. 4 times s has r_user = s r,
    so **k2_user = k2 / s^2 and k4_user = k4 / s^4**, exactly.
-2. **Pairs**: a camera path from consecutive phase correlations (a running median of 5 against
-   a broken frame); each frame is paired with the first later frame that moved by each fraction
-   :data:`MOTION_STEPS` of the half diagonal R (little motion cancels the distortion), at most :data:`MAX_MOTION` R.
+2. **Pairs**: each frame with the first later frames that moved by :data:`MOTION_STEPS` of the
+   half diagonal R, at most :data:`MAX_MOTION` R (:mod:`~lensdist_torch.calibration.sequence_pairs`).
 3. **Per pair**, :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (batched, from the
    pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
    where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
@@ -53,20 +52,26 @@ from lensdist_torch.calibration.direct_fits import fit_pairs, refit_from_registr
 from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.pooling import OUTLIER_RANGE, pair_weights, pool_pairs, within_mads
 from lensdist_torch.calibration.sequence_class import MIN_PAIRS, interval_class
+from lensdist_torch.calibration.sequence_pairs import (
+    FLAT_TEXTURE,
+    MAX_MOTION,
+    MOTION_STEPS,
+    NO_TEXTURE,
+    TOO_LITTLE_MOTION,
+    choose_pairs,
+    no_pairs_reason,
+)
 from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import check_image, to_grey
 from lensdist_torch.geometry.distortion import delta_avg, delta_max, delta_top
 from lensdist_torch.geometry.frame import half_diagonal, pixel_grid
-from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.selfcal.fit import LEVELS
 
 __all__ = ["CalibrationConfig", "SequenceCalibration", "analysis_scale", "analysis_size", "to_analysis",
            "user_coefficients", "choose_pairs", "no_pairs_reason", "calibrate_sequence", "TOO_LITTLE_MOTION",
-           "MAX_MOTION", "MOTION_STEPS", "SYSTEMATIC_REL", "RELIEF_REL", "RELIEF_TEST"]
+           "NO_TEXTURE", "FLAT_TEXTURE", "MAX_MOTION", "MOTION_STEPS", "SYSTEMATIC_REL", "RELIEF_REL", "RELIEF_TEST"]
 
-MOTION_STEPS = (0.14, 0.22)  # step 2: each frame's pairs: the first later frames moved by these shares of R
-MAX_MOTION = 0.35  # step 2: no pair moves by more than this share of the half diagonal R
 #: Step 5: a std of this fraction of each Delta, in quadrature: the error all pairs share (docs/method.md, 10).
 SYSTEMATIC_REL = 1e-3
 #: Step 5: a std of this multiple of the relief's effect on each Delta, in quadrature (what plane + parallax leaves).
@@ -168,99 +173,6 @@ def user_coefficients(k2: float, k4: float, scale: float) -> tuple[float, float]
         (1e-06, 1e-12)
     """
     return k2 / scale**2, k4 / scale**4
-
-
-# ------------------------------------------------------------------ pairs
-def choose_pairs(frames: torch.Tensor, config: CalibrationConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pairs of frames that moved enough (module docstring, step 2).
-
-    Args:
-        frames: (N, 1, h, w) analysis frames, float.
-        config: :class:`CalibrationConfig`.
-
-    Returns:
-        pairs: (P, 2) int64 frame indices (i, j), i < j, sorted.
-        shifts: (P, 2) float64 translations t (x, y), frame i (p) ~ frame j (p + t), each pair's
-            own phase correlation.
-
-    Example:
-        >>> x = torch.rand(1, 1, 200, 200)
-        >>> frames = torch.cat([torch.roll(x, -8 * i, dims=2) for i in range(12)])  # 8 px a frame
-        >>> choose_pairs(frames)[0][:3].tolist()  # 0.14 and 0.22 of R = 141 px: 24 and 32 px apart
-        [[0, 3], [0, 4], [1, 4]]
-    """
-    cfg = or_defaults(config, CalibrationConfig)
-    n, _, h, w = frames.shape
-    if n < 2:
-        return torch.zeros(0, 2, dtype=torch.int64), torch.zeros(0, 2, dtype=torch.float64)
-    steps = torch.cat(
-        [_translation(frames[i : min(i + 16, n - 1)], frames[i + 1 : i + 17]) for i in range(0, n - 1, 16)]
-    )
-    if n > 5:  # a running median of 5 steps: a broken frame (two wrong steps) leaves the path whole
-        steps = torch.cat([steps[:1]] * 2 + [steps] + [steps[-1:]] * 2).unfold(0, 5, 1).median(-1).values
-    path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), steps.cumsum(0)])
-    r = half_diagonal(h, w)
-    moved = (path[None] - path[:, None]).norm(dim=-1)  # (N, N): |path_j - path_i|
-    chosen: set[tuple[int, int]] = set()
-    for i in range(n - 1):
-        for step in MOTION_STEPS:
-            far = (moved[i, i + 1 :] >= step * r).nonzero()
-            if len(far) and moved[i, i + 1 + int(far[0])] <= MAX_MOTION * r:
-                chosen.add((i, i + 1 + int(far[0])))
-    pairs = torch.tensor(sorted(chosen), dtype=torch.int64).reshape(-1, 2)
-    if len(pairs) > cfg.max_pairs:
-        pairs = pairs[torch.linspace(0, len(pairs) - 1, cfg.max_pairs).round().long()]
-    shifts = [_translation(frames[p[:, 0]], frames[p[:, 1]]) for p in pairs.split(16) if len(p)]  # each its own
-    return pairs, torch.cat(shifts) if shifts else torch.zeros(0, 2, dtype=torch.float64)
-
-
-#: How :func:`no_pairs_reason` begins where the frames did not move enough (``calibrate`` then runs no mapping).
-TOO_LITTLE_MOTION = "too little motion"
-
-
-def no_pairs_reason(frames: torch.Tensor) -> str:
-    """Why :func:`choose_pairs` found no pair: the frames did not move enough, or they could not be registered.
-
-    Too little motion where neighbouring frames differ less than half as much as a frame
-    differs from itself moved by 2 px (they did not move), or where every neighbour, moved back by
-    its phase-correlation translation, matches that well (they moved, and consistently) but the
-    camera path never spans ``MOTION_STEPS[0]`` of the half diagonal; otherwise they changed
-    and the phase correlation could not relate them: a registration failure (views too far
-    apart, or unrelated).
-
-    Example:
-        >>> x = torch.rand(1, 1, 64, 64)
-        >>> no_pairs_reason(torch.cat([x, x + 0.01]))
-        'too little motion: no two frames moved enough apart'
-        >>> no_pairs_reason(torch.cat([x, torch.rand(1, 1, 64, 64)]))[:30]
-        'the frames could not be regist'
-    """
-    a, b = frames[:-1].float(), frames[1:].float()
-    static = (a - b).abs().mean(dim=(1, 2, 3))
-    texture = (a - torch.roll(a, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))
-    if bool((static <= 0.5 * texture).all()):
-        return f"{TOO_LITTLE_MOTION}: no two frames moved enough apart"
-    t = _translation(a, b)  # a(p) ~ b(p + t): b moved back by t matches a where they were registered
-    m = int(t.abs().max().ceil()) + 2
-    back = torch.stack(
-        [torch.roll(b[i], (-round(float(t[i, 1])), -round(float(t[i, 0]))), dims=(1, 2)) for i in range(len(b))]
-    )
-    aligned = (a - back).abs()[..., m:-m, m:-m].mean(dim=(1, 2, 3)) if 2 * m < min(a.shape[-2:]) else static
-    if bool((aligned <= 0.5 * texture).all()):
-        path = torch.cat([torch.zeros(1, 2, dtype=torch.float64), t.cumsum(0)])
-        span = float((path[None] - path[:, None]).norm(dim=-1).max())
-        need = min(MOTION_STEPS) * half_diagonal(*frames.shape[-2:])
-        return (
-            f"{TOO_LITTLE_MOTION}: the camera moved {span:.1f} px at most between two frames "
-            f"(a pair needs {need:.1f} px)"
-        )
-    return ("the frames could not be registered: they change, but phase correlation finds no consistent motion "
-            "between neighbours (views too far apart or unrelated)")
-
-
-def _translation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(n, 1, h, w) twice -> (n, 2) float64 t on the CPU with a(p) ~ b(p + t) (phase correlation)."""
-    return phase_correlation(a[:, 0], b[:, 0]).double().cpu()
 
 
 # ------------------------------------------------------------------ combination

@@ -260,7 +260,7 @@ def _cmd_archive(args: argparse.Namespace) -> int:
     settings = None if args.config is None else load_config(args.config)
     run = archive.run_archive(inputs, args.out, method=args.method, max_frames=args.max_frames, focal=args.focal,
                               device=resolve_device(args.device), settings=settings, shard=args.shard or (0, 1),
-                              engine=args.engine or "local", ray_address=args.ray_address, quiet=args.quiet)
+                              engine=args.engine or "local", ray_address=args.ray_address, quiet=argtypes.no_bars(args))
     if args.json:
         argtypes.print_json({"inputs": run.inputs, "selected": run.selected, "computed": run.computed,
                              "reused": run.reused, "failed": run.failed, "rows": [r.columns() for r in run.rows],
@@ -288,7 +288,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
     settings = None if args.config is None else load_config(args.config)  # checked before any frame is read
     res = calibrate_path(args.path, config=None if settings is None else settings.calibration, settings=settings,
-                         max_frames=args.max_frames, focal=args.focal, quiet=args.quiet,
+                         max_frames=args.max_frames, focal=args.focal, quiet=argtypes.no_bars(args),
                          device=resolve_device(args.device), method=args.method)
     from lensdist_torch.calibration.controllers.answer_file import answer_text, write_answer
 
@@ -311,7 +311,7 @@ def _cmd_undistort(args: argparse.Namespace) -> int:
     from lensdist_torch.workflows.undistort import undistort_path
 
     res = undistort_path(args.path, args.out, k2=args.k2, k4=args.k4, from_json=args.from_json,
-                         max_frames=args.max_frames, quiet=args.quiet, device=resolve_device(args.device),
+                         max_frames=args.max_frames, quiet=argtypes.no_bars(args), device=resolve_device(args.device),
                          overwrite=args.overwrite, alpha=args.alpha)
     if args.json:
         print(json.dumps(res, indent=2, allow_nan=False))
@@ -400,7 +400,7 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
         default=None,
         help="OpenCV focal length in px (default: the half diagonal)",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress bars (none either where stderr is no terminal)")
     p.add_argument("--device", type=argtypes.device, default="cpu",
                    help="where registration and self-calibration run: cpu, cuda or cuda:N")
     p.add_argument("--method", default="auto", choices=("auto", "multiview", "direct"),
@@ -441,7 +441,7 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
     p.add_argument(
         "--max-frames", type=argtypes.positive_int, default=None, help="at most this many frames (default: all)"
     )
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (none either where stderr is no terminal)")
     p.add_argument(
         "--device", type=argtypes.device, default="cpu", help="where the frames are resampled: cpu, cuda or cuda:N"
     )

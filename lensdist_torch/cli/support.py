@@ -30,6 +30,7 @@ import re
 import sys
 
 __all__ = [
+    "no_bars",
     "existing",
     "CONFIG_HELP",
     "DEVICE_HELP",
@@ -265,6 +266,11 @@ def note(args: argparse.Namespace, text: str) -> None:
     """A note for the user on stderr (silenced by --quiet)."""
     if not getattr(args, "quiet", False):
         print(text, file=sys.stderr)
+
+
+def no_bars(args: argparse.Namespace) -> bool:
+    """Progress bars off: ``--quiet``, or stderr is no terminal (a log would keep every redraw before an error)."""
+    return bool(getattr(args, "quiet", False)) or not sys.stderr.isatty()
 
 
 def print_json(obj) -> None:

@@ -31,11 +31,12 @@ def tiny_run(tmp_path_factory):
 def fake_pyav(monkeypatch):
     """``fake_pyav(frames)`` makes ``import av`` a stand-in for PyAV's open / decode whose one video
     stream yields a frame for each of ``frames``: functions ``format -> array``, the frame's
-    ``to_ndarray(format=...)``."""
+    ``to_ndarray(format=...)``, or an exception the decoder raises there; its header announces ``announced`` frames (default: as many)."""
 
-    def install(frames) -> None:
+    def install(frames, announced: int | None = None) -> None:
         class Container:
-            streams = types.SimpleNamespace(video=[0])
+            streams = types.SimpleNamespace(video=[types.SimpleNamespace(frames=len(frames) if announced is None
+                                                                         else announced)])
 
             def __enter__(self):
                 return self
@@ -45,7 +46,10 @@ def fake_pyav(monkeypatch):
 
             def decode(self, video):
                 assert video == 0
-                yield from (types.SimpleNamespace(to_ndarray=f) for f in frames)
+                for f in frames:  # an exception among them: the decoder raises it there
+                    if isinstance(f, Exception):
+                        raise f
+                    yield types.SimpleNamespace(to_ndarray=f)
 
         monkeypatch.setitem(sys.modules, "av", types.SimpleNamespace(open=lambda path: Container()))
 

@@ -106,3 +106,23 @@ def test_a_file_that_is_no_video_is_one_line(tmp_path, reader, monkeypatch):
     with pytest.raises(ValueError, match="clip.mp4 is not a video") as err:
         list(video_frames(bad, reader=reader))
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("decoded,announced,cut", [(6, 12, True), (9, 10, False), (8, 8, False), (5, 0, False)])
+def test_a_video_decoding_short_of_its_header_is_truncated(fake_pyav, decoded, announced, cut):
+    """Fewer than DECODED_SHARE (0.9) of the announced frames: one line naming the cut; a header without a count
+    (0) or a count the frames reach within the share passes."""
+    fake_pyav([lambda format: np.zeros(SIZE, np.uint8)] * decoded, announced=announced)
+    if not cut:
+        assert len(list(video_frames("clip.mp4", reader="pyav"))) == decoded
+        return
+    with pytest.raises(ValueError, match=r"^clip\.mp4 is truncated or damaged: 6 of the 12 frames its header "):
+        list(video_frames("clip.mp4", reader="pyav"))
+
+
+def test_a_decoding_error_midway_is_one_line(fake_pyav):
+    fake_pyav([lambda format: np.zeros(SIZE, np.uint8), RuntimeError("Invalid data found when processing input")])
+    frames = video_frames("clip.mp4", reader="pyav")
+    next(frames)
+    with pytest.raises(ValueError, match=r"^clip\.mp4 is truncated or damaged: decoding stopped after 1 frames"):
+        next(frames)

@@ -26,6 +26,7 @@ from lensdist_torch.calibration.controllers.answer_lens import answer_lens, radi
 from lensdist_torch.calibration.controllers.multiview_path import MIN_FRAMES, combine, multiview_path
 from lensdist_torch.calibration.controllers.verify import verdict, verify_undistortion
 from lensdist_torch.calibration.direct import (
+    NO_TEXTURE,
     TOO_LITTLE_MOTION,
     CalibrationConfig,
     analysis_scale,
@@ -162,9 +163,9 @@ def calibrate_path(
         method != "direct"
         and len(frames) >= MIN_FRAMES
         and not len(cal.pairs)
-        and cal.reason.startswith(TOO_LITTLE_MOTION)
+        and cal.reason.startswith((TOO_LITTLE_MOTION, NO_TEXTURE))
     ):
-        # the frames' phase correlations say they did not move: no mapping can see more, so none runs
+        # the frames did not move, or have nothing to match: no mapping can see more, so none runs
         # (too few frames for a mapping is the multi-view path's own reason)
         mv = {"ok": False, "reason": cal.reason}
     elif method != "direct":
