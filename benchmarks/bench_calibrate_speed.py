@@ -62,6 +62,23 @@ def coefficients(target: float = 7.5, size: tuple[int, int] = SIZE) -> tuple[flo
     return lo * d.k2_max / s**2, lo * d.k4_max / s**4
 
 
+def render(n: int, size: tuple[int, int], *, upsample: int = 1, rotation: float = 0.2,
+           altitude: float = 0.0) -> torch.Tensor:
+    """The goal's sequence of ``n`` frames (N, 1, H, W) at ``size`` through :func:`coefficients`' lens (module
+    docstring): rendered at 1 / ``upsample`` of the size, rows and columns rounded up to the blocks, enlarged
+    about the same centre and cropped, so eq. 4 with (k2 up^2, k4 up^4) there is (k2, k4) in the frames' pixels."""
+    up = upsample
+    rendered = (8 * math.ceil(size[0] / up / 8), 8 * math.ceil(size[1] / up / 8))
+    k2, k4 = coefficients(7.5 * size[1] / SIZE[1], size)
+    frames, _ = synthetic_sequence(n, k2 * up**2, k4 * up**4, size=rendered, scene="gravel", seed=0,
+                                   relief=0.02, realistic=True, rotation_deg=rotation, altitude=altitude)
+    if up > 1:
+        frames = torch.nn.functional.interpolate(frames, scale_factor=up, mode="bilinear", align_corners=False)
+        top, left = (frames.shape[-2] - size[0]) // 2, (frames.shape[-1] - size[1]) // 2
+        frames = frames[..., top:top + size[0], left:left + size[1]]
+    return frames
+
+
 def _peak_mb() -> float:
     """This process's peak resident memory (MB) since its exec (module docstring)."""
     try:
@@ -107,12 +124,7 @@ def main() -> None:
     # pixels
     rendered = (8 * math.ceil(size[0] / up / 8), 8 * math.ceil(size[1] / up / 8))
     k2, k4 = coefficients(7.5 * size[1] / SIZE[1], size)
-    frames, _ = synthetic_sequence(args.frames, k2 * up**2, k4 * up**4, size=rendered, scene="gravel", seed=0,
-                                   relief=0.02, realistic=True, rotation_deg=args.rotation, altitude=args.altitude)
-    if up > 1:
-        frames = torch.nn.functional.interpolate(frames, scale_factor=up, mode="bilinear", align_corners=False)
-        top, left = (frames.shape[-2] - size[0]) // 2, (frames.shape[-1] - size[1]) // 2
-        frames = frames[..., top:top + size[0], left:left + size[1]]
+    frames = render(args.frames, size, upsample=up, rotation=args.rotation, altitude=args.altitude)
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         for j, f in enumerate(frames):
