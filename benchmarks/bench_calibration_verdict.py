@@ -42,7 +42,7 @@ import torch
 from bench_calibration_spread import board_region, calibrations
 
 from lensdist_torch.calibration.guided_matching import guided_matches, read_features, refined_matches
-from lensdist_torch.calibration.matches import PlanarMatches, read_verified_matches
+from lensdist_torch.calibration.matches import PLANAR_MIN_MATCHES, PlanarMatches, read_verified_matches
 from lensdist_torch.calibration.multiview import extract_and_match
 from lensdist_torch.calibration.planar_features import self_calibrate_planar
 from lensdist_torch.config import MultiViewConfig
@@ -147,7 +147,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         db = str(Path(tmp) / "frames.db")
         extract_and_match(db, frames, names, config=cfg, image_size=size)
-        verified = read_verified_matches(db, names, cfg.planar_min_matches)
+        verified = read_verified_matches(db, names, PLANAR_MIN_MATCHES)
         found = guided_matches(
             read_features(db, names), verified, planar["coefficients"], centre=planar["centre"], size=size, config=cfg
         )

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import torch
 
+from lensdist_torch.calibration import guided_matching
 from lensdist_torch.calibration.guided_matching import self_calibrate_guided
 from lensdist_torch.calibration.matches import read_verified_matches
 from lensdist_torch.calibration.multiview import extract_and_match
@@ -58,7 +59,17 @@ def main() -> None:
     names = sorted(cal["frames"])
     h, w = load_image(args.views / names[0]).shape[-2:]
     k, dist = (torch.tensor(cal[key], dtype=torch.float64) for key in ("K", "dist"))
-    first, forced = MultiViewConfig(num_threads=1), MultiViewConfig(num_threads=1, planar_guided_below=1.0)
+    first = MultiViewConfig(num_threads=1)
+
+    def forced(run):  # guided matching wherever the first fit found a plane (PLANAR_GUIDED_BELOW at 1)
+        def call():
+            below, guided_matching.PLANAR_GUIDED_BELOW = guided_matching.PLANAR_GUIDED_BELOW, 1.0
+            try:
+                return run()
+            finally:
+                guided_matching.PLANAR_GUIDED_BELOW = below
+        return call
+
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
         db = Path(tmp) / "db.db"
@@ -66,9 +77,9 @@ def main() -> None:
         images = lambda v: load_image(args.views / names[v])[0, 0]  # noqa: E731
         runs = {
             "verified": lambda: self_calibrate_planar(read_verified_matches(db, names), (h, w), config=first),
-            "guided": lambda: self_calibrate_guided(db, names, (h, w), config=forced),
+            "guided": forced(lambda: self_calibrate_guided(db, names, (h, w), config=first)),
             "refined": lambda: self_calibrate_guided(db, names, (h, w), config=first, images=images),
-            "guided and refined": lambda: self_calibrate_guided(db, names, (h, w), config=forced, images=images),
+            "guided and refined": forced(lambda: self_calibrate_guided(db, names, (h, w), config=first, images=images)),
         }
         for name, run in runs.items():
             t0 = time.perf_counter()

@@ -32,3 +32,21 @@ def one_thread_module():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture
+def planar_constant(monkeypatch):
+    """``planar_constant(NAME, value)``: a constant of the sequence calibration's features and homography model,
+    set in every calibration module that imported it (restored afterwards)."""
+    from lensdist_torch.calibration import features, guided_matching, match_refinement, matches, planar_features
+    from lensdist_torch.calibration.controllers import multiview_path
+
+    def set_constant(name: str, value) -> None:
+        found = [m for m in (matches, planar_features, guided_matching, match_refinement, multiview_path, features)
+                 if hasattr(m, name)]
+        if not found:
+            raise AttributeError(f"no calibration module has {name}")
+        for module in found:
+            monkeypatch.setattr(module, name, value)
+
+    return set_constant

@@ -22,18 +22,22 @@ from lensdist_torch.calibration.multiview_fits import pycolmap_or_error, quiet_l
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 
-__all__ = ["EXHAUSTIVE_BELOW", "SEQUENTIAL_OVERLAP", "feature_cap", "extract_and_match", "verify_in_shards"]
+__all__ = ["EXHAUSTIVE_BELOW", "FEATURES_PER_MEGAPIXEL", "SEQUENTIAL_OVERLAP", "feature_cap", "extract_and_match",
+           "verify_in_shards"]
 
 #: Up to this many frames every pair is matched; more (a video's): each frame with its :data:`SEQUENTIAL_OVERLAP`
 #: successors and those 2^k frames on (COLMAP's quadratic overlap), as the frames' order is the recording's.
 EXHAUSTIVE_BELOW = 30
 #: Successors matched per frame in sequential matching (a video's frames beyond :data:`EXHAUSTIVE_BELOW`).
 SEQUENTIAL_OVERLAP = 12
+#: SIFT features per megapixel of the frame as SIFT reads it, at most (and ``max_features``); matching and mapping
+#: scale with the features.
+FEATURES_PER_MEGAPIXEL = 8192.0
 
 def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = None) -> int:
     """SIFT features per frame at most (``max_features``, and by area where the frames' size is known).
 
-    ``features_per_megapixel`` of the frame's area as SIFT reads it (at most ``max_image_side``
+    :data:`FEATURES_PER_MEGAPIXEL` of the frame's area as SIFT reads it (at most ``max_image_side``
     long) where ``image_size`` (H, W) is given; never below 64.
 
     Example:
@@ -44,7 +48,7 @@ def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = No
         return config.max_features
     h, w = image_size
     shrink = min(1.0, config.max_image_side / max(h, w))
-    return max(64, min(config.max_features, math.ceil(config.features_per_megapixel * h * w * shrink * shrink / 1e6)))
+    return max(64, min(config.max_features, math.ceil(FEATURES_PER_MEGAPIXEL * h * w * shrink * shrink / 1e6)))
 
 
 def extract_and_match(

@@ -8,17 +8,17 @@ homography model has a lens, each pair's ideal points are one homography apart, 
 partner must lie within a few pixels of where that homography sends it; there the look-alikes
 are gone. docs/method.md, section 12, step 10.
 
-It runs where fewer than ``planar_guided_below`` of the verified pairs kept their homography
+It runs where fewer than ``PLANAR_GUIDED_BELOW`` of the verified pairs kept their homography
 inliers in the first fit (:func:`self_calibrate_guided`).
 
 1. **Each view on the plane**: every verified pair's homography between the lens's ideal points
-   by LO-RANSAC (``PLANAR_INLIER_PX``; pairs with ``planar_min_matches`` inliers count); a
+   by LO-RANSAC (``PLANAR_INLIER_PX``; pairs with ``PLANAR_MIN_MATCHES`` inliers count); a
    spanning tree of the counting pairs, the pairs with most inliers first, chains the views onto
    one plane, so a pair whose own matches failed gets its homography through the others.
 2. **Guided matches**: for every verified pair of two chained views (the pairs COLMAP matched,
    none added), each keypoint of the first view mapped by the pair's homography (its own where
    it counts, the chain's otherwise); its partner is the keypoint of the second view within
-   ``planar_guided_px`` (ideal pixels) whose descriptor is closest, kept where the two are each
+   :data:`PLANAR_GUIDED_PX` (ideal pixels) whose descriptor is closest, kept where the two are each
    other's closest and the closest is clearly closer than the next candidate more than 2 px away
    (``PLANAR_GUIDED_RATIO`` on the descriptors' distances; nearer ones are the same point's other
    SIFT orientations). A match found through several orientations is kept once.
@@ -37,20 +37,37 @@ from collections.abc import Callable
 import torch
 
 from lensdist_torch.calibration.match_refinement import PLANAR_REFINE_PX, refine_matches
-from lensdist_torch.calibration.matches import PlanarMatches, read_verified_matches, thin_matches
+from lensdist_torch.calibration.matches import (
+    PLANAR_MIN_MATCHES,
+    PLANAR_PAIR_MATCHES,
+    PlanarMatches,
+    read_verified_matches,
+    thin_matches,
+)
 from lensdist_torch.calibration.multiview import pycolmap_or_error
-from lensdist_torch.calibration.planar_features import PLANAR_INLIER_PX, pair_homographies, self_calibrate_planar
+from lensdist_torch.calibration.planar_features import (
+    PLANAR_INLIER_PX,
+    PLANAR_MIN_INLIER_SHARE,
+    pair_homographies,
+    self_calibrate_planar,
+)
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.radial_lens import lens_ideal_points
 
-__all__ = ["PLANAR_GUIDED_RATIO", "chain_views", "guided_matches", "pair_homography", "read_features",
-           "refined_matches", "self_calibrate_guided"]
+__all__ = ["PLANAR_GUIDED_BELOW", "PLANAR_GUIDED_PX", "PLANAR_GUIDED_RATIO", "chain_views", "guided_matches",
+           "pair_homography", "read_features", "refined_matches", "self_calibrate_guided"]
 
 #: A guided match's descriptor distance at most this share of the next candidate's (the ratio test, among the
-#: candidates within ``planar_guided_px``).
+#: candidates within :data:`PLANAR_GUIDED_PX`).
 PLANAR_GUIDED_RATIO = 0.8
+#: Guided matching runs where fewer than this share of the verified pairs keep ``PLANAR_MIN_MATCHES`` homography
+#: inliers in the first fit (repetitive texture lost them); where most keep them guided matches would only cost time.
+PLANAR_GUIDED_BELOW = 0.5
+#: The homography model's matches are found again within this many ideal pixels of where its first fit sends each
+#: keypoint, and fitted again; 0: the first fit answers.
+PLANAR_GUIDED_PX = 3.0
 
 
 def read_features(database, names: list[str]) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -87,7 +104,7 @@ def chain_views(matches: PlanarMatches, coefficients, *, centre, size: tuple[int
         coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.calibration.planar_model.lens_ideal_points`).
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_min_matches``, ``seed``;
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (``seed``;
             the constant ``PLANAR_INLIER_PX``).
 
     Returns:
@@ -110,7 +127,7 @@ def chain_views(matches: PlanarMatches, coefficients, *, centre, size: tuple[int
     u2 = lens_ideal_points(matches.x2, coefficients, h, w, centre=centre)
     for p, _, hm, mask in pair_homographies(u1, u2, matches.pair, which=range(len(matches.first)),
                                             max_error=PLANAR_INLIER_PX, seed=cfg.seed):
-        if hm is not None and int(mask.sum()) >= cfg.planar_min_matches:
+        if hm is not None and int(mask.sum()) >= PLANAR_MIN_MATCHES:
             key = (int(matches.first[p]), int(matches.second[p]))
             pairs[key], weight[key] = hm, int(mask.sum())
     if not pairs:
@@ -154,12 +171,12 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, *, cent
         coefficients: the first fit's lens, a_1 .. a_n.
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_guided_px``,
-            ``planar_min_matches``, the constant :data:`PLANAR_GUIDED_RATIO` and :func:`chain_views`' fields).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (:func:`chain_views`' ``seed``; the
+            constants :data:`PLANAR_GUIDED_PX`, ``PLANAR_MIN_MATCHES`` and :data:`PLANAR_GUIDED_RATIO`).
 
     Returns:
         :class:`~lensdist_torch.calibration.matches.PlanarMatches` (pairs with at least
-        ``planar_min_matches`` guided matches; the pairs' indices renumbered).
+        ``PLANAR_MIN_MATCHES`` guided matches; the pairs' indices renumbered).
 
     Example:
         >>> g = torch.Generator().manual_seed(1)
@@ -182,9 +199,9 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, *, cent
             continue
         hm = pair_homography(pairs, views, i, j)
         ok_i, ok_j = _guided_pair(
-            apply_homography(hm[None], ideal[i])[0], ideal[j], features[i][1], features[j][1], cfg
+            apply_homography(hm[None], ideal[i])[0], ideal[j], features[i][1], features[j][1]
         )
-        if len(ok_i) < cfg.planar_min_matches:
+        if len(ok_i) < PLANAR_MIN_MATCHES:
             continue
         both = torch.cat([features[i][0][ok_i], features[j][0][ok_j]], 1).unique(dim=0)
         x1.append(both[:, :2])
@@ -201,9 +218,9 @@ def guided_matches(features: list, matches: PlanarMatches, coefficients, *, cent
 
 
 def _guided_pair(predicted: torch.Tensor, target: torch.Tensor, d1: torch.Tensor, d2: torch.Tensor,
-                 cfg: MultiViewConfig, chunk: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
+                 chunk: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices (rows of view 1, rows of view 2) of the guided matches of one pair (module docstring, step 2)."""
-    r = cfg.planar_guided_px
+    r = PLANAR_GUIDED_PX
     ci, cj = [], []
     for s in range(0, len(predicted), chunk):  # the candidates: within r of the prediction
         near = (torch.cdist(predicted[s:s + chunk], target) < r).nonzero()
@@ -234,13 +251,13 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, 
 
     The first fit is on the verified matches
     (:func:`~lensdist_torch.calibration.planar_features.self_calibrate_planar`); where it has a lens
-    and found a plane, and under ``planar_guided_below`` of the verified pairs kept their
+    and found a plane, and under :data:`PLANAR_GUIDED_BELOW` of the verified pairs kept their
     homography inliers, the verified pairs are matched again under it (:func:`guided_matches`) and
     fitted again from its lens, the plane test's share carried over. The second fit answers where
     it has an estimate and counts more pairs than the first (guided matching is there to bring
     lost pairs back, and a second fit on fewer pairs than the first has lost them instead);
     ``guided`` says what was found, whether it answered and the first fit's figures.
-    ``planar_guided_px`` 0: the first fit alone.
+    :data:`PLANAR_GUIDED_PX` 0: the first fit alone.
 
     With ``images``, the matches of the fit that answers are then moved to sub-pixel agreement
     under its lens (:func:`~lensdist_torch.calibration.match_refinement.refine_matches`, each pair's
@@ -259,19 +276,19 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, 
         :class:`~lensdist_torch.calibration.planar_features.PlanarCalibration`.
     """
     cfg = or_defaults(config, MultiViewConfig)
-    verified = read_verified_matches(database, names, cfg.planar_min_matches)
+    verified = read_verified_matches(database, names, PLANAR_MIN_MATCHES)
     first = self_calibrate_planar(verified, size, config=cfg, settings=settings)
     res, used = first, verified
     if (
-        cfg.planar_guided_px > 0
+        PLANAR_GUIDED_PX > 0
         and math.isfinite(first.delta_avg_user_px)
-        and first.inlier_share >= cfg.planar_min_inlier_share
-        and first.pairs < cfg.planar_guided_below * len(verified.first)
+        and first.inlier_share >= PLANAR_MIN_INLIER_SHARE
+        and first.pairs < PLANAR_GUIDED_BELOW * len(verified.first)
     ):
         found = guided_matches(read_features(database, names), verified, first.coefficients, centre=first.centre,
                                size=size, config=cfg)
         info = {"pairs_verified": len(verified.first), "pairs_matched": len(found.first), "matches": len(found.pair),
-                "radius_px": cfg.planar_guided_px, "first_fit": _figures(first)}
+                "radius_px": PLANAR_GUIDED_PX, "first_fit": _figures(first)}
         again = self_calibrate_planar(found, size, config=cfg, settings=settings, start=first.coefficients,
                                       plane_share=first.inlier_share)
         if not math.isfinite(again.delta_avg_user_px):
@@ -288,7 +305,7 @@ def self_calibrate_guided(database, names: list[str], size: tuple[int, int], *, 
         else:
             res, used = dataclasses.replace(again, guided={**info, "used": True, "reason": ""}), found
     if (images is None or PLANAR_REFINE_PX <= 0 or not math.isfinite(res.delta_avg_user_px)
-            or res.inlier_share < cfg.planar_min_inlier_share):
+            or res.inlier_share < PLANAR_MIN_INLIER_SHARE):
         return res
     refined, info = refined_matches(used, images, res.coefficients, centre=res.centre, size=size, config=cfg)
     info = {**info, "half_px": PLANAR_REFINE_PX, "before": _figures(res)}
@@ -305,7 +322,7 @@ def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor
     """A sequence's matches moved to sub-pixel agreement under a lens (the refinement of :func:`self_calibrate_guided`).
 
     Each pair's homography is its own where it counts, the chain's otherwise (:func:`chain_views`);
-    each pair's matches are thinned to twice ``planar_pair_matches`` first.
+    each pair's matches are thinned to twice ``PLANAR_PAIR_MATCHES`` first.
 
     Args:
         matches: :class:`~lensdist_torch.calibration.matches.PlanarMatches` (verified or guided).
@@ -325,8 +342,8 @@ def refined_matches(matches: PlanarMatches, images: Callable[[int], torch.Tensor
         hm = pair_homography(pairs, views, i, j)
         if hm is not None:
             hs[(i, j)] = hm
-    return refine_matches(thin_matches(matches, 2 * cfg.planar_pair_matches), images, hs, coefficients, centre=centre,
-                          size=size, config=cfg)
+    return refine_matches(thin_matches(matches, 2 * PLANAR_PAIR_MATCHES), images, hs, coefficients, centre=centre,
+                          size=size, min_matches=PLANAR_MIN_MATCHES)
 
 
 def _figures(res) -> dict:

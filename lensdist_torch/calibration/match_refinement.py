@@ -38,10 +38,8 @@ import torch
 import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d, spatial_gradient
 
-from lensdist_torch.calibration.matches import PlanarMatches
+from lensdist_torch.calibration.matches import PLANAR_MIN_MATCHES, PlanarMatches
 from lensdist_torch.calibration.planar_features import PLANAR_INLIER_PX
-from lensdist_torch.config import MultiViewConfig
-from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
 
@@ -173,7 +171,7 @@ def local_affines(x1: torch.Tensor, homography: torch.Tensor, coefficients, *, c
 
 
 def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies: dict, coefficients, *, centre,
-                   size: tuple[int, int], config: MultiViewConfig | None = None, cache_mb: float = 256.0):
+                   size: tuple[int, int], min_matches: int = PLANAR_MIN_MATCHES, cache_mb: float = 256.0):
     """Every match of a pair with a homography moved to sub-pixel agreement (module docstring); the others dropped.
 
     Args:
@@ -185,17 +183,16 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
         coefficients: the lens's a_1 .. a_n (:func:`~lensdist_torch.geometry.radial_lens.lens_ideal_points`).
         centre: its distortion centre (x, y) in pixels; None: the frame centre.
         size: the frames' (H, W).
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (``planar_min_matches``; the constants
-            :data:`PLANAR_REFINE_PX`, :data:`PLANAR_REFINE_BLUR`, :data:`PLANAR_REFINE_NCC`, ``PLANAR_INLIER_PX``).
+        min_matches: a pair keeping fewer refined matches is dropped (the constants :data:`PLANAR_REFINE_PX`,
+            :data:`PLANAR_REFINE_BLUR`, :data:`PLANAR_REFINE_NCC` and ``PLANAR_INLIER_PX`` shape the refinement).
         cache_mb: the prepared views (the smoothed frame and its gradients, 12 bytes a pixel) kept at once,
             in MB, at least two; the least recently used leaves first (pairs in order of their first view).
             A cache too small for the views a pair sequence revisits reads the frames again and again.
 
     Returns:
-        (matches, info): the refined matches (pairs keeping ``planar_min_matches``, renumbered),
+        (matches, info): the refined matches (pairs keeping ``min_matches``, renumbered),
         and {"matches", "kept", "median_shift_px"}.
     """
-    cfg = or_defaults(config, MultiViewConfig)
     h, w = size
     half = PLANAR_REFINE_PX
     ready: OrderedDict = OrderedDict()
@@ -228,7 +225,7 @@ def refine_matches(matches, images: Callable[[int], torch.Tensor], homographies:
         moved, ncc, ok = align_patches(view(i), view(j), x1, x2, affine=affine, half=half)
         shift = (moved - x2).norm(dim=1)
         keep = ok & (ncc >= PLANAR_REFINE_NCC) & (shift <= PLANAR_INLIER_PX) & inside(x1) & inside(moved)
-        if int(keep.sum()) < cfg.planar_min_matches:
+        if int(keep.sum()) < min_matches:
             continue
         x1s.append(x1[keep])
         x2s.append(moved[keep])

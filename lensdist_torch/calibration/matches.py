@@ -21,7 +21,13 @@ import torch
 
 from lensdist_torch.calibration.multiview import pycolmap_or_error
 
-__all__ = ["PlanarMatches", "read_verified_matches", "thin_matches"]
+__all__ = ["PLANAR_MIN_MATCHES", "PLANAR_PAIR_MATCHES", "PlanarMatches", "read_verified_matches", "thin_matches"]
+
+#: A pair counts in the homography model with at least this many verified matches, and then inliers.
+PLANAR_MIN_MATCHES = 15
+#: A pair's matches beyond this many are thinned to this many, evenly over its list (a homography needs few; the
+#: fits' time grows with the matches).
+PLANAR_PAIR_MATCHES = 60
 
 
 class PlanarMatches(NamedTuple):

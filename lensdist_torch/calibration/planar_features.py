@@ -14,9 +14,8 @@ The lens: the ideal point of a pixel p is
 c the distortion centre (the frame centre, or free: step 4), R the frame's half diagonal; with
 n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
 
-1. **Matches**: COLMAP's verified matches (:func:`~lensdist_torch.calibration.multiview.reconstruct`
-   computes them once for the mappings too), pairs with at least ``planar_min_matches``, each
-   pair's thinned to ``planar_pair_matches`` (:func:`thin_matches`).
+1. **Matches**: COLMAP's verified matches of the pairs with at least ``PLANAR_MIN_MATCHES``, each
+   pair's thinned to ``PLANAR_PAIR_MATCHES`` (:mod:`~lensdist_torch.calibration.matches`).
 2. **Start**: a_1 over ``PLANAR_SCAN_RANGE`` (the other terms 0); for each, the homography of
    each of the ``PLANAR_SCAN_PAIRS`` pairs with the most matches by COLMAP's LO-RANSAC
    (``pycolmap.estimate_homography_matrix``, ``PLANAR_RANSAC_PX``) on the undistorted points; the
@@ -29,20 +28,19 @@ n = 2 and c the frame centre this is eq. 4 (a_1 = k2 R^2, a_2 = k4 R^4).
    ``PLANAR_INLIER_PX`` of the first fit are the inliers of the second (the centre at the frame's:
    a free centre would bend to take parallax in).
 4. **The models by their evidence**: n = 1 .. ``planar_terms``, each with the centre at the
-   frame's and free (a candidate while within ``planar_centre_max`` of the half diagonal from the
+   frame's and free (a candidate while within ``PLANAR_CENTRE_MAX`` of the half diagonal from the
    frame centre), on the same inliers, each fitted again without each of ``jackknife_blocks``
    contiguous blocks of frames and scored on predicting the pairs it left out; pseudo-BMA+ weights
    (:mod:`~lensdist_torch.calibration.planar_evidence`). The model of most held-out evidence among
    those the matches determine answers. A real wide-angle lens's centre is off the frame's by a
-   few % of the half diagonal: a lens of 100 px then bends the frame-centred model's lines by
-   pixels.
+   few % of the half diagonal: a lens of 100 px then bends the frame-centred model's lines by px.
 5. **Interval**: each model's posterior (the fit's covariance), widened by the dispersion or to
    its folds' jackknife where that scatters more, mixed by the weights
    (:func:`~lensdist_torch.calibration.multiview_evidence.mixed_intervals`). No class when the
-   interval spans two classes at the paper's frame (:func:`~lensdist_torch.calibration.sequence_class.interval_class`,
-   the rule every path shares), when fewer than
-   ``PLANAR_MIN_PAIRS`` pairs keep their inliers, or when under ``planar_min_inlier_share`` of
-   the verified matches fit: the scene is not a plane and the camera did not only turn.
+   interval spans two classes at the paper's frame (the rule every path shares,
+   :func:`~lensdist_torch.calibration.sequence_class.interval_class`), when fewer than
+   ``PLANAR_MIN_PAIRS`` pairs keep their inliers, or when under ``PLANAR_MIN_INLIER_SHARE`` of the
+   verified matches fit: the scene is not a plane and the camera did not only turn.
 6. **In the user's pixels and OpenCV's terms**: Delta over every pixel of the frame where the
    lens map is monotone; eq. 4's (k2, k4) fitted to the map (``eq4_fit_error_px``); OpenCV's
    K and dist_coeffs fitted to it, K's principal point at the distortion centre
@@ -58,7 +56,7 @@ import numpy as np
 import torch
 
 from lensdist_torch.calibration.lens_answer import LensAnswer
-from lensdist_torch.calibration.matches import PlanarMatches, thin_matches
+from lensdist_torch.calibration.matches import PLANAR_MIN_MATCHES, PLANAR_PAIR_MATCHES, PlanarMatches, thin_matches
 from lensdist_torch.calibration.multiview_evidence import mixed_intervals, posterior_std
 from lensdist_torch.calibration.planar_evidence import score_models
 from lensdist_torch.calibration.planar_model import (
@@ -80,8 +78,9 @@ from lensdist_torch.geometry.frame import half_diagonal
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map
 from lensdist_torch.geometry.radial_lens import lens_factor, lens_ideal_points
 
-__all__ = ["PLANAR_INLIER_PX", "PLANAR_ITERATIONS", "PLANAR_MIN_PAIRS", "PLANAR_RANSAC_PX", "PLANAR_SCAN_PAIRS",
-           "PLANAR_SCAN_RANGE", "PLANAR_SCAN_STEPS", "PlanarCalibration", "delta_avg_where", "self_calibrate_planar"]
+__all__ = ["PLANAR_CENTRE_MAX", "PLANAR_INLIER_PX", "PLANAR_ITERATIONS", "PLANAR_MIN_INLIER_SHARE", "PLANAR_MIN_PAIRS",
+           "PLANAR_RANSAC_PX", "PLANAR_SCAN_PAIRS", "PLANAR_SCAN_RANGE", "PLANAR_SCAN_STEPS", "PlanarCalibration",
+           "delta_avg_where", "self_calibrate_planar"]
 
 #: Step 2: the first radial term's start values, from and to (normalised frame), ...
 PLANAR_SCAN_RANGE = (-0.3, 1.5)
@@ -97,6 +96,10 @@ PLANAR_INLIER_PX = 3.0
 PLANAR_MIN_PAIRS = 4
 #: Levenberg-Marquardt iterations at most per fit.
 PLANAR_ITERATIONS = 100
+#: Step 4: a free distortion centre is a candidate within this fraction of the half diagonal from the frame's.
+PLANAR_CENTRE_MAX = 0.1
+#: Step 5: under this share of the verified matches on one homography per pair: not a plane (nor a turning camera).
+PLANAR_MIN_INLIER_SHARE = 0.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -119,7 +122,7 @@ class PlanarCalibration(LensAnswer):
         matched_fraction: the share of the frame that the inliers reach.
         pairs: the pairs fitted.
         inliers: the inlier matches.
-        matches: the verified matches (at most ``planar_pair_matches`` a pair).
+        matches: the verified matches (at most ``PLANAR_PAIR_MATCHES`` a pair).
         inlier_share: inliers over the counted pairs' matches.
         reprojection_px: the inliers' RMS transfer error (px).
         models: per model its evidence ``weight``, ``heldout_rms_px`` (held-out pairs' transfer
@@ -133,9 +136,8 @@ class PlanarCalibration(LensAnswer):
             ``dist_coeffs`` and the fit's errors, as
             :func:`~lensdist_torch.geometry.opencv_model.opencv_export` gives them).
         opencv_rational: the same with 8 coefficients.
-        guided: where the fit is on guided matches
-            (:func:`~lensdist_torch.calibration.guided_matching.self_calibrate_guided`), what the
-            guided matching found and the first fit's figures; None otherwise.
+        guided: what guided matching found and the first fit's figures, where the fit is on guided
+            matches (:mod:`~lensdist_torch.calibration.guided_matching`); None otherwise.
         refined: where the matches were refined (:mod:`~lensdist_torch.calibration.match_refinement`),
             what the refinement kept and the fit's figures before it; None otherwise.
 
@@ -191,7 +193,7 @@ def _ransac(matches: PlanarMatches, a: torch.Tensor, size: tuple[int, int], cfg:
             continue
         m = torch.linalg.solve(s, hm @ s)  # pixels -> normalised frame
         hs[p] = (m / m[2, 2]).reshape(-1)[:8]
-        if int(mask.sum()) >= cfg.planar_min_matches:  # fewer: the pair does not count
+        if int(mask.sum()) >= PLANAR_MIN_MATCHES:  # fewer: the pair does not count
             inliers[idx] = mask
     return hs, inliers
 
@@ -220,10 +222,10 @@ def _eq4_fit(a: torch.Tensor, centre: list[float], size: tuple[int, int], dl: di
     return fit_eq4(p, lens_ideal_points(p, a, *size, centre=centre), *size)
 
 
-def _stays(theta: torch.Tensor, n: int, cfg: MultiViewConfig) -> bool:
-    """Whether the lens ``theta``'s centre, where free, lies within ``planar_centre_max`` of the frame centre."""
+def _stays(theta: torch.Tensor, n: int) -> bool:
+    """Whether the lens ``theta``'s centre, where free, lies within :data:`PLANAR_CENTRE_MAX` of the frame centre."""
     d = split_lens(theta, n)[1]
-    return d is None or float(d.norm()) <= cfg.planar_centre_max
+    return d is None or float(d.norm()) <= PLANAR_CENTRE_MAX
 
 
 def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiViewConfig, step: int):
@@ -236,15 +238,13 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
     big_r = half_diagonal(h, w)
     table, fits = {}, {}
     n_obs = 4 * int(inl.sum())
-    n_info = 2 * int(
-        inl.sum()
-    )  # BIC's count: a match's two transfer errors measure one misfit (4 residuals, 2 observations)
+    n_info = 2 * int(inl.sum())  # BIC's count: a match's two transfer errors measure one misfit (4 residuals, 2 obs.)
     for n in range(1, cfg.planar_terms + 1):
-        for free in (False, True) if cfg.planar_centre_max > 0 else (False,):
+        for free in (False, True) if PLANAR_CENTRE_MAX > 0 else (False,):
             start = torch.cat([theta0[:n], theta0.new_zeros(2)]) if free else theta0[:n].clone()
             tn, hn = fit_lens_and_homographies(start, hs.clone(), v1, v2, pair=pair, w=inl.double(),
                                                iterations=PLANAR_ITERATIONS, terms=n)
-            if not _stays(tn, n, cfg):
+            if not _stays(tn, n):
                 continue  # a centre that far off is no lens's: not a candidate
             r = transfer_residuals(tn, hn, v1, v2, terms=n, pair=pair)[inl] * big_r
             rss = float((r * r).sum())
@@ -340,7 +340,7 @@ def self_calibrate_planar(
         'too few matched pairs: 0 of at least 4'
     """
     cfg, st = or_defaults(config, MultiViewConfig), or_defaults(settings, LensdistConfig, "settings")
-    matches = thin_matches(matches, cfg.planar_pair_matches)
+    matches = thin_matches(matches, PLANAR_PAIR_MATCHES)
     h, w = (int(v) for v in image_size)
     big_r = half_diagonal(h, w)
     step = map_grid_step(h, w)
@@ -373,10 +373,10 @@ def self_calibrate_planar(
                                               iterations=PLANAR_ITERATIONS, terms=terms)
         inl = transfer_errors(theta, hs, v1, v2, pair=matches.pair, big_r=big_r, terms=terms) < PLANAR_INLIER_PX
         per_pair = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
-        inl &= (per_pair >= cfg.planar_min_matches)[matches.pair]
+        inl &= (per_pair >= PLANAR_MIN_MATCHES)[matches.pair]
     kept = torch.zeros(len(matches.first), dtype=torch.long).index_add_(0, matches.pair, inl.long())
-    good_pairs = int((kept >= cfg.planar_min_matches).sum())
-    counted = (kept >= cfg.planar_min_matches)[matches.pair]  # the matches of the pairs that count
+    good_pairs = int((kept >= PLANAR_MIN_MATCHES).sum())
+    counted = (kept >= PLANAR_MIN_MATCHES)[matches.pair]  # the matches of the pairs that count
     share = float(inl[counted].double().mean()) if bool(counted.any()) else 0.0
     share = share if plane_share is None else plane_share
     table, fits = _fit_models(theta, hs, v1, v2, matches.pair, inl, (h, w), cfg, step)
@@ -385,7 +385,7 @@ def self_calibrate_planar(
                     lens_of(theta, terms, (h, w))[0], int(inl.sum()), table)
     scores, answer = score_models(fits, matches, v1, v2, inliers=inl, blocks=cfg.jackknife_blocks, size=(h, w),
                                   step=step, iterations=PLANAR_ITERATIONS, confidence=cfg.confidence, seed=cfg.seed,
-                                  stays=lambda t, n: _stays(t, n, cfg))
+                                  stays=_stays)
     table = {m: table[m] for m in scores}
     for m, sc in scores.items():
         lenses = [lens_of(tj, fits[m][3], (h, w)) for tj in sc["jackknife_thetas"]]
@@ -402,10 +402,10 @@ def self_calibrate_planar(
     bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=cfg.confidence, seen=seen)
     k2u, k4u, fit_err = _eq4_fit(a, centre, (h, w), dl)
     label, reason = None, ""
-    if share < cfg.planar_min_inlier_share:
+    if share < PLANAR_MIN_INLIER_SHARE:
         reason = (
             f"not a plane: one homography per pair explains {100 * share:.0f} % of its pair's verified matches "
-            f"(at least {100 * cfg.planar_min_inlier_share:.0f} % needed)"
+            f"(at least {100 * PLANAR_MIN_INLIER_SHARE:.0f} % needed)"
         )
     else:
         paper = paper_frame_delta_avg(k2u, k4u, (h, w), st) if math.isfinite(k2u) else math.nan

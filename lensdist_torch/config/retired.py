@@ -99,6 +99,13 @@ RETIRED = {
     ("multiview", "planar_refine_px"): _constant("match_refinement.PLANAR_REFINE_PX", 7),
     ("multiview", "planar_refine_blur"): _constant("match_refinement.PLANAR_REFINE_BLUR", 1.0),
     ("multiview", "planar_refine_ncc"): _constant("match_refinement.PLANAR_REFINE_NCC", 0.9),
+    ("multiview", "features_per_megapixel"): _constant("features.FEATURES_PER_MEGAPIXEL", 8192.0),
+    ("multiview", "planar_min_matches"): _constant("matches.PLANAR_MIN_MATCHES", 15),
+    ("multiview", "planar_pair_matches"): _constant("matches.PLANAR_PAIR_MATCHES", 60),
+    ("multiview", "planar_min_inlier_share"): _constant("planar_features.PLANAR_MIN_INLIER_SHARE", 0.5),
+    ("multiview", "planar_centre_max"): _constant("planar_features.PLANAR_CENTRE_MAX", 0.1),
+    ("multiview", "planar_guided_px"): _constant("guided_matching.PLANAR_GUIDED_PX", 3.0),
+    ("multiview", "planar_guided_below"): _constant("guided_matching.PLANAR_GUIDED_BELOW", 0.5),
     # one pair's self-calibration's constants (docs/method.md, section 10)
     ("selfcal", "newton"): _constant("model.NEWTON", 5, "selfcal"),
     ("selfcal", "margin"): _constant("model.MARGIN", 2.0, "selfcal"),

@@ -64,8 +64,9 @@ class MultiViewConfig:
     """Settings of :mod:`~lensdist_torch.calibration.multiview` (``[multiview]``): bundle adjustment on COLMAP.
 
     What a user sets; the method's constants are named in the modules that use them
-    (:mod:`~lensdist_torch.calibration.multiview`, ``planar_features``, ``guided_matching``,
-    ``match_refinement``, ``sequence_class``, ``controllers.multiview_path``; docs/method.md, 11-12).
+    (:mod:`~lensdist_torch.calibration.multiview`, ``features``, ``matches``, ``planar_features``,
+    ``guided_matching``, ``match_refinement``, ``sequence_class``, ``controllers.multiview_path``;
+    docs/method.md, 11-12).
 
     Attributes:
         models: the camera models fitted on the reconstruction's tracks, each weighed by how well it
@@ -76,10 +77,8 @@ class MultiViewConfig:
             SIMPLE_RADIAL (RADIAL with k2 = 0) may join them too; it is not among the defaults:
             RADIAL holds it, and its adjustment crawled without converging on long videos.
         max_image_side: frames are read by COLMAP's SIFT at most this long (px).
-        max_features: SIFT features per frame at most.
-        features_per_megapixel: and at most this many per megapixel of the frame as SIFT reads it
-            (where the caller gives the frames' size): 906 on 384 x 288, ``max_features`` from
-            1 megapixel on; matching and mapping scale with the features (docs/method.md, 11).
+        max_features: SIFT features per frame at most (and ``features.FEATURES_PER_MEGAPIXEL`` per
+            megapixel of the frame as SIFT reads it); matching and mapping scale with the features.
         mapped_frames: at most this many frames go to COLMAP, evenly spaced over the sequence (a
             video's neighbouring frames add tracks but little baseline, while matching and
             mapping grow with the frames): of 300 frames every 5th.
@@ -98,24 +97,9 @@ class MultiViewConfig:
             Bayesian bootstrap's of the models' weights.
         planar_terms: the homography model's radial terms at most (1 .. this many fitted, each
             weighed by how well it predicts held-out pairs:
-            :mod:`~lensdist_torch.calibration.planar_evidence`); 0: no homography model.
-        planar_min_matches: a pair needs this many verified matches (and inliers) to count.
-        planar_min_inlier_share: under this share of the verified matches on one homography per
-            pair: not a plane (nor a turning camera), no class.
-        planar_pair_matches: a pair's matches beyond this many are thinned to this many, evenly
-            over the pair's list (a homography needs few; the fits' time grows with the matches);
-            0: every match.
-        planar_centre_max: the models with a free distortion centre are candidates while it lies
-            within this fraction of the half diagonal from the frame centre, in the fit on every
-            pair and in each fold's (held-out pairs weigh them against the models centred on the
-            frame); 0: the centre stays at the frame's.
-        planar_guided_px: the homography model's matches found again within this many ideal
-            pixels of where its first fit sends each keypoint, and fitted again
-            (:mod:`~lensdist_torch.calibration.guided_matching`); 0: the first fit answers.
-        planar_guided_below: guided matching runs where fewer than this share of the verified
-            pairs keep ``planar_min_matches`` homography inliers in the first fit (repetitive
-            texture lost them); where most keep them the matcher did its work, and guided
-            matches would only cost time.
+            :mod:`~lensdist_torch.calibration.planar_evidence`); 0: no homography model. Its
+            other numbers are constants of the method (``matches.PLANAR_MIN_MATCHES``,
+            ``planar_features.PLANAR_CENTRE_MAX``, ``guided_matching.PLANAR_GUIDED_PX``, ...).
 
     Example:
         >>> MultiViewConfig().models
@@ -129,7 +113,6 @@ class MultiViewConfig:
     models: tuple[str, ...] = ("RADIAL", "OPENCV", "FULL_OPENCV")
     max_image_side: int = 1600
     max_features: int = 8192
-    features_per_megapixel: float = 8192.0
     mapped_frames: int = 60
     jackknife_blocks: int = 6
     confidence: float = 0.95
@@ -137,12 +120,6 @@ class MultiViewConfig:
     num_threads: int = 2
     seed: int = 0
     planar_terms: int = 3
-    planar_min_matches: int = 15
-    planar_min_inlier_share: float = 0.5
-    planar_pair_matches: int = 60
-    planar_centre_max: float = 0.1
-    planar_guided_px: float = 3.0
-    planar_guided_below: float = 0.5
 
     def __post_init__(self) -> None:
         names(self, "models")
@@ -158,14 +135,7 @@ class MultiViewConfig:
             ("num_threads", 1),
             ("seed", 0),
             ("planar_terms", 0),
-            ("planar_min_matches", 8),
-            ("planar_pair_matches", 0),
         ):
             integer(self, name, lo=lo)
-        real(self, "planar_min_inlier_share", lo=0, hi=1)
-        real(self, "planar_centre_max", lo=0, hi=1)
-        real(self, "planar_guided_px", lo=0)
-        real(self, "planar_guided_below", lo=0, hi=1)
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
-        real(self, "features_per_megapixel", lo=0, lo_open=True)
 

@@ -1,6 +1,5 @@
 """Guided matching: the homography model's matches found again where its first fit predicts them."""
 
-import dataclasses
 import math
 
 import pytest
@@ -105,7 +104,7 @@ def test_chain_views_recovers_a_pair_whose_own_matches_failed():
     assert (_apply(chained, p) - _apply(truth, p)).norm(dim=-1).max() < 0.5
 
 
-def test_guided_matches_find_the_true_partners_among_look_alikes():
+def test_guided_matches_find_the_true_partners_among_look_alikes(planar_constant):
     feats, homs, ids = _views()
     pairs = [(0, 1), (1, 2), (2, 3), (0, 2)]
     verified = _verified(feats, ids, pairs)  # a third right, the rest look-alikes
@@ -121,18 +120,18 @@ def test_guided_matches_find_the_true_partners_among_look_alikes():
         common = len(set(ids[i].tolist()) & set(ids[j].tolist()))
         assert int(sel.sum()) >= 0.9 * common  # nearly every shared point, where the matcher kept 20
     # a look-alike at the next tile (14 px) is never within the 3 px radius; a radius over the period admits them
-    wide = guided_matches(
-        feats, verified, _lens(), centre=None, size=SIZE, config=MultiViewConfig(planar_guided_px=30.0)
-    )
+    planar_constant("PLANAR_GUIDED_PX", 30.0)
+    wide = guided_matches(feats, verified, _lens(), centre=None, size=SIZE)
     assert len(wide.pair) < 0.1 * len(out.pair)  # the ratio test rejects the look-alikes' ties
 
 
-def test_the_plane_test_can_be_carried_over():
+def test_the_plane_test_can_be_carried_over(planar_constant):
     """``plane_share``: guided matches cannot say whether the scene is a plane; the first fit's share decides."""
     feats, homs, ids = _views(n_views=5)
     verified = _verified(feats, ids, [(i, j) for i in range(5) for j in range(i + 1, 5)], good=40, wrong=0)
     found = guided_matches(feats, verified, _lens(), centre=None, size=SIZE)
-    cfg = MultiViewConfig(planar_terms=2, planar_centre_max=0.0)
+    planar_constant("PLANAR_CENTRE_MAX", 0.0)
+    cfg = MultiViewConfig(planar_terms=2)
     plain = self_calibrate_planar(found, SIZE, config=cfg)
     carried = self_calibrate_planar(found, SIZE, config=cfg, start=_lens(), plane_share=0.3)
     assert plain.inlier_share > 0.9 and plain.class_label is not None
@@ -163,7 +162,7 @@ def _stub_database(monkeypatch, verified: PlanarMatches, feats: list, keep_pairs
 
 
 @pytest.mark.slow
-def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
+def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch, planar_constant):
     """Five views, 10 verified pairs: the 4 of neighbours with 14 right matches among 20 look-alikes, the
     others with 5 right among 40 (too few for a homography: they do not count in the first fit)."""
     from lensdist_torch.calibration.guided_matching import self_calibrate_guided
@@ -179,12 +178,14 @@ def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
         torch.cat([near.second, far.second]),
         near.names,
     )
-    cfg = MultiViewConfig(planar_terms=2, planar_centre_max=0.0, planar_min_matches=10, planar_min_inlier_share=0.2)
+    for name, value in (("PLANAR_CENTRE_MAX", 0.0), ("PLANAR_MIN_MATCHES", 10), ("PLANAR_MIN_INLIER_SHARE", 0.2)):
+        planar_constant(name, value)
+    cfg = MultiViewConfig(planar_terms=2)
     _stub_database(monkeypatch, verified, feats)
     res = self_calibrate_guided("db", list(verified.names), SIZE, config=cfg)
     first = res.guided["first_fit"]
     assert res.guided["used"] and res.pairs > first["pairs"] and res.guided["pairs_verified"] == 10
-    assert first["pairs"] < 0.5 * 10  # why it ran: under planar_guided_below of the verified pairs counted
+    assert first["pairs"] < 0.5 * 10  # why it ran: under PLANAR_GUIDED_BELOW of the verified pairs counted
     lo, hi = res.delta_avg_user_interval
     assert lo <= res.delta_avg_user_px <= hi and (hi - lo) < (
         first["delta_avg_user_interval"][1] - first["delta_avg_user_interval"][0]
@@ -195,9 +196,5 @@ def test_guided_matches_answer_only_where_they_bring_pairs_back(monkeypatch):
     assert not fewer.guided["used"] and fewer.guided["reason"].startswith("the guided matches count ")
     assert fewer.delta_avg_user_px == pytest.approx(first["delta_avg_user_px"], rel=1e-6)
     # most verified pairs counted: no guided matching at all
-    assert (
-        self_calibrate_guided(
-            "db", list(verified.names), SIZE, config=dataclasses.replace(cfg, planar_guided_below=0.1)
-        ).guided
-        is None
-    )
+    planar_constant("PLANAR_GUIDED_BELOW", 0.1)
+    assert self_calibrate_guided("db", list(verified.names), SIZE, config=cfg).guided is None

@@ -7,7 +7,6 @@ import torch
 
 from lensdist_torch.calibration.match_refinement import _prepared, align_patches, local_affines, refine_matches
 from lensdist_torch.calibration.matches import PlanarMatches
-from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.homography import apply_homography
 from lensdist_torch.geometry.radial_lens import lens_distorted_points, lens_ideal_points
 
@@ -118,10 +117,7 @@ def test_pairs_without_a_homography_are_dropped_and_a_wrong_size_refused(scene):
     )
     out, info = refine_matches(m, lambda v: images[v], {}, LENS, centre=CENTRE, size=SIZE)
     assert len(out.pair) == 0 and len(out.first) == 0 and info["kept"] == 0 and math.isnan(info["median_shift_px"])
-    few = MultiViewConfig(planar_min_matches=200)  # more than the pair has: dropped
-    assert (
-        len(refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE, config=few)[0].first)
-        == 0
-    )
+    few = refine_matches(m, lambda v: images[v], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE, min_matches=200)
+    assert len(few[0].first) == 0  # more than the pair has: dropped
     with pytest.raises(ValueError, match=r"^images: view 0 is \(120, 160\), expected"):
         refine_matches(m, lambda v: images[v][::2, ::2], {(0, 1): h01}, LENS, centre=CENTRE, size=SIZE)

@@ -432,10 +432,11 @@ def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
     assert res == {"ok": False, "reason": res["reason"]} and "pip install pycolmap" in res["reason"]
 
 
-def test_feature_cap_follows_the_area_sift_reads_by_hand():
+def test_feature_cap_follows_the_area_sift_reads_by_hand(planar_constant):
     from lensdist_torch.calibration.multiview import feature_cap
 
-    cfg = MultiViewConfig(features_per_megapixel=1000.0, max_image_side=1000, max_features=800)
+    planar_constant("FEATURES_PER_MEGAPIXEL", 1000.0)
+    cfg = MultiViewConfig(max_image_side=1000, max_features=800)
     assert feature_cap(cfg) == 800  # no size: the fixed cap
     assert feature_cap(cfg, (300, 400)) == 120  # 0.12 megapixel
     assert feature_cap(cfg, (1000, 2000)) == 500  # read at 500 x 1000: 0.5 megapixel

@@ -165,7 +165,7 @@ def _bending(p: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> float:
     return float((y - design @ torch.linalg.lstsq(design, y).solution).norm(dim=-1).pow(2).mean().sqrt())
 
 
-def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
+def test_a_lens_off_the_frame_centre_is_found_with_its_centre(planar_constant):
     # a strong lens (Delta_avg 9 px at 240 x 320) centred 12 px right of and 8 px above the frame's centre
     h, w = SIZE
     k2, off = 6e-6, (12.0, -8.0)
@@ -187,9 +187,8 @@ def test_a_lens_off_the_frame_centre_is_found_with_its_centre():
         (truth - p).norm(dim=-1).mean()
     )
     # the frame-centred model cannot follow it: 2.1 px of bending (BIC prefers the free centre by 589)
-    fixed = self_calibrate_planar(
-        _plane_matches(k2, 0.0, offset=off), SIZE, config=MultiViewConfig(planar_terms=2, planar_centre_max=0.0)
-    )
+    planar_constant("PLANAR_CENTRE_MAX", 0.0)
+    fixed = self_calibrate_planar(_plane_matches(k2, 0.0, offset=off), SIZE, config=MultiViewConfig(planar_terms=2))
     assert _bending(p, truth, lens_ideal_points(p, fixed.coefficients, h, w)) > 5 * _bending(p, truth, ours)
     # OpenCV's camera about the same centre
     assert res.opencv["camera_matrix"][0][2] == pytest.approx(res.centre[0]) and res.opencv["fit_error_mean_px"] < 0.1
@@ -247,7 +246,7 @@ def test_bending_halfwidth_is_the_jackknife_of_what_no_affine_map_takes_away():
     assert few < 0.02
 
 
-def test_thinning_keeps_every_pair_evenly_and_the_answer():
+def test_thinning_keeps_every_pair_evenly_and_the_answer(planar_constant):
     from lensdist_torch.calibration.matches import thin_matches
 
     m = _plane_matches(4e-6, 2e-11)
@@ -257,7 +256,9 @@ def test_thinning_keeps_every_pair_evenly_and_the_answer():
     assert torch.equal(got, counts.clamp(max=40)) and thin_matches(m, 0) is m
     # every kept match is one of the pair's own, and none twice
     assert len(torch.cat([thin.x1, thin.x2], 1).unique(dim=0)) == len(thin.pair)
-    full = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_terms=2, planar_pair_matches=0))
-    fewer = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_terms=2, planar_pair_matches=40))
+    planar_constant("PLANAR_PAIR_MATCHES", 0)
+    full = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_terms=2))
+    planar_constant("PLANAR_PAIR_MATCHES", 40)
+    fewer = self_calibrate_planar(m, SIZE, config=MultiViewConfig(planar_terms=2))
     lo, hi = fewer.delta_avg_user_interval
     assert lo <= full.delta_avg_user_px <= hi and fewer.matches == int(got.sum()) < full.matches

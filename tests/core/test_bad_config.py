@@ -152,13 +152,6 @@ BAD_VALUES = [
     ("analysis", "max_delta_disagreement", "1.5"),  # a constant of the method now: refused at another value, named
     ("analysis", "max_cannot_tell", "1.5"),
     ("registration", "max_step", "2.0"),
-    ("multiview", "features_per_megapixel", "0.0"),
-    ("multiview", "planar_centre_max", "1.5"),  # a distortion centre beyond the frame's corner
-    ("multiview", "planar_centre_max", "nan"),
-    ("multiview", "planar_pair_matches", "-1"),
-    ("multiview", "planar_pair_matches", "60.5"),
-    ("multiview", "planar_guided_px", "-1"),  # a radius
-    ("multiview", "planar_guided_below", "2"),  # a share of the verified pairs
     ("regression", "confidence_threshold", "nan"),
     ("analysis", "no_distortion_px", "0.0"),
     ("analysis", "min_overlap", "-0.5"),  # constants of the method now: refused at another value, named

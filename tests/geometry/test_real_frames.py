@@ -132,12 +132,14 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     assert lo <= truth <= hi
     # guided matching (forced: here 19 of 29 verified pairs count, so by default it does not run), measured
     # 2026-11-27: 28 pairs count, 23.94 px [17.86, 30.02] where the calibration inverts
+    from lensdist_torch.calibration import guided_matching
     from lensdist_torch.calibration.guided_matching import self_calibrate_guided
 
-    forced = MultiViewConfig(num_threads=1, planar_guided_below=1.0)
-    guided = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=forced)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(guided_matching, "PLANAR_GUIDED_BELOW", 1.0)
+        guided = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg)
     assert guided.guided["used"] and guided.guided["first_fit"]["pairs"] == res.pairs and guided.pairs > res.pairs
-    value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320, config=forced)
+    value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320, config=cfg)
     assert abs(value - truth) < 0.1 * truth and lo <= truth <= hi
     assert (
         self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg).guided is None
@@ -145,12 +147,14 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     # the matches refined against the frames (sub-pixel patch alignment), measured 2026-11-28: the first fit's
     # 0.55 px RMS transfer error -> 0.19, 26.15 px [22.58, 29.72];
     # after guided matching 0.81 -> 0.24, 26.31 [25.66, 26.95]
-    for c, before in ((cfg, res), (forced, guided)):
-        refined = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=c,
-                                        images=lambda v: load_image(REAL / names[v])[0, 0])
+    for below, before in ((guided_matching.PLANAR_GUIDED_BELOW, res), (1.0, guided)):
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(guided_matching, "PLANAR_GUIDED_BELOW", below)
+            refined = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg,
+                                            images=lambda v: load_image(REAL / names[v])[0, 0])
         assert refined.refined["used"] and refined.refined["before"]["reprojection_px"] == pytest.approx(
             before.reprojection_px
         )
         assert refined.reprojection_px < 0.5 * before.reprojection_px and refined.class_label == "4"
-        value, (lo, hi) = delta_avg_where(refined, g[ok], 240, 320, config=c)
+        value, (lo, hi) = delta_avg_where(refined, g[ok], 240, 320, config=cfg)
         assert abs(value - truth) < 0.05 * truth and lo <= truth <= hi

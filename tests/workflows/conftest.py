@@ -31,7 +31,8 @@ def tiny_run(tmp_path_factory):
 def fake_pyav(monkeypatch):
     """``fake_pyav(frames)`` makes ``import av`` a stand-in for PyAV's open / decode whose one video
     stream yields a frame for each of ``frames``: functions ``format -> array``, the frame's
-    ``to_ndarray(format=...)``, or an exception the decoder raises there; its header announces ``announced`` frames (default: as many)."""
+    ``to_ndarray(format=...)``, or an exception the decoder raises there; its header announces
+    ``announced`` frames (default: as many)."""
 
     def install(frames, announced: int | None = None) -> None:
         class Container:

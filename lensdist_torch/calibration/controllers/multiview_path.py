@@ -23,6 +23,7 @@ from tqdm import tqdm
 from lensdist_torch.calibration.guided_matching import self_calibrate_guided
 from lensdist_torch.calibration.multiview import pycolmap_or_error, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.calibration.multiview_runs import combine_reconstructions
+from lensdist_torch.calibration.planar_features import PLANAR_MIN_INLIER_SHARE
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.frames import list_frames, read_frames
@@ -171,7 +172,7 @@ def planar_path(database: Path, names: list[str], image_size: tuple[int, int], *
     res = self_calibrate_guided(database, names, image_size, config=config, settings=settings, images=images)
     if not math.isfinite(res.delta_avg_user_px):
         return {"ok": False, "reason": res.reason}
-    return {"ok": True, "plane": res.inlier_share >= config.planar_min_inlier_share, **res.to_dict()}
+    return {"ok": True, "plane": res.inlier_share >= PLANAR_MIN_INLIER_SHARE, **res.to_dict()}
 
 
 def _overlap(a: tuple, b: tuple) -> bool:
