@@ -109,7 +109,8 @@ class SequenceCalibration(LensAnswer):
             not registered, not used); None where none ran.
 
     Example:
-        >>> cal = calibrate_sequence(torch.full((2, 1, 64, 64), 0.5))  # a still camera: no pair to use
+        >>> x = torch.rand(1, 1, 64, 64, generator=torch.Generator().manual_seed(0))
+        >>> cal = calibrate_sequence(torch.cat([x, x]))  # a still camera: no pair to use
         >>> cal.class_label, cal.reason, cal.pairs_used, math.isnan(cal.k2_user), cal.image_size
         (None, 'too little motion: no two frames moved enough apart', 0, True, (64, 64))
     """
