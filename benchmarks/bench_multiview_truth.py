@@ -7,8 +7,11 @@ calibrate`` does (:func:`~lensdist_torch.calibration.multiview.reconstruct` on t
 (:func:`~lensdist_torch.calibration.multiview.self_calibrate_reconstruction`) with the true lens
 passed as ``others``: its OpenCV camera (eq. 4 fitted by the rational model at the mapped focal
 length, :func:`~lensdist_torch.geometry.opencv_model.opencv_export`) held on the same tracks and
-scored on the same held-out frames as COLMAP's models. Writes per candidate its Delta_avg, posterior
-std, weight, elpd, in-sample and held-out RMS to ``--out``.
+scored on the same held-out frames as COLMAP's models; and, in a second run, the direct path's
+answer on the same frames (``calibrate_path(folder, method="direct")``, its eq. 4 lens by the same
+export) held in its place, as "every path in one comparison" would (docs/method.md, section 11,
+point 6). Writes per candidate its Delta_avg, posterior std, weight, elpd, in-sample and held-out
+RMS, and each run's answer, to ``--out``.
 
     python benchmarks/bench_multiview_truth.py --frames 80 --size 608 968 \\
         --out docs/results/bench_multiview_truth_80.json
@@ -25,6 +28,7 @@ from pathlib import Path
 import torch
 from bench_calibrate_speed import coefficients, render
 
+from lensdist_torch.calibration.controllers.calibrate import calibrate_path
 from lensdist_torch.calibration.controllers.multiview_path import evenly_spaced
 from lensdist_torch.calibration.multiview import camera_of, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.config import MultiViewConfig
@@ -35,6 +39,22 @@ from lensdist_torch.geometry.opencv_model import opencv_export
 
 ROW_KEYS = ("delta_avg_px", "delta_avg_std_px", "weight", "elpd", "reprojection_px", "heldout_rms_px", "converged",
             "iterations")
+
+
+def _rows(res) -> dict:
+    """Per candidate its figures (strict JSON), printed too."""
+    rows = {m: {k: (None if isinstance(r.get(k), float) and not math.isfinite(r[k]) else r.get(k)) for k in ROW_KEYS}
+            for m, r in res.models.items()}
+    for m, r in rows.items():
+        print(f"{m:12s} {r['delta_avg_px']:7.3f} px  weight {r['weight']:.3f}  elpd {r['elpd']:.1f}  "
+              f"rms {r['reprojection_px']:.4f}  held-out {r['heldout_rms_px']:.4f}")
+    return rows
+
+
+def _answer(res) -> dict:
+    return {"model": res.model, "delta_avg_user_px": res.delta_avg_user_px,
+            "delta_avg_user_interval": list(res.delta_avg_user_interval), "class": res.class_label,
+            "reason": res.reason or None}
 
 
 def main() -> None:
@@ -57,6 +77,7 @@ def main() -> None:
         for j, f in enumerate(frames):
             names.append(f"frame_{j:03d}.png")
             (Path(tmp) / names[-1]).write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
+        direct = calibrate_path(tmp, method="direct")
         names = [names[i] for i in evenly_spaced(len(names), cfg.mapped_frames)]
         rec = reconstruct(tmp, names, config=cfg, image_size=size)[0]
     if rec is None:
@@ -67,18 +88,18 @@ def main() -> None:
             "delta_avg_user_interval": [truth, truth], "delta_max_user_px": most,
             "delta_max_user_interval": [most, most]}
     res = self_calibrate_reconstruction(rec, cfg, image_size=size, others={"truth": held})
-    rows = {m: {k: (None if isinstance(r.get(k), float) and not math.isfinite(r[k]) else r.get(k)) for k in ROW_KEYS}
-            for m, r in res.models.items()}
-    for m, r in rows.items():
-        print(f"{m:12s} {r['delta_avg_px']:7.3f} px  weight {r['weight']:.3f}  elpd {r['elpd']:.1f}  "
-              f"rms {r['reprojection_px']:.4f}  held-out {r['heldout_rms_px']:.4f}")
+    rows = _rows(res)
+    dcam = opencv_export(direct["k2_user"], direct["k4_user"], *size, focal=focal, model="rational")
+    keys = ("delta_avg_user_px", "delta_avg_user_interval", "delta_max_user_px", "delta_max_user_interval")
+    with_direct = self_calibrate_reconstruction(rec, cfg, image_size=size, others={"direct": {
+        "camera_matrix": dcam["camera_matrix"], "dist_coeffs": dcam["dist_coeffs"], **{k: direct[k] for k in keys}}})
     command = (f"python benchmarks/bench_multiview_truth.py --frames {args.frames} --size {size[0]} {size[1]} "
                f"--rotation {args.rotation} --altitude {args.altitude} --threads {args.threads} --out {args.out}")
     out = {"command": command,
            "truth_delta_avg_px": truth, "registered": rec.num_reg_images(), "points3D": rec.num_points3D(),
-           "truth_opencv_fit_error_px": cam["fit_error_mean_px"], "answer": {
-               "model": res.model, "delta_avg_user_px": res.delta_avg_user_px,
-               "delta_avg_user_interval": list(res.delta_avg_user_interval)}, "candidates": rows}
+           "truth_opencv_fit_error_px": cam["fit_error_mean_px"], "answer": _answer(res), "candidates": rows,
+           "direct": {k: direct[k] for k in keys}, "answer_with_direct": _answer(with_direct),
+           "candidates_with_direct": _rows(with_direct)}
     atomic_write_text(args.out, json.dumps(out, indent=1, allow_nan=False))
 
 
