@@ -81,6 +81,14 @@ def render(n: int, size: tuple[int, int], *, upsample: int = 1, rotation: float 
     return frames
 
 
+def write_frames(frames: torch.Tensor, folder) -> list[str]:
+    """(N, 1, H, W) frames in [0, 1] as 8-bit PNGs ``frame_000.png`` ... in ``folder``; their names, in order."""
+    names = [f"frame_{j:03d}.png" for j in range(len(frames))]
+    for name, f in zip(names, frames):
+        (Path(folder) / name).write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
+    return names
+
+
 def _peak_mb() -> float:
     """This process's peak resident memory (MB) since its exec (module docstring)."""
     try:
@@ -129,9 +137,8 @@ def main() -> None:
     frames = render(args.frames, size, upsample=up, rotation=args.rotation, altitude=args.altitude)
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        for j, f in enumerate(frames):
-            (Path(tmp) / f"frame_{j:03d}.png").write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
-        del frames, f  # written: the runs read them from the folder
+        write_frames(frames, tmp)
+        del frames  # written: the runs read them from the folder
         for _ in range(args.repeats):
             for method in ("direct", "auto"):
                 pool = multiprocessing.get_context("spawn").Pool(1)  # a fresh process: its own peak memory

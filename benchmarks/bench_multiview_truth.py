@@ -26,14 +26,13 @@ import tempfile
 from pathlib import Path
 
 import torch
-from bench_calibrate_speed import coefficients, render
+from bench_calibrate_speed import coefficients, render, write_frames
 
 from lensdist_torch.calibration.controllers.calibrate import calibrate_path
 from lensdist_torch.calibration.controllers.multiview_path import evenly_spaced
 from lensdist_torch.calibration.multiview import camera_of, reconstruct, self_calibrate_reconstruction
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
-from lensdist_torch.core.png import encode_png
 from lensdist_torch.geometry import delta_avg, delta_max
 from lensdist_torch.geometry.opencv_model import opencv_export
 
@@ -73,10 +72,7 @@ def main() -> None:
     cfg = MultiViewConfig(num_threads=args.threads)
     frames = render(args.frames, size, rotation=args.rotation, altitude=args.altitude)
     with tempfile.TemporaryDirectory() as tmp:
-        names = []
-        for j, f in enumerate(frames):
-            names.append(f"frame_{j:03d}.png")
-            (Path(tmp) / names[-1]).write_bytes(encode_png((f.clamp(0, 1) * 255).round().to(torch.uint8)))
+        names = write_frames(frames, tmp)
         direct = calibrate_path(tmp, method="direct")
         names = [names[i] for i in evenly_spaced(len(names), cfg.mapped_frames)]
         rec = reconstruct(tmp, names, config=cfg, image_size=size)[0]

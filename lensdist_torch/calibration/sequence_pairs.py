@@ -98,11 +98,12 @@ def no_pairs_reason(frames: torch.Tensor) -> str:
         >>> no_pairs_reason(torch.full((3, 1, 64, 64), 0.5))[:40]
         'no texture: every frame is flat (it diff'
     """
-    a, b = frames[:-1].float(), frames[1:].float()
+    x = frames.float()
+    a, b = x[:-1], x[1:]
     static = (a - b).abs().mean(dim=(1, 2, 3))
-    texture = (a - torch.roll(a, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))
-    last = (b[-1:] - torch.roll(b[-1:], (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean()
-    if bool((texture < FLAT_TEXTURE).all()) and float(last) < FLAT_TEXTURE:
+    every = (x - torch.roll(x, (2, 2), dims=(2, 3))).abs()[..., 2:, 2:].mean(dim=(1, 2, 3))  # each frame's texture
+    texture = every[:-1]
+    if bool((every < FLAT_TEXTURE).all()):
         return (f"{NO_TEXTURE}: every frame is flat (it differs from itself moved by 2 px by less than one grey "
                 "level): nothing to register, however the camera moved")
     if bool((static <= 0.5 * texture).all()):
