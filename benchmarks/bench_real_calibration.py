@@ -169,10 +169,14 @@ def main() -> None:
             )
         if "weight" in v:  # the held-out evidence and the posterior (answers since the models were weighed)
             std = v["delta_avg_std_px"]  # None (JSON's inf): the tracks do not determine it, or it did not converge
+            jack = "" if v.get("jackknife_std_px") is None else f", jackknife {v['jackknife_std_px']:.3f} px"
             note += (f"; weight {v['weight']:.3f}, posterior std "
-                     f"{'none' if std is None else format(std, '.3f') + ' px'}, jackknife "
-                     f"{v['jackknife_std_px']:.3f} px, held-out RMS {v['heldout_rms_px']:.3f} px")
-        rows.append((f"COLMAP, {model} fixed (same tracks)", f"BIC {v['bic']:.0f}", value, None, None, note))
+                     f"{'none' if std is None else format(std, '.3f') + ' px'}{jack}, "
+                     f"held-out RMS {v['heldout_rms_px']:.3f} px, elpd {v['elpd']:.1f}")
+        if "path" in v:  # another path's lens held on the tracks (its own interval, no BIC)
+            rows.append((f"lensdist, the {model} path's lens held on the tracks", "held", value, None, None, note))
+        else:
+            rows.append((f"COLMAP, {model} fixed (same tracks)", f"BIC {v['bic']:.0f}", value, None, None, note))
     if "terms" in pl:
         value, iv = on_truth if on_truth is not None else (pl["delta_avg_user_px"], pl["delta_avg_user_interval"])
         rows.append(("lensdist, homography model", f"{pl['terms']} terms, {pl['pairs']} pairs", value, iv, pl["class"],

@@ -71,9 +71,9 @@ def _paths(res: dict) -> None:
         weight = (mv.get("models") or {}).get(mv["model"], {}).get("weight")
         by = "" if weight is None else f" (weight {weight:.2f} on held-out frames)"
         iv = mv["delta_avg_user_interval"]
+        best = f"camera model {mv['model']}" if mv["model"] not in _HELD else f"{_HELD[mv['model']]} held on its tracks"
         print(
-            f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, "
-            f"camera model {mv['model']}"
+            f"multi-view path: {mv['registered']} frames registered, {mv['points3D']} tracks, {best}"
             f"{by}, reprojection RMS {mv['reprojection_px']:.2f} px, Delta_avg {mv['delta_avg_user_px']:.2f} px"
             + ("" if iv is None or None in iv else f" [{iv[0]:.2f}, {iv[1]:.2f}]")
         )
@@ -89,6 +89,8 @@ def _paths(res: dict) -> None:
         )
 
 
+#: Another path's lens held on COLMAP's tracks (``multiview_path.HELD_PATHS``), as the multi-view line names it.
+_HELD = {"direct": "the direct path's lens", "planar": "the homography model's lens"}
 #: Which path an answer's ``method`` names, in words.
 _FROM = {"direct": "the direct path (eq. 4)", "multiview": "the multi-view path (COLMAP)",
          "planar": "the homography model"}
@@ -405,8 +407,8 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
                    help="where registration and self-calibration run: cpu, cuda or cuda:N")
     p.add_argument("--method", default="auto", choices=("auto", "multiview", "direct"),
                    help="multiview: bundle adjustment on COLMAP's tracks (pycolmap), with the homography model on its "
-                        "matches (a plane or a turning camera); direct: photometric pairs; auto: both, 'cannot tell' "
-                        "where they disagree")
+                        "matches (a plane or a turning camera); direct: photometric pairs; auto: every path's lens "
+                        "weighed on the same held-out frames")
     p.set_defaults(func=_cmd_calibrate)
 
     p = subparsers.add_parser(

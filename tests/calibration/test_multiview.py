@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from lensdist_torch.calibration.controllers.multiview_path import combine
+from lensdist_torch.calibration.controllers.multiview_path import combine, held_answers
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_delta, opencv_ideal_points
 
@@ -292,42 +292,58 @@ def _mv(cls, d, lo, hi):
     }
 
 
-def test_paths_that_disagree_cannot_tell_and_name_each_number():
-    out = combine(_direct("R", 0.1, 0.0, 0.8), _mv("2", 7.0, 6.5, 7.5))  # widths 0.8 and 1.0
-    assert out["class"] is None and out["method"] == "direct" and out["delta_avg_user_px"] == 0.1
-    assert out["reason"] == ("the paths disagree beyond their intervals (direct 0.10 px [0.00, 0.80]; multi-view "
-                             "7.00 px [6.50, 7.50]); the numbers are the direct path's, the most precise")
-    assert out["direct"]["delta_avg_user_px"] == 0.1 and out["multiview"]["delta_avg_user_px"] == 7.0
-
-
-def test_the_most_precise_path_answers_with_its_own_camera_where_the_paths_agree():
-    out = combine(_direct("2", 6.9, 6.0, 7.2), _mv("2", 7.0, 6.5, 7.5))  # widths 1.2 and 1.0
+def test_the_comparison_answers_where_colmap_reconstructed_the_sequence():
+    # the direct path disagrees and is narrower: the multi-view answer stands, the direct path's numbers beside it
+    out = combine(_direct("R", 0.1, 0.0, 0.8), _mv("2", 7.0, 6.5, 7.5))
     assert out["method"] == "multiview" and out["class"] == "2" and out["delta_avg_user_px"] == 7.0
+    assert out["delta_avg_user_interval"] == (6.5, 7.5) and out["camera_model"] == "RADIAL"
     assert out["opencv"]["dist_coeffs"] == [-0.1, 0.01, 0, 0, 0] and out["opencv_rational"] is None
-    tighter = combine(_direct("2", 6.9, 6.6, 7.2), _mv("2", 7.0, 6.5, 7.5))  # widths 0.6 and 1.0
-    assert tighter["method"] == "direct" and tighter["class"] == "2" and tighter["delta_avg_user_px"] == 6.9
-    # the most precise estimate without a class (its interval spans two): no other path's class stands in
-    open_ = combine(_direct(None, 6.9, 6.8, 7.4), _mv("2", 7.0, 6.5, 7.5))
-    assert open_["method"] == "direct" and open_["class"] is None and open_["reason"] == "interval too wide"
+    assert out["direct"]["delta_avg_user_px"] == 0.1 and out["multiview"]["delta_avg_user_px"] == 7.0
+    # no class from the comparison: none from another path either, and its reason stands
+    wide = combine(_direct("3", 9.0, 8.8, 9.2), _mv(None, 12.0, 0.0, 30.0))
+    assert wide["method"] == "multiview" and wide["class"] is None and wide["reason"] == "interval too wide: +-9 px"
 
 
-def test_direct_answers_where_multiview_cannot():
+def test_a_held_path_that_wins_answers_with_its_own_lens_and_the_comparisons_interval():
+    # the direct path's camera predicted the held-out frames best: its numbers and eq. 4, the mixture's interval
+    mv = {**_mv("3", 6.9, 6.1, 7.6), "model": "direct"}
+    out = combine(_direct(None, 6.9, 6.0, 7.8), mv)
+    assert out["method"] == "direct" and out["class"] == "3" and out["reason"] is None
+    assert out["delta_avg_user_interval"] == (6.1, 7.6)
+    assert out["delta_max_user_interval"] == pytest.approx((18.3, 22.8))
+    assert out["k2_user"] == 1e-7 and out.get("camera_model") is None  # the direct path's eq. 4, not the refit
+    # the homography model's: its lens (centre, terms) and exports, the comparison's class
+    planar = _planar(None, 6.95, 5.0, 9.0)
+    out = combine(_direct(None, 6.9, 6.0, 7.8), {**_mv("3", 6.95, 6.2, 7.7), "model": "planar", "planar": planar})
+    assert out["method"] == "planar" and out["class"] == "3" and out["camera_model"] == "planar-3-centre"
+    assert out["delta_avg_user_interval"] == (6.2, 7.7) and out["k2_user"] == 7e-7
+    assert out["opencv"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and out["planar"]["class"] is None
+
+
+def test_held_answers_take_each_paths_camera_and_leave_out_what_has_none():
+    direct = {**_direct("3", 9.0, 8.8, 9.2), "opencv_rational": {"camera_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                                                                 "dist_coeffs": [0.1] * 8}}
+    held = held_answers(direct, _planar("4", 9.1, 8.0, 10.0))
+    assert list(held) == ["direct", "planar"] and held["direct"]["dist_coeffs"] == [0.1] * 8  # the rational one
+    assert held["planar"]["dist_coeffs"] == [-0.4, 0.1, 0, 0, 0] and held["planar"]["delta_avg_user_px"] == 9.1
+    assert held["direct"]["delta_max_user_interval"] == [17.6, 18.4] and held["direct"]["invertible_fraction"] == 1.0
+    nan = float("nan")
+    assert held_answers({**direct, "delta_avg_user_px": nan}, {"ok": False, "reason": "too few pairs"}) == {}
+    assert list(held_answers({**direct, "opencv": None, "opencv_rational": None}, _planar("4", 9.1, 8, 10))) == [
+        "planar"]
+
+
+def test_without_a_reconstruction_the_more_precise_of_the_other_paths_answers():
     failed = combine(
         _direct("3", 9.0, 8.8, 9.2), {"ok": False, "reason": "the engine could not reconstruct the sequence"}
     )
     assert failed["method"] == "direct" and failed["class"] == "3" and "reconstruct" in failed["multiview"]["reason"]
-    wide = combine(_direct("3", 9.0, 8.8, 9.2), _mv(None, 12.0, 0.0, 30.0))
-    assert wide["method"] == "direct" and wide["class"] == "3"
-    assert wide["multiview"]["reason"].startswith("interval too wide")
-    neither = combine(_direct(None, 1.0, 0.0, 9.0), _mv(None, 12.0, 0.0, 30.0))  # widths 9 and 30, overlapping
-    assert neither["class"] is None and neither["method"] == "direct" and neither["reason"] == "interval too wide"
-    # the GoPro views (docs/results): direct 16.49 [0, 43.11], multi-view 119.24 [61.21, 177.27]
-    gopro = combine(_direct(None, 16.49, 0.0, 43.11), _mv(None, 119.24, 61.21, 177.27))
-    assert gopro["method"] == "direct" and gopro["class"] is None and gopro["delta_avg_user_px"] == 16.49
-    assert "disagree beyond their intervals" in gopro["reason"] and "multi-view 119.24 px" in gopro["reason"]
-    # no interval from the direct path: the multi-view one answers alone
-    alone = combine({**_direct(None, float("nan"), 0, 0), "delta_avg_user_interval": None}, _mv("2", 7.0, 6.5, 7.5))
-    assert alone["method"] == "multiview" and alone["class"] == "2"
+    no_mapping = {"ok": False, "reason": "no mapping", "planar_max_relief_z": 2.0,
+                  "planar": _planar("2", 7.0, 6.5, 7.5)}
+    apart = combine({**_direct("R", 0.1, 0.0, 0.8), "relief_z": 0.1}, no_mapping)
+    assert apart["class"] is None and apart["method"] == "direct" and apart["delta_avg_user_px"] == 0.1
+    assert apart["reason"] == ("the paths disagree beyond their intervals (direct 0.10 px [0.00, 0.80]; homography "
+                               "model 7.00 px [6.50, 7.50]); the numbers are the direct path's, the most precise")
 
 
 def _planar(cls, d, lo, hi):
@@ -367,9 +383,10 @@ def _planar(cls, d, lo, hi):
     }
 
 
-def test_the_homography_model_answers_where_it_is_most_precise_on_a_flat_scene():
+def test_without_a_reconstruction_the_homography_model_answers_where_it_is_more_precise_on_a_flat_scene():
     direct = {**_direct(None, 61.5, 0.0, 172.0), "relief_z": 0.1}
-    mv = {**_mv(None, 116.0, 0.0, 272.4), "planar": _planar("4", 134.2, 105.6, 162.8), "planar_max_relief_z": 2.0}
+    mv = {"ok": False, "reason": "2 of 20 frames registered", "planar": _planar("4", 134.2, 105.6, 162.8),
+          "planar_max_relief_z": 2.0}  # no reconstruction: the direct path and the homography model remain
     out = combine(direct, mv)
     assert out["method"] == "planar" and out["class"] == "4" and out["reason"] is None
     assert out["delta_avg_user_px"] == 134.2 and out["camera_model"] == "planar-3-centre"

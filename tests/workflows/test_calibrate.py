@@ -59,18 +59,20 @@ def test_round_trip_distort_calibrate_undistort(sequence, tmp_path):
     lo, hi = res["delta_avg_user_interval"]
     assert lo <= true <= hi and res["pairs_used"] >= 6
     # a plane under translation: COLMAP reconstructs it, but relief and distortion trade: RADIAL and OPENCV crawl
-    # along the valley (11.6-11.7 px after 100 iterations, each sure of itself where it stopped) and, stopped at
-    # no minimum, have no posterior; the models that converge share the evidence, and the multi-view path gives
-    # no class with an interval that holds the truth. The plane's homography model is the most precise (a flat
-    # scene, no relief found) and answers; the direct path agrees, with its own class
+    # along the valley (far above the truth after 100 iterations) and, stopped at no minimum, have no posterior.
+    # Held on the same tracks, the direct path's lens and the homography model's predict the held-out frames
+    # better than any of COLMAP's models: one of them answers, with the comparison's interval and class
     mv = res["multiview"]
-    assert res["method"] == "planar" and mv["class"] is None and mv["reason"]
+    assert res["method"] in ("direct", "planar") and mv["model"] == res["method"]
     crawled = [m for m, row in mv["models"].items() if not row["converged"]]
     assert crawled and all(mv["models"][m]["delta_avg_std_px"] is None and mv["models"][m]["weight"] == 0
                            for m in crawled)
-    assert mv["delta_avg_user_interval"][0] <= true <= mv["delta_avg_user_interval"][1]
+    colmap = max(row["elpd"] for m, row in mv["models"].items() if m not in ("direct", "planar"))
+    assert min(mv["models"]["direct"]["elpd"], mv["models"]["planar"]["elpd"]) > colmap
+    assert mv["models"]["direct"]["weight"] + mv["models"]["planar"]["weight"] > 0.99
+    assert res["delta_avg_user_interval"] == mv["delta_avg_user_interval"]
     d_lo, d_hi = res["direct"]["delta_avg_user_interval"]
-    assert res["direct"]["class"] == "3" and d_lo <= true <= d_hi and hi - lo < d_hi - d_lo
+    assert res["direct"]["class"] == "3" and d_lo <= true <= d_hi
     assert res["opencv"]["fit_error_mean_px"] < 0.1 and len(res["opencv"]["dist_coeffs"]) == 5
     assert len(res["opencv_rational"]["dist_coeffs"]) == 8
     out = undistort_path(folder, tmp_path / "out", k2=res["k2_user"], k4=res["k4_user"])

@@ -93,9 +93,10 @@ def calibrate_path(
         device: where the registration and the self-calibration run (default: the CPU); the
             frames are read and brought to the analysis size on the CPU.
         method: "direct" (the photometric self-calibration of pairs), "multiview" (bundle
-            adjustment on COLMAP's tracks, needs pycolmap) or "auto" (both, combined by
-            :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`; the direct path alone where
-            pycolmap is missing). Frames that moved too little for the direct path (its
+            adjustment on COLMAP's tracks, needs pycolmap, beside the homography model's lens) or
+            "auto" (the direct path's lens held on the tracks too, every candidate weighed on the same
+            held-out frames: :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`; the
+            direct path alone where pycolmap is missing). Frames that moved too little for the direct path (its
             ``too little motion`` reason) get that answer from every method, before any mapping.
 
     Returns:
@@ -106,8 +107,8 @@ def calibrate_path(
         pairs_unregistered (pairs whose fit did not register them, ``direct_fits.MAX_MISFIT``; among the rejected),
         relief_effect_px and relief_z (the direct path's: how far its plane + parallax and planar answers part, and
         in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors), focal_source
-        (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``), method (which path answered, the most precise:
-        "direct", "multiview", "planar"), direct, multiview and planar (each path's own numbers; planar: the
+        (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``), method (whose lens answered:
+        "direct", "multiview", "planar"; :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`), direct, multiview and planar (each path's own numbers; planar: the
         homography model of the multi-view path).
 
     Example:
@@ -169,7 +170,8 @@ def calibrate_path(
         # (too few frames for a mapping is the multi-view path's own reason)
         mv = {"ok": False, "reason": cal.reason}
     elif method != "direct":
-        mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames, quiet=quiet)
+        mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames, quiet=quiet,
+                            direct=out if method == "auto" else None)
         if method == "multiview" and not mv["ok"]:
             raise ValueError(mv["reason"])
     return _finite(_verified(_with_focal(combine(out, mv), focal, size), torch.cat(frames), cal, cfg, st))

@@ -5,10 +5,12 @@ sequence, of a folder (as they are) or of a video (written once as lossless grey
 temporary folder) to COLMAP (:mod:`~lensdist_torch.calibration.multiview`;
 ``multiview.reconstructions`` mappings, each self-calibrated, combined by
 :mod:`~lensdist_torch.calibration.multiview_runs`) and returns a strict-JSON-ready dict, or the
-reason it has no answer (no mapping registered enough frames). :func:`combine` makes the
-one answer of :func:`~lensdist_torch.calibration.controllers.calibrate.calibrate_path` from its
-paths' estimates (the direct one, the multi-view one, the homography model): the most precise of
-those whose scene model holds, with its class where every other path's interval meets its own.
+reason it has no answer (no mapping registered enough frames). Every path is one candidate in
+one comparison: the direct path's camera and the homography model's (:func:`held_answers`) are
+held on COLMAP's tracks beside its models and scored on the same held-out frames, and
+:func:`combine` makes that comparison's answer the one of
+:func:`~lensdist_torch.calibration.controllers.calibrate.calibrate_path`; without a
+reconstruction, the more precise of the direct path and the homography model answers.
 """
 
 from __future__ import annotations
@@ -30,8 +32,8 @@ from lensdist_torch.core.frames import list_frames, read_frames
 from lensdist_torch.core.images import load_image
 from lensdist_torch.core.png import encode_png, to_uint8
 
-__all__ = ["MIN_REGISTERED", "PLANAR_MAX_RELIEF_Z", "COLMAP_SUFFIXES", "evenly_spaced", "multiview_path",
-           "planar_path", "combine"]
+__all__ = ["MIN_REGISTERED", "PLANAR_MAX_RELIEF_Z", "HELD_PATHS", "COLMAP_SUFFIXES", "evenly_spaced",
+           "multiview_path", "planar_path", "held_answers", "combine"]
 
 #: Image files COLMAP reads as they are; other frames are written as PNG first.
 COLMAP_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -43,6 +45,8 @@ MIN_REGISTERED = 0.5
 #: The homography model answers only where the direct path's plane + parallax test finds no relief beyond this z
 #: (``relief_z``): under one homography per pair a scene's relief passes for distortion (docs/method.md, 12).
 PLANAR_MAX_RELIEF_Z = 2.0
+#: The paths whose answers :func:`held_answers` holds on COLMAP's tracks, as the multi-view comparison names them.
+HELD_PATHS = ("direct", "planar")
 
 
 def _encode(frame: torch.Tensor) -> bytes:
@@ -62,7 +66,8 @@ def evenly_spaced(n: int, most: int) -> list[int]:
 
 
 def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: MultiViewConfig | None = None,
-                   settings: LensdistConfig | None = None, max_frames: int | None = 300, quiet: bool = True) -> dict:
+                   settings: LensdistConfig | None = None, max_frames: int | None = 300, quiet: bool = True,
+                   direct: dict | None = None) -> dict:
     """The multi-view calibration of a folder of frames or a video, as a dict (module docstring).
 
     Args:
@@ -73,6 +78,9 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
         max_frames: at most this many frames (None: all), of which ``multiview.mapped_frames`` evenly
             spaced (:func:`evenly_spaced`) go to COLMAP.
         quiet: no progress bar (its stages: features and matches, each mapping, each model).
+        direct: the direct path's answer (``calibrate_path``'s dict), held on the tracks beside
+            COLMAP's models with the homography model's (:func:`held_answers`); None: COLMAP's
+            models and, where it found a plane, the homography model's.
 
     Returns:
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
@@ -130,7 +138,8 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 bar.update(1)
                 bar.set_postfix_str(f"{n} of {len(names)} frames registered, models")
                 runs.append((cfg.seed + i, self_calibrate_reconstruction(
-                    rec, cfg, settings, frames=len(names), image_size=tuple(image_size), on_model=model_done)))
+                    rec, cfg, settings, frames=len(names), image_size=tuple(image_size), on_model=model_done,
+                    others=held_answers(direct, planar.get("answer")))))
                 return sum(not isinstance(r, str) for _, r in runs) >= cfg.reconstructions
             bar.total += 1  # a failed mapping: another seed (reconstruct's EXTRA_MAPPINGS)
             bar.update(1)
@@ -203,16 +212,51 @@ _KEYS = (
 )
 
 
+def held_answers(direct: dict | None, planar: dict | None) -> dict[str, dict]:
+    """The direct path's and the homography model's answers as cameras to hold on COLMAP's tracks.
+
+    What :func:`~lensdist_torch.calibration.multiview.self_calibrate_reconstruction` takes as
+    ``others``: per path (:data:`HELD_PATHS`) its OpenCV camera (the 8 rational coefficients where
+    exported, else the 5), Delta_avg and Delta_max with their intervals. A path without a finite
+    answer or an OpenCV camera is left out.
+
+    Example:
+        >>> cam = {"camera_matrix": [[200.0, 0, 99.5], [0, 200.0, 74.5], [0, 0, 1]], "dist_coeffs": [-0.1, 0, 0, 0, 0]}
+        >>> d = {"delta_avg_user_px": 3.0, "delta_avg_user_interval": [2.0, 4.0], "delta_max_user_px": 9.0,
+        ...      "delta_max_user_interval": [7.0, 11.0], "opencv": cam, "opencv_rational": None}
+        >>> sorted(held_answers(d, None)), held_answers(d, {"ok": False, "reason": "too few pairs"}).keys()
+        (['direct'], dict_keys(['direct']))
+    """
+    out = {}
+    for name, res in zip(HELD_PATHS, (direct, planar)):
+        if res is None or not res.get("ok", True):
+            continue
+        cam = res.get("opencv_rational") or res.get("opencv")
+        values = [res.get(k) for k in ("delta_avg_user_px", "delta_max_user_px")]
+        if cam is None or not all(v is not None and math.isfinite(v) for v in values):
+            continue
+        out[name] = {"camera_matrix": cam["camera_matrix"], "dist_coeffs": cam["dist_coeffs"],
+                     "invertible_fraction": res.get("invertible_fraction", 1.0),
+                     **{k: res.get(k) for k in _KEYS[2:]}}
+    return out
+
+
 def combine(direct: dict, mv: dict | None) -> dict:
     """One answer from the direct result (``calibrate_path``'s dict) and the multi-view one (or None).
 
-    Every path whose scene model holds and which has a Delta_avg interval is an estimate of the same
-    number: the direct path; the multi-view path where it reconstructed the sequence; the homography
-    model where it found a plane and the direct path's plane + parallax test no relief beyond
-    :data:`PLANAR_MAX_RELIEF_Z`. The most precise of them (the narrowest interval) answers, with
-    its class where every other path's interval meets its own, else "cannot tell" naming each path's
-    number (docs/method.md, section 11). Adds ``method`` (which path answered), ``direct``,
-    ``multiview`` and ``planar`` (each path's own numbers; None where it did not run).
+    Where COLMAP reconstructed the sequence, the multi-view answer is the answer: its comparison
+    held the direct path's and the homography model's cameras on the tracks beside COLMAP's
+    models (:func:`held_answers`), and the candidate that predicts the held-out frames best
+    answers, with the interval of all of them mixed by their evidence (docs/method.md, section 11).
+    ``method`` names the path whose camera won: "multiview" (a COLMAP model), "direct" or
+    "planar", that path's own numbers and lens with the comparison's interval and class.
+
+    Where it did not, the direct path and the homography model remain, and no held-out frames
+    weigh them: the more precise of those whose scene model holds answers (the homography model
+    where it found a plane and the direct path's plane + parallax test no relief beyond
+    :data:`PLANAR_MAX_RELIEF_Z`), with its class where the other's interval meets its own, else
+    "cannot tell" naming both. Adds ``method``, ``direct``, ``multiview`` and ``planar`` (each
+    path's own numbers; None where it did not run).
 
     Example:
         >>> d = {"class": "2", "reason": None, "delta_avg_user_px": 6.0, "delta_avg_user_interval": [5.0, 7.0],
@@ -226,15 +270,23 @@ def combine(direct: dict, mv: dict | None) -> dict:
     out["multiview"] = None if mv is None else _multiview_view(mv)
     planar = (mv or {}).get("planar")
     out["planar"] = None if planar is None else _planar_view(planar)
+    if mv is not None and mv["ok"]:
+        winner = mv["model"] if mv["model"] in HELD_PATHS else "multiview"
+        if winner == "multiview":
+            _take_multiview(out, mv)
+            return out
+        if winner == "planar":
+            _take_planar(out, planar)
+        out.update({k: mv[k] for k in _KEYS[2:]})
+        out.update(method=winner, **{"class": mv["class_label"], "reason": mv["reason"] or None})
+        return out
     found, relief = _estimates(direct, mv)
     if relief:
         out["planar"]["reason"] = relief
     if not found:
         return out
     name = min(found, key=lambda n: found[n][1] - found[n][0])
-    if name == "multiview":
-        _take_multiview(out, mv)
-    elif name == "planar":
+    if name == "planar":
         _take_planar(out, planar)
     chosen = found[name]
     apart = [n for n, iv in found.items() if not _overlap(chosen, iv)]
