@@ -23,7 +23,7 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+). Other
    cameras (``others``, e.g. another path's answer) can be held on the same tracks and scored on
    the same folds (:func:`~lensdist_torch.calibration.multiview_fits.fit_held_camera`); ``lensdist
-   calibrate`` does not pass them (docs/method.md, section 11, says what that gave). The
+   calibrate`` holds the direct path's and the homography model's (docs/method.md, section 11). The
    candidate of the highest expected log predictive density answers, the interval is the
    weighted mixture of all their posteriors; a model whose posterior is unbounded (one the
    tracks do not determine) gets no weight. Degenerate motion

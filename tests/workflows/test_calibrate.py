@@ -309,6 +309,19 @@ def test_the_homography_models_line_names_its_centre_and_how_straight_it_makes_l
     assert (says in line) if says else "straightens" not in line
 
 
+@pytest.mark.parametrize("model,says", [("direct", "the direct path's lens held on its tracks (weight 0.91"),
+                                         ("planar", "the homography model's lens held on its tracks (weight 0.91"),
+                                         ("RADIAL", "camera model RADIAL (weight 0.91")])
+def test_the_multiview_line_names_the_candidate_that_won(capsys, model, says):
+    from lensdist_torch.cli.calibrate import _paths
+
+    mv = {"model": model, "registered": 20, "points3D": 900, "reprojection_px": 0.4, "delta_avg_user_px": 6.9,
+          "delta_avg_user_interval": [6.1, 7.6], "models": {model: {"weight": 0.91}}}
+    _paths({"image_size": [240, 320], "frames": 20, "pairs_used": 19, "pairs_rejected": 0, "multiview": mv})
+    line = next(t for t in capsys.readouterr().out.splitlines() if t.startswith("multi-view path:"))
+    assert says in line and "Delta_avg 6.90 px [6.10, 7.60]" in line
+
+
 def test_the_homography_models_line_says_what_guided_matching_did(capsys):
     from lensdist_torch.cli.calibrate import _print_calibration
 
