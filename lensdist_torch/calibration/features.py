@@ -25,10 +25,11 @@ from lensdist_torch.config.checks import or_defaults
 __all__ = ["EXHAUSTIVE_BELOW", "FEATURES_PER_MEGAPIXEL", "SEQUENTIAL_OVERLAP", "feature_cap", "extract_and_match",
            "verify_in_shards"]
 
-#: Up to this many frames every pair is matched; more (a video's): each frame with its :data:`SEQUENTIAL_OVERLAP`
-#: successors and those 2^k frames on (COLMAP's quadratic overlap), as the frames' order is the recording's.
+#: Up to this many frames every pair is matched; more (a video's): sequential matching, as the frames' order is
+#: the recording's.
 EXHAUSTIVE_BELOW = 30
-#: Successors matched per frame in sequential matching (a video's frames beyond :data:`EXHAUSTIVE_BELOW`).
+#: Sequential matching's ``overlap``: COLMAP's quadratic overlap matches each frame with the frames 1, 2, 4, ...,
+#: 2^(overlap - 1) after it (a video's frames beyond :data:`EXHAUSTIVE_BELOW`).
 SEQUENTIAL_OVERLAP = 12
 #: SIFT features per megapixel of the frame as SIFT reads it, at most (and ``max_features``); matching and mapping
 #: scale with the features.

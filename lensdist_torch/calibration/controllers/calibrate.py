@@ -108,8 +108,9 @@ def calibrate_path(
         relief_effect_px and relief_z (the direct path's: how far its plane + parallax and planar answers part, and
         in how many stds), opencv and opencv_rational (camera_matrix, dist_coeffs and their errors), focal_source
         (where OpenCV's fx = fy comes from: one of ``FOCAL_SOURCES``), method (whose lens answered:
-        "direct", "multiview", "planar"; :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`), direct, multiview and planar (each path's own numbers; planar: the
-        homography model of the multi-view path).
+        "direct", "multiview", "planar"; :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`),
+        direct, multiview and planar (each path's own numbers; planar: the homography model of the multi-view
+        path).
 
     Example:
         >>> import tempfile
