@@ -80,7 +80,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
         quiet: no progress bar (its stages: features and matches, each mapping, each model).
         direct: the direct path's answer (``calibrate_path``'s dict), held on the tracks beside
             COLMAP's models with the homography model's (:func:`held_answers`); None: COLMAP's
-            models and, where it found a plane, the homography model's.
+            models and the homography model's.
 
     Returns:
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
@@ -189,13 +189,15 @@ def _overlap(a: tuple, b: tuple) -> bool:
 
 
 def _take_multiview(out: dict, mv: dict) -> None:
-    """``out`` gets the multi-view numbers and its camera as the OpenCV export, exact (COLMAP's models are OpenCV's)."""
+    """``out`` gets the COLMAP model's lens: eq. 4's fit, its camera as the exact OpenCV export (:func:`combine`).
+
+    COLMAP's models are OpenCV's; :func:`combine` adds the comparison's numbers and class.
+    """
     exact = {"camera_matrix": mv["camera_matrix"], "dist_coeffs": mv["dist_coeffs"], "fit_error_mean_px": 0.0,
              "fit_error_max_px": 0.0, "forward_error_mean_px": 0.0, "forward_error_max_px": 0.0}
-    out.update({k: mv[k] for k in ("k2_user", "k4_user", *_KEYS[2:], "invertible_fraction", "eq4_fit_error_px")})
-    out.update(method="multiview", camera_model=mv["model"], opencv=exact if len(mv["dist_coeffs"]) == 5 else None,
-               opencv_rational=exact if len(mv["dist_coeffs"]) == 8 else None,
-               **{"class": mv["class_label"], "reason": mv["reason"] or None})
+    out.update({k: mv[k] for k in ("k2_user", "k4_user", "invertible_fraction", "eq4_fit_error_px")})
+    out.update(camera_model=mv["model"], opencv=exact if len(mv["dist_coeffs"]) == 5 else None,
+               opencv_rational=exact if len(mv["dist_coeffs"]) == 8 else None)
 
 
 def _summary(res: dict, keys: tuple[str, ...]) -> dict:
@@ -270,15 +272,14 @@ def combine(direct: dict, mv: dict | None) -> dict:
     out["multiview"] = None if mv is None else _multiview_view(mv)
     planar = (mv or {}).get("planar")
     out["planar"] = None if planar is None else _planar_view(planar)
-    if mv is not None and mv["ok"]:
+    if mv is not None and mv["ok"]:  # the winner's own lens; the comparison's numbers, interval and class
         winner = mv["model"] if mv["model"] in HELD_PATHS else "multiview"
         if winner == "multiview":
             _take_multiview(out, mv)
-            return out
-        if winner == "planar":
+        elif winner == "planar":
             _take_planar(out, planar)
-        out.update({k: mv[k] for k in _KEYS[2:]})
-        out.update(method=winner, **{"class": mv["class_label"], "reason": mv["reason"] or None})
+        out.update({k: mv[k] for k in _KEYS[2:]}, method=winner,
+                   **{"class": mv["class_label"], "reason": mv["reason"] or None})
         return out
     found, relief = _estimates(direct, mv)
     if relief:
