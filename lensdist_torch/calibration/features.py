@@ -1,8 +1,9 @@
 """A sequence's features and verified matches in a COLMAP database, the same on every run.
 
-COLMAP's SIFT on every frame (at most ``max_image_side`` px and :func:`feature_cap` features),
-exhaustive matching (or sequential for a video's many frames), and the geometric verification
-in fixed shards (:func:`verify_in_shards`). :func:`~lensdist_torch.calibration.multiview.reconstruct`
+COLMAP's SIFT on every frame (at most ``max_image_side`` px and :func:`feature_cap` features) in
+fixed shards of the frames (:func:`extract_in_shards`), exhaustive matching (or sequential for a
+video's many frames), and the geometric verification in fixed shards of the pairs
+(:func:`verify_in_shards`). :func:`~lensdist_torch.calibration.multiview.reconstruct`
 maps on the database; :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads it.
 
 References:
@@ -12,6 +13,7 @@ References:
 
 from __future__ import annotations
 
+import copy
 import math
 import shutil
 import tempfile
@@ -23,7 +25,7 @@ from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 
 __all__ = ["EXHAUSTIVE_BELOW", "FEATURES_PER_MEGAPIXEL", "SEQUENTIAL_OVERLAP", "feature_cap", "extract_and_match",
-           "verify_in_shards"]
+           "extract_in_shards", "verify_in_shards"]
 
 #: Up to this many frames every pair is matched; more (a video's): sequential matching, as the frames' order is
 #: the recording's.
@@ -67,11 +69,13 @@ def extract_and_match(
     :func:`~lensdist_torch.calibration.multiview.reconstruct` maps on it;
     :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads its matches.
 
-    A run repeats bit for bit whatever ``num_threads``: the extraction runs on one thread (with
-    more, frames entered the database in the order their threads finished) and the verification
-    on ``num_threads`` fixed shards of the matched pairs, one thread each (:func:`verify_in_shards`;
-    COLMAP's own threads each draw from a seeded generator whichever pairs they are handed, so
-    the verified matches, and every answer after them, changed from run to run).
+    A run repeats bit for bit whatever ``num_threads``: the extraction runs in ``num_threads`` fixed
+    shards of consecutive frames, one thread each (:func:`extract_in_shards`; with COLMAP's own
+    threads, frames entered the database in the order their threads finished) and the
+    verification in ``num_threads`` fixed shards of the matched pairs, one thread each
+    (:func:`verify_in_shards`; COLMAP's own threads each draw from a seeded generator whichever
+    pairs they are handed, so the verified matches, and every answer after them, changed from run
+    to run).
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
     pc.set_random_seed(cfg.seed)
@@ -85,8 +89,7 @@ def extract_and_match(
     verification = pc.TwoViewGeometryOptions()
     verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
     with quiet_log():
-        pc.extract_features(database, image_dir, image_names=list(names), camera_mode=pc.CameraMode.SINGLE,
-                            reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
+        extract_in_shards(database, image_dir, names, reader=reader, extraction=extraction, threads=cfg.num_threads)
         if len(names) <= EXHAUSTIVE_BELOW:
             pc.match_exhaustive(
                 database, matching_options=matching, verification_options=verification, device=pc.Device.cpu
@@ -97,6 +100,73 @@ def extract_and_match(
             pc.match_sequential(database, matching_options=matching, pairing_options=pairing,
                                 verification_options=verification, device=pc.Device.cpu)
         verify_in_shards(database, verification, threads=cfg.num_threads)
+
+
+def extract_in_shards(database: str | Path, image_dir: str | Path, names: list[str], *, reader, extraction,
+                      threads: int) -> None:
+    """COLMAP's features of frames ``names`` into a new ``database`` in ``threads`` fixed shards, as one thread.
+
+    The frames are dealt into ``threads`` shards of consecutive frames; each shard is extracted
+    on one thread into a database of its own, the shards side by side, and their frames are
+    written into ``database`` in the order of ``names``: one shared camera (the first frame's,
+    as COLMAP's single-camera mode makes it), each frame's rig frame, image, keypoints and
+    descriptors under the ids one thread gives them (1, 2, ... in that order), bit for bit.
+
+    Args:
+        database: the database to create (it must not hold frames yet).
+        image_dir: the folder of the frames.
+        names: the frames' file names in it, in recording order.
+        reader: ``pycolmap.ImageReaderOptions`` (its camera model).
+        extraction: ``pycolmap.FeatureExtractionOptions``; each shard runs it on one thread.
+        threads: the shards, at least 1 (at most one a frame). The shards' databases live in a
+            temporary folder beside ``database`` and go with it, whatever happens.
+    """
+    if not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"threads must be a positive int, got {threads!r}")
+    pc = pycolmap_or_error()
+    database, names = Path(database), list(names)
+    n = max(1, min(threads, len(names)))
+    bounds = [round(k * len(names) / n) for k in range(n + 1)]
+    extraction = copy.copy(extraction)
+    extraction.num_threads = 1
+
+    def extract(k: int, path: Path) -> None:
+        pc.extract_features(path, image_dir, image_names=names[bounds[k]: bounds[k + 1]],
+                            camera_mode=pc.CameraMode.SINGLE, reader_options=reader,
+                            extraction_options=extraction, device=pc.Device.cpu)
+
+    with tempfile.TemporaryDirectory(prefix="lensdist-extract-", dir=database.parent) as tmp:
+        shards = [Path(tmp) / f"shard{k}.db" for k in range(n)]
+        with ThreadPoolExecutor(n) as pool:  # COLMAP lets Python's lock go while it extracts
+            list(pool.map(extract, range(n), shards))
+        first = pc.Database.open(shards[0])
+        try:
+            (camera,), (rig,) = first.read_all_cameras(), first.read_all_rigs()
+        finally:
+            first.close()
+        db = pc.Database.open(database)
+        try:
+            db.write_camera(camera, use_camera_id=True)
+            db.write_rig(rig, use_rig_id=True)
+            image_id = 0
+            for path in shards:
+                part = pc.Database.open(path)
+                try:
+                    for image in sorted(part.read_all_images(), key=lambda im: im.image_id):
+                        image_id += 1  # frame and image share the id, as one thread numbers them
+                        frame = pc.Frame()
+                        frame.frame_id, frame.rig_id = image_id, rig.rig_id
+                        frame.add_data_id(pc.data_t(camera.sensor_id, image_id))
+                        db.write_frame(frame, use_frame_id=True)
+                        new = pc.Image(name=image.name, camera_id=camera.camera_id, image_id=image_id)
+                        new.frame_id = image_id
+                        db.write_image(new, use_image_id=True)
+                        db.write_keypoints(image_id, part.read_keypoints(image.image_id))
+                        db.write_descriptors(image_id, part.read_descriptors(image.image_id))
+                finally:
+                    part.close()
+        finally:
+            db.close()
 
 
 def verify_in_shards(database: str | Path, verification, *, threads: int) -> None:

@@ -182,6 +182,45 @@ def test_reconstructions_repeat_exactly_with_the_default_threads(tmp_path):
     assert first[0][0] >= 2 and first[0][2] != first[1][2]  # the second seed is another reconstruction
 
 
+@pytest.mark.parametrize("threads", [2, 3])
+def test_the_extraction_in_shards_is_one_threads_extraction_bit_for_bit(tmp_path, threads):
+    # the peer: COLMAP's own extraction on one thread (its ids in the frames' order); the shards run side by side
+    pc = pytest.importorskip("pycolmap")
+    import numpy as np
+
+    from lensdist_torch.calibration.features import extract_in_shards
+
+    real = Path(__file__).parents[1] / "data" / "real" / "gopro_hero4_wall"
+    names = sorted(p.name for p in real.glob("*.jpg"))[:5]
+    reader = pc.ImageReaderOptions()
+    reader.camera_model = "RADIAL"
+    extraction = pc.FeatureExtractionOptions()
+    extraction.num_threads, extraction.max_image_size, extraction.use_gpu = 1, 320, False
+    pc.extract_features(tmp_path / "one.db", real, image_names=names, camera_mode=pc.CameraMode.SINGLE,
+                        reader_options=reader, extraction_options=extraction, device=pc.Device.cpu)
+    extraction.num_threads = 4  # each shard runs on one thread whatever the options say
+    extract_in_shards(tmp_path / "shards.db", real, names, reader=reader, extraction=extraction, threads=threads)
+    assert extraction.num_threads == 4  # the caller's options are not changed
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["one.db", "shards.db"]  # no shard left
+    one, shards = pc.Database.open(tmp_path / "one.db"), pc.Database.open(tmp_path / "shards.db")
+    for table in ("read_all_cameras", "read_all_rigs", "read_all_frames", "read_all_images"):
+        assert [str(v) for v in getattr(one, table)()] == [str(v) for v in getattr(shards, table)()]
+    assert [im.name for im in shards.read_all_images()] == names
+    for i in range(1, len(names) + 1):
+        assert shards.num_keypoints_for_image(i) > 50
+        assert np.array_equal(one.read_keypoints(i), shards.read_keypoints(i))
+        assert np.array_equal(one.read_descriptors(i).data, shards.read_descriptors(i).data)
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("threads", [0, -1, 1.5, "2"])
+def test_extract_in_shards_needs_a_positive_int_of_threads(tmp_path, threads):
+    from lensdist_torch.calibration.features import extract_in_shards
+
+    with pytest.raises(ValueError, match=r"^threads must be a positive int, got "):
+        extract_in_shards(tmp_path / "db.db", tmp_path, ["a.png"], reader=None, extraction=None, threads=threads)
+
+
 def test_the_verified_matches_repeat_exactly_with_the_default_threads(tmp_path):
     # COLMAP's threads each drew from a seeded RANSAC whichever pairs they were handed, and its extraction's
     # threads wrote the frames in the order they finished: the 12 GoPro views' verified matches differed in
