@@ -27,7 +27,9 @@ applied to the rendered frames with (k2 F^2, k4 F^4), which is (k2, k4) in the e
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import importlib
 import json
 import math
 import multiprocessing
@@ -100,20 +102,60 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+#: The stages timed in a run: (name, module, function), each function timed where ``calibrate_path`` calls it.
+STAGES = (
+    ("multi-view path", "lensdist_torch.calibration.controllers.calibrate", "multiview_path"),
+    ("extraction", "lensdist_torch.calibration.features", "extract_in_shards"),
+    ("matching", "pycolmap", "match_exhaustive"),
+    ("matching", "pycolmap", "match_sequential"),
+    ("verification", "lensdist_torch.calibration.features", "verify_in_shards"),
+    ("homography model", "lensdist_torch.calibration.controllers.multiview_path", "planar_path"),
+    ("mapping", "pycolmap", "incremental_mapping"),
+    ("models", "lensdist_torch.calibration.controllers.multiview_path", "self_calibrate_reconstruction"),
+)
+
+
+@contextlib.contextmanager
+def _timed_stages(seconds: dict):
+    """Adds each stage's wall seconds (:data:`STAGES`) to ``seconds`` while the block runs."""
+    saved = []
+    for name, module, function in STAGES:
+        mod = importlib.import_module(module)
+        f = getattr(mod, function)
+
+        def timed(*args, _f=f, _name=name, **kwargs):
+            t = time.perf_counter()
+            try:
+                return _f(*args, **kwargs)
+            finally:
+                seconds[_name] = seconds.get(_name, 0.0) + time.perf_counter() - t
+
+        saved.append((mod, function, f))
+        setattr(mod, function, timed)
+    try:
+        yield seconds
+    finally:
+        for mod, function, f in reversed(saved):
+            setattr(mod, function, f)
+
+
 def _one(folder: str, method: str, threads: int) -> dict:
-    """One timed run in this (spawned) process."""
+    """One timed run in this (spawned) process, with its stages' seconds (the direct path: the rest)."""
     torch.set_num_threads(threads)
     settings = LensdistConfig()
     settings = dataclasses.replace(settings, multiview=dataclasses.replace(settings.multiview, num_threads=threads))
     t0 = time.perf_counter()
-    res = calibrate_path(folder, method=method, settings=settings)
+    with _timed_stages({}) as stages:
+        res = calibrate_path(folder, method=method, settings=settings)
     seconds = time.perf_counter() - t0
+    stages["direct path and the rest"] = seconds - stages.get("multi-view path", 0.0)
     mv = res.get("multiview") or {}
-    return {"method": method, "seconds": seconds, "peak_rss_mb": _peak_mb(),
+    return {"method": method, "seconds": seconds, "stages_s": stages, "peak_rss_mb": _peak_mb(),
             "answered_by": res["method"], "class": res["class"], "reason": res["reason"],
             "delta_avg_user_px": res["delta_avg_user_px"], "delta_avg_user_interval": res["delta_avg_user_interval"],
             "multiview": {k: mv.get(k) for k in ("class", "reason", "delta_avg_user_px", "delta_avg_user_interval",
-                                                 "rotation_spread_deg", "registered", "reconstructions")}}
+                                                 "rotation_spread_deg", "registered", "observations",
+                                                 "reconstructions")}}
 
 
 def main() -> None:

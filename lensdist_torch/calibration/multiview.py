@@ -15,9 +15,11 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    (``reconstructions``); with a caller's ``stop`` up to ``EXTRA_MAPPINGS`` further seeds are
    tried where a mapping registers too few frames (a wrong initial pair).
 2. :func:`self_calibrate_reconstruction`: every model of ``models`` is fitted by a global bundle
-   adjustment on the same tracks (structure, poses, focal length and the model's distortion
-   free), stopping when an iteration lowers the cost by less than ``BA_FUNCTION_TOLERANCE`` of it
-   (Ceres' default; COLMAP's 0 crawled along the valley of a poorly conditioned camera).
+   adjustment on the same tracks (structure, poses, focal length and the model's distortion free;
+   a seeded share of the tracks beyond ``MAX_OBSERVATIONS`` observations:
+   :func:`~lensdist_torch.calibration.multiview_fits.thinned`), stopping when an iteration lowers
+   the cost by less than ``BA_FUNCTION_TOLERANCE`` of it (Ceres' default; COLMAP's 0 crawled along
+   the valley of a poorly conditioned camera).
 3. **Which model, and how sure** (:mod:`~lensdist_torch.calibration.multiview_evidence`): each
    model's posterior of Delta from the adjustment's covariance, its evidence from predicting
    frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+). Other
@@ -62,6 +64,7 @@ from lensdist_torch.calibration.lens_answer import LensAnswer
 from lensdist_torch.calibration.multiview_evidence import weigh_models
 from lensdist_torch.calibration.multiview_fits import (
     BA_FUNCTION_TOLERANCE,
+    MAX_OBSERVATIONS,
     camera_of,
     fit_held_camera,
     fit_model,
@@ -69,6 +72,7 @@ from lensdist_torch.calibration.multiview_fits import (
     pycolmap_or_error,
     quiet_log,
     rotation_spread_deg,
+    thinned,
 )
 from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
@@ -116,6 +120,9 @@ class MultiViewCalibration(LensAnswer):
         registered: frames the mapping registered.
         frames: frames handed to the mapping.
         points3D: 3-D points of the reconstruction.
+        observations: the observations the models were weighed on: all of the reconstruction's, or
+            a seeded share of its 3-D points' beyond ``multiview_fits.MAX_OBSERVATIONS``
+            (:func:`~lensdist_torch.calibration.multiview_fits.thinned`).
         reprojection_px: RMS reprojection error (px) of the chosen model.
         models: per fitted model its evidence ``weight``, Delta_avg and Delta_max (over where it
             inverts) with their posterior stds, the jackknife's std (``jackknife_std_px``, the
@@ -141,6 +148,7 @@ class MultiViewCalibration(LensAnswer):
     registered: int
     frames: int
     points3D: int
+    observations: int
     reprojection_px: float
     models: dict
     jackknife: list
@@ -296,6 +304,7 @@ def self_calibrate_reconstruction(
     size = image_size or (round(camera_of(rec).height * scale), round(camera_of(rec).width * scale))
     step = map_grid_step(*size)
     n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
+    mapped, (rec, observations) = rec, thinned(rec, MAX_OBSERVATIONS, seed=cfg.seed)
     fits = {}
     for model in cfg.models:
         fits[model] = fit_model(rec, model=model, size=size, scale=scale, step=step, n_blocks=n_blocks)
@@ -331,7 +340,6 @@ def self_calibrate_reconstruction(
         shared = ", ".join(f"{m} {v['delta_avg_px']:.2f} px at {v['weight']:.2f}" for m, v in
                            sorted(table.items(), key=lambda kv: -kv[1]["weight"]) if v["weight"] >= 0.01)
         reason += f" (the models' evidence is shared: {shared})"
-    chosen = fits[next(iter(cfg.models))]["rec"]
     return MultiViewCalibration(
         model=best,
         camera_matrix=k.tolist(),
@@ -346,9 +354,10 @@ def self_calibrate_reconstruction(
         eq4_fit_error_px=fit_err,
         class_label=label,
         reason=reason,
-        registered=chosen.num_reg_images(),
-        frames=frames or chosen.num_reg_images(),
-        points3D=chosen.num_points3D(),
+        registered=mapped.num_reg_images(),
+        frames=frames or mapped.num_reg_images(),
+        points3D=mapped.num_points3D(),
+        observations=observations,
         reprojection_px=table[best]["reprojection_px"],
         models=table,
         jackknife=fits[best].get("jackknife", []),

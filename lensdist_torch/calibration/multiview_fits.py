@@ -54,8 +54,10 @@ __all__ = [
     "held_camera",
     "fit_held_camera",
     "copy_reconstruction",
+    "thinned",
     "BA_FUNCTION_TOLERANCE",
     "BA_MAX_ITERATIONS",
+    "MAX_OBSERVATIONS",
 ]
 
 #: Relative cost decrease below which a bundle adjustment stops (Ceres' default; COLMAP's 0 crawled
@@ -65,6 +67,10 @@ BA_FUNCTION_TOLERANCE = 1e-6
 #: it from the mapping's structure; one they do not (its focal length traded along a valley of the cost) reaches no
 #: minimum at any cap, and :func:`fit_model` gives it no posterior (docs/method.md, section 11).
 BA_MAX_ITERATIONS = 100
+#: Observations the models are weighed on at most (:func:`thinned`): a bundle adjustment's cost grows with them, and
+#: a camera adjusted some 35 times on a long video's hundreds of thousands took minutes. Beyond it a seeded share of
+#: the 3-D points is kept, all of their observations: the posteriors widen as the square root of the share.
+MAX_OBSERVATIONS = 100_000
 
 
 def pycolmap_or_error():
@@ -258,6 +264,31 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
 def copy_reconstruction(rec):
     """A deep copy of a ``pycolmap.Reconstruction``."""
     return pycolmap_or_error().Reconstruction(rec)
+
+
+def thinned(rec, most: int, *, seed: int):
+    """``rec``, or a copy keeping a seeded random share of its 3-D points, with at most ``most`` observations.
+
+    The points are drawn in a seeded random order (``numpy``'s ``default_rng(seed)``) and kept while their
+    observations (their tracks' lengths) add up to at most ``most``: a uniform share of the tracks over
+    the frames and the frame's area. ``rec`` itself where it holds ``most`` observations or fewer.
+
+    Returns:
+        ``(reconstruction, observations)``: the reconstruction to weigh the models on and its observations.
+    """
+    if not (isinstance(most, int) and not isinstance(most, bool) and most >= 1):
+        raise ValueError(f"most must be a positive int, got {most!r}")
+    ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
+    lengths = np.array([rec.point3D(int(i)).track.length() for i in ids], dtype=np.int64)
+    if lengths.sum() <= most:
+        return rec, int(lengths.sum())
+    order = np.random.default_rng(seed).permutation(len(ids))
+    keep = np.zeros(len(ids), dtype=bool)
+    keep[order[np.cumsum(lengths[order]) <= most]] = True
+    out = copy_reconstruction(rec)
+    for point_id in ids[~keep]:
+        out.delete_point3D(int(point_id))
+    return out, int(lengths[keep].sum())
 
 
 def held_camera(

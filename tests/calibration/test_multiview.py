@@ -236,6 +236,48 @@ def test_the_posterior_std_of_delta_is_the_spread_of_the_estimates_over_noise_dr
     )  # independent noise: the posterior holds
 
 
+def test_thinned_keeps_a_seeded_share_of_whole_tracks_within_the_cap():
+    from lensdist_torch.calibration.multiview_fits import thinned
+
+    rec, _ = _spread_synthetic(1)
+    lengths = {i: rec.point3D(i).track.length() for i in rec.point3D_ids()}
+    total = sum(lengths.values())
+    same, n = thinned(rec, total, seed=0)
+    assert same is rec and n == total  # within the cap: the reconstruction itself
+    half, n = thinned(rec, total // 2, seed=0)
+    kept = {i: half.point3D(i).track.length() for i in half.point3D_ids()}
+    assert n == sum(kept.values()) and total // 2 - max(lengths.values()) < n <= total // 2
+    assert all(lengths[i] == k for i, k in kept.items())  # whole tracks, every observation of a kept point
+    assert rec.num_points3D() == len(lengths) and half.num_reg_images() == rec.num_reg_images()  # rec unchanged
+    assert set(thinned(rec, total // 2, seed=0)[0].point3D_ids()) == set(kept)  # seeded
+    assert set(thinned(rec, total // 2, seed=1)[0].point3D_ids()) != set(kept)
+
+
+def test_the_posterior_widens_as_the_square_root_of_the_share_of_tracks_kept(monkeypatch):
+    # MAX_OBSERVATIONS at a quarter of the tracks: RADIAL's posterior std of Delta_avg about twice the full one's
+    from lensdist_torch.calibration import multiview
+
+    rec, _ = _spread_synthetic(2)
+    cfg = MultiViewConfig(models=("RADIAL",), jackknife_blocks=4)
+    full = self_calibrate_reconstruction(rec, cfg)
+    total = sum(rec.point3D(i).track.length() for i in rec.point3D_ids())
+    monkeypatch.setattr(multiview, "MAX_OBSERVATIONS", total // 4)
+    quarter = self_calibrate_reconstruction(rec, cfg)
+    assert full.observations == total and total // 4 - 8 < quarter.observations <= total // 4
+    assert quarter.points3D == full.points3D == rec.num_points3D()  # the reconstruction's, not the share's
+    ratio = quarter.models["RADIAL"]["delta_avg_std_px"] / full.models["RADIAL"]["delta_avg_std_px"]
+    assert 1.6 < ratio < 2.5
+
+
+@pytest.mark.bad_input
+@pytest.mark.parametrize("most", [0, -1, 1.5, True, "100"])
+def test_thinned_needs_a_positive_int(most):
+    from lensdist_torch.calibration.multiview_fits import thinned
+
+    with pytest.raises(ValueError, match=r"^most must be a positive int, got "):
+        thinned(None, most, seed=0)
+
+
 def test_too_few_frames_is_a_one_line_error():
     rec, _ = _synthetic(0, frames=2)
     with pytest.raises(ValueError, match="at least 3 registered frames"):
@@ -282,6 +324,7 @@ def _mv(cls, d, lo, hi):
         "eq4_fit_error_px": 0.1,
         "registered": 20,
         "points3D": 900,
+        "observations": 18000,
         "reprojection_px": 0.4,
         "rotation_spread_deg": 30.0,
         "models": {},

@@ -26,7 +26,7 @@ def _cal(d, lo, hi, label="4", reason="", registered=28, rms=1.3, paper=None):
         delta_avg_user_px=d, delta_avg_user_interval=(lo, hi), delta_max_user_px=2 * d,
         delta_max_user_interval=(2 * lo, 2 * hi), invertible_fraction=0.9, k2_user=-1e-7, k4_user=0.0,
         eq4_fit_error_px=0.5, class_label=label, reason=reason, registered=registered, frames=37, points3D=1000,
-        reprojection_px=rms, models={}, jackknife=[d] * 6, rotation_spread_deg=40.0,
+        observations=20000, reprojection_px=rms, models={}, jackknife=[d] * 6, rotation_spread_deg=40.0,
         paper_delta_avg_px=d if paper is None else paper)
 
 

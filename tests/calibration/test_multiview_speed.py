@@ -21,7 +21,8 @@ def _cal(d, rotation, registered=22, label=None, reason=WIDE):
         delta_avg_user_px=d, delta_avg_user_interval=(0.0, d + 12.0), delta_max_user_px=5 * d,
         delta_max_user_interval=(0.0, 5 * d + 40), invertible_fraction=1.0, k2_user=2e-6, k4_user=0.0,
         eq4_fit_error_px=0.1, class_label=label, reason=reason, registered=registered, frames=22, points3D=6052,
-        reprojection_px=0.33, models={}, jackknife=[d] * 6, rotation_spread_deg=rotation, paper_delta_avg_px=d)
+        observations=60000, reprojection_px=0.33, models={}, jackknife=[d] * 6, rotation_spread_deg=rotation,
+        paper_delta_avg_px=d)
 
 
 def _fake_colmap(monkeypatch, tmp_path, answers):
