@@ -492,6 +492,56 @@ def test_missing_pycolmap_is_named(monkeypatch, tmp_path):
     assert res == {"ok": False, "reason": res["reason"]} and "pip install pycolmap" in res["reason"]
 
 
+def _fake_colmap(monkeypatch, tmp_path, homography):
+    """multiview_path over 4 frames, COLMAP's stages replaced: the matches, then a 0.6-s mapping that fails."""
+    import time
+
+    from lensdist_torch.calibration.controllers import multiview_path as mp
+
+    for i in range(4):
+        (tmp_path / f"f{i}.png").write_bytes(b"")
+    (tmp_path / "db.db").write_bytes(b"matches")
+
+    def reconstruct(folder, names, *, config, stop, image_size, on_matches):
+        on_matches(tmp_path / "db.db")
+        time.sleep(0.6)  # the mapping, on one thread
+        stop(0, None)
+        return [None]
+
+    monkeypatch.setattr(mp, "reconstruct", reconstruct)
+    monkeypatch.setattr(mp, "planar_path", homography)
+    t0 = time.perf_counter()
+    try:
+        return mp.multiview_path(tmp_path, (30, 40)), time.perf_counter() - t0
+    finally:
+        assert not (tmp_path / "homography.db").exists()
+
+
+def test_the_homography_model_runs_beside_the_mapping_on_its_own_copy_of_the_matches(monkeypatch, tmp_path):
+    import time
+
+    seen = []
+
+    def homography(database, names, image_size, **kwargs):
+        seen.append((database.read_bytes(), database != tmp_path / "db.db", names))
+        time.sleep(0.6)
+        return {"ok": False, "reason": "too few pairs of matches"}
+
+    res, seconds = _fake_colmap(monkeypatch, tmp_path, homography)
+    assert seen == [(b"matches", True, [f"f{i}.png" for i in range(4)])]
+    assert res["ok"] is False and res["planar"] == {"ok": False, "reason": "too few pairs of matches"}
+    assert "0 of 4 frames registered" in res["reason"]
+    assert seconds < 1.1  # side by side: one after the other takes 1.2 s
+
+
+def test_an_error_of_the_homography_model_reaches_the_caller(monkeypatch, tmp_path):
+    def homography(database, names, image_size, **kwargs):
+        raise ValueError("frames must be readable")
+
+    with pytest.raises(ValueError, match="^frames must be readable$"):
+        _fake_colmap(monkeypatch, tmp_path, homography)
+
+
 def test_feature_cap_follows_the_area_sift_reads_by_hand(planar_constant):
     from lensdist_torch.calibration.multiview import feature_cap
 

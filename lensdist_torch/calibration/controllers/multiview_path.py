@@ -5,7 +5,9 @@ sequence, of a folder (as they are) or of a video (written once as lossless grey
 temporary folder) to COLMAP (:mod:`~lensdist_torch.calibration.multiview`;
 ``multiview.reconstructions`` mappings, each self-calibrated, combined by
 :mod:`~lensdist_torch.calibration.multiview_runs`) and returns a strict-JSON-ready dict, or the
-reason it has no answer (no mapping registered enough frames). Every path is one candidate in
+reason it has no answer (no mapping registered enough frames). The homography model
+(:func:`planar_path`) runs on a copy of the matches beside the mapping, which COLMAP runs on one
+thread. Every path is one candidate in
 one comparison: the direct path's camera and the homography model's (:func:`held_answers`) are
 held on COLMAP's tracks beside its models and scored on the same held-out frames, and
 :func:`combine` makes that comparison's answer the one of
@@ -16,7 +18,9 @@ reconstruction, the more precise of the direct path and the homography model ans
 from __future__ import annotations
 
 import math
+import shutil
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -117,14 +121,18 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
         least = max(MIN_FRAMES, math.ceil(MIN_REGISTERED * len(names)))
         runs, got, planar = [], 0, {}
 
-        def homography_model(database: Path) -> None:  # the same matches, before any mapping
+        def homography_model(database: Path) -> None:  # the same matches, beside the mapping (it runs on one thread)
             bar.update(1)
             if cfg.planar_terms:
-                bar.set_postfix_str("homography model")
-                planar["answer"] = planar_path(
-                    database, names, image_size, config=cfg, settings=settings, folder=folder
+                own = Path(tmp) / "homography.db"  # its own copy: the mapping's goes when the mappings end
+                shutil.copyfile(database, own)
+                planar["future"] = pool.submit(
+                    planar_path, own, names, image_size, config=cfg, settings=settings, folder=folder
                 )
-            bar.set_postfix_str("mapping")
+            bar.set_postfix_str("mapping and the homography model")
+
+        def homography_answer() -> dict | None:
+            return planar["future"].result() if "future" in planar else None
 
         def take(i: int, rec) -> bool:  # one mapping's answer; True: enough mappings succeeded
             nonlocal got
@@ -139,7 +147,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 bar.set_postfix_str(f"{n} of {len(names)} frames registered, models")
                 runs.append((cfg.seed + i, self_calibrate_reconstruction(
                     rec, cfg, settings, frames=len(names), image_size=tuple(image_size), on_model=model_done,
-                    others=held_answers(direct, planar.get("answer")))))
+                    others=held_answers(direct, homography_answer()))))
                 return sum(not isinstance(r, str) for _, r in runs) >= cfg.reconstructions
             bar.total += 1  # a failed mapping: another seed (reconstruct's EXTRA_MAPPINGS)
             bar.update(1)
@@ -152,9 +160,10 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
         stages = 1 + cfg.reconstructions * (1 + len(cfg.models))  # features and matches, then per mapping
         with tqdm(
             total=stages, disable=quiet, desc=f"multi-view, {len(names)} frames", unit="stage", leave=False
-        ) as bar:
+        ) as bar, ThreadPoolExecutor(1) as pool:
             bar.set_postfix_str("features and matches")
             reconstruct(folder, names, config=cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model)
+            planar["answer"] = homography_answer()
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {
