@@ -71,11 +71,12 @@ def extract_and_match(
 
     A run repeats bit for bit whatever ``num_threads``: the extraction runs in ``num_threads`` fixed
     shards of consecutive frames, one thread each (:func:`extract_in_shards`; with COLMAP's own
-    threads, frames entered the database in the order their threads finished) and the
-    verification in ``num_threads`` fixed shards of the matched pairs, one thread each
-    (:func:`verify_in_shards`; COLMAP's own threads each draw from a seeded generator whichever
-    pairs they are handed, so the verified matches, and every answer after them, changed from run
-    to run).
+    threads, frames entered the database in the order their threads finished), the matching on
+    one thread (on two, COLMAP's CPU matcher now and then kept a fraction of a pair's matches:
+    docs/method.md, section 11) and the verification in ``num_threads`` fixed shards of the
+    matched pairs, one thread each (:func:`verify_in_shards`; COLMAP's own threads each draw from a
+    seeded generator whichever pairs they are handed, so the verified matches, and every answer
+    after them, changed from run to run).
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
     pc.set_random_seed(cfg.seed)
@@ -85,7 +86,7 @@ def extract_and_match(
     extraction.num_threads, extraction.max_image_size, extraction.use_gpu = 1, cfg.max_image_side, False
     extraction.sift.max_num_features = feature_cap(cfg, image_size)
     matching = pc.FeatureMatchingOptions()
-    matching.num_threads, matching.use_gpu, matching.skip_geometric_verification = cfg.num_threads, False, True
+    matching.num_threads, matching.use_gpu, matching.skip_geometric_verification = 1, False, True
     verification = pc.TwoViewGeometryOptions()
     verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
     with quiet_log():

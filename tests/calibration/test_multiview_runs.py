@@ -161,8 +161,8 @@ def test_reconstructions_must_be_a_positive_int(value):
 
 # ------------------------------------------------------------------ the same numbers, run after run
 def test_reconstructions_repeat_exactly_with_the_default_threads(tmp_path):
-    # the extraction and the mapping run on one thread, the matching on two, the verification in two shards of one
-    # thread each: with COLMAP's own threads the 12 GoPro views' verified matches changed from run to run
+    # the extraction and the verification in two shards of one thread each, the matching and the mapping on one:
+    # with COLMAP's own threads the 12 GoPro views' verified matches changed from run to run
     pycolmap = pytest.importorskip("pycolmap")
     from lensdist_torch.calibration.multiview import reconstruct
 
@@ -180,6 +180,24 @@ def test_reconstructions_repeat_exactly_with_the_default_threads(tmp_path):
     first = numbers()
     assert first == numbers() == numbers()  # bit for bit
     assert first[0][0] >= 2 and first[0][2] != first[1][2]  # the second seed is another reconstruction
+
+
+@pytest.mark.parametrize("frames", [4, 40])
+def test_the_matching_runs_on_one_thread_whatever_num_threads(monkeypatch, tmp_path, frames):
+    # on two threads COLMAP's CPU matcher kept a fraction of some pairs' matches, at random (60 frames of 968 x 608:
+    # 2 and 20 of 297 pairs between runs, 4324 -> 2930 matches); on one, runs repeat (docs/method.md, section 11)
+    pc = pytest.importorskip("pycolmap")
+    from lensdist_torch.calibration import features
+
+    seen = []
+    monkeypatch.setattr(features, "extract_in_shards", lambda *a, **k: None)
+    monkeypatch.setattr(features, "verify_in_shards", lambda *a, **k: None)
+    for name in ("match_exhaustive", "match_sequential"):
+        monkeypatch.setattr(pc, name, lambda db, *, matching_options, _name=name, **k: seen.append(
+            (_name, matching_options.num_threads)))
+    features.extract_and_match(tmp_path / "db.db", tmp_path, [f"f{i}.png" for i in range(frames)],
+                               config=MultiViewConfig(num_threads=2))
+    assert seen == [("match_exhaustive" if frames <= features.EXHAUSTIVE_BELOW else "match_sequential", 1)]
 
 
 @pytest.mark.parametrize("threads", [2, 3])
