@@ -342,6 +342,9 @@ def test_the_comparison_answers_where_colmap_reconstructed_the_sequence():
     assert out["delta_avg_user_interval"] == (6.5, 7.5) and out["camera_model"] == "RADIAL"
     assert out["opencv"]["dist_coeffs"] == [-0.1, 0.01, 0, 0, 0] and out["opencv_rational"] is None
     assert out["direct"]["delta_avg_user_px"] == 0.1 and out["multiview"]["delta_avg_user_px"] == 7.0
+    mv = _mv("2", 7.0, 6.5, 7.5)  # the JSON's multiview block carries the record's diagnostics, as the text reads them
+    for key in ("registered", "points3D", "observations", "reprojection_px", "rotation_spread_deg", "models"):
+        assert out["multiview"][key] == mv[key]
     # no class from the comparison: none from another path either, and its reason stands
     wide = combine(_direct("3", 9.0, 8.8, 9.2), _mv(None, 12.0, 0.0, 30.0))
     assert wide["method"] == "multiview" and wide["class"] is None and wide["reason"] == "interval too wide: +-9 px"

@@ -350,7 +350,7 @@ def _multiview_view(mv: dict) -> dict:
         "model": mv["model"],
         **{k: mv[k] for k in _KEYS[2:]},
         **{k: mv[k] for k in ("invertible_fraction", "eq4_fit_error_px", "registered", "points3D", "observations",
-                              "rotation_spread_deg", "camera_matrix", "dist_coeffs", "models")},
+                              "reprojection_px", "rotation_spread_deg", "camera_matrix", "dist_coeffs", "models")},
         "reconstructions": list(mv.get("reconstructions", ())),
         "reconstruction_spread_px": mv.get("reconstruction_spread_px", 0.0),
         "dispersion": mv.get("dispersion", 1.0),
