@@ -68,8 +68,8 @@ BA_FUNCTION_TOLERANCE = 1e-6
 #: minimum at any cap, and :func:`fit_model` gives it no posterior (docs/method.md, section 11).
 BA_MAX_ITERATIONS = 100
 #: Observations the models are weighed on at most (:func:`thinned`): a bundle adjustment's cost grows with them, and
-#: a camera adjusted some 35 times on a long video's hundreds of thousands took minutes. Beyond it a seeded share of
-#: the 3-D points is kept, all of their observations: the posteriors widen as the square root of the share.
+#: every candidate is adjusted on all the frames and again on each fold. Beyond it a seeded share of the 3-D points is
+#: kept, all of their observations: the posteriors widen as the square root of the share (docs/method.md, 11).
 MAX_OBSERVATIONS = 100_000
 
 
