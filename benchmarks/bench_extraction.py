@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from lensdist_torch.calibration.controllers.multiview_path import evenly_spaced
-from lensdist_torch.calibration.features import extract_in_shards, feature_cap
+from lensdist_torch.calibration.features import extract_in_shards, extraction_options
 from lensdist_torch.calibration.multiview_fits import pycolmap_or_error, quiet_log
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
@@ -60,11 +60,8 @@ def main() -> None:
     files = list_frames(args.frames_dir)
     names = [files[i].name for i in evenly_spaced(len(files), args.frames)]
     size = tuple(load_image(files[0], max_pixels=None).shape[-2:])
-    reader = pc.ImageReaderOptions()
-    reader.camera_model = "RADIAL"
-    extraction = pc.FeatureExtractionOptions()
-    extraction.num_threads, extraction.max_image_size, extraction.use_gpu = 1, cfg.max_image_side, False
-    extraction.sift.max_num_features = feature_cap(cfg, size)
+    reader, extraction = extraction_options(cfg, size)
+    extraction.num_threads = 1  # the peer: COLMAP's own extraction on one thread
     best = {"one_thread": float("inf"), "shards": float("inf")}
     with tempfile.TemporaryDirectory(prefix="bench-extraction-") as tmp:
         for r in range(args.repeats):

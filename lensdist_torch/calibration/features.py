@@ -24,8 +24,8 @@ from lensdist_torch.calibration.multiview_fits import pycolmap_or_error, quiet_l
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
 
-__all__ = ["EXHAUSTIVE_BELOW", "FEATURES_PER_MEGAPIXEL", "SEQUENTIAL_OVERLAP", "feature_cap", "extract_and_match",
-           "extract_in_shards", "verify_in_shards"]
+__all__ = ["EXHAUSTIVE_BELOW", "FEATURES_PER_MEGAPIXEL", "SEQUENTIAL_OVERLAP", "feature_cap", "extraction_options",
+           "extract_and_match", "extract_in_shards", "verify_in_shards"]
 
 #: Up to this many frames every pair is matched; more (a video's): sequential matching, as the frames' order is
 #: the recording's.
@@ -54,6 +54,21 @@ def feature_cap(config: MultiViewConfig, image_size: tuple[int, int] | None = No
     return max(64, min(config.max_features, math.ceil(FEATURES_PER_MEGAPIXEL * h * w * shrink * shrink / 1e6)))
 
 
+def extraction_options(config: MultiViewConfig, image_size: tuple[int, int] | None = None):
+    """COLMAP's reader and SIFT options as :func:`extract_and_match` sets them: ``(reader, extraction)``.
+
+    One shared RADIAL camera; frames read at most ``max_image_side`` long, at most
+    :func:`feature_cap` features each, on the CPU.
+    """
+    pc = pycolmap_or_error()
+    reader = pc.ImageReaderOptions()
+    reader.camera_model = "RADIAL"
+    extraction = pc.FeatureExtractionOptions()
+    extraction.max_image_size, extraction.use_gpu = config.max_image_side, False
+    extraction.sift.max_num_features = feature_cap(config, image_size)
+    return reader, extraction
+
+
 def extract_and_match(
     database: str | Path,
     image_dir: str | Path,
@@ -80,11 +95,7 @@ def extract_and_match(
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
     pc.set_random_seed(cfg.seed)
-    reader = pc.ImageReaderOptions()
-    reader.camera_model = "RADIAL"
-    extraction = pc.FeatureExtractionOptions()
-    extraction.num_threads, extraction.max_image_size, extraction.use_gpu = 1, cfg.max_image_side, False
-    extraction.sift.max_num_features = feature_cap(cfg, image_size)
+    reader, extraction = extraction_options(cfg, image_size)
     matching = pc.FeatureMatchingOptions()
     matching.num_threads, matching.use_gpu, matching.skip_geometric_verification = 1, False, True
     verification = pc.TwoViewGeometryOptions()

@@ -304,14 +304,14 @@ def self_calibrate_reconstruction(
     size = image_size or (round(camera_of(rec).height * scale), round(camera_of(rec).width * scale))
     step = map_grid_step(*size)
     n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
-    mapped, (rec, observations) = rec, thinned(rec, MAX_OBSERVATIONS, seed=cfg.seed)
+    weighed, observations = thinned(rec, MAX_OBSERVATIONS, seed=cfg.seed)  # the tracks the models are weighed on
     fits = {}
     for model in cfg.models:
-        fits[model] = fit_model(rec, model=model, size=size, scale=scale, step=step, n_blocks=n_blocks)
+        fits[model] = fit_model(weighed, model=model, size=size, scale=scale, step=step, n_blocks=n_blocks)
         if on_model is not None:
             on_model(model)
     rows = [f["row"] for f in fits.values()]
-    held = _other_rows(rec, others or {}, fits, scale, n_blocks, cfg.confidence)
+    held = _other_rows(weighed, others or {}, fits, scale, n_blocks, cfg.confidence)
     fits, checked = {**fits, **held}, [True] * len(rows) + [False] * len(held)
     rows += [h["row"] for h in held.values()]
     weighed = weigh_models(rows, [f["errors"] for f in fits.values()], checked=checked, confidence=cfg.confidence,
@@ -354,9 +354,9 @@ def self_calibrate_reconstruction(
         eq4_fit_error_px=fit_err,
         class_label=label,
         reason=reason,
-        registered=mapped.num_reg_images(),
-        frames=frames or mapped.num_reg_images(),
-        points3D=mapped.num_points3D(),
+        registered=rec.num_reg_images(),
+        frames=frames or rec.num_reg_images(),
+        points3D=rec.num_points3D(),
         observations=observations,
         reprojection_px=table[best]["reprojection_px"],
         models=table,

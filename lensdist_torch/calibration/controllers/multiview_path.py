@@ -119,7 +119,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 "reason": f"the multi-view calibration needs at least {MIN_FRAMES} frames, got {len(names)}",
             }
         least = max(MIN_FRAMES, math.ceil(MIN_REGISTERED * len(names)))
-        runs, got, planar = [], 0, {}
+        runs, got, planar = [], 0, {}  # planar: the homography model's future, once the matches are in
 
         def homography_model(database: Path) -> None:  # the same matches, beside the mapping (it runs on one thread)
             bar.update(1)
@@ -163,18 +163,18 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
         ) as bar, ThreadPoolExecutor(1) as pool:
             bar.set_postfix_str("features and matches")
             reconstruct(folder, names, config=cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model)
-            planar["answer"] = homography_answer()
+            homography = homography_answer()
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
             return {
                 "ok": False,
                 "reason": f"the engine could not reconstruct the sequence: {got} of {len(names)} frames "
                 f"registered at most{tries} (at least {least} needed)",
-                "planar": planar.get("answer"),
+                "planar": homography,
                 "planar_max_relief_z": PLANAR_MAX_RELIEF_Z,
             }
         res = combine_reconstructions(runs, cfg, settings=settings)
-    return {"ok": True, **res.to_dict(), "planar": planar.get("answer"), "planar_max_relief_z": PLANAR_MAX_RELIEF_Z}
+    return {"ok": True, **res.to_dict(), "planar": homography, "planar_max_relief_z": PLANAR_MAX_RELIEF_Z}
 
 
 def planar_path(database: Path, names: list[str], image_size: tuple[int, int], *, config: MultiViewConfig,
