@@ -34,6 +34,7 @@ from tqdm.auto import tqdm
 from lensdist_torch.config import LensdistConfig, config_from_dict, config_to_dict, stored_config
 from lensdist_torch.core.images import IMAGE_SUFFIXES, load_image, load_scene
 from lensdist_torch.core.outputs import refuse_foreign_folder
+from lensdist_torch.core.threads import torch_threads
 from lensdist_torch.data.locks import DataSetLocked, share_lock
 from lensdist_torch.data.manifest import (
     FORMAT_VERSION,
@@ -275,15 +276,11 @@ def _run_tasks(tasks, out: Path, config, scenes, scenes_dir, sequence, fingerpri
     if workers == 1:
         # One thread, as in the worker processes: float32 reductions of the registration
         # depend on the thread count, and a shard's bytes must not depend on --workers.
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
+        with torch_threads(1):
             for s, k, a, b in tasks:
                 rec = generate_shard(scenes, config=config, set_name=s, start=a, end=b, fingerprint=fingerprint,
                                      batch_size=batch_size, on_batch=bar.update, sequence=sequence)
                 write_shard(shard_path(out, s, k), rec)
-        finally:
-            torch.set_num_threads(threads)
     elif tasks:
         cfg = config_to_dict(config)
         jobs = [(cfg, scenes_dir, sequence, s, k, a, b, fingerprint, batch_size, str(out)) for s, k, a, b in tasks]

@@ -19,6 +19,7 @@ import torch
 from lensdist_torch.config import AnalysisConfig, LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.images import as_batch, check_image, load_image, resize_to, to_grey
+from lensdist_torch.core.threads import torch_threads
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     delta_avg,
@@ -256,15 +257,11 @@ def one_thread(dev: torch.device):
     busy each such meeting waits for a time slice (docs/method.md, section 10). With one thread a
     pair's float32 reductions, and so its answer, no longer depend on the thread count either.
     """
-    threads = torch.get_num_threads()
-    if _batched(dev) or threads == 1:
+    if _batched(dev):
         yield
         return
-    torch.set_num_threads(1)
-    try:
+    with torch_threads(1):
         yield
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _selfcal_fits(p: PreparedPairs) -> list[tuple]:

@@ -422,3 +422,43 @@ def test_the_rational_export_is_named_where_the_standard_one_cannot_follow(capsy
     out = capsys.readouterr().out.splitlines()
     assert sum(t.startswith("OpenCV (") for t in out) == lines
     assert any("do not follow this lens" in t for t in out) == (lines == 2)
+
+
+def test_the_direct_path_runs_beside_the_multiview_one_on_the_threads_colmap_leaves(sequence, monkeypatch):
+    """The direct path fits its pairs while COLMAP maps: one run takes about the longer of the two, not their sum;
+    its torch threads are those ``multiview.num_threads`` leave (at least one), restored after; the mapping starts
+    once the direct path has pairs, and the answer it holds is the direct path's."""
+    import time
+
+    import lensdist_torch.calibration.controllers.calibrate as calibrate_mod
+    from lensdist_torch.config import LensdistConfig, MultiViewConfig
+
+    real, seen = calibrate_mod.calibrate_sequence, {}
+
+    def slow_direct(*args, progress=None, **kwargs):
+        seen.setdefault("direct_threads", torch.get_num_threads())
+        cal = real(*args, progress=progress, **kwargs)
+        seen.setdefault("paired_at", time.perf_counter())
+        time.sleep(1.0)
+        return cal
+
+    def slow_mapping(path, size, *, direct, **kwargs):
+        seen["mapping_from"] = time.perf_counter()
+        time.sleep(1.0)
+        seen["held"] = direct()
+        return {"ok": False, "reason": "no mapping here"}
+
+    monkeypatch.setattr(calibrate_mod, "calibrate_sequence", slow_direct)
+    monkeypatch.setattr(calibrate_mod, "multiview_path", slow_mapping)
+    settings = LensdistConfig(multiview=MultiViewConfig(num_threads=1))
+    with calibrate_mod.torch_threads(3):
+        t0 = time.perf_counter()
+        res = calibrate_path(sequence[0], settings=settings)
+        took = time.perf_counter() - t0
+        assert torch.get_num_threads() == 3
+    serial = time.perf_counter()
+    calibrate_path(sequence[0], method="direct")
+    alone = time.perf_counter() - serial  # the direct path (and its 1 s) with no mapping beside it
+    assert seen["direct_threads"] == 2 and seen["mapping_from"] <= seen["paired_at"]
+    assert took < alone + 0.7, (took, alone)  # serial: alone + 1 s
+    assert seen["held"]["delta_avg_user_px"] == res["direct"]["delta_avg_user_px"] == res["delta_avg_user_px"]

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import torch
@@ -38,6 +40,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.frames import frames_of_one_size
 from lensdist_torch.core.images import load_scene
+from lensdist_torch.core.threads import lowest_priority, torch_threads
 from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
@@ -96,8 +99,10 @@ def calibrate_path(
             adjustment on COLMAP's tracks, needs pycolmap, beside the homography model's lens) or
             "auto" (the direct path's lens held on the tracks too, every candidate weighed on the same
             held-out frames: :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`; the
-            direct path alone where pycolmap is missing). Frames that moved too little for the direct path (its
-            ``too little motion`` reason) get that answer from every method, before any mapping.
+            direct path alone where pycolmap is missing). In "auto" the direct path fits its pairs beside
+            COLMAP's features, matching and mapping, on the torch threads ``multiview.num_threads`` leaves
+            (at least one; the count is restored after). Frames that moved too little for the direct path
+            (its ``too little motion`` reason) get that answer from every method, before any mapping.
 
     Returns:
         A dict for ``json.dumps(..., allow_nan=False)``: path, frames, image_size [H, W],
@@ -142,14 +147,44 @@ def calibrate_path(
         size = tuple(img.shape[-2:])
     if len(frames) < 2:
         raise ValueError(f"path {path} must hold at least 2 frames of one camera, got {len(frames)}")
-    with tqdm(disable=quiet, desc="pairs", unit="pair", leave=False) as bar:
+    st = or_defaults(settings, LensdistConfig, "settings")
+    beside = method == "auto" and len(frames) >= MIN_FRAMES  # the direct path beside COLMAP's threads
+    threads = torch.get_num_threads()
+    with tqdm(disable=quiet, desc="pairs", unit="pair", leave=False) as bar, ThreadPoolExecutor(1) as pool, \
+            torch_threads(max(1, threads - st.multiview.num_threads) if beside else threads):
+        paired = threading.Event()  # the direct path has pairs to fit, or has answered
+
         def progress(done: int, total: int) -> None:
+            paired.set()
             bar.total = total
             bar.update(done - bar.n)
 
-        cal = calibrate_sequence(
-            torch.cat(frames).to(device or "cpu"), cfg, settings, frame_size=size, progress=progress
-        )
+        def direct_path() -> tuple:
+            if beside:  # the cores COLMAP leaves idle (its matching and mapping run on one thread)
+                lowest_priority()
+            cal = calibrate_sequence(torch.cat(frames).to(device or "cpu"), cfg, settings, frame_size=size,
+                                     progress=progress)
+            return cal, _direct_answer(cal, cfg, path, size, focal)
+
+        direct = pool.submit(direct_path)
+        direct.add_done_callback(lambda _: paired.set())
+        if not beside:
+            direct.result()
+        paired.wait()  # frames that moved too little answer before any mapping: no mapping can see more
+        mv = None
+        if method != "direct" and len(frames) >= MIN_FRAMES and direct.done() and _unmappable(direct.result()[0]):
+            mv = {"ok": False, "reason": direct.result()[0].reason}
+        elif method != "direct":  # "auto": the direct path fits its pairs beside COLMAP's features and mapping
+            mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames, quiet=quiet,
+                                direct=(lambda: direct.result()[1]) if method == "auto" else None)
+            if method == "multiview" and not mv["ok"]:
+                raise ValueError(mv["reason"])
+        cal, out = direct.result()
+    return _finite(_verified(_with_focal(combine(out, mv), focal, size), torch.cat(frames), cal, cfg, st))
+
+
+def _direct_answer(cal, cfg: CalibrationConfig, path: str | Path, size: tuple[int, int], focal: float | None) -> dict:
+    """The direct path's answer (``calibrate_path``'s dict before the paths combine)."""
     out = {k: getattr(cal, k) for k in ("frames", "image_size", "analysis_size", "scale", "k2_user", "k4_user",
                                         "delta_avg_user_px", "delta_avg_user_interval", "delta_max_user_px",
                                         "delta_max_user_interval", "relief_effect_px", "relief_z")}
@@ -159,23 +194,12 @@ def calibrate_path(
                 "pairs_unregistered": int(unregistered(cal.pair_misfit).sum()),
                 "opencv": _opencv(cal.k2_user, cal.k4_user, size, focal, "standard"),
                 "opencv_rational": _opencv(cal.k2_user, cal.k4_user, size, focal, "rational")})
-    st = or_defaults(settings, LensdistConfig, "settings")
-    mv = None
-    if (
-        method != "direct"
-        and len(frames) >= MIN_FRAMES
-        and not len(cal.pairs)
-        and cal.reason.startswith((TOO_LITTLE_MOTION, NO_TEXTURE))
-    ):
-        # the frames did not move, or have nothing to match: no mapping can see more, so none runs
-        # (too few frames for a mapping is the multi-view path's own reason)
-        mv = {"ok": False, "reason": cal.reason}
-    elif method != "direct":
-        mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames, quiet=quiet,
-                            direct=out if method == "auto" else None)
-        if method == "multiview" and not mv["ok"]:
-            raise ValueError(mv["reason"])
-    return _finite(_verified(_with_focal(combine(out, mv), focal, size), torch.cat(frames), cal, cfg, st))
+    return out
+
+
+def _unmappable(cal) -> bool:
+    """Whether the direct path found the frames moved too little, or have nothing to match (no pair at all)."""
+    return not len(cal.pairs) and cal.reason.startswith((TOO_LITTLE_MOTION, NO_TEXTURE))
 
 
 def _with_focal(res: dict, focal: float | None, size: tuple[int, int]) -> dict:

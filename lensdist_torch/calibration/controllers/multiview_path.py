@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -71,7 +72,7 @@ def evenly_spaced(n: int, most: int) -> list[int]:
 
 def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: MultiViewConfig | None = None,
                    settings: LensdistConfig | None = None, max_frames: int | None = 300, quiet: bool = True,
-                   direct: dict | None = None) -> dict:
+                   direct: dict | Callable[[], dict] | None = None) -> dict:
     """The multi-view calibration of a folder of frames or a video, as a dict (module docstring).
 
     Args:
@@ -82,9 +83,10 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
         max_frames: at most this many frames (None: all), of which ``multiview.mapped_frames`` evenly
             spaced (:func:`evenly_spaced`) go to COLMAP.
         quiet: no progress bar (its stages: features and matches, each mapping, each model).
-        direct: the direct path's answer (``calibrate_path``'s dict), held on the tracks beside
-            COLMAP's models with the homography model's (:func:`held_answers`); None: COLMAP's
-            models and the homography model's.
+        direct: the direct path's answer (``calibrate_path``'s dict), or a function that returns it
+            once the mapping is done (the direct path then runs beside the features and the mapping),
+            held on the tracks beside COLMAP's models with the homography model's
+            (:func:`held_answers`); None: COLMAP's models and the homography model's.
 
     Returns:
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
@@ -147,7 +149,7 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 bar.set_postfix_str(f"{n} of {len(names)} frames registered, models")
                 runs.append((cfg.seed + i, self_calibrate_reconstruction(
                     rec, cfg, settings, frames=len(names), image_size=tuple(image_size), on_model=model_done,
-                    others=held_answers(direct, homography_answer()))))
+                    others=held_answers(direct() if callable(direct) else direct, homography_answer()))))
                 return sum(not isinstance(r, str) for _, r in runs) >= cfg.reconstructions
             bar.total += 1  # a failed mapping: another seed (reconstruct's EXTRA_MAPPINGS)
             bar.update(1)
