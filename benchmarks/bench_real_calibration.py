@@ -21,8 +21,11 @@ camera undistorts every view's corners, one homography per view is fitted to the
 the fit is reported, in the undistorted frame's pixels and in the image's (``homography_rms_image_px``: the unit
 of the chessboard calibration's own 0.56 px RMS); the homography
 model's own lens map is checked beside its OpenCV export, with its Delta_avg over the pixels
-where the calibration's model inverts (its own covers every pixel). The board is never shown to
-the estimators.
+where the calibration's model inverts (its own covers every pixel). How well the board knows the
+truth: the chessboard calibration again on the corners, with OpenCV's 5 coefficients and its
+rational model (``truth_models``), and every lens's Delta_avg over the pixels some view's board
+covers (``on_boards_px``; beyond them the calibration's Delta is an extrapolation). The board is
+never shown to the estimators.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from lensdist_torch.calibration.controllers.answer_lens import opencv_to_use
 from lensdist_torch.calibration.planar_features import delta_avg_where
 from lensdist_torch.config import MultiViewConfig
 from lensdist_torch.core import atomic_write_text
@@ -108,6 +112,39 @@ def on_footprint(k, dist, points: torch.Tensor) -> float:
         points, torch.tensor(k, dtype=torch.float64), torch.tensor(dist, dtype=torch.float64)
     )
     return float((ideal - points).norm(dim=-1)[ok].mean()) if bool(ok.any()) else float("nan")
+
+
+def inside_boards(points: torch.Tensor, corners: dict) -> torch.Tensor:
+    """(N,) bool: the ``points`` (N, 2) inside the convex hull of some view's chessboard corners."""
+    import cv2
+
+    p, inside = points.numpy(), np.zeros(len(points), dtype=bool)
+    for view in corners["image_points"].values():
+        hull = cv2.convexHull(np.asarray(view, dtype=np.float32)).reshape(-1, 2).astype(np.float64)
+        edge, to_p = np.roll(hull, -1, axis=0) - hull, p[:, None, :] - hull[None]
+        cross = edge[None, :, 0] * to_p[..., 1] - edge[None, :, 1] * to_p[..., 0]
+        inside |= (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return torch.from_numpy(inside)
+
+
+def truth_models(corners: dict, size: tuple[int, int], points: dict[str, torch.Tensor]) -> dict:
+    """The chessboard calibration again, with OpenCV's 5 coefficients and its rational model, on the corners.
+
+    How well the board itself knows the truth: per model its corners' RMS (px) and Delta_avg over
+    each set of ``points`` (the calibration's footprint, the pixels the boards cover).
+    """
+    import cv2
+
+    obj = np.array([[x, y, 0.0] for x, y in corners["object_points_xy"]], dtype=np.float32)
+    views = [np.asarray(v, dtype=np.float32) for v in corners["image_points"].values()]
+    out = {}
+    for name, flags, n in (("opencv, 5 coefficients", 0, 5), ("opencv, rational", cv2.CALIB_RATIONAL_MODEL, 8)):
+        rms, k, dist, _, _ = cv2.calibrateCamera([obj] * len(views), views, (size[1], size[0]), None, None,
+                                                 flags=flags)
+        k, dist = k.tolist(), dist.ravel()[:n].tolist()
+        out[name] = {"rms_px": rms, "camera_matrix": k, "dist_coeffs": dist,
+                     **{f"delta_avg_{where}_px": on_footprint(k, dist, pts) for where, pts in points.items()}}
+    return out
 
 
 def main() -> None:
@@ -224,7 +261,7 @@ def main() -> None:
     if args.corners:
         corners = json.loads(Path(args.corners).read_text())
         checks = {"chessboard calibration (truth)": (cal["K"], cal["dist"])}
-        cam = res["opencv"] or res["opencv_rational"]
+        cam = opencv_to_use(res)  # the camera the answer's text tells its user to paste
         if cam is not None:
             checks["lensdist answer"] = (cam["camera_matrix"], cam["dist_coeffs"])
             report["answer_on_truth_footprint_px"] = on_footprint(
@@ -269,6 +306,25 @@ def main() -> None:
                 f"{'yes' if report['planar_on_truth_footprint']['covers'] else 'no'} "
                 f"({planar['delta_avg_user_px']:.2f} px over its own footprint, every pixel)"
             )
+        boards = footprint[4][inside_boards(footprint[4], corners)]
+        report["boards_share"] = len(boards) / len(footprint[4])
+        report["truth_models"] = truth_models(corners, (h, w), {"footprint": footprint[4], "boards": boards})
+        report["on_boards_px"] = {"chessboard calibration (truth)": on_footprint(cal["K"], cal["dist"], boards)} | {
+            n: on_footprint(k, dist, boards) for n, (k, dist) in checks.items()}
+        if on_truth is not None:
+            confidence = MultiViewConfig(confidence=res.get("confidence", 0.95))
+            value, iv = delta_avg_where(pl, boards, h, w, config=confidence)
+            report["planar_on_boards"] = {"delta_avg_px": value, "interval": iv}
+        print(f"over the pixels the boards cover ({100 * report['boards_share']:.0f} % of the calibration's "
+              "footprint):")
+        for name, t in report["truth_models"].items():
+            print(f"  the chessboard again, {name}: corners RMS {t['rms_px']:.3f} px, Delta_avg "
+                  f"{t['delta_avg_boards_px']:.2f} px there ({t['delta_avg_footprint_px']:.2f} over the footprint)")
+        for name, value in report["on_boards_px"].items():
+            print(f"  {name}: {value:.2f} px")
+        if "planar_on_boards" in report:
+            value, iv = report["planar_on_boards"]["delta_avg_px"], report["planar_on_boards"]["interval"]
+            print(f"  the homography model's lens map: {value:.2f} px [{iv[0]:.2f}, {iv[1]:.2f}]")
         report["homography_rms"], report["homography_rms_image_px"] = {}, {}
         for name, (k, dist, ideal) in (
             {n: (*v, None) for n, v in checks.items()} | {n: (None, None, f) for n, f in maps.items()}

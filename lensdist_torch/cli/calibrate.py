@@ -157,16 +157,12 @@ def _print_calibration(res: dict, out: str | Path | None = None, *, debug: bool 
           + (f", lens model {res['camera_model']}" if res.get("camera_model") else "") + (
         "" if res.get("eq4_fit_error_px") is None else
         f"; Delta over the {100 * res['invertible_fraction']:.1f} % of pixels where its lens inverts"))
+    from lensdist_torch.calibration.controllers.answer_lens import opencv_to_use
     from lensdist_torch.geometry.opencv_model import FOLLOWS_PX
 
-    standard, rational = res["opencv"], res.get("opencv_rational")
-    shown = [standard or rational]
-    if (
-        standard
-        and rational
-        and max(standard["fit_error_mean_px"], standard.get("forward_error_mean_px", 0.0)) > FOLLOWS_PX
-    ):
-        shown.append(rational)  # the 5 coefficients cannot follow this lens: the 8 rational ones beside them
+    standard = res["opencv"] or res.get("opencv_rational")
+    shown = [standard] if opencv_to_use(res) is standard else [standard, opencv_to_use(res)]
+    # (two: the 5 coefficients cannot follow this lens, the 8 rational ones beside them)
     for cv in shown:
         k, n = cv["camera_matrix"], len(cv["dist_coeffs"])
         forward = cv.get("forward_error_mean_px")

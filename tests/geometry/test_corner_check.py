@@ -70,3 +70,33 @@ def test_the_true_lens_leaves_only_the_noise_in_image_pixels():
 def test_a_wrong_lens_shows_in_both_units():
     for px in (False, True):  # no lens where there is one: the board's lines stay bent by pixels
         assert min(homography_rms(K, [0.0] * 5, _views(0.0), image_px=px)) > 2.0
+
+
+def test_the_boards_region_holds_the_points_inside_some_views_corners():
+    from bench_real_calibration import inside_boards
+
+    square = {"image_points": {"a": [[10.0, 10.0], [30.0, 10.0], [30.0, 30.0], [10.0, 30.0], [20.0, 20.0]],
+                               "b": [[50.0, 50.0], [60.0, 50.0], [55.0, 60.0]]}}
+    points = torch.tensor([[20.0, 20.0], [10.0, 20.0], [31.0, 20.0], [55.0, 55.0], [55.0, 61.0], [40.0, 40.0]])
+    assert inside_boards(points, square).tolist() == [True, True, False, True, False, False]  # edges count
+
+
+def test_the_chessboard_again_finds_the_lens_the_corners_were_drawn_through():
+    """Corners projected by OpenCV through (K, DIST) from five tilted poses: both models find the lens's Delta_avg."""
+    import numpy as np
+    from bench_real_calibration import truth_models
+
+    from lensdist_torch.geometry.opencv_model import grid_points, opencv_delta
+
+    board = np.array([[x, y, 0.0] for y in range(6) for x in range(8)])
+    views = {}
+    for i, (rx, ry) in enumerate([(0.0, 0.0), (0.4, 0.0), (-0.4, 0.1), (0.1, 0.45), (-0.2, -0.4)]):
+        img, _ = cv2.projectPoints(board, np.array([rx, ry, 0.05]), np.array([-3.5, -2.5, 7.5]), np.array(K),
+                                   np.array(DIST))
+        views[f"v{i}"] = img.reshape(-1, 2).tolist()
+    corners = {"object_points_xy": board[:, :2].tolist(), "image_points": views}
+    again = truth_models(corners, (490, 660), {"frame": grid_points(490, 660, 8)})
+    truth = opencv_delta(torch.tensor(K), torch.tensor(DIST), 490, 660, step=8)["delta_avg_px"]
+    for model in again.values():
+        assert model["rms_px"] < 1e-3 and model["delta_avg_frame_px"] == pytest.approx(truth, rel=0.01)
+    assert again["opencv, 5 coefficients"]["dist_coeffs"] == pytest.approx(DIST, abs=1e-3)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import torch
 
 from lensdist_torch.geometry.distortion import distortion_center, undistort_points
-from lensdist_torch.geometry.opencv_model import map_grid_step, opencv_camera_from_map, opencv_ideal_points
+from lensdist_torch.geometry.opencv_model import FOLLOWS_PX, map_grid_step, opencv_camera_from_map, opencv_ideal_points
 from lensdist_torch.geometry.radial_lens import lens_ideal_points, lens_inverts
 from lensdist_torch.geometry.undistort import (
     lens_optimal_view,
@@ -34,7 +34,8 @@ from lensdist_torch.geometry.undistort import (
     undistortion_grid,
 )
 
-__all__ = ["answer_lens", "eq4_lens", "scale_lens", "lens_ideal", "lens_grid", "lens_view", "radial_lens_opencv"]
+__all__ = ["answer_lens", "eq4_lens", "scale_lens", "lens_ideal", "lens_grid", "lens_view", "radial_lens_opencv",
+           "opencv_to_use"]
 
 
 def answer_lens(res: dict) -> dict | None:
@@ -62,6 +63,29 @@ def answer_lens(res: dict) -> dict | None:
             "dist_coeffs": list(cam["dist_coeffs"]),
         }
     return None
+
+
+def opencv_to_use(res: dict) -> dict | None:
+    """The OpenCV camera an answer tells its user to paste: 5 coefficients, or 8 rational ones where 5 cannot follow.
+
+    The 5 coefficients (``opencv``) do not follow the lens where their undistortPoints or
+    cv2.undistort error is over ``FOLLOWS_PX`` px mean; the rational camera (``opencv_rational``)
+    is then the one to use (``lensdist calibrate``'s text says so). None where the answer has neither.
+
+    Example:
+        >>> five = {"fit_error_mean_px": 4.3, "forward_error_mean_px": 2.4, "dist_coeffs": [0.1] * 5}
+        >>> eight = {"fit_error_mean_px": 0.002, "forward_error_mean_px": 0.003, "dist_coeffs": [0.1] * 8}
+        >>> len(opencv_to_use({"opencv": five, "opencv_rational": eight})["dist_coeffs"])
+        8
+        >>> five["fit_error_mean_px"] = five["forward_error_mean_px"] = 0.01
+        >>> len(opencv_to_use({"opencv": five, "opencv_rational": eight})["dist_coeffs"])
+        5
+    """
+    standard, rational = res.get("opencv"), res.get("opencv_rational")
+    if standard and rational and max(standard["fit_error_mean_px"],
+                                     standard.get("forward_error_mean_px", 0.0)) > FOLLOWS_PX:
+        return rational
+    return standard or rational
 
 
 def eq4_lens(k2: float, k4: float) -> dict:
