@@ -19,7 +19,9 @@ self-calibration, and an established engine does it: COLMAP, through its Python 
    a seeded share of the tracks beyond ``MAX_OBSERVATIONS`` observations:
    :func:`~lensdist_torch.calibration.multiview_fits.thinned`), stopping when an iteration lowers
    the cost by less than ``BA_FUNCTION_TOLERANCE`` of it (Ceres' default; COLMAP's 0 crawled along
-   the valley of a poorly conditioned camera).
+   the valley of a poorly conditioned camera). On many observations the candidates are fitted
+   side by side in ``num_threads`` worker processes
+   (:mod:`~lensdist_torch.calibration.multiview_workers`).
 3. **Which model, and how sure** (:mod:`~lensdist_torch.calibration.multiview_evidence`): each
    model's posterior of Delta from the adjustment's covariance, its evidence from predicting
    frames held out in ``jackknife_blocks`` blocks, the models weighed by it (pseudo-BMA+). Other
@@ -66,17 +68,17 @@ from lensdist_torch.calibration.multiview_fits import (
     BA_FUNCTION_TOLERANCE,
     MAX_OBSERVATIONS,
     camera_of,
-    fit_held_camera,
-    fit_model,
     held_camera,
     pycolmap_or_error,
     quiet_log,
     rotation_spread_deg,
     thinned,
 )
+from lensdist_torch.calibration.multiview_workers import candidate_fits
 from lensdist_torch.calibration.sequence_class import interval_class
 from lensdist_torch.config import LensdistConfig, MultiViewConfig
 from lensdist_torch.config.checks import or_defaults
+from lensdist_torch.config.sequence import MULTIVIEW_MODELS
 from lensdist_torch.geometry.distortion import fit_eq4, paper_frame_delta_avg
 from lensdist_torch.geometry.opencv_model import grid_points, map_grid_step, opencv_from_colmap, opencv_ideal_points
 
@@ -220,16 +222,17 @@ def _eq4_fit(k: torch.Tensor, d: torch.Tensor, size: tuple[int, int], step: int)
     return fit_eq4(p[ok], ideal[ok], h, w)
 
 
-def _other_rows(rec, others: dict, fits: dict, scale: float, n_blocks: int, confidence: float) -> dict:
+def _other_rows(submit, others: dict, fits: dict, scale: float, n_blocks: int, confidence: float) -> dict:
     """Other paths' cameras held on the tracks (:func:`~lensdist_torch.calibration.multiview_fits.fit_held_camera`).
 
     At the focal length of the COLMAP model that predicts the held-out frames best; each path's
     own Delta with its own interval as a normal std. A path without a finite answer is left out.
+    ``submit``: :func:`~lensdist_torch.calibration.multiview_workers.candidate_fits`'s.
     """
     z = NormalDist().inv_cdf(0.5 + confidence / 2)
     ranked = min(fits, key=lambda m: fits[m]["row"]["heldout_rms_px"])
-    base = camera_of(fits[ranked]["rec"])
-    out = {}
+    base = fits[ranked]["camera"]
+    futures = {}
     for name, o in others.items():
         values = [o.get(k) for k in ("delta_avg_user_px", "delta_max_user_px")]
         ivs = [o.get(k) for k in ("delta_avg_user_interval", "delta_max_user_interval")]
@@ -244,7 +247,10 @@ def _other_rows(rec, others: dict, fits: dict, scale: float, n_blocks: int, conf
             height=base.height,
             scale=scale,
         )
-        fit = fit_held_camera(rec, cam, n_blocks)
+        futures[name] = (submit("held", camera=cam, n_blocks=n_blocks), values, ivs)
+    out = {}
+    for name, (future, values, ivs) in futures.items():
+        o, fit = others[name], future.result()
         stds = [max(hi - v, v - lo) / z for v, (lo, hi) in zip(values, ivs)]
         out[name] = {
             **fit,
@@ -306,12 +312,15 @@ def self_calibrate_reconstruction(
     n_blocks = min(cfg.jackknife_blocks, rec.num_reg_images())  # each fold keeps >= 2 frames
     weighed, observations = thinned(rec, MAX_OBSERVATIONS, seed=cfg.seed)  # the tracks the models are weighed on
     fits = {}
-    for model in cfg.models:
-        fits[model] = fit_model(weighed, model=model, size=size, scale=scale, step=step, n_blocks=n_blocks)
-        if on_model is not None:
-            on_model(model)
+    with candidate_fits(weighed, observations, processes=cfg.num_threads) as submit:
+        futures = {m: submit("model", model=m, size=size, scale=scale, step=step, n_blocks=n_blocks)
+                   for m in sorted(cfg.models, key=MULTIVIEW_MODELS.index, reverse=True)}  # the most parameters first
+        for model in cfg.models:
+            fits[model] = futures[model].result()
+            if on_model is not None:
+                on_model(model)
+        held = _other_rows(submit, others or {}, fits, scale, n_blocks, cfg.confidence)
     rows = [f["row"] for f in fits.values()]
-    held = _other_rows(weighed, others or {}, fits, scale, n_blocks, cfg.confidence)
     fits, checked = {**fits, **held}, [True] * len(rows) + [False] * len(held)
     rows += [h["row"] for h in held.values()]
     weighed = weigh_models(rows, [f["errors"] for f in fits.values()], checked=checked, confidence=cfg.confidence,
@@ -331,7 +340,7 @@ def self_calibrate_reconstruction(
         dl = {"delta_avg_px": row["delta_avg_px"], "delta_max_px": row["delta_max_px"],
               "invertible_fraction": row["invertible_fraction"]}
     else:
-        k, d = opencv_from_colmap(camera_of(fits[best]["rec"]), scale)
+        k, d = opencv_from_colmap(fits[best]["camera"], scale)
         dl = fits[best]["delta"]
     k2u, k4u, fit_err = _eq4_fit(k, d, size, step)
     dc = paper_frame_delta_avg(k2u, k4u, size, st)  # eq. 4 at the paper's frame, same normalised lens

@@ -252,7 +252,7 @@ def fit_model(rec, *, model: str, size: tuple[int, int], scale: float, step: int
         errors.append(fold_errors)
     jk_std = jackknife_std(jk_avg)
     k = len(cam.params) - 2  # the principal point is held
-    return {"rec": r, "delta": dl, "errors": errors, "jackknife": jk_avg, "row": {
+    return {"camera": cam, "delta": dl, "errors": errors, "jackknife": jk_avg, "row": {
         "bic": 2 * n * math.log(max(ss, 1e-300) / (2 * n)) + k * math.log(2 * n), "delta_avg_px": dl["delta_avg_px"],
         "delta_avg_std_px": std_avg, "delta_max_px": dl["delta_max_px"], "delta_max_std_px": std_max,
         "jackknife_std_px": jk_std, "reprojection_px": math.sqrt(ss / max(n, 1)),

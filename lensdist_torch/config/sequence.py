@@ -91,8 +91,10 @@ class MultiViewConfig:
             joins the interval (:mod:`~lensdist_torch.calibration.multiview_runs`) and a class needs
             this many mappings that registered enough frames.
         num_threads: shards of COLMAP's feature extraction and geometric verification (one
-            thread each); the matching and the mapping run on one. A run repeats bit for bit
-            whatever this is (docs/method.md, 11).
+            thread each), and the worker processes that fit the camera models on tracks of many
+            observations (:mod:`~lensdist_torch.calibration.multiview_workers`); the matching
+            and the mapping run on one. The features and matches repeat bit for bit whatever
+            this is (docs/method.md, 11).
         seed: COLMAP's random seed (the verification's RANSAC and the first mapping) and the
             Bayesian bootstrap's of the models' weights.
         planar_terms: the homography model's radial terms at most (1 .. this many fitted, each

@@ -1,5 +1,6 @@
 """The multi-view calibration: OpenCV's model inverted to convergence, COLMAP cameras as OpenCV's, BIC and intervals."""
 
+import dataclasses
 import math
 import sys
 
@@ -603,3 +604,39 @@ def test_a_model_whose_adjustment_does_not_converge_has_no_posterior_and_no_weig
     sr, radial = res.models["SIMPLE_RADIAL"], res.models["RADIAL"]
     assert not sr["converged"] and sr["iterations"] == 1 and sr["delta_avg_std_px"] == math.inf
     assert sr["weight"] == 0.0 and radial["converged"] and radial["weight"] == 1.0 and res.model == "RADIAL"
+
+
+def test_the_candidates_fitted_in_worker_processes_are_those_fitted_here(monkeypatch):
+    """From PROCESSES_FROM observations (here 0) the candidates are fitted in ``num_threads`` worker processes:
+    the same weights, Delta_avg and intervals as one after the other here."""
+    from lensdist_torch.calibration import multiview_workers
+
+    rec, _ = _spread_synthetic(1)
+    cfg = MultiViewConfig(models=("RADIAL", "OPENCV"), jackknife_blocks=4, num_threads=1)
+    here = self_calibrate_reconstruction(rec, cfg)
+    started = []
+    real = multiview_workers._Worker.__init__
+
+    def counted(self, folder):
+        real(self, folder)
+        started.append(self)
+
+    monkeypatch.setattr(multiview_workers, "PROCESSES_FROM", 0)
+    monkeypatch.setattr(multiview_workers._Worker, "__init__", counted)
+    apart = self_calibrate_reconstruction(rec, dataclasses.replace(cfg, num_threads=2))
+    assert len(started) == 2 and all(w.proc.poll() == 0 for w in started)  # two workers, ended with the block
+    assert apart.model == here.model and apart.delta_avg_user_px == pytest.approx(here.delta_avg_user_px, rel=1e-9)
+    assert apart.delta_avg_user_interval == pytest.approx(here.delta_avg_user_interval, rel=1e-6)
+    for m in cfg.models:
+        assert apart.models[m]["weight"] == pytest.approx(here.models[m]["weight"], rel=1e-6, abs=1e-12)
+        assert apart.models[m]["heldout_rms_px"] == pytest.approx(here.models[m]["heldout_rms_px"], rel=1e-9)
+
+
+def test_an_error_in_a_worker_reaches_the_caller(monkeypatch):
+    from lensdist_torch.calibration import multiview_workers
+
+    rec, _ = _spread_synthetic(1)
+    monkeypatch.setattr(multiview_workers, "PROCESSES_FROM", 0)
+    with multiview_workers.candidate_fits(rec, 1, processes=2) as submit:
+        with pytest.raises(ValueError, match="kind must be 'model' or 'held', got 'other'"):
+            submit("other").result()
