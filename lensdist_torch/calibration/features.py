@@ -17,6 +17,7 @@ import copy
 import math
 import shutil
 import tempfile
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -76,11 +77,14 @@ def extract_and_match(
     *,
     config: MultiViewConfig | None = None,
     image_size: tuple[int, int] | None = None,
+    on_stage: Callable[[str, int], None] | None = None,
 ) -> None:
     """COLMAP's SIFT features of frames ``names`` and their verified matches, into a new ``database`` (step 1).
 
     Exhaustive matching up to :data:`EXHAUSTIVE_BELOW` frames, sequential beyond; one shared RADIAL
-    camera; the geometric verification's RANSAC seeded by ``seed``.
+    camera; the geometric verification's RANSAC seeded by ``seed``. ``on_stage`` is called as
+    each stage starts with its name ("extraction", "matching", "verification") and the threads it
+    runs on.
     :func:`~lensdist_torch.calibration.multiview.reconstruct` maps on it;
     :func:`~lensdist_torch.calibration.matches.read_verified_matches` reads its matches.
 
@@ -100,8 +104,11 @@ def extract_and_match(
     matching.num_threads, matching.use_gpu, matching.skip_geometric_verification = 1, False, True
     verification = pc.TwoViewGeometryOptions()
     verification.ransac.random_seed = cfg.seed  # COLMAP's default (-1) seeds every RANSAC from the clock
+    stage = on_stage or (lambda name, threads: None)
     with quiet_log():
+        stage("extraction", cfg.num_threads)
         extract_in_shards(database, image_dir, names, reader=reader, extraction=extraction, threads=cfg.num_threads)
+        stage("matching", matching.num_threads)
         if len(names) <= EXHAUSTIVE_BELOW:
             pc.match_exhaustive(
                 database, matching_options=matching, verification_options=verification, device=pc.Device.cpu
@@ -111,6 +118,7 @@ def extract_and_match(
             pairing.overlap = SEQUENTIAL_OVERLAP
             pc.match_sequential(database, matching_options=matching, pairing_options=pairing,
                                 verification_options=verification, device=pc.Device.cpu)
+        stage("verification", cfg.num_threads)
         verify_in_shards(database, verification, threads=cfg.num_threads)
 
 

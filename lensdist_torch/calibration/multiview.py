@@ -164,7 +164,8 @@ class MultiViewCalibration(LensAnswer):
 # ------------------------------------------------------------------ the reconstruction
 def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewConfig | None = None,
                 stop: Callable[[int, object], bool] | None = None, image_size: tuple[int, int] | None = None,
-                on_matches: Callable[[Path], None] | None = None) -> list:
+                on_matches: Callable[[Path], None] | None = None,
+                on_stage: Callable[[str, int], None] | None = None) -> list:
     """COLMAP's sparse reconstructions of frames ``names`` in ``image_dir`` (module docstring, step 1).
 
     The features and the verified matches are computed once (geometric verification seeded by
@@ -184,6 +185,8 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
         on_matches: called with the database's path once the features and verified matches are in
             it, before the first mapping (the homography model reads them:
             :func:`~lensdist_torch.calibration.matches.read_verified_matches`).
+        on_stage: called as each of COLMAP's stages starts, with its name ("extraction", "matching",
+            "verification", "mapping") and the threads it runs on.
 
     Returns:
         Per mapping run the largest ``pycolmap.Reconstruction`` (one shared camera), or None where
@@ -193,7 +196,7 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
     out = []
     with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
         db = Path(tmp) / "db.db"
-        extract_and_match(db, image_dir, names, config=cfg, image_size=image_size)
+        extract_and_match(db, image_dir, names, config=cfg, image_size=image_size, on_stage=on_stage)
         if on_matches is not None:
             on_matches(db)
         for i in range(cfg.reconstructions + (EXTRA_MAPPINGS if stop is not None else 0)):
@@ -206,6 +209,8 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
             )
             mapping.ba_global_function_tolerance = mapping.ba_local_function_tolerance = BA_FUNCTION_TOLERANCE
             mapping.structure_less_registration_fallback = False  # seconds per frame; such frames add little
+            if on_stage is not None:
+                on_stage("mapping", mapping.num_threads)
             with quiet_log():
                 recs = pc.incremental_mapping(db, image_dir, Path(tmp) / f"sparse{i}", options=mapping)
             out.append(max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None)

@@ -64,7 +64,8 @@ class _Worker:
         return value
 
     def close(self) -> None:
-        self.proc.stdin.close()
+        with contextlib.suppress(OSError):  # a worker killed already has no pipe to close
+            self.proc.stdin.close()
         self.proc.wait()
 
 
@@ -105,8 +106,12 @@ def candidate_fits(rec, observations: int, *, processes: int) -> Iterator:
 
         try:
             yield lambda kind, **kwargs: feeders.submit(run, kind, kwargs)
+        except BaseException:  # failed or interrupted: the workers stop now, not after their candidates
+            for worker in workers:
+                worker.proc.kill()
+            raise
         finally:
-            feeders.shutdown(wait=True)
+            feeders.shutdown(wait=True, cancel_futures=True)
             for worker in workers:
                 worker.close()
 

@@ -8,7 +8,7 @@ Modules:
 * :mod:`~lensdist_torch.core.outputs`: output paths checked before the work.
 * :mod:`~lensdist_torch.core.storage`: atomic writes and versioned checkpoints.
 * :mod:`~lensdist_torch.core.chunks`: how a batch is cut into chunks, by device.
-* :mod:`~lensdist_torch.core.threads`: torch's thread count for a block, a thread at the lowest priority.
+* :mod:`~lensdist_torch.core.threads`: torch's thread count for a block.
 
 The names users need are exported here and imported on first use (PEP 562), so importing one
 module of the package loads no other.

@@ -1,15 +1,12 @@
-"""Torch's intra-op thread count for a block of work, restored after it; a thread at the lowest priority."""
+"""Torch's intra-op thread count for a block of work, restored after it."""
 
 from __future__ import annotations
 
 import contextlib
-import os
-import sys
-import threading
 
 import torch
 
-__all__ = ["torch_threads", "lowest_priority"]
+__all__ = ["torch_threads"]
 
 
 @contextlib.contextmanager
@@ -40,20 +37,3 @@ def torch_threads(n: int):
     finally:
         torch.set_num_threads(before)
 
-
-def lowest_priority() -> bool:
-    """The calling thread at the lowest scheduling priority (nice 19), for the rest of its life (Linux only).
-
-    Work in such a thread takes the cores other threads leave idle, and yields them back at once.
-    Elsewhere (or where the system refuses) nothing changes.
-
-    Returns:
-        Whether the priority was lowered.
-    """
-    if sys.platform != "linux":  # setpriority with a thread id is Linux's; elsewhere it names a process
-        return False
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-    except OSError:
-        return False
-    return True

@@ -506,8 +506,9 @@ def _fake_colmap(monkeypatch, tmp_path, homography):
         (tmp_path / f"f{i}.png").write_bytes(b"")
     (tmp_path / "db.db").write_bytes(b"matches")
 
-    def reconstruct(folder, names, *, config, stop, image_size, on_matches):
+    def reconstruct(folder, names, *, config, stop, image_size, on_matches, on_stage):
         on_matches(tmp_path / "db.db")
+        on_stage("mapping", 1)
         time.sleep(0.6)  # the mapping, on one thread
         stop(0, None)
         return [None]
@@ -640,3 +641,39 @@ def test_an_error_in_a_worker_reaches_the_caller(monkeypatch):
     with multiview_workers.candidate_fits(rec, 1, processes=2) as submit:
         with pytest.raises(ValueError, match="kind must be 'model' or 'held', got 'other'"):
             submit("other").result()
+
+
+def test_the_idle_core_follows_colmaps_stages_and_the_homography_model(monkeypatch, tmp_path):
+    """``idle`` is set while COLMAP leaves one of its two threads' cores free: its matching, and its mapping once the
+    homography model beside it is done; cleared while its shards, or the mapping and the homography model, take both."""
+    import threading
+    import time
+
+    from lensdist_torch.calibration.controllers import multiview_path as mp
+
+    for i in range(4):
+        (tmp_path / f"f{i}.png").write_bytes(b"")
+    (tmp_path / "db.db").write_bytes(b"matches")
+    idle, seen = threading.Event(), []
+
+    def homography(database, names, image_size, **kwargs):
+        time.sleep(0.4)
+        return {"ok": False, "reason": "no pairs"}
+
+    def reconstruct(folder, names, *, config, stop, image_size, on_matches, on_stage):
+        for name, threads in (("extraction", 2), ("matching", 1), ("verification", 2)):
+            on_stage(name, threads)
+            seen.append((name, idle.is_set()))
+        on_matches(tmp_path / "db.db")
+        on_stage("mapping", 1)
+        seen.append(("mapping beside the homography model", idle.is_set()))
+        time.sleep(0.8)
+        seen.append(("mapping alone", idle.is_set()))
+        stop(0, None)
+        return [None]
+
+    monkeypatch.setattr(mp, "reconstruct", reconstruct)
+    monkeypatch.setattr(mp, "planar_path", homography)
+    mp.multiview_path(tmp_path, (30, 40), config=MultiViewConfig(num_threads=2), idle=idle)
+    assert seen == [("extraction", False), ("matching", True), ("verification", False),
+                    ("mapping beside the homography model", False), ("mapping alone", True)]

@@ -46,7 +46,7 @@ def _fake_colmap(monkeypatch, tmp_path, answers):
         def num_points3D(self):
             return 100 * self.n
 
-    def reconstruct(folder, names, *, config, stop=None, image_size=None, on_matches=None):
+    def reconstruct(folder, names, *, config, stop=None, image_size=None, on_matches=None, on_stage=None):
         assert image_size == (288, 384)  # the features' cap follows the frames' area
         assert callable(on_matches)  # the homography model reads the matches before any mapping (no database here)
         calls["names"], calls["files"] = list(names), sorted(p.name for p in Path(folder).iterdir())

@@ -1,15 +1,11 @@
-"""Torch's thread count for a block, and a thread at the lowest priority (lensdist_torch.core.threads)."""
+"""Torch's thread count for a block (lensdist_torch.core.threads)."""
 
 from __future__ import annotations
-
-import os
-import sys
-import threading
 
 import pytest
 import torch
 
-from lensdist_torch.core.threads import lowest_priority, torch_threads
+from lensdist_torch.core.threads import torch_threads
 
 
 def test_the_thread_count_holds_inside_the_block_and_is_restored_after_an_error():
@@ -27,18 +23,3 @@ def test_a_thread_count_that_is_not_a_positive_int_is_refused(n):
         with torch_threads(n):
             pass
 
-
-@pytest.mark.skipif(sys.platform != "linux", reason="per-thread priorities are Linux's")
-def test_the_lowest_priority_is_the_calling_threads_alone():
-    seen = {}
-
-    def worker():
-        seen["lowered"] = lowest_priority()
-        seen["nice"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-
-    main = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    t = threading.Thread(target=worker)
-    t.start()
-    t.join()
-    assert seen == {"lowered": True, "nice": 19}
-    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == main < 19

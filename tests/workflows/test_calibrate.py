@@ -425,26 +425,28 @@ def test_the_rational_export_is_named_where_the_standard_one_cannot_follow(capsy
 
 
 def test_the_direct_path_runs_beside_the_multiview_one_on_the_threads_colmap_leaves(sequence, monkeypatch):
-    """The direct path fits its pairs while COLMAP maps: one run takes about the longer of the two, not their sum;
-    its torch threads are those ``multiview.num_threads`` leave (at least one), restored after; the mapping starts
-    once the direct path has pairs, and the answer it holds is the direct path's."""
+    """The direct path fits its pairs while COLMAP leaves a core idle: one run takes about the longer of the two, not
+    their sum; its torch threads are those ``multiview.num_threads`` leave (at least one), restored after; the
+    mapping starts once the direct path has pairs, and the answer it holds is the direct path's."""
     import time
 
     import lensdist_torch.calibration.controllers.calibrate as calibrate_mod
     from lensdist_torch.config import LensdistConfig, MultiViewConfig
 
     real, seen = calibrate_mod.calibrate_sequence, {}
+    done = real(torch.cat([load_image(p) for p in list_frames(sequence[0])]))  # its answer, computed once
 
-    def slow_direct(*args, progress=None, **kwargs):
+    def slow_direct(*args, progress=None, **kwargs):  # 1 s of batches, whatever the machine's load
         seen.setdefault("direct_threads", torch.get_num_threads())
-        cal = real(*args, progress=progress, **kwargs)
-        seen.setdefault("paired_at", time.perf_counter())
-        time.sleep(1.0)
-        return cal
+        for i in range(10):
+            time.sleep(0.1)
+            progress(i + 1, 10)
+            seen.setdefault("paired_at", time.perf_counter())
+        return done
 
-    def slow_mapping(path, size, *, direct, **kwargs):
+    def slow_mapping(path, size, *, direct, idle, **kwargs):
         seen["mapping_from"] = time.perf_counter()
-        time.sleep(1.0)
+        time.sleep(seen.get("mapping_s", 1.0))  # a core left idle: the direct path fits meanwhile
         seen["held"] = direct()
         return {"ok": False, "reason": "no mapping here"}
 
@@ -456,9 +458,70 @@ def test_the_direct_path_runs_beside_the_multiview_one_on_the_threads_colmap_lea
         res = calibrate_path(sequence[0], settings=settings)
         took = time.perf_counter() - t0
         assert torch.get_num_threads() == 3
-    serial = time.perf_counter()
-    calibrate_path(sequence[0], method="direct")
-    alone = time.perf_counter() - serial  # the direct path (and its 1 s) with no mapping beside it
-    assert seen["direct_threads"] == 2 and seen["mapping_from"] <= seen["paired_at"]
-    assert took < alone + 0.7, (took, alone)  # serial: alone + 1 s
+        seen["mapping_s"] = 0.0
+        t0 = time.perf_counter()
+        calibrate_path(sequence[0], settings=settings)  # the same 1 s of batches and the rest, a mapping of 0 s
+        alone = time.perf_counter() - t0
+    assert seen["direct_threads"] == 2 and seen["mapping_from"] >= seen["paired_at"]
+    assert took < alone + 0.5, (took, alone)  # one after the other: alone + 1 s
     assert seen["held"]["delta_avg_user_px"] == res["direct"]["delta_avg_user_px"] == res["delta_avg_user_px"]
+    assert res["delta_avg_user_px"] == done.delta_avg_user_px
+
+
+def test_a_failing_multiview_path_stops_the_direct_path_beside_it_at_its_next_batch(sequence, monkeypatch):
+    import time
+
+    import lensdist_torch.calibration.controllers.calibrate as calibrate_mod
+
+    batches = []
+
+    def slow_direct(*args, progress=None, **kwargs):  # 100 batches of 0.05 s
+        for i in range(100):
+            time.sleep(0.05)
+            progress(i + 1, 100)
+            batches.append(i)
+        raise AssertionError("the direct path ran to its end")
+
+    def failing_mapping(*args, **kwargs):
+        raise ValueError("the mapping failed")
+
+    monkeypatch.setattr(calibrate_mod, "calibrate_sequence", slow_direct)
+    monkeypatch.setattr(calibrate_mod, "multiview_path", failing_mapping)
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match="the mapping failed"):
+        calibrate_path(sequence[0])
+    assert time.perf_counter() - t0 < 1.5 and len(batches) < 10  # not the direct path's 5 s
+
+
+def test_the_direct_path_waits_between_batches_while_colmap_takes_every_core(sequence, monkeypatch):
+    """While the multi-view path says no core is idle, the direct path fits no batch; it goes on once one is, or
+    once the models wait for it."""
+    import time
+
+    import lensdist_torch.calibration.controllers.calibrate as calibrate_mod
+
+    batches = []
+
+    def batched_direct(*args, progress=None, **kwargs):
+        for i in range(20):
+            time.sleep(0.02)
+            progress(i + 1, 20)
+            batches.append(time.perf_counter())
+        return real(*args, **kwargs)
+
+    def busy_mapping(path, size, *, direct, idle, **kwargs):
+        idle.clear()  # COLMAP's shards take every core
+        time.sleep(0.5)
+        during = len(batches)
+        idle.set()  # its matching on one thread
+        time.sleep(0.3)
+        idle.clear()
+        held = direct()  # the models wait for it: it runs to its end
+        return {"ok": False, "reason": f"{during} {len(batches)} {held['frames']}"}
+
+    real = calibrate_mod.calibrate_sequence
+    monkeypatch.setattr(calibrate_mod, "calibrate_sequence", batched_direct)
+    monkeypatch.setattr(calibrate_mod, "multiview_path", busy_mapping)
+    res = calibrate_path(sequence[0])
+    during, after, frames = map(int, res["multiview"]["reason"].split())
+    assert during <= 2 and after == 20 and frames == 10  # the batch it was in when every core was taken

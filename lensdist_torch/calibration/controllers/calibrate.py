@@ -40,7 +40,7 @@ from lensdist_torch.config import LensdistConfig
 from lensdist_torch.config.checks import or_defaults
 from lensdist_torch.core.frames import frames_of_one_size
 from lensdist_torch.core.images import load_scene
-from lensdist_torch.core.threads import lowest_priority, torch_threads
+from lensdist_torch.core.threads import torch_threads
 from lensdist_torch.data.realism import degrade, draw_realism
 from lensdist_torch.data.relief import draw_height_field, relief_samples
 from lensdist_torch.geometry.distortion import distortion_center, distortion_grid
@@ -99,9 +99,10 @@ def calibrate_path(
             adjustment on COLMAP's tracks, needs pycolmap, beside the homography model's lens) or
             "auto" (the direct path's lens held on the tracks too, every candidate weighed on the same
             held-out frames: :func:`~lensdist_torch.calibration.controllers.multiview_path.combine`; the
-            direct path alone where pycolmap is missing). In "auto" the direct path fits its pairs beside
-            COLMAP's features, matching and mapping, on the torch threads ``multiview.num_threads`` leaves
-            (at least one; the count is restored after). Frames that moved too little for the direct path
+            direct path alone where pycolmap is missing). In "auto" the direct path fits its batches of
+            pairs beside COLMAP where it leaves a core idle (its matching, its mapping once the homography
+            model is done) and where the models wait for it, on the torch threads ``multiview.num_threads``
+            leaves (at least one; the count is restored after). Frames that moved too little for the direct path
             (its ``too little motion`` reason) get that answer from every method, before any mapping.
 
     Returns:
@@ -152,35 +153,52 @@ def calibrate_path(
     threads = torch.get_num_threads()
     with tqdm(disable=quiet, desc="pairs", unit="pair", leave=False) as bar, ThreadPoolExecutor(1) as pool, \
             torch_threads(max(1, threads - st.multiview.num_threads) if beside else threads):
-        paired = threading.Event()  # the direct path has pairs to fit, or has answered
+        paired, stopped = threading.Event(), threading.Event()  # it has pairs to fit (or answered); stop it
+        idle = threading.Event()  # COLMAP leaves a core idle, or waits for the direct path: it may fit a batch
+        idle.set()
 
         def progress(done: int, total: int) -> None:
             paired.set()
             bar.total = total
             bar.update(done - bar.n)
+            idle.wait()  # between batches, while COLMAP takes every core
+            if stopped.is_set():  # the caller failed or was interrupted: the direct path ends at its next batch
+                raise _Stopped
+
+        def direct_result() -> tuple:  # the direct path's answer, its batches free to run meanwhile
+            idle.set()
+            return direct.result()
 
         def direct_path() -> tuple:
-            if beside:  # the cores COLMAP leaves idle (its matching and mapping run on one thread)
-                lowest_priority()
             cal = calibrate_sequence(torch.cat(frames).to(device or "cpu"), cfg, settings, frame_size=size,
                                      progress=progress)
             return cal, _direct_answer(cal, cfg, path, size, focal)
 
         direct = pool.submit(direct_path)
         direct.add_done_callback(lambda _: paired.set())
-        if not beside:
-            direct.result()
-        paired.wait()  # frames that moved too little answer before any mapping: no mapping can see more
-        mv = None
-        if method != "direct" and len(frames) >= MIN_FRAMES and direct.done() and _unmappable(direct.result()[0]):
-            mv = {"ok": False, "reason": direct.result()[0].reason}
-        elif method != "direct":  # "auto": the direct path fits its pairs beside COLMAP's features and mapping
-            mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames, quiet=quiet,
-                                direct=(lambda: direct.result()[1]) if method == "auto" else None)
-            if method == "multiview" and not mv["ok"]:
-                raise ValueError(mv["reason"])
-        cal, out = direct.result()
+        try:
+            if not beside:
+                direct.result()
+            paired.wait()  # frames that moved too little answer before any mapping: no mapping can see more
+            mv = None
+            if method != "direct" and len(frames) >= MIN_FRAMES and direct.done() and _unmappable(direct.result()[0]):
+                mv = {"ok": False, "reason": direct.result()[0].reason}
+            elif method != "direct":  # "auto": the direct path fits its pairs where COLMAP leaves a core idle
+                mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames,
+                                    quiet=quiet, direct=(lambda: direct_result()[1]) if beside else None,
+                                    idle=idle if beside else None)
+                if method == "multiview" and not mv["ok"]:
+                    raise ValueError(mv["reason"])
+            cal, out = direct_result()
+        except BaseException:
+            stopped.set()
+            idle.set()
+            raise
     return _finite(_verified(_with_focal(combine(out, mv), focal, size), torch.cat(frames), cal, cfg, st))
+
+
+class _Stopped(Exception):
+    """Ends the direct path running beside the multi-view one where that one failed or was interrupted."""
 
 
 def _direct_answer(cal, cfg: CalibrationConfig, path: str | Path, size: tuple[int, int], focal: float | None) -> dict:

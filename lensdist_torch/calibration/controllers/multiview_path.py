@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -72,7 +73,7 @@ def evenly_spaced(n: int, most: int) -> list[int]:
 
 def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: MultiViewConfig | None = None,
                    settings: LensdistConfig | None = None, max_frames: int | None = 300, quiet: bool = True,
-                   direct: dict | Callable[[], dict] | None = None) -> dict:
+                   direct: dict | Callable[[], dict] | None = None, idle: threading.Event | None = None) -> dict:
     """The multi-view calibration of a folder of frames or a video, as a dict (module docstring).
 
     Args:
@@ -87,6 +88,9 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
             once the mapping is done (the direct path then runs beside the features and the mapping),
             held on the tracks beside COLMAP's models with the homography model's
             (:func:`held_answers`); None: COLMAP's models and the homography model's.
+        idle: set while COLMAP leaves one of its ``num_threads`` cores idle (its matching, its
+            mapping once the homography model beside it is done), cleared while it takes them
+            all: work beside it (the direct path) may run while it is set.
 
     Returns:
         A dict with ``ok`` (False: ``reason`` says why there is no answer) and, when ok, the
@@ -131,7 +135,16 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
                 planar["future"] = pool.submit(
                     planar_path, own, names, image_size, config=cfg, settings=settings, folder=folder
                 )
+                planar["future"].add_done_callback(lambda _: stage(*running))
             bar.set_postfix_str("mapping and the homography model")
+
+        running = ["features", cfg.num_threads]  # COLMAP's stage now, and its threads
+
+        def stage(name: str, threads: int) -> None:  # a core left idle: work beside may run
+            running[:] = [name, threads]
+            beside = "future" in planar and not planar["future"].done()
+            if idle is not None:
+                (idle.set if threads + beside < cfg.num_threads else idle.clear)()
 
         def homography_answer() -> dict | None:
             return planar["future"].result() if "future" in planar else None
@@ -164,7 +177,8 @@ def multiview_path(path: str | Path, image_size: tuple[int, int], *, config: Mul
             total=stages, disable=quiet, desc=f"multi-view, {len(names)} frames", unit="stage", leave=False
         ) as bar, ThreadPoolExecutor(1) as pool:
             bar.set_postfix_str("features and matches")
-            reconstruct(folder, names, config=cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model)
+            reconstruct(folder, names, config=cfg, stop=take, image_size=tuple(image_size), on_matches=homography_model,
+                        on_stage=stage)
             homography = homography_answer()
         if all(isinstance(r, str) for _, r in runs):
             tries = f" in any of {len(runs)} reconstructions" if len(runs) > 1 else ""
