@@ -252,7 +252,8 @@ def calibrate_sequence(
             settings, the class rule and the paper's frame); defaults when None.
         frame_size: when ``frames`` were already brought to the analysis size with
             :func:`to_analysis` (to keep a long video small), the original (H, W).
-        progress: called as progress(pairs_done, pairs_total) after every batch.
+        progress: called as progress(pairs_done, pairs_total) once the pairs are chosen (0 done) and after
+            every batch.
 
     Returns:
         :class:`SequenceCalibration`, offsets and coefficients in the frames' own pixels.

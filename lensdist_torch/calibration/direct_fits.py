@@ -137,6 +137,8 @@ def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: Calibrati
     """
     selfcal = sequence_selfcal(settings, cfg)
     parts = []
+    if progress is not None and len(pairs):  # the pairs are chosen
+        progress(0, len(pairs))
     for s in range(0, len(pairs), cfg.batch_size):
         sl = slice(s, s + cfg.batch_size)
         parts.append(_fit_batch(frames[pairs[sl, 0]], frames[pairs[sl, 1]], _translations(shifts[sl]).to(frames.device),

@@ -155,13 +155,14 @@ def calibrate_path(
             torch_threads(max(1, threads - st.multiview.num_threads) if beside else threads):
         paired, stopped = threading.Event(), threading.Event()  # it has pairs to fit (or answered); stop it
         idle = threading.Event()  # COLMAP leaves a core idle, or waits for the direct path: it may fit a batch
-        idle.set()
+        if not beside:
+            idle.set()
 
         def progress(done: int, total: int) -> None:
             paired.set()
             bar.total = total
             bar.update(done - bar.n)
-            idle.wait()  # between batches, while COLMAP takes every core
+            idle.wait()  # before and between batches, while COLMAP takes every core (or has not begun)
             if stopped.is_set():  # the caller failed or was interrupted: the direct path ends at its next batch
                 raise _Stopped
 
