@@ -193,10 +193,10 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
         COLMAP reconstructed nothing.
     """
     pc, cfg = pycolmap_or_error(), or_defaults(config, MultiViewConfig)
-    out = []
+    out, stage = [], on_stage or (lambda name, threads: None)
     with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
         db = Path(tmp) / "db.db"
-        extract_and_match(db, image_dir, names, config=cfg, image_size=image_size, on_stage=on_stage)
+        extract_and_match(db, image_dir, names, config=cfg, image_size=image_size, on_stage=stage)
         if on_matches is not None:
             on_matches(db)
         for i in range(cfg.reconstructions + (EXTRA_MAPPINGS if stop is not None else 0)):
@@ -209,8 +209,7 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
             )
             mapping.ba_global_function_tolerance = mapping.ba_local_function_tolerance = BA_FUNCTION_TOLERANCE
             mapping.structure_less_registration_fallback = False  # seconds per frame; such frames add little
-            if on_stage is not None:
-                on_stage("mapping", mapping.num_threads)
+            stage("mapping", mapping.num_threads)
             with quiet_log():
                 recs = pc.incremental_mapping(db, image_dir, Path(tmp) / f"sparse{i}", options=mapping)
             out.append(max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D())) if recs else None)

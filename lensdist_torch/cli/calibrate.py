@@ -160,9 +160,8 @@ def _print_calibration(res: dict, out: str | Path | None = None, *, debug: bool 
     from lensdist_torch.calibration.controllers.answer_lens import opencv_to_use
     from lensdist_torch.geometry.opencv_model import FOLLOWS_PX
 
-    standard = res["opencv"] or res.get("opencv_rational")
-    shown = [standard] if opencv_to_use(res) is standard else [standard, opencv_to_use(res)]
-    # (two: the 5 coefficients cannot follow this lens, the 8 rational ones beside them)
+    standard, use = res["opencv"] or res.get("opencv_rational"), opencv_to_use(res)
+    shown = [standard] if use is standard else [standard, use]  # the 5 coefficients cannot follow: the 8 beside
     for cv in shown:
         k, n = cv["camera_matrix"], len(cv["dist_coeffs"])
         forward = cv.get("forward_error_mean_px")

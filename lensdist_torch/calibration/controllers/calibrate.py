@@ -148,8 +148,9 @@ def calibrate_path(
         size = tuple(img.shape[-2:])
     if len(frames) < 2:
         raise ValueError(f"path {path} must hold at least 2 frames of one camera, got {len(frames)}")
+    n, frames = len(frames), torch.cat(frames)  # one copy of the frames, shared by the direct path and the verifier
     st = or_defaults(settings, LensdistConfig, "settings")
-    beside = method == "auto" and len(frames) >= MIN_FRAMES  # the direct path beside COLMAP's threads
+    beside = method == "auto" and n >= MIN_FRAMES  # the direct path beside COLMAP's threads
     threads = torch.get_num_threads()
     with tqdm(disable=quiet, desc="pairs", unit="pair", leave=False) as bar, ThreadPoolExecutor(1) as pool, \
             torch_threads(max(1, threads - st.multiview.num_threads) if beside else threads):
@@ -171,8 +172,7 @@ def calibrate_path(
             return direct.result()
 
         def direct_path() -> tuple:
-            cal = calibrate_sequence(torch.cat(frames).to(device or "cpu"), cfg, settings, frame_size=size,
-                                     progress=progress)
+            cal = calibrate_sequence(frames.to(device or "cpu"), cfg, settings, frame_size=size, progress=progress)
             return cal, _direct_answer(cal, cfg, path, size, focal)
 
         direct = pool.submit(direct_path)
@@ -182,8 +182,9 @@ def calibrate_path(
                 direct.result()
             paired.wait()  # frames that moved too little answer before any mapping: no mapping can see more
             mv = None
-            if method != "direct" and len(frames) >= MIN_FRAMES and direct.done() and _unmappable(direct.result()[0]):
-                mv = {"ok": False, "reason": direct.result()[0].reason}
+            early = direct.result()[0] if direct.done() else None  # done already: not beside, or no pairs to fit
+            if method != "direct" and n >= MIN_FRAMES and early is not None and _unmappable(early):
+                mv = {"ok": False, "reason": early.reason}
             elif method != "direct":  # "auto": the direct path fits its pairs where COLMAP leaves a core idle
                 mv = multiview_path(path, size, config=st.multiview, settings=st, max_frames=max_frames,
                                     quiet=quiet, direct=(lambda: direct_result()[1]) if beside else None,
@@ -195,7 +196,7 @@ def calibrate_path(
             stopped.set()
             idle.set()
             raise
-    return _finite(_verified(_with_focal(combine(out, mv), focal, size), torch.cat(frames), cal, cfg, st))
+    return _finite(_verified(_with_focal(combine(out, mv), focal, size), frames, cal, cfg, st))
 
 
 class _Stopped(Exception):
