@@ -18,6 +18,7 @@ how many answer below ``analysis.min_motion_px``, how many of their answers are 
     python benchmarks/bench_pair_coverage.py --seed 2 --n 650 --out docs/results/bench_pair_coverage.json
     python benchmarks/bench_pair_coverage.py --design slow-pans --seed 11 --n 72 --fit  # the second validation set
     python benchmarks/bench_pair_coverage.py --design slow-pans --seed 0 --n 96        # the audit's own seeds
+    python benchmarks/bench_pair_coverage.py --seed 1 --n 650 --score-level 1         # the relief stage on every pair
 """
 
 from __future__ import annotations
@@ -135,6 +136,8 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["selfcal"], choices=["selfcal", "regression", "eigenspace"])
     ap.add_argument("--design", choices=["pans", "slow-pans"], default="pans",
                     help="pans: 0-40 px, any distortion; slow-pans: 1.2-6.6 px near class boundaries (n = 24 per seed)")
+    ap.add_argument("--score-level", type=float, default=None,
+                    help="selfcal.fit.PARALLAX_SCORE_LEVEL for this run (1: the relief stage fitted on every pair)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
@@ -142,10 +145,13 @@ def main() -> None:
     cfg = load_config(args.config) if args.config else LensdistConfig()
     if args.fit:  # the floor off in this run: the covariance's own coverage
         selfcal_fit.SMALL_MOTION_ERROR = 0.0
+    if args.score_level is not None:
+        selfcal_fit.PARALLAX_SCORE_LEVEL = args.score_level
     t0 = time.perf_counter()
     rows = run(args.seed, args.n, cfg, tuple(dict.fromkeys(["selfcal", *args.methods])), args.design)
     result = {"seed": args.seed, "pairs": args.n, "design": args.design, "seconds": time.perf_counter() - t0,
-              "small_motion_error": selfcal_fit.SMALL_MOTION_ERROR, "bins": table(rows, cfg)}
+              "small_motion_error": selfcal_fit.SMALL_MOTION_ERROR,
+              "parallax_score_level": selfcal_fit.PARALLAX_SCORE_LEVEL, "bins": table(rows, cfg)}
     for method in args.methods:
         if method != "selfcal":
             sel = [r for r in rows if r["method"] == method]

@@ -135,7 +135,9 @@ RETIRED = {
     ("selfcal", "occluded_share"): _constant("fit.OCCLUDED_SHARE", 0.15, "selfcal"),
     ("selfcal", "small_motion_error"): _constant("fit.SMALL_MOTION_ERROR", 1.5e-5, "selfcal"),
     ("selfcal", "parallax_test"): _constant("fit.PARALLAX_TEST", 2.0, "selfcal"),
-    ("selfcal", "parallax_score_level"): _constant("fit.PARALLAX_SCORE_LEVEL", 1.0, "selfcal"),
+    ("selfcal", "parallax_score_level"): Retired(
+        by="lensdist_torch.selfcal.fit.PARALLAX_SCORE_LEVEL (the relief stage fitted where the score test rejects a "
+           "flat scene, one step from the planar answer elsewhere)", inert=True),
     # one pair's registration's constants (docs/method.md, section 7)
     ("registration", "levels"): _constant("direct.LEVELS", (2, 0), "registration"),
     ("registration", "iterations"): _constant("direct.ITERATIONS", (10, 6), "registration"),

@@ -1,6 +1,7 @@
 """One pair's self-calibration: its distortion and homography fitted together (layer 2).
 
-* :mod:`~lensdist_torch.selfcal.fit`: the robust Levenberg-Marquardt fit of a batch of pairs, ``estimate_distortion``.
+* :mod:`~lensdist_torch.selfcal.fit`: the fit of a batch of pairs, ``estimate_distortion``.
+* :mod:`~lensdist_torch.selfcal.solver`: its robust Levenberg-Marquardt steps, cost and normal equations.
 * :mod:`~lensdist_torch.selfcal.model`: its model, residual and Jacobian, and the per-pair diagnostics ``SelfCalInfo``.
 * :mod:`~lensdist_torch.selfcal.prior`: the Gaussian prior on the plane + parallax model's relief, set per pair by
   its evidence.

@@ -63,8 +63,6 @@ References:
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 
 from lensdist_torch.config import SelfCalConfig
@@ -77,6 +75,7 @@ from lensdist_torch.geometry.homography import mean_displacement
 from lensdist_torch.geometry.phase import phase_correlation
 from lensdist_torch.geometry.pyramid import mean_pyramid
 from lensdist_torch.selfcal import model as _model  # ROBUST_LOSS, PHOTOMETRIC_MODEL read at call time
+from lensdist_torch.selfcal import solver
 from lensdist_torch.selfcal.model import (
     GAIN_RANGE,
     MARGIN,
@@ -103,13 +102,10 @@ from lensdist_torch.selfcal.model import (
     with_gradients,
 )
 from lensdist_torch.selfcal.prior import (
-    add_relief_prior,
-    evidence_tau2,
     posterior_inverse,
     relief_p_value,
-    relief_precision,
     relief_score,
-    start_tau2,
+    relief_step,
 )
 from lensdist_torch.selfcal.regions import aligned_residual, cluster_robust_covariance, region_ids
 
@@ -119,22 +115,6 @@ __all__ = [
     "PARALLAX_SCORE_LEVEL", "PARALLAX_TEST", "SAMPLE_BLOCK", "SAMPLING", "SMALL_MOTION_ERROR", "SelfCalConfig",
     "SelfCalInfo", "estimate_distortion", "selfcal_residual", "distort_normalized", "undistort_normalized",
 ]
-
-
-class _State(NamedTuple):
-    """The final full-resolution fit of each row.
-
-    Residual, mask, Jacobian, sigma, cost, start cost, and the relief prior's variance tau^2
-    (normalised units; None without the relief).
-    """
-
-    res: torch.Tensor
-    valid: torch.Tensor
-    J: torch.Tensor
-    sigma: torch.Tensor
-    cost: torch.Tensor
-    start_cost: torch.Tensor
-    tau2: torch.Tensor | None = None
 
 
 _RELIEF_INTERPOLATION = "bilinear"  # the relief stage's kernel: blended, its relief stayed on 4 of 24 flat pairs
@@ -157,7 +137,7 @@ CLUSTERS = 6  # the frame's clusters x clusters rectangles of the cluster-robust
 OCCLUDED_SHARE = 0.15  # the share of those rectangles the aligned residual leaves out (an occluder's)
 SMALL_MOTION_ERROR = 1.5e-5  # a floor e R^2 / m px on Delta_avg's std, m the pair's motion (px), R the half diagonal
 PARALLAX_TEST = 2.0  # the relief's answer is kept where Delta_avg moves by this many stds of the difference (Hausman)
-PARALLAX_SCORE_LEVEL = 1.0  # the relief is fitted where the planar fit's score test rejects a plane at this level
+PARALLAX_SCORE_LEVEL = 0.01  # the relief stage is fitted where the score test rejects a plane at this level (p-value)
 
 
 @torch.no_grad()
@@ -231,52 +211,79 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     lam = torch.full((theta.shape[0],), DAMPING, dtype=torch.float64, device=g1.device)
     for lev, iters in zip(range(LEVELS - 1, -1, -1), ITERATIONS):
         lv = _level(pyr1, pyr2, lev, theta, n_starts, cfg, relief=False)
-        theta, lam, state = _levenberg_marquardt(theta, lam, lv, iters, cfg, lev < DISTORTION_LEVELS)
+        theta, lam, state = solver.levenberg_marquardt(theta, lam, lv, iterations=iters, cfg=cfg,
+                                                          free_ab=lev < DISTORTION_LEVELS)
         lam = lam.clamp_min(DAMPING)  # a fresh start of the damping at the next level
     theta, *planar = _result(theta, state, n_starts, init is not None, h0, w0, cfg, SAMPLE_BLOCK[-1])
     if cfg.parallax == 0:
         return planar
-    # the plane + parallax model, from the planar fit, where the pair's evidence asks for it
+    # the plane + parallax model from the planar fit: one step on every pair (:func:`_relief_start`), the
+    # fitted stage where the score test rejects a flat scene
     theta = torch.cat([theta, theta.new_zeros(bsz, cfg.parallax**2)], 1)
-    score = _relief_score(pyr1, pyr2, theta, cfg, h0, w0)
+    score, relief = _relief_start(pyr1, pyr2, theta, cfg, h0, w0)
     ask = planar[3].converged & (relief_p_value(score, cfg) <= PARALLAX_SCORE_LEVEL)
     rows = (ask | (not cfg.parallax_evidence)).nonzero()[:, 0]  # a fixed prior: every pair
-    nan = torch.full_like(score, float("nan"))
-    info = planar[3]._replace(relief_score=score, relief_z=nan, relief_std=nan)
-    if len(rows) == 0:
-        return (*planar[:3], info)
-    lam = torch.full((len(rows),), DAMPING, dtype=torch.float64, device=g1.device)
-    lv = _level([p[rows] for p in pyr1], [p[rows] for p in pyr2], 0, theta[rows], 1, cfg, relief=True)
-    theta, _, state = _levenberg_marquardt(theta[rows], lam, lv, PARALLAX_ITERATIONS, cfg)
-    _, *relief = _result(theta, state, 1, False, h0, w0, cfg, PARALLAX_BLOCK)
-    d0, s0, d1, s1 = planar[3].delta_avg[rows], planar[3].planar_std[rows], relief[3].delta_avg, relief[3].delta_avg_std
+    if len(rows):
+        lam = torch.full((len(rows),), DAMPING, dtype=torch.float64, device=g1.device)
+        lv = _level([p[rows] for p in pyr1], [p[rows] for p in pyr2], 0, theta[rows], 1, cfg, relief=True)
+        theta, _, state = solver.levenberg_marquardt(theta[rows], lam, lv, iterations=PARALLAX_ITERATIONS, cfg=cfg)
+        fitted = _result(theta, state, 1, False, h0, w0, cfg, PARALLAX_BLOCK)[1:]
+        relief = (*(_on_rows(a, b, rows) for a, b in zip(fitted[:3], relief[:3])),
+                  SelfCalInfo(*(_on_rows(a, b, rows) for a, b in zip(fitted[3], relief[3]))))
+    return _kept(planar, relief, score, planar[3].converged | (not cfg.parallax_evidence))
+
+
+def _on_rows(a, b, rows):
+    """``b`` with ``a`` (one per index of ``rows``) on those rows."""
+    out = b.clone()
+    out[rows] = a
+    return out
+
+
+def _kept(planar, relief, score, answered):
+    """Per pair the planar answer or the plane + parallax one (Hausman's test), with both in the info.
+
+    ``planar``, ``relief``: (k2, k4, H, info) of the two models; ``answered`` (B,) bool: the pairs
+    whose relief figures the info carries (NaN elsewhere).
+    """
+    p, r = planar[3], relief[3]
     # Hausman: under a planar scene the planar answer is the efficient one, var(d1 - d0) = s1^2 - s0^2
-    z = (d1 - d0).abs() / (s1**2 - s0**2).clamp_min(_HAUSMAN_FLOOR_PX**2).sqrt()
-    use = relief[3].converged & planar[3].converged[rows] & (z >= PARALLAX_TEST)  # 0: on every pair
+    floor = _HAUSMAN_FLOOR_PX**2
+    z = (r.delta_avg - p.delta_avg).abs() / (r.delta_avg_std**2 - p.planar_std**2).clamp_min(floor).sqrt()
+    use = r.converged & p.converged & (z >= PARALLAX_TEST)  # 0: on every pair
 
-    def kept(a, b, m=use):  # b, with a on the relief's rows where m
-        out = b.clone()
-        out[rows] = torch.where(m.view(-1, *(1,) * (a.dim() - 1)), a, b[rows])
-        return out
+    def kept(a, b, m=use):  # a where m, else b
+        return torch.where(m.view(-1, *(1,) * (a.dim() - 1)), a, b)
 
-    every = torch.ones_like(use)
-    info = SelfCalInfo(*map(kept, relief[3], info))._replace(
-        relief=kept(use, info.relief, every), relief_ab=kept(relief[3].ab, info.relief_ab, every),
-        relief_z=kept(z, nan, every), relief_std=kept(s1, nan, every), from_init=info.from_init,
-        planar_ab=info.planar_ab, planar_std=info.planar_std, relief_score=score)
+    nan = torch.full_like(score, float("nan"))
+    info = SelfCalInfo(*map(kept, r, p))._replace(
+        relief=use, relief_ab=kept(r.ab, p.relief_ab, answered), relief_z=kept(z, nan, answered),
+        relief_std=kept(r.delta_avg_std, nan, answered), from_init=p.from_init, planar_ab=p.planar_ab,
+        planar_std=p.planar_std, relief_score=score)
     return (*map(kept, relief[:3], planar[:3]), info)
 
 
-def _relief_score(pyr1, pyr2, theta, cfg: SelfCalConfig, h0: int, w0: int) -> torch.Tensor:
-    """(B,) :func:`~lensdist_torch.selfcal.prior.relief_score` at the planar answer ``theta``, on its own samples."""
+def _relief_start(pyr1, pyr2, theta, cfg: SelfCalConfig, h0: int, w0: int):
+    """The score test of the relief at the planar answer ``theta`` and one step of the plane + parallax model.
+
+    On the planar fit's own samples, the relief's columns appended at 0: the robust normal
+    equations give :func:`~lensdist_torch.selfcal.prior.relief_score` and
+    :func:`~lensdist_torch.selfcal.prior.relief_step`; the step's answer is read with the posterior
+    at ``theta`` (the model linear about it). Returns the score (B,) and (k2, k4, H, info) of the step.
+    """
     lv = _level(pyr1, pyr2, 0, theta, 1, cfg, relief=False)
     lv = lv._replace(basis=_bumps(lv.ux_d, lv.uy_d, cfg, h0, w0), direction=relief_direction(theta))
     res, valid, J = evaluate(theta, lv)
     loss = _model.ROBUST_LOSS
-    w = robust_weights(res, robust_scale(res, valid, NOISE_FLOOR), loss, robust_constant(loss))
+    sigma = robust_scale(res, valid, NOISE_FLOOR)
+    w = robust_weights(res, sigma, loss, robust_constant(loss))
     w = valid.float() if w is None else w * valid
-    jtj, jtr = _normal_equations(J, res, w)
-    return relief_score(jtj, jtr, _residual_variance(res, w, J.shape[1], cfg), cfg)
+    jtj, jtr = solver.normal_equations(J, res, w)
+    score = relief_score(jtj, jtr, solver.residual_variance(res, w, J.shape[1], cfg), cfg)
+    stepped, tau2 = relief_step(theta, jtj, jtr, sigma, px=lv.px, cfg=cfg)
+    cost = solver.objective(theta, res, valid, sigma, cfg=cfg, tau2=tau2)
+    state = solver.State(res=res, valid=valid, J=J, sigma=sigma, cost=cost, start_cost=cost, tau2=tau2)
+    return score, _result(stepped, state, 1, False, h0, w0, cfg, SAMPLE_BLOCK[-1])[1:]
 
 
 def _level(pyr1, pyr2, lev: int, theta, n_starts: int, cfg: SelfCalConfig, relief: bool) -> Level:
@@ -299,74 +306,9 @@ def _bumps(ux_d, uy_d, cfg: SelfCalConfig, h0: int, w0: int):
     return relief_basis(ux_d, uy_d, n=cfg.parallax, width=PARALLAX_WIDTH, h0=h0, w0=w0)
 
 
-def _normal_equations(J, res, weights):
-    """J W J^T (B, P, P) and J W r (B, P), float64 (W = I when weights is None)."""
-    Jw = J if weights is None else J * weights[:, None]
-    return torch.bmm(Jw, J.transpose(1, 2)).double(), (Jw * res[:, None]).sum(-1, dtype=torch.float64)
-
-
-def _levenberg_marquardt(theta, lam, lv: Level, iterations: int, cfg: SelfCalConfig, free_ab: bool = True):
-    """``iterations`` robust Levenberg-Marquardt (IRLS) steps on one level.
-
-    A pair's step is accepted where the robust cost at the current sigma falls, the model stays
-    plausible and some overlap remains; sigma is then re-estimated, and with the relief the
-    prior's variance where it is estimated per pair (:func:`~lensdist_torch.selfcal.prior.evidence_tau2`).
-    Returns theta, lambda and the :class:`_State` at theta.
-    """
-    loss, k = _model.ROBUST_LOSS, robust_constant(_model.ROBUST_LOSS)
-    res, valid, J = evaluate(theta, lv)
-    sigma = robust_scale(res, valid, NOISE_FLOOR)
-    tau2 = None if lv.basis is None else start_tau2(len(theta), lv.px, cfg, theta.device)
-    cost = _cost(theta, res, valid, sigma, cfg, tau2)
-    theta0, res0, valid0 = theta, res, valid
-    normal = None  # the evidence's normal equations at theta, reused by the next step
-    for _ in range(iterations):
-        jtj, jtr = _normal_equations(J, res, robust_weights(res, sigma, loss, k)) if normal is None else normal
-        if not free_ab:  # (a, b) held: their rows and columns out of the system (step 0)
-            jtj[:, 8:10], jtj[:, :, 8:10], jtr[:, 8:10] = 0, 0, 0
-        if tau2 is not None:  # the relief's Gaussian prior
-            prec, rel = add_relief_prior(jtj, sigma.double() ** 2, tau2, cfg)
-            jtr[:, rel] += prec[:, None] * theta[:, rel]
-        diag = torch.diagonal(jtj, dim1=1, dim2=2).clamp_min(1e-9)
-        A = jtj + torch.diag_embed(lam[:, None] * diag + 1e-9 * diag.amax(1, keepdim=True))
-        step = -torch.linalg.solve(A, jtr)
-        cand = theta + torch.nan_to_num(step, nan=0.0)
-        res_c, valid_c, J_c = evaluate(cand, lv)
-        cost_c = _cost(cand, res_c, valid_c, sigma, cfg, tau2)
-        acc = (cost_c < cost) & torch.isfinite(cost_c) & plausible(cand, _model.PHOTOMETRIC_MODEL)
-        acc &= valid_c.float().mean(1) > 0.05
-        m = acc[:, None]
-        theta = torch.where(m, cand, theta)
-        res, valid = torch.where(m, res_c, res), torch.where(m, valid_c, valid)
-        J = torch.where(m[..., None], J_c, J)
-        lam = torch.where(acc, lam / 3, lam * 4).clamp(1e-7, 1e7)
-        if loss != "none":  # sigma re-estimated
-            sigma = torch.where(acc, robust_scale(res, valid, NOISE_FLOOR), sigma)
-        if tau2 is not None and cfg.parallax_evidence:  # and the relief prior's variance
-            normal = _normal_equations(J, res, robust_weights(res, sigma, loss, k))
-            tau2 = evidence_tau2(theta, normal[0], sigma, tau2, px=lv.px, cfg=cfg)
-        cost = _cost(theta, res, valid, sigma, cfg, tau2)  # the cost moves with them
-    return theta, lam, _State(
-        res=res, valid=valid, J=J, sigma=sigma, cost=cost, start_cost=_cost(theta0, res0, valid0, sigma, cfg, tau2),
-        tau2=tau2)
-
-
-def _cost(theta, res, valid, sigma, cfg: SelfCalConfig, tau2: torch.Tensor | None = None):
-    """The robust cost, plus the relief prior's term (on the same per-sample scale) where fitted."""
-    cost = robust_cost(res, valid, sigma, loss=_model.ROBUST_LOSS, k=robust_constant(_model.ROBUST_LOSS))
-    if tau2 is None:
-        return cost
-    prec, rel = relief_precision(sigma.double() ** 2, tau2, cfg)
-    return cost + prec * (theta[:, rel].double() ** 2).sum(1) / valid.sum(1).clamp_min(1).double()
-
-
-def _residual_variance(res, w, n_par: int, cfg: SelfCalConfig) -> torch.Tensor:
-    """(B,) the weighted residual variance, floored at 8-bit quantisation: no certainty without texture."""
-    s2 = (w.double() * res.double() ** 2).sum(1) / (w.double().sum(1) - n_par).clamp_min(1)
-    return s2.clamp_min(NOISE_FLOOR**2)
-
-
-def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region: torch.Tensor | None) -> torch.Tensor:
+def _delta_avg_std(
+    ab, st: solver.State, h0: int, w0: int, cfg: SelfCalConfig, region: torch.Tensor | None
+) -> torch.Tensor:
     """Std (px) of Delta_avg from the covariance of the final fit; inf where not finite.
 
     The weighted Gauss-Newton covariance, or (with the samples' ``region``, ``clusters`` > 1) the
@@ -374,8 +316,8 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     """
     w = robust_weights(st.res, st.sigma, _model.ROBUST_LOSS, robust_constant(_model.ROBUST_LOSS))
     w = st.valid.float() if w is None else w * st.valid
-    jtj, _ = _normal_equations(st.J, st.res, w)
-    s2 = _residual_variance(st.res, w, st.J.shape[1], cfg)
+    jtj, _ = solver.normal_equations(st.J, st.res, w)
+    s2 = solver.residual_variance(st.res, w, st.J.shape[1], cfg)
     inv = posterior_inverse(jtj, s2, st.tau2, cfg)  # with the relief: precision J W J^T / s^2 + I / tau^2
     cov = s2[:, None, None] * inv
     if region is not None:  # cluster-robust: the larger of the two
@@ -393,7 +335,7 @@ def _delta_avg_std(ab, st: _State, h0: int, w0: int, cfg: SelfCalConfig, region:
     return torch.where(torch.isfinite(std), std, torch.full_like(std, float("inf")))
 
 
-def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> torch.Tensor:
+def _choose(st: solver.State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> torch.Tensor:
     """(B,) row index of the kept start per pair: the lower robust cost at the smaller sigma."""
     bsz = ok.shape[0] // n_starts
     rows = torch.arange(bsz, device=ok.device)
@@ -405,7 +347,7 @@ def _choose(st: _State, ok: torch.Tensor, n_starts: int, cfg: SelfCalConfig) -> 
     return rows + bsz * cost.argmin(0)  # ties: the first start (init)
 
 
-def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, cfg: SelfCalConfig, block: int):
+def _result(theta, st: solver.State, n_starts: int, has_init: bool, h0: int, w0: int, cfg: SelfCalConfig, block: int):
     """k2, k4, H and :class:`SelfCalInfo` of a chunk from its final fits; NaN where it diverged."""
     dev = theta.device
     overlap = st.valid.float().mean(1)
@@ -414,7 +356,7 @@ def _result(theta, st: _State, n_starts: int, has_init: bool, h0: int, w0: int, 
           & plausible(theta, _model.PHOTOMETRIC_MODEL) & (st.cost <= st.start_cost * (1 + 1e-6)))
     keep = _choose(st, ok, n_starts, cfg)
     theta, ok, overlap, ab = theta[keep], ok[keep], overlap[keep], ab[keep].clone()
-    st = _State(*(None if x is None else x[keep] for x in st))
+    st = solver.State(*(None if x is None else x[keep] for x in st))
     r0 = half_diagonal(h0, w0)
     # the frame's rectangles of the samples: the cluster-robust covariance and the aligned residual
     region = region_ids(h0, w0, block=block, clusters=CLUSTERS, device=dev) if CLUSTERS > 1 else None

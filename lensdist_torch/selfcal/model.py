@@ -204,9 +204,10 @@ class SelfCalInfo(NamedTuple):
     ``clusters`` rectangles but the worst ``occluded_share`` of them (what ``analyze`` tests: an
     occluder spoils a few rectangles, a model that cannot follow the lens most of the border),
     relief_score Rao's score statistic of the relief at the planar answer (chi-square with
-    ``parallax**2`` degrees of freedom on a flat scene; what ``parallax_score_level`` tests; NaN
-    without that model). Where the plane + parallax model was not fitted (the score test kept the
-    pair flat) relief_ab, relief_z and relief_std are NaN, as without that model.
+    ``parallax**2`` degrees of freedom on a flat scene; what ``fit.PARALLAX_SCORE_LEVEL`` tests;
+    NaN without that model). Where the score test finds no relief, the plane + parallax figures are
+    those of its one Gauss-Newton step from the planar answer (``prior.relief_step``), not of the
+    fitted stage.
     """
 
     converged: torch.Tensor

@@ -30,6 +30,8 @@ __all__ = [
     "evidence_tau2",
     "relief_score",
     "relief_p_value",
+    "relief_step",
+    "EVIDENCE_STEPS",
 ]
 
 #: Absolute ridge on J W J^T in the posterior covariance and the score test (docs/method.md, section 10).
@@ -37,6 +39,8 @@ RIDGE = 1e-6
 #: (low, high) px: the range the evidence may move the relief prior's std in (``selfcal.parallax_evidence``;
 #: docs/method.md, section 10).
 PARALLAX_PX_RANGE = (0.02, 2.0)
+#: Evidence updates of the prior's variance in :func:`relief_step` (the model linear about the planar answer).
+EVIDENCE_STEPS = 8
 
 
 def evidence_variance(coef: torch.Tensor, posterior_trace: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -172,3 +176,35 @@ def relief_p_value(score: torch.Tensor, cfg: SelfCalConfig) -> torch.Tensor:
     """
     k = torch.tensor(cfg.parallax**2 / 2, dtype=torch.float64, device=score.device)
     return torch.special.gammaincc(k, score.double().clamp_min(0) / 2)
+
+
+def relief_step(theta, jtj, jtr, sigma, *, px: float, cfg: SelfCalConfig):
+    """One Gauss-Newton step of the plane + parallax model from the planar answer, under the relief's prior.
+
+    ``theta`` (B, P): the planar answer with the relief's columns at 0; ``jtj`` (B, P, P), ``jtr``
+    (B, P): the robust normal equations there (:func:`relief_score`'s); ``sigma`` (B,) the residual
+    scale, ``px`` the level's pixels per unit. The model is taken as linear about ``theta`` (the
+    score test found no relief, so the answer stays near it): the step solves the normal equations
+    with the prior, whose variance starts at ``parallax_px`` and, with ``parallax_evidence``, is
+    re-estimated from the evidence :data:`EVIDENCE_STEPS` times on the same equations
+    (:func:`evidence_tau2`). Returns the stepped theta (B, P) and the prior's variance tau2 (B,),
+    what the fitted stage's posterior reads.
+
+    Example:
+        >>> cfg = SelfCalConfig(parallax=1, parallax_evidence=False, parallax_px=2.0**0.5)  # tau2 0.5 at px 2
+        >>> jtj, jtr = torch.eye(13, dtype=torch.float64)[None], torch.zeros(1, 13, dtype=torch.float64)
+        >>> jtr[0, 12] = -3.0  # the bump's gradient; its prior precision 1 / 0.5: the step 3 / (1 + 2)
+        >>> theta, tau2 = relief_step(torch.zeros(1, 13, dtype=torch.float64), jtj, jtr, torch.ones(1), px=2.0, cfg=cfg)
+        >>> round(float(theta[0, 12]), 6), round(float(tau2[0]), 6)
+        (1.0, 0.5)
+    """
+    variance = sigma.double() ** 2
+    tau2 = start_tau2(len(theta), px, cfg, theta.device)
+    eye = RIDGE * torch.eye(jtj.shape[1], dtype=torch.float64, device=jtj.device)
+    for _ in range(EVIDENCE_STEPS if cfg.parallax_evidence else 1):
+        a = jtj.clone()
+        add_relief_prior(a, variance, tau2, cfg)
+        out = theta - torch.linalg.solve(a + eye, jtr)
+        if cfg.parallax_evidence:
+            tau2 = evidence_tau2(out, jtj, sigma, tau2, px=px, cfg=cfg)
+    return out, tau2

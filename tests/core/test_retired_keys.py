@@ -92,6 +92,10 @@ def test_a_self_calibration_key_of_an_earlier_version(tmp_path):
     path.write_text("[selfcal]\nconfidence_threshold = 0.6\n")
     one_line_error(ValueError, lambda: load_config(path), "selfcal.confidence_threshold", str(path),
                    "a constant of the method now: lensdist_torch.selfcal.fit.CONFIDENCE_THRESHOLD")
+    # the score test's level, a constant of issue 50 whose value changed since: inert, a decision made per pair
+    assert stored_config({"selfcal": {"parallax_score_level": 1.0, "chunk_size": 4}}).selfcal.chunk_size == 4
+    path.write_text("[selfcal]\nparallax_score_level = 1.0\n")
+    one_line_error(ValueError, lambda: load_config(path), "parallax_score_level", str(path))
 
 
 def test_a_registration_key_of_an_earlier_version(tmp_path):
@@ -257,8 +261,7 @@ OLD_ISSUE_50 = {
     "protocol": {k: v for k, v in OLD_PROTOCOL.items() if k not in ("perspective", "perturbation", "occluder_area")},
     "selfcal": {"robust": "tukey", "photometric": "gain_bias", "levels": 3, "iterations": [8, 4, 6],
                 "sample_block": [2, 4, 4], "interpolation": "blend", "both_starts": True, "clusters": 6,
-                "occluded_share": 0.15, "small_motion_error": 1.5e-5, "parallax_test": 2.0,
-                "parallax_score_level": 1.0},
+                "occluded_share": 0.15, "small_motion_error": 1.5e-5, "parallax_test": 2.0},
     "calibration": {"max_misfit": 0.4, "relief_rel": 0.8, "relief_test": 2.0, "no_distortion_px": 0.25,
                     "verify_pairs": 6, "registered_start": True},
 }
