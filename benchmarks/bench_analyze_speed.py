@@ -73,7 +73,7 @@ def _case(args) -> dict:
         res = analyze_pair(a, b)
         t_an.append(time.perf_counter() - t0)
         answers.append({"class": res.class_label, "delta_avg": res.delta_avg, "truth_delta_avg": truth,
-                        "relief_fitted": res.to_json().get("relief_delta_avg") is not None})
+                        "relief_answer": res.to_json().get("relief_delta_avg") is not None})
         x, y = (resize_to(load_image(f), 320, 424) for f in (a, b))
         estimate_homography(x, y)  # warm-up of this size
         t0 = time.perf_counter()

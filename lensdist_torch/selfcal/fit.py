@@ -220,7 +220,8 @@ def _fit(g1, g2, init, cfg: SelfCalConfig):
     # the plane + parallax model from the planar fit: one step on every pair (:func:`_relief_start`), the
     # fitted stage where the score test rejects a flat scene
     theta = torch.cat([theta, theta.new_zeros(bsz, cfg.parallax**2)], 1)
-    score, relief = _relief_start(pyr1, pyr2, theta, cfg, h0, w0)
+    first = {f: getattr(lv, f)[:bsz] for f in ("i1", "stack2", "ux_d", "uy_d", "rho")}  # the starts share samples
+    score, relief = _relief_start(lv._replace(**first), theta, cfg, h0, w0)
     ask = planar[3].converged & (relief_p_value(score, cfg) <= PARALLAX_SCORE_LEVEL)
     rows = (ask | (not cfg.parallax_evidence)).nonzero()[:, 0]  # a fixed prior: every pair
     if len(rows):
@@ -263,15 +264,15 @@ def _kept(planar, relief, score, answered):
     return (*map(kept, relief[:3], planar[:3]), info)
 
 
-def _relief_start(pyr1, pyr2, theta, cfg: SelfCalConfig, h0: int, w0: int):
+def _relief_start(lv: Level, theta, cfg: SelfCalConfig, h0: int, w0: int):
     """The score test of the relief at the planar answer ``theta`` and one step of the plane + parallax model.
 
-    On the planar fit's own samples, the relief's columns appended at 0: the robust normal
+    On the planar fit's own samples (``lv``, its full-size level, one row per pair), the relief's
+    columns appended at 0: the robust normal
     equations give :func:`~lensdist_torch.selfcal.prior.relief_score` and
     :func:`~lensdist_torch.selfcal.prior.relief_step`; the step's answer is read with the posterior
     at ``theta`` (the model linear about it). Returns the score (B,) and (k2, k4, H, info) of the step.
     """
-    lv = _level(pyr1, pyr2, 0, theta, 1, cfg, relief=False)
     lv = lv._replace(basis=_bumps(lv.ux_d, lv.uy_d, cfg, h0, w0), direction=relief_direction(theta))
     res, valid, J = evaluate(theta, lv)
     loss = _model.ROBUST_LOSS
@@ -282,7 +283,7 @@ def _relief_start(pyr1, pyr2, theta, cfg: SelfCalConfig, h0: int, w0: int):
     score = relief_score(jtj, jtr, solver.residual_variance(res, w, J.shape[1], cfg), cfg)
     stepped, tau2 = relief_step(theta, jtj, jtr, sigma, px=lv.px, cfg=cfg)
     cost = solver.objective(theta, res, valid, sigma, cfg=cfg, tau2=tau2)
-    state = solver.State(res=res, valid=valid, J=J, sigma=sigma, cost=cost, start_cost=cost, tau2=tau2)
+    state = solver.State(res=res, valid=valid, J=J, sigma=sigma, cost=cost, start_cost=cost, tau2=tau2, jtj=jtj)
     return score, _result(stepped, state, 1, False, h0, w0, cfg, SAMPLE_BLOCK[-1])[1:]
 
 
@@ -316,7 +317,7 @@ def _delta_avg_std(
     """
     w = robust_weights(st.res, st.sigma, _model.ROBUST_LOSS, robust_constant(_model.ROBUST_LOSS))
     w = st.valid.float() if w is None else w * st.valid
-    jtj, _ = solver.normal_equations(st.J, st.res, w)
+    jtj = solver.normal_equations(st.J, st.res, w)[0] if st.jtj is None else st.jtj
     s2 = solver.residual_variance(st.res, w, st.J.shape[1], cfg)
     inv = posterior_inverse(jtj, s2, st.tau2, cfg)  # with the relief: precision J W J^T / s^2 + I / tau^2
     cov = s2[:, None, None] * inv

@@ -40,8 +40,9 @@ __all__ = ["State", "normal_equations", "levenberg_marquardt", "objective", "res
 class State(NamedTuple):
     """The final full-resolution fit of each row.
 
-    Residual, mask, Jacobian, sigma, cost, start cost, and the relief prior's variance tau^2
-    (normalised units; None without the relief).
+    Residual, mask, Jacobian, sigma, cost, start cost, the relief prior's variance tau^2
+    (normalised units; None without the relief), and the robust normal matrix J W J^T at theta
+    where it is already known (else None: computed from the rest).
     """
 
     res: torch.Tensor
@@ -51,6 +52,7 @@ class State(NamedTuple):
     cost: torch.Tensor
     start_cost: torch.Tensor
     tau2: torch.Tensor | None = None
+    jtj: torch.Tensor | None = None
 
 
 def normal_equations(J, res, weights):
