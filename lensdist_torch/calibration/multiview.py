@@ -196,7 +196,7 @@ def reconstruct(image_dir: str | Path, names: list[str], *, config: MultiViewCon
     out, stage = [], on_stage or (lambda name, threads: None)
     with tempfile.TemporaryDirectory(prefix="lensdist-colmap-") as tmp:
         db = Path(tmp) / "db.db"
-        extract_and_match(db, image_dir, names, config=cfg, image_size=image_size, on_stage=stage)
+        extract_and_match(db, image_dir, names, config=cfg, image_size=image_size, on_stage=on_stage)
         if on_matches is not None:
             on_matches(db)
         for i in range(cfg.reconstructions + (EXTRA_MAPPINGS if stop is not None else 0)):

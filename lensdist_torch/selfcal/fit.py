@@ -282,8 +282,8 @@ def _relief_start(lv: Level, theta, cfg: SelfCalConfig, h0: int, w0: int):
     jtj, jtr = solver.normal_equations(J, res, w)
     score = relief_score(jtj, jtr, solver.residual_variance(res, w, J.shape[1], cfg), cfg)
     stepped, tau2 = relief_step(theta, jtj, jtr, sigma, px=lv.px, cfg=cfg)
-    cost = solver.objective(theta, res, valid, sigma, cfg=cfg, tau2=tau2)
-    state = solver.State(res=res, valid=valid, J=J, sigma=sigma, cost=cost, start_cost=cost, tau2=tau2, jtj=jtj)
+    untried = sigma.new_zeros(len(sigma), dtype=torch.float64)  # one step, taken unconditionally: no cost to compare
+    state = solver.State(res=res, valid=valid, J=J, sigma=sigma, cost=untried, start_cost=untried, tau2=tau2, jtj=jtj)
     return score, _result(stepped, state, 1, False, h0, w0, cfg, SAMPLE_BLOCK[-1])[1:]
 
 

@@ -124,18 +124,20 @@ def start_tau2(n: int, px: float, cfg: SelfCalConfig, device=None) -> torch.Tens
     return torch.full((n,), _normalised(cfg.parallax_px, px), dtype=torch.float64, device=device)
 
 
-def evidence_tau2(theta, jtj, sigma, tau2, *, px: float, cfg: SelfCalConfig) -> torch.Tensor:
+def evidence_tau2(theta, jtj, sigma, tau2, *, px: float, cfg: SelfCalConfig,
+                  inverse: torch.Tensor | None = None) -> torch.Tensor:
     """(B,) the relief prior's variance re-estimated per pair at ``theta`` (B, P).
 
     ``jtj`` (B, P, P): the fit's robust normal matrix J W J^T there, without the prior (left as
     it is); ``sigma`` (B,) the residual scale, ``tau2`` (B,) the current variance, ``px`` the
-    level's pixels per unit. The posterior's trace over the relief gives
-    :func:`evidence_variance`, kept within :data:`PARALLAX_PX_RANGE` (px); a row whose update is not
-    finite keeps its variance.
+    level's pixels per unit; ``inverse``: :func:`posterior_inverse` of these where the caller has
+    formed it already. The posterior's trace over the relief gives :func:`evidence_variance`, kept
+    within :data:`PARALLAX_PX_RANGE` (px); a row whose update is not finite keeps its variance.
     """
     variance = sigma.double() ** 2
     rel = relief_precision(variance, tau2, cfg)[1]
-    trace = variance * torch.diagonal(posterior_inverse(jtj, variance, tau2, cfg), dim1=1, dim2=2)[:, rel].sum(1)
+    inverse = posterior_inverse(jtj, variance, tau2, cfg) if inverse is None else inverse
+    trace = variance * torch.diagonal(inverse, dim1=1, dim2=2)[:, rel].sum(1)
     new = evidence_variance(theta[:, rel].double(), trace, tau2)
     lo, hi = (_normalised(v, px) for v in PARALLAX_PX_RANGE)
     return torch.where(torch.isfinite(new), new.clamp(lo, hi), tau2)
@@ -200,11 +202,9 @@ def relief_step(theta, jtj, jtr, sigma, *, px: float, cfg: SelfCalConfig):
     """
     variance = sigma.double() ** 2
     tau2 = start_tau2(len(theta), px, cfg, theta.device)
-    eye = RIDGE * torch.eye(jtj.shape[1], dtype=torch.float64, device=jtj.device)
     for _ in range(EVIDENCE_STEPS if cfg.parallax_evidence else 1):
-        a = jtj.clone()
-        add_relief_prior(a, variance, tau2, cfg)
-        out = theta - torch.linalg.solve(a + eye, jtr)
+        inverse = posterior_inverse(jtj, variance, tau2, cfg)  # one inverse for the step and the evidence
+        out = theta - (inverse @ jtr.unsqueeze(-1)).squeeze(-1)
         if cfg.parallax_evidence:
-            tau2 = evidence_tau2(out, jtj, sigma, tau2, px=px, cfg=cfg)
+            tau2 = evidence_tau2(out, jtj, sigma, tau2, px=px, cfg=cfg, inverse=inverse)
     return out, tau2
