@@ -33,6 +33,7 @@ __all__ = [
     "unregistered",
     "refit_from_registration",
     "reject_residuals",
+    "BATCH_SIZE",
     "MAX_RESIDUAL_RATIO",
     "MAX_MISFIT",
     "PARALLAX_PX",
@@ -50,6 +51,8 @@ REGISTERED_START = True
 #: The prior std (px) of each relief bump's height in the sequence's pairs (``selfcal.parallax_px`` for one pair):
 #: the setting its relief figures and ``direct.RELIEF_REL`` were measured with (docs/method.md, section 10).
 PARALLAX_PX = 1.0
+#: Pairs self-calibrated together, and the progress callback's step: the answers do not depend on it.
+BATCH_SIZE = 16
 
 
 def pair_misfit(a: torch.Tensor, b: torch.Tensor, residual: torch.Tensor) -> torch.Tensor:
@@ -139,12 +142,12 @@ def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: Calibrati
     parts = []
     if progress is not None and len(pairs):  # the pairs are chosen
         progress(0, len(pairs))
-    for s in range(0, len(pairs), cfg.batch_size):
-        sl = slice(s, s + cfg.batch_size)
+    for s in range(0, len(pairs), BATCH_SIZE):
+        sl = slice(s, s + BATCH_SIZE)
         parts.append(_fit_batch(frames[pairs[sl, 0]], frames[pairs[sl, 1]], _translations(shifts[sl]).to(frames.device),
                                 selfcal))
         if progress is not None:
-            progress(min(s + cfg.batch_size, len(pairs)), len(pairs))
+            progress(min(s + BATCH_SIZE, len(pairs)), len(pairs))
     if not parts:
         return [
             torch.zeros(0, 2, dtype=torch.float64),
@@ -173,8 +176,8 @@ def refit_from_registration(
     selfcal, memo = sequence_selfcal(settings, cfg), SiftMemo()
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     idx = retry.nonzero()[:, 0]
-    for s in range(0, len(idx), cfg.batch_size):
-        rows = idx[s : s + cfg.batch_size]
+    for s in range(0, len(idx), BATCH_SIZE):
+        rows = idx[s : s + BATCH_SIZE]
         a, b = frames[pairs[rows, 0]], frames[pairs[rows, 1]]
         h = estimate_homography_robust(a, b, config=settings.registration, validate=False, memo=memo)[0].double().cpu()
         # a registration that did not pass its own checks is still a start: the refit keeps the better one

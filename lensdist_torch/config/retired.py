@@ -27,7 +27,8 @@ class Retired:
             constant of the method, the constant's dotted name (``lensdist_torch.calibration.X.NAME``,
             ``lensdist_torch.selfcal.X.NAME``, ``lensdist_torch.registration.X.NAME``,
             ``lensdist_torch.workflows.X.NAME``, ``lensdist_torch.data.X.NAME``,
-            ``lensdist_torch.classify.X.NAME``, ``lensdist_torch.geometry.X.NAME``).
+            ``lensdist_torch.classify.X.NAME``, ``lensdist_torch.geometry.X.NAME``,
+            ``lensdist_torch.config.X.NAME``).
         value: for a constant, its value: the key loads at this value (dropped) and is refused
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
@@ -77,6 +78,7 @@ RETIRED = {
     ("calibration", "relief_test"): _constant("direct.RELIEF_TEST", 2.0),
     ("calibration", "no_distortion_px"): _constant("sequence_class.NO_DISTORTION_PX", 0.25),
     ("calibration", "verify_pairs"): _constant("controllers.calibrate.VERIFY_PAIRS", 6),
+    ("calibration", "batch_size"): _constant("direct_fits.BATCH_SIZE", 16),
     # the multi-view path's and the homography model's constants (docs/method.md, sections 11-12)
     ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 30),
     ("multiview", "sequential_overlap"): _constant("multiview.SEQUENTIAL_OVERLAP", 12),
@@ -169,6 +171,14 @@ RETIRED = {
     ("analysis", "validation_seed_offset"): _constant("decision_fit.VALIDATION_SEED_OFFSET", 1, "workflows"),
     ("analysis", "interval_confidence"): _constant("class_mass.INTERVAL_CONFIDENCE", 0.95, "workflows"),
     ("analysis", "target_precision"): _constant("decision_fit.TARGET_PRECISION", 0.97, "workflows"),
+    # the metric's constants (docs/method.md, sections 3 and 5; hashed by the data fingerprint as the keys were)
+    ("quality", "gamma"): _constant("quality.GAMMA", 0.9879, "config"),
+    ("quality", "k"): _constant("quality.K", -22.0, "config"),
+    ("quality", "sigma"): _constant("quality.SIGMA", 0.8, "config"),
+    ("quality", "tau_g"): _constant("quality.TAU_G", 0.004, "config"),
+    ("quality", "tau_e"): _constant("quality.TAU_E", 0.05, "config"),
+    ("quality", "tau_d"): _constant("quality.TAU_D", 0.02, "config"),
+    ("quality", "tau_b"): _constant("quality.TAU_B", 0.02, "config"),
     # the pair protocol's constants (docs/method.md, section 7; hashed by the data fingerprint as the keys were)
     ("protocol", "perspective"): _constant("synthesis.PERSPECTIVE", 2e-5, "data"),
     ("protocol", "perturbation"): _constant("synthesis.PERTURBATION", 0.01, "data"),

@@ -26,7 +26,6 @@ class CalibrationConfig:
     Attributes:
         analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
         max_pairs: at most this many pairs, evenly spread over those chosen.
-        batch_size: pairs self-calibrated together (the progress callback's step).
         confidence: coverage of the intervals.
         parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
             sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
@@ -44,13 +43,12 @@ class CalibrationConfig:
 
     analysis_side: int = 512
     max_pairs: int = 64
-    batch_size: int = 16
     confidence: float = 0.95
     parallax: int = 5
 
     def __post_init__(self) -> None:
         integer(self, "parallax", lo=0)
-        for name in ("analysis_side", "max_pairs", "batch_size"):
+        for name in ("analysis_side", "max_pairs"):
             integer(self, name, lo={"analysis_side": 64}.get(name, 1))
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
 

@@ -80,6 +80,8 @@ def _data_fields(config: LensdistConfig) -> dict:
         d[name].pop("chunk_size", None)
     for name in _DATA_SECTIONS:
         d[name].update(_CONSTANTS[name])  # the constants that were keys: a data set keeps its fingerprint
+    d["quality"].pop("temperature")  # hashed as the four temperatures it scales, as when they were keys
+    d["quality"].update({name: getattr(config.quality, name) for name in ("tau_g", "tau_e", "tau_d", "tau_b")})
     for key in _NOT_IN_DATA:
         d["registration"].pop(key, None)
     d["protocol"].pop("unseen_scenes", None)  # only reproduce's extra test set reads it

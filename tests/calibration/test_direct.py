@@ -438,11 +438,13 @@ def test_an_interval_across_the_no_distortion_threshold_gives_no_class(monkeypat
     assert _result(ab, std, pairs, xa, (h, w), 1.0, cfg, st, (ab, ab)).class_label == "R"
 
 
-def test_progress_says_when_the_pairs_are_chosen_and_after_every_batch():
+def test_progress_says_when_the_pairs_are_chosen_and_after_every_batch(monkeypatch):
+    from lensdist_torch.calibration import direct_fits
+
+    monkeypatch.setattr(direct_fits, "BATCH_SIZE", 4)
     frames = synthetic_sequence(10, 6e-6, 0.0, size=(160, 200))[0]
     calls = []
-    cal = calibrate_sequence(frames, CalibrationConfig(batch_size=4),
-                             progress=lambda done, total: calls.append((done, total)))
+    cal = calibrate_sequence(frames, progress=lambda done, total: calls.append((done, total)))
     n = len(cal.pairs)
     assert n > 4 and calls == [(0, n)] + [(min(s + 4, n), n) for s in range(0, n, 4)]
     static = calibrate_sequence(frames[:1].expand(4, -1, -1, -1), progress=lambda *a: calls.append(a))

@@ -81,7 +81,9 @@ BAD_VALUES = [
     ("quality", "theta_g", "inf"),
     ("quality", "theta_d", "-0.1"),
     ("quality", "min_block_ratio", "-0.1"),
-    ("quality", "tau_d", "0.0"),
+    ("quality", "tau_d", "0.0"),  # a constant of the method now, refused at another value
+    ("quality", "temperature", "0.0"),
+    ("quality", "temperature", "true"),
     ("quality", "chunk_size", "0"),
     ("image", "height", '"320"'),
     ("image", "width", "-424"),
@@ -176,8 +178,8 @@ def test_bad_value_in_toml(tmp_path, section, key, value):
 
 # (section, field, value) in Python: the section's class built with the one bad field
 BAD_PYTHON_VALUES = [
-    ("quality", "sigma", 0.0),
-    ("quality", "k", math.nan),
+    ("quality", "temperature", 0.0),
+    ("quality", "temperature", math.nan),
     ("quality", "theta_e", 0.99),  # above gamma
     ("image", "height", 320.0),
     ("distortion", "k2_max", -1.0),

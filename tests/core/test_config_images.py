@@ -72,6 +72,7 @@ class TestDefaults:
         s = q.with_temperature_scale(0.5)
         for name in ("tau_g", "tau_e", "tau_d", "tau_b"):
             assert getattr(s, name) == getattr(q, name) * 0.5
+        assert s.temperature == 0.5 and s.with_temperature_scale(4.0).tau_g == q.tau_g * 2.0
         for name in ("theta_g", "theta_e", "theta_d", "gamma", "k", "sigma", "block_size", "min_block_ratio"):
             assert getattr(s, name) == getattr(q, name)
         for bad in (0, -1.0, math.inf, math.nan):
@@ -88,12 +89,12 @@ class TestDefaults:
             ({"theta_g": 0.0}, "theta_g"),
             ({"theta_g": math.nan}, "theta_g"),
             ({"theta_d": -0.1}, "theta_d"),
-            ({"tau_e": 0.0}, "tau_e"),
-            ({"tau_b": math.inf}, "tau_b"),
+            ({"temperature": 0.0}, "temperature"),
+            ({"temperature": math.inf}, "temperature"),
             ({"theta_e": 0.0}, "theta_e"),
             ({"theta_e": 0.9879}, "theta_e"),  # theta_e must stay below gamma
             ({"min_block_ratio": 1.5}, "min_block_ratio"),
-            ({"k": 22.0}, "k"),
+            ({"temperature": True}, "temperature"),
         ],
     )
     def test_invalid_quality_values(self, kwargs, word):
@@ -126,7 +127,7 @@ class TestLoadConfig:
             "[quality]\n"
             "block_size = 4\n"
             "theta_e = 0.4\n"
-            "tau_g = 1e-3\n"
+            "temperature = 0.25\n"
             "[image]\n"
             "height = 64\n"
             "width = 96\n"
@@ -135,7 +136,7 @@ class TestLoadConfig:
             "n_train = 100\n"
         )
         cfg = load_config(path)
-        assert cfg.quality == QualityConfig(block_size=4, theta_e=0.4, tau_g=1e-3)
+        assert cfg.quality == QualityConfig(block_size=4, theta_e=0.4, temperature=0.25)
         assert cfg.quality.theta_g == 0.02  # left out: the default
         assert (cfg.image.height, cfg.image.width) == (64, 96)
         assert cfg.protocol.scenes == ("grass",) and cfg.protocol.n_train == 100

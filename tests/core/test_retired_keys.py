@@ -98,6 +98,18 @@ def test_a_self_calibration_key_of_an_earlier_version(tmp_path):
     one_line_error(ValueError, lambda: load_config(path), "parallax_score_level", str(path))
 
 
+def test_a_metric_key_of_an_earlier_version(tmp_path):
+    """``[quality] tau_g`` became ``config.quality.TAU_G`` (scaled by ``temperature``): as written before, it loads."""
+    path = tmp_path / "old.toml"
+    path.write_text("[quality]\n" + "".join(f"{k} = {v}\n" for k, v in OLD_QUALITY.items()) + "theta_e = 0.4\n")
+    assert load_config(path).quality == config_from_dict({"quality": {"theta_e": 0.4}}).quality
+    path.write_text("[quality]\ntau_g = 0.001\n")
+    one_line_error(ValueError, lambda: load_config(path), "quality.tau_g", str(path),
+                   "a constant of the method now: lensdist_torch.config.quality.TAU_G")
+    one_line_error(ValueError, lambda: stored_config({"quality": {"gamma": 0.9}}), "quality.gamma",
+                   "lensdist_torch.config.quality.GAMMA")
+
+
 def test_a_registration_key_of_an_earlier_version(tmp_path):
     """``[registration] levels`` became ``registration.direct.LEVELS``: as paper.toml wrote it, it loads."""
     path = tmp_path / "old.toml"
@@ -130,6 +142,10 @@ OLD_PROTOCOL = {"perspective": 2e-5, "perturbation": 0.01, "occluder_area": [0.0
                 "noise_range": [0.0, 0.02], "jpeg_quality": [60, 95], "occluder_rate": 0.2}
 
 
+#: ``[quality]``'s keys that became constants of the method (the temperatures: ``temperature`` 1), as written before.
+OLD_QUALITY = {"gamma": 0.9879, "k": -22.0, "sigma": 0.8, "tau_g": 0.004, "tau_e": 0.05, "tau_d": 0.02, "tau_b": 0.02}
+
+
 def test_the_data_fingerprint_hashes_the_retired_keys_as_before():
     """The retired keys are hashed at their constants' values: a data set generated before keeps its fingerprint."""
     from pathlib import Path
@@ -147,8 +163,12 @@ def test_the_data_fingerprint_hashes_the_retired_keys_as_before():
     assert all(type(x) is int for x in fields["protocol"]["jpeg_quality"])  # ints, as the config stored them
     others = {s: dict(config_to_dict(LensdistConfig())[s]) for s in ("quality", "image", "distortion", "protocol")}
     others["quality"].pop("chunk_size"), others["protocol"].pop("unseen_scenes")  # as before: not hashed
+    assert others["quality"].pop("temperature") == 1.0  # hashed as the four temperatures it scales
     assert fields == {**others, "protocol": {**others["protocol"], **OLD_PROTOCOL}, "registration": old,
-                      "distortion": {**others["distortion"], "n_classes": 4}}
+                      "distortion": {**others["distortion"], "n_classes": 4},
+                      "quality": {**others["quality"], **OLD_QUALITY}}
+    sharp = _data_fields(config_from_dict({"quality": {"temperature": 0.5}}))["quality"]
+    assert (sharp["tau_g"], sharp["tau_b"]) == (0.002, 0.01) and "temperature" not in sharp
     assert type(fields["distortion"]["n_classes"]) is int
     # as the old code made them: the default protocol, with and without scenes, and the two realistic conditions
     assert config_fingerprint(LensdistConfig(), ["gravel", "grass"]) == "aa65403107c95ae1"
@@ -167,7 +187,9 @@ def test_a_manifest_of_an_earlier_version_still_reads(tmp_path):
     from lensdist_torch.data.manifest import FORMAT_VERSION, ShardError, read_manifest
 
     default = config_to_dict(LensdistConfig())
-    config = {**default, "protocol": {**default["protocol"], **OLD_PROTOCOL}, "registration": OLD_REGISTRATION}
+    quality = {k: v for k, v in default["quality"].items() if k != "temperature"}
+    config = {**default, "protocol": {**default["protocol"], **OLD_PROTOCOL}, "registration": OLD_REGISTRATION,
+              "quality": {**quality, **OLD_QUALITY}}
     m = {"format_version": FORMAT_VERSION, "fingerprint": "aa65403107c95ae1", "config": config,
          "scenes": ["gravel", "grass"], "sets": {}}
     (tmp_path / "manifest.json").write_text(json.dumps(m, allow_nan=False))

@@ -291,7 +291,7 @@ class TestSmoothConvergence:
         assert float((errs_s.e_vis - errs_h.e_vis).abs().max()) < 1e-3
 
     def test_smooth_block_floor(self):
-        cfg = QualityConfig(block_size=10, tau_b=1e-4)
+        cfg = QualityConfig(block_size=10, temperature=5e-3)  # tau_b 1e-4
         e = torch.zeros(1, 1, 10, 20, dtype=torch.float64)
         e[0, 0, 0, :5] = 1  # 0.05: far below the floor
         e[0, 0, 0, 10:20] = 1
