@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from lensdist_torch.calibration.planar_features import delta_avg_where
-from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry.opencv_model import grid_points, opencv_ideal_points
 
@@ -142,9 +142,9 @@ def main() -> None:
     report = {"calibrations": rows, "board_fraction": float(board.double().mean())}
     planar = res.get("planar") or {}
     if planar.get("coefficients"):
-        cfg = MultiViewConfig(confidence=res.get("confidence", 0.95))
+        cfg = LensdistConfig(calibration=CalibrationConfig(confidence=res.get("confidence", 0.95)))
         for key, where in (("inverts", published), ("board", board)):
-            value, iv = delta_avg_where(planar, g[where], h, w, config=cfg)
+            value, iv = delta_avg_where(planar, g[where], h, w, settings=cfg)
             report[f"answer_{key}"] = {"delta_avg_px": value, "interval": list(iv),
                                        "covers": [r["model"] + ", " + r["views"] for r in rows
                                                   if iv[0] <= r[f"delta_avg_{key}_px"] <= iv[1]]}

@@ -40,7 +40,7 @@ import torch
 
 from lensdist_torch.calibration.controllers.answer_lens import opencv_to_use
 from lensdist_torch.calibration.planar_features import delta_avg_where
-from lensdist_torch.config import MultiViewConfig
+from lensdist_torch.config import CalibrationConfig, LensdistConfig
 from lensdist_torch.core import atomic_write_text
 from lensdist_torch.geometry.opencv_model import (
     grid_points,
@@ -94,6 +94,11 @@ def homography_rms(k, dist, corners: dict, ideal=None, image_px: bool = False) -
             hv = hv - torch.linalg.lstsq(torch.func.jacfwd(residual)(hv), residual(hv)[:, None]).solution[:, 0]
         out.append(float(residual(hv).reshape(-1, 2).pow(2).sum(1).mean().sqrt()))
     return out
+
+
+def _coverage(res: dict) -> LensdistConfig:
+    """The settings at the answer's own coverage (its JSON's ``confidence``)."""
+    return LensdistConfig(calibration=CalibrationConfig(confidence=res.get("confidence", 0.95)))
 
 
 def truth_footprint(truth_k, truth_dist, size: tuple[int, int], step: int) -> torch.Tensor:
@@ -175,9 +180,7 @@ def main() -> None:
     footprint = {step: truth_footprint(cal["K"], cal["dist"], (h, w), step) for step in (2, 4)}
     on_truth = None  # the homography model where the calibration inverts (its interval from its replicates, same rules)
     if pl.get("coefficients"):
-        on_truth = delta_avg_where(
-            pl, footprint[2], h, w, config=MultiViewConfig(confidence=res.get("confidence", 0.95))
-        )
+        on_truth = delta_avg_where(pl, footprint[2], h, w, settings=_coverage(res))
     own = f"{res['delta_avg_user_px']:.2f} px over its own footprint"
     if res.get("method") == "planar" and on_truth is not None:
         rows = [("lensdist calibrate (answer)", "planar", on_truth[0], on_truth[1], res["class"], own)]
@@ -312,8 +315,7 @@ def main() -> None:
         report["on_boards_px"] = {"chessboard calibration (truth)": on_footprint(cal["K"], cal["dist"], boards)} | {
             n: on_footprint(k, dist, boards) for n, (k, dist) in checks.items()}
         if on_truth is not None:
-            confidence = MultiViewConfig(confidence=res.get("confidence", 0.95))
-            value, iv = delta_avg_where(pl, boards, h, w, config=confidence)
+            value, iv = delta_avg_where(pl, boards, h, w, settings=_coverage(res))
             report["planar_on_boards"] = {"delta_avg_px": value, "interval": iv}
         print(f"over the pixels the boards cover ({100 * report['boards_share']:.0f} % of the calibration's "
               "footprint):")

@@ -9,7 +9,7 @@ section 6). :func:`calibrate_sequence` self-calibrates many pairs (section 10) a
 2. **Pairs**: each frame with the first later frames that moved by :data:`MOTION_STEPS` of the
    half diagonal R, at most :data:`MAX_MOTION` R (:mod:`~lensdist_torch.calibration.sequence_pairs`).
 3. **Per pair**, :func:`~lensdist_torch.selfcal.fit.estimate_distortion` (batched, from the
-   pair's phase correlation, with the plane + parallax model of ``config.parallax`` bumps, kept
+   pair's phase correlation, with the plane + parallax model of ``selfcal.parallax`` bumps, kept
    where Hausman's test finds relief): a = k2 R^2, b = k4 R^4 and the std sigma_i of Delta_avg; pairs that
    diverged or whose residual exceeds ``MAX_RESIDUAL_RATIO`` times the lower quartile's drop, or
    that the fit did not register: residual RMS over ``MAX_MISFIT`` of sqrt(var_1 + var_2), the
@@ -275,21 +275,21 @@ def calibrate_sequence(
     if min(xa.shape[-2:]) < least:
         raise ValueError(f"frames must be at least {least} px on each side, got {tuple(xa.shape[-2:])}")
     pairs, shifts = choose_pairs(xa, cfg)
-    fits = fit_pairs(xa, pairs, shifts, settings=st, cfg=cfg, progress=progress)
+    fits = fit_pairs(xa, pairs, shifts, settings=st, progress=progress)
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     if direct_fits.REGISTERED_START and len(pairs):
         refitted = refit_from_registration(
-            xa, pairs, shifts, fits, retry=_doubtful(fits, xa, cfg, st), settings=st, cfg=cfg
+            xa, pairs, shifts, fits, retry=_doubtful(fits, xa, st), settings=st
         )
     ab, std, res, planar, relief, misfit = fits
-    std = reject_residuals(std, res, cfg, misfit)
+    std = reject_residuals(std, res, misfit=misfit)
     return _result(ab, std, pairs, xa, size, scale, cfg, st, (planar, relief), misfit, refitted)
 
 
-def _doubtful(fits, xa, cfg: CalibrationConfig, st: LensdistConfig) -> torch.Tensor:
+def _doubtful(fits, xa, st: LensdistConfig) -> torch.Tensor:
     """(P,) bool: the pairs step 4 would not count, or that lie more than 3 of their own sigma from its value."""
     h, w = xa.shape[-2:]
-    lin, std = fits[0] @ _signed_mean(h, w, half_diagonal(h, w)), reject_residuals(fits[1], fits[2], cfg, fits[5])
+    lin, std = fits[0] @ _signed_mean(h, w, half_diagonal(h, w)), reject_residuals(fits[1], fits[2], misfit=fits[5])
     weights, keep = pair_weights(lin, std, _failure_width((h, w), st))
     if not bool(keep.any()):
         return ~keep

@@ -11,7 +11,7 @@ or foreign frame).
 
 Example:
     >>> import torch
-    >>> reject_residuals(torch.ones(5), torch.tensor([0.02, 0.02, 0.03, 0.02, 0.2]), CalibrationConfig()).tolist()
+    >>> reject_residuals(torch.ones(5), torch.tensor([0.02, 0.02, 0.03, 0.02, 0.2])).tolist()
     [1.0, 1.0, 1.0, 1.0, inf]
 """
 
@@ -21,7 +21,7 @@ import dataclasses
 
 import torch
 
-from lensdist_torch.config import CalibrationConfig, LensdistConfig
+from lensdist_torch.config import LensdistConfig
 from lensdist_torch.geometry.homography import corner_error
 from lensdist_torch.registration.wide_baseline import SiftMemo, estimate_homography_robust
 from lensdist_torch.selfcal.fit import LEVELS, estimate_distortion
@@ -115,30 +115,28 @@ def _fit_batch(a, b, init, selfcal) -> tuple[torch.Tensor, ...]:
             torch.where(ok[:, None], planar, nan), torch.where(ok[:, None], relief, nan), torch.where(ok, misfit, inf))
 
 
-def sequence_selfcal(settings: LensdistConfig, cfg: CalibrationConfig):
+def sequence_selfcal(settings: LensdistConfig):
     """The self-calibration settings of the sequence path: the user's, with the sequence's own relief model.
 
     Its relief prior is fixed (:data:`PARALLAX_PX`; the pairs' evidence-based one is
     not used here: the sequence path's tests and benchmarks hold it fixed).
 
     Example:
-        >>> from lensdist_torch.config import CalibrationConfig, LensdistConfig
-        >>> s = sequence_selfcal(LensdistConfig(), CalibrationConfig())
+        >>> from lensdist_torch.config import LensdistConfig
+        >>> s = sequence_selfcal(LensdistConfig())
         >>> s.parallax_px, s.parallax_evidence, LensdistConfig().selfcal.parallax_evidence
         (1.0, False, True)
     """
-    return dataclasses.replace(
-        settings.selfcal, parallax=cfg.parallax, parallax_px=PARALLAX_PX, parallax_evidence=False
-    )
+    return dataclasses.replace(settings.selfcal, parallax_px=PARALLAX_PX, parallax_evidence=False)
 
 
-def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: CalibrationConfig, progress):
+def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, progress):
     """Step 3 per pair, from the phase correlation's translations.
 
     Returns:
         [(a, b) (P, 2), std (P,), residual (P,), planar, relief, misfit (P,)].
     """
-    selfcal = sequence_selfcal(settings, cfg)
+    selfcal = sequence_selfcal(settings)
     parts = []
     if progress is not None and len(pairs):  # the pairs are chosen
         progress(0, len(pairs))
@@ -161,7 +159,7 @@ def fit_pairs(frames, pairs, shifts, *, settings: LensdistConfig, cfg: Calibrati
 
 
 def refit_from_registration(
-    frames, pairs, shifts, fits, *, retry, settings: LensdistConfig, cfg: CalibrationConfig
+    frames, pairs, shifts, fits, *, retry, settings: LensdistConfig
 ) -> torch.Tensor:
     """Step 3's second start: the pairs ``retry`` (P,) bool refitted from their own registration, in place.
 
@@ -173,7 +171,7 @@ def refit_from_registration(
     residual is lower. Each frame's features are computed once (:class:`SiftMemo`). Returns the
     refitted pairs (P,) bool.
     """
-    selfcal, memo = sequence_selfcal(settings, cfg), SiftMemo()
+    selfcal, memo = sequence_selfcal(settings), SiftMemo()
     refitted = torch.zeros(len(pairs), dtype=torch.bool)
     idx = retry.nonzero()[:, 0]
     for s in range(0, len(idx), BATCH_SIZE):
@@ -198,7 +196,7 @@ def refit_from_registration(
     return refitted
 
 
-def reject_residuals(std, res, cfg: CalibrationConfig, misfit: torch.Tensor | None = None) -> torch.Tensor:
+def reject_residuals(std, res, *, misfit: torch.Tensor | None = None) -> torch.Tensor:
     """Step 3: inf std for the pairs that fail a check.
 
     A pair fails where its residual exceeds :data:`MAX_RESIDUAL_RATIO` times the lower quartile, or where its

@@ -292,7 +292,8 @@ def self_calibrate_reconstruction(
     Args:
         rec: a ``pycolmap.Reconstruction`` with one shared camera (it is not changed).
         config: :class:`~lensdist_torch.config.MultiViewConfig`.
-        settings: the library's config (the class rule and the paper's frame).
+        settings: the library's config (the intervals' coverage ``calibration.confidence``, the class rule
+            and the paper's frame).
         frames: the sequence's number of frames (default: the registered ones).
         image_size: the user's (H, W) (default: the camera's, times ``scale``).
         scale: user px per reconstruction px.
@@ -323,12 +324,12 @@ def self_calibrate_reconstruction(
             fits[model] = futures[model].result()
             if on_model is not None:
                 on_model(model)
-        held = _other_rows(submit, others or {}, fits, scale, n_blocks, cfg.confidence)
+        held = _other_rows(submit, others or {}, fits, scale, n_blocks, st.calibration.confidence)
     rows = [f["row"] for f in fits.values()]
     fits, checked = {**fits, **held}, [True] * len(rows) + [False] * len(held)
     rows += [h["row"] for h in held.values()]
-    weighed = weigh_models(rows, [f["errors"] for f in fits.values()], checked=checked, confidence=cfg.confidence,
-                           draws=EVIDENCE_DRAWS, seed=cfg.seed)
+    weighed = weigh_models(rows, [f["errors"] for f in fits.values()], checked=checked,
+                           confidence=st.calibration.confidence, draws=EVIDENCE_DRAWS, seed=cfg.seed)
     weights, lpd, carried, intervals = (weighed[k] for k in ("weights", "lpd", "carried", "intervals"))
     spread = weighed["dispersion"]
     table = {m: {**r, "weight": float(w), "elpd": float(e)} for m, r, w, e in zip(fits, rows, weights, lpd.sum(axis=1))}

@@ -16,7 +16,7 @@ further seeds are tried until ``reconstructions`` succeed; the failures are list
 * adds the largest |Delta_avg - the answer's| over the reconstructions (``reconstruction_spread``)
   to the interval in quadrature with each side's own half-width h (the models' posteriors mixed by
   their evidence, :mod:`~lensdist_torch.calibration.multiview_evidence`): sqrt(h^2 + (z spread)^2), z
-  the normal quantile of ``confidence``;
+  the normal quantile of ``calibration.confidence``;
 * withholds the class ("cannot tell", the reason naming the spread) when fewer than
   ``reconstructions`` reconstructions succeeded, when two of them disagree beyond their own
   intervals, when the widened interval is too wide, or when it spans a sequence's R threshold
@@ -89,21 +89,22 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     Args:
         runs: per mapping seed its :class:`~lensdist_torch.calibration.multiview.MultiViewCalibration`,
             or a string saying why that reconstruction failed; at least one must have succeeded.
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (``confidence``, ``reconstructions``: the
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (``reconstructions``: the
             successes a class needs, the width limits).
-        settings: the classes and a sequence's R threshold (``calibration.no_distortion_px``;
+        settings: the intervals' coverage (``calibration.confidence``), the classes and a sequence's R
+            threshold (``calibration.no_distortion_px``;
             default: :class:`~lensdist_torch.config.LensdistConfig`'s).
 
     Returns:
         The median reconstruction's calibration with the widened intervals, the class (or None and
         the reason), ``reconstructions`` (one summary per seed) and ``reconstruction_spread_px``.
     """
-    cfg = or_defaults(config, MultiViewConfig)
+    cfg, st = or_defaults(config, MultiViewConfig), or_defaults(settings, LensdistConfig, "settings")
     ok = [(s, r) for s, r in runs if not isinstance(r, str)]
     if not ok:
         raise ValueError(f"runs must hold at least one successful reconstruction, got {len(runs)} failed")
     best = _median([r for _, r in ok])
-    t = NormalDist().inv_cdf(0.5 + cfg.confidence / 2)
+    t = NormalDist().inv_cdf(0.5 + st.calibration.confidence / 2)
     spread = reconstruction_spread([r.delta_avg_user_px for _, r in ok], best.delta_avg_user_px)
     spread_max = reconstruction_spread([r.delta_max_user_px for _, r in ok], best.delta_max_user_px)
     intervals = [widened_interval(best.delta_avg_user_px, best.delta_avg_user_interval, spread, t),
@@ -117,8 +118,7 @@ def combine_reconstructions(runs: list[tuple[int, MultiViewCalibration | str]],
     elif apart:
         label, reason = None, f"the reconstructions disagree beyond their intervals ({apart})"
     elif label is not None:  # the class of the widened interval, which may now span two
-        label, reason = interval_class(best.paper_delta_avg_px, best.delta_avg_user_px, intervals[0],
-                                       or_defaults(settings, LensdistConfig))
+        label, reason = interval_class(best.paper_delta_avg_px, best.delta_avg_user_px, intervals[0], st)
         if label is None and len(ok) > 1:
             reason += f" (the {len(ok)} reconstructions differ by up to {spread:.2f} px)"
     return dataclasses.replace(

@@ -261,7 +261,7 @@ def _fit_models(theta0: torch.Tensor, hs, v1, v2, pair, inl, size, cfg: MultiVie
     return table, fits
 
 
-def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, config: MultiViewConfig | None = None):
+def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, settings: LensdistConfig | None = None):
     """The answer's Delta_avg (px) over other ``points`` (M, 2), with its interval.
 
     ``points``: say, where a reference calibration inverts. The same rule as the answer's own: each
@@ -281,7 +281,7 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, confi
         >>> round(value, 4), round(hi - lo, 9)  # a corner at r = 1: 10 % of 5.7 px; no posterior, replicates alike
         (0.5701, 0.0)
     """
-    cfg = or_defaults(config, MultiViewConfig)
+    st = or_defaults(settings, LensdistConfig, "settings")
     r = res.to_dict() if isinstance(res, PlanarCalibration) else res
 
     def there(a, centre) -> float:
@@ -302,7 +302,7 @@ def delta_avg_where(res, points: torch.Tensor, height: int, width: int, *, confi
         rows.append({"delta_avg_px": there(coef, centre), "delta_avg_std_px": std, "delta_max_px": 0.0,
                      "delta_max_std_px": 0.0, "jackknife_std_px": jackknife_std(jk)})
     interval = mixed_intervals(rows, [v["weight"] for v in r["models"].values()], dispersion=r["dispersion"],
-                               checked=[True] * len(rows), confidence=cfg.confidence)[0]
+                               checked=[True] * len(rows), confidence=st.calibration.confidence)[0]
     return there(r["coefficients"], r["centre"]), interval
 
 
@@ -322,8 +322,9 @@ def self_calibrate_planar(
         matches: :class:`PlanarMatches` (:func:`read_verified_matches`), in the user's pixels.
         image_size: the frames' (H, W).
         config: :class:`~lensdist_torch.config.MultiViewConfig` (its ``planar_*`` fields, the
-            folds' ``jackknife_blocks``, ``confidence`` and ``seed``).
-        settings: the library's config (the class rule and the paper's frame).
+            folds' ``jackknife_blocks`` and ``seed``).
+        settings: the library's config (the intervals' coverage ``calibration.confidence``, the class
+            rule and the paper's frame).
         start: a lens's a_1 .. a_n to start from instead of the scan (step 2), or None.
         plane_share: the share of verified matches on one homography per pair, where ``matches``
             cannot tell it (guided matches: :mod:`~lensdist_torch.calibration.guided_matching`);
@@ -384,8 +385,8 @@ def self_calibrate_planar(
         return fail(f"too few pairs fit one homography: {good_pairs} of at least {PLANAR_MIN_PAIRS}",
                     lens_of(theta, terms, (h, w))[0], int(inl.sum()), table)
     scores, answer = score_models(fits, matches, v1, v2, inliers=inl, blocks=cfg.jackknife_blocks, size=(h, w),
-                                  step=step, iterations=PLANAR_ITERATIONS, confidence=cfg.confidence, seed=cfg.seed,
-                                  stays=_stays)
+                                  step=step, iterations=PLANAR_ITERATIONS, confidence=st.calibration.confidence,
+                                  seed=cfg.seed, stays=_stays)
     table = {m: table[m] for m in scores}
     for m, sc in scores.items():
         lenses = [lens_of(tj, fits[m][3], (h, w)) for tj in sc["jackknife_thetas"]]
@@ -399,7 +400,8 @@ def self_calibrate_planar(
     jk_t = scores[best]["jackknife_thetas"]
     intervals = answer["intervals"]
     seen = torch.cat([matches.x1[inl], matches.x2[inl]]).unique(dim=0)
-    bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=cfg.confidence, seen=seen)
+    bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=st.calibration.confidence,
+                                       seen=seen)
     k2u, k4u, fit_err = _eq4_fit(a, centre, (h, w), dl)
     label, reason = None, ""
     if share < PLANAR_MIN_INLIER_SHARE:

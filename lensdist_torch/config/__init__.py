@@ -3,7 +3,7 @@
 The defaults are the project's conventions (``docs/method.md``); a TOML file in ``configs/``
 may override any field. Its sections map one to one onto the dataclasses, one module per concept::
 
-    [quality]       thresholds, temperatures, block size     quality.py       (docs/method.md 2-5)
+    [quality]       thresholds, temperature, block size      quality.py       (docs/method.md 2-5)
     [image]         analysis size                             protocol.py      (section 1)
     [distortion]    coefficient ranges                        protocol.py      (section 6, eq. 4)
     [protocol]      pair protocol and set sizes               protocol.py      (section 7)
@@ -12,12 +12,17 @@ may override any field. Its sections map one to one onto the dataclasses, one mo
     [classifier]    eigen-space classifier                    classify.py      (section 8)
     [regression]    Delta regression without classes          classify.py
     [analysis]      the decision of ``analyze``               analysis.py
-    [calibration]   a camera's distortion from a sequence     sequence.py      (``lensdist calibrate``, direct path)
+    [calibration]   a camera's distortion from a sequence     sequence.py      (``lensdist calibrate``: coverage, direct path)
     [multiview]     the same by COLMAP's bundle adjustment    sequence.py
 
 :class:`LensdistConfig` holds one of each, and ``lensdist.py`` reads and writes it (TOML, dicts).
 Every setting a user may change lives in this package; the method's constants (thresholds,
 counts, margins nobody sets) are named constants in the modules that use them (docs/method.md).
+Three kinds of field: the choices a user makes; the ``chunk_size`` of ``[quality]``,
+``[registration]`` and ``[selfcal]`` (speed only, the results do not depend on them); and six
+``[analysis]`` fields that ``fit_confidence`` writes from a validation split
+(``min_confidence``, ``regression_confidence_scale`` and ``_shift``, ``selfcal_std_scale``,
+``interval_std_scale``, ``flat_prior``).
 The field checks, with their ``section.field`` messages, and the one "this config or its
 defaults" helper are in
 :mod:`~lensdist_torch.config.checks`; the training scripts (``train/``) read their TOML files and

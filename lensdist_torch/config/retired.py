@@ -4,7 +4,8 @@ One table, :data:`RETIRED`: (section, key) -> a :class:`Retired` saying what rep
 A key that became a constant of the method (the value every config file and stored checkpoint
 held) loads where it holds that constant's value, and is dropped: it means what the constant
 does. Any other value is a one-line ``ValueError`` naming the key and the constant, never a
-silent change of meaning. The other retired keys are refused in a user's file (an unknown key)
+silent change of meaning. A key that moved to another section loads as that key (a one-line
+``ValueError`` where both are given and differ). The other retired keys are refused in a user's file (an unknown key)
 and dropped from a stored config where they had no effect (``stored_config``).
 """
 
@@ -33,6 +34,8 @@ class Retired:
             at any other; None for the others.
         inert: it never shaped a fitted model or a data set (a decision made at analysis time):
             dropped wherever a saved config is read.
+        moved: the (section, key) it became, meaning the same: a file or stored config naming it
+            loads it there.
 
     Example:
         >>> RETIRED[("analysis", "relief_z")].inert, RETIRED[("protocol", "parallax_px")].value
@@ -42,10 +45,15 @@ class Retired:
     by: str
     value: Any = None
     inert: bool = False
+    moved: tuple[str, str] | None = None
 
 
 def _constant(name: str, value: Any, package: str = "calibration") -> Retired:
     return Retired(by=f"lensdist_torch.{package}.{name}", value=value)
+
+
+def _moved(section: str, key: str, why: str) -> Retired:
+    return Retired(by=f"{section}.{key} ({why})", moved=(section, key))
 
 
 #: Keys an earlier version wrote that this one no longer reads: (section, key) -> what replaced it.
@@ -79,6 +87,8 @@ RETIRED = {
     ("calibration", "no_distortion_px"): _constant("sequence_class.NO_DISTORTION_PX", 0.25),
     ("calibration", "verify_pairs"): _constant("controllers.calibrate.VERIFY_PAIRS", 6),
     ("calibration", "batch_size"): _constant("direct_fits.BATCH_SIZE", 16),
+    ("calibration", "parallax"): _moved("selfcal", "parallax", "one relief model's bumps, for a pair and a sequence"),
+    ("multiview", "confidence"): _moved("calibration", "confidence", "one coverage for every path of calibrate"),
     # the multi-view path's and the homography model's constants (docs/method.md, sections 11-12)
     ("multiview", "exhaustive_below"): _constant("multiview.EXHAUSTIVE_BELOW", 30),
     ("multiview", "sequential_overlap"): _constant("multiview.SEQUENTIAL_OVERLAP", 12),
@@ -234,20 +244,33 @@ def retired_keys(data: dict[str, Any]) -> list[str]:
         ['analysis.relief_z']
     """
     return [f"{s}.{k}" for (s, k), r in RETIRED.items()
-            if _named(data, s, k) and (r.value is None or not _same(data[s][k], r.value))]
+            if _named(data, s, k) and r.moved is None and (r.value is None or not _same(data[s][k], r.value))]
 
 
 def drop_constants(data: Any) -> Any:
-    """``data`` (a parsed config) without the keys that became constants of the method, where they hold its value.
+    """``data`` (a parsed config): its retired keys at a constant's value dropped, its moved keys in their new place.
 
     Raises:
-        ValueError: such a key at another value, one line naming the key and the constant.
+        ValueError: such a key at another value, or a moved key given in both places at different values; one
+            line naming the key and what replaced it.
 
     Example:
         >>> drop_constants({"quality": {"block_size": 16}})
         {'quality': {'block_size': 16}}
+        >>> drop_constants({"calibration": {"parallax": 0}})
+        {'calibration': {}, 'selfcal': {'parallax': 0}}
     """
     for (section, key), r in RETIRED.items():
+        if r.moved is not None and _named(data, section, key):
+            value, (to_section, to_key) = data[section][key], r.moved
+            if _named(data, to_section, to_key) and not _same(data[to_section][to_key], value):
+                raise ValueError(f"{section}.{key} = {show(value)} moved to {r.by}, which is "
+                                 f"{show(data[to_section][to_key])} here: give one")
+            data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
+            target = data.get(to_section, {})
+            if isinstance(target, dict):
+                data = {**data, to_section: {**target, to_key: value}}
+            continue
         if r.value is None or not _named(data, section, key):
             continue
         value = data[section][key]

@@ -15,26 +15,27 @@ __all__ = ["CalibrationConfig", "MULTIVIEW_MODELS", "MultiViewConfig"]
 
 @dataclass(frozen=True)
 class CalibrationConfig:
-    """Settings of :func:`~lensdist_torch.calibration.direct.calibrate_sequence` (``[calibration]``).
+    """Settings of ``lensdist calibrate`` (``[calibration]``): the answer's coverage, the direct path's size.
 
-    What a user sets; the method's constants (the misfit gate, the refit from a pair's own
-    registration, the relief's test and share of the interval, a sequence's R threshold, the
-    verification's pairs among them) are named in the modules that use them
+    Those of :func:`~lensdist_torch.calibration.direct.calibrate_sequence` a user sets (the relief
+    model's bumps are ``selfcal.parallax``, for a pair and a sequence); the method's constants (the
+    misfit gate, the refit from a pair's own registration, the relief's test and share of the
+    interval, a sequence's R threshold, the verification's pairs, the pairs fitted together among
+    them) are named in the modules that use them
     (:mod:`~lensdist_torch.calibration.direct`, ``pooling``, ``direct_fits``, ``sequence_class``,
     ``controllers.calibrate``; docs/method.md, section 10).
 
     Attributes:
         analysis_side: longest side (px) of the analysis frames; larger frames are downscaled.
         max_pairs: at most this many pairs, evenly spread over those chosen.
-        confidence: coverage of the intervals.
-        parallax: the plane + parallax model's bumps in every pair (``selfcal.parallax`` for the
-            sequence path; 0: planar pairs): a real scene is rarely a plane (docs/method.md, 10).
+        confidence: coverage of the intervals, of every path (the direct one, the multi-view one and
+            the homography model).
 
     Example:
         >>> import dataclasses
         >>> cfg = CalibrationConfig()
-        >>> cfg.analysis_side, dataclasses.replace(cfg, parallax=0).parallax
-        (512, 0)
+        >>> cfg.analysis_side, dataclasses.replace(cfg, confidence=0.9).confidence
+        (512, 0.9)
         >>> CalibrationConfig(confidence=1.5)
         Traceback (most recent call last):
         ...
@@ -44,10 +45,8 @@ class CalibrationConfig:
     analysis_side: int = 512
     max_pairs: int = 64
     confidence: float = 0.95
-    parallax: int = 5
 
     def __post_init__(self) -> None:
-        integer(self, "parallax", lo=0)
         for name in ("analysis_side", "max_pairs"):
             integer(self, name, lo={"analysis_side": 64}.get(name, 1))
         real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
@@ -61,7 +60,8 @@ MULTIVIEW_MODELS = ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL
 class MultiViewConfig:
     """Settings of :mod:`~lensdist_torch.calibration.multiview` (``[multiview]``): bundle adjustment on COLMAP.
 
-    What a user sets; the method's constants are named in the modules that use them
+    What a user sets (the intervals' coverage is ``calibration.confidence``, one for every path); the
+    method's constants are named in the modules that use them
     (:mod:`~lensdist_torch.calibration.multiview`, ``features``, ``matches``, ``planar_features``,
     ``guided_matching``, ``match_refinement``, ``sequence_class``, ``controllers.multiview_path``;
     docs/method.md, 11-12).
@@ -83,7 +83,6 @@ class MultiViewConfig:
         jackknife_blocks: the folds: contiguous blocks of frames held out in turn; each model is
             adjusted without a block and scored on predicting it (its evidence), and the spread of
             those fits is the jackknife that checks each model's posterior.
-        confidence: coverage of the intervals.
         reconstructions: mappings on the same matches (seeds ``seed``, ``seed`` + 1, ...); one
             answers, its posterior checked by its own jackknife; more: their spread of Delta_avg
             joins the interval (:mod:`~lensdist_torch.calibration.multiview_runs`) and a class needs
@@ -115,7 +114,6 @@ class MultiViewConfig:
     max_features: int = 8192
     mapped_frames: int = 60
     jackknife_blocks: int = 6
-    confidence: float = 0.95
     reconstructions: int = 1
     num_threads: int = 2
     seed: int = 0
@@ -137,5 +135,4 @@ class MultiViewConfig:
             ("planar_terms", 0),
         ):
             integer(self, name, lo=lo)
-        real(self, "confidence", lo=0, hi=1, lo_open=True, hi_open=True)
 

@@ -21,7 +21,7 @@ from lensdist_torch.calibration.direct import (
 )
 from lensdist_torch.calibration.pooling import t_quantile
 from lensdist_torch.calibration.sequence_class import NO_DISTORTION_PX
-from lensdist_torch.config import LensdistConfig
+from lensdist_torch.config import LensdistConfig, SelfCalConfig
 from lensdist_torch.geometry.distortion import (
     CLASS_LABELS,
     delta_avg,
@@ -280,7 +280,7 @@ def test_bad_frames_are_one_line_errors(frames, match):
     [
         ({"analysis_side": 10}, "analysis_side"),
         ({"confidence": 1.0}, "confidence"),
-        ({"parallax": 2.0}, "parallax"),
+        ({"max_pairs": 0}, "max_pairs"),
     ],
 )
 def test_bad_config_is_a_one_line_error(kwargs, match):
@@ -331,7 +331,7 @@ def test_frames_that_move_a_little_say_so_and_by_how_much():
 def test_the_relief_model_of_the_sequence_path():
     """A realistic pan over a scene with relief (hills of 3 % of the camera's height, 12 frames of
     240 x 320, Delta_avg 7.86 px): planar pairs put it 2.17 px high with an interval that misses;
-    with the plane + parallax model in every pair (calibration.parallax = 5, the default) 0.18 px,
+    with the plane + parallax model in every pair (selfcal.parallax = 5, the default) 0.18 px,
     the interval covering. Where Hausman's test finds no relief in any pair the answer is exactly
     the planar one."""
     from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
@@ -341,11 +341,12 @@ def test_the_relief_model_of_the_sequence_path():
     truth = float(
         delta_avg(torch.tensor([k2], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64), *size)[0]
     )
-    assert CalibrationConfig().parallax == 5
+    assert LensdistConfig().selfcal.parallax == 5
     answers = {}
     for seed in (36, 32):
         frames, _ = synthetic_sequence(12, k2, 0.0, size=size, seed=seed, relief=0.03, rotation_deg=0.0, realistic=True)
-        answers[seed] = [calibrate_sequence(frames, CalibrationConfig(parallax=p)) for p in (0, 5)]
+        answers[seed] = [calibrate_sequence(frames, settings=LensdistConfig(selfcal=SelfCalConfig(parallax=p)))
+                         for p in (0, 5)]
     planar, relief = answers[36]
     assert planar.delta_avg_user_px - truth > 1.5 and planar.delta_avg_user_interval[0] > truth
     lo, hi = relief.delta_avg_user_interval

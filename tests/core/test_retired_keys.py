@@ -58,7 +58,7 @@ def test_a_direct_path_key_of_an_earlier_version(tmp_path):
 
     path = tmp_path / "old.toml"
     path.write_text(f"[calibration]\noutlier_mads = {OUTLIER_MADS}\nmotion_steps = [0.14, 0.22]\nparallax = 0\n")
-    assert load_config(path).calibration.parallax == 0
+    assert load_config(path).selfcal.parallax == 0  # moved: one relief model for a pair and a sequence
     path.write_text("[calibration]\noutlier_mads = 5.0\n")
     one_line_error(ValueError, lambda: load_config(path), "calibration.outlier_mads", str(path),
                    "a constant of the method now: lensdist_torch.calibration.pooling.OUTLIER_MADS")
@@ -96,6 +96,23 @@ def test_a_self_calibration_key_of_an_earlier_version(tmp_path):
     assert stored_config({"selfcal": {"parallax_score_level": 1.0, "chunk_size": 4}}).selfcal.chunk_size == 4
     path.write_text("[selfcal]\nparallax_score_level = 1.0\n")
     one_line_error(ValueError, lambda: load_config(path), "parallax_score_level", str(path))
+
+
+def test_a_moved_key_loads_in_its_new_place(tmp_path):
+    """``[calibration] parallax`` is ``[selfcal] parallax``, ``[multiview] confidence`` ``[calibration] confidence``:
+    a file or a stored config naming the old place loads there; both places at different values are refused."""
+    path = tmp_path / "old.toml"
+    path.write_text("[calibration]\nparallax = 0\nmax_pairs = 8\n[multiview]\nconfidence = 0.9\n")
+    cfg = load_config(path)
+    assert (cfg.selfcal.parallax, cfg.calibration.max_pairs, cfg.calibration.confidence) == (0, 8, 0.9)
+    assert stored_config({"calibration": {"parallax": 3}}).selfcal.parallax == 3
+    assert config_from_dict({"calibration": {"parallax": 5}, "selfcal": {"parallax": 5}}) == LensdistConfig()
+    path.write_text("[calibration]\nparallax = 0\n[selfcal]\nparallax = 5\n")
+    one_line_error(ValueError, lambda: load_config(path), "calibration.parallax", "selfcal.parallax", str(path))
+    one_line_error(ValueError, lambda: config_from_dict({"multiview": {"confidence": 0.9},
+                                                         "calibration": {"confidence": 0.95}}),
+                   "multiview.confidence", "calibration.confidence")
+    assert retired_keys({"calibration": {"parallax": 0}}) == []  # it loads: not a key that must be refitted
 
 
 def test_a_metric_key_of_an_earlier_version(tmp_path):

@@ -125,9 +125,7 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
     truth = opencv_delta(k, dist, 240, 320, step=1)["delta_avg_px"]
     g = grid_points(240, 320, 1)
     _, ok = opencv_ideal_points(g, k, dist)
-    value, (lo, hi) = delta_avg_where(
-        res, g[ok], 240, 320, config=cfg
-    )  # where the calibration's model inverts (90.6 %)
+    value, (lo, hi) = delta_avg_where(res, g[ok], 240, 320)  # where the calibration's model inverts (90.6 %)
     assert abs(value - truth) < 0.08 * truth
     assert lo <= truth <= hi
     # guided matching (forced: here 19 of 29 verified pairs count, so by default it does not run), measured
@@ -139,7 +137,7 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
         patch.setattr(guided_matching, "PLANAR_GUIDED_BELOW", 1.0)
         guided = self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg)
     assert guided.guided["used"] and guided.guided["first_fit"]["pairs"] == res.pairs and guided.pairs > res.pairs
-    value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320, config=cfg)
+    value, (lo, hi) = delta_avg_where(guided, g[ok], 240, 320)
     assert abs(value - truth) < 0.1 * truth and lo <= truth <= hi
     assert (
         self_calibrate_guided(tmp_path / "db.db", names, (240, 320), config=cfg).guided is None
@@ -156,5 +154,5 @@ def test_homography_model_on_the_real_wide_angle_views(tmp_path):
             before.reprojection_px
         )
         assert refined.reprojection_px < 0.5 * before.reprojection_px and refined.class_label == "4"
-        value, (lo, hi) = delta_avg_where(refined, g[ok], 240, 320, config=cfg)
+        value, (lo, hi) = delta_avg_where(refined, g[ok], 240, 320)
         assert abs(value - truth) < 0.05 * truth and lo <= truth <= hi

@@ -52,13 +52,13 @@ def video(tmp_path_factory, frames):
 
 
 def test_calibrate_reads_a_video_as_a_folder(video, capsys, tmp_path):
-    """The video is of a plane: with planar pairs (``[calibration] parallax = 0``) the class is
+    """The video is of a plane: with planar pairs (``[selfcal] parallax = 0``) the class is
     right; by default the plane + parallax model's scatter over 9 pairs of 120 x 160 frames is the
     relief the sequence cannot exclude, and the answer is "cannot tell", its interval covering."""
     if video_reader() is None:
         pytest.skip("neither PyAV nor OpenCV installed")
     planar = tmp_path / "planar.toml"
-    planar.write_text("[calibration]\nparallax = 0\n")
+    planar.write_text("[selfcal]\nparallax = 0\n")
     assert cli.main(["calibrate", str(video), "--method", "direct", "--json", "--quiet", "--config", str(planar)]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["frames"] == N and res["image_size"] == list(SIZE) and res["class"] == "2"
