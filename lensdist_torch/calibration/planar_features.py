@@ -321,10 +321,8 @@ def self_calibrate_planar(
     Args:
         matches: :class:`PlanarMatches` (:func:`read_verified_matches`), in the user's pixels.
         image_size: the frames' (H, W).
-        config: :class:`~lensdist_torch.config.MultiViewConfig` (its ``planar_*`` fields, the
-            folds' ``jackknife_blocks`` and ``seed``).
-        settings: the library's config (the intervals' coverage ``calibration.confidence``, the class
-            rule and the paper's frame).
+        config: :class:`~lensdist_torch.config.MultiViewConfig` (the folds' ``jackknife_blocks``, ``seed``).
+        settings: the library's config (the coverage ``calibration.confidence``, the class rule, the frame).
         start: a lens's a_1 .. a_n to start from instead of the scan (step 2), or None.
         plane_share: the share of verified matches on one homography per pair, where ``matches``
             cannot tell it (guided matches: :mod:`~lensdist_torch.calibration.guided_matching`);
@@ -384,9 +382,10 @@ def self_calibrate_planar(
     if good_pairs < PLANAR_MIN_PAIRS:
         return fail(f"too few pairs fit one homography: {good_pairs} of at least {PLANAR_MIN_PAIRS}",
                     lens_of(theta, terms, (h, w))[0], int(inl.sum()), table)
+    coverage = st.calibration.confidence
     scores, answer = score_models(fits, matches, v1, v2, inliers=inl, blocks=cfg.jackknife_blocks, size=(h, w),
-                                  step=step, iterations=PLANAR_ITERATIONS, confidence=st.calibration.confidence,
-                                  seed=cfg.seed, stays=_stays)
+                                  step=step, iterations=PLANAR_ITERATIONS, confidence=coverage, seed=cfg.seed,
+                                  stays=_stays)
     table = {m: table[m] for m in scores}
     for m, sc in scores.items():
         lenses = [lens_of(tj, fits[m][3], (h, w)) for tj in sc["jackknife_thetas"]]
@@ -400,8 +399,7 @@ def self_calibrate_planar(
     jk_t = scores[best]["jackknife_thetas"]
     intervals = answer["intervals"]
     seen = torch.cat([matches.x1[inl], matches.x2[inl]]).unique(dim=0)
-    bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=st.calibration.confidence,
-                                       seen=seen)
+    bending, reach = bending_halfwidth(theta, jk_t, n=n, size=(h, w), dl=dl, confidence=coverage, seen=seen)
     k2u, k4u, fit_err = _eq4_fit(a, centre, (h, w), dl)
     label, reason = None, ""
     if share < PLANAR_MIN_INLIER_SHARE:

@@ -12,7 +12,7 @@ may override any field. Its sections map one to one onto the dataclasses, one mo
     [classifier]    eigen-space classifier                    classify.py      (section 8)
     [regression]    Delta regression without classes          classify.py
     [analysis]      the decision of ``analyze``               analysis.py
-    [calibration]   a camera's distortion from a sequence     sequence.py      (``lensdist calibrate``: coverage, direct path)
+    [calibration]   a sequence: coverage, the direct path     sequence.py      (``lensdist calibrate``)
     [multiview]     the same by COLMAP's bundle adjustment    sequence.py
 
 :class:`LensdistConfig` holds one of each, and ``lensdist.py`` reads and writes it (TOML, dicts).
