@@ -388,8 +388,8 @@ def add_calibrate_commands(subparsers, parents: list | None = None) -> None:
                         'pip install "lensdist_torch[ray]")')
     p.add_argument("--ray-address", default=None, help="the Ray cluster for --engine ray (auto: this machine's; "
                    "default: a local Ray)")
-    p.add_argument("--config", default=None, help="TOML config ([calibration] and [multiview]; the defaults of "
-                   "docs/method.md when omitted)")
+    p.add_argument("--config", default=None, help="TOML config ([calibration], [multiview], [selfcal] "
+                   "parallax; the defaults of docs/method.md when omitted)")
     p.add_argument("--max-frames", type=argtypes.positive_int, default=300, help="read at most this many frames")
     p.add_argument(
         "--focal",

@@ -19,7 +19,7 @@ from lensdist_torch.config.classify import ClassifierConfig, RegressionConfig
 from lensdist_torch.config.protocol import DistortionConfig, ImageConfig, ProtocolConfig
 from lensdist_torch.config.quality import QualityConfig
 from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
-from lensdist_torch.config.retired import INERT, RETIRED, drop_constants
+from lensdist_torch.config.retired import INERT, RETIRED, drop_constants, settle_moves
 from lensdist_torch.config.sequence import CalibrationConfig, MultiViewConfig
 from lensdist_torch.config.toml import check_tables, read_toml
 
@@ -105,9 +105,12 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
     A retired key is dropped where it had no effect (``protocol.parallax_px`` outside the
     realistic protocol, or 0; those of :data:`INERT` always: ``analysis.relief_z``); where it
     had one, the saved object was made under a protocol this version no longer has, and that
-    is a one-line ValueError saying what replaced it.
+    is a one-line ValueError saying what replaced it. A moved key whose new place the saved
+    config also names is dropped: an earlier version wrote every field, both places among them.
 
     Example:
+        >>> stored_config({"calibration": {"parallax": 5}, "selfcal": {"parallax": 0}}).selfcal.parallax
+        0
         >>> stored_config({"protocol": {"parallax_px": 1.5}}).protocol.relief
         0.0
         >>> stored_config({"analysis": {"relief_z": 4.0}}).analysis.flat_prior  # the default
@@ -122,6 +125,7 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
                 f"which this version replaced by {RETIRED[('protocol', 'parallax_px')].by}: fit it again"
             )
         data = {**data, "protocol": {k: v for k, v in protocol.items() if k != "parallax_px"}}
+    data = settle_moves(data)  # an earlier version wrote both places of a moved key: the new one stands
     for section, key in INERT:
         if isinstance(data.get(section), dict) and key in data[section]:
             data = {**data, section: {k: v for k, v in data[section].items() if k != key}}

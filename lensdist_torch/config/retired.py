@@ -16,7 +16,7 @@ from typing import Any
 
 from lensdist_torch.config.checks import show
 
-__all__ = ["INERT", "RETIRED", "Retired", "drop_constants", "retired_keys"]
+__all__ = ["INERT", "RETIRED", "Retired", "drop_constants", "retired_keys", "settle_moves"]
 
 
 @dataclass(frozen=True)
@@ -247,6 +247,19 @@ def retired_keys(data: dict[str, Any]) -> list[str]:
             if _named(data, s, k) and r.moved is None and (r.value is None or not _same(data[s][k], r.value))]
 
 
+def settle_moves(data: Any) -> Any:
+    """``data`` without the moved keys whose new place it also names (a stored config of an earlier version).
+
+    Example:
+        >>> settle_moves({"calibration": {"parallax": 5, "max_pairs": 8}, "selfcal": {"parallax": 0}})
+        {'calibration': {'max_pairs': 8}, 'selfcal': {'parallax': 0}}
+    """
+    for (section, key), r in RETIRED.items():
+        if r.moved is not None and _named(data, section, key) and _named(data, *r.moved):
+            data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
+    return data
+
+
 def drop_constants(data: Any) -> Any:
     """``data`` (a parsed config): its retired keys at a constant's value dropped, its moved keys in their new place.
 
@@ -268,7 +281,7 @@ def drop_constants(data: Any) -> Any:
                                  f"{show(data[to_section][to_key])} here: give one")
             data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
             target = data.get(to_section, {})
-            if isinstance(target, dict):
+            if isinstance(target, dict) and to_key not in target:
                 data = {**data, to_section: {**target, to_key: value}}
             continue
         if r.value is None or not _named(data, section, key):

@@ -113,6 +113,32 @@ def test_a_moved_key_loads_in_its_new_place(tmp_path):
                                                          "calibration": {"confidence": 0.95}}),
                    "multiview.confidence", "calibration.confidence")
     assert retired_keys({"calibration": {"parallax": 0}}) == []  # it loads: not a key that must be refitted
+    # a stored config of an earlier version names both places (it wrote every field): the new one stands
+    old = {"calibration": {"parallax": 5, "confidence": 0.9}, "multiview": {"confidence": 0.95},
+           "selfcal": {"parallax": 0}}
+    cfg = stored_config(old)
+    assert (cfg.selfcal.parallax, cfg.calibration.confidence) == (0, 0.9)
+    # the same value in both places keeps the new place's value as written
+    assert config_from_dict({"calibration": {"parallax": 5.0}, "selfcal": {"parallax": 5}}).selfcal.parallax == 5
+
+
+def test_calibrate_reads_one_coverage(tmp_path):
+    """``calibrate_path``'s ``config`` is the ``[calibration]`` of every path; ``settings.calibration`` where None."""
+    from lensdist_torch.calibration.controllers.calibrate import calibrate_path, synthetic_sequence
+    from lensdist_torch.config import CalibrationConfig
+    from lensdist_torch.core.png import encode_png, to_uint8
+
+    for i, frame in enumerate(synthetic_sequence(6, 1e-5, 0.0, size=(120, 160))[0]):
+        (tmp_path / f"frame_{i}.png").write_bytes(encode_png(to_uint8(frame)))
+    ninety = CalibrationConfig(confidence=0.9)
+    by_settings = calibrate_path(tmp_path, method="direct", settings=LensdistConfig(calibration=ninety), quiet=True)
+    by_config = calibrate_path(tmp_path, method="direct", config=ninety, quiet=True)
+    default = calibrate_path(tmp_path, method="direct", quiet=True)
+    assert by_settings["confidence"] == by_config["confidence"] == 0.9 and default["confidence"] == 0.95
+    assert by_settings["delta_avg_user_interval"] == by_config["delta_avg_user_interval"]
+    lo, hi = by_settings["delta_avg_user_interval"]
+    dlo, dhi = default["delta_avg_user_interval"]
+    assert dlo < lo < hi < dhi  # a 90 % interval inside the 95 % one
 
 
 def test_a_metric_key_of_an_earlier_version(tmp_path):

@@ -88,7 +88,8 @@ def calibrate_path(
 
     Args:
         path: a folder of images (one camera, one size, in recording order by name) or a video.
-        config: :class:`~lensdist_torch.calibration.direct.CalibrationConfig`.
+        config: :class:`~lensdist_torch.config.CalibrationConfig`, the ``[calibration]`` every path reads
+            (its coverage); ``settings.calibration`` when None.
         settings: the library's :class:`~lensdist_torch.config.LensdistConfig`.
         max_frames: read at most this many frames (None: all).
         focal: OpenCV's fx = fy in pixels; the half diagonal when None.
@@ -141,7 +142,9 @@ def calibrate_path(
     if focal is not None and (isinstance(focal, bool) or not isinstance(focal, (int, float)) or not math.isfinite(focal)
                               or focal <= 0):  # checked before the run, not by the OpenCV export at its end
         raise ValueError(f"focal must be a positive number of pixels or None, got {focal!r}")
-    cfg, frames, scale = or_defaults(config, CalibrationConfig), [], 1.0
+    st = or_defaults(settings, LensdistConfig, "settings")
+    cfg, frames, scale = or_defaults(config, CalibrationConfig) if config is not None else st.calibration, [], 1.0
+    st = dataclasses.replace(st, calibration=cfg)  # one [calibration] (the coverage) for every path
     for _, img in frames_of_one_size(path, grey=True, max_frames=max_frames, quiet=quiet, desc="reading"):
         scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
         frames.append(to_analysis(img, scale))
@@ -149,7 +152,6 @@ def calibrate_path(
     if len(frames) < 2:
         raise ValueError(f"path {path} must hold at least 2 frames of one camera, got {len(frames)}")
     n, frames = len(frames), torch.cat(frames)  # one copy of the frames, shared by the direct path and the verifier
-    st = or_defaults(settings, LensdistConfig, "settings")
     beside = method == "auto" and n >= MIN_FRAMES  # the direct path beside COLMAP's threads
     threads = torch.get_num_threads()
     with tqdm(disable=quiet, desc="pairs", unit="pair", leave=False) as bar, ThreadPoolExecutor(1) as pool, \
@@ -172,7 +174,7 @@ def calibrate_path(
             return direct.result()
 
         def direct_path() -> tuple:
-            cal = calibrate_sequence(frames.to(device or "cpu"), cfg, settings, frame_size=size, progress=progress)
+            cal = calibrate_sequence(frames.to(device or "cpu"), cfg, st, frame_size=size, progress=progress)
             return cal, _direct_answer(cal, cfg, path, size, focal)
 
         direct = pool.submit(direct_path)
