@@ -93,10 +93,22 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
     Example:
         >>> config_from_dict({"quality": {"block_size": 16}, "image": {"height": 320, "width": 416}}).quality.block_size
         16
+        >>> config_from_dict({"multiview": {"confidence": 1.5}})
+        Traceback (most recent call last):
+        ...
+        ValueError: calibration.confidence must be a number in ]0, 1[, got 1.5 (written as multiview.confidence)
     """
+    moved = {f"{r.moved[0]}.{r.moved[1]}": f"{s}.{k}" for (s, k), r in RETIRED.items()  # a user's old name
+             if r.moved is not None and isinstance(data, dict) and isinstance(data.get(s), dict) and k in data[s]}
     data = drop_constants(data)  # a key that became a constant of the method, at its value (config/retired.py)
     check_tables(data, {name: {f.name for f in dataclasses.fields(cls)} for name, cls in _SECTIONS.items()})
-    return LensdistConfig(**{name: cls(**data.get(name, {})) for name, cls in _SECTIONS.items()})
+    try:
+        return LensdistConfig(**{name: cls(**data.get(name, {})) for name, cls in _SECTIONS.items()})
+    except ValueError as exc:
+        named = next((old for new, old in moved.items() if str(exc).startswith(f"{new} ")), None)
+        if named is None:
+            raise
+        raise ValueError(f"{exc} (written as {named})") from None
 
 
 def stored_config(data: dict[str, Any]) -> LensdistConfig:

@@ -113,6 +113,9 @@ def test_a_moved_key_loads_in_its_new_place(tmp_path):
                                                          "calibration": {"confidence": 0.95}}),
                    "multiview.confidence", "calibration.confidence")
     assert retired_keys({"calibration": {"parallax": 0}}) == []  # it loads: not a key that must be refitted
+    path.write_text("[multiview]\nconfidence = 1.5\n")  # a bad value names the key the user wrote too
+    one_line_error(ValueError, lambda: load_config(path), "calibration.confidence", "written as multiview.confidence",
+                   str(path))
     # a stored config of an earlier version names both places (it wrote every field): the new one stands
     old = {"calibration": {"parallax": 5, "confidence": 0.9}, "multiview": {"confidence": 0.95},
            "selfcal": {"parallax": 0}}
