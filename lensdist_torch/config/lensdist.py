@@ -19,7 +19,7 @@ from lensdist_torch.config.classify import ClassifierConfig, RegressionConfig
 from lensdist_torch.config.protocol import DistortionConfig, ImageConfig, ProtocolConfig
 from lensdist_torch.config.quality import QualityConfig
 from lensdist_torch.config.registration import RegistrationConfig, SelfCalConfig
-from lensdist_torch.config.retired import INERT, RETIRED, drop_constants, settle_moves
+from lensdist_torch.config.retired import INERT, RETIRED, drop_constants, moved_names, settle_moves, without_key
 from lensdist_torch.config.sequence import CalibrationConfig, MultiViewConfig
 from lensdist_torch.config.toml import check_tables, read_toml
 
@@ -98,8 +98,7 @@ def config_from_dict(data: dict[str, Any]) -> LensdistConfig:
         ...
         ValueError: calibration.confidence must be a number in ]0, 1[, got 1.5 (written as multiview.confidence)
     """
-    moved = {f"{r.moved[0]}.{r.moved[1]}": f"{s}.{k}" for (s, k), r in RETIRED.items()  # a user's old name
-             if r.moved is not None and isinstance(data, dict) and isinstance(data.get(s), dict) and k in data[s]}
+    moved = moved_names(data)  # a user's old name of a key, for its message
     data = drop_constants(data)  # a key that became a constant of the method, at its value (config/retired.py)
     check_tables(data, {name: {f.name for f in dataclasses.fields(cls)} for name, cls in _SECTIONS.items()})
     try:
@@ -136,11 +135,10 @@ def stored_config(data: dict[str, Any]) -> LensdistConfig:
                 f"saved under the realistic protocol's former fixed parallax (protocol.parallax_px = {px!r}), "
                 f"which this version replaced by {RETIRED[('protocol', 'parallax_px')].by}: fit it again"
             )
-        data = {**data, "protocol": {k: v for k, v in protocol.items() if k != "parallax_px"}}
+        data = without_key(data, "protocol", "parallax_px")
     data = settle_moves(data)  # an earlier version wrote both places of a moved key: the new one stands
     for section, key in INERT:
-        if isinstance(data.get(section), dict) and key in data[section]:
-            data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
+        data = without_key(data, section, key)
     return config_from_dict(data)
 
 

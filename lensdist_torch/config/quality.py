@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from lensdist_torch.config.checks import integer, positive, real
 
-__all__ = ["GAMMA", "K", "QualityConfig", "SIGMA", "TAU_B", "TAU_D", "TAU_E", "TAU_G"]
+__all__ = ["GAMMA", "K", "QualityConfig", "SIGMA", "TAU_B", "TAU_D", "TAU_E", "TAU_G", "TEMPERATURES"]
 
 #: Xydeas and Petrovic's constants of the edge-preservation sigmoid E = GAMMA / (1 + exp(K (A - SIGMA)))
 #: (docs/method.md, section 3): the paper's, fixed, not settings.
@@ -23,6 +23,12 @@ TAU_G = 0.004
 TAU_E = 0.05
 TAU_D = 0.02
 TAU_B = 0.02
+#: The names ``QualityConfig`` reads the four temperatures by.
+TEMPERATURES = ("tau_g", "tau_e", "tau_d", "tau_b")
+
+
+def _scaled(base: float, name: str) -> property:
+    return property(lambda self: base * self.temperature, doc=f":data:`{name}` times ``temperature``.")
 
 
 @dataclass(frozen=True)
@@ -75,10 +81,10 @@ class QualityConfig:
     gamma = property(lambda self: GAMMA, doc=":data:`GAMMA`.")
     k = property(lambda self: K, doc=":data:`K`.")
     sigma = property(lambda self: SIGMA, doc=":data:`SIGMA`.")
-    tau_g = property(lambda self: TAU_G * self.temperature, doc=":data:`TAU_G` times ``temperature``.")
-    tau_e = property(lambda self: TAU_E * self.temperature, doc=":data:`TAU_E` times ``temperature``.")
-    tau_d = property(lambda self: TAU_D * self.temperature, doc=":data:`TAU_D` times ``temperature``.")
-    tau_b = property(lambda self: TAU_B * self.temperature, doc=":data:`TAU_B` times ``temperature``.")
+    tau_g = _scaled(TAU_G, "TAU_G")
+    tau_e = _scaled(TAU_E, "TAU_E")
+    tau_d = _scaled(TAU_D, "TAU_D")
+    tau_b = _scaled(TAU_B, "TAU_B")
 
     def with_temperature_scale(self, factor: float) -> "QualityConfig":
         """A copy with every temperature multiplied by ``factor`` (for annealing)."""

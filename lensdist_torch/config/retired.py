@@ -16,7 +16,8 @@ from typing import Any
 
 from lensdist_torch.config.checks import show
 
-__all__ = ["INERT", "RETIRED", "Retired", "drop_constants", "retired_keys", "settle_moves"]
+__all__ = ["INERT", "RETIRED", "Retired", "drop_constants", "moved_names", "retired_keys", "settle_moves",
+           "without_key"]
 
 
 @dataclass(frozen=True)
@@ -232,6 +233,29 @@ def _named(data: Any, section: str, key: str) -> bool:
     return isinstance(data, dict) and isinstance(data.get(section), dict) and key in data[section]
 
 
+def without_key(data: dict, section: str, key: str) -> dict:
+    """A copy of a parsed config ``data`` without ``section.key`` (``data`` itself where it does not name it).
+
+    Example:
+        >>> without_key({"selfcal": {"parallax": 0, "chunk_size": 4}}, "selfcal", "parallax")
+        {'selfcal': {'chunk_size': 4}}
+    """
+    if not _named(data, section, key):
+        return data
+    return {**data, section: {k: v for k, v in data[section].items() if k != key}}
+
+
+def moved_names(data: Any) -> dict[str, str]:
+    """The moved keys a parsed config names: their new ``section.key`` -> the old one it was written as.
+
+    Example:
+        >>> moved_names({"multiview": {"confidence": 0.9}})
+        {'calibration.confidence': 'multiview.confidence'}
+    """
+    return {".".join(r.moved): f"{s}.{k}" for (s, k), r in RETIRED.items()
+            if r.moved is not None and _named(data, s, k)}
+
+
 def retired_keys(data: dict[str, Any]) -> list[str]:
     """The ``section.key`` names of :data:`RETIRED` in a saved config's dict that do not load as they are.
 
@@ -255,8 +279,8 @@ def settle_moves(data: Any) -> Any:
         {'calibration': {'max_pairs': 8}, 'selfcal': {'parallax': 0}}
     """
     for (section, key), r in RETIRED.items():
-        if r.moved is not None and _named(data, section, key) and _named(data, *r.moved):
-            data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
+        if r.moved is not None and _named(data, *r.moved):
+            data = without_key(data, section, key)
     return data
 
 
@@ -279,7 +303,7 @@ def drop_constants(data: Any) -> Any:
             if _named(data, to_section, to_key) and not _same(data[to_section][to_key], value):
                 raise ValueError(f"{section}.{key} = {show(value)} moved to {r.by}, which is "
                                  f"{show(data[to_section][to_key])} here: give one")
-            data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
+            data = without_key(data, section, key)
             target = data.get(to_section, {})
             if isinstance(target, dict) and to_key not in target:
                 data = {**data, to_section: {**target, to_key: value}}
@@ -290,5 +314,5 @@ def drop_constants(data: Any) -> Any:
         if not _same(value, r.value):
             raise ValueError(f"{section}.{key} = {show(value)} cannot be set: a constant of the method now: "
                              f"{r.by} = {r.value!r}")
-        data = {**data, section: {k: v for k, v in data[section].items() if k != key}}
+        data = without_key(data, section, key)
     return data

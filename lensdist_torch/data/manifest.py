@@ -16,6 +16,7 @@ import re
 from pathlib import Path
 
 from lensdist_torch.config import INERT, RETIRED, LensdistConfig, config_to_dict, retired_keys, stored_config
+from lensdist_torch.config.quality import TEMPERATURES
 from lensdist_torch.core.storage import atomic_write_bytes
 from lensdist_torch.data.locks import lock
 from lensdist_torch.data.synthesis import SETS, set_size
@@ -81,7 +82,7 @@ def _data_fields(config: LensdistConfig) -> dict:
     for name in _DATA_SECTIONS:
         d[name].update(_CONSTANTS[name])  # the constants that were keys: a data set keeps its fingerprint
     d["quality"].pop("temperature")  # hashed as the four temperatures it scales, as when they were keys
-    d["quality"].update({name: getattr(config.quality, name) for name in ("tau_g", "tau_e", "tau_d", "tau_b")})
+    d["quality"].update({name: getattr(config.quality, name) for name in TEMPERATURES})
     for key in _NOT_IN_DATA:
         d["registration"].pop(key, None)
     d["protocol"].pop("unseen_scenes", None)  # only reproduce's extra test set reads it

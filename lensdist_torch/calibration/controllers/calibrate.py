@@ -143,8 +143,8 @@ def calibrate_path(
                               or focal <= 0):  # checked before the run, not by the OpenCV export at its end
         raise ValueError(f"focal must be a positive number of pixels or None, got {focal!r}")
     st = or_defaults(settings, LensdistConfig, "settings")
-    cfg, frames, scale = or_defaults(config, CalibrationConfig) if config is not None else st.calibration, [], 1.0
-    st = dataclasses.replace(st, calibration=cfg)  # one [calibration] (the coverage) for every path
+    cfg = st.calibration if config is None else or_defaults(config, CalibrationConfig)
+    st, frames, scale = dataclasses.replace(st, calibration=cfg), [], 1.0  # one [calibration] for every path
     for _, img in frames_of_one_size(path, grey=True, max_frames=max_frames, quiet=quiet, desc="reading"):
         scale = scale if frames else analysis_scale(*img.shape[-2:], cfg)
         frames.append(to_analysis(img, scale))
