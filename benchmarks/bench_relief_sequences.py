@@ -14,6 +14,11 @@ the levels of bench_calibrate.py (about the centres of classes R, 1-4). Four mot
 - ``pan+altitude``: the view's scale ~ U[0.9, 1] per frame (the camera's height changes);
 - ``mixed``: both.
 
+``--tilt DEG`` renders the same sequences as oblique views (each frame's optical axis tilted by a
+pitch and a roll ~ U[-DEG, DEG], ``synthetic_sequence(..., tilt_deg=DEG)``): the frames' axes no
+longer parallel, the configuration in which a 3-D scene and a radial distortion can no longer
+trade (docs/method.md, section 11). ``--cases`` runs the listed indices instead of ``--start``/``--n``.
+
 Each sequence is written as PNG frames and calibrated through the user's path,
 ``calibration.controllers.calibrate.calibrate_path(folder, method="auto")`` (the direct path and, with
 pycolmap, the multi-view path, combined). Figures: Delta_avg error as % of the range (14.4 px)
@@ -59,8 +64,8 @@ MOTIONS = {
 }
 
 
-def case(i: int) -> dict:
-    """The i-th sequence's settings (deterministic in i)."""
+def case(i: int, tilt_deg: float = 0.0) -> dict:
+    """The i-th sequence's settings (deterministic in i), its frames tilted by up to ``tilt_deg``."""
     g = torch.Generator().manual_seed(70_000 + i)
     u = torch.rand(2, generator=g, dtype=torch.float64)
     cfg = LensdistConfig().distortion
@@ -68,7 +73,7 @@ def case(i: int) -> dict:
     c = 0.75 + 0.5 * float(u[0])
     motion = list(MOTIONS)[i % len(MOTIONS)]
     return {"index": i, "motion": motion, "relief": 0.01 + 0.02 * float(u[1]), "scene": ("gravel", "grass")[i % 2],
-            "k2": level * cfg.k2_max * c, "k4": level * cfg.k4_max * (2 - c), **MOTIONS[motion]}
+            "k2": level * cfg.k2_max * c, "k4": level * cfg.k4_max * (2 - c), "tilt_deg": tilt_deg, **MOTIONS[motion]}
 
 
 def write_frames(frames: torch.Tensor, folder: Path) -> None:
@@ -80,7 +85,7 @@ def write_frames(frames: torch.Tensor, folder: Path) -> None:
 def run_one(spec: dict, method: str = "auto", settings: LensdistConfig | None = None) -> dict:
     frames, _ = synthetic_sequence(20, spec["k2"], spec["k4"], size=SIZE, scene=spec["scene"], seed=spec["index"],
                                    rotation_deg=spec["rotation_deg"], altitude=spec["altitude"],
-                                   relief=spec["relief"], realistic=True)
+                                   relief=spec["relief"], realistic=True, tilt_deg=spec["tilt_deg"])
     truth = float(delta_avg(spec["k2"], spec["k4"], *SIZE))
     with tempfile.TemporaryDirectory() as tmp:
         write_frames(frames, Path(tmp))
@@ -160,6 +165,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n", type=int, default=16, help="number of sequences (the motions in turn)")
     ap.add_argument("--start", type=int, default=0, help="first sequence index (to resume)")
+    ap.add_argument("--cases", type=int, nargs="+", default=None, help="these sequence indices instead")
+    ap.add_argument("--tilt", type=float, default=0.0, help="oblique views: each frame tilted by up to this (deg)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--method", choices=["auto", "direct", "multiview"], default="auto",
                     help="calibrate_path's method (direct: the photometric path alone, seconds a sequence)")
@@ -174,8 +181,8 @@ def main() -> None:
         direct.RELIEF_TEST = direct.RELIEF_REL = 0.0
     rows = json.loads(args.out.read_text())["rows"] if args.start and args.out.exists() else []
     settings = load_config(args.config) if args.config else None  # read once, not per sequence
-    for i in range(args.start, args.start + args.n):
-        rows.append(run_one(case(i), args.method, settings))
+    for i in args.cases or range(args.start, args.start + args.n):
+        rows.append(run_one(case(i, args.tilt), args.method, settings))
         r = rows[-1]
         print(f"{i:3d} {r['motion']:13s} relief {100 * r['relief']:.1f} %  truth {r['truth_delta_avg']:6.2f}  "
               f"est {r['estimate']}  interval {r['interval']}  class {r['class']} ({r['true_class']})  "

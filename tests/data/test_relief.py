@@ -14,7 +14,7 @@ import math
 import pytest
 import torch
 
-from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence
+from lensdist_torch.calibration.controllers.calibrate import synthetic_sequence, tilted_offsets
 from lensdist_torch.data.relief import HeightField, draw_height_field, relief_fraction, relief_samples
 
 F64 = torch.float64
@@ -150,3 +150,38 @@ class TestSequence:
             resid.append(float((a - b).abs().mean()))
         assert resid[0] < 1e-6  # no baseline: identical frames
         assert resid[1] > 1e-3 and resid[2] > 1.5 * resid[1]
+
+
+class TestObliqueViews:
+    """``synthetic_sequence(..., tilt_deg=...)``: frames whose optical axes are not parallel."""
+
+    @pytest.mark.parametrize("pitch,roll", [(0.1, 0.0), (0.0, -0.2), (0.15, 0.12), (-0.3, 0.25)])
+    def test_the_ground_point_projects_back_to_its_pixel(self, pitch, roll):
+        """The tilted camera (kornia's rotations about x by pitch, then y by roll) sees the ground point
+        (o, f) of the upright frame at the pixel it came from."""
+        from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+        rel = torch.rand(50, 2, generator=torch.Generator().manual_seed(0), dtype=F64) * 400 - 200
+        focal = 424.0
+        o = tilted_offsets(rel, focal, pitch, roll)
+        rx = axis_angle_to_rotation_matrix(torch.tensor([[pitch, 0.0, 0.0]], dtype=F64))[0]
+        ry = axis_angle_to_rotation_matrix(torch.tensor([[0.0, roll, 0.0]], dtype=F64))[0]
+        ground = torch.cat([o, torch.full((50, 1), focal, dtype=F64)], 1)
+        cam = ground @ (ry @ rx)  # R^T p for each row p
+        assert torch.allclose(focal * cam[:, :2] / cam[:, 2:], rel, atol=1e-9)
+
+    def test_an_upright_camera_is_the_identity(self):
+        rel = torch.tensor([[10.0, -20.0], [150.0, 90.0]], dtype=F64)
+        assert torch.allclose(tilted_offsets(rel, 300.0, 0.0, 0.0), rel, atol=1e-12)
+
+    def test_no_tilt_draws_nothing_and_a_tilt_changes_every_frame(self):
+        kw = dict(size=(64, 80), seed=5, relief=0.02, rotation_deg=3.0, altitude=0.1)
+        upright, _ = synthetic_sequence(3, 1e-6, 0.0, **kw)
+        assert torch.equal(upright, synthetic_sequence(3, 1e-6, 0.0, tilt_deg=0.0, **kw)[0])
+        oblique, _ = synthetic_sequence(3, 1e-6, 0.0, tilt_deg=8.0, **kw)
+        assert all(float((oblique[i] - upright[i]).abs().mean()) > 0.01 for i in range(3))
+
+    @pytest.mark.parametrize("tilt", [-1.0, float("nan"), 45.0])
+    def test_a_tilt_out_of_range_is_one_line(self, tilt):
+        with pytest.raises(ValueError, match="tilt_deg must be in"):
+            synthetic_sequence(2, 0.0, 0.0, size=(32, 40), tilt_deg=tilt)

@@ -53,7 +53,7 @@ VERIFY_PAIRS = 6
 #: adjustment (the multi-view camera), the caller's ``focal``, or the half diagonal (a convention).
 FOCAL_SOURCES = ("colmap", "given", "half diagonal")
 
-__all__ = ["METHODS", "FOCAL_SOURCES", "calibrate_path", "synthetic_sequence"]
+__all__ = ["METHODS", "FOCAL_SOURCES", "calibrate_path", "synthetic_sequence", "tilted_offsets", "MAX_TILT_DEG"]
 
 # ------------------------------------------------------------------ calibration
 def _finite(value):
@@ -275,6 +275,34 @@ def _verified(res: dict, frames: torch.Tensor, cal, cfg: CalibrationConfig, st: 
 
 
 # ------------------------------------------------------------------ synthetic sequences
+#: The largest tilt of :func:`synthetic_sequence`'s oblique views: every ray of a 90-degree view still meets the ground.
+MAX_TILT_DEG = 30.0
+
+
+def tilted_offsets(rel: torch.Tensor, focal: float, pitch: float, roll: float) -> torch.Tensor:
+    """Where a tilted pinhole's rays meet the ground, as offsets from the point below it, in an upright one's pixels.
+
+    ``rel`` (..., 2): ideal pixel offsets (x, y) from the principal point of a camera ``focal`` px
+    from its image; the camera is turned by ``pitch`` (about its x axis) then ``roll`` (about its y
+    axis), radians. An upright camera (0, 0) gives ``rel`` back; a ray (x, y, f) turned to (a, b, c)
+    meets the ground f (a, b) / c from the nadir, at the scale of the upright view.
+
+    Example:
+        >>> import math, torch
+        >>> o = tilted_offsets(torch.zeros(1, 2, dtype=torch.float64), 100.0, math.radians(10), 0.0)
+        >>> [round(v, 3) for v in o[0].tolist()]  # the principal ray tilted by 10 degrees: f tan 10 along y
+        [0.0, -17.633]
+    """
+    rays = torch.cat([rel, torch.full_like(rel[..., :1], focal)], -1)
+    cp, sp, cr, sr = math.cos(pitch), math.sin(pitch), math.cos(roll), math.sin(roll)
+    about_x = rel.new_tensor([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
+    about_y = rel.new_tensor([[cr, 0.0, sr], [0.0, 1.0, 0.0], [-sr, 0.0, cr]])
+    d = rays @ (about_y @ about_x).T
+    if bool((d[..., 2] <= 0).any()):
+        raise ValueError(f"pitch and roll must leave every ray pointing at the ground, got {pitch} and {roll} rad")
+    return focal * d[..., :2] / d[..., 2:]
+
+
 def synthetic_sequence(
     n_frames: int = 20,
     k2: float = 0.0,
@@ -290,6 +318,7 @@ def synthetic_sequence(
     config: LensdistConfig | None = None,
     relief: float = 0.0,
     altitude: float = 0.0,
+    tilt_deg: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """A camera panning down an embedded scene, every frame distorted by one (k2, k4).
 
@@ -313,6 +342,13 @@ def synthetic_sequence(
     camera's height per frame: the view's scale ~ U[1 - altitude, 1], the heights' fractions
     divided by it (a radial parallax).
 
+    ``tilt_deg`` > 0 gives oblique views: each frame's optical axis tilted from the vertical by a
+    pitch and a roll ~ U[-tilt_deg, tilt_deg] each (a pinhole of focal length the frame's width),
+    so that the frames' axes are no longer parallel. A pixel's ray then meets the flat ground where
+    a homography says, and a point of height rho lies on it at 1 - rho of the way from the camera
+    (:func:`~lensdist_torch.data.relief.relief_samples`, the ground point below the camera as
+    its nadir). 0 draws nothing and renders what it always did.
+
     Returns:
         distorted, ideal: (N, 1, H, W) float32 (ideal: the same path with k2 = k4 = 0).
 
@@ -331,20 +367,26 @@ def synthetic_sequence(
     u = torch.rand(3, n_frames, generator=g, dtype=torch.float64)
     ty = torch.cat([torch.zeros(1, dtype=torch.float64), (step_px[0] + (step_px[1] - step_px[0]) * u[0, 1:]).cumsum(0)])
     tx, th = jitter_px * (2 * u[1] - 1), torch.deg2rad(rotation_deg * (2 * u[2] - 1))
-    big = rel.abs().amax(dim=(0, 1, 2))
-    ext = big + math.sin(math.radians(abs(rotation_deg))) * big.flip(0) + 2  # half extents, any rotation drawn
-    ext = ext * (1 + relief / (1 - altitude))  # a hollow moves samples away from the nadir
-    z = min((ws - 1) / (2 * float(ext[0]) + 2 * jitter_px), (hs - 1) / (2 * float(ext[1]) + float(ty[-1])))
     scale = (
         1 - altitude * torch.rand(n_frames, generator=g, dtype=torch.float64)
         if altitude > 0
         else torch.ones(n_frames, dtype=torch.float64)
     )
     field = draw_height_field(g, (0.0, ws - 1.0, 0.0, hs - 1.0), relief) if relief > 0 else None
+    if not (math.isfinite(tilt_deg) and 0 <= tilt_deg <= MAX_TILT_DEG):
+        raise ValueError(f"tilt_deg must be in [0, {MAX_TILT_DEG}] degrees, got {tilt_deg}")
+    rels = [rel] * n_frames
+    if tilt_deg > 0:  # drawn last: the other draws stay those of an upright camera
+        tilts = torch.deg2rad(tilt_deg * (2 * torch.rand(2, n_frames, generator=g, dtype=torch.float64) - 1))
+        rels = [tilted_offsets(rel, float(w), float(tilts[0, i]), float(tilts[1, i])) for i in range(n_frames)]
+    big = torch.stack([r.abs().amax(dim=(0, 1, 2)) for r in rels]).amax(0)
+    ext = big + math.sin(math.radians(abs(rotation_deg))) * big.flip(0) + 2  # half extents, any rotation drawn
+    ext = ext * (1 + relief / (1 - altitude))  # a hollow moves samples away from the nadir
+    z = min((ws - 1) / (2 * float(ext[0]) + 2 * jitter_px), (hs - 1) / (2 * float(ext[1]) + float(ty[-1])))
     out = []
     for i in range(n_frames):
         cos, sin = math.cos(float(th[i])), math.sin(float(th[i]))
-        ri = rel * float(scale[i])  # exactly rel at a constant altitude
+        ri = rels[i] * float(scale[i])  # exactly rel at a constant altitude
         x = (ws - 1) / 2 + z * (tx[i] + cos * ri[..., 0] - sin * ri[..., 1])
         y = z * (float(ext[1]) + ty[i] + sin * ri[..., 0] + cos * ri[..., 1])
         nadir = ((ws - 1) / 2 + z * float(tx[i]), z * (float(ext[1]) + float(ty[i])))
